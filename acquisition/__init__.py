@@ -1,0 +1,1 @@
+"""Capture sessions: drive the rig through drivers/ interfaces and write streak stacks to Zarr."""

@@ -1,0 +1,1 @@
+"""Streak stacks to calibrated (y, x, t) cubes, and cube import/export."""

@@ -1,0 +1,1 @@
+"""Benchmarks run by ``streaklab bench NAME``; one module per benchmark."""

@@ -1,0 +1,63 @@
+"""The ``streaklab`` command: a thin dispatcher over one module per subcommand.
+
+Subcommand modules are imported only when their command runs, so ``streaklab
+--help`` stays fast and a missing optional piece never breaks the others.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from . import __version__
+
+# name -> (module, one-line help)
+COMMANDS = {
+    "demo": ("streaklab.commands.demo", "run the whole pipeline on the simulated lab and report"),
+    "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
+    "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
+    "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
+    "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
+    "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
+    "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),
+    "decompose": ("streaklab.commands.decompose", "decompose every pixel of a cube"),
+    "report": ("streaklab.commands.report", "figures and a summary of a result store"),
+    "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability"),
+}
+
+
+class CommandError(Exception):
+    """An error the user can fix; printed without a traceback, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="streaklab",
+        description="Streak-camera transient imaging: capture, reconstruct and decompose picosecond time profiles.",
+    )
+    parser.add_argument("--version", action="version", version=f"streaklab {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv or argv[0] not in COMMANDS:
+        parser.parse_args(argv or ["--help"])
+        return 2
+    name = argv[0]
+    module = importlib.import_module(COMMANDS[name][0])
+    sub = argparse.ArgumentParser(prog=f"streaklab {name}", description=COMMANDS[name][1])
+    module.add_arguments(sub)
+    args = sub.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except CommandError as exc:
+        print(f"streaklab {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"\nstreaklab {name}: interrupted", file=sys.stderr)
+        return 130
