@@ -18,9 +18,6 @@ an error never leaves a half-written cube or destroys an existing one.
 from __future__ import annotations
 
 import datetime as _dt
-import os
-import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +27,7 @@ from acquisition.runstore import open_run
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
 from .cubestore import check_output_path, create_cube, open_cube
+from .staging import staged_output
 
 __all__ = ["ReconstructionError", "reconstruct"]
 
@@ -136,9 +134,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
     }
 
-    out_abs = out.resolve()
-    tmp = out_abs.parent / f".{out_abs.name}.partial-{uuid.uuid4().hex[:8]}"
-    try:
+    with staged_output(out, overwrite=overwrite) as tmp:
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
         g = cube.group
@@ -162,27 +158,5 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             cube.array[y0:y0 + ys.size] = block
             if progress is not None:
                 progress(min(y0 + by, n_lines), n_lines)
-        _replace_dir(tmp, out_abs, overwrite=overwrite)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return open_cube(out_abs)
+    return open_cube(out.resolve())
 
-
-def _replace_dir(src: Path, dst: Path, *, overwrite: bool) -> None:
-    """Move the finished store ``src`` to ``dst``; an existing ``dst`` is removed only after that worked."""
-    if dst.exists():
-        check_output_path(dst, overwrite=overwrite)
-        trash = dst.parent / f".{dst.name}.old-{uuid.uuid4().hex[:8]}"
-        os.replace(dst, trash)
-        try:
-            os.replace(src, dst)
-        except BaseException:
-            os.replace(trash, dst)
-            raise
-        if trash.is_dir():
-            shutil.rmtree(trash)
-        else:
-            trash.unlink()
-    else:
-        os.replace(src, dst)
