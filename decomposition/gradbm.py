@@ -249,7 +249,7 @@ def _fit_sss(rem, t, t_direct, sigma, n_onsets):
     return onset, amp, alpha, model_peak, ok
 
 
-def gradbm(profiles, *, time_bin_ps: float = 2.0, t0_ps: float | None = None, components=("d", "r", "s"),
+def gradbm(profiles, time_bin_ps: float = 2.0, t0_ps: float | None = None, *, components=("d", "r", "s"),
            max_interreflections: int = 3, **options) -> dict[str, np.ndarray]:
     """Decompose time profiles with the gradient-based method (see the module docstring).
 

@@ -97,3 +97,17 @@ def test_bad_arguments():
         gradbm(np.zeros(64))
     with pytest.raises(ValueError, match="component family"):
         gradbm(y, components=("d", "x"))
+
+
+def test_time_axis_is_respected():
+    # 1 ps bins starting at 500 ps; positional and keyword time axis agree.
+    p = {"direct_delay_ps": np.array([560.4]), "direct_amplitude": np.array([1.0]),
+         "direct_sigma_ps": np.array([2.5])}
+    from decomposition.model import render_profile as rp
+    y = rp(p, 200, time_bin_ps=1.0, t0_ps=500.0)
+    a = gradbm(y, 1.0, 500.0)
+    b = gradbm(y, time_bin_ps=1.0, t0_ps=500.0)
+    assert a["direct_delay_ps"][0] == pytest.approx(560.4, abs=0.05)
+    assert a["direct_sigma_ps"][0] == pytest.approx(2.5, rel=0.02)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
