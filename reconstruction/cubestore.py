@@ -1,0 +1,158 @@
+"""The calibrated-cube store: one Zarr v3 group holding a (y, x, t) cube.
+
+Layout (every array has ``dimension_names``, so ``xarray.open_zarr`` opens it):
+
+    cube   (y, x, t) float32   signal, chunked (by, bx, all of t)
+    t      (t,)      float64   bin-centre times in ps (attrs: units = "ps")
+    y      (y,)      float64   scan-line coordinate (attrs: units, e.g. "deg" of mirror angle or "pixel")
+    x      (x,)      float64   slit coordinate (attrs: units = "pixel")
+
+Group and ``cube`` attributes: ``streaklab_kind = "cube"``, ``time_bin_ps``, ``t0_ps`` (time of
+bin 0), ``units`` of the signal, and ``provenance`` (a dict: what produced it, from what, with
+which software version).  Other producers may add groups beside it (``truth`` for simulated
+ground truth).  This module only reads and writes that layout; it knows nothing of solvers.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path"]
+
+CUBE_KIND = "cube"
+
+
+class CubeStoreError(ValueError):
+    """The path is not a usable cube store (says exactly why)."""
+
+
+@dataclass(frozen=True)
+class Cube:
+    """An opened cube store.
+
+    Attributes
+    ----------
+    path : str
+    group : zarr.Group
+    array : zarr.Array, shape (y, x, t)
+    time_bin_ps, t0_ps : float
+    attrs : dict   the cube array's attributes
+    """
+
+    path: str
+    group: zarr.Group
+    array: zarr.Array
+    time_bin_ps: float
+    t0_ps: float
+    attrs: dict
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.array.shape)
+
+    def time_axis_ps(self) -> np.ndarray:
+        return self.t0_ps + self.time_bin_ps * np.arange(self.shape[2], dtype=np.float64)
+
+
+def check_output_path(path, *, overwrite: bool = False) -> None:
+    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
+    p = Path(path)
+    if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
+        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
+
+
+def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",
+                provenance: dict | None = None, y_coord=None, y_units: str = "pixel",
+                overwrite: bool = False, dtype="float32") -> Cube:
+    """Create an empty cube store (filled with NaN) ready for region writes.
+
+    Parameters
+    ----------
+    path : str or Path
+        Directory store to create.
+    shape : (ny, nx, nt)
+    time_bin_ps, t0_ps : float
+        Uniform time axis: bin i at ``t0_ps + i * time_bin_ps`` (ps).
+    chunks : (by, bx) or (by, bx, nt), optional
+        Pixel chunk size; the time axis is never split.  Default (min(ny, 16), min(nx, 64)).
+    y_coord : array (ny,), optional
+        Physical coordinate of each line (default: line index), in ``y_units``.
+    """
+    ny, nx, nt = (int(s) for s in shape)
+    if min(ny, nx, nt) <= 0:
+        raise CubeStoreError(f"cube shape must be positive, got {shape}")
+    time_bin_ps = float(time_bin_ps)
+    if not np.isfinite(time_bin_ps) or time_bin_ps <= 0:
+        raise CubeStoreError(f"time_bin_ps must be positive, got {time_bin_ps}")
+    if chunks is None:
+        chunks = (min(ny, 16), min(nx, 64))
+    by, bx = int(chunks[0]), int(chunks[1])
+    if by <= 0 or bx <= 0:
+        raise CubeStoreError(f"chunk sizes must be positive, got {chunks}")
+    check_output_path(path, overwrite=overwrite)
+    attrs = {
+        "streaklab_kind": CUBE_KIND,
+        "time_bin_ps": time_bin_ps,
+        "t0_ps": float(t0_ps),
+        "units": units,
+        "provenance": dict(provenance or {}),
+    }
+    g = zarr.open_group(str(path), mode="w")
+    g.attrs.update(attrs)
+    arr = g.create_array("cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
+                         dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
+    t = g.create_array("t", shape=(nt,), dtype="float64", dimension_names=["t"],
+                       attributes={"units": "ps", "long_name": "time of bin centre"})
+    t[:] = float(t0_ps) + time_bin_ps * np.arange(nt)
+    y = g.create_array("y", shape=(ny,), dtype="float64", dimension_names=["y"],
+                       attributes={"units": y_units, "long_name": "scan line"})
+    y[:] = np.arange(ny, dtype=np.float64) if y_coord is None else np.asarray(y_coord, np.float64)
+    x = g.create_array("x", shape=(nx,), dtype="float64", dimension_names=["x"],
+                       attributes={"units": "pixel", "long_name": "slit position"})
+    x[:] = np.arange(nx, dtype=np.float64)
+    return Cube(str(path), g, arr, time_bin_ps, float(t0_ps), dict(arr.attrs))
+
+
+def write_cube(path, data, *, time_bin_ps: float, t0_ps: float | None = None, **kwargs) -> Cube:
+    """Write a whole in-memory cube (y, x, t) into a new store.  ``t0_ps`` defaults to ``time_bin_ps``."""
+    data = np.asarray(data)
+    if data.ndim != 3:
+        raise CubeStoreError(f"a cube must be 3-D (y, x, t); got an array of shape {data.shape}")
+    cube = create_cube(path, data.shape, time_bin_ps=time_bin_ps,
+                       t0_ps=time_bin_ps if t0_ps is None else t0_ps, **kwargs)
+    cube.array[...] = data.astype(cube.array.dtype, copy=False)
+    return cube
+
+
+def open_cube(path, *, mode: str = "r") -> Cube:
+    """Open and validate a cube store; raises :class:`CubeStoreError` naming what is wrong."""
+    if not os.path.exists(path):
+        raise CubeStoreError(f"{path}: no such file or directory")
+    try:
+        g = zarr.open_group(str(path), mode=mode)
+    except Exception as exc:  # zarr raises several types for "not a group"
+        raise CubeStoreError(f"{path} is not a Zarr group: {exc}") from None
+    if "cube" not in g:
+        kind = g.attrs.get("streaklab_kind")
+        hint = f" (it is a streaklab {kind!r} store)" if kind else ""
+        raise CubeStoreError(f"{path} has no 'cube' array{hint}")
+    arr = g["cube"]
+    if not isinstance(arr, zarr.Array):
+        raise CubeStoreError(f"{path}/cube is not an array")
+    if arr.ndim != 3:
+        raise CubeStoreError(f"{path}/cube must be 3-D (y, x, t); it has shape {arr.shape}")
+    dims = getattr(arr.metadata, "dimension_names", None)
+    if dims is not None and tuple(dims) != ("y", "x", "t"):
+        raise CubeStoreError(f"{path}/cube has dimensions {tuple(dims)}, expected ('y', 'x', 't')")
+    attrs = dict(arr.attrs)
+    if "time_bin_ps" not in attrs:
+        raise CubeStoreError(f"{path}/cube lacks the 'time_bin_ps' attribute: the time axis is unknown")
+    time_bin_ps = float(attrs["time_bin_ps"])
+    if not np.isfinite(time_bin_ps) or time_bin_ps <= 0:
+        raise CubeStoreError(f"{path}/cube has a non-positive time_bin_ps ({time_bin_ps})")
+    t0_ps = float(attrs.get("t0_ps", time_bin_ps))
+    return Cube(str(path), g, arr, time_bin_ps, t0_ps, attrs)
