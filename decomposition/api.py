@@ -122,7 +122,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
               alpha_range_per_ps=(0.01, 0.05), n_alpha: int = 500,
               coarse_sigma: int = 4, coarse_sss_sigma: int = 3, coarse_alpha: int = 3,
               off_grid: bool = True, max_components: int = 6, max_reflections: int = 3,
-              max_iter: int | None = None, n_lm: int = 8, n_polish: int = 10,
+              max_iter: int | None = None, n_lm: int = 8, n_polish: int = 30,
               sparsity: float = 3.0, eps_rel: float = 0.01, noise_floor: float = 1e-3,
               rel_threshold: float = 0.05, merge_tol_bins: float = 1.0, bound_factor: float = 4.0,
               poor_fit: float = 3.0, nan_policy: str = "raise", saturation_level: float | None = None,
@@ -287,7 +287,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     t = time_axis_ps(L, T, t0)
     if method == "gradbm":
         info.update(method_options)
-        _run_gradbm(pn, idx_live, scale, T, t0, R, params, method_options)
+        _run_gradbm(pn, idx_live, scale, T, t0, R, fams, params, method_options)
     else:
         opts = dict(max_components=max_components, max_gauss=(max_components if "r" in fams else 1) if "d" in fams else 0,
                     allow_sss="s" in fams, sparsity=sparsity, eps_rel=eps_rel, max_iter=max_iter, n_lm=n_lm,
@@ -325,6 +325,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                 cs.snap_to_grid(st, dic)
                 cs.refit_amplitudes(pb, wb, st, dic)
             comp.threshold(st, t, rel_threshold)
+            comp.merge_gaussians(st, T, merge_tol_bins)   # refinement can bring two atoms together
             act = st["fam"] != cs.FAM_NONE
             at_b = act & ((st["lsig"] <= bounds["lsig"][0] + 1e-9) | (st["lsig"] >= bounds["lsig"][1] - 1e-9))
             at_b |= (st["fam"] == cs.FAM_SSS) & ((st["lalp"] <= bounds["lalp"][0] + 1e-9)
@@ -387,12 +388,12 @@ def _spikes(pn, w, s, T, sigma_min_ps, k_sigma):
     return out
 
 
-def _run_gradbm(pn, idx_live, scale, T, t0, R, params, options):
+def _run_gradbm(pn, idx_live, scale, T, t0, R, fams, params, options):
     from .gradbm import gradbm  # imported lazily: the baseline is optional for the ConvSCD path
 
     if idx_live.size == 0:
         return
-    got = gradbm(pn[idx_live], T, t0, **options)
+    got = gradbm(pn[idx_live], T, t0, components=tuple(sorted(fams)), max_interreflections=R, **options)
     for k in DIRECT_KEYS + SSS_KEYS:
         if k in got:
             v = np.asarray(got[k], np.float64).reshape(idx_live.size)

@@ -106,6 +106,7 @@ FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 _WORKERS = max(1, min(2, os.cpu_count() or 1))
 _FD_STEP = 1e-6  # forward-difference step in log sigma / log alpha
 _NEAR_SIGMA = 3.0  # see _constrain
+_AMP_MAX = 1e3    # largest component peak, in units of the pixel's largest sample
 
 
 @dataclass(frozen=True)
@@ -370,6 +371,46 @@ def _constrain(trial, sss_after_direct, near_sigma=None):
     trial["delay"] = np.where(near, np.maximum(trial["delay"], first), trial["delay"])
 
 
+def _damped_step(JtJ, g, d, fixed, lam):
+    """Marquardt step (JtJ + lam diag(JtJ)) x = g with ``fixed`` parameters held at 0."""
+    n = JtJ.shape[-1]
+    ai = np.arange(n)
+    keep = ~fixed
+    A = JtJ * (keep[:, :, None] & keep[:, None, :])
+    A[:, ai, ai] = np.where(fixed, 1.0, d * (1.0 + lam[:, None]))
+    g = np.where(fixed, 0.0, g)
+    try:
+        step = np.linalg.solve(A, g[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        step = np.zeros_like(g)
+        for i in range(A.shape[0]):  # rare: solve the non-singular rows one by one
+            try:
+                step[i] = np.linalg.solve(A[i], g[i])
+            except np.linalg.LinAlgError:
+                pass
+    return np.where(np.isfinite(step), step, 0.0)
+
+
+def _linked(st, near_sigma=None):
+    """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
+
+    Returns (linked (P,), direct slot (P,), sss slot (P,)).  Linked: the pixel
+    has both, and the direct lies less than ``near_sigma`` PSF widths after
+    the onset (the same condition as :func:`_constrain`).
+    """
+    near_sigma = _NEAR_SIGMA if near_sigma is None else near_sigma
+    g = st["fam"] == FAM_GAUSS
+    s = st["fam"] == FAM_SSS
+    dg = np.where(g, st["delay"], np.inf)
+    dsl = np.argmin(dg, axis=1)
+    ssl = np.argmax(s, axis=1)
+    rows = np.arange(st["fam"].shape[0])
+    first = dg[rows, dsl]
+    ts = st["delay"][rows, ssl]
+    linked = s.any(axis=1) & np.isfinite(first) & (first - ts < near_sigma * np.exp(st["lsig"][rows, ssl]))
+    return linked, dsl, ssl
+
+
 def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
@@ -405,29 +446,41 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         if tied.any():
             jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
             free[tied, 1:, 2] = False
+        if sss_after_direct:
+            # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
+            # delay column moves both, the sss delay column moves the gap only
+            lk, dsl, ssl = _linked(sub)
+            if lk.any():
+                rows = np.nonzero(lk)[0]
+                jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
         free = free.reshape(idx.size, 4 * K)
         J = jac.reshape(idx.size, 4 * K, -1)
         JtJ = np.matmul(J, J.transpose(0, 2, 1))
         g = np.matmul(J, r[:, :, None])[..., 0]
         d = JtJ[:, ai, ai].copy()
         fixed = ~free | ~(d > 0)
-        keep = ~fixed
-        A = JtJ * (keep[:, :, None] & keep[:, None, :])
-        A[:, ai, ai] = np.where(fixed, 1.0, d * (1.0 + lam[idx, None]))
-        g[fixed] = 0.0
-        try:
-            step = np.linalg.solve(A, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            step = np.zeros_like(g)
+        step = _damped_step(JtJ, g, d, fixed, lam[idx])
+        if sss_after_direct and lk.any():
+            # active set for the gap >= 0 bound: a gap at 0 whose step points below it is
+            # pinned and the step re-solved without it
+            col = 4 * ssl[rows] + 1
+            gap = sub["delay"][rows, ssl[rows]] - sub["delay"][rows, dsl[rows]]
+            pin = (gap <= 1e-9) & (step[rows, col] < 0)
+            if pin.any():
+                pr = rows[pin]
+                fixed[pr, col[pin]] = True
+                step[pr] = _damped_step(JtJ[pr], g[pr], d[pr], fixed[pr], lam[idx[pr]])
         step = np.where(np.isfinite(step), step, 0.0).reshape(idx.size, K, 4)
         trial = {k: v.copy() for k, v in sub.items()}
-        trial["amp"] = np.where(act, np.maximum(sub["amp"] + step[..., 0], 0.0), 0.0)
+        trial["amp"] = np.where(act, np.clip(sub["amp"] + step[..., 0], 0.0, _AMP_MAX / sub["pen"]), 0.0)
         trial["delay"] = np.clip(sub["delay"] + step[..., 1], *bounds["delay"])
         lsig = np.clip(sub["lsig"] + step[..., 2], *bounds["lsig"])
         lsig[tied] = lsig[tied, :1]
         trial["lsig"] = lsig
         trial["lalp"] = np.where(sub["fam"] == FAM_SSS,
                                  np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
+        if sss_after_direct and lk.any():
+            trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
         _constrain(trial, sss_after_direct)
         tmodel, _ = _render(t, trial)
         tobj = objective(p[idx], ww, tmodel, trial, mu[idx], eps[idx])
@@ -440,7 +493,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         rej = idx[~better]
         lam[rej] *= 4.0
         # converged: tiny relative decrease, or damping blown up
-        small = better & (old - tobj <= 1e-10 * np.maximum(old, 1e-300))
+        small = better & (old - tobj <= 1e-8 * np.square(eps[idx]))
         live[idx[small]] = False
         live[rej[lam[rej] > 1e8]] = False
     out = {k: v.copy() for k, v in full.items()}
@@ -478,20 +531,24 @@ def _closed_form(u, n, mu, eps):
         ok = (disc >= 0) & (u > 0) & (z > 0) & (n > 0)
         z = np.where(ok, z, 0.0)
         dec = 0.5 * n * (u * u - np.square(z - u)) - mu * np.log1p(z / eps)
-    dec = np.where(ok & np.isfinite(dec), dec, 0.0)
-    return z, dec
+    ok &= np.isfinite(dec) & (dec > 0)      # a positive stationary point may still lose to z = 0
+    return np.where(ok, z, 0.0), np.where(ok, dec, 0.0)
 
 
-def _best(z, dec, n_atoms, by_size=None):
+def _best(z, dec, n_atoms, by_size=None, in_window=None):
     """Per-pixel best coordinate of (n, A, S) arrays -> (flat index, z, decrease).
 
     Largest decrease (Gauss-Southwell-q); rows with ``by_size`` take the
-    largest coefficient among decreasing coordinates instead (Gauss-Southwell-r).
+    largest coefficient among decreasing coordinates instead (Gauss-Southwell-r),
+    restricted to shifts ``in_window`` (S,) so that atoms mostly outside the
+    window, whose tiny truncated norms make any coefficient possible, are not taken.
     """
     flat = dec.reshape(dec.shape[0], -1)
     best = np.argmax(flat, axis=1)
     if by_size is not None and by_size.any():
         zr = np.where(flat[by_size] > 0, z.reshape(dec.shape[0], -1)[by_size], -np.inf)
+        if in_window is not None:
+            zr = np.where(np.tile(in_window, dec.shape[1])[None, :], zr, -np.inf)
         best[by_size] = np.argmax(zr, axis=1)
     rows = np.arange(dec.shape[0])
     return best, z.reshape(dec.shape[0], -1)[rows, best], flat[rows, best]
@@ -514,7 +571,7 @@ def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, mi
     delay = dic.t0_ps + dic.shifts * dic.time_bin_ps
     allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
     dec = np.where(allow, dec, 0.0)
-    best, zb, db = _best(z, dec, dic.fam.size, by_size)
+    best, zb, db = _best(z, dec, dic.fam.size, by_size, dic.shifts >= 0)
     a_i, j_i = np.divmod(best, dic.shifts.size)
     fam = dic.fam[a_i]
     alpha = np.where(fam == FAM_SSS, dic.alpha_per_ps[a_i], 1.0)
@@ -758,10 +815,17 @@ def _final(hist):
 
 def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
                  tie_sigma=True, sss_after_direct=True):
-    """Final refinement of a fixed set of atoms (after thresholding and merging)."""
+    """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
+
+    The sparse step has chosen the atoms; this is the usual debiasing step
+    after sparse selection: the log-sum penalty shrinks amplitudes (it favours
+    a smaller direct plus a larger sss along their near-degenerate direction),
+    so the kept atoms are refined on the data term alone (mu = 0), each step
+    accepted only where the residual decreases.
+    """
     L = p.shape[1]
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    mu = sparsity * s_eff * s_eff
+    mu = np.zeros_like(s_eff)
     eps = eps_rel * s_eff
     model, _ = _render(t, st)
     obj = objective(p, w, model, st, mu, eps)
