@@ -177,11 +177,18 @@ def _fit_gaussian(y, t, amp, mu, sigma, *, rise, fall, time_bin_ps, n_iter, back
         JTJ = np.einsum("nli,nlj->nij", J, J)
         JTr = np.einsum("nli,nl->ni", J, r)
         diag = np.einsum("nii->ni", JTJ)
-        A = JTJ + (lam[:, None] * diag + 1e-12)[..., None] * eye
+        # Levenberg-Marquardt with the normal equations scaled to unit diagonal, so that the
+        # step and the conditioning test do not depend on the units of the parameters or
+        # on the scale of the profile.
+        dsq = np.sqrt(np.where(diag > 0, diag, 1.0))
+        A = JTJ / (dsq[:, :, None] * dsq[:, None, :]) + (lam[:, None] + 1e-12)[..., None] * eye
+        b = JTr / dsq
         step = np.zeros_like(x)
-        good = np.isfinite(A).all(axis=(1, 2)) & (np.linalg.cond(A) < 1e14)
+        good = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(b).all(axis=1) & (diag > 0).all(axis=1)
         if good.any():
-            step[good] = np.linalg.solve(A[good], JTr[good][..., None])[..., 0]
+            good[good] &= np.linalg.cond(A[good]) < 1e12
+        if good.any():
+            step[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0] / dsq[good]
         xn = x + np.nan_to_num(step)
         xn[:, 0] = np.clip(xn[:, 0], 0.0, a_max)
         xn[:, 2] = np.clip(xn[:, 2], s_min, s_max)
