@@ -246,6 +246,9 @@ class SMC100Mirror:
                 except (DeviceTimeout, ProtocolError):
                     self._stale = True
                     raise
+                except serial.SerialTimeoutException as exc:  # output blocked (flow control)
+                    self._stale = True
+                    raise DeviceTimeout(f"{self.port}: write not done within {self.timeout_s:g} s") from exc
                 except _IO_ERRORS as exc:
                     if attempt == 0:
                         attempt += 1

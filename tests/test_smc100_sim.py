@@ -34,7 +34,7 @@ def test_the_driver_opens_the_pty_path_like_a_serial_port(lab):
     assert os.path.realpath(sim.stable_port) == sim.port
     with open_mirror(sim.port) as mirror:
         assert mirror.identify() == "SLAB-GALVO-SIM"
-    assert sim.received[:1] == ["1ID?"]
+    assert list(sim.received)[:1] == ["1ID?"]
 
 
 def test_not_referenced_until_homed_then_moves_and_updates_lab_state(lab):

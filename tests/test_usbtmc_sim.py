@@ -274,3 +274,26 @@ def test_interface_claims_are_exclusive_between_handles():
     usb.util.dispose_resources(first)
     usb.util.claim_interface(second, 0)
     usb.util.dispose_resources(second)
+
+
+def test_closing_the_simulator_wakes_a_blocked_read_with_no_device():
+    backend = UsbtmcBackend()
+    dev = _raw_device(backend)
+    usb.util.claim_interface(dev, 0)
+    outcome = []
+
+    def reader():
+        try:
+            dev.read(0x81, 64, 10000)
+        except usb.core.USBError as exc:
+            outcome.append(exc.errno)
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    time.sleep(0.1)
+    t0 = time.monotonic()
+    backend.close()
+    thread.join(5)
+    assert not thread.is_alive() and time.monotonic() - t0 < 2.0
+    assert outcome == [errno.ENODEV]
+    assert backend.enumerate_devices() == []

@@ -49,6 +49,7 @@ header as sent, without a leading colon, case-insensitive, e.g. ``"*IDN?"``)::
 from __future__ import annotations
 
 import array
+import collections
 import errno
 import math
 import struct
@@ -389,11 +390,13 @@ class UsbtmcBackend(usb.backend.IBackend):
         iSerialNumber string (also in ``*IDN?``).
     manufacturer, product : str
         iManufacturer / iProduct strings.
+    log_length : int
+        How many transfers :attr:`log` keeps.
 
     Attributes
     ----------
-    log : list of tuple
-        Every transfer, in order: ``("ctrl", bmRequestType, bRequest, wValue,
+    log : collections.deque of tuple
+        The last ``log_length`` transfers, in order: ``("ctrl", bmRequestType, bRequest, wValue,
         wIndex, payload_or_length)``, ``("bulk_out", ep, bytes)``,
         ``("bulk_in", ep, bytes)``, ``("intr_in", ep, bytes)``.
     instrument : SyncInstrument
@@ -402,7 +405,8 @@ class UsbtmcBackend(usb.backend.IBackend):
 
     def __init__(self, lab_state: LabState | None = None, *, vendor_id: int = 0x1209,
                  product_id: int = 0x5A17, serial_number: str = "SLS0001",
-                 manufacturer: str = "Streaklab", product: str = "Laser sync SLS-575 (simulated)"):
+                 manufacturer: str = "Streaklab", product: str = "Laser sync SLS-575 (simulated)",
+                 log_length: int = 10000):
         super().__init__()
         self.lab_state = lab_state if lab_state is not None else LabState()
         self.vendor_id, self.product_id = int(vendor_id), int(product_id)
@@ -410,7 +414,7 @@ class UsbtmcBackend(usb.backend.IBackend):
         self.strings = {1: manufacturer, 2: product, 3: serial_number}
         self.instrument = SyncInstrument(self.lab_state, serial_number)
         self.faults = FaultInjector(COMMON_KINDS | {"unplug"})
-        self.log: list[tuple] = []
+        self.log: collections.deque = collections.deque(maxlen=int(log_length))
         self._cv = threading.Condition(threading.RLock())
         self._generation = 0
         self._address = 5
@@ -430,6 +434,10 @@ class UsbtmcBackend(usb.backend.IBackend):
         if command is not None:
             command = command.lstrip(":")
         self.faults.inject(kind, command, **kwargs)
+
+    def close(self) -> None:
+        """Unplug the device for good: open handles fail with ENODEV, blocked reads return."""
+        self._unplug(replug=False)
 
     def clear_log(self) -> None:
         with self._cv:
