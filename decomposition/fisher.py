@@ -102,13 +102,36 @@ def _prepare(params, n_bins, time_bin_ps, t0_ps):
     return lead, slots, t, amp_scale
 
 
-def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None):
+def _sigma_rows(k):
+    return 3 * np.arange(k) + 2
+
+
+def _tie_sigma(rows, free, present):
+    """One width parameter per pixel: its column is the sum of the components' sigma columns.
+
+    It is stored in the row of the pixel's first present component; the other
+    sigma rows become zero and not free.  Returns the index of that slot (n,).
+    """
+    n, k = present.shape
+    sig = _sigma_rows(k)
+    first = np.argmax(present, axis=1)
+    total = rows[:, sig].sum(axis=1)
+    rows[:, sig] = 0.0
+    free[:, sig] = False
+    pix = np.arange(n)
+    rows[pix, 3 * first + 2] = total
+    free[pix, 3 * first + 2] = present.any(axis=1)
+    return first
+
+
+def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False):
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
     rows, free = _jacobian(t, slots, amp_scale, tb)
     if sw is not None:
         rows *= sw[:, None, :]
+    slots["tied_slot"] = _tie_sigma(rows, free, slots["present"]) if shared_sigma else None
     info = rows @ rows.swapaxes(-1, -2)
     return lead, slots, info, free, amp_scale
 
@@ -120,7 +143,7 @@ def _amplitude_rows(k):
 
 
 def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
-                       t0_ps: float | None = None, bin_integrated: bool = False):
+                       t0_ps: float | None = None, shared_sigma: bool = False, bin_integrated: bool = False):
     """Fisher information of the component parameters under white Gaussian noise.
 
     Parameters
@@ -132,6 +155,10 @@ def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float =
         Noise standard deviation per time bin, in the units of the profile (> 0).
     n_bins, time_bin_ps, t0_ps
         Time axis of the profiles (see :func:`decomposition.model.time_axis_ps`).
+    shared_sigma : bool
+        All components of a pixel share one width (see ``refine(shared_sigma=True)``):
+        that single parameter takes the sigma row of the pixel's first present
+        component; the other sigma rows are zero.
     bin_integrated : bool
         Use bin-averaged kernels (as ``model.render_profile(bin_integrated=True)``).
 
@@ -145,7 +172,7 @@ def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float =
         Which rows belong to present components.
     """
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated)
+                                                            bin_integrated, None, shared_sigma)
     noise = _noise(noise_sigma, lead)
     # Undo the amplitude normalisation: d mu / d amplitude rows were computed for
     # amplitudes / scale, the other rows carry amplitude / scale as a factor.
@@ -204,10 +231,14 @@ def _to_dict(std, slots, lead, suffix):
     return {key + suffix: out[key + suffix] for key in order}
 
 
-def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None):
+def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated, sw)
+                                                            bin_integrated, sw, shared_sigma)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
+    if shared_sigma:
+        n, k = slots["present"].shape
+        tied = std_unit[np.arange(n), 3 * slots["tied_slot"] + 2]
+        std_unit[:, _sigma_rows(k)] = np.where(slots["present"], tied[:, None], np.nan)
     k = slots["present"].shape[1]
     is_amp = _amplitude_rows(k)
     # Amplitude rows were for amplitude / scale: their std scales back up; the
@@ -218,7 +249,8 @@ def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw
 
 
 def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
-                     t0_ps: float | None = None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                     t0_ps: float | None = None, shared_sigma: bool = False,
+                     bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Cramér-Rao lower bounds (standard deviations) of every present parameter.
 
     Parameters
@@ -230,6 +262,9 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
         units of the profile.
     n_bins, time_bin_ps, t0_ps, bin_integrated
         Time axis and sampling of the profiles.
+    shared_sigma : bool
+        The components of a pixel share one (unknown) width; every present
+        component's ``sigma_ps_crb`` is then the bound of that one width.
 
     Returns
     -------
@@ -242,11 +277,11 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
     """
     lead = np.shape(params["direct_delay_ps"]) if "direct_delay_ps" in params else np.shape(params["ir_delay_ps"])[:-1]
     noise = _noise(noise_sigma, lead)
-    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb")
+    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb", None, shared_sigma)
 
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                    weights=None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                    weights=None, shared_sigma: bool = False, bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     The noise level of each pixel is estimated from its residual,
@@ -266,6 +301,8 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         Relative sample weights of the fit (as in :func:`decomposition.refine.refine`);
         samples of weight 0 (saturated, excluded) do not count, and the noise
         estimate is that of a unit-weight sample.
+    shared_sigma : bool
+        The fit used one width per pixel (as ``refine(shared_sigma=True)``).
 
     Returns
     -------
@@ -304,11 +341,14 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     if sw is not None:
         resid = resid * sw
         n_used = np.sum(sw > 0, axis=-1)
-    dof = n_used - free.sum(axis=-1)
+    n_fitted = free.sum(axis=-1)
+    if shared_sigma:
+        n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
+    dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(np.einsum("nl,nl->n", resid, resid) / np.maximum(dof, 1)), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw)
+                 bin_integrated, "_stderr", sw, shared_sigma)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():
