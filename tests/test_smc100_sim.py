@@ -89,6 +89,18 @@ def test_home_search_reports_homing_state_while_it_runs():
             assert mirror.position() == pytest.approx(0.0)
 
 
+def test_home_during_a_move_waits_for_it_then_returns_to_zero(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(30.0)
+        assert mirror.state() == "moving"
+        mirror.home(timeout_s=5)
+        assert mirror.position() == pytest.approx(0.0)
+        assert state.mirror_angle_deg == pytest.approx(0.0)
+        assert "1PA30" in sim.received and list(sim.received).count("1PA0") == 1
+
+
 def test_stop_ends_motion_where_the_stage_is(lab):
     sim, state = lab
     with open_mirror(sim.port) as mirror:
