@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from .refine import _SSS, kernel_derivatives, slot_arrays
+from .refine import _CHUNK, _SSS, _design, kernel_derivatives, slot_arrays
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -128,11 +128,23 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
-    rows, free = _jacobian(t, slots, amp_scale, tb)
-    if sw is not None:
-        rows *= sw[:, None, :]
-    slots["tied_slot"] = _tie_sigma(rows, free, slots["present"]) if shared_sigma else None
-    info = rows @ rows.swapaxes(-1, -2)
+    n, k = slots["present"].shape
+    p = 3 * k + 1
+    info = np.empty((n, p, p))
+    free = np.empty((n, p), dtype=bool)
+    tied = np.zeros(n, dtype=np.int64)
+    # Cache-sized chunks of pixels: the (pixels, P, L) Jacobian never exists for a whole block.
+    for i in range(0, n, _CHUNK):
+        ch = slice(i, i + _CHUNK)
+        sub = {name: slots[name][ch] for name in ("delay", "amplitude", "sigma", "alpha", "present")}
+        rows, fr = _jacobian(t, sub, amp_scale[ch], tb)
+        if sw is not None:
+            rows *= sw[ch, None, :]
+        if shared_sigma:
+            tied[ch] = _tie_sigma(rows, fr, sub["present"])
+        info[ch] = rows @ rows.swapaxes(-1, -2)
+        free[ch] = fr
+    slots["tied_slot"] = tied if shared_sigma else None
     return lead, slots, info, free, amp_scale
 
 
@@ -331,22 +343,29 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     slots = slot_arrays(params, lead)
     t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
-    ones = np.ones(slots["present"].shape[0])
-    rows, free = _jacobian(t, slots, ones, tb)
-    k = slots["present"].shape[1]
-    amp_rows = rows[:, _amplitude_rows(k)][:, :k]  # basis functions phi_k
-    amp = np.where(slots["present"], slots["amplitude"], 0.0)
-    resid = y.reshape(-1, n_bins) - np.einsum("nk,nkl->nl", amp, amp_rows)
-    n_used = n_bins
-    if sw is not None:
-        resid = resid * sw
-        n_used = np.sum(sw > 0, axis=-1)
-    n_fitted = free.sum(axis=-1)
+    present = slots["present"]
+    n = present.shape[0]
+    y2 = y.reshape(n, n_bins)
+    amp = np.where(present, slots["amplitude"], 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sig = np.where(present, slots["sigma"], 1.0)
+        alp = np.where(present[:, _SSS], slots["alpha"], 1.0)
+    delay = np.where(present, slots["delay"], 0.0)
+    rss = np.empty(n)
+    for i in range(0, n, _CHUNK):
+        ch = slice(i, i + _CHUNK)
+        phi = _design(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
+        resid = y2[ch] - np.einsum("nk,nkl->nl", amp[ch], phi)
+        if sw is not None:
+            resid *= sw[ch]
+        rss[i:i + _CHUNK] = np.einsum("nl,nl->n", resid, resid)
+    n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
+    n_fitted = 3 * present.sum(axis=-1) + present[:, _SSS]
     if shared_sigma:
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
     dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
-        noise = np.where(dof > 0, np.sqrt(np.einsum("nl,nl->n", resid, resid) / np.maximum(dof, 1)), np.nan)
+        noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
                  bin_integrated, "_stderr", sw, shared_sigma)
     if np.any(~np.isfinite(noise)):

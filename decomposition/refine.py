@@ -83,9 +83,11 @@ _SQRT_2 = np.sqrt(2.0)
 _EXP_FLOOR = -700.0
 
 
-def _gauss_point(t, s):
+def _gauss_point(t, s, deriv=True):
     z = t / s
     g = np.exp(np.maximum(-0.5 * z * z, _EXP_FLOOR))
+    if not deriv:
+        return (g,)
     gz = g * z
     return g, gz / s, gz * z / s
 
@@ -96,7 +98,7 @@ _ERFC_IS_TWO = -6.0
 _Z_NEGLIGIBLE = 37.5
 
 
-def _sss_point(t, s, a):
+def _sss_point(t, s, a, deriv=True):
     """sss kernel and its derivatives (see module docstring) with the stable branches of model.py.
 
     u = (a s^2 - t) / (s sqrt 2);  u >= 0: h = c g erfcx(u);  u < 0: h = c exp(-a (t - a s^2/2)) erfc(u),
@@ -123,13 +125,15 @@ def _sss_point(t, s, a):
     h[u >= 0] = 0.0  # rising edge far before the onset (g underflowed); overwritten below where not
     h[fix] = hf
     h *= _SQRT_PI_2 * s
+    if not deriv:
+        return (h,)
     d_delay = a * h - g
     d_sigma = h * ((1.0 + q * q) / s) - g * (q + z)
     d_alpha = s * ((q - z) * h - s * g)
     return h, d_delay, d_sigma, d_alpha
 
 
-def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=None):
+def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=None, derivatives=True):
     """Kernel values and analytic derivatives with respect to its parameters.
 
     Parameters
@@ -143,6 +147,8 @@ def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=Non
     time_bin_ps : float, optional
         If given, values and derivatives are averaged over a bin of this width
         (matches ``bin_integrated=True`` rendering in :mod:`decomposition.model`).
+    derivatives : bool
+        ``False`` returns the 1-tuple ``(k,)`` only (cheaper).
 
     Returns
     -------
@@ -157,8 +163,8 @@ def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=Non
 
     def point(tt):
         if alpha_per_ps is None:
-            return _gauss_point(tt, s)
-        return _sss_point(tt, s, np.asarray(alpha_per_ps, np.float64))
+            return _gauss_point(tt, s, derivatives)
+        return _sss_point(tt, s, np.asarray(alpha_per_ps, np.float64), derivatives)
 
     if time_bin_ps is None:
         return point(t)
@@ -276,7 +282,7 @@ def _design(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     if gmask.any():
         pix, slot = np.nonzero(gmask)
         s = sigma[pix, slot][:, None]
-        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb)
+        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb, derivatives=jac)
         m[pix, rows[slot]] = vals[0]
         if jac:
             m[pix, k + rows[slot]] = vals[1]
@@ -285,7 +291,7 @@ def _design(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     if pix.size:
         s = sigma[pix, _SSS][:, None]
         a = alpha[pix][:, None]
-        vals = kernel_derivatives(t - delay[pix, _SSS][:, None], s, a, time_bin_ps=tb)
+        vals = kernel_derivatives(t - delay[pix, _SSS][:, None], s, a, time_bin_ps=tb, derivatives=jac)
         m[pix, _SSS] = vals[0]
         if jac:
             m[pix, k + _SSS] = vals[1]
