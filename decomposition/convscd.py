@@ -478,16 +478,22 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
-def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False):
+def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,); returns (state, F, iterations run).
+    A pixel stops when an accepted step lowers F by less than ``tol`` times
+    F per fitted sample (a change far below what one sample's misfit can
+    resolve; it shrinks as the fit improves, so noiseless data converge
+    fully), or when its damping has grown past 1e8 (no descent step left).
     With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
     it (one width parameter); with ``sss_after_direct`` trial sss onsets are
     clipped to the earliest Gaussian's delay.  Steps are accepted per pixel
     only where F decreases.
     """
     P, K_all = st["fam"].shape
+    tol = 0.0 if tol is None else float(tol)
+    nw = np.maximum(w.sum(axis=1), 1.0)
     full, K = _compact(st)
     if K == 0:
         return st, obj, 0
@@ -560,7 +566,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         rej = idx[~better]
         lam[rej] *= 4.0
         # converged: tiny relative decrease, or damping blown up
-        small = better & (old - tobj <= 1e-8 * np.square(eps[idx]))
+        small = better & (old - tobj <= tol * old / nw[idx])
         live[idx[small]] = False
         live[rej[lam[rej] > 1e8]] = False
     out = {k: v.copy() for k, v in full.items()}
@@ -719,7 +725,7 @@ def _drop_zero(st):
 
 def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
                 sparsity=3.0, eps_rel=0.01, max_iter=8, n_lm=8, bound_factor=4.0, first_gauss=None,
-                tie_sigma=True, sss_after_direct=True):
+                tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Greedy convolutional coordinate descent with local refinement on a block.
 
     Parameters
@@ -748,6 +754,9 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     sss_after_direct : bool
         The sss onset is kept at or after the earliest Gaussian (light enters
         the surface where it is directly reflected, so sss cannot arrive first).
+    lm_tol : float
+        Refinement of a pixel stops once a step gains less than lm_tol times
+        the objective per fitted sample.
     first_gauss : ndarray (P,) bool, optional
         Pixels whose first pick must come from the Gaussian family (the
         second start of :func:`solve_multistart`).
@@ -827,7 +836,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         obj[gi] = obj[gi] - bdec[go]
         sub = _take(st, gi)
         sub, o, nl = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
-                         tie_sigma, sss_after_direct)
+                         tie_sigma, sss_after_direct, lm_tol)
         # exact objective after refinement (guards against round-off in the FFT pick)
         m_sub, _ = _render(t, sub)
         exact = objective(p[gi], w[gi], m_sub, sub, mu[gi], eps[gi])
@@ -887,7 +896,7 @@ def _final(hist):
 
 
 def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
-                 tie_sigma=True, sss_after_direct=True):
+                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
 
     The sparse step has chosen the atoms; this is the usual debiasing step
@@ -902,7 +911,8 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     eps = eps_rel * s_eff
     model, _ = _render(t, st)
     obj = objective(p, w, model, st, mu, eps)
-    st, obj, nl = _lm(t, p, w, st, mu, eps, _bounds(dic, bound_factor), n_lm, obj, tie_sigma, sss_after_direct)
+    st, obj, nl = _lm(t, p, w, st, mu, eps, _bounds(dic, bound_factor), n_lm, obj, tie_sigma, sss_after_direct,
+                      lm_tol)
     _drop_zero(st)
     model, _ = _render(t, st)
     return st, model, nl
