@@ -65,17 +65,23 @@ def start_simulated_lab(config: ScanConfig):
 
 
 def _open_sync(config: ScanConfig, *, backend=None):
-    from drivers import scpi_sync
+    """The SCPI laser sync on USBTMC: found by the configured USB ids / serial, or the simulated unit."""
+    from drivers.scpi_sync import ScpiLaserSync
 
     dev = config["devices"]
-    kwargs = {"timeout_s": dev["timeout_s"]}
-    for key, arg in (("sync_vendor_id", "vendor_id"), ("sync_product_id", "product_id"),
-                     ("sync_serial", "serial")):
-        if key in dev:
-            kwargs[arg] = dev[key]
+    kwargs = {"timeout_s": dev["timeout_s"], "camera_channel": config["sync"]["channel"]}
     if backend is not None:
-        kwargs["backend"] = backend
-    return scpi_sync.open_laser_sync(**kwargs)
+        # The simulated unit, whatever ids [devices] gives for the real one.
+        kwargs.update(backend=backend, vendor_id=backend.vendor_id, product_id=backend.product_id)
+    else:
+        if not any(k in dev for k in ("sync_vendor_id", "sync_serial")):
+            raise CaptureError("devices.sync_vendor_id/sync_product_id or devices.sync_serial: required to find "
+                               "the laser-sync unit on USB")
+        for key, arg in (("sync_vendor_id", "vendor_id"), ("sync_product_id", "product_id"),
+                         ("sync_serial", "serial_number")):
+            if key in dev:
+                kwargs[arg] = dev[key]
+    return ScpiLaserSync(**kwargs)
 
 
 @contextlib.contextmanager
@@ -117,8 +123,8 @@ def open_rig(config: ScanConfig, *, lab=None):
 
 
 def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool = False, lab=None,
-                stop_event: threading.Event | None = None, on_line=None, session_info: dict | None = None,
-                ) -> SessionResult:
+                stop_event: threading.Event | None = None, on_line=None, on_start=None,
+                session_info: dict | None = None) -> SessionResult:
     """Run one capture session end to end (open rig, session, close rig).
 
     Parameters
@@ -129,7 +135,7 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
         Start a SimulatedLab for this session (ignored when ``lab`` is given).
     lab : SimulatedLab, optional
         An already running simulated lab to capture from (tests, fault injection).
-    stop_event, on_line, session_info : see :class:`CaptureSession`.
+    stop_event, on_line, on_start, session_info : see :class:`CaptureSession`.
     """
     info = {"simulated": bool(simulate or lab is not None), **(session_info or {})}
     with contextlib.ExitStack() as stack:
@@ -138,5 +144,5 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
             stack.callback(lab.close)
         with open_rig(config, lab=lab) as (camera, mirror, sync):
             session = CaptureSession(config, out, camera, mirror, sync, resume=resume, stop_event=stop_event,
-                                     on_line=on_line, session_info=info)
+                                     on_line=on_line, on_start=on_start, session_info=info)
             return session.run()

@@ -6,7 +6,8 @@ protocols, so the same code runs on the real rig and on ``drivers.sim``::
     check    identify camera, mirror and laser sync; configure them; home the mirror
     dark     sync output off, ``dark.frames`` frames at the home position (skipped if on disk)
     lines    sync output on; for every line not yet done: move the mirror, wait until it
-             settles, take ``frames_per_line`` frames, write them durably, mark the line done
+             settles, take ``frames_per_line`` frames, check the sync's error queue, write
+             the frames durably, mark the line done
     finally  sync output off (the drivers' context managers do the rest)
 
 A device fault (:class:`~drivers.errors.DeviceTimeout`, ``ConnectionLost``,
@@ -96,6 +97,8 @@ class CaptureSession:
         Set it to stop after the current line.
     on_line : callable(session, line_index), optional
         Called after each line is on disk (progress display, tests).
+    on_start : callable(session), optional
+        Called once the devices are checked and the store is open, before the first line.
     sleep : callable(seconds)
         Used for the retry back-off.
     session_info : dict, optional
@@ -105,6 +108,7 @@ class CaptureSession:
     def __init__(self, config: ScanConfig, out, camera, mirror, sync, *, resume: bool = False,
                  stop_event: threading.Event | None = None,
                  on_line: Callable[["CaptureSession", int], None] | None = None,
+                 on_start: Callable[["CaptureSession"], None] | None = None,
                  sleep: Callable[[float], None] = time.sleep, session_info: dict | None = None):
         self.config = config
         self.out = Path(out)
@@ -112,6 +116,7 @@ class CaptureSession:
         self.resume = bool(resume)
         self.stop_event = stop_event or threading.Event()
         self.on_line = on_line
+        self.on_start = on_start
         self.sleep = sleep
         self.session_info = dict(session_info or {})
         self.store: RunStore | None = None
@@ -259,6 +264,10 @@ class CaptureSession:
             if frames.shape[1:] != self.store.image_shape:
                 raise CaptureError(f"line {line}: the camera delivers {frames.shape[1:]} images, the run store "
                                    f"holds {self.store.image_shape}")
+            # A laser-sync error while the frames were taken (lost lock, trigger fault) spoils the line.
+            errors = self.sync.read_errors()
+            if errors:
+                raise DeviceError(errors[0][0], errors[0][1], command=f"line {line}", device="laser sync")
             return reached, frames
 
         reached, frames = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
@@ -286,6 +295,8 @@ class CaptureSession:
             entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
                      "lines_done_at_start": self.lines_done(), **self.session_info}
             self.store.add_session(entry)
+            if self.on_start is not None:
+                self.on_start(self)
             status = "interrupted"
             todo = [int(i) for i in np.flatnonzero(~self.store.done_mask())]
             if todo and not self.stop_event.is_set():

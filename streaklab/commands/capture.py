@@ -52,19 +52,28 @@ def run(args) -> int:
         print("\nstreaklab capture: stopping after the current line (Ctrl-C again to abort it)",
               file=sys.stderr, flush=True)
 
-    def on_line(session, line):
+    def on_start(session):
         nonlocal progress
-        if args.quiet:
-            return
-        if progress is None:
-            progress = Progress(session.n_lines, session.lines_done() - 1)
-        progress.update(session.lines_done())
+        if not args.quiet:
+            progress = Progress(session.n_lines, session.lines_done())
+            progress.update(session.lines_done())
 
-    previous = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() \
-        else None
+    def on_line(session, line):
+        if progress is not None:
+            progress.update(session.lines_done())
+
+    def on_sigterm(signum, frame):
+        if not stop.is_set():
+            stop.set()
+            print("\nstreaklab capture: terminated; stopping after the current line", file=sys.stderr, flush=True)
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {signal.SIGINT: signal.signal(signal.SIGINT, on_sigint),
+                    signal.SIGTERM: signal.signal(signal.SIGTERM, on_sigterm)}
     try:
         result = run_capture(config, out, simulate=args.simulate, resume=args.resume, stop_event=stop,
-                             on_line=on_line)
+                             on_line=on_line, on_start=on_start)
     except CaptureFailed as exc:
         print(f"streaklab capture: error: {exc}", file=sys.stderr)
         print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
@@ -79,8 +88,8 @@ def run(args) -> int:
     finally:
         if progress is not None:
             progress.close()
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if result.status == "complete":
         print(f"streaklab capture: {result.n_lines} lines in {out} "
               f"({len(result.acquired)} taken in this session)", file=sys.stderr)
