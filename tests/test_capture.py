@@ -108,6 +108,9 @@ PERSISTENT_FAULTS = [
     ("mirror", "garbage", "TS", {}, ProtocolError),
     ("mirror", "error", "PA", {"code": "V"}, DeviceError),
     ("mirror", "drop_reply", "TP", {}, DeviceTimeout),
+    ("sync", "drop_reply", "SYST:ERR?", {}, DeviceTimeout),
+    ("sync", "garbage", "SYST:ERR?", {}, ProtocolError),
+    ("sync", "close", "SYST:ERR?", {}, ConnectionLost),
 ]
 
 
@@ -164,3 +167,15 @@ def test_capture_command_rejects_bad_config_naming_the_key(tmp_path, capsys):
                  "--simulate"]) == 2
     assert "scan.count: must be a positive integer, got 0" in capsys.readouterr().err
     assert not (tmp_path / "r.zarr").exists()
+
+
+@pytest.mark.timeout(30)
+def test_device_error_during_setup_stops_before_anything_is_written(tmp_path):
+    cfg = sim_config()
+    with start_lab(cfg) as lab:
+        lab.sync.inject("error", "PULS0:PER", code=-222, times=50)
+        with pytest.raises(CaptureFailed, match=r"laser-sync setup failed after 3 attempts") as info:
+            run_capture(cfg, tmp_path / "run.zarr", lab=lab)
+        assert isinstance(info.value.cause, DeviceError) and info.value.cause.code == -222
+        assert info.value.lines_done == 0 and not (tmp_path / "run.zarr").exists()
+        assert lab.state.sync_output_enabled is False
