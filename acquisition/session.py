@@ -188,7 +188,7 @@ class CaptureSession:
     def _acquire_frames(self, n: int, what: str) -> np.ndarray:
         timeout_s = self.config["camera"]["acquire_timeout_s"]
         frames = []
-        for k in range(n):
+        for _ in range(n):
             img = self.camera.acquire(timeout_s=timeout_s)
             data = np.asarray(img.data)
             if data.ndim != 2 or data.dtype != np.uint16:
@@ -199,8 +199,11 @@ class CaptureSession:
             frames.append(data)
         return np.stack(frames) if frames else np.zeros((0, 0, 0), np.uint16)
 
-    def _take_dark(self) -> np.ndarray:
-        """Dark frames (sync output off); at least one frame, to learn the image shape."""
+    def _take_dark(self) -> tuple[np.ndarray, tuple[int, int]]:
+        """Dark frames (sync output off), shape (dark_frame, x, t), and the image shape (x, t).
+
+        At least one frame is taken, to learn the image shape, even with ``dark.frames = 0``.
+        """
         n = max(1, int(self.config["dark"]["frames"]))
 
         def take():
