@@ -102,11 +102,13 @@ def _prepare(params, n_bins, time_bin_ps, t0_ps):
     return lead, slots, t, amp_scale
 
 
-def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated):
-    """J^T J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
+def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None):
+    """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
     rows, free = _jacobian(t, slots, amp_scale, tb)
+    if sw is not None:
+        rows *= sw[:, None, :]
     info = rows @ rows.swapaxes(-1, -2)
     return lead, slots, info, free, amp_scale
 
@@ -202,9 +204,9 @@ def _to_dict(std, slots, lead, suffix):
     return {key + suffix: out[key + suffix] for key in order}
 
 
-def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix):
+def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated)
+                                                            bin_integrated, sw)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
     k = slots["present"].shape[1]
     is_amp = _amplitude_rows(k)
@@ -244,7 +246,7 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
 
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                    bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                    weights=None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     The noise level of each pixel is estimated from its residual,
@@ -260,6 +262,10 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         Fitted parameters, leading shape (...,).
     time_bin_ps, t0_ps, bin_integrated
         Time axis and sampling.
+    weights : array_like, shape (..., L), optional
+        Relative sample weights of the fit (as in :func:`decomposition.refine.refine`);
+        samples of weight 0 (saturated, excluded) do not count, and the noise
+        estimate is that of a unit-weight sample.
 
     Returns
     -------
@@ -271,6 +277,15 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     y = np.asarray(profiles, dtype=np.float64)
     if y.ndim < 1:
         raise ValueError("profiles must have shape (..., L)")
+    sw = None
+    if weights is not None:
+        wts = np.asarray(weights, dtype=np.float64)
+        if wts.shape != y.shape:
+            raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
+        if np.any(~np.isfinite(wts)) or np.any(wts < 0):
+            raise ValueError("weights must be finite and non-negative")
+        y = np.where(wts > 0, y, 0.0)
+        sw = np.sqrt(wts).reshape(-1, y.shape[-1])
     lead = y.shape[:-1]
     n_bins = y.shape[-1]
     if not np.all(np.isfinite(y)):
@@ -285,11 +300,15 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     amp_rows = rows[:, _amplitude_rows(k)][:, :k]  # basis functions phi_k
     amp = np.where(slots["present"], slots["amplitude"], 0.0)
     resid = y.reshape(-1, n_bins) - np.einsum("nk,nkl->nl", amp, amp_rows)
-    dof = n_bins - free.sum(axis=-1)
+    n_used = n_bins
+    if sw is not None:
+        resid = resid * sw
+        n_used = np.sum(sw > 0, axis=-1)
+    dof = n_used - free.sum(axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(np.einsum("nl,nl->n", resid, resid) / np.maximum(dof, 1)), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr")
+                 bin_integrated, "_stderr", sw)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

@@ -238,12 +238,14 @@ def params_from_slots(slots: dict, lead_shape: tuple) -> dict[str, np.ndarray]:
 # batched basis, amplitudes, projected Jacobian
 # ----------------------------------------------------------------------------------------------
 
-def _design(t, y, delay, sigma, alpha, present, tb, jac):
+def _design(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     """Stacked design rows M (n, Q, L) for one batched Gram product.
 
     Rows: [0, K) basis phi_k; if ``jac``, [K, 2K) d phi_k / d delay_k,
     [2K, 3K) d phi_k / d log sigma_k, 3K the sss d h / d log alpha; the last
-    row is the data y.  Absent slots are zero rows.
+    row is the data y.  Absent slots are zero rows.  With ``sw`` (n, L), the
+    square roots of the sample weights, the model rows are weighted (``y``
+    must already be).
     """
     n, k = delay.shape
     L = t.size
@@ -271,6 +273,8 @@ def _design(t, y, delay, sigma, alpha, present, tb, jac):
             m[pix, k + _SSS] = vals[1]
             m[pix, 2 * k + _SSS] = vals[2] * s
             m[pix, 3 * k] = vals[3] * a
+    if sw is not None:
+        m[:, :-1] *= sw[:, None, :]
     return m
 
 
@@ -289,37 +293,77 @@ def _regularise(gram, present):
 
 
 class _Layout:
-    """Nonlinear parameter vector theta = [delay_0..K-1, log sigma_0..K-1, log alpha] (n, 2K+1)."""
+    """Nonlinear parameters theta (n, P) and how they map onto the derivative rows.
 
-    def __init__(self, k):
+    Derivative rows (Q = 2K + 1): d/d delay_k, d/d log sigma_k (k < K), d/d log alpha.
+    Independent widths: theta = [delay_0..K-1, log sigma_0..K-1, log alpha], P = Q.
+    Shared width (``shared_sigma``, one PSF per pixel as in eq. (2) of the paper):
+    theta = [delay_0..K-1, log sigma, log alpha], P = K + 2, and the sigma
+    parameter moves every present component's width together.
+    """
+
+    def __init__(self, k, shared_sigma=False):
         self.k = k
-        self.p = 2 * k + 1
-        self.slot = np.concatenate([np.arange(k), np.arange(k), [_SSS]])
+        self.q = 2 * k + 1
+        self.shared = bool(shared_sigma)
+        self.dslot = np.concatenate([np.arange(k), np.arange(k), [_SSS]])
+        if self.shared:
+            self.p = k + 2
+            assign = np.zeros((self.p, self.q))
+            assign[np.arange(k), np.arange(k)] = 1.0
+            assign[k, k:2 * k] = 1.0
+            assign[k + 1, 2 * k] = 1.0
+        else:
+            self.p = self.q
+            assign = np.eye(self.q)
+        self.assign = assign
 
-    def pack(self, delay, sigma, alpha):
+    def free_rows(self, present):
+        return np.concatenate([present, present, present[:, _SSS:_SSS + 1]], axis=1)
+
+    def free(self, present):
+        return (self.free_rows(present).astype(np.float64) @ self.assign.T) > 0
+
+    def pack(self, delay, sigma, alpha, present):
+        k = self.k
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.concatenate([delay, np.log(sigma), np.log(alpha)[:, None]], axis=1)
+            logs = np.log(sigma)
+            loga = np.log(alpha)[:, None]
+        if not self.shared:
+            return np.concatenate([delay, logs, loga], axis=1)
+        # Start the shared width from the direct component's, else the mean over present ones.
+        npres = present.sum(axis=1)
+        mean = np.where(present, logs, 0.0).sum(axis=1) / np.maximum(npres, 1)
+        shared = np.where(present[:, 0], logs[:, 0], mean)[:, None]
+        return np.concatenate([delay, shared, loga], axis=1)
 
     def unpack(self, theta):
         k = self.k
-        return theta[:, :k], np.exp(theta[:, k:2 * k]), np.exp(theta[:, 2 * k])
+        if self.shared:
+            sigma = np.repeat(np.exp(theta[:, k:k + 1]), k, axis=1)
+        else:
+            sigma = np.exp(theta[:, k:2 * k])
+        return theta[:, :k], sigma, np.exp(theta[:, -1])
 
-    def free(self, present):
-        return np.concatenate([present, present, present[:, _SSS:_SSS + 1]], axis=1)
+    def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
+        n_sig = 1 if self.shared else self.k
+        lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
+        hi = np.concatenate([np.full(self.k, delay_lim[1]), np.full(n_sig, logsigma_lim[1]), [logalpha_lim[1]]])
+        return lo, hi
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac):
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
     """Amplitudes, residual sum of squares and (if jac) the LM normal equations at theta.
 
-    With V = diag(c_slot) dPhi/dtheta (rows), G = Phi Phi^T and B = Phi V^T,
-    Kaufman's projected Jacobian J = Phi^T G^-1 B - V^T gives
-    J^T J = V V^T - B^T G^-1 B and J^T r = -V r (because Phi r = 0), so one
-    batched Gram product of the stacked rows [Phi; dPhi; y] is all the
-    L-length work.
+    With V = W dPhi (rows; W carries the amplitudes c and the parameter
+    mapping of the layout), G = Phi Phi^T and B = Phi V^T, Kaufman's projected
+    Jacobian J = Phi^T G^-1 B - V^T gives J^T J = V V^T - B^T G^-1 B and
+    J^T r = -V r (because Phi r = 0), so one batched Gram product of the
+    stacked rows [Phi; dPhi; y] is all the L-length work.
     """
-    k, p = lay.k, lay.p
+    k, q = lay.k, lay.q
     delay, sigma, alpha = lay.unpack(theta)
-    m = _design(t, y, delay, sigma, alpha, present, tb, jac)
+    m = _design(t, y, delay, sigma, alpha, present, tb, jac, sw)
     mm = m @ m.swapaxes(-1, -2)
     gram = _regularise(mm[:, :k, :k], present)
     c = np.linalg.solve(gram, mm[:, :k, -1][..., None])[..., 0]
@@ -328,10 +372,11 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac):
     rss = np.einsum("nl,nl->n", r, r)
     if not jac:
         return c, rss, None, None
-    w = c[:, lay.slot] * free
-    b = mm[:, :k, k:k + p] * w[:, None, :]
-    vv = mm[:, k:k + p, k:k + p] * (w[:, :, None] * w[:, None, :])
-    vr = w * np.einsum("npl,nl->np", m[:, k:k + p], r)
+    w_rows = c[:, lay.dslot] * lay.free_rows(present)
+    w = lay.assign[None, :, :] * w_rows[:, None, :] * free[:, :, None]  # (n, P, Q)
+    b = mm[:, :k, k:k + q] @ w.swapaxes(-1, -2)  # (n, K, P)
+    vv = w @ mm[:, k:k + q, k:k + q] @ w.swapaxes(-1, -2)
+    vr = np.einsum("npq,nq->np", w, np.einsum("nql,nl->nq", m[:, k:k + q], r))
     x = np.linalg.solve(gram, b)
     a = vv - b.swapaxes(-1, -2) @ x
     return c, rss, a, -vr
@@ -341,23 +386,25 @@ def _amp_violations(c, present):
     return np.sum(present & ~(c > 0), axis=-1)
 
 
-def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0):
+def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
     n = y.shape[0]
     present = slots["present"]
     free = lay.free(present)
     lo, hi = bounds
-    theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"])
+    theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
     theta = np.where(free, theta, 0.0)
     theta = np.clip(theta, lo, hi)
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
-    d0, s0, a0 = lay.unpack(np.where(free, lay.pack(slots["delay"], slots["sigma"], slots["alpha"]), 0.0))
-    phi0 = _design(t, y, d0, s0, a0, present, tb, False)[:, :lay.k]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s0 = np.where(present, slots["sigma"], 1.0)
+        a0 = np.where(present[:, _SSS], slots["alpha"], 1.0)
+    phi0 = _design(t, y, np.where(present, slots["delay"], 0.0), s0, a0, present, tb, False, sw)[:, :lay.k]
     amp_in = np.where(present, slots["amplitude"], 0.0)
     r0 = y - np.einsum("nk,nkl->nl", amp_in, phi0)
     rss_input = np.einsum("nl,nl->n", r0, r0)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw)
     viol = _amp_violations(c, present)
     lam = np.full(n, lam0)
     nu = np.full(n, 2.0)
@@ -382,7 +429,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0):
         step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         trial = np.clip(theta[idx] + step, lo, hi)
         trial = np.where(fr, trial, 0.0)
-        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True)
+        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
+                                         None if sw is None else sw[idx])
         viol_t = _amp_violations(c_t, present[idx])
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
         accept = ok & (rss_t < rss[idx])
@@ -433,7 +481,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            max_iter: int = 30, ftol: float = 1e-9, block_size: int = 1024,
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
-           bin_integrated: bool = False):
+           shared_sigma: bool = False, weights=None, bin_integrated: bool = False):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -458,6 +506,16 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         Bounds on every sigma; default (time_bin_ps / 10, L * time_bin_ps).
     alpha_bounds_per_ps : (float, float)
         Bounds on the sss attenuation (strictly positive: refined in log space).
+    shared_sigma : bool
+        Fit one Gaussian width per pixel shared by all its components (the
+        camera PSF of eq. (2)), started from the direct component's width (or
+        the mean of the present ones).  Fewer unknowns and no width/delay
+        trade-off between overlapping components; use it when the data come
+        from one PSF.  Default: each component has its own width.
+    weights : array_like, shape (..., L), optional
+        Non-negative per-sample weights of the least-squares fit (1 / variance
+        for heteroscedastic noise; 0 excludes a sample, e.g. a saturated one,
+        whose value is then ignored even if it is NaN).  Default: all ones.
     bin_integrated : bool
         Fit bin-averaged kernels instead of point samples (as in model.render_*).
 
@@ -469,9 +527,9 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         their input parameters exactly.
     info : dict of ndarray, each of the leading shape (...,)
         ``iterations`` (int), ``converged`` (bool), ``refined`` (bool: refined
-        values were kept), ``rss_input`` and ``rss`` (residual sums of squares
-        of the input and returned parameters, in the units of ``profiles``
-        squared).
+        values were kept), ``rss_input`` and ``rss`` (weighted residual sums
+        of squares of the input and returned parameters, in the units of
+        ``profiles`` squared).
     """
     y = np.asarray(profiles)
     if y.ndim < 1 or y.shape[-1] < 2:
@@ -479,6 +537,15 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     if not np.issubdtype(y.dtype, np.number) or np.iscomplexobj(y):
         raise ValueError(f"profiles must be real numbers, got dtype {y.dtype}")
     y = y.astype(np.float64)
+    sw = None
+    if weights is not None:
+        wts = np.asarray(weights, dtype=np.float64)
+        if wts.shape != y.shape:
+            raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
+        if np.any(~np.isfinite(wts)) or np.any(wts < 0):
+            raise ValueError("weights must be finite and non-negative")
+        sw = np.sqrt(wts).reshape(-1, y.shape[-1])
+        y = np.where(wts > 0, y, 0.0)  # excluded samples may hold anything (NaN, saturation)
     bad = ~np.isfinite(y).all(axis=-1)
     if bad.any():
         raise ValueError(f"profiles contain NaN or inf samples in {int(bad.sum())} pixel(s)")
@@ -503,14 +570,14 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     y = y.reshape(-1, n_bins)
     n = y.shape[0]
     k = 2 + slots["n_ir"]
-    lay = _Layout(k)
+    lay = _Layout(k, shared_sigma)
     span = n_bins * float(time_bin_ps)
-    lo = np.concatenate([np.full(k, t[0] - span), np.full(k, np.log(s_lo)), [np.log(a_lo)]])
-    hi = np.concatenate([np.full(k, t[-1] + span), np.full(k, np.log(s_hi)), [np.log(a_hi)]])
+    lo, hi = lay.bounds((t[0] - span, t[-1] + span), (np.log(s_lo), np.log(s_hi)), (np.log(a_lo), np.log(a_hi)))
 
     # Per-pixel normalisation: parameters are scale-free, amplitudes scale.
     scale = np.max(np.abs(y), axis=-1)
     scale = np.where(scale > 0, scale, 1.0)
+    yw = y if sw is None else y * sw
 
     res = {name: slots[name].copy() for name in ("delay", "amplitude", "sigma", "alpha")}
     info = {"iterations": np.zeros(n, np.int64), "converged": np.zeros(n, bool),
@@ -521,8 +588,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         sub = {name: slots[name][sl] for name in ("delay", "sigma", "alpha", "present")}
         sub["amplitude"] = slots["amplitude"][sl] / sc[:, None]
         with np.errstate(under="ignore"):
-            out, inf = _refine_block(t, y[sl] / sc[:, None], sub, lay, (lo, hi), tb,
-                                     int(max_iter), float(ftol), 1e-3)
+            out, inf = _refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
+                                     int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl])
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],

@@ -240,10 +240,14 @@ class RemoteExCamera:
         self._data: socket.socket | None = None
         self._buf = bytearray()
         self._closed = False
-        self.reconnects = 0  # connections re-established after a drop (for diagnostics)
+        self.reconnects = 0  # connections a command had to (re)open after a drop or a reset
         self._settings: dict = {}
         if connect:
-            self.open()
+            try:
+                self.open()
+            except BaseException:
+                self.close()
+                raise
 
     def __repr__(self):
         return f"RemoteExCamera({self.host!r}, {self.port}, data_port={self.data_port})"
@@ -630,22 +634,22 @@ class RemoteExCamera:
         def remaining():
             r = deadline - time.monotonic()
             if r <= 0:
-                raise DeviceTimeout(f"RemoteEx: acquisition did not finish within {timeout_s} s")
+                raise DeviceTimeout(f"RemoteEx: acquisition not finished within {timeout_s} s")
             return min(r, self.timeout_s)
 
         with self._lock:
-            self.command("AcqStart", self.acquire_mode, timeout_s=remaining())
-            while True:
-                values = self.command("AcqStatus", timeout_s=remaining())
-                if values and values[0].strip().lower() == "idle":
-                    break
-                if deadline - time.monotonic() <= 0:
-                    try:
-                        self.command("AcqStop", timeout_s=self.timeout_s)
-                    except DriverError:
-                        log.exception("RemoteEx: AcqStop after an acquisition timeout failed")
-                    raise DeviceTimeout(f"RemoteEx: acquisition still busy after {timeout_s} s")
-                time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
+            try:
+                self._start_acquisition(remaining)
+                while True:
+                    values = self.command("AcqStatus", timeout_s=remaining())
+                    if values and values[0].strip().lower() == "idle":
+                        break
+                    if deadline - time.monotonic() <= 0:
+                        raise DeviceTimeout(f"RemoteEx: acquisition not finished within {timeout_s} s")
+                    time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
+            except DeviceTimeout:
+                self._abort_acquisition()
+                raise
             taken = time.time()
             data = self.read_image(timeout_s=remaining())
             if not {"time_range", "exposure_s", "gain", "delay_ps"} <= self._settings.keys():
@@ -658,6 +662,24 @@ class RemoteExCamera:
                     "image_type": self._last_image_info.get("type", ""),
                     "bytes_per_pixel": self._last_image_info["bpp"]}
         return StreakImage(data=data, metadata=meta)
+
+    def _start_acquisition(self, remaining) -> None:
+        try:
+            self.command("AcqStart", self.acquire_mode, timeout_s=remaining())
+        except DeviceError as exc:
+            # 7 (cannot execute): an acquisition is still running, e.g. one left over
+            # from an interrupted session.  Stop it and start ours once more.
+            if exc.code != 7:
+                raise
+            log.warning("RemoteEx: AcqStart refused (%s); stopping the running acquisition and retrying", exc)
+            self.command("AcqStop", timeout_s=remaining())
+            self.command("AcqStart", self.acquire_mode, timeout_s=remaining())
+
+    def _abort_acquisition(self) -> None:
+        try:
+            self.command("AcqStop", timeout_s=min(self.timeout_s, 2.0))
+        except DriverError as exc:
+            log.warning("RemoteEx: AcqStop after an acquisition timeout failed: %s", exc)
 
     # ------------------------------------------------------- context manager
     def __enter__(self):

@@ -97,3 +97,26 @@ def test_bad_arguments():
         gradbm(np.zeros(64))
     with pytest.raises(ValueError, match="component family"):
         gradbm(y, components=("d", "x"))
+
+
+def test_time_axis_is_respected():
+    # 1 ps bins starting at 500 ps; positional and keyword time axis agree.
+    p = {"direct_delay_ps": np.array([560.4]), "direct_amplitude": np.array([1.0]),
+         "direct_sigma_ps": np.array([2.5])}
+    from decomposition.model import render_profile as rp
+    y = rp(p, 200, time_bin_ps=1.0, t0_ps=500.0)
+    a = gradbm(y, 1.0, 500.0)
+    b = gradbm(y, time_bin_ps=1.0, t0_ps=500.0)
+    assert a["direct_delay_ps"][0] == pytest.approx(560.4, abs=0.05)
+    assert a["direct_sigma_ps"][0] == pytest.approx(2.5, rel=0.02)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e30])
+def test_scaling_the_profile_scales_only_the_amplitudes(scale):
+    d = make_profiles(12, L, nsr=0.02, noise="white", seed=8)
+    a, b = gradbm(d.noisy), gradbm(d.noisy * scale)
+    for k in a:
+        expect = a[k] * scale if k.endswith("amplitude") else a[k]
+        np.testing.assert_allclose(b[k], expect, rtol=1e-6, equal_nan=True, err_msg=k)

@@ -126,6 +126,26 @@ def test_out_of_range_settings_are_device_errors(lab):
     assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
 
 
+def test_acquisition_left_running_is_stopped_and_restarted(lab):
+    sim, cam, state = lab
+    sim.inject("error", command="AcqStart", code=7)
+    n = len(sim.received)
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+    assert [c for c in list(sim.received)[n:] if c.startswith("Acq")][:3] == \
+        ["AcqStart(Acquire)", "AcqStop()", "AcqStart(Acquire)"]
+
+
+def test_acquisition_timeout_stops_the_acquisition():
+    with RemoteExSimulator(lit_state(), SCENE, frame_time_s=30.0) as sim, \
+            RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="not finished within 0.3 s"):
+            cam.acquire(timeout_s=0.3)
+        assert time.monotonic() - t0 < 2.0
+        assert list(sim.received)[-1] == "AcqStop()"
+        assert cam.acq_status()[0] == "idle"
+
+
 # ------------------------------------------------------------------- faults
 def test_dropped_reply_times_out_then_recovers(lab):
     sim, cam, state = lab

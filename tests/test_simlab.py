@@ -15,6 +15,7 @@ from drivers.errors import ConnectionLost
 from drivers.remoteex import RemoteExCamera
 from drivers.sim import SimulatedLab
 from drivers.sim.scene import VirtualScene
+from drivers.smc100 import SMC100Mirror
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -42,6 +43,23 @@ def test_lab_camera_renders_the_shared_state():
             lab.usb_backend
     with pytest.raises(ConnectionLost):
         RemoteExCamera(*address, connect_timeout_s=1.0)   # closed with the lab
+
+
+def test_lab_mirror_moves_select_the_scan_line_the_camera_shows():
+    with SimulatedLab(seed=0, scene=SMALL, sync=False) as lab:
+        assert lab.mirror_port.startswith("/dev/pts/")
+        lab.state.sync_output_enabled = True
+        with SMC100Mirror(lab.mirror_port) as mirror, \
+                RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+            mirror.home(timeout_s=5.0)
+            for line in (3, 0):
+                mirror.move_to(float(SMALL.angle_deg[line]))
+                reached = mirror.wait_settled(timeout_s=5.0)
+                assert reached == pytest.approx(SMALL.angle_deg[line], abs=1e-4)
+                img = cam.acquire().data
+                assert lab.camera.last_frame_info["line"] == line
+                assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0
+        assert lab.describe()["mirror"] == lab.mirror_port
 
 
 def test_same_seed_labs_give_the_same_bytes():
@@ -87,7 +105,7 @@ def _start(*extra):
 
 
 def test_sim_lab_command_serves_until_sigint():
-    proc = _start("--seed", "4", "--no-mirror")
+    proc = _start("--seed", "4")
     try:
         info = _read_addresses(proc)
         host, port = info["camera"].rsplit(":", 1)
@@ -96,6 +114,10 @@ def test_sim_lab_command_serves_until_sigint():
         with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
             img = cam.acquire()
         assert img.data.shape == (16, 64) and img.data.max() > 300
+        with SMC100Mirror(info["mirror"]) as mirror:
+            mirror.home(timeout_s=5.0)
+            assert mirror.position() == pytest.approx(0.0)
+        assert os.path.realpath(info["mirror-stable"]) == info["mirror"]
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=10) == 0
         assert b"stopped" in proc.stderr.read()
@@ -105,6 +127,22 @@ def test_sim_lab_command_serves_until_sigint():
             proc.wait(5)
     with pytest.raises(OSError):
         socket.create_connection((host, int(port)), timeout=1.0)
+
+
+def test_sim_lab_camera_only_and_dark():
+    proc = _start("--no-mirror", "--dark")
+    try:
+        info = _read_addresses(proc)
+        assert "mirror" not in info and info["laser-output"] == "off"
+        host, port = info["camera"].rsplit(":", 1)
+        with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
+            assert abs(cam.acquire().data.mean() - SMALL.dark_level) < 1.0
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
 
 
 def test_sim_lab_reports_a_taken_port():

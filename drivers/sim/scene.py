@@ -42,7 +42,7 @@ GAIN_DOUBLING_STEPS = 10.0
 UINT16_MAX = np.iinfo(np.uint16).max
 
 
-@dataclass
+@dataclass(eq=False)
 class VirtualScene:
     """Per-pixel ground truth of the virtual lab and how the camera sees it.
 
@@ -190,7 +190,7 @@ class VirtualScene:
             else:
                 shifted[k] = np.broadcast_to(v[:, None], (v.shape[0], self.n_t))
         out = render_profile(shifted, 1, time_bin_ps=1.0, t0_ps=0.0)[..., 0]
-        if len(self._cache) > 256:
+        if len(self._cache) >= 64:
             self._cache.clear()
         self._cache[key] = out
         return out
