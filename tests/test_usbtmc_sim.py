@@ -24,7 +24,7 @@ VID, PID = 0x1209, 0x5A17
 def lab():
     state = LabState()
     backend = UsbtmcBackend(state)
-    with ScpiLaserSync(vendor_id=VID, product_id=PID, backend=backend, timeout_s=0.3) as sync:
+    with ScpiLaserSync(vendor_id=VID, product_id=PID, backend=backend, timeout_s=0.5) as sync:
         yield backend, sync, state
 
 
