@@ -911,8 +911,28 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     eps = eps_rel * s_eff
     model, _ = _render(t, st)
     obj = objective(p, w, model, st, mu, eps)
-    st, obj, nl = _lm(t, p, w, st, mu, eps, _bounds(dic, bound_factor), n_lm, obj, tie_sigma, sss_after_direct,
-                      lm_tol)
+    bounds = _bounds(dic, bound_factor)
+    st, obj, nl = _lm(t, p, w, st, mu, eps, bounds, n_lm, obj, tie_sigma, sss_after_direct, lm_tol)
+    if sss_after_direct:
+        # A direct and an sss with the same onset and width are degenerate to first order
+        # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
+        lk, dsl, ssl = _linked(st)
+        rows = np.arange(st["fam"].shape[0])
+        gap = st["delay"][rows, ssl] - st["delay"][rows, dsl]
+        sig_s = np.exp(st["lsig"][rows, ssl])
+        retry = np.nonzero(lk & (gap < 0.5 * sig_s))[0]
+        if retry.size:
+            alt = _take(st, retry)
+            alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
+                                                                + sig_s[retry])
+            m_alt, _ = _render(t, alt)
+            o_alt = objective(p[retry], w[retry], m_alt, alt, mu[retry], eps[retry])
+            alt, o_alt, nl2 = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, o_alt,
+                                  tie_sigma, sss_after_direct, lm_tol)
+            better = o_alt < obj[retry]
+            _put(st, retry[better], _take(alt, better))
+            obj[retry[better]] = o_alt[better]
+            nl += nl2
     _drop_zero(st)
     model, _ = _render(t, st)
     return st, model, nl
