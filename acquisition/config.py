@@ -1,0 +1,348 @@
+"""Scan configuration: a TOML file read with the standard library, validated key by key.
+
+A configuration has these sections (every key is listed with its default; see
+``acquisition/examples/sim_scan.toml`` for a commented example)::
+
+    [devices]
+    camera = "127.0.0.1:1001"      # RemoteEx command port "host:port" (data port = port + 1)
+    mirror = "/dev/ttyUSB0"        # serial port name or pyserial URL of the motion controller
+    mirror_address = 1             # controller address on the serial line (1..31)
+    sync_vendor_id = 0x0000        # USB vendor id of the laser-sync unit      } give both ids,
+    sync_product_id = 0x0000       # USB product id                            } or the serial,
+    sync_serial = ""               # USB serial number                         } or all three
+
+    [scan]                         # either start_deg/stop_deg/count or angles_deg
+    start_deg = -5.0
+    stop_deg = 5.0
+    count = 16
+    angles_deg = [...]             # explicit mirror angles, one per line (distinct)
+    settle_timeout_s = 10.0
+
+    [camera]
+    exposure_s = 0.01
+    frames_per_line = 1            # frames acquired (and later averaged) per scan line
+    time_range = 1                 # the streak unit's time-range setting
+    gain = 0                       # optional; omitted = leave the camera's gain alone
+    acquire_timeout_s = 10.0
+
+    [sync]
+    trigger_delay_ps = 0.0
+    repetition_rate_hz = 80e6
+    channel = 1
+
+    [dark]
+    frames = 4                     # dark frames taken with the sync output off (0 = none)
+
+    [calibration]
+    time_poly_ps = [0.0, 2.0]      # t(row) = sum_k c_k row**k in ps, row = streak pixel row
+    time_bin_ps = 2.0              # uniform time bin of the reconstructed cube
+    t0_ps = ...                    # optional: time of the first cube bin (default: first
+                                   # multiple of time_bin_ps inside the calibrated range)
+
+    [output]
+    path = "run.zarr"              # run store (``--out`` overrides it)
+
+    [session]
+    retries = 3                    # attempts per line after the first, on a device fault
+    retry_backoff_s = 0.5
+
+    [simulation]
+    seed = 0                       # seed of the simulated lab used by ``--simulate``
+
+Unknown sections and keys, wrong types and out-of-range values raise
+:class:`ConfigError` whose message starts with the dotted key, e.g.
+``scan.count: must be a positive integer, got 0``.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
+           "check_calibration", "HASHED_SECTIONS"]
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown or out of range; the message names the key."""
+
+
+# Sections whose values determine the acquired bytes: resuming a run with any of them changed is
+# refused.  [devices] (addresses change between sessions, e.g. a simulated lab's ephemeral ports),
+# [output] (--out overrides it) and [session] (retry policy) may change between sessions.
+HASHED_SECTIONS = ("scan", "camera", "sync", "dark", "calibration", "simulation")
+
+_MISSING = object()
+
+
+def _fail(key, message):
+    raise ConfigError(f"{key}: {message}")
+
+
+def _is_int(v):
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v):
+    return (isinstance(v, (int, float)) and not isinstance(v, bool))
+
+
+def _num(key, v, *, lo=None, hi=None, lo_open=False, what="a number"):
+    if not _is_num(v) or not math.isfinite(v):
+        _fail(key, f"must be {what}, got {v!r}")
+    v = float(v)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        _fail(key, f"must be {what}, got {v!r}")
+    if hi is not None and v > hi:
+        _fail(key, f"must be {what}, got {v!r}")
+    return v
+
+
+def _int(key, v, *, lo=None, hi=None, what="an integer"):
+    if not _is_int(v) or (lo is not None and v < lo) or (hi is not None and v > hi):
+        _fail(key, f"must be {what}, got {v!r}")
+    return int(v)
+
+
+def _str(key, v, *, allow_empty=False):
+    if not isinstance(v, str) or (not allow_empty and not v.strip()):
+        _fail(key, f"must be a non-empty string, got {v!r}")
+    return v
+
+
+def _host_port(key, v):
+    v = _str(key, v)
+    host, sep, port = v.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65535:
+        _fail(key, f"must be 'host:port' with a port in 1..65534, got {v!r}")
+    return v
+
+
+def _section(cfg, name, spec, *, required=()):
+    """Check one section: no unknown keys, each key validated by its checker."""
+    raw = cfg.get(name, {})
+    if not isinstance(raw, dict):
+        _fail(name, f"must be a table ([{name}]), got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(spec))
+    if unknown:
+        _fail(f"{name}.{unknown[0]}", f"unknown key (known keys: {', '.join(spec)})")
+    out = {}
+    for key, (check, default) in spec.items():
+        dotted = f"{name}.{key}"
+        if key in raw:
+            out[key] = check(dotted, raw[key])
+        elif key in required:
+            _fail(dotted, "is required")
+        elif default is not _MISSING:
+            out[key] = copy.deepcopy(default)
+    return out
+
+
+def _positive(what="a positive number"):
+    return lambda k, v: _num(k, v, lo=0.0, lo_open=True, what=what)
+
+
+def _angle_list(key, v):
+    if not isinstance(v, list) or not v:
+        _fail(key, f"must be a non-empty list of angles in degrees, got {v!r}")
+    out = [_num(f"{key}[{i}]", a, lo=-360.0, hi=360.0, what="an angle in degrees in [-360, 360]")
+           for i, a in enumerate(v)]
+    if len(set(out)) != len(out):
+        dup = next(a for a in out if out.count(a) > 1)
+        _fail(key, f"angles must be distinct (each is one scan line), {dup} appears twice")
+    return out
+
+
+def _poly(key, v):
+    if not isinstance(v, list) or not v:
+        _fail(key, f"must be a non-empty list of polynomial coefficients [c0, c1, ...] in ps, got {v!r}")
+    coeffs = [_num(f"{key}[{i}]", c, what="a finite number") for i, c in enumerate(v)]
+    if len(coeffs) < 2 or all(c == 0 for c in coeffs[1:]):
+        _fail(key, "must depend on the row (a constant calibration maps every row to the same time)")
+    return coeffs
+
+
+_SPEC = {
+    "devices": {
+        "camera": (_host_port, "127.0.0.1:1001"),
+        "mirror": (_str, "/dev/ttyUSB0"),
+        "mirror_address": (lambda k, v: _int(k, v, lo=1, hi=31, what="an integer in 1..31"), 1),
+        "sync_vendor_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
+        "sync_product_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
+        "sync_serial": (_str, _MISSING),
+    },
+    "scan": {
+        "start_deg": (lambda k, v: _num(k, v, lo=-360.0, hi=360.0, what="an angle in [-360, 360] deg"), _MISSING),
+        "stop_deg": (lambda k, v: _num(k, v, lo=-360.0, hi=360.0, what="an angle in [-360, 360] deg"), _MISSING),
+        "count": (lambda k, v: _int(k, v, lo=1, what="a positive integer"), _MISSING),
+        "angles_deg": (_angle_list, _MISSING),
+        "settle_timeout_s": (_positive("a positive number of seconds"), 10.0),
+    },
+    "camera": {
+        "exposure_s": (_positive("a positive number of seconds"), 0.01),
+        "frames_per_line": (lambda k, v: _int(k, v, lo=1, hi=10000, what="an integer in 1..10000"), 1),
+        "time_range": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer (the time-range setting)"), 1),
+        "gain": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), _MISSING),
+        "acquire_timeout_s": (_positive("a positive number of seconds"), 10.0),
+    },
+    "sync": {
+        "trigger_delay_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e12, what="a delay in ps in [0, 1e12]"), 0.0),
+        "repetition_rate_hz": (_positive("a positive rate in Hz"), 80e6),
+        "channel": (lambda k, v: _int(k, v, lo=1, hi=16, what="a channel number in 1..16"), 1),
+    },
+    "dark": {
+        "frames": (lambda k, v: _int(k, v, lo=0, hi=10000, what="an integer in 0..10000"), 4),
+    },
+    "calibration": {
+        "time_poly_ps": (_poly, _MISSING),
+        "time_bin_ps": (_positive("a positive bin width in ps"), 2.0),
+        "t0_ps": (lambda k, v: _num(k, v, what="a finite time in ps"), _MISSING),
+    },
+    "output": {
+        "path": (_str, _MISSING),
+    },
+    "session": {
+        "retries": (lambda k, v: _int(k, v, lo=0, hi=100, what="an integer in 0..100"), 3),
+        "retry_backoff_s": (lambda k, v: _num(k, v, lo=0.0, hi=60.0, what="a number of seconds in [0, 60]"), 0.5),
+    },
+    "simulation": {
+        "seed": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), 0),
+    },
+}
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    """A validated scan configuration.
+
+    Attributes
+    ----------
+    data : dict
+        The normalised configuration: every section and key, defaults filled
+        in, plain JSON types.  ``scan.angles_deg`` always holds the line angles.
+    source : str or None
+        The file it was read from.
+    """
+
+    data: dict
+    source: str | None = None
+
+    @property
+    def angles_deg(self) -> np.ndarray:
+        """Target mirror angle of each scan line, shape (n_lines,), degrees, in acquisition order."""
+        return np.asarray(self.data["scan"]["angles_deg"], dtype=np.float64)
+
+    @property
+    def n_lines(self) -> int:
+        return len(self.data["scan"]["angles_deg"])
+
+    def __getitem__(self, section: str) -> dict:
+        return self.data[section]
+
+    def hashed_part(self) -> dict:
+        return {k: self.data[k] for k in HASHED_SECTIONS}
+
+    @property
+    def hash(self) -> str:
+        """sha256 of the canonical JSON of the sections that determine the acquired data."""
+        text = json.dumps(self.hashed_part(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()
+
+
+def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
+    """Validate a configuration dict (as parsed from TOML) and fill in defaults.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first offending key.
+    """
+    if not isinstance(raw, dict):
+        raise ConfigError(f"configuration must be a table, got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(_SPEC))
+    if unknown:
+        _fail(unknown[0], f"unknown section (known sections: {', '.join(_SPEC)})")
+    data = {name: _section(raw, name, spec) for name, spec in _SPEC.items()}
+
+    dev = data["devices"]
+    has_ids = [k in dev for k in ("sync_vendor_id", "sync_product_id")]
+    if any(has_ids) and not all(has_ids):
+        missing = "sync_product_id" if has_ids[0] else "sync_vendor_id"
+        _fail(f"devices.{missing}", "is required together with the other USB id")
+
+    scan = data["scan"]
+    ranged = [k for k in ("start_deg", "stop_deg", "count") if k in scan]
+    if "angles_deg" in scan:
+        if ranged:
+            _fail(f"scan.{ranged[0]}", "give either angles_deg or start_deg/stop_deg/count, not both")
+    else:
+        for k in ("start_deg", "stop_deg", "count"):
+            if k not in scan:
+                _fail(f"scan.{k}", "is required (or give an explicit scan.angles_deg list)")
+        if scan["count"] > 1 and scan["start_deg"] == scan["stop_deg"]:
+            _fail("scan.stop_deg", "must differ from start_deg when count > 1 (lines would coincide)")
+        scan["angles_deg"] = [float(a) for a in np.linspace(scan["start_deg"], scan["stop_deg"], scan["count"])]
+    if "time_poly_ps" not in data["calibration"]:
+        _fail("calibration.time_poly_ps", "is required (pixel row -> ps polynomial of the streak sweep)")
+    return ScanConfig(data=data, source=source)
+
+
+def load_config(path) -> ScanConfig:
+    """Read and validate a TOML scan configuration file."""
+    p = Path(path)
+    try:
+        text = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}") from None
+    try:
+        raw = tomllib.loads(text.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return parse_config(raw, source=str(p))
+
+
+def calibration_times_ps(time_poly_ps, n_rows: int) -> np.ndarray:
+    """Time of each streak pixel row from the calibration polynomial.
+
+    Parameters
+    ----------
+    time_poly_ps : sequence of float
+        Coefficients c_k of t(row) = sum_k c_k row**k, in ps (increasing powers).
+    n_rows : int
+        Number of pixel rows on the streak (time) axis.
+
+    Returns
+    -------
+    ndarray, shape (n_rows,), float64, ps.
+    """
+    rows = np.arange(int(n_rows), dtype=np.float64)
+    return np.polynomial.polynomial.polyval(rows, np.asarray(time_poly_ps, dtype=np.float64))
+
+
+def check_calibration(time_poly_ps, n_rows: int, *, key: str = "calibration.time_poly_ps") -> np.ndarray:
+    """Row times, after checking that they are finite and strictly monotonic over all rows.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key and the first row where monotonicity fails.
+    """
+    t = calibration_times_ps(time_poly_ps, n_rows)
+    if n_rows < 2:
+        raise ConfigError(f"{key}: the streak axis needs at least 2 rows, got {n_rows}")
+    if not np.all(np.isfinite(t)):
+        raise ConfigError(f"{key}: gives non-finite times over rows 0..{n_rows - 1}")
+    d = np.diff(t)
+    if not (np.all(d > 0) or np.all(d < 0)):
+        sign = np.sign(d[0]) if d[0] != 0 else 1.0
+        bad = int(np.flatnonzero(np.sign(d) != sign)[0])
+        raise ConfigError(
+            f"{key}: must be strictly monotonic over rows 0..{n_rows - 1}, but t(row {bad}) = {t[bad]:.6g} ps "
+            f"and t(row {bad + 1}) = {t[bad + 1]:.6g} ps")
+    return t

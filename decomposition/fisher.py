@@ -1,0 +1,317 @@
+"""Fisher information, Cramér-Rao bounds and standard errors of component parameters.
+
+For a profile y = mu(theta) + n with white Gaussian noise of standard
+deviation sigma_n per sample, the Fisher information of the parameters is
+
+    F = J^T J / sigma_n^2,      J_ij = d mu(t_i) / d theta_j,
+
+and any unbiased estimator has cov(theta_hat) >= F^-1 (the Cramér-Rao bound).
+theta holds, for every present component, its delay (ps), amplitude, sigma (ps)
+and, for sss, alpha (1/ps), in those natural units; J uses the analytic kernel
+derivatives of :func:`decomposition.refine.kernel_derivatives` (the same model
+the refinement fits).
+
+Worked case, used by the tests: an isolated Gaussian a g(t - t_d; s) whose
+samples are symmetric about t_d.  The delay column a g t / s^2 is odd about
+t_d while the amplitude and sigma columns are even, so F is block diagonal and
+
+    var(t_d) >= sigma_n^2 / (a^2 sum_i (g(t_i) (t_i - t_d) / s^2)^2)
+             ~ sigma_n^2 2 T s / (sqrt(pi) a^2)     (many samples per sigma)
+
+which at a noise-to-signal ratio NSR = ||n|| / ||mu|| over L bins is
+std(t_d) >= NSR s sqrt(2 / L).
+
+Singular or numerically singular Fisher matrices (two components that the data
+cannot tell apart, a component entirely outside the window) give NaN for every
+parameter of that pixel, never an exception or an inf.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
+from .refine import _SSS, kernel_derivatives, slot_arrays
+
+__all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
+
+# Smallest eigenvalue, relative to the largest, of the correlation-normalised
+# Fisher matrix for which the pixel's parameters count as identifiable.
+_RCOND = 1e-12
+
+
+def parameter_names(n_ir: int) -> list[str]:
+    """Names of the rows/columns of :func:`fisher_information`'s matrices, in order.
+
+    Slot order direct, sss, ir[0..R-1]; per slot delay, amplitude, sigma; the
+    sss alpha comes last.  Inter-reflection names carry their index, e.g.
+    ``ir_delay_ps[1]``.
+    """
+    names = []
+    slots = [("direct", None), ("sss", None)] + [("ir", r) for r in range(int(n_ir))]
+    for fam, r in slots:
+        for q in ("delay_ps", "amplitude", "sigma_ps"):
+            names.append(f"{fam}_{q}" + (f"[{r}]" if r is not None else ""))
+    names.append("sss_alpha_per_ps")
+    return names
+
+
+def _jacobian(t, slots, amp_scale, tb):
+    """Model Jacobian rows (n, 3K+1, L) in natural units, amplitudes divided by amp_scale (n,)."""
+    present = slots["present"]
+    n, k = present.shape
+    rows = np.zeros((n, 3 * k + 1, t.size))
+    amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
+    base = 3 * np.arange(k)
+    gmask = present.copy()
+    gmask[:, _SSS] = False
+    if gmask.any():
+        pix, slot = np.nonzero(gmask)
+        a = amp[pix, slot][:, None]
+        val, d_del, d_sig = kernel_derivatives(t - slots["delay"][pix, slot][:, None],
+                                               slots["sigma"][pix, slot][:, None], time_bin_ps=tb)
+        rows[pix, base[slot]] = a * d_del
+        rows[pix, base[slot] + 1] = val
+        rows[pix, base[slot] + 2] = a * d_sig
+    pix = np.flatnonzero(present[:, _SSS])
+    if pix.size:
+        a = amp[pix, _SSS][:, None]
+        val, d_del, d_sig, d_alp = kernel_derivatives(
+            t - slots["delay"][pix, _SSS][:, None], slots["sigma"][pix, _SSS][:, None],
+            slots["alpha"][pix][:, None], time_bin_ps=tb)
+        rows[pix, 3 * _SSS] = a * d_del
+        rows[pix, 3 * _SSS + 1] = val
+        rows[pix, 3 * _SSS + 2] = a * d_sig
+        rows[pix, 3 * k] = a * d_alp
+    free = np.concatenate([np.repeat(present, 3, axis=1), present[:, _SSS:_SSS + 1]], axis=1)
+    return rows, free
+
+
+def _prepare(params, n_bins, time_bin_ps, t0_ps):
+    if "direct_delay_ps" in params:
+        lead = np.shape(params["direct_delay_ps"])
+    elif "ir_delay_ps" in params:
+        lead = np.shape(params["ir_delay_ps"])[:-1]
+    else:
+        raise ValueError("params holds no component delays")
+    slots = slot_arrays(params, lead)
+    t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
+    amp = np.where(slots["present"], np.abs(slots["amplitude"]), 0.0)
+    amp_scale = np.max(amp, axis=-1, initial=0.0)
+    amp_scale = np.where(amp_scale > 0, amp_scale, 1.0)
+    return lead, slots, t, amp_scale
+
+
+def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None):
+    """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
+    lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
+    tb = float(time_bin_ps) if bin_integrated else None
+    rows, free = _jacobian(t, slots, amp_scale, tb)
+    if sw is not None:
+        rows *= sw[:, None, :]
+    info = rows @ rows.swapaxes(-1, -2)
+    return lead, slots, info, free, amp_scale
+
+
+def _amplitude_rows(k):
+    idx = np.zeros(3 * k + 1, dtype=bool)
+    idx[1:3 * k:3] = True
+    return idx
+
+
+def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
+                       t0_ps: float | None = None, bin_integrated: bool = False):
+    """Fisher information of the component parameters under white Gaussian noise.
+
+    Parameters
+    ----------
+    params : dict of ndarray
+        Parameter dict (keys of :mod:`decomposition.model`), leading shape (...,),
+        NaN where absent.
+    noise_sigma : float or array_like broadcastable to (...,)
+        Noise standard deviation per time bin, in the units of the profile (> 0).
+    n_bins, time_bin_ps, t0_ps
+        Time axis of the profiles (see :func:`decomposition.model.time_axis_ps`).
+    bin_integrated : bool
+        Use bin-averaged kernels (as ``model.render_profile(bin_integrated=True)``).
+
+    Returns
+    -------
+    fisher : ndarray, shape (..., P, P), P = 3 (2 + R) + 1
+        Rows/columns named by :func:`parameter_names`; units are the inverse
+        products of the parameters' units.  Rows and columns of absent
+        components are zero.
+    free : ndarray of bool, shape (..., P)
+        Which rows belong to present components.
+    """
+    lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
+                                                            bin_integrated)
+    noise = _noise(noise_sigma, lead)
+    # Undo the amplitude normalisation: d mu / d amplitude rows were computed for
+    # amplitudes / scale, the other rows carry amplitude / scale as a factor.
+    k = slots["present"].shape[1]
+    is_amp = _amplitude_rows(k)
+    fac = np.where(is_amp[None, :], 1.0, amp_scale[:, None])  # (n, P)
+    with np.errstate(over="ignore"):
+        fisher = info * fac[:, :, None] * fac[:, None, :] / (noise * noise)[:, None, None]
+    return fisher.reshape(lead + fisher.shape[1:]), free.reshape(lead + free.shape[1:])
+
+
+def _noise(noise_sigma, lead):
+    noise = np.asarray(noise_sigma, dtype=np.float64)
+    try:
+        noise = np.broadcast_to(noise, lead).reshape(-1)
+    except ValueError:
+        raise ValueError(f"noise_sigma of shape {noise.shape} does not broadcast to the pixel shape {lead}") from None
+    if np.any(~np.isfinite(noise)) or np.any(noise < 0):
+        raise ValueError("noise_sigma must be finite and non-negative")
+    return noise
+
+
+def _covariance_diag(info, free):
+    """sqrt(diag(inv(info))) over the free rows, NaN for pixels whose matrix is (near) singular."""
+    n, p, _ = info.shape
+    d = np.sqrt(np.where(free, np.einsum("npp->np", info), 1.0))
+    ok_diag = np.all(np.where(free, d > 0, True), axis=-1) & np.all(np.isfinite(info), axis=(1, 2))
+    d = np.where(d > 0, d, 1.0)
+    corr = info / (d[:, :, None] * d[:, None, :])
+    mask = free[:, :, None] & free[:, None, :]
+    corr = np.where(mask, corr, 0.0)
+    pidx = np.arange(p)
+    corr[:, pidx, pidx] = 1.0
+    corr = np.where(np.isfinite(corr), corr, 0.0)
+    w, v = np.linalg.eigh(corr)
+    ok = ok_diag & (w[:, 0] > _RCOND * w[:, -1])
+    w = np.where(ok[:, None], w, 1.0)
+    inv_diag = np.einsum("npk,nk->np", v * v, 1.0 / w)
+    out = np.sqrt(inv_diag) / d
+    out = np.where(free & ok[:, None], out, np.nan)
+    return out
+
+
+def _to_dict(std, slots, lead, suffix):
+    k = slots["present"].shape[1]
+    n_ir = k - 2
+    out = {}
+    for fam, slot, keys in (("direct", 0, DIRECT_KEYS), ("sss", _SSS, ("sss_delay_ps", "sss_amplitude", "sss_sigma_ps"))):
+        for j, key in enumerate(keys):
+            out[key + suffix] = std[:, 3 * slot + j].reshape(lead)
+    out["sss_alpha_per_ps" + suffix] = std[:, 3 * k].reshape(lead)
+    for j, key in enumerate(IR_KEYS):
+        cols = 3 * np.arange(2, k) + j
+        out[key + suffix] = std[:, cols].reshape(lead + (n_ir,))
+    order = DIRECT_KEYS + SSS_KEYS + IR_KEYS
+    return {key + suffix: out[key + suffix] for key in order}
+
+
+def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None):
+    lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
+                                                            bin_integrated, sw)
+    std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
+    k = slots["present"].shape[1]
+    is_amp = _amplitude_rows(k)
+    # Amplitude rows were for amplitude / scale: their std scales back up; the
+    # other parameters' rows carried amplitude / scale, so theirs scales down.
+    noise_rel = noise / amp_scale
+    std = np.where(is_amp[None, :], std_unit * noise[:, None], std_unit * noise_rel[:, None])
+    return _to_dict(std, slots, lead, suffix)
+
+
+def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
+                     t0_ps: float | None = None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+    """Cramér-Rao lower bounds (standard deviations) of every present parameter.
+
+    Parameters
+    ----------
+    params : dict of ndarray
+        True parameters (keys of :mod:`decomposition.model`), leading shape (...,).
+    noise_sigma : float or array_like broadcastable to (...,)
+        White Gaussian noise standard deviation per time bin (>= 0), in the
+        units of the profile.
+    n_bins, time_bin_ps, t0_ps, bin_integrated
+        Time axis and sampling of the profiles.
+
+    Returns
+    -------
+    dict of ndarray
+        ``<key>_crb`` for every parameter key (e.g. ``direct_delay_ps_crb`` in
+        ps, ``sss_alpha_per_ps_crb`` in 1/ps, ``ir_delay_ps_crb`` of shape
+        (..., R)): the smallest standard deviation any unbiased estimator can
+        reach, all parameters of all present components being unknown.  NaN
+        where the component is absent or the pixel's Fisher matrix is singular.
+    """
+    lead = np.shape(params["direct_delay_ps"]) if "direct_delay_ps" in params else np.shape(params["ir_delay_ps"])[:-1]
+    noise = _noise(noise_sigma, lead)
+    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb")
+
+
+def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
+                    weights=None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+    """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
+
+    The noise level of each pixel is estimated from its residual,
+    sigma_n^2 = ||y - mu(theta)||^2 / (L - P_free), with P_free the number of
+    fitted parameters of the pixel; this is accurate when ``params`` is the
+    least-squares fit (e.g. the output of :func:`decomposition.refine.refine`).
+
+    Parameters
+    ----------
+    profiles : array_like, shape (..., L)
+        The profiles the parameters were fitted to.
+    params : dict of ndarray
+        Fitted parameters, leading shape (...,).
+    time_bin_ps, t0_ps, bin_integrated
+        Time axis and sampling.
+    weights : array_like, shape (..., L), optional
+        Relative sample weights of the fit (as in :func:`decomposition.refine.refine`);
+        samples of weight 0 (saturated, excluded) do not count, and the noise
+        estimate is that of a unit-weight sample.
+
+    Returns
+    -------
+    dict of ndarray
+        ``<key>_stderr`` for every parameter key, in the parameter's units; NaN
+        where the component is absent, the pixel has no residual degrees of
+        freedom, or its Fisher matrix is singular.
+    """
+    y = np.asarray(profiles, dtype=np.float64)
+    if y.ndim < 1:
+        raise ValueError("profiles must have shape (..., L)")
+    sw = None
+    if weights is not None:
+        wts = np.asarray(weights, dtype=np.float64)
+        if wts.shape != y.shape:
+            raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
+        if np.any(~np.isfinite(wts)) or np.any(wts < 0):
+            raise ValueError("weights must be finite and non-negative")
+        y = np.where(wts > 0, y, 0.0)
+        sw = np.sqrt(wts).reshape(-1, y.shape[-1])
+    lead = y.shape[:-1]
+    n_bins = y.shape[-1]
+    if not np.all(np.isfinite(y)):
+        bad = int(np.sum(~np.isfinite(y).all(axis=-1)))
+        raise ValueError(f"profiles contain NaN or inf samples in {bad} pixel(s)")
+    slots = slot_arrays(params, lead)
+    t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
+    tb = float(time_bin_ps) if bin_integrated else None
+    ones = np.ones(slots["present"].shape[0])
+    rows, free = _jacobian(t, slots, ones, tb)
+    k = slots["present"].shape[1]
+    amp_rows = rows[:, _amplitude_rows(k)][:, :k]  # basis functions phi_k
+    amp = np.where(slots["present"], slots["amplitude"], 0.0)
+    resid = y.reshape(-1, n_bins) - np.einsum("nk,nkl->nl", amp, amp_rows)
+    n_used = n_bins
+    if sw is not None:
+        resid = resid * sw
+        n_used = np.sum(sw > 0, axis=-1)
+    dof = n_used - free.sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        noise = np.where(dof > 0, np.sqrt(np.einsum("nl,nl->n", resid, resid) / np.maximum(dof, 1)), np.nan)
+    out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
+                 bin_integrated, "_stderr", sw)
+    if np.any(~np.isfinite(noise)):
+        bad = ~np.isfinite(noise)
+        for key, v in out.items():
+            v2 = v.reshape(bad.size, -1)
+            v2[bad] = np.nan
+    return out

@@ -1,0 +1,167 @@
+"""Accuracy of a decomposition against ground truth.
+
+Decomposition fidelity (the measure of the paper's Fig. 3(d)), per pixel, over the component
+classes k = d, s, r2, r3, ...::
+
+    fidelity = 1 - sum_k ||est_k - truth_k||_2 / sum_k ||truth_k||_2
+
+A class missing on either side is a zero profile, so a missed component costs its whole norm
+and a spurious one costs its own norm.  Fidelity is 1 for a perfect estimate, 0 for an empty
+one, and can go below 0 when spurious components outweigh the truth.  It is undefined (NaN)
+for a pixel whose truth holds no component at all.
+
+Inter-reflections are compared by order of arrival (r2 with r2, r3 with r3, ...), which is how
+both the ground truth and a decomposition list them.
+
+Per-parameter helpers compare parameter dicts (keys of :mod:`decomposition.model`) on the
+pixels where both sides hold the component.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "component_profiles",
+    "fidelity",
+    "mean_fidelity",
+    "parameter_error",
+    "delay_error_ps",
+    "delay_rmse_ps",
+    "detection_counts",
+]
+
+_CLASSES = ("direct", "sss", "interreflections")
+
+
+def component_profiles(obj) -> dict[str, np.ndarray]:
+    """Component classes of ``obj`` as ``{"direct", "sss", "interreflections"}`` arrays.
+
+    ``obj`` is a dict with those keys (as :func:`decomposition.model.render_components`
+    returns) or an object with those attributes (a decomposition result).  A missing
+    ``direct``/``sss`` is taken as zeros, a missing ``interreflections`` as R = 0.
+    """
+    get = obj.get if isinstance(obj, dict) else (lambda k: getattr(obj, k, None))
+    d, s, r = (get(k) for k in _CLASSES)
+    if d is None and s is None and r is None:
+        raise ValueError("expected component profiles with keys/attributes 'direct', 'sss', 'interreflections'")
+    if d is not None:
+        shape = np.shape(d)
+    elif s is not None:
+        shape = np.shape(s)
+    else:
+        r = np.asarray(r, dtype=np.float64)
+        if r.ndim < 2:
+            raise ValueError(f"interreflections must have shape (..., R, L), got {r.shape}")
+        shape = r.shape[:-2] + r.shape[-1:]
+    if len(shape) < 1:
+        raise ValueError("component profiles must have a time axis (..., L)")
+    d = np.zeros(shape) if d is None else np.asarray(d, dtype=np.float64)
+    s = np.zeros(shape) if s is None else np.asarray(s, dtype=np.float64)
+    r = np.zeros(shape[:-1] + (0, shape[-1])) if r is None else np.asarray(r, dtype=np.float64)
+    if d.shape != shape or s.shape != shape:
+        raise ValueError(f"direct {d.shape} and sss {s.shape} profiles must have the same shape")
+    if r.ndim != d.ndim + 1 or r.shape[:-2] != shape[:-1] or r.shape[-1] != shape[-1]:
+        raise ValueError(f"interreflections must have shape {shape[:-1]} + (R, {shape[-1]}), got {r.shape}")
+    return {"direct": d, "sss": s, "interreflections": r}
+
+
+def _pad_ir(r, n):
+    if r.shape[-2] == n:
+        return r
+    pad = [(0, 0)] * r.ndim
+    pad[-2] = (0, n - r.shape[-2])
+    return np.pad(r, pad)
+
+
+def fidelity(truth, estimate) -> np.ndarray:
+    """Per-pixel decomposition fidelity (see the module docstring).
+
+    Parameters
+    ----------
+    truth, estimate : dict or result object
+        Component profiles: ``direct`` (..., L), ``sss`` (..., L), ``interreflections``
+        (..., R, L); R may differ between the two (the shorter is padded with zero profiles).
+
+    Returns
+    -------
+    ndarray, (...,), float64; NaN where the truth has no component.
+    """
+    t = component_profiles(truth)
+    e = component_profiles(estimate)
+    if t["direct"].shape != e["direct"].shape:
+        raise ValueError(f"truth profiles {t['direct'].shape} and estimate profiles {e['direct'].shape} differ in shape")
+    n_ir = max(t["interreflections"].shape[-2], e["interreflections"].shape[-2])
+    tr, er = _pad_ir(t["interreflections"], n_ir), _pad_ir(e["interreflections"], n_ir)
+    err = (np.linalg.norm(e["direct"] - t["direct"], axis=-1)
+           + np.linalg.norm(e["sss"] - t["sss"], axis=-1)
+           + np.linalg.norm(er - tr, axis=-1).sum(axis=-1))
+    ref = (np.linalg.norm(t["direct"], axis=-1) + np.linalg.norm(t["sss"], axis=-1)
+           + np.linalg.norm(tr, axis=-1).sum(axis=-1))
+    out = np.full(ref.shape, np.nan)
+    np.divide(err, ref, out=out, where=ref > 0)
+    return np.where(ref > 0, 1.0 - out, np.nan)
+
+
+def mean_fidelity(truth, estimate) -> float:
+    """Mean of :func:`fidelity` over the pixels whose truth holds a component (NaN if none does)."""
+    f = fidelity(truth, estimate)
+    ok = np.isfinite(f)
+    return float(f[ok].mean()) if ok.any() else float("nan")
+
+
+def _param(params, key, n_ir=None):
+    if key not in params:
+        raise KeyError(f"parameter dict lacks {key!r}")
+    a = np.asarray(params[key], dtype=np.float64)
+    if n_ir is not None and a.shape[-1] < n_ir:
+        pad = [(0, 0)] * a.ndim
+        pad[-1] = (0, n_ir - a.shape[-1])
+        a = np.pad(a, pad, constant_values=np.nan)
+    return a
+
+
+def parameter_error(truth: dict, estimate: dict, key: str, *, relative: bool = False) -> np.ndarray:
+    """``estimate[key] - truth[key]`` where both are present, NaN elsewhere.
+
+    For inter-reflection keys (``ir_*``, shape (..., R)) the shorter R is padded with NaN
+    (absent) before comparing in order of arrival.  ``relative=True`` divides by ``|truth|``.
+    """
+    if key.startswith("ir_"):
+        n = max(np.shape(truth[key])[-1], np.shape(estimate[key])[-1])
+        t, e = _param(truth, key, n), _param(estimate, key, n)
+    else:
+        t, e = _param(truth, key), _param(estimate, key)
+    if t.shape != e.shape:
+        raise ValueError(f"{key}: truth {t.shape} and estimate {e.shape} differ in shape")
+    diff = e - t
+    if relative:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            diff = diff / np.abs(t)
+    return diff
+
+
+def delay_error_ps(truth: dict, estimate: dict, family: str = "direct") -> np.ndarray:
+    """Delay error (ps) of one family (``"direct"``, ``"sss"`` or ``"ir"``), NaN where unmatched."""
+    if family not in ("direct", "sss", "ir"):
+        raise ValueError(f"family must be 'direct', 'sss' or 'ir', got {family!r}")
+    return parameter_error(truth, estimate, f"{family}_delay_ps")
+
+
+def delay_rmse_ps(truth: dict, estimate: dict, family: str = "direct") -> float:
+    """Root-mean-square delay error (ps) over the components present on both sides (NaN if none)."""
+    e = delay_error_ps(truth, estimate, family)
+    ok = np.isfinite(e)
+    return float(np.sqrt(np.mean(np.square(e[ok])))) if ok.any() else float("nan")
+
+
+def detection_counts(truth: dict, estimate: dict, family: str = "direct") -> dict[str, int]:
+    """Counts of matched, missed and spurious components of one family (by presence of the delay)."""
+    if family not in ("direct", "sss", "ir"):
+        raise ValueError(f"family must be 'direct', 'sss' or 'ir', got {family!r}")
+    key = f"{family}_delay_ps"
+    if family == "ir":
+        n = max(np.shape(truth[key])[-1], np.shape(estimate[key])[-1])
+        t, e = np.isfinite(_param(truth, key, n)), np.isfinite(_param(estimate, key, n))
+    else:
+        t, e = np.isfinite(_param(truth, key)), np.isfinite(_param(estimate, key))
+    return {"matched": int(np.sum(t & e)), "missed": int(np.sum(t & ~e)), "spurious": int(np.sum(~t & e))}

@@ -1,0 +1,162 @@
+"""Run store -> calibrated (y, x, t) cube.
+
+For every finished scan line: average its frames, subtract the mean dark frame,
+divide by the flat field (optional), and resample each slit pixel's profile from
+the calibrated row times onto the uniform grid of ``calibration.time_bin_ps``.
+Lines are placed along y in order of their target mirror angle (scene order),
+whatever order they were acquired in.  The cube is written through
+:mod:`reconstruction.cubestore`, beside three per-y arrays that tie it to the run:
+
+    line_index  (y,)  int64    run line that fills this y
+    line_valid  (y,)  bool     False where the line was unfinished (--allow-partial; cube is NaN there)
+    angle_deg   (y,)  float64  mirror angle reached for the line, deg (NaN if unfinished)
+
+Everything is checked before anything is written, and the cube is built in a
+temporary directory beside ``out`` and renamed into place only when complete, so
+an error never leaves a half-written cube or destroys an existing one.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.config import check_calibration
+from acquisition.runstore import open_run
+
+from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
+from .cubestore import check_output_path, create_cube, open_cube
+from .staging import staged_output
+
+__all__ = ["ReconstructionError", "reconstruct"]
+
+
+class ReconstructionError(ValueError):
+    """The run cannot be reconstructed as asked (says why)."""
+
+
+def _describe_lines(idx) -> str:
+    idx = [int(i) for i in idx]
+    shown = ", ".join(map(str, idx[:10]))
+    return shown + (f", ... ({len(idx)} in all)" if len(idx) > 10 else "")
+
+
+def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, flat_path=None,
+                allow_partial: bool = False, overwrite: bool = False, progress=None):
+    """Reconstruct the calibrated cube of a run store.
+
+    Parameters
+    ----------
+    run_path : path of the run store (``streaklab capture`` output).
+    out_path : path of the cube store to write.
+    chunks : (by, bx), optional
+        Cube chunk size in pixels (time is never split); default (min(ny, 16), min(nx, 64)).
+    flat_path : path of a ``.npy`` flat field, shape (x, t) or (x,), optional.
+    allow_partial : bool
+        Reconstruct a run with unfinished lines; their cube rows are NaN and
+        ``line_valid`` is False there.  Without it unfinished lines are an error.
+    overwrite : bool
+        Replace an existing ``out_path`` (only after the new cube is complete).
+    progress : callable(done_lines, total_lines), optional
+
+    Returns
+    -------
+    reconstruction.cubestore.Cube
+        The written cube, opened read-only.
+
+    Raises
+    ------
+    acquisition.runstore.RunStoreError, acquisition.config.ConfigError,
+    reconstruction.calibrate.CalibrationError, ReconstructionError, FileExistsError
+        With a message naming the problem; nothing has been written then.
+    """
+    from streaklab import __version__
+
+    run = open_run(run_path, mode="r")
+    out = Path(out_path)
+    if out.resolve() == Path(run.path).resolve():
+        raise ReconstructionError(f"--out {out_path} is the run store itself; choose another path")
+    check_output_path(out, overwrite=overwrite)
+
+    cfg = run.config
+    nx, n_rows = run.image_shape
+    n_lines = run.n_lines
+    key = f"{run.path}: calibration.time_poly_ps"
+    row_times_ps = check_calibration(cfg["calibration"]["time_poly_ps"], n_rows, key=key) \
+        + float(cfg["sync"]["trigger_delay_ps"])
+    time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
+    t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
+    if n_bins < 2:
+        raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
+                                  f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+
+    done = run.done_mask()
+    missing = np.flatnonzero(~done)
+    if done.sum() == 0:
+        raise ReconstructionError(f"{run.path}: no line has been acquired yet; nothing to reconstruct")
+    if missing.size and not allow_partial:
+        raise ReconstructionError(
+            f"{run.path}: {missing.size} of {n_lines} lines are unfinished (lines {_describe_lines(missing)}); "
+            f"finish the run with 'streaklab capture --resume', or pass --allow-partial to fill them with NaN")
+    if not run.dark_done():
+        raise ReconstructionError(f"{run.path}: the dark frames were never recorded; the run is damaged")
+    dark = dark_image(run["dark"][...], (nx, n_rows))
+    flat, flat_sha = (None, None)
+    if flat_path is not None:
+        flat, flat_sha = load_flat(flat_path, (nx, n_rows))
+
+    target = np.asarray(run["target_angle_deg"][...], dtype=np.float64)
+    reached = np.asarray(run["angle_deg"][...], dtype=np.float64)
+    order = np.argsort(target, kind="stable")                       # y -> run line
+    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    provenance = {
+        "producer": "streaklab reconstruct",
+        "software_version": __version__,
+        "created_utc": now,
+        "run_path": str(Path(run.path).resolve()),
+        "run_config_hash": run.config_hash,
+        "run_created_utc": run.attrs.get("created_utc"),
+        "run_software_version": run.attrs.get("software_version"),
+        "run_devices": run.attrs.get("devices", {}),
+        "lines_used": [int(i) for i in order if done[i]],
+        "lines_missing": [int(i) for i in missing],
+        "line_order": "y sorted by target mirror angle; line_index maps y -> run line",
+        "frames_per_line": int(run.frames_per_line),
+        "dark_frames": int(run["dark"].shape[0]),
+        "flat_field": None if flat_path is None else str(Path(flat_path).resolve()),
+        "flat_field_sha256": flat_sha,
+        "time_calibration_poly_ps": [float(c) for c in cfg["calibration"]["time_poly_ps"]],
+        "trigger_delay_ps": float(cfg["sync"]["trigger_delay_ps"]),
+        "time_range": int(cfg["camera"]["time_range"]),
+        "exposure_s": float(cfg["camera"]["exposure_s"]),
+        "resampling": "linear interpolation from calibrated row times",
+        "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
+    }
+
+    with staged_output(out, overwrite=overwrite) as tmp:
+        cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
+                           units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
+        g = cube.group
+        g.create_array("line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
+                       attributes={"long_name": "run line filling this y"})[:] = order
+        g.create_array("line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
+                       attributes={"long_name": "line acquired (False: unfinished, cube is NaN)"})[:] = done[order]
+        g.create_array("angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
+                       attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
+        by = cube.array.chunks[0]
+        streaks = run["streaks"]
+        for y0 in range(0, n_lines, by):
+            ys = order[y0:y0 + by]
+            block = np.full((ys.size, nx, n_bins), np.nan, dtype=np.float32)
+            ok = done[ys]
+            if ok.any():
+                raw = np.stack([streaks[int(i)] for i in ys[ok]])            # (b, frame, x, rows) uint16
+                corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
+                block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
+                                             t0_ps=t0_ps, n_bins=n_bins)
+            cube.array[y0:y0 + ys.size] = block
+            if progress is not None:
+                progress(min(y0 + by, n_lines), n_lines)
+    return open_cube(out.resolve())
+

@@ -1,0 +1,24 @@
+"""``streaklab export CUBE --out CUBE.h5``: a cube store to NeXus/HDF5 (NXentry/NXdata)."""
+from __future__ import annotations
+
+import sys
+
+from streaklab.cli import CommandError
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("cube", help="cube store (Zarr directory)")
+    parser.add_argument("--out", required=True, help="HDF5 file to write")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+
+
+def run(args) -> int:
+    from reconstruction.cubestore import CubeStoreError
+    from reconstruction.nexus import NexusError, export_cube
+
+    try:
+        out = export_cube(args.cube, args.out, overwrite=args.overwrite)
+    except (CubeStoreError, NexusError, FileExistsError) as exc:
+        raise CommandError(str(exc)) from None
+    print(f"wrote {out} (NeXus: /entry/data, signal 'cube', axes y, x, t)", file=sys.stderr)
+    return 0

@@ -1,0 +1,78 @@
+"""``streaklab sim-lab``: serve the simulated camera and mirror until Ctrl-C.
+
+Prints one ``name value`` line per address, then ``ready``, and flushes, so a
+script can read the addresses from the first lines of output::
+
+    camera 127.0.0.1:40123
+    camera-data-port 40124
+    mirror /dev/pts/7
+    mirror-stable /tmp/streaklab-mirror-xyz/ttySMC100
+    ready
+
+The laser-sync unit is a pyusb backend object and cannot be served to another
+process; with no sync device to switch it, the laser output is on (``--dark``
+turns it off).
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+
+from streaklab.cli import CommandError
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--seed", type=int, default=0, help="noise and scene seed (default 0)")
+    parser.add_argument("--camera-port", type=int, default=0,
+                        help="RemoteEx command port (data port = +1); default: a free ephemeral pair")
+    parser.add_argument("--lines", type=int, default=16, help="scan lines of the virtual scene (default 16)")
+    parser.add_argument("--x", dest="n_x", type=int, default=64, help="pixels along the slit (default 64)")
+    parser.add_argument("--t", dest="n_t", type=int, default=256, help="streak rows (default 256)")
+    parser.add_argument("--dark", action="store_true", help="laser output off: the camera sees dark frames only")
+    parser.add_argument("--no-mirror", action="store_true", help="serve the camera only")
+
+
+def run(args) -> int:
+    from drivers.sim.lab import SimulatedLab
+    from drivers.sim.scene import VirtualScene
+
+    if not 0 <= args.camera_port <= 65534:
+        raise CommandError(f"--camera-port must be 0 (any) or 1..65534, got {args.camera_port}")
+    try:
+        scene = VirtualScene.default(n_lines=args.lines, n_x=args.n_x, n_t=args.n_t, seed=args.seed)
+    except ValueError as exc:
+        raise CommandError(f"scene: {exc}") from None
+    lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
+                       mirror=False if args.no_mirror else None, sync=False)
+    try:
+        lab.start()
+    except OSError as exc:
+        raise CommandError(f"cannot start the simulators: {exc}") from None
+    stop = threading.Event()
+
+    def on_signal(signum, frame):
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        lab.state.sync_output_enabled = not args.dark
+        info = lab.describe()
+        print(f"camera {info['camera']}")
+        print(f"camera-data-port {info['camera_data_port']}")
+        if "mirror" in info:
+            print(f"mirror {info['mirror']}")
+            print(f"mirror-stable {info['mirror_stable']}")
+        elif not args.no_mirror:
+            print(f"mirror-unavailable ({lab.unavailable.get('mirror', 'not started')})".replace("\n", " "))
+        print(f"laser-output {'off' if args.dark else 'on'}")
+        print("ready", flush=True)
+        print("streaklab sim-lab: serving; Ctrl-C to stop", file=sys.stderr, flush=True)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        lab.close()
+    print("streaklab sim-lab: stopped", file=sys.stderr, flush=True)
+    return 0

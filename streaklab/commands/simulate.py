@@ -1,0 +1,152 @@
+"""``streaklab simulate --out CUBE --shape NY NX NT``: a synthetic cube with its ground truth.
+
+The store is an ordinary cube store (:mod:`reconstruction.cubestore`: ``cube`` (y, x, t)
+float32, ``t``, ``y``, ``x``) plus a group ``truth``:
+
+    truth/direct_delay_ps, direct_amplitude, direct_sigma_ps             (y, x)     float64
+    truth/sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps    (y, x)     float64
+    truth/ir_delay_ps, ir_amplitude, ir_sigma_ps                         (y, x, r)  float64
+    truth/direct, truth/sss                                              (y, x, t)  float32
+    truth/ir                                                             (y, x, r, t) float32
+    truth/t (t,) ps, truth/y, truth/x (as in the cube), truth/r (r,) bounce number (2, 3, ...)
+
+NaN marks an absent component; the ``ir`` profiles of absent inter-reflections are zero.
+Every array has ``dimension_names`` and a ``units`` attribute; the ``truth`` group's
+attributes record ``nsr``, ``noise``, ``seed``, ``kinds``, the time axis and the scene
+ranges.  ``xarray.open_zarr(path, group="truth", consolidated=False)`` opens the truth.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import sys
+
+import numpy as np
+
+from streaklab.cli import CommandError
+
+SIGNAL_UNITS = "arbitrary"
+
+_PARAM_UNITS = {
+    "delay_ps": "ps", "sigma_ps": "ps", "alpha_per_ps": "1/ps", "amplitude": SIGNAL_UNITS,
+}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--out", required=True, help="cube store to write (Zarr directory)")
+    parser.add_argument("--shape", nargs=3, type=int, required=True, metavar=("NY", "NX", "NT"),
+                        help="cube size: lines, slit pixels, time bins")
+    parser.add_argument("--nsr", type=float, default=0.05,
+                        help="noise-to-signal ratio ||noise|| / ||clean|| of every pixel (default 0.05)")
+    parser.add_argument("--noise", default="white",
+                        help="white (fluctuation), pink (detector), photon (Poisson) or none (default white)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0); same seed, same cube")
+    parser.add_argument("--time-bin-ps", type=float, default=2.0, help="time bin width in ps (default 2)")
+    parser.add_argument("--t0-ps", type=float, default=None, help="time of the first bin in ps (default: one bin)")
+    parser.add_argument("--kinds", default="a,b,c",
+                        help="component sets in equal shares, comma-separated: a = d+s, b = d+s+r2, "
+                             "c = d+s+r2+r3, or any set like d+r2 (default a,b,c)")
+    parser.add_argument("--chunks", nargs=2, type=int, metavar=("BY", "BX"),
+                        help="chunk size in pixels (time is never split); default 16 64")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+
+
+def _units(key: str) -> str:
+    for suffix, unit in _PARAM_UNITS.items():
+        if key.endswith(suffix):
+            return unit
+    raise KeyError(key)
+
+
+def write_simulation(path, data, *, chunks=None, overwrite: bool = False, command: str | None = None):
+    """Write a :class:`decomposition.synthetic.SyntheticData` cube (leading shape (ny, nx)) and its truth.
+
+    The store is written beside ``path`` and renamed into place when complete, so an error
+    never leaves half a store or destroys an existing one.  Returns the opened cube.
+    """
+    import zarr
+
+    from reconstruction.cubestore import open_cube, write_cube
+    from reconstruction.staging import staged_output
+    from streaklab import __version__
+
+    ny, nx, nt = data.noisy.shape
+    n_ir = data.params["ir_delay_ps"].shape[-1]
+    ranges = dataclasses.asdict(data.ranges)
+    settings = {"nsr": data.nsr, "noise": data.noise, "seed": data.seed,
+                "kinds": sorted(set(np.asarray(data.kinds).ravel().tolist())),
+                "time_bin_ps": data.time_bin_ps, "t0_ps": data.t0_ps,
+                "scene_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in ranges.items()}}
+    provenance = {"producer": "streaklab simulate", "software_version": __version__,
+                  "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                  "synthetic": settings}
+    if command:
+        provenance["command"] = command
+    if chunks is None:
+        chunks = (min(ny, 16), min(nx, 64))
+    by, bx = min(int(chunks[0]), ny), min(int(chunks[1]), nx)
+    with staged_output(path, overwrite=overwrite) as tmp:
+        write_cube(tmp, data.noisy, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps, chunks=(by, bx),
+                   units=SIGNAL_UNITS, provenance=provenance)
+        root = zarr.open_group(str(tmp), mode="r+")
+        g = root.create_group("truth")
+        g.attrs.update({"streaklab_kind": "truth", "description": "ground truth of the simulated cube",
+                        "units": SIGNAL_UNITS, **settings})
+        t = g.create_array("t", shape=(nt,), dtype="float64", dimension_names=["t"],
+                           attributes={"units": "ps", "long_name": "time of bin centre"})
+        t[:] = data.t0_ps + data.time_bin_ps * np.arange(nt)
+        for dim, size in (("y", ny), ("x", nx)):
+            c = g.create_array(dim, shape=(size,), dtype="float64", dimension_names=[dim],
+                               attributes=dict(root[dim].attrs))
+            c[:] = root[dim][:]
+        r = g.create_array("r", shape=(n_ir,), chunks=(max(n_ir, 1),), dtype="int64", dimension_names=["r"],
+                           attributes={"units": "1", "long_name": "bounce number of the inter-reflection"})
+        if n_ir:
+            r[:] = np.arange(2, 2 + n_ir)
+        for key, value in data.params.items():
+            dims = ["y", "x", "r"] if value.ndim == 3 else ["y", "x"]
+            ch = (by, bx) + ((max(n_ir, 1),) if value.ndim == 3 else ())
+            a = g.create_array(key, shape=value.shape, chunks=ch, dtype="float64", dimension_names=dims,
+                               fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
+            if value.size:
+                a[...] = value
+        comps = {"direct": (data.components["direct"], ["y", "x", "t"], "direct reflection"),
+                 "sss": (data.components["sss"], ["y", "x", "t"], "subsurface scattering"),
+                 "ir": (data.components["interreflections"], ["y", "x", "r", "t"],
+                        "inter-reflections r2, r3, ... in order of arrival")}
+        for name, (value, dims, long_name) in comps.items():
+            ch = (by, bx) + ((max(n_ir, 1),) if len(dims) == 4 else ()) + (nt,)
+            a = g.create_array(name, shape=value.shape, chunks=ch, dtype="float32", dimension_names=dims,
+                               fill_value=0.0, attributes={"units": SIGNAL_UNITS, "long_name": f"clean {long_name}"})
+            if value.size:
+                a[...] = value.astype(np.float32)
+    return open_cube(path)
+
+
+def run(args) -> int:
+    from decomposition.synthetic import make_cube
+
+    ny, nx, nt = args.shape
+    if min(ny, nx) <= 0 or nt < 2:
+        raise CommandError(f"--shape needs positive NY NX and NT >= 2, got {ny} {nx} {nt}")
+    if args.chunks is not None and min(args.chunks) <= 0:
+        raise CommandError(f"--chunks must be positive, got {args.chunks[0]} {args.chunks[1]}")
+    if not np.isfinite(args.nsr) or args.nsr < 0:
+        raise CommandError(f"--nsr must be a finite number >= 0, got {args.nsr}")
+    if not np.isfinite(args.time_bin_ps) or args.time_bin_ps <= 0:
+        raise CommandError(f"--time-bin-ps must be positive, got {args.time_bin_ps}")
+    try:
+        data = make_cube(ny, nx, nt, nsr=args.nsr, noise=args.noise, seed=args.seed,
+                         time_bin_ps=args.time_bin_ps, t0_ps=args.t0_ps, kinds=args.kinds)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    command = "streaklab simulate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["simulate"] else None
+    try:
+        cube = write_simulation(args.out, data, chunks=args.chunks, overwrite=args.overwrite, command=command)
+    except FileExistsError as exc:
+        raise CommandError(str(exc)) from None
+    n_ir = data.params["ir_delay_ps"].shape[-1]
+    print(f"wrote {cube.path}: cube (y={ny}, x={nx}, t={nt}) with ground truth in group 'truth' "
+          f"(up to {n_ir} inter-reflections); {data.noise} noise at NSR {data.nsr:g}, seed {args.seed}",
+          file=sys.stderr)
+    return 0

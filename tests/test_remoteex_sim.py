@@ -1,0 +1,314 @@
+"""RemoteEx driver against the simulated camera, through real loopback TCP."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
+from drivers.remoteex import ERROR_MEANINGS, RemoteExCamera
+from drivers.sim.camera import RemoteExSimulator, bind_port_pair
+from drivers.sim.scene import VirtualScene
+from drivers.sim.state import LabState
+
+pytestmark = pytest.mark.timeout(30)
+
+SCENE = VirtualScene.default(n_lines=8, n_x=32, n_t=128, seed=0)
+
+
+def lit_state(angle_deg=0.0, delay_ps=0.0, output=True):
+    return LabState(mirror_angle_deg=angle_deg, sync_output_enabled=output, sync_delay_ps=delay_ps)
+
+
+@pytest.fixture
+def lab():
+    state = lit_state(angle_deg=float(SCENE.angle_deg[3]))
+    with RemoteExSimulator(state, SCENE, seed=7) as sim:
+        with RemoteExCamera(*sim.address, timeout_s=1.0, connect_timeout_s=2.0) as cam:
+            yield sim, cam, state
+
+
+def frames(sim_seed, steps, scene=SCENE):
+    """Run the same command sequence on a fresh simulator; ``steps`` is a list of LabState updates."""
+    state = lit_state()
+    out = []
+    with RemoteExSimulator(state, scene, seed=sim_seed) as sim:
+        with RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+            cam.configure(exposure_s=0.01, gain=30, time_range=2)
+            for step in steps:
+                for k, v in step.items():
+                    setattr(state, k, v)
+                out.append(cam.acquire().data.tobytes())
+    return out
+
+
+# ------------------------------------------------------------------ imaging
+def test_acquire_shape_dtype_and_signal_matches_scene(lab):
+    sim, cam, state = lab
+    img = cam.acquire(timeout_s=5)
+    assert img.data.shape == (SCENE.n_x, SCENE.n_t) and img.data.dtype == np.uint16
+    expected = SCENE.expected_counts(3, exposure_s=0.01, gain=30)
+    resid = (img.data.astype(float) - expected) / np.sqrt(expected - SCENE.dark_level + SCENE.read_noise**2)
+    assert abs(resid.mean()) < 0.1 and 0.85 < resid.std() < 1.15
+    assert img.data.max() > SCENE.dark_level + 300        # there is real signal in the frame
+    assert sim.last_frame_info["line"] == 3
+
+
+def test_same_seed_same_bytes_and_noise_index_semantics():
+    a0, a1 = SCENE.angle_deg[2], SCENE.angle_deg[5]
+    steps = [{"mirror_angle_deg": a0}, {}, {"mirror_angle_deg": a1}, {"mirror_angle_deg": a0}, {}]
+    run1 = frames(11, steps)
+    run2 = frames(11, steps)
+    assert run1 == run2                        # same seed, same commands: same bytes
+    assert run1[0] != run1[1]                  # a second frame at the same view has fresh noise
+    assert run1[3] == run1[0] and run1[4] == run1[1]   # the index restarts when the mirror moves
+    assert frames(12, steps[:1]) != run1[:1]   # another seed, other noise
+
+
+def test_resumed_sequence_reproduces_uninterrupted_one():
+    a = SCENE.angle_deg
+    full = frames(3, [{"mirror_angle_deg": a[i]} for i in (0, 0, 1, 1, 2, 2)])
+    # A "crash" after line 1, then a fresh lab that homes (angle 0) and continues with line 2.
+    resumed = frames(3, [{"mirror_angle_deg": 0.0}, {"mirror_angle_deg": a[2]}, {}])
+    assert resumed[1:] == full[4:]
+
+
+def test_dark_when_sync_output_off(lab):
+    sim, cam, state = lab
+    state.sync_output_enabled = False
+    img = cam.acquire().data.astype(float)
+    assert img.mean() == pytest.approx(SCENE.dark_level, abs=0.2)
+    assert img.std() == pytest.approx(SCENE.read_noise, rel=0.1)
+    state.sync_output_enabled = True
+    assert cam.acquire().data.max() > SCENE.dark_level + 300
+
+
+def test_line_follows_mirror_angle_and_window_follows_delay(lab):
+    sim, cam, state = lab
+    for line in (0, 6):
+        state.mirror_angle_deg = float(SCENE.angle_deg[line]) + 0.1   # nearest line wins
+        img = cam.acquire().data.astype(float)
+        assert sim.last_frame_info["line"] == line
+        expected = SCENE.expected_counts(line)
+        other = SCENE.expected_counts(7 - line if line == 0 else 0)
+        assert np.abs(img - expected).mean() < np.abs(img - other).mean()
+    state.mirror_angle_deg = float(SCENE.angle_deg[4])
+    peak0 = np.argmax(cam.acquire().data.astype(float).sum(axis=0))
+    state.sync_delay_ps = 60.0
+    img = cam.acquire().data.astype(float)
+    peak1 = np.argmax(img.sum(axis=0))
+    assert peak1 < peak0 - 10                                  # later window: light arrives at earlier rows
+    expected = SCENE.expected_counts(4, delay_ps=60.0)
+    assert np.abs(img - expected).mean() < 5.0
+
+
+def test_exposure_and_gain_scale_the_signal(lab):
+    sim, cam, state = lab
+    cam.configure(exposure_s=0.02, gain=40)
+    img = cam.acquire().data.astype(float)
+    assert cam.exposure_s() == pytest.approx(0.02) and cam.gain() == 40
+    signal = img - SCENE.dark_level
+    ref = SCENE.expected_counts(3) - SCENE.dark_level
+    assert signal.sum() / ref.sum() == pytest.approx(4.0, rel=0.02)   # 2x exposure, +10 gain steps = 2x
+
+
+def test_out_of_range_settings_are_device_errors(lab):
+    sim, cam, state = lab
+    with pytest.raises(DeviceError) as info:
+        cam.configure(exposure_s=60.0)
+    assert info.value.code == 10 and info.value.meaning == ERROR_MEANINGS[10]
+    with pytest.raises(DeviceError) as info:
+        cam.configure(time_range=9)
+    assert info.value.code == 10
+    with pytest.raises(DeviceError) as info:
+        cam.command("NoSuchCommand")
+    assert info.value.code == 2
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+
+
+def test_acquisition_left_running_is_stopped_and_restarted(lab):
+    sim, cam, state = lab
+    sim.inject("error", command="AcqStart", code=7)
+    n = len(sim.received)
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+    assert [c for c in list(sim.received)[n:] if c.startswith("Acq")][:3] == \
+        ["AcqStart(Acquire)", "AcqStop()", "AcqStart(Acquire)"]
+
+
+def test_acquisition_timeout_stops_the_acquisition():
+    with RemoteExSimulator(lit_state(), SCENE, frame_time_s=30.0) as sim, \
+            RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="not finished within 0.3 s"):
+            cam.acquire(timeout_s=0.3)
+        assert time.monotonic() - t0 < 2.0
+        assert list(sim.received)[-1] == "AcqStop()"
+        assert cam.acq_status()[0] == "idle"
+
+
+# ------------------------------------------------------------------- faults
+def test_dropped_reply_times_out_then_recovers(lab):
+    sim, cam, state = lab
+    sim.inject("drop_reply", command="AcqStatus")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        cam.acq_status()
+    assert time.monotonic() - t0 < 3.0
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+
+
+def test_delayed_reply_times_out_then_recovers(lab):
+    sim, cam, state = lab
+    sim.inject("delay", command="CamParamGet", delay_s=2.0)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        cam.exposure_s()
+    assert time.monotonic() - t0 < 3.0
+    assert cam.exposure_s() == pytest.approx(0.01)   # the late reply never answers this one
+
+
+def test_garbage_is_a_protocol_error_then_recovers(lab):
+    sim, cam, state = lab
+    sim.inject("garbage", command="AcqStart")
+    with pytest.raises(ProtocolError) as info:
+        cam.acquire()
+    assert b"garbage" in info.value.raw
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+
+
+def test_device_error_code_is_reported_then_recovers(lab):
+    sim, cam, state = lab
+    sim.inject("error", command="ImgDataGet", code=9)
+    with pytest.raises(DeviceError) as info:
+        cam.acquire()
+    assert info.value.code == 9 and info.value.meaning == ERROR_MEANINGS[9]
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+
+
+def test_notifications_from_the_simulator_do_not_disturb(lab):
+    sim, cam, state = lab
+    sim.inject("notify", command="AcqStatus", times=3)
+    sim.inject("notify", command="ImgDataGet")
+    for _ in range(3):   # each acquisition polls AcqStatus at least once
+        assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+    assert not sim.faults.pending()
+
+
+def test_short_image_data_times_out_then_recovers(lab):
+    sim, cam, state = lab
+    sim.inject("short_data", command="ImgDataGet")
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout):
+        cam.acquire(timeout_s=0.8)
+    assert time.monotonic() - t0 < 3.0
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+
+
+def test_closed_connection_is_reestablished_once_transparently(lab):
+    sim, cam, state = lab
+    before = sim.connections
+    sim.inject("close", command="AcqStatus")
+    assert cam.acquire().data.shape == (SCENE.n_x, SCENE.n_t)
+    assert sim.connections == before + 1 and cam.reconnects >= 1
+
+
+def test_connection_closed_twice_is_connection_lost_then_usable_again(lab):
+    sim, cam, state = lab
+    sim.inject("close", command="CamParamGet", times=2)
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionLost):
+        cam.exposure_s()
+    assert time.monotonic() - t0 < 5.0
+    assert cam.exposure_s() == pytest.approx(0.01)
+
+
+def test_server_gone_is_connection_lost():
+    state = lit_state()
+    sim = RemoteExSimulator(state, SCENE).start()
+    cam = RemoteExCamera(*sim.address, timeout_s=1.0, connect_timeout_s=1.0)
+    sim.stop()
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionLost):
+        cam.acquire()
+    assert time.monotonic() - t0 < 5.0
+    cam.close()
+
+
+# ---------------------------------------------------------------- threading
+def test_two_threads_never_get_each_others_replies(lab):
+    sim, cam, state = lab
+    cam.configure(time_range=3, gain=17)
+    errors, n = [], 150
+
+    def worker(param, expected):
+        try:
+            for _ in range(n):
+                got = cam.command("DevParamGet", "Streak", param)
+                if got != [expected]:
+                    errors.append((param, got))
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=a) for a in (("Time Range", "3"), ("MCP Gain", "17"))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(20)
+    assert not any(t.is_alive() for t in threads)
+    assert errors == []
+
+
+def test_two_threads_acquiring_each_get_whole_frames(lab):
+    sim, cam, state = lab
+    results, errors = [], []
+
+    def worker():
+        try:
+            for _ in range(5):
+                results.append(cam.acquire(timeout_s=5).data)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(20)
+    assert errors == [] and len(results) == 10
+    expected = SCENE.expected_counts(3)
+    for img in results:
+        assert img.shape == (SCENE.n_x, SCENE.n_t)
+        assert np.abs(img - expected).mean() < 5.0
+    assert len({r.tobytes() for r in results}) == 10   # ten distinct noise draws, none duplicated
+
+
+# ------------------------------------------------------------------ server
+def test_simulator_binds_loopback_adjacent_ports_and_stops_cleanly():
+    sims = [RemoteExSimulator(lit_state(), SCENE).start() for _ in range(3)]
+    try:
+        for s in sims:
+            assert s.address[0] == "127.0.0.1" and s.data_port == s.port + 1
+        assert len({s.port for s in sims}) == 3
+    finally:
+        t0 = time.monotonic()
+        for s in sims:
+            s.stop()
+        assert time.monotonic() - t0 < 3.0
+
+
+def test_fixed_port_pair_in_use_is_refused():
+    c, d = bind_port_pair()
+    try:
+        with pytest.raises(OSError):
+            RemoteExSimulator(lit_state(), SCENE, port=c.getsockname()[1]).start()
+    finally:
+        c.close()
+        d.close()
+
+
+def test_fault_kinds_are_checked():
+    sim = RemoteExSimulator(lit_state(), SCENE)
+    with pytest.raises(ValueError, match="unknown fault kind"):
+        sim.inject("explode")
+    with pytest.raises(ValueError, match="code"):
+        sim.inject("error")

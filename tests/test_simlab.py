@@ -1,0 +1,158 @@
+"""SimulatedLab and the ``streaklab sim-lab`` command."""
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.errors import ConnectionLost
+from drivers.remoteex import RemoteExCamera
+from drivers.sim import SimulatedLab
+from drivers.sim.scene import VirtualScene
+from drivers.smc100 import SMC100Mirror
+
+pytestmark = pytest.mark.timeout(60)
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = VirtualScene.default(n_lines=4, n_x=16, n_t=64, seed=2)
+
+
+def test_lab_camera_renders_the_shared_state():
+    with SimulatedLab(seed=5, scene=SMALL, mirror=False, sync=False) as lab:
+        address = lab.camera_address
+        assert lab.scene is SMALL and address[0] == "127.0.0.1"
+        with RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+            dark = cam.acquire().data
+            with lab.state.lock:
+                lab.state.sync_output_enabled = True
+                lab.state.mirror_angle_deg = float(SMALL.angle_deg[2])
+            lit = cam.acquire().data
+        assert dark.shape == lit.shape == (16, 64)
+        assert abs(dark.mean() - SMALL.dark_level) < 1.0
+        expected = SMALL.expected_counts(2)
+        assert np.abs(lit - expected).mean() < 5.0 and lit.max() > SMALL.dark_level + 200
+        with pytest.raises(RuntimeError, match="mirror"):
+            lab.mirror_port
+        with pytest.raises(RuntimeError, match="sync"):
+            lab.usb_backend
+    with pytest.raises(ConnectionLost):
+        RemoteExCamera(*address, connect_timeout_s=1.0)   # closed with the lab
+
+
+def test_lab_mirror_moves_select_the_scan_line_the_camera_shows():
+    with SimulatedLab(seed=0, scene=SMALL, sync=False) as lab:
+        assert lab.mirror_port.startswith("/dev/pts/")
+        lab.state.sync_output_enabled = True
+        with SMC100Mirror(lab.mirror_port) as mirror, \
+                RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+            mirror.home(timeout_s=5.0)
+            for line in (3, 0):
+                mirror.move_to(float(SMALL.angle_deg[line]))
+                reached = mirror.wait_settled(timeout_s=5.0)
+                assert reached == pytest.approx(SMALL.angle_deg[line], abs=1e-4)
+                img = cam.acquire().data
+                assert lab.camera.last_frame_info["line"] == line
+                assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0
+        assert lab.describe()["mirror"] == lab.mirror_port
+
+
+def test_same_seed_labs_give_the_same_bytes():
+    def run(seed):
+        with SimulatedLab(seed=seed, scene=SMALL, mirror=False, sync=False) as lab:
+            lab.state.sync_output_enabled = True
+            with RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+                return [cam.acquire().data.tobytes() for _ in range(2)]
+
+    assert run(1) == run(1)
+    assert run(1) != run(2)
+
+
+def test_default_scene_follows_the_seed():
+    with SimulatedLab(seed=3, mirror=False, sync=False) as lab:
+        assert lab.scene.n_lines == 16 and lab.scene.n_x == 64 and lab.scene.n_t == 256
+        a = lab.scene.params["direct_delay_ps"]
+    b = SimulatedLab(seed=3, mirror=False, sync=False).scene.params["direct_delay_ps"]
+    np.testing.assert_array_equal(a, b)
+
+
+def _read_addresses(proc, deadline_s=20.0):
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    info, buf, end = {}, b"", time.monotonic() + deadline_s
+    while "ready" not in info:
+        left = end - time.monotonic()
+        assert left > 0, f"sim-lab printed no 'ready' line in {deadline_s} s; got {buf!r}"
+        if not sel.select(left):
+            continue
+        chunk = os.read(proc.stdout.fileno(), 4096)
+        assert chunk, f"sim-lab exited early: {buf!r} / {proc.stderr.read()!r}"
+        buf += chunk
+        for line in buf.decode().splitlines():
+            key, _, value = line.partition(" ")
+            info[key] = value
+    return info
+
+
+def _start(*extra):
+    return subprocess.Popen([sys.executable, "-m", "streaklab", "sim-lab", "--lines", "4", "--x", "16", "--t", "64",
+                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def test_sim_lab_command_serves_until_sigint():
+    proc = _start("--seed", "4")
+    try:
+        info = _read_addresses(proc)
+        host, port = info["camera"].rsplit(":", 1)
+        assert host == "127.0.0.1" and int(info["camera-data-port"]) == int(port) + 1
+        assert info["laser-output"] == "on"
+        with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
+            img = cam.acquire()
+        assert img.data.shape == (16, 64) and img.data.max() > 300
+        with SMC100Mirror(info["mirror"]) as mirror:
+            mirror.home(timeout_s=5.0)
+            assert mirror.position() == pytest.approx(0.0)
+        assert os.path.realpath(info["mirror-stable"]) == info["mirror"]
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+        assert b"stopped" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    with pytest.raises(OSError):
+        socket.create_connection((host, int(port)), timeout=1.0)
+
+
+def test_sim_lab_camera_only_and_dark():
+    proc = _start("--no-mirror", "--dark")
+    try:
+        info = _read_addresses(proc)
+        assert "mirror" not in info and info["laser-output"] == "off"
+        host, port = info["camera"].rsplit(":", 1)
+        with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
+            assert abs(cam.acquire().data.mean() - SMALL.dark_level) < 1.0
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+
+
+def test_sim_lab_reports_a_taken_port():
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", 0))
+    blocker.listen(1)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "streaklab", "sim-lab", "--no-mirror", "--camera-port",
+                               str(blocker.getsockname()[1])], cwd=ROOT, capture_output=True, timeout=30)
+    finally:
+        blocker.close()
+    assert proc.returncode == 2
+    assert b"cannot start the simulators" in proc.stderr

@@ -1,0 +1,238 @@
+"""The SMC100 driver against the pty simulator: motion, lab state, faults, threads."""
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
+from drivers.sim.mirror import MirrorSimulator
+from drivers.sim.state import LabState
+from drivers.smc100 import SMC100Mirror
+
+pytestmark = pytest.mark.timeout(30)
+
+
+@pytest.fixture
+def lab():
+    state = LabState()
+    with MirrorSimulator(state, velocity_deg_per_s=100.0, min_home_s=0.02) as sim:
+        yield sim, state
+
+
+def open_mirror(path, **kwargs):
+    kwargs.setdefault("timeout_s", 0.3)
+    kwargs.setdefault("poll_interval_s", 0.005)
+    return SMC100Mirror(path, **kwargs)
+
+
+def test_the_driver_opens_the_pty_path_like_a_serial_port(lab):
+    sim, _ = lab
+    assert sim.port.startswith("/dev/pts/")
+    assert os.path.realpath(sim.stable_port) == sim.port
+    with open_mirror(sim.port) as mirror:
+        assert mirror.identify() == "SLAB-GALVO-SIM"
+    assert sim.received[:1] == ["1ID?"]
+
+
+def test_not_referenced_until_homed_then_moves_and_updates_lab_state(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        assert mirror.state() == "not_referenced"
+        assert state.mirror_referenced is False
+        with pytest.raises(DeviceError) as info:
+            mirror.move_to(5.0)
+        assert info.value.code == "H"
+        mirror.home(timeout_s=5)
+        assert mirror.state() == "ready"
+        assert state.mirror_referenced is True
+        assert mirror.position() == pytest.approx(0.0)
+
+        t0 = time.monotonic()
+        mirror.move_to(20.0)
+        assert mirror.state() == "moving"
+        mid = mirror.position()
+        assert 0.0 <= mid < 20.0
+        final = mirror.wait_settled(timeout_s=5)
+        elapsed = time.monotonic() - t0
+        assert final == pytest.approx(20.0)
+        assert state.mirror_angle_deg == pytest.approx(20.0)
+        assert elapsed >= 0.19  # 20 degrees at 100 deg/s
+        assert sim.state_code == "33"
+
+
+def test_travel_limits_are_a_device_error_and_nothing_moves(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        with pytest.raises(DeviceError) as info:
+            mirror.move_to(46.0)
+        assert info.value.code == "C"
+        assert "out of range" in info.value.meaning
+        assert mirror.state() == "ready"
+        assert mirror.position() == pytest.approx(0.0)
+        assert mirror.last_error() == "@"  # TE was read (and cleared) by the driver
+
+
+def test_home_search_reports_homing_state_while_it_runs():
+    with MirrorSimulator(velocity_deg_per_s=50.0, initial_angle_deg=10.0) as sim:
+        with open_mirror(sim.port) as mirror:
+            mirror._command_checked("OR")
+            assert mirror.state() == "homing"
+            with pytest.raises(DeviceError) as info:
+                mirror.move_to(1.0)  # refused while homing
+            assert info.value.code == "L"
+            mirror.home(timeout_s=5)  # waits for the running search to end
+            assert mirror.state() == "ready"
+            assert mirror.position() == pytest.approx(0.0)
+
+
+def test_stop_ends_motion_where_the_stage_is(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(40.0)
+        time.sleep(0.1)
+        mirror.stop()
+        stopped = mirror.wait_settled(timeout_s=2)
+        assert 1.0 < stopped < 39.0
+        time.sleep(0.1)
+        assert mirror.position() == pytest.approx(stopped)
+        assert state.mirror_angle_deg == pytest.approx(stopped)
+
+
+def test_context_exit_stops_motion_even_when_the_body_raises(lab):
+    sim, _ = lab
+    with pytest.raises(RuntimeError):
+        with open_mirror(sim.port) as mirror:
+            mirror.home(timeout_s=5)
+            mirror.move_to(40.0)
+            raise RuntimeError("scan aborted")
+    time.sleep(0.05)
+    assert sim.state_code == "33"
+    assert sim.received[-1] == "1ST"
+    assert sim.lab_state.mirror_angle_deg < 39.0
+
+
+def test_wait_settled_times_out_on_a_long_move():
+    with MirrorSimulator(velocity_deg_per_s=5.0, min_home_s=0.0) as sim:
+        with open_mirror(sim.port) as mirror:
+            mirror.home(timeout_s=5)
+            mirror.move_to(30.0)
+            t0 = time.monotonic()
+            with pytest.raises(DeviceTimeout):
+                mirror.wait_settled(timeout_s=0.2)
+            assert time.monotonic() - t0 < 1.5
+
+
+# ---------------------------------------------------------------- faults
+def test_drop_reply_times_out_then_the_driver_works_again(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        sim.inject("drop_reply", "TP")
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout):
+            mirror.position()
+        assert time.monotonic() - t0 < 1.5
+        assert mirror.position() == pytest.approx(0.0)
+
+
+def test_late_reply_is_not_taken_for_the_next_one(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        sim.inject("delay", "ID", delay_s=0.5)
+        with pytest.raises(DeviceTimeout):
+            mirror.identify()
+        time.sleep(0.4)  # the late ID reply is now waiting in the port
+        assert mirror.state() == "not_referenced"
+        assert mirror.position() == pytest.approx(0.0)
+
+
+def test_garbage_is_a_protocol_error_then_the_driver_works_again(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        sim.inject("garbage", "TS")
+        with pytest.raises(ProtocolError) as info:
+            mirror.state()
+        assert info.value.raw.startswith(b"\x8f")
+        assert mirror.state() == "not_referenced"
+
+
+def test_injected_device_error_comes_back_with_its_meaning(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        sim.inject("error", "PA", code="V")
+        with pytest.raises(DeviceError) as info:
+            mirror.move_to(1.0)
+        assert (info.value.code, info.value.meaning) == ("V", "Error during command execution.")
+        assert mirror.position() == pytest.approx(0.0)  # the refused move did not happen
+        mirror.move_to(1.0)
+        assert mirror.wait_settled(timeout_s=2) == pytest.approx(1.0)
+
+
+def test_replug_on_the_stable_port_is_survived_by_one_reconnect(lab):
+    sim, _ = lab
+    with open_mirror(sim.stable_port) as mirror:
+        old = sim.port
+        sim.inject("close", "TP")
+        assert mirror.position() == pytest.approx(0.0)
+        assert sim.port != old
+
+
+def test_replug_on_the_pts_path_is_connection_lost(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        sim.inject("close")
+        t0 = time.monotonic()
+        with pytest.raises(ConnectionLost):
+            mirror.position()
+        assert time.monotonic() - t0 < 1.5
+
+
+def test_unplug_is_connection_lost_and_exit_does_not_mask_it(lab):
+    sim, _ = lab
+    with pytest.raises(ConnectionLost):
+        with open_mirror(sim.stable_port) as mirror:
+            sim.inject("unplug")
+            mirror.position()
+
+
+# ---------------------------------------------------------------- threads
+def test_two_threads_sharing_one_driver_get_their_own_replies(lab):
+    sim, _ = lab
+    errors = []
+    with open_mirror(sim.port, timeout_s=2.0) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(12.5)
+        mirror.wait_settled(timeout_s=5)
+
+        def worker(fn, expected, n=60):
+            try:
+                for _ in range(n):
+                    got = fn()
+                    if got != expected:
+                        errors.append((fn.__name__, got))
+            except Exception as exc:  # recorded, asserted below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=worker, args=(mirror.position, 12.5)),
+                   threading.Thread(target=worker, args=(mirror.identify, "SLAB-GALVO-SIM")),
+                   threading.Thread(target=worker, args=(mirror.state, "ready"))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(20)
+        assert not any(t.is_alive() for t in threads)
+    assert errors == []
+
+
+def test_simulator_shuts_down_cleanly():
+    sim = MirrorSimulator().start()
+    thread, link = sim._thread, sim.stable_port
+    sim.close()
+    assert not thread.is_alive()
+    assert not os.path.lexists(link)
+    sim.close()  # idempotent
