@@ -12,7 +12,7 @@ Layout (every array has ``dimension_names``; ``xarray.open_zarr(path, consolidat
     done           (y, x)        bool     the pixel's chunk has been written completely
     direct, sss, residual  (y, x, t)     float32  rendered components (optional)
     ir                     (y, x, r, t)  float32  rendered inter-reflections r2, r3, ... (optional)
-    t (t,) ps, y (y,), x (x,), r (r,)    coordinates
+    t (t,) ps, y (y,), x (x,), r (r,)    coordinates (r: bounce number 2, 3, ... of slot r2, r3, ...)
 
 Every array is chunked on the same pixel grid ``(by, bx)`` (with all of ``t`` and ``r`` in one
 chunk), so each pixel chunk of a computation owns exactly one Zarr chunk of every array: writers
@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 import zarr
+
+from reconstruction.staging import staged_output
 
 __all__ = [
     "RESULT_KIND",
@@ -89,10 +91,11 @@ def _units_for(key: str, signal_units: str) -> str:
 
 
 def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
-    """Make ``path`` free for a new store.
+    """Check that a new store may be written at ``path`` (nothing is removed here).
 
-    An absent or empty path is fine.  Anything else is removed only with ``overwrite``;
-    a path in ``protect`` (or one containing it, e.g. the input cube) is never removed.
+    An absent or empty path is fine; anything else needs ``overwrite`` (the old content is
+    replaced only once the new store is complete).  A path in ``protect`` (or one containing
+    it, e.g. the input cube) is refused even with ``overwrite``.
     """
     p = Path(path).resolve()
     for q in protect:
@@ -106,10 +109,6 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
     if not overwrite:
         raise FileExistsError(f"{path} already exists; pass --overwrite to replace it "
                               f"(or --resume to continue a run into it)")
-    if p.is_dir() and not p.is_symlink():
-        shutil.rmtree(p)
-    else:
-        p.unlink()
 
 
 @dataclass
@@ -166,6 +165,14 @@ class ResultStore:
                 ys, xs = self.chunk_slices(iy, ix)
                 out[iy, ix] = bool(done[ys, xs].all())
         return out
+
+    def remove_partials(self) -> int:
+        """Delete chunk-file temporaries (``*.partial``) a killed writer left behind; returns how many."""
+        n = 0
+        for f in Path(self.path).rglob("*.partial"):
+            f.unlink(missing_ok=True)
+            n += 1
+        return n
 
     def pending_chunks(self) -> list[tuple[int, int]]:
         """Chunk indices still to compute, in row-major order."""
@@ -264,6 +271,18 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     if reserved & set(all_keys):
         raise ResultStoreError(f"parameter names clash with store arrays: {sorted(reserved & set(all_keys))}")
     prepare_output_path(path, overwrite=overwrite, protect=protect)
+    with staged_output(path, overwrite=True) as tmp:  # complete before it appears at ``path``
+        _write_skeleton(tmp, shape=(ny, nx, nt), chunks=(by, bx), n_ir=n_ir, time_bin_ps=time_bin_ps,
+                        t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
+                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs)
+    return open_result_store(path, mode="r+")
+
+
+def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, ir_keys, write_components,
+                    signal_units, y_coord, y_units, attrs):
+    ny, nx, nt = shape
+    by, bx = chunks
+    all_keys = map_keys + ir_keys
     meta = {
         "streaklab_kind": RESULT_KIND,
         "format_version": FORMAT_VERSION,
@@ -310,10 +329,9 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     x.attrs["long_name"] = "slit position"
     x[:] = np.arange(nx, dtype=np.float64)
     r = arr("r", (n_ir,), (max(n_ir, 1),), "int64", ["r"], 0, "1")
-    r.attrs["long_name"] = "inter-reflection slot: 0 = r2 (second bounce), 1 = r3, ..."
+    r.attrs["long_name"] = "bounce number of the inter-reflection (2 = r2, 3 = r3, ...)"
     if n_ir:
-        r[:] = np.arange(n_ir)
-    return _from_group(str(path), g)
+        r[:] = np.arange(2, 2 + n_ir)
 
 
 def _from_group(path: str, g: zarr.Group) -> ResultStore:

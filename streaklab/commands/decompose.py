@@ -311,6 +311,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             raise CommandError(str(exc)) from None
     else:
         store = existing
+        store.remove_partials()
     pending = store.pending_chunks()
     gy, gx = store.grid
     total = gy * gx
