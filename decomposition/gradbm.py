@@ -24,8 +24,8 @@ operations; the only Python loop is over the few peel-off stages):
    Repeated up to ``max_interreflections`` times.
 3. sss.  What remains from one PSF width before the direct delay on is taken as the sss:
    a straight line fitted to the logarithm of its tail (from one PSF width after its
-   maximum, positive samples only, weighted by the squared signal as usual for a
-   log-linear exponential fit) gives the attenuation alpha; the onset is the best of
+   maximum, samples above ``tail_floor`` of that maximum only, weighted by the squared
+   signal as usual for a log-linear exponential fit) gives the attenuation alpha; the onset is the best of
    ``n_onsets`` candidates between one PSF width before the direct delay and the
    remainder's maximum, each with its least-squares amplitude, for the model sss kernel
    with the direct's sigma.
@@ -54,6 +54,7 @@ GRADBM_DEFAULTS = {
     "ir_fit_sigma": 2.5,
     "ir_sigma_ratio": 1.5,
     "n_onsets": 16,
+    "tail_floor": 0.1,
     "min_fraction": 0.05,
     "n_fit_iter": 12,
 }
@@ -177,11 +178,18 @@ def _fit_gaussian(y, t, amp, mu, sigma, *, rise, fall, time_bin_ps, n_iter, back
         JTJ = np.einsum("nli,nlj->nij", J, J)
         JTr = np.einsum("nli,nl->ni", J, r)
         diag = np.einsum("nii->ni", JTJ)
-        A = JTJ + (lam[:, None] * diag + 1e-12)[..., None] * eye
+        # Levenberg-Marquardt with the normal equations scaled to unit diagonal, so that the
+        # step and the conditioning test do not depend on the units of the parameters or
+        # on the scale of the profile.
+        dsq = np.sqrt(np.where(diag > 0, diag, 1.0))
+        A = JTJ / (dsq[:, :, None] * dsq[:, None, :]) + (lam[:, None] + 1e-12)[..., None] * eye
+        b = JTr / dsq
         step = np.zeros_like(x)
-        good = np.isfinite(A).all(axis=(1, 2)) & (np.linalg.cond(A) < 1e14)
+        good = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(b).all(axis=1) & (diag > 0).all(axis=1)
         if good.any():
-            step[good] = np.linalg.solve(A[good], JTr[good][..., None])[..., 0]
+            good[good] &= np.linalg.cond(A[good]) < 1e12
+        if good.any():
+            step[good] = np.linalg.solve(A[good], b[good][..., None])[..., 0] / dsq[good]
         xn = x + np.nan_to_num(step)
         xn[:, 0] = np.clip(xn[:, 0], 0.0, a_max)
         xn[:, 2] = np.clip(xn[:, 2], s_min, s_max)
@@ -201,7 +209,7 @@ def _gauss(t, amp, mu, sigma):
     return amp[:, None] * np.exp(-0.5 * np.square((t[None, :] - mu[:, None]) / sigma[:, None]))
 
 
-def _fit_sss(rem, t, t_direct, sigma, n_onsets):
+def _fit_sss(rem, t, t_direct, sigma, n_onsets, tail_floor=0.0):
     """Exponential-decay fit of the remainder after the direct onset (see the module docstring).
 
     Returns (delay_ps, amplitude, alpha_per_ps, peak, ok), each (N,).
@@ -213,7 +221,7 @@ def _fit_sss(rem, t, t_direct, sigma, n_onsets):
     peak = _take(r, kp)
     tp = t[kp]
     # Tail: one PSF width past the remainder's peak, positive samples, weight r^2.
-    tail = (t[None, :] >= (tp + sigma)[:, None]) & (r > 0)
+    tail = (t[None, :] >= (tp + sigma)[:, None]) & (r > tail_floor * peak[:, None]) & (r > 0)
     wt = np.where(tail, np.square(r), 0.0)
     logr = np.log(np.where(tail, r, 1.0))
     sw = wt.sum(-1)
@@ -268,8 +276,8 @@ def gradbm(profiles, time_bin_ps: float = 2.0, t0_ps: float | None = None, *, co
         Most inter-reflections per pixel (R of the output).
     **options
         Overrides of :data:`GRADBM_DEFAULTS`: ``edge_fraction``, ``ir_edge_fraction``,
-        ``ir_guard_sigma``, ``fit_rise_sigma``, ``fit_fall_sigma``, ``min_fraction``,
-        ``n_fit_iter``.
+        ``ir_guard_sigma``, ``ir_fit_sigma``, ``ir_sigma_ratio``, ``fit_rise_sigma``,
+        ``fit_fall_sigma``, ``n_onsets``, ``tail_floor``, ``min_fraction``, ``n_fit_iter``.
 
     Returns
     -------
@@ -342,7 +350,8 @@ def gradbm(profiles, time_bin_ps: float = 2.0, t0_ps: float | None = None, *, co
 
     # Stage 3: an exponential decay fitted to what remains, as sss.
     if "s" in fams:
-        onset, b, alpha, s_peak, s_ok = _fit_sss(rem, t, np.where(found, m1, t[0]), np.where(found, s1, T), opt["n_onsets"])
+        onset, b, alpha, s_peak, s_ok = _fit_sss(rem, t, np.where(found, m1, t[0]), np.where(found, s1, T),
+                                                 opt["n_onsets"], opt["tail_floor"])
         s_ok &= found & (s_peak >= min_amp)
         out["sss_delay_ps"] = np.where(s_ok, onset, np.nan)
         out["sss_amplitude"] = np.where(s_ok, b, np.nan)

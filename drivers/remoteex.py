@@ -240,10 +240,14 @@ class RemoteExCamera:
         self._data: socket.socket | None = None
         self._buf = bytearray()
         self._closed = False
-        self.reconnects = 0  # connections re-established after a drop (for diagnostics)
+        self.reconnects = 0  # connections a command had to (re)open after a drop or a reset
         self._settings: dict = {}
         if connect:
-            self.open()
+            try:
+                self.open()
+            except BaseException:
+                self.close()
+                raise
 
     def __repr__(self):
         return f"RemoteExCamera({self.host!r}, {self.port}, data_port={self.data_port})"

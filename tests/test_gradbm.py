@@ -111,3 +111,12 @@ def test_time_axis_is_respected():
     assert a["direct_sigma_ps"][0] == pytest.approx(2.5, rel=0.02)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e30])
+def test_scaling_the_profile_scales_only_the_amplitudes(scale):
+    d = make_profiles(12, L, nsr=0.02, noise="white", seed=8)
+    a, b = gradbm(d.noisy), gradbm(d.noisy * scale)
+    for k in a:
+        expect = a[k] * scale if k.endswith("amplitude") else a[k]
+        np.testing.assert_allclose(b[k], expect, rtol=1e-6, equal_nan=True, err_msg=k)

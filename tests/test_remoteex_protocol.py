@@ -232,6 +232,14 @@ def test_error_codes_become_device_errors_and_connection_stays_usable(code):
     srv.check()
 
 
+def test_failed_app_start_closes_the_connection():
+    srv = ScriptedServer([(b"AppStart()\r", b"8,AppStart\r")])
+    with pytest.raises(DeviceError) as info:
+        camera(srv, start_app=True)
+    assert info.value.code == 8
+    srv.check()     # the server saw the connection closed right after the failure
+
+
 def test_garbage_reply_is_a_protocol_error_with_the_raw_bytes():
     srv = ScriptedServer([(b"AcqStatus()\r", b"\xff\xfenot remoteex\r")])
     cam = camera(srv)

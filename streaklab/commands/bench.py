@@ -1,0 +1,48 @@
+"""``streaklab bench NAME [options]``: run one benchmark.
+
+Each benchmark is a module ``streaklab.bench.NAME`` with ``add_arguments(parser)`` and
+``run(args) -> int``, imported only when it runs.  ``streaklab bench NAME --help`` shows
+that benchmark's options.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from streaklab.cli import CommandError
+
+# name -> one-line description
+BENCHMARKS = {
+    "accuracy": "mean fidelity against NSR for ConvSCD and GradBM under the three noise types (paper Fig. 3(d))",
+    "speed": "decomposition throughput and scaling",
+    "tradeoff": "accuracy against run time over solver settings",
+    "stability": "repeatability of decompositions under re-noising",
+}
+
+
+def add_arguments(parser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "benchmarks:\n" + "\n".join(f"  {k:<10} {v}" for k, v in BENCHMARKS.items())
+    parser.add_argument("name", metavar="NAME", help="benchmark to run: " + ", ".join(BENCHMARKS))
+    parser.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark (see NAME --help)")
+
+
+def load(name: str):
+    """Import the benchmark module ``streaklab.bench.<name>``; CommandError if there is none."""
+    if name not in BENCHMARKS:
+        raise CommandError(f"unknown benchmark {name!r}; available: {', '.join(BENCHMARKS)}")
+    module_name = f"streaklab.bench.{name}"
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name == module_name:
+            raise CommandError(f"benchmark {name!r} is not installed in this copy of streaklab") from None
+        raise
+
+
+def run(args) -> int:
+    module = load(args.name)
+    parser = argparse.ArgumentParser(prog=f"streaklab bench {args.name}", description=BENCHMARKS[args.name])
+    module.add_arguments(parser)
+    sub_args = parser.parse_args(args.options)
+    return int(module.run(sub_args) or 0)
