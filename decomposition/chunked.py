@@ -9,7 +9,8 @@ client, and report each finished chunk through a callback, so a caller can show 
 nothing is held back until the end.
 
 Per-pixel policy for non-finite input: a pixel with any NaN or inf sample is not decomposed; its
-parameters and components are NaN, ``valid`` is False and its flags are 0.  (A caller that
+parameters and components are NaN, ``valid`` is False and its flags hold the solver's NONFINITE
+bit.  (A caller that
 prefers a hard error checks the cube first with :func:`count_nonfinite_pixels`.)
 
 Inter-reflection slots: the solver may return any number R of inter-reflections per call; the
@@ -41,6 +42,12 @@ def _solver():
     from decomposition import decompose  # imported at call time: workers import it themselves
 
     return decompose
+
+
+def _nonfinite_flag() -> int:
+    from decomposition import NONFINITE  # the solver's own bit for "not decomposed: NaN/inf samples"
+
+    return int(NONFINITE)
 
 
 def fit_ir_slots(a, n_ir: int, axis: int, fill) -> np.ndarray:
@@ -96,7 +103,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     flat = block.reshape(by * bx, nt)
     keep = finite.reshape(-1)
     n_ok = int(keep.sum())
-    out = {"valid": finite.copy(), "flags": np.zeros((by, bx), np.uint8),
+    out = {"valid": finite.copy(), "flags": np.where(finite, 0, _nonfinite_flag()).astype(np.uint8),
            "rms_residual": np.full((by, bx), np.nan)}
     params: dict[str, np.ndarray] = {}
     comps = {}
@@ -132,7 +139,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     if n_ok:
         out["params"] = {k: scatter(v, np.nan, np.float64) for k, v in params.items()}
         out["rms_residual"] = scatter(rms, np.nan, np.float64)
-        out["flags"] = scatter(flags, 0, np.uint8)
+        out["flags"] = scatter(flags, _nonfinite_flag(), np.uint8)
         if with_components:
             for k, v in comps.items():
                 out[k] = scatter(v, np.nan, np.float32)

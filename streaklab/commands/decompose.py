@@ -49,8 +49,9 @@ def add_arguments(parser) -> None:
                              "(default: number of cores)")
     parser.add_argument("--chunks", type=int, nargs=2, default=None, metavar=("BY", "BX"),
                         help="pixel chunk (default: the cube's own chunking)")
-    parser.add_argument("--max-interreflections", type=int, default=2, metavar="R",
-                        help="inter-reflection slots stored per pixel (default 2; later ones are dropped)")
+    parser.add_argument("--max-interreflections", type=int, default=3, metavar="R",
+                        help="inter-reflections kept per pixel, in order of delay (default 3, the solver's "
+                             "default; pixels with more are flagged TRUNCATED)")
     parser.add_argument("--no-components", action="store_true",
                         help="store parameters and fit quality only, not the component cubes")
     parser.add_argument("--nan-policy", choices=("mark", "error"), default="mark",
@@ -212,7 +213,9 @@ def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
             ir_keys.append(k)
         else:
             raise CommandError(f"solver parameter {k!r} has an unexpected shape {np.shape(v)} for one pixel")
-    return map_keys, ir_keys, dict(getattr(res, "info", {}) or {})
+    info = {k: v for k, v in dict(getattr(res, "info", {}) or {}).items()
+            if isinstance(v, (str, int, float, bool, tuple, list, type(None)))}  # settings, not per-pixel arrays
+    return map_keys, ir_keys, info
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,7 +223,7 @@ def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
 # ---------------------------------------------------------------------------------------------
 def decompose_to_store(input_path, out_path, *, method: str = "convscd", components=("d", "s", "r"),
                        options: dict | None = None, chunks=None, workers: int | None = None,
-                       scheduler: str | None = None, threads: int | None = None, n_ir: int = 2,
+                       scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "mark", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
                        progress: bool = True, stream=None) -> dict:
@@ -251,6 +254,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise CommandError(f"--chunks takes two positive sizes, got {chunks}")
     if workers is not None and workers <= 0:
         raise CommandError(f"--workers must be positive, got {workers}")
+    if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
+        raise CommandError(f"--option max_reflections={options['max_reflections']} contradicts "
+                           f"--max-interreflections {n_ir}; give only --max-interreflections")
+    options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
     out_path = str(Path(out_path).resolve())
 
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
