@@ -10,6 +10,7 @@ A configuration has these sections (every key is listed with its default; see
     sync_vendor_id = 0x0000        # USB vendor id of the laser-sync unit      } give both ids,
     sync_product_id = 0x0000       # USB product id                            } or the serial,
     sync_serial = ""               # USB serial number                         } or all three
+    timeout_s = 5.0                # reply timeout of one device command, every driver
 
     [scan]                         # either start_deg/stop_deg/count or angles_deg
     start_deg = -5.0
@@ -48,6 +49,8 @@ A configuration has these sections (every key is listed with its default; see
 
     [simulation]
     seed = 0                       # seed of the simulated lab used by ``--simulate``
+    n_x = 64                       # simulated camera: slit pixels
+    n_t = 256                      # simulated camera: streak rows
 
 Unknown sections and keys, wrong types and out-of-range values raise
 :class:`ConfigError` whose message starts with the dotted key, e.g.
@@ -176,6 +179,7 @@ _SPEC = {
         "sync_vendor_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_product_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_serial": (_str, _MISSING),
+        "timeout_s": (_positive("a positive number of seconds"), 5.0),
     },
     "scan": {
         "start_deg": (lambda k, v: _num(k, v, lo=-360.0, hi=360.0, what="an angle in [-360, 360] deg"), _MISSING),
@@ -213,6 +217,8 @@ _SPEC = {
     },
     "simulation": {
         "seed": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), 0),
+        "n_x": (lambda k, v: _int(k, v, lo=1, hi=4096, what="an integer in 1..4096"), 64),
+        "n_t": (lambda k, v: _int(k, v, lo=16, hi=4096, what="an integer in 16..4096"), 256),
     },
 }
 
@@ -225,7 +231,8 @@ class ScanConfig:
     ----------
     data : dict
         The normalised configuration: every section and key, defaults filled
-        in, plain JSON types.  ``scan.angles_deg`` always holds the line angles.
+        in, plain JSON types.  ``scan.angles_deg`` always holds the line angles
+        (start_deg/stop_deg/count are expanded into it).
     source : str or None
         The file it was read from.
     """
@@ -288,6 +295,8 @@ def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
         if scan["count"] > 1 and scan["start_deg"] == scan["stop_deg"]:
             _fail("scan.stop_deg", "must differ from start_deg when count > 1 (lines would coincide)")
         scan["angles_deg"] = [float(a) for a in np.linspace(scan["start_deg"], scan["stop_deg"], scan["count"])]
+        for k in ("start_deg", "stop_deg", "count"):   # normalised form: the explicit angle list only
+            del scan[k]
     if "time_poly_ps" not in data["calibration"]:
         _fail("calibration.time_poly_ps", "is required (pixel row -> ps polynomial of the streak sweep)")
     return ScanConfig(data=data, source=source)

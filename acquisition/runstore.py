@@ -253,7 +253,14 @@ def _remove_partials(path: Path) -> int:
 
 
 def is_uninitialised_run(path) -> bool:
-    """True for a run store whose creation was interrupted (no line can be in it)."""
+    """True for a run store whose creation was interrupted (no line can be in it).
+
+    That is a run group still marked ``initialised = False``, or a directory holding
+    nothing but ``*.partial`` files (killed before the group's metadata was in place).
+    """
+    p = Path(path)
+    if p.is_dir() and not (p / "zarr.json").exists():
+        return all(f.name.endswith(".partial") for f in p.rglob("*") if f.is_file())
     try:
         g = zarr.open_group(str(path), mode="r")
     except Exception:

@@ -6,3 +6,16 @@ from .model import (  # noqa: F401
     sss_kernel,
     time_axis_ps,
 )
+from .api import (  # noqa: F401
+    AT_BOUND,
+    EMPTY,
+    FLAG_NAMES,
+    MAX_ITER,
+    NONFINITE,
+    POOR_FIT,
+    SATURATED,
+    SPIKE,
+    TRUNCATED,
+    DecompositionResult,
+    decompose,
+)

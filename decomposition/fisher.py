@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from .refine import _SSS, kernel_derivatives, slot_arrays
+from .refine import _CHUNK, _SSS, _design, kernel_derivatives, slot_arrays
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -102,14 +102,49 @@ def _prepare(params, n_bins, time_bin_ps, t0_ps):
     return lead, slots, t, amp_scale
 
 
-def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None):
+def _sigma_rows(k):
+    return 3 * np.arange(k) + 2
+
+
+def _tie_sigma(rows, free, present):
+    """One width parameter per pixel: its column is the sum of the components' sigma columns.
+
+    It is stored in the row of the pixel's first present component; the other
+    sigma rows become zero and not free.  Returns the index of that slot (n,).
+    """
+    n, k = present.shape
+    sig = _sigma_rows(k)
+    first = np.argmax(present, axis=1)
+    total = rows[:, sig].sum(axis=1)
+    rows[:, sig] = 0.0
+    free[:, sig] = False
+    pix = np.arange(n)
+    rows[pix, 3 * first + 2] = total
+    free[pix, 3 * first + 2] = present.any(axis=1)
+    return first
+
+
+def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False):
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
-    rows, free = _jacobian(t, slots, amp_scale, tb)
-    if sw is not None:
-        rows *= sw[:, None, :]
-    info = rows @ rows.swapaxes(-1, -2)
+    n, k = slots["present"].shape
+    p = 3 * k + 1
+    info = np.empty((n, p, p))
+    free = np.empty((n, p), dtype=bool)
+    tied = np.zeros(n, dtype=np.int64)
+    # Cache-sized chunks of pixels: the (pixels, P, L) Jacobian never exists for a whole block.
+    for i in range(0, n, _CHUNK):
+        ch = slice(i, i + _CHUNK)
+        sub = {name: slots[name][ch] for name in ("delay", "amplitude", "sigma", "alpha", "present")}
+        rows, fr = _jacobian(t, sub, amp_scale[ch], tb)
+        if sw is not None:
+            rows *= sw[ch, None, :]
+        if shared_sigma:
+            tied[ch] = _tie_sigma(rows, fr, sub["present"])
+        info[ch] = rows @ rows.swapaxes(-1, -2)
+        free[ch] = fr
+    slots["tied_slot"] = tied if shared_sigma else None
     return lead, slots, info, free, amp_scale
 
 
@@ -120,7 +155,7 @@ def _amplitude_rows(k):
 
 
 def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
-                       t0_ps: float | None = None, bin_integrated: bool = False):
+                       t0_ps: float | None = None, shared_sigma: bool = False, bin_integrated: bool = False):
     """Fisher information of the component parameters under white Gaussian noise.
 
     Parameters
@@ -132,6 +167,10 @@ def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float =
         Noise standard deviation per time bin, in the units of the profile (> 0).
     n_bins, time_bin_ps, t0_ps
         Time axis of the profiles (see :func:`decomposition.model.time_axis_ps`).
+    shared_sigma : bool
+        All components of a pixel share one width (see ``refine(shared_sigma=True)``):
+        that single parameter takes the sigma row of the pixel's first present
+        component; the other sigma rows are zero.
     bin_integrated : bool
         Use bin-averaged kernels (as ``model.render_profile(bin_integrated=True)``).
 
@@ -145,7 +184,7 @@ def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float =
         Which rows belong to present components.
     """
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated)
+                                                            bin_integrated, None, shared_sigma)
     noise = _noise(noise_sigma, lead)
     # Undo the amplitude normalisation: d mu / d amplitude rows were computed for
     # amplitudes / scale, the other rows carry amplitude / scale as a factor.
@@ -204,10 +243,14 @@ def _to_dict(std, slots, lead, suffix):
     return {key + suffix: out[key + suffix] for key in order}
 
 
-def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None):
+def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated, sw)
+                                                            bin_integrated, sw, shared_sigma)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
+    if shared_sigma:
+        n, k = slots["present"].shape
+        tied = std_unit[np.arange(n), 3 * slots["tied_slot"] + 2]
+        std_unit[:, _sigma_rows(k)] = np.where(slots["present"], tied[:, None], np.nan)
     k = slots["present"].shape[1]
     is_amp = _amplitude_rows(k)
     # Amplitude rows were for amplitude / scale: their std scales back up; the
@@ -218,7 +261,8 @@ def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw
 
 
 def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
-                     t0_ps: float | None = None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                     t0_ps: float | None = None, shared_sigma: bool = False,
+                     bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Cramér-Rao lower bounds (standard deviations) of every present parameter.
 
     Parameters
@@ -230,6 +274,9 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
         units of the profile.
     n_bins, time_bin_ps, t0_ps, bin_integrated
         Time axis and sampling of the profiles.
+    shared_sigma : bool
+        The components of a pixel share one (unknown) width; every present
+        component's ``sigma_ps_crb`` is then the bound of that one width.
 
     Returns
     -------
@@ -242,11 +289,11 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
     """
     lead = np.shape(params["direct_delay_ps"]) if "direct_delay_ps" in params else np.shape(params["ir_delay_ps"])[:-1]
     noise = _noise(noise_sigma, lead)
-    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb")
+    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb", None, shared_sigma)
 
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                    weights=None, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                    weights=None, shared_sigma: bool = False, bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     The noise level of each pixel is estimated from its residual,
@@ -266,6 +313,8 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         Relative sample weights of the fit (as in :func:`decomposition.refine.refine`);
         samples of weight 0 (saturated, excluded) do not count, and the noise
         estimate is that of a unit-weight sample.
+    shared_sigma : bool
+        The fit used one width per pixel (as ``refine(shared_sigma=True)``).
 
     Returns
     -------
@@ -294,21 +343,31 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     slots = slot_arrays(params, lead)
     t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
-    ones = np.ones(slots["present"].shape[0])
-    rows, free = _jacobian(t, slots, ones, tb)
-    k = slots["present"].shape[1]
-    amp_rows = rows[:, _amplitude_rows(k)][:, :k]  # basis functions phi_k
-    amp = np.where(slots["present"], slots["amplitude"], 0.0)
-    resid = y.reshape(-1, n_bins) - np.einsum("nk,nkl->nl", amp, amp_rows)
-    n_used = n_bins
-    if sw is not None:
-        resid = resid * sw
-        n_used = np.sum(sw > 0, axis=-1)
-    dof = n_used - free.sum(axis=-1)
+    present = slots["present"]
+    n = present.shape[0]
+    y2 = y.reshape(n, n_bins)
+    amp = np.where(present, slots["amplitude"], 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sig = np.where(present, slots["sigma"], 1.0)
+        alp = np.where(present[:, _SSS], slots["alpha"], 1.0)
+    delay = np.where(present, slots["delay"], 0.0)
+    rss = np.empty(n)
+    for i in range(0, n, _CHUNK):
+        ch = slice(i, i + _CHUNK)
+        phi = _design(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
+        resid = y2[ch] - np.einsum("nk,nkl->nl", amp[ch], phi)
+        if sw is not None:
+            resid *= sw[ch]
+        rss[i:i + _CHUNK] = np.einsum("nl,nl->n", resid, resid)
+    n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
+    n_fitted = 3 * present.sum(axis=-1) + present[:, _SSS]
+    if shared_sigma:
+        n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
+    dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
-        noise = np.where(dof > 0, np.sqrt(np.einsum("nl,nl->n", resid, resid) / np.maximum(dof, 1)), np.nan)
+        noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw)
+                 bin_integrated, "_stderr", sw, shared_sigma)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

@@ -83,35 +83,57 @@ _SQRT_2 = np.sqrt(2.0)
 _EXP_FLOOR = -700.0
 
 
-def _gauss_point(t, s):
+def _gauss_point(t, s, deriv=True):
     z = t / s
     g = np.exp(np.maximum(-0.5 * z * z, _EXP_FLOOR))
+    if not deriv:
+        return (g,)
     gz = g * z
     return g, gz / s, gz * z / s
 
 
-def _sss_value(t, s, a, g):
-    """The sss kernel of model.sss_kernel (same two stable branches), given g = exp(-t^2/2s^2)."""
-    u = (a * s * s - t) / (s * _SQRT_2)
-    pos = u >= 0
-    # u >= 0: g * erfcx(u), erfcx <= 1.  u < 0: exp(-a (t - a s^2 / 2)) erfc(u), exponent < 0.
-    up = np.where(pos, u, 0.0)
-    un = np.where(pos, 0.0, u)
-    expo = np.where(pos, 0.0, np.maximum(-a * (t - 0.5 * a * s * s), _EXP_FLOOR))
-    val = np.where(pos, g * special.erfcx(up), np.exp(expo) * special.erfc(un))
-    return _SQRT_PI_2 * s * val
+# erfc(u) rounds to exactly 2.0 for u <= -6 (erfc(6) = 2.2e-17 < half an ulp of 2).
+_ERFC_IS_TWO = -6.0
+# exp(-z^2/2) is below the exp floor for |z| > 37.5: the rising edge is zero there.
+_Z_NEGLIGIBLE = 37.5
 
 
-def _sss_point(t, s, a):
-    g = np.exp(np.maximum(-0.5 * np.square(t / s), _EXP_FLOOR))
-    h = _sss_value(t, s, a, g)
+def _sss_point(t, s, a, deriv=True):
+    """sss kernel and its derivatives (see module docstring) with the stable branches of model.py.
+
+    u = (a s^2 - t) / (s sqrt 2);  u >= 0: h = c g erfcx(u);  u < 0: h = c exp(-a (t - a s^2/2)) erfc(u),
+    c = s sqrt(pi/2).  The special functions are evaluated only where they are not
+    exactly 2 (erfc, u > -6) or multiplied by an underflowed g (erfcx, t far before
+    the onset), which is a few dozen samples per profile.
+    """
+    t, s, a = np.broadcast_arrays(np.asarray(t, np.float64), np.asarray(s, np.float64),
+                                  np.asarray(a, np.float64))
+    z = t / s
+    q = a * s
+    u = (q - z) * (1.0 / _SQRT_2)
+    g = np.exp(np.maximum(-0.5 * z * z, _EXP_FLOOR))
+    # Tail branch everywhere first; its exponent is negative wherever u < 0 (clamped elsewhere).
+    e = np.exp(np.clip(q * (0.5 * q - z), _EXP_FLOOR, 0.0))
+    h = 2.0 * e
+    fix = np.nonzero((u > _ERFC_IS_TWO) & (z > -_Z_NEGLIGIBLE))
+    uf = u[fix]
+    pos = uf >= 0
+    hf = np.empty_like(uf)
+    hf[pos] = g[fix][pos] * special.erfcx(uf[pos])
+    neg = ~pos
+    hf[neg] = e[fix][neg] * special.erfc(uf[neg])
+    h[u >= 0] = 0.0  # rising edge far before the onset (g underflowed); overwritten below where not
+    h[fix] = hf
+    h *= _SQRT_PI_2 * s
+    if not deriv:
+        return (h,)
     d_delay = a * h - g
-    d_sigma = h * (1.0 / s + a * a * s) - g * (a * s + t / s)
-    d_alpha = (a * s * s - t) * h - s * s * g
+    d_sigma = h * ((1.0 + q * q) / s) - g * (q + z)
+    d_alpha = s * ((q - z) * h - s * g)
     return h, d_delay, d_sigma, d_alpha
 
 
-def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=None):
+def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=None, derivatives=True):
     """Kernel values and analytic derivatives with respect to its parameters.
 
     Parameters
@@ -125,6 +147,8 @@ def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=Non
     time_bin_ps : float, optional
         If given, values and derivatives are averaged over a bin of this width
         (matches ``bin_integrated=True`` rendering in :mod:`decomposition.model`).
+    derivatives : bool
+        ``False`` returns the 1-tuple ``(k,)`` only (cheaper).
 
     Returns
     -------
@@ -139,8 +163,8 @@ def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=Non
 
     def point(tt):
         if alpha_per_ps is None:
-            return _gauss_point(tt, s)
-        return _sss_point(tt, s, np.asarray(alpha_per_ps, np.float64))
+            return _gauss_point(tt, s, derivatives)
+        return _sss_point(tt, s, np.asarray(alpha_per_ps, np.float64), derivatives)
 
     if time_bin_ps is None:
         return point(t)
@@ -258,7 +282,7 @@ def _design(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     if gmask.any():
         pix, slot = np.nonzero(gmask)
         s = sigma[pix, slot][:, None]
-        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb)
+        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb, derivatives=jac)
         m[pix, rows[slot]] = vals[0]
         if jac:
             m[pix, k + rows[slot]] = vals[1]
@@ -267,7 +291,7 @@ def _design(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     if pix.size:
         s = sigma[pix, _SSS][:, None]
         a = alpha[pix][:, None]
-        vals = kernel_derivatives(t - delay[pix, _SSS][:, None], s, a, time_bin_ps=tb)
+        vals = kernel_derivatives(t - delay[pix, _SSS][:, None], s, a, time_bin_ps=tb, derivatives=jac)
         m[pix, _SSS] = vals[0]
         if jac:
             m[pix, k + _SSS] = vals[1]
@@ -352,7 +376,23 @@ class _Layout:
         return lo, hi
 
 
+# Pixels per chunk of the L-length work: keeps the temporaries of the kernel
+# evaluation within the CPU caches (a whole block at once is several times slower).
+_CHUNK = 48
+
+
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
+    """:func:`_evaluate_chunk` over cache-sized chunks of pixels, results concatenated."""
+    n = y.shape[0]
+    if n <= _CHUNK:
+        return _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw)
+    parts = [_evaluate_chunk(lay, t, y[i:i + _CHUNK], theta[i:i + _CHUNK], present[i:i + _CHUNK],
+                             free[i:i + _CHUNK], tb, jac, None if sw is None else sw[i:i + _CHUNK])
+             for i in range(0, n, _CHUNK)]
+    return tuple(None if parts[0][j] is None else np.concatenate([p[j] for p in parts]) for j in range(4))
+
+
+def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None):
     """Amplitudes, residual sum of squares and (if jac) the LM normal equations at theta.
 
     With V = W dPhi (rows; W carries the amplitudes c and the parameter
@@ -399,10 +439,15 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
     with np.errstate(divide="ignore", invalid="ignore"):
         s0 = np.where(present, slots["sigma"], 1.0)
         a0 = np.where(present[:, _SSS], slots["alpha"], 1.0)
-    phi0 = _design(t, y, np.where(present, slots["delay"], 0.0), s0, a0, present, tb, False, sw)[:, :lay.k]
+    d0 = np.where(present, slots["delay"], 0.0)
     amp_in = np.where(present, slots["amplitude"], 0.0)
-    r0 = y - np.einsum("nk,nkl->nl", amp_in, phi0)
-    rss_input = np.einsum("nl,nl->n", r0, r0)
+    rss_input = np.empty(n)
+    for i in range(0, n, _CHUNK):
+        ch = slice(i, i + _CHUNK)
+        phi0 = _design(t, y[ch], d0[ch], s0[ch], a0[ch], present[ch], tb, False,
+                       None if sw is None else sw[ch])[:, :lay.k]
+        r0 = y[ch] - np.einsum("nk,nkl->nl", amp_in[ch], phi0)
+        rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
 
     c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw)
     viol = _amp_violations(c, present)
@@ -478,7 +523,7 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
 
 
 def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-           max_iter: int = 30, ftol: float = 1e-9, block_size: int = 1024,
+           max_iter: int = 20, ftol: float = 1e-6, block_size: int = 4096,
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, weights=None, bin_integrated: bool = False):

@@ -246,6 +246,9 @@ class SMC100Mirror:
                 except (DeviceTimeout, ProtocolError):
                     self._stale = True
                     raise
+                except serial.SerialTimeoutException as exc:  # output blocked (flow control)
+                    self._stale = True
+                    raise DeviceTimeout(f"{self.port}: write not done within {self.timeout_s:g} s") from exc
                 except _IO_ERRORS as exc:
                     if attempt == 0:
                         attempt += 1
@@ -357,17 +360,25 @@ class SMC100Mirror:
 
         Not referenced: send ``OR`` and wait for the HOMING state to end.
         Already referenced (the controller refuses ``OR`` in READY): move to 0.
+        Moving: wait for the move to end, then move to 0.  Homing: wait for it.
+        ``timeout_s`` bounds the whole operation.
         """
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
+        deadline = time.monotonic() + timeout_s
         _, code = self.status()
         word = CONTROLLER_STATES[code][0]
+        if word == "moving":
+            self._wait_for_ready(deadline - time.monotonic(), waiting_for="motion")
+            word = "ready"
         if word == "ready":
             self.move_to(0.0)
         elif word == "not_referenced":
             self._command_checked("OR")
-        elif word not in ("homing", "moving"):
+        elif word != "homing":
             raise DeviceError(code, f"cannot home in state {CONTROLLER_STATES[code][1]}",
                               command="OR", device=self.port)
-        self._wait_for_ready(timeout_s, waiting_for="homing")
+        self._wait_for_ready(max(deadline - time.monotonic(), 1e-3), waiting_for="homing")
 
     def _wait_for_ready(self, timeout_s: float, *, waiting_for: str) -> float:
         if not timeout_s > 0:

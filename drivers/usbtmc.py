@@ -214,6 +214,10 @@ class UsbtmcTransport:
             self._dev = dev
             raw = self._control(_RT_INTERFACE, GET_CAPABILITIES, 0, self._intf_number, 0x18)
             self.capabilities = Capabilities(raw)
+            if self.term_char is not None and not self.capabilities.term_char:
+                # USBTMC 1.0 table 4: TermCharEnabled must be 0 unless the device supports it
+                self._release(dev)
+                raise ValueError(f"{self.describe()} does not support TermChar; use term_char=None")
         except usb.core.USBError as exc:
             self._release(dev)
             raise ConnectionLost(f"{self.describe()}: cannot open ({exc})") from exc

@@ -1,4 +1,6 @@
 """``streaklab bench``: dispatch to benchmark modules, and the accuracy benchmark's outputs."""
+import csv
+import json
 import sys
 import types
 
@@ -51,6 +53,36 @@ def test_largest_nsr_at_level():
     # "Stays": a later recovery above the level does not count.
     value, _ = largest_nsr_at_level(nsr, [0.95, 0.85, 0.95])
     assert 0.001 < value < 0.01
+
+
+@pytest.mark.timeout(60)
+def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
+    out = tmp_path / "acc"
+    assert main(["bench", "accuracy", "--quick", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    with open(out / "accuracy.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    keys = {(r["method"], r["noise"], float(r["nsr"])) for r in rows}
+    assert keys == {(m, n, x) for m in ("convscd", "gradbm") for n in ("white", "pink", "photon")
+                    for x in (0.001, 0.055, 0.2)}
+    for r in rows:
+        f = float(r["mean_fidelity"])
+        assert np.isfinite(f) and f <= 1.0
+        assert int(r["pixels"]) == 12 and float(r["seconds_per_pixel"]) > 0
+        assert {"mean_fidelity[d+s]", "mean_fidelity[d+s+r2]", "mean_fidelity[d+s+r2+r3]"} <= set(r)
+    # Nearly clean data decompose well; heavy noise costs fidelity.
+    by = {(r["method"], r["noise"], float(r["nsr"])): float(r["mean_fidelity"]) for r in rows}
+    for m in ("convscd", "gradbm"):
+        assert by[(m, "white", 0.001)] > 0.7 and by[(m, "white", 0.2)] < by[(m, "white", 0.001)]
+    assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in ("convscd", "gradbm")
+                                                    for n in ("white", "pink", "photon")}
+    assert set(summary["seconds_per_pixel"]) == {"convscd", "gradbm"}
+    for m in ("convscd", "gradbm"):
+        for n in ("white", "pink", "photon"):
+            assert any(line.split()[:2] == [m, n] for line in text.splitlines())
+    assert "run time per pixel" in text and "ms" in text
 
 
 def test_accuracy_bad_options(tmp_path, capsys):

@@ -130,3 +130,31 @@ def test_bad_noise_is_rejected():
         cramer_rao_bound(p, np.ones(3), n_bins=64, time_bin_ps=T)
     with pytest.raises(ValueError, match="noise_sigma"):
         cramer_rao_bound(p, -1.0, n_bins=64, time_bin_ps=T)
+
+
+def test_shared_sigma_bound_is_the_one_width_problem():
+    # d + s with the onset under the direct peak: with free widths nearly degenerate, with one width
+    # well posed.  The shared bound equals the bound of the reduced problem computed by hand.
+    L = 200
+    p = empty_params((1,), 1)
+    p.update(direct_delay_ps=np.array([60.0]), direct_amplitude=np.array([1.0]), direct_sigma_ps=np.array([3.0]),
+             sss_delay_ps=np.array([63.0]), sss_amplitude=np.array([0.05]), sss_alpha_per_ps=np.array([0.03]),
+             sss_sigma_ps=np.array([3.0]), ir_delay_ps=np.array([[110.0]]), ir_amplitude=np.array([[0.3]]),
+             ir_sigma_ps=np.array([[3.0]]))
+    fisher, free = fisher_information(p, 0.01, n_bins=L, time_bin_ps=T)
+    names = parameter_names(1)
+    sig = [names.index(n) for n in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps[0]")]
+    keep = [i for i in range(len(names)) if i not in sig[1:]]
+    # Reduce: one width = d/dsigma summed over components -> F' = A^T F A.
+    a = np.zeros((len(names), len(keep)))
+    for j, i in enumerate(keep):
+        a[i, j] = 1.0
+    a[sig, keep.index(sig[0])] = 1.0
+    cov = np.linalg.inv(a.T @ fisher[0] @ a)
+    shared = cramer_rao_bound(p, 0.01, n_bins=L, time_bin_ps=T, shared_sigma=True)
+    for name in ("direct_delay_ps", "sss_delay_ps", "sss_alpha_per_ps", "direct_sigma_ps"):
+        j = keep.index(names.index(name))
+        np.testing.assert_allclose(shared[name + "_crb"][0], np.sqrt(cov[j, j]), rtol=1e-6, err_msg=name)
+    np.testing.assert_array_equal(shared["sss_sigma_ps_crb"], shared["direct_sigma_ps_crb"])
+    indep = cramer_rao_bound(p, 0.01, n_bins=L, time_bin_ps=T)
+    assert shared["sss_delay_ps_crb"][0] < indep["sss_delay_ps_crb"][0]

@@ -1,8 +1,4 @@
 """NeXus/HDF5 export and import: NXdata conventions and a lossless round trip."""
-import subprocess
-import sys
-from pathlib import Path
-
 import h5py
 import numpy as np
 import pytest
@@ -10,8 +6,7 @@ import zarr
 
 from reconstruction.cubestore import create_cube, open_cube, write_cube
 from reconstruction.nexus import NexusError, export_cube, import_cube
-
-ROOT = Path(__file__).resolve().parents[1]
+from streaklab.cli import main
 
 
 def make_cube(path):
@@ -102,16 +97,12 @@ def test_foreign_nxdata_imports_and_bad_files_are_named(tmp_path):
     assert not (tmp_path / "o2.zarr").exists()
 
 
-def test_command_line_round_trip_and_refusals(tmp_path):
+def test_command_line_round_trip_and_refusals(tmp_path, capsys):
     write_cube(tmp_path / "c.zarr", np.ones((2, 3, 4)), time_bin_ps=2.0)
-    run = lambda *a: subprocess.run([sys.executable, "-m", "streaklab", *map(str, a)], cwd=ROOT,
-                                    capture_output=True, text=True, timeout=60)
-    r = run("export", tmp_path / "c.zarr", "--out", tmp_path / "c.h5")
-    assert r.returncode == 0, r.stderr
-    r = run("export", tmp_path / "c.zarr", "--out", tmp_path / "c.h5")
-    assert r.returncode == 2 and "already exists" in r.stderr
-    r = run("import", tmp_path / "c.h5", "--out", tmp_path / "back.zarr")
-    assert r.returncode == 0, r.stderr
+    assert main(["export", str(tmp_path / "c.zarr"), "--out", str(tmp_path / "c.h5")]) == 0
+    assert main(["export", str(tmp_path / "c.zarr"), "--out", str(tmp_path / "c.h5")]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(["import", str(tmp_path / "c.h5"), "--out", str(tmp_path / "back.zarr")]) == 0
     np.testing.assert_array_equal(open_cube(tmp_path / "back.zarr").array[...], np.ones((2, 3, 4)))
-    r = run("export", tmp_path / "missing.zarr", "--out", tmp_path / "m.h5")
-    assert r.returncode == 2 and "no such file" in r.stderr
+    assert main(["export", str(tmp_path / "missing.zarr"), "--out", str(tmp_path / "m.h5")]) == 2
+    assert "no such file" in capsys.readouterr().err

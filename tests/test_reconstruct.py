@@ -12,6 +12,7 @@ from acquisition.runstore import RunStoreError, create_run
 from reconstruction.build import ReconstructionError, reconstruct
 from reconstruction.calibrate import CalibrationError, resample_uniform, uniform_grid
 from reconstruction.cubestore import open_cube, write_cube
+from streaklab.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 POLY = [10.0, 1.6, 0.004]          # ps; ~1.6 ps/row at the start, ~2.1 ps/row at the end
@@ -147,16 +148,22 @@ def test_bad_inputs_are_named_and_nothing_is_written_over(tmp_path):
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no temporaries left
 
 
-def test_command_line_and_xarray(tmp_path):
+def test_command_line_and_xarray(tmp_path, capsys):
     xr = pytest.importorskip("xarray")
     make_run(tmp_path / "run.zarr", done=[True] * 5 + [False])
-    cmd = [sys.executable, "-m", "streaklab", "reconstruct", str(tmp_path / "run.zarr"), "--out",
-           str(tmp_path / "cube.zarr"), "--chunks", "2", "3"]
-    r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "1 of 6 lines are unfinished (lines 5)" in r.stderr, r.stderr
-    r = subprocess.run(cmd + ["--allow-partial"], cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    assert "1 unfinished lines left NaN" in r.stderr
+    argv = ["reconstruct", str(tmp_path / "run.zarr"), "--out", str(tmp_path / "cube.zarr"), "--chunks", "2", "3"]
+    assert main(argv) == 2
+    assert "1 of 6 lines are unfinished (lines 5)" in capsys.readouterr().err
+    assert main(argv + ["--allow-partial"]) == 0
+    assert "1 unfinished lines left NaN" in capsys.readouterr().err
     ds = xr.open_zarr(tmp_path / "cube.zarr", consolidated=False)
     assert ds["cube"].dims == ("y", "x", "t") and ds["line_valid"].dims == ("y",)
     assert ds["cube"].encoding["chunks"] == (2, 3, ds.sizes["t"])
+
+
+def test_module_entry_point_runs(tmp_path):
+    make_run(tmp_path / "run.zarr")
+    r = subprocess.run([sys.executable, "-m", "streaklab", "reconstruct", str(tmp_path / "run.zarr"), "--out",
+                        str(tmp_path / "cube.zarr")], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert open_cube(tmp_path / "cube.zarr").shape[:2] == (len(ANGLES), NX)

@@ -83,3 +83,26 @@ def test_config_differences_lists_keys():
     a = parse_config(RAW).hashed_part()
     b = parse_config({**RAW, "camera": {"frames_per_line": 3}}).hashed_part()
     assert config_differences(a, b) == ["camera.frames_per_line (2 -> 3)"]
+
+
+def test_interrupted_creation_is_recognised(tmp_path):
+    from acquisition.runstore import is_uninitialised_run, remove_uninitialised_run
+
+    torn = tmp_path / "torn.zarr"
+    torn.mkdir()
+    (torn / "zarr.json.1234.partial").write_text("{")
+    assert is_uninitialised_run(torn)
+    g = zarr.open_group(str(tmp_path / "half.zarr"), mode="w")
+    g.attrs.update({"streaklab_kind": "run", "initialised": False})
+    assert is_uninitialised_run(tmp_path / "half.zarr")
+    with pytest.raises(RunStoreError, match="creation was interrupted"):
+        open_run(tmp_path / "half.zarr")
+    remove_uninitialised_run(tmp_path / "half.zarr")
+    assert not (tmp_path / "half.zarr").exists()
+    run = make(tmp_path)                                   # a real run is never taken for a torn one
+    assert not is_uninitialised_run(run.path)
+    with pytest.raises(RunStoreError, match="refusing to delete"):
+        remove_uninitialised_run(run.path)
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes/a.txt").write_text("mine")
+    assert not is_uninitialised_run(tmp_path / "notes")

@@ -34,7 +34,7 @@ def test_the_driver_opens_the_pty_path_like_a_serial_port(lab):
     assert os.path.realpath(sim.stable_port) == sim.port
     with open_mirror(sim.port) as mirror:
         assert mirror.identify() == "SLAB-GALVO-SIM"
-    assert sim.received[:1] == ["1ID?"]
+    assert list(sim.received)[:1] == ["1ID?"]
 
 
 def test_not_referenced_until_homed_then_moves_and_updates_lab_state(lab):
@@ -87,6 +87,18 @@ def test_home_search_reports_homing_state_while_it_runs():
             mirror.home(timeout_s=5)  # waits for the running search to end
             assert mirror.state() == "ready"
             assert mirror.position() == pytest.approx(0.0)
+
+
+def test_home_during_a_move_waits_for_it_then_returns_to_zero(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(30.0)
+        assert mirror.state() == "moving"
+        mirror.home(timeout_s=5)
+        assert mirror.position() == pytest.approx(0.0)
+        assert state.mirror_angle_deg == pytest.approx(0.0)
+        assert "1PA30" in sim.received and list(sim.received).count("1PA0") == 1
 
 
 def test_stop_ends_motion_where_the_stage_is(lab):

@@ -242,7 +242,7 @@ def test_bad_arguments_are_rejected_before_anything_is_sent(device):
         sync.set_trigger_delay(10.0, channel=0)
     with pytest.raises(ValueError, match="timeout_s"):
         UsbtmcTransport(backend=backend, timeout_s=0)
-    assert backend.log == []
+    assert list(backend.log) == []
     assert format_number(1 / 80e6) == "1.25e-08"
 
 

@@ -46,6 +46,22 @@ def test_settings_reach_the_lab_state_and_read_back(lab):
     assert (state.sync_rate_hz, state.sync_delay_ps, state.sync_output_enabled) == (80e6, 0.0, False)
 
 
+def test_camera_sees_light_only_with_system_output_and_its_channel_on():
+    state = LabState()
+    backend = UsbtmcBackend(state, camera_channel=2)
+    with ScpiLaserSync(vendor_id=VID, product_id=PID, backend=backend, camera_channel=2) as sync:
+        sync.set_trigger_delay(10.0, channel=1)
+        sync.set_trigger_delay(250.0)                  # the driver's camera channel: 2
+        assert state.sync_delay_ps == 250.0
+        sync.set_output(True)
+        assert state.sync_output_enabled is True
+        sync.write(":PULS2:STAT OFF")
+        assert state.sync_output_enabled is False
+        sync.write(":PULS2:STAT ON")
+        assert state.sync_output_enabled is True
+    assert state.sync_output_enabled is False          # leaving the block switched the output off
+
+
 def test_delay_is_quantised_to_the_device_resolution(lab):
     backend, sync, state = lab
     sync.set_trigger_delay(1000.04)
@@ -274,3 +290,26 @@ def test_interface_claims_are_exclusive_between_handles():
     usb.util.dispose_resources(first)
     usb.util.claim_interface(second, 0)
     usb.util.dispose_resources(second)
+
+
+def test_closing_the_simulator_wakes_a_blocked_read_with_no_device():
+    backend = UsbtmcBackend()
+    dev = _raw_device(backend)
+    usb.util.claim_interface(dev, 0)
+    outcome = []
+
+    def reader():
+        try:
+            dev.read(0x81, 64, 10000)
+        except usb.core.USBError as exc:
+            outcome.append(exc.errno)
+
+    thread = threading.Thread(target=reader)
+    thread.start()
+    time.sleep(0.1)
+    t0 = time.monotonic()
+    backend.close()
+    thread.join(5)
+    assert not thread.is_alive() and time.monotonic() - t0 < 2.0
+    assert outcome == [errno.ENODEV]
+    assert backend.enumerate_devices() == []

@@ -26,6 +26,7 @@ Fault injection (one-shot, see :mod:`drivers.sim.faults`)::
 """
 from __future__ import annotations
 
+import collections
 import os
 import re
 import select
@@ -85,7 +86,7 @@ class MirrorSimulator:
         self.stage_id = stage_id
         self.min_home_s = float(min_home_s)
         self.faults = FaultInjector(COMMON_KINDS | {"unplug"})
-        self.received: list[str] = []  # every command line received, for tests
+        self.received = collections.deque(maxlen=1000)  # the last command lines received, for tests
         self._lock = threading.RLock()
         # motion model: position moves linearly from _from_deg to _to_deg over [_t0, _t1]
         self._from_deg = self._to_deg = float(initial_angle_deg)

@@ -33,8 +33,8 @@ The instrument behind the interface speaks SCPI (IEEE 488.2 common commands
 plus a pulse/delay-generator tree in the style of BNC 575-type units); see
 :data:`COMMANDS_DOC` and ``docs/laser-sync.md``.  It writes the shared
 :class:`~drivers.sim.state.LabState`: ``sync_rate_hz`` (1 / system period),
-``sync_delay_ps`` (delay of channel 1, the streak-camera trigger) and
-``sync_output_enabled`` (system output state).
+``sync_delay_ps`` (delay of the camera channel, 1 by default) and
+``sync_output_enabled`` (system output and camera channel both on).
 
 Fault injection (one-shot, :mod:`drivers.sim.faults`; ``command`` is the SCPI
 header as sent, without a leading colon, case-insensitive, e.g. ``"*IDN?"``)::
@@ -49,6 +49,7 @@ header as sent, without a leading colon, case-insensitive, e.g. ``"*IDN?"``)::
 from __future__ import annotations
 
 import array
+import collections
 import errno
 import math
 import struct
@@ -172,9 +173,16 @@ class SyncInstrument:
         Updated on every change of period, channel-1 delay and output state.
     serial_number : str
         Reported in ``*IDN?``.
+    camera_channel : int
+        Channel that triggers the streak camera: its delay is ``LabState.sync_delay_ps``
+        and the camera sees light only while it and the system output are on.
     """
 
-    def __init__(self, lab_state: LabState, serial_number: str, firmware: str = "1.0"):
+    def __init__(self, lab_state: LabState, serial_number: str, firmware: str = "1.0",
+                 camera_channel: int = 1):
+        if not 1 <= int(camera_channel) <= _N_CHANNELS:
+            raise ValueError(f"camera_channel must be 1..{_N_CHANNELS}, got {camera_channel!r}")
+        self.camera_channel = int(camera_channel)
         self.lab_state = lab_state
         self.serial_number = serial_number
         self.firmware = firmware
@@ -193,8 +201,9 @@ class SyncInstrument:
     def _publish(self) -> None:
         with self.lab_state.lock:
             self.lab_state.sync_rate_hz = 1.0 / self.period_s
-            self.lab_state.sync_delay_ps = round(self.delay_s[1] * 1e13) / 10.0
-            self.lab_state.sync_output_enabled = bool(self.output)
+            ch = self.camera_channel
+            self.lab_state.sync_delay_ps = round(self.delay_s[ch] * 1e13) / 10.0
+            self.lab_state.sync_output_enabled = bool(self.output and self.channel_on[ch])
 
     def push_error(self, code: int) -> None:
         if len(self.errors) >= _ERROR_QUEUE_LEN:
@@ -389,11 +398,15 @@ class UsbtmcBackend(usb.backend.IBackend):
         iSerialNumber string (also in ``*IDN?``).
     manufacturer, product : str
         iManufacturer / iProduct strings.
+    log_length : int
+        How many transfers :attr:`log` keeps.
+    camera_channel : int
+        Delay channel wired to the streak camera's trigger (see :class:`SyncInstrument`).
 
     Attributes
     ----------
-    log : list of tuple
-        Every transfer, in order: ``("ctrl", bmRequestType, bRequest, wValue,
+    log : collections.deque of tuple
+        The last ``log_length`` transfers, in order: ``("ctrl", bmRequestType, bRequest, wValue,
         wIndex, payload_or_length)``, ``("bulk_out", ep, bytes)``,
         ``("bulk_in", ep, bytes)``, ``("intr_in", ep, bytes)``.
     instrument : SyncInstrument
@@ -402,15 +415,16 @@ class UsbtmcBackend(usb.backend.IBackend):
 
     def __init__(self, lab_state: LabState | None = None, *, vendor_id: int = 0x1209,
                  product_id: int = 0x5A17, serial_number: str = "SLS0001",
-                 manufacturer: str = "Streaklab", product: str = "Laser sync SLS-575 (simulated)"):
+                 manufacturer: str = "Streaklab", product: str = "Laser sync SLS-575 (simulated)",
+                 log_length: int = 10000, camera_channel: int = 1):
         super().__init__()
         self.lab_state = lab_state if lab_state is not None else LabState()
         self.vendor_id, self.product_id = int(vendor_id), int(product_id)
         self.serial_number = serial_number
         self.strings = {1: manufacturer, 2: product, 3: serial_number}
-        self.instrument = SyncInstrument(self.lab_state, serial_number)
+        self.instrument = SyncInstrument(self.lab_state, serial_number, camera_channel=camera_channel)
         self.faults = FaultInjector(COMMON_KINDS | {"unplug"})
-        self.log: list[tuple] = []
+        self.log: collections.deque = collections.deque(maxlen=int(log_length))
         self._cv = threading.Condition(threading.RLock())
         self._generation = 0
         self._address = 5
@@ -430,6 +444,10 @@ class UsbtmcBackend(usb.backend.IBackend):
         if command is not None:
             command = command.lstrip(":")
         self.faults.inject(kind, command, **kwargs)
+
+    def close(self) -> None:
+        """Unplug the device for good: open handles fail with ENODEV, blocked reads return."""
+        self._unplug(replug=False)
 
     def clear_log(self) -> None:
         with self._cv:

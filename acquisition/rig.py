@@ -1,0 +1,148 @@
+"""Connecting the session to a rig: the real drivers at the configured addresses, or a simulated lab.
+
+:func:`run_capture` is what ``streaklab capture`` calls: it opens the three drivers
+(each a context manager that leaves its device safe), runs a
+:class:`~acquisition.session.CaptureSession` over them, and closes them whatever
+happened.  With ``simulate=True`` a :class:`drivers.sim.SimulatedLab` is started in
+this process and the same real drivers talk to it over its socket, pty and pyusb
+backend.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+
+import numpy as np
+
+from drivers.errors import DriverError
+
+from .config import ScanConfig, calibration_times_ps
+from .session import CaptureError, CaptureSession, SessionResult
+
+__all__ = ["simulated_scene", "start_simulated_lab", "open_rig", "run_capture"]
+
+log = logging.getLogger(__name__)
+
+
+def simulated_scene(config: ScanConfig):
+    """The virtual scene for ``--simulate``: one scene line per scan line, at the scan's angles.
+
+    Uses ``VirtualScene.default`` with ``simulation.n_x`` slit pixels, ``simulation.n_t``
+    streak rows and ``simulation.seed``; its line angles are the config's, sorted.
+    """
+    from drivers.sim.scene import VirtualScene
+
+    sim = config["simulation"]
+    base = VirtualScene.default(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
+    return VirtualScene(params=base.params, angle_deg=np.sort(config.angles_deg), n_t=base.n_t,
+                        time_calibration=base.time_calibration, photon_scale=base.photon_scale,
+                        dark_level=base.dark_level, read_noise=base.read_noise,
+                        reference_exposure_s=base.reference_exposure_s, reference_gain=base.reference_gain,
+                        time_range=base.time_range)
+
+
+def start_simulated_lab(config: ScanConfig):
+    """Start (enter) a SimulatedLab matching the config; the caller closes it."""
+    from drivers.sim import SimulatedLab
+
+    scene = simulated_scene(config)
+    lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True)
+    lab.start()
+    # The simulated sweep is what the scene says; warn if the config's calibration describes another.
+    from drivers.sim.scene import TIME_RANGE_SCALE
+
+    tr = config["camera"]["time_range"]
+    if tr in TIME_RANGE_SCALE:
+        truth = scene.row_times_ps(0.0, tr)
+        mine = calibration_times_ps(config["calibration"]["time_poly_ps"], scene.n_t)
+        if np.max(np.abs(truth - mine)) > 1.0:
+            log.warning("calibration.time_poly_ps differs from the simulated sweep by up to %.3g ps "
+                        "(simulated: %s at time_range %d)", float(np.max(np.abs(truth - mine))),
+                        list(np.round(scene.time_calibration * TIME_RANGE_SCALE[tr]
+                                      / TIME_RANGE_SCALE[scene.time_range], 9)), tr)
+    return lab
+
+
+def _open_sync(config: ScanConfig, *, backend=None):
+    """The SCPI laser sync on USBTMC: found by the configured USB ids / serial, or the simulated unit."""
+    from drivers.scpi_sync import ScpiLaserSync
+
+    dev = config["devices"]
+    kwargs = {"timeout_s": dev["timeout_s"], "camera_channel": config["sync"]["channel"]}
+    if backend is not None:
+        # The simulated unit, whatever ids [devices] gives for the real one.
+        kwargs.update(backend=backend, vendor_id=backend.vendor_id, product_id=backend.product_id)
+    else:
+        if not any(k in dev for k in ("sync_vendor_id", "sync_serial")):
+            raise CaptureError("devices.sync_vendor_id/sync_product_id or devices.sync_serial: required to find "
+                               "the laser-sync unit on USB")
+        for key, arg in (("sync_vendor_id", "vendor_id"), ("sync_product_id", "product_id"),
+                         ("sync_serial", "serial_number")):
+            if key in dev:
+                kwargs[arg] = dev[key]
+    return ScpiLaserSync(**kwargs)
+
+
+@contextlib.contextmanager
+def open_rig(config: ScanConfig, *, lab=None):
+    """Open camera, mirror and laser sync; yields ``(camera, mirror, sync)``.
+
+    Parameters
+    ----------
+    lab : SimulatedLab, optional
+        Take the addresses from this running simulated lab instead of ``[devices]``.
+    """
+    from drivers.remoteex import RemoteExCamera
+    from drivers.smc100 import SMC100Mirror
+
+    dev = config["devices"]
+    timeout_s = dev["timeout_s"]
+    if lab is not None:
+        cam_host, cam_port = lab.camera_address
+        mirror_port, backend = lab.mirror_port, lab.usb_backend
+    else:
+        cam_host, _, port = dev["camera"].rpartition(":")
+        cam_port, mirror_port, backend = int(port), dev["mirror"], None
+    with contextlib.ExitStack() as stack:
+        def enter(name, where, make):
+            try:
+                return stack.enter_context(make())
+            except (DriverError, OSError) as exc:
+                raise CaptureError(f"cannot open the {name} at {where}: {exc}") from None
+
+        camera = enter("camera", f"{cam_host}:{cam_port}",
+                       lambda: RemoteExCamera(cam_host, cam_port, timeout_s=timeout_s, connect_timeout_s=timeout_s))
+        mirror = enter("mirror", mirror_port,
+                       lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s))
+        sync_where = "the simulated USB backend" if backend is not None else \
+            ", ".join(f"{k}={dev[k]!r}" for k in ("sync_vendor_id", "sync_product_id", "sync_serial") if k in dev) \
+            or "USB (no id configured)"
+        sync = enter("laser sync", sync_where, lambda: _open_sync(config, backend=backend))
+        yield camera, mirror, sync
+
+
+def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool = False, lab=None,
+                stop_event: threading.Event | None = None, on_line=None, on_start=None,
+                session_info: dict | None = None) -> SessionResult:
+    """Run one capture session end to end (open rig, session, close rig).
+
+    Parameters
+    ----------
+    config : ScanConfig
+    out : run store path.
+    simulate : bool
+        Start a SimulatedLab for this session (ignored when ``lab`` is given).
+    lab : SimulatedLab, optional
+        An already running simulated lab to capture from (tests, fault injection).
+    stop_event, on_line, on_start, session_info : see :class:`CaptureSession`.
+    """
+    info = {"simulated": bool(simulate or lab is not None), **(session_info or {})}
+    with contextlib.ExitStack() as stack:
+        if lab is None and simulate:
+            lab = start_simulated_lab(config)
+            stack.callback(lab.close)
+        with open_rig(config, lab=lab) as (camera, mirror, sync):
+            session = CaptureSession(config, out, camera, mirror, sync, resume=resume, stop_event=stop_event,
+                                     on_line=on_line, on_start=on_start, session_info=info)
+            return session.run()

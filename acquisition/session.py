@@ -1,0 +1,341 @@
+"""The capture session: check the rig, take darks, then scan line by line into a run store.
+
+The session drives the devices only through the :mod:`drivers.interfaces`
+protocols, so the same code runs on the real rig and on ``drivers.sim``::
+
+    check    identify camera, mirror and laser sync; configure them; home the mirror
+    dark     sync output off, ``dark.frames`` frames at the home position (skipped if on disk)
+    lines    sync output on; for every line not yet done: move the mirror, wait until it
+             settles, take ``frames_per_line`` frames, check the sync's error queue, write
+             the frames durably, mark the line done
+    finally  sync output off (the drivers' context managers do the rest)
+
+A device fault (:class:`~drivers.errors.DeviceTimeout`, ``ConnectionLost``,
+``DeviceError``, ``ProtocolError``) during a step is retried ``session.retries``
+times (the line restarts from the mirror move); after that the session stops with
+:class:`CaptureFailed`, every finished line intact and resumable.  A stop request
+(Ctrl-C, see :func:`capture`) ends the session after the current line.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
+
+from .config import ConfigError, ScanConfig, check_calibration
+from .runstore import (RunStore, RunStoreError, config_differences, create_run, is_uninitialised_run, open_run,
+                       remove_uninitialised_run)
+
+__all__ = ["CaptureError", "CaptureFailed", "SessionResult", "CaptureSession", "RETRYABLE"]
+
+log = logging.getLogger(__name__)
+
+RETRYABLE = (DeviceTimeout, ConnectionLost, DeviceError, ProtocolError)
+
+
+class CaptureError(RuntimeError):
+    """The session cannot start or continue (bad store, device check failed, config mismatch)."""
+
+
+class CaptureFailed(CaptureError):
+    """A device kept failing after the retries; the finished lines are on disk and resumable."""
+
+    def __init__(self, message: str, *, cause: BaseException, lines_done: int, n_lines: int):
+        super().__init__(message)
+        self.cause = cause
+        self.lines_done = lines_done
+        self.n_lines = n_lines
+
+
+@dataclass
+class SessionResult:
+    """How a session ended.
+
+    Attributes
+    ----------
+    status : "complete" or "interrupted"
+    lines_done, n_lines : int
+        Lines on disk (all sessions together) and lines in the scan.
+    acquired : list of int
+        Lines taken by this session, in order.
+    devices : dict
+        Device identities.
+    """
+
+    status: str
+    lines_done: int
+    n_lines: int
+    acquired: list = field(default_factory=list)
+    devices: dict = field(default_factory=dict)
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+class CaptureSession:
+    """One capture session over three connected drivers.
+
+    Parameters
+    ----------
+    config : ScanConfig
+    out : path of the run store.
+    camera, mirror, sync : StreakCamera, ScanMirror, LaserSync
+        Open drivers (the caller owns them and closes them, normally with ``with``).
+    resume : bool
+        Continue an existing run store (its config hash must match).  Without it an
+        existing non-empty ``out`` is an error.
+    stop_event : threading.Event, optional
+        Set it to stop after the current line.
+    on_line : callable(session, line_index), optional
+        Called after each line is on disk (progress display, tests).
+    on_start : callable(session), optional
+        Called once the devices are checked and the store is open, before the first line.
+    sleep : callable(seconds)
+        Used for the retry back-off.
+    session_info : dict, optional
+        Extra fields for this session's entry in the store's ``sessions`` attribute.
+    """
+
+    def __init__(self, config: ScanConfig, out, camera, mirror, sync, *, resume: bool = False,
+                 stop_event: threading.Event | None = None,
+                 on_line: Callable[["CaptureSession", int], None] | None = None,
+                 on_start: Callable[["CaptureSession"], None] | None = None,
+                 sleep: Callable[[float], None] = time.sleep, session_info: dict | None = None):
+        self.config = config
+        self.out = Path(out)
+        self.camera, self.mirror, self.sync = camera, mirror, sync
+        self.resume = bool(resume)
+        self.stop_event = stop_event or threading.Event()
+        self.on_line = on_line
+        self.on_start = on_start
+        self.sleep = sleep
+        self.session_info = dict(session_info or {})
+        self.store: RunStore | None = None
+        self.devices: dict = {}
+        self.acquired: list[int] = []
+        self.retries_used = 0
+        s = config["session"]
+        self.retries = int(s["retries"])
+        self.backoff_s = float(s["retry_backoff_s"])
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def n_lines(self) -> int:
+        return self.config.n_lines
+
+    def lines_done(self) -> int:
+        return 0 if self.store is None else int(self.store.done_mask().sum())
+
+    def _attempt(self, what: str, fn):
+        """Run ``fn()``; on a device fault retry up to ``retries`` times, then raise CaptureFailed."""
+        for attempt in range(self.retries + 1):
+            try:
+                return fn()
+            except RETRYABLE as exc:
+                if attempt >= self.retries:
+                    done = self.lines_done()
+                    raise CaptureFailed(
+                        f"{what} failed after {attempt + 1} attempts: {type(exc).__name__}: {exc}",
+                        cause=exc, lines_done=done, n_lines=self.n_lines) from exc
+                self.retries_used += 1
+                log.warning("%s: %s: %s (attempt %d of %d; retrying)", what, type(exc).__name__, exc,
+                            attempt + 1, self.retries + 1)
+                self._recover()
+                if self.backoff_s:
+                    self.sleep(self.backoff_s * 2 ** attempt)
+
+    def _recover(self) -> None:
+        """Best effort after a fault: stop any acquisition still running on the camera."""
+        try:
+            self.camera.stop()
+        except DriverError as exc:
+            log.info("camera stop after a fault failed too: %s", exc)
+
+    # ------------------------------------------------------------------ steps
+    def check_devices(self) -> dict:
+        """Identify, configure and home every device; returns their identities."""
+        cfg = self.config
+        ids = {}
+        for name, dev in (("camera", self.camera), ("mirror", self.mirror), ("sync", self.sync)):
+            ids[name] = str(self._attempt(f"{name} check (identify)", dev.identify))
+
+        def setup_sync():
+            self.sync.set_output(False)
+            self.sync.read_errors()                                       # clear stale errors
+            self.sync.set_repetition_rate(cfg["sync"]["repetition_rate_hz"])
+            self.sync.set_trigger_delay(cfg["sync"]["trigger_delay_ps"], channel=cfg["sync"]["channel"])
+            errors = self.sync.read_errors()
+            if errors:
+                raise DeviceError(errors[0][0], errors[0][1], command="sync setup", device="laser sync")
+
+        self._attempt("laser-sync setup", setup_sync)
+        cam = cfg["camera"]
+        self._attempt("camera setup", lambda: self.camera.configure(
+            time_range=cam["time_range"], exposure_s=cam["exposure_s"], gain=cam.get("gain")))
+        self._attempt("mirror homing", lambda: self.mirror.home(timeout_s=max(30.0, cfg["scan"]["settle_timeout_s"])))
+        self.devices = ids
+        return ids
+
+    def _acquire_frames(self, n: int, what: str) -> np.ndarray:
+        timeout_s = self.config["camera"]["acquire_timeout_s"]
+        frames = []
+        for _ in range(n):
+            img = self.camera.acquire(timeout_s=timeout_s)
+            data = np.asarray(img.data)
+            if data.ndim != 2 or data.dtype != np.uint16:
+                raise ProtocolError(f"{what}: camera returned a {data.dtype} image of shape {data.shape}, "
+                                    f"expected uint16 (x, t)")
+            if frames and data.shape != frames[0].shape:
+                raise ProtocolError(f"{what}: image shape changed from {frames[0].shape} to {data.shape}")
+            frames.append(data)
+        return np.stack(frames) if frames else np.zeros((0, 0, 0), np.uint16)
+
+    def _take_dark(self) -> tuple[np.ndarray, tuple[int, int]]:
+        """Dark frames (sync output off), shape (dark_frame, x, t), and the image shape (x, t).
+
+        At least one frame is taken, to learn the image shape, even with ``dark.frames = 0``.
+        """
+        n = max(1, int(self.config["dark"]["frames"]))
+
+        def take():
+            self.sync.set_output(False)
+            return self._acquire_frames(n, "dark frames")
+
+        frames = self._attempt("dark frames", take)
+        return frames[: int(self.config["dark"]["frames"])], tuple(frames.shape[1:])
+
+    def open_store(self) -> None:
+        """Open (resume) or create the run store; create takes the dark frames first to learn the image shape."""
+        out = self.out
+        exists = out.exists() and (out.is_file() or any(out.iterdir()))
+        if exists and not self.resume:
+            raise CaptureError(f"{out} already exists; pass --resume to continue that run, or choose another --out")
+        if exists and is_uninitialised_run(out):
+            log.info("%s: creation was interrupted before any line; starting it again", out)
+            remove_uninitialised_run(out)
+            exists = False
+        if exists:
+            try:
+                store = open_run(out, mode="r+")
+            except RunStoreError as exc:
+                raise CaptureError(f"cannot resume: {exc}") from None
+            if store.config_hash != self.config.hash:
+                diffs = config_differences(store.config.hashed_part(), self.config.hashed_part())
+                raise CaptureError(
+                    f"cannot resume {out}: it was captured with a different configuration "
+                    f"({'; '.join(diffs) or 'hash differs'}). Resume with the original configuration, "
+                    f"or start a new run with another --out")
+            self.store = store
+            if not store.dark_done():
+                dark, shape = self._take_dark()
+                self._check_shape(shape)
+                store.write_dark(dark)
+            return
+        dark, shape = self._take_dark()
+        self._check_shape(shape)
+        store = create_run(out, self.config, image_shape=shape, devices=self.devices)
+        store.write_dark(dark)
+        self.store = store
+
+    def _check_shape(self, shape) -> None:
+        if self.store is not None and tuple(self.store.image_shape) != tuple(shape):
+            raise CaptureError(f"the camera delivers {shape} images but the run store holds "
+                               f"{self.store.image_shape}; was the camera binning changed?")
+        try:
+            check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
+        except ConfigError as exc:
+            raise CaptureError(f"{exc} (the camera has {shape[1]} streak rows)") from None
+
+    def take_line(self, line: int) -> None:
+        angle = float(self.config.angles_deg[line])
+        settle_s = self.config["scan"]["settle_timeout_s"]
+        n = self.config["camera"]["frames_per_line"]
+
+        def acquire():
+            self.mirror.move_to(angle)
+            reached = float(self.mirror.wait_settled(timeout_s=settle_s))
+            frames = self._acquire_frames(n, f"line {line}")
+            if frames.shape[1:] != self.store.image_shape:
+                raise CaptureError(f"line {line}: the camera delivers {frames.shape[1:]} images, the run store "
+                                   f"holds {self.store.image_shape}")
+            # A laser-sync error while the frames were taken (lost lock, trigger fault) spoils the line.
+            errors = self.sync.read_errors()
+            if errors:
+                raise DeviceError(errors[0][0], errors[0][1], command=f"line {line}", device="laser sync")
+            return reached, frames
+
+        reached, frames = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
+        self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+        self.acquired.append(line)
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> SessionResult:
+        """Run the session to completion, a stop request, or a failure.
+
+        Returns
+        -------
+        SessionResult (status ``complete`` or ``interrupted``).
+
+        Raises
+        ------
+        CaptureFailed
+            A device kept failing; the finished lines are on disk.
+        CaptureError
+            The session could not start (store, config mismatch, calibration).
+        """
+        try:
+            ids = self.check_devices()
+            self.open_store()
+            entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
+                     "lines_done_at_start": self.lines_done(), **self.session_info}
+            self.store.add_session(entry)
+            if self.on_start is not None:
+                self.on_start(self)
+            status = "interrupted"
+            todo = [int(i) for i in np.flatnonzero(~self.store.done_mask())]
+            if todo and not self.stop_event.is_set():
+                self._attempt("laser-sync output on", lambda: self.sync.set_output(True))
+                for line in todo:
+                    if self.stop_event.is_set():
+                        break
+                    self.take_line(line)
+                    if self.on_line is not None:
+                        self.on_line(self, line)
+            if self.store.done_mask().all():
+                status = "complete"
+            self._end_entry(status)
+            return SessionResult(status, self.lines_done(), self.n_lines, list(self.acquired), dict(ids))
+        except CaptureFailed as exc:
+            self._end_entry("failed", error=str(exc))
+            raise
+        finally:
+            self.make_safe()
+
+    def _end_entry(self, status: str, error: str | None = None) -> None:
+        if self.store is None:
+            return
+        try:
+            sessions = list(self.store.group.attrs.get("sessions", []))
+            if sessions:
+                sessions[-1] = {**sessions[-1], "ended_utc": _utc_now(), "status": status,
+                                "lines_acquired": len(self.acquired), "retries_used": self.retries_used,
+                                **({"error": error} if error else {})}
+                self.store.group.attrs["sessions"] = sessions
+        except Exception as exc:  # bookkeeping must never mask the session's outcome
+            log.warning("could not record the session's end in %s: %s", self.out, exc)
+
+    def make_safe(self) -> None:
+        """Laser-sync output off (best effort; the drivers' context managers also do it)."""
+        try:
+            self.sync.set_output(False)
+        except DriverError as exc:
+            log.warning("could not switch the laser-sync output off: %s", exc)

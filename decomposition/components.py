@@ -1,0 +1,149 @@
+"""From solver atoms to named components: threshold, merge, classify, render.
+
+The solver (``decomposition.convscd``) returns, per pixel, up to K atoms in
+"slot" arrays of shape (P, K): family (Gaussian or sss), amplitude, delay,
+log sigma, log alpha.  This module turns them into the parameter dict of
+``decomposition.model`` (direct d, inter-reflections r2, r3, ..., sss s):
+
+1. Threshold (the paper's global 5% rule, applied per pixel): an atom is kept
+   only if the peak height of its rendered component *inside the time window*
+   is at least ``rel_threshold`` of the largest such peak height in the pixel.
+   Peak height (not the raw coefficient) is used because the two families
+   have differently scaled kernels; it is what a user sees in the profile.
+2. Merge: Gaussian atoms of one pixel whose delays differ by less than
+   ``merge_tol_bins`` time bins are one component split in two; they are
+   replaced by a single Gaussian with the same total area, area-weighted mean
+   delay and the combined second moment.
+3. Classify: the earliest Gaussian is the direct reflection d; later ones are
+   r2, r3, ... in order of delay; the sss atom (at most one) is s.
+
+Everything works on whole blocks with array operations; the only Python loops
+run over the (few) slots.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .convscd import FAM_GAUSS, FAM_NONE, FAM_SSS, _eval_atoms
+from .model import empty_params, render_components
+
+__all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]
+
+
+def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Peak height inside the window of every active atom, shape (P, K); 0 for empty slots."""
+    act = st["fam"] != FAM_NONE
+    out = np.zeros(act.shape)
+    if act.any():
+        pi, ki = np.nonzero(act)
+        phi, _ = _eval_atoms(t_ps, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
+                             st["lsig"][pi, ki], st["lalp"][pi, ki], False)
+        out[pi, ki] = np.abs(st["amp"][pi, ki]) * phi.max(axis=1)
+    return out
+
+
+def _drop(st, mask):
+    st["fam"][mask] = FAM_NONE
+    st["amp"][mask] = 0.0
+
+
+def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05) -> dict:
+    """Drop atoms whose in-window peak is below ``rel_threshold`` x the pixel's largest."""
+    h = peak_heights(st, t_ps)
+    top = h.max(axis=1, keepdims=True)
+    _drop(st, (st["fam"] != FAM_NONE) & ~(h >= rel_threshold * top))
+    # atoms entirely outside the window render as zero everywhere inside it
+    _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))
+    return st
+
+
+def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0) -> dict:
+    """Merge Gaussian atoms of one pixel closer than ``merge_tol_bins`` bins (in place)."""
+    K = st["fam"].shape[1]
+    tol = merge_tol_bins * time_bin_ps
+    changed = True
+    while changed:
+        changed = False
+        for i in range(K):
+            for j in range(i + 1, K):
+                m = ((st["fam"][:, i] == FAM_GAUSS) & (st["fam"][:, j] == FAM_GAUSS)
+                     & (np.abs(st["delay"][:, i] - st["delay"][:, j]) < tol))
+                if not m.any():
+                    continue
+                changed = True
+                si, sj = np.exp(st["lsig"][m, i]), np.exp(st["lsig"][m, j])
+                ai, aj = st["amp"][m, i] * si, st["amp"][m, j] * sj      # areas / sqrt(2 pi)
+                tot = ai + aj
+                di, dj = st["delay"][m, i], st["delay"][m, j]
+                mean = (ai * di + aj * dj) / tot
+                var = (ai * (si**2 + di**2) + aj * (sj**2 + dj**2)) / tot - mean**2
+                sig = np.sqrt(np.maximum(var, 1e-12 * np.minimum(si, sj) ** 2))
+                st["delay"][m, i] = mean
+                st["lsig"][m, i] = np.log(sig)
+                st["amp"][m, i] = tot / sig
+                rows = np.nonzero(m)[0]
+                st["fam"][rows, j] = FAM_NONE
+                st["amp"][rows, j] = 0.0
+    return st
+
+
+def classify(st: dict, scale: np.ndarray, n_ir: int):
+    """Slot state -> parameter dict (amplitudes multiplied back by ``scale``).
+
+    Parameters
+    ----------
+    st : dict of (P, K) slot arrays
+    scale : ndarray (P,)
+        Per-pixel normalisation factor (profile = scale * normalised profile).
+    n_ir : int
+        Number of inter-reflection slots R in the output.
+
+    Returns
+    -------
+    params : dict of ndarrays, shapes (P,) and (P, R)
+    truncated : ndarray (P,) bool, pixels with more than R inter-reflections
+        (the R largest by peak height are kept).
+    """
+    P, K = st["fam"].shape
+    out = empty_params((P,), n_ir=n_ir)
+    g = st["fam"] == FAM_GAUSS
+    delay = np.where(g, st["delay"], np.inf)
+    order = np.argsort(delay, axis=1, kind="stable")
+    rows = np.arange(P)[:, None]
+    gs = g[rows, order]
+    d_s, a_s, s_s = st["delay"][rows, order], st["amp"][rows, order], np.exp(st["lsig"][rows, order])
+    has_d = gs[:, 0]
+    out["direct_delay_ps"][has_d] = d_s[has_d, 0]
+    out["direct_amplitude"][has_d] = a_s[has_d, 0] * scale[has_d]
+    out["direct_sigma_ps"][has_d] = s_s[has_d, 0]
+    n_g = g.sum(axis=1)
+    truncated = n_g - 1 > n_ir
+    if n_ir > 0 and K > 1:
+        ir_present = gs[:, 1:]
+        ird, ira, irs = d_s[:, 1:], a_s[:, 1:], s_s[:, 1:]
+        if truncated.any():
+            # keep the R largest (by peak height = amplitude for unit-peak Gaussians), in delay order
+            key = np.where(ir_present, ira, -np.inf)
+            rank = np.argsort(np.argsort(-key, axis=1, kind="stable"), axis=1, kind="stable")
+            ir_present = ir_present & (rank < n_ir)
+        # compact present entries to the front, keeping delay order
+        pos = np.cumsum(ir_present, axis=1) - 1
+        r_i, c_i = np.nonzero(ir_present & (pos < n_ir))
+        dest = pos[r_i, c_i]
+        out["ir_delay_ps"][r_i, dest] = ird[r_i, c_i]
+        out["ir_amplitude"][r_i, dest] = ira[r_i, c_i] * scale[r_i]
+        out["ir_sigma_ps"][r_i, dest] = irs[r_i, c_i]
+    s = st["fam"] == FAM_SSS
+    has_s = s.any(axis=1)
+    ks = np.argmax(s, axis=1)
+    r = np.nonzero(has_s)[0]
+    out["sss_delay_ps"][r] = st["delay"][r, ks[r]]
+    out["sss_amplitude"][r] = st["amp"][r, ks[r]] * scale[r]
+    out["sss_sigma_ps"][r] = np.exp(st["lsig"][r, ks[r]])
+    out["sss_alpha_per_ps"][r] = np.exp(st["lalp"][r, ks[r]])
+    return out, truncated
+
+
+def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float) -> dict:
+    """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L))."""
+    return render_components(params, n_bins, time_bin_ps, t0_ps)

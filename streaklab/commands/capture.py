@@ -1,0 +1,99 @@
+"""``streaklab capture --config SCAN.toml --out RUN.zarr [--simulate] [--resume]``: run a capture session."""
+from __future__ import annotations
+
+import logging
+import shlex
+import signal
+import sys
+import threading
+
+from streaklab.cli import CommandError
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--config", required=True, help="scan configuration (TOML)")
+    parser.add_argument("--out", help="run store to write (default: output.path of the config)")
+    parser.add_argument("--simulate", action="store_true",
+                        help="capture from a simulated lab started in this process (ignores [devices])")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run: keep its finished lines, take the rest")
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
+
+
+def _resume_hint(args, out) -> str:
+    cmd = ["streaklab", "capture", "--config", args.config, "--out", str(out)]
+    if args.simulate:
+        cmd.append("--simulate")
+    return shlex.join(cmd + ["--resume"])
+
+
+def run(args) -> int:
+    from acquisition.config import ConfigError, load_config
+    from acquisition.progress import Progress
+    from acquisition.rig import run_capture
+    from acquisition.session import CaptureError, CaptureFailed
+
+    logging.basicConfig(level=logging.WARNING, format="streaklab capture: %(message)s")
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        raise CommandError(str(exc)) from None
+    out = args.out or config["output"].get("path")
+    if not out:
+        raise CommandError("no output: pass --out or set output.path in the config")
+
+    stop = threading.Event()
+    progress = None
+
+    def on_sigint(signum, frame):
+        if stop.is_set():                       # second Ctrl-C: give up on the current line
+            raise KeyboardInterrupt
+        stop.set()
+        print("\nstreaklab capture: stopping after the current line (Ctrl-C again to abort it)",
+              file=sys.stderr, flush=True)
+
+    def on_start(session):
+        nonlocal progress
+        if not args.quiet:
+            progress = Progress(session.n_lines, session.lines_done())
+            progress.update(session.lines_done())
+
+    def on_line(session, line):
+        if progress is not None:
+            progress.update(session.lines_done())
+
+    def on_sigterm(signum, frame):
+        if not stop.is_set():
+            stop.set()
+            print("\nstreaklab capture: terminated; stopping after the current line", file=sys.stderr, flush=True)
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {signal.SIGINT: signal.signal(signal.SIGINT, on_sigint),
+                    signal.SIGTERM: signal.signal(signal.SIGTERM, on_sigterm)}
+    try:
+        result = run_capture(config, out, simulate=args.simulate, resume=args.resume, stop_event=stop,
+                             on_line=on_line, on_start=on_start)
+    except CaptureFailed as exc:
+        print(f"streaklab capture: error: {exc}", file=sys.stderr)
+        print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
+              f"fix the device and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
+              f"  {_resume_hint(args, out)}", file=sys.stderr)
+        return 130
+    except (CaptureError, ConfigError) as exc:
+        raise CommandError(str(exc)) from None
+    finally:
+        if progress is not None:
+            progress.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if result.status == "complete":
+        print(f"streaklab capture: {result.n_lines} lines in {out} "
+              f"({len(result.acquired)} taken in this session)", file=sys.stderr)
+        return 0
+    print(f"streaklab capture: stopped; {result.lines_done} of {result.n_lines} lines are safely in {out}; "
+          f"resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
+    return 130

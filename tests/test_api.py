@@ -1,0 +1,195 @@
+"""decompose(): recovery of the paper's Fig. 3 kinds, input validation, scale/dtype invariance."""
+import warnings
+
+import numpy as np
+import pytest
+
+from decomposition import EMPTY, NONFINITE, POOR_FIT, SATURATED, decompose
+from decomposition.metrics import fidelity
+from decomposition.model import empty_params, render_components, render_profile
+from decomposition.synthetic import make_profiles
+
+T = 2.0
+
+
+def _one_pixel(direct=(200.3, 1.0, 3.0), sss=(205.0, 0.03, 0.02, 3.0), irs=(), L=256):
+    p = empty_params((1,), n_ir=len(irs))
+    p["direct_delay_ps"][0], p["direct_amplitude"][0], p["direct_sigma_ps"][0] = direct
+    if sss is not None:
+        (p["sss_delay_ps"][0], p["sss_amplitude"][0], p["sss_alpha_per_ps"][0], p["sss_sigma_ps"][0]) = sss
+    for k, (d, a, s) in enumerate(irs):
+        p["ir_delay_ps"][0, k], p["ir_amplitude"][0, k], p["ir_sigma_ps"][0, k] = d, a, s
+    return p, render_profile(p, L, T)
+
+
+@pytest.fixture(scope="module")
+def noiseless():
+    data = make_profiles(24, 256, nsr=0.0, noise="none", seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = decompose(data.noisy, T)
+    return data, res
+
+
+def test_noiseless_fig3_kinds_recovered(noiseless):
+    data, res = noiseless
+    f = fidelity(data.components, res)
+    for kind in ("d+s", "d+s+r2", "d+s+r2+r3"):
+        sel = data.kinds == kind
+        assert sel.sum() == 8
+        assert f[sel].mean() >= 0.98, (kind, f[sel])
+    assert f.min() >= 0.9
+    # the right set of components: a direct and an sss everywhere, the right number of reflections
+    assert np.isfinite(res.params["direct_delay_ps"]).all()
+    assert np.isfinite(res.params["sss_delay_ps"]).all()
+    n_true = np.isfinite(data.params["ir_delay_ps"]).sum(axis=1)
+    n_est = np.isfinite(res.params["ir_delay_ps"]).sum(axis=1)
+    np.testing.assert_array_equal(n_est, n_true)
+    # delays within one time bin
+    assert np.nanmax(np.abs(res.params["direct_delay_ps"] - data.params["direct_delay_ps"])) < T
+    assert np.nanmax(np.abs(res.params["sss_delay_ps"] - data.params["sss_delay_ps"])) < T
+    R = data.params["ir_delay_ps"].shape[1]
+    err = np.abs(res.params["ir_delay_ps"][:, :R] - data.params["ir_delay_ps"])
+    assert np.nanmax(err) < T
+    assert res.flags.max() == 0
+
+
+def test_result_shapes_and_residual(noiseless):
+    data, res = noiseless
+    N, L = data.noisy.shape
+    assert res.direct.shape == (N, L) and res.sss.shape == (N, L)
+    assert res.interreflections.shape[0] == N and res.interreflections.shape[2] == L
+    assert res.params["ir_delay_ps"].shape == (N, res.interreflections.shape[1])
+    assert res.flags.shape == (N,) and res.flags.dtype == np.uint8
+    total = res.direct + res.sss + res.interreflections.sum(axis=1)
+    np.testing.assert_allclose(res.residual, data.noisy - total)
+    assert res.info["method"] == "convscd" and res.info["n_sigma"] == 500 and res.info["n_alpha"] == 500
+    assert res.info["n_iter"].shape == (N,) and res.info["n_iter"].max() <= res.info["max_iter"]
+
+
+def test_leading_shape_kept():
+    _, y = _one_pixel()
+    cube = np.broadcast_to(y, (2, 3, y.shape[-1])).copy()
+    res = decompose(cube, T)
+    assert res.direct.shape == cube.shape and res.flags.shape == (2, 3)
+    assert res.params["direct_delay_ps"].shape == (2, 3)
+    assert np.allclose(res.params["direct_delay_ps"], 200.3, atol=0.05)
+
+
+def test_components_without_sss_or_reflections():
+    p, y = _one_pixel(sss=None, irs=[(300.0, 0.5, 3.0)])
+    res = decompose(y, T, components="d,r")
+    assert np.isnan(res.params["sss_delay_ps"]).all() and not res.sss.any()
+    assert res.params["ir_delay_ps"][0, 0] == pytest.approx(300.0, abs=0.05)
+    res1 = decompose(y, T, components=("d",))
+    # without "r": one Gaussian per pixel at most, no inter-reflection slots
+    assert res1.interreflections.shape == (1, 0, y.shape[-1])
+    assert res1.params["direct_delay_ps"][0] == pytest.approx(200.3, abs=0.5)
+    with pytest.raises(ValueError, match="components"):
+        decompose(y, T, components="d,x")
+    with pytest.raises(ValueError, match="direct"):
+        decompose(y, T, components="r")
+
+
+def test_all_zero_pixel_is_empty_without_warnings():
+    _, y = _one_pixel()
+    x = np.vstack([np.zeros_like(y[0]), y[0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = decompose(x, T)
+    assert res.flags[0] & EMPTY and not res.flags[1] & EMPTY
+    assert all(np.isnan(v[0]).all() for v in res.params.values())
+    assert not res.direct[0].any() and not res.sss[0].any() and not res.residual[0].any()
+
+
+@pytest.mark.parametrize("bad", [0.0, -2.0, np.nan, np.inf])
+def test_bad_time_bin(bad):
+    _, y = _one_pixel()
+    with pytest.raises(ValueError, match="time_bin_ps"):
+        decompose(y, bad)
+
+
+def test_bad_rank_dtype_and_length():
+    with pytest.raises(ValueError, match="0-d"):
+        decompose(np.float64(3.0), T)
+    with pytest.raises(ValueError, match="L=20 time bins"):
+        decompose(np.ones((3, 20)), T)
+    with pytest.raises(ValueError, match="real numeric"):
+        decompose(np.ones((2, 64), complex), T)
+    with pytest.raises(ValueError, match="method"):
+        decompose(np.ones((2, 64)), T, method="magic")
+
+
+def test_nonfinite_samples_raise_or_are_flagged():
+    _, y = _one_pixel()
+    x = np.repeat(y, 4, axis=0)
+    x[1, 10] = np.nan
+    x[3, 0] = np.inf
+    with pytest.raises(ValueError, match="2 of 4 pixels"):
+        decompose(x, T)
+    res = decompose(x, T, nan_policy="omit")
+    np.testing.assert_array_equal((res.flags & NONFINITE) > 0, [False, True, False, True])
+    assert np.isnan(res.params["direct_delay_ps"][[1, 3]]).all()
+    assert np.isfinite(res.params["direct_delay_ps"][[0, 2]]).all()
+    assert not res.direct[[1, 3]].any()
+
+
+def test_scale_invariance_1e_minus30_to_1e30():
+    _, y = _one_pixel(irs=[(320.0, 0.4, 3.0)])
+    rng = np.random.default_rng(0)
+    y = y + 0.01 * rng.standard_normal(y.shape)
+    ref = decompose(y, T)
+    for s in (1e-30, 1e-12, 1e12, 1e30):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            res = decompose(y * s, T)
+        for k, v in ref.params.items():
+            if k.endswith("amplitude"):
+                np.testing.assert_allclose(res.params[k], v * s, rtol=1e-9, equal_nan=True)
+            else:
+                np.testing.assert_allclose(res.params[k], v, rtol=1e-9, atol=1e-9, equal_nan=True)
+        np.testing.assert_array_equal(res.flags, ref.flags)
+        np.testing.assert_allclose(res.direct, ref.direct * s, rtol=0, atol=1e-8 * s * np.abs(y).max())
+
+
+def test_uint16_float32_float64_agree():
+    p, y = _one_pixel(irs=[(320.0, 0.4, 3.0)])
+    counts = np.round(y * 30000.0)
+    r64 = decompose(counts, T)
+    r32 = decompose(counts.astype(np.float32), T)
+    r16 = decompose(counts.astype(np.uint16), T)
+    for r in (r32, r16):
+        for k, v in r64.params.items():
+            np.testing.assert_allclose(r.params[k], v, rtol=1e-6, atol=1e-6, equal_nan=True)
+    assert r16.flags[0] & SATURATED == 0
+    assert r64.params["direct_delay_ps"][0] == pytest.approx(200.3, abs=0.1)
+
+
+def test_saturated_uint16_samples_are_flagged_and_excluded():
+    p, y = _one_pixel(sss=(205.0, 0.03, 0.02, 3.0), irs=[(320.0, 0.4, 3.0)])
+    counts = np.round(y * 80000.0)                 # the direct peak exceeds the 16-bit range
+    sat = np.minimum(counts, 65535).astype(np.uint16)
+    assert (sat == 65535).sum() >= 2
+    res = decompose(sat, T)
+    assert res.flags[0] & SATURATED
+    # fitted on the unsaturated samples: the peak height is extrapolated above the clip level
+    assert res.params["direct_amplitude"][0] == pytest.approx(80000.0, rel=0.05)
+    assert res.params["direct_delay_ps"][0] == pytest.approx(200.3, abs=0.3)
+
+
+def test_poor_fit_flag_on_unmodelled_offset():
+    _, y = _one_pixel()
+    rng = np.random.default_rng(1)
+    noisy = y + 0.002 * rng.standard_normal(y.shape)
+    good = decompose(noisy, T)
+    bad = decompose(noisy + np.sin(np.arange(y.shape[-1]) / 3.0) * 0.1, T)
+    assert not good.flags[0] & POOR_FIT
+    assert bad.flags[0] & POOR_FIT
+
+
+def test_convscd_beats_gradbm_at_nsr_005():
+    data = make_profiles(24, 256, nsr=0.05, noise="white", seed=7)
+    f_c = fidelity(data.components, decompose(data.noisy, T, method="convscd")).mean()
+    f_g = fidelity(data.components, decompose(data.noisy, T, method="gradbm")).mean()
+    assert f_c > f_g
+    assert f_c >= 0.9

@@ -1,0 +1,108 @@
+"""ConvSCD internals: FFT correlations, closed-form coordinate step, noise estimate, monotone descent."""
+import warnings
+
+import numpy as np
+import pytest
+
+from decomposition import convscd as cs
+from decomposition import decompose
+from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from decomposition.synthetic import make_profiles
+
+T = 2.0
+
+
+def _atom(dic, a, j, L):
+    """Window-truncated unit-peak atom a at shift j, rendered directly."""
+    t = time_axis_ps(L, T) - (dic.t0_ps + j * T)
+    if dic.fam[a] == cs.FAM_GAUSS:
+        k = gaussian_kernel(t, dic.sigma_ps[a])
+    else:
+        k = sss_kernel(t, dic.sigma_ps[a], dic.alpha_per_ps[a])
+    return k / dic.peak[a]
+
+
+def test_fft_correlations_and_truncated_norms_match_direct_sums():
+    L = 96
+    dic = cs.Dictionary(L, T, T, cs.GridSpec(coarse_sigma=2, coarse_alpha=2, coarse_sss_sigma=1), True, True)
+    rng = np.random.default_rng(0)
+    r = rng.standard_normal((3, L))
+    c = dic.correlate(r)
+    w = (rng.random((3, L)) > 0.2).astype(float)
+    cw = dic.correlate(w, squared=True)
+    assert c.shape == (3, dic.fam.size, L + dic.pre)
+    for a in range(dic.fam.size):
+        for jj in (0, 5, dic.pre, dic.pre + 40, L + dic.pre - 1):   # includes shifts before the window
+            j = dic.shifts[jj]
+            k = _atom(dic, a, j, L)
+            np.testing.assert_allclose(c[:, a, jj], r @ k, rtol=1e-9, atol=1e-7)  # kernels cut at 6 sigma
+            assert dic.norm2[a, jj] == pytest.approx(k @ k, rel=1e-7, abs=1e-7)
+            np.testing.assert_allclose(cw[:, a, jj], w @ (k * k), rtol=1e-9, atol=1e-7)
+
+
+def test_closed_form_coordinate_step_is_the_exact_minimiser():
+    rng = np.random.default_rng(1)
+    u = rng.uniform(-1, 2, 200)
+    n = rng.uniform(0.1, 20, 200)
+    mu, eps = 0.05, 0.01
+    z, dec = cs._closed_form(u, n, mu, eps)
+    grid = np.linspace(0, 3, 30001)
+    f = 0.5 * n[:, None] * (grid[None] - u[:, None]) ** 2 + mu * np.log1p(grid[None] / eps)
+    zbest = grid[np.argmin(f, axis=1)]
+    fz = 0.5 * n * (z - u) ** 2 + mu * np.log1p(z / eps)
+    assert np.all(fz <= f.min(axis=1) + 1e-9)
+    np.testing.assert_allclose(z, zbest, atol=2e-4)
+    np.testing.assert_allclose(dec, 0.5 * n * u * u - fz, atol=1e-12)
+    assert np.all(dec >= 0) and np.all(z >= 0)
+
+
+def test_noise_estimate_is_robust_to_signal():
+    rng = np.random.default_rng(2)
+    data = make_profiles(50, 512, nsr=0.0, noise="none", seed=3)
+    clean = data.clean / np.abs(data.clean).max(axis=1, keepdims=True)
+    s = 0.02
+    est = cs.estimate_noise(clean + s * rng.standard_normal(clean.shape))
+    assert np.median(est) == pytest.approx(s, rel=0.1)
+    assert np.all(np.abs(est / s - 1) < 0.3)
+    assert np.all(cs.estimate_noise(np.zeros((2, 64))) == 0)
+
+
+def test_objective_never_increases_and_iterations_are_bounded():
+    data = make_profiles(24, 256, nsr=0.08, noise="white", seed=4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = decompose(data.noisy, T, max_iter=6)
+    h = res.info["objective"]
+    assert h.shape == (24, 7)
+    assert np.all(np.isfinite(h[:, 0]))
+    d = np.diff(h, axis=1)
+    ok = np.isfinite(d)
+    assert ok.sum() > 24
+    assert np.all(d[ok] <= 1e-12 * np.abs(h[:, :-1][ok]))
+    # once a pixel stops, it stays stopped
+    stopped = np.isnan(h)
+    assert np.all(stopped[:, :-1] <= stopped[:, 1:])
+    assert res.info["n_iter"].max() <= 6
+    assert np.all(res.info["n_iter"] >= 2)
+
+
+def test_family_selection_shrinks_the_search():
+    L = 256
+    g = cs.GridSpec()
+    full = cs.get_dictionary(L, T, T, g, True, True)
+    no_s = cs.get_dictionary(L, T, T, g, True, False)
+    assert cs.get_dictionary(L, T, T, g, True, True) is full       # cached
+    assert not np.any(no_s.fam == cs.FAM_SSS)
+    assert no_s.n_coordinates < full.n_coordinates / 2
+    data = make_profiles(30, L, nsr=0.01, noise="white", seed=5, kinds=("d+r2",))
+    import time
+    t0 = time.perf_counter()
+    r_full = decompose(data.noisy, T)
+    t_full = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    r_dr = decompose(data.noisy, T, components="d,r")
+    t_dr = time.perf_counter() - t0
+    assert r_dr.info["coordinates_searched"] < r_full.info["coordinates_searched"]
+    assert np.isnan(r_dr.params["sss_delay_ps"]).all() and not r_dr.sss.any()
+    assert t_dr < 1.5 * t_full          # generous: the point is that it is not slower
+    np.testing.assert_allclose(r_dr.params["direct_delay_ps"], data.params["direct_delay_ps"], atol=0.5)
