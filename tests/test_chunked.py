@@ -35,9 +35,9 @@ def _cube(ny, nx, nt=128, seed=0, nsr=0.01):
 def _assert_same_as_api(result, profiles, n_ir, exact=True):
     """``result`` (chunk layout flattened over pixels) equals decompose() on ``profiles`` (n, L).
 
-    ``exact``: bit for bit (the same batch of pixels).  Otherwise the batches differ and the
-    solver's batched linear algebra sums in another order: the same components and flags, values
-    equal to rounding.
+    ``exact``: bit for bit (the same batch of pixels).  Otherwise the batches differ, and the
+    solver's batched linear algebra and iteration stops depend slightly on a pixel's batch-mates:
+    the same components and flags, values equal well within the solver's convergence.
     """
     res = decompose(profiles, time_bin_ps=TB, method="convscd", max_reflections=n_ir)
 
@@ -53,13 +53,13 @@ def _assert_same_as_api(result, profiles, n_ir, exact=True):
         v = np.asarray(v, np.float64)
         if v.ndim == 2:
             v = fit_ir_slots(v, n_ir, axis=1, fill=np.nan)
-        same(result["params"][k], v, k, 1e-9)
+        same(result["params"][k], v, k, 1e-6)
     np.testing.assert_array_equal(result["flags"], res.flags)
     same(result["direct"], np.asarray(res.direct, np.float32), "direct", 1e-6)
     same(result["sss"], np.asarray(res.sss, np.float32), "sss", 1e-6)
     same(result["ir"], fit_ir_slots(np.asarray(res.interreflections), n_ir, 1, 0.0).astype(np.float32), "ir", 1e-6)
     np.testing.assert_allclose(result["rms_residual"], np.sqrt(np.mean(np.square(res.residual), axis=-1)),
-                               rtol=1e-12 if exact else 1e-6)
+                               rtol=1e-12 if exact else 1e-5)
 
 
 def test_solve_block_equals_the_api_and_marks_nonfinite_pixels():
@@ -124,7 +124,7 @@ def test_chunks_cover_the_cube_once_and_equal_the_in_memory_api():
                     {p: a.reshape((-1,) + a.shape[2:]) for p, a in v.items()})
                 for k, v in r.items() if k != "valid"}
         _assert_same_as_api(flat, block.reshape(-1, block.shape[-1]), n_ir=2)
-    # ... and the assembled cube is the API on all pixels at once, to rounding
+    # ... and the assembled cube is the API on all pixels at once, to the solver's convergence
     _assert_same_as_api(whole, cube.reshape(35, -1), n_ir=2, exact=False)
 
 

