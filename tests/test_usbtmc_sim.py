@@ -160,6 +160,14 @@ def test_unplug_is_connection_lost_within_the_timeout(lab):
         sync.set_output(False)
 
 
+def test_a_halted_bulk_in_endpoint_is_a_protocol_error_and_is_cleared(lab):
+    backend, sync, state = lab
+    sync.transport._dev.ctrl_transfer(0x02, 3, 0, 0x81, None)   # SET_FEATURE(ENDPOINT_HALT) on Bulk-IN
+    with pytest.raises(ProtocolError, match="Pipe error"):
+        sync.identify()
+    assert sync.identify().startswith("STREAKLAB")
+
+
 # ---------------------------------------------------------------- threads
 def test_two_threads_sharing_one_driver_get_their_own_replies(lab):
     backend, sync, state = lab
