@@ -272,6 +272,10 @@ class UsbtmcTransport:
                     raise DeviceTimeout(f"{self.describe()}: {exc}") from exc
                 except usb.core.USBError as exc:
                     if not self._is_gone(exc):
+                        # e.g. a STALLed endpoint: clear the halt and the device's buffers, then report
+                        if exc.errno == errno.EPIPE or exc.backend_error_code == -9:
+                            self._recover_quietly(lambda: self._dev.clear_halt(self._ep_in.bEndpointAddress))
+                        self._resync()
                         raise ProtocolError(f"{self.describe()}: USB error {exc}", b"") from exc
                     self._release(self._dev)
                     if attempt == 1:

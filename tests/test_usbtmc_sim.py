@@ -24,7 +24,7 @@ VID, PID = 0x1209, 0x5A17
 def lab():
     state = LabState()
     backend = UsbtmcBackend(state)
-    with ScpiLaserSync(vendor_id=VID, product_id=PID, backend=backend, timeout_s=0.3) as sync:
+    with ScpiLaserSync(vendor_id=VID, product_id=PID, backend=backend, timeout_s=0.5) as sync:
         yield backend, sync, state
 
 
@@ -158,6 +158,14 @@ def test_unplug_is_connection_lost_within_the_timeout(lab):
     assert time.monotonic() - t0 < 1.5
     with pytest.raises(ConnectionLost):
         sync.set_output(False)
+
+
+def test_a_halted_bulk_in_endpoint_is_a_protocol_error_and_is_cleared(lab):
+    backend, sync, state = lab
+    sync.transport._dev.ctrl_transfer(0x02, 3, 0, 0x81, None)   # SET_FEATURE(ENDPOINT_HALT) on Bulk-IN
+    with pytest.raises(ProtocolError, match="Pipe error"):
+        sync.identify()
+    assert sync.identify().startswith("STREAKLAB")
 
 
 # ---------------------------------------------------------------- threads

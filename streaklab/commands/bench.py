@@ -14,9 +14,9 @@ from streaklab.cli import CommandError
 # name -> one-line description
 BENCHMARKS = {
     "accuracy": "mean fidelity against NSR for ConvSCD and GradBM under the three noise types (paper Fig. 3(d))",
-    "speed": "decomposition throughput and scaling",
-    "tradeoff": "accuracy against run time over solver settings",
-    "stability": "repeatability of decompositions under re-noising",
+    "speed": "pixels per second of streaklab decompose on a synthetic cube",
+    "tradeoff": "decomposition error against run time, with the physical limit",
+    "stability": "stability of the decomposition (see streaklab bench stability --help)",
 }
 
 

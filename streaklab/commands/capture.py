@@ -55,6 +55,12 @@ def run(args) -> int:
     def on_start(session):
         nonlocal progress
         if not args.quiet:
+            for name, ident in session.devices.items():
+                print(f"streaklab capture: {name}: {ident}", file=sys.stderr)
+            done = session.lines_done()
+            if done:
+                print(f"streaklab capture: resuming {out}: {done} of {session.n_lines} lines already on disk",
+                      file=sys.stderr)
             progress = Progress(session.n_lines, session.lines_done())
             progress.update(session.lines_done())
 
