@@ -1,0 +1,385 @@
+"""The decomposition result store: one Zarr v3 group per decomposed cube.
+
+Layout (every array has ``dimension_names``; ``xarray.open_zarr(path, consolidated=False)`` opens it)::
+
+    direct_delay_ps, direct_amplitude, direct_sigma_ps,          (y, x)     float64, NaN = absent
+    sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps  (y, x)     float64, NaN = absent
+    ir_delay_ps, ir_amplitude, ir_sigma_ps                       (y, x, r)  float64, NaN = absent
+    <any further solver parameter, e.g. *_stderr>                (y, x) or (y, x, r)
+    rms_residual   (y, x)        float64  sqrt(mean over t of residual**2), signal units
+    flags          (y, x)        uint8    the solver's per-pixel quality flags
+    valid          (y, x)        bool     the pixel's profile was finite and was decomposed
+    done           (y, x)        bool     the pixel's chunk has been written completely
+    direct, sss, residual  (y, x, t)     float32  rendered components (optional)
+    ir                     (y, x, r, t)  float32  rendered inter-reflections r2, r3, ... (optional)
+    t (t,) ps, y (y,), x (x,), r (r,)    coordinates (r: bounce number 2, 3, ... of slot r2, r3, ...)
+
+Every array is chunked on the same pixel grid ``(by, bx)`` (with all of ``t`` and ``r`` in one
+chunk), so each pixel chunk of a computation owns exactly one Zarr chunk of every array: writers
+of different chunks never touch the same file, and rewriting a chunk writes the same bytes to the
+same files (idempotent).  ``done`` is written last, after every other array of the chunk, and the
+local store replaces chunk files atomically, so after a crash ``done`` is true exactly for pixels
+whose results are all on disk.
+
+Group attributes: ``streaklab_kind = "decomposition"``, ``method``, ``options`` (every solver
+option), ``components`` (families searched), ``n_ir`` (R), ``chunks``, ``write_components``,
+``nan_policy``, ``param_keys``, ``software_version``, ``source`` (path, shape, attributes of the
+decomposed cube), ``time_bin_ps``, ``t0_ps``, ``units`` (signal units).
+
+This module only reads and writes that layout; it knows nothing of solvers.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zarr
+
+from reconstruction.staging import staged_output
+
+__all__ = [
+    "RESULT_KIND",
+    "FORMAT_VERSION",
+    "CORE_MAP_KEYS",
+    "CORE_IR_KEYS",
+    "COMPONENT_NAMES",
+    "ResultStoreError",
+    "ResultStore",
+    "ChunkWriter",
+    "create_result_store",
+    "open_result_store",
+    "prepare_output_path",
+]
+
+RESULT_KIND = "decomposition"
+FORMAT_VERSION = 1
+CORE_MAP_KEYS = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps",
+                 "sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps", "sss_sigma_ps")
+CORE_IR_KEYS = ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps")
+COMPONENT_NAMES = ("direct", "sss", "ir", "residual")
+_QUALITY = ("rms_residual", "flags", "valid")
+
+_LONG_NAMES = {
+    "direct_delay_ps": "direct reflection delay", "direct_amplitude": "direct reflection peak height",
+    "direct_sigma_ps": "direct reflection PSF sigma", "sss_delay_ps": "subsurface scattering onset",
+    "sss_amplitude": "subsurface scattering amplitude b", "sss_alpha_per_ps": "subsurface attenuation alpha",
+    "sss_sigma_ps": "subsurface PSF sigma", "ir_delay_ps": "inter-reflection delay",
+    "ir_amplitude": "inter-reflection peak height", "ir_sigma_ps": "inter-reflection PSF sigma",
+    "rms_residual": "root-mean-square fit residual", "flags": "solver quality flags (bit field)",
+    "valid": "profile finite and decomposed", "done": "chunk written completely",
+    "direct": "direct component", "sss": "subsurface scattering component",
+    "ir": "inter-reflection components", "residual": "measured minus fitted profile",
+}
+
+
+class ResultStoreError(ValueError):
+    """The path is not a usable result store, or a write does not fit it (says exactly why)."""
+
+
+def _units_for(key: str, signal_units: str) -> str:
+    base = key[: -len("_stderr")] if key.endswith("_stderr") else key
+    if base.endswith("_per_ps"):
+        return "1/ps"
+    if base.endswith("_ps"):
+        return "ps"
+    if base.endswith("_amplitude") or base in ("rms_residual",) + COMPONENT_NAMES:
+        return signal_units
+    return "1"
+
+
+def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
+    """Check that a new store may be written at ``path`` (nothing is removed here).
+
+    An absent or empty path is fine; anything else needs ``overwrite`` (the old content is
+    replaced only once the new store is complete).  A path in ``protect`` (or one containing
+    it, e.g. the input cube) is refused even with ``overwrite``.
+    """
+    p = Path(path).resolve()
+    for q in protect:
+        q = Path(q).resolve()
+        if p == q or p in q.parents:
+            raise ResultStoreError(f"refusing to write the result to {path}: it holds the input {q}")
+    if not p.exists() and not p.is_symlink():
+        return
+    if p.is_dir() and not any(p.iterdir()):
+        return
+    if not overwrite:
+        raise FileExistsError(f"{path} already exists; pass --overwrite to replace it "
+                              f"(or --resume to continue a run into it)")
+
+
+@dataclass
+class ResultStore:
+    """An opened result store.
+
+    Attributes
+    ----------
+    path : str
+    group : zarr.Group
+    shape : (ny, nx, nt)
+    chunks : (by, bx)    pixel chunk of every array
+    n_ir : int           R, inter-reflection slots
+    param_keys : tuple of str, names of the parameter arrays
+    write_components : bool
+    attrs : dict         group attributes
+    """
+
+    path: str
+    group: zarr.Group
+    shape: tuple
+    chunks: tuple
+    n_ir: int
+    param_keys: tuple
+    write_components: bool
+    attrs: dict
+
+    # ----- chunk grid --------------------------------------------------------------------------
+    @property
+    def grid(self) -> tuple[int, int]:
+        """Number of pixel chunks along y and x."""
+        (ny, nx, _), (by, bx) = self.shape, self.chunks
+        return (-(-ny // by), -(-nx // bx))
+
+    def chunk_slices(self, iy: int, ix: int) -> tuple[slice, slice]:
+        """The (y, x) region of chunk (iy, ix)."""
+        gy, gx = self.grid
+        if not (0 <= iy < gy and 0 <= ix < gx):
+            raise ResultStoreError(f"chunk ({iy}, {ix}) is outside the {gy} x {gx} chunk grid")
+        (ny, nx, _), (by, bx) = self.shape, self.chunks
+        return slice(iy * by, min(ny, (iy + 1) * by)), slice(ix * bx, min(nx, (ix + 1) * bx))
+
+    def done_mask(self) -> np.ndarray:
+        """(ny, nx) bool: pixels whose chunk is completely written."""
+        return np.asarray(self.group["done"][...], dtype=bool)
+
+    def done_chunks(self) -> np.ndarray:
+        """(gy, gx) bool: chunks completely written."""
+        done = self.done_mask()
+        gy, gx = self.grid
+        out = np.zeros((gy, gx), dtype=bool)
+        for iy in range(gy):
+            for ix in range(gx):
+                ys, xs = self.chunk_slices(iy, ix)
+                out[iy, ix] = bool(done[ys, xs].all())
+        return out
+
+    def remove_partials(self) -> int:
+        """Delete chunk-file temporaries (``*.partial``) a killed writer left behind; returns how many."""
+        n = 0
+        for f in Path(self.path).rglob("*.partial"):
+            f.unlink(missing_ok=True)
+            n += 1
+        return n
+
+    def pending_chunks(self) -> list[tuple[int, int]]:
+        """Chunk indices still to compute, in row-major order."""
+        return [tuple(int(i) for i in ij) for ij in np.argwhere(~self.done_chunks())]
+
+    # ----- writes ------------------------------------------------------------------------------
+    def write_chunk(self, iy: int, ix: int, result: dict) -> None:
+        """Write one chunk's results into its region, then mark it done.
+
+        Parameters
+        ----------
+        iy, ix : int
+            Chunk index on :attr:`grid`.
+        result : dict
+            ``params`` (dict: every key of :attr:`param_keys`, shape (by, bx) or (by, bx, R)),
+            ``rms_residual`` (by, bx), ``flags`` (by, bx), ``valid`` (by, bx) and, when the
+            store holds components, ``direct``, ``sss``, ``residual`` (by, bx, t) and
+            ``ir`` (by, bx, R, t); (by, bx) is the chunk's actual size (smaller at the edges).
+        """
+        ys, xs = self.chunk_slices(iy, ix)
+        region = (ys.stop - ys.start, xs.stop - xs.start)
+        nt, r = self.shape[2], self.n_ir
+        params = result["params"]
+        missing = [k for k in self.param_keys if k not in params]
+        extra = [k for k in params if k not in self.param_keys]
+        if missing or extra:
+            raise ResultStoreError(f"chunk ({iy}, {ix}) parameters do not match the store: "
+                                   f"missing {missing}, not in the store {extra}")
+        g = self.group
+        writes = []
+        for k in self.param_keys:
+            trail = g[k].shape[2:]
+            writes.append((k, params[k], region + trail))
+        for k in _QUALITY:
+            writes.append((k, result[k], region))
+        if self.write_components:
+            for k in ("direct", "sss", "residual"):
+                writes.append((k, result[k], region + (nt,)))
+            writes.append(("ir", result["ir"], region + (r, nt)))
+        for k, value, shape in writes:
+            value = np.asarray(value)
+            if value.shape != shape:
+                raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
+        for k, value, _ in writes:
+            g[k][ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
+        g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
+
+    # ----- reads -------------------------------------------------------------------------------
+    def params(self, ys=slice(None), xs=slice(None)) -> dict[str, np.ndarray]:
+        """The parameter dict over a (y, x) region (default: everything)."""
+        return {k: self.group[k][ys, xs] for k in self.param_keys}
+
+    def time_axis_ps(self) -> np.ndarray:
+        return np.asarray(self.group["t"][...], dtype=np.float64)
+
+
+def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t0_ps: float,
+                        param_keys=None, ir_param_keys=(), write_components: bool = True,
+                        signal_units: str = "counts", y_coord=None, y_units: str = "pixel",
+                        attrs: dict | None = None, overwrite: bool = False, protect=()) -> ResultStore:
+    """Create an empty result store (parameters NaN, nothing done) ready for chunk writes.
+
+    Parameters
+    ----------
+    path : str or Path
+        Directory store to create; see :func:`prepare_output_path` for an existing path.
+    shape : (ny, nx, nt)
+        Shape of the decomposed cube.
+    chunks : (by, bx)
+        Pixel chunk of every array (the computation's chunk).
+    n_ir : int
+        R, number of inter-reflection slots kept per pixel.
+    time_bin_ps, t0_ps : float
+        Time axis of the cube (bin i at t0_ps + i * time_bin_ps, ps).
+    param_keys : sequence of str, optional
+        Names of per-pixel (y, x) parameter arrays; default :data:`CORE_MAP_KEYS`.
+    ir_param_keys : sequence of str
+        Names of per-slot (y, x, r) parameter arrays in addition to :data:`CORE_IR_KEYS`.
+    write_components : bool
+        Also create the component cubes (as big as the input each).
+    attrs : dict, optional
+        Extra group attributes (method, options, source, ...); JSON-serialisable.
+    """
+    ny, nx, nt = (int(s) for s in shape)
+    by, bx = (int(c) for c in chunks)
+    n_ir = int(n_ir)
+    if min(ny, nx, nt) <= 0 or by <= 0 or bx <= 0 or n_ir < 0:
+        raise ResultStoreError(f"bad result store geometry: shape {shape}, chunks {chunks}, n_ir {n_ir}")
+    by, bx = min(by, ny), min(bx, nx)
+    map_keys = tuple(CORE_MAP_KEYS if param_keys is None else param_keys)
+    ir_keys = tuple(CORE_IR_KEYS) + tuple(k for k in ir_param_keys if k not in CORE_IR_KEYS)
+    all_keys = map_keys + ir_keys
+    if len(set(all_keys)) != len(all_keys):
+        raise ResultStoreError(f"duplicate parameter names in {all_keys}")
+    reserved = set(_QUALITY) | set(COMPONENT_NAMES) | {"done", "t", "y", "x", "r"}
+    if reserved & set(all_keys):
+        raise ResultStoreError(f"parameter names clash with store arrays: {sorted(reserved & set(all_keys))}")
+    prepare_output_path(path, overwrite=overwrite, protect=protect)
+    with staged_output(path, overwrite=True) as tmp:  # complete before it appears at ``path``
+        _write_skeleton(tmp, shape=(ny, nx, nt), chunks=(by, bx), n_ir=n_ir, time_bin_ps=time_bin_ps,
+                        t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
+                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs)
+    return open_result_store(path, mode="r+")
+
+
+def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, ir_keys, write_components,
+                    signal_units, y_coord, y_units, attrs):
+    ny, nx, nt = shape
+    by, bx = chunks
+    all_keys = map_keys + ir_keys
+    meta = {
+        "streaklab_kind": RESULT_KIND,
+        "format_version": FORMAT_VERSION,
+        "time_bin_ps": float(time_bin_ps),
+        "t0_ps": float(t0_ps),
+        "units": signal_units,
+        "n_ir": n_ir,
+        "chunks": [by, bx],
+        "write_components": bool(write_components),
+        "param_keys": list(all_keys),
+    }
+    meta.update(attrs or {})
+    g = zarr.open_group(str(path), mode="w")
+    g.attrs.update(meta)
+
+    def arr(name, shp, chk, dtype, dims, fill, units=None):
+        a = {"long_name": _LONG_NAMES.get(name, name)}
+        if units is not None:
+            a["units"] = units
+        return g.create_array(name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
+                              fill_value=fill, attributes=a)
+
+    for k in map_keys:
+        arr(k, (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, _units_for(k, signal_units))
+    for k in ir_keys:
+        arr(k, (ny, nx, n_ir), (by, bx, max(n_ir, 1)), "float64", ["y", "x", "r"], np.nan,
+            _units_for(k, signal_units))
+    arr("rms_residual", (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, signal_units)
+    arr("flags", (ny, nx), (by, bx), "uint8", ["y", "x"], 0)
+    arr("valid", (ny, nx), (by, bx), "bool", ["y", "x"], False)
+    arr("done", (ny, nx), (by, bx), "bool", ["y", "x"], False)
+    if write_components:
+        for k in ("direct", "sss", "residual"):
+            arr(k, (ny, nx, nt), (by, bx, nt), "float32", ["y", "x", "t"], np.nan, signal_units)
+        arr("ir", (ny, nx, n_ir, nt), (by, bx, max(n_ir, 1), nt), "float32", ["y", "x", "r", "t"], np.nan,
+            signal_units)
+    t = arr("t", (nt,), (nt,), "float64", ["t"], np.nan, "ps")
+    t.attrs["long_name"] = "time of bin centre"
+    t[:] = float(t0_ps) + float(time_bin_ps) * np.arange(nt)
+    y = arr("y", (ny,), (ny,), "float64", ["y"], np.nan, y_units)
+    y.attrs["long_name"] = "scan line"
+    y[:] = np.arange(ny, dtype=np.float64) if y_coord is None else np.asarray(y_coord, np.float64)
+    x = arr("x", (nx,), (nx,), "float64", ["x"], np.nan, "pixel")
+    x.attrs["long_name"] = "slit position"
+    x[:] = np.arange(nx, dtype=np.float64)
+    r = arr("r", (n_ir,), (max(n_ir, 1),), "int64", ["r"], 0, "1")
+    r.attrs["long_name"] = "bounce number of the inter-reflection (2 = r2, 3 = r3, ...)"
+    if n_ir:
+        r[:] = np.arange(2, 2 + n_ir)
+
+
+def _from_group(path: str, g: zarr.Group) -> ResultStore:
+    a = dict(g.attrs)
+    shape = (int(g["y"].shape[0]), int(g["x"].shape[0]), int(g["t"].shape[0]))
+    return ResultStore(path=path, group=g, shape=shape, chunks=tuple(int(c) for c in a["chunks"]),
+                       n_ir=int(a["n_ir"]), param_keys=tuple(a["param_keys"]),
+                       write_components=bool(a["write_components"]), attrs=a)
+
+
+def open_result_store(path, *, mode: str = "r") -> ResultStore:
+    """Open and validate a result store; raises :class:`ResultStoreError` naming what is wrong.
+
+    ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes).
+    """
+    if mode not in ("r", "r+"):
+        raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
+    if not os.path.exists(path):
+        raise ResultStoreError(f"{path}: no such file or directory")
+    try:
+        g = zarr.open_group(str(path), mode=mode)
+    except Exception as exc:  # zarr raises several types for "not a group"
+        raise ResultStoreError(f"{path} is not a Zarr group: {exc}") from None
+    kind = g.attrs.get("streaklab_kind")
+    if kind != RESULT_KIND:
+        what = f"a streaklab {kind!r} store" if kind else "not a streaklab store"
+        raise ResultStoreError(f"{path} is not a decomposition result store ({what})")
+    a = dict(g.attrs)
+    version = a.get("format_version")
+    if version != FORMAT_VERSION:
+        raise ResultStoreError(f"{path} has result format version {version}; this streaklab reads {FORMAT_VERSION}")
+    needed = list(a.get("param_keys", [])) + list(_QUALITY) + ["done", "t", "y", "x", "r"]
+    if a.get("write_components"):
+        needed += list(COMPONENT_NAMES)
+    missing = [k for k in needed if k not in g]
+    if missing:
+        raise ResultStoreError(f"{path} is incomplete: arrays {missing} are missing")
+    return _from_group(str(path), g)
+
+
+@dataclass(frozen=True)
+class ChunkWriter:
+    """Picklable sink ``writer(iy, ix, result)`` that opens the store by path and writes one chunk.
+
+    Safe to ship to worker processes: it holds only the path.
+    """
+
+    path: str
+
+    def __call__(self, iy: int, ix: int, result: dict) -> None:
+        open_result_store(self.path, mode="r+").write_chunk(iy, ix, result)

@@ -1,0 +1,221 @@
+"""``streaklab bench speed``: pixels per second of ``streaklab decompose`` on a synthetic cube.
+
+A seeded synthetic cube (default 64 x 672 x 512 (y, x, t), Fig. 3 kinds a/b/c, white noise at
+NSR 0.05) is written as a cube store, then decomposed by each method with 1 and 2 workers
+through :func:`streaklab.commands.decompose.decompose_to_store` -- the code path of the
+command, all stages included: opening the cube, the solver check, starting the local cluster,
+reading, solving and writing every chunk into a result store.  ``--workers N`` means what it
+means for the command (a local cluster of N single-threaded worker processes); ``threads:N``
+runs the command's default threaded scheduler with N threads instead.
+
+Each configuration runs in its own child process; the parent samples the resident memory of
+that process and all its descendants (workers included) every 50 ms and reports the peak sum,
+next to the largest single-process peak (``ru_maxrss``).
+
+The floor: one pass of FFT correlation of every profile with a Gaussian kernel over the same
+cube (read each chunk, rfft, multiply, irfft), on the same number of threads as the largest
+worker count -- no decomposition can be faster than reading and correlating each pixel once.
+Printed: pixels/s of every configuration (all stages, and over the chunks alone), its time
+relative to the floor, peak memory, and the time the paper-size 600 x 672 x 512 cube would take
+(the measured setup time plus its pixels at the measured rate over the chunks).  Writes
+``speed.json``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from streaklab.cli import CommandError
+
+PAPER_SHAPE = (600, 672, 512)
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--shape", type=int, nargs=3, default=(64, 672, 512), metavar=("NY", "NX", "NT"),
+                        help="synthetic cube (default 64 672 512)")
+    parser.add_argument("--nsr", type=float, default=0.05, help="white-noise NSR (default 0.05)")
+    parser.add_argument("--methods", default="convscd,gradbm", help="comma-separated (default convscd,gradbm)")
+    parser.add_argument("--workers", default="1,2",
+                        help="comma-separated worker counts (local cluster processes), or threads:N for the "
+                             "threaded scheduler (default 1,2)")
+    parser.add_argument("--chunks", type=int, nargs=2, default=(16, 64), metavar=("BY", "BX"),
+                        help="pixel chunk of the cube and the computation (default 16 64)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="bench-output/speed", help="folder for speed.json (default bench-output/speed)")
+    parser.add_argument("--keep", action="store_true", help="keep the synthetic cube and result stores")
+
+
+def _parse_workers(text):
+    out = []
+    for part in text.split(","):
+        part = part.strip()
+        try:
+            if part.startswith("threads:"):
+                n = int(part.split(":", 1)[1])
+                kind = "threads"
+            else:
+                n = int(part)
+                kind = "processes"
+        except ValueError:
+            raise CommandError(f"--workers takes counts like 1,2 or threads:2; got {part!r}") from None
+        if n <= 0:
+            raise CommandError(f"worker counts must be positive, got {n}")
+        out.append((kind, n))
+    return out
+
+
+def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8):
+    """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds."""
+    from decomposition.synthetic import make_cube
+    from reconstruction.cubestore import create_cube
+
+    ny, nx, nt = shape
+    t0 = time.perf_counter()
+    cube = create_cube(path, shape, time_bin_ps=2.0, t0_ps=2.0, chunks=chunks, units="arbitrary",
+                       provenance={"producer": "streaklab bench speed", "nsr": nsr, "noise": "white", "seed": seed},
+                       overwrite=True)
+    for i, y0 in enumerate(range(0, ny, rows_per_block)):
+        rows = min(rows_per_block, ny - y0)
+        data = make_cube(rows, nx, nt, nsr=nsr, noise="white", seed=seed * 100003 + i)
+        cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
+    return time.perf_counter() - t0
+
+
+def fft_floor(cube_path, *, threads: int) -> dict:
+    """Time one FFT-correlation pass over a cube store; -> {seconds, pixels_per_s}."""
+    import dask
+    import dask.array as da
+
+    from reconstruction.cubestore import open_cube
+
+    cube = open_cube(cube_path)
+    arr = da.from_zarr(cube.array)
+    nt = cube.shape[2]
+    n = 2 * nt
+    t = (np.arange(n) - n // 2) * cube.time_bin_ps
+    kernel = np.fft.ifftshift(np.exp(-0.5 * (t / 3.0) ** 2))
+    spec = np.conj(np.fft.rfft(kernel))
+
+    def correlate(block):
+        f = np.fft.rfft(block.astype(np.float64), n=n, axis=-1)
+        return np.fft.irfft(f * spec, n=n, axis=-1)[..., :nt].max(axis=-1)
+
+    start = time.perf_counter()
+    with dask.config.set(scheduler="threads", num_workers=threads):
+        arr.map_blocks(correlate, drop_axis=2, dtype=np.float64).sum().compute()
+    seconds = time.perf_counter() - start
+    pixels = cube.shape[0] * cube.shape[1]
+    return {"seconds": seconds, "pixels_per_s": pixels / seconds, "threads": threads}
+
+
+_CHILD = """
+import json, resource, sys
+from streaklab.commands.decompose import decompose_to_store
+cfg = json.loads(sys.argv[1])
+s = decompose_to_store(cfg["cube"], cfg["out"], method=cfg["method"], workers=cfg["workers"],
+                       threads=cfg["threads"], chunks=cfg["chunks"], overwrite=True, progress=False)
+s["maxrss_self_kib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+s["maxrss_children_kib"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print("RESULT " + json.dumps(s))
+"""
+
+
+def run_config(cube_path, out_path, *, method, kind, n, chunks, timeout_s=3600) -> dict:
+    """Decompose in a child process, sampling the memory of its process tree; -> summary dict."""
+    import psutil
+
+    cfg = {"cube": str(cube_path), "out": str(out_path), "method": method, "chunks": list(chunks),
+           "workers": n if kind == "processes" else None, "threads": n if kind == "threads" else None}
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(cfg)], cwd=ROOT, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = 0
+    deadline = time.monotonic() + timeout_s
+    try:
+        ps = psutil.Process(proc.pid)
+        while proc.poll() is None:
+            if time.monotonic() > deadline:
+                raise CommandError(f"{method} with {kind}={n} did not finish in {timeout_s} s")
+            try:
+                total = ps.memory_info().rss
+                for c in ps.children(recursive=True):
+                    try:
+                        total += c.memory_info().rss
+                    except psutil.Error:
+                        pass
+                peak = max(peak, total)
+            except psutil.Error:
+                pass
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        stdout, stderr = proc.communicate()
+    lines = [ln for ln in stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode != 0 or not lines:
+        raise CommandError(f"decompose ({method}, {kind}={n}) failed with status {proc.returncode}:\n{stderr[-3000:]}")
+    s = json.loads(lines[-1][len("RESULT "):])
+    s.update({"method": method, "scheduler": kind, "workers": n, "peak_rss_tree_mib": peak / 2**20,
+              "peak_rss_one_process_mib": max(s["maxrss_self_kib"], s["maxrss_children_kib"]) / 1024})
+    return s
+
+
+def run(args) -> int:
+    ny, nx, nt = args.shape
+    if min(ny, nx) <= 0 or nt < 16:
+        raise CommandError(f"--shape needs positive NY NX and NT >= 16, got {args.shape}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bad = [m for m in methods if m not in ("convscd", "gradbm")]
+    if bad or not methods:
+        raise CommandError(f"--methods takes convscd and/or gradbm; got {args.methods!r}")
+    workers = _parse_workers(args.workers)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    chunks = (min(args.chunks[0], ny), min(args.chunks[1], nx))
+    pixels = ny * nx
+    with tempfile.TemporaryDirectory(dir=out, prefix="work-") as tmp:
+        work = Path(tmp) if not args.keep else out
+        cube_path = work / "cube.zarr"
+        print(f"writing a synthetic {ny} x {nx} x {nt} cube (white noise, NSR {args.nsr:g}, seed {args.seed}, "
+              f"chunks {chunks[0]} x {chunks[1]}) ...", flush=True)
+        gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks)
+        floor = fft_floor(cube_path, threads=max(n for _, n in workers))
+        print(f"floor: one FFT-correlation pass, {floor['threads']} threads: {floor['pixels_per_s']:,.0f} px/s "
+              f"({floor['seconds']:.2f} s)", flush=True)
+        rows = []
+        for method in methods:
+            for kind, n in workers:
+                label = f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
+                s = run_config(cube_path, work / f"result-{method}-{kind}{n}.zarr", method=method, kind=kind, n=n,
+                               chunks=chunks)
+                compute_pps = pixels / s["seconds_compute"]
+                s["compute_pixels_per_s"] = compute_pps
+                paper_s = s["seconds_setup"] + PAPER_SHAPE[0] * PAPER_SHAPE[1] / compute_pps
+                s["paper_cube_s"] = paper_s
+                s["floor_ratio"] = floor["pixels_per_s"] / s["pixels_per_s"]
+                rows.append(s)
+                print(f"{method:8s} {label:20s} {s['pixels_per_s']:>9,.0f} px/s all stages "
+                      f"({s['seconds']:.1f} s = {s['seconds_setup']:.1f} s setup + {s['seconds_compute']:.1f} s over the chunks "
+                      f"at {compute_pps:,.0f} px/s), "
+                      f"{s['floor_ratio']:.1f}x the FFT floor's time, peak memory {s['peak_rss_tree_mib']:,.0f} MiB "
+                      f"(all processes; largest one {s['peak_rss_one_process_mib']:,.0f} MiB); "
+                      f"paper-size {PAPER_SHAPE[0]}x{PAPER_SHAPE[1]}x{PAPER_SHAPE[2]} cube: {paper_s / 60:.1f} min",
+                      flush=True)
+    if nt != PAPER_SHAPE[2]:
+        print(f"note: the paper-size projection assumes {nt} bins per profile, as measured, not {PAPER_SHAPE[2]}")
+    report = {"shape": [ny, nx, nt], "nsr": args.nsr, "seed": args.seed, "chunks": list(chunks),
+              "cpu_count": os.cpu_count(), "cube_write_s": gen_s, "floor": floor, "runs": rows,
+              "paper_shape": list(PAPER_SHAPE)}
+    (out / "speed.json").write_text(json.dumps(report, indent=2))
+    print(f"wrote {out / 'speed.json'}")
+    return 0

@@ -1,0 +1,415 @@
+"""``streaklab decompose``: decompose every pixel of a cube into a result store, chunk by chunk.
+
+    streaklab decompose cube.zarr --out result.zarr [--method convscd|gradbm] [--components d,s,r]
+                        [--workers N | --scheduler tcp://HOST:PORT] [--chunks BY BX]
+                        [--resume] [--overwrite] [--no-components]
+
+The cube is read with dask in pixel chunks (all of t in each), every chunk is decomposed as one
+batch and written into its own region of the result store as soon as it is finished, then
+marked done.  Interrupted runs (Ctrl-C, a crash, a killed process) keep every finished chunk;
+``--resume`` computes only the rest and gives the same store as an uninterrupted run.
+
+Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``--time-bin-ps`` for small inputs.
+:func:`decompose_to_store` is the same pipeline as a function (used by ``demo`` and
+``bench speed``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from streaklab.cli import CommandError
+
+__all__ = ["add_arguments", "run", "decompose_to_store", "ChunkProgress", "parse_components"]
+
+METHODS = ("convscd", "gradbm")
+_COMPONENT_LETTERS = ("d", "s", "r")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("input", help="cube store (.zarr) or a .npy array (y, x, t) or (n, t)")
+    parser.add_argument("--out", required=True, help="result store to write (.zarr directory)")
+    parser.add_argument("--method", choices=METHODS, default="convscd", help="solver (default convscd)")
+    parser.add_argument("--components", default="d,s,r",
+                        help="component families to look for, comma-separated from d (direct), s (subsurface), "
+                             "r (inter-reflections); default d,s,r")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="run on a local cluster of N worker processes (default: threads in this process)")
+    where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                       help="run on an existing dask.distributed cluster (workers must see the same paths)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="threads of the local scheduler when neither --workers nor --scheduler is given "
+                             "(default: number of cores)")
+    parser.add_argument("--chunks", type=int, nargs=2, default=None, metavar=("BY", "BX"),
+                        help="pixel chunk (default: the cube's own chunking)")
+    parser.add_argument("--max-interreflections", type=int, default=3, metavar="R",
+                        help="inter-reflections kept per pixel, in order of delay (default 3, the solver's "
+                             "default; pixels with more are flagged TRUNCATED)")
+    parser.add_argument("--no-components", action="store_true",
+                        help="store parameters and fit quality only, not the component cubes")
+    parser.add_argument("--nan-policy", choices=("mark", "error"), default="mark",
+                        help="pixels with NaN/inf samples: 'mark' leaves them undecomposed with valid=False "
+                             "(default); 'error' refuses the cube before any work")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="solver option (repeatable); VALUE is read as JSON if it parses, else as a string")
+    parser.add_argument("--time-bin-ps", type=float, default=None, help="time bin of a .npy input (ps)")
+    parser.add_argument("--t0-ps", type=float, default=None, help="time of bin 0 of a .npy input (ps; default one bin)")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
+    parser.add_argument("--overwrite", action="store_true", help="replace whatever is at --out")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def parse_components(text: str) -> tuple[str, ...]:
+    """``"d,s,r"`` -> ``("d", "s", "r")`` (validated, order kept, no duplicates)."""
+    parts = tuple(p.strip().lower() for p in text.split(",") if p.strip())
+    bad = [p for p in parts if p not in _COMPONENT_LETTERS]
+    if bad or not parts:
+        raise CommandError(f"--components takes a comma-separated subset of d, s, r; got {text!r}")
+    return tuple(dict.fromkeys(parts))
+
+
+def _parse_options(items) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise CommandError(f"--option takes KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+class ChunkProgress:
+    """Progress over chunks on a stream: done/total, pixel rate, time left.
+
+    On a terminal the line is redrawn in place; otherwise a line is printed at most every
+    ``interval_s`` seconds and at the end.
+    """
+
+    def __init__(self, total_chunks: int, total_pixels: int, *, already_chunks: int = 0, stream=None,
+                 interval_s: float = 2.0, label: str = "decompose"):
+        self.total_chunks, self.total_pixels = int(total_chunks), int(total_pixels)
+        self.chunks = int(already_chunks)
+        self.pixels = 0
+        self.stream = sys.stderr if stream is None else stream
+        self.interval_s = interval_s
+        self.label = label
+        self.start = time.monotonic()
+        self._last = -math.inf
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, summary: dict) -> None:
+        self.chunks += 1
+        self.pixels += int(summary.get("pixels", 0))
+        now = time.monotonic()
+        if self._tty or now - self._last >= self.interval_s or self.chunks == self.total_chunks:
+            self._last = now
+            self.stream.write(("\r" if self._tty else "") + self.line() + ("" if self._tty else "\n"))
+            self.stream.flush()
+
+    def line(self) -> str:
+        elapsed = max(time.monotonic() - self.start, 1e-9)
+        rate = self.pixels / elapsed
+        left_px = max(self.total_pixels - self.pixels, 0)
+        eta = _fmt_s(left_px / rate) if rate > 0 else "?"
+        pct = 100.0 * self.chunks / max(self.total_chunks, 1)
+        return (f"{self.label}: {self.chunks}/{self.total_chunks} chunks ({pct:.0f}%), "
+                f"{rate:,.0f} px/s, {eta} left")
+
+    def close(self) -> None:
+        if self._tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _fmt_s(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+# ---------------------------------------------------------------------------------------------
+# input
+# ---------------------------------------------------------------------------------------------
+def _open_input(path, *, time_bin_ps, t0_ps, chunks):
+    """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
+    import dask.array as da
+
+    from reconstruction.cubestore import CubeStoreError, open_cube
+
+    p = Path(path)
+    if p.suffix == ".npy" or p.is_file():
+        if time_bin_ps is None:
+            raise CommandError(f"{path}: a .npy input needs --time-bin-ps (its time axis is not stored)")
+        try:
+            data = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise CommandError(f"{path}: cannot read as a .npy array: {exc}") from None
+        if data.ndim == 2:
+            data = data[None]
+        if data.ndim != 3:
+            raise CommandError(f"{path}: expected an array (y, x, t) or (n, t); got shape {data.shape}")
+        if data.dtype.kind not in "fiu":
+            raise CommandError(f"{path}: expected real numbers; got dtype {data.dtype}")
+        if min(data.shape) == 0:
+            raise CommandError(f"{path}: empty array of shape {data.shape}")
+        tb = float(time_bin_ps)
+        if not np.isfinite(tb) or tb <= 0:
+            raise CommandError(f"--time-bin-ps must be positive, got {time_bin_ps}")
+        t0 = tb if t0_ps is None else float(t0_ps)
+        default_chunks = (min(data.shape[0], 16), min(data.shape[1], 64))
+        ch = chunks or default_chunks
+        arr = da.from_array(data, chunks=(ch[0], ch[1], -1))
+        source = {"path": str(p.resolve()), "kind": "npy", "shape": list(data.shape), "attrs": {}}
+        return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
+    if time_bin_ps is not None or t0_ps is not None:
+        raise CommandError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
+    try:
+        cube = open_cube(str(p))
+    except CubeStoreError as exc:
+        raise CommandError(f"not a usable cube: {exc}") from None
+    if cube.array.dtype.kind not in "fiu":
+        raise CommandError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
+    arr = da.from_zarr(cube.array)
+    source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
+              "attrs": _jsonable(cube.attrs)}
+    y_units, y_coord = "pixel", None
+    if "y" in cube.group:
+        y_coord = np.asarray(cube.group["y"][...], np.float64)
+        y_units = str(cube.group["y"].attrs.get("units", "pixel"))
+    default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
+    return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
+            y_coord, y_units)
+
+
+def _jsonable(obj):
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
+    """Run the solver on one all-zero profile: checks the options before any work and names the
+    parameters (and their per-pixel dimensionality) the store must hold."""
+    from decomposition.chunked import _solver
+
+    try:
+        res = _solver()(np.zeros((1, nt)), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                        components=tuple(components), **options)
+    except (TypeError, ValueError) as exc:
+        raise CommandError(f"the solver refuses these settings: {exc}") from None
+    map_keys, ir_keys = [], []
+    for k, v in res.params.items():
+        nd = np.ndim(v)
+        if nd == 1:
+            map_keys.append(k)
+        elif nd == 2:
+            ir_keys.append(k)
+        else:
+            raise CommandError(f"solver parameter {k!r} has an unexpected shape {np.shape(v)} for one pixel")
+    info = {k: v for k, v in dict(getattr(res, "info", {}) or {}).items()
+            if isinstance(v, (str, int, float, bool, tuple, list, type(None)))}  # settings, not per-pixel arrays
+    return map_keys, ir_keys, info
+
+
+# ---------------------------------------------------------------------------------------------
+# the pipeline
+# ---------------------------------------------------------------------------------------------
+def decompose_to_store(input_path, out_path, *, method: str = "convscd", components=("d", "s", "r"),
+                       options: dict | None = None, chunks=None, workers: int | None = None,
+                       scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
+                       write_components: bool = True, nan_policy: str = "mark", resume: bool = False,
+                       overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
+                       progress: bool = True, stream=None) -> dict:
+    """Decompose a cube (or .npy array) chunk by chunk into a result store.
+
+    Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
+    invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
+    store creation, cluster start), seconds_compute (reading, solving, writing the chunks) and
+    pixels_per_s (all stages).  Raises :class:`CommandError` for bad input, before any work starts.
+    """
+    from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
+    from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
+    import streaklab
+
+    stream = sys.stderr if stream is None else stream
+    t_start = time.perf_counter()
+    options = dict(options or {})
+    components = tuple(components)
+    if method not in METHODS:
+        raise CommandError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if n_ir < 0:
+        raise CommandError(f"--max-interreflections must be >= 0, got {n_ir}")
+    if nan_policy not in ("mark", "error"):
+        raise CommandError(f"unknown NaN policy {nan_policy!r}")
+    if resume and overwrite:
+        raise CommandError("--resume and --overwrite contradict each other; choose one")
+    if chunks is not None and (len(chunks) != 2 or min(chunks) <= 0):
+        raise CommandError(f"--chunks takes two positive sizes, got {chunks}")
+    if workers is not None and workers <= 0:
+        raise CommandError(f"--workers must be positive, got {workers}")
+    if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
+        raise CommandError(f"--option max_reflections={options['max_reflections']} contradicts "
+                           f"--max-interreflections {n_ir}; give only --max-interreflections")
+    options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
+    out_path = str(Path(out_path).resolve())
+
+    arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
+        input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
+    ny, nx, nt = arr.shape
+
+    existing = None
+    if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+        try:
+            existing = open_result_store(out_path, mode="r+")
+        except ResultStoreError as exc:
+            raise CommandError(f"cannot resume: {exc}") from None
+        if chunks is None:
+            chunks = tuple(existing.chunks)
+    chunks = tuple(int(c) for c in (chunks or default_chunks))
+    chunks = (min(chunks[0], ny), min(chunks[1], nx))
+
+    job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
+           "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
+           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0}
+    if existing is not None:
+        before = existing.attrs.get("job", {})
+        diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
+        if diff:
+            details = "; ".join(f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}" for k in diff)
+            raise CommandError(f"cannot resume {out_path}: it was started with different settings ({details}); "
+                               f"use the original settings, or --overwrite to start again")
+    else:
+        from decomposition.resultstore import prepare_output_path
+
+        try:  # refuse an occupied path before spending time on checks
+            prepare_output_path(out_path, overwrite=False, protect=[source["path"]])
+        except FileExistsError:
+            if not overwrite:
+                raise CommandError(f"{out_path} already exists; pass --overwrite to replace it "
+                                   f"(or --resume to continue a run into it)") from None
+        except ResultStoreError as exc:
+            raise CommandError(str(exc)) from None
+
+    map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
+                                            components=components, options=options)
+    if nan_policy == "error":
+        bad = count_nonfinite_pixels(arr)
+        if bad:
+            raise CommandError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "
+                               f"use --nan-policy mark to decompose the rest and mark those invalid")
+
+    if existing is None:
+        attrs = {"method": method, "components": list(components), "options": job["options"],
+                 "solver_info": _jsonable(info), "nan_policy": nan_policy,
+                 "software_version": streaklab.__version__, "source": source, "job": job,
+                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        try:
+            store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
+                                        t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
+                                        write_components=write_components, signal_units=units, y_coord=y_coord,
+                                        y_units=y_units, attrs=attrs, overwrite=overwrite,
+                                        protect=[source["path"]])
+        except (ResultStoreError, FileExistsError) as exc:
+            raise CommandError(str(exc)) from None
+    else:
+        store = existing
+        store.remove_partials()
+    pending = store.pending_chunks()
+    gy, gx = store.grid
+    total = gy * gx
+    param_shapes = {k: () for k in map_keys}
+    param_shapes.update({k: (int(n_ir),) for k in ir_keys})
+    tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
+                        pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
+                        n_ir=int(n_ir), with_components=write_components, options=options)
+    pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
+    if progress and resume and existing is not None:
+        print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
+              file=stream)
+    bar = ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream) if progress else None
+    stats = {"invalid": 0, "ir_truncated": 0}
+
+    def on_done(summary):
+        stats["invalid"] += summary["invalid"]
+        stats["ir_truncated"] += summary["ir_truncated"]
+        if bar is not None:
+            bar.update(summary)
+
+    client = cluster = None
+    t_compute = None
+    try:
+        if scheduler is not None or workers is not None:
+            client, cluster = _connect(scheduler, workers)
+        t_compute = time.perf_counter()
+        run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        done_now = int(store.done_chunks().sum())
+        print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
+              f"rerun with --resume to finish", file=stream)
+        raise
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    if bar is not None:
+        bar.close()
+    t_end = time.perf_counter()
+    seconds, seconds_compute = t_end - t_start, t_end - t_compute
+    summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
+               "pixels": pending_pixels, "invalid_pixels": stats["invalid"], "ir_truncated_pixels": stats["ir_truncated"],
+               "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
+               "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
+    return summary
+
+
+def _region_pixels(store, iy, ix) -> int:
+    ys, xs = store.chunk_slices(iy, ix)
+    return (ys.stop - ys.start) * (xs.stop - xs.start)
+
+
+def _connect(scheduler, workers):
+    """-> (Client, LocalCluster or None)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - distributed is a dependency
+        raise CommandError(f"--workers/--scheduler need dask.distributed: {exc}") from None
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout="15s"), None
+        except (OSError, TimeoutError) as exc:
+            raise CommandError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
+    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None)
+    try:
+        return Client(cluster), cluster
+    except BaseException:
+        cluster.close()
+        raise
+
+
+def run(args) -> int:
+    summary = decompose_to_store(
+        args.input, args.out, method=args.method, components=parse_components(args.components),
+        options=_parse_options(args.option), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
+        threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
+        nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
+        t0_ps=args.t0_ps, progress=not args.quiet)
+    ny, nx, nt = summary["shape"]
+    print(f"decomposed {summary['pixels']} pixels of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
+          f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
+    if summary["invalid_pixels"]:
+        print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
+    if summary["ir_truncated_pixels"]:
+        print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
+              f"inter-reflections; the later ones were dropped (raise --max-interreflections to keep them)")
+    return 0

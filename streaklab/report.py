@@ -1,0 +1,348 @@
+"""Figures and a text summary of a decomposition result store (matplotlib, Agg backend).
+
+* ``frames.png``    decomposed frames of each component at one time (cf. the ConvSCD paper's
+  Figs. 4(c) and 5(c)): measured, direct, subsurface scattering, inter-reflections, residual.
+* ``maps.png``      maps of the direct delay (depth), sss attenuation alpha, sss amplitude and
+  the fit's rms residual.
+* ``profiles.png``  time profiles of a few pixels: measured profile, each fitted component and the
+  residual (cf. Fig. 4(b)).
+* ``summary.txt``   what was decomposed, how, and what was found.
+
+Component frames and profiles come from the stored component cubes; a store written with
+``--no-components`` has them rendered from its parameters with the forward model instead.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles"]
+
+# One-way depth per ps of round-trip delay: c / 2 in mm/ps.
+_MM_PER_PS_DEPTH = 0.299792458 / 2.0
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _units(store) -> str:
+    return str(store.attrs.get("units", "counts"))
+
+
+def _valid(store) -> np.ndarray:
+    return np.asarray(store.group["valid"][...], bool) & store.done_mask()
+
+
+def choose_time_ps(store) -> float:
+    """A time showing the scene: the bin nearest the median direct delay of the decomposed pixels
+    (the first bin with the most signal if no direct reflection was found)."""
+    t = store.time_axis_ps()
+    delay = np.asarray(store.group["direct_delay_ps"][...])
+    delay = delay[_valid(store) & np.isfinite(delay)]
+    if delay.size:
+        return float(t[np.argmin(np.abs(t - np.median(delay)))])
+    return float(t[len(t) // 2])
+
+
+def choose_pixels(store, n: int = 3) -> list[tuple[int, int]]:
+    """Up to ``n`` informative pixels: the strongest direct, sss and inter-reflection pixels,
+    then pixels of median fit quality."""
+    valid = _valid(store)
+    picks: list[tuple[int, int]] = []
+
+    def add_argmax(values):
+        v = np.where(valid & np.isfinite(values), values, -np.inf)
+        if np.isfinite(v).any():
+            yx = tuple(int(i) for i in np.unravel_index(np.argmax(v), v.shape))
+            if yx not in picks:
+                picks.append(yx)
+
+    add_argmax(np.asarray(store.group["direct_amplitude"][...]))
+    add_argmax(np.asarray(store.group["sss_amplitude"][...]))
+    if store.n_ir:
+        add_argmax(np.asarray(store.group["ir_amplitude"][..., 0]))
+    rms = np.asarray(store.group["rms_residual"][...])
+    order = np.argsort(np.where(valid & np.isfinite(rms), rms, np.inf), axis=None)
+    n_ok = int((valid & np.isfinite(rms)).sum())
+    for k in order[n_ok // 2:n_ok] if n_ok else []:
+        if len(picks) >= n:
+            break
+        yx = tuple(int(i) for i in np.unravel_index(k, rms.shape))
+        if yx not in picks:
+            picks.append(yx)
+    return picks[:n]
+
+
+def _components_at(store, ys, xs, it=None):
+    """Component arrays of a region: dict direct, sss, ir (summed over slots unless a single
+    time is asked for), each (..., t) or (...) at time index ``it``; from the store or rendered."""
+    g = store.group
+    sel = (ys, xs) if it is None else (ys, xs)
+    if store.write_components:
+        if it is None:
+            return {"direct": g["direct"][sel], "sss": g["sss"][sel], "ir": g["ir"][sel],
+                    "residual": g["residual"][sel]}
+        return {"direct": g["direct"][ys, xs, it], "sss": g["sss"][ys, xs, it],
+                "ir": g["ir"][ys, xs, :, it], "residual": g["residual"][ys, xs, it]}
+    from decomposition.model import render_components
+
+    params = store.params(ys, xs)
+    t = store.time_axis_ps()
+    tb = float(store.attrs["time_bin_ps"])
+    if it is None:
+        c = render_components(params, t.size, tb, float(t[0]))
+        return {"direct": c["direct"], "sss": c["sss"], "ir": c["interreflections"], "residual": None}
+    c = render_components(params, 1, tb, float(t[it]))
+    return {"direct": c["direct"][..., 0], "sss": c["sss"][..., 0], "ir": c["interreflections"][..., 0],
+            "residual": None}
+
+
+def measured_profiles(store, ys, xs):
+    """The decomposed input over a region, (..., t), or None if the source is not readable.
+
+    Read from the source named in the store's attributes; if it has moved, rebuilt from the
+    stored components plus the residual when those were written."""
+    src = store.attrs.get("source", {})
+    path = src.get("path")
+    try:
+        if path and os.path.exists(path):
+            if src.get("kind") == "npy":
+                data = np.load(path, mmap_mode="r")
+                data = data[None] if data.ndim == 2 else data
+                return np.asarray(data[ys, xs], dtype=np.float64)
+            from reconstruction.cubestore import open_cube
+
+            return np.asarray(open_cube(path).array[ys, xs], dtype=np.float64)
+    except Exception:  # an unreadable or replaced source: fall back below
+        pass
+    if store.write_components:
+        c = _components_at(store, ys, xs)
+        return (c["direct"] + c["sss"] + c["ir"].sum(axis=-2) + c["residual"]).astype(np.float64)
+    return None
+
+
+def _image(ax, fig, data, store, title, label, cmap="viridis", symmetric=False, pad=0.05):
+    plt = _plt()
+    y = np.asarray(store.group["y"][...])
+    x = np.asarray(store.group["x"][...])
+    cm = plt.get_cmap(cmap).with_extremes(bad="0.85")
+    finite = np.isfinite(data)
+    vmin = vmax = None
+    if finite.any():
+        vmin, vmax = np.percentile(data[finite], [1, 99])
+        if symmetric:
+            vmax = max(abs(vmin), abs(vmax))
+            vmin = -vmax
+        if vmin == vmax:
+            vmin, vmax = vmin - 0.5, vmax + 0.5
+    dy = (y[-1] - y[0]) / max(len(y) - 1, 1) if len(y) > 1 else 1.0
+    dx = (x[-1] - x[0]) / max(len(x) - 1, 1) if len(x) > 1 else 1.0
+    extent = (x[0] - dx / 2, x[-1] + dx / 2, y[-1] + dy / 2, y[0] - dy / 2)
+    im = ax.imshow(np.ma.masked_invalid(data), cmap=cm, vmin=vmin, vmax=vmax, extent=extent, aspect="auto",
+                   interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel(f"x ({store.group['x'].attrs.get('units', 'pixel')})")
+    ax.set_ylabel(f"y ({store.group['y'].attrs.get('units', 'pixel')})")
+    cb = fig.colorbar(im, ax=ax, shrink=0.9, pad=pad)
+    cb.set_label(label)
+    return cb
+
+
+def plot_frames(store, time_ps: float, path) -> Path:
+    plt = _plt()
+    t = store.time_axis_ps()
+    it = int(np.argmin(np.abs(t - time_ps)))
+    ny, nx, _ = store.shape
+    comps = _components_at(store, slice(None), slice(None), it)
+    measured = measured_profiles(store, slice(None), slice(None))
+    panels = []
+    if measured is not None:
+        panels.append(("measured", measured[..., it]))
+    panels += [("direct", comps["direct"]), ("subsurface scattering", comps["sss"]),
+               ("inter-reflections (all)", np.asarray(comps["ir"]).sum(axis=-1) if store.n_ir
+                else np.zeros((ny, nx)))]
+    if comps["residual"] is not None:
+        panels.append(("residual", comps["residual"]))
+    done = store.done_mask()
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False)
+    units = _units(store)
+    for ax, (name, img) in zip(axes[0], panels):
+        img = np.where(done, np.asarray(img, np.float64), np.nan)
+        resid = name == "residual"
+        _image(ax, fig, img, store, name, f"signal ({units})", cmap="coolwarm" if resid else "magma", symmetric=resid)
+    how = "" if store.write_components else " (components rendered from parameters)"
+    fig.suptitle(f"decomposed frames at t = {t[it]:.1f} ps{how}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_maps(store, path) -> Path:
+    plt = _plt()
+    g = store.group
+    done = store.done_mask()
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+    units = _units(store)
+    specs = [
+        ("direct_delay_ps", "direct delay (depth)", "delay (ps); 1 ps = 0.15 mm depth", "viridis"),
+        ("sss_alpha_per_ps", "subsurface attenuation alpha", "alpha (1/ps)", "cividis"),
+        ("sss_amplitude", "subsurface amplitude b", f"b ({units})", "magma"),
+        ("rms_residual", "fit rms residual", f"rms residual ({units})", "gray_r"),
+    ]
+    for ax, (key, title, label, cmap) in zip(axes.ravel(), specs):
+        data = np.where(done, np.asarray(g[key][...], np.float64), np.nan)
+        cb = _image(ax, fig, data, store, title, label, cmap, pad=0.2 if key == "direct_delay_ps" else 0.05)
+        if key == "direct_delay_ps":
+            sec = cb.ax.secondary_yaxis("left", functions=(lambda d: d * _MM_PER_PS_DEPTH,
+                                                            lambda z: z / _MM_PER_PS_DEPTH))
+            sec.set_ylabel("depth c·t/2 (mm)")
+    fig.suptitle(f"parameter maps ({store.attrs.get('method', '?')}); grey = absent or not computed")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_profiles(store, pixels, path) -> Path:
+    plt = _plt()
+    t = store.time_axis_ps()
+    units = _units(store)
+    fig, axes = plt.subplots(len(pixels), 1, figsize=(8, 2.6 * len(pixels)), squeeze=False, sharex=True)
+    for ax, (y, x) in zip(axes[:, 0], pixels):
+        ys, xs = slice(y, y + 1), slice(x, x + 1)
+        c = _components_at(store, ys, xs)
+        meas = measured_profiles(store, ys, xs)
+        if meas is not None:
+            ax.plot(t, meas[0, 0], color="0.55", lw=0, marker=".", ms=3, label="measured")
+        ax.plot(t, c["direct"][0, 0], color="tab:blue", lw=1.4, label="direct")
+        ax.plot(t, c["sss"][0, 0], color="tab:orange", lw=1.4, label="subsurface")
+        for r in range(store.n_ir):
+            prof = np.asarray(c["ir"][0, 0, r])
+            if np.isfinite(prof).any() and np.nanmax(np.abs(prof)) > 0:
+                ax.plot(t, prof, lw=1.2, color=f"C{2 + r}", label=f"inter-reflection r{r + 2}")
+        fit = c["direct"][0, 0] + c["sss"][0, 0] + np.asarray(c["ir"][0, 0]).sum(axis=0)
+        ax.plot(t, fit, color="k", lw=0.8, ls=":", label="sum of components")
+        resid = c["residual"][0, 0] if c["residual"] is not None else (None if meas is None else meas[0, 0] - fit)
+        if resid is not None:
+            ax.plot(t, resid, color="tab:red", lw=0.8, ls="--", label="residual")
+        ax.set_ylabel(f"signal ({units})")
+        flags = int(store.group["flags"][y, x])
+        note = "" if store.group["valid"][y, x] else "  [not decomposed: non-finite input]"
+        ax.set_title(f"pixel y={y}, x={x}; flags={flags}{note}", fontsize=10)
+        ax.legend(fontsize=7, ncol=3, loc="upper right")
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time (ps)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def _pct(a, q):
+    return np.percentile(a, q) if a.size else np.nan
+
+
+def summary_text(store) -> str:
+    """A short plain-text summary of a result store."""
+    g, a = store.group, store.attrs
+    ny, nx, nt = store.shape
+    done = store.done_mask()
+    valid = _valid(store)
+    n = ny * nx
+    src = a.get("source", {})
+    lines = [
+        f"result store: {store.path}",
+        f"source: {src.get('path', '?')} ({src.get('kind', '?')}, shape {tuple(src.get('shape', ()))})",
+        f"cube: {ny} x {nx} pixels x {nt} bins of {a['time_bin_ps']:g} ps (t0 = {a['t0_ps']:g} ps)",
+        f"method: {a.get('method', '?')}; components searched: {','.join(a.get('components', []))}; "
+        f"options: {a.get('options', {})}; streaklab {a.get('software_version', '?')}",
+        f"pixels: {n}; done {int(done.sum())} ({100.0 * done.sum() / n:.1f}%); decomposed {int(valid.sum())}; "
+        f"non-finite input {int((done & ~np.asarray(g['valid'][...], bool)).sum())}",
+    ]
+    if not done.all():
+        lines.append("INCOMPLETE: rerun 'streaklab decompose ... --resume' to finish")
+    nv = max(int(valid.sum()), 1)
+    dd = np.asarray(g["direct_delay_ps"][...])[valid]
+    sa = np.asarray(g["sss_alpha_per_ps"][...])[valid]
+    has_d = np.isfinite(dd)
+    has_s = np.isfinite(sa)
+    if store.n_ir:
+        n_ir = np.isfinite(np.asarray(g["ir_delay_ps"][...])[valid]).sum(axis=-1)
+    else:
+        n_ir = np.zeros(int(valid.sum()), int)
+    lines.append(f"found: direct in {100.0 * has_d.sum() / nv:.1f}% of decomposed pixels, "
+                 f"sss in {100.0 * has_s.sum() / nv:.1f}%, >=1 inter-reflection in {100.0 * (n_ir >= 1).sum() / nv:.1f}%"
+                 + (f", >=2 in {100.0 * (n_ir >= 2).sum() / nv:.1f}%" if store.n_ir >= 2 else ""))
+    if has_d.any():
+        ds = np.asarray(g["direct_sigma_ps"][...])[valid][has_d]
+        lines.append(f"direct delay: median {np.median(dd[has_d]):.2f} ps, 5-95% {_pct(dd[has_d], 5):.2f} to "
+                     f"{_pct(dd[has_d], 95):.2f} ps (depth span {(_pct(dd[has_d], 95) - _pct(dd[has_d], 5)) * _MM_PER_PS_DEPTH:.2f} mm); "
+                     f"sigma median {np.nanmedian(ds):.2f} ps")
+    if has_s.any():
+        lines.append(f"sss alpha: median {np.median(sa[has_s]):.4f} /ps, 5-95% {_pct(sa[has_s], 5):.4f} to "
+                     f"{_pct(sa[has_s], 95):.4f} /ps")
+    rms = np.asarray(g["rms_residual"][...])[valid]
+    rms = rms[np.isfinite(rms)]
+    if rms.size:
+        lines.append(f"rms residual: median {np.median(rms):.4g} {_units(store)}, 95% {_pct(rms, 95):.4g}")
+    flags = np.asarray(g["flags"][...])[valid]
+    bits = {b: int(((flags >> b) & 1).sum()) for b in range(8)}
+    flagged = {f"bit {b}": c for b, c in bits.items() if c}
+    lines.append(f"flagged pixels: {int((flags != 0).sum())}" + (f" ({flagged})" if flagged else ""))
+    return "\n".join(lines) + "\n"
+
+
+def make_report(result_path, out_dir, *, time_ps: float | None = None, pixels=None) -> dict:
+    """Write frames.png, maps.png, profiles.png and summary.txt into ``out_dir``.
+
+    Parameters
+    ----------
+    result_path : str or Path
+        A result store written by ``streaklab decompose``.
+    out_dir : str or Path
+        Folder for the figures (created).
+    time_ps : float, optional
+        Time of the frames (ps); default :func:`choose_time_ps`.
+    pixels : list of (y, x), optional
+        Pixels for the profile figure; default :func:`choose_pixels`.
+
+    Returns
+    -------
+    dict: ``files`` (list of Paths), ``summary`` (str), ``time_ps``, ``pixels``.
+    """
+    from decomposition.resultstore import open_result_store
+
+    store = open_result_store(result_path)
+    ny, nx, _ = store.shape
+    if not store.done_mask().any():
+        raise ValueError(f"{result_path} holds no finished chunk yet; nothing to report")
+    if pixels:
+        bad = [(y, x) for y, x in pixels if not (0 <= y < ny and 0 <= x < nx)]
+        if bad:
+            raise ValueError(f"pixels {bad} are outside the {ny} x {nx} image")
+    else:
+        pixels = choose_pixels(store)
+    t = store.time_axis_ps()
+    if time_ps is None:
+        time_ps = choose_time_ps(store)
+    elif not (t[0] - store.attrs["time_bin_ps"] <= time_ps <= t[-1] + store.attrs["time_bin_ps"]):
+        raise ValueError(f"time {time_ps} ps is outside the cube's {t[0]:g} to {t[-1]:g} ps")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = [plot_frames(store, time_ps, out / "frames.png"), plot_maps(store, out / "maps.png")]
+    if pixels:
+        files.append(plot_profiles(store, pixels, out / "profiles.png"))
+    summary = summary_text(store)
+    summary += f"frames at t = {float(t[np.argmin(np.abs(t - time_ps))]):.1f} ps; profiles of pixels {pixels}\n"
+    (out / "summary.txt").write_text(summary)
+    files.append(out / "summary.txt")
+    return {"files": files, "summary": summary, "time_ps": float(time_ps), "pixels": list(pixels)}

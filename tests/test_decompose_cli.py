@@ -1,0 +1,278 @@
+"""``streaklab decompose`` over cube stores: equals the in-memory API, same store on any scheduler,
+interrupted runs resume to the same store, bad input refused before any work."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from decomposition import decompose, model
+from decomposition.resultstore import open_result_store
+from reconstruction.cubestore import create_cube, write_cube
+from streaklab.cli import CommandError, main
+from streaklab.commands.decompose import decompose_to_store
+
+ROOT = Path(__file__).resolve().parents[1]
+TB = 2.0
+
+
+def _cube(ny, nx, nt=128, seed=0, nsr=0.01):
+    rng = np.random.default_rng(seed)
+    p = model.empty_params((ny, nx), 1)
+    p["direct_delay_ps"] = rng.uniform(30, 60, (ny, nx))
+    p["direct_amplitude"] = rng.uniform(0.5, 2.0, (ny, nx))
+    p["direct_sigma_ps"] = rng.uniform(2.5, 4.0, (ny, nx))
+    s = rng.random((ny, nx)) < 0.5
+    p["sss_delay_ps"] = np.where(s, p["direct_delay_ps"], np.nan)
+    p["sss_amplitude"] = np.where(s, rng.uniform(0.02, 0.05, (ny, nx)), np.nan)
+    p["sss_alpha_per_ps"] = np.where(s, rng.uniform(0.01, 0.05, (ny, nx)), np.nan)
+    p["sss_sigma_ps"] = np.where(s, p["direct_sigma_ps"], np.nan)
+    r = rng.random((ny, nx)) < 0.33
+    p["ir_delay_ps"][..., 0] = np.where(r, p["direct_delay_ps"] + rng.uniform(60, 120, (ny, nx)), np.nan)
+    p["ir_amplitude"][..., 0] = np.where(r, rng.uniform(0.3, 0.8, (ny, nx)), np.nan)
+    p["ir_sigma_ps"][..., 0] = np.where(r, p["direct_sigma_ps"], np.nan)
+    clean = model.render_profile(p, nt, TB)
+    noise = rng.standard_normal(clean.shape)
+    noise *= nsr * np.linalg.norm(clean, axis=-1, keepdims=True) / np.linalg.norm(noise, axis=-1, keepdims=True)
+    return (clean + noise).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("shared")
+    write_cube(tmp / "cube.zarr", _cube(5, 7, seed=11), time_bin_ps=TB, chunks=(2, 3), units="photons",
+               provenance={"producer": "test"})
+    return tmp
+
+
+@pytest.fixture
+def cube_path(shared):
+    return shared / "cube.zarr"
+
+
+@pytest.fixture(scope="module")
+def reference(shared):
+    """An uninterrupted run with the cube's own (2, 3) chunks on the default threaded scheduler."""
+    out = shared / "full.zarr"
+    decompose_to_store(shared / "cube.zarr", out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference_1x3(shared):
+    """An uninterrupted run with (1, 3) chunks."""
+    out = shared / "full-1x3.zarr"
+    decompose_to_store(shared / "cube.zarr", out, chunks=(1, 3), progress=False)
+    return out
+
+
+def _assert_same_store(a, b):
+    ga, gb = zarr.open_group(str(a), mode="r"), zarr.open_group(str(b), mode="r")
+    assert sorted(ga.array_keys()) == sorted(gb.array_keys())
+    for k in ga.array_keys():
+        x, y = ga[k][...], gb[k][...]
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
+
+
+def test_store_equals_the_in_memory_api_and_describes_itself(cube_path, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    assert main(["decompose", str(cube_path), "--out", str(out), "--max-interreflections", "3"]) == 0
+    captured = capsys.readouterr()
+    assert "35 pixels" in captured.out and str(out) in captured.out
+    assert "9/9 chunks" in captured.err  # progress on stderr
+    store = open_result_store(out)
+    assert store.done_mask().all() and store.group["valid"][...].all()
+    cube = zarr.open_group(str(cube_path), mode="r")["cube"][...]
+    # one chunk: bit for bit the API on the same pixels
+    block = cube[2:4, 3:6].reshape(6, -1)
+    res = decompose(block, time_bin_ps=TB, method="convscd")
+    for k, v in res.params.items():
+        v = np.asarray(v, np.float64)
+        np.testing.assert_array_equal(store.group[k][2:4, 3:6].reshape(v.shape), v, err_msg=k)
+    for name, v in (("direct", res.direct), ("sss", res.sss), ("residual", res.residual)):
+        np.testing.assert_array_equal(store.group[name][2:4, 3:6].reshape(6, -1), np.asarray(v, np.float32))
+    np.testing.assert_array_equal(store.group["ir"][2:4, 3:6].reshape(6, 3, -1),
+                                  np.asarray(res.interreflections, np.float32))
+    np.testing.assert_array_equal(store.group["flags"][2:4, 3:6].reshape(6), res.flags)
+    np.testing.assert_array_equal(store.group["rms_residual"][2:4, 3:6].reshape(6),
+                                  np.sqrt(np.mean(np.square(res.residual), -1)))
+    # the whole cube: the API on all pixels in one batch.  The solver's batched linear algebra and
+    # iteration stops depend slightly on which pixels share a batch, so: the same components and
+    # flags, values equal to well within the solver's convergence (1e-6 relative)
+    res = decompose(cube.reshape(35, -1), time_bin_ps=TB, method="convscd")
+    for k, v in res.params.items():
+        v = np.asarray(v, np.float64)
+        got = store.group[k][...].reshape(v.shape)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(v), err_msg=k)
+        np.testing.assert_allclose(got, v, rtol=1e-6, atol=1e-9, err_msg=k)
+    np.testing.assert_array_equal(store.group["flags"][...].reshape(35), res.flags)
+    np.testing.assert_allclose(store.group["direct"][...].reshape(35, -1), res.direct, rtol=1e-6, atol=1e-6)
+    a = store.attrs
+    import streaklab
+    assert a["method"] == "convscd" and a["components"] == ["d", "s", "r"]
+    assert a["software_version"] == streaklab.__version__
+    assert a["source"]["path"] == str(cube_path.resolve())
+    assert a["source"]["attrs"]["provenance"] == {"producer": "test"}
+    assert a["time_bin_ps"] == TB and a["t0_ps"] == TB and a["units"] == "photons"
+    assert store.group["direct_amplitude"].attrs["units"] == "photons"
+
+
+@pytest.mark.timeout(90)
+def test_local_cluster_of_processes_gives_the_same_store(cube_path, reference, tmp_path):
+    summary = decompose_to_store(cube_path, tmp_path / "cluster.zarr", workers=2, progress=False)
+    assert summary["chunks_done"] == 9
+    _assert_same_store(reference, tmp_path / "cluster.zarr")
+
+
+def test_crash_then_resume_gives_the_uninterrupted_store(cube_path, reference, tmp_path, monkeypatch, capsys):
+    import decomposition.chunked as chunked
+
+    real, calls = chunked.solve_block, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("worker died")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(chunked, "solve_block", failing)
+    with pytest.raises(RuntimeError, match="worker died"):
+        decompose_to_store(cube_path, tmp_path / "part.zarr", threads=1, progress=False)
+    monkeypatch.setattr(chunked, "solve_block", real)
+    part = open_result_store(tmp_path / "part.zarr")
+    n_done = int(part.done_chunks().sum())
+    assert 0 < n_done < 9
+    # a plain rerun refuses to touch it; --resume computes only what is missing
+    assert main(["decompose", str(cube_path), "--out", str(tmp_path / "part.zarr"), "--quiet"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    summary = decompose_to_store(cube_path, tmp_path / "part.zarr", resume=True, progress=False)
+    assert summary["chunks_done"] == 9 - n_done
+    _assert_same_store(reference, tmp_path / "part.zarr")
+
+
+# The subprocess runs the real command with each chunk's solve slowed down, so that it is reliably
+# still running when it is killed; everything else is the production code path.
+_SLOW = ("import sys, time; import decomposition.chunked as c; f = c.solve_block; "
+         "c.solve_block = lambda *a, **k: (time.sleep(0.1), f(*a, **k))[1]; "
+         "from streaklab.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
+def _start_slow(cube_path, out):
+    return subprocess.Popen([sys.executable, "-c", _SLOW, "decompose", str(cube_path), "--out", str(out),
+                             "--threads", "1", "--chunks", "1", "3"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_done_chunks(out, n, proc, timeout_s=30):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        try:
+            if open_result_store(out).done_chunks().sum() >= n:
+                return
+        except Exception:  # store not created yet
+            pass
+        time.sleep(0.02)
+    raise AssertionError("the run made no progress")
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_killed_process_resumes_to_the_uninterrupted_store(cube_path, reference_1x3, tmp_path, sig, capsys):
+    full, part = reference_1x3, tmp_path / "part.zarr"
+    proc = _start_slow(cube_path, part)  # 15 chunks
+    try:
+        _wait_for_done_chunks(part, 2, proc)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130 and "--resume" in err
+    else:
+        assert proc.returncode == -signal.SIGKILL
+    n_done = int(open_result_store(part).done_chunks().sum())
+    assert 2 <= n_done < 15
+    assert main(["decompose", str(cube_path), "--out", str(part), "--chunks", "1", "3", "--resume"]) == 0
+    assert f"{n_done}/15 chunks already done" in capsys.readouterr().err
+    _assert_same_store(full, part)
+
+
+def test_resume_with_other_settings_is_refused(cube_path, tmp_path):
+    out = tmp_path / "res.zarr"
+    decompose_to_store(cube_path, out, progress=False)
+    with pytest.raises(CommandError, match="different settings.*method"):
+        decompose_to_store(cube_path, out, resume=True, method="gradbm", progress=False)
+    with pytest.raises(CommandError, match="different settings.*n_ir"):
+        decompose_to_store(cube_path, out, resume=True, n_ir=4, progress=False)
+    with pytest.raises(CommandError, match="contradict"):
+        decompose_to_store(cube_path, out, resume=True, overwrite=True, progress=False)
+
+
+def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
+    out = tmp_path / "res.zarr"
+
+    def refused(argv, pattern):
+        assert main(["decompose", *map(str, argv), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert pattern in err, err
+        assert not out.exists()
+
+    refused([tmp_path / "nothing.zarr"], "no such file")
+    g = zarr.open_group(str(tmp_path / "run.zarr"), mode="w")
+    g.attrs["streaklab_kind"] = "run"
+    refused([tmp_path / "run.zarr"], "'run' store")
+    g2 = zarr.open_group(str(tmp_path / "flat.zarr"), mode="w")
+    g2.create_array("cube", shape=(4, 8), dtype="float32", dimension_names=["x", "t"]).attrs["time_bin_ps"] = 2.0
+    refused([tmp_path / "flat.zarr"], "3-D")
+    c = create_cube(tmp_path / "nobin.zarr", (2, 2, 64), time_bin_ps=2.0, t0_ps=2.0)
+    del c.array.attrs["time_bin_ps"]
+    refused([tmp_path / "nobin.zarr"], "time_bin_ps")
+    nan = _cube(3, 3, seed=2)
+    nan[1, 1, 10] = np.nan
+    write_cube(tmp_path / "nan.zarr", nan, time_bin_ps=TB)
+    refused([tmp_path / "nan.zarr", "--nan-policy", "error"], "1 of 9 pixels have NaN")
+    np.save(tmp_path / "p.npy", _cube(1, 4, seed=3)[0])
+    refused([tmp_path / "p.npy"], "--time-bin-ps")
+    refused([cube_path, "--components", "d,x"], "--components")
+    refused([cube_path, "--option", "novalue"], "KEY=VALUE")
+    # the output path: never the input, never something else without --overwrite
+    assert main(["decompose", str(cube_path), "--out", str(cube_path), "--overwrite", "--quiet"]) == 2
+    assert "holds the input" in capsys.readouterr().err
+    assert zarr.open_group(str(cube_path), mode="r")["cube"].shape == (5, 7, 128)
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    assert main(["decompose", str(cube_path), "--out", str(out), "--quiet"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "keep me"
+    assert main(["decompose", str(cube_path), "--out", str(out), "--overwrite", "--quiet"]) == 0
+    assert open_result_store(out).done_mask().all()
+
+
+def test_nan_pixels_are_marked_invalid_and_the_rest_decomposed(tmp_path):
+    data = _cube(3, 4, seed=4)
+    data[2, 1, 50] = np.nan
+    write_cube(tmp_path / "nan.zarr", data, time_bin_ps=TB, chunks=(2, 2))
+    summary = decompose_to_store(tmp_path / "nan.zarr", tmp_path / "res.zarr", progress=False)
+    assert summary["invalid_pixels"] == 1
+    store = open_result_store(tmp_path / "res.zarr")
+    valid = store.group["valid"][...]
+    assert not valid[2, 1] and valid.sum() == 11 and store.done_mask().all()
+    assert np.isnan(store.group["direct_delay_ps"][2, 1]) and np.isfinite(store.group["rms_residual"][...]).sum() == 11
+
+
+def test_npy_input_without_components(tmp_path):
+    profiles = _cube(1, 6, seed=5)[0]  # (n, t)
+    np.save(tmp_path / "p.npy", profiles)
+    assert main(["decompose", str(tmp_path / "p.npy"), "--time-bin-ps", "2", "--out", str(tmp_path / "r.zarr"),
+                 "--no-components", "--quiet"]) == 0
+    store = open_result_store(tmp_path / "r.zarr")
+    assert store.shape == (1, 6, 128) and "direct" not in store.group
+    res = decompose(profiles, time_bin_ps=TB)
+    np.testing.assert_array_equal(store.group["direct_delay_ps"][0], res.params["direct_delay_ps"])

@@ -1,0 +1,67 @@
+"""``streaklab demo`` end to end (small settings) and ``streaklab bench speed`` on a tiny cube."""
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from decomposition.resultstore import open_result_store
+from streaklab.cli import main
+from streaklab.commands.demo import class_fidelity
+
+
+def test_class_fidelity_scores_each_class_against_its_truth():
+    rng = np.random.default_rng(0)
+    truth = {"direct": rng.random((3, 16)), "sss": np.zeros((3, 16)), "interreflections": rng.random((3, 1, 16))}
+    truth["sss"][0] = 1.0
+    perfect = class_fidelity(truth, {k: v.copy() for k, v in truth.items()})
+    assert perfect["all"]["mean"] == 1.0 and perfect["direct"]["mean"] == 1.0
+    assert perfect["sss"]["pixels"] == 1 and perfect["interreflections"]["pixels"] == 3
+    no_sss = {k: v.copy() for k, v in truth.items()}
+    no_sss["sss"][:] = 0.0
+    f = class_fidelity(truth, no_sss)
+    assert f["sss"]["mean"] == 0.0 and f["direct"]["mean"] == 1.0 and f["all"]["mean"] < 1.0
+
+
+@pytest.mark.timeout(120)
+def test_demo_on_a_synthetic_cube_prints_fidelities(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--source", "simulate", "--out", str(out), "--lines", "4", "--nx", "12", "--nt", "128",
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    for step in ("[1/5]", "[3/5]", "[4/5]", "[5/5]"):
+        assert step in printed
+    for name in ("cube.zarr", "result.zarr", "figs/frames.png", "figs/maps.png", "figs/profiles.png",
+                 "figs/summary.txt", "fidelity.json"):
+        assert (out / name).exists(), name
+        assert str(out / name) in printed
+    fid = json.loads((out / "fidelity.json").read_text())["fidelity"]
+    assert f"mean fidelity {fid['all']['mean']:.3f}" in printed
+    assert fid["direct"]["pixels"] == 48 and fid["all"]["pixels"] == 48
+    assert fid["all"]["mean"] > 0.7 and fid["direct"]["mean"] > 0.8
+    assert open_result_store(out / "result.zarr").done_mask().all()
+    # a second run replaces its own products and leaves other files alone
+    (out / "notes.txt").write_text("mine")
+    assert main(["demo", "--source", "simulate", "--out", str(out), "--lines", "2", "--nx", "4", "--nt", "64",
+                 "--quiet"]) == 0
+    assert (out / "notes.txt").read_text() == "mine"
+    assert open_result_store(out / "result.zarr").shape == (2, 4, 64)
+    capsys.readouterr()
+
+
+@pytest.mark.timeout(120)
+def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys):
+    from streaklab.bench import speed
+
+    parser = argparse.ArgumentParser()
+    speed.add_arguments(parser)
+    args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
+                              "--chunks", "1", "16", "--out", str(tmp_path)])
+    assert speed.run(args) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((tmp_path / "speed.json").read_text())
+    (run,) = report["runs"]
+    assert run["method"] == "gradbm" and run["pixels"] == 32 and run["chunks_done"] == 2
+    assert run["pixels_per_s"] > 0 and run["peak_rss_tree_mib"] > 10 and report["floor"]["pixels_per_s"] > 0
+    assert "FFT floor" in printed and "paper-size 600x672x512" in printed
+    assert not list(tmp_path.glob("work-*"))  # the synthetic cube and results are cleaned up
