@@ -107,7 +107,7 @@ FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 _WORKERS = max(1, min(2, os.cpu_count() or 1))
 _FD_STEP = 1e-6  # forward-difference step in log sigma / log alpha
 _NEAR_SIGMA = 3.0  # see _constrain
-_AMP_MAX = 1e3    # largest component peak, in units of the pixel's largest sample
+_AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
 
 
 @dataclass(frozen=True)
@@ -590,7 +590,7 @@ def _bounds(dic: Dictionary, bound_factor: float):
     g = dic.grid
     T = dic.time_bin_ps
     return {
-        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1) * T),
+        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
         "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
         "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
     }
@@ -613,15 +613,17 @@ def _best(z, dec, n_atoms, by_size=None, in_window=None):
 
     Largest decrease (Gauss-Southwell-q); rows with ``by_size`` take the
     largest coefficient among decreasing coordinates instead (Gauss-Southwell-r),
-    restricted to shifts ``in_window`` (S,) so that atoms mostly outside the
-    window, whose tiny truncated norms make any coefficient possible, are not taken.
+    restricted to the coordinates ``in_window`` (broadcast to (n, A, S)): atoms
+    mostly outside the window or on excluded (saturated) samples have tiny
+    norms that make any coefficient possible and are not taken.
     """
     flat = dec.reshape(dec.shape[0], -1)
     best = np.argmax(flat, axis=1)
     if by_size is not None and by_size.any():
         zr = np.where(flat[by_size] > 0, z.reshape(dec.shape[0], -1)[by_size], -np.inf)
         if in_window is not None:
-            zr = np.where(np.tile(in_window, dec.shape[1])[None, :], zr, -np.inf)
+            ok = np.broadcast_to(in_window, dec.shape).reshape(dec.shape[0], -1)[by_size]
+            zr = np.where(ok, zr, -np.inf)
         best[by_size] = np.argmax(zr, axis=1)
     rows = np.arange(dec.shape[0])
     return best, z.reshape(dec.shape[0], -1)[rows, best], flat[rows, best]
@@ -639,12 +641,14 @@ def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, mi
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(n2 > 0, c / n2, 0.0)
     z, dec = _closed_form(u, n2, mu[:, None, None], eps[:, None, None])
+    dec = np.where(z <= _AMP_MAX, dec, 0.0)     # peaks far above the data: edge artefacts of tiny norms
     is_s = dic.fam == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * dic.time_bin_ps
     allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
     dec = np.where(allow, dec, 0.0)
-    best, zb, db = _best(z, dec, dic.fam.size, by_size, dic.shifts >= 0)
+    eligible = (dic.shifts >= 0)[None, None, :] & (n2 >= 0.5 * dic.norm2[None])
+    best, zb, db = _best(z, dec, dic.fam.size, by_size, eligible)
     a_i, j_i = np.divmod(best, dic.shifts.size)
     fam = dic.fam[a_i]
     alpha = np.where(fam == FAM_SSS, dic.alpha_per_ps[a_i], 1.0)
@@ -702,6 +706,7 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(n2 > 0, c / n2, 0.0)
     z, dec = _closed_form(u, n2, mu[:, None, None], eps[:, None, None])
+    dec = np.where(z <= _AMP_MAX, dec, 0.0)     # peaks far above the data: edge artefacts of tiny norms
     is_s = np.array(kf) == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * T
