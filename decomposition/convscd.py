@@ -81,6 +81,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,6 +108,7 @@ FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 _WORKERS = max(1, min(2, os.cpu_count() or 1))
 _FD_STEP = 1e-6  # forward-difference step in log sigma / log alpha
 _NEAR_SIGMA = 3.0  # see _constrain
+_MIN_NOISE_SAMPLES = 12
 _AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
 
 
@@ -240,7 +242,7 @@ def get_dictionary(n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss:
     return _cached_dictionary(int(n_bins), float(time_bin_ps), float(t0_ps), grid.check(), bool(gauss), bool(sss))
 
 
-def estimate_noise(p: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: float | None = None) -> np.ndarray:
     """Robust per-pixel noise standard deviation from second differences.
 
     Parameters
@@ -248,19 +250,32 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     p : ndarray (P, L)
     w : ndarray (P, L) of 0/1, optional; second differences touching a
         zero-weight sample are ignored.
+    signal_fraction : float, optional
+        Only use second differences centred on samples whose magnitude is at
+        least this fraction of the pixel's largest sample: the noise *where
+        the signal is*, which is what matters when the noise grows with the
+        signal (photon noise).  Rows with fewer than 12 such samples get 0.
 
     Returns
     -------
     ndarray (P,): 1.4826 * median|d2 p| / sqrt(6)  (0 where fewer than 3 usable samples).
     """
     d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
-    if w is not None:
-        ok = (w[:, 2:] * w[:, 1:-1] * w[:, :-2]) > 0
-        d2 = np.where(ok, d2, np.nan)
-        with np.errstate(all="ignore"):
-            med = np.nanmedian(np.where(ok.any(axis=1, keepdims=True), d2, 0.0), axis=1)
-    else:
+    ok = np.ones(d2.shape, bool) if w is None else (w[:, 2:] * w[:, 1:-1] * w[:, :-2]) > 0
+    if signal_fraction is not None:
+        mag = np.abs(p[:, 1:-1]) if w is None else np.abs(p[:, 1:-1]) * (w[:, 1:-1] > 0)
+        ok = ok & (mag >= signal_fraction * mag.max(axis=1, keepdims=True))
+    if ok.all():
         med = np.median(d2, axis=1)
+    else:
+        d2 = np.where(ok, d2, np.nan)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN rows: no usable samples
+            med = np.nanmedian(d2, axis=1)
+        med = np.where(np.isfinite(med), med, 0.0)
+    if signal_fraction is not None:
+        # a few samples around a narrow peak measure its curvature, not the noise
+        med = np.where(ok.sum(axis=1) >= _MIN_NOISE_SAMPLES, med, 0.0)
     return 1.4826 * med / math.sqrt(6.0)
 
 
