@@ -85,6 +85,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
+from scipy import special
 
 from .model import sss_kernel
 
@@ -106,7 +107,7 @@ FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 _WORKERS = max(1, min(2, os.cpu_count() or 1))
 _FD_STEP = 1e-6  # forward-difference step in log sigma / log alpha
 _NEAR_SIGMA = 3.0  # see _constrain
-_AMP_MAX = 1e3    # largest component peak, in units of the pixel's largest sample
+_AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
 
 
 @dataclass(frozen=True)
@@ -266,41 +267,105 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # atoms with continuous parameters (refinement)
 
+_G_HALF = 8.0                   # Gaussians are evaluated within +-8 sigma (exp(-32) beyond)
+_TAIL_SIGMA = 6.0 * math.sqrt(2.0)  # past alpha sigma^2 + this many sigma, erfc(u) == 2 in float64
+_SQRT_PI_2 = math.sqrt(math.pi / 2.0)
+
+
+def _scatter(L, i0, W, cols):
+    """Place window values ``cols`` (list of (n, W)) starting at bins ``i0`` (n,) into (n, L) arrays."""
+    n = i0.size
+    i0 = np.clip(i0, -W, L)                       # windows fully outside stay fully outside
+    idx = i0[:, None] + W + np.arange(W)[None, :]
+    rows = np.arange(n)[:, None]
+    out = []
+    for c in cols:
+        buf = np.zeros((n, L + 2 * W))
+        buf[rows, idx] = c
+        out.append(buf[:, W:W + L])
+    return out
+
+
+def _window_times(t0, T, L, lo_ps, hi_ps):
+    """Bin windows covering [lo, hi] per atom: start bins (n,), common width W, times (n, W)."""
+    i0 = np.floor((lo_ps - t0) / T).astype(np.int64)
+    i1 = np.ceil((hi_ps - t0) / T).astype(np.int64)
+    W = int(min(max(int((i1 - i0).max()) + 1, 1), L + 2))
+    i0 = np.clip(i0, -W, L)
+    return i0, W, t0 + T * (i0[:, None] + np.arange(W)[None, :])
+
+
+def _sss_window(x, sig, alp):
+    """sss kernel h and unit Gaussian g at times x relative to the onset (model.py's stable forms)."""
+    g = np.exp(-0.5 * np.square(x / sig))
+    u = (alp * sig * sig - x) / (sig * math.sqrt(2.0))
+    h = np.empty_like(x)
+    pos = u >= 0
+    h[pos] = g[pos] * special.erfcx(u[pos])
+    neg = ~pos
+    a = np.broadcast_to(alp, x.shape)[neg]
+    sg = np.broadcast_to(sig, x.shape)[neg]
+    h[neg] = np.exp(-a * (x[neg] - 0.5 * a * sg * sg)) * special.erfc(u[neg])
+    return _SQRT_PI_2 * sig * h, g
+
+
 def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
-    """Evaluate atoms with flat parameter arrays (n,) on the time axis (L,).
+    """Evaluate atoms with flat parameter arrays (n,) on the uniform time axis t (L,).
 
     Returns phi (n, L) and, if wanted, jac (n, 4, L): derivatives of amp*phi
-    with respect to (amp, delay_ps, log sigma, log alpha).
+    with respect to (amp, delay_ps, log sigma, log alpha).  Gaussians are only
+    evaluated within +-8 sigma of their delay; the sss kernel uses the erfc
+    forms of ``decomposition.model`` near its onset and its exact exponential
+    tail sqrt(2 pi) sigma exp(alpha^2 sigma^2 / 2 - alpha x) beyond, so the
+    cost is one exp per sample plus special functions on a short window.
+    sss derivatives are analytic: dh/dx = g - alpha h,
+    dh/dalpha = (alpha sigma^2 - x) h - sigma^2 g,
+    dh/dsigma = h (1/sigma + alpha^2 sigma) - g (alpha sigma + x/sigma).
     """
     n, L = fam.size, t.size
+    t0 = float(t[0])
+    T = float(t[1] - t[0])
     phi = np.zeros((n, L))
     jac = np.zeros((n, 4, L)) if want_jac else None
     sig = np.exp(lsig)
     g = fam == FAM_GAUSS
     if g.any():
-        x = (t[None, :] - delay[g, None]) / sig[g, None]
+        d, sg = delay[g], sig[g]
+        i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + _G_HALF * sg)
+        x = (tw - d[:, None]) / sg[:, None]
         ph = np.exp(-0.5 * x * x)
-        phi[g] = ph
         if want_jac:
             a = amp[g, None]
-            jac[g, 0] = ph
-            jac[g, 1] = a * ph * x / sig[g, None]
-            jac[g, 2] = a * ph * x * x
+            aph = a * ph
+            phi[g], j1, j2 = _scatter(L, i0, W, [ph, aph * x / sg[:, None], aph * x * x])
+            jac[g, 0] = phi[g]
+            jac[g, 1] = j1
+            jac[g, 2] = j2
+        else:
+            phi[g], = _scatter(L, i0, W, [ph])
     s = fam == FAM_SSS
     if s.any():
-        tt = t[None, :] - delay[s, None]
-        sg, al = sig[s, None], np.exp(lalp[s, None])
-        h = sss_kernel(tt, sg, al)
+        d, sg, al = delay[s], sig[s], np.exp(lalp[s])
+        x = t[None, :] - d[:, None]
+        sgc, alc = sg[:, None], al[:, None]
+        # tail (and zero before the window), then the window with the full forms
+        start = alc * sgc * sgc + _TAIL_SIGMA * sgc
+        expo = np.minimum(0.5 * np.square(alc * sgc) - alc * x, 0.0)
+        h = np.where(x > start, math.sqrt(2.0 * math.pi) * sgc * np.exp(expo), 0.0)
+        i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + al * sg * sg + _TAIL_SIGMA * sg)
+        xw = tw - d[:, None]
+        hw, gw = _sss_window(xw, sgc, alc)
+        inwin = np.zeros((d.size, L), bool)
+        hwin, gg, mask = _scatter(L, i0, W, [hw, gw, np.ones_like(hw)])
+        inwin = mask > 0
+        h = np.where(inwin, hwin, h)
         phi[s] = h
         if want_jac:
             a = amp[s, None]
-            gg = np.exp(-0.5 * np.square(tt / sg))
-            hs = sss_kernel(tt, sg * math.exp(_FD_STEP), al)
-            ha = sss_kernel(tt, sg, al * math.exp(_FD_STEP))
             jac[s, 0] = h
-            jac[s, 1] = -a * (gg - al * h)
-            jac[s, 2] = a * (hs - h) / _FD_STEP
-            jac[s, 3] = a * (ha - h) / _FD_STEP
+            jac[s, 1] = -a * (gg - alc * h)
+            jac[s, 2] = a * sgc * (h * (1.0 / sgc + alc * alc * sgc) - gg * (alc * sgc + x / sgc))
+            jac[s, 3] = a * alc * ((alc * sgc * sgc - x) * h - sgc * sgc * gg)
     return phi, jac
 
 
@@ -309,15 +374,17 @@ def _render(t, st, want_jac=False):
     act = st["fam"] != FAM_NONE
     P, K = act.shape
     L = t.size
-    model = np.zeros((P, L))
     jac = np.zeros((P, K, 4, L)) if want_jac else None
-    if act.any():
-        pi, ki = np.nonzero(act)
-        phi, j = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
-                             st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac)
-        np.add.at(model, pi, st["amp"][pi, ki, None] * phi)
-        if want_jac:
-            jac[pi, ki] = j
+    if not act.any():
+        return np.zeros((P, L)), jac
+    pi, ki = np.nonzero(act)
+    phi, j = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
+                         st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac)
+    full = np.zeros((P, K, L))
+    full[pi, ki] = phi
+    model = np.einsum("pk,pkl->pl", np.where(act, st["amp"], 0.0), full)
+    if want_jac:
+        jac[pi, ki] = j
     return model, jac
 
 
@@ -411,16 +478,22 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
-def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False):
+def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,); returns (state, F, iterations run).
+    A pixel stops when an accepted step lowers F by less than ``tol`` times
+    F per fitted sample (a change far below what one sample's misfit can
+    resolve; it shrinks as the fit improves, so noiseless data converge
+    fully), or when its damping has grown past 1e8 (no descent step left).
     With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
     it (one width parameter); with ``sss_after_direct`` trial sss onsets are
     clipped to the earliest Gaussian's delay.  Steps are accepted per pixel
     only where F decreases.
     """
     P, K_all = st["fam"].shape
+    tol = 0.0 if tol is None else float(tol)
+    nw = np.maximum(w.sum(axis=1), 1.0)
     full, K = _compact(st)
     if K == 0:
         return st, obj, 0
@@ -493,7 +566,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         rej = idx[~better]
         lam[rej] *= 4.0
         # converged: tiny relative decrease, or damping blown up
-        small = better & (old - tobj <= 1e-8 * np.square(eps[idx]))
+        small = better & (old - tobj <= tol * old / nw[idx])
         live[idx[small]] = False
         live[rej[lam[rej] > 1e8]] = False
     out = {k: v.copy() for k, v in full.items()}
@@ -517,7 +590,7 @@ def _bounds(dic: Dictionary, bound_factor: float):
     g = dic.grid
     T = dic.time_bin_ps
     return {
-        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1) * T),
+        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
         "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
         "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
     }
@@ -540,15 +613,17 @@ def _best(z, dec, n_atoms, by_size=None, in_window=None):
 
     Largest decrease (Gauss-Southwell-q); rows with ``by_size`` take the
     largest coefficient among decreasing coordinates instead (Gauss-Southwell-r),
-    restricted to shifts ``in_window`` (S,) so that atoms mostly outside the
-    window, whose tiny truncated norms make any coefficient possible, are not taken.
+    restricted to the coordinates ``in_window`` (broadcast to (n, A, S)): atoms
+    mostly outside the window or on excluded (saturated) samples have tiny
+    norms that make any coefficient possible and are not taken.
     """
     flat = dec.reshape(dec.shape[0], -1)
     best = np.argmax(flat, axis=1)
     if by_size is not None and by_size.any():
         zr = np.where(flat[by_size] > 0, z.reshape(dec.shape[0], -1)[by_size], -np.inf)
         if in_window is not None:
-            zr = np.where(np.tile(in_window, dec.shape[1])[None, :], zr, -np.inf)
+            ok = np.broadcast_to(in_window, dec.shape).reshape(dec.shape[0], -1)[by_size]
+            zr = np.where(ok, zr, -np.inf)
         best[by_size] = np.argmax(zr, axis=1)
     rows = np.arange(dec.shape[0])
     return best, z.reshape(dec.shape[0], -1)[rows, best], flat[rows, best]
@@ -566,12 +641,14 @@ def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, mi
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(n2 > 0, c / n2, 0.0)
     z, dec = _closed_form(u, n2, mu[:, None, None], eps[:, None, None])
+    dec = np.where(z <= _AMP_MAX, dec, 0.0)     # peaks far above the data: edge artefacts of tiny norms
     is_s = dic.fam == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * dic.time_bin_ps
     allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
     dec = np.where(allow, dec, 0.0)
-    best, zb, db = _best(z, dec, dic.fam.size, by_size, dic.shifts >= 0)
+    eligible = (dic.shifts >= 0)[None, None, :] & (n2 >= 0.5 * dic.norm2[None])
+    best, zb, db = _best(z, dec, dic.fam.size, by_size, eligible)
     a_i, j_i = np.divmod(best, dic.shifts.size)
     fam = dic.fam[a_i]
     alpha = np.where(fam == FAM_SSS, dic.alpha_per_ps[a_i], 1.0)
@@ -629,6 +706,7 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(n2 > 0, c / n2, 0.0)
     z, dec = _closed_form(u, n2, mu[:, None, None], eps[:, None, None])
+    dec = np.where(z <= _AMP_MAX, dec, 0.0)     # peaks far above the data: edge artefacts of tiny norms
     is_s = np.array(kf) == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * T
@@ -652,7 +730,7 @@ def _drop_zero(st):
 
 def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
                 sparsity=3.0, eps_rel=0.01, max_iter=8, n_lm=8, bound_factor=4.0, first_gauss=None,
-                tie_sigma=True, sss_after_direct=True):
+                tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Greedy convolutional coordinate descent with local refinement on a block.
 
     Parameters
@@ -681,6 +759,9 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     sss_after_direct : bool
         The sss onset is kept at or after the earliest Gaussian (light enters
         the surface where it is directly reflected, so sss cannot arrive first).
+    lm_tol : float
+        Refinement of a pixel stops once a step gains less than lm_tol times
+        the objective per fitted sample.
     first_gauss : ndarray (P,) bool, optional
         Pixels whose first pick must come from the Gaussian family (the
         second start of :func:`solve_multistart`).
@@ -760,7 +841,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         obj[gi] = obj[gi] - bdec[go]
         sub = _take(st, gi)
         sub, o, nl = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
-                         tie_sigma, sss_after_direct)
+                         tie_sigma, sss_after_direct, lm_tol)
         # exact objective after refinement (guards against round-off in the FFT pick)
         m_sub, _ = _render(t, sub)
         exact = objective(p[gi], w[gi], m_sub, sub, mu[gi], eps[gi])
@@ -773,34 +854,40 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         lm_total += nl
     info = {"objective": hist, "n_iter": n_iter, "converged": converged, "lm_iterations": lm_total,
             "mu": mu, "eps": eps, "coordinates_searched": dic.n_coordinates,
-            "first_family": first_family}
+            "first_family": first_family,
+            "data_term": 0.5 * np.einsum("pl,pl->p", (p - model) * w, (p - model) * w)}
     return st, info
 
 
 def solve_multistart(p, w, s_eff, dic: Dictionary, **opts):
-    """Two greedy paths per pixel where they can differ; keep the lower objective.
+    """Two greedy starts per pixel where needed; keep the lower objective.
 
-    Greedy selection by largest objective decrease can start with a narrow
-    sss atom that swallows a direct peak together with the sss tail, after
-    which local refinement cannot separate them.  Where the first pick of the
-    unrestricted path was an sss atom and a Gaussian was picked later, the
-    solve is repeated with the first pick restricted to the Gaussian family;
-    each pixel keeps the path with the lower final objective (both paths are
+    Greedy selection by largest objective decrease (Gauss-Southwell-q) tends
+    to start with a narrow sss atom that swallows the direct peak together
+    with the sss tail, after which local refinement cannot separate them; it
+    also prefers a broad Gaussian covering several components.  The primary
+    start therefore takes its *first* atom from the Gaussian family by largest
+    coefficient (Gauss-Southwell-r: the atom that matches the main peak), all
+    later picks by largest decrease.  Where that start does not explain the
+    data down to the noise (data term above 1.5x its expected value for the
+    estimated noise), the unrestricted Gauss-Southwell-q start is run as well
+    and each pixel keeps the start with the lower final objective (both are
     monotone, so the kept history is too).
     """
-    st, info = solve_block(p, w, s_eff, dic, **opts)
-    first_sss = info["first_family"] == FAM_SSS
-    has_g = (st["fam"] == FAM_GAUSS).any(axis=1)
-    redo = np.nonzero(first_sss & has_g)[0]
+    has_g = bool(np.any(dic.fam == FAM_GAUSS)) and opts.get("max_gauss", 1) > 0
+    first = np.ones(p.shape[0], bool) if has_g else None
+    st, info = solve_block(p, w, s_eff, dic, first_gauss=first, **opts)
+    expected = 0.5 * w.sum(axis=1) * s_eff * s_eff
+    redo = np.nonzero(info["data_term"] > 1.5 * expected)[0] if has_g else np.zeros(0, np.int64)
     info["restarted"] = redo.size
-    if redo.size and np.any(dic.fam == FAM_GAUSS):
-        st2, info2 = solve_block(p[redo], w[redo], s_eff[redo], dic, first_gauss=np.ones(redo.size, bool), **opts)
+    if redo.size:
+        st2, info2 = solve_block(p[redo], w[redo], s_eff[redo], dic, **opts)
         f1 = _final(info["objective"][redo])
         f2 = _final(info2["objective"])
         better = f2 < f1
         b = redo[better]
         _put(st, b, _take(st2, better))
-        for key in ("objective", "n_iter", "converged", "first_family"):
+        for key in ("objective", "n_iter", "converged", "first_family", "data_term"):
             info[key][b] = info2[key][better]
         info["lm_iterations"] += info2["lm_iterations"]
     return st, info
@@ -814,7 +901,7 @@ def _final(hist):
 
 
 def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
-                 tie_sigma=True, sss_after_direct=True):
+                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
 
     The sparse step has chosen the atoms; this is the usual debiasing step
@@ -829,7 +916,28 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     eps = eps_rel * s_eff
     model, _ = _render(t, st)
     obj = objective(p, w, model, st, mu, eps)
-    st, obj, nl = _lm(t, p, w, st, mu, eps, _bounds(dic, bound_factor), n_lm, obj, tie_sigma, sss_after_direct)
+    bounds = _bounds(dic, bound_factor)
+    st, obj, nl = _lm(t, p, w, st, mu, eps, bounds, n_lm, obj, tie_sigma, sss_after_direct, lm_tol)
+    if sss_after_direct:
+        # A direct and an sss with the same onset and width are degenerate to first order
+        # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
+        lk, dsl, ssl = _linked(st)
+        rows = np.arange(st["fam"].shape[0])
+        gap = st["delay"][rows, ssl] - st["delay"][rows, dsl]
+        sig_s = np.exp(st["lsig"][rows, ssl])
+        retry = np.nonzero(lk & (gap < 0.5 * sig_s))[0]
+        if retry.size:
+            alt = _take(st, retry)
+            alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
+                                                                + sig_s[retry])
+            m_alt, _ = _render(t, alt)
+            o_alt = objective(p[retry], w[retry], m_alt, alt, mu[retry], eps[retry])
+            alt, o_alt, nl2 = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, o_alt,
+                                  tie_sigma, sss_after_direct, lm_tol)
+            better = o_alt < obj[retry]
+            _put(st, retry[better], _take(alt, better))
+            obj[retry[better]] = o_alt[better]
+            nl += nl2
     _drop_zero(st)
     model, _ = _render(t, st)
     return st, model, nl

@@ -124,7 +124,16 @@ def _tie_sigma(rows, free, present):
     return first
 
 
-def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False):
+def _onset_at_direct(slots):
+    """Pixels whose sss onset sits at the lower bound sss_delay >= direct_delay (the constraint is active)."""
+    pres = slots["present"]
+    d, s = slots["delay"][:, 0], slots["delay"][:, _SSS]
+    with np.errstate(invalid="ignore"):
+        return pres[:, 0] & pres[:, _SSS] & (s - d <= 1e-9 * np.maximum(1.0, np.abs(d)))
+
+
+def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
+                      tie_onset=False):
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
@@ -142,6 +151,12 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
             rows *= sw[ch, None, :]
         if shared_sigma:
             tied[ch] = _tie_sigma(rows, fr, sub["present"])
+        if tie_onset:
+            # An active onset constraint leaves one delay for both components.
+            on = np.flatnonzero(_onset_at_direct(sub))
+            rows[on, 0] += rows[on, 3 * _SSS]
+            rows[on, 3 * _SSS] = 0.0
+            fr[on, 3 * _SSS] = False
         info[ch] = rows @ rows.swapaxes(-1, -2)
         free[ch] = fr
     slots["tied_slot"] = tied if shared_sigma else None
@@ -243,10 +258,14 @@ def _to_dict(std, slots, lead, suffix):
     return {key + suffix: out[key + suffix] for key in order}
 
 
-def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False):
+def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False,
+           tie_onset=False):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated, sw, shared_sigma)
+                                                            bin_integrated, sw, shared_sigma, tie_onset)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
+    if tie_onset:
+        on = _onset_at_direct(slots)
+        std_unit[on, 3 * _SSS] = std_unit[on, 0]
     if shared_sigma:
         n, k = slots["present"].shape
         tied = std_unit[np.arange(n), 3 * slots["tied_slot"] + 2]
@@ -293,7 +312,8 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
 
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                    weights=None, shared_sigma: bool = False, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                    weights=None, shared_sigma: bool = False, sss_after_direct: bool = False,
+                    bin_integrated: bool = False) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     The noise level of each pixel is estimated from its residual,
@@ -315,6 +335,10 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         estimate is that of a unit-weight sample.
     shared_sigma : bool
         The fit used one width per pixel (as ``refine(shared_sigma=True)``).
+    sss_after_direct : bool
+        The fit kept sss onsets at or after the direct delay.  Where that
+        constraint is active (onset equal to the direct delay) the two delays
+        are one parameter, and both get its standard error.
 
     Returns
     -------
@@ -363,11 +387,13 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     n_fitted = 3 * present.sum(axis=-1) + present[:, _SSS]
     if shared_sigma:
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
+    if sss_after_direct:
+        n_fitted = n_fitted - _onset_at_direct(slots)
     dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw, shared_sigma)
+                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

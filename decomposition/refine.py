@@ -426,7 +426,14 @@ def _amp_violations(c, present):
     return np.sum(present & ~(c > 0), axis=-1)
 
 
-def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
+def _onset_after_direct(theta, present):
+    """Project sss onsets onto delay >= direct delay where a pixel has both (theta[:, 0] / [:, 1])."""
+    both = present[:, 0] & present[:, _SSS]
+    theta[:, _SSS] = np.where(both, np.maximum(theta[:, _SSS], theta[:, 0]), theta[:, _SSS])
+    return theta
+
+
+def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False):
     n = y.shape[0]
     present = slots["present"]
     free = lay.free(present)
@@ -434,6 +441,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
     theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
     theta = np.where(free, theta, 0.0)
     theta = np.clip(theta, lo, hi)
+    if sss_after_direct:
+        theta = _onset_after_direct(theta, present)
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -473,6 +482,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None):
         rhs = np.where(fr, -gi, 0.0)
         step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         trial = np.clip(theta[idx] + step, lo, hi)
+        if sss_after_direct:
+            trial = _onset_after_direct(trial, present[idx])
         trial = np.where(fr, trial, 0.0)
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx])
@@ -526,7 +537,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            max_iter: int = 20, ftol: float = 1e-6, block_size: int = 4096,
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
-           shared_sigma: bool = False, weights=None, bin_integrated: bool = False):
+           shared_sigma: bool = False, sss_after_direct: bool = False, weights=None,
+           bin_integrated: bool = False):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -557,6 +569,11 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         the mean of the present ones).  Fewer unknowns and no width/delay
         trade-off between overlapping components; use it when the data come
         from one PSF.  Default: each component has its own width.
+    sss_after_direct : bool
+        Keep every sss onset at or after its pixel's direct delay (light enters
+        the surface where it is directly reflected).  A pixel whose sss rising
+        edge sits under its direct peak is nearly degenerate in least squares;
+        the constraint (enforced by projection) removes that freedom.
     weights : array_like, shape (..., L), optional
         Non-negative per-sample weights of the least-squares fit (1 / variance
         for heteroscedastic noise; 0 excludes a sample, e.g. a saturated one,
@@ -634,7 +651,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         sub["amplitude"] = slots["amplitude"][sl] / sc[:, None]
         with np.errstate(under="ignore"):
             out, inf = _refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
-                                     int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl])
+                                     int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
+                                     bool(sss_after_direct))
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],

@@ -229,3 +229,102 @@ def test_shared_sigma_fits_one_width_per_pixel():
     err_shared = np.sqrt(np.mean((r["direct_delay_ps"] - p["direct_delay_ps"]) ** 2))
     err_indep = np.sqrt(np.mean((ri["direct_delay_ps"] - p["direct_delay_ps"]) ** 2))
     assert err_shared < 1.2 * err_indep
+
+
+# ---- integration with decompose(): refine=True / stderr=True ------------------------------------
+
+def _synthetic(n, nsr, seed, kinds=("a", "b", "c"), n_bins=256):
+    from decomposition.synthetic import make_profiles
+
+    return make_profiles(n, n_bins, nsr=nsr, noise="white", seed=seed, kinds=kinds, time_bin_ps=T)
+
+
+@pytest.mark.timeout(60)
+def test_decompose_refine_never_worse_and_adds_standard_errors():
+    from decomposition import decompose
+
+    d = _synthetic(18, 0.03, 21)
+    base = decompose(d.noisy, T)
+    assert not any(k.endswith("_stderr") for k in base.params)
+    res = decompose(d.noisy, T, refine=True)
+    assert res.info["refine"] and res.info["stderr"] and res.info["refine_iterations"].shape == (18,)
+    rss_base = np.sum(base.residual**2, axis=-1)
+    rss_ref = np.sum(res.residual**2, axis=-1)
+    assert np.all(rss_ref <= rss_base * (1 + 1e-12))
+    for key in ("direct_delay_ps", "sss_alpha_per_ps", "ir_delay_ps"):
+        se = res.params[key + "_stderr"]
+        assert se.shape == res.params[key].shape
+        np.testing.assert_array_equal(np.isfinite(se) & np.isfinite(res.params[key]), np.isfinite(se))
+    assert np.isfinite(res.params["direct_delay_ps_stderr"]).mean() > 0.8
+    only_se = decompose(d.noisy, T, stderr=True)
+    assert "direct_delay_ps_stderr" in only_se.params and "refined" not in only_se.info
+
+
+@pytest.mark.timeout(60)
+def test_refine_takes_on_grid_output_off_the_grid():
+    from decomposition import decompose
+
+    d = _synthetic(24, 0.01, 22)
+    on = decompose(d.noisy, T, off_grid=False, n_sigma=10, n_alpha=10)
+    ref = decompose(d.noisy, T, off_grid=False, n_sigma=10, n_alpha=10, refine=True)
+    err_on = np.nanmedian(np.abs(on.params["direct_delay_ps"] - d.params["direct_delay_ps"]))
+    err_ref = np.nanmedian(np.abs(ref.params["direct_delay_ps"] - d.params["direct_delay_ps"]))
+    assert err_on > 0.2  # grid-snapped delays are off by up to half a bin (1 ps) ...
+    assert err_ref < 0.25 * err_on  # ... refined ones are not
+
+
+@pytest.mark.timeout(60)
+def test_decompose_standard_errors_match_the_crb_for_isolated_direct_components():
+    from decomposition import decompose
+    from decomposition.fisher import cramer_rao_bound
+
+    d = _synthetic(60, 0.05, 23, kinds="d")
+    res = decompose(d.noisy, T, refine=True)
+    noise = np.linalg.norm(d.noisy - d.clean, axis=-1) / np.sqrt(d.clean.shape[-1])
+    crb = cramer_rao_bound(d.params, noise, n_bins=d.clean.shape[-1], time_bin_ps=T, shared_sigma=True)
+    ratio = res.params["direct_delay_ps_stderr"] / crb["direct_delay_ps_crb"]
+    assert np.all(np.isfinite(ratio))
+    assert 0.85 < np.median(ratio) < 1.15
+    err = res.params["direct_delay_ps"] - d.params["direct_delay_ps"]
+    assert np.sqrt(np.mean(err**2)) < 1.5 * np.sqrt(np.mean(crb["direct_delay_ps_crb"] ** 2))
+
+
+def test_decompose_refine_with_saturated_uint16_input():
+    from decomposition import POOR_FIT, decompose
+
+    rng = np.random.default_rng(24)
+    p = _scene(6, 1, rng)
+    gain = 80000.0 / p["direct_amplitude"][:, None]  # every direct peak 20 % above the 16-bit range
+    clean = render_profile(p, 200, T) * gain
+    y = np.clip(clean + 300.0 * rng.standard_normal(clean.shape), 0, 65535).astype(np.uint16)
+    sat = y == 65535
+    assert sat.any(axis=-1).all()
+    base = decompose(y, T)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = decompose(y, T, refine=True)
+    # Never worse on the samples that are fitted (saturated ones are excluded) ...
+    rss = lambda r: np.sum(np.where(sat, 0.0, r.residual) ** 2, axis=-1)  # noqa: E731
+    assert np.all(rss(res) <= rss(base) * (1 + 1e-12))
+    # ... and right wherever the sparse step found the right components (its fit is not POOR_FIT).
+    ok = (base.flags & POOR_FIT) == 0
+    assert ok.sum() >= 2
+    np.testing.assert_allclose(res.params["direct_delay_ps"][ok], p["direct_delay_ps"][ok], atol=0.5)
+    np.testing.assert_allclose(res.params["direct_amplitude"][ok], 80000.0, rtol=0.05)
+    assert np.all(np.isfinite(res.params["direct_delay_ps_stderr"][ok]))
+
+
+def test_stderr_with_the_onset_constraint_active():
+    from decomposition.fisher import standard_errors
+
+    p = empty_params((1,), 0)
+    p.update(direct_delay_ps=np.array([80.0]), direct_amplitude=np.array([1.0]), direct_sigma_ps=np.array([3.0]),
+             sss_delay_ps=np.array([80.0]), sss_amplitude=np.array([0.05]), sss_alpha_per_ps=np.array([0.03]),
+             sss_sigma_ps=np.array([3.0]))
+    y = render_profile(p, 200, T) + 0.01 * np.random.default_rng(25).standard_normal((1, 200))
+    free = standard_errors(y, p, time_bin_ps=T, shared_sigma=True)
+    tied = standard_errors(y, p, time_bin_ps=T, shared_sigma=True, sss_after_direct=True)
+    assert tied["sss_delay_ps_stderr"][0] == tied["direct_delay_ps_stderr"][0]
+    assert np.isfinite(tied["direct_delay_ps_stderr"][0])
+    # Without the tie the two delays at one onset are (nearly) indistinguishable.
+    assert not (free["direct_delay_ps_stderr"][0] < 2 * tied["direct_delay_ps_stderr"][0])

@@ -312,3 +312,54 @@ def test_fault_kinds_are_checked():
         sim.inject("explode")
     with pytest.raises(ValueError, match="code"):
         sim.inject("error")
+
+
+# ------------------------------------------------------------------- scene
+def test_scene_rendering_equals_render_profile_on_a_linear_sweep():
+    from dataclasses import replace
+
+    from decomposition.model import render_profile
+
+    linear = replace(SCENE, time_calibration=np.array([2.0, 2.0]))
+    for line in (0, 4):
+        got = linear.clean_line(line)
+        ref = render_profile(linear.line_params(line), SCENE.n_t, time_bin_ps=2.0, t0_ps=2.0)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-15)
+        shifted = linear.clean_line(line, delay_ps=30.0)
+        ref = render_profile(linear.line_params(line), SCENE.n_t, time_bin_ps=2.0, t0_ps=32.0)
+        np.testing.assert_allclose(shifted, ref, rtol=1e-12, atol=1e-15)
+
+
+def test_scene_sweep_times_delay_and_time_range():
+    t = SCENE.row_times_ps()
+    assert t[0] == pytest.approx(2.0) and np.all(np.diff(t) > 0)
+    assert np.all(np.diff(t, 2) > 0)                       # the sweep slows down: not linear
+    np.testing.assert_allclose(SCENE.row_times_ps(25.0), t + 25.0)
+    np.testing.assert_allclose(SCENE.row_times_ps(0.0, time_range=3), 2.0 * t)
+    with pytest.raises(ValueError, match="time_range"):
+        SCENE.row_times_ps(0.0, time_range=7)
+
+
+def test_default_scene_has_every_component_inside_the_window():
+    p, window = SCENE.params, SCENE.row_times_ps()[-1]
+    has_sss = np.isfinite(p["sss_amplitude"])
+    has_ir = np.isfinite(p["ir_amplitude"]).any(axis=-1)
+    assert has_sss.sum() > 10 and has_ir.sum() > 10 and np.all(np.isfinite(p["direct_delay_ps"]))
+    for key in ("direct_delay_ps", "sss_delay_ps", "ir_delay_ps"):
+        d = p[key][np.isfinite(p[key])]
+        assert d.min() > 20.0 and d.max() < 0.85 * window
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"time_calibration": np.array([0.0, 2.0, -0.05])}, "not strictly increasing"),
+    ({"angle_deg": np.zeros(8)}, "strictly increasing"),
+    ({"angle_deg": np.arange(5.0)}, "n_lines"),
+    ({"photon_scale": -1.0}, "photon_scale"),
+    ({"time_range": 9}, "time_range"),
+])
+def test_scene_validation_names_the_problem(change, message):
+    fields = dict(params=SCENE.params, angle_deg=SCENE.angle_deg, n_t=SCENE.n_t,
+                  time_calibration=SCENE.time_calibration)
+    fields.update(change)
+    with pytest.raises(ValueError, match=message):
+        VirtualScene(**fields)

@@ -13,6 +13,7 @@ import pytest
 
 from drivers.errors import ConnectionLost
 from drivers.remoteex import RemoteExCamera
+from drivers.scpi_sync import ScpiLaserSync
 from drivers.sim import SimulatedLab
 from drivers.sim.scene import VirtualScene
 from drivers.smc100 import SMC100Mirror
@@ -60,6 +61,30 @@ def test_lab_mirror_moves_select_the_scan_line_the_camera_shows():
                 assert lab.camera.last_frame_info["line"] == line
                 assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0
         assert lab.describe()["mirror"] == lab.mirror_port
+
+
+def test_full_lab_sync_output_and_delay_reach_the_camera():
+    with SimulatedLab(seed=1, scene=SMALL) as lab:
+        backend = lab.usb_backend
+        with ScpiLaserSync(vendor_id=backend.vendor_id, product_id=backend.product_id, backend=backend) as sync, \
+                SMC100Mirror(lab.mirror_port) as mirror, \
+                RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+            assert "SLS" in sync.identify()
+            mirror.home(timeout_s=5.0)
+            mirror.move_to(float(SMALL.angle_deg[1]))
+            mirror.wait_settled(timeout_s=5.0)
+            sync.set_output(False)
+            dark = cam.acquire().data
+            assert abs(dark.mean() - SMALL.dark_level) < 1.0
+            sync.set_output(True)
+            sync.set_trigger_delay(0.0)
+            at0 = cam.acquire().data
+            sync.set_trigger_delay(40.0)
+            at40 = cam.acquire().data
+        assert lab.state.sync_delay_ps == pytest.approx(40.0)
+        assert np.abs(at0 - SMALL.expected_counts(1)).mean() < 5.0
+        assert np.abs(at40 - SMALL.expected_counts(1, delay_ps=40.0)).mean() < 5.0
+        assert np.argmax(at40.sum(axis=0)) < np.argmax(at0.sum(axis=0))
 
 
 def test_same_seed_labs_give_the_same_bytes():

@@ -39,8 +39,8 @@ class SimulatedLab:
     frame_time_s : float
         Simulated duration of one camera acquisition.
     mirror, sync : bool or None
-        Start the mirror / laser-sync simulator: True requires it, False leaves
-        it out, None (default) starts it when its module is available.
+        Start the mirror / laser-sync simulator: True (default) requires it,
+        False leaves it out, None starts it when its module is available.
     mirror_options, sync_options : dict, optional
         Extra keyword arguments for ``MirrorSimulator`` and ``UsbtmcBackend``.
 
@@ -54,7 +54,7 @@ class SimulatedLab:
     """
 
     def __init__(self, seed: int = 0, scene: VirtualScene | None = None, *, camera_port: int = 0,
-                 frame_time_s: float = 0.002, mirror: bool | None = None, sync: bool | None = None,
+                 frame_time_s: float = 0.002, mirror: bool | None = True, sync: bool | None = True,
                  mirror_options: dict | None = None, sync_options: dict | None = None):
         self.seed = int(seed)
         self.scene = scene if scene is not None else VirtualScene.default(seed=self.seed)

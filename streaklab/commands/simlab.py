@@ -44,10 +44,10 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(f"scene: {exc}") from None
     lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
-                       mirror=False if args.no_mirror else None, sync=False)
+                       mirror=not args.no_mirror, sync=False)
     try:
         lab.start()
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:
         raise CommandError(f"cannot start the simulators: {exc}") from None
     stop = threading.Event()
 
@@ -63,8 +63,6 @@ def run(args) -> int:
         if "mirror" in info:
             print(f"mirror {info['mirror']}")
             print(f"mirror-stable {info['mirror_stable']}")
-        elif not args.no_mirror:
-            print(f"mirror-unavailable ({lab.unavailable.get('mirror', 'not started')})".replace("\n", " "))
         print(f"laser-output {'off' if args.dark else 'on'}")
         print("ready", flush=True)
         print("streaklab sim-lab: serving; Ctrl-C to stop", file=sys.stderr, flush=True)
