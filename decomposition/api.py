@@ -284,7 +284,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     pn[idx_live] = xs[idx_live] / scale[idx_live, None]
     s_est = np.zeros(P)
     if idx_live.size:
-        s_est[idx_live] = cs.estimate_noise(pn[idx_live], w[idx_live])
+        s_est[idx_live] = _noise(pn[idx_live], w[idx_live])
     s_eff = np.maximum(s_est, noise_floor)
 
     if spike_sigma and idx_live.size:
@@ -299,7 +299,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         flags[idx_live[~ok]] |= EMPTY
         idx_live = idx_live[ok]
         pn[idx_live] = xs[idx_live] / scale[idx_live, None]
-        s_eff[idx_live] = np.maximum(cs.estimate_noise(pn[idx_live], w[idx_live]), noise_floor)
+        s_eff[idx_live] = np.maximum(_noise(pn[idx_live], w[idx_live]), noise_floor)
 
     t = time_axis_ps(L, T, t0)
     if method == "gradbm":
@@ -401,6 +401,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         flags=flags.reshape(lead),
         info=info,
     )
+
+
+def _noise(pn, w):
+    """Per-pixel noise level: the larger of the whole-profile estimate and the estimate
+    over the samples above 10 % of the peak (noise that grows with the signal, as photon
+    noise does, is then not underestimated from the quiet part of the window)."""
+    return np.maximum(cs.estimate_noise(pn, w), cs.estimate_noise(pn, w, signal_fraction=0.1))
 
 
 def _spikes(pn, w, s, T, sigma_min_ps, k_sigma):
