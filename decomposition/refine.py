@@ -26,9 +26,19 @@ enforced by projection.
 
 Everything is batched over a block of pixels: slot arrays of shape
 (pixels, K) with K = 2 + R (direct, sss, inter-reflections r2..), absent slots
-masked (zero basis column, identity row in the normal equations).  The only
-Python loops are over LM iterations, over blocks of pixels and over the
-quadrature nodes of bin-integrated sampling.
+masked (zero basis column, identity row in the normal equations).  Each LM
+iteration works on the block's still-active pixels at once; the L-length work
+(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y]) is
+done in cache-sized chunks of pixels, which is several times faster than
+whole-block temporaries.  The only Python loops are over LM iterations, blocks
+and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
+Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
+step lowers its RSS by less than ``ftol`` relative, or when no step helps.
+
+Options: ``shared_sigma`` refines one PSF width per pixel for all its
+components (eq. (2) has a single camera PSF); ``sss_after_direct`` keeps the
+sss onset at or after the direct delay (projection); ``weights`` give per-sample
+weights (0 excludes saturated or spiky samples).
 
 Each pixel is normalised by its peak magnitude before fitting, so any overall
 scale (1e-30 .. 1e30) gives the same parameters and scaled amplitudes.  A

@@ -290,7 +290,7 @@ def test_decompose_standard_errors_match_the_crb_for_isolated_direct_components(
 
 
 def test_decompose_refine_with_saturated_uint16_input():
-    from decomposition import POOR_FIT, decompose
+    from decomposition import decompose
 
     rng = np.random.default_rng(24)
     p = _scene(6, 1, rng)
@@ -306,8 +306,9 @@ def test_decompose_refine_with_saturated_uint16_input():
     # Never worse on the samples that are fitted (saturated ones are excluded) ...
     rss = lambda r: np.sum(np.where(sat, 0.0, r.residual) ** 2, axis=-1)  # noqa: E731
     assert np.all(rss(res) <= rss(base) * (1 + 1e-12))
-    # ... and right wherever the sparse step found the right components (its fit is not POOR_FIT).
-    ok = (base.flags & POOR_FIT) == 0
+    # ... and still right wherever the sparse step got the direct component right.
+    ok = (np.abs(base.params["direct_delay_ps"] - p["direct_delay_ps"]) < 0.5) & (
+        np.abs(base.params["direct_amplitude"] / 80000.0 - 1) < 0.05)
     assert ok.sum() >= 2
     np.testing.assert_allclose(res.params["direct_delay_ps"][ok], p["direct_delay_ps"][ok], atol=0.5)
     np.testing.assert_allclose(res.params["direct_amplitude"][ok], 80000.0, rtol=0.05)
