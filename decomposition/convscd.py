@@ -506,6 +506,40 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
+def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
+    """Gauss-Newton normal equations of the pixels in ``sub`` at their current state.
+
+    Returns a dict with JtJ (n, 4K, 4K), g = J^T r (n, 4K), d = diag(JtJ),
+    free (n, 4K), tied (n,), and the direct/sss link (linked, dsl, ssl).
+    """
+    n, K = sub["fam"].shape
+    jac = jac * _jw(p, model, w)[:, None, None, :]
+    r = _cres(p, model, w)
+    act = sub["fam"] != FAM_NONE
+    free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
+    free[:, :, 3] &= sub["fam"] == FAM_SSS
+    tied = _tied(sub) if tie_sigma else np.zeros(n, bool)
+    if tied.any():
+        jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
+        free[tied, 1:, 2] = False
+    if sss_after_direct:
+        # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
+        # delay column moves both, the sss delay column moves the gap only
+        lk, dsl, ssl = _linked(sub)
+        rows = np.nonzero(lk)[0]
+        jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
+    else:
+        lk, dsl, ssl = np.zeros(n, bool), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    # float32 products: the normal equations only propose steps; acceptance uses the
+    # float64 objective, so their rounding cannot break monotonicity
+    J = jac.reshape(n, 4 * K, -1).astype(np.float32)
+    JtJ = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
+    g = np.matmul(J, r.astype(np.float32)[:, :, None])[..., 0].astype(np.float64)
+    ai = np.arange(4 * K)
+    return {"JtJ": JtJ, "g": g, "d": JtJ[:, ai, ai].copy(), "free": free.reshape(n, 4 * K), "tied": tied,
+            "lk": lk, "dsl": dsl, "ssl": ssl}
+
+
 def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
@@ -515,9 +549,11 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     resolve; it shrinks as the fit improves, so noiseless data converge
     fully), or when its damping has grown past 1e8 (no descent step left).
     With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
-    it (one width parameter); with ``sss_after_direct`` trial sss onsets are
-    clipped to the earliest Gaussian's delay.  Steps are accepted per pixel
-    only where F decreases.
+    it (one width parameter); with ``sss_after_direct`` a near sss onset moves
+    with the direct and its gap stays >= 0.  Steps are accepted per pixel only
+    where F decreases.  Each trial is rendered once, with its Jacobian, so an
+    accepted step needs no second evaluation and a rejected one only a new
+    damped solve of the cached normal equations.
     """
     P, K_all = st["fam"].shape
     tol = 0.0 if tol is None else float(tol)
@@ -528,7 +564,8 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     st = {k: v[:, :K].copy() for k, v in full.items()}
     lam = np.full(P, 1e-3)
     live = np.ones(P, bool)
-    ai = np.arange(4 * K)
+    model, jac = _render(t, st, want_jac=True)
+    ne = _normal_equations(p, w, st, model, jac, tie_sigma, sss_after_direct)
     it = 0
     for it in range(1, n_iter + 1):
         idx = np.nonzero(live)[0]
@@ -536,32 +573,13 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             it -= 1
             break
         sub = _take(st, idx)
-        model, jac = _render(t, sub, want_jac=True)
-        ww = w[idx]
-        r = _cres(p[idx], model, ww)
-        jac *= _jw(p[idx], model, ww)[:, None, None, :]
+        e = {k: v[idx] for k, v in ne.items()}
         act = sub["fam"] != FAM_NONE
-        free = np.repeat(act, 4, axis=1).reshape(idx.size, K, 4)
-        free[:, :, 3] &= sub["fam"] == FAM_SSS
-        tied = _tied(sub) if tie_sigma else np.zeros(idx.size, bool)
-        if tied.any():
-            jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
-            free[tied, 1:, 2] = False
-        if sss_after_direct:
-            # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
-            # delay column moves both, the sss delay column moves the gap only
-            lk, dsl, ssl = _linked(sub)
-            if lk.any():
-                rows = np.nonzero(lk)[0]
-                jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
-        free = free.reshape(idx.size, 4 * K)
-        J = jac.reshape(idx.size, 4 * K, -1)
-        JtJ = np.matmul(J, J.transpose(0, 2, 1))
-        g = np.matmul(J, r[:, :, None])[..., 0]
-        d = JtJ[:, ai, ai].copy()
-        fixed = ~free | ~(d > 0)
-        step = _damped_step(JtJ, g, d, fixed, lam[idx])
-        if sss_after_direct and lk.any():
+        fixed = ~e["free"] | ~(e["d"] > 0)
+        step = _damped_step(e["JtJ"], e["g"], e["d"], fixed, lam[idx])
+        lk, dsl, ssl, tied = e["lk"], e["dsl"], e["ssl"], e["tied"]
+        rows = np.nonzero(lk)[0]
+        if rows.size:
             # active set for the gap >= 0 bound: a gap at 0 whose step points below it is
             # pinned and the step re-solved without it
             col = 4 * ssl[rows] + 1
@@ -570,7 +588,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             if pin.any():
                 pr = rows[pin]
                 fixed[pr, col[pin]] = True
-                step[pr] = _damped_step(JtJ[pr], g[pr], d[pr], fixed[pr], lam[idx[pr]])
+                step[pr] = _damped_step(e["JtJ"][pr], e["g"][pr], e["d"][pr], fixed[pr], lam[idx[pr]])
         step = np.where(np.isfinite(step), step, 0.0).reshape(idx.size, K, 4)
         trial = {k: v.copy() for k, v in sub.items()}
         trial["amp"] = np.where(act, np.clip(sub["amp"] + step[..., 0], 0.0, _AMP_MAX / sub["pen"]), 0.0)
@@ -580,14 +598,19 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         trial["lsig"] = lsig
         trial["lalp"] = np.where(sub["fam"] == FAM_SSS,
                                  np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
-        if sss_after_direct and lk.any():
+        if rows.size:
             trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
         _constrain(trial, sss_after_direct)
-        tmodel, _ = _render(t, trial)
-        tobj = objective(p[idx], ww, tmodel, trial, mu[idx], eps[idx])
+        tmodel, tjac = _render(t, trial, want_jac=True)
+        tobj = objective(p[idx], w[idx], tmodel, trial, mu[idx], eps[idx])
         better = tobj < obj[idx]
         acc = idx[better]
-        _put(st, acc, _take(trial, better))
+        if acc.size:
+            tb = _take(trial, better)
+            _put(st, acc, tb)
+            new = _normal_equations(p[acc], w[acc], tb, tmodel[better], tjac[better], tie_sigma, sss_after_direct)
+            for k, v in new.items():
+                ne[k][acc] = v
         old = obj[idx]
         obj[acc] = tobj[better]
         lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
