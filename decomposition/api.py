@@ -194,8 +194,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         surface where it is directly reflected).  Removes the near-degeneracy
         of a direct peak and an sss rising edge at the same onset.
     multistart : bool
-        Second greedy path where the first pick was an sss atom (see
-        ``convscd.solve_multistart``).
+        Where the primary (Gaussian-first) start leaves a fit above the noise,
+        also run the unrestricted largest-decrease start and keep the lower
+        objective (see ``convscd.solve_multistart``).
     block_size : int
         Pixels per solver block.
     refine : bool
