@@ -265,6 +265,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     flags[~finite] |= NONFINITE
 
     w = np.ones((P, L))
+    sat = np.zeros((P, L), bool)
     if saturation_level is not None:
         sat = x >= float(saturation_level)
         w[sat] = 0.0
@@ -326,8 +327,12 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         solver = cs.solve_multistart if multistart else cs.solve_block
         for b0 in range(0, idx_live.size, int(block_size)):
             bi = idx_live[b0:b0 + int(block_size)]
-            pb, wb, sb = pn[bi], w[bi], s_eff[bi]
-            st, sinfo = solver(pb, wb, sb, dic, **opts)
+            # saturated samples: excluded while atoms are picked, censored in the final refinement
+            # (code 2: the true value is at least the clip level, only a model below it is a misfit)
+            pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
+            wb = np.where(sat[bi], 2.0, w[bi])
+            sb = s_eff[bi]
+            st, sinfo = solver(pb, np.where(sat[bi], 0.0, wb), sb, dic, **opts)   # picks: saturated excluded
             hist[bi] = sinfo["objective"]
             n_iter[bi] = sinfo["n_iter"]
             lm_total += sinfo["lm_iterations"]
@@ -370,8 +375,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     residual = x - total
     # quality: residual against the noise estimate on the samples that were fitted
     if idx_live.size:
-        rw = residual[idx_live] * w[idx_live] / scale[idx_live, None]
-        nw = np.maximum(w[idx_live].sum(axis=1), 1.0)
+        rr = residual[idx_live]
+        rw = np.where(sat[idx_live], np.maximum(rr, 0.0), rr * w[idx_live]) / scale[idx_live, None]
+        nw = np.maximum(((w[idx_live] > 0) | sat[idx_live]).sum(axis=1), 1.0)
         rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
         bad = rms > poor_fit * s_eff[idx_live]
         flags[idx_live[bad]] |= POOR_FIT

@@ -10,9 +10,11 @@ i.e. eq. (5) with the *squared* l2 data term (the standard form for coordinate
 descent: it makes every one-dimensional sub-problem a quadratic plus a
 log-sum term with a closed-form minimiser) and the log-sum sparsity penalty
 written as ``log(1 + |z|/eps)`` (the paper's ``log|z|`` shifted so that a zero
-coefficient costs nothing; ``eps`` keeps it finite).  ``w`` is a 0/1 sample
-weight: saturated samples and detected single-sample spikes are excluded from
-the fit.  Coefficients are non-negative (light adds up; this also stops noise
+coefficient costs nothing; ``eps`` keeps it finite).  ``w`` is a per-sample
+code: 1 fitted, 0 excluded (detected single-sample spikes), 2 censored from
+below (saturated: the true value is at least the recorded one, so only a model
+*below* it is a misfit, contributing max(p - model, 0)^2; such samples are
+never used to pick atoms).  Coefficients are non-negative (light adds up; this also stops noise
 from being explained by negative atoms).
 
 Dictionary.  k1: unit-peak Gaussians g(t; sigma) over a sigma grid; k2: sss
@@ -403,9 +405,20 @@ def _render(t, st, want_jac=False):
     return model, jac
 
 
+def _cres(p, model, w):
+    """Residual under the sample codes w (1 fitted, 0 excluded, 2 censored from below)."""
+    r = p - model
+    return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
+
+
+def _jw(p, model, w):
+    """Jacobian row weights matching :func:`_cres` (0/1)."""
+    return np.where(w == 2, (p - model) > 0, w == 1).astype(np.float64)
+
+
 def objective(p, w, model, st, mu, eps):
-    """F per pixel (P,): 1/2 ||w (p - model)||^2 + mu sum log(1 + pen_scale*amp/eps)."""
-    r = (p - model) * w
+    """F per pixel (P,): 1/2 ||residual||^2 (see _cres) + mu sum log(1 + pen_scale*amp/eps)."""
+    r = _cres(p, model, w)
     pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
     return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
 
@@ -493,6 +506,40 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
+def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
+    """Gauss-Newton normal equations of the pixels in ``sub`` at their current state.
+
+    Returns a dict with JtJ (n, 4K, 4K), g = J^T r (n, 4K), d = diag(JtJ),
+    free (n, 4K), tied (n,), and the direct/sss link (linked, dsl, ssl).
+    """
+    n, K = sub["fam"].shape
+    jac = jac * _jw(p, model, w)[:, None, None, :]
+    r = _cres(p, model, w)
+    act = sub["fam"] != FAM_NONE
+    free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
+    free[:, :, 3] &= sub["fam"] == FAM_SSS
+    tied = _tied(sub) if tie_sigma else np.zeros(n, bool)
+    if tied.any():
+        jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
+        free[tied, 1:, 2] = False
+    if sss_after_direct:
+        # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
+        # delay column moves both, the sss delay column moves the gap only
+        lk, dsl, ssl = _linked(sub)
+        rows = np.nonzero(lk)[0]
+        jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
+    else:
+        lk, dsl, ssl = np.zeros(n, bool), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    # float32 products: the normal equations only propose steps; acceptance uses the
+    # float64 objective, so their rounding cannot break monotonicity
+    J = jac.reshape(n, 4 * K, -1).astype(np.float32)
+    JtJ = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
+    g = np.matmul(J, r.astype(np.float32)[:, :, None])[..., 0].astype(np.float64)
+    ai = np.arange(4 * K)
+    return {"JtJ": JtJ, "g": g, "d": JtJ[:, ai, ai].copy(), "free": free.reshape(n, 4 * K), "tied": tied,
+            "lk": lk, "dsl": dsl, "ssl": ssl}
+
+
 def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
@@ -502,20 +549,23 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     resolve; it shrinks as the fit improves, so noiseless data converge
     fully), or when its damping has grown past 1e8 (no descent step left).
     With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
-    it (one width parameter); with ``sss_after_direct`` trial sss onsets are
-    clipped to the earliest Gaussian's delay.  Steps are accepted per pixel
-    only where F decreases.
+    it (one width parameter); with ``sss_after_direct`` a near sss onset moves
+    with the direct and its gap stays >= 0.  Steps are accepted per pixel only
+    where F decreases.  Each trial is rendered once, with its Jacobian, so an
+    accepted step needs no second evaluation and a rejected one only a new
+    damped solve of the cached normal equations.
     """
     P, K_all = st["fam"].shape
     tol = 0.0 if tol is None else float(tol)
-    nw = np.maximum(w.sum(axis=1), 1.0)
+    nw = np.maximum((w > 0).sum(axis=1), 1.0)
     full, K = _compact(st)
     if K == 0:
         return st, obj, 0
     st = {k: v[:, :K].copy() for k, v in full.items()}
     lam = np.full(P, 1e-3)
     live = np.ones(P, bool)
-    ai = np.arange(4 * K)
+    model, jac = _render(t, st, want_jac=True)
+    ne = _normal_equations(p, w, st, model, jac, tie_sigma, sss_after_direct)
     it = 0
     for it in range(1, n_iter + 1):
         idx = np.nonzero(live)[0]
@@ -523,32 +573,13 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             it -= 1
             break
         sub = _take(st, idx)
-        model, jac = _render(t, sub, want_jac=True)
-        ww = w[idx]
-        r = (p[idx] - model) * ww
-        jac *= ww[:, None, None, :]
+        e = {k: v[idx] for k, v in ne.items()}
         act = sub["fam"] != FAM_NONE
-        free = np.repeat(act, 4, axis=1).reshape(idx.size, K, 4)
-        free[:, :, 3] &= sub["fam"] == FAM_SSS
-        tied = _tied(sub) if tie_sigma else np.zeros(idx.size, bool)
-        if tied.any():
-            jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
-            free[tied, 1:, 2] = False
-        if sss_after_direct:
-            # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
-            # delay column moves both, the sss delay column moves the gap only
-            lk, dsl, ssl = _linked(sub)
-            if lk.any():
-                rows = np.nonzero(lk)[0]
-                jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
-        free = free.reshape(idx.size, 4 * K)
-        J = jac.reshape(idx.size, 4 * K, -1)
-        JtJ = np.matmul(J, J.transpose(0, 2, 1))
-        g = np.matmul(J, r[:, :, None])[..., 0]
-        d = JtJ[:, ai, ai].copy()
-        fixed = ~free | ~(d > 0)
-        step = _damped_step(JtJ, g, d, fixed, lam[idx])
-        if sss_after_direct and lk.any():
+        fixed = ~e["free"] | ~(e["d"] > 0)
+        step = _damped_step(e["JtJ"], e["g"], e["d"], fixed, lam[idx])
+        lk, dsl, ssl, tied = e["lk"], e["dsl"], e["ssl"], e["tied"]
+        rows = np.nonzero(lk)[0]
+        if rows.size:
             # active set for the gap >= 0 bound: a gap at 0 whose step points below it is
             # pinned and the step re-solved without it
             col = 4 * ssl[rows] + 1
@@ -557,7 +588,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             if pin.any():
                 pr = rows[pin]
                 fixed[pr, col[pin]] = True
-                step[pr] = _damped_step(JtJ[pr], g[pr], d[pr], fixed[pr], lam[idx[pr]])
+                step[pr] = _damped_step(e["JtJ"][pr], e["g"][pr], e["d"][pr], fixed[pr], lam[idx[pr]])
         step = np.where(np.isfinite(step), step, 0.0).reshape(idx.size, K, 4)
         trial = {k: v.copy() for k, v in sub.items()}
         trial["amp"] = np.where(act, np.clip(sub["amp"] + step[..., 0], 0.0, _AMP_MAX / sub["pen"]), 0.0)
@@ -567,14 +598,19 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         trial["lsig"] = lsig
         trial["lalp"] = np.where(sub["fam"] == FAM_SSS,
                                  np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
-        if sss_after_direct and lk.any():
+        if rows.size:
             trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
         _constrain(trial, sss_after_direct)
-        tmodel, _ = _render(t, trial)
-        tobj = objective(p[idx], ww, tmodel, trial, mu[idx], eps[idx])
+        tmodel, tjac = _render(t, trial, want_jac=True)
+        tobj = objective(p[idx], w[idx], tmodel, trial, mu[idx], eps[idx])
         better = tobj < obj[idx]
         acc = idx[better]
-        _put(st, acc, _take(trial, better))
+        if acc.size:
+            tb = _take(trial, better)
+            _put(st, acc, tb)
+            new = _normal_equations(p[acc], w[acc], tb, tmodel[better], tjac[better], tie_sigma, sss_after_direct)
+            for k, v in new.items():
+                ne[k][acc] = v
         old = obj[idx]
         obj[acc] = tobj[better]
         lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
@@ -687,7 +723,7 @@ def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, mi
     n = r.shape[0]
     c = dic.correlate(r)                                   # (n, A, S)
     if weighted:
-        n2 = dic.correlate(w, squared=True)
+        n2 = dic.correlate((w == 1).astype(np.float64), squared=True)
         n2 = np.where(n2 > 1e-12 * dic.norm2[None], n2, 0.0)
     else:
         n2 = dic.norm2[None]
@@ -744,7 +780,7 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     c = sfft.irfft(R[:, None, :] * np.conj(sfft.rfft(kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
                    workers=_WORKERS)[..., gather]
     if weighted:
-        Wf = sfft.rfft(w, n=N, axis=-1, workers=_WORKERS)
+        Wf = sfft.rfft((w == 1).astype(np.float64), n=N, axis=-1, workers=_WORKERS)
         n2 = sfft.irfft(Wf[:, None, :] * np.conj(sfft.rfft(kp * kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
                         workers=_WORKERS)[..., gather]
         n2 = np.where(n2 > 1e-12, n2, 0.0)
@@ -782,8 +818,8 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     ----------
     p : ndarray (P, L) float64
         Profiles normalised to unit peak.
-    w : ndarray (P, L) float64 of 0/1
-        Sample weights (0 = excluded: saturated, spike).
+    w : ndarray (P, L) float64
+        Sample codes: 1 fitted, 0 excluded (spike), 2 censored from below (saturated).
     s_eff : ndarray (P,)
         Noise standard deviation per pixel (already floored, > 0).
     dic : Dictionary
@@ -826,7 +862,8 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     bounds = _bounds(dic, bound_factor)
     st = _new_state(P, K)
     hist = np.full((P, max_iter + 1), np.nan)
-    obj = 0.5 * np.einsum("pl,pl->p", p * w, p * w)
+    r0 = _cres(p, 0.0, w)
+    obj = 0.5 * np.einsum("pl,pl->p", r0, r0)
     hist[:, 0] = obj
     n_iter = np.zeros(P, np.int64)
     done = np.zeros(P, bool)
@@ -840,7 +877,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         idx = np.nonzero(~done)[0]
         if idx.size == 0:
             break
-        r = (p[idx] - model[idx]) * w[idx]
+        r = (p[idx] - model[idx]) * (w[idx] == 1)
         fam = st["fam"][idx]
         n_act = (fam != FAM_NONE).sum(1)
         room = n_act < K
@@ -900,7 +937,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     info = {"objective": hist, "n_iter": n_iter, "converged": converged, "lm_iterations": lm_total,
             "mu": mu, "eps": eps, "coordinates_searched": dic.n_coordinates,
             "first_family": first_family,
-            "data_term": 0.5 * np.einsum("pl,pl->p", (p - model) * w, (p - model) * w)}
+            "data_term": 0.5 * np.einsum("pl,pl->p", _cres(p, model, w), _cres(p, model, w))}
     return st, info
 
 
@@ -922,7 +959,7 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, **opts):
     has_g = bool(np.any(dic.fam == FAM_GAUSS)) and opts.get("max_gauss", 1) > 0
     first = np.ones(p.shape[0], bool) if has_g else None
     st, info = solve_block(p, w, s_eff, dic, first_gauss=first, **opts)
-    expected = 0.5 * w.sum(axis=1) * s_eff * s_eff
+    expected = 0.5 * (w > 0).sum(axis=1) * s_eff * s_eff
     redo = np.nonzero(info["data_term"] > 1.5 * expected)[0] if has_g else np.zeros(0, np.int64)
     info["restarted"] = redo.size
     if redo.size:
@@ -1017,6 +1054,7 @@ def refit_amplitudes(p, w, st, dic: Dictionary):
         ph, _ = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
                             st["lsig"][pi, ki], st["lalp"][pi, ki], False)
         phi[pi, ki] = ph
+    w = (w == 1).astype(np.float64)
     phw = phi * w[:, None, :]
     G = np.einsum("pkl,pjl->pkj", phw, phw)
     b = np.einsum("pkl,pl->pk", phw, p * w)
