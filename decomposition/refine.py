@@ -71,7 +71,6 @@ the fit needs; tests check all of them against finite differences.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy import special
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, _GL_NODES, _GL_WEIGHTS, time_axis_ps
