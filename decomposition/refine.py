@@ -71,7 +71,6 @@ the fit needs; tests check all of them against finite differences.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy import special
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, _GL_NODES, _GL_WEIGHTS, time_axis_ps
@@ -443,7 +442,24 @@ def _onset_after_direct(theta, present):
     return theta
 
 
-def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False):
+def _keep_order(theta, present):
+    """Keep the labels valid: the direct delay first, inter-reflections in order of delay.
+
+    Each present inter-reflection delay is raised to at least the latest present
+    Gaussian delay before it (direct, then r2, r3, ...), a feasible point of the
+    ordering constraints closest to the step along each coordinate in turn.
+    """
+    k = present.shape[1]
+    prev = np.where(present[:, 0], theta[:, 0], -np.inf)
+    for slot in range(2, k):
+        d = np.where(present[:, slot], np.maximum(theta[:, slot], prev), theta[:, slot])
+        theta[:, slot] = d
+        prev = np.where(present[:, slot], d, prev)
+    return theta
+
+
+def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
+                  keep_order=True):
     n = y.shape[0]
     present = slots["present"]
     free = lay.free(present)
@@ -453,6 +469,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, s
     theta = np.clip(theta, lo, hi)
     if sss_after_direct:
         theta = _onset_after_direct(theta, present)
+    if keep_order:
+        theta = _keep_order(theta, present)
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -494,6 +512,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, s
         trial = np.clip(theta[idx] + step, lo, hi)
         if sss_after_direct:
             trial = _onset_after_direct(trial, present[idx])
+        if keep_order:
+            trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, 0.0)
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx])
@@ -547,7 +567,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            max_iter: int = 20, ftol: float = 1e-6, block_size: int = 4096,
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
-           shared_sigma: bool = False, sss_after_direct: bool = False, weights=None,
+           shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
            bin_integrated: bool = False):
     """Refine the continuous parameters of each pixel's present components.
 
@@ -584,6 +604,11 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         the surface where it is directly reflected).  A pixel whose sss rising
         edge sits under its direct peak is nearly degenerate in least squares;
         the constraint (enforced by projection) removes that freedom.
+    keep_order : bool
+        Keep the component labels valid while refining: no inter-reflection
+        moves before the direct reflection or before an earlier
+        inter-reflection (enforced by projection).  Inter-reflection slots are
+        assumed to be in order of delay, as decompositions report them.
     weights : array_like, shape (..., L), optional
         Non-negative per-sample weights of the least-squares fit (1 / variance
         for heteroscedastic noise; 0 excludes a sample, e.g. a saturated one,
@@ -662,7 +687,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         with np.errstate(under="ignore"):
             out, inf = _refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
                                      int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
-                                     bool(sss_after_direct))
+                                     bool(sss_after_direct), bool(keep_order))
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],

@@ -7,7 +7,8 @@ continuous), each with and without the off-grid refinement of
 the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds at NSR 0.01,
 0.055 and 0.11 under white, pink and photon noise, and records
 
-* run time per pixel (wall clock of the whole call, refinement included),
+* run time per pixel (wall clock of the whole decompose() call, refinement
+  included, standard errors off),
 * mean decomposition fidelity (:func:`decomposition.metrics.fidelity`),
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
@@ -97,35 +98,15 @@ def _default_refines():
 
 
 def _run_setting(profiles, time_bin_ps, method, options, with_refine):
-    """Decompose, optionally refine; returns (component profiles, params, seconds)."""
+    """Decompose (refinement on or off, standard errors off); returns (components, params, seconds)."""
     from decomposition import decompose
-    from decomposition.model import render_components
-    from decomposition.refine import refine
 
     t0 = time.perf_counter()
-    opts = dict(options)
-    if _accepts_refine():
-        # The decompose option runs the same refinement inside (with its sample weights).
-        opts["refine"] = bool(with_refine)
-        res = decompose(profiles, time_bin_ps=time_bin_ps, method=method, **opts)
-        params = {k: v for k, v in res.params.items() if not k.endswith("_stderr")}
-        comps = {"direct": res.direct, "sss": res.sss, "interreflections": res.interreflections}
-    else:
-        res = decompose(profiles, time_bin_ps=time_bin_ps, method=method, **opts)
-        params = {k: v for k, v in res.params.items() if not k.endswith("_stderr")}
-        comps = {"direct": res.direct, "sss": res.sss, "interreflections": res.interreflections}
-        if with_refine:
-            params, _ = refine(profiles, params, time_bin_ps=time_bin_ps, shared_sigma=True)
-            comps = render_components(params, profiles.shape[-1], time_bin_ps)
-    return comps, params, time.perf_counter() - t0
-
-
-def _accepts_refine():
-    import inspect
-
-    from decomposition import decompose
-
-    return "refine" in inspect.signature(decompose).parameters
+    res = decompose(profiles, time_bin_ps=time_bin_ps, method=method, refine=bool(with_refine), stderr=False,
+                    **options)
+    seconds = time.perf_counter() - t0
+    comps = {"direct": res.direct, "sss": res.sss, "interreflections": res.interreflections}
+    return comps, dict(res.params), seconds
 
 
 # --------------------------------------------------------------------------------------------
