@@ -378,6 +378,19 @@ class _Layout:
             sigma = np.exp(theta[:, k:2 * k])
         return theta[:, :k], sigma, np.exp(theta[:, -1])
 
+    def truncated(self, k_eff):
+        """Layout of the first ``k_eff`` slots and the indices of its parameters in this one."""
+        key = (k_eff, self.shared)
+        cache = self.__dict__.setdefault("_sub", {})
+        if key not in cache:
+            k = self.k
+            if self.shared:
+                cols = np.concatenate([np.arange(k_eff), [k, k + 1]])
+            else:
+                cols = np.concatenate([np.arange(k_eff), k + np.arange(k_eff), [2 * k]])
+            cache[key] = (self if k_eff == k else _Layout(k_eff, self.shared), cols)
+        return cache[key]
+
     def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
         n_sig = 1 if self.shared else self.k
         lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
@@ -391,14 +404,33 @@ _CHUNK = 48
 
 
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
-    """:func:`_evaluate_chunk` over cache-sized chunks of pixels, results concatenated."""
+    """:func:`_evaluate_chunk` over cache-sized chunks of pixels.
+
+    Pixels are taken in order of their last present slot, and each chunk is
+    evaluated with the inter-reflection slots that none of its pixels uses cut
+    off (most pixels have fewer inter-reflections than R), so the Gram products
+    only carry rows that can be non-zero.  Results come back in pixel order, in
+    the full layout (zeros for the cut slots, which are not free there).
+    """
     n = y.shape[0]
-    if n <= _CHUNK:
-        return _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw)
-    parts = [_evaluate_chunk(lay, t, y[i:i + _CHUNK], theta[i:i + _CHUNK], present[i:i + _CHUNK],
-                             free[i:i + _CHUNK], tb, jac, None if sw is None else sw[i:i + _CHUNK])
-             for i in range(0, n, _CHUNK)]
-    return tuple(None if parts[0][j] is None else np.concatenate([p[j] for p in parts]) for j in range(4))
+    last = np.max(np.where(present, np.arange(lay.k), 1), axis=1)  # >= 1: direct and sss always kept
+    order = np.argsort(last, kind="stable")
+    c_out = np.zeros((n, lay.k))
+    rss_out = np.empty(n)
+    a_out = np.zeros((n, lay.p, lay.p)) if jac else None
+    g_out = np.zeros((n, lay.p)) if jac else None
+    for i in range(0, n, _CHUNK):
+        sel = order[i:i + _CHUNK]
+        k_eff = int(last[sel].max()) + 1
+        sub_lay, cols = lay.truncated(k_eff)
+        c, rss, a, g = _evaluate_chunk(sub_lay, t, y[sel], theta[np.ix_(sel, cols)], present[sel, :k_eff],
+                                       free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel])
+        c_out[sel, :k_eff] = c
+        rss_out[sel] = rss
+        if jac:
+            a_out[sel[:, None, None], cols[None, :, None], cols[None, None, :]] = a
+            g_out[np.ix_(sel, cols)] = g
+    return c_out, rss_out, a_out, g_out
 
 
 def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None):
