@@ -136,7 +136,9 @@ __all__ = [
 
 FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 
-_WORKERS = max(1, min(2, os.cpu_count() or 1))
+# FFT threads per call.  One by default: pixel blocks are parallelised by processes
+# (decomposition.chunked); threads inside each would oversubscribe the cores.
+_WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
 _NEAR_SIGMA = 3.0  # see _constrain
 _MIN_NOISE_SAMPLES = 12
 _AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
