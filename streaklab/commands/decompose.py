@@ -415,11 +415,15 @@ def run(args) -> int:
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
         t0_ps=args.t0_ps, progress=not args.quiet)
     ny, nx, nt = summary["shape"]
+    if summary["chunks_done"] == 0:
+        print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
+        return 0
     print(f"decomposed {summary['pixels']} pixels of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
           f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
     if summary["invalid_pixels"]:
         print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
     if summary["ir_truncated_pixels"]:
         print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
-              f"inter-reflections; the later ones were dropped (raise --max-interreflections to keep them)")
+              f"inter-reflections (flagged TRUNCATED); the later ones were dropped "
+              f"(raise --max-interreflections to keep them)")
     return 0
