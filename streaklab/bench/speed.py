@@ -196,8 +196,10 @@ def run(args) -> int:
         for method in methods:
             for kind, n in workers:
                 label = f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
+                load_before = os.getloadavg()[0]
                 s = run_config(cube_path, work / f"result-{method}-{kind}{n}.zarr", method=method, kind=kind, n=n,
                                chunks=chunks)
+                s["load_average_1min_before"] = load_before
                 compute_pps = pixels / s["seconds_compute"]
                 s["compute_pixels_per_s"] = compute_pps
                 paper_s = s["seconds_setup"] + PAPER_SHAPE[0] * PAPER_SHAPE[1] / compute_pps
@@ -209,8 +211,8 @@ def run(args) -> int:
                       f"at {compute_pps:,.0f} px/s), "
                       f"{s['floor_ratio']:.1f}x the FFT floor's time, peak memory {s['peak_rss_tree_mib']:,.0f} MiB "
                       f"(all processes; largest one {s['peak_rss_one_process_mib']:,.0f} MiB); "
-                      f"paper-size {PAPER_SHAPE[0]}x{PAPER_SHAPE[1]}x{PAPER_SHAPE[2]} cube: {paper_s / 60:.1f} min",
-                      flush=True)
+                      f"paper-size {PAPER_SHAPE[0]}x{PAPER_SHAPE[1]}x{PAPER_SHAPE[2]} cube: {paper_s / 60:.1f} min "
+                      f"[load average before: {load_before:.1f} on {os.cpu_count()} cores]", flush=True)
     if nt != PAPER_SHAPE[2]:
         print(f"note: the paper-size projection assumes {nt} bins per profile, as measured, not {PAPER_SHAPE[2]}")
     report = {"shape": [ny, nx, nt], "nsr": args.nsr, "seed": args.seed, "chunks": list(chunks),
