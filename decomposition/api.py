@@ -194,8 +194,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         surface where it is directly reflected).  Removes the near-degeneracy
         of a direct peak and an sss rising edge at the same onset.
     multistart : bool
-        Second greedy path where the first pick was an sss atom (see
-        ``convscd.solve_multistart``).
+        Where the primary (Gaussian-first) start leaves a fit above the noise,
+        also run the unrestricted largest-decrease start and keep the lower
+        objective (see ``convscd.solve_multistart``).
     block_size : int
         Pixels per solver block.
     refine : bool
@@ -265,6 +266,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     flags[~finite] |= NONFINITE
 
     w = np.ones((P, L))
+    sat = np.zeros((P, L), bool)
     if saturation_level is not None:
         sat = x >= float(saturation_level)
         w[sat] = 0.0
@@ -284,7 +286,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     pn[idx_live] = xs[idx_live] / scale[idx_live, None]
     s_est = np.zeros(P)
     if idx_live.size:
-        s_est[idx_live] = cs.estimate_noise(pn[idx_live], w[idx_live])
+        s_est[idx_live] = _noise(pn[idx_live], w[idx_live])
     s_eff = np.maximum(s_est, noise_floor)
 
     if spike_sigma and idx_live.size:
@@ -299,7 +301,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         flags[idx_live[~ok]] |= EMPTY
         idx_live = idx_live[ok]
         pn[idx_live] = xs[idx_live] / scale[idx_live, None]
-        s_eff[idx_live] = np.maximum(cs.estimate_noise(pn[idx_live], w[idx_live]), noise_floor)
+        s_eff[idx_live] = np.maximum(_noise(pn[idx_live], w[idx_live]), noise_floor)
 
     t = time_axis_ps(L, T, t0)
     if method == "gradbm":
@@ -326,8 +328,12 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         solver = cs.solve_multistart if multistart else cs.solve_block
         for b0 in range(0, idx_live.size, int(block_size)):
             bi = idx_live[b0:b0 + int(block_size)]
-            pb, wb, sb = pn[bi], w[bi], s_eff[bi]
-            st, sinfo = solver(pb, wb, sb, dic, **opts)
+            # saturated samples: excluded while atoms are picked, censored in the final refinement
+            # (code 2: the true value is at least the clip level, only a model below it is a misfit)
+            pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
+            wb = np.where(sat[bi], 2.0, w[bi])
+            sb = s_eff[bi]
+            st, sinfo = solver(pb, np.where(sat[bi], 0.0, wb), sb, dic, **opts)   # picks: saturated excluded
             hist[bi] = sinfo["objective"]
             n_iter[bi] = sinfo["n_iter"]
             lm_total += sinfo["lm_iterations"]
@@ -370,8 +376,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     residual = x - total
     # quality: residual against the noise estimate on the samples that were fitted
     if idx_live.size:
-        rw = residual[idx_live] * w[idx_live] / scale[idx_live, None]
-        nw = np.maximum(w[idx_live].sum(axis=1), 1.0)
+        rr = residual[idx_live]
+        rw = np.where(sat[idx_live], np.maximum(rr, 0.0), rr * w[idx_live]) / scale[idx_live, None]
+        nw = np.maximum(((w[idx_live] > 0) | sat[idx_live]).sum(axis=1), 1.0)
         rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
         bad = rms > poor_fit * s_eff[idx_live]
         flags[idx_live[bad]] |= POOR_FIT
@@ -401,6 +408,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         flags=flags.reshape(lead),
         info=info,
     )
+
+
+def _noise(pn, w):
+    """Per-pixel noise level: the larger of the whole-profile estimate and the estimate
+    over the samples above 10 % of the peak (noise that grows with the signal, as photon
+    noise does, is then not underestimated from the quiet part of the window)."""
+    return np.maximum(cs.estimate_noise(pn, w), cs.estimate_noise(pn, w, signal_fraction=0.1))
 
 
 def _spikes(pn, w, s, T, sigma_min_ps, k_sigma):

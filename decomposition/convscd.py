@@ -10,9 +10,11 @@ i.e. eq. (5) with the *squared* l2 data term (the standard form for coordinate
 descent: it makes every one-dimensional sub-problem a quadratic plus a
 log-sum term with a closed-form minimiser) and the log-sum sparsity penalty
 written as ``log(1 + |z|/eps)`` (the paper's ``log|z|`` shifted so that a zero
-coefficient costs nothing; ``eps`` keeps it finite).  ``w`` is a 0/1 sample
-weight: saturated samples and detected single-sample spikes are excluded from
-the fit.  Coefficients are non-negative (light adds up; this also stops noise
+coefficient costs nothing; ``eps`` keeps it finite).  ``w`` is a per-sample
+code: 1 fitted, 0 excluded (detected single-sample spikes), 2 censored from
+below (saturated: the true value is at least the recorded one, so only a model
+*below* it is a misfit, contributing max(p - model, 0)^2; such samples are
+never used to pick atoms).  Coefficients are non-negative (light adds up; this also stops noise
 from being explained by negative atoms).
 
 Dictionary.  k1: unit-peak Gaussians g(t; sigma) over a sigma grid; k2: sss
@@ -25,44 +27,69 @@ norms of the atoms *truncated to the window*.
 
 Adaptive sparsity weight.  The noise standard deviation ``s`` of every pixel
 is estimated robustly from its second differences (MAD / 0.6745 / sqrt(6):
-smooth kernels have tiny second differences, white noise has variance 6 s^2),
-floored at ``noise_floor`` (relative to the pixel's peak, so noiseless data
-still have a finite detection limit).  Then ``mu = sparsity * s^2`` and
+smooth kernels have tiny second differences, white noise has variance 6 s^2);
+the caller takes the larger of the whole-profile value and the value over the
+samples above 10 % of the peak (photon noise grows with the signal), floored
+at ``noise_floor`` (relative to the pixel's peak, so noiseless data still have
+a finite detection limit).  Then ``mu = sparsity * s^2`` and
 ``eps = eps_rel * s``.  With eps << s each accepted atom costs about
 ``mu * log(z/eps)`` ~ 6-9 mu, so an atom enters only if it explains several
 times the largest correlation pure noise produces over the whole dictionary
 (about 2 log(#coordinates) s^2/2 ~ 10 s^2).  Because p is normalised per pixel
 and s scales with p, the decision is exactly invariant to the profile's scale.
 
+Physics used (eq. (2)).  One camera PSF c(t) blurs every component of a
+profile, so by default (``tie_sigma``) all atoms of a pixel share one sigma;
+and sss light enters the surface where the direct light is reflected, so the
+sss onset is kept at or after the direct delay (``sss_after_direct``).  A
+direct peak and an sss rising edge with the same onset and width are
+degenerate to first order (dh/dt = g - alpha h), and these two constraints are
+what makes d + s with close onsets separable at all in noise.
+
 Algorithm: batched greedy convolutional coordinate descent with local refinement
 -------------------------------------------------------------------------------
 1. Gauss-Southwell pick.  For a block of pixels (pixels x time array) the
-   correlations of the weighted residual with every coarse atom at every
-   shift are computed at once by FFT (precomputed zero-padded atom spectra,
-   ``scipy.fft`` with worker threads).  For a zero coordinate with column norm
-   n and correlation c the one-dimensional problem is
+   correlations of the residual with every atom at every integer shift are
+   computed at once by FFT (precomputed zero-padded atom spectra of the
+   coarse dictionary; once a pixel has an atom, per-block spectra of the
+   Gaussian and the sss kernels at that pixel's own sigma; ``scipy.fft`` with
+   worker threads).  For a zero coordinate with column norm n and
+   correlation c the one-dimensional problem is
    (n/2)(z - u)^2 + mu log(1 + z/eps), u = c/n, whose minimiser on z >= 0 is
    the larger root of z^2 + (eps - u) z + (mu/n - u eps) = 0 if it beats z = 0.
-   Each pixel takes the coordinate with the largest objective decrease; a
-   pixel stops when no coordinate decreases its objective (or at max_iter /
-   max_components).
+   Each pixel takes the coordinate with the largest objective decrease
+   (coordinates are ranked by c^2/n and the exact decrease is evaluated for
+   the best three); a pixel stops when no coordinate decreases its objective
+   (or at max_iter / max_components).  The *first* atom is taken from the
+   Gaussian family by largest coefficient (the atom matching the main peak):
+   the largest-decrease rule would start with a narrow sss atom swallowing the
+   direct peak and the tail at once, or with a broad Gaussian covering several
+   components, and no local refinement separates those again.  Where that
+   start leaves a data term above 1.5x its noise expectation, the
+   unrestricted start is run too and the pixel keeps the lower objective.
 2. Local refinement (coarse-to-fine).  The paper's reference grid (sigma
    1-10 ps and alpha 0.01-0.05 /ps, 500 samples each: 250,000 sss atoms) is
-   never correlated densely.  The coarse grid only *detects* atoms; the picked
-   atoms' delay, sigma and alpha (and all active amplitudes jointly) are then
-   refined continuously by a batched Levenberg-Marquardt step on the data
-   term (analytic Jacobians for the Gaussian; for the sss kernel dh/dt = g -
-   alpha h, forward differences in log sigma / log alpha), accepting a step for a
-   pixel only if the full objective F decreases.  Refining before the next pick
-   matters: a coarse atom that is slightly off leaves a derivative-shaped
-   residual that would otherwise be "explained" by spurious extra atoms.
-   With ``off_grid=False`` the refined values are snapped back to the
-   reference grid (integer-bin delays, the grid's sigma/alpha) and amplitudes
-   re-fitted: the paper's discrete setting.
-3. The objective never increases: a pick is an exact coordinate minimisation,
-   LM steps are accepted only where F decreases, and amplitude-zero atoms are
-   dropped (no change in F).  The per-pixel objective after every outer
-   iteration is returned so callers and tests can check it.
+   never correlated densely.  The coarse grid only *detects* atoms; after
+   every pick the active atoms' delays, shared sigma, alpha and amplitudes are
+   refined jointly and continuously by a few batched Levenberg-Marquardt
+   steps (analytic Jacobians of both kernels; near sss onsets parametrised
+   as direct delay + gap with an active set for gap >= 0), a step accepted for
+   a pixel only if F decreases.  Refining before the next pick matters: a
+   coarse atom that is slightly off leaves a derivative-shaped residual that
+   would otherwise be "explained" by spurious extra atoms.
+3. After the 5 % threshold and merging (``decomposition.components``), the
+   kept atoms are refined on the data term alone (the usual debiasing after
+   sparse selection: the log-sum penalty shrinks amplitudes along the d/s
+   degeneracy), with a restart of sss onsets stuck at the direct delay or far
+   before it.  With ``off_grid=False`` the refined values are then snapped
+   to the reference grid (integer-bin delays, the grid's sigma/alpha) and the
+   amplitudes re-fitted: the paper's discrete setting.
+4. The objective of steps 1-2 never increases: a pick is an exact
+   coordinate minimisation, LM steps are accepted only where F decreases
+   (in float64; the float32 normal equations only propose steps), and
+   amplitude-zero atoms are dropped (no change in F).  The per-pixel
+   objective after every outer iteration is returned so callers and tests
+   can check it.
 
 Why this choice: pure coordinate descent over a 250k x L dictionary is
 hopeless, and over a coarse dictionary alone it leaves grid-mismatch residuals
@@ -71,16 +98,21 @@ refinement keeps the paper's objective and sparsity model, finds the number of
 components automatically, costs a handful of FFT passes per pixel, and gives
 off-grid parameters.
 
-Performance notes: the hot path is per block of pixels: one rFFT of the
-residual block per outer iteration, one inverse FFT per (pixel, coarse atom),
-and LM on at most ``max_components`` atoms per pixel with batched small
-linear solves.  Nothing loops in Python over pixels or coefficients.
+Performance (1024 white-noise pixels, L = 512, NSR 0.05, one process on the
+2-core machine: about 450-500 pixels/s).  Where the time goes: LM refinement
+~55 % (kernel evaluation ~half of it: Gaussians are evaluated only within
++-8 sigma, the sss kernel uses erfc forms only near its onset and its exact
+exponential tail elsewhere; the rest is the batched normal equations),
+atom picking ~35 % (FFT correlations, per-pixel kernel spectra, selection),
+noise estimation, thresholding and rendering the rest.  The hot path works
+on blocks of pixels; nothing loops in Python over pixels or coefficients.
 """
 from __future__ import annotations
 
 import functools
 import math
 import os
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,9 +136,11 @@ __all__ = [
 
 FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 
-_WORKERS = max(1, min(2, os.cpu_count() or 1))
-_FD_STEP = 1e-6  # forward-difference step in log sigma / log alpha
+# FFT threads per call.  One by default: pixel blocks are parallelised by processes
+# (decomposition.chunked); threads inside each would oversubscribe the cores.
+_WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
 _NEAR_SIGMA = 3.0  # see _constrain
+_MIN_NOISE_SAMPLES = 12
 _AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
 
 
@@ -240,7 +274,7 @@ def get_dictionary(n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss:
     return _cached_dictionary(int(n_bins), float(time_bin_ps), float(t0_ps), grid.check(), bool(gauss), bool(sss))
 
 
-def estimate_noise(p: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: float | None = None) -> np.ndarray:
     """Robust per-pixel noise standard deviation from second differences.
 
     Parameters
@@ -248,19 +282,32 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     p : ndarray (P, L)
     w : ndarray (P, L) of 0/1, optional; second differences touching a
         zero-weight sample are ignored.
+    signal_fraction : float, optional
+        Only use second differences centred on samples whose magnitude is at
+        least this fraction of the pixel's largest sample: the noise *where
+        the signal is*, which is what matters when the noise grows with the
+        signal (photon noise).  Rows with fewer than 12 such samples get 0.
 
     Returns
     -------
     ndarray (P,): 1.4826 * median|d2 p| / sqrt(6)  (0 where fewer than 3 usable samples).
     """
     d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
-    if w is not None:
-        ok = (w[:, 2:] * w[:, 1:-1] * w[:, :-2]) > 0
-        d2 = np.where(ok, d2, np.nan)
-        with np.errstate(all="ignore"):
-            med = np.nanmedian(np.where(ok.any(axis=1, keepdims=True), d2, 0.0), axis=1)
-    else:
+    ok = np.ones(d2.shape, bool) if w is None else (w[:, 2:] * w[:, 1:-1] * w[:, :-2]) > 0
+    if signal_fraction is not None:
+        mag = np.abs(p[:, 1:-1]) if w is None else np.abs(p[:, 1:-1]) * (w[:, 1:-1] > 0)
+        ok = ok & (mag >= signal_fraction * mag.max(axis=1, keepdims=True))
+    if ok.all():
         med = np.median(d2, axis=1)
+    else:
+        d2 = np.where(ok, d2, np.nan)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN rows: no usable samples
+            med = np.nanmedian(d2, axis=1)
+        med = np.where(np.isfinite(med), med, 0.0)
+    if signal_fraction is not None:
+        # a few samples around a narrow peak measure its curvature, not the noise
+        med = np.where(ok.sum(axis=1) >= _MIN_NOISE_SAMPLES, med, 0.0)
     return 1.4826 * med / math.sqrt(6.0)
 
 
@@ -388,9 +435,20 @@ def _render(t, st, want_jac=False):
     return model, jac
 
 
+def _cres(p, model, w):
+    """Residual under the sample codes w (1 fitted, 0 excluded, 2 censored from below)."""
+    r = p - model
+    return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
+
+
+def _jw(p, model, w):
+    """Jacobian row weights matching :func:`_cres` (0/1)."""
+    return np.where(w == 2, (p - model) > 0, w == 1).astype(np.float64)
+
+
 def objective(p, w, model, st, mu, eps):
-    """F per pixel (P,): 1/2 ||w (p - model)||^2 + mu sum log(1 + pen_scale*amp/eps)."""
-    r = (p - model) * w
+    """F per pixel (P,): 1/2 ||residual||^2 (see _cres) + mu sum log(1 + pen_scale*amp/eps)."""
+    r = _cres(p, model, w)
     pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
     return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
 
@@ -478,6 +536,40 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
+def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
+    """Gauss-Newton normal equations of the pixels in ``sub`` at their current state.
+
+    Returns a dict with JtJ (n, 4K, 4K), g = J^T r (n, 4K), d = diag(JtJ),
+    free (n, 4K), tied (n,), and the direct/sss link (linked, dsl, ssl).
+    """
+    n, K = sub["fam"].shape
+    jac = jac * _jw(p, model, w)[:, None, None, :]
+    r = _cres(p, model, w)
+    act = sub["fam"] != FAM_NONE
+    free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
+    free[:, :, 3] &= sub["fam"] == FAM_SSS
+    tied = _tied(sub) if tie_sigma else np.zeros(n, bool)
+    if tied.any():
+        jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
+        free[tied, 1:, 2] = False
+    if sss_after_direct:
+        # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
+        # delay column moves both, the sss delay column moves the gap only
+        lk, dsl, ssl = _linked(sub)
+        rows = np.nonzero(lk)[0]
+        jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
+    else:
+        lk, dsl, ssl = np.zeros(n, bool), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    # float32 products: the normal equations only propose steps; acceptance uses the
+    # float64 objective, so their rounding cannot break monotonicity
+    J = jac.reshape(n, 4 * K, -1).astype(np.float32)
+    JtJ = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
+    g = np.matmul(J, r.astype(np.float32)[:, :, None])[..., 0].astype(np.float64)
+    ai = np.arange(4 * K)
+    return {"JtJ": JtJ, "g": g, "d": JtJ[:, ai, ai].copy(), "free": free.reshape(n, 4 * K), "tied": tied,
+            "lk": lk, "dsl": dsl, "ssl": ssl}
+
+
 def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
@@ -487,20 +579,23 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     resolve; it shrinks as the fit improves, so noiseless data converge
     fully), or when its damping has grown past 1e8 (no descent step left).
     With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
-    it (one width parameter); with ``sss_after_direct`` trial sss onsets are
-    clipped to the earliest Gaussian's delay.  Steps are accepted per pixel
-    only where F decreases.
+    it (one width parameter); with ``sss_after_direct`` a near sss onset moves
+    with the direct and its gap stays >= 0.  Steps are accepted per pixel only
+    where F decreases.  Each trial is rendered once, with its Jacobian, so an
+    accepted step needs no second evaluation and a rejected one only a new
+    damped solve of the cached normal equations.
     """
     P, K_all = st["fam"].shape
     tol = 0.0 if tol is None else float(tol)
-    nw = np.maximum(w.sum(axis=1), 1.0)
+    nw = np.maximum((w > 0).sum(axis=1), 1.0)
     full, K = _compact(st)
     if K == 0:
         return st, obj, 0
     st = {k: v[:, :K].copy() for k, v in full.items()}
     lam = np.full(P, 1e-3)
     live = np.ones(P, bool)
-    ai = np.arange(4 * K)
+    model, jac = _render(t, st, want_jac=True)
+    ne = _normal_equations(p, w, st, model, jac, tie_sigma, sss_after_direct)
     it = 0
     for it in range(1, n_iter + 1):
         idx = np.nonzero(live)[0]
@@ -508,32 +603,13 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             it -= 1
             break
         sub = _take(st, idx)
-        model, jac = _render(t, sub, want_jac=True)
-        ww = w[idx]
-        r = (p[idx] - model) * ww
-        jac *= ww[:, None, None, :]
+        e = {k: v[idx] for k, v in ne.items()}
         act = sub["fam"] != FAM_NONE
-        free = np.repeat(act, 4, axis=1).reshape(idx.size, K, 4)
-        free[:, :, 3] &= sub["fam"] == FAM_SSS
-        tied = _tied(sub) if tie_sigma else np.zeros(idx.size, bool)
-        if tied.any():
-            jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
-            free[tied, 1:, 2] = False
-        if sss_after_direct:
-            # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
-            # delay column moves both, the sss delay column moves the gap only
-            lk, dsl, ssl = _linked(sub)
-            if lk.any():
-                rows = np.nonzero(lk)[0]
-                jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
-        free = free.reshape(idx.size, 4 * K)
-        J = jac.reshape(idx.size, 4 * K, -1)
-        JtJ = np.matmul(J, J.transpose(0, 2, 1))
-        g = np.matmul(J, r[:, :, None])[..., 0]
-        d = JtJ[:, ai, ai].copy()
-        fixed = ~free | ~(d > 0)
-        step = _damped_step(JtJ, g, d, fixed, lam[idx])
-        if sss_after_direct and lk.any():
+        fixed = ~e["free"] | ~(e["d"] > 0)
+        step = _damped_step(e["JtJ"], e["g"], e["d"], fixed, lam[idx])
+        lk, dsl, ssl, tied = e["lk"], e["dsl"], e["ssl"], e["tied"]
+        rows = np.nonzero(lk)[0]
+        if rows.size:
             # active set for the gap >= 0 bound: a gap at 0 whose step points below it is
             # pinned and the step re-solved without it
             col = 4 * ssl[rows] + 1
@@ -542,7 +618,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
             if pin.any():
                 pr = rows[pin]
                 fixed[pr, col[pin]] = True
-                step[pr] = _damped_step(JtJ[pr], g[pr], d[pr], fixed[pr], lam[idx[pr]])
+                step[pr] = _damped_step(e["JtJ"][pr], e["g"][pr], e["d"][pr], fixed[pr], lam[idx[pr]])
         step = np.where(np.isfinite(step), step, 0.0).reshape(idx.size, K, 4)
         trial = {k: v.copy() for k, v in sub.items()}
         trial["amp"] = np.where(act, np.clip(sub["amp"] + step[..., 0], 0.0, _AMP_MAX / sub["pen"]), 0.0)
@@ -552,14 +628,19 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         trial["lsig"] = lsig
         trial["lalp"] = np.where(sub["fam"] == FAM_SSS,
                                  np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
-        if sss_after_direct and lk.any():
+        if rows.size:
             trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
         _constrain(trial, sss_after_direct)
-        tmodel, _ = _render(t, trial)
-        tobj = objective(p[idx], ww, tmodel, trial, mu[idx], eps[idx])
+        tmodel, tjac = _render(t, trial, want_jac=True)
+        tobj = objective(p[idx], w[idx], tmodel, trial, mu[idx], eps[idx])
         better = tobj < obj[idx]
         acc = idx[better]
-        _put(st, acc, _take(trial, better))
+        if acc.size:
+            tb = _take(trial, better)
+            _put(st, acc, tb)
+            new = _normal_equations(p[acc], w[acc], tb, tmodel[better], tjac[better], tie_sigma, sss_after_direct)
+            for k, v in new.items():
+                ne[k][acc] = v
         old = obj[idx]
         obj[acc] = tobj[better]
         lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
@@ -672,7 +753,7 @@ def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, mi
     n = r.shape[0]
     c = dic.correlate(r)                                   # (n, A, S)
     if weighted:
-        n2 = dic.correlate(w, squared=True)
+        n2 = dic.correlate((w == 1).astype(np.float64), squared=True)
         n2 = np.where(n2 > 1e-12 * dic.norm2[None], n2, 0.0)
     else:
         n2 = dic.norm2[None]
@@ -729,7 +810,7 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     c = sfft.irfft(R[:, None, :] * np.conj(sfft.rfft(kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
                    workers=_WORKERS)[..., gather]
     if weighted:
-        Wf = sfft.rfft(w, n=N, axis=-1, workers=_WORKERS)
+        Wf = sfft.rfft((w == 1).astype(np.float64), n=N, axis=-1, workers=_WORKERS)
         n2 = sfft.irfft(Wf[:, None, :] * np.conj(sfft.rfft(kp * kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
                         workers=_WORKERS)[..., gather]
         n2 = np.where(n2 > 1e-12, n2, 0.0)
@@ -767,8 +848,8 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     ----------
     p : ndarray (P, L) float64
         Profiles normalised to unit peak.
-    w : ndarray (P, L) float64 of 0/1
-        Sample weights (0 = excluded: saturated, spike).
+    w : ndarray (P, L) float64
+        Sample codes: 1 fitted, 0 excluded (spike), 2 censored from below (saturated).
     s_eff : ndarray (P,)
         Noise standard deviation per pixel (already floored, > 0).
     dic : Dictionary
@@ -811,7 +892,8 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     bounds = _bounds(dic, bound_factor)
     st = _new_state(P, K)
     hist = np.full((P, max_iter + 1), np.nan)
-    obj = 0.5 * np.einsum("pl,pl->p", p * w, p * w)
+    r0 = _cres(p, 0.0, w)
+    obj = 0.5 * np.einsum("pl,pl->p", r0, r0)
     hist[:, 0] = obj
     n_iter = np.zeros(P, np.int64)
     done = np.zeros(P, bool)
@@ -825,7 +907,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         idx = np.nonzero(~done)[0]
         if idx.size == 0:
             break
-        r = (p[idx] - model[idx]) * w[idx]
+        r = (p[idx] - model[idx]) * (w[idx] == 1)
         fam = st["fam"][idx]
         n_act = (fam != FAM_NONE).sum(1)
         room = n_act < K
@@ -885,7 +967,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     info = {"objective": hist, "n_iter": n_iter, "converged": converged, "lm_iterations": lm_total,
             "mu": mu, "eps": eps, "coordinates_searched": dic.n_coordinates,
             "first_family": first_family,
-            "data_term": 0.5 * np.einsum("pl,pl->p", (p - model) * w, (p - model) * w)}
+            "data_term": 0.5 * np.einsum("pl,pl->p", _cres(p, model, w), _cres(p, model, w))}
     return st, info
 
 
@@ -907,7 +989,7 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, **opts):
     has_g = bool(np.any(dic.fam == FAM_GAUSS)) and opts.get("max_gauss", 1) > 0
     first = np.ones(p.shape[0], bool) if has_g else None
     st, info = solve_block(p, w, s_eff, dic, first_gauss=first, **opts)
-    expected = 0.5 * w.sum(axis=1) * s_eff * s_eff
+    expected = 0.5 * (w > 0).sum(axis=1) * s_eff * s_eff
     redo = np.nonzero(info["data_term"] > 1.5 * expected)[0] if has_g else np.zeros(0, np.int64)
     info["restarted"] = redo.size
     if redo.size:
@@ -1002,6 +1084,7 @@ def refit_amplitudes(p, w, st, dic: Dictionary):
         ph, _ = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
                             st["lsig"][pi, ki], st["lalp"][pi, ki], False)
         phi[pi, ki] = ph
+    w = (w == 1).astype(np.float64)
     phw = phi * w[:, None, :]
     G = np.einsum("pkl,pjl->pkj", phw, phw)
     b = np.einsum("pkl,pl->pk", phw, p * w)

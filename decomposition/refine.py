@@ -26,9 +26,19 @@ enforced by projection.
 
 Everything is batched over a block of pixels: slot arrays of shape
 (pixels, K) with K = 2 + R (direct, sss, inter-reflections r2..), absent slots
-masked (zero basis column, identity row in the normal equations).  The only
-Python loops are over LM iterations, over blocks of pixels and over the
-quadrature nodes of bin-integrated sampling.
+masked (zero basis column, identity row in the normal equations).  Each LM
+iteration works on the block's still-active pixels at once; the L-length work
+(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y]) is
+done in cache-sized chunks of pixels, which is several times faster than
+whole-block temporaries.  The only Python loops are over LM iterations, blocks
+and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
+Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
+step lowers its RSS by less than ``ftol`` relative, or when no step helps.
+
+Options: ``shared_sigma`` refines one PSF width per pixel for all its
+components (eq. (2) has a single camera PSF); ``sss_after_direct`` keeps the
+sss onset at or after the direct delay (projection); ``weights`` give per-sample
+weights (0 excludes saturated or spiky samples).
 
 Each pixel is normalised by its peak magnitude before fitting, so any overall
 scale (1e-30 .. 1e30) gives the same parameters and scaled amplitudes.  A
@@ -61,7 +71,6 @@ the fit needs; tests check all of them against finite differences.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy import special
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, _GL_NODES, _GL_WEIGHTS, time_axis_ps
@@ -369,6 +378,19 @@ class _Layout:
             sigma = np.exp(theta[:, k:2 * k])
         return theta[:, :k], sigma, np.exp(theta[:, -1])
 
+    def truncated(self, k_eff):
+        """Layout of the first ``k_eff`` slots and the indices of its parameters in this one."""
+        key = (k_eff, self.shared)
+        cache = self.__dict__.setdefault("_sub", {})
+        if key not in cache:
+            k = self.k
+            if self.shared:
+                cols = np.concatenate([np.arange(k_eff), [k, k + 1]])
+            else:
+                cols = np.concatenate([np.arange(k_eff), k + np.arange(k_eff), [2 * k]])
+            cache[key] = (self if k_eff == k else _Layout(k_eff, self.shared), cols)
+        return cache[key]
+
     def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
         n_sig = 1 if self.shared else self.k
         lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
@@ -382,14 +404,33 @@ _CHUNK = 48
 
 
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
-    """:func:`_evaluate_chunk` over cache-sized chunks of pixels, results concatenated."""
+    """:func:`_evaluate_chunk` over cache-sized chunks of pixels.
+
+    Pixels are taken in order of their last present slot, and each chunk is
+    evaluated with the inter-reflection slots that none of its pixels uses cut
+    off (most pixels have fewer inter-reflections than R), so the Gram products
+    only carry rows that can be non-zero.  Results come back in pixel order, in
+    the full layout (zeros for the cut slots, which are not free there).
+    """
     n = y.shape[0]
-    if n <= _CHUNK:
-        return _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw)
-    parts = [_evaluate_chunk(lay, t, y[i:i + _CHUNK], theta[i:i + _CHUNK], present[i:i + _CHUNK],
-                             free[i:i + _CHUNK], tb, jac, None if sw is None else sw[i:i + _CHUNK])
-             for i in range(0, n, _CHUNK)]
-    return tuple(None if parts[0][j] is None else np.concatenate([p[j] for p in parts]) for j in range(4))
+    last = np.max(np.where(present, np.arange(lay.k), 1), axis=1)  # >= 1: direct and sss always kept
+    order = np.argsort(last, kind="stable")
+    c_out = np.zeros((n, lay.k))
+    rss_out = np.empty(n)
+    a_out = np.zeros((n, lay.p, lay.p)) if jac else None
+    g_out = np.zeros((n, lay.p)) if jac else None
+    for i in range(0, n, _CHUNK):
+        sel = order[i:i + _CHUNK]
+        k_eff = int(last[sel].max()) + 1
+        sub_lay, cols = lay.truncated(k_eff)
+        c, rss, a, g = _evaluate_chunk(sub_lay, t, y[sel], theta[np.ix_(sel, cols)], present[sel, :k_eff],
+                                       free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel])
+        c_out[sel, :k_eff] = c
+        rss_out[sel] = rss
+        if jac:
+            a_out[sel[:, None, None], cols[None, :, None], cols[None, None, :]] = a
+            g_out[np.ix_(sel, cols)] = g
+    return c_out, rss_out, a_out, g_out
 
 
 def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None):
@@ -433,7 +474,24 @@ def _onset_after_direct(theta, present):
     return theta
 
 
-def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False):
+def _keep_order(theta, present):
+    """Keep the labels valid: the direct delay first, inter-reflections in order of delay.
+
+    Each present inter-reflection delay is raised to at least the latest present
+    Gaussian delay before it (direct, then r2, r3, ...), a feasible point of the
+    ordering constraints closest to the step along each coordinate in turn.
+    """
+    k = present.shape[1]
+    prev = np.where(present[:, 0], theta[:, 0], -np.inf)
+    for slot in range(2, k):
+        d = np.where(present[:, slot], np.maximum(theta[:, slot], prev), theta[:, slot])
+        theta[:, slot] = d
+        prev = np.where(present[:, slot], d, prev)
+    return theta
+
+
+def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
+                  keep_order=True):
     n = y.shape[0]
     present = slots["present"]
     free = lay.free(present)
@@ -443,6 +501,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, s
     theta = np.clip(theta, lo, hi)
     if sss_after_direct:
         theta = _onset_after_direct(theta, present)
+    if keep_order:
+        theta = _keep_order(theta, present)
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -484,6 +544,8 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, s
         trial = np.clip(theta[idx] + step, lo, hi)
         if sss_after_direct:
             trial = _onset_after_direct(trial, present[idx])
+        if keep_order:
+            trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, 0.0)
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx])
@@ -537,7 +599,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            max_iter: int = 20, ftol: float = 1e-6, block_size: int = 4096,
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
-           shared_sigma: bool = False, sss_after_direct: bool = False, weights=None,
+           shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
            bin_integrated: bool = False):
     """Refine the continuous parameters of each pixel's present components.
 
@@ -574,6 +636,11 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         the surface where it is directly reflected).  A pixel whose sss rising
         edge sits under its direct peak is nearly degenerate in least squares;
         the constraint (enforced by projection) removes that freedom.
+    keep_order : bool
+        Keep the component labels valid while refining: no inter-reflection
+        moves before the direct reflection or before an earlier
+        inter-reflection (enforced by projection).  Inter-reflection slots are
+        assumed to be in order of delay, as decompositions report them.
     weights : array_like, shape (..., L), optional
         Non-negative per-sample weights of the least-squares fit (1 / variance
         for heteroscedastic noise; 0 excludes a sample, e.g. a saturated one,
@@ -652,7 +719,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         with np.errstate(under="ignore"):
             out, inf = _refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
                                      int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
-                                     bool(sss_after_direct))
+                                     bool(sss_after_direct), bool(keep_order))
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],

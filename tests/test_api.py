@@ -193,3 +193,19 @@ def test_convscd_beats_gradbm_at_nsr_005():
     f_g = fidelity(data.components, decompose(data.noisy, T, method="gradbm")).mean()
     assert f_c > f_g
     assert f_c >= 0.9
+
+
+def test_on_grid_setting_snaps_to_the_reference_grid():
+    data = make_profiles(6, 256, nsr=0.0, noise="none", seed=2)
+    res = decompose(data.noisy, T, off_grid=False, n_sigma=10, n_alpha=5)
+    grid_s = np.linspace(1.0, 10.0, 10)
+    grid_a = np.linspace(0.01, 0.05, 5)
+    for key in ("direct_delay_ps", "sss_delay_ps", "ir_delay_ps"):
+        v = res.params[key][np.isfinite(res.params[key])]
+        np.testing.assert_allclose((v - T) / T, np.round((v - T) / T), atol=1e-9)      # integer bins
+    for key in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"):
+        v = res.params[key][np.isfinite(res.params[key])]
+        assert np.all(np.min(np.abs(v[:, None] - grid_s[None]), axis=1) < 1e-9)
+    a = res.params["sss_alpha_per_ps"][np.isfinite(res.params["sss_alpha_per_ps"])]
+    assert a.size and np.all(np.min(np.abs(a[:, None] - grid_a[None]), axis=1) < 1e-9)
+    assert fidelity(data.components, res).mean() > 0.8
