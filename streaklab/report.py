@@ -282,12 +282,14 @@ def summary_text(store) -> str:
     else:
         n_ir = np.zeros(int(valid.sum()), int)
     lines.append(f"found: direct in {100.0 * has_d.sum() / nv:.1f}% of decomposed pixels, "
-                 f"sss in {100.0 * has_s.sum() / nv:.1f}%, >=1 inter-reflection in {100.0 * (n_ir >= 1).sum() / nv:.1f}%"
+                 f"sss in {100.0 * has_s.sum() / nv:.1f}%, "
+                 f">=1 inter-reflection in {100.0 * (n_ir >= 1).sum() / nv:.1f}%"
                  + (f", >=2 in {100.0 * (n_ir >= 2).sum() / nv:.1f}%" if store.n_ir >= 2 else ""))
     if has_d.any():
         ds = np.asarray(g["direct_sigma_ps"][...])[valid][has_d]
-        lines.append(f"direct delay: median {np.median(dd[has_d]):.2f} ps, 5-95% {_pct(dd[has_d], 5):.2f} to "
-                     f"{_pct(dd[has_d], 95):.2f} ps (depth span {(_pct(dd[has_d], 95) - _pct(dd[has_d], 5)) * _MM_PER_PS_DEPTH:.2f} mm); "
+        lo, hi = _pct(dd[has_d], 5), _pct(dd[has_d], 95)
+        lines.append(f"direct delay: median {np.median(dd[has_d]):.2f} ps, 5-95% {lo:.2f} to {hi:.2f} ps "
+                     f"(depth span {(hi - lo) * _MM_PER_PS_DEPTH:.2f} mm); "
                      f"sigma median {np.nanmedian(ds):.2f} ps")
     if has_s.any():
         lines.append(f"sss alpha: median {np.median(sa[has_s]):.4f} /ps, 5-95% {_pct(sa[has_s], 5):.4f} to "

@@ -337,7 +337,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         if progress and resume and existing is not None:
             print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
                   file=stream)
-        bar = ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream) if progress else None
+        bar = (ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream)
+               if progress else None)
         stats = {"invalid": 0, "ir_truncated": 0}
 
         def on_done(summary):
@@ -361,7 +362,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         t_end = time.perf_counter()
         seconds, seconds_compute = t_end - t_start, t_end - t_compute
         summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
-                   "pixels": pending_pixels, "invalid_pixels": stats["invalid"], "ir_truncated_pixels": stats["ir_truncated"],
+                   "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
+                   "ir_truncated_pixels": stats["ir_truncated"],
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
                    "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
         return summary
