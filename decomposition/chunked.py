@@ -15,7 +15,8 @@ prefers a hard error checks the cube first with :func:`count_nonfinite_pixels`.)
 
 Inter-reflection slots: the solver may return any number R of inter-reflections per call; the
 result of a chunk always has ``n_ir`` slots, padded with NaN parameters and zero components, or
-truncated to the ``n_ir`` earliest (the count of truncated pixels is in the chunk summary).
+truncated to the ``n_ir`` earliest.  The chunk summary counts the pixels that had more
+inter-reflections than were kept (truncated here, or flagged TRUNCATED by the solver).
 
 This module knows nothing of files.
 """
@@ -123,6 +124,9 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         resid = np.asarray(res.residual, dtype=np.float64)
         rms = np.sqrt(np.mean(np.square(resid), axis=-1))
         flags = np.asarray(res.flags).astype(np.uint8)
+        from decomposition import TRUNCATED  # the solver found more inter-reflections than it reports
+
+        truncated = max(truncated, int(np.count_nonzero(flags & int(TRUNCATED))))
         if with_components:
             comps = {"direct": np.asarray(res.direct), "sss": np.asarray(res.sss), "residual": resid,
                      "ir": fit_ir_slots(np.asarray(res.interreflections), n_ir, axis=1, fill=0.0)}

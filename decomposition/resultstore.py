@@ -31,7 +31,6 @@ This module only reads and writes that layout; it knows nothing of solvers.
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 

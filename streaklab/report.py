@@ -85,11 +85,10 @@ def _components_at(store, ys, xs, it=None):
     """Component arrays of a region: dict direct, sss, ir (summed over slots unless a single
     time is asked for), each (..., t) or (...) at time index ``it``; from the store or rendered."""
     g = store.group
-    sel = (ys, xs) if it is None else (ys, xs)
     if store.write_components:
         if it is None:
-            return {"direct": g["direct"][sel], "sss": g["sss"][sel], "ir": g["ir"][sel],
-                    "residual": g["residual"][sel]}
+            return {"direct": g["direct"][ys, xs], "sss": g["sss"][ys, xs], "ir": g["ir"][ys, xs],
+                    "residual": g["residual"][ys, xs]}
         return {"direct": g["direct"][ys, xs, it], "sss": g["sss"][ys, xs, it],
                 "ir": g["ir"][ys, xs, :, it], "residual": g["residual"][ys, xs, it]}
     from decomposition.model import render_components
@@ -105,11 +104,13 @@ def _components_at(store, ys, xs, it=None):
             "residual": None}
 
 
-def measured_profiles(store, ys, xs):
-    """The decomposed input over a region, (..., t), or None if the source is not readable.
+def measured_profiles(store, ys, xs, it=None):
+    """The decomposed input over a region: (..., t), or (...) at time index ``it``; None if unknown.
 
-    Read from the source named in the store's attributes; if it has moved, rebuilt from the
-    stored components plus the residual when those were written."""
+    Read from the source named in the store's attributes (only the region, and only bin ``it``
+    if given: a frame of a big cube never loads the cube); if the source has moved, rebuilt from
+    the stored components plus the residual when those were written."""
+    tsel = slice(None) if it is None else int(it)
     src = store.attrs.get("source", {})
     path = src.get("path")
     try:
@@ -117,15 +118,16 @@ def measured_profiles(store, ys, xs):
             if src.get("kind") == "npy":
                 data = np.load(path, mmap_mode="r")
                 data = data[None] if data.ndim == 2 else data
-                return np.asarray(data[ys, xs], dtype=np.float64)
+                return np.asarray(data[ys, xs, tsel], dtype=np.float64)
             from reconstruction.cubestore import open_cube
 
-            return np.asarray(open_cube(path).array[ys, xs], dtype=np.float64)
+            return np.asarray(open_cube(path).array[ys, xs, tsel], dtype=np.float64)
     except Exception:  # an unreadable or replaced source: fall back below
         pass
     if store.write_components:
-        c = _components_at(store, ys, xs)
-        return (c["direct"] + c["sss"] + c["ir"].sum(axis=-2) + c["residual"]).astype(np.float64)
+        c = _components_at(store, ys, xs, it)
+        ir = np.asarray(c["ir"]).sum(axis=-2 if it is None else -1)  # over the slots r
+        return np.asarray(c["direct"], np.float64) + c["sss"] + ir + c["residual"]
     return None
 
 
@@ -162,10 +164,10 @@ def plot_frames(store, time_ps: float, path) -> Path:
     it = int(np.argmin(np.abs(t - time_ps)))
     ny, nx, _ = store.shape
     comps = _components_at(store, slice(None), slice(None), it)
-    measured = measured_profiles(store, slice(None), slice(None))
+    measured = measured_profiles(store, slice(None), slice(None), it)
     panels = []
     if measured is not None:
-        panels.append(("measured", measured[..., it]))
+        panels.append(("measured", measured))
     panels += [("direct", comps["direct"]), ("subsurface scattering", comps["sss"]),
                ("inter-reflections (all)", np.asarray(comps["ir"]).sum(axis=-1) if store.n_ir
                 else np.zeros((ny, nx)))]
@@ -280,12 +282,14 @@ def summary_text(store) -> str:
     else:
         n_ir = np.zeros(int(valid.sum()), int)
     lines.append(f"found: direct in {100.0 * has_d.sum() / nv:.1f}% of decomposed pixels, "
-                 f"sss in {100.0 * has_s.sum() / nv:.1f}%, >=1 inter-reflection in {100.0 * (n_ir >= 1).sum() / nv:.1f}%"
+                 f"sss in {100.0 * has_s.sum() / nv:.1f}%, "
+                 f">=1 inter-reflection in {100.0 * (n_ir >= 1).sum() / nv:.1f}%"
                  + (f", >=2 in {100.0 * (n_ir >= 2).sum() / nv:.1f}%" if store.n_ir >= 2 else ""))
     if has_d.any():
         ds = np.asarray(g["direct_sigma_ps"][...])[valid][has_d]
-        lines.append(f"direct delay: median {np.median(dd[has_d]):.2f} ps, 5-95% {_pct(dd[has_d], 5):.2f} to "
-                     f"{_pct(dd[has_d], 95):.2f} ps (depth span {(_pct(dd[has_d], 95) - _pct(dd[has_d], 5)) * _MM_PER_PS_DEPTH:.2f} mm); "
+        lo, hi = _pct(dd[has_d], 5), _pct(dd[has_d], 95)
+        lines.append(f"direct delay: median {np.median(dd[has_d]):.2f} ps, 5-95% {lo:.2f} to {hi:.2f} ps "
+                     f"(depth span {(hi - lo) * _MM_PER_PS_DEPTH:.2f} mm); "
                      f"sigma median {np.nanmedian(ds):.2f} ps")
     if has_s.any():
         lines.append(f"sss alpha: median {np.median(sa[has_s]):.4f} /ps, 5-95% {_pct(sa[has_s], 5):.4f} to "

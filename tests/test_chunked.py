@@ -164,3 +164,19 @@ def test_a_failing_chunk_stops_the_run_but_keeps_finished_chunks():
     with pytest.raises(OSError, match="disk full"):
         run_tasks(tasks, num_workers=1)
     assert 2 not in sunk and len(set(sunk)) == len(sunk)
+
+
+def test_pixels_with_more_interreflections_than_kept_are_counted():
+    p = model.empty_params((1, 2), 3)
+    p["direct_delay_ps"][:] = 40.0
+    p["direct_amplitude"][:] = 1.0
+    p["direct_sigma_ps"][:] = 3.0
+    p["ir_delay_ps"][0, 0] = [100.0, 160.0, 220.0]  # pixel 0: three inter-reflections; pixel 1: none
+    p["ir_amplitude"][0, 0] = [0.6, 0.4, 0.3]
+    p["ir_sigma_ps"][0, 0] = 3.0
+    cube = model.render_profile(p, 160, TB)
+    out = solve_block(cube, time_bin_ps=TB, n_ir=1, options={"max_reflections": 1})
+    assert out["stats"]["ir_truncated"] == 1
+    assert out["params"]["ir_delay_ps"].shape == (1, 2, 1)
+    np.testing.assert_allclose(out["params"]["ir_delay_ps"][0, 0, 0], 100.0, atol=1.0)  # the earliest is kept
+    assert np.isnan(out["params"]["ir_delay_ps"][0, 1, 0])

@@ -276,3 +276,44 @@ def test_npy_input_without_components(tmp_path):
     assert store.shape == (1, 6, 128) and "direct" not in store.group
     res = decompose(profiles, time_bin_ps=TB)
     np.testing.assert_array_equal(store.group["direct_delay_ps"][0], res.params["direct_delay_ps"])
+
+
+def _slow_solver_in_this_worker():
+    """Run inside a dask worker: slow its chunk solve down so that it can be killed mid-run."""
+    import time as _time
+
+    import decomposition.chunked as c
+
+    real = c.solve_block
+    c.solve_block = lambda *a, **k: (_time.sleep(0.3), real(*a, **k))[1]
+    return os.getpid()
+
+
+@pytest.mark.timeout(120)
+def test_a_worker_killed_mid_run_loses_and_duplicates_nothing(cube_path, reference, tmp_path):
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    out = tmp_path / "res.zarr"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        pids = client.run(_slow_solver_in_this_worker)
+        result = {}
+        runner = threading.Thread(target=lambda: result.update(decompose_to_store(
+            cube_path, out, scheduler=cluster.scheduler_address, progress=False)))
+        runner.start()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                if open_result_store(out).done_chunks().sum() >= 2:
+                    break
+            except Exception:
+                pass
+            time.sleep(0.02)
+        done_at_kill = int(open_result_store(out).done_chunks().sum())
+        os.kill(next(iter(pids.values())), signal.SIGKILL)  # one worker dies mid-run
+        runner.join(90)
+        assert not runner.is_alive()
+    assert 2 <= done_at_kill < 9 and result["chunks_done"] == 9
+    _assert_same_store(reference, out)

@@ -76,6 +76,8 @@ def test_chosen_pixels_and_time_and_a_moved_source(result, capsys):
     try:  # source gone: the profile is rebuilt from components + residual
         np.testing.assert_allclose(measured_profiles(store, slice(0, 2), slice(0, 3)), _cube()[0:2, 0:3],
                                    atol=1e-5)
+        np.testing.assert_allclose(measured_profiles(store, slice(None), slice(None), 20), _cube()[:, :, 20],
+                                   atol=1e-5)
         figs = result / "figs2"
         assert main(["report", str(result / "res.zarr"), "--out", str(figs), "--time-ps", "50",
                      "--pixels", "0,0", "3,5"]) == 0
@@ -103,3 +105,8 @@ def test_bad_requests_are_named(result, tmp_path, capsys):
     create_result_store(tmp_path / "empty.zarr", shape=(2, 2, 8), chunks=(1, 1), n_ir=1, time_bin_ps=2.0, t0_ps=2.0)
     assert main(["report", str(tmp_path / "empty.zarr"), "--out", str(tmp_path / "f")]) == 2
     assert "no finished chunk" in capsys.readouterr().err
+
+
+def test_measured_frame_reads_one_bin(result):
+    store = open_result_store(result / "res.zarr")
+    np.testing.assert_array_equal(measured_profiles(store, slice(None), slice(None), 20), _cube()[:, :, 20])

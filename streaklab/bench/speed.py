@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -50,7 +49,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--chunks", type=int, nargs=2, default=(16, 64), metavar=("BY", "BX"),
                         help="pixel chunk of the cube and the computation (default 16 64)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="bench-output/speed", help="folder for speed.json (default bench-output/speed)")
+    parser.add_argument("--out", default="bench-output/speed",
+                        help="folder for speed.json (default bench-output/speed)")
     parser.add_argument("--keep", action="store_true", help="keep the synthetic cube and result stores")
 
 
@@ -196,8 +196,10 @@ def run(args) -> int:
         for method in methods:
             for kind, n in workers:
                 label = f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
+                load_before = os.getloadavg()[0]
                 s = run_config(cube_path, work / f"result-{method}-{kind}{n}.zarr", method=method, kind=kind, n=n,
                                chunks=chunks)
+                s["load_average_1min_before"] = load_before
                 compute_pps = pixels / s["seconds_compute"]
                 s["compute_pixels_per_s"] = compute_pps
                 paper_s = s["seconds_setup"] + PAPER_SHAPE[0] * PAPER_SHAPE[1] / compute_pps
@@ -205,12 +207,13 @@ def run(args) -> int:
                 s["floor_ratio"] = floor["pixels_per_s"] / s["pixels_per_s"]
                 rows.append(s)
                 print(f"{method:8s} {label:20s} {s['pixels_per_s']:>9,.0f} px/s all stages "
-                      f"({s['seconds']:.1f} s = {s['seconds_setup']:.1f} s setup + {s['seconds_compute']:.1f} s over the chunks "
+                      f"({s['seconds']:.1f} s = {s['seconds_setup']:.1f} s setup + "
+                      f"{s['seconds_compute']:.1f} s over the chunks "
                       f"at {compute_pps:,.0f} px/s), "
                       f"{s['floor_ratio']:.1f}x the FFT floor's time, peak memory {s['peak_rss_tree_mib']:,.0f} MiB "
                       f"(all processes; largest one {s['peak_rss_one_process_mib']:,.0f} MiB); "
-                      f"paper-size {PAPER_SHAPE[0]}x{PAPER_SHAPE[1]}x{PAPER_SHAPE[2]} cube: {paper_s / 60:.1f} min",
-                      flush=True)
+                      f"paper-size {PAPER_SHAPE[0]}x{PAPER_SHAPE[1]}x{PAPER_SHAPE[2]} cube: {paper_s / 60:.1f} min "
+                      f"[load average before: {load_before:.1f} on {os.cpu_count()} cores]", flush=True)
     if nt != PAPER_SHAPE[2]:
         print(f"note: the paper-size projection assumes {nt} bins per profile, as measured, not {PAPER_SHAPE[2]}")
     report = {"shape": [ny, nx, nt], "nsr": args.nsr, "seed": args.seed, "chunks": list(chunks),

@@ -305,71 +305,73 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             raise CommandError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "
                                f"use --nan-policy mark to decompose the rest and mark those invalid")
 
-    if existing is None:
-        attrs = {"method": method, "components": list(components), "options": job["options"],
-                 "solver_info": _jsonable(info), "nan_policy": nan_policy,
-                 "software_version": streaklab.__version__, "source": source, "job": job,
-                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-        try:
-            store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
-                                        t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
-                                        write_components=write_components, signal_units=units, y_coord=y_coord,
-                                        y_units=y_units, attrs=attrs, overwrite=overwrite,
-                                        protect=[source["path"]])
-        except (ResultStoreError, FileExistsError) as exc:
-            raise CommandError(str(exc)) from None
-    else:
-        store = existing
-        store.remove_partials()
-    pending = store.pending_chunks()
-    gy, gx = store.grid
-    total = gy * gx
-    param_shapes = {k: () for k in map_keys}
-    param_shapes.update({k: (int(n_ir),) for k in ir_keys})
-    tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
-                        pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
-                        n_ir=int(n_ir), with_components=write_components, options=options)
-    pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
-    if progress and resume and existing is not None:
-        print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
-              file=stream)
-    bar = ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream) if progress else None
-    stats = {"invalid": 0, "ir_truncated": 0}
-
-    def on_done(summary):
-        stats["invalid"] += summary["invalid"]
-        stats["ir_truncated"] += summary["ir_truncated"]
-        if bar is not None:
-            bar.update(summary)
-
     client = cluster = None
-    t_compute = None
     try:
-        if scheduler is not None or workers is not None:
+        if scheduler is not None or workers is not None:  # connect before anything is written
             client, cluster = _connect(scheduler, workers)
+        if existing is None:
+            attrs = {"method": method, "components": list(components), "options": job["options"],
+                     "solver_info": _jsonable(info), "nan_policy": nan_policy,
+                     "software_version": streaklab.__version__, "source": source, "job": job,
+                     "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+            try:
+                store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
+                                            t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
+                                            write_components=write_components, signal_units=units, y_coord=y_coord,
+                                            y_units=y_units, attrs=attrs, overwrite=overwrite,
+                                            protect=[source["path"]])
+            except (ResultStoreError, FileExistsError) as exc:
+                raise CommandError(str(exc)) from None
+        else:
+            store = existing
+            store.remove_partials()
+        pending = store.pending_chunks()
+        gy, gx = store.grid
+        total = gy * gx
+        param_shapes = {k: () for k in map_keys}
+        param_shapes.update({k: (int(n_ir),) for k in ir_keys})
+        tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
+                            pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
+                            n_ir=int(n_ir), with_components=write_components, options=options)
+        pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
+        if progress and resume and existing is not None:
+            print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
+                  file=stream)
+        bar = (ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream)
+               if progress else None)
+        stats = {"invalid": 0, "ir_truncated": 0}
+
+        def on_done(summary):
+            stats["invalid"] += summary["invalid"]
+            stats["ir_truncated"] += summary["ir_truncated"]
+            if bar is not None:
+                bar.update(summary)
+
         t_compute = time.perf_counter()
-        run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
-    except KeyboardInterrupt:
+        try:
+            run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except KeyboardInterrupt:
+            if bar is not None:
+                bar.close()
+            done_now = int(store.done_chunks().sum())
+            print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
+                  f"rerun with --resume to finish", file=stream)
+            raise
         if bar is not None:
             bar.close()
-        done_now = int(store.done_chunks().sum())
-        print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
-              f"rerun with --resume to finish", file=stream)
-        raise
+        t_end = time.perf_counter()
+        seconds, seconds_compute = t_end - t_start, t_end - t_compute
+        summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
+                   "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
+                   "ir_truncated_pixels": stats["ir_truncated"],
+                   "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
+                   "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
+        return summary
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
-    if bar is not None:
-        bar.close()
-    t_end = time.perf_counter()
-    seconds, seconds_compute = t_end - t_start, t_end - t_compute
-    summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
-               "pixels": pending_pixels, "invalid_pixels": stats["invalid"], "ir_truncated_pixels": stats["ir_truncated"],
-               "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
-               "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
-    return summary
 
 
 def _region_pixels(store, iy, ix) -> int:
@@ -415,11 +417,15 @@ def run(args) -> int:
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
         t0_ps=args.t0_ps, progress=not args.quiet)
     ny, nx, nt = summary["shape"]
+    if summary["chunks_done"] == 0:
+        print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
+        return 0
     print(f"decomposed {summary['pixels']} pixels of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
           f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
     if summary["invalid_pixels"]:
         print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
     if summary["ir_truncated_pixels"]:
         print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
-              f"inter-reflections; the later ones were dropped (raise --max-interreflections to keep them)")
+              f"inter-reflections (flagged TRUNCATED); the later ones were dropped "
+              f"(raise --max-interreflections to keep them)")
     return 0

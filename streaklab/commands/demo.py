@@ -31,7 +31,8 @@ _PRODUCTS = ("run.zarr", "cube.zarr", "result.zarr", "figs", "fidelity.json")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--out", default="demo-output", help="folder for everything the demo writes (default demo-output)")
+    parser.add_argument("--out", default="demo-output",
+                        help="folder for everything the demo writes (default demo-output)")
     parser.add_argument("--source", choices=("capture", "simulate"), default="capture",
                         help="capture: scan the simulated lab and reconstruct (default); "
                              "simulate: a synthetic cube with exact ground truth")
@@ -110,7 +111,8 @@ def _capture_cube(out: Path, *, lines, nx, nt, seed, stream, quiet):
     config = _demo_config(parse_config, lines=lines, nx=nx, nt=nt, seed=seed)
     run_path, cube_path = out / "run.zarr", out / "cube.zarr"
     t0 = time.perf_counter()
-    _say(f"[1/5] capture: {config.n_lines} lines x {nx} pixels x {nt} rows from the simulated lab -> {run_path}", stream)
+    _say(f"[1/5] capture: {config.n_lines} lines x {nx} pixels x {nt} rows from the simulated lab -> {run_path}",
+         stream)
     run_capture(config, run_path, simulate=True)
     _say(f"      {time.perf_counter() - t0:.1f} s", stream)
     t0 = time.perf_counter()
