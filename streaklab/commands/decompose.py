@@ -255,6 +255,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise CommandError(f"--chunks takes two positive sizes, got {chunks}")
     if workers is not None and workers <= 0:
         raise CommandError(f"--workers must be positive, got {workers}")
+    if threads is not None and (threads <= 0 or workers is not None or scheduler is not None):
+        raise CommandError("--threads takes a positive count and applies only to the local threaded scheduler "
+                           "(not with --workers or --scheduler)")
     if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
         raise CommandError(f"--option max_reflections={options['max_reflections']} contradicts "
                            f"--max-interreflections {n_ir}; give only --max-interreflections")
