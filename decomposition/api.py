@@ -127,7 +127,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
               rel_threshold: float = 0.05, merge_tol_bins: float = 1.0, bound_factor: float = 4.0,
               poor_fit: float = 3.0, nan_policy: str = "raise", saturation_level: float | None = None,
               spike_sigma: float = 8.0, multistart: bool = True, shared_sigma: bool = True,
-              sss_after_direct: bool = True, block_size: int = 256,
+              sss_after_direct: bool = True, sss_alone: bool = False, block_size: int = 256,
               refine: bool = False, stderr: bool | None = None,
               **method_options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
@@ -197,6 +197,12 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Where the primary (Gaussian-first) start leaves a fit above the noise,
         also run the unrestricted largest-decrease start and keep the lower
         objective (see ``convscd.solve_multistart``).
+    sss_alone : bool
+        Also consider, per pixel, an sss component with no direct reflection
+        (scenes where some pixels see only light scattered out of a
+        translucent volume).  About 40 % slower; off by default because the
+        paper's model gives every pixel a direct (``components="s"`` handles
+        scenes with sss only).
     block_size : int
         Pixels per solver block.
     refine : bool
@@ -320,7 +326,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             max_reflections=R, max_iter=max_iter, n_lm=n_lm, n_polish=n_polish, lm_tol=lm_tol, sparsity=sparsity,
             eps_rel=eps_rel, noise_floor=noise_floor, rel_threshold=rel_threshold, merge_tol_bins=merge_tol_bins,
             bound_factor=bound_factor, poor_fit=poor_fit, spike_sigma=spike_sigma, multistart=multistart,
-            shared_sigma=shared_sigma, sss_after_direct=sss_after_direct,
+            shared_sigma=shared_sigma, sss_after_direct=sss_after_direct, sss_alone=sss_alone,
             block_size=block_size, n_atoms=int(dic.fam.size), coordinates_searched=int(dic.n_coordinates)))
         hist = np.full((P, max_iter + 1), np.nan)
         lm_total, restarted = 0, 0
@@ -333,7 +339,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
             wb = np.where(sat[bi], 2.0, w[bi])
             sb = s_eff[bi]
-            st, sinfo = solver(pb, np.where(sat[bi], 0.0, wb), sb, dic, **opts)   # picks: saturated excluded
+            extra = {"sss_alone": sss_alone} if multistart else {}
+            st, sinfo = solver(pb, np.where(sat[bi], 0.0, wb), sb, dic, **opts, **extra)   # saturated excluded
             hist[bi] = sinfo["objective"]
             n_iter[bi] = sinfo["n_iter"]
             lm_total += sinfo["lm_iterations"]

@@ -209,3 +209,12 @@ def test_on_grid_setting_snaps_to_the_reference_grid():
     a = res.params["sss_alpha_per_ps"][np.isfinite(res.params["sss_alpha_per_ps"])]
     assert a.size and np.all(np.min(np.abs(a[:, None] - grid_a[None]), axis=1) < 1e-9)
     assert fidelity(data.components, res).mean() > 0.8
+
+
+def test_sss_alone_pixels():
+    data = make_profiles(8, 256, nsr=0.0, noise="none", seed=4, kinds=("s",))
+    for kw in (dict(sss_alone=True), dict(components="s")):
+        res = decompose(data.noisy, T, **kw)
+        assert fidelity(data.components, res).min() >= 0.98, kw
+        assert np.isnan(res.params["direct_delay_ps"]).all()
+        np.testing.assert_allclose(res.params["sss_delay_ps"], data.params["sss_delay_ps"], atol=T)
