@@ -242,6 +242,9 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
     refused([tmp_path / "p.npy"], "--time-bin-ps")
     refused([cube_path, "--components", "d,x"], "--components")
     refused([cube_path, "--option", "novalue"], "KEY=VALUE")
+    refused([cube_path, "--option", "no_such_option=1"], "the solver refuses these settings")
+    refused([cube_path, "--components", "r,s"], "the solver refuses these settings")
+    refused([cube_path, "--workers", "2", "--threads", "2"], "--threads")
     # the output path: never the input, never something else without --overwrite
     assert main(["decompose", str(cube_path), "--out", str(cube_path), "--overwrite", "--quiet"]) == 2
     assert "holds the input" in capsys.readouterr().err
@@ -317,3 +320,12 @@ def test_a_worker_killed_mid_run_loses_and_duplicates_nothing(cube_path, referen
         assert not runner.is_alive()
     assert 2 <= done_at_kill < 9 and result["chunks_done"] == 9
     _assert_same_store(reference, out)
+
+
+def test_resume_onto_a_rewritten_cube_is_refused(tmp_path):
+    write_cube(tmp_path / "cube.zarr", _cube(2, 3, seed=1), time_bin_ps=TB, provenance={"created_utc": "first"})
+    decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", progress=False)
+    write_cube(tmp_path / "cube.zarr", _cube(2, 3, seed=2), time_bin_ps=TB, provenance={"created_utc": "second"},
+               overwrite=True)
+    with pytest.raises(CommandError, match="different settings.*source_attrs_sha256"):
+        decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", resume=True, progress=False)

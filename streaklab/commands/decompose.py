@@ -15,6 +15,7 @@ Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``--time-bin-ps`` for sma
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -254,6 +255,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise CommandError(f"--chunks takes two positive sizes, got {chunks}")
     if workers is not None and workers <= 0:
         raise CommandError(f"--workers must be positive, got {workers}")
+    if threads is not None and (threads <= 0 or workers is not None or scheduler is not None):
+        raise CommandError("--threads takes a positive count and applies only to the local threaded scheduler "
+                           "(not with --workers or --scheduler)")
     if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
         raise CommandError(f"--option max_reflections={options['max_reflections']} contradicts "
                            f"--max-interreflections {n_ir}; give only --max-interreflections")
@@ -277,12 +281,16 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
            "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
-           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0}
+           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0,
+           # a cube rewritten at the same path (new provenance) is another input
+           "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
     if existing is not None:
         before = existing.attrs.get("job", {})
         diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
         if diff:
-            details = "; ".join(f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}" for k in diff)
+            details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
+                                if k == "source_attrs_sha256" else f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}"
+                                for k in diff)
             raise CommandError(f"cannot resume {out_path}: it was started with different settings ({details}); "
                                f"use the original settings, or --overwrite to start again")
     else:
