@@ -96,12 +96,17 @@ def test_family_selection_shrinks_the_search():
     assert no_s.n_coordinates < full.n_coordinates / 2
     data = make_profiles(30, L, nsr=0.01, noise="white", seed=5, kinds=("d+r2",))
     import time
-    t0 = time.perf_counter()
-    r_full = decompose(data.noisy, T)
-    t_full = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    r_dr = decompose(data.noisy, T, components="d,r")
-    t_dr = time.perf_counter() - t0
+
+    def best_of_3(**kw):
+        times = []
+        for _ in range(3):
+            t0 = time.process_time()
+            res = decompose(data.noisy, T, **kw)
+            times.append(time.process_time() - t0)
+        return res, min(times)
+
+    r_full, t_full = best_of_3()
+    r_dr, t_dr = best_of_3(components="d,r")
     assert r_dr.info["coordinates_searched"] < r_full.info["coordinates_searched"]
     assert np.isnan(r_dr.params["sss_delay_ps"]).all() and not r_dr.sss.any()
     assert t_dr < 1.5 * t_full          # generous: the point is that it is not slower
