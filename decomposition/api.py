@@ -197,7 +197,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     multistart : bool
         Where the primary (Gaussian-first) start leaves a fit above the noise,
         also run the unrestricted largest-decrease start and keep the lower
-        objective (see ``convscd.solve_multistart``).
+        objective (see ``convscd.solve_multistart``); False: primary start only.
     sss_alone : bool
         Also consider, per pixel, an sss component with no direct reflection
         (scenes where some pixels see only light scattered out of a
@@ -333,7 +333,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         hist = np.full((P, max_iter + 1), np.nan)
         lm_total, restarted = 0, 0
         bounds = cs._bounds(dic, bound_factor)
-        solver = cs.solve_multistart if multistart else cs.solve_block
+        solver = cs.solve_multistart
         for b0 in range(0, idx_live.size, int(block_size)):
             bi = idx_live[b0:b0 + int(block_size)]
             # saturated samples: excluded while atoms are picked, censored in the final refinement
@@ -341,7 +341,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
             wb = np.where(sat[bi], 2.0, w[bi])
             sb = s_eff[bi].copy()
-            extra = {"sss_alone": sss_alone} if multistart else {}
+            extra = {"sss_alone": sss_alone, "restart": multistart}
 
             def solve(rows, s_rows):
                 st, si = solver(pb[rows], np.where(sat[bi][rows], 0.0, wb[rows]), s_rows, dic, **opts, **extra)

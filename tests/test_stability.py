@@ -55,3 +55,23 @@ def test_bench_stability_command(capsys):
     out = capsys.readouterr().out
     assert "uint16_saturated" in out and "cases as expected" in out
     assert len([ln for ln in out.splitlines() if ln.startswith(("alpha_", "sigma_", "scale_"))]) >= 8
+
+
+@pytest.mark.parametrize("noise", ["photon", "white"])
+def test_option_variants_run_clean(noise):
+    """Every documented switch, on noisy data, under warnings-as-errors and FP exceptions."""
+    import warnings
+
+    from decomposition.synthetic import make_profiles
+
+    data = make_profiles(20, 256, nsr=0.05, noise=noise, seed=1)
+    variants = [dict(multistart=False), dict(shared_sigma=False), dict(sss_after_direct=False),
+                dict(off_grid=False), dict(components="d,s"), dict(components="d,r"), dict(sss_alone=True)]
+    for kw in variants:
+        with warnings.catch_warnings(), np.errstate(over="raise", invalid="raise", divide="raise"):
+            warnings.simplefilter("error")
+            res = decompose(data.noisy, T, **kw)
+        for v in (res.direct, res.sss, res.interreflections, res.residual):
+            assert np.isfinite(v).all(), kw
+        for k, v in res.params.items():
+            assert not np.isinf(v).any(), (kw, k)
