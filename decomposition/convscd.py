@@ -427,12 +427,13 @@ def _render(t, st, want_jac=False):
     pi, ki = np.nonzero(act)
     phi, j = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
                          st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac)
+    amp = np.where(act, st["amp"], 0.0)
+    if want_jac:
+        jac[pi, ki] = j                 # jac[:, :, 0] is the unit-amplitude atom itself
+        return np.einsum("pk,pkl->pl", amp, jac[:, :, 0]), jac
     full = np.zeros((P, K, L))
     full[pi, ki] = phi
-    model = np.einsum("pk,pkl->pl", np.where(act, st["amp"], 0.0), full)
-    if want_jac:
-        jac[pi, ki] = j
-    return model, jac
+    return np.einsum("pk,pkl->pl", amp, full), jac
 
 
 def _cres(p, model, w):
@@ -543,8 +544,14 @@ def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
     free (n, 4K), tied (n,), and the direct/sss link (linked, dsl, ssl).
     """
     n, K = sub["fam"].shape
-    jac = jac * _jw(p, model, w)[:, None, None, :]
-    r = _cres(p, model, w)
+    # float32 products: the normal equations only propose steps; acceptance uses the
+    # float64 objective, so their rounding cannot break monotonicity
+    if np.all(w == 1):
+        jac = jac.astype(np.float32)
+        r = p - model
+    else:
+        jac = (jac * _jw(p, model, w)[:, None, None, :]).astype(np.float32)
+        r = _cres(p, model, w)
     act = sub["fam"] != FAM_NONE
     free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
     free[:, :, 3] &= sub["fam"] == FAM_SSS
@@ -560,9 +567,7 @@ def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
         jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
     else:
         lk, dsl, ssl = np.zeros(n, bool), np.zeros(n, np.int64), np.zeros(n, np.int64)
-    # float32 products: the normal equations only propose steps; acceptance uses the
-    # float64 objective, so their rounding cannot break monotonicity
-    J = jac.reshape(n, 4 * K, -1).astype(np.float32)
+    J = jac.reshape(n, 4 * K, -1)
     JtJ = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
     g = np.matmul(J, r.astype(np.float32)[:, :, None])[..., 0].astype(np.float64)
     ai = np.arange(4 * K)
