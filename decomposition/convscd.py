@@ -319,20 +319,6 @@ _TAIL_SIGMA = 6.0 * math.sqrt(2.0)  # past alpha sigma^2 + this many sigma, erfc
 _SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 
 
-def _scatter(L, i0, W, cols):
-    """Place window values ``cols`` (list of (n, W)) starting at bins ``i0`` (n,) into (n, L) arrays."""
-    n = i0.size
-    i0 = np.clip(i0, -W, L)                       # windows fully outside stay fully outside
-    idx = i0[:, None] + W + np.arange(W)[None, :]
-    rows = np.arange(n)[:, None]
-    out = []
-    for c in cols:
-        buf = np.zeros((n, L + 2 * W))
-        buf[rows, idx] = c
-        out.append(buf[:, W:W + L])
-    return out
-
-
 def _window_times(t0, T, L, lo_ps, hi_ps):
     """Bin windows covering [lo, hi] per atom: start bins (n,), common width W, times (n, W)."""
     i0 = np.floor((lo_ps - t0) / T).astype(np.int64)
@@ -356,6 +342,19 @@ def _sss_window(x, sig, alp):
     return _SQRT_PI_2 * sig * h, g
 
 
+def _place(buf, i0, W, cols):
+    """Write window values ``cols`` (list of (n, W)) at bins ``i0`` (n,) into ``buf`` (n, C, L + 2W).
+
+    ``buf[:, c, W:W + L]`` is the time axis; windows partly or fully outside it land in the
+    padding (``i0`` is already clipped to [-W, L] by :func:`_window_times`).
+    """
+    n = i0.size
+    idx = i0[:, None] + W + np.arange(W)[None, :]
+    rows = np.arange(n)[:, None]
+    for c, v in enumerate(cols):
+        buf[rows, c, idx] = v
+
+
 def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
     """Evaluate atoms with flat parameter arrays (n,) on the uniform time axis t (L,).
 
@@ -367,52 +366,87 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
     cost is one exp per sample plus special functions on a short window.
     sss derivatives are analytic: dh/dx = g - alpha h,
     dh/dalpha = (alpha sigma^2 - x) h - sigma^2 g,
-    dh/dsigma = h (1/sigma + alpha^2 sigma) - g (alpha sigma + x/sigma).
+    dh/dsigma = h (1/sigma + alpha^2 sigma) - g (alpha sigma + x/sigma);
+    on the tail g = 0, so there they are multiples of h.  Each family is
+    written into one padded buffer (window values placed once), which keeps
+    the number of full-length array passes small.
     """
     n, L = fam.size, t.size
     t0 = float(t[0])
     T = float(t[1] - t[0])
-    phi = np.zeros((n, L))
-    jac = np.zeros((n, 4, L)) if want_jac else None
+    C = 4 if want_jac else 1
+    phi = np.empty((n, L))
+    jac = np.empty((n, 4, L)) if want_jac else None
+    all_g = bool(np.all(fam == FAM_GAUSS))
+    all_s = bool(np.all(fam == FAM_SSS))
     sig = np.exp(lsig)
     g = fam == FAM_GAUSS
     if g.any():
-        d, sg = delay[g], sig[g]
+        d, sg = (delay, sig) if all_g else (delay[g], sig[g])
         i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + _G_HALF * sg)
         x = (tw - d[:, None]) / sg[:, None]
         ph = np.exp(-0.5 * x * x)
+        buf = np.zeros((d.size, C, L + 2 * W))
         if want_jac:
-            a = amp[g, None]
-            aph = a * ph
-            phi[g], j1, j2 = _scatter(L, i0, W, [ph, aph * x / sg[:, None], aph * x * x])
-            jac[g, 0] = phi[g]
-            jac[g, 1] = j1
-            jac[g, 2] = j2
+            aph = (amp if all_g else amp[g])[:, None] * ph
+            _place(buf, i0, W, [ph, aph * x / sg[:, None], aph * x * x])
         else:
-            phi[g], = _scatter(L, i0, W, [ph])
+            _place(buf, i0, W, [ph])
+        out = buf[:, :, W:W + L]
+        if all_g:
+            phi[:] = out[:, 0]
+            if want_jac:
+                jac[:] = out
+        else:
+            phi[g] = out[:, 0]
+            if want_jac:
+                jac[g] = out
     s = fam == FAM_SSS
     if s.any():
-        d, sg, al = delay[s], sig[s], np.exp(lalp[s])
-        x = t[None, :] - d[:, None]
-        sgc, alc = sg[:, None], al[:, None]
-        # tail (and zero before the window), then the window with the full forms
-        start = alc * sgc * sgc + _TAIL_SIGMA * sgc
-        expo = np.minimum(0.5 * np.square(alc * sgc) - alc * x, 0.0)
-        h = np.where(x > start, math.sqrt(2.0 * math.pi) * sgc * np.exp(expo), 0.0)
+        d, sg, al = (delay, sig, np.exp(lalp)) if all_s else (delay[s], sig[s], np.exp(lalp[s]))
+        a = amp if all_s else amp[s]
+        ns = d.size
+        sgc, alc, ac = sg[:, None], al[:, None], a[:, None]
         i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + al * sg * sg + _TAIL_SIGMA * sg)
         xw = tw - d[:, None]
         hw, gw = _sss_window(xw, sgc, alc)
-        inwin = np.zeros((d.size, L), bool)
-        hwin, gg, mask = _scatter(L, i0, W, [hw, gw, np.ones_like(hw)])
-        inwin = mask > 0
-        h = np.where(inwin, hwin, h)
-        phi[s] = h
+        buf = np.zeros((ns, C, L + 2 * W))
+        # exponential tail on the whole axis (the window below overwrites its start; bins
+        # before the window are zero)
+        x = t[None, :] - d[:, None]
+        h = buf[:, 0, W:W + L]
+        np.multiply(alc, x, out=h)
+        np.subtract((0.5 * np.square(al * sg))[:, None], h, out=h)
+        np.minimum(h, 0.0, out=h)
+        np.exp(h, out=h)
+        h *= math.sqrt(2.0 * math.pi) * sgc
+        h[np.arange(L)[None, :] < i0[:, None]] = 0.0
         if want_jac:
-            a = amp[s, None]
-            jac[s, 0] = h
-            jac[s, 1] = -a * (gg - alc * h)
-            jac[s, 2] = a * sgc * (h * (1.0 / sgc + alc * alc * sgc) - gg * (alc * sgc + x / sgc))
-            jac[s, 3] = a * alc * ((alc * sgc * sgc - x) * h - sgc * sgc * gg)
+            np.multiply(h, ac * alc, out=buf[:, 1, W:W + L])
+            np.multiply(h, ac * (1.0 + np.square(alc * sgc)), out=buf[:, 2, W:W + L])
+            j3 = buf[:, 3, W:W + L]
+            np.subtract(alc * sgc * sgc, x, out=j3)
+            j3 *= h
+            j3 *= ac * alc
+            _place(buf, i0, W, [hw, -ac * (gw - alc * hw),
+                                ac * sgc * (hw * (1.0 / sgc + alc * alc * sgc) - gw * (alc * sgc + xw / sgc)),
+                                ac * alc * ((alc * sgc * sgc - xw) * hw - sgc * sgc * gw)])
+        else:
+            _place(buf, i0, W, [hw])
+        out = buf[:, :, W:W + L]
+        if all_s:
+            phi[:] = out[:, 0]
+            if want_jac:
+                jac[:] = out
+        else:
+            phi[s] = out[:, 0]
+            if want_jac:
+                jac[s] = out
+    rest = ~(g | s)
+    if rest.any():
+        phi[rest] = 0.0
+        if want_jac:
+            jac[rest] = 0.0
     return phi, jac
 
 
