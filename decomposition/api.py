@@ -22,6 +22,7 @@ TRUNCATED   128   more inter-reflections found than ``max_reflections``
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -196,7 +197,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     multistart : bool
         Where the primary (Gaussian-first) start leaves a fit above the noise,
         also run the unrestricted largest-decrease start and keep the lower
-        objective (see ``convscd.solve_multistart``).
+        objective (see ``convscd.solve_multistart``); False: primary start only.
     sss_alone : bool
         Also consider, per pixel, an sss component with no direct reflection
         (scenes where some pixels see only light scattered out of a
@@ -296,7 +297,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     s_eff = np.maximum(s_est, noise_floor)
 
     if spike_sigma and idx_live.size:
-        sp = _spikes(pn[idx_live], w[idx_live], s_eff[idx_live], T, grid.sigma_range_ps[0], spike_sigma)
+        sp = _spikes(pn[idx_live], w[idx_live], s_eff[idx_live], T, grid.sigma_range_ps[0], spike_sigma,
+                     rel_threshold)
         rows = idx_live[sp.any(axis=1)]
         flags[rows] |= SPIKE
         w[idx_live] = np.where(sp, 0.0, w[idx_live])
@@ -331,27 +333,46 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         hist = np.full((P, max_iter + 1), np.nan)
         lm_total, restarted = 0, 0
         bounds = cs._bounds(dic, bound_factor)
-        solver = cs.solve_multistart if multistart else cs.solve_block
+        solver = cs.solve_multistart
         for b0 in range(0, idx_live.size, int(block_size)):
             bi = idx_live[b0:b0 + int(block_size)]
             # saturated samples: excluded while atoms are picked, censored in the final refinement
             # (code 2: the true value is at least the clip level, only a model below it is a misfit)
             pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
             wb = np.where(sat[bi], 2.0, w[bi])
-            sb = s_eff[bi]
-            extra = {"sss_alone": sss_alone} if multistart else {}
-            st, sinfo = solver(pb, np.where(sat[bi], 0.0, wb), sb, dic, **opts, **extra)   # saturated excluded
+            sb = s_eff[bi].copy()
+            extra = {"sss_alone": sss_alone, "restart": multistart}
+
+            def solve(rows, s_rows):
+                st, si = solver(pb[rows], np.where(sat[bi][rows], 0.0, wb[rows]), s_rows, dic, **opts, **extra)
+                comp.threshold(st, t, rel_threshold)
+                comp.merge_gaussians(st, T, merge_tol_bins)
+                st, model, nl = cs.polish_block(pb[rows], wb[rows], st, s_rows, dic, sparsity=sparsity,
+                                                eps_rel=eps_rel, n_lm=n_polish, bound_factor=bound_factor,
+                                                tie_sigma=shared_sigma, sss_after_direct=sss_after_direct,
+                                                lm_tol=lm_tol)
+                return st, si, model, nl
+
+            allr = np.arange(bi.size)
+            st, sinfo, model_b, nl = solve(allr, sb)
+            lm_total += sinfo["lm_iterations"] + nl
+            # second pass where the noise is larger where the signal is (photon noise): the
+            # sparsity weight must follow the noise at the components, not in the quiet tail
+            s_sig = _signal_noise(pb - model_b, model_b, wb)
+            again = np.nonzero(s_sig > 1.5 * sb)[0]
+            if again.size:
+                sb[again] = s_sig[again]
+                st2, sinfo2, _, nl2 = solve(again, sb[again])
+                lm_total += sinfo2["lm_iterations"] + nl2
+                cs._put(st, again, st2)
+                for key in ("objective", "n_iter", "converged"):
+                    sinfo[key][again] = sinfo2[key]
+                restarted += sinfo2.get("restarted", 0)
+                s_eff[bi[again]] = sb[again]
             hist[bi] = sinfo["objective"]
             n_iter[bi] = sinfo["n_iter"]
-            lm_total += sinfo["lm_iterations"]
             restarted += sinfo.get("restarted", 0)
             flags[bi[~sinfo["converged"]]] |= MAX_ITER
-            comp.threshold(st, t, rel_threshold)
-            comp.merge_gaussians(st, T, merge_tol_bins)
-            st, _, nl = cs.polish_block(pb, wb, st, sb, dic, sparsity=sparsity, eps_rel=eps_rel,
-                                        n_lm=n_polish, bound_factor=bound_factor, tie_sigma=shared_sigma,
-                                        sss_after_direct=sss_after_direct, lm_tol=lm_tol)
-            lm_total += nl
             if not off_grid:
                 cs.snap_to_grid(st, dic)
                 cs.refit_amplitudes(pb, wb, st, dic)
@@ -387,7 +408,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         rw = np.where(sat[idx_live], np.maximum(rr, 0.0), rr * w[idx_live]) / scale[idx_live, None]
         nw = np.maximum(((w[idx_live] > 0) | sat[idx_live]).sum(axis=1), 1.0)
         rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
-        bad = rms > poor_fit * s_eff[idx_live]
+        # noise that grows with the signal (photon noise) is not a misfit
+        s_sig = _signal_noise(rr / scale[idx_live, None], total[idx_live] / scale[idx_live, None],
+                              np.where(sat[idx_live], 2.0, w[idx_live]))
+        bad = rms > poor_fit * np.maximum(s_eff[idx_live], s_sig)
         flags[idx_live[bad]] |= POOR_FIT
     has_any = np.isfinite(params["direct_delay_ps"]) | np.isfinite(params["sss_delay_ps"])
     if R:
@@ -418,13 +442,32 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 
 def _noise(pn, w):
-    """Per-pixel noise level: the larger of the whole-profile estimate and the estimate
-    over the samples above 10 % of the peak (noise that grows with the signal, as photon
-    noise does, is then not underestimated from the quiet part of the window)."""
-    return np.maximum(cs.estimate_noise(pn, w), cs.estimate_noise(pn, w, signal_fraction=0.1))
+    """Per-pixel noise level from the second differences of the whole profile."""
+    return cs.estimate_noise(pn, w)
 
 
-def _spikes(pn, w, s, T, sigma_min_ps, k_sigma):
+def _signal_noise(resid, model, w, min_samples=12):
+    """Noise level where the signal is, from the second differences of the residual.
+
+    Over the samples where the fitted model exceeds 10 % of its peak (photon
+    noise grows with the signal, so the whole-profile estimate, dominated by
+    the quiet part of the window, is too low there).  Differencing the
+    residual, not the data, leaves no peak curvature in the estimate, and a
+    smooth misfit (an offset) is removed by the differencing too.  0 where
+    fewer than ``min_samples`` samples qualify.
+    """
+    mag = np.abs(model)
+    region = mag >= 0.1 * mag.max(axis=1, keepdims=True)
+    d2 = np.abs(resid[:, 2:] - 2.0 * resid[:, 1:-1] + resid[:, :-2])
+    ok = region[:, 1:-1] & ((w[:, 2:] == 1) & (w[:, 1:-1] == 1) & (w[:, :-2] == 1))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(np.where(ok, d2, np.nan), axis=1)
+    med = np.where(np.isfinite(med) & (ok.sum(axis=1) >= min_samples), med, 0.0)
+    return 1.4826 * med / math.sqrt(6.0)
+
+
+def _spikes(pn, w, s, T, sigma_min_ps, k_sigma, min_rel=0.05):
     """Single-sample spikes: too narrow for the narrowest kernel and far above the noise.
 
     A component with sigma >= sigma_min has neighbours at least
@@ -439,7 +482,10 @@ def _spikes(pn, w, s, T, sigma_min_ps, k_sigma):
     r_min = math.exp(-0.5 * (T / sigma_min_ps) ** 2)
     c = pn[:, 1:-1]
     nb = np.maximum(pn[:, :-2], pn[:, 2:])
-    sp = (c - nb > k_sigma * s[:, None]) & (nb < 0.5 * r_min * c + 3.0 * s[:, None]) & (w[:, 1:-1] > 0)
+    # (and above the 5 % rule: a smaller spike could never become a reported component; this
+    # also keeps isolated counts of photon-limited data from being called spikes)
+    big = np.maximum(k_sigma * s[:, None], min_rel * np.abs(pn).max(axis=1, keepdims=True))
+    sp = (c - nb > big) & (nb < 0.5 * r_min * c + 3.0 * s[:, None]) & (w[:, 1:-1] > 0)
     out[:, 1:-1] = sp
     return out
 

@@ -630,6 +630,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
                                  np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
         if rows.size:
             trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
+            trial["delay"] = np.clip(trial["delay"], *bounds["delay"])
         _constrain(trial, sss_after_direct)
         tmodel, tjac = _render(t, trial, want_jac=True)
         tobj = objective(p[idx], w[idx], tmodel, trial, mu[idx], eps[idx])
@@ -971,7 +972,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     return st, info
 
 
-def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, **opts):
+def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True, **opts):
     """Two greedy starts per pixel where needed; keep the lower objective.
 
     Greedy selection by largest objective decrease (Gauss-Southwell-q) tends
@@ -985,6 +986,8 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, **opts):
     estimated noise), the unrestricted Gauss-Southwell-q start is run as well
     and each pixel keeps the start with the lower final objective (both are
     monotone, so the kept history is too).
+
+    ``restart=False`` keeps the primary start only.
 
     With ``sss_alone`` (for scenes where some pixels hold an sss component and
     no direct reflection) one unrestricted pick with its refinement is also
@@ -1018,7 +1021,8 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, **opts):
             info["converged"][a] = True
         info["lm_iterations"] += info1["lm_iterations"]
     info["sss_alone"] = int(alone.sum())
-    redo = np.nonzero((info["data_term"] > 1.5 * expected) & ~alone)[0] if has_g else np.zeros(0, np.int64)
+    redo = (np.nonzero((info["data_term"] > 1.5 * expected) & ~alone)[0] if has_g and restart
+            else np.zeros(0, np.int64))
     info["restarted"] = redo.size
     if redo.size:
         st2, info2 = solve_block(p[redo], w[redo], s_eff[redo], dic, **opts)

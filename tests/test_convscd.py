@@ -96,13 +96,42 @@ def test_family_selection_shrinks_the_search():
     assert no_s.n_coordinates < full.n_coordinates / 2
     data = make_profiles(30, L, nsr=0.01, noise="white", seed=5, kinds=("d+r2",))
     import time
-    t0 = time.perf_counter()
-    r_full = decompose(data.noisy, T)
-    t_full = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    r_dr = decompose(data.noisy, T, components="d,r")
-    t_dr = time.perf_counter() - t0
+
+    def best_of_3(**kw):
+        times = []
+        for _ in range(3):
+            t0 = time.process_time()
+            res = decompose(data.noisy, T, **kw)
+            times.append(time.process_time() - t0)
+        return res, min(times)
+
+    r_full, t_full = best_of_3()
+    r_dr, t_dr = best_of_3(components="d,r")
     assert r_dr.info["coordinates_searched"] < r_full.info["coordinates_searched"]
     assert np.isnan(r_dr.params["sss_delay_ps"]).all() and not r_dr.sss.any()
     assert t_dr < 1.5 * t_full          # generous: the point is that it is not slower
     np.testing.assert_allclose(r_dr.params["direct_delay_ps"], data.params["direct_delay_ps"], atol=0.5)
+
+
+def test_refinement_keeps_parameters_within_bounds():
+    """Unrestricted greedy start and polish on photon-noise data: every refined delay,
+    width and attenuation stays inside its bounds (no runaway step), nothing overflows."""
+    from decomposition import components as comp
+
+    data = make_profiles(30, 256, nsr=0.05, noise="photon", seed=1)
+    p = data.noisy / np.abs(data.noisy).max(axis=1, keepdims=True)
+    w = np.ones_like(p)
+    s = np.maximum(cs.estimate_noise(p), 1e-3)
+    dic = cs.get_dictionary(256, T, T, cs.GridSpec(coarse_sss_sigma=3), True, True)
+    t = time_axis_ps(256, T)
+    with np.errstate(over="raise", invalid="raise", divide="raise"), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        st, info = cs.solve_block(p, w, s, dic, max_components=6, max_gauss=6)
+        comp.threshold(st, t)
+        st, model, _ = cs.polish_block(p, w, st, s, dic)
+    b = cs._bounds(dic, 4.0)
+    act = st["fam"] != cs.FAM_NONE
+    assert act.any()
+    assert np.all((st["delay"][act] >= b["delay"][0]) & (st["delay"][act] <= b["delay"][1]))
+    assert np.all((st["lsig"][act] >= b["lsig"][0] - 1e-12) & (st["lsig"][act] <= b["lsig"][1] + 1e-12))
+    assert np.all(np.isfinite(model))

@@ -160,7 +160,7 @@ def build_cases(n_bins: int = 256, time_bin_ps: float = 2.0, seed: int = 0, quic
         expect_flag=SATURATED, min_fidelity=1.1, note="clipped samples flagged and excluded from the fit")
     # constant background offset
     add("background_offset", {k: v.copy() for k, v in base.items()}, y0 + 0.05, kind="outside",
-        expect_flag=POOR_FIT, note="an offset is not in the model: flag")
+        expect_flag=POOR_FIT | AT_BOUND, note="an offset is not in the model: flag")
     # single-sample spike
     y = y0.copy()
     y[0, int(0.7 * L)] += 0.8
