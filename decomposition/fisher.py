@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from .refine import _CHUNK, _SSS, _design, kernel_derivatives, slot_arrays
+from .refine import _CHUNK, _SSS, _apply_weights, _design, kernel_derivatives, slot_arrays
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -350,15 +350,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     y = np.asarray(profiles, dtype=np.float64)
     if y.ndim < 1:
         raise ValueError("profiles must have shape (..., L)")
-    sw = None
-    if weights is not None:
-        wts = np.asarray(weights, dtype=np.float64)
-        if wts.shape != y.shape:
-            raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
-        if np.any(~np.isfinite(wts)) or np.any(wts < 0):
-            raise ValueError("weights must be finite and non-negative")
-        y = np.where(wts > 0, y, 0.0)
-        sw = np.sqrt(wts).reshape(-1, y.shape[-1])
+    y, sw = _apply_weights(y, weights)
     lead = y.shape[:-1]
     n_bins = y.shape[-1]
     if not np.all(np.isfinite(y)):

@@ -595,6 +595,22 @@ def _refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, s
     return out, info
 
 
+
+def _apply_weights(y, weights):
+    """Validate per-sample weights against profiles ``y`` (..., L).
+
+    Returns ``y`` with zero-weight samples set to 0 (they may hold anything: NaN,
+    saturation) and the square-root weights as (n_pixels, L), or ``None`` without weights.
+    """
+    if weights is None:
+        return y, None
+    wts = np.asarray(weights, dtype=np.float64)
+    if wts.shape != y.shape:
+        raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
+    if np.any(~np.isfinite(wts)) or np.any(wts < 0):
+        raise ValueError("weights must be finite and non-negative")
+    return np.where(wts > 0, y, 0.0), np.sqrt(wts).reshape(-1, y.shape[-1])
+
 def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
            max_iter: int = 20, ftol: float = 1e-6, block_size: int = 4096,
            sigma_bounds_ps: tuple[float, float] | None = None,
@@ -666,15 +682,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     if not np.issubdtype(y.dtype, np.number) or np.iscomplexobj(y):
         raise ValueError(f"profiles must be real numbers, got dtype {y.dtype}")
     y = y.astype(np.float64)
-    sw = None
-    if weights is not None:
-        wts = np.asarray(weights, dtype=np.float64)
-        if wts.shape != y.shape:
-            raise ValueError(f"weights must have the shape of profiles {y.shape}, got {wts.shape}")
-        if np.any(~np.isfinite(wts)) or np.any(wts < 0):
-            raise ValueError("weights must be finite and non-negative")
-        sw = np.sqrt(wts).reshape(-1, y.shape[-1])
-        y = np.where(wts > 0, y, 0.0)  # excluded samples may hold anything (NaN, saturation)
+    y, sw = _apply_weights(y, weights)
     bad = ~np.isfinite(y).all(axis=-1)
     if bad.any():
         raise ValueError(f"profiles contain NaN or inf samples in {int(bad.sum())} pixel(s)")

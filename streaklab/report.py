@@ -299,8 +299,10 @@ def summary_text(store) -> str:
     if rms.size:
         lines.append(f"rms residual: median {np.median(rms):.4g} {_units(store)}, 95% {_pct(rms, 95):.4g}")
     flags = np.asarray(g["flags"][...])[valid]
-    bits = {b: int(((flags >> b) & 1).sum()) for b in range(8)}
-    flagged = {f"bit {b}": c for b, c in bits.items() if c}
+    from decomposition import FLAG_NAMES
+
+    counts = {FLAG_NAMES.get(1 << b, f"bit {b}"): int(((flags >> b) & 1).sum()) for b in range(8)}
+    flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
     lines.append(f"flagged pixels: {int((flags != 0).sum())}" + (f" ({flagged})" if flagged else ""))
     return "\n".join(lines) + "\n"
 

@@ -283,10 +283,10 @@ class VirtualScene:
         depth = (X - 0.78) / 0.22
         p["ir_delay_ps"][corner, 0] = wall_delay[corner] + window_ps * (0.08 + 0.06 * depth[corner])
         p["ir_amplitude"][corner, 0] = 0.3
-        p["ir_sigma_ps"][corner, 0] = 10.0
+        p["ir_sigma_ps"][corner, 0] = 6.0
         p["ir_delay_ps"][corner, 1] = wall_delay[corner] + window_ps * (0.18 + 0.10 * depth[corner])
         p["ir_amplitude"][corner, 1] = 0.1
-        p["ir_sigma_ps"][corner, 1] = 14.0
+        p["ir_sigma_ps"][corner, 1] = 6.0
 
         angle = np.linspace(-10.0, 10.0, n_lines) if n_lines > 1 else np.zeros(1)
         return cls(params=p, angle_deg=angle, n_t=n_t, time_calibration=calib)
