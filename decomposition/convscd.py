@@ -358,7 +358,8 @@ def _place(buf, i0, W, cols):
 def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
     """Evaluate atoms with flat parameter arrays (n,) on the uniform time axis t (L,).
 
-    Returns phi (n, L) and, if wanted, jac (n, 4, L): derivatives of amp*phi
+    Returns phi (n, L) float64 and, if wanted, jac (n, 4, L) float32 (it only
+    feeds the normal equations, which propose steps): derivatives of amp*phi
     with respect to (amp, delay_ps, log sigma, log alpha).  Gaussians are only
     evaluated within +-8 sigma of their delay; the sss kernel uses the erfc
     forms of ``decomposition.model`` near its onset and its exact exponential
@@ -376,7 +377,7 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
     T = float(t[1] - t[0])
     C = 4 if want_jac else 1
     phi = np.empty((n, L))
-    jac = np.empty((n, 4, L)) if want_jac else None
+    jac = np.empty((n, 4, L), np.float32) if want_jac else None
     all_g = bool(np.all(fam == FAM_GAUSS))
     all_s = bool(np.all(fam == FAM_SSS))
     sig = np.exp(lsig)
@@ -451,23 +452,26 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
 
 
 def _render(t, st, want_jac=False):
-    """Model (P, L) and optionally Jacobian (P, K, 4, L) of the slot state ``st``."""
+    """Model (P, L) float64 and optionally Jacobian (P, K, 4, L) float32 of the slot state ``st``."""
     act = st["fam"] != FAM_NONE
     P, K = act.shape
     L = t.size
-    jac = np.zeros((P, K, 4, L)) if want_jac else None
+    jac = np.zeros((P, K, 4, L), np.float32) if want_jac else None
+    model = np.zeros((P, L))
     if not act.any():
-        return np.zeros((P, L)), jac
+        return model, jac
     pi, ki = np.nonzero(act)
-    phi, j = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
+    amp = st["amp"][pi, ki]
+    phi, j = _eval_atoms(t, st["fam"][pi, ki], amp, st["delay"][pi, ki],
                          st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac)
-    amp = np.where(act, st["amp"], 0.0)
     if want_jac:
-        jac[pi, ki] = j                 # jac[:, :, 0] is the unit-amplitude atom itself
-        return np.einsum("pk,pkl->pl", amp, jac[:, :, 0]), jac
-    full = np.zeros((P, K, L))
-    full[pi, ki] = phi
-    return np.einsum("pk,pkl->pl", amp, full), jac
+        jac[pi, ki] = j
+    phi *= amp[:, None]
+    for k in range(K):                             # each pixel appears at most once per slot
+        sel = ki == k
+        if sel.any():
+            model[pi[sel]] += phi[sel]
+    return model, jac
 
 
 def _cres(p, model, w):
@@ -581,10 +585,9 @@ def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
     # float32 products: the normal equations only propose steps; acceptance uses the
     # float64 objective, so their rounding cannot break monotonicity
     if np.all(w == 1):
-        jac = jac.astype(np.float32)
         r = p - model
     else:
-        jac = (jac * _jw(p, model, w)[:, None, None, :]).astype(np.float32)
+        jac = jac * _jw(p, model, w).astype(np.float32)[:, None, None, :]
         r = _cres(p, model, w)
     act = sub["fam"] != FAM_NONE
     free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
