@@ -355,7 +355,7 @@ def _place(buf, i0, W, cols):
         buf[rows, c, idx] = v
 
 
-def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
+def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac, jac_out=None, where=None):
     """Evaluate atoms with flat parameter arrays (n,) on the uniform time axis t (L,).
 
     Returns phi (n, L) float64 and, if wanted, jac (n, 4, L) float32 (it only
@@ -370,14 +370,17 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
     dh/dsigma = h (1/sigma + alpha^2 sigma) - g (alpha sigma + x/sigma);
     on the tail g = 0, so there they are multiples of h.  Each family is
     written into one padded buffer (window values placed once), which keeps
-    the number of full-length array passes small.
+    the number of full-length array passes small.  With ``jac_out`` (P, K, 4, L)
+    and ``where`` = (pixel, slot) index arrays (n,), the Jacobian is written
+    there directly and None is returned in its place.
     """
     n, L = fam.size, t.size
     t0 = float(t[0])
     T = float(t[1] - t[0])
     C = 4 if want_jac else 1
     phi = np.empty((n, L))
-    jac = np.empty((n, 4, L), np.float32) if want_jac else None
+    direct = want_jac and jac_out is not None
+    jac = np.empty((n, 4, L), np.float32) if want_jac and not direct else None
     all_g = bool(np.all(fam == FAM_GAUSS))
     all_s = bool(np.all(fam == FAM_SSS))
     sig = np.exp(lsig)
@@ -394,14 +397,12 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
         else:
             _place(buf, i0, W, [ph])
         out = buf[:, :, W:W + L]
-        if all_g:
-            phi[:] = out[:, 0]
-            if want_jac:
-                jac[:] = out
-        else:
-            phi[g] = out[:, 0]
-            if want_jac:
-                jac[g] = out
+        sel = slice(None) if all_g else np.flatnonzero(g)
+        phi[sel] = out[:, 0]
+        if direct:
+            jac_out[where[0][sel], where[1][sel]] = out
+        elif want_jac:
+            jac[sel] = out
     s = fam == FAM_SSS
     if s.any():
         d, sg, al = (delay, sig, np.exp(lalp)) if all_s else (delay[s], sig[s], np.exp(lalp[s]))
@@ -435,18 +436,18 @@ def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac):
         else:
             _place(buf, i0, W, [hw])
         out = buf[:, :, W:W + L]
-        if all_s:
-            phi[:] = out[:, 0]
-            if want_jac:
-                jac[:] = out
-        else:
-            phi[s] = out[:, 0]
-            if want_jac:
-                jac[s] = out
+        sel = slice(None) if all_s else np.flatnonzero(s)
+        phi[sel] = out[:, 0]
+        if direct:
+            jac_out[where[0][sel], where[1][sel]] = out
+        elif want_jac:
+            jac[sel] = out
     rest = ~(g | s)
     if rest.any():
         phi[rest] = 0.0
-        if want_jac:
+        if direct:
+            jac_out[where[0][rest], where[1][rest]] = 0.0
+        elif want_jac:
             jac[rest] = 0.0
     return phi, jac
 
@@ -462,10 +463,8 @@ def _render(t, st, want_jac=False):
         return model, jac
     pi, ki = np.nonzero(act)
     amp = st["amp"][pi, ki]
-    phi, j = _eval_atoms(t, st["fam"][pi, ki], amp, st["delay"][pi, ki],
-                         st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac)
-    if want_jac:
-        jac[pi, ki] = j
+    phi, _ = _eval_atoms(t, st["fam"][pi, ki], amp, st["delay"][pi, ki],
+                         st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac, jac, (pi, ki))
     phi *= amp[:, None]
     for k in range(K):                             # each pixel appears at most once per slot
         sel = ki == k
