@@ -261,7 +261,7 @@ class Dictionary:
         X = sfft.rfft(x, n=self.n_fft, axis=-1, workers=_WORKERS)
         spec = self.spec2_conj if squared else self.spec_conj
         c = sfft.irfft(X[:, None, :] * spec[None], n=self.n_fft, axis=-1, workers=_WORKERS)
-        return c[..., self.gather]
+        return np.take(c, self.gather, axis=-1)   # C-contiguous (c[..., idx] is not, and slower)
 
 
 @functools.lru_cache(maxsize=16)
@@ -753,7 +753,7 @@ def _select(c, n2, mu, eps, allow, by_size=None, eligible=None):
     valid = allow & (u > 0) & (u <= _AMP_MAX)
     cf = c.reshape(n, -1)
     uf = np.broadcast_to(u, c.shape).reshape(n, -1)
-    nf = np.broadcast_to(n2, c.shape).reshape(n, -1)
+    nf = n2.reshape(n2.shape[0], -1)           # (n or 1, A*S): indexed below, never broadcast-copied
     vf = np.broadcast_to(valid, c.shape).reshape(n, -1)
     rows = np.arange(n)
     best = np.zeros(n, np.int64)
@@ -774,7 +774,8 @@ def _select(c, n2, mu, eps, allow, by_size=None, eligible=None):
         for _ in range(_TOP_K):
             j = np.argmax(key, axis=1)
             live = np.isfinite(key[rr, j]) & ~found
-            z, dec = _closed_form(uf[rows_sel, j], nf[rows_sel, j], mu[rows_sel], eps[rows_sel])
+            z, dec = _closed_form(uf[rows_sel, j], nf[rows_sel if nf.shape[0] > 1 else 0, j], mu[rows_sel],
+                                  eps[rows_sel])
             dec = np.where(live & (z <= _AMP_MAX), dec, 0.0)
             if by_coef:
                 take = (dec > 0) & ~found          # first decreasing coordinate in coefficient order
@@ -849,18 +850,18 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     kp[..., N - H:] = k[..., :H]
     gather = dic.shifts % N
     R = sfft.rfft(r, n=N, axis=-1, workers=_WORKERS)
-    c = sfft.irfft(R[:, None, :] * np.conj(sfft.rfft(kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
-                   workers=_WORKERS)[..., gather]
+    c = np.take(sfft.irfft(R[:, None, :] * np.conj(sfft.rfft(kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
+                           workers=_WORKERS), gather, axis=-1)
     if weighted:
         Wf = sfft.rfft((w == 1).astype(np.float64), n=N, axis=-1, workers=_WORKERS)
-        n2 = sfft.irfft(Wf[:, None, :] * np.conj(sfft.rfft(kp * kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
-                        workers=_WORKERS)[..., gather]
+        n2 = np.take(sfft.irfft(Wf[:, None, :] * np.conj(sfft.rfft(kp * kp, axis=-1, workers=_WORKERS)), n=N,
+                                axis=-1, workers=_WORKERS), gather, axis=-1)
         n2 = np.where(n2 > 1e-12, n2, 0.0)
     else:
         cs = np.concatenate([np.zeros((n, nk, 1)), np.cumsum(k * k, axis=2)], axis=2)
         lo = np.clip(-dic.shifts + H, 0, M)
         hi = np.clip(L - dic.shifts + H, 0, M)
-        n2 = cs[..., hi] - cs[..., np.minimum(lo, hi)]
+        n2 = np.take(cs, hi, axis=-1) - np.take(cs, np.minimum(lo, hi), axis=-1)
     is_s = np.array(kf) == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * T
