@@ -611,7 +611,8 @@ def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
             "lk": lk, "dsl": dsl, "ssl": ssl}
 
 
-def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None):
+def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
+        return_model=False):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,); returns (state, F, iterations run).
@@ -624,14 +625,16 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     with the direct and its gap stays >= 0.  Steps are accepted per pixel only
     where F decreases.  Each trial is rendered once, with its Jacobian, so an
     accepted step needs no second evaluation and a rejected one only a new
-    damped solve of the cached normal equations.
+    damped solve of the cached normal equations.  ``return_model``: also
+    return the model (P, L) of the returned state (kept up to date, so the
+    caller need not render it again).
     """
     P, K_all = st["fam"].shape
     tol = 0.0 if tol is None else float(tol)
     nw = np.maximum((w > 0).sum(axis=1), 1.0)
     full, K = _compact(st)
     if K == 0:
-        return st, obj, 0
+        return (st, obj, 0, np.zeros(p.shape)) if return_model else (st, obj, 0)
     st = {k: v[:, :K].copy() for k, v in full.items()}
     lam = np.full(P, 1e-3)
     live = np.ones(P, bool)
@@ -680,6 +683,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
         if acc.size:
             tb = _take(trial, better)
             _put(st, acc, tb)
+            model[acc] = tmodel[better]
             new = _normal_equations(p[acc], w[acc], tb, tmodel[better], tjac[better], tie_sigma, sss_after_direct)
             for k, v in new.items():
                 ne[k][acc] = v
@@ -695,7 +699,7 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     out = {k: v.copy() for k, v in full.items()}
     for k in out:
         out[k][:, :K] = st[k]
-    return out, obj, it
+    return (out, obj, it, model) if return_model else (out, obj, it)
 
 
 def _new_state(P, K):
@@ -995,10 +999,9 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         bdec = dec
         obj[gi] = obj[gi] - bdec[go]
         sub = _take(st, gi)
-        sub, o, nl = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
-                         tie_sigma, sss_after_direct, lm_tol)
+        sub, o, nl, m_sub = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
+                                tie_sigma, sss_after_direct, lm_tol, return_model=True)
         # exact objective after refinement (guards against round-off in the FFT pick)
-        m_sub, _ = _render(t, sub)
         exact = objective(p[gi], w[gi], m_sub, sub, mu[gi], eps[gi])
         _drop_zero(sub)
         _put(st, gi, sub)
@@ -1150,7 +1153,8 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     model, _ = _render(t, st)
     obj = objective(p, w, model, st, mu, eps)
     bounds = _bounds(dic, bound_factor)
-    st, obj, nl = _lm(t, p, w, st, mu, eps, bounds, n_lm, obj, tie_sigma, sss_after_direct, lm_tol)
+    st, obj, nl, model = _lm(t, p, w, st, mu, eps, bounds, n_lm, obj, tie_sigma, sss_after_direct, lm_tol,
+                             return_model=True)
     if sss_after_direct:
         # A direct and an sss with the same onset and width are degenerate to first order
         # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
@@ -1167,14 +1171,14 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
                                                                 + sig_s[retry])
             m_alt, _ = _render(t, alt)
             o_alt = objective(p[retry], w[retry], m_alt, alt, mu[retry], eps[retry])
-            alt, o_alt, nl2 = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, o_alt,
-                                  tie_sigma, sss_after_direct, lm_tol)
+            alt, o_alt, nl2, m_alt = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, o_alt,
+                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
             better = o_alt < obj[retry]
             _put(st, retry[better], _take(alt, better))
+            model[retry[better]] = m_alt[better]
             obj[retry[better]] = o_alt[better]
             nl += nl2
-    _drop_zero(st)
-    model, _ = _render(t, st)
+    _drop_zero(st)              # zero-amplitude atoms add nothing to the model
     return st, model, nl
 
 
