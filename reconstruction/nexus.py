@@ -99,12 +99,13 @@ def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
                             "chunks": list(arr.chunks), "fill_value": _fill_json(arr.metadata.fill_value)})
 
 
-def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, skip=()) -> None:
+def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, skip=(), groups_into: h5py.Group | None = None) -> None:
+    """Copy ``g``'s arrays into ``h`` and its sub-groups (as NXcollection) into ``groups_into`` (default ``h``)."""
     for name, arr in sorted(g.arrays()):
         if name not in skip:
             _copy_array(arr, h, name)
     for name, sub in sorted(g.groups()):
-        hs = h.create_group(name)
+        hs = (h if groups_into is None else groups_into).create_group(name)
         hs.attrs["NX_class"] = "NXcollection"
         hs.attrs[META] = _json({"attributes": dict(sub.attrs)})
         _copy_group_contents(sub, hs)
@@ -151,13 +152,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
             data.attrs["t0_ps"] = cube.t0_ps
             data.attrs["provenance"] = _json(root_attrs.get("provenance", cube.attrs.get("provenance", {})))
             data.attrs[META] = _json({"attributes": root_attrs})
-            for name, arr in sorted(g.arrays()):
-                _copy_array(arr, data, name)
-            for name, sub in sorted(g.groups()):
-                hs = entry.create_group(name)
-                hs.attrs["NX_class"] = "NXcollection"
-                hs.attrs[META] = _json({"attributes": dict(sub.attrs)})
-                _copy_group_contents(sub, hs)
+            _copy_group_contents(g, data, groups_into=entry)
     return out
 
 
