@@ -139,6 +139,7 @@ from scipy import fft as sfft
 from scipy import special
 
 from .model import sss_kernel
+from .pickcorr import pixel_correlations
 
 __all__ = [
     "GridSpec",
@@ -842,49 +843,21 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     """Best coordinate per pixel among atoms at the pixel's own PSF width ``sig`` (n,).
 
     Atoms: the Gaussian and the sss kernel at each coarse alpha, all with the
-    pixel's sigma, at every integer-bin shift; spectra are built per block by
-    FFT of the sampled kernels, norms are exact window-truncated norms.
+    pixel's sigma, at every integer-bin shift; correlations and exact
+    window-truncated norms come from compiled per-pixel FIR passes and one-pole
+    recursions (:func:`decomposition.pickcorr.pixel_correlations`).
     """
-    n, L = r.shape
+    n = r.shape[0]
     T = dic.time_bin_ps
     pre = dic.pre
     alphas = _coarse(*dic.grid.alpha_range_per_ps, dic.grid.coarse_alpha) if np.any(dic.fam == FAM_SSS) else np.zeros(0)
     kf = [FAM_GAUSS] + [FAM_SSS] * alphas.size
     ka = np.concatenate([[np.nan], alphas])
-    nk = len(kf)
     H = int(math.ceil(6.0 * float(sig.max()) / T)) + 1
-    m = np.arange(-H, L + pre)
-    M = m.size
-    tt = m * T
-    k = np.zeros((n, nk, M))
-    k[:, 0] = np.exp(-0.5 * np.square(tt[None, :] / sig[:, None]))
-    if alphas.size:
-        na = alphas.size
-        ones = np.ones(n * na)
-        ks, _ = _eval_atoms(tt, np.full(n * na, FAM_SSS, np.int8), ones, 0.0 * ones,
-                            np.repeat(np.log(sig), na), np.tile(np.log(alphas), n), False)
-        k[:, 1:] = ks.reshape(n, na, M)
-    peak = k.max(axis=2)
-    peak = np.where(peak > 0, peak, 1.0)
-    k /= peak[..., None]
-    N = sfft.next_fast_len(M + L, real=True)
-    kp = np.zeros((n, nk, N))
-    kp[..., : L + pre] = k[..., H:]
-    kp[..., N - H:] = k[..., :H]
-    gather = dic.shifts % N
-    R = sfft.rfft(r, n=N, axis=-1, workers=_WORKERS)
-    c = np.take(sfft.irfft(R[:, None, :] * np.conj(sfft.rfft(kp, axis=-1, workers=_WORKERS)), n=N, axis=-1,
-                           workers=_WORKERS), gather, axis=-1)
+    c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
+                                     w1=(w == 1).astype(np.float64) if weighted else None)
     if weighted:
-        Wf = sfft.rfft((w == 1).astype(np.float64), n=N, axis=-1, workers=_WORKERS)
-        n2 = np.take(sfft.irfft(Wf[:, None, :] * np.conj(sfft.rfft(kp * kp, axis=-1, workers=_WORKERS)), n=N,
-                                axis=-1, workers=_WORKERS), gather, axis=-1)
         n2 = np.where(n2 > 1e-12, n2, 0.0)
-    else:
-        cs = np.concatenate([np.zeros((n, nk, 1)), np.cumsum(k * k, axis=2)], axis=2)
-        lo = np.clip(-dic.shifts + H, 0, M)
-        hi = np.clip(L - dic.shifts + H, 0, M)
-        n2 = np.take(cs, hi, axis=-1) - np.take(cs, np.minimum(lo, hi), axis=-1)
     is_s = np.array(kf) == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * T
