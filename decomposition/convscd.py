@@ -143,6 +143,8 @@ from .atomlm import G_HALF as _G_HALF
 from .atomlm import NEAR_SIGMA as _NEAR_SIGMA
 from .atomlm import TAIL_SIGMA as _TAIL_SIGMA
 from .atomlm import lm_refine
+from .pick import closed_form as _closed_form
+from .pick import select as _select
 from .model import sss_kernel
 
 __all__ = [
@@ -580,78 +582,6 @@ def _bounds(dic: Dictionary, bound_factor: float):
         "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
         "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
     }
-
-
-def _closed_form(u, n, mu, eps):
-    """Minimiser on z >= 0 of (n/2)(z-u)^2 + mu log(1 + z/eps) and the decrease vs z = 0."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        disc = np.square(u + eps) - 4.0 * mu / n
-        z = 0.5 * ((u - eps) + np.sqrt(np.maximum(disc, 0.0)))
-        ok = (disc >= 0) & (u > 0) & (z > 0) & (n > 0)
-        z = np.where(ok, z, 0.0)
-        dec = 0.5 * n * (u * u - np.square(z - u)) - mu * np.log1p(z / eps)
-    ok &= np.isfinite(dec) & (dec > 0)      # a positive stationary point may still lose to z = 0
-    return np.where(ok, z, 0.0), np.where(ok, dec, 0.0)
-
-
-_TOP_K = 3   # exact closed-form decreases are evaluated for the K best coordinates by c^2/n
-
-
-def _select(c, n2, mu, eps, allow, by_size=None, eligible=None):
-    """Per-pixel best coordinate of (n, A, S) correlations ``c`` and norms ``n2``.
-
-    Returns (flat index, coefficient z, objective decrease) per pixel.
-    Gauss-Southwell-q (largest decrease): candidates are ranked by the
-    unpenalised decrease c^2 / n, and the exact closed-form decrease (with the
-    log-sum penalty) is evaluated for the best ``_TOP_K`` of them only -- the
-    ranking barely differs and the exact decrease keeps the descent monotone.
-    Rows with ``by_size`` take the largest coefficient among decreasing
-    coordinates instead (Gauss-Southwell-r), restricted to ``eligible``
-    coordinates (atoms mostly outside the window or on excluded samples have
-    tiny norms that make any coefficient possible).
-    """
-    n = c.shape[0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where(n2 > 0, c / n2, 0.0)
-    valid = allow & (u > 0) & (u <= _AMP_MAX)
-    cf = c.reshape(n, -1)
-    uf = np.broadcast_to(u, c.shape).reshape(n, -1)
-    nf = n2.reshape(n2.shape[0], -1)           # (n or 1, A*S): indexed below, never broadcast-copied
-    vf = np.broadcast_to(valid, c.shape).reshape(n, -1)
-    rows = np.arange(n)
-    best = np.zeros(n, np.int64)
-    zb = np.zeros(n)
-    db = np.zeros(n)
-    q_rows = np.ones(n, bool) if by_size is None else ~by_size
-    # Gauss-Southwell-q: by c^2/n (GS-r: by coefficient), then the exact decrease of the
-    # _TOP_K best; successive argmax passes are cheaper than a partial sort here
-    for rows_sel, by_coef in ((np.nonzero(q_rows)[0], False), (np.nonzero(~q_rows)[0], True)):
-        if rows_sel.size == 0:
-            continue
-        ok = vf[rows_sel]
-        if by_coef and eligible is not None:
-            ok = ok & np.broadcast_to(eligible, c.shape).reshape(n, -1)[rows_sel]
-        key = np.where(ok, uf[rows_sel] if by_coef else cf[rows_sel] * uf[rows_sel], -np.inf)
-        rr = np.arange(rows_sel.size)
-        found = np.zeros(rows_sel.size, bool)
-        for _ in range(_TOP_K):
-            j = np.argmax(key, axis=1)
-            live = np.isfinite(key[rr, j]) & ~found
-            z, dec = _closed_form(uf[rows_sel, j], nf[rows_sel if nf.shape[0] > 1 else 0, j], mu[rows_sel],
-                                  eps[rows_sel])
-            dec = np.where(live & (z <= _AMP_MAX), dec, 0.0)
-            if by_coef:
-                take = (dec > 0) & ~found          # first decreasing coordinate in coefficient order
-            else:
-                take = dec > db[rows_sel]          # best exact decrease among the top candidates
-            g = rows_sel[take]
-            best[g], zb[g], db[g] = j[take], z[take], dec[take]
-            if by_coef:
-                found |= take
-            key[rr, j] = -np.inf
-            if found.all():
-                break
-    return best, zb, db
 
 
 def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
