@@ -42,23 +42,26 @@ def test_select_matches_the_reference_rules_with_ties_masks_and_shared_norms():
     rng = np.random.default_rng(2)
     n, A, S = 40, 5, 60
     c = rng.normal(0, 1, (n, A, S))
-    c[:5] = np.round(c[:5], 1)                       # many exact ties
+    c[:5] = np.round(2 * c[:5]) / 2                 # many exact ties
     c[5, 2, 7] = np.nan                              # a non-finite correlation is never picked
+    c[7] = -np.abs(c[7])                             # nothing decreases F: no pick
     n2_own = rng.uniform(0.5, 4.0, (n, A, S))
     n2_own[6, :, :10] = 0.0
     n2_shared = rng.uniform(0.5, 4.0, (1, A, S))
+    n2_flat = np.ones((1, A, S))                     # with rounded c: exact key ties
     mu = rng.uniform(0.01, 0.5, n)
     eps = rng.uniform(1e-3, 1e-2, n)
     allow = rng.random((n, A, 1)) < 0.8
     by_size = rng.random(n) < 0.4
     eligible = rng.random((n, A, S)) < 0.7
-    for n2 in (n2_own, n2_shared):
+    for n2 in (n2_own, n2_shared, n2_flat):
         got = select(c, n2, mu, eps, allow, by_size, eligible)
         want = _reference(c, n2, mu, eps, allow, by_size, eligible)
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_allclose(got[1], want[1], rtol=1e-14)
         np.testing.assert_allclose(got[2], want[2], rtol=1e-14)
-        assert (got[2] > 0).sum() > n // 2 and (got[2] == 0).any()
+        assert (got[2] > 0).sum() > n // 2
+        assert got[0][7] == 0 and got[1][7] == 0 and got[2][7] == 0
     # without by_size / eligible every row takes the largest exact decrease of its top 3
     got = select(c, n2_own, mu, eps, allow)
     want = _reference(c, n2_own, mu, eps, allow, np.zeros(n, bool), True)
