@@ -138,6 +138,13 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import special
 
+from .atomlm import AMP_MAX as _AMP_MAX
+from .atomlm import G_HALF as _G_HALF
+from .atomlm import NEAR_SIGMA as _NEAR_SIGMA
+from .atomlm import TAIL_SIGMA as _TAIL_SIGMA
+from .atomlm import lm_refine
+from .pick import closed_form as _closed_form
+from .pick import select as _select
 from .model import sss_kernel
 from .pickcorr import pixel_correlations
 
@@ -159,9 +166,7 @@ FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 # FFT threads per call.  One by default: pixel blocks are parallelised by processes
 # (decomposition.chunked); threads inside each would oversubscribe the cores.
 _WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
-_NEAR_SIGMA = 3.0  # see _constrain
 _MIN_NOISE_SAMPLES = 12
-_AMP_MAX = 20.0   # largest component peak, in units of the pixel's largest fitted sample
 
 
 @dataclass(frozen=True)
@@ -334,8 +339,6 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: 
 # ---------------------------------------------------------------------------
 # atoms with continuous parameters (refinement)
 
-_G_HALF = 8.0                   # Gaussians are evaluated within +-8 sigma (exp(-32) beyond)
-_TAIL_SIGMA = 6.0 * math.sqrt(2.0)  # past alpha sigma^2 + this many sigma, erfc(u) == 2 in float64
 _SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 
 
@@ -520,60 +523,6 @@ def _put(st, idx, sub):
         st[k][idx] = v
 
 
-def _compact(st):
-    """Sort each pixel's slots so active ones come first; return (sorted state, K_eff)."""
-    order = np.argsort(st["fam"] == FAM_NONE, axis=1, kind="stable")
-    rows = np.arange(st["fam"].shape[0])[:, None]
-    out = {k: v[rows, order] for k, v in st.items()}
-    k_eff = int((out["fam"] != FAM_NONE).sum(axis=1).max(initial=0))
-    return out, k_eff
-
-
-def _tied(st):
-    """Pixels whose active atoms all share one sigma (shared-PSF mode), shape (P,)."""
-    act = st["fam"] != FAM_NONE
-    hi = np.where(act, st["lsig"], -np.inf).max(axis=1)
-    lo = np.where(act, st["lsig"], np.inf).min(axis=1)
-    return act.any(axis=1) & (hi - lo <= 1e-12)
-
-
-def _constrain(trial, sss_after_direct, near_sigma=None):
-    near_sigma = _NEAR_SIGMA if near_sigma is None else near_sigma
-    """Clip sss onsets to the earliest Gaussian's delay when that Gaussian is near after it.
-
-    Only a Gaussian within ``near_sigma`` PSF widths after the onset counts:
-    the constraint removes the near-degeneracy of a direct peak and an sss
-    rising edge; an sss found well before every Gaussian is left alone.
-    """
-    if not sss_after_direct:
-        return
-    g = trial["fam"] == FAM_GAUSS
-    s = trial["fam"] == FAM_SSS
-    first = np.where(g, trial["delay"], np.inf).min(axis=1, keepdims=True)
-    near = s & (first - trial["delay"] < near_sigma * np.exp(trial["lsig"])) & np.isfinite(first)
-    trial["delay"] = np.where(near, np.maximum(trial["delay"], first), trial["delay"])
-
-
-def _damped_step(JtJ, g, d, fixed, lam):
-    """Marquardt step (JtJ + lam diag(JtJ)) x = g with ``fixed`` parameters held at 0."""
-    n = JtJ.shape[-1]
-    ai = np.arange(n)
-    keep = ~fixed
-    A = JtJ * (keep[:, :, None] & keep[:, None, :])
-    A[:, ai, ai] = np.where(fixed, 1.0, d * (1.0 + lam[:, None]))
-    g = np.where(fixed, 0.0, g)
-    try:
-        step = np.linalg.solve(A, g[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        step = np.zeros_like(g)
-        for i in range(A.shape[0]):  # rare: solve the non-singular rows one by one
-            try:
-                step[i] = np.linalg.solve(A[i], g[i])
-            except np.linalg.LinAlgError:
-                pass
-    return np.where(np.isfinite(step), step, 0.0)
-
-
 def _linked(st, near_sigma=None):
     """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
 
@@ -594,132 +543,25 @@ def _linked(st, near_sigma=None):
     return linked, dsl, ssl
 
 
-def _normal_equations(p, w, sub, model, jac, tie_sigma, sss_after_direct):
-    """Gauss-Newton normal equations of the pixels in ``sub`` at their current state.
-
-    Returns a dict with JtJ (n, 4K, 4K), g = J^T r (n, 4K), d = diag(JtJ),
-    free (n, 4K), tied (n,), and the direct/sss link (linked, dsl, ssl).
-    """
-    n, K = sub["fam"].shape
-    # float32 products: the normal equations only propose steps; acceptance uses the
-    # float64 objective, so their rounding cannot break monotonicity
-    if np.all(w == 1):
-        r = p - model
-    else:
-        jac = jac * _jw(p, model, w).astype(np.float32)[:, None, None, :]
-        r = _cres(p, model, w)
-    act = sub["fam"] != FAM_NONE
-    free = np.repeat(act, 4, axis=1).reshape(n, K, 4)
-    free[:, :, 3] &= sub["fam"] == FAM_SSS
-    tied = _tied(sub) if tie_sigma else np.zeros(n, bool)
-    if tied.any():
-        jac[tied, 0, 2] = jac[tied, :, 2].sum(axis=1)
-        free[tied, 1:, 2] = False
-    if sss_after_direct:
-        # a near sss onset is parametrised as direct delay + gap (gap >= 0): the direct's
-        # delay column moves both, the sss delay column moves the gap only
-        lk, dsl, ssl = _linked(sub)
-        rows = np.nonzero(lk)[0]
-        jac[rows, dsl[rows], 1] += jac[rows, ssl[rows], 1]
-    else:
-        lk, dsl, ssl = np.zeros(n, bool), np.zeros(n, np.int64), np.zeros(n, np.int64)
-    J = jac.reshape(n, 4 * K, -1)
-    JtJ = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
-    g = np.matmul(J, r.astype(np.float32)[:, :, None])[..., 0].astype(np.float64)
-    ai = np.arange(4 * K)
-    return {"JtJ": JtJ, "g": g, "d": JtJ[:, ai, ai].copy(), "free": free.reshape(n, 4 * K), "tied": tied,
-            "lk": lk, "dsl": dsl, "ssl": ssl}
-
-
 def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
         return_model=False):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
-    ``obj`` is F at the current state (P,); returns (state, F, iterations run).
-    A pixel stops when an accepted step lowers F by less than ``tol`` times
-    F per fitted sample (a change far below what one sample's misfit can
-    resolve; it shrinks as the fit improves, so noiseless data converge
-    fully), or when its damping has grown past 1e8 (no descent step left).
-    With ``tie_sigma`` pixels whose atoms already share one sigma keep sharing
-    it (one width parameter); with ``sss_after_direct`` a near sss onset moves
-    with the direct and its gap stays >= 0.  Steps are accepted per pixel only
-    where F decreases.  Each trial is rendered once, with its Jacobian, so an
-    accepted step needs no second evaluation and a rejected one only a new
-    damped solve of the cached normal equations.  ``return_model``: also
-    return the model (P, L) of the returned state (kept up to date, so the
-    caller need not render it again).
+    ``obj`` is F at the current state (P,), the level a step must beat (None: computed
+    exactly); returns (state, F, iterations run by the slowest pixel) and, with
+    ``return_model``, the model (P, L) of the returned state.  The loop itself is
+    :func:`decomposition.atomlm.lm_refine` (compiled, one pixel at a time): a pixel stops when
+    an accepted step lowers F by less than ``tol`` times F per fitted sample (a change far
+    below what one sample's misfit can resolve; it shrinks as the fit improves, so noiseless
+    data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels
+    whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
+    onset moves with the direct and its gap stays >= 0.
     """
-    P, K_all = st["fam"].shape
-    tol = 0.0 if tol is None else float(tol)
-    nw = np.maximum((w > 0).sum(axis=1), 1.0)
-    full, K = _compact(st)
-    if K == 0:
-        return (st, obj, 0, np.zeros(p.shape)) if return_model else (st, obj, 0)
-    st = {k: v[:, :K].copy() for k, v in full.items()}
-    lam = np.full(P, 1e-3)
-    live = np.ones(P, bool)
-    model, jac = _render(t, st, want_jac=True)
-    ne = _normal_equations(p, w, st, model, jac, tie_sigma, sss_after_direct)
-    it = 0
-    for it in range(1, n_iter + 1):
-        idx = np.nonzero(live)[0]
-        if idx.size == 0:
-            it -= 1
-            break
-        sub = _take(st, idx)
-        e = {k: v[idx] for k, v in ne.items()}
-        act = sub["fam"] != FAM_NONE
-        fixed = ~e["free"] | ~(e["d"] > 0)
-        step = _damped_step(e["JtJ"], e["g"], e["d"], fixed, lam[idx])
-        lk, dsl, ssl, tied = e["lk"], e["dsl"], e["ssl"], e["tied"]
-        rows = np.nonzero(lk)[0]
-        if rows.size:
-            # active set for the gap >= 0 bound: a gap at 0 whose step points below it is
-            # pinned and the step re-solved without it
-            col = 4 * ssl[rows] + 1
-            gap = sub["delay"][rows, ssl[rows]] - sub["delay"][rows, dsl[rows]]
-            pin = (gap <= 1e-9) & (step[rows, col] < 0)
-            if pin.any():
-                pr = rows[pin]
-                fixed[pr, col[pin]] = True
-                step[pr] = _damped_step(e["JtJ"][pr], e["g"][pr], e["d"][pr], fixed[pr], lam[idx[pr]])
-        step = np.where(np.isfinite(step), step, 0.0).reshape(idx.size, K, 4)
-        trial = {k: v.copy() for k, v in sub.items()}
-        trial["amp"] = np.where(act, np.clip(sub["amp"] + step[..., 0], 0.0, _AMP_MAX / sub["pen"]), 0.0)
-        trial["delay"] = np.clip(sub["delay"] + step[..., 1], *bounds["delay"])
-        lsig = np.clip(sub["lsig"] + step[..., 2], *bounds["lsig"])
-        lsig[tied] = lsig[tied, :1]
-        trial["lsig"] = lsig
-        trial["lalp"] = np.where(sub["fam"] == FAM_SSS,
-                                 np.clip(sub["lalp"] + step[..., 3], *bounds["lalp"]), sub["lalp"])
-        if rows.size:
-            trial["delay"][rows, ssl[rows]] += step[rows, dsl[rows], 1]
-            trial["delay"] = np.clip(trial["delay"], *bounds["delay"])
-        _constrain(trial, sss_after_direct)
-        tmodel, tjac = _render(t, trial, want_jac=True)
-        tobj = objective(p[idx], w[idx], tmodel, trial, mu[idx], eps[idx])
-        better = tobj < obj[idx]
-        acc = idx[better]
-        if acc.size:
-            tb = _take(trial, better)
-            _put(st, acc, tb)
-            model[acc] = tmodel[better]
-            new = _normal_equations(p[acc], w[acc], tb, tmodel[better], tjac[better], tie_sigma, sss_after_direct)
-            for k, v in new.items():
-                ne[k][acc] = v
-        old = obj[idx]
-        obj[acc] = tobj[better]
-        lam[acc] = np.maximum(lam[acc] / 3.0, 1e-9)
-        rej = idx[~better]
-        lam[rej] *= 4.0
-        # converged: tiny relative decrease, or damping blown up
-        small = better & (old - tobj <= tol * old / nw[idx])
-        live[idx[small]] = False
-        live[rej[lam[rej] > 1e8]] = False
-    out = {k: v.copy() for k, v in full.items()}
-    for k in out:
-        out[k][:, :K] = st[k]
-    return (out, obj, it, model) if return_model else (out, obj, it)
+    out, o, iters, model = lm_refine(float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0, p, w, st, mu, eps,
+                                     bounds, n_iter, obj, tie_sigma=tie_sigma, sss_after_direct=sss_after_direct,
+                                     tol=0.0 if tol is None else tol)
+    it = int(iters.max(initial=0))
+    return (out, o, it, model) if return_model else (out, o, it)
 
 
 def _new_state(P, K):
@@ -741,78 +583,6 @@ def _bounds(dic: Dictionary, bound_factor: float):
         "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
         "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
     }
-
-
-def _closed_form(u, n, mu, eps):
-    """Minimiser on z >= 0 of (n/2)(z-u)^2 + mu log(1 + z/eps) and the decrease vs z = 0."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        disc = np.square(u + eps) - 4.0 * mu / n
-        z = 0.5 * ((u - eps) + np.sqrt(np.maximum(disc, 0.0)))
-        ok = (disc >= 0) & (u > 0) & (z > 0) & (n > 0)
-        z = np.where(ok, z, 0.0)
-        dec = 0.5 * n * (u * u - np.square(z - u)) - mu * np.log1p(z / eps)
-    ok &= np.isfinite(dec) & (dec > 0)      # a positive stationary point may still lose to z = 0
-    return np.where(ok, z, 0.0), np.where(ok, dec, 0.0)
-
-
-_TOP_K = 3   # exact closed-form decreases are evaluated for the K best coordinates by c^2/n
-
-
-def _select(c, n2, mu, eps, allow, by_size=None, eligible=None):
-    """Per-pixel best coordinate of (n, A, S) correlations ``c`` and norms ``n2``.
-
-    Returns (flat index, coefficient z, objective decrease) per pixel.
-    Gauss-Southwell-q (largest decrease): candidates are ranked by the
-    unpenalised decrease c^2 / n, and the exact closed-form decrease (with the
-    log-sum penalty) is evaluated for the best ``_TOP_K`` of them only -- the
-    ranking barely differs and the exact decrease keeps the descent monotone.
-    Rows with ``by_size`` take the largest coefficient among decreasing
-    coordinates instead (Gauss-Southwell-r), restricted to ``eligible``
-    coordinates (atoms mostly outside the window or on excluded samples have
-    tiny norms that make any coefficient possible).
-    """
-    n = c.shape[0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.where(n2 > 0, c / n2, 0.0)
-    valid = allow & (u > 0) & (u <= _AMP_MAX)
-    cf = c.reshape(n, -1)
-    uf = np.broadcast_to(u, c.shape).reshape(n, -1)
-    nf = n2.reshape(n2.shape[0], -1)           # (n or 1, A*S): indexed below, never broadcast-copied
-    vf = np.broadcast_to(valid, c.shape).reshape(n, -1)
-    rows = np.arange(n)
-    best = np.zeros(n, np.int64)
-    zb = np.zeros(n)
-    db = np.zeros(n)
-    q_rows = np.ones(n, bool) if by_size is None else ~by_size
-    # Gauss-Southwell-q: by c^2/n (GS-r: by coefficient), then the exact decrease of the
-    # _TOP_K best; successive argmax passes are cheaper than a partial sort here
-    for rows_sel, by_coef in ((np.nonzero(q_rows)[0], False), (np.nonzero(~q_rows)[0], True)):
-        if rows_sel.size == 0:
-            continue
-        ok = vf[rows_sel]
-        if by_coef and eligible is not None:
-            ok = ok & np.broadcast_to(eligible, c.shape).reshape(n, -1)[rows_sel]
-        key = np.where(ok, uf[rows_sel] if by_coef else cf[rows_sel] * uf[rows_sel], -np.inf)
-        rr = np.arange(rows_sel.size)
-        found = np.zeros(rows_sel.size, bool)
-        for _ in range(_TOP_K):
-            j = np.argmax(key, axis=1)
-            live = np.isfinite(key[rr, j]) & ~found
-            z, dec = _closed_form(uf[rows_sel, j], nf[rows_sel if nf.shape[0] > 1 else 0, j], mu[rows_sel],
-                                  eps[rows_sel])
-            dec = np.where(live & (z <= _AMP_MAX), dec, 0.0)
-            if by_coef:
-                take = (dec > 0) & ~found          # first decreasing coordinate in coefficient order
-            else:
-                take = dec > db[rows_sel]          # best exact decrease among the top candidates
-            g = rows_sel[take]
-            best[g], zb[g], db[g] = j[take], z[take], dec[take]
-            if by_coef:
-                found |= take
-            key[rr, j] = -np.inf
-            if found.all():
-                break
-    return best, zb, db
 
 
 def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
@@ -993,8 +763,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         sub = _take(st, gi)
         sub, o, nl, m_sub = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
                                 tie_sigma, sss_after_direct, lm_tol, return_model=True)
-        # exact objective after refinement (guards against round-off in the FFT pick)
-        exact = objective(p[gi], w[gi], m_sub, sub, mu[gi], eps[gi])
+        exact = o       # F evaluated exactly after refinement (not the FFT pick's estimate)
         _drop_zero(sub)
         _put(st, gi, sub)
         model[gi] = m_sub
@@ -1100,14 +869,10 @@ def _backward_direct(p, w, s_eff, dic, st, info, opts):
     r_ = np.arange(cand.size)
     alt["fam"][r_, dsl[cand]] = FAM_NONE
     alt["amp"][r_, dsl[cand]] = 0.0
-    m, _ = _render(t, alt)
-    o = objective(p[cand], w[cand], m, alt, mu, eps)
-    alt, o, nl = _lm(t, p[cand], w[cand], alt, mu, eps, _bounds(dic, opts.get("bound_factor", 4.0)),
-                     2 * opts.get("n_lm", 4), o, opts.get("tie_sigma", True), opts.get("sss_after_direct", True),
-                     opts.get("lm_tol", 1e-2))
+    alt, o, nl, m = _lm(t, p[cand], w[cand], alt, mu, eps, _bounds(dic, opts.get("bound_factor", 4.0)),
+                        2 * opts.get("n_lm", 4), None, opts.get("tie_sigma", True),
+                        opts.get("sss_after_direct", True), opts.get("lm_tol", 1e-2), return_model=True)
     _drop_zero(alt)
-    m, _ = _render(t, alt)
-    o = objective(p[cand], w[cand], m, alt, mu, eps)
     hist = info["objective"]
     last = hist.shape[1] - 1 - np.argmax(np.isfinite(hist[cand])[:, ::-1], axis=1)
     cur = hist[cand, last]
@@ -1142,10 +907,8 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     mu = np.zeros_like(s_eff)
     eps = eps_rel * s_eff
-    model, _ = _render(t, st)
-    obj = objective(p, w, model, st, mu, eps)
     bounds = _bounds(dic, bound_factor)
-    st, obj, nl, model = _lm(t, p, w, st, mu, eps, bounds, n_lm, obj, tie_sigma, sss_after_direct, lm_tol,
+    st, obj, nl, model = _lm(t, p, w, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
                              return_model=True)
     if sss_after_direct:
         # A direct and an sss with the same onset and width are degenerate to first order
@@ -1161,9 +924,7 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
             alt = _take(st, retry)
             alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
                                                                 + sig_s[retry])
-            m_alt, _ = _render(t, alt)
-            o_alt = objective(p[retry], w[retry], m_alt, alt, mu[retry], eps[retry])
-            alt, o_alt, nl2, m_alt = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, o_alt,
+            alt, o_alt, nl2, m_alt = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
                                          tie_sigma, sss_after_direct, lm_tol, return_model=True)
             better = o_alt < obj[retry]
             _put(st, retry[better], _take(alt, better))

@@ -1,0 +1,469 @@
+"""Levenberg-Marquardt refinement of each pixel's atoms, compiled (ConvSCD step 2).
+
+After every pick, and once more after thresholding, the active atoms of a pixel -- Gaussians
+(direct, inter-reflections) and at most one sss kernel -- have their amplitudes, delays, widths
+and decay rates refined continuously, each step accepted only where the pixel's objective
+
+    F = 1/2 ||residual||^2 + mu sum_k log(1 + pen_k |amp_k| / eps)
+
+decreases (see :mod:`decomposition.convscd` for the objective, the sample codes and the
+constraints).  This module is that loop, one pixel at a time in compiled code
+(:mod:`decomposition.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
+within +-8 sigma of its delay, an sss kernel from 8 sigma before its onset; its exponential
+tail by a one-pole recursion), and the normal equations sum only over the overlap of two
+atoms' supports.  Nothing of size (pixels, atoms, parameters, time) is ever allocated.
+
+Parameters per slot: (amp, delay_ps, log sigma_ps, log alpha_per_ps), columns 4k..4k+3.
+Options as in the solver: ``tie_sigma`` keeps one width for pixels whose atoms share it
+(slot 0's width column carries all of them); ``sss_after_direct`` parametrises an sss onset
+within 3 PSF widths before the earliest Gaussian as direct delay + gap, gap >= 0 by an active
+set, and keeps onsets at or after that Gaussian.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .jit import njit, sss_value
+
+__all__ = ["lm_refine"]
+
+FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
+G_HALF = 8.0                          # Gaussians are evaluated within +-8 sigma (exp(-32) beyond)
+TAIL_SIGMA = 6.0 * math.sqrt(2.0)     # past alpha sigma^2 + this many sigma, erfc(u) == 2 in float64
+NEAR_SIGMA = 3.0                      # an sss onset this many widths before a Gaussian is tied to it
+AMP_MAX = 20.0                        # largest component peak (units of the pixel's largest sample)
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+_TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
+
+
+@njit
+def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
+    """Atom ``amp * phi`` and its 4 derivative columns into J[row:row+4, lo:hi]; returns (lo, hi).
+
+    Columns: d/d amp (= phi), d/d delay_ps, d/d log sigma, d/d log alpha.  Outside [lo, hi)
+    every column is zero (and J is not written there).
+    """
+    sig = math.exp(lsig)
+    if fam == FAM_GAUSS:
+        lo = min(max(int(math.floor((delay - G_HALF * sig - t0) / T)), 0), L)
+        hi = max(min(int(math.ceil((delay + G_HALF * sig - t0) / T)) + 1, L), lo)
+        for i in range(lo, hi):
+            x = (t0 + i * T - delay) / sig
+            ph = math.exp(-0.5 * x * x)
+            aph = amp * ph
+            J[row, i] = ph
+            J[row + 1, i] = aph * x / sig
+            J[row + 2, i] = aph * x * x
+            J[row + 3, i] = 0.0
+        return lo, hi
+    alp = math.exp(lalp)
+    lo = max(int(math.floor((delay - G_HALF * sig - t0) / T)), 0)
+    we = int(math.ceil((delay + alp * sig * sig + TAIL_SIGMA * sig - t0) / T))
+    if lo >= L:
+        return L, L
+    hi = L
+    s2 = sig * sig
+    i = lo
+    while i < L and i <= we:
+        x = t0 + i * T - delay
+        h, g = sss_value(x, sig, alp)
+        J[row, i] = h
+        J[row + 1, i] = -amp * (g - alp * h)
+        J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
+        J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+        i += 1
+    if i < L:
+        # exponential tail (g = 0 there): h = sqrt(2 pi) sigma exp(alpha^2 sigma^2 / 2 - alpha x),
+        # stepped by exp(-alpha T) per bin; all three derivative columns are multiples of h
+        x = t0 + i * T - delay
+        h = _SQRT_2PI * sig * math.exp(min(0.5 * alp * alp * s2 - alp * x, 0.0))
+        rho = math.exp(-alp * T)
+        c1 = amp * alp
+        c2 = amp * (1.0 + alp * alp * s2)
+        while i < L:
+            if h < _TINY:
+                hi = i
+                break
+            J[row, i] = h
+            J[row + 1, i] = c1 * h
+            J[row + 2, i] = c2 * h
+            J[row + 3, i] = c1 * (alp * s2 - x) * h
+            h *= rho
+            x += T
+            i += 1
+    return lo, hi
+
+
+@njit
+def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
+    """Evaluate the pixel's K active slots into J and sum their model into ``model`` (L,)."""
+    for i in range(L):
+        model[i] = 0.0
+    for k in range(K):
+        a, b = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k)
+        lo[k] = a
+        hi[k] = b
+        ak = amp[k]
+        for i in range(a, b):
+            model[i] += ak * J[4 * k, i]
+
+
+@njit
+def _objective(L, K, p, w, model, fam, amp, pen, mu, eps, r, jw):
+    """F of one pixel; fills the coded residual ``r`` and the Jacobian row weights ``jw`` (0/1)."""
+    ss = 0.0
+    for i in range(L):
+        code = w[i]
+        d = p[i] - model[i]
+        if code == 1.0:
+            r[i] = d
+            jw[i] = 1.0
+        elif code == 2.0 and d > 0.0:      # censored from below: only a model under the data misfits
+            r[i] = d
+            jw[i] = 1.0
+        else:
+            r[i] = 0.0
+            jw[i] = 0.0
+        ss += r[i] * r[i]
+    pensum = 0.0
+    for k in range(K):
+        if fam[k] != FAM_NONE:
+            pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
+    return 0.5 * ss + mu * pensum
+
+
+@njit
+def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
+    """(tied, linked, direct slot, sss slot) of one pixel (see convscd._tied / _linked)."""
+    tied = False
+    if tie_sigma and K > 0:
+        lo = lsig[0]
+        hi = lsig[0]
+        for k in range(1, K):
+            lo = min(lo, lsig[k])
+            hi = max(hi, lsig[k])
+        tied = hi - lo <= 1e-12
+    dsl = 0
+    first = np.inf
+    ssl = -1
+    for k in range(K):
+        if fam[k] == FAM_GAUSS and delay[k] < first:
+            first = delay[k]
+            dsl = k
+        if fam[k] == FAM_SSS and ssl < 0:
+            ssl = k
+    linked = (sss_after_direct and ssl >= 0 and first < np.inf
+              and first - delay[ssl] < NEAR_SIGMA * math.exp(lsig[ssl]))
+    if ssl < 0:
+        ssl = 0
+    return tied, linked, dsl, ssl
+
+
+@njit
+def _merge_column(J, dst, src, lo_d, hi_d, lo_s, hi_s):
+    """J[dst] += J[src] over their supports; returns the new support of dst (zero-extended)."""
+    a = min(lo_d, lo_s)
+    b = max(hi_d, hi_s)
+    for i in range(a, b):
+        if i < lo_d or i >= hi_d:
+            J[dst, i] = 0.0
+    for i in range(lo_s, hi_s):
+        J[dst, i] += J[src, i]
+    return a, b
+
+
+@njit
+def _normal_equations(K, fam, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, free, clo, chi):
+    """J^T J and J^T r over the free columns, summing over support overlaps only."""
+    n = 4 * K
+    for c in range(n):
+        k = c // 4
+        q = c % 4
+        clo[c] = lo[k]
+        chi[c] = hi[k]
+        free[c] = fam[k] != FAM_NONE and (q != 3 or fam[k] == FAM_SSS)
+    if tied:
+        for k in range(1, K):
+            if hi[k] > lo[k]:
+                clo[2], chi[2] = _merge_column(J, 2, 4 * k + 2, clo[2], chi[2], lo[k], hi[k])
+            free[4 * k + 2] = False
+    if linked:
+        dc = 4 * dsl + 1
+        sc = 4 * ssl + 1
+        clo[dc], chi[dc] = _merge_column(J, dc, sc, clo[dc], chi[dc], clo[sc], chi[sc])
+    for a in range(n):
+        g[a] = 0.0
+        for b in range(n):
+            JtJ[a, b] = 0.0
+    for a in range(n):
+        if not free[a]:
+            continue
+        s = 0.0
+        for i in range(clo[a], chi[a]):
+            s += J[a, i] * r[i]
+        g[a] = s
+        for b in range(a, n):
+            if not free[b]:
+                continue
+            i0 = max(clo[a], clo[b])
+            i1 = min(chi[a], chi[b])
+            s = 0.0
+            for i in range(i0, i1):
+                s += J[a, i] * J[b, i] * jw[i]
+            JtJ[a, b] = s
+            JtJ[b, a] = s
+
+
+@njit
+def _damped_step(n, JtJ, g, fixed, lam, A, x, idx):
+    """Marquardt step (JtJ + lam diag(JtJ)) x = g over the non-fixed parameters (0 elsewhere).
+
+    Gaussian elimination with partial pivoting on the free sub-system; an exactly singular
+    system or a non-finite result gives a zero step.
+    """
+    m = 0
+    for a in range(n):
+        x[a] = 0.0
+        if not fixed[a]:
+            idx[m] = a
+            m += 1
+    if m == 0:
+        return
+    for i in range(m):
+        for j in range(m):
+            A[i, j] = JtJ[idx[i], idx[j]]
+        A[i, i] = JtJ[idx[i], idx[i]] * (1.0 + lam)
+        A[i, m] = g[idx[i]]
+    for c in range(m):
+        piv = c
+        best = abs(A[c, c])
+        for i in range(c + 1, m):
+            if abs(A[i, c]) > best:
+                best = abs(A[i, c])
+                piv = i
+        if best == 0.0:
+            return
+        if piv != c:
+            for j in range(c, m + 1):
+                tmp = A[c, j]
+                A[c, j] = A[piv, j]
+                A[piv, j] = tmp
+        for i in range(c + 1, m):
+            f = A[i, c] / A[c, c]
+            if f != 0.0:
+                for j in range(c, m + 1):
+                    A[i, j] -= f * A[c, j]
+    for i in range(m - 1, -1, -1):
+        s = A[i, m]
+        for j in range(i + 1, m):
+            s -= A[i, j] * x[idx[j]]
+        x[idx[i]] = s / A[i, i]
+    for i in range(m):
+        if not math.isfinite(x[idx[i]]):
+            for a in range(n):
+                x[a] = 0.0
+            return
+
+
+@njit
+def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, model, n_iter, tie_sigma,
+               sss_after_direct, tol, d_lo, d_hi, s_lo, s_hi, a_lo, a_hi, iters):
+    P, L = p.shape
+    KA = fam.shape[1]
+    nmax = 4 * KA
+    J = np.empty((nmax, L))
+    Jt = np.empty((nmax, L))
+    tmodel = np.empty(L)
+    r = np.empty(L)
+    jw = np.empty(L)
+    lo = np.zeros(KA, np.int64)
+    hi = np.zeros(KA, np.int64)
+    tlo = np.zeros(KA, np.int64)
+    thi = np.zeros(KA, np.int64)
+    clo = np.zeros(nmax, np.int64)
+    chi = np.zeros(nmax, np.int64)
+    JtJ = np.zeros((nmax, nmax))
+    gv = np.zeros(nmax)
+    diag = np.zeros(nmax)
+    free = np.zeros(nmax, np.bool_)
+    fixed = np.zeros(nmax, np.bool_)
+    step = np.zeros(nmax)
+    A = np.zeros((nmax, nmax + 1))
+    idx = np.zeros(nmax, np.int64)
+    sf = np.zeros(KA, np.int8)
+    sv = np.zeros((5, KA))
+    tf = np.zeros(KA)
+    td = np.zeros(KA)
+    ts = np.zeros(KA)
+    tl = np.zeros(KA)
+    for pi in range(P):
+        # active slots first, in their order (the inactive ones keep theirs, after them)
+        K = 0
+        for k in range(KA):
+            if fam[pi, k] != FAM_NONE:
+                K += 1
+        c_act = 0
+        c_in = K
+        for k in range(KA):
+            dst = c_act if fam[pi, k] != FAM_NONE else c_in
+            if fam[pi, k] != FAM_NONE:
+                c_act += 1
+            else:
+                c_in += 1
+            sf[dst] = fam[pi, k]
+            sv[0, dst] = amp[pi, k]
+            sv[1, dst] = delay[pi, k]
+            sv[2, dst] = lsig[pi, k]
+            sv[3, dst] = lalp[pi, k]
+            sv[4, dst] = pen[pi, k]
+        for k in range(KA):
+            fam[pi, k] = sf[k]
+            amp[pi, k] = sv[0, k]
+            delay[pi, k] = sv[1, k]
+            lsig[pi, k] = sv[2, k]
+            lalp[pi, k] = sv[3, k]
+            pen[pi, k] = sv[4, k]
+        f = fam[pi]
+        am = amp[pi]
+        de = delay[pi]
+        ls = lsig[pi]
+        la = lalp[pi]
+        pe = pen[pi]
+        md = model[pi]
+        if K == 0:
+            for i in range(L):
+                md[i] = 0.0
+            obj[pi] = _objective(L, 0, p[pi], w[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+            iters[pi] = 0
+            continue
+        nw = 0.0
+        for i in range(L):
+            if w[pi, i] > 0:
+                nw += 1.0
+        nw = max(nw, 1.0)
+        n = 4 * K
+        _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, md)
+        cur = _objective(L, K, p[pi], w[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+        if math.isnan(obj[pi]):
+            obj[pi] = cur
+        level = obj[pi]                  # what a step must beat
+        tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
+        _normal_equations(K, f, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi)
+        lam = 1e-3
+        it = 0
+        while it < n_iter:
+            it += 1
+            for c in range(n):
+                diag[c] = JtJ[c, c]
+                fixed[c] = not free[c] or not diag[c] > 0.0
+            _damped_step(n, JtJ, gv, fixed, lam, A, step, idx)
+            if linked:
+                # active set for gap >= 0: a gap at 0 whose step points below it is pinned
+                col = 4 * ssl + 1
+                if de[ssl] - de[dsl] <= 1e-9 and step[col] < 0.0:
+                    fixed[col] = True
+                    _damped_step(n, JtJ, gv, fixed, lam, A, step, idx)
+            for k in range(K):
+                tf[k] = min(max(am[k] + step[4 * k], 0.0), AMP_MAX / pe[k])
+                td[k] = min(max(de[k] + step[4 * k + 1], d_lo), d_hi)
+                ts[k] = min(max(ls[k] + step[4 * k + 2], s_lo), s_hi)
+                if f[k] == FAM_SSS:
+                    tl[k] = min(max(la[k] + step[4 * k + 3], a_lo), a_hi)
+                else:
+                    tl[k] = la[k]
+            if tied:
+                for k in range(1, K):
+                    ts[k] = ts[0]
+            if linked:
+                td[ssl] = min(max(td[ssl] + step[4 * dsl + 1], d_lo), d_hi)
+            if sss_after_direct:
+                first = np.inf
+                for k in range(K):
+                    if f[k] == FAM_GAUSS and td[k] < first:
+                        first = td[k]
+                if first < np.inf:
+                    for k in range(K):
+                        if f[k] == FAM_SSS and first - td[k] < NEAR_SIGMA * math.exp(ts[k]):
+                            td[k] = max(td[k], first)
+            _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
+            tobj = _objective(L, K, p[pi], w[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
+            if tobj < level:
+                old = level
+                level = tobj
+                cur = tobj
+                for k in range(K):
+                    am[k] = tf[k]
+                    de[k] = td[k]
+                    ls[k] = ts[k]
+                    la[k] = tl[k]
+                    lo[k] = tlo[k]
+                    hi[k] = thi[k]
+                for i in range(L):
+                    md[i] = tmodel[i]
+                J, Jt = Jt, J
+                tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
+                _normal_equations(K, f, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi)
+                lam = max(lam / 3.0, 1e-9)
+                if old - tobj <= tol * old / nw:
+                    break
+            else:
+                lam *= 4.0
+                if lam > 1e8:
+                    break
+        obj[pi] = cur
+        iters[pi] = it
+
+
+def lm_refine(t0_ps, time_bin_ps, p, w, st, mu, eps, bounds, n_iter, obj=None, *, tie_sigma=False,
+              sss_after_direct=False, tol=0.0):
+    """Refine the active atoms of every pixel by Levenberg-Marquardt; F never increases.
+
+    Parameters
+    ----------
+    t0_ps, time_bin_ps : float
+        Time axis: bin i at t0_ps + i * time_bin_ps.
+    p, w : ndarray (P, L) float64
+        Profiles (unit peak) and sample codes (1 fitted, 0 excluded, 2 censored from below).
+    st : dict of (P, K) arrays
+        Slot state: fam (int8), amp, delay (ps), lsig (log sigma_ps), lalp (log alpha_per_ps),
+        pen (penalty scale).  Not modified.
+    mu, eps : ndarray (P,)
+        Penalty weight and scale.
+    bounds : dict
+        (lo, hi) for "delay", "lsig", "lalp".
+    n_iter : int
+        Largest number of LM iterations per pixel.
+    obj : ndarray (P,), optional
+        F at the start state, the level a step must beat (default: computed exactly here;
+        NaN entries are computed too).
+    tie_sigma, sss_after_direct : bool
+        See the module docstring.
+    tol : float
+        A pixel stops once an accepted step gains less than ``tol`` * F / (fitted samples).
+
+    Returns
+    -------
+    state : dict of (P, K) arrays, active slots first in their original order.
+    obj : ndarray (P,)
+        F at the returned state, evaluated exactly.
+    iterations : ndarray (P,) int64
+        LM iterations run per pixel.
+    model : ndarray (P, L)
+        Model of the returned state.
+    """
+    P, L = p.shape
+    out = {k: np.array(v, dtype=np.int8 if k == "fam" else np.float64, order="C", copy=True)
+           for k, v in st.items()}
+    o = np.full(P, np.nan) if obj is None else np.array(obj, np.float64, copy=True)
+    model = np.empty((P, L))
+    iters = np.zeros(P, np.int64)
+    if P:
+        _lm_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
+                   np.ascontiguousarray(w, np.float64), out["fam"], out["amp"], out["delay"], out["lsig"],
+                   out["lalp"], out["pen"], np.asarray(mu, np.float64), np.asarray(eps, np.float64), o, model,
+                   int(n_iter), bool(tie_sigma), bool(sss_after_direct), float(tol),
+                   float(bounds["delay"][0]), float(bounds["delay"][1]), float(bounds["lsig"][0]),
+                   float(bounds["lsig"][1]), float(bounds["lalp"][0]), float(bounds["lalp"][1]), iters)
+    return out, o, iters, model

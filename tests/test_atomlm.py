@@ -1,0 +1,176 @@
+"""Compiled Levenberg-Marquardt refinement of a pixel's atoms (decomposition.atomlm)."""
+import numpy as np
+import pytest
+
+from decomposition import atomlm
+from decomposition import convscd as cs
+from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+
+T = 2.0
+L = 256
+T0 = T
+
+
+def _state(rows):
+    """Slot state from rows of (fam, amp, delay_ps, sigma_ps, alpha_per_ps or None)."""
+    K = max(len(r) for r in rows) + 1            # one spare inactive slot
+    st = cs._new_state(len(rows), K)
+    for i, atoms in enumerate(rows):
+        for k, (fam, amp, d, s, a) in enumerate(atoms):
+            st["fam"][i, k] = fam
+            st["amp"][i, k] = amp
+            st["delay"][i, k] = d
+            st["lsig"][i, k] = np.log(s)
+            st["lalp"][i, k] = np.log(a) if a else 0.0
+    return st
+
+
+def _profile(atoms):
+    t = time_axis_ps(L, T)
+    out = np.zeros(L)
+    for fam, amp, d, s, a in atoms:
+        out += amp * (gaussian_kernel(t - d, s) if fam == cs.FAM_GAUSS else sss_kernel(t - d, s, a))
+    return out
+
+
+def _bounds():
+    return cs._bounds(cs.get_dictionary(L, T, T0, cs.GridSpec(), True, True), 4.0)
+
+
+@pytest.mark.parametrize("fam, amp, delay, sigma, alpha", [
+    (cs.FAM_GAUSS, 0.8, 101.3, 4.2, None),
+    (cs.FAM_GAUSS, 1.0, -6.0, 3.0, None),          # mostly before the window
+    (cs.FAM_SSS, 0.05, 150.7, 3.5, 0.03),
+    (cs.FAM_SSS, 0.02, 480.0, 2.0, 0.011),         # onset near the window's end
+    (cs.FAM_SSS, 0.3, 20.0, 6.0, 0.9),             # decays faster than the PSF is wide
+])
+def test_atom_values_and_derivative_columns(fam, amp, delay, sigma, alpha):
+    """The atom equals decomposition.model's kernel, and each derivative column equals a
+    central difference of amp * kernel in (amp, delay, log sigma, log alpha)."""
+    t = time_axis_ps(L, T)
+    lalp = np.log(alpha) if alpha else 0.0
+
+    def render(a, d, ls, la):
+        J = np.zeros((4, L))
+        lo, hi = atomlm._eval_slot(T0, T, L, fam, a, d, ls, la, J, 0)
+        out = np.zeros(L)
+        out[lo:hi] = a * J[0, lo:hi]
+        return out, J, lo, hi
+
+    model, J, lo, hi = render(amp, delay, np.log(sigma), lalp)
+    ref = amp * (gaussian_kernel(t - delay, sigma) if fam == cs.FAM_GAUSS else sss_kernel(t - delay, sigma, alpha))
+    np.testing.assert_allclose(model, ref, rtol=1e-12, atol=1e-13 * ref.max())
+    x = np.array([amp, delay, np.log(sigma), lalp])
+    n_par = 4 if fam == cs.FAM_SSS else 3
+    for q in range(n_par):
+        h = 1e-6 * max(1.0, abs(x[q]))
+        up, dn = x.copy(), x.copy()
+        up[q] += h
+        dn[q] -= h
+        fd = (render(*up)[0] - render(*dn)[0]) / (2 * h)
+        col = np.zeros(L)
+        col[lo:hi] = J[q, lo:hi]
+        np.testing.assert_allclose(col, fd, rtol=0, atol=2e-6 * max(np.abs(fd).max(), 1e-3))
+
+
+def test_noiseless_profile_is_recovered_from_a_perturbed_start():
+    truth = [(cs.FAM_GAUSS, 0.7, 120.4, 3.0, None), (cs.FAM_SSS, 0.03, 123.9, 3.0, 0.025),
+             (cs.FAM_GAUSS, 0.25, 260.2, 3.0, None)]
+    # (a start with the sss onset closer to the direct than the truth can collapse onto the
+    # direct, where the two are degenerate to first order: polish_block's restart handles that)
+    start = [(cs.FAM_GAUSS, 0.6, 120.0, 3.4, None), (cs.FAM_SSS, 0.025, 125.0, 3.4, 0.03),
+             (cs.FAM_GAUSS, 0.2, 259.0, 3.4, None)]
+    p = _profile(truth)[None]
+    w = np.ones_like(p)
+    st = _state([start])
+    zero = np.zeros(1)
+    out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, zero, np.ones(1), _bounds(), 200,
+                                              tie_sigma=True, sss_after_direct=True, tol=0.0)
+    got = sorted(zip(out["delay"][0, :3], out["amp"][0, :3], np.exp(out["lsig"][0, :3])))
+    want = sorted((d, a, s) for _, a, d, s, _ in truth)
+    np.testing.assert_allclose(np.array(got), np.array(want), rtol=1e-6, atol=1e-6)
+    sss = out["fam"][0] == cs.FAM_SSS
+    np.testing.assert_allclose(np.exp(out["lalp"][0][sss]), [0.025], rtol=1e-6)
+    assert obj[0] < 1e-16 and 0 < iters[0] <= 200
+    np.testing.assert_allclose(model[0], p[0], atol=1e-9)
+    assert np.all(st["amp"][0, :3] == [0.6, 0.025, 0.2])      # the input state is not modified
+
+
+def _random_block(n, seed):
+    rng = np.random.default_rng(seed)
+    rows, truths = [], []
+    for _ in range(n):
+        s = rng.uniform(1.5, 6.0)
+        d = rng.uniform(40, 300)
+        truth = [(cs.FAM_GAUSS, 1.0, d, s, None), (cs.FAM_SSS, rng.uniform(0.005, 0.05), d + rng.uniform(0, 2 * s), s,
+                                                   rng.uniform(0.01, 0.05))]
+        if rng.random() < 0.5:
+            truth.append((cs.FAM_GAUSS, rng.uniform(0.1, 0.5), d + rng.uniform(30, 150), s, None))
+        truths.append(truth)
+        fs = rng.uniform(0.85, 1.15)               # one width per pixel, as the solver keeps it
+        rows.append([(f, a * rng.uniform(0.6, 1.4), dd + rng.normal(0, 1.5), ss * fs,
+                      aa * rng.uniform(0.7, 1.4) if aa else None) for f, a, dd, ss, aa in truth])
+    p = np.stack([_profile(t) for t in truths])
+    p += rng.normal(0, 0.02, p.shape)
+    return p, _state(rows)
+
+
+def test_objective_never_increases_and_reported_values_are_exact():
+    """On noisy blocks with excluded (0) and censored (2) samples: F at the returned state is
+    at most F at the start for every pixel, and the returned F and model are those of the
+    returned state as the numpy objective evaluates them."""
+    p, st = _random_block(60, seed=3)
+    w = np.ones_like(p)
+    w[:20, 60:70] = 0.0
+    w[20:40, :] = np.where(p[20:40] > 0.6, 2.0, 1.0)
+    s = np.full(p.shape[0], 0.02)
+    mu, eps = 3 * s * s, 0.01 * s
+    t = time_axis_ps(L, T)
+    m0, _ = cs._render(t, st)
+    f0 = cs.objective(p, w, m0, st, mu, eps)
+    for tie, after in [(True, True), (False, False), (True, False)]:
+        out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, mu, eps, _bounds(), 12, tie_sigma=tie,
+                                                  sss_after_direct=after, tol=1e-6)
+        assert np.all(obj <= f0) and np.mean(obj < 0.5 * f0) > 0.8
+        m1, _ = cs._render(t, out)
+        np.testing.assert_allclose(model, m1, atol=1e-12)
+        np.testing.assert_allclose(obj, cs.objective(p, w, m1, out, mu, eps), rtol=1e-12)
+        assert np.all(iters <= 12)
+        act = out["fam"] != cs.FAM_NONE
+        if tie:   # pixels that started with one width keep one width
+            ls = np.where(act, out["lsig"], np.nan)
+            assert np.all(np.nanmax(ls, axis=1) - np.nanmin(ls, axis=1) <= 1e-12)
+        if after:  # an sss onset never moves before a Gaussian it is tied to
+            g = np.where(out["fam"] == cs.FAM_GAUSS, out["delay"], np.inf).min(axis=1)
+            sd = np.where(out["fam"] == cs.FAM_SSS, out["delay"], np.nan)
+            near = np.nanmax(sd, axis=1) > g - 3 * np.exp(out["lsig"][:, 0])
+            assert np.all(np.nanmax(sd, axis=1)[near] >= g[near] - 1e-9)
+
+
+def test_excluded_samples_do_not_influence_the_fit():
+    p, st = _random_block(20, seed=5)
+    w = np.ones_like(p)
+    w[:, 100:120] = 0.0
+    s = np.full(p.shape[0], 0.02)
+    args = (st, 3 * s * s, 0.01 * s, _bounds(), 10)
+    a = atomlm.lm_refine(T0, T, p, w, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
+    q = p.copy()
+    q[:, 100:120] = 1e6
+    b = atomlm.lm_refine(T0, T, q, w, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
+    for k in ("amp", "delay", "lsig", "lalp"):
+        np.testing.assert_array_equal(a[0][k], b[0][k])
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_slots_are_compacted_and_empty_pixels_pass_through():
+    st = _state([[(cs.FAM_GAUSS, 0.5, 100.0, 3.0, None)], []])
+    st["fam"][0] = [cs.FAM_NONE, cs.FAM_GAUSS]      # active slot second
+    st["amp"][0] = [0.0, 0.5]
+    st["delay"][0] = [0.0, 100.0]
+    st["lsig"][0] = [0.0, np.log(3.0)]
+    p = np.stack([_profile([(cs.FAM_GAUSS, 0.5, 101.0, 3.0, None)]), np.zeros(L)])
+    w = np.ones_like(p)
+    out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, np.zeros(2), np.ones(2), _bounds(), 50)
+    assert list(out["fam"][0]) == [cs.FAM_GAUSS, cs.FAM_NONE]
+    assert abs(out["delay"][0, 0] - 101.0) < 1e-6
+    assert iters[1] == 0 and obj[1] == 0.0 and not model[1].any()
