@@ -620,12 +620,14 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     n = r.shape[0]
     T = dic.time_bin_ps
     pre = dic.pre
-    alphas = _coarse(*dic.grid.alpha_range_per_ps, dic.grid.coarse_alpha) if np.any(dic.fam == FAM_SSS) else np.zeros(0)
+    # the coarse alphas: the dictionary's first sss sigma carries each of them once, in order
+    alphas = dic.alpha_per_ps[dic.fam == FAM_SSS][:dic.grid.coarse_alpha]
     kf = [FAM_GAUSS] + [FAM_SSS] * alphas.size
     ka = np.concatenate([[np.nan], alphas])
     H = int(math.ceil(6.0 * float(sig.max()) / T)) + 1
     c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
-                                     w1=(w == 1).astype(np.float64) if weighted else None)
+                                     w1=(w == 1).astype(np.float64) if weighted else None,
+                                     reuse_buffers=True)   # consumed by _select below
     if weighted:
         n2 = np.where(n2 > 1e-12, n2, 0.0)
     is_s = np.array(kf) == FAM_SSS

@@ -137,3 +137,16 @@ def test_whole_solver_on_a_weighted_block_with_spikes():
     res = decompose(spiky, time_bin_ps=2.0)
     assert np.all(res.flags[hit] & SPIKE)
     assert mean_fidelity(data.components, res) >= clean - 0.01
+
+
+def test_reused_buffers_give_the_same_results():
+    rng = np.random.default_rng(9)
+    kw = {"time_bin_ps": 2.0, "pre": 16, "half_bins": 20}
+    al = np.array([0.01, 0.05])
+    big = rng.standard_normal((6, 96)), rng.uniform(1.0, 6.0, 6)
+    small = rng.standard_normal((2, 96)), rng.uniform(1.0, 6.0, 2)
+    fresh = [pixel_correlations(r, s, al, **kw) for r, s in (big, small)]
+    for (r, s), ref in zip((big, small, big), fresh + fresh[:1]):   # grows, shrinks, grows again
+        got = pixel_correlations(r, s, al, reuse_buffers=True, **kw)
+        for g, f in zip(got, ref):
+            np.testing.assert_array_equal(g, f)
