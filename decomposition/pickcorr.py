@@ -105,8 +105,8 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
     kbuf = np.empty(2 * D + 4)
     hbuf = np.empty(2 * D + 4)
     k2buf = np.empty(2 * D + 4)
-    ext = np.empty(S + D + 2)
-    extn = np.empty(S + D + 2)
+    ext = np.empty(S + D + 8)
+    extn = np.empty(S + D + 8)
     cs = np.empty(2 * D + 5)
     for i in range(n):
         s = sig[i]
@@ -137,7 +137,6 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
         for a in range(na):
             al = alphas[a]
             rho = math.exp(-al * T)
-            rho2 = rho * rho
             pk = 0.0
             for t in range(kn):
                 h = sss_value((d_lo + t) * T, s, al)[0]
@@ -159,19 +158,54 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
                 _fir(wp, off, k2buf, kn, d_lo, -pre, n_ext, extn)
             else:
                 _window_sums(k2buf, kn, d_lo, L, pre, cs, extn[:n_ext])
-            acc = 0.0
-            accn = 0.0
-            for j in range(n_ext - 1, S - 1, -1):
-                acc = ext[j] + rho * acc
-                accn = extn[j] + rho2 * accn
-            cr = c[i, 1 + a]
-            nr = n2[i, 1 + a]
-            for jj in range(S):                     # two independent chains per step
-                j = S - 1 - jj
-                acc = ext[j] + rho * acc
-                accn = extn[j] + rho2 * accn
-                cr[j] = acc
-                nr[j] = accn
+            _recurse(ext, extn, n_ext, rho, c[i, 1 + a], n2[i, 1 + a])
+
+
+@njit
+def _recurse(e, en, n_e, rho, c_out, n_out):
+    """c(j) = e(j) + rho c(j + 1) and n(j) = en(j) + rho^2 n(j + 1), backwards from c = n = 0 at
+    j = n_e; written for j < c_out.size.  ``e``, ``en`` are overwritten (and need n_e + 8 room).
+
+    Unrolled by four: with e4(j) = e(j) + rho e(j+1) + rho^2 e(j+2) + rho^3 e(j+3),
+    c(j) = e4(j) + rho^4 c(j + 4), i.e. four independent chains (eight with the norms) instead
+    of one long chain of dependent multiply-adds.
+    """
+    S = c_out.size
+    nb = (n_e + 3) // 4 * 4
+    for j in range(n_e, nb + 4):
+        e[j] = 0.0
+        en[j] = 0.0
+    r1, r2 = rho, rho * rho
+    r4 = r2 * r2
+    r8 = r4 * r4
+    for j in range(nb + 3):                     # e2(j) = e(j) + rho e(j+1)
+        e[j] += r1 * e[j + 1]
+        en[j] += r2 * en[j + 1]
+    for j in range(nb + 2):                     # e4(j) = e2(j) + rho^2 e2(j+2)
+        e[j] += r2 * e[j + 2]
+        en[j] += r4 * en[j + 2]
+    c0 = c1 = c2 = c3 = 0.0
+    n0 = n1 = n2 = n3 = 0.0
+    for jb in range(nb // 4):
+        b = nb - 4 - 4 * jb
+        c0 = e[b] + r4 * c0
+        c1 = e[b + 1] + r4 * c1
+        c2 = e[b + 2] + r4 * c2
+        c3 = e[b + 3] + r4 * c3
+        n0 = en[b] + r8 * n0
+        n1 = en[b + 1] + r8 * n1
+        n2 = en[b + 2] + r8 * n2
+        n3 = en[b + 3] + r8 * n3
+        if b + 3 < S:
+            c_out[b], c_out[b + 1], c_out[b + 2], c_out[b + 3] = c0, c1, c2, c3
+            n_out[b], n_out[b + 1], n_out[b + 2], n_out[b + 3] = n0, n1, n2, n3
+        else:
+            if b < S:
+                c_out[b], n_out[b] = c0, n0
+            if b + 1 < S:
+                c_out[b + 1], n_out[b + 1] = c1, n1
+            if b + 2 < S:
+                c_out[b + 2], n_out[b + 2] = c2, n2
 
 
 def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins, w1=None,
