@@ -9,7 +9,8 @@ means for the command (a local cluster of N single-threaded worker processes); `
 runs the command's default threaded scheduler with N threads instead.
 
 Each configuration runs in its own child process; the parent samples the resident memory of
-that process and all its descendants (workers included) every 50 ms and reports the peak sum,
+that process and all its descendants (workers included; the list of descendants is refreshed
+every second) every 50 ms and reports the peak sum,
 next to the largest single-process peak (``ru_maxrss``).
 
 The floor: one pass of FFT correlation of every profile with a Gaussian kernel over the same
@@ -143,19 +144,25 @@ def run_config(cube_path, out_path, *, method, kind, n, chunks, timeout_s=3600) 
     deadline = time.monotonic() + timeout_s
     try:
         ps = psutil.Process(proc.pid)
+        tree, listed = [ps], 0.0
         while proc.poll() is None:
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise CommandError(f"{method} with {kind}={n} did not finish in {timeout_s} s")
-            try:
-                total = ps.memory_info().rss
-                for c in ps.children(recursive=True):
-                    try:
-                        total += c.memory_info().rss
-                    except psutil.Error:
-                        pass
-                peak = max(peak, total)
-            except psutil.Error:
-                pass
+            if now - listed > 1.0:
+                # finding the descendants scans every process on the machine: at 20 Hz that took a
+                # third of a core from the run being measured, so the tree is listed once a second
+                try:
+                    tree, listed = [ps] + ps.children(recursive=True), now
+                except psutil.Error:
+                    pass
+            total = 0
+            for c in tree:
+                try:
+                    total += c.memory_info().rss
+                except psutil.Error:
+                    pass
+            peak = max(peak, total)
             time.sleep(0.05)
     finally:
         if proc.poll() is None:
