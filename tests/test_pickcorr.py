@@ -69,6 +69,9 @@ def test_kernels_partly_outside_the_window_and_empty_inputs():
     np.testing.assert_allclose(c[0, 1, :pre + 1], sss_kernel(-s[:pre + 1] * T, 3.0, 0.02) / peak[0, 1],
                                rtol=1e-12)
     assert np.all(c[0, 1, pre + 11:] == 0)                      # onset more than H bins after the sample
+    g_only = pixel_correlations(r, sig, np.zeros(0), time_bin_ps=T, pre=pre, half_bins=10)   # no sss family
+    for got, ref in zip(g_only, (c, n2, peak)):
+        np.testing.assert_array_equal(got, ref[:, :1])
     e = pixel_correlations(np.zeros((0, L)), np.zeros(0), np.array([0.02]), time_bin_ps=T, pre=pre, half_bins=10)
     assert [a.shape for a in e] == [(0, 2, L + pre), (0, 2, L + pre), (0, 2)]
 
