@@ -281,10 +281,13 @@ class Dictionary:
         self.gather = self.shifts % N
         self.n_coordinates = A * S
 
-    def correlate(self, x: np.ndarray, squared: bool = False) -> np.ndarray:
-        """Correlate rows of ``x`` (P, L) with every atom at every shift -> (P, A, S)."""
+    def correlate(self, x: np.ndarray, squared: bool = False, atoms=None) -> np.ndarray:
+        """Correlate rows of ``x`` (P, L) with every atom (or those of index array ``atoms``, A')
+        at every shift -> (P, A, S) (or (P, A', S)); ``squared``: with the squared atoms."""
         X = sfft.rfft(x, n=self.n_fft, axis=-1, workers=_WORKERS)
         spec = self.spec2_conj if squared else self.spec_conj
+        if atoms is not None:
+            spec = spec[atoms]
         c = sfft.irfft(X[:, None, :] * spec[None], n=self.n_fft, axis=-1, workers=_WORKERS)
         return np.take(c, self.gather, axis=-1)   # C-contiguous (c[..., idx] is not, and slower)
 
@@ -587,20 +590,27 @@ def _bounds(dic: Dictionary, bound_factor: float):
 
 def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
     """Best coordinate of the coarse dictionary per pixel (Gauss-Southwell, largest decrease)."""
-    n = r.shape[0]
-    c = dic.correlate(r)                                   # (n, A, S)
-    if weighted:
-        n2 = dic.correlate((w == 1).astype(np.float64), squared=True)
-        n2 = np.where(n2 > 1e-12 * dic.norm2[None], n2, 0.0)
-    else:
-        n2 = dic.norm2[None]
+    # only the families some pixel may take are correlated (the first pick of the primary
+    # start allows Gaussians only: 4 of the 13 default atoms)
     is_s = dic.fam == FAM_SSS
+    atoms = np.flatnonzero(np.where(is_s, bool(allow_s.any()), bool(allow_g.any())))
+    if atoms.size == 0:
+        atoms = np.arange(dic.fam.size)
+    norm2 = dic.norm2[atoms]
+    is_s = is_s[atoms]
+    c = dic.correlate(r, atoms=atoms)                      # (n, A', S)
+    if weighted:
+        n2 = dic.correlate((w == 1).astype(np.float64), squared=True, atoms=atoms)
+        n2 = np.where(n2 > 1e-12 * norm2[None], n2, 0.0)
+    else:
+        n2 = norm2[None]
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
     delay = dic.t0_ps + dic.shifts * dic.time_bin_ps
     allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
-    eligible = (dic.shifts >= 0)[None, None, :] & (n2 >= 0.5 * dic.norm2[None])
+    eligible = (dic.shifts >= 0)[None, None, :] & (n2 >= 0.5 * norm2[None])
     best, zb, db = _select(c, n2, mu, eps, allow, by_size, eligible)
     a_i, j_i = np.divmod(best, dic.shifts.size)
+    a_i = atoms[a_i]
     fam = dic.fam[a_i]
     alpha = np.where(fam == FAM_SSS, dic.alpha_per_ps[a_i], 1.0)
     cand = {"fam": fam, "amp": zb / dic.peak[a_i], "pen": dic.peak[a_i].copy(),
