@@ -27,7 +27,7 @@ import numpy as np
 
 from .jit import njit, sss_value
 
-__all__ = ["lm_refine"]
+__all__ = ["lm_refine", "atom_profiles"]
 
 FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 G_HALF = 8.0                          # Gaussians are evaluated within +-8 sigma (exp(-32) beyond)
@@ -94,6 +94,44 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
             x += T
             i += 1
     return lo, hi
+
+
+@njit
+def _profiles(t0, T, fam, delay, lsig, lalp, out):
+    n, L = out.shape
+    J = np.empty((4, L))
+    for i in range(n):
+        if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0)
+            for m in range(lo, hi):
+                out[i, m] = J[0, m]
+
+
+def atom_profiles(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):
+    """Unit-amplitude atoms on the time axis, one row per atom (the solver's own evaluation).
+
+    Parameters
+    ----------
+    t0_ps, time_bin_ps : float
+        Bin i at t0_ps + i * time_bin_ps.
+    n_bins : int
+    fam : int array (n,)
+        FAM_GAUSS, FAM_SSS or FAM_NONE (a zero row).
+    delay_ps, lsig, lalp : arrays (n,)
+        Delay (ps), log sigma_ps and log alpha_per_ps (ignored for Gaussians).
+
+    Returns
+    -------
+    ndarray (n, n_bins) float64: unit-peak Gaussians exp(-(t - d)^2 / (2 sigma^2)) within
+    +-8 sigma, sss kernels (decomposition.model.sss_kernel, not normalised) from 8 sigma before
+    their onset; exact zeros elsewhere.
+    """
+    fam = np.ascontiguousarray(fam, np.int8)
+    out = np.zeros((fam.size, int(n_bins)))
+    if fam.size:
+        _profiles(float(t0_ps), float(time_bin_ps), fam, np.ascontiguousarray(delay_ps, np.float64),
+                  np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), out)
+    return out
 
 
 @njit

@@ -36,8 +36,7 @@ def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.
     out = np.zeros(act.shape)
     if act.any():
         pi, ki = np.nonzero(act)
-        phi, _ = _eval_atoms(t_ps, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
-                             st["lsig"][pi, ki], st["lalp"][pi, ki], False)
+        phi = _eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
         out[pi, ki] = np.abs(st["amp"][pi, ki]) * phi.max(axis=1)
     return out
 

@@ -50,10 +50,12 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
 -------------------------------------------------------------------------------
 1. Gauss-Southwell pick.  For a block of pixels (pixels x time array) the
    correlations of the residual with every atom at every integer shift are
-   computed at once by FFT (precomputed zero-padded atom spectra of the
-   coarse dictionary; once a pixel has an atom, per-block spectra of the
-   Gaussian and the sss kernels at that pixel's own sigma; ``scipy.fft`` with
-   worker threads).  For a zero coordinate with column norm n and
+   computed at once: for a pixel's first atom by FFT with the precomputed
+   spectra of the coarse dictionary (only the families some pixel may take);
+   once it has one, with the Gaussian and the sss kernels at the pixel's own
+   sigma, by compiled direct correlations that use the sss kernel's one-pole
+   structure (:mod:`decomposition.pickcorr`).  The selection is compiled too
+   (:mod:`decomposition.pick`).  For a zero coordinate with column norm n and
    correlation c the one-dimensional problem is
    (n/2)(z - u)^2 + mu log(1 + z/eps), u = c/n, whose minimiser on z >= 0 is
    the larger root of z^2 + (eps - u) z + (mu/n - u eps) = 0 if it beats z = 0.
@@ -71,10 +73,11 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    1-10 ps and alpha 0.01-0.05 /ps, 500 samples each: 250,000 sss atoms) is
    never correlated densely.  The coarse grid only *detects* atoms; after
    every pick the active atoms' delays, shared sigma, alpha and amplitudes are
-   refined jointly and continuously by a few batched Levenberg-Marquardt
-   steps (analytic Jacobians of both kernels; near sss onsets parametrised
-   as direct delay + gap with an active set for gap >= 0), a step accepted for
-   a pixel only if F decreases.  Refining before the next pick matters: a
+   refined jointly and continuously by a few Levenberg-Marquardt steps
+   (analytic Jacobians of both kernels; near sss onsets parametrised as
+   direct delay + gap with an active set for gap >= 0), a step accepted for
+   a pixel only if F decreases (:mod:`decomposition.atomlm`, compiled, one
+   pixel at a time, each atom evaluated on its own support).  Refining before the next pick matters: a
    coarse atom that is slightly off leaves a derivative-shaped residual that
    would otherwise be "explained" by spurious extra atoms.
 3. After the 5 % threshold and merging (``decomposition.components``), the
@@ -85,8 +88,8 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    to the reference grid (integer-bin delays, the grid's sigma/alpha) and the
    amplitudes re-fitted: the paper's discrete setting.
 4. The objective of steps 1-2 never increases: a pick is an exact
-   coordinate minimisation, LM steps are accepted only where F decreases
-   (in float64; the float32 normal equations only propose steps), and
+   coordinate minimisation, LM steps are accepted only where F, evaluated
+   exactly in float64, decreases, and
    amplitude-zero atoms are dropped (no change in F).  The per-pixel
    objective after every outer iteration is returned so callers and tests
    can check it.
@@ -98,33 +101,39 @@ refinement keeps the paper's objective and sparsity model, finds the number of
 components automatically, costs a handful of FFT passes per pixel, and gives
 off-grid parameters.
 
-Performance.  Measured in one process on the 2-core machine, 1024 synthetic
-pixels (``decomposition.synthetic.make_profiles(1024, 512, nsr=0.05,
+Performance.  Measured on the 2-core machine with 1024 synthetic pixels
+(``decomposition.synthetic.make_profiles(1024, 512, nsr=0.05,
 noise="white", seed=0)``, kinds a, b, c; ``decompose(profiles,
-time_bin_ps=2.0)`` with default options, after a warm-up call): about
-580-630 pixels/s (was about 400 before the changes below), mean fidelity
-0.9519 unchanged.  ``streaklab bench speed --methods convscd --workers 2``
-(64 x 672 x 512, NSR 0.05): 1,051 pixels/s all stages (786 before).
-Where the time goes now (cProfile, same run): Levenberg-Marquardt ~56 %
-of which the final polish is ~23 % of the total (kernel evaluation ~31 %
-of the total: erfc/erfcx on the onset windows, one exp pass for each sss
-tail, window values placed into one padded buffer per family; batched
-float32 normal equations ~12 %; the rest is per-iteration bookkeeping,
-which dominates the last polish iterations where only a few pixels are
-still live), atom picking ~33 % (FFT transforms ~12 %, per-pixel kernel
-spectra, selection ~6 %), noise estimation, thresholding and
-classification the rest.  What made the
-difference: the Jacobian is built in float32 straight into the (P, K, 4, L)
-array the normal equations use (no float64 copy, no weighting pass on
-unweighted blocks); the sss tail and its three Jacobian columns are
-multiples of one exp pass (g = 0 there); correlations are gathered with
-``np.take`` (``c[..., idx]`` returns a strided array that every later pass
-and reshape copied); LM returns the model of its accepted state, so no
-block is rendered again after a refinement.  Tried without a measurable
-gain: float32 FFTs for picking, larger blocks (512 or 1024 pixels per
-block are slower: the (P, K, 4, L) Jacobian leaves the cache).  The hot
-path works on blocks of pixels; nothing loops in Python over pixels or
-coefficients.
+time_bin_ps=2.0)`` with default options, one process, best of 3 after a
+warm-up call) and with ``streaklab bench speed --methods convscd``
+(64 x 672 x 512, NSR 0.05, all stages of ``streaklab decompose``):
+
+==========================================  =========  ==========  =========
+step                                        1024 px     fidelity    bench, 2
+                                            (px/s)                  workers
+==========================================  =========  ==========  =========
+block-wide numpy (previous release)         594        0.95189     1,051
+LM compiled per pixel (atomlm)              1,019      0.95189
+selection compiled (pick)                   1,082      0.95189     ~1,400*
+own-width correlations compiled (pickcorr)  ~1,900     0.95189     ~2,000*
+coarse pass: allowed families only          ~2,060     0.95189     2,621
+==========================================  =========  ==========  =========
+
+(* measured while other work shared the machine.)  With 2 threads instead of
+2 worker processes the bench gives 2,800 px/s: the compiled kernels release
+the GIL.  Where the time goes now (cProfile of the 1024 px run): the
+compiled LM about a third; the own-width correlations and the selection
+about 15 %; the coarse FFT pass about 8 %; the rest is block bookkeeping in
+``solve_block``, noise estimates (medians), spike detection and rendering
+the final components with :mod:`decomposition.model`.  Why it helped: the
+numpy LM spent its time on (P, K, 4, L) float32 Jacobians, window placement
+and live-set bookkeeping, and the own-width pick on per-pixel kernel
+evaluation and FFTs; per pixel, compiled, each atom lives on its own
+support (a Gaussian on +-8 sigma, an sss tail by a one-pole recursion) and
+the normal equations sum only over overlapping supports.  The first call
+in a fresh install compiles the kernels (about 10 s, once; numba caches
+them next to the sources).  Tried without a measurable gain earlier: float32
+FFTs for picking, blocks larger than 256 pixels.
 """
 from __future__ import annotations
 
@@ -136,14 +145,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import special
 
-from .atomlm import AMP_MAX as _AMP_MAX
-from .atomlm import G_HALF as _G_HALF
 from .atomlm import NEAR_SIGMA as _NEAR_SIGMA
-from .atomlm import TAIL_SIGMA as _TAIL_SIGMA
-from .atomlm import lm_refine
-from .pick import closed_form as _closed_form
+from .atomlm import atom_profiles, lm_refine
 from .pick import select as _select
 from .model import sss_kernel
 from .pickcorr import pixel_correlations
@@ -340,163 +344,26 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: 
 
 
 # ---------------------------------------------------------------------------
-# atoms with continuous parameters (refinement)
-
-_SQRT_PI_2 = math.sqrt(math.pi / 2.0)
+# atoms with continuous parameters (evaluated by decomposition.atomlm)
 
 
-def _window_times(t0, T, L, lo_ps, hi_ps):
-    """Bin windows covering [lo, hi] per atom: start bins (n,), common width W, times (n, W)."""
-    i0 = np.floor((lo_ps - t0) / T).astype(np.int64)
-    i1 = np.ceil((hi_ps - t0) / T).astype(np.int64)
-    W = int(min(max(int((i1 - i0).max()) + 1, 1), L + 2))
-    i0 = np.clip(i0, -W, L)
-    return i0, W, t0 + T * (i0[:, None] + np.arange(W)[None, :])
+def _eval_atoms(t, fam, delay, lsig, lalp):
+    """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,)."""
+    return atom_profiles(float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0, t.size, fam, delay, lsig, lalp)
 
 
-def _sss_window(x, sig, alp):
-    """sss kernel h and unit Gaussian g at times x relative to the onset (model.py's stable forms)."""
-    g = np.exp(-0.5 * np.square(x / sig))
-    u = (alp * sig * sig - x) / (sig * math.sqrt(2.0))
-    h = np.empty_like(x)
-    pos = u >= 0
-    h[pos] = g[pos] * special.erfcx(u[pos])
-    neg = ~pos
-    a = np.broadcast_to(alp, x.shape)[neg]
-    sg = np.broadcast_to(sig, x.shape)[neg]
-    h[neg] = np.exp(-a * (x[neg] - 0.5 * a * sg * sg)) * special.erfc(u[neg])
-    return _SQRT_PI_2 * sig * h, g
-
-
-def _place(buf, i0, W, cols):
-    """Write window values ``cols`` (list of (n, W)) at bins ``i0`` (n,) into ``buf`` (n, C, L + 2W).
-
-    ``buf[:, c, W:W + L]`` is the time axis; windows partly or fully outside it land in the
-    padding (``i0`` is already clipped to [-W, L] by :func:`_window_times`).
-    """
-    n = i0.size
-    idx = i0[:, None] + W + np.arange(W)[None, :]
-    rows = np.arange(n)[:, None]
-    for c, v in enumerate(cols):
-        buf[rows, c, idx] = v
-
-
-def _eval_atoms(t, fam, amp, delay, lsig, lalp, want_jac, jac_out=None, where=None):
-    """Evaluate atoms with flat parameter arrays (n,) on the uniform time axis t (L,).
-
-    Returns phi (n, L) float64 and, if wanted, jac (n, 4, L) float32 (it only
-    feeds the normal equations, which propose steps): derivatives of amp*phi
-    with respect to (amp, delay_ps, log sigma, log alpha).  Gaussians are only
-    evaluated within +-8 sigma of their delay; the sss kernel uses the erfc
-    forms of ``decomposition.model`` near its onset and its exact exponential
-    tail sqrt(2 pi) sigma exp(alpha^2 sigma^2 / 2 - alpha x) beyond, so the
-    cost is one exp per sample plus special functions on a short window.
-    sss derivatives are analytic: dh/dx = g - alpha h,
-    dh/dalpha = (alpha sigma^2 - x) h - sigma^2 g,
-    dh/dsigma = h (1/sigma + alpha^2 sigma) - g (alpha sigma + x/sigma);
-    on the tail g = 0, so there they are multiples of h.  Each family is
-    written into one padded buffer (window values placed once), which keeps
-    the number of full-length array passes small.  With ``jac_out`` (P, K, 4, L)
-    and ``where`` = (pixel, slot) index arrays (n,), the Jacobian is written
-    there directly and None is returned in its place.
-    """
-    n, L = fam.size, t.size
-    t0 = float(t[0])
-    T = float(t[1] - t[0])
-    C = 4 if want_jac else 1
-    phi = np.empty((n, L))
-    direct = want_jac and jac_out is not None
-    jac = np.empty((n, 4, L), np.float32) if want_jac and not direct else None
-    all_g = bool(np.all(fam == FAM_GAUSS))
-    all_s = bool(np.all(fam == FAM_SSS))
-    sig = np.exp(lsig)
-    g = fam == FAM_GAUSS
-    if g.any():
-        d, sg = (delay, sig) if all_g else (delay[g], sig[g])
-        i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + _G_HALF * sg)
-        x = (tw - d[:, None]) / sg[:, None]
-        ph = np.exp(-0.5 * x * x)
-        buf = np.zeros((d.size, C, L + 2 * W))
-        if want_jac:
-            aph = (amp if all_g else amp[g])[:, None] * ph
-            _place(buf, i0, W, [ph, aph * x / sg[:, None], aph * x * x])
-        else:
-            _place(buf, i0, W, [ph])
-        out = buf[:, :, W:W + L]
-        sel = slice(None) if all_g else np.flatnonzero(g)
-        phi[sel] = out[:, 0]
-        if direct:
-            jac_out[where[0][sel], where[1][sel]] = out
-        elif want_jac:
-            jac[sel] = out
-    s = fam == FAM_SSS
-    if s.any():
-        d, sg, al = (delay, sig, np.exp(lalp)) if all_s else (delay[s], sig[s], np.exp(lalp[s]))
-        a = amp if all_s else amp[s]
-        ns = d.size
-        sgc, alc, ac = sg[:, None], al[:, None], a[:, None]
-        i0, W, tw = _window_times(t0, T, L, d - _G_HALF * sg, d + al * sg * sg + _TAIL_SIGMA * sg)
-        xw = tw - d[:, None]
-        hw, gw = _sss_window(xw, sgc, alc)
-        buf = np.zeros((ns, C, L + 2 * W))
-        # exponential tail on the whole axis (the window below overwrites its start; bins
-        # before the window are zero)
-        x = t[None, :] - d[:, None]
-        h = buf[:, 0, W:W + L]
-        np.multiply(alc, x, out=h)
-        np.subtract((0.5 * np.square(al * sg))[:, None], h, out=h)
-        np.minimum(h, 0.0, out=h)
-        np.exp(h, out=h)
-        h *= math.sqrt(2.0 * math.pi) * sgc
-        h[np.arange(L)[None, :] < i0[:, None]] = 0.0
-        if want_jac:
-            np.multiply(h, ac * alc, out=buf[:, 1, W:W + L])
-            np.multiply(h, ac * (1.0 + np.square(alc * sgc)), out=buf[:, 2, W:W + L])
-            j3 = buf[:, 3, W:W + L]
-            np.subtract(alc * sgc * sgc, x, out=j3)
-            j3 *= h
-            j3 *= ac * alc
-            _place(buf, i0, W, [hw, -ac * (gw - alc * hw),
-                                ac * sgc * (hw * (1.0 / sgc + alc * alc * sgc) - gw * (alc * sgc + xw / sgc)),
-                                ac * alc * ((alc * sgc * sgc - xw) * hw - sgc * sgc * gw)])
-        else:
-            _place(buf, i0, W, [hw])
-        out = buf[:, :, W:W + L]
-        sel = slice(None) if all_s else np.flatnonzero(s)
-        phi[sel] = out[:, 0]
-        if direct:
-            jac_out[where[0][sel], where[1][sel]] = out
-        elif want_jac:
-            jac[sel] = out
-    rest = ~(g | s)
-    if rest.any():
-        phi[rest] = 0.0
-        if direct:
-            jac_out[where[0][rest], where[1][rest]] = 0.0
-        elif want_jac:
-            jac[rest] = 0.0
-    return phi, jac
-
-
-def _render(t, st, want_jac=False):
-    """Model (P, L) float64 and optionally Jacobian (P, K, 4, L) float32 of the slot state ``st``."""
+def _render(t, st):
+    """Model (P, L) of the slot state ``st``."""
     act = st["fam"] != FAM_NONE
     P, K = act.shape
-    L = t.size
-    jac = np.zeros((P, K, 4, L), np.float32) if want_jac else None
-    model = np.zeros((P, L))
+    model = np.zeros((P, t.size))
     if not act.any():
-        return model, jac
+        return model
     pi, ki = np.nonzero(act)
-    amp = st["amp"][pi, ki]
-    phi, _ = _eval_atoms(t, st["fam"][pi, ki], amp, st["delay"][pi, ki],
-                         st["lsig"][pi, ki], st["lalp"][pi, ki], want_jac, jac, (pi, ki))
-    phi *= amp[:, None]
-    for k in range(K):                             # each pixel appears at most once per slot
-        sel = ki == k
-        if sel.any():
-            model[pi[sel]] += phi[sel]
-    return model, jac
+    phi = _eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
+    phi *= st["amp"][pi, ki][:, None]
+    np.add.at(model, pi, phi)
+    return model
 
 
 def _cres(p, model, w):
@@ -723,7 +590,6 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     weighted = bool(np.any(w != 1.0))
     lm_total = 0
     model = np.zeros((P, L))
-    is_sss_atom = dic.fam == FAM_SSS
     for it in range(1, max_iter + 1):
         idx = np.nonzero(~done)[0]
         if idx.size == 0:
@@ -971,9 +837,8 @@ def refit_amplitudes(p, w, st, dic: Dictionary):
     phi = np.zeros((P, K, L))
     if act.any():
         pi, ki = np.nonzero(act)
-        ph, _ = _eval_atoms(t, st["fam"][pi, ki], st["amp"][pi, ki], st["delay"][pi, ki],
-                            st["lsig"][pi, ki], st["lalp"][pi, ki], False)
-        phi[pi, ki] = ph
+        phi[pi, ki] = _eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
+                                  st["lalp"][pi, ki])
     w = (w == 1).astype(np.float64)
     phw = phi * w[:, None, :]
     G = np.einsum("pkl,pjl->pkj", phw, phw)

@@ -126,13 +126,13 @@ def test_objective_never_increases_and_reported_values_are_exact():
     s = np.full(p.shape[0], 0.02)
     mu, eps = 3 * s * s, 0.01 * s
     t = time_axis_ps(L, T)
-    m0, _ = cs._render(t, st)
+    m0 = cs._render(t, st)
     f0 = cs.objective(p, w, m0, st, mu, eps)
     for tie, after in [(True, True), (False, False), (True, False)]:
         out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, mu, eps, _bounds(), 12, tie_sigma=tie,
                                                   sss_after_direct=after, tol=1e-6)
         assert np.all(obj <= f0) and np.mean(obj < 0.5 * f0) > 0.8
-        m1, _ = cs._render(t, out)
+        m1 = cs._render(t, out)
         np.testing.assert_allclose(model, m1, atol=1e-12)
         np.testing.assert_allclose(obj, cs.objective(p, w, m1, out, mu, eps), rtol=1e-12)
         assert np.all(iters <= 12)
@@ -174,3 +174,16 @@ def test_slots_are_compacted_and_empty_pixels_pass_through():
     assert list(out["fam"][0]) == [cs.FAM_GAUSS, cs.FAM_NONE]
     assert abs(out["delay"][0, 0] - 101.0) < 1e-6
     assert iters[1] == 0 and obj[1] == 0.0 and not model[1].any()
+
+
+def test_atom_profiles_are_the_model_kernels_and_empty_slots_are_zero():
+    t = time_axis_ps(L, T)
+    fam = np.array([cs.FAM_GAUSS, cs.FAM_SSS, cs.FAM_NONE, cs.FAM_SSS], np.int8)
+    delay = np.array([80.0, 150.5, 10.0, -30.0])
+    sig = np.array([2.5, 4.0, 3.0, 6.0])
+    alp = np.array([1.0, 0.02, 1.0, 0.05])
+    got = atomlm.atom_profiles(T0, T, L, fam, delay, np.log(sig), np.log(alp))
+    np.testing.assert_allclose(got[0], gaussian_kernel(t - delay[0], sig[0]), atol=1e-13)
+    np.testing.assert_allclose(got[1], sss_kernel(t - delay[1], sig[1], alp[1]), rtol=1e-12, atol=1e-13)
+    assert not got[2].any()
+    np.testing.assert_allclose(got[3], sss_kernel(t - delay[3], sig[3], alp[3]), rtol=1e-12, atol=1e-13)

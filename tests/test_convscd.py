@@ -7,6 +7,7 @@ import pytest
 from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from decomposition.pick import closed_form
 from decomposition.synthetic import make_profiles
 
 T = 2.0
@@ -45,7 +46,7 @@ def test_closed_form_coordinate_step_is_the_exact_minimiser():
     u = rng.uniform(-1, 2, 200)
     n = rng.uniform(0.1, 20, 200)
     mu, eps = 0.05, 0.01
-    z, dec = cs._closed_form(u, n, mu, eps)
+    z, dec = closed_form(u, n, mu, eps)
     grid = np.linspace(0, 3, 30001)
     f = 0.5 * n[:, None] * (grid[None] - u[:, None]) ** 2 + mu * np.log1p(grid[None] / eps)
     zbest = grid[np.argmin(f, axis=1)]
