@@ -77,8 +77,8 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    (analytic Jacobians of both kernels; near sss onsets parametrised as
    direct delay + gap with an active set for gap >= 0), a step accepted for
    a pixel only if F decreases (:mod:`decomposition.atomlm`, compiled, one
-   pixel at a time, each atom evaluated on its own support).  Refining before the next pick matters: a
-   coarse atom that is slightly off leaves a derivative-shaped residual that
+   pixel at a time, each atom evaluated on its own support).  Refining
+   before the next pick matters: a coarse atom that is slightly off leaves a derivative-shaped residual that
    would otherwise be "explained" by spurious extra atoms.
 3. After the 5 % threshold and merging (``decomposition.components``), the
    kept atoms are refined on the data term alone (the usual debiasing after
@@ -131,7 +131,7 @@ and live-set bookkeeping, and the own-width pick on per-pixel kernel
 evaluation and FFTs; per pixel, compiled, each atom lives on its own
 support (a Gaussian on +-8 sigma, an sss tail by a one-pole recursion) and
 the normal equations sum only over overlapping supports.  The first call
-in a fresh install compiles the kernels (about 10 s, once; numba caches
+in a fresh install compiles the kernels (10-15 s, once; numba caches
 them next to the sources).  Tried without a measurable gain earlier: float32
 FFTs for picking, blocks larger than 256 pixels.
 """
@@ -347,9 +347,14 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: 
 # atoms with continuous parameters (evaluated by decomposition.atomlm)
 
 
+def _axis(t):
+    """(t0_ps, time_bin_ps) of a uniform time axis t (L,)."""
+    return float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0
+
+
 def _eval_atoms(t, fam, delay, lsig, lalp):
     """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,)."""
-    return atom_profiles(float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0, t.size, fam, delay, lsig, lalp)
+    return atom_profiles(*_axis(t), t.size, fam, delay, lsig, lalp)
 
 
 def _render(t, st):
@@ -427,9 +432,8 @@ def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_di
     whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
     onset moves with the direct and its gap stays >= 0.
     """
-    out, o, iters, model = lm_refine(float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0, p, w, st, mu, eps,
-                                     bounds, n_iter, obj, tie_sigma=tie_sigma, sss_after_direct=sss_after_direct,
-                                     tol=0.0 if tol is None else tol)
+    out, o, iters, model = lm_refine(*_axis(t), p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
+                                     sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol)
     it = int(iters.max(initial=0))
     return (out, o, it, model) if return_model else (out, o, it)
 
