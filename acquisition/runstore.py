@@ -27,7 +27,6 @@ old or the new version, never a torn one; an interrupted write leaves at most a
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ import numpy as np
 import zarr
 
 from .config import ConfigError, ScanConfig, parse_config
+from .durable import fsync_path, sync_chunk
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
@@ -49,19 +49,6 @@ class RunStoreError(ValueError):
 
 def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def _fsync_path(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:  # some file systems refuse fsync on directories; the data file was synced
-        pass
-    finally:
-        os.close(fd)
 
 
 def config_differences(stored: dict, current: dict, prefix: str = "") -> list[str]:
@@ -129,16 +116,7 @@ class RunStore:
 
     # -- writing ---------------------------------------------------------------------------
     def _sync_chunk(self, name: str, coords: tuple[int, ...]) -> None:
-        """fsync one chunk file of array ``name`` and the directories leading to it."""
-        root = Path(self.path) / name
-        chunk = root.joinpath("c", *map(str, coords)) if coords else root / "c"
-        _fsync_path(chunk)
-        d = chunk.parent
-        while True:
-            _fsync_path(d)
-            if d == root:
-                break
-            d = d.parent
+        sync_chunk(self.path, name, coords)
 
     def write_line(self, line: int, frames: np.ndarray, *, angle_deg: float, timestamp: float) -> None:
         """Store one scan line durably, then mark it done.
@@ -238,9 +216,9 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
         "initialised": True,
     })
     for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
-        _fsync_path(p / name / "zarr.json")
-    _fsync_path(p / "zarr.json")
-    _fsync_path(p)
+        fsync_path(p / name / "zarr.json")
+    fsync_path(p / "zarr.json")
+    fsync_path(p)
     return open_run(p, mode="r+")
 
 

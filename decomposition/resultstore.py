@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from acquisition.durable import sync_chunk
 from reconstruction.staging import staged_output
 
 __all__ = [
@@ -217,7 +218,12 @@ class ResultStore:
                 raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
         for k, value, _ in writes:
             g[k][ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
+        # durable before it is marked done: a power cut must not leave a chunk flagged done
+        # whose data never reached the disk (resume would skip it)
+        for k, _, shape in writes:
+            sync_chunk(self.path, k, (iy, ix) + (0,) * (len(shape) - 2))
         g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
+        sync_chunk(self.path, "done", (iy, ix))
 
     # ----- reads -------------------------------------------------------------------------------
     def params(self, ys=slice(None), xs=slice(None)) -> dict[str, np.ndarray]:

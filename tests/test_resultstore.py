@@ -143,3 +143,25 @@ def test_existing_paths_are_protected(tmp_path):
     store = create_result_store(tmp_path / "data", shape=(2, 2, 4), chunks=(1, 1), n_ir=1, time_bin_ps=2.0,
                                 t0_ps=2.0, overwrite=True)
     assert not (tmp_path / "data" / "keep.txt").exists() and store.grid == (2, 2)
+
+
+def test_every_chunk_file_is_fsynced_before_done_and_done_after(tmp_path, monkeypatch):
+    """A power cut must not leave a chunk marked done whose results never reached the disk:
+    every file the chunk wrote is fsync'd (with its directories) before the done flag's file."""
+    import acquisition.durable as durable
+
+    synced = []
+    real = durable.fsync_path
+    monkeypatch.setattr(durable, "fsync_path", lambda p: (synced.append(str(p)), real(p)))
+    store = _store(tmp_path)
+    store.write_chunk(1, 2, _chunk_result(store, 1, 2, seed=3))
+    root = store.path.rstrip("/")
+    base = tmp_path / "res.zarr"
+    written = sorted(str(p) for p in base.rglob("*")
+                     if p.is_file() and p.relative_to(base).parts[1:4] == ("c", "1", "2"))
+    assert len(written) == len(store.param_keys) + 8    # + rms, flags, valid, 4 components, done
+    files = [p for p in synced if not (tmp_path / p).is_dir()]
+    assert sorted(set(files)) == written
+    done_file = f"{root}/done/c/1/2"
+    assert files[-1] == done_file and files.count(done_file) == 1
+    assert f"{root}/done/c/1" in synced and f"{root}/direct/c/1/2" in synced
