@@ -29,8 +29,16 @@ _ERFCX_SERIES_FROM = 10.0   # u at which the asymptotic series takes over from e
 
 
 def njit(fn):
-    """``numba.njit`` with the options every kernel of the solver uses."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    """``numba.njit`` with the options every kernel of the solver uses.
+
+    Compiled code is cached on disk (beside the source, else in the user's cache directory).
+    Where numba finds no writable place for it, the kernel is compiled without a cache,
+    once per process, instead of failing the import.
+    """
+    try:
+        return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    except RuntimeError:          # "cannot cache function ...: no locator available"
+        return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
 @njit

@@ -23,3 +23,10 @@ def test_sss_value_matches_the_forward_model(sigma_ps, alpha_per_ps):
         g = np.array([jit.sss_value(v, sigma_ps, alpha_per_ps)[1] for v in x])
     np.testing.assert_allclose(h, sss_kernel(x, sigma_ps, alpha_per_ps), rtol=1e-13, atol=1e-300)
     np.testing.assert_allclose(g, np.exp(-0.5 * (x / sigma_ps) ** 2), rtol=1e-15, atol=0)
+
+
+def test_a_kernel_without_a_cache_location_still_compiles():
+    """Code with no source file (or no writable cache directory) gets no disk cache, not an error."""
+    ns = {"jit": jit}
+    exec("@jit.njit\ndef twice(x):\n    return 2.0 * x\n", ns)
+    assert ns["twice"](1.5) == 3.0
