@@ -631,21 +631,31 @@ class RemoteExCamera:
             raise ValueError(f"timeout_s must be positive, got {timeout_s!r}")
         deadline = time.monotonic() + timeout_s
 
+        def late():
+            return DeviceTimeout(f"RemoteEx: acquisition not finished within {timeout_s} s")
+
         def remaining():
             r = deadline - time.monotonic()
             if r <= 0:
-                raise DeviceTimeout(f"RemoteEx: acquisition not finished within {timeout_s} s")
+                raise late()
             return min(r, self.timeout_s)
 
         with self._lock:
             try:
                 self._start_acquisition(remaining)
                 while True:
-                    values = self.command("AcqStatus", timeout_s=remaining())
+                    try:
+                        values = self.command("AcqStatus", timeout_s=remaining())
+                    except DeviceTimeout:
+                        # a status query started just before the deadline gets only what is left
+                        # of it: its timeout is the acquisition's, and is reported as such
+                        if time.monotonic() >= deadline:
+                            raise late() from None
+                        raise
                     if values and values[0].strip().lower() == "idle":
                         break
                     if deadline - time.monotonic() <= 0:
-                        raise DeviceTimeout(f"RemoteEx: acquisition not finished within {timeout_s} s")
+                        raise late()
                     time.sleep(min(self.poll_interval_s, max(0.0, deadline - time.monotonic())))
             except DeviceTimeout:
                 self._abort_acquisition()

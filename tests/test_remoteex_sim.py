@@ -135,6 +135,20 @@ def test_acquisition_left_running_is_stopped_and_restarted(lab):
         ["AcqStart(Acquire)", "AcqStop()", "AcqStart(Acquire)"]
 
 
+def test_a_status_query_cut_short_by_the_acquisition_deadline_reports_the_acquisition_timeout():
+    """The last status query before the deadline gets only what is left of it; when the reply
+    misses that, the error is the acquisition's timeout, not a missing reply (and the
+    acquisition is stopped)."""
+    with RemoteExSimulator(lit_state(), SCENE, frame_time_s=30.0) as sim, \
+            RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        sim.inject("delay", command="AcqStatus", delay_s=0.6)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="acquisition not finished within 0.3 s"):
+            cam.acquire(timeout_s=0.3)
+        assert time.monotonic() - t0 < 2.0
+        assert list(sim.received)[-1] == "AcqStop()"
+
+
 def test_acquisition_timeout_stops_the_acquisition():
     with RemoteExSimulator(lit_state(), SCENE, frame_time_s=30.0) as sim, \
             RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
