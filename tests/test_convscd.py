@@ -95,7 +95,7 @@ def test_family_selection_shrinks_the_search():
     assert cs.get_dictionary(L, T, T, g, True, True) is full       # cached
     assert not np.any(no_s.fam == cs.FAM_SSS)
     assert no_s.n_coordinates < full.n_coordinates / 2
-    data = make_profiles(30, L, nsr=0.01, noise="white", seed=5, kinds=("d+r2",))
+    data = make_profiles(120, L, nsr=0.01, noise="white", seed=5, kinds=("d+r2",))  # ~20 ms a call
     import time
 
     def best_of_3(**kw):
