@@ -324,7 +324,6 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
     chi = np.zeros(nmax, np.int64)
     JtJ = np.zeros((nmax, nmax))
     gv = np.zeros(nmax)
-    diag = np.zeros(nmax)
     free = np.zeros(nmax, np.bool_)
     fixed = np.zeros(nmax, np.bool_)
     step = np.zeros(nmax)
@@ -394,8 +393,7 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
         while it < n_iter:
             it += 1
             for c in range(n):
-                diag[c] = JtJ[c, c]
-                fixed[c] = not free[c] or not diag[c] > 0.0
+                fixed[c] = not free[c] or not JtJ[c, c] > 0.0
             _damped_step(n, JtJ, gv, fixed, lam, A, step, idx)
             if linked:
                 # active set for gap >= 0: a gap at 0 whose step points below it is pinned

@@ -377,11 +377,6 @@ def _cres(p, model, w):
     return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
 
 
-def _jw(p, model, w):
-    """Jacobian row weights matching :func:`_cres` (0/1)."""
-    return np.where(w == 2, (p - model) > 0, w == 1).astype(np.float64)
-
-
 def objective(p, w, model, st, mu, eps):
     """F per pixel (P,): 1/2 ||residual||^2 (see _cres) + mu sum log(1 + pen_scale*amp/eps)."""
     r = _cres(p, model, w)
