@@ -6,7 +6,7 @@ from .model import (  # noqa: F401
     sss_kernel,
     time_axis_ps,
 )
-from .api import (  # noqa: F401
+from .flags import (  # noqa: F401
     AT_BOUND,
     EMPTY,
     FLAG_NAMES,
@@ -16,6 +16,7 @@ from .api import (  # noqa: F401
     SATURATED,
     SPIKE,
     TRUNCATED,
-    DecompositionResult,
-    decompose,
+    Flag,
+    flag_names,
 )
+from .api import DecompositionResult, decompose  # noqa: F401

@@ -5,19 +5,7 @@ single-sample spikes, non-finite samples) lives here; the numerical work is in
 ``decomposition.convscd`` (and ``decomposition.gradbm`` for the baseline), the
 slot-to-component bookkeeping in ``decomposition.components``.
 
-Per-pixel quality flags (``DecompositionResult.flags``, uint8 bitmask):
-
-=========== ===== ==============================================================
-EMPTY         1   no component: all-zero pixel or nothing above the noise
-SATURATED     2   samples at the saturation level; excluded from the fit
-POOR_FIT      4   residual RMS > ``poor_fit`` x estimated noise: the data are
-                  outside what the model explains (offset, unmodelled shape, ...)
-SPIKE         8   single-sample spike(s) (hot pixel / cosmic ray) excluded
-NONFINITE    16   NaN/inf samples (``nan_policy="omit"``); pixel not decomposed
-MAX_ITER     32   the solver hit ``max_iter`` before it converged
-AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
-TRUNCATED   128   more inter-reflections found than ``max_reflections``
-=========== ===== ==============================================================
+Per-pixel quality flags: :mod:`decomposition.flags`.
 """
 from __future__ import annotations
 
@@ -29,6 +17,10 @@ import numpy as np
 
 from . import components as comp
 from . import convscd as cs
+from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED, SPIKE,  # noqa: F401
+                    TRUNCATED, FLAG_DTYPE, flag_names, mark)
+from .constants import (BOUND_TOL, DICT_SUPPORT_SIGMA, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, MIN_NOISE_SAMPLES,
+                        RESTART_FACTOR, SIGNAL_REGION_FRACTION)
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, time_axis_ps
 
 __all__ = [
@@ -46,17 +38,6 @@ __all__ = [
     "FLAG_NAMES",
 ]
 
-EMPTY = np.uint8(1)
-SATURATED = np.uint8(2)
-POOR_FIT = np.uint8(4)
-SPIKE = np.uint8(8)
-NONFINITE = np.uint8(16)
-MAX_ITER = np.uint8(32)
-AT_BOUND = np.uint8(64)
-TRUNCATED = np.uint8(128)
-FLAG_NAMES = {1: "EMPTY", 2: "SATURATED", 4: "POOR_FIT", 8: "SPIKE", 16: "NONFINITE",
-              32: "MAX_ITER", 64: "AT_BOUND", 128: "TRUNCATED"}
-
 _FAMILIES = {"d", "r", "s"}
 
 
@@ -72,7 +53,7 @@ class DecompositionResult:
     params : dict of ndarray               model parameters, NaN where absent
                                            (keys of ``decomposition.model``)
     residual : ndarray (..., L)            profiles minus the sum of all components
-    flags : ndarray (...,) uint8           quality bitmask (module constants)
+    flags : ndarray (...,) uint8           quality bitmask (:class:`decomposition.flags.Flag`)
     info : dict                            method, all options, iteration counts
     """
 
@@ -86,8 +67,7 @@ class DecompositionResult:
 
     def flag_names(self, index=()) -> list[str]:
         """Names of the flags set for one pixel (``index`` into the leading shape)."""
-        v = int(self.flags[index])
-        return [name for bit, name in FLAG_NAMES.items() if v & bit]
+        return flag_names(self.flags[index])
 
 
 def parse_components(components) -> frozenset:
@@ -253,7 +233,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     arr = _as_profiles(profiles)
     lead, L = arr.shape[:-1], arr.shape[-1]
-    min_bins = max(8, int(math.ceil(6.0 * grid.sigma_range_ps[1] / T)) + 1)
+    min_bins = max(8, int(math.ceil(DICT_SUPPORT_SIGMA * grid.sigma_range_ps[1] / T)) + 1)
     if L < min_bins:
         raise ValueError(
             f"profiles have L={L} time bins; the kernels need at least {min_bins} "
@@ -264,25 +244,25 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         saturation_level = float(np.iinfo(arr.dtype).max)
     x = raw.astype(np.float64)
 
-    flags = np.zeros(P, np.uint8)
+    flags = np.zeros(P, FLAG_DTYPE)
     finite = np.isfinite(x).all(axis=1)
     n_bad = int(P - finite.sum())
     if n_bad and nan_policy == "raise":
         raise ValueError(f"profiles contain NaN or inf samples in {n_bad} of {P} pixels "
                          f"(use nan_policy='omit' to flag and skip them)")
-    flags[~finite] |= NONFINITE
+    mark(flags, ~finite, NONFINITE)
 
     w = np.ones((P, L))
     sat = np.zeros((P, L), bool)
     if saturation_level is not None:
         sat = x >= float(saturation_level)
         w[sat] = 0.0
-        flags[sat.any(axis=1)] |= SATURATED
+        mark(flags, sat.any(axis=1), SATURATED)
     w[~finite] = 0.0
     xs = np.where(w > 0, x, 0.0)
     scale = np.abs(xs).max(axis=1)
     live = finite & (scale > 0)
-    flags[finite & ~(scale > 0)] |= EMPTY
+    mark(flags, finite & ~(scale > 0), EMPTY)
 
     params = empty_params((P,), n_ir=R)
     info = {"method": method, "time_bin_ps": T, "t0_ps": t0, "components": "".join(sorted(fams)),
@@ -300,13 +280,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         sp = _spikes(pn[idx_live], w[idx_live], s_eff[idx_live], T, grid.sigma_range_ps[0], spike_sigma,
                      rel_threshold)
         rows = idx_live[sp.any(axis=1)]
-        flags[rows] |= SPIKE
+        mark(flags, rows, SPIKE)
         w[idx_live] = np.where(sp, 0.0, w[idx_live])
         # re-normalise without the spikes
         xs = np.where(w > 0, x, 0.0)
         scale[idx_live] = np.abs(xs[idx_live]).max(axis=1)
         ok = scale[idx_live] > 0
-        flags[idx_live[~ok]] |= EMPTY
+        mark(flags, idx_live[~ok], EMPTY)
         idx_live = idx_live[ok]
         pn[idx_live] = xs[idx_live] / scale[idx_live, None]
         s_eff[idx_live] = np.maximum(_noise(pn[idx_live], w[idx_live]), noise_floor)
@@ -359,7 +339,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             # second pass where the noise is larger where the signal is (photon noise): the
             # sparsity weight must follow the noise at the components, not in the quiet tail
             s_sig = _signal_noise(pb - model_b, model_b, wb)
-            again = np.nonzero(s_sig > 1.5 * sb)[0]
+            again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
             if again.size:
                 sb[again] = s_sig[again]
                 st2, sinfo2, _, nl2 = solve(again, sb[again])
@@ -372,19 +352,19 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             hist[bi] = sinfo["objective"]
             n_iter[bi] = sinfo["n_iter"]
             restarted += sinfo.get("restarted", 0)
-            flags[bi[~sinfo["converged"]]] |= MAX_ITER
+            mark(flags, bi[~sinfo["converged"]], MAX_ITER)
             if not off_grid:
                 cs.snap_to_grid(st, dic)
                 cs.refit_amplitudes(pb, wb, st, dic)
             comp.threshold(st, t, rel_threshold)
             comp.merge_gaussians(st, T, merge_tol_bins)   # refinement can bring two atoms together
-            act = st["fam"] != cs.FAM_NONE
-            at_b = act & ((st["lsig"] <= bounds["lsig"][0] + 1e-9) | (st["lsig"] >= bounds["lsig"][1] - 1e-9))
-            at_b |= (st["fam"] == cs.FAM_SSS) & ((st["lalp"] <= bounds["lalp"][0] + 1e-9)
-                                                 | (st["lalp"] >= bounds["lalp"][1] - 1e-9))
-            flags[bi[at_b.any(axis=1)]] |= AT_BOUND
+            act = st["fam"] != FAM_NONE
+            at_b = act & ((st["lsig"] <= bounds["lsig"][0] + BOUND_TOL) | (st["lsig"] >= bounds["lsig"][1] - BOUND_TOL))
+            at_b |= (st["fam"] == FAM_SSS) & ((st["lalp"] <= bounds["lalp"][0] + BOUND_TOL)
+                                              | (st["lalp"] >= bounds["lalp"][1] - BOUND_TOL))
+            mark(flags, bi[at_b.any(axis=1)], AT_BOUND)
             pb_params, trunc = comp.classify(st, scale[bi], R)
-            flags[bi[trunc]] |= TRUNCATED
+            mark(flags, bi[trunc], TRUNCATED)
             for k, v in pb_params.items():
                 params[k][bi] = v
         info.update(objective=hist.reshape(lead + (max_iter + 1,)), n_iter=n_iter.reshape(lead),
@@ -412,11 +392,11 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         s_sig = _signal_noise(rr / scale[idx_live, None], total[idx_live] / scale[idx_live, None],
                               np.where(sat[idx_live], 2.0, w[idx_live]))
         bad = rms > poor_fit * np.maximum(s_eff[idx_live], s_sig)
-        flags[idx_live[bad]] |= POOR_FIT
+        mark(flags, idx_live[bad], POOR_FIT)
     has_any = np.isfinite(params["direct_delay_ps"]) | np.isfinite(params["sss_delay_ps"])
     if R:
         has_any |= np.isfinite(params["ir_delay_ps"]).any(axis=1)
-    flags[finite & ~has_any] |= EMPTY
+    mark(flags, finite & ~has_any, EMPTY)
     for k in DIRECT_KEYS + SSS_KEYS:
         params[k] = params[k].reshape(lead)
     for k in IR_KEYS:
@@ -446,7 +426,7 @@ def _noise(pn, w):
     return cs.estimate_noise(pn, w)
 
 
-def _signal_noise(resid, model, w, min_samples=12):
+def _signal_noise(resid, model, w, min_samples=MIN_NOISE_SAMPLES):
     """Noise level where the signal is, from the second differences of the residual.
 
     Over the samples where the fitted model exceeds 10 % of its peak (photon
@@ -457,14 +437,14 @@ def _signal_noise(resid, model, w, min_samples=12):
     fewer than ``min_samples`` samples qualify.
     """
     mag = np.abs(model)
-    region = mag >= 0.1 * mag.max(axis=1, keepdims=True)
+    region = mag >= SIGNAL_REGION_FRACTION * mag.max(axis=1, keepdims=True)
     d2 = np.abs(resid[:, 2:] - 2.0 * resid[:, 1:-1] + resid[:, :-2])
     ok = region[:, 1:-1] & ((w[:, 2:] == 1) & (w[:, 1:-1] == 1) & (w[:, :-2] == 1))
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         med = np.nanmedian(np.where(ok, d2, np.nan), axis=1)
     med = np.where(np.isfinite(med) & (ok.sum(axis=1) >= min_samples), med, 0.0)
-    return 1.4826 * med / math.sqrt(6.0)
+    return MAD_TO_SIGMA * med / math.sqrt(6.0)
 
 
 def _spikes(pn, w, s, T, sigma_min_ps, k_sigma, min_rel=0.05):

@@ -25,15 +25,11 @@ import math
 
 import numpy as np
 
+from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
 from .jit import njit, sss_value
 
 __all__ = ["lm_refine", "atom_profiles"]
 
-FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
-G_HALF = 8.0                          # Gaussians are evaluated within +-8 sigma (exp(-32) beyond)
-TAIL_SIGMA = 6.0 * math.sqrt(2.0)     # past alpha sigma^2 + this many sigma, erfc(u) == 2 in float64
-NEAR_SIGMA = 3.0                      # an sss onset this many widths before a Gaussian is tied to it
-AMP_MAX = 20.0                        # largest component peak (units of the pixel's largest sample)
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
 
@@ -47,8 +43,8 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
     """
     sig = math.exp(lsig)
     if fam == FAM_GAUSS:
-        lo = min(max(int(math.floor((delay - G_HALF * sig - t0) / T)), 0), L)
-        hi = max(min(int(math.ceil((delay + G_HALF * sig - t0) / T)) + 1, L), lo)
+        lo = min(max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0), L)
+        hi = max(min(int(math.ceil((delay + GAUSS_SUPPORT_SIGMA * sig - t0) / T)) + 1, L), lo)
         for i in range(lo, hi):
             x = (t0 + i * T - delay) / sig
             ph = math.exp(-0.5 * x * x)
@@ -59,7 +55,7 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
             J[row + 3, i] = 0.0
         return lo, hi
     alp = math.exp(lalp)
-    lo = max(int(math.floor((delay - G_HALF * sig - t0) / T)), 0)
+    lo = max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0)
     we = int(math.ceil((delay + alp * sig * sig + TAIL_SIGMA * sig - t0) / T))
     if lo >= L:
         return L, L

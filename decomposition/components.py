@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .convscd import FAM_GAUSS, FAM_NONE, FAM_SSS, _eval_atoms
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from .convscd import _eval_atoms
 from .model import empty_params, render_components
 
 __all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]

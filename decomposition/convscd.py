@@ -146,8 +146,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-from .atomlm import NEAR_SIGMA as _NEAR_SIGMA
 from .atomlm import atom_profiles, lm_refine
+from .constants import (DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA,
+                        MIN_NOISE_SAMPLES, NEAR_SIGMA, RESTART_FACTOR)
 from .pick import select as _select
 from .model import sss_kernel
 from .pickcorr import pixel_correlations
@@ -165,12 +166,10 @@ __all__ = [
     "FAM_SSS",
 ]
 
-FAM_NONE, FAM_GAUSS, FAM_SSS = 0, 1, 2
 
 # FFT threads per call.  One by default: pixel blocks are parallelised by processes
 # (decomposition.chunked); threads inside each would oversubscribe the cores.
 _WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
-_MIN_NOISE_SAMPLES = 12
 
 
 @dataclass(frozen=True)
@@ -236,7 +235,7 @@ class Dictionary:
         self.n_bins, self.time_bin_ps, self.t0_ps, self.grid = L, T, float(t0_ps), grid
         s_lo, s_hi = grid.sigma_range_ps
         a_lo, a_hi = grid.alpha_range_per_ps
-        self.pre = int(math.ceil(3.0 * s_hi / T)) + 1
+        self.pre = int(math.ceil(DICT_PRE_SIGMA * s_hi / T)) + 1
         fam, sig, alp = [], [], []
         if gauss:
             for s in _coarse(s_lo, s_hi, grid.coarse_sigma):
@@ -255,7 +254,7 @@ class Dictionary:
         S = self.shifts.size
         kernels, spans = [], []
         for a in range(A):
-            half = int(math.ceil(6.0 * self.sigma_ps[a] / T))
+            half = int(math.ceil(DICT_SUPPORT_SIGMA * self.sigma_ps[a] / T))
             if self.fam[a] == FAM_GAUSS:
                 m = np.arange(-half, half + 1)
                 k = np.exp(-0.5 * np.square(m * T / self.sigma_ps[a]))
@@ -339,8 +338,8 @@ def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: 
         med = np.where(np.isfinite(med), med, 0.0)
     if signal_fraction is not None:
         # a few samples around a narrow peak measure its curvature, not the noise
-        med = np.where(ok.sum(axis=1) >= _MIN_NOISE_SAMPLES, med, 0.0)
-    return 1.4826 * med / math.sqrt(6.0)
+        med = np.where(ok.sum(axis=1) >= MIN_NOISE_SAMPLES, med, 0.0)
+    return MAD_TO_SIGMA * med / math.sqrt(6.0)
 
 
 # ---------------------------------------------------------------------------
@@ -400,7 +399,7 @@ def _linked(st, near_sigma=None):
     has both, and the direct lies less than ``near_sigma`` PSF widths after
     the onset (the same condition as :func:`_constrain`).
     """
-    near_sigma = _NEAR_SIGMA if near_sigma is None else near_sigma
+    near_sigma = NEAR_SIGMA if near_sigma is None else near_sigma
     g = st["fam"] == FAM_GAUSS
     s = st["fam"] == FAM_SSS
     dg = np.where(g, st["delay"], np.inf)
@@ -500,7 +499,7 @@ def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s
     alphas = dic.alpha_per_ps[dic.fam == FAM_SSS][:dic.grid.coarse_alpha]
     kf = [FAM_GAUSS] + [FAM_SSS] * alphas.size
     ka = np.concatenate([[np.nan], alphas])
-    H = int(math.ceil(6.0 * float(sig.max()) / T)) + 1
+    H = int(math.ceil(DICT_SUPPORT_SIGMA * float(sig.max()) / T)) + 1
     c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
                                      w1=(w == 1).astype(np.float64) if weighted else None,
                                      reuse_buffers=True)   # consumed by _select below
@@ -704,7 +703,7 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True
             info["converged"][a] = True
         info["lm_iterations"] += info1["lm_iterations"]
     info["sss_alone"] = int(alone.sum())
-    redo = (np.nonzero((info["data_term"] > 1.5 * expected) & ~alone)[0] if has_g and restart
+    redo = (np.nonzero((info["data_term"] > RESTART_FACTOR * expected) & ~alone)[0] if has_g and restart
             else np.zeros(0, np.int64))
     info["restarted"] = redo.size
     if redo.size:

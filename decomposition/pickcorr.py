@@ -45,11 +45,11 @@ import threading
 
 import numpy as np
 
+from .constants import GAUSS_SUPPORT_SIGMA
 from .jit import njit, sss_value
 
 __all__ = ["pixel_correlations"]
 
-_HALF_SIGMA = 8.0   # kernel support (Gaussian) and q support (sss) in sigma: exp(-32) beyond
 _scratch = threading.local()   # per-thread output buffers (reuse_buffers=True)
 
 
@@ -159,7 +159,7 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
     smax = 0.0
     for i in range(n):
         smax = max(smax, sig[i])
-    D = min(int(math.ceil(_HALF_SIGMA * smax / T)) + 2, H + L + pre)   # |d_lo|, q support bound
+    D = min(int(math.ceil(GAUSS_SUPPORT_SIGMA * smax / T)) + 2, H + L + pre)   # |d_lo|, q support bound
     off = pre + D + 1                                                 # left padding of r
     xp = np.zeros(off + L + 2 * D + 8)
     wp = np.zeros(off + L + 2 * D + 8)
@@ -172,7 +172,7 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
     cs = np.empty(2 * D + 7)
     for i in range(n):
         s = sig[i]
-        half = int(math.ceil(_HALF_SIGMA * s / T))
+        half = int(math.ceil(GAUSS_SUPPORT_SIGMA * s / T))
         d_lo = max(-H, -half)            # kernels are zero before -H
         d_hi = min(half + 1, L + pre - 1)  # Gaussian and q negligible beyond (d <= L + pre - 1 anyway)
         kn = d_hi - d_lo + 1

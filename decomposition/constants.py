@@ -1,0 +1,94 @@
+"""Fixed numbers of the ConvSCD solver, each with its unit and the reason for its value.
+
+Every module of :mod:`decomposition` takes these from here; none keeps a private copy.
+Numbers a user may reasonably change are options (:mod:`decomposition.options`), not
+constants.
+
+Atom families
+-------------
+Codes of the ``fam`` slot arrays (int8) shared by the solver, the compiled kernels and the
+component bookkeeping.
+"""
+from __future__ import annotations
+
+import math
+
+__all__ = [
+    "FAM_NONE",
+    "FAM_GAUSS",
+    "FAM_SSS",
+    "GAUSS_SUPPORT_SIGMA",
+    "DICT_SUPPORT_SIGMA",
+    "DICT_PRE_SIGMA",
+    "TAIL_SIGMA",
+    "NEAR_SIGMA",
+    "AMP_MAX",
+    "RESTART_FACTOR",
+    "MAD_TO_SIGMA",
+    "SIGNAL_REGION_FRACTION",
+    "MIN_NOISE_SAMPLES",
+    "BOUND_TOL",
+]
+
+#: empty slot
+FAM_NONE = 0
+#: unit-peak Gaussian g(t; sigma): the direct reflection and the inter-reflections
+FAM_GAUSS = 1
+#: unit-peak sss kernel h(t; sigma, alpha): subsurface scattering
+FAM_SSS = 2
+
+#: Gaussian support in the compiled per-pixel kernels, in sigma (dimensionless).  Beyond
+#: +-8 sigma a unit-peak Gaussian is below exp(-32) ~ 1e-14, under float64 rounding of the
+#: sums it enters; the sss kernel's non-recursive part (its rising edge) has the same support.
+GAUSS_SUPPORT_SIGMA = 8.0
+
+#: Half-width of the sampled dictionary kernels (FFT pick) and the shortest window the
+#: solver accepts, in sigma (dimensionless).  exp(-18) ~ 1.5e-8 of the peak beyond 6 sigma:
+#: far below any noise, and only the coarse pick uses these kernels (the refinement
+#: evaluates atoms on :data:`GAUSS_SUPPORT_SIGMA`).  Also the own-width pick's sampling
+#: half-width H, which sets the kernels' peak normalisation.
+DICT_SUPPORT_SIGMA = 6.0
+
+#: Atoms may start this many widths of the largest sigma before the window (in sigma):
+#: a component partly before the first bin is still representable.
+DICT_PRE_SIGMA = 3.0
+
+#: Past alpha sigma^2 + this many sigma after an sss onset, erfc(u) == 2 in float64, so the
+#: kernel is a pure exponential tail and is continued by its one-pole recursion
+#: (u = -6 in units of sqrt 2: erfc(6) ~ 2e-17).
+TAIL_SIGMA = 6.0 * math.sqrt(2.0)
+
+#: An sss onset less than this many PSF widths before the earliest Gaussian is tied to it
+#: (``sss_after_direct``): refined as direct delay + gap with gap >= 0.
+NEAR_SIGMA = 3.0
+
+#: Largest component peak the pick accepts, in units of the pixel's largest sample: a
+#: coefficient far above the data is a degenerate (near-zero-norm) coordinate, not light.
+AMP_MAX = 20.0
+
+#: Restart threshold (dimensionless ratio).  Used twice, for the same reason: a fit whose
+#: misfit exceeds its noise expectation by half again is not explained by the noise.
+#: (1) the multi-start: where the Gaussian-first start leaves a data term above
+#: RESTART_FACTOR x its expectation 1/2 n s^2, the unrestricted start is run as well;
+#: (2) the second noise pass: where the noise estimated at the signal exceeds
+#: RESTART_FACTOR x the whole-profile estimate (photon noise), the block is solved again
+#: with the larger sparsity weight.
+RESTART_FACTOR = 1.5
+
+#: Gaussian noise sigma per median absolute value of its second differences, divided
+#: further by sqrt(6) (the variance of a white second difference is 6 s^2):
+#: 1 / Phi^-1(3/4) = 1.4826.
+MAD_TO_SIGMA = 1.4826
+
+#: The noise "where the signal is" is estimated over the samples where the fitted model
+#: exceeds this fraction of its peak (dimensionless).
+SIGNAL_REGION_FRACTION = 0.1
+
+#: Fewer usable second differences than this give no noise estimate at the signal (a few
+#: samples around a narrow peak measure its curvature, not the noise).
+MIN_NOISE_SAMPLES = 12
+
+#: A refined log sigma or log alpha within this of its bound (in log units, i.e. relative
+#: 1e-9) is at the bound (AT_BOUND flag): the projection puts it exactly there, rounding
+#: a hair inside.
+BOUND_TOL = 1e-9

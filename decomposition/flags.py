@@ -1,0 +1,65 @@
+"""Per-pixel quality flags of a decomposition (``DecompositionResult.flags``, a uint8 bitmask).
+
+=========== ===== ==============================================================
+EMPTY         1   no component: all-zero pixel or nothing above the noise
+SATURATED     2   samples at the saturation level; excluded from the fit
+POOR_FIT      4   residual RMS > ``poor_fit`` x estimated noise: the data are
+                  outside what the model explains (offset, unmodelled shape, ...)
+SPIKE         8   single-sample spike(s) (hot pixel / cosmic ray) excluded
+NONFINITE    16   NaN/inf samples (``nan_policy="omit"``); pixel not decomposed
+MAX_ITER     32   the solver hit ``max_iter`` before it converged
+AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
+TRUNCATED   128   more inter-reflections found than ``max_reflections``
+=========== ===== ==============================================================
+
+The bit values are part of the result-store format: stores written by any version read the
+same.  :data:`FLAG_NAMES` (bit -> name) is derived from :class:`Flag`, never kept by hand.
+"""
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+
+__all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
+           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED"]
+
+#: dtype of a flags array
+FLAG_DTYPE = np.uint8
+
+
+class Flag(enum.IntFlag):
+    """Quality bits of one pixel (see the module docstring)."""
+
+    EMPTY = 1
+    SATURATED = 2
+    POOR_FIT = 4
+    SPIKE = 8
+    NONFINITE = 16
+    MAX_ITER = 32
+    AT_BOUND = 64
+    TRUNCATED = 128
+
+
+#: bit value -> flag name, in bit order
+FLAG_NAMES = {int(f): f.name for f in Flag}
+
+EMPTY = Flag.EMPTY
+SATURATED = Flag.SATURATED
+POOR_FIT = Flag.POOR_FIT
+SPIKE = Flag.SPIKE
+NONFINITE = Flag.NONFINITE
+MAX_ITER = Flag.MAX_ITER
+AT_BOUND = Flag.AT_BOUND
+TRUNCATED = Flag.TRUNCATED
+
+
+def flag_names(bits) -> list[str]:
+    """Names of the flags set in one bitmask value, in bit order."""
+    v = int(bits)
+    return [name for bit, name in FLAG_NAMES.items() if v & bit]
+
+
+def mark(flags: np.ndarray, where, flag: Flag) -> None:
+    """Set ``flag`` in ``flags[where]`` in place (``flags``: a :data:`FLAG_DTYPE` array)."""
+    flags[where] |= FLAG_DTYPE(flag)
