@@ -1,27 +1,33 @@
 """Public entry point: ``decompose(profiles, time_bin_ps, method=...)``.
 
-Input handling (validation, per-pixel normalisation, saturated samples,
-single-sample spikes, non-finite samples) lives here; the numerical work is in
-``decomposition.convscd`` (and ``decomposition.gradbm`` for the baseline), the
-slot-to-component bookkeeping in ``decomposition.components``.
+``decompose()`` is the method as a flat sequence of stages, each a function with a typed
+input and output in a module of its own:
 
-Per-pixel quality flags: :mod:`decomposition.flags`.
+1. prepare the samples (:mod:`decomposition.prepare`): validation, scaling, masks, noise;
+2. detect the components by sparse coding (:mod:`decomposition.detect`;
+   :mod:`decomposition.convscd` is the solver, :mod:`decomposition.gradbm` the baseline);
+3. refine them off the grid, optionally (:mod:`decomposition.refit`);
+4. label them direct / inter-reflections / sss (:mod:`decomposition.label`);
+5. render the fit and flag its quality (:mod:`decomposition.quality`, :mod:`decomposition.flags`).
+
+Options are validated once, into the frozen dataclasses of :mod:`decomposition.options`.
 """
 from __future__ import annotations
 
-import math
-import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import components as comp
 from . import convscd as cs
+from .detect import detect_components, detect_gradbm
 from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED, SPIKE,  # noqa: F401
-                    TRUNCATED, FLAG_DTYPE, flag_names, mark)
-from .constants import (BOUND_TOL, DICT_SUPPORT_SIGMA, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, MIN_NOISE_SAMPLES,
-                        RESTART_FACTOR, SIGNAL_REGION_FRACTION)
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, time_axis_ps
+                    TRUNCATED, flag_names)
+from .label import label_components
+from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
+from .options import option_names, options_from_mapping, parse_components, parse_nan_policy  # noqa: F401
+from .prepare import prepare_samples, time_axis
+from .quality import assess_fit
+from .refit import component_errors, refine_components
 
 __all__ = [
     "decompose",
@@ -38,7 +44,7 @@ __all__ = [
     "FLAG_NAMES",
 ]
 
-_FAMILIES = {"d", "r", "s"}
+METHODS = ("convscd", "gradbm")
 
 
 @dataclass
@@ -70,47 +76,9 @@ class DecompositionResult:
         return flag_names(self.flags[index])
 
 
-def parse_components(components) -> frozenset:
-    """``"d,r,s"`` / ``("d", "s")`` / ``"ds"`` -> frozenset of family letters."""
-    if isinstance(components, str):
-        items = [c for c in components.replace(",", " ").replace("+", " ").split()]
-        if len(items) == 1 and len(items[0]) > 1:
-            items = list(items[0])
-    else:
-        items = list(components)
-    fams = frozenset(str(c).strip().lower() for c in items)
-    bad = fams - _FAMILIES
-    if bad or not fams:
-        raise ValueError(f"components must be a non-empty selection of 'd', 'r', 's'; got {components!r}")
-    if "r" in fams and "d" not in fams:
-        raise ValueError("components: inter-reflections ('r') need the direct family ('d') too")
-    return fams
-
-
-def _as_profiles(profiles):
-    arr = np.asarray(profiles)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
-                                   or arr.dtype == np.bool_):
-        raise ValueError(f"profiles must be a real numeric array, got dtype {arr.dtype}")
-    if arr.ndim == 0:
-        raise ValueError("profiles must have at least one dimension (..., L); got a 0-d scalar")
-    return arr
-
-
 def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0_ps: float | None = None,
-              components=("d", "r", "s"),
-              sigma_range_ps=(1.0, 10.0), n_sigma: int = 500,
-              alpha_range_per_ps=(0.01, 0.05), n_alpha: int = 500,
-              coarse_sigma: int = 4, coarse_sss_sigma: int = 3, coarse_alpha: int = 3,
-              off_grid: bool = True, max_components: int = 6, max_reflections: int = 3,
-              max_iter: int | None = None, n_lm: int = 4, n_polish: int = 30,
-              lm_tol: float = 1e-2, sparsity: float = 3.0, eps_rel: float = 0.01, noise_floor: float = 1e-3,
-              rel_threshold: float = 0.05, merge_tol_bins: float = 1.0, bound_factor: float = 4.0,
-              poor_fit: float = 3.0, nan_policy: str = "raise", saturation_level: float | None = None,
-              spike_sigma: float = 8.0, multistart: bool = True, shared_sigma: bool = True,
-              sss_after_direct: bool = True, sss_alone: bool = False, block_size: int = 256,
-              refine: bool = False, stderr: bool | None = None,
-              **method_options) -> DecompositionResult:
+              components=("d", "r", "s"), nan_policy: str = "raise", saturation_level: float | None = None,
+              **options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
 
     Parameters
@@ -199,292 +167,77 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         ``params``, from the Fisher information at the solution with the noise
         estimated from the residual (:func:`decomposition.fisher.standard_errors`).
         Default: the same as ``refine``.
-    **method_options
-        Passed to the GradBM baseline for ``method="gradbm"``.
+    **options
+        The fields of :class:`decomposition.options.GridSpec` and
+        :class:`decomposition.options.SolverOptions` above; for ``method="gradbm"`` also
+        the baseline's own options (:data:`decomposition.gradbm.GRADBM_DEFAULTS`).
 
     Returns
     -------
     DecompositionResult
     """
-    T = float(time_bin_ps) if np.isscalar(time_bin_ps) else np.nan
-    if not (np.isfinite(T) and T > 0):
-        raise ValueError(f"time_bin_ps must be a positive finite number, got {time_bin_ps!r}")
-    t0 = T if t0_ps is None else float(t0_ps)
-    if not np.isfinite(t0):
-        raise ValueError(f"t0_ps must be finite, got {t0_ps!r}")
-    if method not in ("convscd", "gradbm"):
+    axis = time_axis(time_bin_ps, t0_ps)
+    if method not in METHODS:
         raise ValueError(f"method must be 'convscd' or 'gradbm', got {method!r}")
-    if nan_policy not in ("raise", "omit"):
-        raise ValueError(f"nan_policy must be 'raise' or 'omit', got {nan_policy!r}")
+    nan_policy = parse_nan_policy(nan_policy)
+    fams = parse_components(components)
+    grid, opts, method_options = options_from_mapping(options, strict=False)
     if method == "convscd" and method_options:
         raise TypeError(f"unknown options for method 'convscd': {sorted(method_options)}")
-    fams = parse_components(components)
-    grid = cs.GridSpec(tuple(sigma_range_ps), n_sigma, tuple(alpha_range_per_ps), n_alpha,
-                       coarse_sigma, coarse_alpha, coarse_sss_sigma).check()
-    max_components = int(max_components)
-    if max_components < 1:
-        raise ValueError("max_components must be >= 1")
-    R = int(max_reflections) if "r" in fams else 0
-    if R < 0:
-        raise ValueError("max_reflections must be >= 0")
-    max_iter = max_components + 2 if max_iter is None else int(max_iter)
-    if max_iter < 1:
-        raise ValueError("max_iter must be >= 1")
+    opts = opts.resolved(fams)
+    R = opts.max_reflections
 
-    arr = _as_profiles(profiles)
-    lead, L = arr.shape[:-1], arr.shape[-1]
-    min_bins = max(8, int(math.ceil(DICT_SUPPORT_SIGMA * grid.sigma_range_ps[1] / T)) + 1)
-    if L < min_bins:
-        raise ValueError(
-            f"profiles have L={L} time bins; the kernels need at least {min_bins} "
-            f"(6 x sigma_max {grid.sigma_range_ps[1]:g} ps / time_bin_ps {T:g} ps + 1)")
-    P = int(np.prod(lead, dtype=np.int64))
-    raw = arr.reshape(P, L)
-    if saturation_level is None and np.issubdtype(arr.dtype, np.integer):
-        saturation_level = float(np.iinfo(arr.dtype).max)
-    x = raw.astype(np.float64)
-
-    flags = np.zeros(P, FLAG_DTYPE)
-    finite = np.isfinite(x).all(axis=1)
-    n_bad = int(P - finite.sum())
-    if n_bad and nan_policy == "raise":
-        raise ValueError(f"profiles contain NaN or inf samples in {n_bad} of {P} pixels "
-                         f"(use nan_policy='omit' to flag and skip them)")
-    mark(flags, ~finite, NONFINITE)
-
-    w = np.ones((P, L))
-    sat = np.zeros((P, L), bool)
-    if saturation_level is not None:
-        sat = x >= float(saturation_level)
-        w[sat] = 0.0
-        mark(flags, sat.any(axis=1), SATURATED)
-    w[~finite] = 0.0
-    xs = np.where(w > 0, x, 0.0)
-    scale = np.abs(xs).max(axis=1)
-    live = finite & (scale > 0)
-    mark(flags, finite & ~(scale > 0), EMPTY)
-
-    params = empty_params((P,), n_ir=R)
-    info = {"method": method, "time_bin_ps": T, "t0_ps": t0, "components": "".join(sorted(fams)),
-            "nan_policy": nan_policy, "saturation_level": saturation_level}
-    n_iter = np.zeros(P, np.int64)
-    idx_live = np.nonzero(live)[0]
-    pn = np.zeros((P, L))
-    pn[idx_live] = xs[idx_live] / scale[idx_live, None]
-    s_est = np.zeros(P)
-    if idx_live.size:
-        s_est[idx_live] = _noise(pn[idx_live], w[idx_live])
-    s_eff = np.maximum(s_est, noise_floor)
-
-    if spike_sigma and idx_live.size:
-        sp = _spikes(pn[idx_live], w[idx_live], s_eff[idx_live], T, grid.sigma_range_ps[0], spike_sigma,
-                     rel_threshold)
-        rows = idx_live[sp.any(axis=1)]
-        mark(flags, rows, SPIKE)
-        w[idx_live] = np.where(sp, 0.0, w[idx_live])
-        # re-normalise without the spikes
-        xs = np.where(w > 0, x, 0.0)
-        scale[idx_live] = np.abs(xs[idx_live]).max(axis=1)
-        ok = scale[idx_live] > 0
-        mark(flags, idx_live[~ok], EMPTY)
-        idx_live = idx_live[ok]
-        pn[idx_live] = xs[idx_live] / scale[idx_live, None]
-        s_eff[idx_live] = np.maximum(_noise(pn[idx_live], w[idx_live]), noise_floor)
-
-    t = time_axis_ps(L, T, t0)
+    samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
+                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold)
+    info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
+            "components": "".join(sorted(fams)), "nan_policy": nan_policy,
+            "saturation_level": samples.saturation_level}
+    flags = samples.flags.copy()
+    noise_eff = samples.noise_eff
     if method == "gradbm":
         info.update(method_options)
-        _run_gradbm(pn, idx_live, scale, T, t0, R, fams, params, method_options)
+        params = empty_params((samples.values.shape[0],), n_ir=R)
+        detect_gradbm(samples, R, fams, params, method_options)
     else:
-        opts = dict(max_components=max_components, max_gauss=(max_components if "r" in fams else 1) if "d" in fams else 0,
-                    allow_sss="s" in fams, sparsity=sparsity, eps_rel=eps_rel, max_iter=max_iter, n_lm=n_lm,
-                    bound_factor=bound_factor, tie_sigma=shared_sigma, sss_after_direct=sss_after_direct,
-                    lm_tol=lm_tol)
-        dic = cs.get_dictionary(L, T, t0, grid, "d" in fams, "s" in fams)
-        info.update(dict(
-            sigma_range_ps=grid.sigma_range_ps, n_sigma=grid.n_sigma, alpha_range_per_ps=grid.alpha_range_per_ps,
-            n_alpha=grid.n_alpha, coarse_sigma=grid.coarse_sigma, coarse_sss_sigma=grid.coarse_sss_sigma,
-            coarse_alpha=grid.coarse_alpha, off_grid=off_grid, max_components=max_components,
-            max_reflections=R, max_iter=max_iter, n_lm=n_lm, n_polish=n_polish, lm_tol=lm_tol, sparsity=sparsity,
-            eps_rel=eps_rel, noise_floor=noise_floor, rel_threshold=rel_threshold, merge_tol_bins=merge_tol_bins,
-            bound_factor=bound_factor, poor_fit=poor_fit, spike_sigma=spike_sigma, multistart=multistart,
-            shared_sigma=shared_sigma, sss_after_direct=sss_after_direct, sss_alone=sss_alone,
-            block_size=block_size, n_atoms=int(dic.fam.size), coordinates_searched=int(dic.n_coordinates)))
-        hist = np.full((P, max_iter + 1), np.nan)
-        lm_total, restarted = 0, 0
-        bounds = cs._bounds(dic, bound_factor)
-        solver = cs.solve_multistart
-        for b0 in range(0, idx_live.size, int(block_size)):
-            bi = idx_live[b0:b0 + int(block_size)]
-            # saturated samples: excluded while atoms are picked, censored in the final refinement
-            # (code 2: the true value is at least the clip level, only a model below it is a misfit)
-            pb = np.where(sat[bi], x[bi] / scale[bi, None], pn[bi])
-            wb = np.where(sat[bi], 2.0, w[bi])
-            sb = s_eff[bi].copy()
-            extra = {"sss_alone": sss_alone, "restart": multistart}
+        dic = cs.get_dictionary(samples.n_bins, axis.time_bin_ps, axis.t0_ps, grid, "d" in fams, "s" in fams)
+        info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),
+                    coordinates_searched=int(dic.n_coordinates))
+        det = detect_components(samples, dic, opts, fams)
+        labels = label_components(samples, det, dic, opts)
+        params, noise_eff = labels.params, det.noise_eff
+        flags |= labels.flags
+        info.update(objective=det.objective.reshape(samples.lead + (opts.max_iter + 1,)),
+                    n_iter=det.n_iter.reshape(samples.lead), lm_iterations=det.lm_iterations,
+                    restarted=det.restarted)
 
-            def solve(rows, s_rows):
-                st, si = solver(pb[rows], np.where(sat[bi][rows], 0.0, wb[rows]), s_rows, dic, **opts, **extra)
-                comp.threshold(st, t, rel_threshold)
-                comp.merge_gaussians(st, T, merge_tol_bins)
-                st, model, nl = cs.polish_block(pb[rows], wb[rows], st, s_rows, dic, sparsity=sparsity,
-                                                eps_rel=eps_rel, n_lm=n_polish, bound_factor=bound_factor,
-                                                tie_sigma=shared_sigma, sss_after_direct=sss_after_direct,
-                                                lm_tol=lm_tol)
-                return st, si, model, nl
-
-            allr = np.arange(bi.size)
-            st, sinfo, model_b, nl = solve(allr, sb)
-            lm_total += sinfo["lm_iterations"] + nl
-            # second pass where the noise is larger where the signal is (photon noise): the
-            # sparsity weight must follow the noise at the components, not in the quiet tail
-            s_sig = _signal_noise(pb - model_b, model_b, wb)
-            again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
-            if again.size:
-                sb[again] = s_sig[again]
-                st2, sinfo2, _, nl2 = solve(again, sb[again])
-                lm_total += sinfo2["lm_iterations"] + nl2
-                cs._put(st, again, st2)
-                for key in ("objective", "n_iter", "converged"):
-                    sinfo[key][again] = sinfo2[key]
-                restarted += sinfo2.get("restarted", 0)
-                s_eff[bi[again]] = sb[again]
-            hist[bi] = sinfo["objective"]
-            n_iter[bi] = sinfo["n_iter"]
-            restarted += sinfo.get("restarted", 0)
-            mark(flags, bi[~sinfo["converged"]], MAX_ITER)
-            if not off_grid:
-                cs.snap_to_grid(st, dic)
-                cs.refit_amplitudes(pb, wb, st, dic)
-            comp.threshold(st, t, rel_threshold)
-            comp.merge_gaussians(st, T, merge_tol_bins)   # refinement can bring two atoms together
-            act = st["fam"] != FAM_NONE
-            at_b = act & ((st["lsig"] <= bounds["lsig"][0] + BOUND_TOL) | (st["lsig"] >= bounds["lsig"][1] - BOUND_TOL))
-            at_b |= (st["fam"] == FAM_SSS) & ((st["lalp"] <= bounds["lalp"][0] + BOUND_TOL)
-                                              | (st["lalp"] >= bounds["lalp"][1] - BOUND_TOL))
-            mark(flags, bi[at_b.any(axis=1)], AT_BOUND)
-            pb_params, trunc = comp.classify(st, scale[bi], R)
-            mark(flags, bi[trunc], TRUNCATED)
-            for k, v in pb_params.items():
-                params[k][bi] = v
-        info.update(objective=hist.reshape(lead + (max_iter + 1,)), n_iter=n_iter.reshape(lead),
-                    lm_iterations=lm_total, restarted=restarted)
-
-    # Off-grid refinement (decomposition.refine); saturated/spike/non-finite samples have weight 0.
-    tied = shared_sigma and method == "convscd"
-    if refine and idx_live.size:
-        from .refine import refine as refine_params
-
-        params, rinfo = refine_params(x, params, time_bin_ps=T, t0_ps=t0, weights=w, shared_sigma=tied,
-                                      sss_after_direct=sss_after_direct and method == "convscd")
-        info.update(refine_iterations=rinfo["iterations"].reshape(lead), refined=rinfo["refined"].reshape(lead))
-
-    rend = comp.render_params(params, L, T, t0)
-    total = rend["direct"] + rend["sss"] + rend["interreflections"].sum(axis=-2)
-    residual = x - total
-    # quality: residual against the noise estimate on the samples that were fitted
-    if idx_live.size:
-        rr = residual[idx_live]
-        rw = np.where(sat[idx_live], np.maximum(rr, 0.0), rr * w[idx_live]) / scale[idx_live, None]
-        nw = np.maximum(((w[idx_live] > 0) | sat[idx_live]).sum(axis=1), 1.0)
-        rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
-        # noise that grows with the signal (photon noise) is not a misfit
-        s_sig = _signal_noise(rr / scale[idx_live, None], total[idx_live] / scale[idx_live, None],
-                              np.where(sat[idx_live], 2.0, w[idx_live]))
-        bad = rms > poor_fit * np.maximum(s_eff[idx_live], s_sig)
-        mark(flags, idx_live[bad], POOR_FIT)
-    has_any = np.isfinite(params["direct_delay_ps"]) | np.isfinite(params["sss_delay_ps"])
-    if R:
-        has_any |= np.isfinite(params["ir_delay_ps"]).any(axis=1)
-    mark(flags, finite & ~has_any, EMPTY)
-    for k in DIRECT_KEYS + SSS_KEYS:
-        params[k] = params[k].reshape(lead)
-    for k in IR_KEYS:
-        params[k] = params[k].reshape(lead + (R,))
-    info["noise_sigma"] = (s_est * scale).reshape(lead)
-    stderr = bool(refine) if stderr is None else bool(stderr)
-    info.update(refine=bool(refine), stderr=stderr)
-    if stderr:  # decomposition.fisher: Fisher information at the solution, noise from the residual
-        from .fisher import standard_errors
-
-        params.update(standard_errors(x.reshape(lead + (L,)), params, time_bin_ps=T, t0_ps=t0,
-                                      weights=w.reshape(lead + (L,)), shared_sigma=tied,
-                                      sss_after_direct=sss_after_direct and method == "convscd"))
+    physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
+               "sss_after_direct": opts.sss_after_direct and method == "convscd"}
+    if opts.refine and samples.live.size:
+        params, rinfo = refine_components(samples, params, **physics)
+        info.update(rinfo)
+    fit = assess_fit(samples, params, noise_eff, opts.poor_fit)
+    flags |= fit.flags
+    lead, L = samples.lead, samples.n_bins
+    params = _reshape_params(params, lead, R)
+    info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    info.update(refine=opts.refine, stderr=opts.stderr)
+    if opts.stderr:
+        params.update(component_errors(samples, params, **physics))
     return DecompositionResult(
-        direct=rend["direct"].reshape(lead + (L,)),
-        sss=rend["sss"].reshape(lead + (L,)),
-        interreflections=rend["interreflections"].reshape(lead + (R, L)),
+        direct=fit.direct.reshape(lead + (L,)),
+        sss=fit.sss.reshape(lead + (L,)),
+        interreflections=fit.interreflections.reshape(lead + (R, L)),
         params=params,
-        residual=residual.reshape(lead + (L,)),
+        residual=fit.residual.reshape(lead + (L,)),
         flags=flags.reshape(lead),
         info=info,
     )
 
 
-def _noise(pn, w):
-    """Per-pixel noise level from the second differences of the whole profile."""
-    return cs.estimate_noise(pn, w)
-
-
-def _signal_noise(resid, model, w, min_samples=MIN_NOISE_SAMPLES):
-    """Noise level where the signal is, from the second differences of the residual.
-
-    Over the samples where the fitted model exceeds 10 % of its peak (photon
-    noise grows with the signal, so the whole-profile estimate, dominated by
-    the quiet part of the window, is too low there).  Differencing the
-    residual, not the data, leaves no peak curvature in the estimate, and a
-    smooth misfit (an offset) is removed by the differencing too.  0 where
-    fewer than ``min_samples`` samples qualify.
-    """
-    mag = np.abs(model)
-    region = mag >= SIGNAL_REGION_FRACTION * mag.max(axis=1, keepdims=True)
-    d2 = np.abs(resid[:, 2:] - 2.0 * resid[:, 1:-1] + resid[:, :-2])
-    ok = region[:, 1:-1] & ((w[:, 2:] == 1) & (w[:, 1:-1] == 1) & (w[:, :-2] == 1))
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(np.where(ok, d2, np.nan), axis=1)
-    med = np.where(np.isfinite(med) & (ok.sum(axis=1) >= min_samples), med, 0.0)
-    return MAD_TO_SIGMA * med / math.sqrt(6.0)
-
-
-def _spikes(pn, w, s, T, sigma_min_ps, k_sigma, min_rel=0.05):
-    """Single-sample spikes: too narrow for the narrowest kernel and far above the noise.
-
-    A component with sigma >= sigma_min has neighbours at least
-    exp(-T^2 / (2 sigma_min^2)) of a centred peak; a sample whose larger
-    neighbour is below half of that (plus a noise margin) and which exceeds
-    both neighbours by ``k_sigma`` noise sigmas is a spike.
-    """
-    P, L = pn.shape
-    out = np.zeros((P, L), bool)
-    if L < 3:
-        return out
-    r_min = math.exp(-0.5 * (T / sigma_min_ps) ** 2)
-    c = pn[:, 1:-1]
-    nb = np.maximum(pn[:, :-2], pn[:, 2:])
-    # (and above the 5 % rule: a smaller spike could never become a reported component; this
-    # also keeps isolated counts of photon-limited data from being called spikes)
-    big = np.maximum(k_sigma * s[:, None], min_rel * np.abs(pn).max(axis=1, keepdims=True))
-    sp = (c - nb > big) & (nb < 0.5 * r_min * c + 3.0 * s[:, None]) & (w[:, 1:-1] > 0)
-    out[:, 1:-1] = sp
-    return out
-
-
-def _run_gradbm(pn, idx_live, scale, T, t0, R, fams, params, options):
-    from .gradbm import gradbm  # imported lazily: the baseline is optional for the ConvSCD path
-
-    if idx_live.size == 0:
-        return
-    got = gradbm(pn[idx_live], T, t0, components=tuple(sorted(fams)), max_interreflections=R, **options)
+def _reshape_params(params: dict, lead: tuple, n_ir: int) -> dict:
     for k in DIRECT_KEYS + SSS_KEYS:
-        if k in got:
-            v = np.asarray(got[k], np.float64).reshape(idx_live.size)
-            if k in ("direct_amplitude", "sss_amplitude"):
-                v = v * scale[idx_live]
-            params[k][idx_live] = v
-    if R and "ir_delay_ps" in got:
-        for k in IR_KEYS:
-            v = np.asarray(got[k], np.float64).reshape(idx_live.size, -1)[:, :R]
-            if k == "ir_amplitude":
-                v = v * scale[idx_live, None]
-            params[k][idx_live, : v.shape[1]] = v
+        params[k] = params[k].reshape(lead)
+    for k in IR_KEYS:
+        params[k] = params[k].reshape(lead + (n_ir,))
+    return params

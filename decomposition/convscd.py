@@ -26,7 +26,7 @@ components partly outside the window are representable; column norms are the
 norms of the atoms *truncated to the window*.
 
 Adaptive sparsity weight.  The noise standard deviation ``s`` of every pixel
-is estimated robustly from its second differences (MAD / 0.6745 / sqrt(6):
+is estimated robustly from its second differences (:mod:`decomposition.noise`; MAD / 0.6745 / sqrt(6):
 smooth kernels have tiny second differences, white noise has variance 6 s^2);
 the caller takes the larger of the whole-profile value and the value over the
 samples above 10 % of the peak (photon noise grows with the signal), floored
@@ -140,24 +140,22 @@ from __future__ import annotations
 import functools
 import math
 import os
-import warnings
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
 
 from .atomlm import atom_profiles, lm_refine
-from .constants import (DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA,
-                        MIN_NOISE_SAMPLES, NEAR_SIGMA, RESTART_FACTOR)
+from .constants import (DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS, NEAR_SIGMA,
+                        RESTART_FACTOR)
 from .pick import select as _select
 from .model import sss_kernel
+from .options import GridSpec
 from .pickcorr import pixel_correlations
 
 __all__ = [
     "GridSpec",
     "Dictionary",
     "get_dictionary",
-    "estimate_noise",
     "solve_block",
     "polish_block",
     "objective",
@@ -170,45 +168,6 @@ __all__ = [
 # FFT threads per call.  One by default: pixel blocks are parallelised by processes
 # (decomposition.chunked); threads inside each would oversubscribe the cores.
 _WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
-
-
-@dataclass(frozen=True)
-class GridSpec:
-    """Kernel-parameter grids.
-
-    The *reference* grid (the paper's) is sigma 1-10 ps and alpha 0.01-0.05 /ps
-    with 500 equi-spaced samples each; ``coarse_*`` are the numbers of grid
-    values actually correlated against (a subsample of the reference range,
-    log-spaced); refined values live anywhere within ``bound_factor`` of the
-    ranges (``off_grid=True``) or on the reference grid (``off_grid=False``).
-    """
-
-    sigma_range_ps: tuple = (1.0, 10.0)
-    n_sigma: int = 500
-    alpha_range_per_ps: tuple = (0.01, 0.05)
-    n_alpha: int = 500
-    coarse_sigma: int = 4
-    coarse_alpha: int = 3
-    coarse_sss_sigma: int = 2
-
-    def check(self) -> "GridSpec":
-        s0, s1 = map(float, self.sigma_range_ps)
-        a0, a1 = map(float, self.alpha_range_per_ps)
-        if not (np.isfinite([s0, s1]).all() and 0 < s0 <= s1):
-            raise ValueError(f"sigma_range_ps must be 0 < lo <= hi, got {self.sigma_range_ps!r}")
-        if not (np.isfinite([a0, a1]).all() and 0 < a0 <= a1):
-            raise ValueError(f"alpha_range_per_ps must be 0 < lo <= hi, got {self.alpha_range_per_ps!r}")
-        for name in ("n_sigma", "n_alpha", "coarse_sigma", "coarse_alpha", "coarse_sss_sigma"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        return GridSpec((s0, s1), int(self.n_sigma), (a0, a1), int(self.n_alpha),
-                        int(self.coarse_sigma), int(self.coarse_alpha), int(self.coarse_sss_sigma))
-
-    def fine_sigma(self) -> np.ndarray:
-        return np.linspace(*self.sigma_range_ps, self.n_sigma)
-
-    def fine_alpha(self) -> np.ndarray:
-        return np.linspace(*self.alpha_range_per_ps, self.n_alpha)
 
 
 def _coarse(lo, hi, n):
@@ -302,44 +261,7 @@ def _cached_dictionary(n_bins, time_bin_ps, t0_ps, grid, gauss, sss):
 
 def get_dictionary(n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss: bool) -> Dictionary:
     """The (cached) dictionary for these settings: built once, reused by chunked callers."""
-    return _cached_dictionary(int(n_bins), float(time_bin_ps), float(t0_ps), grid.check(), bool(gauss), bool(sss))
-
-
-def estimate_noise(p: np.ndarray, w: np.ndarray | None = None, signal_fraction: float | None = None) -> np.ndarray:
-    """Robust per-pixel noise standard deviation from second differences.
-
-    Parameters
-    ----------
-    p : ndarray (P, L)
-    w : ndarray (P, L) of 0/1, optional; second differences touching a
-        zero-weight sample are ignored.
-    signal_fraction : float, optional
-        Only use second differences centred on samples whose magnitude is at
-        least this fraction of the pixel's largest sample: the noise *where
-        the signal is*, which is what matters when the noise grows with the
-        signal (photon noise).  Rows with fewer than 12 such samples get 0.
-
-    Returns
-    -------
-    ndarray (P,): 1.4826 * median|d2 p| / sqrt(6)  (0 where fewer than 3 usable samples).
-    """
-    d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
-    ok = np.ones(d2.shape, bool) if w is None else (w[:, 2:] * w[:, 1:-1] * w[:, :-2]) > 0
-    if signal_fraction is not None:
-        mag = np.abs(p[:, 1:-1]) if w is None else np.abs(p[:, 1:-1]) * (w[:, 1:-1] > 0)
-        ok = ok & (mag >= signal_fraction * mag.max(axis=1, keepdims=True))
-    if ok.all():
-        med = np.median(d2, axis=1)
-    else:
-        d2 = np.where(ok, d2, np.nan)
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN rows: no usable samples
-            med = np.nanmedian(d2, axis=1)
-        med = np.where(np.isfinite(med), med, 0.0)
-    if signal_fraction is not None:
-        # a few samples around a narrow peak measure its curvature, not the noise
-        med = np.where(ok.sum(axis=1) >= MIN_NOISE_SAMPLES, med, 0.0)
-    return MAD_TO_SIGMA * med / math.sqrt(6.0)
+    return _cached_dictionary(int(n_bins), float(time_bin_ps), float(t0_ps), grid, bool(gauss), bool(sss))
 
 
 # ---------------------------------------------------------------------------

@@ -40,6 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from .model import IR_KEYS, empty_params, sss_kernel, time_axis_ps
+from .options import component_letters
 
 __all__ = ["GRADBM_DEFAULTS", "gradbm"]
 
@@ -58,21 +59,6 @@ GRADBM_DEFAULTS = {
     "min_fraction": 0.05,
     "n_fit_iter": 12,
 }
-
-
-def _parse_components(components) -> set[str]:
-    names = {"d": "d", "direct": "d", "r": "r", "ir": "r", "interreflections": "r", "s": "s", "sss": "s"}
-    if isinstance(components, str):
-        components = [c for c in components.replace("+", ",").split(",") if c.strip()]
-    out = set()
-    for c in components:
-        key = str(c).strip().lower()
-        if key not in names:
-            raise ValueError(f"unknown component family {c!r}: use 'd', 'r' and/or 's'")
-        out.add(names[key])
-    if not out:
-        raise ValueError("components must name at least one of 'd', 'r', 's'")
-    return out
 
 
 def _first_index(mask):
@@ -290,7 +276,7 @@ def gradbm(profiles, time_bin_ps: float = 2.0, t0_ps: float | None = None, *, co
     if unknown:
         raise TypeError(f"gradbm got unknown option(s) {sorted(unknown)}; known: {sorted(GRADBM_DEFAULTS)}")
     opt = {**GRADBM_DEFAULTS, **options}
-    fams = _parse_components(components)
+    fams = set(component_letters(components))
     p = np.asarray(profiles, dtype=np.float64)
     if p.ndim != 2:
         raise ValueError(f"gradbm expects profiles of shape (N, L), got {p.shape}")

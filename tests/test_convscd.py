@@ -7,6 +7,7 @@ import pytest
 from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from decomposition.noise import noise_sigma
 from decomposition.pick import closed_form
 from decomposition.synthetic import make_profiles
 
@@ -62,10 +63,10 @@ def test_noise_estimate_is_robust_to_signal():
     data = make_profiles(50, 512, nsr=0.0, noise="none", seed=3)
     clean = data.clean / np.abs(data.clean).max(axis=1, keepdims=True)
     s = 0.02
-    est = cs.estimate_noise(clean + s * rng.standard_normal(clean.shape))
+    est = noise_sigma(clean + s * rng.standard_normal(clean.shape))
     assert np.median(est) == pytest.approx(s, rel=0.1)
     assert np.all(np.abs(est / s - 1) < 0.3)
-    assert np.all(cs.estimate_noise(np.zeros((2, 64))) == 0)
+    assert np.all(noise_sigma(np.zeros((2, 64))) == 0)
 
 
 def test_objective_never_increases_and_iterations_are_bounded():
@@ -122,7 +123,7 @@ def test_refinement_keeps_parameters_within_bounds():
     data = make_profiles(30, 256, nsr=0.05, noise="photon", seed=1)
     p = data.noisy / np.abs(data.noisy).max(axis=1, keepdims=True)
     w = np.ones_like(p)
-    s = np.maximum(cs.estimate_noise(p), 1e-3)
+    s = np.maximum(noise_sigma(p), 1e-3)
     dic = cs.get_dictionary(256, T, T, cs.GridSpec(coarse_sss_sigma=3), True, True)
     t = time_axis_ps(256, T)
     with np.errstate(over="raise", invalid="raise", divide="raise"), warnings.catch_warnings():

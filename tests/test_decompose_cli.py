@@ -224,7 +224,10 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
     refused([cube_path, "--components", "d,x"], "--components")
     refused([cube_path, "--option", "novalue"], "KEY=VALUE")
     refused([cube_path, "--option", "no_such_option=1"], "the solver refuses these settings")
-    refused([cube_path, "--components", "r,s"], "the solver refuses these settings")
+    refused([cube_path, "--components", "r,s"], "need the direct family")
+    refused([cube_path, "--option", "sparsity=-1"], "--option sparsity: must be >= 0")
+    refused([cube_path, "--option", "sparsity=abc"], "--option sparsity: expected a number, got 'abc'")
+    refused([cube_path, "--option", "multistart=1"], "--option multistart: expected true or false")
     refused([cube_path, "--workers", "2", "--threads", "2"], "--threads")
     # the output path: never the input, never something else without --overwrite
     assert main(["decompose", str(cube_path), "--out", str(cube_path), "--overwrite", "--quiet"]) == 2

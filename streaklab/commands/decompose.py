@@ -30,7 +30,6 @@ from streaklab.cli import CommandError
 __all__ = ["add_arguments", "run", "decompose_to_store", "ChunkProgress", "parse_components"]
 
 METHODS = ("convscd", "gradbm")
-_COMPONENT_LETTERS = ("d", "s", "r")
 
 
 def add_arguments(parser) -> None:
@@ -68,15 +67,24 @@ def add_arguments(parser) -> None:
 
 
 def parse_components(text: str) -> tuple[str, ...]:
-    """``"d,s,r"`` -> ``("d", "s", "r")`` (validated, order kept, no duplicates)."""
-    parts = tuple(p.strip().lower() for p in text.split(",") if p.strip())
-    bad = [p for p in parts if p not in _COMPONENT_LETTERS]
-    if bad or not parts:
-        raise CommandError(f"--components takes a comma-separated subset of d, s, r; got {text!r}")
-    return tuple(dict.fromkeys(parts))
+    """``"d,s,r"`` -> ``("d", "s", "r")`` (validated by the solver's own parser, order kept, no duplicates)."""
+    from decomposition.options import component_letters
+
+    try:
+        return component_letters(text)
+    except ValueError as exc:
+        raise CommandError(f"--components takes a comma-separated subset of d, s, r: {exc}") from None
 
 
-def _parse_options(items) -> dict:
+def _parse_options(items, method: str = "convscd") -> dict:
+    """``KEY=VALUE`` items -> {key: value}; VALUE is read as JSON if it parses, else as a string.
+
+    Every key is checked against the solver's option fields (and, for ``gradbm``, the
+    baseline's options), every value against the field's type and range, before any work.
+    """
+    from decomposition.gradbm import GRADBM_DEFAULTS
+    from decomposition.options import OptionError, option_names, options_from_mapping
+
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -86,6 +94,15 @@ def _parse_options(items) -> dict:
             out[key.strip()] = json.loads(value)
         except json.JSONDecodeError:
             out[key.strip()] = value
+    extra = set(GRADBM_DEFAULTS) if method == "gradbm" else set()
+    for key in out:
+        if key not in option_names() and key not in extra:
+            raise CommandError(f"--option {key}: the solver refuses these settings: unknown option "
+                               f"(known: {', '.join(sorted(set(option_names()) | extra))})")
+    try:
+        options_from_mapping({k: v for k, v in out.items() if k not in extra}, strict=False)
+    except OptionError as exc:
+        raise CommandError(f"--{exc}") from None   # "--option NAME: what is wrong"
     return out
 
 
@@ -420,7 +437,7 @@ def _connect(scheduler, workers):
 def run(args) -> int:
     summary = decompose_to_store(
         args.input, args.out, method=args.method, components=parse_components(args.components),
-        options=_parse_options(args.option), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
+        options=_parse_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
         t0_ps=args.t0_ps, progress=not args.quiet)

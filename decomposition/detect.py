@@ -1,0 +1,158 @@
+"""Stage 2 of :func:`decomposition.decompose`: detect the components by sparse coding.
+
+For every block of live pixels: the multi-start greedy ConvSCD solve
+(:func:`decomposition.convscd.solve_multistart`), the 5 % threshold and merging, and the
+polish of the kept atoms on the data term (:func:`decomposition.convscd.polish_block`).
+Where the noise at the signal turns out larger than the whole-profile estimate (photon
+noise), the block's pixels are solved again with the sparsity weight of that noise: the
+weight must follow the noise at the components, not in the quiet tail.
+
+The GradBM baseline (:func:`detect_gradbm`) takes the place of this stage for
+``method="gradbm"``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import components as comp
+from . import convscd as cs
+from .constants import RESTART_FACTOR
+from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
+from .noise import signal_noise_sigma
+from .options import SolverOptions
+from .prepare import Samples
+
+__all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Atoms found for the live pixels of a :class:`~decomposition.prepare.Samples`.
+
+    Attributes
+    ----------
+    state : dict of (n, K) slot arrays       rows follow ``samples.live``
+    converged : ndarray (n,) bool            the greedy solve stopped before ``max_iter``
+    objective : ndarray (P, max_iter + 1)    per-pixel objective after every outer iteration
+                                             (NaN after a pixel stopped, and for pixels not solved)
+    n_iter : ndarray (P,) int
+    noise_eff : ndarray (P,)                 the noise used in the end (second pass included)
+    lm_iterations : int                      LM iterations of the slowest pixel, summed over calls
+    restarted : int                          pixels that ran the second (unrestricted) start
+    """
+
+    state: dict
+    converged: np.ndarray
+    objective: np.ndarray
+    n_iter: np.ndarray
+    noise_eff: np.ndarray
+    lm_iterations: int
+    restarted: int
+
+
+def solver_inputs(samples: Samples, rows: np.ndarray):
+    """Profiles and sample codes of ``rows`` for the solver.
+
+    Saturated samples keep their (normalised) recorded value and get code 2 (censored
+    from below: only a model below them is a misfit); fitted samples code 1, others 0
+    (see :mod:`decomposition.convscd`).  Returns (p (n, L), codes (n, L) float64).
+    """
+    sat = samples.censored[rows]
+    p = np.where(sat, samples.values[rows] / samples.scale[rows, None], samples.profiles[rows])
+    codes = np.where(sat, 2.0, samples.fit[rows].astype(np.float64))
+    return p, codes
+
+
+def _solver_options(opts: SolverOptions, components) -> dict:
+    max_gauss = (opts.max_components if "r" in components else 1) if "d" in components else 0
+    return dict(max_components=opts.max_components, max_gauss=max_gauss, allow_sss="s" in components,
+                sparsity=opts.sparsity, eps_rel=opts.eps_rel, max_iter=opts.max_iter, n_lm=opts.n_lm,
+                bound_factor=opts.bound_factor, tie_sigma=opts.shared_sigma,
+                sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
+
+
+def _solve(p, codes, fit, noise, dic, t, opts: SolverOptions, solve_opts: dict):
+    """Sparse solve, threshold, merge and polish of one set of pixels."""
+    st, si = cs.solve_multistart(p, fit.astype(np.float64), noise, dic, sss_alone=opts.sss_alone,
+                                 restart=opts.multistart, **solve_opts)
+    comp.threshold(st, t, opts.rel_threshold)
+    comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
+    st, model, nl = cs.polish_block(p, codes, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
+                                    n_lm=opts.n_polish, bound_factor=opts.bound_factor,
+                                    tie_sigma=opts.shared_sigma, sss_after_direct=opts.sss_after_direct,
+                                    lm_tol=opts.lm_tol)
+    return st, si, model, nl
+
+
+def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions, components) -> Detection:
+    """Sparse coding of every live pixel, block by block (``opts.block_size`` pixels).
+
+    ``opts`` must be resolved (:meth:`SolverOptions.resolved`).  Blocks are solved as one
+    batch each; a pixel's result depends only on its own samples.
+    """
+    P = samples.values.shape[0]
+    live = samples.live
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
+    solve_opts = _solver_options(opts, components)
+    noise_eff = samples.noise_eff.copy()
+    hist = np.full((P, opts.max_iter + 1), np.nan)
+    n_iter = np.zeros(P, np.int64)
+    states, converged = [], []
+    lm_total, restarted = 0, 0
+    for b0 in range(0, live.size, opts.block_size):
+        bi = live[b0:b0 + opts.block_size]
+        pb, wb = solver_inputs(samples, bi)
+        fb = samples.fit[bi]
+        sb = noise_eff[bi].copy()
+        st, sinfo, model_b, nl = _solve(pb, wb, fb, sb, dic, t, opts, solve_opts)
+        lm_total += sinfo["lm_iterations"] + nl
+        s_sig = signal_noise_sigma(pb - model_b, model_b, fb)
+        again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
+        if again.size:
+            sb[again] = s_sig[again]
+            st2, sinfo2, _, nl2 = _solve(pb[again], wb[again], fb[again], sb[again], dic, t, opts, solve_opts)
+            lm_total += sinfo2["lm_iterations"] + nl2
+            cs._put(st, again, st2)
+            for key in ("objective", "n_iter", "converged"):
+                sinfo[key][again] = sinfo2[key]
+            restarted += sinfo2.get("restarted", 0)
+            noise_eff[bi[again]] = sb[again]
+        hist[bi] = sinfo["objective"]
+        n_iter[bi] = sinfo["n_iter"]
+        restarted += sinfo.get("restarted", 0)
+        states.append(st)
+        converged.append(sinfo["converged"])
+    if states:
+        state = {k: np.concatenate([s[k] for s in states]) for k in states[0]}
+        conv = np.concatenate(converged)
+    else:
+        state = cs._new_state(0, opts.max_components)
+        conv = np.zeros(0, bool)
+    return Detection(state=state, converged=conv, objective=hist, n_iter=n_iter, noise_eff=noise_eff,
+                     lm_iterations=lm_total, restarted=restarted)
+
+
+def detect_gradbm(samples: Samples, n_ir: int, components, params: dict, options: dict) -> None:
+    """The GradBM baseline on every live pixel; writes its parameters into ``params`` (P-shaped)."""
+    from .gradbm import gradbm  # imported lazily: the baseline is optional for the ConvSCD path
+
+    live, scale = samples.live, samples.scale
+    if live.size == 0:
+        return
+    T, t0 = samples.axis.time_bin_ps, samples.axis.t0_ps
+    got = gradbm(samples.profiles[live], T, t0, components=tuple(sorted(components)), max_interreflections=n_ir,
+                 **options)
+    for k in DIRECT_KEYS + SSS_KEYS:
+        if k in got:
+            v = np.asarray(got[k], np.float64).reshape(live.size)
+            if k in ("direct_amplitude", "sss_amplitude"):
+                v = v * scale[live]
+            params[k][live] = v
+    if n_ir and "ir_delay_ps" in got:
+        for k in IR_KEYS:
+            v = np.asarray(got[k], np.float64).reshape(live.size, -1)[:, :n_ir]
+            if k == "ir_amplitude":
+                v = v * scale[live, None]
+            params[k][live, : v.shape[1]] = v

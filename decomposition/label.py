@@ -1,0 +1,67 @@
+"""Stage 4 of :func:`decomposition.decompose`: from atoms to named components.
+
+Optionally snaps the atoms to the reference grid (``off_grid=False``, the paper's discrete
+setting), applies the 5 % threshold and merging once more (refinement can bring two atoms
+together), flags atoms whose refined width or decay ended at a bound, and names the atoms
+(earliest Gaussian: direct; later ones: r2, r3, ...; the sss atom) with
+:func:`decomposition.components.classify`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import components as comp
+from . import convscd as cs
+from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
+from .detect import Detection, solver_inputs
+from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
+from .model import empty_params
+from .options import SolverOptions
+from .prepare import Samples
+
+__all__ = ["Labels", "label_components", "at_bound"]
+
+
+@dataclass(frozen=True)
+class Labels:
+    """Named components of every pixel: ``params`` (keys of :mod:`decomposition.model`, shapes
+    (P,) and (P, R), NaN where absent) and ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED)."""
+
+    params: dict
+    flags: np.ndarray
+
+
+def at_bound(state: dict, bounds: dict) -> np.ndarray:
+    """(n,) bool: some atom's log sigma, or the sss atom's log alpha, is at its bound."""
+    act = state["fam"] != FAM_NONE
+    lsig, lalp = state["lsig"], state["lalp"]
+    hit = act & ((lsig <= bounds["lsig"][0] + BOUND_TOL) | (lsig >= bounds["lsig"][1] - BOUND_TOL))
+    hit |= (state["fam"] == FAM_SSS) & ((lalp <= bounds["lalp"][0] + BOUND_TOL)
+                                        | (lalp >= bounds["lalp"][1] - BOUND_TOL))
+    return hit.any(axis=1)
+
+
+def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions) -> Labels:
+    """Snap (``off_grid=False``), threshold, merge and classify the detected atoms."""
+    P = samples.values.shape[0]
+    live = samples.live
+    R = opts.max_reflections
+    flags = np.zeros(P, FLAG_DTYPE)
+    params = empty_params((P,), n_ir=R)
+    mark(flags, live[~det.converged], MAX_ITER)
+    st = {k: v.copy() for k, v in det.state.items()}
+    if not opts.off_grid:
+        cs.snap_to_grid(st, dic)
+        p, codes = solver_inputs(samples, live)
+        cs.refit_amplitudes(p, codes, st, dic)
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
+    comp.threshold(st, t, opts.rel_threshold)
+    comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)   # refinement can bring two atoms together
+    mark(flags, live[at_bound(st, cs._bounds(dic, opts.bound_factor))], AT_BOUND)
+    got, trunc = comp.classify(st, samples.scale[live], R)
+    mark(flags, live[trunc], TRUNCATED)
+    for k, v in got.items():
+        params[k][live] = v
+    return Labels(params=params, flags=flags)

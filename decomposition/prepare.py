@@ -1,0 +1,219 @@
+"""Stage 1 of :func:`decomposition.decompose`: prepare the samples.
+
+Input check, per-pixel normalisation to unit peak, the masks of the samples that are fitted
+and of those that are censored (saturated), single-sample spikes, and the noise estimate.
+Nothing here depends on the solver; every later stage reads the :class:`Samples` it returns.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .constants import DICT_SUPPORT_SIGMA
+from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
+from .noise import noise_sigma
+from .options import GridSpec, parse_nan_policy
+
+__all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes"]
+
+
+@dataclass(frozen=True)
+class TimeAxis:
+    """Bin i at ``t0_ps + i * time_bin_ps`` (ps)."""
+
+    time_bin_ps: float
+    t0_ps: float
+
+
+def time_axis(time_bin_ps, t0_ps=None) -> TimeAxis:
+    """Validated time axis; ``t0_ps`` defaults to one bin (the paper's t = T..LT)."""
+    T = float(time_bin_ps) if np.isscalar(time_bin_ps) else np.nan
+    if not (np.isfinite(T) and T > 0):
+        raise ValueError(f"time_bin_ps must be a positive finite number, got {time_bin_ps!r}")
+    t0 = T if t0_ps is None else float(t0_ps)
+    if not np.isfinite(t0):
+        raise ValueError(f"t0_ps must be finite, got {t0_ps!r}")
+    return TimeAxis(T, t0)
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Profiles ready for the solver, flattened to P pixels of L samples.
+
+    Attributes
+    ----------
+    values : ndarray (P, L) float64     the input samples
+    profiles : ndarray (P, L) float64   values / scale on fitted samples, 0 elsewhere
+    scale : ndarray (P,)                peak magnitude over the fitted samples (0: empty)
+    fit : ndarray (P, L) bool           samples fitted (finite, not saturated, not a spike)
+    censored : ndarray (P, L) bool      saturated samples: the true value is at least this
+    finite : ndarray (P,) bool          pixels without NaN/inf samples
+    live : ndarray (n,) int             pixels to decompose (finite, not empty)
+    noise : ndarray (P,)                whole-profile noise estimate of ``profiles`` (before
+                                        spikes were removed)
+    noise_eff : ndarray (P,)            the noise the solver uses: after spike removal,
+                                        floored at ``noise_floor``
+    flags : ndarray (P,) uint8          NONFINITE, SATURATED, SPIKE, EMPTY as found here
+    lead : tuple                        leading shape of the input
+    axis : TimeAxis
+    saturation_level : float or None
+    """
+
+    values: np.ndarray
+    profiles: np.ndarray
+    scale: np.ndarray
+    fit: np.ndarray
+    censored: np.ndarray
+    finite: np.ndarray
+    live: np.ndarray
+    noise: np.ndarray
+    noise_eff: np.ndarray
+    flags: np.ndarray
+    lead: tuple
+    axis: TimeAxis
+    saturation_level: float | None
+
+    @property
+    def n_bins(self) -> int:
+        return self.values.shape[1]
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(P, L) float64 least-squares weights: 1 on fitted samples, 0 elsewhere."""
+        return self.fit.astype(np.float64)
+
+
+def _as_profiles(profiles):
+    arr = np.asarray(profiles)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
+                                   or arr.dtype == np.bool_):
+        raise ValueError(f"profiles must be a real numeric array, got dtype {arr.dtype}")
+    if arr.ndim == 0:
+        raise ValueError("profiles must have at least one dimension (..., L); got a 0-d scalar")
+    return arr
+
+
+def check_window(n_bins: int, axis: TimeAxis, grid: GridSpec) -> None:
+    """Refuse windows shorter than the widest dictionary kernel."""
+    T = axis.time_bin_ps
+    min_bins = max(8, int(math.ceil(DICT_SUPPORT_SIGMA * grid.sigma_range_ps[1] / T)) + 1)
+    if n_bins < min_bins:
+        raise ValueError(
+            f"profiles have L={n_bins} time bins; the kernels need at least {min_bins} "
+            f"({DICT_SUPPORT_SIGMA:g} x sigma_max {grid.sigma_range_ps[1]:g} ps / time_bin_ps {T:g} ps + 1)")
+
+
+def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str = "raise",
+                    saturation_level: float | None = None, spike_sigma: float = 8.0,
+                    noise_floor: float = 1e-3, rel_threshold: float = 0.05) -> Samples:
+    """Validate, mask and normalise profiles (..., L); estimate their noise.
+
+    Parameters
+    ----------
+    profiles : array_like (..., L), any real dtype
+    axis : TimeAxis
+    grid : GridSpec
+        For the shortest window and the narrowest kernel (spike test).
+    nan_policy : {"raise", "omit"}
+    saturation_level : float, optional
+        Samples >= this are censored.  Default: the dtype maximum for integer input.
+    spike_sigma : float
+        Spike threshold in noise sigmas (0: no spike test).
+    noise_floor : float
+        Floor of the noise estimate relative to the pixel's peak.
+    rel_threshold : float
+        Spikes below this fraction of the peak are left alone (see :func:`find_spikes`).
+    """
+    nan_policy = parse_nan_policy(nan_policy)
+    arr = _as_profiles(profiles)
+    lead, L = arr.shape[:-1], arr.shape[-1]
+    check_window(L, axis, grid)
+    P = int(np.prod(lead, dtype=np.int64))
+    raw = arr.reshape(P, L)
+    if saturation_level is None and np.issubdtype(arr.dtype, np.integer):
+        saturation_level = float(np.iinfo(arr.dtype).max)
+    x = raw.astype(np.float64)
+
+    flags = np.zeros(P, FLAG_DTYPE)
+    finite = np.isfinite(x).all(axis=1)
+    n_bad = int(P - finite.sum())
+    if n_bad and nan_policy == "raise":
+        raise ValueError(f"profiles contain NaN or inf samples in {n_bad} of {P} pixels "
+                         f"(use nan_policy='omit' to flag and skip them)")
+    mark(flags, ~finite, NONFINITE)
+
+    fit = np.ones((P, L), bool)
+    sat = np.zeros((P, L), bool)
+    if saturation_level is not None:
+        sat = x >= float(saturation_level)
+        fit[sat] = False
+        mark(flags, sat.any(axis=1), SATURATED)
+    fit[~finite] = False
+    xs = np.where(fit, x, 0.0)
+    scale = np.abs(xs).max(axis=1)
+    live = finite & (scale > 0)
+    mark(flags, finite & ~(scale > 0), EMPTY)
+
+    idx_live = np.nonzero(live)[0]
+    pn = np.zeros((P, L))
+    pn[idx_live] = xs[idx_live] / scale[idx_live, None]
+    s_est = np.zeros(P)
+    if idx_live.size:
+        s_est[idx_live] = noise_sigma(pn[idx_live], fit[idx_live])
+    s_eff = np.maximum(s_est, noise_floor)
+
+    if spike_sigma and idx_live.size:
+        sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
+                         spike_sigma, rel_threshold)
+        mark(flags, idx_live[sp.any(axis=1)], SPIKE)
+        fit[idx_live] = fit[idx_live] & ~sp
+        # re-normalise without the spikes
+        xs = np.where(fit, x, 0.0)
+        scale[idx_live] = np.abs(xs[idx_live]).max(axis=1)
+        ok = scale[idx_live] > 0
+        mark(flags, idx_live[~ok], EMPTY)
+        idx_live = idx_live[ok]
+        pn[idx_live] = xs[idx_live] / scale[idx_live, None]
+        s_eff[idx_live] = np.maximum(noise_sigma(pn[idx_live], fit[idx_live]), noise_floor)
+    return Samples(values=x, profiles=pn, scale=scale, fit=fit, censored=sat, finite=finite, live=idx_live,
+                   noise=s_est, noise_eff=s_eff, flags=flags, lead=lead, axis=axis,
+                   saturation_level=saturation_level)
+
+
+def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_rel=0.05):
+    """Single-sample spikes: too narrow for the narrowest kernel and far above the noise.
+
+    A component with sigma >= sigma_min has neighbours at least
+    exp(-T^2 / (2 sigma_min^2)) of a centred peak; a sample whose larger
+    neighbour is below half of that (plus a noise margin) and which exceeds
+    both neighbours by ``k_sigma`` noise sigmas is a spike.
+
+    Parameters
+    ----------
+    profiles : ndarray (P, L)     normalised profiles
+    fit : ndarray (P, L) bool     fitted samples (only those can be spikes)
+    noise : ndarray (P,)          noise sigma, units of ``profiles``
+    time_bin_ps, sigma_min_ps : float
+    k_sigma : float
+    min_rel : float
+        Spikes must also exceed this fraction of the pixel's peak: a smaller one could never
+        become a reported component (and isolated counts of photon-limited data are no spikes).
+
+    Returns
+    -------
+    ndarray (P, L) bool
+    """
+    pn, s, T = profiles, noise, time_bin_ps
+    P, L = pn.shape
+    out = np.zeros((P, L), bool)
+    if L < 3:
+        return out
+    r_min = math.exp(-0.5 * (T / sigma_min_ps) ** 2)
+    c = pn[:, 1:-1]
+    nb = np.maximum(pn[:, :-2], pn[:, 2:])
+    big = np.maximum(k_sigma * s[:, None], min_rel * np.abs(pn).max(axis=1, keepdims=True))
+    sp = (c - nb > big) & (nb < 0.5 * r_min * c + 3.0 * s[:, None]) & fit[:, 1:-1]
+    out[:, 1:-1] = sp
+    return out
