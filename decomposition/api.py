@@ -24,7 +24,7 @@ from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, 
                     TRUNCATED, flag_names)
 from .label import label_components
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
-from .options import option_names, options_from_mapping, parse_components, parse_nan_policy  # noqa: F401
+from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-from .convscd import _eval_atoms
+from .slots import eval_atoms
 from .model import empty_params, render_components
 
 __all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]
@@ -37,7 +37,7 @@ def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.
     out = np.zeros(act.shape)
     if act.any():
         pi, ki = np.nonzero(act)
-        phi = _eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
+        phi = eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
         out[pi, ki] = np.abs(st["amp"][pi, ki]) * phi.max(axis=1)
     return out
 

@@ -137,314 +137,31 @@ FFTs for picking, blocks larger than 256 pixels.
 """
 from __future__ import annotations
 
-import functools
-import math
-import os
-
 import numpy as np
-from scipy import fft as sfft
 
-from .atomlm import atom_profiles, lm_refine
-from .constants import (DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS, NEAR_SIGMA,
-                        RESTART_FACTOR)
-from .pick import select as _select
-from .model import sss_kernel
-from .options import GridSpec
-from .pickcorr import pixel_correlations
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, RESTART_FACTOR
+from .dictionary import Dictionary, get_dictionary  # noqa: F401
+from .options import GridSpec  # noqa: F401
+from .pickcorr import PickWorkspace
+from .polish import polish_block, refit_amplitudes, snap_to_grid  # noqa: F401
+from .score import score_coarse, score_pixel
+from .slots import (censored_residual, drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
+                    put, refine_atoms, take)
 
 __all__ = [
     "GridSpec",
     "Dictionary",
     "get_dictionary",
     "solve_block",
+    "solve_multistart",
     "polish_block",
+    "snap_to_grid",
+    "refit_amplitudes",
     "objective",
     "FAM_NONE",
     "FAM_GAUSS",
     "FAM_SSS",
 ]
-
-
-# FFT threads per call.  One by default: pixel blocks are parallelised by processes
-# (decomposition.chunked); threads inside each would oversubscribe the cores.
-_WORKERS = max(1, int(os.environ.get("STREAKLAB_FFT_WORKERS", "1")))
-
-
-def _coarse(lo, hi, n):
-    if n == 1 or lo == hi:
-        return np.array([math.sqrt(lo * hi)])
-    return np.geomspace(lo, hi, n)
-
-
-class Dictionary:
-    """Coarse convolutional dictionary for one (L, time bin, t0, grid, families).
-
-    Attributes
-    ----------
-    fam : ndarray (A,) int8       FAM_GAUSS or FAM_SSS per atom
-    sigma_ps, alpha_per_ps : (A,)  kernel parameters (alpha NaN for Gaussians)
-    peak : (A,)                   max of the sampled kernel (atoms are stored / peak)
-    shifts : (S,) int             delay bins j: delay_ps = t0_ps + j * time_bin_ps
-    norm2 : (A, S)                squared norm of each atom truncated to the window
-    n_fft : int                   FFT length (no circular aliasing)
-    """
-
-    def __init__(self, n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss: bool):
-        L, T = int(n_bins), float(time_bin_ps)
-        self.n_bins, self.time_bin_ps, self.t0_ps, self.grid = L, T, float(t0_ps), grid
-        s_lo, s_hi = grid.sigma_range_ps
-        a_lo, a_hi = grid.alpha_range_per_ps
-        self.pre = int(math.ceil(DICT_PRE_SIGMA * s_hi / T)) + 1
-        fam, sig, alp = [], [], []
-        if gauss:
-            for s in _coarse(s_lo, s_hi, grid.coarse_sigma):
-                fam.append(FAM_GAUSS), sig.append(s), alp.append(np.nan)
-        if sss:
-            for s in _coarse(s_lo, s_hi, grid.coarse_sss_sigma):
-                for a in _coarse(a_lo, a_hi, grid.coarse_alpha):
-                    fam.append(FAM_SSS), sig.append(s), alp.append(a)
-        if not fam:
-            raise ValueError("no component family selected")
-        self.fam = np.array(fam, np.int8)
-        self.sigma_ps = np.array(sig)
-        self.alpha_per_ps = np.array(alp)
-        A = self.fam.size
-        self.shifts = np.arange(-self.pre, L)
-        S = self.shifts.size
-        kernels, spans = [], []
-        for a in range(A):
-            half = int(math.ceil(DICT_SUPPORT_SIGMA * self.sigma_ps[a] / T))
-            if self.fam[a] == FAM_GAUSS:
-                m = np.arange(-half, half + 1)
-                k = np.exp(-0.5 * np.square(m * T / self.sigma_ps[a]))
-            else:
-                m = np.arange(-half, L + self.pre)
-                k = sss_kernel(m * T, self.sigma_ps[a], self.alpha_per_ps[a])
-            kernels.append(k)
-            spans.append((m[0], m[-1]))
-        need = max(max(hi + L, L + self.pre - lo) for lo, hi in spans) + 1
-        self.n_fft = N = sfft.next_fast_len(need, real=True)
-        self.peak = np.array([k.max() for k in kernels])
-        kp = np.zeros((A, N))
-        kp2 = np.zeros((A, N))
-        self.norm2 = np.zeros((A, S))
-        for a, (k, (lo, hi)) in enumerate(zip(kernels, spans)):
-            k = k / self.peak[a]
-            m = np.arange(lo, hi + 1)
-            kp[a, m % N] = k
-            kp2[a, m % N] = k * k
-            # window-truncated squared norm: sum over m in [-j, L-1-j] of k[m]^2
-            c = np.concatenate([[0.0], np.cumsum(k * k)])
-            first = np.clip(-self.shifts - lo, 0, k.size)
-            last = np.clip(L - 1 - self.shifts - lo + 1, 0, k.size)
-            self.norm2[a] = c[last] - c[np.minimum(first, last)]
-        self.spec_conj = np.conj(sfft.rfft(kp, axis=-1))
-        self.spec2_conj = np.conj(sfft.rfft(kp2, axis=-1))
-        self.gather = self.shifts % N
-        self.n_coordinates = A * S
-
-    def correlate(self, x: np.ndarray, squared: bool = False, atoms=None) -> np.ndarray:
-        """Correlate rows of ``x`` (P, L) with every atom (or those of index array ``atoms``, A')
-        at every shift -> (P, A, S) (or (P, A', S)); ``squared``: with the squared atoms."""
-        X = sfft.rfft(x, n=self.n_fft, axis=-1, workers=_WORKERS)
-        spec = self.spec2_conj if squared else self.spec_conj
-        if atoms is not None:
-            spec = spec[atoms]
-        c = sfft.irfft(X[:, None, :] * spec[None], n=self.n_fft, axis=-1, workers=_WORKERS)
-        return np.take(c, self.gather, axis=-1)   # C-contiguous (c[..., idx] is not, and slower)
-
-
-@functools.lru_cache(maxsize=16)
-def _cached_dictionary(n_bins, time_bin_ps, t0_ps, grid, gauss, sss):
-    return Dictionary(n_bins, time_bin_ps, t0_ps, grid, gauss, sss)
-
-
-def get_dictionary(n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss: bool) -> Dictionary:
-    """The (cached) dictionary for these settings: built once, reused by chunked callers."""
-    return _cached_dictionary(int(n_bins), float(time_bin_ps), float(t0_ps), grid, bool(gauss), bool(sss))
-
-
-# ---------------------------------------------------------------------------
-# atoms with continuous parameters (evaluated by decomposition.atomlm)
-
-
-def _axis(t):
-    """(t0_ps, time_bin_ps) of a uniform time axis t (L,)."""
-    return float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0
-
-
-def _eval_atoms(t, fam, delay, lsig, lalp):
-    """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,)."""
-    return atom_profiles(*_axis(t), t.size, fam, delay, lsig, lalp)
-
-
-def _render(t, st):
-    """Model (P, L) of the slot state ``st``."""
-    act = st["fam"] != FAM_NONE
-    P, K = act.shape
-    model = np.zeros((P, t.size))
-    if not act.any():
-        return model
-    pi, ki = np.nonzero(act)
-    phi = _eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
-    phi *= st["amp"][pi, ki][:, None]
-    np.add.at(model, pi, phi)
-    return model
-
-
-def _cres(p, model, w):
-    """Residual under the sample codes w (1 fitted, 0 excluded, 2 censored from below)."""
-    r = p - model
-    return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
-
-
-def objective(p, w, model, st, mu, eps):
-    """F per pixel (P,): 1/2 ||residual||^2 (see _cres) + mu sum log(1 + pen_scale*amp/eps)."""
-    r = _cres(p, model, w)
-    pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
-    return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
-
-
-def _take(st, idx):
-    return {k: v[idx] for k, v in st.items()}
-
-
-def _put(st, idx, sub):
-    for k, v in sub.items():
-        st[k][idx] = v
-
-
-def _linked(st, near_sigma=None):
-    """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
-
-    Returns (linked (P,), direct slot (P,), sss slot (P,)).  Linked: the pixel
-    has both, and the direct lies less than ``near_sigma`` PSF widths after
-    the onset (the same condition as :func:`_constrain`).
-    """
-    near_sigma = NEAR_SIGMA if near_sigma is None else near_sigma
-    g = st["fam"] == FAM_GAUSS
-    s = st["fam"] == FAM_SSS
-    dg = np.where(g, st["delay"], np.inf)
-    dsl = np.argmin(dg, axis=1)
-    ssl = np.argmax(s, axis=1)
-    rows = np.arange(st["fam"].shape[0])
-    first = dg[rows, dsl]
-    ts = st["delay"][rows, ssl]
-    linked = s.any(axis=1) & np.isfinite(first) & (first - ts < near_sigma * np.exp(st["lsig"][rows, ssl]))
-    return linked, dsl, ssl
-
-
-def _lm(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
-        return_model=False):
-    """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
-
-    ``obj`` is F at the current state (P,), the level a step must beat (None: computed
-    exactly); returns (state, F, iterations run by the slowest pixel) and, with
-    ``return_model``, the model (P, L) of the returned state.  The loop itself is
-    :func:`decomposition.atomlm.lm_refine` (compiled, one pixel at a time): a pixel stops when
-    an accepted step lowers F by less than ``tol`` times F per fitted sample (a change far
-    below what one sample's misfit can resolve; it shrinks as the fit improves, so noiseless
-    data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels
-    whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
-    onset moves with the direct and its gap stays >= 0.
-    """
-    out, o, iters, model = lm_refine(*_axis(t), p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
-                                     sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol)
-    it = int(iters.max(initial=0))
-    return (out, o, it, model) if return_model else (out, o, it)
-
-
-def _new_state(P, K):
-    return {
-        "fam": np.zeros((P, K), np.int8),
-        "amp": np.zeros((P, K)),
-        "delay": np.zeros((P, K)),
-        "lsig": np.zeros((P, K)),
-        "lalp": np.zeros((P, K)),
-        "pen": np.ones((P, K)),
-    }
-
-
-def _bounds(dic: Dictionary, bound_factor: float):
-    g = dic.grid
-    T = dic.time_bin_ps
-    return {
-        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
-        "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
-        "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
-    }
-
-
-def _score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
-    """Best coordinate of the coarse dictionary per pixel (Gauss-Southwell, largest decrease)."""
-    # only the families some pixel may take are correlated (the first pick of the primary
-    # start allows Gaussians only: 4 of the 13 default atoms)
-    is_s = dic.fam == FAM_SSS
-    atoms = np.flatnonzero(np.where(is_s, bool(allow_s.any()), bool(allow_g.any())))
-    if atoms.size == 0:
-        atoms = np.arange(dic.fam.size)
-    norm2 = dic.norm2[atoms]
-    is_s = is_s[atoms]
-    c = dic.correlate(r, atoms=atoms)                      # (n, A', S)
-    if weighted:
-        n2 = dic.correlate((w == 1).astype(np.float64), squared=True, atoms=atoms)
-        n2 = np.where(n2 > 1e-12 * norm2[None], n2, 0.0)
-    else:
-        n2 = norm2[None]
-    allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
-    delay = dic.t0_ps + dic.shifts * dic.time_bin_ps
-    allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
-    eligible = (dic.shifts >= 0)[None, None, :] & (n2 >= 0.5 * norm2[None])
-    best, zb, db = _select(c, n2, mu, eps, allow, by_size, eligible)
-    a_i, j_i = np.divmod(best, dic.shifts.size)
-    a_i = atoms[a_i]
-    fam = dic.fam[a_i]
-    alpha = np.where(fam == FAM_SSS, dic.alpha_per_ps[a_i], 1.0)
-    cand = {"fam": fam, "amp": zb / dic.peak[a_i], "pen": dic.peak[a_i].copy(),
-            "delay": dic.t0_ps + dic.shifts[j_i] * dic.time_bin_ps,
-            "lsig": np.log(dic.sigma_ps[a_i]), "lalp": np.where(fam == FAM_SSS, np.log(alpha), 0.0)}
-    return cand, db
-
-
-def _score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s, min_s, bound_factor):
-    """Best coordinate per pixel among atoms at the pixel's own PSF width ``sig`` (n,).
-
-    Atoms: the Gaussian and the sss kernel at each coarse alpha, all with the
-    pixel's sigma, at every integer-bin shift; correlations and exact
-    window-truncated norms come from compiled per-pixel FIR passes and one-pole
-    recursions (:func:`decomposition.pickcorr.pixel_correlations`).
-    """
-    n = r.shape[0]
-    T = dic.time_bin_ps
-    pre = dic.pre
-    # the coarse alphas: the dictionary's first sss sigma carries each of them once, in order
-    alphas = dic.alpha_per_ps[dic.fam == FAM_SSS][:dic.grid.coarse_alpha]
-    kf = [FAM_GAUSS] + [FAM_SSS] * alphas.size
-    ka = np.concatenate([[np.nan], alphas])
-    H = int(math.ceil(DICT_SUPPORT_SIGMA * float(sig.max()) / T)) + 1
-    c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
-                                     w1=(w == 1).astype(np.float64) if weighted else None,
-                                     reuse_buffers=True)   # consumed by _select below
-    if weighted:
-        n2 = np.where(n2 > 1e-12, n2, 0.0)
-    is_s = np.array(kf) == FAM_SSS
-    allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
-    delay = dic.t0_ps + dic.shifts * T
-    allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
-    best, zb, db = _select(c, n2, mu, eps, allow)
-    a_i, j_i = np.divmod(best, dic.shifts.size)
-    rows = np.arange(n)
-    fam = np.array(kf, np.int8)[a_i]
-    cand = {"fam": fam, "amp": zb / peak[rows, a_i], "pen": peak[rows, a_i],
-            "delay": dic.t0_ps + dic.shifts[j_i] * T, "lsig": np.log(sig),
-            "lalp": np.where(fam == FAM_SSS, np.log(np.where(np.isfinite(ka[a_i]), ka[a_i], 1.0)), 0.0)}
-    return cand, db
-
-
-def _drop_zero(st):
-    dead = (st["fam"] != FAM_NONE) & ~(st["amp"] > 0)
-    st["fam"][dead] = FAM_NONE
-    st["amp"][dead] = 0.0
 
 
 def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
@@ -497,10 +214,10 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     mu = sparsity * s_eff * s_eff
     eps = eps_rel * s_eff
-    bounds = _bounds(dic, bound_factor)
-    st = _new_state(P, K)
+    bounds = parameter_bounds(dic, bound_factor)
+    st = new_state(P, K)
     hist = np.full((P, max_iter + 1), np.nan)
-    r0 = _cres(p, 0.0, w)
+    r0 = censored_residual(p, 0.0, w)
     obj = 0.5 * np.einsum("pl,pl->p", r0, r0)
     hist[:, 0] = obj
     n_iter = np.zeros(P, np.int64)
@@ -510,6 +227,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     weighted = bool(np.any(w != 1.0))
     lm_total = 0
     model = np.zeros((P, L))
+    workspace = PickWorkspace()   # the own-width pick's correlations, reused by every pick of this block
     for it in range(1, max_iter + 1):
         idx = np.nonzero(~done)[0]
         if idx.size == 0:
@@ -535,12 +253,12 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
                 continue
             if scorer == "coarse":
                 by_size = None if first_gauss is None else (first_gauss[idx[gsel]] & (n_act[gsel] == 0))
-                c_, d_ = _score_coarse(r[gsel], w[idx[gsel]], weighted, dic, mu[idx[gsel]], eps[idx[gsel]],
+                c_, d_ = score_coarse(r[gsel], w[idx[gsel]], weighted, dic, mu[idx[gsel]], eps[idx[gsel]],
                                        allow_g[gsel], allow_s[gsel], min_s[gsel], by_size)
             else:
                 sig = np.exp(np.where(fam[gsel] != FAM_NONE, st["lsig"][idx[gsel]], -np.inf).max(axis=1))
-                c_, d_ = _score_pixel(r[gsel], w[idx[gsel]], weighted, dic, sig, mu[idx[gsel]], eps[idx[gsel]],
-                                      allow_g[gsel], allow_s[gsel], min_s[gsel], bound_factor)
+                c_, d_ = score_pixel(r[gsel], w[idx[gsel]], weighted, dic, sig, mu[idx[gsel]], eps[idx[gsel]],
+                                     allow_g[gsel], allow_s[gsel], min_s[gsel], bound_factor, workspace)
             for k in cand:
                 cand[k][gsel] = c_[k]
             dec[gsel] = d_
@@ -558,12 +276,12 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
             first_family[gi] = cand["fam"][go]
         bdec = dec
         obj[gi] = obj[gi] - bdec[go]
-        sub = _take(st, gi)
-        sub, o, nl, m_sub = _lm(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
+        sub = take(st, gi)
+        sub, o, nl, m_sub = refine_atoms(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
                                 tie_sigma, sss_after_direct, lm_tol, return_model=True)
         exact = o       # F evaluated exactly after refinement (not the FFT pick's estimate)
-        _drop_zero(sub)
-        _put(st, gi, sub)
+        drop_zero(sub)
+        put(st, gi, sub)
         model[gi] = m_sub
         obj[gi] = exact
         hist[gi, it] = exact
@@ -572,7 +290,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     info = {"objective": hist, "n_iter": n_iter, "converged": converged, "lm_iterations": lm_total,
             "mu": mu, "eps": eps, "coordinates_searched": dic.n_coordinates,
             "first_family": first_family,
-            "data_term": 0.5 * np.einsum("pl,pl->p", _cres(p, model, w), _cres(p, model, w))}
+            "data_term": 0.5 * np.einsum("pl,pl->p", censored_residual(p, model, w), censored_residual(p, model, w))}
     return st, info
 
 
@@ -634,7 +352,7 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True
         f2 = _final(info2["objective"])
         better = f2 < f1
         b = redo[better]
-        _put(st, b, _take(st2, better))
+        put(st, b, take(st2, better))
         for key in ("objective", "n_iter", "converged", "first_family", "data_term"):
             info[key][b] = info2[key][better]
         info["lm_iterations"] += info2["lm_iterations"]
@@ -653,7 +371,7 @@ def _backward_direct(p, w, s_eff, dic, st, info, opts):
     value replaces the pixel's last objective entry, which it lowers, so the
     history stays monotone.
     """
-    lk, dsl, ssl = _linked(st)
+    lk, dsl, ssl = linked_onsets(st)
     cand = np.nonzero(lk)[0]
     if cand.size == 0:
         return
@@ -663,22 +381,22 @@ def _backward_direct(p, w, s_eff, dic, st, info, opts):
     er = opts.get("eps_rel", 0.01)
     mu = sp * s_eff[cand] ** 2
     eps = er * s_eff[cand]
-    alt = _take(st, cand)
+    alt = take(st, cand)
     r_ = np.arange(cand.size)
     alt["fam"][r_, dsl[cand]] = FAM_NONE
     alt["amp"][r_, dsl[cand]] = 0.0
-    alt, o, nl, m = _lm(t, p[cand], w[cand], alt, mu, eps, _bounds(dic, opts.get("bound_factor", 4.0)),
+    alt, o, nl, m = refine_atoms(t, p[cand], w[cand], alt, mu, eps, parameter_bounds(dic, opts.get("bound_factor", 4.0)),
                         2 * opts.get("n_lm", 4), None, opts.get("tie_sigma", True),
                         opts.get("sss_after_direct", True), opts.get("lm_tol", 1e-2), return_model=True)
-    _drop_zero(alt)
+    drop_zero(alt)
     hist = info["objective"]
     last = hist.shape[1] - 1 - np.argmax(np.isfinite(hist[cand])[:, ::-1], axis=1)
     cur = hist[cand, last]
     better = o < cur
     b = cand[better]
-    _put(st, b, _take(alt, better))
+    put(st, b, take(alt, better))
     hist[b, last[better]] = o[better]
-    r = _cres(p[b], m[better], w[b])
+    r = censored_residual(p[b], m[better], w[b])
     info["data_term"][b] = 0.5 * np.einsum("pl,pl->p", r, r)
     info["lm_iterations"] += nl
     info["backward"] = int(b.size)
@@ -690,88 +408,3 @@ def _final(hist):
     last = hist.shape[1] - 1 - np.argmax(ok[:, ::-1], axis=1)
     return hist[np.arange(hist.shape[0]), last]
 
-
-def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
-                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
-    """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
-
-    The sparse step has chosen the atoms; this is the usual debiasing step
-    after sparse selection: the log-sum penalty shrinks amplitudes (it favours
-    a smaller direct plus a larger sss along their near-degenerate direction),
-    so the kept atoms are refined on the data term alone (mu = 0), each step
-    accepted only where the residual decreases.
-    """
-    L = p.shape[1]
-    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    mu = np.zeros_like(s_eff)
-    eps = eps_rel * s_eff
-    bounds = _bounds(dic, bound_factor)
-    st, obj, nl, model = _lm(t, p, w, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
-                             return_model=True)
-    if sss_after_direct:
-        # A direct and an sss with the same onset and width are degenerate to first order
-        # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
-        # An sss onset far before the direct (an exponential tail alone is degenerate in
-        # onset and amplitude) is re-tried the same way.
-        lk, dsl, ssl = _linked(st, near_sigma=np.inf)
-        rows = np.arange(st["fam"].shape[0])
-        gap = st["delay"][rows, ssl] - st["delay"][rows, dsl]
-        sig_s = np.exp(st["lsig"][rows, ssl])
-        retry = np.nonzero(lk & (gap < 0.5 * sig_s))[0]
-        if retry.size:
-            alt = _take(st, retry)
-            alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
-                                                                + sig_s[retry])
-            alt, o_alt, nl2, m_alt = _lm(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
-                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
-            better = o_alt < obj[retry]
-            _put(st, retry[better], _take(alt, better))
-            model[retry[better]] = m_alt[better]
-            obj[retry[better]] = o_alt[better]
-            nl += nl2
-    _drop_zero(st)              # zero-amplitude atoms add nothing to the model
-    return st, model, nl
-
-
-def snap_to_grid(st, dic: Dictionary):
-    """Snap delays to integer bins and sigma/alpha to the reference grid (``off_grid=False``)."""
-    act = st["fam"] != FAM_NONE
-    T = dic.time_bin_ps
-    st["delay"] = np.where(act, dic.t0_ps + np.round((st["delay"] - dic.t0_ps) / T) * T, st["delay"])
-    fs, fa = dic.grid.fine_sigma(), dic.grid.fine_alpha()
-    sig = np.exp(st["lsig"])
-    si = np.abs(sig[..., None] - fs).argmin(-1)
-    st["lsig"] = np.where(act, np.log(fs[si]), st["lsig"])
-    alp = np.exp(st["lalp"])
-    ai = np.abs(alp[..., None] - fa).argmin(-1)
-    st["lalp"] = np.where(act & (st["fam"] == FAM_SSS), np.log(fa[ai]), st["lalp"])
-    return st
-
-
-def refit_amplitudes(p, w, st, dic: Dictionary):
-    """Non-negative least-squares amplitudes for fixed atom shapes (batched, small K)."""
-    L = p.shape[1]
-    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    P, K = st["fam"].shape
-    act = st["fam"] != FAM_NONE
-    phi = np.zeros((P, K, L))
-    if act.any():
-        pi, ki = np.nonzero(act)
-        phi[pi, ki] = _eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
-                                  st["lalp"][pi, ki])
-    w = (w == 1).astype(np.float64)
-    phw = phi * w[:, None, :]
-    G = np.einsum("pkl,pjl->pkj", phw, phw)
-    b = np.einsum("pkl,pl->pk", phw, p * w)
-    amp = np.where(act, st["amp"], 0.0)
-    # a few sweeps of exact coordinate descent on the (convex) NNLS problem
-    for _ in range(20):
-        for k in range(K):
-            gkk = G[:, k, k]
-            resid = b[:, k] - np.einsum("pj,pj->p", G[:, k, :], amp) + gkk * amp[:, k]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                newv = np.where(gkk > 0, np.maximum(resid / gkk, 0.0), 0.0)
-            amp[:, k] = np.where(act[:, k], newv, 0.0)
-    st["amp"] = amp
-    _drop_zero(st)
-    return st

@@ -23,6 +23,7 @@ from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .noise import signal_noise_sigma
 from .options import SolverOptions
 from .prepare import Samples
+from .slots import new_state, put
 
 __all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
 
@@ -114,7 +115,7 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
             sb[again] = s_sig[again]
             st2, sinfo2, _, nl2 = _solve(pb[again], wb[again], fb[again], sb[again], dic, t, opts, solve_opts)
             lm_total += sinfo2["lm_iterations"] + nl2
-            cs._put(st, again, st2)
+            put(st, again, st2)
             for key in ("objective", "n_iter", "converged"):
                 sinfo[key][again] = sinfo2[key]
             restarted += sinfo2.get("restarted", 0)
@@ -128,7 +129,7 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
         state = {k: np.concatenate([s[k] for s in states]) for k in states[0]}
         conv = np.concatenate(converged)
     else:
-        state = cs._new_state(0, opts.max_components)
+        state = new_state(0, opts.max_components)
         conv = np.zeros(0, bool)
     return Detection(state=state, converged=conv, objective=hist, n_iter=n_iter, noise_eff=noise_eff,
                      lm_iterations=lm_total, restarted=restarted)

@@ -20,6 +20,7 @@ from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
 from .model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
+from .slots import parameter_bounds
 
 __all__ = ["Labels", "label_components", "at_bound"]
 
@@ -59,7 +60,7 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
     comp.threshold(st, t, opts.rel_threshold)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)   # refinement can bring two atoms together
-    mark(flags, live[at_bound(st, cs._bounds(dic, opts.bound_factor))], AT_BOUND)
+    mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     got, trunc = comp.classify(st, samples.scale[live], R)
     mark(flags, live[trunc], TRUNCATED)
     for k, v in got.items():

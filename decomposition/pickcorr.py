@@ -41,16 +41,13 @@ evaluating, transforming and correlating the kernels per pixel by FFT.
 from __future__ import annotations
 
 import math
-import threading
-
 import numpy as np
 
 from .constants import GAUSS_SUPPORT_SIGMA
 from .jit import njit, sss_value
 
-__all__ = ["pixel_correlations"]
+__all__ = ["pixel_correlations", "PickWorkspace"]
 
-_scratch = threading.local()   # per-thread output buffers (reuse_buffers=True)
 
 
 @njit
@@ -289,8 +286,28 @@ def _recurse(e4, en4, n_e, rho, c_out, n_out):
                 c_out[b + 2], n_out[b + 2] = c2, n2
 
 
+class PickWorkspace:
+    """Output buffers of :func:`pixel_correlations`, owned by the caller that reuses them.
+
+    A solver block calls :func:`pixel_correlations` once per pick; fresh multi-megabyte
+    arrays per call cost more in page faults than the correlations themselves.  Passed as
+    ``out=``, a workspace receives ``c`` and ``n2``: the arrays returned are views into it,
+    valid until the next call with the same workspace.  Not shared between threads.
+    """
+
+    def __init__(self):
+        self._buf = np.empty((2, 0))
+
+    def arrays(self, n: int, nk: int, S: int):
+        """(c, n2) views of shape (n, nk, S), growing the buffer when needed."""
+        need = n * nk * S
+        if self._buf.shape[1] < need:
+            self._buf = np.empty((2, need))
+        return self._buf[0, :need].reshape(n, nk, S), self._buf[1, :need].reshape(n, nk, S)
+
+
 def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins, w1=None,
-                       reuse_buffers=False):
+                       out: PickWorkspace | None = None):
     """Correlations and window-truncated squared norms of atoms at each pixel's own width.
 
     Parameters
@@ -312,10 +329,9 @@ def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins,
     w1 : ndarray (n, L), optional
         Weights of the squared norms (1 fitted, 0 excluded); None: all samples fitted
         (norms from cumulative sums).
-    reuse_buffers : bool
-        Write ``c`` and ``n2`` into buffers kept per thread and reused by the next call with
-        this option (for callers that consume them at once): fresh multi-megabyte arrays per
-        call cost more in page faults than the correlations themselves.
+    out : PickWorkspace, optional
+        Write ``c`` and ``n2`` into this workspace (views, overwritten by its next use)
+        instead of fresh arrays.
 
     Returns
     -------
@@ -349,13 +365,8 @@ def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins,
     else:
         w1 = np.zeros((0, L))
     nk = 1 + alphas.size
-    if reuse_buffers:
-        need = n * nk * (L + pre)
-        buf = getattr(_scratch, "buf", None)
-        if buf is None or buf.shape[1] < need:
-            buf = _scratch.buf = np.empty((2, need))
-        c = buf[0, :need].reshape(n, nk, L + pre)
-        n2 = buf[1, :need].reshape(n, nk, L + pre)
+    if out is not None:
+        c, n2 = out.arrays(n, nk, L + pre)
     else:
         c = np.empty((n, nk, L + pre))
         n2 = np.empty((n, nk, L + pre))

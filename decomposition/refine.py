@@ -350,6 +350,7 @@ class _Layout:
             self.p = self.q
             assign = np.eye(self.q)
         self.assign = assign
+        self._sub = {}             # truncated(): layouts of the first k_eff slots, built on demand
 
     def free_rows(self, present):
         return np.concatenate([present, present, present[:, _SSS:_SSS + 1]], axis=1)
@@ -381,7 +382,7 @@ class _Layout:
     def truncated(self, k_eff):
         """Layout of the first ``k_eff`` slots and the indices of its parameters in this one."""
         key = (k_eff, self.shared)
-        cache = self.__dict__.setdefault("_sub", {})
+        cache = self._sub
         if key not in cache:
             k = self.k
             if self.shared:

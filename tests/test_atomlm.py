@@ -4,6 +4,7 @@ import pytest
 
 from decomposition import atomlm
 from decomposition import convscd as cs
+from decomposition.slots import new_state, parameter_bounds, render
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
 
 T = 2.0
@@ -14,7 +15,7 @@ T0 = T
 def _state(rows):
     """Slot state from rows of (fam, amp, delay_ps, sigma_ps, alpha_per_ps or None)."""
     K = max(len(r) for r in rows) + 1            # one spare inactive slot
-    st = cs._new_state(len(rows), K)
+    st = new_state(len(rows), K)
     for i, atoms in enumerate(rows):
         for k, (fam, amp, d, s, a) in enumerate(atoms):
             st["fam"][i, k] = fam
@@ -34,7 +35,7 @@ def _profile(atoms):
 
 
 def _bounds():
-    return cs._bounds(cs.get_dictionary(L, T, T0, cs.GridSpec(), True, True), 4.0)
+    return parameter_bounds(cs.get_dictionary(L, T, T0, cs.GridSpec(), True, True), 4.0)
 
 
 @pytest.mark.parametrize("fam, amp, delay, sigma, alpha", [
@@ -126,13 +127,13 @@ def test_objective_never_increases_and_reported_values_are_exact():
     s = np.full(p.shape[0], 0.02)
     mu, eps = 3 * s * s, 0.01 * s
     t = time_axis_ps(L, T)
-    m0 = cs._render(t, st)
+    m0 = render(t, st)
     f0 = cs.objective(p, w, m0, st, mu, eps)
     for tie, after in [(True, True), (False, False), (True, False)]:
         out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, mu, eps, _bounds(), 12, tie_sigma=tie,
                                                   sss_after_direct=after, tol=1e-6)
         assert np.all(obj <= f0) and np.mean(obj < 0.5 * f0) > 0.8
-        m1 = cs._render(t, out)
+        m1 = render(t, out)
         np.testing.assert_allclose(model, m1, atol=1e-12)
         np.testing.assert_allclose(obj, cs.objective(p, w, m1, out, mu, eps), rtol=1e-12)
         assert np.all(iters <= 12)

@@ -8,6 +8,7 @@ from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.noise import noise_sigma
+from decomposition.slots import parameter_bounds
 from decomposition.pick import closed_form
 from decomposition.synthetic import make_profiles
 
@@ -131,9 +132,25 @@ def test_refinement_keeps_parameters_within_bounds():
         st, info = cs.solve_block(p, w, s, dic, max_components=6, max_gauss=6)
         comp.threshold(st, t)
         st, model, _ = cs.polish_block(p, w, st, s, dic)
-    b = cs._bounds(dic, 4.0)
+    b = parameter_bounds(dic, 4.0)
     act = st["fam"] != cs.FAM_NONE
     assert act.any()
     assert np.all((st["delay"][act] >= b["delay"][0]) & (st["delay"][act] <= b["delay"][1]))
     assert np.all((st["lsig"][act] >= b["lsig"][0] - 1e-12) & (st["lsig"][act] <= b["lsig"][1] + 1e-12))
     assert np.all(np.isfinite(model))
+
+
+def test_dictionary_cache_is_explicit_and_bounded():
+    from decomposition.dictionary import DictionaryCache, get_dictionary
+
+    cache = DictionaryCache(maxsize=2)
+    g = cs.GridSpec(coarse_sigma=2, coarse_alpha=1, coarse_sss_sigma=1)
+    a = get_dictionary(64, 2.0, 2.0, g, True, True, cache=cache)
+    assert get_dictionary(64, 2.0, 2.0, g, True, True, cache=cache) is a and len(cache) == 1
+    get_dictionary(64, 2.0, 2.0, g, True, False, cache=cache)
+    get_dictionary(64, 2.0, 2.0, g, False, True, cache=cache)          # evicts the least recently used (a)
+    assert len(cache) == 2 and get_dictionary(64, 2.0, 2.0, g, True, True, cache=cache) is not a
+    fresh = get_dictionary(64, 2.0, 2.0, g, True, True, cache=None)
+    assert fresh is not a and np.array_equal(fresh.norm2, a.norm2)
+    cache.clear()
+    assert len(cache) == 0

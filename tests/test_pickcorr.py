@@ -5,11 +5,14 @@ import numpy as np
 import pytest
 
 from decomposition import convscd as cs
+from decomposition.dictionary import coarse_values
+from decomposition.pick import select
+from decomposition.score import score_pixel
 from decomposition import decompose
 from decomposition.api import SPIKE
 from decomposition.metrics import mean_fidelity
 from decomposition.model import sss_kernel
-from decomposition.pickcorr import pixel_correlations
+from decomposition.pickcorr import PickWorkspace, pixel_correlations
 from decomposition.synthetic import make_profiles
 
 SIGMAS = np.array([0.3, 1.0, 2.0, 4.5, 10.0])             # 0.3 ps: below one bin at T = 2 ps
@@ -107,11 +110,11 @@ def test_score_pixel_picks_the_best_coordinate_of_the_dense_formulation():
     eps = np.full(p.shape[0], 0.01 * 0.05)
     yes = np.ones(p.shape[0], bool)
     min_s = np.full(p.shape[0], -np.inf)
-    cand, dec = cs._score_pixel(r, w, True, dic, sig, mu, eps, yes, yes, min_s, 4.0)
-    alphas = cs._coarse(*dic.grid.alpha_range_per_ps, dic.grid.coarse_alpha)
+    cand, dec = score_pixel(r, w, True, dic, sig, mu, eps, yes, yes, min_s, 4.0)
+    alphas = coarse_values(*dic.grid.alpha_range_per_ps, dic.grid.coarse_alpha)
     H = int(math.ceil(6.0 * sig.max() / T)) + 1
     c0, n20, peak0 = _dense(r, sig, alphas, T, dic.pre, H, (w == 1).astype(float))
-    best, z, d0 = cs._select(c0, np.where(n20 > 1e-12, n20, 0.0), mu, eps,
+    best, z, d0 = select(c0, np.where(n20 > 1e-12, n20, 0.0), mu, eps,
                              np.ones((p.shape[0], 1 + alphas.size, 1), bool))
     a_i, j_i = np.divmod(best, dic.shifts.size)
     rows = np.arange(p.shape[0])
@@ -149,7 +152,14 @@ def test_reused_buffers_give_the_same_results():
     big = rng.standard_normal((6, 96)), rng.uniform(1.0, 6.0, 6)
     small = rng.standard_normal((2, 96)), rng.uniform(1.0, 6.0, 2)
     fresh = [pixel_correlations(r, s, al, **kw) for r, s in (big, small)]
+    ws = PickWorkspace()
     for (r, s), ref in zip((big, small, big), fresh + fresh[:1]):   # grows, shrinks, grows again
-        got = pixel_correlations(r, s, al, reuse_buffers=True, **kw)
+        got = pixel_correlations(r, s, al, out=ws, **kw)
         for g, f in zip(got, ref):
             np.testing.assert_array_equal(g, f)
+    # the workspace is the caller's: another one (another thread's) is never written
+    other = PickWorkspace()
+    c_a, _, _ = pixel_correlations(big[0], big[1], al, out=ws, **kw)
+    keep = c_a.copy()
+    pixel_correlations(small[0], small[1], al, out=other, **kw)
+    np.testing.assert_array_equal(c_a, keep)

@@ -1,0 +1,101 @@
+"""After the sparse selection: debias the kept atoms, snap them to the grid, re-fit amplitudes.
+
+:func:`polish_block` refines a fixed set of atoms on the data term alone (ConvSCD step 3);
+with ``off_grid=False`` :func:`snap_to_grid` puts them on the paper's reference grid and
+:func:`refit_amplitudes` solves the non-negative amplitudes for the snapped shapes.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .constants import FAM_NONE, FAM_SSS
+from .dictionary import Dictionary
+from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, refine_atoms, take
+
+__all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
+
+
+def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
+                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
+    """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
+
+    The sparse step has chosen the atoms; this is the usual debiasing step
+    after sparse selection: the log-sum penalty shrinks amplitudes (it favours
+    a smaller direct plus a larger sss along their near-degenerate direction),
+    so the kept atoms are refined on the data term alone (mu = 0), each step
+    accepted only where the residual decreases.
+    """
+    L = p.shape[1]
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
+    mu = np.zeros_like(s_eff)
+    eps = eps_rel * s_eff
+    bounds = parameter_bounds(dic, bound_factor)
+    st, obj, nl, model = refine_atoms(t, p, w, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
+                             return_model=True)
+    if sss_after_direct:
+        # A direct and an sss with the same onset and width are degenerate to first order
+        # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
+        # An sss onset far before the direct (an exponential tail alone is degenerate in
+        # onset and amplitude) is re-tried the same way.
+        lk, dsl, ssl = linked_onsets(st, near_sigma=np.inf)
+        rows = np.arange(st["fam"].shape[0])
+        gap = st["delay"][rows, ssl] - st["delay"][rows, dsl]
+        sig_s = np.exp(st["lsig"][rows, ssl])
+        retry = np.nonzero(lk & (gap < 0.5 * sig_s))[0]
+        if retry.size:
+            alt = take(st, retry)
+            alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
+                                                                + sig_s[retry])
+            alt, o_alt, nl2, m_alt = refine_atoms(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
+                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
+            better = o_alt < obj[retry]
+            put(st, retry[better], take(alt, better))
+            model[retry[better]] = m_alt[better]
+            obj[retry[better]] = o_alt[better]
+            nl += nl2
+    drop_zero(st)              # zero-amplitude atoms add nothing to the model
+    return st, model, nl
+
+
+def snap_to_grid(st, dic: Dictionary):
+    """Snap delays to integer bins and sigma/alpha to the reference grid (``off_grid=False``)."""
+    act = st["fam"] != FAM_NONE
+    T = dic.time_bin_ps
+    st["delay"] = np.where(act, dic.t0_ps + np.round((st["delay"] - dic.t0_ps) / T) * T, st["delay"])
+    fs, fa = dic.grid.fine_sigma(), dic.grid.fine_alpha()
+    sig = np.exp(st["lsig"])
+    si = np.abs(sig[..., None] - fs).argmin(-1)
+    st["lsig"] = np.where(act, np.log(fs[si]), st["lsig"])
+    alp = np.exp(st["lalp"])
+    ai = np.abs(alp[..., None] - fa).argmin(-1)
+    st["lalp"] = np.where(act & (st["fam"] == FAM_SSS), np.log(fa[ai]), st["lalp"])
+    return st
+
+
+def refit_amplitudes(p, w, st, dic: Dictionary):
+    """Non-negative least-squares amplitudes for fixed atom shapes (batched, small K)."""
+    L = p.shape[1]
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
+    P, K = st["fam"].shape
+    act = st["fam"] != FAM_NONE
+    phi = np.zeros((P, K, L))
+    if act.any():
+        pi, ki = np.nonzero(act)
+        phi[pi, ki] = eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
+                                  st["lalp"][pi, ki])
+    w = (w == 1).astype(np.float64)
+    phw = phi * w[:, None, :]
+    G = np.einsum("pkl,pjl->pkj", phw, phw)
+    b = np.einsum("pkl,pl->pk", phw, p * w)
+    amp = np.where(act, st["amp"], 0.0)
+    # a few sweeps of exact coordinate descent on the (convex) NNLS problem
+    for _ in range(20):
+        for k in range(K):
+            gkk = G[:, k, k]
+            resid = b[:, k] - np.einsum("pj,pj->p", G[:, k, :], amp) + gkk * amp[:, k]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                newv = np.where(gkk > 0, np.maximum(resid / gkk, 0.0), 0.0)
+            amp[:, k] = np.where(act[:, k], newv, 0.0)
+    st["amp"] = amp
+    drop_zero(st)
+    return st

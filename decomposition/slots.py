@@ -1,0 +1,144 @@
+"""Slot state of a block of pixels and the operations on it shared by the solver's steps.
+
+A block's atoms live in "slot" arrays of shape (P, K): ``fam`` (int8, :mod:`decomposition.constants`),
+``amp`` (model amplitude, units of the normalised profile), ``delay`` (ps), ``lsig``
+(log sigma_ps), ``lalp`` (log alpha_per_ps) and ``pen`` (the penalty's amplitude scale).
+Here: creating, slicing and merging states, rendering them, the objective, the parameter
+bounds, the sss-onset link and the compiled Levenberg-Marquardt refinement
+(:func:`decomposition.atomlm.lm_refine`) behind :func:`refine_atoms`.
+
+Sample codes ``w`` (P, L): 1 fitted, 0 excluded, 2 censored from below (see
+:mod:`decomposition.convscd`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .atomlm import atom_profiles, lm_refine
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, NEAR_SIGMA
+
+__all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "censored_residual", "objective",
+           "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of"]
+
+
+def axis_of(t):
+    """(t0_ps, time_bin_ps) of a uniform time axis t (L,)."""
+    return float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0
+
+
+def eval_atoms(t, fam, delay, lsig, lalp):
+    """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,)."""
+    return atom_profiles(*axis_of(t), t.size, fam, delay, lsig, lalp)
+
+
+def render(t, st):
+    """Model (P, L) of the slot state ``st``."""
+    act = st["fam"] != FAM_NONE
+    P, K = act.shape
+    model = np.zeros((P, t.size))
+    if not act.any():
+        return model
+    pi, ki = np.nonzero(act)
+    phi = eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
+    phi *= st["amp"][pi, ki][:, None]
+    np.add.at(model, pi, phi)
+    return model
+
+
+def censored_residual(p, model, w):
+    """Residual under the sample codes w (1 fitted, 0 excluded, 2 censored from below)."""
+    r = p - model
+    return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
+
+
+def objective(p, w, model, st, mu, eps):
+    """F per pixel (P,): 1/2 ||residual||^2 (see censored_residual) + mu sum log(1 + pen_scale*amp/eps)."""
+    r = censored_residual(p, model, w)
+    pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
+    return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
+
+
+def take(st, idx):
+    """The rows ``idx`` of a state (copies)."""
+    return {k: v[idx] for k, v in st.items()}
+
+
+def put(st, idx, sub):
+    """Write the state ``sub`` into rows ``idx`` of ``st`` in place."""
+    for k, v in sub.items():
+        st[k][idx] = v
+
+
+def linked_onsets(st, near_sigma=None):
+    """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
+
+    Returns (linked (P,), direct slot (P,), sss slot (P,)).  Linked: the pixel
+    has both, and the direct lies less than ``near_sigma`` PSF widths after
+    the onset (the same condition as :func:`_constrain`).
+    """
+    near_sigma = NEAR_SIGMA if near_sigma is None else near_sigma
+    g = st["fam"] == FAM_GAUSS
+    s = st["fam"] == FAM_SSS
+    dg = np.where(g, st["delay"], np.inf)
+    dsl = np.argmin(dg, axis=1)
+    ssl = np.argmax(s, axis=1)
+    rows = np.arange(st["fam"].shape[0])
+    first = dg[rows, dsl]
+    ts = st["delay"][rows, ssl]
+    linked = s.any(axis=1) & np.isfinite(first) & (first - ts < near_sigma * np.exp(st["lsig"][rows, ssl]))
+    return linked, dsl, ssl
+
+
+def refine_atoms(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
+        return_model=False):
+    """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
+
+    ``obj`` is F at the current state (P,), the level a step must beat (None: computed
+    exactly); returns (state, F, iterations run by the slowest pixel) and, with
+    ``return_model``, the model (P, L) of the returned state.  The loop itself is
+    :func:`decomposition.atomlm.lm_refine` (compiled, one pixel at a time): a pixel stops when
+    an accepted step lowers F by less than ``tol`` times F per fitted sample (a change far
+    below what one sample's misfit can resolve; it shrinks as the fit improves, so noiseless
+    data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels
+    whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
+    onset moves with the direct and its gap stays >= 0.
+    """
+    out, o, iters, model = lm_refine(*axis_of(t), p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
+                                     sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol)
+    it = int(iters.max(initial=0))
+    return (out, o, it, model) if return_model else (out, o, it)
+
+
+def new_state(P, K):
+    """Empty slot state of P pixels with K slots."""
+    return {
+        "fam": np.zeros((P, K), np.int8),
+        "amp": np.zeros((P, K)),
+        "delay": np.zeros((P, K)),
+        "lsig": np.zeros((P, K)),
+        "lalp": np.zeros((P, K)),
+        "pen": np.ones((P, K)),
+    }
+
+
+def parameter_bounds(dic, bound_factor: float):
+    """Bounds of delay (ps), log sigma and log alpha of a :class:`~decomposition.dictionary.Dictionary`'s
+    atoms: the window widened by ``pre`` bins, the grid ranges widened by ``bound_factor``."""
+    g = dic.grid
+    T = dic.time_bin_ps
+    return {
+        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
+        "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
+        "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
+    }
+
+
+
+def drop_zero(st):
+    """Empty the slots of atoms whose amplitude is not positive (in place)."""
+    dead = (st["fam"] != FAM_NONE) & ~(st["amp"] > 0)
+    st["fam"][dead] = FAM_NONE
+    st["amp"][dead] = 0.0
+
