@@ -166,7 +166,7 @@ __all__ = [
 
 def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
                 sparsity=3.0, eps_rel=0.01, max_iter=8, n_lm=8, bound_factor=4.0, first_gauss=None,
-                tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
+                tie_sigma=True, sss_after_direct=True, lm_tol=1e-6, workspace: PickWorkspace | None = None):
     """Greedy convolutional coordinate descent with local refinement on a block.
 
     Parameters
@@ -201,6 +201,9 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     first_gauss : ndarray (P,) bool, optional
         Pixels whose first pick must come from the Gaussian family (the
         second start of :func:`solve_multistart`).
+    workspace : PickWorkspace, optional
+        Scratch space of the own-width pick, held by the caller to reuse it across blocks
+        (a fresh one per call when not given).
 
     Returns
     -------
@@ -227,7 +230,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     weighted = bool(np.any(w != 1.0))
     lm_total = 0
     model = np.zeros((P, L))
-    workspace = PickWorkspace()   # the own-width pick's correlations, reused by every pick of this block
+    workspace = PickWorkspace() if workspace is None else workspace   # reused by every pick
     for it in range(1, max_iter + 1):
         idx = np.nonzero(~done)[0]
         if idx.size == 0:

@@ -22,6 +22,7 @@ from .constants import RESTART_FACTOR
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .noise import signal_noise_sigma
 from .options import SolverOptions
+from .pickcorr import PickWorkspace
 from .prepare import Samples
 from .slots import new_state, put
 
@@ -66,10 +67,10 @@ def solver_inputs(samples: Samples, rows: np.ndarray):
     return p, codes
 
 
-def _solver_options(opts: SolverOptions, components) -> dict:
+def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -> dict:
     max_gauss = (opts.max_components if "r" in components else 1) if "d" in components else 0
-    return dict(max_components=opts.max_components, max_gauss=max_gauss, allow_sss="s" in components,
-                sparsity=opts.sparsity, eps_rel=opts.eps_rel, max_iter=opts.max_iter, n_lm=opts.n_lm,
+    return dict(workspace=workspace, max_components=opts.max_components, max_gauss=max_gauss,
+                allow_sss="s" in components, sparsity=opts.sparsity, eps_rel=opts.eps_rel, max_iter=opts.max_iter, n_lm=opts.n_lm,
                 bound_factor=opts.bound_factor, tie_sigma=opts.shared_sigma,
                 sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
 
@@ -96,7 +97,7 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     P = samples.values.shape[0]
     live = samples.live
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    solve_opts = _solver_options(opts, components)
+    solve_opts = _solver_options(opts, components, PickWorkspace())   # one scratch space for all blocks
     noise_eff = samples.noise_eff.copy()
     hist = np.full((P, opts.max_iter + 1), np.nan)
     n_iter = np.zeros(P, np.int64)
