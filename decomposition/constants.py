@@ -28,6 +28,7 @@ __all__ = [
     "SIGNAL_REGION_FRACTION",
     "MIN_NOISE_SAMPLES",
     "BOUND_TOL",
+    "SSS_SLOT",
 ]
 
 #: empty slot
@@ -92,3 +93,7 @@ MIN_NOISE_SAMPLES = 12
 #: 1e-9) is at the bound (AT_BOUND flag): the projection puts it exactly there, rounding
 #: a hair inside.
 BOUND_TOL = 1e-9
+
+#: Slot layout of the refinement and the Fisher information (:mod:`decomposition.refine`):
+#: slot 0 the direct reflection, this one the sss component, 2.. the inter-reflections.
+SSS_SLOT = 1

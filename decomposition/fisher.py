@@ -31,7 +31,10 @@ from __future__ import annotations
 import numpy as np
 
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from .refine import _CHUNK, _SSS, _apply_weights, _design, kernel_derivatives, slot_arrays
+from .constants import SSS_SLOT
+from .kernels import kernel_derivatives
+from .refine import apply_weights, slot_arrays
+from .varpro import CHUNK_PIXELS, design_rows
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -64,7 +67,7 @@ def _jacobian(t, slots, amp_scale, tb):
     amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
     base = 3 * np.arange(k)
     gmask = present.copy()
-    gmask[:, _SSS] = False
+    gmask[:, SSS_SLOT] = False
     if gmask.any():
         pix, slot = np.nonzero(gmask)
         a = amp[pix, slot][:, None]
@@ -73,17 +76,17 @@ def _jacobian(t, slots, amp_scale, tb):
         rows[pix, base[slot]] = a * d_del
         rows[pix, base[slot] + 1] = val
         rows[pix, base[slot] + 2] = a * d_sig
-    pix = np.flatnonzero(present[:, _SSS])
+    pix = np.flatnonzero(present[:, SSS_SLOT])
     if pix.size:
-        a = amp[pix, _SSS][:, None]
+        a = amp[pix, SSS_SLOT][:, None]
         val, d_del, d_sig, d_alp = kernel_derivatives(
-            t - slots["delay"][pix, _SSS][:, None], slots["sigma"][pix, _SSS][:, None],
+            t - slots["delay"][pix, SSS_SLOT][:, None], slots["sigma"][pix, SSS_SLOT][:, None],
             slots["alpha"][pix][:, None], time_bin_ps=tb)
-        rows[pix, 3 * _SSS] = a * d_del
-        rows[pix, 3 * _SSS + 1] = val
-        rows[pix, 3 * _SSS + 2] = a * d_sig
+        rows[pix, 3 * SSS_SLOT] = a * d_del
+        rows[pix, 3 * SSS_SLOT + 1] = val
+        rows[pix, 3 * SSS_SLOT + 2] = a * d_sig
         rows[pix, 3 * k] = a * d_alp
-    free = np.concatenate([np.repeat(present, 3, axis=1), present[:, _SSS:_SSS + 1]], axis=1)
+    free = np.concatenate([np.repeat(present, 3, axis=1), present[:, SSS_SLOT:SSS_SLOT + 1]], axis=1)
     return rows, free
 
 
@@ -127,9 +130,9 @@ def _tie_sigma(rows, free, present):
 def _onset_at_direct(slots):
     """Pixels whose sss onset sits at the lower bound sss_delay >= direct_delay (the constraint is active)."""
     pres = slots["present"]
-    d, s = slots["delay"][:, 0], slots["delay"][:, _SSS]
+    d, s = slots["delay"][:, 0], slots["delay"][:, SSS_SLOT]
     with np.errstate(invalid="ignore"):
-        return pres[:, 0] & pres[:, _SSS] & (s - d <= 1e-9 * np.maximum(1.0, np.abs(d)))
+        return pres[:, 0] & pres[:, SSS_SLOT] & (s - d <= 1e-9 * np.maximum(1.0, np.abs(d)))
 
 
 def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
@@ -143,8 +146,8 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     free = np.empty((n, p), dtype=bool)
     tied = np.zeros(n, dtype=np.int64)
     # Cache-sized chunks of pixels: the (pixels, P, L) Jacobian never exists for a whole block.
-    for i in range(0, n, _CHUNK):
-        ch = slice(i, i + _CHUNK)
+    for i in range(0, n, CHUNK_PIXELS):
+        ch = slice(i, i + CHUNK_PIXELS)
         sub = {name: slots[name][ch] for name in ("delay", "amplitude", "sigma", "alpha", "present")}
         rows, fr = _jacobian(t, sub, amp_scale[ch], tb)
         if sw is not None:
@@ -154,9 +157,9 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
         if tie_onset:
             # An active onset constraint leaves one delay for both components.
             on = np.flatnonzero(_onset_at_direct(sub))
-            rows[on, 0] += rows[on, 3 * _SSS]
-            rows[on, 3 * _SSS] = 0.0
-            fr[on, 3 * _SSS] = False
+            rows[on, 0] += rows[on, 3 * SSS_SLOT]
+            rows[on, 3 * SSS_SLOT] = 0.0
+            fr[on, 3 * SSS_SLOT] = False
         info[ch] = rows @ rows.swapaxes(-1, -2)
         free[ch] = fr
     slots["tied_slot"] = tied if shared_sigma else None
@@ -247,7 +250,7 @@ def _to_dict(std, slots, lead, suffix):
     k = slots["present"].shape[1]
     n_ir = k - 2
     out = {}
-    for fam, slot, keys in (("direct", 0, DIRECT_KEYS), ("sss", _SSS, ("sss_delay_ps", "sss_amplitude", "sss_sigma_ps"))):
+    for fam, slot, keys in (("direct", 0, DIRECT_KEYS), ("sss", SSS_SLOT, ("sss_delay_ps", "sss_amplitude", "sss_sigma_ps"))):
         for j, key in enumerate(keys):
             out[key + suffix] = std[:, 3 * slot + j].reshape(lead)
     out["sss_alpha_per_ps" + suffix] = std[:, 3 * k].reshape(lead)
@@ -265,7 +268,7 @@ def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
     if tie_onset:
         on = _onset_at_direct(slots)
-        std_unit[on, 3 * _SSS] = std_unit[on, 0]
+        std_unit[on, 3 * SSS_SLOT] = std_unit[on, 0]
     if shared_sigma:
         n, k = slots["present"].shape
         tied = std_unit[np.arange(n), 3 * slots["tied_slot"] + 2]
@@ -350,7 +353,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     y = np.asarray(profiles, dtype=np.float64)
     if y.ndim < 1:
         raise ValueError("profiles must have shape (..., L)")
-    y, sw = _apply_weights(y, weights)
+    y, sw = apply_weights(y, weights)
     lead = y.shape[:-1]
     n_bins = y.shape[-1]
     if not np.all(np.isfinite(y)):
@@ -365,18 +368,18 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     amp = np.where(present, slots["amplitude"], 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         sig = np.where(present, slots["sigma"], 1.0)
-        alp = np.where(present[:, _SSS], slots["alpha"], 1.0)
+        alp = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
     delay = np.where(present, slots["delay"], 0.0)
     rss = np.empty(n)
-    for i in range(0, n, _CHUNK):
-        ch = slice(i, i + _CHUNK)
-        phi = _design(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
+    for i in range(0, n, CHUNK_PIXELS):
+        ch = slice(i, i + CHUNK_PIXELS)
+        phi = design_rows(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
         resid = y2[ch] - np.einsum("nk,nkl->nl", amp[ch], phi)
         if sw is not None:
             resid *= sw[ch]
-        rss[i:i + _CHUNK] = np.einsum("nl,nl->n", resid, resid)
+        rss[i:i + CHUNK_PIXELS] = np.einsum("nl,nl->n", resid, resid)
     n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
-    n_fitted = 3 * present.sum(axis=-1) + present[:, _SSS]
+    n_fitted = 3 * present.sum(axis=-1) + present[:, SSS_SLOT]
     if shared_sigma:
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
     if sss_after_direct:

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from decomposition.model import empty_params, gaussian_kernel, render_profile, sss_kernel
-from decomposition.refine import kernel_derivatives, refine
+from decomposition.kernels import kernel_derivatives
+from decomposition.refine import refine
 
 T = 2.0
 
