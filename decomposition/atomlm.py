@@ -28,7 +28,7 @@ import numpy as np
 from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
 from .jit import njit, sss_value
 
-__all__ = ["lm_refine", "atom_profiles"]
+__all__ = ["lm_refine", "atom_profiles", "onset_link", "onset_links"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
@@ -169,16 +169,13 @@ def _objective(L, K, p, w, model, fam, amp, pen, mu, eps, r, jw):
 
 
 @njit
-def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
-    """(tied, linked, direct slot, sss slot) of one pixel (see convscd._tied / _linked)."""
-    tied = False
-    if tie_sigma and K > 0:
-        lo = lsig[0]
-        hi = lsig[0]
-        for k in range(1, K):
-            lo = min(lo, lsig[k])
-            hi = max(hi, lsig[k])
-        tied = hi - lo <= 1e-12
+def onset_link(K, fam, delay, lsig, near_sigma):
+    """The onset-tie rule, for one pixel: (linked, direct slot, sss slot).
+
+    The direct is the earliest Gaussian (the first of equal delays), the sss slot the first
+    sss atom.  Linked: the pixel has both, and the direct lies less than ``near_sigma`` PSF
+    widths (the sss atom's) after the sss onset.  Slots default to 0 where absent.
+    """
     dsl = 0
     first = np.inf
     ssl = -1
@@ -188,11 +185,47 @@ def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
             dsl = k
         if fam[k] == FAM_SSS and ssl < 0:
             ssl = k
-    linked = (sss_after_direct and ssl >= 0 and first < np.inf
-              and first - delay[ssl] < NEAR_SIGMA * math.exp(lsig[ssl]))
+    linked = ssl >= 0 and first < np.inf and first - delay[ssl] < near_sigma * math.exp(lsig[ssl])
     if ssl < 0:
         ssl = 0
-    return tied, linked, dsl, ssl
+    return linked, dsl, ssl
+
+
+@njit
+def _onset_link_rows(fam, delay, lsig, near_sigma, linked, dsl, ssl):
+    K = fam.shape[1]
+    for i in range(fam.shape[0]):
+        linked[i], dsl[i], ssl[i] = onset_link(K, fam[i], delay[i], lsig[i], near_sigma)
+
+
+def onset_links(fam, delay_ps, lsig, near_sigma=NEAR_SIGMA):
+    """:func:`onset_link` for every row of (P, K) slot arrays -> (linked (P,) bool, direct slot (P,),
+    sss slot (P,))."""
+    fam = np.ascontiguousarray(fam, dtype=np.int8)
+    P = fam.shape[0]
+    linked = np.zeros(P, np.bool_)
+    dsl = np.zeros(P, np.int64)
+    ssl = np.zeros(P, np.int64)
+    if P:
+        _onset_link_rows(fam, np.ascontiguousarray(delay_ps, dtype=np.float64),
+                         np.ascontiguousarray(lsig, dtype=np.float64), float(near_sigma), linked, dsl, ssl)
+    return linked, dsl, ssl
+
+
+@njit
+def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
+    """(tied, linked, direct slot, sss slot) of one pixel: one width for all atoms, and the
+    onset-tie rule (:func:`onset_link`) where ``sss_after_direct``."""
+    tied = False
+    if tie_sigma and K > 0:
+        lo = lsig[0]
+        hi = lsig[0]
+        for k in range(1, K):
+            lo = min(lo, lsig[k])
+            hi = max(hi, lsig[k])
+        tied = hi - lo <= 1e-12
+    linked, dsl, ssl = onset_link(K, fam, delay, lsig, NEAR_SIGMA)
+    return tied, sss_after_direct and linked, dsl, ssl
 
 
 @njit
@@ -410,15 +443,10 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
                     ts[k] = ts[0]
             if linked:
                 td[ssl] = min(max(td[ssl] + step[4 * dsl + 1], d_lo), d_hi)
-            if sss_after_direct:
-                first = np.inf
-                for k in range(K):
-                    if f[k] == FAM_GAUSS and td[k] < first:
-                        first = td[k]
-                if first < np.inf:
-                    for k in range(K):
-                        if f[k] == FAM_SSS and first - td[k] < NEAR_SIGMA * math.exp(ts[k]):
-                            td[k] = max(td[k], first)
+            if sss_after_direct:    # a near onset never moves before the direct (a pixel has one sss atom)
+                near, d_k, s_k = onset_link(K, f, td, ts, NEAR_SIGMA)
+                if near:
+                    td[s_k] = max(td[s_k], td[d_k])
             _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
             tobj = _objective(L, K, p[pi], w[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:

@@ -16,8 +16,8 @@ import math
 
 import numpy as np
 
-from .atomlm import atom_profiles, lm_refine
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, NEAR_SIGMA
+from .atomlm import atom_profiles, lm_refine, onset_links
+from .constants import FAM_NONE, NEAR_SIGMA
 
 __all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "censored_residual", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of"]
@@ -74,21 +74,11 @@ def put(st, idx, sub):
 def linked_onsets(st, near_sigma=None):
     """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
 
-    Returns (linked (P,), direct slot (P,), sss slot (P,)).  Linked: the pixel
-    has both, and the direct lies less than ``near_sigma`` PSF widths after
-    the onset (the same condition as :func:`_constrain`).
+    Returns (linked (P,), direct slot (P,), sss slot (P,)); the rule is
+    :func:`decomposition.atomlm.onset_link` (the one the compiled refinement applies), with
+    ``near_sigma`` PSF widths (default :data:`~decomposition.constants.NEAR_SIGMA`).
     """
-    near_sigma = NEAR_SIGMA if near_sigma is None else near_sigma
-    g = st["fam"] == FAM_GAUSS
-    s = st["fam"] == FAM_SSS
-    dg = np.where(g, st["delay"], np.inf)
-    dsl = np.argmin(dg, axis=1)
-    ssl = np.argmax(s, axis=1)
-    rows = np.arange(st["fam"].shape[0])
-    first = dg[rows, dsl]
-    ts = st["delay"][rows, ssl]
-    linked = s.any(axis=1) & np.isfinite(first) & (first - ts < near_sigma * np.exp(st["lsig"][rows, ssl]))
-    return linked, dsl, ssl
+    return onset_links(st["fam"], st["delay"], st["lsig"], NEAR_SIGMA if near_sigma is None else near_sigma)
 
 
 def refine_atoms(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,

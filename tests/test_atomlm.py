@@ -188,3 +188,23 @@ def test_atom_profiles_are_the_model_kernels_and_empty_slots_are_zero():
     np.testing.assert_allclose(got[1], sss_kernel(t - delay[1], sig[1], alp[1]), rtol=1e-12, atol=1e-13)
     assert not got[2].any()
     np.testing.assert_allclose(got[3], sss_kernel(t - delay[3], sig[3], alp[3]), rtol=1e-12, atol=1e-13)
+
+
+def test_onset_tie_rule_has_one_home_and_reads_as_stated():
+    rng = np.random.default_rng(3)
+    P, K = 400, 4
+    fam = rng.choice([cs.FAM_NONE, cs.FAM_GAUSS, cs.FAM_SSS], size=(P, K), p=[0.3, 0.5, 0.2]).astype(np.int8)
+    delay = rng.uniform(0.0, 60.0, (P, K))
+    delay[::7, 1] = delay[::7, 0]                          # equal delays: the first slot is the direct
+    lsig = np.log(rng.uniform(1.0, 6.0, (P, K)))
+    linked, dsl, ssl = atomlm.onset_links(fam, delay, lsig)
+    for i in range(P):
+        g = [k for k in range(K) if fam[i, k] == cs.FAM_GAUSS]
+        s = [k for k in range(K) if fam[i, k] == cs.FAM_SSS]
+        d = min(g, key=lambda k: (delay[i, k], k)) if g else 0
+        sk = s[0] if s else 0
+        want = bool(g and s and delay[i, d] - delay[i, sk] < 3.0 * np.exp(lsig[i, sk]))
+        assert (linked[i], dsl[i], ssl[i]) == (want, d, sk), i
+    assert linked.any() and not linked.all()
+    far, _, _ = atomlm.onset_links(fam, delay, lsig, near_sigma=np.inf)   # the polish's retry: any onset
+    assert np.array_equal(far, (fam == cs.FAM_GAUSS).any(1) & (fam == cs.FAM_SSS).any(1))
