@@ -27,6 +27,7 @@ import numpy as np
 
 from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
 from .jit import njit, sss_value
+from .masks import SampleMask, check_mask
 
 __all__ = ["lm_refine", "atom_profiles", "onset_link", "onset_links"]
 
@@ -145,16 +146,15 @@ def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
 
 
 @njit
-def _objective(L, K, p, w, model, fam, amp, pen, mu, eps, r, jw):
-    """F of one pixel; fills the coded residual ``r`` and the Jacobian row weights ``jw`` (0/1)."""
+def _objective(L, K, p, fit, cens, model, fam, amp, pen, mu, eps, r, jw):
+    """F of one pixel; fills the masked residual ``r`` and the Jacobian row weights ``jw`` (0/1)."""
     ss = 0.0
     for i in range(L):
-        code = w[i]
         d = p[i] - model[i]
-        if code == 1.0:
+        if fit[i]:
             r[i] = d
             jw[i] = 1.0
-        elif code == 2.0 and d > 0.0:      # censored from below: only a model under the data misfits
+        elif cens[i] and d > 0.0:          # censored from below: only a model under the data misfits
             r[i] = d
             jw[i] = 1.0
         else:
@@ -335,7 +335,7 @@ def _damped_step(n, JtJ, g, fixed, lam, A, x, idx):
 
 
 @njit
-def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, model, n_iter, tie_sigma,
+def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, model, n_iter, tie_sigma,
                sss_after_direct, tol, d_lo, d_hi, s_lo, s_hi, a_lo, a_hi, iters):
     P, L = p.shape
     KA = fam.shape[1]
@@ -401,17 +401,17 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
         if K == 0:
             for i in range(L):
                 md[i] = 0.0
-            obj[pi] = _objective(L, 0, p[pi], w[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+            obj[pi] = _objective(L, 0, p[pi], fit[pi], cens[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
             iters[pi] = 0
             continue
         nw = 0.0
         for i in range(L):
-            if w[pi, i] > 0:
+            if fit[pi, i] or cens[pi, i]:
                 nw += 1.0
         nw = max(nw, 1.0)
         n = 4 * K
         _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, md)
-        cur = _objective(L, K, p[pi], w[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+        cur = _objective(L, K, p[pi], fit[pi], cens[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
         if math.isnan(obj[pi]):
             obj[pi] = cur
         level = obj[pi]                  # what a step must beat
@@ -448,7 +448,7 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
                 if near:
                     td[s_k] = max(td[s_k], td[d_k])
             _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
-            tobj = _objective(L, K, p[pi], w[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
+            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:
                 old = level
                 level = tobj
@@ -476,7 +476,7 @@ def _lm_pixels(t0, T, p, w, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, mode
         iters[pi] = it
 
 
-def lm_refine(t0_ps, time_bin_ps, p, w, st, mu, eps, bounds, n_iter, obj=None, *, tie_sigma=False,
+def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj=None, *, tie_sigma=False,
               sss_after_direct=False, tol=0.0):
     """Refine the active atoms of every pixel by Levenberg-Marquardt; F never increases.
 
@@ -484,8 +484,10 @@ def lm_refine(t0_ps, time_bin_ps, p, w, st, mu, eps, bounds, n_iter, obj=None, *
     ----------
     t0_ps, time_bin_ps : float
         Time axis: bin i at t0_ps + i * time_bin_ps.
-    p, w : ndarray (P, L) float64
-        Profiles (unit peak) and sample codes (1 fitted, 0 excluded, 2 censored from below).
+    p : ndarray (P, L) float64
+        Profiles (unit peak).
+    mask : SampleMask
+        Fitted and censored samples (:mod:`decomposition.masks`).
     st : dict of (P, K) arrays
         Slot state: fam (int8), amp, delay (ps), lsig (log sigma_ps), lalp (log alpha_per_ps),
         pen (penalty scale).  Not modified.
@@ -514,6 +516,7 @@ def lm_refine(t0_ps, time_bin_ps, p, w, st, mu, eps, bounds, n_iter, obj=None, *
         Model of the returned state.
     """
     P, L = p.shape
+    check_mask(mask, p.shape)
     out = {k: np.array(v, dtype=np.int8 if k == "fam" else np.float64, order="C", copy=True)
            for k, v in st.items()}
     o = np.full(P, np.nan) if obj is None else np.array(obj, np.float64, copy=True)
@@ -521,7 +524,7 @@ def lm_refine(t0_ps, time_bin_ps, p, w, st, mu, eps, bounds, n_iter, obj=None, *
     iters = np.zeros(P, np.int64)
     if P:
         _lm_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
-                   np.ascontiguousarray(w, np.float64), out["fam"], out["amp"], out["delay"], out["lsig"],
+                   np.ascontiguousarray(mask.fit), np.ascontiguousarray(mask.censored), out["fam"], out["amp"], out["delay"], out["lsig"],
                    out["lalp"], out["pen"], np.asarray(mu, np.float64), np.asarray(eps, np.float64), o, model,
                    int(n_iter), bool(tie_sigma), bool(sss_after_direct), float(tol),
                    float(bounds["delay"][0]), float(bounds["delay"][1]), float(bounds["lsig"][0]),

@@ -4,17 +4,18 @@ What is solved
 --------------
 Per pixel, with the profile normalised to unit peak (see below), the objective is
 
-    F(z) = 1/2 || w * (p - sum_a k_a (*) z_a) ||_2^2  +  mu * sum_i log(1 + |z_i| / eps)
+    F(z) = 1/2 || r(p - sum_a k_a (*) z_a) ||_2^2  +  mu * sum_i log(1 + |z_i| / eps)
 
 i.e. eq. (5) with the *squared* l2 data term (the standard form for coordinate
 descent: it makes every one-dimensional sub-problem a quadratic plus a
 log-sum term with a closed-form minimiser) and the log-sum sparsity penalty
 written as ``log(1 + |z|/eps)`` (the paper's ``log|z|`` shifted so that a zero
-coefficient costs nothing; ``eps`` keeps it finite).  ``w`` is a per-sample
-code: 1 fitted, 0 excluded (detected single-sample spikes), 2 censored from
-below (saturated: the true value is at least the recorded one, so only a model
-*below* it is a misfit, contributing max(p - model, 0)^2; such samples are
-never used to pick atoms).  Coefficients are non-negative (light adds up; this also stops noise
+coefficient costs nothing; ``eps`` keeps it finite).  ``r`` applies the
+:class:`~decomposition.masks.SampleMask`: a sample is fitted, excluded
+(detected single-sample spikes, non-finite) or censored from below (saturated:
+the true value is at least the recorded one, so only a model *below* it is a
+misfit, contributing max(p - model, 0)^2; such samples are never used to pick
+atoms).  Coefficients are non-negative (light adds up; this also stops noise
 from being explained by negative atoms).
 
 Dictionary.  k1: unit-peak Gaussians g(t; sigma) over a sigma grid; k2: sss
@@ -141,11 +142,12 @@ import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, RESTART_FACTOR
 from .dictionary import Dictionary, get_dictionary  # noqa: F401
+from .masks import SampleMask, check_mask
 from .options import GridSpec  # noqa: F401
 from .pickcorr import PickWorkspace
 from .polish import polish_block, refit_amplitudes, snap_to_grid  # noqa: F401
 from .score import score_coarse, score_pixel
-from .slots import (censored_residual, drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
+from .slots import (drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
                     put, refine_atoms, take)
 
 __all__ = [
@@ -164,7 +166,7 @@ __all__ = [
 ]
 
 
-def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
+def solve_block(p, mask: SampleMask, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, allow_sss=True,
                 sparsity=3.0, eps_rel=0.01, max_iter=8, n_lm=8, bound_factor=4.0, first_gauss=None,
                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6, workspace: PickWorkspace | None = None):
     """Greedy convolutional coordinate descent with local refinement on a block.
@@ -173,8 +175,8 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     ----------
     p : ndarray (P, L) float64
         Profiles normalised to unit peak.
-    w : ndarray (P, L) float64
-        Sample codes: 1 fitted, 0 excluded (spike), 2 censored from below (saturated).
+    mask : SampleMask
+        Fitted and censored samples (censored ones take part in the refinement only).
     s_eff : ndarray (P,)
         Noise standard deviation per pixel (already floored, > 0).
     dic : Dictionary
@@ -212,6 +214,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     info : dict with ``objective`` (P, max_iter + 1; NaN after a pixel stopped),
         ``n_iter`` (P,), ``converged`` (P,), ``lm_iterations``, ``mu``, ``eps``.
     """
+    check_mask(mask, p.shape)
     P, L = p.shape
     K = int(max_components)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
@@ -220,14 +223,14 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
     bounds = parameter_bounds(dic, bound_factor)
     st = new_state(P, K)
     hist = np.full((P, max_iter + 1), np.nan)
-    r0 = censored_residual(p, 0.0, w)
+    r0 = mask.residual(p, 0.0)
     obj = 0.5 * np.einsum("pl,pl->p", r0, r0)
     hist[:, 0] = obj
     n_iter = np.zeros(P, np.int64)
     done = np.zeros(P, bool)
     converged = np.zeros(P, bool)
     first_family = np.zeros(P, np.int8)
-    weighted = bool(np.any(w != 1.0))
+    weighted = not bool(mask.fit.all())
     lm_total = 0
     model = np.zeros((P, L))
     workspace = PickWorkspace() if workspace is None else workspace   # reused by every pick
@@ -235,7 +238,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         idx = np.nonzero(~done)[0]
         if idx.size == 0:
             break
-        r = (p[idx] - model[idx]) * (w[idx] == 1)
+        r = (p[idx] - model[idx]) * mask.fit[idx]
         fam = st["fam"][idx]
         n_act = (fam != FAM_NONE).sum(1)
         room = n_act < K
@@ -256,11 +259,11 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
                 continue
             if scorer == "coarse":
                 by_size = None if first_gauss is None else (first_gauss[idx[gsel]] & (n_act[gsel] == 0))
-                c_, d_ = score_coarse(r[gsel], w[idx[gsel]], weighted, dic, mu[idx[gsel]], eps[idx[gsel]],
+                c_, d_ = score_coarse(r[gsel], mask.fit[idx[gsel]], weighted, dic, mu[idx[gsel]], eps[idx[gsel]],
                                        allow_g[gsel], allow_s[gsel], min_s[gsel], by_size)
             else:
                 sig = np.exp(np.where(fam[gsel] != FAM_NONE, st["lsig"][idx[gsel]], -np.inf).max(axis=1))
-                c_, d_ = score_pixel(r[gsel], w[idx[gsel]], weighted, dic, sig, mu[idx[gsel]], eps[idx[gsel]],
+                c_, d_ = score_pixel(r[gsel], mask.fit[idx[gsel]], weighted, dic, sig, mu[idx[gsel]], eps[idx[gsel]],
                                      allow_g[gsel], allow_s[gsel], min_s[gsel], bound_factor, workspace)
             for k in cand:
                 cand[k][gsel] = c_[k]
@@ -280,7 +283,7 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         bdec = dec
         obj[gi] = obj[gi] - bdec[go]
         sub = take(st, gi)
-        sub, o, nl, m_sub = refine_atoms(t, p[gi], w[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
+        sub, o, nl, m_sub = refine_atoms(t, p[gi], mask[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
                                 tie_sigma, sss_after_direct, lm_tol, return_model=True)
         exact = o       # F evaluated exactly after refinement (not the FFT pick's estimate)
         drop_zero(sub)
@@ -290,14 +293,15 @@ def solve_block(p, w, s_eff, dic: Dictionary, *, max_components=4, max_gauss=4, 
         hist[gi, it] = exact
         n_iter[gi] = it
         lm_total += nl
+    r_end = mask.residual(p, model)
     info = {"objective": hist, "n_iter": n_iter, "converged": converged, "lm_iterations": lm_total,
             "mu": mu, "eps": eps, "coordinates_searched": dic.n_coordinates,
             "first_family": first_family,
-            "data_term": 0.5 * np.einsum("pl,pl->p", censored_residual(p, model, w), censored_residual(p, model, w))}
+            "data_term": 0.5 * np.einsum("pl,pl->p", r_end, r_end)}
     return st, info
 
 
-def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True, **opts):
+def solve_multistart(p, mask: SampleMask, s_eff, dic: Dictionary, sss_alone=False, restart=True, **opts):
     """Two greedy starts per pixel where needed; keep the lower objective.
 
     Greedy selection by largest objective decrease (Gauss-Southwell-q) tends
@@ -321,16 +325,17 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True
     lowers the objective (:func:`_backward_direct`).  It costs about 40 % more
     time and is off by default: in the paper's model every pixel has a direct.
     """
+    check_mask(mask, p.shape)
     has_g = bool(np.any(dic.fam == FAM_GAUSS)) and opts.get("max_gauss", 1) > 0
-    expected = 0.5 * (w > 0).sum(axis=1) * s_eff * s_eff
+    expected = 0.5 * mask.used.sum(axis=1) * s_eff * s_eff
     first = np.ones(p.shape[0], bool) if has_g else None
-    st, info = solve_block(p, w, s_eff, dic, first_gauss=first, **opts)
+    st, info = solve_block(p, mask, s_eff, dic, first_gauss=first, **opts)
     alone = np.zeros(p.shape[0], bool)
     if sss_alone and has_g and opts.get("allow_sss", True) and np.any(dic.fam == FAM_SSS):
         # A profile that is an sss alone gets a spurious direct (and more Gaussians) from the
         # Gaussian-first start; one unrestricted pick plus refinement is tried for every
         # pixel and kept where its objective is lower
-        one, info1 = solve_block(p, w, s_eff, dic, **{**opts, "max_iter": 1, "n_lm": 3 * opts.get("n_lm", 4)})
+        one, info1 = solve_block(p, mask, s_eff, dic, **{**opts, "max_iter": 1, "n_lm": 3 * opts.get("n_lm", 4)})
         alone = (_final(info1["objective"]) < _final(info["objective"])) & (one["fam"] == FAM_SSS).any(axis=1)
         a = np.nonzero(alone)[0]
         if a.size:
@@ -350,7 +355,7 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True
             else np.zeros(0, np.int64))
     info["restarted"] = redo.size
     if redo.size:
-        st2, info2 = solve_block(p[redo], w[redo], s_eff[redo], dic, **opts)
+        st2, info2 = solve_block(p[redo], mask[redo], s_eff[redo], dic, **opts)
         f1 = _final(info["objective"][redo])
         f2 = _final(info2["objective"])
         better = f2 < f1
@@ -360,11 +365,11 @@ def solve_multistart(p, w, s_eff, dic: Dictionary, sss_alone=False, restart=True
             info[key][b] = info2[key][better]
         info["lm_iterations"] += info2["lm_iterations"]
     if sss_alone and has_g and opts.get("allow_sss", True):
-        _backward_direct(p, w, s_eff, dic, st, info, opts)
+        _backward_direct(p, mask, s_eff, dic, st, info, opts)
     return st, info
 
 
-def _backward_direct(p, w, s_eff, dic, st, info, opts):
+def _backward_direct(p, mask, s_eff, dic, st, info, opts):
     """Backward step: drop a direct that sits on an sss onset where that lowers F.
 
     A profile that is an sss component alone is first given a Gaussian by the
@@ -388,7 +393,7 @@ def _backward_direct(p, w, s_eff, dic, st, info, opts):
     r_ = np.arange(cand.size)
     alt["fam"][r_, dsl[cand]] = FAM_NONE
     alt["amp"][r_, dsl[cand]] = 0.0
-    alt, o, nl, m = refine_atoms(t, p[cand], w[cand], alt, mu, eps, parameter_bounds(dic, opts.get("bound_factor", 4.0)),
+    alt, o, nl, m = refine_atoms(t, p[cand], mask[cand], alt, mu, eps, parameter_bounds(dic, opts.get("bound_factor", 4.0)),
                         2 * opts.get("n_lm", 4), None, opts.get("tie_sigma", True),
                         opts.get("sss_after_direct", True), opts.get("lm_tol", 1e-2), return_model=True)
     drop_zero(alt)
@@ -399,7 +404,7 @@ def _backward_direct(p, w, s_eff, dic, st, info, opts):
     b = cand[better]
     put(st, b, take(alt, better))
     hist[b, last[better]] = o[better]
-    r = censored_residual(p[b], m[better], w[b])
+    r = mask[b].residual(p[b], m[better])
     info["data_term"][b] = 0.5 * np.einsum("pl,pl->p", r, r)
     info["lm_iterations"] += nl
     info["backward"] = int(b.size)

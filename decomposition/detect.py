@@ -19,6 +19,7 @@ import numpy as np
 from . import components as comp
 from . import convscd as cs
 from .constants import RESTART_FACTOR
+from .masks import SampleMask
 from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .noise import signal_noise_sigma
 from .options import SolverOptions
@@ -55,16 +56,14 @@ class Detection:
 
 
 def solver_inputs(samples: Samples, rows: np.ndarray):
-    """Profiles and sample codes of ``rows`` for the solver.
+    """Profiles and sample masks of ``rows`` for the solver.
 
-    Saturated samples keep their (normalised) recorded value and get code 2 (censored
-    from below: only a model below them is a misfit); fitted samples code 1, others 0
-    (see :mod:`decomposition.convscd`).  Returns (p (n, L), codes (n, L) float64).
+    Saturated samples keep their (normalised) recorded value and are censored (only a
+    model below them is a misfit).  Returns (p (n, L), :class:`SampleMask`).
     """
     sat = samples.censored[rows]
     p = np.where(sat, samples.values[rows] / samples.scale[rows, None], samples.profiles[rows])
-    codes = np.where(sat, 2.0, samples.fit[rows].astype(np.float64))
-    return p, codes
+    return p, samples.mask[rows]
 
 
 def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -> dict:
@@ -75,13 +74,13 @@ def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -
                 sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
 
 
-def _solve(p, codes, fit, noise, dic, t, opts: SolverOptions, solve_opts: dict):
-    """Sparse solve, threshold, merge and polish of one set of pixels."""
-    st, si = cs.solve_multistart(p, fit.astype(np.float64), noise, dic, sss_alone=opts.sss_alone,
+def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: dict):
+    """Sparse solve (no censored sample), threshold, merge and polish (censored samples too)."""
+    st, si = cs.solve_multistart(p, mask.uncensored(), noise, dic, sss_alone=opts.sss_alone,
                                  restart=opts.multistart, **solve_opts)
     comp.threshold(st, t, opts.rel_threshold)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
-    st, model, nl = cs.polish_block(p, codes, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
+    st, model, nl = cs.polish_block(p, mask, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
                                     n_lm=opts.n_polish, bound_factor=opts.bound_factor,
                                     tie_sigma=opts.shared_sigma, sss_after_direct=opts.sss_after_direct,
                                     lm_tol=opts.lm_tol)
@@ -105,16 +104,15 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     lm_total, restarted = 0, 0
     for b0 in range(0, live.size, opts.block_size):
         bi = live[b0:b0 + opts.block_size]
-        pb, wb = solver_inputs(samples, bi)
-        fb = samples.fit[bi]
+        pb, mb = solver_inputs(samples, bi)
         sb = noise_eff[bi].copy()
-        st, sinfo, model_b, nl = _solve(pb, wb, fb, sb, dic, t, opts, solve_opts)
+        st, sinfo, model_b, nl = _solve(pb, mb, sb, dic, t, opts, solve_opts)
         lm_total += sinfo["lm_iterations"] + nl
-        s_sig = signal_noise_sigma(pb - model_b, model_b, fb)
+        s_sig = signal_noise_sigma(pb - model_b, model_b, mb.fit)
         again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
         if again.size:
             sb[again] = s_sig[again]
-            st2, sinfo2, _, nl2 = _solve(pb[again], wb[again], fb[again], sb[again], dic, t, opts, solve_opts)
+            st2, sinfo2, _, nl2 = _solve(pb[again], mb[again], sb[again], dic, t, opts, solve_opts)
             lm_total += sinfo2["lm_iterations"] + nl2
             put(st, again, st2)
             for key in ("objective", "n_iter", "converged"):

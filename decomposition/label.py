@@ -55,8 +55,8 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
     st = {k: v.copy() for k, v in det.state.items()}
     if not opts.off_grid:
         cs.snap_to_grid(st, dic)
-        p, codes = solver_inputs(samples, live)
-        cs.refit_amplitudes(p, codes, st, dic)
+        p, mask = solver_inputs(samples, live)
+        cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
     comp.threshold(st, t, opts.rel_threshold)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)   # refinement can bring two atoms together

@@ -10,12 +10,13 @@ import numpy as np
 
 from .constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
+from .masks import SampleMask, check_mask
 from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, refine_atoms, take
 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
 
 
-def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
+def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
                  tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
 
@@ -25,12 +26,13 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
     so the kept atoms are refined on the data term alone (mu = 0), each step
     accepted only where the residual decreases.
     """
+    check_mask(mask, p.shape)
     L = p.shape[1]
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     mu = np.zeros_like(s_eff)
     eps = eps_rel * s_eff
     bounds = parameter_bounds(dic, bound_factor)
-    st, obj, nl, model = refine_atoms(t, p, w, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
+    st, obj, nl, model = refine_atoms(t, p, mask, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
                              return_model=True)
     if sss_after_direct:
         # A direct and an sss with the same onset and width are degenerate to first order
@@ -46,7 +48,7 @@ def polish_block(p, w, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01
             alt = take(st, retry)
             alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
                                                                 + sig_s[retry])
-            alt, o_alt, nl2, m_alt = refine_atoms(t, p[retry], w[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
+            alt, o_alt, nl2, m_alt = refine_atoms(t, p[retry], mask[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
                                          tie_sigma, sss_after_direct, lm_tol, return_model=True)
             better = o_alt < obj[retry]
             put(st, retry[better], take(alt, better))
@@ -72,8 +74,9 @@ def snap_to_grid(st, dic: Dictionary):
     return st
 
 
-def refit_amplitudes(p, w, st, dic: Dictionary):
+def refit_amplitudes(p, mask: SampleMask, st, dic: Dictionary):
     """Non-negative least-squares amplitudes for fixed atom shapes (batched, small K)."""
+    check_mask(mask, p.shape)
     L = p.shape[1]
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     P, K = st["fam"].shape
@@ -83,7 +86,7 @@ def refit_amplitudes(p, w, st, dic: Dictionary):
         pi, ki = np.nonzero(act)
         phi[pi, ki] = eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
                                   st["lalp"][pi, ki])
-    w = (w == 1).astype(np.float64)
+    w = mask.fit.astype(np.float64)
     phw = phi * w[:, None, :]
     G = np.einsum("pkl,pjl->pkj", phw, phw)
     b = np.einsum("pkl,pl->pk", phw, p * w)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .constants import DICT_SUPPORT_SIGMA
+from .masks import SampleMask
 from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
 from .noise import noise_sigma
 from .options import GridSpec, parse_nan_policy
@@ -78,6 +79,11 @@ class Samples:
     @property
     def n_bins(self) -> int:
         return self.values.shape[1]
+
+    @property
+    def mask(self) -> SampleMask:
+        """The fit and censored masks (:class:`~decomposition.masks.SampleMask`)."""
+        return SampleMask(self.fit, self.censored)
 
     @property
     def weights(self) -> np.ndarray:

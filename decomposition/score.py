@@ -21,7 +21,7 @@ from .pickcorr import PickWorkspace, pixel_correlations
 __all__ = ["score_coarse", "score_pixel"]
 
 
-def score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
+def score_coarse(r, fit, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min_s, by_size=None):
     """Best coordinate of the coarse dictionary per pixel (Gauss-Southwell, largest decrease)."""
     # only the families some pixel may take are correlated (the first pick of the primary
     # start allows Gaussians only: 4 of the 13 default atoms)
@@ -33,7 +33,7 @@ def score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min
     is_s = is_s[atoms]
     c = dic.correlate(r, atoms=atoms)                      # (n, A', S)
     if weighted:
-        n2 = dic.correlate((w == 1).astype(np.float64), squared=True, atoms=atoms)
+        n2 = dic.correlate(fit.astype(np.float64), squared=True, atoms=atoms)
         n2 = np.where(n2 > 1e-12 * norm2[None], n2, 0.0)
     else:
         n2 = norm2[None]
@@ -52,7 +52,7 @@ def score_coarse(r, w, weighted, dic: Dictionary, mu, eps, allow_g, allow_s, min
     return cand, db
 
 
-def score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s, min_s, bound_factor,
+def score_pixel(r, fit, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s, min_s, bound_factor,
                 workspace: PickWorkspace | None = None):
     """Best coordinate per pixel among atoms at the pixel's own PSF width ``sig`` (n,).
 
@@ -71,7 +71,7 @@ def score_pixel(r, w, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_s,
     ka = np.concatenate([[np.nan], alphas])
     H = int(math.ceil(DICT_SUPPORT_SIGMA * float(sig.max()) / T)) + 1
     c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
-                                     w1=(w == 1).astype(np.float64) if weighted else None,
+                                     w1=fit.astype(np.float64) if weighted else None,
                                      out=workspace)   # consumed by _select below
     if weighted:
         n2 = np.where(n2 > 1e-12, n2, 0.0)

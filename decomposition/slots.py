@@ -7,8 +7,7 @@ Here: creating, slicing and merging states, rendering them, the objective, the p
 bounds, the sss-onset link and the compiled Levenberg-Marquardt refinement
 (:func:`decomposition.atomlm.lm_refine`) behind :func:`refine_atoms`.
 
-Sample codes ``w`` (P, L): 1 fitted, 0 excluded, 2 censored from below (see
-:mod:`decomposition.convscd`).
+Which samples count: a :class:`~decomposition.masks.SampleMask` (fitted, censored).
 """
 from __future__ import annotations
 
@@ -18,8 +17,9 @@ import numpy as np
 
 from .atomlm import atom_profiles, lm_refine, onset_links
 from .constants import FAM_NONE, NEAR_SIGMA
+from .masks import SampleMask
 
-__all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "censored_residual", "objective",
+__all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of"]
 
 
@@ -47,15 +47,9 @@ def render(t, st):
     return model
 
 
-def censored_residual(p, model, w):
-    """Residual under the sample codes w (1 fitted, 0 excluded, 2 censored from below)."""
-    r = p - model
-    return np.where(w == 2, np.maximum(r, 0.0), r * (w == 1))
-
-
-def objective(p, w, model, st, mu, eps):
-    """F per pixel (P,): 1/2 ||residual||^2 (see censored_residual) + mu sum log(1 + pen_scale*amp/eps)."""
-    r = censored_residual(p, model, w)
+def objective(p, mask: SampleMask, model, st, mu, eps):
+    """F per pixel (P,): 1/2 ||residual||^2 (:meth:`SampleMask.residual`) + mu sum log(1 + pen_scale*amp/eps)."""
+    r = mask.residual(p, model)
     pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
     return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
 
@@ -81,7 +75,7 @@ def linked_onsets(st, near_sigma=None):
     return onset_links(st["fam"], st["delay"], st["lsig"], NEAR_SIGMA if near_sigma is None else near_sigma)
 
 
-def refine_atoms(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
+def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
         return_model=False):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
@@ -95,7 +89,7 @@ def refine_atoms(t, p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss
     whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
     onset moves with the direct and its gap stays >= 0.
     """
-    out, o, iters, model = lm_refine(*axis_of(t), p, w, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
+    out, o, iters, model = lm_refine(*axis_of(t), p, mask, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
                                      sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol)
     it = int(iters.max(initial=0))
     return (out, o, it, model) if return_model else (out, o, it)

@@ -4,6 +4,7 @@ import pytest
 
 from decomposition import atomlm
 from decomposition import convscd as cs
+from decomposition.masks import SampleMask
 from decomposition.slots import new_state, parameter_bounds, render
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
 
@@ -82,10 +83,10 @@ def test_noiseless_profile_is_recovered_from_a_perturbed_start():
     start = [(cs.FAM_GAUSS, 0.6, 120.0, 3.4, None), (cs.FAM_SSS, 0.025, 125.0, 3.4, 0.03),
              (cs.FAM_GAUSS, 0.2, 259.0, 3.4, None)]
     p = _profile(truth)[None]
-    w = np.ones_like(p)
+    mask = SampleMask.all_fitted(p.shape)
     st = _state([start])
     zero = np.zeros(1)
-    out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, zero, np.ones(1), _bounds(), 200,
+    out, obj, iters, model = atomlm.lm_refine(T0, T, p, mask, st, zero, np.ones(1), _bounds(), 200,
                                               tie_sigma=True, sss_after_direct=True, tol=0.0)
     got = sorted(zip(out["delay"][0, :3], out["amp"][0, :3], np.exp(out["lsig"][0, :3])))
     want = sorted((d, a, s) for _, a, d, s, _ in truth)
@@ -117,25 +118,27 @@ def _random_block(n, seed):
 
 
 def test_objective_never_increases_and_reported_values_are_exact():
-    """On noisy blocks with excluded (0) and censored (2) samples: F at the returned state is
+    """On noisy blocks with excluded and censored samples: F at the returned state is
     at most F at the start for every pixel, and the returned F and model are those of the
     returned state as the numpy objective evaluates them."""
     p, st = _random_block(60, seed=3)
-    w = np.ones_like(p)
-    w[:20, 60:70] = 0.0
-    w[20:40, :] = np.where(p[20:40] > 0.6, 2.0, 1.0)
+    fit = np.ones(p.shape, bool)
+    fit[:20, 60:70] = False
+    cens = np.zeros(p.shape, bool)
+    cens[20:40] = p[20:40] > 0.6
+    mask = SampleMask(fit & ~cens, cens)
     s = np.full(p.shape[0], 0.02)
     mu, eps = 3 * s * s, 0.01 * s
     t = time_axis_ps(L, T)
     m0 = render(t, st)
-    f0 = cs.objective(p, w, m0, st, mu, eps)
+    f0 = cs.objective(p, mask, m0, st, mu, eps)
     for tie, after in [(True, True), (False, False), (True, False)]:
-        out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, mu, eps, _bounds(), 12, tie_sigma=tie,
+        out, obj, iters, model = atomlm.lm_refine(T0, T, p, mask, st, mu, eps, _bounds(), 12, tie_sigma=tie,
                                                   sss_after_direct=after, tol=1e-6)
         assert np.all(obj <= f0) and np.mean(obj < 0.5 * f0) > 0.8
         m1 = render(t, out)
         np.testing.assert_allclose(model, m1, atol=1e-12)
-        np.testing.assert_allclose(obj, cs.objective(p, w, m1, out, mu, eps), rtol=1e-12)
+        np.testing.assert_allclose(obj, cs.objective(p, mask, m1, out, mu, eps), rtol=1e-12)
         assert np.all(iters <= 12)
         act = out["fam"] != cs.FAM_NONE
         if tie:   # pixels that started with one width keep one width
@@ -150,14 +153,15 @@ def test_objective_never_increases_and_reported_values_are_exact():
 
 def test_excluded_samples_do_not_influence_the_fit():
     p, st = _random_block(20, seed=5)
-    w = np.ones_like(p)
-    w[:, 100:120] = 0.0
+    fit = np.ones(p.shape, bool)
+    fit[:, 100:120] = False
+    mask = SampleMask.of_fit(fit)
     s = np.full(p.shape[0], 0.02)
     args = (st, 3 * s * s, 0.01 * s, _bounds(), 10)
-    a = atomlm.lm_refine(T0, T, p, w, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
+    a = atomlm.lm_refine(T0, T, p, mask, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
     q = p.copy()
     q[:, 100:120] = 1e6
-    b = atomlm.lm_refine(T0, T, q, w, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
+    b = atomlm.lm_refine(T0, T, q, mask, *args, tie_sigma=True, sss_after_direct=True, tol=1e-6)
     for k in ("amp", "delay", "lsig", "lalp"):
         np.testing.assert_array_equal(a[0][k], b[0][k])
     np.testing.assert_array_equal(a[1], b[1])
@@ -170,8 +174,7 @@ def test_slots_are_compacted_and_empty_pixels_pass_through():
     st["delay"][0] = [0.0, 100.0]
     st["lsig"][0] = [0.0, np.log(3.0)]
     p = np.stack([_profile([(cs.FAM_GAUSS, 0.5, 101.0, 3.0, None)]), np.zeros(L)])
-    w = np.ones_like(p)
-    out, obj, iters, model = atomlm.lm_refine(T0, T, p, w, st, np.zeros(2), np.ones(2), _bounds(), 50)
+    out, obj, iters, model = atomlm.lm_refine(T0, T, p, SampleMask.all_fitted(p.shape), st, np.zeros(2), np.ones(2), _bounds(), 50)
     assert list(out["fam"][0]) == [cs.FAM_GAUSS, cs.FAM_NONE]
     assert abs(out["delay"][0, 0] - 101.0) < 1e-6
     assert iters[1] == 0 and obj[1] == 0.0 and not model[1].any()

@@ -7,6 +7,7 @@ import pytest
 from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from decomposition.masks import SampleMask
 from decomposition.noise import noise_sigma
 from decomposition.slots import parameter_bounds
 from decomposition.pick import closed_form
@@ -123,15 +124,15 @@ def test_refinement_keeps_parameters_within_bounds():
 
     data = make_profiles(30, 256, nsr=0.05, noise="photon", seed=1)
     p = data.noisy / np.abs(data.noisy).max(axis=1, keepdims=True)
-    w = np.ones_like(p)
+    mask = SampleMask.all_fitted(p.shape)
     s = np.maximum(noise_sigma(p), 1e-3)
     dic = cs.get_dictionary(256, T, T, cs.GridSpec(coarse_sss_sigma=3), True, True)
     t = time_axis_ps(256, T)
     with np.errstate(over="raise", invalid="raise", divide="raise"), warnings.catch_warnings():
         warnings.simplefilter("error")
-        st, info = cs.solve_block(p, w, s, dic, max_components=6, max_gauss=6)
+        st, info = cs.solve_block(p, mask, s, dic, max_components=6, max_gauss=6)
         comp.threshold(st, t)
-        st, model, _ = cs.polish_block(p, w, st, s, dic)
+        st, model, _ = cs.polish_block(p, mask, st, s, dic)
     b = parameter_bounds(dic, 4.0)
     act = st["fam"] != cs.FAM_NONE
     assert act.any()

@@ -101,19 +101,19 @@ def test_score_pixel_picks_the_best_coordinate_of_the_dense_formulation():
     dic = cs.get_dictionary(L, T, T, cs.GridSpec(), True, True)
     data = make_profiles(8, L, nsr=0.05, noise="white", seed=3)
     p = data.noisy / data.noisy.max(axis=1, keepdims=True)
-    w = np.ones_like(p)
-    w[:, 40] = 0.0                                            # an excluded sample
-    w[:3, 41] = 2.0                                           # censored samples
-    r = p * (w == 1)
+    fit = np.ones(p.shape, bool)
+    fit[:, 40] = False                                        # an excluded sample
+    fit[:3, 41] = False                                       # censored samples: never used to pick
+    r = p * fit
     sig = np.linspace(1.5, 7.0, p.shape[0])
     mu = np.full(p.shape[0], 3.0 * 0.05 ** 2)
     eps = np.full(p.shape[0], 0.01 * 0.05)
     yes = np.ones(p.shape[0], bool)
     min_s = np.full(p.shape[0], -np.inf)
-    cand, dec = score_pixel(r, w, True, dic, sig, mu, eps, yes, yes, min_s, 4.0)
+    cand, dec = score_pixel(r, fit, True, dic, sig, mu, eps, yes, yes, min_s, 4.0)
     alphas = coarse_values(*dic.grid.alpha_range_per_ps, dic.grid.coarse_alpha)
     H = int(math.ceil(6.0 * sig.max() / T)) + 1
-    c0, n20, peak0 = _dense(r, sig, alphas, T, dic.pre, H, (w == 1).astype(float))
+    c0, n20, peak0 = _dense(r, sig, alphas, T, dic.pre, H, fit.astype(float))
     best, z, d0 = select(c0, np.where(n20 > 1e-12, n20, 0.0), mu, eps,
                              np.ones((p.shape[0], 1 + alphas.size, 1), bool))
     a_i, j_i = np.divmod(best, dic.shifts.size)
