@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from acquisition.durable import sync_chunk
-from reconstruction.staging import staged_output
+from core.durable import sync_chunk
+from core.staging import staged_output
 
 __all__ = [
     "RESULT_KIND",

@@ -4,7 +4,7 @@ import shutil
 import numpy as np
 import pytest
 
-from decomposition import model
+from core import model
 from decomposition.resultstore import create_result_store, open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main

@@ -67,8 +67,8 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     import zarr
 
     from reconstruction.cubestore import open_cube, write_cube
-    from reconstruction.staging import staged_output
-    from streaklab import __version__
+    from core.staging import staged_output
+    from core.provenance import __version__
 
     ny, nx, nt = data.noisy.shape
     n_ir = data.params["ir_delay_ps"].shape[-1]
