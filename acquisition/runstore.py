@@ -35,6 +35,7 @@ import numpy as np
 import zarr
 
 from core.durable import fsync_path, sync_chunk
+from core.errors import StreaklabError
 
 from .config import ConfigError, ScanConfig, parse_config
 
@@ -44,7 +45,7 @@ RUN_KIND = "run"
 LINE_ARRAYS = ("streaks", "angle_deg", "timestamp", "done")
 
 
-class RunStoreError(ValueError):
+class RunStoreError(StreaklabError, ValueError):
     """The path is not a usable run store, or does not fit the session (says exactly why)."""
 
 

@@ -7,6 +7,8 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
+from .errors import OutputExistsError
+
 __all__ = ["check_output_path", "staged_output"]
 
 
@@ -14,7 +16,7 @@ def check_output_path(path, *, overwrite: bool = False) -> None:
     """Refuse to write over an existing, non-empty path unless ``overwrite``."""
     p = Path(path)
     if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
+        raise OutputExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
 
 
 def _remove(p: Path) -> None:

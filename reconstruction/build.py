@@ -24,6 +24,7 @@ import numpy as np
 
 from acquisition.config import check_calibration
 from acquisition.runstore import open_run
+from core.errors import StreaklabError
 from core.staging import check_output_path, staged_output
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
@@ -32,7 +33,7 @@ from .cubestore import create_cube, open_cube
 __all__ = ["ReconstructionError", "reconstruct"]
 
 
-class ReconstructionError(ValueError):
+class ReconstructionError(StreaklabError, ValueError):
     """The run cannot be reconstructed as asked (says why)."""
 
 

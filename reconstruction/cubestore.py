@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import zarr
 
+from core.errors import StreaklabError
 from core.staging import check_output_path
 
 __all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube"]
@@ -27,7 +28,7 @@ __all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "
 CUBE_KIND = "cube"
 
 
-class CubeStoreError(ValueError):
+class CubeStoreError(StreaklabError, ValueError):
     """The path is not a usable cube store (says exactly why)."""
 
 

@@ -29,6 +29,7 @@ import h5py
 import numpy as np
 import zarr
 
+from core.errors import StreaklabError
 from core.staging import staged_output
 
 from .cubestore import CubeStoreError, create_cube, open_cube
@@ -39,7 +40,7 @@ META = "streaklab_zarr"
 RESERVED = {"entry"}
 
 
-class NexusError(ValueError):
+class NexusError(StreaklabError, ValueError):
     """The HDF5 file is not a usable NeXus cube (says why)."""
 
 
