@@ -165,7 +165,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     """Run the demo; returns a dict with the output paths, timings and the fidelities."""
     from decomposition.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
-    from streaklab.commands.decompose import decompose_to_store
+    from decomposition.pipeline import decompose_to_store
     from streaklab.report import make_report
 
     stream = sys.stdout if stream is None else stream
