@@ -23,7 +23,7 @@ from .detect import detect_components, detect_gradbm
 from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED, SPIKE,  # noqa: F401
                     TRUNCATED, flag_names)
 from .label import label_components
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
@@ -57,7 +57,7 @@ class DecompositionResult:
     sss : ndarray (..., L)                 rendered subsurface-scattering component
     interreflections : ndarray (..., R, L) r2, r3, ... in order of delay; zeros where absent
     params : dict of ndarray               model parameters, NaN where absent
-                                           (keys of ``decomposition.model``)
+                                           (keys of ``core.model``)
     residual : ndarray (..., L)            profiles minus the sum of all components
     flags : ndarray (...,) uint8           quality bitmask (:class:`decomposition.flags.Flag`)
     info : dict                            method, all options, iteration counts

@@ -120,7 +120,7 @@ def atom_profiles(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):
     Returns
     -------
     ndarray (n, n_bins) float64: unit-peak Gaussians exp(-(t - d)^2 / (2 sigma^2)) within
-    +-8 sigma, sss kernels (decomposition.model.sss_kernel, not normalised) from 8 sigma before
+    +-8 sigma, sss kernels (core.model.sss_kernel, not normalised) from 8 sigma before
     their onset; exact zeros elsewhere.
     """
     fam = np.ascontiguousarray(fam, np.int8)

@@ -3,7 +3,7 @@
 The solver (``decomposition.convscd``) returns, per pixel, up to K atoms in
 "slot" arrays of shape (P, K): family (Gaussian or sss), amplitude, delay,
 log sigma, log alpha.  This module turns them into the parameter dict of
-``decomposition.model`` (direct d, inter-reflections r2, r3, ..., sss s):
+``core.model`` (direct d, inter-reflections r2, r3, ..., sss s):
 
 1. Threshold (the paper's global 5% rule, applied per pixel): an atom is kept
    only if the peak height of its rendered component *inside the time window*
@@ -26,7 +26,7 @@ import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from .slots import eval_atoms
-from .model import empty_params, render_components
+from core.model import empty_params, render_components
 
 __all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]
 

@@ -126,7 +126,7 @@ the GIL.  Where the time goes now (cProfile of the 1024 px run): the
 compiled LM about a third; the own-width correlations and the selection
 about 15 %; the coarse FFT pass about 8 %; the rest is block bookkeeping in
 ``solve_block``, noise estimates (medians), spike detection and rendering
-the final components with :mod:`decomposition.model`.  Why it helped: the
+the final components with :mod:`core.model`.  Why it helped: the
 numpy LM spent its time on (P, K, 4, L) float32 Jacobians, window placement
 and live-set bookkeeping, and the own-width pick on per-pixel kernel
 evaluation and FFTs; per pixel, compiled, each atom lives on its own

@@ -20,7 +20,7 @@ from . import components as comp
 from . import convscd as cs
 from .constants import RESTART_FACTOR
 from .masks import SampleMask
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .noise import signal_noise_sigma
 from .options import SolverOptions
 from .pickcorr import PickWorkspace

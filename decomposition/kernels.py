@@ -1,6 +1,6 @@
 """Kernel values with their analytic parameter derivatives, batched (for refinement and Fisher information).
 
-The value forms are those of the forward model (:func:`decomposition.model.sss_kernel`, the
+The value forms are those of the forward model (:func:`core.model.sss_kernel`, the
 reference; :func:`decomposition.jit.sss_value` is its compiled twin): the same stable
 branches in u, so nothing overflows for any alpha sigma.  This evaluation carries the
 derivatives along, sharing g and the tail exponential between value and derivatives, and
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
-from .model import _GL_NODES, _GL_WEIGHTS
+from core.model import _GL_NODES, _GL_WEIGHTS
 
 __all__ = ["kernel_derivatives"]
 
@@ -109,7 +109,7 @@ def kernel_derivatives(t_rel_ps, sigma_ps, alpha_per_ps=None, *, time_bin_ps=Non
         sss attenuation in 1/ps (>= 0).  ``None`` selects the unit-peak Gaussian.
     time_bin_ps : float, optional
         If given, values and derivatives are averaged over a bin of this width
-        (matches ``bin_integrated=True`` rendering in :mod:`decomposition.model`).
+        (matches ``bin_integrated=True`` rendering in :mod:`core.model`).
     derivatives : bool
         ``False`` returns the 1-tuple ``(k,)`` only (cheaper).
 

@@ -17,7 +17,7 @@ from . import convscd as cs
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
 from .detect import Detection, solver_inputs
 from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
-from .model import empty_params
+from core.model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
 from .slots import parameter_bounds
@@ -27,7 +27,7 @@ __all__ = ["Labels", "label_components", "at_bound"]
 
 @dataclass(frozen=True)
 class Labels:
-    """Named components of every pixel: ``params`` (keys of :mod:`decomposition.model`, shapes
+    """Named components of every pixel: ``params`` (keys of :mod:`core.model`, shapes
     (P,) and (P, R), NaN where absent) and ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED)."""
 
     params: dict

@@ -4,7 +4,7 @@ The sparse-coding step decides *which* components a pixel has and puts each on
 a grid of delays, widths and attenuations.  This module keeps that component
 set fixed and moves every present component's continuous parameters off the
 grid to the least-squares optimum of the forward model of
-:mod:`decomposition.model`.
+:mod:`core.model`.
 
 Options: ``shared_sigma`` refines one PSF width per pixel for all its
 components (eq. (2) has a single camera PSF); ``sss_after_direct`` keeps the
@@ -27,7 +27,7 @@ import numpy as np
 
 from .constants import SSS_SLOT
 from .kernels import kernel_derivatives  # noqa: F401  (public here since the first release)
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .varpro import Layout, refine_block
 
 __all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots", "apply_weights"]
@@ -43,7 +43,7 @@ def slot_arrays(params: dict, lead_shape: tuple) -> dict[str, np.ndarray]:
     Parameters
     ----------
     params : dict of ndarray
-        Keys of :mod:`decomposition.model`; a missing family counts as absent.
+        Keys of :mod:`core.model`; a missing family counts as absent.
     lead_shape : tuple
         Leading (pixel) shape the parameters must have.
 
@@ -146,7 +146,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     profiles : array_like, shape (..., L)
         Measured time profiles, any real dtype; must be finite.
     params : dict of ndarray
-        Starting parameters (keys of :mod:`decomposition.model`, shapes (...,)
+        Starting parameters (keys of :mod:`core.model`, shapes (...,)
         and (..., R)); NaN marks an absent component.  Which components are
         present is never changed.
     time_bin_ps, t0_ps : float

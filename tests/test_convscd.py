@@ -6,7 +6,7 @@ import pytest
 
 from decomposition import convscd as cs
 from decomposition import decompose
-from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.masks import SampleMask
 from decomposition.noise import noise_sigma
 from decomposition.slots import parameter_bounds

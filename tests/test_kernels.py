@@ -1,10 +1,10 @@
-"""Every evaluation of the kernels against the one reference, decomposition.model."""
+"""Every evaluation of the kernels against the one reference, core.model."""
 import numpy as np
 import pytest
 
 from decomposition import jit
 from decomposition.kernels import kernel_derivatives
-from decomposition.model import gaussian_kernel, sss_kernel
+from core.model import gaussian_kernel, sss_kernel
 
 
 @pytest.mark.parametrize("sigma_ps, alpha_per_ps", [(0.5, 1e-6), (3.0, 0.02), (10.0, 0.05), (2.0, 50.0)])

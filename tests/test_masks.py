@@ -42,7 +42,7 @@ def test_a_real_valued_weight_is_refused_by_the_solver_with_a_clear_error():
 def test_real_weights_work_as_weights_in_the_refinement():
     """The stage that takes weights treats 0.5 as a weight: halving every weight changes nothing,
     down-weighting one sample moves the fit less than excluding it."""
-    from decomposition.model import empty_params, render_profile
+    from core.model import empty_params, render_profile
     from decomposition.refine import refine
 
     L, T = 128, 2.0

@@ -11,7 +11,7 @@ from decomposition.score import score_pixel
 from decomposition import decompose
 from decomposition.api import SPIKE
 from decomposition.metrics import mean_fidelity
-from decomposition.model import sss_kernel
+from core.model import sss_kernel
 from decomposition.pickcorr import PickWorkspace, pixel_correlations
 from decomposition.synthetic import make_profiles
 
