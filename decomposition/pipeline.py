@@ -169,7 +169,7 @@ def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
 def decompose_to_store(input_path, out_path, *, method: str = "convscd", components=("d", "s", "r"),
                        options: dict | None = None, chunks=None, workers: int | None = None,
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
-                       write_components: bool = True, nan_policy: str = "mark", resume: bool = False,
+                       write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
                        progress: bool = True, stream=None) -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
@@ -182,6 +182,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
     from core.provenance import __version__
+    from decomposition.options import parse_nan_policy
 
     stream = sys.stderr if stream is None else stream
     t_start = time.perf_counter()
@@ -191,8 +192,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise PipelineError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
     if n_ir < 0:
         raise PipelineError(f"--max-interreflections must be >= 0, got {n_ir}")
-    if nan_policy not in ("mark", "error"):
-        raise PipelineError(f"unknown NaN policy {nan_policy!r}")
+    try:   # one vocabulary (decomposition.options.NAN_POLICIES); the CLI's older words are aliases
+        nan_policy = parse_nan_policy(nan_policy)
+    except ValueError as exc:
+        raise PipelineError(f"--nan-policy: {exc}") from None
     if resume and overwrite:
         raise PipelineError("--resume and --overwrite contradict each other; choose one")
     if chunks is not None and (len(chunks) != 2 or min(chunks) <= 0):
@@ -229,7 +232,12 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
            # a cube rewritten at the same path (new provenance) is another input
            "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
     if existing is not None:
-        before = existing.attrs.get("job", {})
+        before = dict(existing.attrs.get("job", {}))
+        if "nan_policy" in before:      # stores written with the older words read the same
+            try:
+                before["nan_policy"] = parse_nan_policy(before["nan_policy"])
+            except ValueError:
+                pass
         diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
         if diff:
             details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
@@ -251,7 +259,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
                                             components=components, options=options)
-    if nan_policy == "error":
+    if nan_policy == "raise":
         bad = count_nonfinite_pixels(arr)
         if bad:
             raise PipelineError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "

@@ -252,6 +252,26 @@ def test_nan_pixels_are_marked_invalid_and_the_rest_decomposed(tmp_path):
     valid = store.group["valid"][...]
     assert not valid[2, 1] and valid.sum() == 11 and store.done_mask().all()
     assert np.isnan(store.group["direct_delay_ps"][2, 1]) and np.isfinite(store.group["rms_residual"][...]).sum() == 11
+    assert store.attrs["nan_policy"] == "omit" and store.attrs["job"]["nan_policy"] == "omit"
+
+
+def test_one_nan_policy_vocabulary_and_stores_with_the_older_words_resume(tmp_path):
+    data = _cube(2, 2, nt=96, seed=6)
+    data[0, 0, 5] = np.nan
+    write_cube(tmp_path / "nan.zarr", data, time_bin_ps=TB, chunks=(1, 2))
+    with pytest.raises(PipelineError, match="1 of 4 pixels have NaN"):
+        decompose_to_store(tmp_path / "nan.zarr", tmp_path / "a.zarr", nan_policy="raise", progress=False)
+    with pytest.raises(PipelineError, match="--nan-policy: nan_policy must be one of raise, omit"):
+        decompose_to_store(tmp_path / "nan.zarr", tmp_path / "a.zarr", nan_policy="skip", progress=False)
+    out = tmp_path / "b.zarr"
+    decompose_to_store(tmp_path / "nan.zarr", out, nan_policy="mark", progress=False)   # the older word
+    store = open_result_store(out, mode="r+")
+    job = dict(store.attrs["job"])
+    assert job["nan_policy"] == "omit"
+    job["nan_policy"] = "mark"                       # as a store written before the one vocabulary
+    store.group.attrs["job"] = job
+    summary = decompose_to_store(tmp_path / "nan.zarr", out, resume=True, progress=False)
+    assert summary["chunks_done"] == 0
 
 
 def test_npy_input_without_components(tmp_path):

@@ -45,9 +45,10 @@ def add_arguments(parser) -> None:
                              "default; pixels with more are flagged TRUNCATED)")
     parser.add_argument("--no-components", action="store_true",
                         help="store parameters and fit quality only, not the component cubes")
-    parser.add_argument("--nan-policy", choices=("mark", "error"), default="mark",
-                        help="pixels with NaN/inf samples: 'mark' leaves them undecomposed with valid=False "
-                             "(default); 'error' refuses the cube before any work")
+    parser.add_argument("--nan-policy", choices=("omit", "raise", "mark", "error"), default="omit",
+                        help="pixels with NaN/inf samples: 'omit' leaves them undecomposed with valid=False "
+                             "(default); 'raise' refuses the cube before any work ('mark' and 'error' are "
+                             "the same two)")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="solver option (repeatable); VALUE is read as JSON if it parses, else as a string")
     parser.add_argument("--time-bin-ps", type=float, default=None, help="time bin of a .npy input (ps)")
