@@ -28,8 +28,9 @@ import numpy as np
 from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
 from .jit import njit, sss_value
 from .masks import SampleMask, check_mask
+from .onsets import onset_link
 
-__all__ = ["lm_refine", "atom_profiles", "onset_link", "onset_links"]
+__all__ = ["lm_refine", "atom_profiles"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
@@ -166,50 +167,6 @@ def _objective(L, K, p, fit, cens, model, fam, amp, pen, mu, eps, r, jw):
         if fam[k] != FAM_NONE:
             pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
     return 0.5 * ss + mu * pensum
-
-
-@njit
-def onset_link(K, fam, delay, lsig, near_sigma):
-    """The onset-tie rule, for one pixel: (linked, direct slot, sss slot).
-
-    The direct is the earliest Gaussian (the first of equal delays), the sss slot the first
-    sss atom.  Linked: the pixel has both, and the direct lies less than ``near_sigma`` PSF
-    widths (the sss atom's) after the sss onset.  Slots default to 0 where absent.
-    """
-    dsl = 0
-    first = np.inf
-    ssl = -1
-    for k in range(K):
-        if fam[k] == FAM_GAUSS and delay[k] < first:
-            first = delay[k]
-            dsl = k
-        if fam[k] == FAM_SSS and ssl < 0:
-            ssl = k
-    linked = ssl >= 0 and first < np.inf and first - delay[ssl] < near_sigma * math.exp(lsig[ssl])
-    if ssl < 0:
-        ssl = 0
-    return linked, dsl, ssl
-
-
-@njit
-def _onset_link_rows(fam, delay, lsig, near_sigma, linked, dsl, ssl):
-    K = fam.shape[1]
-    for i in range(fam.shape[0]):
-        linked[i], dsl[i], ssl[i] = onset_link(K, fam[i], delay[i], lsig[i], near_sigma)
-
-
-def onset_links(fam, delay_ps, lsig, near_sigma=NEAR_SIGMA):
-    """:func:`onset_link` for every row of (P, K) slot arrays -> (linked (P,) bool, direct slot (P,),
-    sss slot (P,))."""
-    fam = np.ascontiguousarray(fam, dtype=np.int8)
-    P = fam.shape[0]
-    linked = np.zeros(P, np.bool_)
-    dsl = np.zeros(P, np.int64)
-    ssl = np.zeros(P, np.int64)
-    if P:
-        _onset_link_rows(fam, np.ascontiguousarray(delay_ps, dtype=np.float64),
-                         np.ascontiguousarray(lsig, dtype=np.float64), float(near_sigma), linked, dsl, ssl)
-    return linked, dsl, ssl
 
 
 @njit

@@ -15,9 +15,10 @@ import math
 
 import numpy as np
 
-from .atomlm import atom_profiles, lm_refine, onset_links
+from .atomlm import atom_profiles, lm_refine
 from .constants import FAM_NONE, NEAR_SIGMA
 from .masks import SampleMask
+from .onsets import onset_links
 
 __all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of"]
@@ -69,7 +70,7 @@ def linked_onsets(st, near_sigma=None):
     """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
 
     Returns (linked (P,), direct slot (P,), sss slot (P,)); the rule is
-    :func:`decomposition.atomlm.onset_link` (the one the compiled refinement applies), with
+    :func:`decomposition.onsets.onset_link` (the one the compiled refinement applies), with
     ``near_sigma`` PSF widths (default :data:`~decomposition.constants.NEAR_SIGMA`).
     """
     return onset_links(st["fam"], st["delay"], st["lsig"], NEAR_SIGMA if near_sigma is None else near_sigma)

@@ -5,6 +5,7 @@ import pytest
 from decomposition import atomlm
 from decomposition import convscd as cs
 from decomposition.masks import SampleMask
+from decomposition.onsets import onset_links
 from decomposition.slots import new_state, parameter_bounds, render
 from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 
@@ -200,7 +201,7 @@ def test_onset_tie_rule_has_one_home_and_reads_as_stated():
     delay = rng.uniform(0.0, 60.0, (P, K))
     delay[::7, 1] = delay[::7, 0]                          # equal delays: the first slot is the direct
     lsig = np.log(rng.uniform(1.0, 6.0, (P, K)))
-    linked, dsl, ssl = atomlm.onset_links(fam, delay, lsig)
+    linked, dsl, ssl = onset_links(fam, delay, lsig)
     for i in range(P):
         g = [k for k in range(K) if fam[i, k] == cs.FAM_GAUSS]
         s = [k for k in range(K) if fam[i, k] == cs.FAM_SSS]
@@ -209,5 +210,5 @@ def test_onset_tie_rule_has_one_home_and_reads_as_stated():
         want = bool(g and s and delay[i, d] - delay[i, sk] < 3.0 * np.exp(lsig[i, sk]))
         assert (linked[i], dsl[i], ssl[i]) == (want, d, sk), i
     assert linked.any() and not linked.all()
-    far, _, _ = atomlm.onset_links(fam, delay, lsig, near_sigma=np.inf)   # the polish's retry: any onset
+    far, _, _ = onset_links(fam, delay, lsig, near_sigma=np.inf)   # the polish's retry: any onset
     assert np.array_equal(far, (fam == cs.FAM_GAUSS).any(1) & (fam == cs.FAM_SSS).any(1))
