@@ -38,6 +38,7 @@ import numpy as np
 import zarr
 
 from acquisition.durable import sync_chunk
+from reconstruction.cubestore import OutputPathError, check_output_path
 from reconstruction.staging import staged_output
 
 __all__ = [
@@ -91,24 +92,19 @@ def _units_for(key: str, signal_units: str) -> str:
 
 
 def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
-    """Check that a new store may be written at ``path`` (nothing is removed here).
+    """Check that a new result store may be written at ``path`` (nothing is removed here).
 
-    An absent or empty path is fine; anything else needs ``overwrite`` (the old content is
-    replaced only once the new store is complete).  A path in ``protect`` (or one containing
-    it, e.g. the input cube) is refused even with ``overwrite``.
+    The rule is :func:`reconstruction.cubestore.check_output_path`: an absent or empty path is
+    fine; anything else needs ``overwrite`` and may then only be a result store (or no store at
+    all); a path in ``protect`` (the input), inside it or containing it is always refused.
     """
-    p = Path(path).resolve()
-    for q in protect:
-        q = Path(q).resolve()
-        if p == q or p in q.parents:
-            raise ResultStoreError(f"refusing to write the result to {path}: it holds the input {q}")
-    if not p.exists() and not p.is_symlink():
-        return
-    if p.is_dir() and not any(p.iterdir()):
-        return
-    if not overwrite:
+    try:
+        check_output_path(path, overwrite=overwrite, inputs=protect, kind=RESULT_KIND)
+    except OutputPathError as exc:
+        raise ResultStoreError(str(exc)) from None
+    except FileExistsError:
         raise FileExistsError(f"{path} already exists; pass --overwrite to replace it "
-                              f"(or --resume to continue a run into it)")
+                              f"(or --resume to continue a run into it)") from None
 
 
 @dataclass
@@ -276,7 +272,7 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     if reserved & set(all_keys):
         raise ResultStoreError(f"parameter names clash with store arrays: {sorted(reserved & set(all_keys))}")
     prepare_output_path(path, overwrite=overwrite, protect=protect)
-    with staged_output(path, overwrite=True) as tmp:  # complete before it appears at ``path``
+    with staged_output(path, overwrite=True, inputs=protect, kind=RESULT_KIND) as tmp:  # complete before it appears at ``path``
         _write_skeleton(tmp, shape=(ny, nx, nt), chunks=(by, bx), n_ir=n_ir, time_bin_ps=time_bin_ps,
                         t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
                         signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs)

@@ -26,7 +26,7 @@ from acquisition.config import check_calibration
 from acquisition.runstore import open_run
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
-from .cubestore import check_output_path, create_cube, open_cube
+from .cubestore import CUBE_KIND, check_output_path, create_cube, open_cube
 from .staging import staged_output
 
 __all__ = ["ReconstructionError", "reconstruct"]
@@ -77,7 +77,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     out = Path(out_path)
     if out.resolve() == Path(run.path).resolve():
         raise ReconstructionError(f"--out {out_path} is the run store itself; choose another path")
-    check_output_path(out, overwrite=overwrite)
+    inputs = [run.path] + ([flat_path] if flat_path is not None else [])
+    check_output_path(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND)
 
     cfg = run.config
     nx, n_rows = run.image_shape
@@ -134,7 +135,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
     }
 
-    with staged_output(out, overwrite=overwrite) as tmp:
+    with staged_output(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND) as tmp:
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
         g = cube.group

@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 import zarr
 
-from .cubestore import CubeStoreError, create_cube, open_cube
+from .cubestore import CUBE_KIND, CubeStoreError, create_cube, open_cube
 from .staging import staged_output
 
 __all__ = ["NexusError", "export_cube", "import_cube"]
@@ -132,7 +132,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
     if clash:
         raise NexusError(f"{cube_path}: a sub-group named {clash[0]!r} collides with the NeXus layout")
     out = Path(out_path)
-    with staged_output(out, overwrite=overwrite) as tmp:
+    with staged_output(out, overwrite=overwrite, inputs=[cube_path], kind="hdf5") as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["NX_class"] = "NXroot"
             f.attrs["default"] = "entry"
@@ -250,7 +250,7 @@ def import_cube(h5_path, out_path, *, overwrite: bool = False) -> Path:
         f = h5py.File(p, "r")
     except OSError as exc:
         raise NexusError(f"{h5_path} is not an HDF5 file: {exc}") from None
-    with f, staged_output(out_path, overwrite=overwrite) as tmp:
+    with f, staged_output(out_path, overwrite=overwrite, inputs=[h5_path], kind=CUBE_KIND) as tmp:
         entry, data = _find_nxdata(f, h5_path)
         if META in data.attrs:
             meta = json.loads(data.attrs[META])

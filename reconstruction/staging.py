@@ -20,16 +20,17 @@ def _remove(p: Path) -> None:
 
 
 @contextmanager
-def staged_output(out, *, overwrite: bool = False):
+def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None = None):
     """Yield a temporary path beside ``out``; on success move it to ``out``.
 
-    ``out`` is checked first (an existing non-empty path needs ``overwrite``).  The
+    ``out`` is checked first by :func:`~reconstruction.cubestore.check_output_path` (an existing
+    non-empty path needs ``overwrite``; never an input; never a store of another ``kind``).  The
     caller writes a directory store or a file at the yielded path.  If the body raises,
     the temporary is removed and ``out`` is untouched; otherwise an existing ``out``
     is replaced only once the new one is complete.
     """
     out = Path(out).resolve()
-    check_output_path(out, overwrite=overwrite)
+    check_output_path(out, overwrite=overwrite, inputs=inputs, kind=kind)
     tmp = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
     try:
         yield tmp

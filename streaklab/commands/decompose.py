@@ -270,7 +270,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     existing = None
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+        from decomposition.resultstore import prepare_output_path
+
         try:
+            prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
             existing = open_result_store(out_path, mode="r+")
         except ResultStoreError as exc:
             raise CommandError(f"cannot resume: {exc}") from None
@@ -297,12 +300,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         from decomposition.resultstore import prepare_output_path
 
         try:  # refuse an occupied path before spending time on checks
-            prepare_output_path(out_path, overwrite=False, protect=[source["path"]])
-        except FileExistsError:
-            if not overwrite:
-                raise CommandError(f"{out_path} already exists; pass --overwrite to replace it "
-                                   f"(or --resume to continue a run into it)") from None
-        except ResultStoreError as exc:
+            prepare_output_path(out_path, overwrite=overwrite, protect=[source["path"]])
+        except (FileExistsError, ResultStoreError) as exc:
             raise CommandError(str(exc)) from None
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,

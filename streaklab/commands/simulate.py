@@ -85,7 +85,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     if chunks is None:
         chunks = (min(ny, 16), min(nx, 64))
     by, bx = min(int(chunks[0]), ny), min(int(chunks[1]), nx)
-    with staged_output(path, overwrite=overwrite) as tmp:
+    with staged_output(path, overwrite=overwrite, kind="cube") as tmp:
         write_cube(tmp, data.noisy, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps, chunks=(by, bx),
                    units=SIGNAL_UNITS, provenance=provenance)
         root = zarr.open_group(str(tmp), mode="r+")
