@@ -170,7 +170,11 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     """Create an empty run store laid out for ``config`` and images of ``image_shape`` = (x, t).
 
     The path must not exist or be an empty directory (resuming goes through :func:`open_run`).
+    The store is built beside ``path`` and renamed into place once every array exists, so a
+    killed creation never leaves a half store at ``path``.
     """
+    from reconstruction.staging import staged_output
+
     from streaklab import __version__
 
     p = Path(path)
@@ -182,8 +186,18 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     n_lines = config.n_lines
     n_frames = int(config["camera"]["frames_per_line"])
     n_dark = int(config["dark"]["frames"])
+    with staged_output(p, kind=RUN_KIND) as tmp:
+        _write_skeleton(tmp, config, n_lines=n_lines, n_frames=n_frames, n_dark=n_dark, nx=nx, nt=nt,
+                        devices=devices, software_version=software_version or __version__)
+    fsync_path(p.parent)
+    return open_run(p, mode="r+")
+
+
+def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, nx, nt, devices,
+                    software_version) -> None:
     g = zarr.open_group(str(p), mode="w")
-    # Marked uninitialised until every array exists: a store killed during creation is recreated on resume.
+    # Marked uninitialised until every array exists (earlier releases built the store in place, and
+    # --resume recreates a store they left so marked).
     g.attrs.update({"streaklab_kind": RUN_KIND, "initialised": False})
     g.create_array("streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
                    fill_value=0, dimension_names=["line", "frame", "x", "t"],
@@ -209,7 +223,7 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
         "config": config.data,
         "config_hash": config.hash,
         "config_source": config.source,
-        "software_version": software_version or __version__,
+        "software_version": software_version,
         "devices": dict(devices or {}),
         "created_utc": _utc_now(),
         "sessions": [],
@@ -219,7 +233,6 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
         fsync_path(p / name / "zarr.json")
     fsync_path(p / "zarr.json")
     fsync_path(p)
-    return open_run(p, mode="r+")
 
 
 def _remove_partials(path: Path) -> int:
@@ -233,12 +246,14 @@ def _remove_partials(path: Path) -> int:
 def is_uninitialised_run(path) -> bool:
     """True for a run store whose creation was interrupted (no line can be in it).
 
-    That is a run group still marked ``initialised = False``, or a directory holding
-    nothing but ``*.partial`` files (killed before the group's metadata was in place).
+    That is only a group that streaklab itself marked as a run still being created
+    (``streaklab_kind = "run"``, ``initialised = False``; earlier releases created the store
+    in place).  Nothing else is ever taken for one, whatever files it holds: a folder of
+    ``*.partial`` files may be anybody's.
     """
     p = Path(path)
-    if p.is_dir() and not (p / "zarr.json").exists():
-        return all(f.name.endswith(".partial") for f in p.rglob("*") if f.is_file())
+    if not (p / "zarr.json").is_file():
+        return False
     try:
         g = zarr.open_group(str(path), mode="r")
     except Exception:
@@ -268,6 +283,10 @@ def open_run(path, *, mode: str = "r") -> RunStore:
     p = Path(path)
     if not p.exists():
         raise RunStoreError(f"{path}: no such file or directory")
+    if p.is_dir() and not (p / "zarr.json").exists():
+        raise RunStoreError(f"{path} is not a Zarr group (it has no zarr.json); streaklab did not create it as "
+                            f"a run store, so it neither resumes nor removes it: choose another --out, or remove "
+                            f"it yourself")
     try:
         g = zarr.open_group(str(p), mode=mode)
     except Exception as exc:

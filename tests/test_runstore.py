@@ -88,10 +88,13 @@ def test_config_differences_lists_keys():
 def test_interrupted_creation_is_recognised(tmp_path):
     from acquisition.runstore import is_uninitialised_run, remove_uninitialised_run
 
-    torn = tmp_path / "torn.zarr"
+    torn = tmp_path / "torn.zarr"            # not marked by streaklab: never taken for a torn run
     torn.mkdir()
     (torn / "zarr.json.1234.partial").write_text("{")
-    assert is_uninitialised_run(torn)
+    assert not is_uninitialised_run(torn)
+    with pytest.raises(RunStoreError, match="no zarr.json.*neither resumes nor removes it"):
+        open_run(torn, mode="r+")
+    assert (torn / "zarr.json.1234.partial").exists()
     g = zarr.open_group(str(tmp_path / "half.zarr"), mode="w")
     g.attrs.update({"streaklab_kind": "run", "initialised": False})
     assert is_uninitialised_run(tmp_path / "half.zarr")
