@@ -311,5 +311,11 @@ def open_run(path, *, mode: str = "r") -> RunStore:
         raise RunStoreError(f"{path}: {s.shape[0]} lines in streaks, {g['done'].shape} done flags, "
                             f"{config.n_lines} lines in the stored config")
     if mode != "r":
+        from reconstruction.cubestore import OutputPathError, check_no_links
+
+        try:
+            check_no_links(p)
+        except OutputPathError as exc:
+            raise RunStoreError(str(exc)) from None
         _remove_partials(p)
     return RunStore(str(p), g, config)

@@ -38,7 +38,7 @@ import numpy as np
 import zarr
 
 from acquisition.durable import sync_chunk
-from reconstruction.cubestore import OutputPathError, check_output_path
+from reconstruction.cubestore import OutputPathError, check_no_links, check_output_path
 from reconstruction.staging import staged_output
 
 __all__ = [
@@ -343,15 +343,22 @@ def _from_group(path: str, g: zarr.Group) -> ResultStore:
                        write_components=bool(a["write_components"]), attrs=a)
 
 
-def open_result_store(path, *, mode: str = "r") -> ResultStore:
+def open_result_store(path, *, mode: str = "r", check_links: bool = True) -> ResultStore:
     """Open and validate a result store; raises :class:`ResultStoreError` naming what is wrong.
 
-    ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes).
+    ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes); ``r+`` refuses a store with a
+    symbolic link inside (see :func:`reconstruction.cubestore.check_no_links`) unless
+    ``check_links`` is False (the per-chunk writers of a run whose store was checked on opening).
     """
     if mode not in ("r", "r+"):
         raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
     if not os.path.exists(path):
         raise ResultStoreError(f"{path}: no such file or directory")
+    if mode == "r+" and check_links:
+        try:
+            check_no_links(path)
+        except OutputPathError as exc:
+            raise ResultStoreError(str(exc)) from None
     try:
         g = zarr.open_group(str(path), mode=mode)
     except Exception as exc:  # zarr raises several types for "not a group"
@@ -383,4 +390,4 @@ class ChunkWriter:
     path: str
 
     def __call__(self, iy: int, ix: int, result: dict) -> None:
-        open_result_store(self.path, mode="r+").write_chunk(iy, ix, result)
+        open_result_store(self.path, mode="r+", check_links=False).write_chunk(iy, ix, result)

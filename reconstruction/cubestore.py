@@ -23,7 +23,7 @@ import numpy as np
 import zarr
 
 __all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path",
-           "OutputPathError", "describe_existing"]
+           "OutputPathError", "describe_existing", "check_no_links"]
 
 CUBE_KIND = "cube"
 
@@ -133,6 +133,22 @@ def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | N
     raise OutputPathError(f"refusing to replace {path}: it is {what}, and --overwrite replaces only "
                           f"{'an HDF5 file' if kind == 'hdf5' else f'a {kind} store'}; remove it yourself if "
                           f"you mean to, or choose another path")
+
+
+def check_no_links(store) -> None:
+    """Refuse to write into a store holding a symbolic link anywhere below its root.
+
+    Writes (resuming a run or a decomposition, repairing) go through the store's own paths;
+    a link inside (``res.zarr/direct/c -> elsewhere``) would send them outside the store.
+    The root itself may be a link: it is the path the user named.
+    """
+    root = Path(store)
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            q = Path(dirpath) / name
+            if q.is_symlink():
+                raise OutputPathError(f"{q} is a symbolic link inside the store {store} (to {os.readlink(q)}); "
+                                      f"refusing to write through it: replace the link by the data, or copy the store")
 
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",

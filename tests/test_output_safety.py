@@ -79,3 +79,34 @@ def test_check_output_path_rule(tmp_path):
         check_output_path(tmp_path / "notes", kind="cube")
     check_output_path(tmp_path / "in.zarr", overwrite=True, kind="cube")
     check_output_path(tmp_path / "notes", overwrite=True, kind="cube")        # no store: replaceable
+
+
+def test_resume_refuses_a_store_with_a_link_inside(tmp_path, capsys):
+    from streaklab.commands.decompose import decompose_to_store
+
+    write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=1), time_bin_ps=TB, chunks=(1, 3))
+    res = tmp_path / "res.zarr"
+    decompose_to_store(tmp_path / "cube.zarr", res, progress=False)
+    g = zarr.open_group(str(res), mode="r+")
+    g["done"][...] = False                                  # as if killed before any chunk
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    import shutil
+
+    shutil.rmtree(res / "direct" / "c")
+    (res / "direct" / "c").symlink_to(elsewhere, target_is_directory=True)
+    assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(res), "--resume", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "direct/c is a symbolic link inside the store" in err and "refusing to write through it" in err
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_capture_resume_refuses_a_run_store_with_a_link_inside(tmp_path):
+    from acquisition.runstore import RunStoreError, open_run
+
+    run = make_run(tmp_path / "run.zarr")
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "run.zarr" / "streaks" / "c" / "9").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    open_run(run.path)                                     # reading is fine
+    with pytest.raises(RunStoreError, match="streaks/c/9 is a symbolic link inside the store"):
+        open_run(run.path, mode="r+")
