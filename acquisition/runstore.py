@@ -36,6 +36,8 @@ import zarr
 
 from .config import ConfigError, ScanConfig, parse_config
 from .durable import fsync_path, sync_chunk
+from .integrity import (ChunkDamage, create_array, has_checksums, missing_chunks, read_checked, scan_array,
+                        writable)
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
@@ -83,7 +85,7 @@ class RunStore:
 
     def __getitem__(self, name) -> zarr.Array:
         if name not in self._arrays:
-            self._arrays[name] = self.group[name]
+            self._arrays[name] = writable(self.group[name])
         return self._arrays[name]
 
     @property
@@ -109,10 +111,40 @@ class RunStore:
 
     def done_mask(self) -> np.ndarray:
         """Per-line done flags, shape (line,), bool."""
-        return np.asarray(self["done"][...], dtype=bool)
+        return np.asarray(read_checked(self["done"], slice(None), store=self.path), dtype=bool)
 
     def dark_done(self) -> bool:
-        return bool(self["dark_done"][...])
+        return bool(read_checked(self["dark_done"], (), store=self.path))
+
+    # -- integrity -------------------------------------------------------------------------
+    def absent_chunks(self) -> list[ChunkDamage]:
+        """Chunks the store says were written (lines marked done, the dark frames) whose files are gone.
+
+        Only a stat per chunk; arrays of earlier releases (no checksums) are not judged.
+        """
+        done = [int(i) for i in np.flatnonzero(self.done_mask())]
+        out = []
+        for name in ("streaks", "angle_deg", "timestamp"):
+            arr = self[name]
+            for coords in missing_chunks(self.path, arr, [(i,) + (0,) * (arr.ndim - 1) for i in done]):
+                out.append(ChunkDamage(name, coords, "missing"))
+        if self.dark_done() and self["dark"].shape[0]:
+            out.extend(ChunkDamage("dark", c, "missing") for c in missing_chunks(self.path, self["dark"], [(0, 0, 0)]))
+        return out
+
+    def verify(self) -> "RunCheck":
+        """Read every chunk the store says holds data; see :class:`RunCheck`."""
+        return verify_run(self)
+
+    def mark_lines_not_done(self, lines) -> None:
+        """Clear the done flag of ``lines`` (durably), so ``capture --resume`` takes them again."""
+        for line in lines:
+            self["done"][int(line)] = False
+            self._sync_chunk("done", (int(line),))
+
+    def mark_dark_not_done(self) -> None:
+        self["dark_done"][...] = False
+        self._sync_chunk("dark_done", ())
 
     # -- writing ---------------------------------------------------------------------------
     def _sync_chunk(self, name: str, coords: tuple[int, ...]) -> None:
@@ -165,6 +197,77 @@ class RunStore:
         self.group.attrs["sessions"] = sessions
 
 
+@dataclass
+class RunCheck:
+    """What :func:`verify_run` found.
+
+    Attributes
+    ----------
+    checksums : bool
+        The data arrays carry crc32c checksums (False for stores of earlier releases, where
+        only undecodable chunks can be found, not changed bytes).
+    lines : dict line -> list of ChunkDamage
+        Lines marked done with a damaged chunk (``streaks``, ``angle_deg``, ``timestamp`` or
+        the line's ``done`` flag itself).
+    dark : list of ChunkDamage
+        Damage to the dark frames (or their flag).
+    other : list of ChunkDamage
+        Damage that a recapture does not mend (``target_angle_deg``, coordinates).
+    """
+
+    checksums: bool
+    lines: dict
+    dark: list
+    other: list
+
+    @property
+    def ok(self) -> bool:
+        return not (self.lines or self.dark or self.other)
+
+
+def verify_run(run: RunStore) -> RunCheck:
+    """Read every chunk of ``run`` that should hold data and report the damaged ones by line."""
+    path = run.path
+    lines: dict[int, list] = {}
+    n = run.n_lines
+    done_arr = run["done"]
+    done = np.zeros(n, bool)
+    for line in range(n):                                   # the flags one by one: one may be damaged itself
+        bad = list(scan_array(path, done_arr, [(line,)], must_exist=lambda c: False))
+        if bad:
+            lines.setdefault(line, []).extend(bad)
+        else:
+            done[line] = bool(done_arr[line])
+    ok_lines = [(int(i),) for i in np.flatnonzero(done)]
+    for name in ("streaks", "angle_deg", "timestamp"):
+        arr = run[name]
+        for d in scan_array(path, arr, [c + (0,) * (arr.ndim - 1) for c in ok_lines]):
+            lines.setdefault(d.coords[0], []).append(d)
+    dark = list(scan_array(path, run["dark_done"], must_exist=lambda c: False))
+    if not dark and run.dark_done():
+        dark = list(scan_array(path, run["dark"]))
+    other = []
+    for name in sorted(run.group.array_keys()):
+        if name not in LINE_ARRAYS + ("dark", "dark_done"):
+            other.extend(scan_array(path, run[name]))
+    return RunCheck(checksums=has_checksums(run["streaks"]), lines=dict(sorted(lines.items())), dark=dark,
+                    other=other)
+
+
+def describe_absent(run: RunStore, absent: list[ChunkDamage]) -> str:
+    """One line: which lines (and dark frames) are marked done but lack their chunks, and the fix."""
+    lines = sorted({d.coords[0] for d in absent if d.array != "dark"})
+    parts = []
+    if lines:
+        shown = ", ".join(map(str, lines[:10])) + (f", ... ({len(lines)} in all)" if len(lines) > 10 else "")
+        parts.append(f"line{'s' if len(lines) > 1 else ''} {shown} {'are' if len(lines) > 1 else 'is'} marked done "
+                     f"but {', '.join(sorted({d.array for d in absent if d.array != 'dark'}))} chunks are missing")
+    if any(d.array == "dark" for d in absent):
+        parts.append("the dark frames are marked done but their chunk is missing")
+    return (f"{run.path}: {'; '.join(parts)}; run 'streaklab verify {run.path} --mark-for-resume', then "
+            f"'streaklab capture ... --resume' to recapture just those")
+
+
 def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], devices: dict | None = None,
                software_version: str | None = None) -> RunStore:
     """Create an empty run store laid out for ``config`` and images of ``image_shape`` = (x, t).
@@ -199,24 +302,24 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
     # Marked uninitialised until every array exists (earlier releases built the store in place, and
     # --resume recreates a store they left so marked).
     g.attrs.update({"streaklab_kind": RUN_KIND, "initialised": False})
-    g.create_array("streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
+    create_array(g, "streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
                    fill_value=0, dimension_names=["line", "frame", "x", "t"],
                    attributes={"units": "counts", "long_name": "streak images as acquired (t = streak pixel row)"})
-    g.create_array("done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
+    create_array(g, "done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
                    dimension_names=["line"], attributes={"long_name": "line acquired and on disk"})
-    g.create_array("angle_deg", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
+    create_array(g, "angle_deg", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
                    dimension_names=["line"], attributes={"units": "deg", "long_name": "mirror angle reached"})
-    g.create_array("timestamp", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
+    create_array(g, "timestamp", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
                    dimension_names=["line"],
                    attributes={"units": "seconds since 1970-01-01", "calendar": "proleptic_gregorian",
                                "long_name": "end of the line's acquisition (UTC)"})
-    target = g.create_array("target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
+    target = create_array(g, "target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
                             attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
     target[:] = config.angles_deg
-    g.create_array("dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
+    create_array(g, "dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
                    dimension_names=["dark_frame", "x", "t"],
                    attributes={"units": "counts", "long_name": "dark frames (sync output off)"})
-    g.create_array("dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
+    create_array(g, "dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
                    attributes={"long_name": "dark frames on disk"})
     g.attrs.update({
         "streaklab_kind": RUN_KIND,

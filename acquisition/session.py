@@ -31,8 +31,8 @@ import numpy as np
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
 from .config import ConfigError, ScanConfig, check_calibration
-from .runstore import (RunStore, RunStoreError, config_differences, create_run, is_uninitialised_run, open_run,
-                       remove_uninitialised_run)
+from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
+                       is_uninitialised_run, open_run, remove_uninitialised_run)
 
 __all__ = ["CaptureError", "CaptureFailed", "SessionResult", "CaptureSession", "RETRYABLE"]
 
@@ -234,6 +234,9 @@ class CaptureSession:
                     f"cannot resume {out}: it was captured with a different configuration "
                     f"({'; '.join(diffs) or 'hash differs'}). Resume with the original configuration, "
                     f"or start a new run with another --out")
+            absent = store.absent_chunks()
+            if absent:
+                raise CaptureError(f"cannot resume: {describe_absent(store, absent)}")
             self.store = store
             if not store.dark_done():
                 dark, shape = self._take_dark()

@@ -38,6 +38,8 @@ import numpy as np
 import zarr
 
 from acquisition.durable import sync_chunk
+from acquisition.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks, read_checked,
+                                   scan_array, writable)
 from reconstruction.cubestore import OutputPathError, check_no_links, check_output_path
 from reconstruction.staging import staged_output
 
@@ -108,6 +110,21 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
 
 
 @dataclass
+class ResultCheck:
+    """What :meth:`ResultStore.verify` found: ``checksums`` (False for stores of earlier releases),
+    ``chunks`` (pixel chunk (iy, ix) -> list of ChunkDamage, for chunks marked done or whose
+    ``done`` flags are damaged) and ``other`` (damaged coordinate arrays)."""
+
+    checksums: bool
+    chunks: dict
+    other: list
+
+    @property
+    def ok(self) -> bool:
+        return not (self.chunks or self.other)
+
+
+@dataclass
 class ResultStore:
     """An opened result store.
 
@@ -149,7 +166,72 @@ class ResultStore:
 
     def done_mask(self) -> np.ndarray:
         """(ny, nx) bool: pixels whose chunk is completely written."""
-        return np.asarray(self.group["done"][...], dtype=bool)
+        return np.asarray(read_checked(self.group["done"], slice(None), store=self.path), dtype=bool)
+
+    # ----- integrity ---------------------------------------------------------------------------
+    def pixel_arrays(self) -> list[str]:
+        """Arrays chunked on the pixel grid (everything but the coordinates)."""
+        names = list(self.param_keys) + list(_QUALITY) + ["done"]
+        return names + (list(COMPONENT_NAMES) if self.write_components else [])
+
+    def _chunk_coords(self, name: str, iy: int, ix: int) -> tuple:
+        return (iy, ix) + (0,) * (self.group[name].ndim - 2)
+
+    def absent_chunks(self) -> list[ChunkDamage]:
+        """Chunk files missing where ``done`` says the chunk is written (a stat each)."""
+        done = [(int(a), int(b)) for a, b in np.argwhere(self.done_chunks())]
+        out = []
+        for name in self.pixel_arrays():
+            if name == "done":
+                continue
+            arr = self.group[name]
+            out.extend(ChunkDamage(name, c, "missing")
+                       for c in missing_chunks(self.path, arr, [self._chunk_coords(name, *ij) for ij in done]))
+        return out
+
+    def check_done_chunks_present(self) -> None:
+        """Raise :class:`DataIntegrityError` naming the chunks marked done whose files are missing."""
+        absent = self.absent_chunks()
+        if not absent:
+            return
+        where = sorted({d.coords[:2] for d in absent})
+        shown = ", ".join(f"({iy}, {ix})" for iy, ix in where[:10]) + (f", ... ({len(where)} in all)"
+                                                                       if len(where) > 10 else "")
+        raise DataIntegrityError(
+            f"{self.path}: pixel chunk{'s' if len(where) > 1 else ''} {shown} {'are' if len(where) > 1 else 'is'} "
+            f"marked done but {', '.join(sorted({d.array for d in absent}))} chunk files are missing; run "
+            f"'streaklab verify {self.path} --mark-for-resume', then 'streaklab decompose ... --resume' to "
+            f"recompute just those")
+
+    def verify(self) -> "ResultCheck":
+        """Read every chunk marked done; damage is reported per pixel chunk (see :class:`ResultCheck`)."""
+        g, path = self.group, self.path
+        gy, gx = self.grid
+        chunks: dict[tuple, list] = {}
+        done_arr = g["done"]
+        done = []
+        for ij in np.ndindex(gy, gx):
+            bad = list(scan_array(path, done_arr, [ij], must_exist=lambda c: False))
+            if bad:
+                chunks.setdefault(ij, []).extend(bad)
+            elif done_arr[self.chunk_slices(*ij)].all():
+                done.append(ij)
+        for name in self.pixel_arrays():
+            if name == "done":
+                continue
+            arr = g[name]
+            for d in scan_array(path, arr, [self._chunk_coords(name, *ij) for ij in done]):
+                chunks.setdefault(d.coords[:2], []).append(d)
+        other = [d for name in ("t", "y", "x", "r") for d in scan_array(path, g[name])]
+        return ResultCheck(checksums=has_checksums(done_arr), chunks=dict(sorted(chunks.items())), other=other)
+
+    def mark_chunks_not_done(self, chunks) -> None:
+        """Clear ``done`` over the given pixel chunks (durably) so ``decompose --resume`` recomputes them."""
+        done = writable(self.group["done"])
+        for iy, ix in chunks:
+            ys, xs = self.chunk_slices(int(iy), int(ix))
+            done[ys, xs] = np.zeros((ys.stop - ys.start, xs.stop - xs.start), dtype=bool)
+            sync_chunk(self.path, "done", (int(iy), int(ix)))
 
     def done_chunks(self) -> np.ndarray:
         """(gy, gx) bool: chunks completely written."""
@@ -213,12 +295,12 @@ class ResultStore:
             if value.shape != shape:
                 raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
         for k, value, _ in writes:
-            g[k][ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
+            writable(g[k])[ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
         # whose data never reached the disk (resume would skip it)
         for k, _, shape in writes:
             sync_chunk(self.path, k, (iy, ix) + (0,) * (len(shape) - 2))
-        g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
+        writable(g["done"])[ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
         sync_chunk(self.path, "done", (iy, ix))
 
     # ----- reads -------------------------------------------------------------------------------
@@ -303,7 +385,7 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
         a = {"long_name": _LONG_NAMES.get(name, name)}
         if units is not None:
             a["units"] = units
-        return g.create_array(name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
+        return create_array(g, name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
                               fill_value=fill, attributes=a)
 
     for k in map_keys:

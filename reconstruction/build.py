@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.config import check_calibration
-from acquisition.runstore import open_run
+from acquisition.integrity import create_array, read_checked
+from acquisition.runstore import describe_absent, open_run
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
 from .cubestore import CUBE_KIND, check_output_path, create_cube, open_cube
@@ -102,13 +103,16 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             f"finish the run with 'streaklab capture --resume', or pass --allow-partial to fill them with NaN")
     if not run.dark_done():
         raise ReconstructionError(f"{run.path}: the dark frames were never recorded; the run is damaged")
-    dark = dark_image(run["dark"][...], (nx, n_rows))
+    absent = run.absent_chunks()
+    if absent:
+        raise ReconstructionError(describe_absent(run, absent))
+    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
     flat, flat_sha = (None, None)
     if flat_path is not None:
         flat, flat_sha = load_flat(flat_path, (nx, n_rows))
 
-    target = np.asarray(run["target_angle_deg"][...], dtype=np.float64)
-    reached = np.asarray(run["angle_deg"][...], dtype=np.float64)
+    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
+    reached = np.asarray(read_checked(run["angle_deg"], slice(None), store=run.path), dtype=np.float64)
     order = np.argsort(target, kind="stable")                       # y -> run line
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     provenance = {
@@ -139,11 +143,11 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
         g = cube.group
-        g.create_array("line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
+        create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
                        attributes={"long_name": "run line filling this y"})[:] = order
-        g.create_array("line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
+        create_array(g, "line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
                        attributes={"long_name": "line acquired (False: unfinished, cube is NaN)"})[:] = done[order]
-        g.create_array("angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
+        create_array(g, "angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
                        attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
         by = cube.array.chunks[0]
         streaks = run["streaks"]
@@ -152,7 +156,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             block = np.full((ys.size, nx, n_bins), np.nan, dtype=np.float32)
             ok = done[ys]
             if ok.any():
-                raw = np.stack([streaks[int(i)] for i in ys[ok]])            # (b, frame, x, rows) uint16
+                raw = np.stack([read_checked(streaks, int(i), store=run.path)
+                                for i in ys[ok]])                             # (b, frame, x, rows) uint16
                 corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
                 block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
                                              t0_ps=t0_ps, n_bins=n_bins)

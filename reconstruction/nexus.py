@@ -29,6 +29,8 @@ import h5py
 import numpy as np
 import zarr
 
+from acquisition.integrity import create_array
+
 from .cubestore import CUBE_KIND, CubeStoreError, create_cube, open_cube
 from .staging import staged_output
 
@@ -181,7 +183,7 @@ def _restore_array(ds: h5py.Dataset, g: zarr.Group, name: str) -> None:
     shape = ds.shape
     chunks = tuple(meta["chunks"]) if shape else None
     kwargs = {"chunks": chunks} if chunks else {}
-    arr = g.create_array(name, shape=shape, dtype=ds.dtype, fill_value=_fill_value(meta["fill_value"], ds.dtype),
+    arr = create_array(g, name, shape=shape, dtype=ds.dtype, fill_value=_fill_value(meta["fill_value"], ds.dtype),
                          dimension_names=meta["dimension_names"], attributes=meta["attributes"], **kwargs)
     if not shape:
         arr[...] = ds[()]

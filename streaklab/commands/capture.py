@@ -29,6 +29,7 @@ def _resume_hint(args, out) -> str:
 
 def run(args) -> int:
     from acquisition.config import ConfigError, load_config
+    from acquisition.integrity import DataIntegrityError
     from acquisition.progress import Progress
     from acquisition.rig import run_capture
     from acquisition.session import CaptureError, CaptureFailed
@@ -89,7 +90,7 @@ def run(args) -> int:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
               f"  {_resume_hint(args, out)}", file=sys.stderr)
         return 130
-    except (CaptureError, ConfigError) as exc:
+    except (CaptureError, ConfigError, DataIntegrityError) as exc:
         raise CommandError(str(exc)) from None
     finally:
         if progress is not None:

@@ -179,7 +179,10 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         raise CommandError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise CommandError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    arr = da.from_zarr(cube.array)
+    from acquisition.integrity import CheckedReader
+
+    # read through the checksum check: a damaged chunk is named, not a traceback from a worker
+    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, fancy=False, asarray=True)
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
@@ -272,10 +275,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
         from decomposition.resultstore import prepare_output_path
 
+        from acquisition.integrity import DataIntegrityError
+
         try:
             prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
             existing = open_result_store(out_path, mode="r+")
-        except ResultStoreError as exc:
+            existing.check_done_chunks_present()
+        except (ResultStoreError, DataIntegrityError) as exc:
             raise CommandError(f"cannot resume: {exc}") from None
         if chunks is None:
             chunks = tuple(existing.chunks)
@@ -355,8 +361,15 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                 bar.update(summary)
 
         t_compute = time.perf_counter()
+        from acquisition.integrity import DataIntegrityError
+
         try:
             run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except DataIntegrityError as exc:
+            if bar is not None:
+                bar.close()
+            raise CommandError(f"{exc} (the chunks finished before it are in {out_path}; --resume continues "
+                               f"once the input is mended)") from None
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()

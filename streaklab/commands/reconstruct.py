@@ -19,6 +19,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from acquisition.config import ConfigError
+    from acquisition.integrity import DataIntegrityError
     from acquisition.runstore import RunStoreError
     from reconstruction.build import ReconstructionError, reconstruct
     from reconstruction.calibrate import CalibrationError
@@ -30,7 +31,7 @@ def run(args) -> int:
         cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
                            allow_partial=args.allow_partial, overwrite=args.overwrite)
     except (RunStoreError, ConfigError, CalibrationError, ReconstructionError, CubeStoreError,
-            FileExistsError) as exc:
+            FileExistsError, DataIntegrityError) as exc:
         raise CommandError(str(exc)) from None
     ny, nx, nt = cube.shape
     missing = cube.attrs["provenance"].get("lines_missing", [])
