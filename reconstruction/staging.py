@@ -1,15 +1,32 @@
-"""Write-then-rename for output stores and files: an error never leaves half an output or destroys an old one."""
+"""Write-then-rename for output stores and files: an error never leaves half an output or destroys an old one.
+
+While a command writes ``out``, three names beside it belong to it::
+
+    .OUT.partial-TOKEN          the new store or file being written
+    .OUT.old-TOKEN              the old ``out``, for the moment between the two renames and its removal
+    .OUT.staging-TOKEN.json     the marker: which process (host, pid, start time) owns the other two
+
+A process killed while it holds them leaves them behind; the next staged write into the same
+directory (:func:`clean_stale_staging`) removes what such dead owners left, and puts an old
+``out`` back where the kill fell between the two renames.  Nothing without a marker, and
+nothing whose owner still runs, is touched.
+"""
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
+import socket
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
 from .cubestore import check_output_path
 
-__all__ = ["staged_output"]
+__all__ = ["staged_output", "clean_stale_staging"]
+
+_MARKER = re.compile(r"^\.(?P<name>.+)\.staging-(?P<token>[0-9a-f]{8})\.json$")
 
 
 def _remove(p: Path) -> None:
@@ -17,6 +34,70 @@ def _remove(p: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
     elif p.exists() or p.is_symlink():
         p.unlink()
+
+
+def _names(out: Path, token: str) -> tuple[Path, Path, Path]:
+    d = out.parent
+    return (d / f".{out.name}.partial-{token}", d / f".{out.name}.old-{token}",
+            d / f".{out.name}.staging-{token}.json")
+
+
+def _start_time(pid: int) -> str | None:
+    """The process's start time (clock ticks since boot) on Linux, to tell a reused pid apart."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _owner_alive(info: dict) -> bool:
+    if info.get("host") != socket.gethostname():
+        return True                          # another machine's process: cannot tell, so it may be running
+    pid = int(info.get("pid", -1))
+    if pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    started = info.get("started")
+    return started is None or _start_time(pid) in (None, started)
+
+
+def clean_stale_staging(directory) -> list[Path]:
+    """Remove what killed streaklab writes left in ``directory``; returns the paths removed.
+
+    Only names recorded by a marker (see the module docstring) whose owning process is gone.
+    When the kill fell between the two renames (``out`` absent, the old one still beside it),
+    the old ``out`` is put back instead of being removed.
+    """
+    removed = []
+    d = Path(directory)
+    try:
+        markers = [p for p in d.iterdir() if _MARKER.match(p.name)]
+    except OSError:
+        return removed
+    for marker in markers:
+        m = _MARKER.match(marker.name)
+        try:
+            info = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(info, dict) or info.get("producer") != "streaklab" or _owner_alive(info):
+            continue
+        out = d / m["name"]
+        tmp, trash, _ = _names(out, m["token"])
+        if trash.exists() and not out.exists() and not out.is_symlink():
+            os.replace(trash, out)
+        for p in (tmp, trash):
+            if p.exists() or p.is_symlink():
+                _remove(p)
+                removed.append(p)
+        marker.unlink(missing_ok=True)
+    return removed
 
 
 @contextmanager
@@ -27,15 +108,20 @@ def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None =
     non-empty path needs ``overwrite``; never an input; never a store of another ``kind``).  The
     caller writes a directory store or a file at the yielded path.  If the body raises,
     the temporary is removed and ``out`` is untouched; otherwise an existing ``out``
-    is replaced only once the new one is complete.
+    is replaced only once the new one is complete.  What earlier, killed runs left beside
+    ``out`` is cleaned first (:func:`clean_stale_staging`).
     """
     out = Path(out).resolve()
     check_output_path(out, overwrite=overwrite, inputs=inputs, kind=kind)
-    tmp = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
+    clean_stale_staging(out.parent)
+    token = uuid.uuid4().hex[:8]
+    tmp, trash, marker = _names(out, token)
+    pid = os.getpid()
+    marker.write_text(json.dumps({"producer": "streaklab", "host": socket.gethostname(), "pid": pid,
+                                  "started": _start_time(pid), "out": out.name}))
     try:
         yield tmp
         if out.exists():
-            trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(out, trash)
             try:
                 os.replace(tmp, out)
@@ -48,3 +134,4 @@ def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None =
     finally:
         if tmp.exists() or tmp.is_symlink():
             _remove(tmp)
+        marker.unlink(missing_ok=True)
