@@ -23,7 +23,7 @@ import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
 __all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "has_checksums", "chunk_file",
-           "chunk_region", "chunk_grid", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
+           "chunk_region", "chunk_grid", "consolidate", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
            "missing_chunks"]
 
 _WRITE_ALL = {"write_empty_chunks": True}
@@ -59,6 +59,19 @@ def create_array(group: zarr.Group, name: str, **kwargs) -> zarr.Array:
 def writable(arr: zarr.Array) -> zarr.Array:
     """The same array, writing chunks that hold only the fill value too."""
     return arr.with_config(dict(_WRITE_ALL))
+
+
+def consolidate(store_path) -> None:
+    """Write the store's consolidated metadata (every array's metadata in the root ``zarr.json``), so
+    ``xarray.open_zarr(path)`` opens it in one read without a warning.  streaklab itself never
+    relies on it (it opens with ``use_consolidated=False``); array metadata never changes after a
+    store is created, and group attributes live in the root document itself, so it stays correct
+    while runs resume."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # "not part of the Zarr 3 specification yet": known
+        zarr.consolidate_metadata(str(store_path))
 
 
 def has_checksums(arr: zarr.Array) -> bool:

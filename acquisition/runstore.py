@@ -36,7 +36,7 @@ import zarr
 
 from .config import ConfigError, ScanConfig, parse_config
 from .durable import fsync_path, sync_chunk
-from .integrity import (ChunkDamage, create_array, has_checksums, missing_chunks, read_checked, scan_array,
+from .integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked, scan_array,
                         writable)
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
@@ -194,7 +194,13 @@ class RunStore:
         """Append one entry (start time, device identities, ...) to the ``sessions`` attribute."""
         sessions = list(self.group.attrs.get("sessions", []))
         sessions.append(dict(info))
-        self.group.attrs["sessions"] = sessions
+        self.set_sessions(sessions)
+
+    def set_sessions(self, sessions: list) -> None:
+        """Replace the ``sessions`` attribute and consolidate the metadata again (rewriting the root
+        document drops its consolidated part)."""
+        self.group.attrs["sessions"] = list(sessions)
+        consolidate(self.path)
 
 
 @dataclass
@@ -303,24 +309,47 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
     # --resume recreates a store they left so marked).
     g.attrs.update({"streaklab_kind": RUN_KIND, "initialised": False})
     create_array(g, "streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
-                   fill_value=0, dimension_names=["line", "frame", "x", "t"],
-                   attributes={"units": "counts", "long_name": "streak images as acquired (t = streak pixel row)"})
+                 fill_value=0, dimension_names=["line", "frame", "x", "row"],
+                 attributes={"units": "counts", "long_name": "streak images as acquired",
+                             "coordinates": "time_ps"})
     create_array(g, "done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
-                   dimension_names=["line"], attributes={"long_name": "line acquired and on disk"})
+                 dimension_names=["line"],
+                 attributes={"long_name": "line acquired and on disk", "flag_values": [0, 1],
+                             "flag_meanings": "not_acquired acquired",
+                             "comment": "readers trust only this flag: a line without it is treated as never "
+                                        "acquired, whatever bytes its chunk holds"})
     create_array(g, "angle_deg", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
-                   dimension_names=["line"], attributes={"units": "deg", "long_name": "mirror angle reached"})
+                 dimension_names=["line"], attributes={"units": "deg", "long_name": "mirror angle reached"})
     create_array(g, "timestamp", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
-                   dimension_names=["line"],
-                   attributes={"units": "seconds since 1970-01-01", "calendar": "proleptic_gregorian",
-                               "long_name": "end of the line's acquisition (UTC)"})
+                 dimension_names=["line"],
+                 attributes={"units": "seconds since 1970-01-01", "calendar": "proleptic_gregorian",
+                             "long_name": "end of the line's acquisition (UTC)"})
     target = create_array(g, "target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
-                            attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
+                          attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
     target[:] = config.angles_deg
     create_array(g, "dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
-                   dimension_names=["dark_frame", "x", "t"],
-                   attributes={"units": "counts", "long_name": "dark frames (sync output off)"})
+                 dimension_names=["dark_frame", "x", "row"],
+                 attributes={"units": "counts", "long_name": "dark frames (sync output off)",
+                             "coordinates": "time_ps"})
     create_array(g, "dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
-                   attributes={"long_name": "dark frames on disk"})
+                 attributes={"long_name": "dark frames on disk", "flag_values": [0, 1],
+                             "flag_meanings": "not_taken taken"})
+    # coordinates, so that xarray gives labelled axes
+    create_array(g, "line", shape=(n_lines,), dtype="int64", dimension_names=["line"],
+                 attributes={"units": "1", "long_name": "scan line, in acquisition order (scan.angles_deg)"})[:] = \
+        np.arange(n_lines)
+    create_array(g, "x", shape=(nx,), dtype="float64", dimension_names=["x"],
+                 attributes={"units": "pixel", "long_name": "slit position"})[:] = np.arange(nx, dtype=np.float64)
+    create_array(g, "row", shape=(nt,), dtype="int64", dimension_names=["row"],
+                 attributes={"units": "1", "long_name": "streak pixel row (the sweep direction)"})[:] = np.arange(nt)
+    cal = config["calibration"]
+    time_ps = np.polynomial.polynomial.polyval(np.arange(nt, dtype=np.float64),
+                                               [float(c) for c in cal["time_poly_ps"]])
+    create_array(g, "time_ps", shape=(nt,), dtype="float64", dimension_names=["row"],
+                 attributes={"units": "ps", "long_name": "time of the row after the laser pulse",
+                             "comment": "calibration.time_poly_ps at the row plus sync.trigger_delay_ps, as "
+                                        "configured when the run was created; not uniform in general"})[:] = \
+        time_ps + float(config["sync"]["trigger_delay_ps"])
     g.attrs.update({
         "streaklab_kind": RUN_KIND,
         "config": config.data,
@@ -332,7 +361,7 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
         "sessions": [],
         "initialised": True,
     })
-    for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
+    for name in g.array_keys():
         fsync_path(p / name / "zarr.json")
     fsync_path(p / "zarr.json")
     fsync_path(p)
@@ -391,7 +420,7 @@ def open_run(path, *, mode: str = "r") -> RunStore:
                             f"a run store, so it neither resumes nor removes it: choose another --out, or remove "
                             f"it yourself")
     try:
-        g = zarr.open_group(str(p), mode=mode)
+        g = zarr.open_group(str(p), mode=mode, use_consolidated=False)
     except Exception as exc:
         raise RunStoreError(f"{path} is not a Zarr group: {exc}") from None
     kind = g.attrs.get("streaklab_kind")

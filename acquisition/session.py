@@ -332,7 +332,7 @@ class CaptureSession:
                 sessions[-1] = {**sessions[-1], "ended_utc": _utc_now(), "status": status,
                                 "lines_acquired": len(self.acquired), "retries_used": self.retries_used,
                                 **({"error": error} if error else {})}
-                self.store.group.attrs["sessions"] = sessions
+                self.store.set_sessions(sessions)
         except Exception as exc:  # bookkeeping must never mask the session's outcome
             log.warning("could not record the session's end in %s: %s", self.out, exc)
 

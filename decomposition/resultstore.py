@@ -45,6 +45,7 @@ from reconstruction.staging import staged_output
 
 __all__ = [
     "RESULT_KIND",
+    "OUT_OF_RANGE",
     "FORMAT_VERSION",
     "CORE_MAP_KEYS",
     "CORE_IR_KEYS",
@@ -58,6 +59,10 @@ __all__ = [
 ]
 
 RESULT_KIND = "decomposition"
+#: The store's own bit in ``flags``, above the solver's eight: a rendered component or the residual of
+#: the pixel exceeds the float32 range of the component arrays; those values are stored as NaN (the
+#: float64 parameters are exact).
+OUT_OF_RANGE = 256
 FORMAT_VERSION = 1
 CORE_MAP_KEYS = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps",
                  "sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps", "sss_sigma_ps")
@@ -294,6 +299,7 @@ class ResultStore:
             value = np.asarray(value)
             if value.shape != shape:
                 raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
+        writes = self._fit_to_dtypes(writes, region)
         for k, value, _ in writes:
             writable(g[k])[ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
@@ -302,6 +308,30 @@ class ResultStore:
             sync_chunk(self.path, k, (iy, ix) + (0,) * (len(shape) - 2))
         writable(g["done"])[ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
         sync_chunk(self.path, "done", (iy, ix))
+
+    def _fit_to_dtypes(self, writes: list, region: tuple) -> list:
+        """Values too large for their array's float dtype (float32 components) become NaN, and
+        their pixels get :data:`OUT_OF_RANGE` in ``flags``: never an inf that looks like data."""
+        g = self.group
+        over = np.zeros(region, dtype=bool)
+        fitted = []
+        for k, value, shape in writes:
+            dt = g[k].dtype
+            value = np.asarray(value)
+            if dt.kind == "f" and value.dtype.kind == "f" and value.dtype.itemsize > dt.itemsize:
+                big = np.isfinite(value) & (np.abs(value) > np.finfo(dt).max)
+                if big.any():
+                    value = np.where(big, np.nan, value)
+                    over |= big.reshape(region + (-1,)).any(axis=-1)
+            fitted.append((k, value, shape))
+        if over.any():
+            if g["flags"].dtype.itemsize < 2:                  # a store of an earlier release
+                raise ResultStoreError(f"{self.path}: results of {int(over.sum())} pixels do not fit the float32 "
+                                       f"component arrays, and this store's uint8 flags cannot mark them; "
+                                       f"decompose into a new store")
+            fitted = [(k, (np.asarray(v).astype(np.uint16) | np.where(over, OUT_OF_RANGE, 0).astype(np.uint16))
+                       if k == "flags" else v, s) for k, v, s in fitted]
+        return fitted
 
     # ----- reads -------------------------------------------------------------------------------
     def params(self, ys=slice(None), xs=slice(None)) -> dict[str, np.ndarray]:
@@ -315,7 +345,8 @@ class ResultStore:
 def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t0_ps: float,
                         param_keys=None, ir_param_keys=(), write_components: bool = True,
                         signal_units: str = "counts", y_coord=None, y_units: str = "pixel",
-                        attrs: dict | None = None, overwrite: bool = False, protect=()) -> ResultStore:
+                        attrs: dict | None = None, overwrite: bool = False, protect=(),
+                        flag_names: dict | None = None) -> ResultStore:
     """Create an empty result store (parameters NaN, nothing done) ready for chunk writes.
 
     Parameters
@@ -338,6 +369,9 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
         Also create the component cubes (as big as the input each).
     attrs : dict, optional
         Extra group attributes (method, options, source, ...); JSON-serialisable.
+    flag_names : dict bit -> name, optional
+        The solver's flag table, written as the CF ``flag_masks`` / ``flag_meanings`` of ``flags``
+        (with the store's own :data:`OUT_OF_RANGE` bit).
     """
     ny, nx, nt = (int(s) for s in shape)
     by, bx = (int(c) for c in chunks)
@@ -354,15 +388,17 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     if reserved & set(all_keys):
         raise ResultStoreError(f"parameter names clash with store arrays: {sorted(reserved & set(all_keys))}")
     prepare_output_path(path, overwrite=overwrite, protect=protect)
-    with staged_output(path, overwrite=True, inputs=protect, kind=RESULT_KIND) as tmp:  # complete before it appears at ``path``
+    # complete before it appears at ``path``
+    with staged_output(path, overwrite=True, inputs=protect, kind=RESULT_KIND) as tmp:
         _write_skeleton(tmp, shape=(ny, nx, nt), chunks=(by, bx), n_ir=n_ir, time_bin_ps=time_bin_ps,
                         t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
-                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs)
+                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs,
+                        flag_names=flag_names)
     return open_result_store(path, mode="r+")
 
 
 def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, ir_keys, write_components,
-                    signal_units, y_coord, y_units, attrs):
+                    signal_units, y_coord, y_units, attrs, flag_names):
     ny, nx, nt = shape
     by, bx = chunks
     all_keys = map_keys + ir_keys
@@ -381,12 +417,13 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(meta)
 
-    def arr(name, shp, chk, dtype, dims, fill, units=None):
+    def arr(name, shp, chk, dtype, dims, fill, units=None, **extra):
         a = {"long_name": _LONG_NAMES.get(name, name)}
         if units is not None:
             a["units"] = units
+        a.update(extra)
         return create_array(g, name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
-                              fill_value=fill, attributes=a)
+                            fill_value=fill, attributes=a)
 
     for k in map_keys:
         arr(k, (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, _units_for(k, signal_units))
@@ -394,9 +431,17 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
         arr(k, (ny, nx, n_ir), (by, bx, max(n_ir, 1)), "float64", ["y", "x", "r"], np.nan,
             _units_for(k, signal_units))
     arr("rms_residual", (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, signal_units)
-    arr("flags", (ny, nx), (by, bx), "uint8", ["y", "x"], 0)
-    arr("valid", (ny, nx), (by, bx), "bool", ["y", "x"], False)
-    arr("done", (ny, nx), (by, bx), "bool", ["y", "x"], False)
+    table = {**{int(b): str(n) for b, n in dict(flag_names or {}).items()}, OUT_OF_RANGE: "OUT_OF_RANGE"}
+    arr("flags", (ny, nx), (by, bx), "uint16", ["y", "x"], 0, "1",
+        flag_masks=sorted(table), flag_meanings=" ".join(table[b] for b in sorted(table)),
+        comment="bit field; 0 = no flag. OUT_OF_RANGE is the store's own: a component did not fit float32 "
+                "and is stored as NaN")
+    arr("valid", (ny, nx), (by, bx), "bool", ["y", "x"], False, "1", flag_values=[0, 1],
+        flag_meanings="not_decomposed decomposed",
+        comment="False: the profile had NaN/inf samples (or was never computed); its results are NaN")
+    arr("done", (ny, nx), (by, bx), "bool", ["y", "x"], False, "1", flag_values=[0, 1],
+        flag_meanings="pending written",
+        comment="True once every array of the pixel's chunk is on disk; --resume recomputes the rest")
     if write_components:
         for k in ("direct", "sss", "residual"):
             arr(k, (ny, nx, nt), (by, bx, nt), "float32", ["y", "x", "t"], np.nan, signal_units)
@@ -442,7 +487,7 @@ def open_result_store(path, *, mode: str = "r", check_links: bool = True) -> Res
         except OutputPathError as exc:
             raise ResultStoreError(str(exc)) from None
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise ResultStoreError(f"{path} is not a Zarr group: {exc}") from None
     kind = g.attrs.get("streaklab_kind")

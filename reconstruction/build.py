@@ -144,11 +144,12 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
         g = cube.group
         create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
-                       attributes={"long_name": "run line filling this y"})[:] = order
+                     attributes={"long_name": "run line filling this y"})[:] = order
         create_array(g, "line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
-                       attributes={"long_name": "line acquired (False: unfinished, cube is NaN)"})[:] = done[order]
+                     attributes={"long_name": "line acquired (False: unfinished, cube is NaN)", "flag_values": [0, 1],
+                                 "flag_meanings": "unfinished acquired"})[:] = done[order]
         create_array(g, "angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
-                       attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
+                     attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
         by = cube.array.chunks[0]
         streaks = run["streaks"]
         for y0 in range(0, n_lines, by):

@@ -193,15 +193,15 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(attrs)
     arr = create_array(g, "cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
-                         dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
+                       dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
     t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
-                       attributes={"units": "ps", "long_name": "time of bin centre"})
+                     attributes={"units": "ps", "long_name": "time of bin centre"})
     t[:] = float(t0_ps) + time_bin_ps * np.arange(nt)
     y = create_array(g, "y", shape=(ny,), dtype="float64", dimension_names=["y"],
-                       attributes={"units": y_units, "long_name": "scan line"})
+                     attributes={"units": y_units, "long_name": "scan line"})
     y[:] = np.arange(ny, dtype=np.float64) if y_coord is None else np.asarray(y_coord, np.float64)
     x = create_array(g, "x", shape=(nx,), dtype="float64", dimension_names=["x"],
-                       attributes={"units": "pixel", "long_name": "slit position"})
+                     attributes={"units": "pixel", "long_name": "slit position"})
     x[:] = np.arange(nx, dtype=np.float64)
     return Cube(str(path), g, arr, time_bin_ps, float(t0_ps), dict(arr.attrs))
 
@@ -222,7 +222,7 @@ def open_cube(path, *, mode: str = "r") -> Cube:
     if not os.path.exists(path):
         raise CubeStoreError(f"{path}: no such file or directory")
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise CubeStoreError(f"{path} is not a Zarr group: {exc}") from None
     if "cube" not in g:

@@ -184,7 +184,7 @@ def _restore_array(ds: h5py.Dataset, g: zarr.Group, name: str) -> None:
     chunks = tuple(meta["chunks"]) if shape else None
     kwargs = {"chunks": chunks} if chunks else {}
     arr = create_array(g, name, shape=shape, dtype=ds.dtype, fill_value=_fill_value(meta["fill_value"], ds.dtype),
-                         dimension_names=meta["dimension_names"], attributes=meta["attributes"], **kwargs)
+                       dimension_names=meta["dimension_names"], attributes=meta["attributes"], **kwargs)
     if not shape:
         arr[...] = ds[()]
     elif ds.size:

@@ -22,6 +22,8 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
+from acquisition.integrity import consolidate
+
 from .cubestore import check_output_path
 
 __all__ = ["staged_output", "clean_stale_staging"]
@@ -121,6 +123,8 @@ def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None =
                                   "started": _start_time(pid), "out": out.name}))
     try:
         yield tmp
+        if (tmp / "zarr.json").is_file():       # a complete Zarr store: index it for other readers
+            consolidate(tmp)
         if out.exists():
             os.replace(out, trash)
             try:

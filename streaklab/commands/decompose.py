@@ -194,6 +194,13 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
             y_coord, y_units)
 
 
+def _flag_table() -> dict:
+    """The solver's flag table (bit -> name): the one place the flag names are defined."""
+    from decomposition.api import FLAG_NAMES
+
+    return {int(bit): str(name) for bit, name in dict(FLAG_NAMES).items()}
+
+
 def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
@@ -332,7 +339,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
                                             write_components=write_components, signal_units=units, y_coord=y_coord,
                                             y_units=y_units, attrs=attrs, overwrite=overwrite,
-                                            protect=[source["path"]])
+                                            protect=[source["path"]], flag_names=_flag_table())
             except (ResultStoreError, FileExistsError) as exc:
                 raise CommandError(str(exc)) from None
         else:

@@ -94,21 +94,21 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
         g.attrs.update({"streaklab_kind": "truth", "description": "ground truth of the simulated cube",
                         "units": SIGNAL_UNITS, **settings})
         t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
-                           attributes={"units": "ps", "long_name": "time of bin centre"})
+                         attributes={"units": "ps", "long_name": "time of bin centre"})
         t[:] = data.t0_ps + data.time_bin_ps * np.arange(nt)
         for dim, size in (("y", ny), ("x", nx)):
             c = create_array(g, dim, shape=(size,), dtype="float64", dimension_names=[dim],
-                               attributes=dict(root[dim].attrs))
+                             attributes=dict(root[dim].attrs))
             c[:] = root[dim][:]
         r = create_array(g, "r", shape=(n_ir,), chunks=(max(n_ir, 1),), dtype="int64", dimension_names=["r"],
-                           attributes={"units": "1", "long_name": "bounce number of the inter-reflection"})
+                         attributes={"units": "1", "long_name": "bounce number of the inter-reflection"})
         if n_ir:
             r[:] = np.arange(2, 2 + n_ir)
         for key, value in data.params.items():
             dims = ["y", "x", "r"] if value.ndim == 3 else ["y", "x"]
             ch = (by, bx) + ((max(n_ir, 1),) if value.ndim == 3 else ())
             a = create_array(g, key, shape=value.shape, chunks=ch, dtype="float64", dimension_names=dims,
-                               fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
+                             fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
             if value.size:
                 a[...] = value
         comps = {"direct": (data.components["direct"], ["y", "x", "t"], "direct reflection"),
@@ -118,7 +118,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
         for name, (value, dims, long_name) in comps.items():
             ch = (by, bx) + ((max(n_ir, 1),) if len(dims) == 4 else ()) + (nt,)
             a = create_array(g, name, shape=value.shape, chunks=ch, dtype="float32", dimension_names=dims,
-                               fill_value=0.0, attributes={"units": SIGNAL_UNITS, "long_name": f"clean {long_name}"})
+                             fill_value=0.0, attributes={"units": SIGNAL_UNITS, "long_name": f"clean {long_name}"})
             if value.size:
                 a[...] = value.astype(np.float32)
     return open_cube(path)
