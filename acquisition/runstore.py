@@ -2,13 +2,17 @@
 
 One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table)::
 
-    streaks           (line, frame, x, t)  uint16   counts as read from the camera, one chunk per line
-    done              (line,)              bool     True once the line's data is on disk
-    angle_deg         (line,)              float64  mirror angle reached (deg), NaN until done
-    timestamp         (line,)              float64  acquisition end, seconds since 1970-01-01 UTC
-    target_angle_deg  (line,)              float64  the angle the config asked for (deg)
-    dark              (dark_frame, x, t)   uint16   frames taken with the sync output off
-    dark_done         ()                   bool     True once the dark frames are on disk
+    streaks           (line, frame, x, row)  uint16   counts as read from the camera, one chunk per line
+    done              (line,)                bool     True once the line's data is on disk
+    angle_deg         (line,)                float64  mirror angle reached (deg), NaN until done
+    timestamp         (line,)                float64  acquisition end, seconds since 1970-01-01 UTC
+    target_angle_deg  (line,)                float64  the angle the config asked for (deg)
+    dark              (dark_frame, x, row)   uint16   frames taken with the sync output off
+    dark_done         ()                     bool     True once the dark frames are on disk
+    line, x, row      coordinates; time_ps (row,) the row's calibrated time (ps)
+
+Every array is checksummed (:mod:`acquisition.integrity`); :func:`verify_run` reads every chunk
+and reports damage by line.
 
 Every frame of a line is kept (``frame`` axis) instead of their mean or sum: the data
 stay the camera's own uint16 counts, a reconstruction can reject a bad frame (a

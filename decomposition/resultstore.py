@@ -1,13 +1,13 @@
 """The decomposition result store: one Zarr v3 group per decomposed cube.
 
-Layout (every array has ``dimension_names``; ``xarray.open_zarr(path, consolidated=False)`` opens it)::
+Layout (every array has ``dimension_names``; ``xarray.open_zarr(path)`` opens it)::
 
     direct_delay_ps, direct_amplitude, direct_sigma_ps,          (y, x)     float64, NaN = absent
     sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps  (y, x)     float64, NaN = absent
     ir_delay_ps, ir_amplitude, ir_sigma_ps                       (y, x, r)  float64, NaN = absent
     <any further solver parameter, e.g. *_stderr>                (y, x) or (y, x, r)
     rms_residual   (y, x)        float64  sqrt(mean over t of residual**2), signal units
-    flags          (y, x)        uint8    the solver's per-pixel quality flags
+    flags          (y, x)        uint16   the solver's per-pixel quality flags (+ OUT_OF_RANGE, 256)
     valid          (y, x)        bool     the pixel's profile was finite and was decomposed
     done           (y, x)        bool     the pixel's chunk has been written completely
     direct, sss, residual  (y, x, t)     float32  rendered components (optional)
