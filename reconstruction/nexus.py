@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 import zarr
 
-from acquisition.integrity import create_array
+from acquisition.integrity import create_array, read_checked
 
 from .cubestore import CUBE_KIND, CubeStoreError, create_cube, open_cube
 from .staging import staged_output
@@ -77,7 +77,7 @@ def _simple_attr(value):
     return None
 
 
-def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
+def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str, store) -> None:
     if arr.dtype.kind not in "biuf":
         raise NexusError(f"array {arr.path!r} has dtype {arr.dtype}, which this exporter does not handle")
     kwargs = {}
@@ -86,11 +86,11 @@ def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
                   "compression_opts": 4, "shuffle": True}
     ds = parent.create_dataset(name, shape=arr.shape, dtype=arr.dtype, **kwargs)
     if arr.ndim == 0:
-        ds[()] = arr[...]
+        ds[()] = read_checked(arr, (), store=store)
     elif arr.size:
         step = arr.chunks[0]
         for i in range(0, arr.shape[0], step):
-            ds[i:i + step] = arr[i:i + step]
+            ds[i:i + step] = read_checked(arr, slice(i, i + step), store=store)
     attrs = dict(arr.attrs)
     for k, v in attrs.items():
         native = _simple_attr(v)
@@ -101,16 +101,17 @@ def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
                             "chunks": list(arr.chunks), "fill_value": _fill_json(arr.metadata.fill_value)})
 
 
-def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, skip=(), groups_into: h5py.Group | None = None) -> None:
+def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, store, skip=(),
+                         groups_into: h5py.Group | None = None) -> None:
     """Copy ``g``'s arrays into ``h`` and its sub-groups (as NXcollection) into ``groups_into`` (default ``h``)."""
     for name, arr in sorted(g.arrays()):
         if name not in skip:
-            _copy_array(arr, h, name)
+            _copy_array(arr, h, name, store)
     for name, sub in sorted(g.groups()):
         hs = (h if groups_into is None else groups_into).create_group(name)
         hs.attrs["NX_class"] = "NXcollection"
         hs.attrs[META] = _json({"attributes": dict(sub.attrs)})
-        _copy_group_contents(sub, hs)
+        _copy_group_contents(sub, hs, store=store)
 
 
 def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
@@ -154,7 +155,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
             data.attrs["t0_ps"] = cube.t0_ps
             data.attrs["provenance"] = _json(root_attrs.get("provenance", cube.attrs.get("provenance", {})))
             data.attrs[META] = _json({"attributes": root_attrs})
-            _copy_group_contents(g, data, groups_into=entry)
+            _copy_group_contents(g, data, store=cube_path, groups_into=entry)
     return out
 
 

@@ -122,3 +122,43 @@ def test_stores_of_the_previous_release_open_resume_and_verify(tmp_path, monkeyp
     text = capsys.readouterr().out
     assert "written without checksums" in text and "no damage found" in text
     reconstruct(out, tmp_path / "cube.zarr")
+
+
+def test_export_of_a_damaged_cube_names_the_chunk(tmp_path, capsys):
+    write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=5), time_bin_ps=TB, chunks=(1, 3))
+    flip_bit(tmp_path / "cube.zarr/cube/c/1/0/0")
+    assert main(["export", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / "c.h5")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "array 'cube', chunk (1, 0, 0) fails its checksum" in err
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_result_store_of_the_previous_release_resumes(tmp_path, monkeypatch, capsys):
+    """Built the old way: no checksums, uint8 flags, fill-only chunks not written."""
+    import shutil
+
+    import decomposition.resultstore as rs
+
+    def old_array(g, name, **kw):
+        kw = {**kw, "dtype": "uint8"} if name == "flags" else kw
+        return g.create_array(name, **kw)
+
+    write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=5), time_bin_ps=TB, chunks=(1, 3))
+    decompose_to_store(tmp_path / "cube.zarr", tmp_path / "ref.zarr", progress=False)
+    monkeypatch.setattr(rs, "create_array", old_array)
+    monkeypatch.setattr(rs, "writable", lambda arr: arr)
+    res = tmp_path / "old.zarr"
+    decompose_to_store(tmp_path / "cube.zarr", res, progress=False)
+    monkeypatch.undo()
+    g = zarr.open_group(str(res), mode="r+")
+    assert g["flags"].dtype == np.uint8
+    g["done"][1:2] = False                                   # as if killed after the first chunk
+    for name in g.array_keys():
+        if name != "done" and (res / name / "c" / "1").exists():
+            shutil.rmtree(res / name / "c" / "1")
+    assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(res), "--resume", "--quiet"]) == 0
+    a, b = open_result_store(res).params(), open_result_store(tmp_path / "ref.zarr").params()
+    for k in b:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert main(["verify", str(res)]) == 0
+    assert "written without checksums" in capsys.readouterr().out

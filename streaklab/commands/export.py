@@ -13,12 +13,13 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from acquisition.integrity import DataIntegrityError
     from reconstruction.cubestore import CubeStoreError
     from reconstruction.nexus import NexusError, export_cube
 
     try:
         out = export_cube(args.cube, args.out, overwrite=args.overwrite)
-    except (CubeStoreError, NexusError, FileExistsError) as exc:
+    except (CubeStoreError, NexusError, FileExistsError, DataIntegrityError) as exc:
         raise CommandError(str(exc)) from None
     print(f"wrote {out} (NeXus: /entry/data, signal 'cube', axes y, x, t)", file=sys.stderr)
     return 0
