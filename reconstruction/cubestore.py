@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from acquisition.integrity import ChunkDamage, create_array, has_checksums, scan_group
+from acquisition.integrity import create_array, has_checksums, scan_group
 
 __all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path",
            "OutputPathError", "describe_existing", "check_no_links",

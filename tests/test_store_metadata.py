@@ -3,7 +3,6 @@ import warnings
 
 import numpy as np
 import pytest
-import zarr
 
 from _cubes import TB, small_cube
 from decomposition.api import FLAG_NAMES
