@@ -11,7 +11,7 @@ One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table):
     dark_done         ()                     bool     True once the dark frames are on disk
     line, x, row      coordinates; time_ps (row,) the row's calibrated time (ps)
 
-Every array is checksummed (:mod:`acquisition.integrity`); :func:`verify_run` reads every chunk
+Every array is checksummed (:mod:`core.integrity`); :func:`verify_run` reads every chunk
 and reports damage by line.
 
 Every frame of a line is kept (``frame`` axis) instead of their mean or sum: the data
@@ -38,10 +38,12 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from core.durable import fsync_path, sync_chunk
+from core.errors import StreaklabError
+from core.integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked,
+                            scan_array, writable)
+
 from .config import ConfigError, ScanConfig, parse_config
-from .durable import fsync_path, sync_chunk
-from .integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked, scan_array,
-                        writable)
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
@@ -49,7 +51,7 @@ RUN_KIND = "run"
 LINE_ARRAYS = ("streaks", "angle_deg", "timestamp", "done")
 
 
-class RunStoreError(ValueError):
+class RunStoreError(StreaklabError, ValueError):
     """The path is not a usable run store, or does not fit the session (says exactly why)."""
 
 
@@ -286,9 +288,8 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     The store is built beside ``path`` and renamed into place once every array exists, so a
     killed creation never leaves a half store at ``path``.
     """
-    from reconstruction.staging import staged_output
-
-    from streaklab import __version__
+    from core.provenance import __version__
+    from core.staging import staged_output
 
     p = Path(path)
     if p.exists() and (p.is_file() or any(p.iterdir())):
@@ -447,7 +448,7 @@ def open_run(path, *, mode: str = "r") -> RunStore:
         raise RunStoreError(f"{path}: {s.shape[0]} lines in streaks, {g['done'].shape} done flags, "
                             f"{config.n_lines} lines in the stored config")
     if mode != "r":
-        from reconstruction.cubestore import OutputPathError, check_no_links
+        from core.staging import OutputPathError, check_no_links
 
         try:
             check_no_links(p)

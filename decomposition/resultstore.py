@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from acquisition.durable import sync_chunk
-from acquisition.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks, read_checked,
-                                   scan_array, writable)
-from reconstruction.cubestore import OutputPathError, check_no_links, check_output_path
-from reconstruction.staging import staged_output
+from core.durable import sync_chunk
+from core.errors import OutputExistsError, StreaklabError
+from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
+                            read_checked, scan_array, writable)
+from core.staging import OutputPathError, check_no_links, check_output_path, staged_output
 
 __all__ = [
     "RESULT_KIND",
@@ -83,7 +83,7 @@ _LONG_NAMES = {
 }
 
 
-class ResultStoreError(ValueError):
+class ResultStoreError(StreaklabError, ValueError):
     """The path is not a usable result store, or a write does not fit it (says exactly why)."""
 
 
@@ -101,7 +101,7 @@ def _units_for(key: str, signal_units: str) -> str:
 def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
     """Check that a new result store may be written at ``path`` (nothing is removed here).
 
-    The rule is :func:`reconstruction.cubestore.check_output_path`: an absent or empty path is
+    The rule is :func:`core.staging.check_output_path`: an absent or empty path is
     fine; anything else needs ``overwrite`` and may then only be a result store (or no store at
     all); a path in ``protect`` (the input), inside it or containing it is always refused.
     """
@@ -109,9 +109,9 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
         check_output_path(path, overwrite=overwrite, inputs=protect, kind=RESULT_KIND)
     except OutputPathError as exc:
         raise ResultStoreError(str(exc)) from None
-    except FileExistsError:
-        raise FileExistsError(f"{path} already exists; pass --overwrite to replace it "
-                              f"(or --resume to continue a run into it)") from None
+    except OutputExistsError:
+        raise OutputExistsError(f"{path} already exists; pass --overwrite to replace it "
+                                f"(or --resume to continue a run into it)") from None
 
 
 @dataclass
@@ -474,7 +474,7 @@ def open_result_store(path, *, mode: str = "r", check_links: bool = True) -> Res
     """Open and validate a result store; raises :class:`ResultStoreError` naming what is wrong.
 
     ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes); ``r+`` refuses a store with a
-    symbolic link inside (see :func:`reconstruction.cubestore.check_no_links`) unless
+    symbolic link inside (see :func:`core.staging.check_no_links`) unless
     ``check_links`` is False (the per-chunk writers of a run whose store was checked on opening).
     """
     if mode not in ("r", "r+"):

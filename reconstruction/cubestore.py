@@ -14,24 +14,23 @@ ground truth).  This module only reads and writes that layout; it knows nothing 
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import zarr
 
-from acquisition.integrity import create_array, has_checksums, scan_group
+from core.errors import StreaklabError
+from core.integrity import create_array, has_checksums, scan_group
+from core.staging import check_output_path
 
-__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path",
-           "OutputPathError", "describe_existing", "check_no_links",
-           "CubeCheck", "verify_cube"]
+__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
+           "verify_cube"]
 
 CUBE_KIND = "cube"
 
 
-class CubeStoreError(ValueError):
+class CubeStoreError(StreaklabError, ValueError):
     """The path is not a usable cube store (says exactly why)."""
 
 
@@ -61,97 +60,6 @@ class Cube:
 
     def time_axis_ps(self) -> np.ndarray:
         return self.t0_ps + self.time_bin_ps * np.arange(self.shape[2], dtype=np.float64)
-
-
-class OutputPathError(FileExistsError):
-    """An output path that would destroy an input, or a store of another kind (says which)."""
-
-
-_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-
-
-def describe_existing(path) -> str | None:
-    """What lies at ``path``: a streaklab store kind (``"run"``, ``"cube"``, ...), ``"zarr"`` (a Zarr
-    store of other software), ``"hdf5"``, ``"file"``, ``"directory"``, or None when nothing is there."""
-    p = Path(path)
-    if not p.exists():
-        return None
-    if p.is_file():
-        with open(p, "rb") as f:
-            return "hdf5" if f.read(8) == _HDF5_MAGIC else "file"
-    meta = p / "zarr.json"
-    if not meta.is_file():
-        return "zarr" if (p / ".zgroup").exists() or (p / ".zarray").exists() else "directory"
-    try:
-        attrs = json.loads(meta.read_text()).get("attributes", {}) or {}
-    except (OSError, ValueError):
-        return "zarr"
-    kind = attrs.get("streaklab_kind")
-    return str(kind) if kind else "zarr"
-
-
-_WHAT = {"run": "a streaklab run store (raw capture data)", "zarr": "a Zarr store of other software",
-         "hdf5": "an HDF5 file", "file": "a file that is not HDF5", "directory": "a directory"}
-
-
-def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | None = None) -> None:
-    """The one rule for where a command may write a new store or file (nothing is removed here).
-
-    Parameters
-    ----------
-    path : the output path.
-    overwrite : bool
-        An existing, non-empty ``path`` is refused without it.
-    inputs : paths the command reads; an output equal to one of them, inside one (e.g.
-        ``run.zarr/streaks``) or containing one is refused, even with ``overwrite``.
-    kind : what the command writes: a streaklab store kind (``"cube"``, ``"decomposition"``,
-        ...) or ``"hdf5"``.  ``overwrite`` replaces only a store of that same kind (or plain
-        files and directories that are no store); a store of another kind, above all a run
-        store of raw data, is refused: its owner removes it, streaklab never does.  Without
-        ``kind`` any existing path may be replaced.
-
-    Raises
-    ------
-    OutputPathError
-        The output would overlap an input, or would replace a store of another kind.
-    FileExistsError
-        ``path`` exists and ``overwrite`` is not given.
-    """
-    p = Path(path).resolve()
-    for q in inputs:
-        q = Path(q).resolve()
-        if p == q or p in q.parents or q in p.parents:
-            where = "lies inside" if q in p.parents else "holds"
-            raise OutputPathError(f"refusing to write to {path}: it {where} the input {q}; choose another path")
-    if not p.exists() or (p.is_dir() and not any(p.iterdir())):
-        return
-    if not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
-    if kind is None:
-        return
-    found = describe_existing(p)
-    if found == kind or found in ("directory", "file"):      # the same kind, or no store at all
-        return
-    what = _WHAT.get(found, f"a streaklab {found!r} store")
-    raise OutputPathError(f"refusing to replace {path}: it is {what}, and --overwrite replaces only "
-                          f"{'an HDF5 file' if kind == 'hdf5' else f'a {kind} store'}; remove it yourself if "
-                          f"you mean to, or choose another path")
-
-
-def check_no_links(store) -> None:
-    """Refuse to write into a store holding a symbolic link anywhere below its root.
-
-    Writes (resuming a run or a decomposition, repairing) go through the store's own paths;
-    a link inside (``res.zarr/direct/c -> elsewhere``) would send them outside the store.
-    The root itself may be a link: it is the path the user named.
-    """
-    root = Path(store)
-    for dirpath, dirnames, filenames in os.walk(root):
-        for name in dirnames + filenames:
-            q = Path(dirpath) / name
-            if q.is_symlink():
-                raise OutputPathError(f"{q} is a symbolic link inside the store {store} (to {os.readlink(q)}); "
-                                      f"refusing to write through it: replace the link by the data, or copy the store")
 
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",

@@ -4,7 +4,8 @@ import threading
 import numpy as np
 import pytest
 
-from decomposition import decompose, model
+from core import model
+from decomposition import decompose
 from decomposition.chunked import chunk_tasks, fit_ir_slots, rechunk_pixels, run_tasks, solve_block
 
 from _cubes import TB, small_cube as _cube

@@ -4,7 +4,8 @@ import pytest
 import zarr
 
 from _cubes import TB, small_cube
-from reconstruction.cubestore import OutputPathError, check_output_path, describe_existing, write_cube
+from core.staging import OutputPathError, check_output_path, describe_existing
+from reconstruction.cubestore import write_cube
 from streaklab.cli import main
 from test_reconstruct import make_run
 
@@ -82,7 +83,7 @@ def test_check_output_path_rule(tmp_path):
 
 
 def test_resume_refuses_a_store_with_a_link_inside(tmp_path, capsys):
-    from streaklab.commands.decompose import decompose_to_store
+    from decomposition.pipeline import decompose_to_store
 
     write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=1), time_bin_ps=TB, chunks=(1, 3))
     res = tmp_path / "res.zarr"

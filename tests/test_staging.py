@@ -4,13 +4,13 @@ import sys
 from pathlib import Path
 
 from reconstruction.cubestore import open_cube, write_cube
-from reconstruction.staging import clean_stale_staging, staged_output
+from core.staging import clean_stale_staging, staged_output
 
 ROOT = Path(__file__).resolve().parents[1]
 
 KILLED_WRITER = """
 import os, signal, sys
-import reconstruction.staging as staging
+import core.staging as staging
 from reconstruction.cubestore import write_cube
 import numpy as np
 out, where = sys.argv[1], sys.argv[2]

@@ -12,7 +12,7 @@ from decomposition.resultstore import open_result_store
 from reconstruction.build import ReconstructionError, reconstruct
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
-from streaklab.commands.decompose import decompose_to_store
+from decomposition.pipeline import decompose_to_store
 from test_capture import sim_config
 from test_reconstruct import make_run
 

@@ -144,10 +144,10 @@ def _result(path, mark: bool) -> int:
 
 
 def run(args) -> int:
-    from acquisition.integrity import DataIntegrityError
-    from acquisition.runstore import RUN_KIND, RunStoreError
-    from decomposition.resultstore import RESULT_KIND, ResultStoreError
-    from reconstruction.cubestore import CUBE_KIND, CubeStoreError, describe_existing
+    from acquisition.runstore import RUN_KIND
+    from core.staging import describe_existing
+    from decomposition.resultstore import RESULT_KIND
+    from reconstruction.cubestore import CUBE_KIND
 
     kind = describe_existing(args.store)
     handlers = {RUN_KIND: _run, CUBE_KIND: _cube, RESULT_KIND: _result}
@@ -155,7 +155,4 @@ def run(args) -> int:
         raise CommandError(f"{args.store}: no such file or directory")
     if kind not in handlers:
         raise CommandError(f"{args.store} is not a run, cube or result store (it is {kind!r})")
-    try:
-        return handlers[kind](args.store, args.mark_for_resume)
-    except (RunStoreError, CubeStoreError, ResultStoreError, DataIntegrityError) as exc:
-        raise CommandError(str(exc)) from None
+    return handlers[kind](args.store, args.mark_for_resume)   # the stores' own errors: printed by the CLI

@@ -22,6 +22,8 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
+from .errors import StreaklabError
+
 __all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "has_checksums", "chunk_file",
            "chunk_region", "chunk_grid", "consolidate", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
            "missing_chunks"]
@@ -29,7 +31,7 @@ __all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "has
 _WRITE_ALL = {"write_empty_chunks": True}
 
 
-class DataIntegrityError(ValueError):
+class DataIntegrityError(StreaklabError, ValueError):
     """A chunk of a store is missing or fails its checksum (names the store, array and chunk)."""
 
 
