@@ -62,6 +62,18 @@ _WHAT = {"run": "a streaklab run store (raw capture data)", "zarr": "a Zarr stor
          "hdf5": "an HDF5 file", "file": "a file that is not HDF5", "directory": "a directory"}
 
 
+def _what(found: str) -> str:
+    return _WHAT.get(found, f"a streaklab {found!r} store")
+
+
+def _store_inside(directory: Path) -> Path | None:
+    """The first Zarr store found below ``directory`` (a directory holding ``zarr.json``), or None."""
+    for dirpath, dirnames, filenames in os.walk(directory):
+        if "zarr.json" in filenames or ".zgroup" in filenames or ".zarray" in filenames:
+            return Path(dirpath)
+    return None
+
+
 def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | None = None) -> None:
     """The one rule for where a command may write a new store or file (nothing is removed here).
 
@@ -74,9 +86,9 @@ def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | N
         ``run.zarr/streaks``) or containing one is refused, even with ``overwrite``.
     kind : what the command writes: a streaklab store kind (``"cube"``, ``"decomposition"``,
         ...) or ``"hdf5"``.  ``overwrite`` replaces only a store of that same kind (or plain
-        files and directories that are no store); a store of another kind, above all a run
-        store of raw data, is refused: its owner removes it, streaklab never does.  Without
-        ``kind`` any existing path may be replaced.
+        files and directories that are no store and hold none); a store of another kind, above
+        all a run store of raw data, or a directory holding any Zarr store, is refused: its owner
+        removes it, streaklab never does.  Without ``kind`` any existing path may be replaced.
 
     Raises
     ------
@@ -98,10 +110,15 @@ def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | N
     if kind is None:
         return
     found = describe_existing(p)
-    if found == kind or found in ("directory", "file"):      # the same kind, or no store at all
+    if found == "directory":                 # no store itself; but replacing it would delete any store inside
+        inner = _store_inside(p)
+        if inner is not None:
+            raise OutputPathError(f"refusing to replace {path}: it holds {_what(describe_existing(inner))} at "
+                                  f"{inner}; remove it yourself if you mean to, or choose another path")
         return
-    what = _WHAT.get(found, f"a streaklab {found!r} store")
-    raise OutputPathError(f"refusing to replace {path}: it is {what}, and --overwrite replaces only "
+    if found == kind or found == "file":     # the same kind, or no store at all
+        return
+    raise OutputPathError(f"refusing to replace {path}: it is {_what(found)}, and --overwrite replaces only "
                           f"{'an HDF5 file' if kind == 'hdf5' else f'a {kind} store'}; remove it yourself if "
                           f"you mean to, or choose another path")
 

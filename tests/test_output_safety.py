@@ -80,6 +80,10 @@ def test_check_output_path_rule(tmp_path):
         check_output_path(tmp_path / "notes", kind="cube")
     check_output_path(tmp_path / "in.zarr", overwrite=True, kind="cube")
     check_output_path(tmp_path / "notes", overwrite=True, kind="cube")        # no store: replaceable
+    (tmp_path / "notes/deep/run.zarr").mkdir(parents=True)                   # ... unless it holds one
+    (tmp_path / "notes/deep/run.zarr/zarr.json").write_text('{"attributes": {"streaklab_kind": "run"}}')
+    with pytest.raises(OutputPathError, match=r"it holds a streaklab run store \(raw capture data\) at .*deep/run.zarr"):
+        check_output_path(tmp_path / "notes", overwrite=True, kind="cube")
 
 
 def test_resume_refuses_a_store_with_a_link_inside(tmp_path, capsys):
