@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import StreaklabError
-from core.integrity import CheckedReader, DataIntegrityError
+from core.integrity import CheckedReader, DataIntegrityError, read_checked
 
 __all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
 
@@ -130,7 +130,7 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
     if "y" in cube.group:
-        y_coord = np.asarray(cube.group["y"][...], np.float64)
+        y_coord = np.asarray(read_checked(cube.group["y"], slice(None), store=str(p)), np.float64)
         y_units = str(cube.group["y"].attrs.get("units", "pixel"))
     default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
     return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
