@@ -42,6 +42,7 @@ from core.durable import fsync_path, sync_chunk
 from core.errors import StreaklabError
 from core.integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked,
                             scan_array, writable)
+from core.staging import OutputPathError, check_no_links, staged_output
 
 from .config import ConfigError, ScanConfig, parse_config
 
@@ -289,7 +290,6 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     killed creation never leaves a half store at ``path``.
     """
     from core.provenance import __version__
-    from core.staging import staged_output
 
     p = Path(path)
     if p.exists() and (p.is_file() or any(p.iterdir())):
@@ -448,8 +448,6 @@ def open_run(path, *, mode: str = "r") -> RunStore:
         raise RunStoreError(f"{path}: {s.shape[0]} lines in streaks, {g['done'].shape} done flags, "
                             f"{config.n_lines} lines in the stored config")
     if mode != "r":
-        from core.staging import OutputPathError, check_no_links
-
         try:
             check_no_links(p)
         except OutputPathError as exc:
