@@ -450,7 +450,9 @@ def regime_variables(params: dict, time_bin_ps: float) -> dict[str, np.ndarray]:
         ``onset_sigma``     sss onset after the direct delay, in PSF widths (NaN likewise);
         ``sigma_bins``      PSF sigma in bins (the direct's, else the sss's or first
                             inter-reflection's);
-        ``n_ir``            number of inter-reflections (int).
+        ``n_ir``            number of inter-reflections (int);
+        ``ir_min_peak_ratio`` peak of the weakest inter-reflection over the direct's peak
+                            (NaN without a direct or without inter-reflections).
     """
     d_delay = np.asarray(params["direct_delay_ps"], np.float64)
     d_amp = np.asarray(params["direct_amplitude"], np.float64)
@@ -468,9 +470,13 @@ def regime_variables(params: dict, time_bin_ps: float) -> dict[str, np.ndarray]:
     sigma = np.where(np.isfinite(d_sig), d_sig, s_sig)
     if ir_sig.shape[-1]:
         sigma = np.where(np.isfinite(sigma), sigma, ir_sig[..., 0])
-    n_ir = np.isfinite(np.asarray(params["ir_delay_ps"], np.float64)).sum(axis=-1)
+    ir_delay = np.asarray(params["ir_delay_ps"], np.float64)
+    n_ir = np.isfinite(ir_delay).sum(axis=-1)
+    ir_amp = np.where(np.isfinite(ir_delay), np.asarray(params["ir_amplitude"], np.float64), np.inf)
+    weakest = ir_amp.min(axis=-1, initial=np.inf)
+    ir_ratio = np.where(np.isfinite(d_delay) & (n_ir > 0), weakest / np.where(np.isfinite(d_amp), d_amp, 1.0), np.nan)
     return {"sss_peak_ratio": peak, "onset_sigma": onset, "sigma_bins": sigma / float(time_bin_ps),
-            "n_ir": n_ir.astype(np.int64)}
+            "n_ir": n_ir.astype(np.int64), "ir_min_peak_ratio": ir_ratio}
 
 
 # --------------------------------------------------------------------------- bin-integrated rendering

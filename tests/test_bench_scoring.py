@@ -12,7 +12,8 @@ from streaklab.bench.scoring import (
 
 def _regimes(n, rng):
     return {"sss_peak_ratio": rng.uniform(0.05, 3, n), "onset_sigma": rng.uniform(0, 3, n),
-            "sigma_bins": rng.uniform(0.25, 5, n), "n_ir": rng.integers(0, 3, n)}
+            "sigma_bins": rng.uniform(0.25, 5, n), "n_ir": rng.integers(0, 3, n),
+            "ir_min_peak_ratio": rng.uniform(0.01, 1.0, n)}
 
 
 def test_regime_rows_partition_the_pixels_and_give_gaps():

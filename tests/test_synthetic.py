@@ -213,6 +213,10 @@ def test_regime_variables_follow_the_parameters():
     np.testing.assert_allclose(r["sigma_bins"], p["direct_sigma_ps"] / 4.0)
     np.testing.assert_allclose(r["onset_sigma"], (p["sss_delay_ps"] - p["direct_delay_ps"]) / p["direct_sigma_ps"])
     np.testing.assert_array_equal(r["n_ir"], [k.count("r") for k in d.kinds])
+    rel = p["ir_amplitude"] / p["direct_amplitude"][:, None]
+    has = r["n_ir"] > 0
+    np.testing.assert_allclose(r["ir_min_peak_ratio"][has], np.nanmin(rel[has], axis=1))
+    assert np.isnan(r["ir_min_peak_ratio"][~has]).all()
     # The sss peak ratio is that of the rendered components (dense rendering, 0.1 ps).
     dense = make_profiles(90, 512 * 40, seed=3, time_bin_ps=0.1, t0_ps=4.0, ranges="paper", kinds="a")
     rd = dense.regimes

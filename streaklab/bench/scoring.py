@@ -3,8 +3,8 @@ precision and recall, direct-delay failures, and the accuracy targets.
 
 Regimes (:data:`REGIMES`) are bins of the per-pixel variables of
 :func:`decomposition.synthetic.regime_variables`: the sss peak over the direct's, the sss
-onset after the direct in PSF widths, the PSF sigma in bins and the number of
-inter-reflections.  Each variable partitions the pixels (pixels where it is undefined, e.g.
+onset after the direct in PSF widths, the PSF sigma in bins, the number of
+inter-reflections and the weakest inter-reflection's peak over the direct's.  Each variable partitions the pixels (pixels where it is undefined, e.g.
 without an sss, form an ``n/a`` row), so every variable's rows add up to the total.
 """
 from __future__ import annotations
@@ -37,6 +37,8 @@ REGIMES = (
     ("sss onset (sigma)", "onset_sigma", ((-_INF, 1.0, "< 1"), (1.0, 2.0, "1-2"), (2.0, _INF, ">= 2"))),
     ("sigma (bins)", "sigma_bins", ((0.0, 1.0, "< 1"), (1.0, 2.0, "1-2"), (2.0, 4.0, "2-4"), (4.0, _INF, ">= 4"))),
     ("inter-reflections", "n_ir", ((-_INF, 0.5, "0"), (0.5, 1.5, "1"), (1.5, _INF, ">= 2"))),
+    # Below 5 % of the direct's peak: under the paper's (and the solver's) relative threshold.
+    ("weakest ir/direct", "ir_min_peak_ratio", ((0.0, 0.05, "< 0.05"), (0.05, _INF, ">= 0.05"))),
 )
 
 
