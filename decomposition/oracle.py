@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import render_components
+from core.model import render_components
 from .refine import refine
 
 __all__ = ["OracleOptions", "OracleFit", "oracle_fit"]
@@ -55,7 +55,7 @@ class OracleFit:
     Attributes
     ----------
     params : dict of ndarray
-        Fitted parameters (keys of :mod:`decomposition.model`), shapes S and S + (R,).
+        Fitted parameters (keys of :mod:`core.model`), shapes S and S + (R,).
     direct, sss : ndarray, S + (L,)
         Rendered components (with the data's rendering).
     interreflections : ndarray, S + (R, L)

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
+from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from .refine import refine
 
 __all__ = ["SearchOptions", "relabel", "structured_search"]

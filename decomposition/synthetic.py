@@ -6,7 +6,7 @@ A synthetic pixel holds any subset of the component classes
     s    subsurface scattering (sss; a Gaussian-blurred delayed decaying exponential)
     r2, r3, ...  inter-reflections (Gaussian-blurred deltas after the direct one)
 
-rendered with :func:`decomposition.model.render_components`, plus one of the paper's three
+rendered with :func:`core.model.render_components`, plus one of the paper's three
 noise types at an exact noise-to-signal ratio.  The kinds of the paper's Fig. 3 are
 
     "a" = d + s,   "b" = d + s + r2,   "c" = d + s + r2 + r3,
@@ -52,7 +52,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import special
 
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_components, sss_kernel, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_components, sss_kernel, time_axis_ps
 
 __all__ = [
     "FIG3_KINDS",
@@ -205,7 +205,7 @@ class SyntheticData:
     Attributes
     ----------
     params : dict of ndarray
-        Ground-truth parameters, keys of :mod:`decomposition.model`, shapes S / S + (R,), NaN = absent.
+        Ground-truth parameters, keys of :mod:`core.model`, shapes S / S + (R,), NaN = absent.
     components : dict of ndarray
         Clean rendered classes: ``direct`` S + (L,), ``sss`` S + (L,), ``interreflections`` S + (R, L).
     clean : ndarray, S + (L,)
@@ -438,7 +438,7 @@ def regime_variables(params: dict, time_bin_ps: float) -> dict[str, np.ndarray]:
     Parameters
     ----------
     params : dict of ndarray
-        Ground-truth parameters (keys of :mod:`decomposition.model`), shapes S and S + (R,).
+        Ground-truth parameters (keys of :mod:`core.model`), shapes S and S + (R,).
     time_bin_ps : float
         Bin width in ps.
 
@@ -505,15 +505,15 @@ def render_bin_integrated(params: dict, n_bins: int, time_bin_ps: float = 2.0,
         mean_i = ([G](t_i - T/2 .. t_i + T/2) - [h](...)) / (alpha T),   G(t) = integral of g up to t,
 
     both with erf differences taken on the tail side (see ``_erfc_diff``).  Independent of the
-    quadrature in :mod:`decomposition.model`, so it can check it.
+    quadrature in :mod:`core.model`, so it can check it.
 
     Parameters
     ----------
     params : dict of ndarray
-        Keys of :mod:`decomposition.model`, shapes S and S + (R,); NaN = absent.  sss
+        Keys of :mod:`core.model`, shapes S and S + (R,); NaN = absent.  sss
         attenuations must be positive.
     n_bins, time_bin_ps, t0_ps
-        Time axis (see :func:`decomposition.model.time_axis_ps`).
+        Time axis (see :func:`core.model.time_axis_ps`).
 
     Returns
     -------

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from decomposition.metrics import fidelity
-from decomposition.model import empty_params, render_components, render_profile
+from core.model import empty_params, render_components, render_profile
 from decomposition.search import STARTS, SearchOptions, relabel, structured_search
 
 
