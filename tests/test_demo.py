@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from decomposition.resultstore import open_result_store
-from streaklab.cli import main
+from streaklab.cli import CommandError, main
 from streaklab.commands.demo import class_fidelity
 
 
@@ -68,8 +68,13 @@ def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys):
 
     parser = argparse.ArgumentParser()
     speed.add_arguments(parser)
+    # The paper's scenes (sigma up to 10 ps) do not fit 64 bins: a clear error; the legacy ones do.
     args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
                               "--chunks", "1", "16", "--out", str(tmp_path)])
+    with pytest.raises(CommandError, match="too short"):
+        speed.run(args)
+    args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
+                              "--chunks", "1", "16", "--scenes", "legacy", "--out", str(tmp_path)])
     assert speed.run(args) == 0
     printed = capsys.readouterr().out
     report = json.loads((tmp_path / "speed.json").read_text())
