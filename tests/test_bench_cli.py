@@ -116,6 +116,21 @@ def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):
     assert set(summary["by_time_bin_ps"]) == {"2", "4"}
 
 
+def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
+    out = tmp_path / "search"
+    assert main(["bench", "accuracy", "--pixels", "6", "--n-bins", "256", "--nsr", "0.01", "--noise", "white",
+                 "--methods", "convscd,search", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    with open(out / "accuracy.csv") as fh:
+        rows = {r["method"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {"convscd", "search", "oracle"}
+    # The search starts from the ConvSCD result, so its time includes ConvSCD's.
+    assert float(rows["search"]["seconds_per_pixel"]) > float(rows["convscd"]["seconds_per_pixel"])
+    assert -1.0 <= float(rows["search"]["mean_fidelity"]) <= 1.0
+    assert "gap search" in text and any(line.strip().startswith("[") and "search mean fidelity" in line
+                                        for line in text.splitlines())
+
+
 def test_accuracy_bad_options(tmp_path, capsys):
     assert main(["bench", "accuracy", "--quick", "--noise", "brown", "--out", str(tmp_path / "a")]) == 2
     assert "--noise" in capsys.readouterr().err
