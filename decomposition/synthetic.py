@@ -112,7 +112,8 @@ class SceneRanges:
         Least distance of every Gaussian component from either end of the window, in PSF widths.
     max_gap_sigma : float or None
         Largest separation between consecutive Gaussian components, in PSF widths: each gap is
-        drawn uniformly from ``[min_gap_sigma, max_gap_sigma]``.  None: the window left over
+        drawn uniformly from ``[min_gap_sigma, max_gap_sigma]`` (the excess over the minimum
+        shrunk in proportion where the window cannot hold the chain).  None: the window left over
         after the minimum gaps is shared among the gaps at random (the legacy generator).
     log_uniform : tuple of str
         Names of the ``(lo, hi)`` ranges above drawn uniformly in log (even coverage of every
