@@ -147,6 +147,13 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     from reconstruction.cubestore import CubeStoreError, open_cube
 
     p = Path(path)
+    if p.is_file() and p.suffix.lower() != ".npy":
+        kind = _file_kind(p)
+        if kind == "hdf5":
+            raise CommandError(f"{path} is an HDF5 (NeXus) file; decompose reads cube stores: convert it first "
+                               f"with 'streaklab import {path} --out {p.with_suffix('.zarr').name}'")
+        if kind != "npy":
+            raise CommandError(f"{path} is neither a cube store (a .zarr folder) nor a .npy array")
     if p.suffix == ".npy" or p.is_file():
         if time_bin_ps is None:
             raise CommandError(f"{path}: a .npy input needs --time-bin-ps (its time axis is not stored)")
@@ -189,6 +196,20 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
     return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
             y_coord, y_units)
+
+
+def _file_kind(p: Path) -> str:
+    """'npy', 'hdf5' or 'other', from the file's first bytes."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        return "other"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head == b"\x89HDF\r\n\x1a\n":
+        return "hdf5"
+    return "other"
 
 
 def _jsonable(obj):
