@@ -58,11 +58,20 @@ class Cube:
         return self.t0_ps + self.time_bin_ps * np.arange(self.shape[2], dtype=np.float64)
 
 
+class OutputExistsError(FileExistsError):
+    """An output path that is already taken; ``path`` names it (commands turn it into their own
+    wording, e.g. "pass --overwrite")."""
+
+    def __init__(self, path):
+        super().__init__(f"{path} already exists; pass overwrite=True to replace it")
+        self.path = str(path)
+
+
 def check_output_path(path, *, overwrite: bool = False) -> None:
-    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
+    """Refuse to write over an existing, non-empty path unless ``overwrite`` (OutputExistsError)."""
     p = Path(path)
     if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
+        raise OutputExistsError(path)
 
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",

@@ -30,6 +30,14 @@ class CommandError(Exception):
     """An error the user can fix; printed without a traceback, exit status 2."""
 
 
+def output_exists(exc: FileExistsError) -> CommandError:
+    """A taken output path, in the command line's words."""
+    path = getattr(exc, "path", None)
+    if path is None:
+        return CommandError(str(exc))
+    return CommandError(f"{path} already exists; pass --overwrite to replace it")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="streaklab",

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from streaklab.cli import CommandError
+from streaklab.cli import CommandError, output_exists
 
 
 def add_arguments(parser) -> None:
@@ -18,7 +18,9 @@ def run(args) -> int:
 
     try:
         out = export_cube(args.cube, args.out, overwrite=args.overwrite)
-    except (CubeStoreError, NexusError, FileExistsError) as exc:
+    except FileExistsError as exc:
+        raise output_exists(exc) from None
+    except (CubeStoreError, NexusError) as exc:
         raise CommandError(str(exc)) from None
     print(f"wrote {out} (NeXus: /entry/data, signal 'cube', axes y, x, t)", file=sys.stderr)
     return 0

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from streaklab.cli import CommandError
+from streaklab.cli import CommandError, output_exists
 
 
 def add_arguments(parser) -> None:
@@ -29,8 +29,9 @@ def run(args) -> int:
     try:
         cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
                            allow_partial=args.allow_partial, overwrite=args.overwrite)
-    except (RunStoreError, ConfigError, CalibrationError, ReconstructionError, CubeStoreError,
-            FileExistsError) as exc:
+    except FileExistsError as exc:
+        raise output_exists(exc) from None
+    except (RunStoreError, ConfigError, CalibrationError, ReconstructionError, CubeStoreError) as exc:
         raise CommandError(str(exc)) from None
     ny, nx, nt = cube.shape
     missing = cube.attrs["provenance"].get("lines_missing", [])

@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from streaklab.cli import CommandError
+from streaklab.cli import CommandError, output_exists
 
 SIGNAL_UNITS = "arbitrary"
 
@@ -144,7 +144,7 @@ def run(args) -> int:
     try:
         cube = write_simulation(args.out, data, chunks=args.chunks, overwrite=args.overwrite, command=command)
     except FileExistsError as exc:
-        raise CommandError(str(exc)) from None
+        raise output_exists(exc) from None
     n_ir = data.params["ir_delay_ps"].shape[-1]
     print(f"wrote {cube.path}: cube (y={ny}, x={nx}, t={nt}) with ground truth in group 'truth' "
           f"(up to {n_ir} inter-reflections); {data.noise} noise at NSR {data.nsr:g}, seed {args.seed}",
