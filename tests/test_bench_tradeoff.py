@@ -36,4 +36,4 @@ def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys):
     png = (tmp_path / "tradeoff.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     out = capsys.readouterr().out
-    assert "issue-6 targets" in out and "isolated direct" in out
+    assert "\ntargets:\n" in out and "isolated direct" in out

@@ -39,3 +39,83 @@ def test_a_taken_output_path_is_refused_in_the_command_lines_words(tmp_path, cap
         assert err.endswith("already exists; pass --overwrite to replace it"), err
         assert "overwrite=True" not in err and len(err.splitlines()) == 1
     assert (taken / "notes.txt").read_text() == "keep me"
+
+
+def _parser(module, prog):
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=prog)
+    module.add_arguments(parser)
+    return parser
+
+
+def _benchmark_parsers():
+    import importlib
+
+    from streaklab.commands.bench import BENCHMARKS
+
+    return {name: _parser(importlib.import_module(f"streaklab.bench.{name}"), f"streaklab bench {name}")
+            for name in BENCHMARKS}
+
+
+def test_every_option_of_demo_and_the_benchmarks_says_what_it_does():
+    from streaklab.commands import demo
+
+    parsers = {"demo": _parser(demo, "streaklab demo"), **_benchmark_parsers()}
+    for name, parser in parsers.items():
+        for action in parser._actions:
+            if action.dest == "help":
+                continue
+            assert action.help and len(action.help) > 10, (name, action.option_strings or action.dest)
+
+
+def test_benchmarks_write_under_one_output_folder():
+    outs = {name: p.get_default("out") for name, p in _benchmark_parsers().items() if p.get_default("out")}
+    assert {"accuracy", "speed", "tradeoff"} <= set(outs)
+    assert outs == {name: f"bench-output/{name}" for name in outs}
+
+
+def test_bench_descriptions_are_not_circular(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    text = capsys.readouterr().out
+    lines = {ln.split()[0]: ln.split(None, 1)[1] for ln in text.split("benchmarks:\n", 1)[1].splitlines() if ln.strip()}
+    assert set(lines) == {"accuracy", "speed", "tradeoff", "stability"}
+    for name, desc in lines.items():
+        assert name not in desc and "--help" not in desc, (name, desc)
+
+
+def test_no_issue_numbers_in_code_output_or_docs():
+    import io
+    import re
+    import tokenize
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    pattern = re.compile(r"\bissue[- ]?#?\d|\bissue's\b", re.IGNORECASE)
+    found = []
+    for pkg in ("acquisition", "reconstruction", "decomposition", "drivers", "streaklab"):
+        for path in (root / pkg).rglob("*.py"):
+            for tok in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+                if tok.type in (tokenize.STRING, tokenize.COMMENT) or tok.type == getattr(tokenize, "FSTRING_MIDDLE", -1):
+                    if pattern.search(tok.string):
+                        found.append(f"{path.relative_to(root)}:{tok.start[0]}")
+    for path in [root / "README.md", *(root / "docs").glob("*.md")]:
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            if pattern.search(line):
+                found.append(f"{path.relative_to(root)}:{i}")
+    assert not found
+
+
+def test_the_license_is_an_spdx_string_with_a_backend_that_reads_it():
+    import re
+    import tomllib
+    from pathlib import Path
+
+    meta = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
+    assert meta["project"]["license"] == "BSD-3-Clause"  # PEP 639: a string, not the deprecated table
+    (req,) = [r for r in meta["build-system"]["requires"] if r.startswith("setuptools")]
+    major = int(re.fullmatch(r"setuptools>=(\d+).*", req).group(1))
+    assert major >= 77  # the first setuptools that reads license expressions

@@ -52,7 +52,7 @@ def add_arguments(parser) -> None:
                              "threaded scheduler (default 1,2)")
     parser.add_argument("--chunks", type=int, nargs=2, default=(16, 64), metavar=("BY", "BX"),
                         help="pixel chunk of the cube and the computation (default 16 64)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic cube (default 0)")
     parser.add_argument("--out", default="bench-output/speed",
                         help="folder for speed.json (default bench-output/speed)")
     parser.add_argument("--keep", action="store_true", help="keep the synthetic cube and result stores")

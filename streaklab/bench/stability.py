@@ -225,7 +225,8 @@ def _flag_names(bits: int) -> str:
 def add_arguments(parser) -> None:
     parser.add_argument("--bins", type=int, default=256, help="time bins per profile (default 256)")
     parser.add_argument("--time-bin-ps", type=float, default=2.0, help="bin width in ps (default 2)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the direct delays' sub-bin offsets in the alpha*sigma and sigma sweeps (default 0)")
     parser.add_argument("--quick", action="store_true", help="fewer values per swept parameter")
 
 

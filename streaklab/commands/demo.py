@@ -39,11 +39,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lines", type=int, default=16, help="scan lines (y) (default 16)")
     parser.add_argument("--nx", type=int, default=64, help="slit pixels (x) (default 64)")
     parser.add_argument("--nt", type=int, default=256, help="streak rows / time bins (default 256)")
-    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd")
+    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd",
+                        help="solver: convscd (default) or the gradbm baseline")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="decompose on a local cluster of N processes (default: threads)")
     parser.add_argument("--nsr", type=float, default=0.05, help="noise-to-signal ratio of --source simulate")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the simulated scene and its noise (default 0); same seed, same data")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
