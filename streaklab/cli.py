@@ -16,6 +16,7 @@ COMMANDS = {
     "demo": ("streaklab.commands.demo", "run the whole pipeline on the simulated lab and report"),
     "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
+    "example-config": ("streaklab.commands.example_config", "print or write the example scan configuration"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),

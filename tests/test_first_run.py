@@ -119,3 +119,57 @@ def test_the_license_is_an_spdx_string_with_a_backend_that_reads_it():
     (req,) = [r for r in meta["build-system"]["requires"] if r.startswith("setuptools")]
     major = int(re.fullmatch(r"setuptools>=(\d+).*", req).group(1))
     assert major >= 77  # the first setuptools that reads license expressions
+
+
+def test_the_packaged_example_config_is_reachable_from_any_folder(tmp_path, monkeypatch, capsys):
+    from acquisition.config import example_config_path, load_config
+
+    monkeypatch.chdir(tmp_path)
+    packaged = example_config_path("sim")
+    assert load_config("sim").source == str(packaged)
+    assert main(["example-config"]) == 0
+    assert capsys.readouterr().out == packaged.read_text()
+    assert main(["example-config", "--out", "scan.toml"]) == 0
+    assert "streaklab capture --config scan.toml" in capsys.readouterr().err
+    assert load_config("scan.toml").data == load_config("sim").data
+    assert main(["example-config", "--out", "scan.toml"]) == 2
+    assert "already exists; pass --overwrite" in capsys.readouterr().err
+    # a missing file says where a configuration can come from
+    assert main(["capture", "--config", "nosuch.toml", "--out", "run.zarr", "--simulate"]) == 2
+    err = capsys.readouterr().err
+    assert "nosuch.toml: cannot read" in err and "example-config" in err and len(err.strip().splitlines()) == 1
+    # a file of that name in the folder is what the user means
+    (tmp_path / "sim").write_text("[scan]\ncount = 0\n")
+    assert main(["capture", "--config", "sim", "--out", "run.zarr", "--simulate"]) == 2
+    assert "scan.count" in capsys.readouterr().err
+
+
+def _readme_session():
+    """The commands of the README's "A session, end to end" block, as argument lists."""
+    import shlex
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text.split("## A session, end to end", 1)[1].split("```", 2)[1]
+    commands = []
+    for line in block.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            argv = shlex.split(line)
+            assert argv[0] == "streaklab", line
+            commands.append(argv[1:])
+    return commands
+
+
+def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monkeypatch, capsys):
+    from decomposition.resultstore import open_result_store
+
+    session = _readme_session()
+    assert [argv[0] for argv in session] == ["capture", "reconstruct", "decompose", "report"]
+    monkeypatch.chdir(tmp_path)
+    for argv in session:
+        assert main(argv) == 0, (argv, capsys.readouterr().err)
+    store = open_result_store(tmp_path / "result.zarr")
+    assert store.shape[0] == 16 and store.done_mask().all()
+    assert {"frames.png", "maps.png", "profiles.png", "summary.txt"} <= {p.name for p in (tmp_path / "figs").iterdir()}
+    assert "pixels: 1024; done 1024 (100.0%); decomposed 1024" in (tmp_path / "figs" / "summary.txt").read_text()
