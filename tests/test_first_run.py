@@ -1,6 +1,7 @@
 """What a new user meets first: inputs named for what they are, the packaged example config,
 and messages that say what to do."""
 import numpy as np
+import pytest
 
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
@@ -76,8 +77,6 @@ def test_benchmarks_write_under_one_output_folder():
 
 
 def test_bench_descriptions_are_not_circular(capsys):
-    import pytest
-
     with pytest.raises(SystemExit):
         main(["bench", "--help"])
     text = capsys.readouterr().out
@@ -173,3 +172,64 @@ def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monke
     assert store.shape[0] == 16 and store.done_mask().all()
     assert {"frames.png", "maps.png", "profiles.png", "summary.txt"} <= {p.name for p in (tmp_path / "figs").iterdir()}
     assert "pixels: 1024; done 1024 (100.0%); decomposed 1024" in (tmp_path / "figs" / "summary.txt").read_text()
+
+
+def test_compile_notice_speaks_only_when_numba_compiles():
+    import io
+
+    from decomposition import jit
+
+    ns = {"jit": jit}
+    exec("@jit.njit\ndef thrice(x):\n    return 3.0 * x\n", ns)  # no source file: compiled, not cached
+    first, second = io.StringIO(), io.StringIO()
+    with jit.compile_notice(first, label="test") as watch:
+        assert ns["thrice"](2.0) == 6.0
+    assert watch.started is not None
+    lines = first.getvalue().splitlines()
+    assert len(lines) == 2 and lines[0] == f"test: {jit.COMPILE_NOTICE} ..."
+    assert lines[1].startswith("test: kernels compiled and cached in ") and lines[1].endswith(" s")
+    with jit.compile_notice(second, label="test") as watch:
+        assert ns["thrice"](4.0) == 12.0  # already compiled in this process
+    assert watch.started is None and second.getvalue() == ""
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(420)
+def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_path):
+    """A fresh numba cache (a new install): the notice, then progress; the next run is silent about it."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from decomposition.synthetic import make_cube
+
+    root = Path(__file__).resolve().parents[1]
+    np.save(tmp_path / "c.npy", make_cube(1, 8, 96, nsr=0.05, seed=1).noisy)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache"),
+           "PYTHONPATH": str(root) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = [sys.executable, "-m", "streaklab", "decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2",
+           "--components", "d", "--out", str(tmp_path / "r.zarr"), "--overwrite"]
+    first = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
+    assert first.returncode == 0, first.stderr
+    lines = first.stderr.splitlines()
+    notice = [i for i, ln in enumerate(lines) if "compiling the solver's kernels once (about 10-15 s" in ln]
+    done = [i for i, ln in enumerate(lines) if "kernels compiled and cached in" in ln]
+    progress = [i for i, ln in enumerate(lines) if "1/1 chunks (100%)" in ln]
+    assert len(notice) == 1 and len(done) == 1 and progress, first.stderr
+    assert notice[0] < done[0] < progress[0]
+    second = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
+    assert second.returncode == 0, second.stderr
+    assert "compil" not in second.stderr and "1/1 chunks (100%)" in second.stderr
+
+
+def test_accuracy_timings_leave_out_the_first_calls_one_time_cost(monkeypatch):
+    from streaklab.bench.accuracy import measure
+    from _timing import first_call_costs_a_second
+
+    calls = first_call_costs_a_second(monkeypatch)
+    rows, per_pixel = measure(pixels=3, n_bins=64, time_bin_ps=2.0, nsrs=[0.01], noises=["white"],
+                              methods=["convscd"], kinds="a,b,c", seed=0)
+    # 1 s over 3 pixels would be 0.33 s per pixel
+    assert rows[0]["seconds_per_pixel"] < 0.1 and per_pixel["convscd"] < 0.1
+    assert len(calls) >= 2  # the slow first call happened, untimed

@@ -214,6 +214,10 @@ def run(args) -> int:
         print(f"writing a synthetic {ny} x {nx} x {nt} cube (white noise, NSR {args.nsr:g}, seed {args.seed}, "
               f"chunks {chunks[0]} x {chunks[1]}) ...", flush=True)
         gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks)
+        from decomposition.jit import warm_up
+
+        for method in methods:  # compile once here, if needed, not inside the first timed run
+            warm_up(time_bin_ps=2.0, n_bins=nt, method=method, label="bench speed")
         floor = fft_floor(cube_path, threads=max(n for _, n in workers))
         print(f"floor: one FFT-correlation pass, {floor['threads']} threads: {floor['pixels_per_s']:,.0f} px/s "
               f"({floor['seconds']:.2f} s)", flush=True)

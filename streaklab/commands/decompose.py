@@ -328,6 +328,12 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
                                             components=components, options=options)
+    # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
+    # and cache them, saying so): workers then find them in the cache instead of each compiling.
+    from decomposition.jit import warm_up
+
+    warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components, options=options, stream=stream,
+            quiet=not progress)
     if nan_policy == "error":
         bad = count_nonfinite_pixels(arr)
         if bad:
