@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from core.errors import OutputExistsError, StreaklabError
+
 from . import __version__
 
 # name -> (module, one-line help)
@@ -28,14 +30,17 @@ COMMANDS = {
 
 
 class CommandError(Exception):
-    """An error the user can fix; printed without a traceback, exit status 2."""
+    """An error in the command line the user can fix; printed without a traceback, exit status 2.
+
+    The library's own errors (:class:`core.errors.StreaklabError`) are printed the same way.
+    """
 
 
-def output_exists(exc: FileExistsError) -> CommandError:
-    """A taken output path, in the command line's words."""
+def output_exists(exc: FileExistsError) -> Exception:
+    """A taken output path, in the command line's words (the error itself when it names no path)."""
     path = getattr(exc, "path", None)
     if path is None:
-        return CommandError(str(exc))
+        return exc
     return CommandError(f"{path} already exists; pass --overwrite to replace it")
 
 
@@ -64,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     args = sub.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
-    except CommandError as exc:
+    except (CommandError, StreaklabError) as exc:
+        if isinstance(exc, OutputExistsError):
+            exc = output_exists(exc)
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
