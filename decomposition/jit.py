@@ -108,8 +108,8 @@ def compile_notice(stream=None, *, label: str = "decompose"):
     """Say so, once, on ``stream`` (default stderr) if numba compiles anything within the block.
 
     Prints nothing when every kernel comes from numba's disk cache.  When something is compiled:
-    one line as compiling starts, on a terminal a count of seconds redrawn in place while it runs,
-    and one line with the time it took at the end.  Yields the watch (``.started`` is None if
+    one line as compiling starts, on a terminal a short count of seconds redrawn in place while it
+    runs, and one line with the time it took at the end (over the count, on a terminal).  Yields the watch (``.started`` is None if
     nothing was compiled).
     """
     stream = sys.stderr if stream is None else stream
@@ -118,11 +118,11 @@ def compile_notice(stream=None, *, label: str = "decompose"):
 
     def tick():
         while not done.wait(1.0):
-            stream.write(f"\r{label}: {COMPILE_NOTICE} ... {time.monotonic() - watch.started:.0f} s")
+            stream.write(f"\r{label}: compiling ... {time.monotonic() - watch.started:.0f} s")
             stream.flush()
 
     def on_first():
-        stream.write(f"{label}: {COMPILE_NOTICE} ..." + ("" if tty else "\n"))
+        stream.write(f"{label}: {COMPILE_NOTICE} ...\n")
         stream.flush()
         if tty:
             threading.Thread(target=tick, daemon=True, name="compile-notice").start()
@@ -135,7 +135,7 @@ def compile_notice(stream=None, *, label: str = "decompose"):
         done.set()
         if watch.started is not None:
             seconds = time.monotonic() - watch.started
-            stream.write(("\n" if tty else "") + f"{label}: kernels compiled and cached in {seconds:.1f} s\n")
+            stream.write(("\r" if tty else "") + f"{label}: kernels compiled and cached in {seconds:.1f} s\n")
             stream.flush()
 
 

@@ -192,6 +192,18 @@ def test_compile_notice_speaks_only_when_numba_compiles():
         assert ns["thrice"](4.0) == 12.0  # already compiled in this process
     assert watch.started is None and second.getvalue() == ""
 
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    exec("@jit.njit\ndef twice(x):\n    return 2.0 * x\n", ns)
+    term = Terminal()
+    with jit.compile_notice(term, label="test"):
+        assert ns["twice"](2.0) == 4.0
+    notice, rest = term.getvalue().split("\n", 1)
+    assert notice == f"test: {jit.COMPILE_NOTICE} ..."  # a whole line, whatever the terminal's width
+    assert rest.startswith("\rtest: kernels compiled and cached in ")  # drawn over the seconds count
+
 
 @pytest.mark.slow
 @pytest.mark.timeout(420)
