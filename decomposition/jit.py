@@ -161,8 +161,15 @@ def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convs
                                 + (["d+s"] if {"d", "s"} <= comps else []) + (["d+s+r2"] if comps >= {"d", "s", "r"} else [])))
     # low and high noise, and a pixel with a spike (its fit excludes a sample, which takes the
     # weighted code paths): each takes paths, and argument layouts, that the others do not
-    noisy = np.concatenate([make_profiles(2 * len(kinds), n_bins, nsr=nsr, noise="white", seed=0, kinds=kinds,
-                                          time_bin_ps=float(time_bin_ps)).noisy for nsr in (0.05, 0.2)])
+    def scenes(tb, nb):
+        return np.concatenate([make_profiles(2 * len(kinds), nb, nsr=nsr, noise="white", seed=0, kinds=kinds,
+                                             time_bin_ps=tb).noisy for nsr in (0.05, 0.2)])
+
+    try:
+        noisy = scenes(float(time_bin_ps), n_bins)
+    except ValueError:  # a window too short for the scenes: the kernels are the same on the default axis
+        time_bin_ps, n_bins = 2.0, 256
+        noisy = scenes(time_bin_ps, n_bins)
     spiked = noisy[:1].copy()
     spiked[0, n_bins // 5] += 20.0 * np.abs(spiked).max()
     noisy = np.concatenate([noisy, spiked])

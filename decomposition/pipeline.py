@@ -277,8 +277,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     # and cache them, saying so): workers then find them in the cache instead of each compiling.
     from decomposition.jit import warm_up
 
-    seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components, options=options,
-                              stream=stream, quiet=not progress)
+    try:
+        seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                  options=options, stream=stream, quiet=not progress)
+    except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+        seconds_compile = 0.0
     if nan_policy == "error":
         bad = count_nonfinite_pixels(arr)
         if bad:

@@ -246,3 +246,12 @@ def test_accuracy_timings_leave_out_the_first_calls_one_time_cost(monkeypatch):
     # 1 s over 3 pixels would be 0.33 s per pixel
     assert rows[0]["seconds_per_pixel"] < 0.1 and per_pixel["convscd"] < 0.1
     assert len(calls) >= 2  # the slow first call happened, untimed
+
+
+def test_warm_up_suits_any_time_axis_and_reports_no_compile_once_cached():
+    from decomposition.jit import warm_up
+
+    # a window far too short for its synthetic scenes (0.1 ps bins): the default axis is used instead
+    assert warm_up(time_bin_ps=0.1, n_bins=4096, quiet=True) >= 0.0
+    assert warm_up(time_bin_ps=50.0, n_bins=16, components=("d", "s"), quiet=True) >= 0.0
+    assert warm_up(time_bin_ps=2.0, n_bins=256, quiet=True) == 0.0  # everything is loaded by now
