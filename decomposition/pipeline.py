@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import StreaklabError
+from core.integrity import CheckedReader, DataIntegrityError, read_checked
 
 __all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
 
@@ -91,6 +92,13 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     from reconstruction.cubestore import CubeStoreError, open_cube
 
     p = Path(path)
+    if p.is_file() and p.suffix.lower() != ".npy":
+        kind = _file_kind(p)
+        if kind == "hdf5":
+            raise PipelineError(f"{path} is an HDF5 (NeXus) file; decompose reads cube stores: convert it first "
+                                f"with 'streaklab import {path} --out {p.with_suffix('.zarr').name}'")
+        if kind != "npy":
+            raise PipelineError(f"{path} is neither a cube store (a .zarr folder) nor a .npy array")
     if p.suffix == ".npy" or p.is_file():
         if time_bin_ps is None:
             raise PipelineError(f"{path}: a .npy input needs --time-bin-ps (its time axis is not stored)")
@@ -123,16 +131,38 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         raise PipelineError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    arr = da.from_zarr(cube.array)
+    # read through the checksum check: a damaged chunk is named, not a traceback from a worker
+    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, fancy=False, asarray=True)
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
     if "y" in cube.group:
-        y_coord = np.asarray(cube.group["y"][...], np.float64)
+        y_coord = np.asarray(read_checked(cube.group["y"], slice(None), store=str(p)), np.float64)
         y_units = str(cube.group["y"].attrs.get("units", "pixel"))
     default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
     return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
             y_coord, y_units)
+
+
+def _file_kind(p: Path) -> str:
+    """'npy', 'hdf5' or 'other', from the file's first bytes."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        return "other"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head == b"\x89HDF\r\n\x1a\n":
+        return "hdf5"
+    return "other"
+
+
+def _flag_table() -> dict:
+    """The solver's flag table (bit -> name): the one place the flag names are defined."""
+    from decomposition.api import FLAG_NAMES
+
+    return {int(bit): str(name) for bit, name in dict(FLAG_NAMES).items()}
 
 
 def _jsonable(obj):
@@ -176,8 +206,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
     invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
-    store creation, cluster start), seconds_compute (reading, solving, writing the chunks) and
-    pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
+    store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
+    the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
+    seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
     """
     from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
@@ -214,9 +245,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     existing = None
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+        from decomposition.resultstore import prepare_output_path
+
         try:
+            prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
             existing = open_result_store(out_path, mode="r+")
-        except ResultStoreError as exc:
+            existing.check_done_chunks_present()
+        except (ResultStoreError, DataIntegrityError) as exc:
             raise PipelineError(f"cannot resume: {exc}") from None
         if chunks is None:
             chunks = tuple(existing.chunks)
@@ -240,17 +275,22 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     else:
         from decomposition.resultstore import prepare_output_path
 
-        try:  # refuse an occupied path before spending time on checks
-            prepare_output_path(out_path, overwrite=False, protect=[source["path"]])
-        except FileExistsError:
-            if not overwrite:
-                raise PipelineError(f"{out_path} already exists; pass --overwrite to replace it "
-                                   f"(or --resume to continue a run into it)") from None
-        except ResultStoreError as exc:
+        try:  # refuse an occupied path (or one overlapping the input) before spending time on checks
+            prepare_output_path(out_path, overwrite=overwrite, protect=[source["path"]])
+        except (FileExistsError, ResultStoreError) as exc:
             raise PipelineError(str(exc)) from None
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
                                             components=components, options=options)
+    # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
+    # and cache them, saying so): workers then find them in the cache instead of each compiling.
+    from decomposition.jit import warm_up
+
+    try:
+        seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                  options=options, stream=stream, quiet=not progress)
+    except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+        seconds_compile = 0.0
     if nan_policy == "error":
         bad = count_nonfinite_pixels(arr)
         if bad:
@@ -271,7 +311,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
                                             write_components=write_components, signal_units=units, y_coord=y_coord,
                                             y_units=y_units, attrs=attrs, overwrite=overwrite,
-                                            protect=[source["path"]])
+                                            protect=[source["path"]], flag_names=_flag_table())
             except (ResultStoreError, FileExistsError) as exc:
                 raise PipelineError(str(exc)) from None
         else:
@@ -302,6 +342,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         t_compute = time.perf_counter()
         try:
             run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except DataIntegrityError as exc:           # a damaged chunk of the input
+            if bar is not None:
+                bar.close()
+            raise DataIntegrityError(f"{exc} (the chunks finished before it are in {out_path}; --resume "
+                                     f"continues once the input is mended)") from None
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()
@@ -317,7 +362,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                    "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
                    "ir_truncated_pixels": stats["ir_truncated"],
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
-                   "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
+                   "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan"),
+                   "seconds_compile": seconds_compile}
         return summary
     finally:
         if client is not None:
