@@ -7,6 +7,7 @@ from core.model import (  # noqa: F401
     time_axis_ps,
 )
 from .flags import (  # noqa: F401
+    AMBIGUOUS,
     AT_BOUND,
     EMPTY,
     FLAG_NAMES,

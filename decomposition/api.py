@@ -6,6 +6,8 @@ input and output in a module of its own:
 1. prepare the samples (:mod:`decomposition.prepare`): validation, scaling, masks, noise;
 2. detect the components by sparse coding (:mod:`decomposition.detect`;
    :mod:`decomposition.convscd` is the solver, :mod:`decomposition.gradbm` the baseline);
+   then, for the pixels whose answer is in doubt, structured alternative starts kept by a
+   penalised objective (:mod:`decomposition.search`);
 3. refine them off the grid, optionally (:mod:`decomposition.refit`);
 4. label them direct / inter-reflections / sss (:mod:`decomposition.label`);
 5. render the fit and flag its quality (:mod:`decomposition.quality`, :mod:`decomposition.flags`).
@@ -14,20 +16,22 @@ Options are validated once, into the frozen dataclasses of :mod:`decomposition.o
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from . import convscd as cs
 from .detect import detect_components, detect_gradbm
-from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED, SPIKE,  # noqa: F401
-                    TRUNCATED, flag_names)
+from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
+                    SPIKE, TRUNCATED, flag_names, mark)
 from .label import label_components
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .search import STAGE_STARTS, search_components
 
 __all__ = [
     "decompose",
@@ -41,6 +45,7 @@ __all__ = [
     "MAX_ITER",
     "AT_BOUND",
     "TRUNCATED",
+    "AMBIGUOUS",
     "FLAG_NAMES",
 ]
 
@@ -59,7 +64,7 @@ class DecompositionResult:
     params : dict of ndarray               model parameters, NaN where absent
                                            (keys of ``core.model``)
     residual : ndarray (..., L)            profiles minus the sum of all components
-    flags : ndarray (...,) uint8           quality bitmask (:class:`decomposition.flags.Flag`)
+    flags : ndarray (...,) uint16          quality bitmask (:class:`decomposition.flags.Flag`)
     info : dict                            method, all options, iteration counts
     """
 
@@ -204,6 +209,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),
                     coordinates_searched=int(dic.n_coordinates))
         det = detect_components(samples, dic, opts, fams)
+        if opts.search:
+            found = search_components(samples, det, dic, opts, fams)
+            det = dataclasses.replace(det, state=found.state)
+            mark(flags, samples.live[found.ambiguous], AMBIGUOUS)
+            wins = np.bincount(found.start[found.doubt], minlength=len(STAGE_STARTS))
+            info.update(search_doubt=int(found.doubt.sum()),
+                        search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
+                        ambiguous=int(found.ambiguous.sum()))
         labels = label_components(samples, det, dic, opts)
         params, noise_eff = labels.params, det.noise_eff
         flags |= labels.flags

@@ -28,6 +28,7 @@ import dask
 import dask.array as da
 import numpy as np
 from dask.callbacks import Callback
+from .flags import FLAG_DTYPE
 
 __all__ = [
     "solve_block",
@@ -88,7 +89,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     dict with
         ``params``         dict of float64 arrays (by, bx) or (by, bx, n_ir), NaN = absent
         ``rms_residual``   (by, bx) float64, sqrt(mean over t of residual**2)
-        ``flags``          (by, bx) uint8
+        ``flags``          (by, bx) uint16
         ``valid``          (by, bx) bool, pixel finite and decomposed
         ``direct``, ``sss``, ``residual`` (by, bx, L) and ``ir`` (by, bx, n_ir, L), in the solver's
         precision (float64),
@@ -105,7 +106,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     flat = block.reshape(by * bx, nt)
     keep = finite.reshape(-1)
     n_ok = int(keep.sum())
-    out = {"valid": finite.copy(), "flags": np.where(finite, 0, _nonfinite_flag()).astype(np.uint8),
+    out = {"valid": finite.copy(), "flags": np.where(finite, 0, _nonfinite_flag()).astype(FLAG_DTYPE),
            "rms_residual": np.full((by, bx), np.nan)}
     params: dict[str, np.ndarray] = {}
     comps = {}
@@ -124,7 +125,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
             params[k] = v
         resid = np.asarray(res.residual, dtype=np.float64)
         rms = np.sqrt(np.mean(np.square(resid), axis=-1))
-        flags = np.asarray(res.flags).astype(np.uint8)
+        flags = np.asarray(res.flags).astype(FLAG_DTYPE)
         from decomposition import TRUNCATED  # the solver found more inter-reflections than it reports
 
         truncated = max(truncated, int(np.count_nonzero(flags & int(TRUNCATED))))
@@ -144,7 +145,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     if n_ok:
         out["params"] = {k: scatter(v, np.nan, np.float64) for k, v in params.items()}
         out["rms_residual"] = scatter(rms, np.nan, np.float64)
-        out["flags"] = scatter(flags, _nonfinite_flag(), np.uint8)
+        out["flags"] = scatter(flags, _nonfinite_flag(), FLAG_DTYPE)
         if with_components:  # in the solver's precision: the store decides what fits its arrays
             for k, v in comps.items():
                 out[k] = scatter(v, np.nan, np.result_type(np.asarray(v).dtype, np.float32))

@@ -14,7 +14,9 @@ log sigma, log alpha.  This module turns them into the parameter dict of
    ``merge_tol_bins`` time bins are one component split in two; they are
    replaced by a single Gaussian with the same total area, area-weighted mean
    delay and the combined second moment.
-3. Classify: the earliest Gaussian is the direct reflection d; later ones are
+3. Physics (``sss_after_direct``): an sss onset before the direct is moved to the direct's
+   delay (light enters the surface where it is directly reflected).
+4. Classify: the earliest Gaussian is the direct reflection d; later ones are
    r2, r3, ... in order of delay; the sss atom (at most one) is s.
 
 Everything works on whole blocks with array operations; the only Python loops
@@ -28,7 +30,7 @@ from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from .slots import eval_atoms
 from core.model import empty_params, render_components
 
-__all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]
+__all__ = ["peak_heights", "threshold", "merge_gaussians", "clip_sss_onset", "classify", "render_params"]
 
 
 def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -85,6 +87,16 @@ def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0) -
                 st["fam"][rows, j] = FAM_NONE
                 st["amp"][rows, j] = 0.0
     return st
+
+
+def clip_sss_onset(st: dict) -> np.ndarray:
+    """Move every sss onset that lies before the pixel's earliest Gaussian to that Gaussian's
+    delay (in place; pixels without a Gaussian keep theirs); -> (P,) bool, the pixels changed."""
+    g = st["fam"] == FAM_GAUSS
+    d0 = np.where(g, st["delay"], np.inf).min(axis=1)
+    early = (st["fam"] == FAM_SSS) & (st["delay"] < d0[:, None]) & np.isfinite(d0)[:, None]
+    st["delay"] = np.where(early, d0[:, None], st["delay"])
+    return early.any(axis=1)
 
 
 def classify(st: dict, scale: np.ndarray, n_ir: int):

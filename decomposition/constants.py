@@ -29,6 +29,13 @@ __all__ = [
     "MIN_NOISE_SAMPLES",
     "BOUND_TOL",
     "SSS_SLOT",
+    "SEARCH_EDGE_LEVEL",
+    "SEARCH_PEAK_LEVEL",
+    "SEARCH_IR_GAP_SIGMA",
+    "SEARCH_DEFAULT_SIGMA_PS",
+    "SEARCH_DEFAULT_ALPHA_PER_PS",
+    "RISE_10_50_SIGMA",
+    "NARROW_FRACTION",
 ]
 
 #: empty slot
@@ -97,3 +104,21 @@ BOUND_TOL = 1e-9
 #: Slot layout of the refinement and the Fisher information (:mod:`decomposition.refine`):
 #: slot 0 the direct reflection, this one the sss component, 2.. the inter-reflections.
 SSS_SLOT = 1
+
+# --- the search stage (:mod:`decomposition.search`) -------------------------------------------
+
+#: the leading edge of a profile: its first sample at this fraction of the smoothed peak
+SEARCH_EDGE_LEVEL = 0.1
+#: a significant local maximum of the smoothed profile: at least this fraction of its peak
+SEARCH_PEAK_LEVEL = 0.2
+#: a detected Gaussian more than this many PSF widths after a start's direct is kept as its
+#: inter-reflection; closer ones are dropped (the start's direct replaces them)
+SEARCH_IR_GAP_SIGMA = 3.0
+#: width (ps) and attenuation (1/ps) of a start where the detection found none
+SEARCH_DEFAULT_SIGMA_PS = 3.0
+SEARCH_DEFAULT_ALPHA_PER_PS = 0.03
+#: a Gaussian rises from 10 % to 50 % of its peak in sqrt(2 ln 10) - sqrt(2 ln 2) = 0.969 sigma
+RISE_10_50_SIGMA = math.sqrt(2 * math.log(10)) - math.sqrt(2 * math.log(2))
+#: the search's narrow start is tried where the width from the rise is below this fraction
+#: of the detected width
+NARROW_FRACTION = 0.7

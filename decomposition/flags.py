@@ -1,4 +1,4 @@
-"""Per-pixel quality flags of a decomposition (``DecompositionResult.flags``, a uint8 bitmask).
+"""Per-pixel quality flags of a decomposition (``DecompositionResult.flags``, a uint16 bitmask).
 
 =========== ===== ==============================================================
 EMPTY         1   no component: all-zero pixel or nothing above the noise
@@ -10,7 +10,12 @@ NONFINITE    16   NaN/inf samples (``nan_policy="omit"``); pixel not decomposed
 MAX_ITER     32   the solver hit ``max_iter`` before it converged
 AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
 TRUNCATED   128   more inter-reflections found than ``max_reflections``
+AMBIGUOUS   512   the data do not determine the split: two starts of the search
+                  (:mod:`decomposition.search`) with materially different splits
+                  reach objectives within ``ambiguity_chi2`` of each other
 =========== ===== ==============================================================
+
+Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).
 
 The bit values are part of the result-store format: stores written by any version read the
 same.  :data:`FLAG_NAMES` (bit -> name) is derived from :class:`Flag`, never kept by hand.
@@ -22,10 +27,10 @@ import enum
 import numpy as np
 
 __all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
-           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED"]
+           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS"]
 
 #: dtype of a flags array
-FLAG_DTYPE = np.uint8
+FLAG_DTYPE = np.uint16
 
 
 class Flag(enum.IntFlag):
@@ -39,6 +44,7 @@ class Flag(enum.IntFlag):
     MAX_ITER = 32
     AT_BOUND = 64
     TRUNCATED = 128
+    AMBIGUOUS = 512
 
 
 #: bit value -> flag name, in bit order
@@ -52,6 +58,7 @@ NONFINITE = Flag.NONFINITE
 MAX_ITER = Flag.MAX_ITER
 AT_BOUND = Flag.AT_BOUND
 TRUNCATED = Flag.TRUNCATED
+AMBIGUOUS = Flag.AMBIGUOUS
 
 
 def flag_names(bits) -> list[str]:

@@ -3,8 +3,10 @@
 Optionally snaps the atoms to the reference grid (``off_grid=False``, the paper's discrete
 setting), applies the 5 % threshold and merging once more (refinement can bring two atoms
 together), flags atoms whose refined width or decay ended at a bound, and names the atoms
-(earliest Gaussian: direct; later ones: r2, r3, ...; the sss atom) with
-:func:`decomposition.components.classify`.
+(earliest Gaussian: direct; later ones: r2, r3, ... in delay order; the sss atom, its onset
+not before the direct with ``sss_after_direct``) with
+:func:`decomposition.components.classify`.  With ``shared_sigma`` every atom of a pixel
+leaves with the same width.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
 from core.model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
-from .slots import parameter_bounds
+from .slots import parameter_bounds, tie_widths
 
 __all__ = ["Labels", "label_components", "at_bound"]
 
@@ -60,6 +62,10 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
     comp.threshold(st, t, opts.rel_threshold)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)   # refinement can bring two atoms together
+    if opts.shared_sigma:
+        tie_widths(st)          # a merge leaves the merged atom wider: one width per pixel in every output
+    if opts.sss_after_direct:
+        comp.clip_sss_onset(st)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     got, trunc = comp.classify(st, samples.scale[live], R)
     mark(flags, live[trunc], TRUNCATED)

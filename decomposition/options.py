@@ -153,9 +153,14 @@ class SolverOptions:
     block_size: int = 256
     refine: bool = False
     stderr: bool | None = None
+    search: bool = True
+    search_penalty: float = 1.0
+    search_doubt_chi2: float = 1.5
+    ambiguity_chi2: float = 10.0
+    ambiguity_split: float = 0.5
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
         for name in ("max_components", "block_size"):
@@ -164,7 +169,8 @@ class SolverOptions:
         _set(self, "max_iter", _number("max_iter", self.max_iter, lo=1, integer=True, allow_none=True))
         for name in ("n_lm", "n_polish"):
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
-        for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "merge_tol_bins", "spike_sigma"):
+        for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "merge_tol_bins", "spike_sigma",
+                     "search_penalty", "search_doubt_chi2", "ambiguity_chi2", "ambiguity_split"):
             _set(self, name, _number(name, getattr(self, name), lo=0))
         for name in ("eps_rel", "poor_fit"):
             _set(self, name, _number(name, getattr(self, name), lo=0, lo_open=True))

@@ -11,7 +11,7 @@ import numpy as np
 from .constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
 from .masks import SampleMask, check_mask
-from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, refine_atoms, take
+from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, refine_atoms, take, tie_widths
 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
 
@@ -32,6 +32,8 @@ def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.
     mu = np.zeros_like(s_eff)
     eps = eps_rel * s_eff
     bounds = parameter_bounds(dic, bound_factor)
+    if tie_sigma:
+        st = tie_widths({k: v.copy() for k, v in st.items()})
     st, obj, nl, model = refine_atoms(t, p, mask, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
                              return_model=True)
     if sss_after_direct:

@@ -251,3 +251,283 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
             m = better if best[key].ndim == 1 else better[:, None]
             best[key] = np.where(m, fit[key], best[key])
     return relabel(best, n_ir), {"start": which, "objective": best_j, "objective_solver": j_solver}
+
+
+# ==========================================================================================
+# The search stage of ``decompose`` (between detection and labelling), on slot states
+# ==========================================================================================
+
+#: starts of the search stage, in the order of ``info["search_wins"]``
+STAGE_STARTS = ("solver", "edge", "peak", "edge bare", "peak bare", "narrow")
+
+
+@dataclass(frozen=True)
+class SearchStage:
+    """What :func:`search_components` hands on: the chosen atoms of the live pixels and, per
+    pixel, the kept start (index into :data:`STAGE_STARTS`), whether it was searched at all
+    (``doubt``) and whether the data leave its split undetermined (``ambiguous``)."""
+
+    state: dict
+    start: np.ndarray
+    doubt: np.ndarray
+    ambiguous: np.ndarray
+
+
+def _stage_state(n, K, direct_ps, lsig, sss_ps, lalp, later_ps):
+    """Slot state (n, K) of a start: a direct Gaussian (NaN = none) in slot 0, an sss (NaN =
+    none) in slot 1, the Gaussians ``later_ps`` (n, G) after them, all with width exp(lsig)."""
+    from .constants import FAM_GAUSS, FAM_SSS
+    from .slots import new_state
+
+    st = new_state(n, K)
+    st["lsig"][:] = lsig[:, None]
+    st["lalp"][:] = lalp[:, None]
+    cols = [(direct_ps, FAM_GAUSS), (sss_ps, FAM_SSS)] + [(later_ps[:, j], FAM_GAUSS) for j in range(later_ps.shape[1])]
+    slot = np.zeros(n, np.int64)
+    rows = np.arange(n)
+    for d, fam in cols:
+        on = np.isfinite(d) & (slot < K)
+        st["fam"][rows[on], slot[on]] = fam
+        st["delay"][rows[on], slot[on]] = d[on]
+        st["amp"][rows[on], slot[on]] = 1.0
+        slot += on
+    return st
+
+
+def _data_chi2(t, p, mask, st, s2):
+    """(chi2 = weighted RSS / s^2 per pixel, model (n, L)) of a slot state."""
+    from .slots import render
+
+    model = render(t, st)
+    r = mask.residual(p, model)
+    return np.einsum("pl,pl->p", r, r) / s2, model
+
+
+def _n_free(st, shared_sigma):
+    """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
+    one width per pixel (``shared_sigma``) or per atom."""
+    from .constants import FAM_NONE, FAM_SSS
+
+    act = st["fam"] != FAM_NONE
+    n_act = act.sum(axis=1)
+    return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)
+
+
+def _split(t, st):
+    """Rendered split of a slot state: earliest Gaussian (direct), sss, later Gaussians
+    (summed), each (n, L)."""
+    from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+    from .slots import render
+
+    g = st["fam"] == FAM_GAUSS
+    d0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
+    first = np.zeros_like(g)
+    first[np.arange(g.shape[0]), d0] = g[np.arange(g.shape[0]), d0]
+    parts = []
+    for keep in (first, st["fam"] == FAM_SSS, g & ~first):
+        sub = dict(st)
+        sub["fam"] = np.where(keep, st["fam"], FAM_NONE).astype(st["fam"].dtype)
+        parts.append(render(t, sub))
+    return parts
+
+
+def _split_distance(a, b):
+    """1 - fidelity of split ``a`` against split ``b`` (lists of (n, L) parts)."""
+    num = sum(np.linalg.norm(x - y, axis=1) for x, y in zip(a, b))
+    den = sum(np.linalg.norm(y, axis=1) for y in b)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, 0.0)
+
+
+def _crossing(t, y, level, allowed):
+    """First time (linearly interpolated) where ``y`` (n, L) reaches ``level`` (n,) among the
+    ``allowed`` samples; the first allowed sample where none does."""
+    up = (y >= level[:, None]) & allowed
+    i = np.argmax(up, axis=1)
+    rows = np.arange(y.shape[0])
+    j = np.maximum(i - 1, 0)
+    y0, y1 = y[rows, j], y[rows, i]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where((i > 0) & (y1 > y0), (level - y0) / (y1 - y0), 1.0)
+    T = t[1] - t[0] if t.size > 1 else 1.0
+    return t[j] + np.clip(frac, 0.0, 1.0) * T * (i > 0)
+
+
+def search_block(p, mask, st, s_eff, dic, opts, components):
+    """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
+    detected slot state ``st`` (n, K) and noise ``s_eff`` (n,)).
+
+    -> (state, start (n,) int, doubt (n,) bool, ambiguous (n,) bool).
+    """
+    from . import components as comp
+    from .constants import FAM_GAUSS, FAM_SSS
+    from .polish import refit_amplitudes
+    from .slots import drop_zero, parameter_bounds, put, refine_atoms, take, tie_widths
+
+    n, L = p.shape
+    K = st["fam"].shape[1]
+    T = dic.time_bin_ps
+    t = dic.t0_ps + T * np.arange(L)
+    out = {k: v.copy() for k, v in st.items()}
+    start = np.zeros(n, np.int64)
+    ambiguous = np.zeros(n, bool)
+    if n == 0 or not ("d" in components and "s" in components):
+        return out, start, np.zeros(n, bool), ambiguous
+    s2 = np.maximum(s_eff, 1e-300) ** 2
+    nfit = np.maximum(mask.used.sum(axis=1), 1)
+    log_l = np.log(nfit)
+    shared = opts.shared_sigma
+
+    def score(state):
+        chi2, _ = _data_chi2(t, p, mask, state, s2)
+        return chi2 + opts.search_penalty * _n_free(state, shared) * log_l, chi2
+
+    base = {k: v.copy() for k, v in st.items()}
+    comp.threshold(base, t, opts.rel_threshold)
+    j0, chi0 = score(base)
+
+    # Pixels in doubt: an sss whose onset lies before the earliest Gaussian, an sss without
+    # any Gaussian, an sss onset more than NEAR_SIGMA widths after the direct, or a fit above
+    # the noise.
+    from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
+                            SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
+
+    g = base["fam"] == FAM_GAUSS
+    s_at = base["fam"] == FAM_SSS
+    has_s = s_at.any(axis=1)
+    d0 = np.where(g, base["delay"], np.inf).min(axis=1)
+    s_on = np.where(has_s, np.where(s_at, base["delay"], -np.inf).max(axis=1), np.nan)
+    act = base["fam"] != 0
+    lsig = np.where(act.any(axis=1), np.where(act, base["lsig"], np.nan).max(axis=1, initial=-np.inf),
+                    np.log(SEARCH_DEFAULT_SIGMA_PS))
+    lsig = np.where(np.isfinite(lsig), lsig, np.log(SEARCH_DEFAULT_SIGMA_PS))
+    sig = np.exp(lsig)
+    lalp = np.where(has_s, np.where(s_at, base["lalp"], -np.inf).max(axis=1),
+                    np.log(SEARCH_DEFAULT_ALPHA_PER_PS))
+    # PSF width from the rise of the earliest significant peak (10 % to 50 % of its height
+    # takes 0.97 sigma for a Gaussian), from a profile smoothed by one bin only
+    y1 = _smooth(p, np.ones(n))
+    top1 = y1.max(axis=1, keepdims=True)
+    pk1 = np.zeros_like(y1, dtype=bool)
+    pk1[:, 1:-1] = (y1[:, 1:-1] >= y1[:, :-2]) & (y1[:, 1:-1] > y1[:, 2:]) & (y1[:, 1:-1] >= SEARCH_PEAK_LEVEL * top1)
+    i_pk = np.where(pk1.any(axis=1), np.argmax(pk1, axis=1), np.argmax(y1, axis=1))
+    h_pk = y1[np.arange(n), i_pk]
+    before = np.arange(L)[None, :] <= i_pk[:, None]
+    t10 = _crossing(t, y1, 0.1 * h_pk, before)
+    t50 = _crossing(t, y1, 0.5 * h_pk, before)
+    sig_edge = np.clip((t50 - t10) / RISE_10_50_SIGMA, dic.grid.sigma_range_ps[0], dic.grid.sigma_range_ps[1])
+    narrow_all = sig_edge < NARROW_FRACTION * sig
+    ls_n_all = np.where(narrow_all, np.log(sig_edge), lsig)
+    t_peak_n_all = t[i_pk]
+    with np.errstate(invalid="ignore"):
+        doubt = narrow_all | (~has_s & (g.sum(axis=1) >= 2))
+        doubt |= has_s & (~g.any(axis=1) | (s_on < d0 - 0.5 * sig) | (s_on > d0 + NEAR_SIGMA * sig))
+        doubt |= chi0 > opts.search_doubt_chi2 * nfit
+    idx = np.nonzero(doubt)[0]
+    if idx.size == 0:
+        return out, start, doubt, ambiguous
+
+    # Starts for the pixels in doubt.
+    pb, mb, sb2 = p[idx], mask[idx], s2[idx]
+    sg, ls, la = sig[idx], lsig[idx], lalp[idx]
+    ys = _smooth(pb, np.maximum(sg / T, 0.5))
+    top = ys.max(axis=1, keepdims=True)
+    t_edge = t[np.argmax(ys >= SEARCH_EDGE_LEVEL * top, axis=1)]
+    is_peak = np.zeros_like(ys, dtype=bool)
+    is_peak[:, 1:-1] = ((ys[:, 1:-1] >= ys[:, :-2]) & (ys[:, 1:-1] > ys[:, 2:])
+                        & (ys[:, 1:-1] >= SEARCH_PEAK_LEVEL * top))
+    t_peak = np.where(is_peak.any(axis=1), t[np.argmax(is_peak, axis=1)], t[np.argmax(ys, axis=1)])
+    narrow, ls_n, t_peak_n = narrow_all[idx], ls_n_all[idx], t_peak_n_all[idx]
+    gd = np.where(g[idx], base["delay"][idx], np.nan)
+    allow_later = "r" in components
+    bounds = parameter_bounds(dic, opts.bound_factor)
+    mu = np.zeros(idx.size)
+    eps = opts.eps_rel * np.sqrt(sb2)
+
+    def refined(state, rows=slice(None)):
+        refit_amplitudes(pb[rows], mb[rows], state, dic)
+        state, _, _ = refine_atoms(t, pb[rows], mb[rows], state, mu[rows], eps[rows], bounds, opts.n_polish, None,
+                                   shared, opts.sss_after_direct, opts.lm_tol)
+        drop_zero(state)
+        comp.threshold(state, t, opts.rel_threshold)
+        comp.merge_gaussians(state, T, opts.merge_tol_bins)
+        if shared:
+            tie_widths(state)
+        if opts.sss_after_direct:
+            comp.clip_sss_onset(state)      # scored as it will be labelled
+        return state
+
+    # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
+    cand = [take(base, idx)]
+    if opts.sss_after_direct:
+        moved = comp.clip_sss_onset(cand[0])
+        if moved.any():
+            m = np.nonzero(moved)[0]
+            put(cand[0], m, refined(take(cand[0], m), m))
+    sn = np.exp(ls_n)
+    specs = (("edge", t_edge + sg, t_edge + sg, True, ls), ("peak", t_peak, t_peak + sg, True, ls),
+             ("edge bare", t_edge + sg, t_edge + sg, False, ls), ("peak bare", t_peak, t_peak + sg, False, ls),
+             ("narrow", t_peak_n, t_peak_n + sn, True, ls_n))
+    for name, d_ps, s_ps, keep, lsig_s in specs:
+        sg_s = np.exp(lsig_s)
+        later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * sg_s[:, None]), gd, np.nan)
+        later = np.sort(later, axis=1)[:, :max(K - 2, 0)]
+        if name == "narrow":
+            c = take(cand[0], np.arange(idx.size))
+            r = np.nonzero(narrow)[0]
+            if r.size:
+                put(c, r, refined(_stage_state(r.size, K, d_ps[r], lsig_s[r], s_ps[r], la[r], later[r]), r))
+            cand.append(c)      # a copy of the solver's answer where the rise is not narrower
+            continue
+        cand.append(refined(_stage_state(idx.size, K, d_ps, lsig_s, s_ps, la, later)))
+    js = []
+    for c in cand:
+        chi2, _ = _data_chi2(t, pb, mb, c, sb2)
+        js.append(chi2 + opts.search_penalty * _n_free(c, shared) * log_l[idx])
+    js = np.stack(js)                                   # (starts, m)
+    best = np.argmin(js, axis=0)
+    # ties keep the solver's answer
+    best = np.where(js[0] <= js[best, np.arange(idx.size)], 0, best)
+    chosen = take(cand[0], np.arange(idx.size))
+    for k in range(1, len(cand)):
+        rows = np.nonzero(best == k)[0]
+        if rows.size:
+            put(chosen, rows, take(cand[k], rows))
+    put(out, idx, chosen)
+    start[idx] = best
+
+    # Ambiguity: another start within ambiguity_chi2 of the best objective whose split differs
+    # from the best's by more than ambiguity_split (1 - fidelity between the two).
+    j_best = js[best, np.arange(idx.size)]
+    split_best = _split(t, chosen)
+    amb = np.zeros(idx.size, bool)
+    for k, c in enumerate(cand):
+        near = (js[k] - j_best <= opts.ambiguity_chi2) & (best != k)
+        if near.any():
+            r = np.nonzero(near)[0]
+            d = _split_distance(_split(t, take(c, r)), [x[r] for x in split_best])
+            amb[r] |= d > opts.ambiguity_split
+    ambiguous[idx] = amb
+    return out, start, doubt, ambiguous
+
+
+def search_components(samples, det, dic, opts, components) -> SearchStage:
+    """Stage 2b of :func:`decomposition.decompose`: structured alternative starts for the
+    detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`."""
+    from .detect import solver_inputs
+    from .slots import put
+
+    live = samples.live
+    state = {k: v.copy() for k, v in det.state.items()}
+    n = live.size
+    start = np.zeros(n, np.int64)
+    doubt = np.zeros(n, bool)
+    amb = np.zeros(n, bool)
+    for b0 in range(0, n, opts.block_size):
+        rows = np.arange(b0, min(b0 + opts.block_size, n))
+        p, mask = solver_inputs(samples, live[rows])
+        sub = {k: v[rows] for k, v in state.items()}
+        st, start[rows], doubt[rows], amb[rows] = search_block(p, mask, sub, det.noise_eff[live[rows]], dic, opts,
+                                                              components)
+        put(state, rows, st)
+    return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)

@@ -21,7 +21,7 @@ from .masks import SampleMask
 from .onsets import onset_links
 
 __all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "objective",
-           "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of"]
+           "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of", "tie_widths"]
 
 
 def axis_of(t):
@@ -127,3 +127,22 @@ def drop_zero(st):
     st["fam"][dead] = FAM_NONE
     st["amp"][dead] = 0.0
 
+
+
+def tie_widths(st):
+    """One PSF width per pixel (in place): every active atom's log sigma set to the
+    area-weighted mean of the pixel's active atoms (area = amplitude x sigma).
+
+    The compiled refinement keeps a shared width shared (``tie_sigma``) only where all atoms
+    already have it; merging two Gaussians, or atoms picked at different grid widths, can
+    leave a pixel with a small split that an untied polish then amplifies.
+    """
+    act = st["fam"] != FAM_NONE
+    w = np.where(act, np.abs(st["amp"]) * np.exp(st["lsig"]), 0.0)
+    tot = w.sum(axis=1)
+    n_act = act.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(tot > 0, (w * st["lsig"]).sum(axis=1) / tot,
+                        np.where(act, st["lsig"], 0.0).sum(axis=1) / np.maximum(n_act, 1))
+    st["lsig"] = np.where(act, mean[:, None], st["lsig"])
+    return st

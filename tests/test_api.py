@@ -60,7 +60,7 @@ def test_result_shapes_and_residual(noiseless):
     assert res.direct.shape == (N, L) and res.sss.shape == (N, L)
     assert res.interreflections.shape[0] == N and res.interreflections.shape[2] == L
     assert res.params["ir_delay_ps"].shape == (N, res.interreflections.shape[1])
-    assert res.flags.shape == (N,) and res.flags.dtype == np.uint8
+    assert res.flags.shape == (N,) and res.flags.dtype == np.uint16
     total = res.direct + res.sss + res.interreflections.sum(axis=1)
     np.testing.assert_allclose(res.residual, data.noisy - total)
     assert res.info["method"] == "convscd" and res.info["n_sigma"] == 500 and res.info["n_alpha"] == 500
