@@ -61,3 +61,88 @@ def test_search_options_are_validated():
         SearchOptions(penalty=-1)
     with pytest.raises(ValueError, match="edge_level"):
         SearchOptions(edge_level=1.5)
+
+
+# ----------------------------------------------------------------------------- the search stage
+
+def _absorbed_direct_pixels():
+    """d + s + r2 with the sss peak about twice the direct's, its onset one sigma after it: at
+    sigma 5 ps the greedy solver lets the sss take the leading edge and calls r2 the direct."""
+    from decomposition import decompose  # noqa: F401  (compiled kernels loaded once for the module)
+
+    n, L, T = 4, 256, 2.0
+    truth = empty_params((n,), n_ir=2)
+    truth["direct_delay_ps"][:] = [100.0, 120.0, 90.0, 150.0]
+    truth["direct_amplitude"][:] = 1.0
+    truth["direct_sigma_ps"][:] = [4.0, 5.0, 3.0, 6.0]
+    truth["sss_delay_ps"][:] = truth["direct_delay_ps"] + truth["direct_sigma_ps"]
+    truth["sss_amplitude"][:] = 2.0 * 0.03 / 0.6
+    truth["sss_alpha_per_ps"][:] = 0.03
+    truth["sss_sigma_ps"][:] = truth["direct_sigma_ps"]
+    truth["ir_delay_ps"][:, 0] = truth["direct_delay_ps"] + 60
+    truth["ir_amplitude"][:, 0] = 0.3
+    truth["ir_sigma_ps"][:, 0] = truth["direct_sigma_ps"]
+    y = render_profile(truth, L, T) + np.random.default_rng(0).normal(0, 1e-3, (n, L))
+    return truth, y, L, T
+
+
+def test_decompose_search_finds_the_direct_that_the_greedy_start_gives_to_the_sss():
+    from decomposition import decompose
+    from decomposition.search import STAGE_STARTS
+
+    truth, y, L, T = _absorbed_direct_pixels()
+    comps = render_components(truth, L, T)
+    greedy = decompose(y, T, search=False)
+    # the failure: pixel 1's "direct" is its inter-reflection, 60 ps late
+    assert abs(greedy.params["direct_delay_ps"][1] - truth["direct_delay_ps"][1]) > 50
+    assert fidelity(comps, greedy)[1] < 0.5
+    res = decompose(y, T)                                   # search=True is the default
+    f = fidelity(comps, res)
+    assert f[1] > 0.99 and np.all(f >= fidelity(comps, greedy) - 1e-6)
+    np.testing.assert_allclose(res.params["direct_delay_ps"], truth["direct_delay_ps"], atol=0.5)
+    np.testing.assert_allclose(res.params["ir_delay_ps"][1:, 0], truth["ir_delay_ps"][1:, 0], atol=0.5)
+    wins = res.info["search_wins"]
+    assert set(wins) == set(STAGE_STARTS) and sum(wins.values()) == res.info["search_doubt"] >= 1
+    assert wins["solver"] < res.info["search_doubt"]        # some other start won pixel 1
+
+
+def test_every_output_is_labelled_by_physics_and_has_one_width_per_pixel():
+    from decomposition import decompose
+    from decomposition.synthetic import make_profiles
+
+    for search in (True, False):
+        data = make_profiles(90, 512, nsr=0.055, seed=3, ranges="paper", bin_integrated=True)
+        p = decompose(data.noisy, 2.0, search=search).params
+        d, s, ir = p["direct_delay_ps"], p["sss_delay_ps"], p["ir_delay_ps"]
+        has_g = np.isfinite(d) | np.isfinite(ir).any(axis=1)
+        assert np.all(np.isfinite(d)[has_g])                               # a Gaussian -> a direct
+        with np.errstate(invalid="ignore"):
+            assert not np.any(ir < d[:, None])                             # the direct is the earliest
+            assert not np.any(np.diff(ir, axis=1) < 0)                     # inter-reflections in delay order
+            assert not np.any(s < d)                                       # no sss onset before the direct
+        widths = np.concatenate([p["direct_sigma_ps"][:, None], p["sss_sigma_ps"][:, None], p["ir_sigma_ps"]], 1)
+        n_w = np.array([np.unique(w[np.isfinite(w)]).size for w in widths])
+        assert np.all(n_w <= 1), f"search={search}: pixels {np.nonzero(n_w > 1)[0]} have several widths"
+
+
+def test_shared_sigma_holds_exactly_on_make_profiles_data():
+    from decomposition import decompose
+    from decomposition.synthetic import make_profiles
+
+    data = make_profiles(512, 256, nsr=0.05, seed=0)
+    p = decompose(data.noisy, 2.0).params
+    widths = np.concatenate([p["direct_sigma_ps"][:, None], p["sss_sigma_ps"][:, None], p["ir_sigma_ps"]], 1)
+    lo, hi = np.nanmin(widths, axis=1), np.nanmax(widths, axis=1)
+    ok = np.isfinite(lo)
+    assert ok.sum() > 500
+    np.testing.assert_array_equal(lo[ok], hi[ok])
+
+
+def test_search_options_are_validated_in_the_solver_options():
+    from decomposition.options import OptionError, SolverOptions
+
+    with pytest.raises((ValueError, OptionError), match="search_penalty"):
+        SolverOptions(search_penalty=-1.0)
+    with pytest.raises((ValueError, OptionError), match="search"):
+        SolverOptions(search="yes please")
+    assert SolverOptions().search is True

@@ -43,6 +43,8 @@ METHODS = ("convscd", "gradbm")
 # Opt-in: ConvSCD followed by the structured alternative starts of decomposition.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
 EXTRA_METHODS = ("search",)
+#: the "any flag" row of the flag table: every bit of the 16-bit flags
+ANY_FLAG = 0xFFFF
 ORACLE = "oracle"
 
 
@@ -180,6 +182,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                                      time_bin_ps=tb, ranges=scenes, bin_integrated=bin_integrated)
                 labels = sorted(set(data.kinds.tolist()))
                 scored, seconds, results = {}, {}, {}
+                search_info = None
                 for method in every:
                     t_start = time.perf_counter()
                     extra = 0.0
@@ -199,6 +202,8 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                         est = decompose(data.noisy, time_bin_ps=tb, method=method)
                         est_params, flags = est.params, est.flags
                         results[method] = est
+                        if "search_wins" in est.info:
+                            search_info = {"doubt": est.info["search_doubt"], "wins": est.info["search_wins"]}
                     seconds[method] = time.perf_counter() - t_start + extra
                     spent[method] += seconds[method]
                     counted[method] += pixels
@@ -206,7 +211,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                 f_or = scored[ORACLE][0]
                 point = {"time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "n": pixels,
                          "regimes": regime_rows(data.regimes, {m: scored[m][0] for m in every}, reference=ORACLE),
-                         "flags": []}
+                         "flags": [], "search": search_info}
                 for method in every:
                     f, fail, flags = scored[method]
                     row = {"method": method, "time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "pixels": pixels,
@@ -229,8 +234,8 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                         for bit, name in sorted(FLAG_NAMES.items()):
                             point["flags"].append({"method": method, "flag": name, "bit": bit,
                                                    **flag_precision_recall(flags, bit, f)})
-                        point["flags"].append({"method": method, "flag": "any", "bit": 255,
-                                               **flag_precision_recall(flags, 255, f)})
+                        point["flags"].append({"method": method, "flag": "any", "bit": ANY_FLAG,
+                                               **flag_precision_recall(flags, ANY_FLAG, f)})
                     if progress:
                         progress(row)
                 points.append(point)
@@ -400,6 +405,9 @@ def run(args) -> int:
         print(f"  {p['time_bin_ps']:g} ps bins, {p['noise']} noise, NSR {p['nsr']:g} ({p['n']} pixels):")
         for line in format_regime_table(p["regimes"], every, ORACLE):
             print(line)
+        if p.get("search"):
+            wins = ", ".join(f"{name} {c}" for name, c in p["search"]["wins"].items())
+            print(f"    ConvSCD search: {p['search']['doubt']} pixels in doubt; kept start: {wins}")
         fails = ", ".join(f"{m} {p[f'delay_failures[{m}]']} ({p[f'unflagged_failures[{m}]']} unflagged)"
                           for m in every)
         print(f"    direct delay error > 2 sigma: {fails}")
