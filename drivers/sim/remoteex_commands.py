@@ -1,0 +1,501 @@
+"""The command table of the simulated RemoteEx server: what each command does and answers.
+
+:class:`RemoteExCommands` holds the state of the simulated application (HPD-TA),
+readout camera, streak unit and delay generator, and one ``_cmd_<name>`` method
+per command (names case-insensitive).  A handler returns ``(values, payload)``:
+the reply fields after ``0,Name`` and the bytes for the data port (or None), or
+raises :class:`Reply` with an error code.  The server
+(:mod:`drivers.sim.camera`) does the networking and calls :meth:`tick` between
+commands so that live images appear on time.
+
+Commands (RemoteEx programmer's handbook, section of each in brackets):
+
+* [General] ``AppInfo``, ``AsyncCommandStatus`` (``pending,preparing,active[,command]``),
+  ``Stop``;
+* [Application] ``AppStart``, ``AppEnd``, ``AppLicenceGet`` (six 0/1 flags: application
+  key, acquire, save, fitting, photon correction, transmission/absorption);
+* [Acquisition] ``AcqStart(Live|SingleLive|Acquire|AI|PC)``, ``AcqStatus``,
+  ``AcqStop[(timeout_ms)]``, ``AcqLiveMonitor(Off|Notify|NotifyTimeStamp|RingBuffer[,N]|
+  Average|Minimum|Maximum)``;
+* [Camera] ``CamParamGet/Set/Info/InfoEx``, ``CamParamsList`` on Setup, Live, Acquire,
+  AI, PC (``CamParamGet(Setup,CameraInfo)`` answers over several CRLF lines);
+* [External devices] ``DevParamGet/Set/Info/InfoEx``, ``DevParamsList`` on the streak
+  unit (Streak, Streakcamera, TD) and the delay generator (Delaybox, Del, Delay, Del1),
+  plus the keywords DeviceName, PluginName, OptionName1..4;
+* [Image] ``ImgDataGet(current,Data|Display|Profile,...|ScalingTable,Vertical)``,
+  ``ImgRingBufferGet(Data,seq)``.
+
+Modes.  ``Acquire`` renders one frame; ``AI`` (analog integration) sums
+``NrExposures`` frames; ``PC`` (photon counting) sums ``NrExposures`` photon-count
+frames (no dark level, no read noise).  ``Live`` renders a new frame every
+live interval until ``AcqStop``; ``SingleLive`` renders one.  With
+``AcqLiveMonitor`` on, every live frame is announced on the command port:
+``4,Livemonitor,RingBuffer,<seq>`` (the ring buffer keeps the last N),
+``4,Livemonitor,Notify``, ``4,Livemonitor,NotifyTimeStamp,<ms>``, or
+``4,Livemonitor,Average|Minimum|Maximum,<value>``.  The streak unit's ``Mode``
+``Focus`` turns the sweep off (the slit image on the middle rows).
+
+Choices where the handbook leaves the code open: a scaling table of an image
+without table scaling is refused with 7; a ring-buffer sequence number newer
+than the newest image with 7; ``Profile`` live monitoring and writing
+ring-buffer data to a file are not simulated (2 and 7).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from drivers.remoteex_wire import format_exposure, format_seconds, normalize_time_range, parse_exposure
+
+from .remoteex_params import ParamError, camera_params, delay_params, streak_params
+
+__all__ = ["RemoteExCommands", "Reply"]
+
+_STREAK_NAMES = {"streak", "streakcamera", "td"}
+_DELAY_NAMES = {"delaybox", "del", "delay", "del1"}
+_MODES = {"live": "Live", "singlelive": "SingleLive", "acquire": "Acquire", "ai": "AI", "pc": "PC"}
+_MODE_LOCATION = {"Live": "live", "SingleLive": "live", "Acquire": "acquire", "AI": "ai", "PC": "pc"}
+_MONITORS = {"off": "Off", "notify": "Notify", "notifytimestamp": "NotifyTimeStamp", "ringbuffer": "RingBuffer",
+             "average": "Average", "minimum": "Minimum", "maximum": "Maximum"}
+_CAMERA_INFO = ("Product number: C13440-20C (simulated)", "Serial number: 000001", "Firmware: 1.0.A",
+                "Version: 1.0.A-streaklab")
+_DEVICE_NAMES = {"streak": ("C5680 streak unit (simulated)", "Streak plugin (simulated)"),
+                 "delay": ("delay generator (simulated)", "Delay plugin (simulated)")}
+
+
+class Reply(Exception):
+    """A handler's error reply with a RemoteEx code."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
+def _need(args, n):
+    if len(args) < n:
+        raise Reply(6)
+
+
+class RemoteExCommands:
+    """Device state and command handlers (mixed into :class:`~drivers.sim.camera.RemoteExSimulator`).
+
+    The owner sets ``scene``, ``state``, ``seed``, ``frame_time_s``, ``app_type``,
+    ``app_version``, ``single_sweep`` and ``scaling_table`` and calls
+    :meth:`_init_device` once.
+    """
+
+    def _init_device(self) -> None:
+        self.app_started = False
+        tr = "500 ps" if self.single_sweep else str(int(self.scene.time_range))
+        self._streak = streak_params(single_sweep=self.single_sweep, time_range=tr, gain=self.scene.reference_gain)
+        self._delay = delay_params()
+        self._camera = camera_params(exposure_s=self.scene.reference_exposure_s, n_x=self.scene.n_x,
+                                     n_t=self.scene.n_t)
+        self._mode: str | None = None          # running acquisition mode
+        self._busy_until = 0.0
+        self._image: np.ndarray | None = None  # (n_t, n_x) uint16, rows = time
+        self._image_meta: dict = {}
+        self._view_key = None
+        self._view_index = -1
+        self._monitor = "Off"
+        self._ring: dict[int, tuple[np.ndarray, float]] = {}
+        self._ring_size = 10
+        self._live_seq = 0
+        self._live_due = 0.0
+        self._epoch = time.monotonic()
+        self.outbox: list[bytes] = []          # unsolicited messages for the client (code 4)
+
+    # ------------------------------------------------------------ settings
+    @property
+    def time_range(self) -> int | str:
+        return normalize_time_range(self._streak["time range"].value)
+
+    @property
+    def gain(self) -> int:
+        return int(float(self._streak["mcp gain"].value))
+
+    @property
+    def delaybox_s(self) -> float:
+        return float(self._delay["delay a"].value)
+
+    def exposure_for(self, location: str) -> float:
+        return parse_exposure(self._camera[location]["exposure"].value)
+
+    @property
+    def exposure_s(self) -> float:
+        return self.exposure_for("acquire")
+
+    @property
+    def focus(self) -> bool:
+        return self._streak["mode"].value == "Focus"
+
+    def live_interval_s(self) -> float:
+        """Time between two live frames: the live exposure, at least 20 ms (and the frame time)."""
+        return max(self.exposure_for("live"), self.frame_time_s, 0.02)
+
+    # ------------------------------------------------------------ dispatch
+    def execute(self, name: str, args: list[str]):
+        """Run one command; returns ``(reply values, data-port payload or None)``."""
+        handler = getattr(self, f"_cmd_{name.lower()}", None)
+        if handler is None:
+            raise Reply(2)
+        self._poll()
+        return handler(args)
+
+    def _need_app(self):
+        if not self.app_started:
+            raise Reply(3)
+
+    def _poll(self):
+        if self._mode in ("Acquire", "AI", "PC") and time.monotonic() >= self._busy_until:
+            self._mode = None
+
+    # ------------------------------------------------------------ general, application
+    def _cmd_appinfo(self, args):
+        _need(args, 1)
+        info = {"type": self.app_type, "version": self.app_version, "title": "streaklab RemoteEx simulator",
+                "titlelong": "streaklab RemoteEx simulator (simulated streak camera)", "date": "2026-01-01",
+                "directory": "C:\\simulated\\", "progdatadir": "C:\\simulated\\data\\"}
+        value = info.get(args[0].lower())
+        if value is None:
+            raise Reply(2)
+        return [value], None
+
+    def _cmd_asynccommandstatus(self, args):
+        if self._mode is not None:
+            return ["1", "0", "1", "AcqStart"], None
+        return ["0", "0", "0"], None
+
+    def _cmd_stop(self, args):
+        return [], None
+
+    def _cmd_appstart(self, args):
+        self.app_started = True
+        return [], None
+
+    def _cmd_append(self, args):
+        self._need_app()
+        self.app_started = False
+        self._mode = None
+        return [], None
+
+    def _cmd_applicenceget(self, args):
+        return ["1", "1", "1", "0", "1", "0"], None
+
+    # ------------------------------------------------------------ acquisition
+    def _cmd_acqstart(self, args):
+        self._need_app()
+        _need(args, 1)
+        mode = _MODES.get(args[0].strip().lower())
+        if mode is None:
+            raise Reply(2)
+        if self._mode is not None:
+            raise Reply(7)
+        self._mode = mode
+        if mode in ("Live", "SingleLive"):
+            self._live_due = time.monotonic() + self.live_interval_s()
+            return [], None
+        n = 1 if mode == "Acquire" else int(float(self._camera[mode.lower()]["nrexposures"].value))
+        self._image, self._image_meta = self._render(mode, n)
+        self._busy_until = time.monotonic() + self.frame_time_s * n
+        return [], None
+
+    def _cmd_acqstatus(self, args):
+        self._need_app()
+        return (["busy", self._mode] if self._mode is not None else ["idle"]), None
+
+    def _cmd_acqstop(self, args):
+        if args and args[0].strip():
+            try:
+                timeout_ms = float(args[0])
+            except ValueError:
+                raise Reply(1) from None
+            if not 1 <= timeout_ms <= 60000:
+                raise Reply(10)
+        self._mode = None
+        return [], None
+
+    def _cmd_acqlivemonitor(self, args):
+        self._need_app()
+        _need(args, 1)
+        monitor = _MONITORS.get(args[0].strip().lower())
+        if monitor is None:
+            raise Reply(2)
+        if monitor == "RingBuffer" and len(args) > 1 and args[1].strip():
+            try:
+                size = int(args[1])
+            except ValueError:
+                raise Reply(1) from None
+            if not 1 <= size <= 1000:
+                raise Reply(10)
+            self._ring_size = size
+        self._monitor = monitor
+        if monitor != "RingBuffer":
+            self._ring.clear()
+        return [], None
+
+    def tick(self) -> None:
+        """Produce the live frame that is due, if any, and queue its announcement in :attr:`outbox`."""
+        if self._mode not in ("Live", "SingleLive"):
+            return
+        now = time.monotonic()
+        if now < self._live_due:
+            return
+        interval = self.live_interval_s()
+        self._live_due = max(self._live_due + interval, now)      # never a burst of stale frames
+        self._live_seq += 1
+        self._image, self._image_meta = self._render("Live", 1)
+        stamp_ms = (now - self._epoch) * 1e3
+        if self._monitor == "RingBuffer":
+            self._ring[self._live_seq] = (self._image, stamp_ms)
+            for old in sorted(self._ring)[:-self._ring_size]:
+                del self._ring[old]
+        message = {"Notify": "", "NotifyTimeStamp": f",{stamp_ms:.0f}", "RingBuffer": f",{self._live_seq}",
+                   "Average": f",{self._image.mean():.6g}", "Minimum": f",{int(self._image.min())}",
+                   "Maximum": f",{int(self._image.max())}"}.get(self._monitor)
+        if message is not None:
+            self.outbox.append(f"4,Livemonitor,{self._monitor}{message}\r".encode("ascii"))
+        if self._mode == "SingleLive":
+            self._mode = None
+
+    def next_event_in_s(self) -> float | None:
+        """Seconds until the next live frame (None if live mode is off)."""
+        if self._mode not in ("Live", "SingleLive"):
+            return None
+        return max(0.0, self._live_due - time.monotonic())
+
+    # ------------------------------------------------------------ images
+    def _current_image(self) -> np.ndarray:
+        if self._mode in ("Acquire", "AI", "PC"):
+            raise Reply(3)
+        if self._image is None:
+            raise Reply(7)
+        return self._image
+
+    def _cmd_imgdataget(self, args):
+        self._need_app()
+        _need(args, 2)
+        dest, kind = args[0].strip().lower(), args[1].strip().lower()
+        if dest != "current":
+            if dest.isdigit() and int(dest) <= 19:
+                raise Reply(7)                     # only the current image exists here
+            raise Reply(2)
+        img = self._current_image()
+        if kind == "data":
+            return [img.shape[1], img.shape[0], 2, "Data"], img.astype("<u2").tobytes()
+        if kind == "display":
+            lo, hi = float(img.min()), float(img.max())
+            disp = np.zeros(img.shape, np.uint8) if hi <= lo else \
+                np.rint((img - lo) * (255.0 / (hi - lo))).astype(np.uint8)
+            return [img.shape[1], img.shape[0], 1, "Display"], disp.tobytes()
+        if kind == "profile":
+            profile = self._profile(img, args[2:])
+            return [profile.size, "Profile"], profile.astype("<f4").tobytes()
+        if kind == "scalingtable":
+            _need(args, 3)
+            direction = args[2].strip().lower()
+            if direction in ("h", "hor", "horizontal", "x"):
+                raise Reply(7)                     # no spectrograph: no horizontal table scaling
+            if direction not in ("v", "ver", "vertical", "y"):
+                raise Reply(2)
+            if not self.scaling_table or self.focus:
+                raise Reply(7)
+            table = self._scaling_table()
+            return [table.size, "ScalingTable"], table.astype("<f4").tobytes()
+        raise Reply(2)
+
+    def _scaling_table(self) -> np.ndarray:
+        """Row times of the sweep (no delay) in the time range's unit (ps for a synchroscan setting)."""
+        from drivers.remoteex_wire import scaling_table_unit_ps
+
+        unit_ps = scaling_table_unit_ps(self.time_range) or 1.0
+        return self.scene.row_times_ps(0.0, self.time_range) / unit_ps
+
+    @staticmethod
+    def _profile(img: np.ndarray, args) -> np.ndarray:
+        _need(args, 1)
+        try:
+            kind = int(args[0])
+            x, y, dx, dy = (int(a) for a in args[1:5]) if len(args) >= 5 else (0, 0, img.shape[1], img.shape[0])
+        except ValueError:
+            raise Reply(1) from None
+        if kind not in (1, 2, 3):
+            raise Reply(10)
+        if x < 0 or y < 0 or dx < 1 or dy < 1 or x + dx > img.shape[1] or y + dy > img.shape[0]:
+            raise Reply(10)
+        area = img[y:y + dy, x:x + dx].astype(np.float64)
+        if kind == 1:
+            return area[0]
+        return area.sum(axis=0) if kind == 2 else area.sum(axis=1)
+
+    def _cmd_imgringbufferget(self, args):
+        self._need_app()
+        _need(args, 2)
+        if args[0].strip().lower() != "data":
+            raise Reply(2)
+        if len(args) > 2 and args[2].strip():
+            raise Reply(7)                         # writing to a file is not simulated
+        try:
+            seq = int(args[1])
+        except ValueError:
+            raise Reply(1) from None
+        if not self._ring or seq > max(self._ring):
+            raise Reply(7)
+        seq = max(seq, min(self._ring))
+        img, stamp_ms = self._ring[seq]
+        return [img.shape[1], img.shape[0], 2, "Data", seq, f"{stamp_ms:.0f}"], img.astype("<u2").tobytes()
+
+    # ------------------------------------------------------------ camera parameters
+    def _cam_param(self, args):
+        loc = self._camera.get(args[0].strip().lower())
+        if loc is None:
+            raise Reply(2)
+        param = loc.get(args[1].strip().lower())
+        if param is None:
+            raise Reply(2)
+        return param
+
+    def _cmd_camparamget(self, args):
+        self._need_app()
+        _need(args, 2)
+        param = self._cam_param(args)
+        if param.name == "CameraInfo":
+            return ["\r\n".join((param.value, *_CAMERA_INFO))], None
+        return [param.value], None
+
+    def _cmd_camparamset(self, args):
+        self._need_app()
+        _need(args, 3)
+        param = self._cam_param(args)
+        if self._mode is not None and param.name in ("Binning", "HWidth", "VWidth", "ScanMode"):
+            raise Reply(3)
+        try:
+            param.set(args[2])
+        except ParamError as exc:
+            raise Reply(exc.code) from None
+        return [], None
+
+    def _cmd_camparaminfo(self, args):
+        self._need_app()
+        _need(args, 2)
+        return self._cam_param(args).info(), None
+
+    def _cmd_camparaminfoex(self, args):
+        self._need_app()
+        _need(args, 2)
+        return self._cam_param(args).cam_info_ex(), None
+
+    def _cmd_camparamslist(self, args):
+        self._need_app()
+        _need(args, 1)
+        loc = self._camera.get(args[0].strip().lower())
+        if loc is None:
+            raise Reply(2)
+        return [len(loc), *(p.name for p in loc.values())], None
+
+    # ------------------------------------------------------------ external devices
+    def _device(self, name: str):
+        dev = name.strip().lower()
+        if dev in _STREAK_NAMES:
+            return "streak", self._streak
+        if dev in _DELAY_NAMES:
+            return "delay", self._delay
+        raise Reply(2)
+
+    def _dev_param(self, args):
+        _, table = self._device(args[0])
+        param = table.get(args[1].strip().lower())
+        if param is None:
+            raise Reply(2)
+        return param
+
+    def _cmd_devparamget(self, args):
+        self._need_app()
+        _need(args, 2)
+        which, _ = self._device(args[0])
+        key = args[1].strip().lower()
+        names = _DEVICE_NAMES[which]
+        special = {"devicename": names[0], "pluginname": names[1], "optionname1": "", "optionname2": "",
+                   "optionname3": "", "optionname4": ""}
+        if key in special:
+            return [special[key]], None
+        param = self._dev_param(args)
+        if param.name == "Delay A":
+            return [format_seconds(self.delaybox_s)], None
+        return [param.value], None
+
+    def _cmd_devparamset(self, args):
+        self._need_app()
+        _need(args, 3)
+        param = self._dev_param(args)
+        raw = args[2].strip()
+        if param.name == "MCP Gain":
+            try:
+                number = float(raw)
+            except ValueError:
+                raise Reply(1) from None
+            if number != int(number):
+                raise Reply(10)
+        if param.name == "Time Range":
+            try:
+                raw = str(normalize_time_range(raw))
+            except ValueError:
+                raise Reply(10) from None
+        try:
+            param.set(raw)
+        except ParamError as exc:
+            raise Reply(exc.code) from None
+        return [], None
+
+    def _cmd_devparaminfo(self, args):
+        self._need_app()
+        _need(args, 2)
+        return self._dev_param(args).info(), None
+
+    def _cmd_devparaminfoex(self, args):
+        self._need_app()
+        _need(args, 2)
+        return self._dev_param(args).dev_info_ex(), None
+
+    def _cmd_devparamslist(self, args):
+        self._need_app()
+        _need(args, 1)
+        _, table = self._device(args[0])
+        return [len(table), *(p.name for p in table.values())], None
+
+    # ------------------------------------------------------------ frames
+    def _render(self, mode: str, n: int):
+        """Render the frame of one acquisition (``n`` exposures summed for AI and PC); (n_t, n_x) uint16."""
+        from .camera import frame_seed
+
+        with self.state.lock:
+            angle = float(self.state.mirror_angle_deg)
+            light = bool(self.state.sync_output_enabled)
+            sync_delay_ps = float(self.state.sync_delay_ps)
+        delay_ps = sync_delay_ps + self.delaybox_s * 1e12
+        exposure_s = self.exposure_for(_MODE_LOCATION[mode])
+        tr, focus = self.time_range, self.focus
+        key = (round(angle, 6), round(delay_ps, 3), light, exposure_s, self.gain, tr, focus)
+        if key == self._view_key:
+            self._view_index += 1
+        else:
+            self._view_key, self._view_index = key, 0
+        rng = np.random.default_rng(frame_seed(self.seed, angle, delay_ps, light, self._view_index))
+        line = self.scene.line_index(angle)
+        total = None
+        for _ in range(n):
+            frame = self.scene.render_frame(line, rng, delay_ps=delay_ps, exposure_s=exposure_s, gain=self.gain,
+                                            time_range=tr, light=light, focus=focus, dark=mode != "PC")
+            total = frame.astype(np.float64) if total is None else total + frame
+        self.frames_rendered += 1
+        frame = np.clip(total, 0, np.iinfo(np.uint16).max).astype(np.uint16)
+        meta = {"line": line, "angle_deg": angle, "delay_ps": delay_ps, "light": light, "index": self._view_index,
+                "mode": mode, "exposures": n, "focus": focus, "time_range": tr,
+                "exposure": format_exposure(exposure_s)}
+        return np.ascontiguousarray(frame.T), meta     # (n_t, n_x): image rows are the sweep direction
+
+    @property
+    def last_frame_info(self) -> dict:
+        """Line, angle, delay, light, noise index and mode of the most recent frame."""
+        return dict(self._image_meta)
