@@ -384,8 +384,8 @@ class RemoteExCamera(RemoteExLink):
             deadline = time.monotonic() + float(timeout_s)
             while seq is None:
                 values = self.wait_live_event(max(deadline - time.monotonic(), 1e-3))
-                while self.live_events:                     # newest announcement wins
-                    values = self.live_events.popleft()
+                for later in self.pending_live_events():    # the newest announcement wins
+                    values = later
                 if len(values) >= 2 and values[0].strip().lower() == "ringbuffer":
                     try:
                         seq = int(values[1])

@@ -308,25 +308,43 @@ class RemoteExLink:
         deadline = time.monotonic() + float(timeout_s)
         with self._lock:
             while not self.live_events:
-                if self._cmd is None:
-                    self.open()
-                try:
-                    raw = self._next_line(deadline, "no live image was announced")
-                except ConnectionLost:
-                    self._disconnect()
-                    raise
-                except DeviceTimeout:
-                    raise
-                line = raw.lstrip(b"\n")
-                if not line.strip():
-                    continue
-                code, rname, values = parse_reply(line)
-                if code in NOTIFICATION_CODES:
-                    self._note(code, rname, values, line)
-                else:
-                    self._warnings.warning("foreign-reply", "RemoteEx: skipping reply %r while waiting for a "
-                                           "live image", line)
+                self._read_event(deadline)
             return self.live_events.popleft()
+
+    def pending_live_events(self, *, quiet_s: float = 0.002) -> list[list[str]]:
+        """Every live-monitoring message already received (queued or waiting on the socket), oldest first."""
+        with self._lock:
+            while self._cmd is not None:
+                try:
+                    self._read_event(time.monotonic() + quiet_s)
+                except DeviceTimeout:
+                    break
+            out = list(self.live_events)
+            self.live_events.clear()
+            return out
+
+    def _read_event(self, deadline: float) -> None:
+        """Read one unsolicited line (no command outstanding) and note it."""
+        if self._cmd is None:
+            self.open()
+        try:
+            raw = self._next_line(deadline, "no live image was announced")
+        except ConnectionLost:
+            self._disconnect()
+            raise
+        line = raw.lstrip(b"\n")
+        if not line.strip():
+            return
+        try:
+            code, rname, values = parse_reply(line)
+        except ProtocolError:
+            self._disconnect()
+            raise
+        if code in NOTIFICATION_CODES:
+            self._note(code, rname, values, line)
+        else:
+            self._warnings.warning("foreign-reply", "RemoteEx: skipping reply %r while waiting for a "
+                                   "live image", line)
 
     # ------------------------------------------------------------- data port
     def _drain_data(self, name: str) -> None:
