@@ -31,6 +31,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--t", dest="n_t", type=int, default=256, help="streak rows (default 256)")
     parser.add_argument("--dark", action="store_true", help="laser output off: the camera sees dark frames only")
     parser.add_argument("--no-mirror", action="store_true", help="serve the camera only")
+    parser.add_argument("--single-sweep", action="store_true",
+                        help="a single-sweep streak unit (Time Range such as '1 ns') instead of synchroscan (1..4)")
+    parser.add_argument("--no-scaling-table", action="store_true",
+                        help="images carry no table scaling (ImgDataGet(...,ScalingTable,...) is refused)")
 
 
 def run(args) -> int:
@@ -44,7 +48,8 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(f"scene: {exc}") from None
     lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
-                       mirror=not args.no_mirror, sync=False)
+                       mirror=not args.no_mirror, sync=False,
+                       camera_options={"single_sweep": args.single_sweep, "scaling_table": not args.no_scaling_table})
     try:
         lab.start()
     except (OSError, RuntimeError) as exc:
@@ -60,6 +65,8 @@ def run(args) -> int:
         info = lab.describe()
         print(f"camera {info['camera']}")
         print(f"camera-data-port {info['camera_data_port']}")
+        print(f"streak-unit {info['streak_unit']}")
+        print(f"scaling-table {'yes' if info['scaling_table'] else 'no'}")
         if "mirror" in info:
             print(f"mirror {info['mirror']}")
             print(f"mirror-stable {info['mirror_stable']}")
