@@ -9,6 +9,9 @@ One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table):
     target_angle_deg  (line,)              float64  the angle the config asked for (deg)
     dark              (dark_frame, x, t)   uint16   frames taken with the sync output off
     dark_done         ()                   bool     True once the dark frames are on disk
+    camera_row_times_ps (t,)               float64  the camera's own sweep calibration (its scaling
+                                                    table, ps after the trigger); only where the
+                                                    camera offers one
 
 Every frame of a line is kept (``frame`` axis) instead of their mean or sum: the data
 stay the camera's own uint16 counts, a reconstruction can reject a bad frame (a
@@ -114,6 +117,12 @@ class RunStore:
     def dark_done(self) -> bool:
         return bool(self["dark_done"][...])
 
+    def camera_row_times_ps(self) -> np.ndarray | None:
+        """The camera's scaling table recorded at capture, shape (t,), ps; None if the camera had none."""
+        if "camera_row_times_ps" not in self.group:
+            return None
+        return np.asarray(self["camera_row_times_ps"][...], dtype=np.float64)
+
     # -- writing ---------------------------------------------------------------------------
     def _sync_chunk(self, name: str, coords: tuple[int, ...]) -> None:
         sync_chunk(self.path, name, coords)
@@ -166,8 +175,12 @@ class RunStore:
 
 
 def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], devices: dict | None = None,
-               software_version: str | None = None) -> RunStore:
+               software_version: str | None = None, camera_row_times_ps=None,
+               camera_time_info: dict | None = None) -> RunStore:
     """Create an empty run store laid out for ``config`` and images of ``image_shape`` = (x, t).
+
+    ``camera_row_times_ps`` (t,) is the camera's own sweep calibration, if it has one;
+    ``camera_time_info`` says where it came from (stored as the array's attributes).
 
     The path must not exist or be an empty directory (resuming goes through :func:`open_run`).
     """
@@ -204,6 +217,17 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
                    attributes={"units": "counts", "long_name": "dark frames (sync output off)"})
     g.create_array("dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
                    attributes={"long_name": "dark frames on disk"})
+    names = ["streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"]
+    if camera_row_times_ps is not None:
+        table = np.asarray(camera_row_times_ps, dtype=np.float64)
+        if table.shape != (nt,):
+            raise RunStoreError(f"camera_row_times_ps has shape {table.shape}, the images {nt} rows")
+        g.create_array("camera_row_times_ps", shape=(nt,), dtype="float64", dimension_names=["t"],
+                       attributes={"units": "ps", "long_name": "row times from the camera's scaling table "
+                                                               "(after the trigger)",
+                                   **dict(camera_time_info or {})})[:] = table
+        names.append("camera_row_times_ps")
+        sync_chunk(str(p), "camera_row_times_ps", (0,))
     g.attrs.update({
         "streaklab_kind": RUN_KIND,
         "config": config.data,
@@ -215,7 +239,7 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
         "sessions": [],
         "initialised": True,
     })
-    for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
+    for name in names:
         fsync_path(p / name / "zarr.json")
     fsync_path(p / "zarr.json")
     fsync_path(p)
