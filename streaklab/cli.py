@@ -17,6 +17,7 @@ COMMANDS = {
     "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
+    "live": ("streaklab.commands.live", "live streak image and time profile for alignment (Ctrl-C stops)"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
     "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),

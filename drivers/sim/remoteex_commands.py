@@ -130,6 +130,11 @@ class RemoteExCommands:
     def focus(self) -> bool:
         return self._streak["mode"].value == "Focus"
 
+    def acq_status_mode(self) -> str | None:
+        """The running acquisition mode (``Live``, ``Acquire``, ...), None when idle (for tests and tools)."""
+        self._poll()
+        return self._mode
+
     def live_interval_s(self) -> float:
         """Time between two live frames: the live exposure, at least 20 ms (and the frame time)."""
         return max(self.exposure_for("live"), self.frame_time_s, 0.02)
