@@ -5,6 +5,8 @@ script can read the addresses from the first lines of output::
 
     camera 127.0.0.1:40123
     camera-data-port 40124
+    streak-unit synchroscan
+    scaling-table yes
     mirror /dev/pts/7
     mirror-stable /tmp/streaklab-mirror-xyz/ttySMC100
     ready
@@ -12,6 +14,13 @@ script can read the addresses from the first lines of output::
 The laser-sync unit is a pyusb backend object and cannot be served to another
 process; with no sync device to switch it, the laser output is on (``--dark``
 turns it off).
+
+Another program talks to the camera as to HPD-TA's RemoteEx: TCP to ``camera``
+(commands) and to ``camera-data-port`` (image data), opened in either order,
+each greeting read whenever it likes, then ``AppStart()``.  An Odemis-style
+client (which sets ``Time Range`` to ``1 ns``) needs ``--single-sweep``.
+``streaklab live`` with ``devices.camera`` set to the ``camera`` address shows
+the live image.
 """
 from __future__ import annotations
 
