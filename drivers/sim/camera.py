@@ -46,12 +46,11 @@ import socket
 import threading
 import time
 
-import numpy as np
-
 from drivers.remoteex_wire import COMMAND_BANNER, DATA_BANNER
 
 from .faults import COMMON_KINDS, FaultInjector
 from .remoteex_commands import RemoteExCommands, Reply
+from .remoteex_images import frame_seed
 from .scene import VirtualScene
 from .state import LabState
 
@@ -107,16 +106,6 @@ def bind_port_pair(host: str = "127.0.0.1", port: int = 0, attempts: int = 64):
         except OSError:
             c.close()
     raise OSError(f"no free pair of adjacent ports on {host} after {attempts} attempts")
-
-
-def _zigzag(v: int) -> int:
-    return 2 * v if v >= 0 else -2 * v - 1
-
-
-def frame_seed(seed: int, angle_deg: float, delay_ps: float, output: bool, index: int) -> np.random.SeedSequence:
-    """Seed sequence of one frame's noise (angle quantised to 1e-6 deg, delay to 1e-3 ps)."""
-    return np.random.SeedSequence([_zigzag(int(seed)), _zigzag(int(round(angle_deg * 1e6))),
-                                   _zigzag(int(round(delay_ps * 1e3))), int(bool(output)), int(index)])
 
 
 class _Gone(Exception):

@@ -23,7 +23,8 @@ Commands (RemoteEx programmer's handbook, section of each in brackets):
   unit (Streak, Streakcamera, TD) and the delay generator (Delaybox, Del, Delay, Del1),
   plus the keywords DeviceName, PluginName, OptionName1..4;
 * [Image] ``ImgDataGet(current,Data|Display|Profile,...|ScalingTable,Vertical)``,
-  ``ImgRingBufferGet(Data,seq)``.
+  ``ImgRingBufferGet(Data,seq)`` (with the frames themselves in
+  :mod:`drivers.sim.remoteex_images`).
 
 Modes.  ``Acquire`` renders one frame; ``AI`` (analog integration) sums
 ``NrExposures`` frames; ``PC`` (photon counting) sums ``NrExposures`` photon-count
@@ -46,16 +47,16 @@ import time
 
 import numpy as np
 
-from drivers.remoteex_wire import format_exposure, format_seconds, normalize_time_range, parse_exposure
+from drivers.remoteex_wire import format_seconds, normalize_time_range, parse_exposure
 
-from .remoteex_params import ParamError, camera_params, delay_params, streak_params
+from .remoteex_images import RemoteExImages
+from .remoteex_params import ParamError, Reply, camera_params, delay_params, need as _need, streak_params
 
 __all__ = ["RemoteExCommands", "Reply"]
 
 _STREAK_NAMES = {"streak", "streakcamera", "td"}
 _DELAY_NAMES = {"delaybox", "del", "delay", "del1"}
 _MODES = {"live": "Live", "singlelive": "SingleLive", "acquire": "Acquire", "ai": "AI", "pc": "PC"}
-_MODE_LOCATION = {"Live": "live", "SingleLive": "live", "Acquire": "acquire", "AI": "ai", "PC": "pc"}
 _MONITORS = {"off": "Off", "notify": "Notify", "notifytimestamp": "NotifyTimeStamp", "ringbuffer": "RingBuffer",
              "average": "Average", "minimum": "Minimum", "maximum": "Maximum"}
 _CAMERA_INFO = ("Product number: C13440-20C (simulated)", "Serial number: 000001", "Firmware: 1.0.A",
@@ -64,20 +65,7 @@ _DEVICE_NAMES = {"streak": ("C5680 streak unit (simulated)", "Streak plugin (sim
                  "delay": ("delay generator (simulated)", "Delay plugin (simulated)")}
 
 
-class Reply(Exception):
-    """A handler's error reply with a RemoteEx code."""
-
-    def __init__(self, code: int):
-        super().__init__(code)
-        self.code = code
-
-
-def _need(args, n):
-    if len(args) < n:
-        raise Reply(6)
-
-
-class RemoteExCommands:
+class RemoteExCommands(RemoteExImages):
     """Device state and command handlers (mixed into :class:`~drivers.sim.camera.RemoteExSimulator`).
 
     The owner sets ``scene``, ``state``, ``seed``, ``frame_time_s``, ``app_type``,
@@ -270,87 +258,6 @@ class RemoteExCommands:
             return None
         return max(0.0, self._live_due - time.monotonic())
 
-    # ------------------------------------------------------------ images
-    def _current_image(self) -> np.ndarray:
-        if self._mode in ("Acquire", "AI", "PC"):
-            raise Reply(3)
-        if self._image is None:
-            raise Reply(7)
-        return self._image
-
-    def _cmd_imgdataget(self, args):
-        self._need_app()
-        _need(args, 2)
-        dest, kind = args[0].strip().lower(), args[1].strip().lower()
-        if dest != "current":
-            if dest.isdigit() and int(dest) <= 19:
-                raise Reply(7)                     # only the current image exists here
-            raise Reply(2)
-        img = self._current_image()
-        if kind == "data":
-            return [img.shape[1], img.shape[0], 2, "Data"], img.astype("<u2").tobytes()
-        if kind == "display":
-            lo, hi = float(img.min()), float(img.max())
-            disp = np.zeros(img.shape, np.uint8) if hi <= lo else \
-                np.rint((img - lo) * (255.0 / (hi - lo))).astype(np.uint8)
-            return [img.shape[1], img.shape[0], 1, "Display"], disp.tobytes()
-        if kind == "profile":
-            profile = self._profile(img, args[2:])
-            return [profile.size, "Profile"], profile.astype("<f4").tobytes()
-        if kind == "scalingtable":
-            _need(args, 3)
-            direction = args[2].strip().lower()
-            if direction in ("h", "hor", "horizontal", "x"):
-                raise Reply(7)                     # no spectrograph: no horizontal table scaling
-            if direction not in ("v", "ver", "vertical", "y"):
-                raise Reply(2)
-            if not self.scaling_table or self.focus:
-                raise Reply(7)
-            table = self._scaling_table()
-            return [table.size, "ScalingTable"], table.astype("<f4").tobytes()
-        raise Reply(2)
-
-    def _scaling_table(self) -> np.ndarray:
-        """Row times of the sweep (no delay) in the time range's unit (ps for a synchroscan setting)."""
-        from drivers.remoteex_wire import scaling_table_unit_ps
-
-        unit_ps = scaling_table_unit_ps(self.time_range) or 1.0
-        return self.scene.row_times_ps(0.0, self.time_range) / unit_ps
-
-    @staticmethod
-    def _profile(img: np.ndarray, args) -> np.ndarray:
-        _need(args, 1)
-        try:
-            kind = int(args[0])
-            x, y, dx, dy = (int(a) for a in args[1:5]) if len(args) >= 5 else (0, 0, img.shape[1], img.shape[0])
-        except ValueError:
-            raise Reply(1) from None
-        if kind not in (1, 2, 3):
-            raise Reply(10)
-        if x < 0 or y < 0 or dx < 1 or dy < 1 or x + dx > img.shape[1] or y + dy > img.shape[0]:
-            raise Reply(10)
-        area = img[y:y + dy, x:x + dx].astype(np.float64)
-        if kind == 1:
-            return area[0]
-        return area.sum(axis=0) if kind == 2 else area.sum(axis=1)
-
-    def _cmd_imgringbufferget(self, args):
-        self._need_app()
-        _need(args, 2)
-        if args[0].strip().lower() != "data":
-            raise Reply(2)
-        if len(args) > 2 and args[2].strip():
-            raise Reply(7)                         # writing to a file is not simulated
-        try:
-            seq = int(args[1])
-        except ValueError:
-            raise Reply(1) from None
-        if not self._ring or seq > max(self._ring):
-            raise Reply(7)
-        seq = max(seq, min(self._ring))
-        img, stamp_ms = self._ring[seq]
-        return [img.shape[1], img.shape[0], 2, "Data", seq, f"{stamp_ms:.0f}"], img.astype("<u2").tobytes()
-
     # ------------------------------------------------------------ camera parameters
     def _cam_param(self, args):
         loc = self._camera.get(args[0].strip().lower())
@@ -468,39 +375,3 @@ class RemoteExCommands:
         _need(args, 1)
         _, table = self._device(args[0])
         return [len(table), *(p.name for p in table.values())], None
-
-    # ------------------------------------------------------------ frames
-    def _render(self, mode: str, n: int):
-        """Render the frame of one acquisition (``n`` exposures summed for AI and PC); (n_t, n_x) uint16."""
-        from .camera import frame_seed
-
-        with self.state.lock:
-            angle = float(self.state.mirror_angle_deg)
-            light = bool(self.state.sync_output_enabled)
-            sync_delay_ps = float(self.state.sync_delay_ps)
-        delay_ps = sync_delay_ps + self.delaybox_s * 1e12
-        exposure_s = self.exposure_for(_MODE_LOCATION[mode])
-        tr, focus = self.time_range, self.focus
-        key = (round(angle, 6), round(delay_ps, 3), light, exposure_s, self.gain, tr, focus)
-        if key == self._view_key:
-            self._view_index += 1
-        else:
-            self._view_key, self._view_index = key, 0
-        rng = np.random.default_rng(frame_seed(self.seed, angle, delay_ps, light, self._view_index))
-        line = self.scene.line_index(angle)
-        total = None
-        for _ in range(n):
-            frame = self.scene.render_frame(line, rng, delay_ps=delay_ps, exposure_s=exposure_s, gain=self.gain,
-                                            time_range=tr, light=light, focus=focus, dark=mode != "PC")
-            total = frame.astype(np.float64) if total is None else total + frame
-        self.frames_rendered += 1
-        frame = np.clip(total, 0, np.iinfo(np.uint16).max).astype(np.uint16)
-        meta = {"line": line, "angle_deg": angle, "delay_ps": delay_ps, "light": light, "index": self._view_index,
-                "mode": mode, "exposures": n, "focus": focus, "time_range": tr,
-                "exposure": format_exposure(exposure_s)}
-        return np.ascontiguousarray(frame.T), meta     # (n_t, n_x): image rows are the sweep direction
-
-    @property
-    def last_frame_info(self) -> dict:
-        """Line, angle, delay, light, noise index and mode of the most recent frame."""
-        return dict(self._image_meta)

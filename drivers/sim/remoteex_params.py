@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from drivers.remoteex_wire import format_exposure, parse_exposure
 
-__all__ = ["Param", "ParamError", "BOOL", "NUMERIC", "LIST", "STRING", "EXPTIME", "DISPLAY",
+__all__ = ["Param", "ParamError", "Reply", "need", "BOOL", "NUMERIC", "LIST", "STRING", "EXPTIME", "DISPLAY",
            "streak_params", "delay_params", "camera_params", "EXPOSURE_CHOICES",
            "SYNCHROSCAN_RANGES", "SINGLE_SWEEP_RANGES"]
 
@@ -36,6 +36,20 @@ _FALSE = {"false", "off", "no", "0"}
 EXPOSURE_CHOICES = ("1 us", "10 us", "100 us", "1 ms", "10 ms", "100 ms", "1 s", "10 s")
 SYNCHROSCAN_RANGES = ("1", "2", "3", "4")
 SINGLE_SWEEP_RANGES = ("200 ps", "500 ps", "1 ns", "2 ns", "5 ns")
+
+
+class Reply(Exception):
+    """A command handler's error reply with a RemoteEx code (the server answers ``code,Name``)."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
+def need(args, n: int) -> None:
+    """Code 6 (parameter missing) unless ``args`` has at least ``n`` entries."""
+    if len(args) < n:
+        raise Reply(6)
 
 
 class ParamError(Exception):
