@@ -136,6 +136,8 @@ class RemoteExSimulator(RemoteExCommands):
         synchroscan one (setting numbers 1..4).
     scaling_table : bool
         Whether images carry table scaling (``ImgDataGet(...,ScalingTable,Vertical)``).
+    send_timeout_s : float
+        Longest wait to hand bytes to a client that does not read them (it is then dropped).
     """
 
     FAULT_KINDS = COMMON_KINDS | {"notify", "short_data", "stray_data", "wrong_name"}
@@ -143,7 +145,7 @@ class RemoteExSimulator(RemoteExCommands):
     def __init__(self, state: LabState | None = None, scene: VirtualScene | None = None, *, seed: int = 0,
                  host: str = "127.0.0.1", port: int = 0, frame_time_s: float = 0.002,
                  app_type: str = "HPD-TA", app_version: str = "9.5 (simulated)", single_sweep: bool = False,
-                 scaling_table: bool = True):
+                 scaling_table: bool = True, send_timeout_s: float = 10.0):
         self.state = state if state is not None else LabState()
         self.scene = scene if scene is not None else VirtualScene.default(seed=seed)
         self.seed = int(seed)
@@ -154,6 +156,9 @@ class RemoteExSimulator(RemoteExCommands):
         self.app_version = app_version
         self.single_sweep = bool(single_sweep)
         self.scaling_table = bool(scaling_table)
+        if not send_timeout_s > 0:
+            raise ValueError(f"send_timeout_s must be > 0, got {send_timeout_s!r}")
+        self.send_timeout_s = float(send_timeout_s)
         self.faults = FaultInjector(self.FAULT_KINDS)
         self.received: collections.deque[str] = collections.deque(maxlen=4096)
         self.connections = 0
@@ -243,6 +248,7 @@ class RemoteExSimulator(RemoteExCommands):
                 if cmd_l in ready and self._cmd is None:
                     try:
                         conn, _ = cmd_l.accept()
+                        conn.settimeout(self.send_timeout_s)     # a client that stops reading is dropped
                         conn.sendall(COMMAND_BANNER)
                     except OSError:
                         continue
@@ -285,6 +291,7 @@ class RemoteExSimulator(RemoteExCommands):
                 return
             try:
                 conn, _ = data_l.accept()
+                conn.settimeout(self.send_timeout_s)
                 conn.sendall(DATA_BANNER)
             except OSError:
                 continue
