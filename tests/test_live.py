@@ -116,3 +116,24 @@ def test_ctrl_c_stops_the_live_acquisition_on_the_camera_and_exits_130(tmp_path)
         live_at = sent.index("AcqStart(Live)")
         assert "AcqStop()" in sent[live_at:] and "AcqLiveMonitor(Off)" in sent[live_at:]
         assert sim.acq_status_mode() is None
+
+
+def test_laser_on_switches_the_simulated_sync_output_for_the_live_view_only(tmp_path, capsys, monkeypatch):
+    from drivers.sim import SimulatedLab
+
+    labs = []
+    real_start = SimulatedLab.start
+
+    def start(self):
+        labs.append(self)
+        return real_start(self)
+
+    monkeypatch.setattr(SimulatedLab, "start", start)
+    cfg = write_config(tmp_path)
+    npz = tmp_path / "lit.npz"
+    assert main(["live", "--config", str(cfg), "--simulate", "--laser-on", "--frames", "1", "--no-window",
+                 "--npz", str(npz)]) == 0
+    scene = scene_for(cfg)
+    lit = np.load(npz)["image"]
+    assert np.abs(lit - scene.expected_counts(scene.line_index(0.0), exposure_s=0.01, gain=30)).mean() < 5.0
+    assert labs[0].state.sync_output_enabled is False            # switched off again at the end

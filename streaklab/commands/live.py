@@ -15,9 +15,15 @@ monitoring off; ``--focus`` puts the streak unit back in its previous mode)
 and exits with status 130, without a traceback.  ``--simulate`` serves the
 simulated camera in this process (laser on, mirror at 0 deg); otherwise the
 camera at ``devices.camera`` is used (for example a ``streaklab sim-lab``).
+
+``--laser-on`` also opens the laser-sync unit of ``[devices]`` (the simulated
+one with ``--simulate``), sets the configured repetition rate and trigger
+delay and switches its output on while live; it is switched off again at the
+end (a capture session leaves it off).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -38,6 +44,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--png", metavar="PATH", help="write the figure to PATH after every frame")
     parser.add_argument("--npz", metavar="PATH", help="write the last frame (image, profile, row times) to PATH")
     parser.add_argument("--no-window", action="store_true", help="no window even if a display is available")
+    parser.add_argument("--laser-on", action="store_true",
+                        help="switch the laser-sync output on while live (rate and delay from [sync]), off after")
 
 
 def _has_display() -> bool:
@@ -90,6 +98,33 @@ class _Figure:
 
     def close(self) -> None:
         self.plt.close(self.fig)
+
+
+@contextlib.contextmanager
+def _laser(config, lab):
+    """The laser-sync unit with its output on (rate and delay from ``[sync]``); off again on leaving."""
+    from acquisition.rig import _open_sync
+    from acquisition.session import CaptureError
+    from drivers.errors import DriverError
+
+    try:
+        sync = _open_sync(config, backend=lab.usb_backend if lab is not None else None)
+    except (CaptureError, DriverError, OSError) as exc:
+        raise CommandError(f"cannot open the laser sync: {exc}") from None
+    with sync:
+        try:
+            sync.set_repetition_rate(config["sync"]["repetition_rate_hz"])
+            sync.set_trigger_delay(config["sync"]["trigger_delay_ps"], channel=config["sync"]["channel"])
+            sync.set_output(True)
+        except DriverError as exc:
+            raise CommandError(f"laser sync: {type(exc).__name__}: {exc}") from None
+        try:
+            yield sync
+        finally:
+            try:
+                sync.set_output(False)
+            except DriverError as exc:
+                print(f"streaklab live: warning: could not switch the laser-sync output off: {exc}", file=sys.stderr)
 
 
 def run(args) -> int:
@@ -150,22 +185,27 @@ def run(args) -> int:
             from drivers.sim import SimulatedLab
 
             lab = SimulatedLab(seed=config["simulation"]["seed"], scene=simulated_scene(config), mirror=False,
-                               sync=False, camera_options={"single_sweep": isinstance(cam_cfg["time_range"], str)})
+                               sync=args.laser_on,
+                               camera_options={"single_sweep": isinstance(cam_cfg["time_range"], str)})
             lab.start()
-            lab.state.sync_output_enabled = True
+            if not args.laser_on:
+                lab.state.sync_output_enabled = True      # no sync unit to switch: the laser simply runs
             host, port = lab.camera_address
         else:
             host, _, p = config["devices"]["camera"].rpartition(":")
             port = int(p)
         timeout_s = config["devices"]["timeout_s"]
-        try:
-            with RemoteExCamera(host, port, timeout_s=timeout_s, connect_timeout_s=timeout_s) as cam:
-                cam.configure(time_range=cam_cfg["time_range"], gain=cam_cfg.get("gain"))
-                shown = LiveView(cam, options, row_times_ps=fallback).run(show, stop)
-        except DriverError as exc:
-            raise CommandError(f"camera at {host}:{port}: {type(exc).__name__}: {exc}") from None
-        except ValueError as exc:
-            raise CommandError(str(exc)) from None
+        with contextlib.ExitStack() as stack:
+            if args.laser_on:
+                stack.enter_context(_laser(config, lab))
+            try:
+                with RemoteExCamera(host, port, timeout_s=timeout_s, connect_timeout_s=timeout_s) as cam:
+                    cam.configure(time_range=cam_cfg["time_range"], gain=cam_cfg.get("gain"))
+                    shown = LiveView(cam, options, row_times_ps=fallback).run(show, stop)
+            except DriverError as exc:
+                raise CommandError(f"camera at {host}:{port}: {type(exc).__name__}: {exc}") from None
+            except ValueError as exc:
+                raise CommandError(str(exc)) from None
     except KeyboardInterrupt:
         print("\nstreaklab live: aborted", file=sys.stderr)
         return 130
