@@ -169,6 +169,8 @@ def check_start_up(info):
     assert {"Time Range", "Mode", "MCP Gain"} <= set(info["streak_params"][1:])
     assert info["mode"] == "Focus" and info["time_range"] == "1 ns"
     assert info["gain_range"] == ["0", "63"] and "1 ns" in info["time_ranges"]
+    # Odemis converts every entry with the units s, ms, us, ns (and fails on anything else).
+    assert all(e.split(" ")[1] in ("s", "ms", "us", "ns") for e in info["time_ranges"])
     assert info["delay"] == 0.0 and info["delay_max"] == pytest.approx(1e-6)
     assert info["async"][0] == "0"
 

@@ -50,7 +50,7 @@ import numpy as np
 from drivers.remoteex_wire import format_seconds, normalize_time_range, parse_exposure
 
 from .remoteex_images import RemoteExImages
-from .remoteex_params import ParamError, Reply, camera_params, delay_params, need as _need, streak_params
+from .remoteex_params import SINGLE_SWEEP_RANGES, ParamError, Reply, camera_params, delay_params, need as _need, streak_params
 
 __all__ = ["RemoteExCommands", "Reply"]
 
@@ -75,7 +75,7 @@ class RemoteExCommands(RemoteExImages):
 
     def _init_device(self) -> None:
         self.app_started = False
-        tr = "500 ps" if self.single_sweep else str(int(self.scene.time_range))
+        tr = SINGLE_SWEEP_RANGES[0] if self.single_sweep else str(int(self.scene.time_range))
         self._streak = streak_params(single_sweep=self.single_sweep, time_range=tr, gain=self.scene.reference_gain)
         self._delay = delay_params()
         self._camera = camera_params(exposure_s=self.scene.reference_exposure_s, n_x=self.scene.n_x,

@@ -35,7 +35,8 @@ _FALSE = {"false", "off", "no", "0"}
 # between the first and the last is accepted).
 EXPOSURE_CHOICES = ("1 us", "10 us", "100 us", "1 ms", "10 ms", "100 ms", "1 s", "10 s")
 SYNCHROSCAN_RANGES = ("1", "2", "3", "4")
-SINGLE_SWEEP_RANGES = ("200 ps", "500 ps", "1 ns", "2 ns", "5 ns")
+# Written in ns and above: clients such as Odemis' convert time-range entries with s, ms, us and ns only.
+SINGLE_SWEEP_RANGES = ("1 ns", "2 ns", "5 ns", "10 ns", "20 ns")
 
 
 class Reply(Exception):
