@@ -570,3 +570,33 @@ def test_single_live_takes_one_image(lab):
     assert cam.acq_status()[0] == "idle"
     assert cam.read_image().shape == (SCENE.n_x, SCENE.n_t)
     cam.command("AcqLiveMonitor", "Off")
+
+
+@pytest.mark.parametrize("monitor,compute", [
+    (("Average", "Subarray", "2", "10", "4", "8"), lambda img: [float(f"{img[10:18, 2:6].mean():.6g}")]),
+    (("Maximum", "FullArea"), lambda img: [float(img.max())]),
+    (("Minimum",), lambda img: [float(img.min())]),
+    (("Profile", "3", "FullArea"), lambda img: [img.shape[0]] + [float(f"{v:.6g}") for v in img.sum(axis=1)]),
+    (("Profile", "2", "Subarray", "0", "0", "5", "3"), lambda img: [5] + [float(f"{v:.6g}") for v in
+                                                                        img[0:3, 0:5].sum(axis=0)]),
+])
+def test_live_monitoring_values_describe_the_live_image(lab, monitor, compute):
+    sim, cam, state = lab
+    cam.command("AcqLiveMonitor", *monitor)
+    cam.command("AcqStart", "SingleLive")
+    event = cam.wait_live_event(5.0)
+    image = cam.read_image().T.astype(np.float64)                   # (rows = t, columns = x), as sent
+    assert event[0] == monitor[0]
+    assert [float(v) for v in event[1:]] == pytest.approx(compute(image), rel=1e-6)
+    cam.command("AcqLiveMonitor", "Off")
+
+
+@pytest.mark.parametrize("args,code", [
+    (("Profile", "4", "FullArea"), 10), (("Profile", "2"), 6), (("Average", "Somewhere"), 2),
+    (("Maximum", "Subarray", "0", "0", "999", "1"), 10), (("RingBuffer", "0"), 10),
+])
+def test_live_monitoring_arguments_are_checked(lab, args, code):
+    sim, cam, state = lab
+    with pytest.raises(DeviceError) as info:
+        cam.command("AcqLiveMonitor", *args)
+    assert info.value.code == code

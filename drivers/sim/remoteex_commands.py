@@ -16,7 +16,7 @@ Commands (RemoteEx programmer's handbook, section of each in brackets):
   key, acquire, save, fitting, photon correction, transmission/absorption);
 * [Acquisition] ``AcqStart(Live|SingleLive|Acquire|AI|PC)``, ``AcqStatus``,
   ``AcqStop[(timeout_ms)]``, ``AcqLiveMonitor(Off|Notify|NotifyTimeStamp|RingBuffer[,N]|
-  Average|Minimum|Maximum)``;
+  Average|Minimum|Maximum[,FullArea|Subarray,X,Y,DX,DY]|Profile,type,FullArea|Subarray,X,Y,DX,DY)``;
 * [Camera] ``CamParamGet/Set/Info/InfoEx``, ``CamParamsList`` on Setup, Live, Acquire,
   AI, PC (``CamParamGet(Setup,CameraInfo)`` answers over several CRLF lines);
 * [External devices] ``DevParamGet/Set/Info/InfoEx``, ``DevParamsList`` on the streak
@@ -32,14 +32,15 @@ frames (no dark level, no read noise).  ``Live`` renders a new frame every
 live interval until ``AcqStop``; ``SingleLive`` renders one.  With
 ``AcqLiveMonitor`` on, every live frame is announced on the command port:
 ``4,Livemonitor,RingBuffer,<seq>`` (the ring buffer keeps the last N),
-``4,Livemonitor,Notify``, ``4,Livemonitor,NotifyTimeStamp,<ms>``, or
-``4,Livemonitor,Average|Minimum|Maximum,<value>``.  The streak unit's ``Mode``
+``4,Livemonitor,Notify``, ``4,Livemonitor,NotifyTimeStamp,<ms>``,
+``4,Livemonitor,Average|Minimum|Maximum,<value>``, or
+``4,Livemonitor,Profile,<n>,<v1>,...`` (profile types as for ``ImgDataGet``).  The streak unit's ``Mode``
 ``Focus`` turns the sweep off (the slit image on the middle rows).
 
 Choices where the handbook leaves the code open: a scaling table of an image
 without table scaling is refused with 7; a ring-buffer sequence number newer
-than the newest image with 7; ``Profile`` live monitoring and writing
-ring-buffer data to a file are not simulated (2 and 7).
+than the newest image with 7; writing ring-buffer data to a file is not
+simulated (7).
 """
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ _STREAK_NAMES = {"streak", "streakcamera", "td"}
 _DELAY_NAMES = {"delaybox", "del", "delay", "del1"}
 _MODES = {"live": "Live", "singlelive": "SingleLive", "acquire": "Acquire", "ai": "AI", "pc": "PC"}
 _MONITORS = {"off": "Off", "notify": "Notify", "notifytimestamp": "NotifyTimeStamp", "ringbuffer": "RingBuffer",
-             "average": "Average", "minimum": "Minimum", "maximum": "Maximum"}
+             "average": "Average", "minimum": "Minimum", "maximum": "Maximum", "profile": "Profile"}
 _CAMERA_INFO = ("Product number: C13440-20C (simulated)", "Serial number: 000001", "Firmware: 1.0.A",
                 "Version: 1.0.A-streaklab")
 _DEVICE_NAMES = {"streak": ("C5680 streak unit (simulated)", "Streak plugin (simulated)"),
@@ -87,6 +88,8 @@ class RemoteExCommands(RemoteExImages):
         self._view_key = None
         self._view_index = -1
         self._monitor = "Off"
+        self._monitor_region = None            # (x, y, dx, dy) of Average/Minimum/Maximum/Profile; None: full
+        self._monitor_profile = None           # profile type 1, 2 or 3
         self._ring: dict[int, tuple[np.ndarray, float]] = {}
         self._ring_size = 10
         self._live_seq = 0
@@ -215,6 +218,7 @@ class RemoteExCommands(RemoteExImages):
         monitor = _MONITORS.get(args[0].strip().lower())
         if monitor is None:
             raise Reply(2)
+        area, profile_type = None, None
         if monitor == "RingBuffer" and len(args) > 1 and args[1].strip():
             try:
                 size = int(args[1])
@@ -223,10 +227,57 @@ class RemoteExCommands(RemoteExImages):
             if not 1 <= size <= 1000:
                 raise Reply(10)
             self._ring_size = size
-        self._monitor = monitor
+        elif monitor == "Profile":
+            _need(args, 3)
+            try:
+                profile_type = int(args[1])
+            except ValueError:
+                raise Reply(1) from None
+            if profile_type not in (1, 2, 3):
+                raise Reply(10)
+            area = self._monitor_area(args[2:])
+        elif monitor in ("Average", "Minimum", "Maximum"):
+            area = self._monitor_area(args[1:]) if len(args) > 1 else None
+        self._monitor, self._monitor_region, self._monitor_profile = monitor, area, profile_type
         if monitor != "RingBuffer":
             self._ring.clear()
         return [], None
+
+    def _monitor_area(self, args):
+        """``FullArea`` (None) or ``Subarray,X,Y,DX,DY`` -> (x, y, dx, dy) inside the image."""
+        kind = args[0].strip().lower() if args else ""
+        if kind == "fullarea":
+            return None
+        if kind != "subarray":
+            raise Reply(2)
+        _need(args, 5)
+        try:
+            x, y, dx, dy = (int(a) for a in args[1:5])
+        except ValueError:
+            raise Reply(1) from None
+        if x < 0 or y < 0 or dx < 1 or dy < 1 or x + dx > self.scene.n_x or y + dy > self.scene.n_t:
+            raise Reply(10)
+        return x, y, dx, dy
+
+    def _monitor_message(self, stamp_ms: float) -> str | None:
+        """The text after ``4,Livemonitor,`` for the current live frame (None: monitoring off)."""
+        img = self._image
+        if self._monitor_region is not None:
+            x, y, dx, dy = self._monitor_region
+            region = img[y:y + dy, x:x + dx]
+        else:
+            region = img
+        if self._monitor == "Off":
+            return None
+        if self._monitor == "Profile":
+            args = [str(self._monitor_profile)]
+            if self._monitor_region is not None:
+                args += [str(v) for v in self._monitor_region]
+            values = self._profile(img, args)
+            return "Profile," + ",".join([str(values.size)] + [f"{v:.6g}" for v in values])
+        return {"Notify": "Notify", "NotifyTimeStamp": f"NotifyTimeStamp,{stamp_ms:.0f}",
+                "RingBuffer": f"RingBuffer,{self._live_seq}", "Average": f"Average,{region.mean():.6g}",
+                "Minimum": f"Minimum,{int(region.min())}", "Maximum": f"Maximum,{int(region.max())}"}[self._monitor]
 
     def tick(self) -> None:
         """Produce the live frame that is due, if any, and queue its announcement in :attr:`outbox`."""
@@ -244,11 +295,9 @@ class RemoteExCommands(RemoteExImages):
             self._ring[self._live_seq] = (self._image, stamp_ms)
             for old in sorted(self._ring)[:-self._ring_size]:
                 del self._ring[old]
-        message = {"Notify": "", "NotifyTimeStamp": f",{stamp_ms:.0f}", "RingBuffer": f",{self._live_seq}",
-                   "Average": f",{self._image.mean():.6g}", "Minimum": f",{int(self._image.min())}",
-                   "Maximum": f",{int(self._image.max())}"}.get(self._monitor)
+        message = self._monitor_message(stamp_ms)
         if message is not None:
-            self.outbox.append(f"4,Livemonitor,{self._monitor}{message}\r".encode("ascii"))
+            self.outbox.append(f"4,Livemonitor,{message}\r".encode("ascii"))
         if self._mode == "SingleLive":
             self._mode = None
 
