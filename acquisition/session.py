@@ -3,7 +3,8 @@
 The session drives the devices only through the :mod:`drivers.interfaces`
 protocols, so the same code runs on the real rig and on ``drivers.sim``::
 
-    check    identify camera, mirror and laser sync; configure them; home the mirror
+    check    identify camera, mirror and laser sync; configure them (the streak unit in
+             Operate mode, sweeping); home the mirror
     dark     sync output off, ``dark.frames`` frames at the home position (skipped if on disk);
              a new run also records the camera's own sweep calibration (its scaling table)
              where the camera offers one
@@ -183,9 +184,22 @@ class CaptureSession:
         cam = cfg["camera"]
         self._attempt("camera setup", lambda: self.camera.configure(
             time_range=cam["time_range"], exposure_s=cam["exposure_s"], gain=cam.get("gain")))
+        set_mode = getattr(self.camera, "set_streak_mode", None)
+        if set_mode is not None:
+            # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on.
+            self._attempt("camera streak mode", lambda: self._operate(set_mode))
         self._attempt("mirror homing", lambda: self.mirror.home(timeout_s=max(30.0, cfg["scan"]["settle_timeout_s"])))
         self.devices = ids
         return ids
+
+    @staticmethod
+    def _operate(set_mode) -> None:
+        try:
+            set_mode("Operate")
+        except DeviceError as exc:
+            if exc.code != 2:            # 2: this streak unit has no Mode control; nothing to switch
+                raise
+            log.info("camera has no streak mode control (%s)", exc)
 
     def _acquire_frames(self, n: int, what: str) -> np.ndarray:
         timeout_s = self.config["camera"]["acquire_timeout_s"]

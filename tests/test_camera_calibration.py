@@ -103,3 +103,22 @@ def test_single_sweep_time_range_strings_from_config_to_cube(tmp_path):
     for bad in ("fast", 2.5, True, "-1 ns"):
         with pytest.raises(ConfigError, match="camera.time_range"):
             config(time_range=bad)
+
+
+def test_a_scan_puts_a_streak_unit_left_in_focus_mode_back_to_operate(tmp_path):
+    from acquisition.rig import start_simulated_lab
+
+    cfg, scene = config()
+    lab = start_simulated_lab(cfg)
+    try:
+        lab.camera._streak["mode"].set("Focus")        # as a killed 'streaklab live --focus' leaves it
+        run_capture(cfg, tmp_path / "run.zarr", lab=lab)
+        assert lab.camera.focus is False
+        assert "DevParamSet(Streak,Mode,Operate)" in list(lab.camera.received)
+    finally:
+        lab.close()
+    run = open_run(tmp_path / "run.zarr")
+    assert run.camera_row_times_ps() is not None         # a sweep, with its scaling table
+    line0 = run["streaks"][0, 0].astype(float)
+    angle = float(run["angle_deg"][0])
+    assert np.abs(line0 - scene.expected_counts(scene.line_index(angle), exposure_s=0.01, gain=30)).mean() < 6.0
