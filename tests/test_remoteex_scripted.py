@@ -218,3 +218,25 @@ def test_acquire_in_memory_with_a_notification_and_a_foreign_reply():
     assert img.metadata["time_range"] == "500 ps" and img.metadata["gain"] == 20
     cam.close()
     cmd.assert_done()
+
+
+def test_a_dropped_link_reopens_both_ports_reads_both_greetings_and_resends_the_command():
+    from drivers.remoteex import RemoteExCamera
+
+    first = scripted_link([(b"AcqStatus()\r", ConnectionResetError("peer reset"))])
+    second = scripted_link([(b"AcqStatus()\r", b"0,AcqStatus,idle\r")])
+    pairs = [first, second]
+
+    def open_transports(timeout_s):
+        if not pairs:
+            raise ConnectionLost("no more links")
+        opener, _, _ = pairs.pop(0)
+        return opener(timeout_s)
+
+    cam = RemoteExCamera("127.0.0.1", 1001, start_app=False, open_transports=open_transports)
+    assert cam.acq_status() == ("idle", "")
+    assert cam.reconnects == 1 and first[1].closed and first[2].closed
+    cam.close()
+    second[1].assert_done()
+    with pytest.raises(ConnectionLost):
+        cam.acq_status()
