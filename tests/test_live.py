@@ -137,3 +137,15 @@ def test_laser_on_switches_the_simulated_sync_output_for_the_live_view_only(tmp_
     lit = np.load(npz)["image"]
     assert np.abs(lit - scene.expected_counts(scene.line_index(0.0), exposure_s=0.01, gain=30)).mean() < 5.0
     assert labs[0].state.sync_output_enabled is False            # switched off again at the end
+
+
+def test_a_display_without_a_usable_window_falls_back_to_headless_output(tmp_path, capsys, monkeypatch):
+    import matplotlib
+
+    monkeypatch.setenv("DISPLAY", ":99")                      # claims a display; matplotlib has no GUI here
+    monkeypatch.setattr(matplotlib, "get_backend", lambda: "agg")
+    png = tmp_path / "live.png"
+    assert main(["live", "--config", str(write_config(tmp_path)), "--simulate", "--frames", "1",
+                 "--png", str(png)]) == 0
+    assert "no window" in capsys.readouterr().err
+    assert png.read_bytes()[:4] == b"\x89PNG"

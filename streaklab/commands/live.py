@@ -62,6 +62,8 @@ class _Figure:
             matplotlib.use("Agg", force=True)
         import matplotlib.pyplot as plt
 
+        if window and matplotlib.get_backend().lower() in ("agg", "pdf", "ps", "svg", "cairo", "template"):
+            raise RuntimeError(f"matplotlib has no interactive backend here ({matplotlib.get_backend()})")
         self.plt, self.window, self.png = plt, window, png
         self.fig, (self.ax_img, self.ax_prof) = plt.subplots(1, 2, figsize=(10, 4))
         self.im = self.line = None
@@ -149,7 +151,15 @@ def run(args) -> int:
     poly = config["calibration"].get("time_poly_ps")
     fallback = (lambda n: calibration_times_ps(poly, n) + config["sync"]["trigger_delay_ps"]) if poly else None
     window = _has_display() and not args.no_window
-    figure = _Figure(window=window, png=args.png) if (window or args.png) else None
+    figure = None
+    if window:
+        try:
+            figure = _Figure(window=True, png=args.png)
+        except Exception as exc:  # noqa: BLE001 - any backend failure: carry on without a window
+            print(f"streaklab live: no window ({type(exc).__name__}: {exc}); status lines"
+                  f"{' and --png' if args.png else ''} only", file=sys.stderr)
+    if figure is None and args.png:
+        figure = _Figure(window=False, png=args.png)
     stop = threading.Event()
     interrupted = []
 
