@@ -37,6 +37,7 @@ def test_capture_records_the_scaling_table_and_reconstruction_uses_it(tmp_path):
     run = open_run(tmp_path / "run.zarr")
     np.testing.assert_allclose(run.camera_row_times_ps(), scene.row_times_ps(0.0, 3), rtol=1e-6)
     assert run["camera_row_times_ps"].attrs["time_range"] == "3"
+    np.testing.assert_allclose(run["time_ps"][...], scene.row_times_ps(0.0, 3), rtol=1e-6)   # the table's times
     prov = reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr").attrs["provenance"]
     assert prov["time_calibration_source"] == "camera scaling table"
     assert prov["camera_and_config_agree"] is True and prov["camera_vs_config_max_diff_ps"] < 1e-3
@@ -48,6 +49,7 @@ def test_capture_records_the_scaling_table_and_reconstruction_uses_it(tmp_path):
 def test_a_wrong_configured_polynomial_is_caught_by_the_camera_table(tmp_path, capsys):
     cfg, scene = config(poly=[2.0, 2.0])                # linear, but the simulated sweep slows down
     run_capture(cfg, tmp_path / "run.zarr", simulate=True)
+    np.testing.assert_allclose(open_run(tmp_path / "run.zarr")["time_ps"][...], scene.row_times_ps(), rtol=1e-6)
     cube = reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
     prov = cube.attrs["provenance"]
     expected = float(np.max(np.abs(scene.row_times_ps() - (2.0 + 2.0 * np.arange(64)))))
