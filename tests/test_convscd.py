@@ -117,7 +117,7 @@ def test_family_selection_shrinks_the_search():
     np.testing.assert_allclose(r_dr.params["direct_delay_ps"], data.params["direct_delay_ps"], atol=0.5)
 
 
-def test_refinement_keeps_parameters_within_bounds():
+def test_refinement_keeps_parameters_within_bounds(default_dictionary):
     """Unrestricted greedy start and polish on photon-noise data: every refined delay,
     width and attenuation stays inside its bounds (no runaway step), nothing overflows."""
     from decomposition import components as comp
@@ -126,7 +126,7 @@ def test_refinement_keeps_parameters_within_bounds():
     p = data.noisy / np.abs(data.noisy).max(axis=1, keepdims=True)
     mask = SampleMask.all_fitted(p.shape)
     s = np.maximum(noise_sigma(p), 1e-3)
-    dic = cs.get_dictionary(256, T, T, cs.GridSpec(coarse_sss_sigma=3), True, True)
+    dic = default_dictionary(256, T)
     t = time_axis_ps(256, T)
     with np.errstate(over="raise", invalid="raise", divide="raise"), warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -24,12 +24,12 @@ def test_masks_are_masks_and_never_both():
     assert m[1:].shape == (1, 8) and not m.uncensored().censored.any()
 
 
-def test_a_real_valued_weight_is_refused_by_the_solver_with_a_clear_error():
+def test_a_real_valued_weight_is_refused_by_the_solver_with_a_clear_error(default_dictionary):
     """0.5 once meant "excluded" to the solver; now the solver takes masks and says so."""
     L, T = 128, 2.0
     p = np.zeros((2, L))
     w = np.full((2, L), 0.5)
-    dic = cs.get_dictionary(L, T, T, cs.GridSpec(), True, True)
+    dic = default_dictionary(L, T)
     s = np.full(2, 0.01)
     for call in (lambda: cs.solve_block(p, w, s, dic),
                  lambda: cs.solve_multistart(p, w, s, dic),

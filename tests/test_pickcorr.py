@@ -95,10 +95,10 @@ def test_bad_arguments_are_named(kwargs, match):
         pixel_correlations(np.zeros((1, 8)), **args)
 
 
-def test_score_pixel_picks_the_best_coordinate_of_the_dense_formulation():
+def test_score_pixel_picks_the_best_coordinate_of_the_dense_formulation(default_dictionary):
     """Weighted block: the pick (atom, shift, amplitude, decrease) equals the one from dense sums."""
     L, T = 128, 2.0
-    dic = cs.get_dictionary(L, T, T, cs.GridSpec(), True, True)
+    dic = default_dictionary(L, T)
     data = make_profiles(8, L, nsr=0.05, noise="white", seed=3)
     p = data.noisy / data.noisy.max(axis=1, keepdims=True)
     fit = np.ones(p.shape, bool)
