@@ -485,9 +485,16 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         chi2, _ = _data_chi2(t, pb, mb, c, sb2)
         js.append(chi2 + opts.search_penalty * _n_free(c, shared) * log_l[idx])
     js = np.stack(js)                                   # (starts, m)
-    best = np.argmin(js, axis=0)
+    if not opts.sss_alone:
+        # the paper's model gives every pixel a direct: a start that lost it competes only
+        # where every start did
+        has_d = np.stack([(c["fam"] == FAM_GAUSS).any(axis=1) for c in cand])
+        js_pick = np.where(has_d | ~has_d.any(axis=0), js, np.inf)
+    else:
+        js_pick = js
+    best = np.argmin(js_pick, axis=0)
     # ties keep the solver's answer
-    best = np.where(js[0] <= js[best, np.arange(idx.size)], 0, best)
+    best = np.where(js_pick[0] <= js_pick[best, np.arange(idx.size)], 0, best)
     chosen = take(cand[0], np.arange(idx.size))
     for k in range(1, len(cand)):
         rows = np.nonzero(best == k)[0]
@@ -507,6 +514,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
             r = np.nonzero(near)[0]
             d = _split_distance(_split(t, take(c, r)), [x[r] for x in split_best])
             amb[r] |= d > opts.ambiguity_split
+    if not opts.sss_alone:
+        amb |= ~(chosen["fam"] == FAM_GAUSS).any(axis=1) & (chosen["fam"] == FAM_SSS).any(axis=1)
     ambiguous[idx] = amb
     return out, start, doubt, ambiguous
 
