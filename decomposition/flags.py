@@ -12,7 +12,7 @@ AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
 TRUNCATED   128   more inter-reflections found than ``max_reflections``
 AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   (:mod:`decomposition.search`) with materially different splits
-                  reach objectives within ``ambiguity_chi2`` of each other
+                  reach objectives within the noise of each other
 =========== ===== ==============================================================
 
 Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).

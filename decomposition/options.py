@@ -157,8 +157,8 @@ class SolverOptions:
     search: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
-    ambiguity_chi2: float = 10.0
-    ambiguity_split: float = 0.5
+    ambiguity_sigma: float = 3.0
+    ambiguity_split: float = 0.3
 
     def __post_init__(self):
         for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search"):
@@ -171,7 +171,7 @@ class SolverOptions:
         for name in ("n_lm", "n_polish"):
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
         for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "merge_tol_bins", "spike_sigma",
-                     "search_penalty", "search_doubt_chi2", "ambiguity_chi2", "ambiguity_split"):
+                     "search_penalty", "search_doubt_chi2", "ambiguity_sigma", "ambiguity_split"):
             _set(self, name, _number(name, getattr(self, name), lo=0))
         for name in ("eps_rel", "poor_fit"):
             _set(self, name, _number(name, getattr(self, name), lo=0, lo_open=True))

@@ -503,13 +503,15 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     put(out, idx, chosen)
     start[idx] = best
 
-    # Ambiguity: another start within ambiguity_chi2 of the best objective whose split differs
-    # from the best's by more than ambiguity_split (1 - fidelity between the two).
+    # Ambiguity: another start whose objective is within the noise of the best one (within
+    # ambiguity_sigma standard deviations of a chi-square with one degree of freedom per fitted
+    # sample, sqrt(2 n)) and whose split differs from the best's by more than ambiguity_split
+    # (1 - fidelity between the two).
     j_best = js[best, np.arange(idx.size)]
     split_best = _split(t, chosen)
     amb = np.zeros(idx.size, bool)
     for k, c in enumerate(cand):
-        near = (js[k] - j_best <= opts.ambiguity_chi2) & (best != k)
+        near = (js[k] - j_best <= opts.ambiguity_sigma * np.sqrt(2.0 * nfit[idx])) & (best != k)
         if near.any():
             r = np.nonzero(near)[0]
             d = _split_distance(_split(t, take(c, r)), [x[r] for x in split_best])

@@ -146,3 +146,32 @@ def test_search_options_are_validated_in_the_solver_options():
     with pytest.raises((ValueError, OptionError), match="search"):
         SolverOptions(search="yes please")
     assert SolverOptions().search is True
+
+
+def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
+    from decomposition import AMBIGUOUS, decompose
+
+    # Degenerate: a weak direct (sigma 6 ps) with an sss starting 2 ps (a third of a sigma)
+    # after it, as on a translucent object; at NSR 0.03 a direct-heavy and an sss-heavy split fit
+    # the data equally well.
+    n, L, T = 16, 281, 2.0
+    tr = empty_params((n,), n_ir=2)
+    tr["direct_delay_ps"][:] = np.linspace(110, 130, n)
+    tr["direct_amplitude"][:] = 0.25
+    tr["direct_sigma_ps"][:] = 6.0
+    tr["sss_delay_ps"][:] = tr["direct_delay_ps"] + 2.0
+    tr["sss_amplitude"][:] = 0.035
+    tr["sss_alpha_per_ps"][:] = 0.025
+    tr["sss_sigma_ps"][:] = 6.0
+    clean = render_profile(tr, L, T)
+    noise = np.random.default_rng(1).normal(0, 1, clean.shape)
+    noise *= 0.03 * np.linalg.norm(clean, axis=1, keepdims=True) / np.linalg.norm(noise, axis=1, keepdims=True)
+    res = decompose(clean + noise, T)
+    amb = (res.flags & AMBIGUOUS) > 0
+    assert amb.sum() >= n // 2 and res.info["ambiguous"] == amb.sum()
+    assert np.all(np.isfinite(res.params["direct_delay_ps"]))     # every pixel keeps its direct
+    # Clear: the absorbed-direct pixels at NSR 1e-3 are searched, and their split is determined.
+    truth, y, L2, T2 = _absorbed_direct_pixels()
+    res = decompose(y, T2)
+    assert res.info["search_doubt"] >= 1
+    assert not np.any(res.flags & AMBIGUOUS)
