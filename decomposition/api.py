@@ -166,6 +166,22 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
+    search : bool
+        Structured alternative starts for the pixels whose first answer is in
+        doubt (an sss onset before the earliest Gaussian or far after it, an sss
+        without a Gaussian, Gaussians without an sss, a leading edge steeper than
+        the detected width, a fit above the noise): a direct and an sss on the
+        leading edge, the earliest significant peak as the direct, each with and
+        without the later Gaussians, and a narrower width; each polished, the
+        lowest penalised objective kept (:mod:`decomposition.search`).
+        ``info["search_wins"]`` counts which start each searched pixel kept.
+    search_penalty, search_doubt_chi2 : float
+        Weight of the parameter-count term of the search's objective (1 = BIC);
+        a data term above this many times its expected value puts a pixel in doubt.
+    ambiguity_sigma, ambiguity_split : float
+        AMBIGUOUS flag: another start within this many chi-square standard
+        deviations (sqrt(2 n)) of the best objective whose split differs from
+        the best's by more than ``ambiguity_split`` (1 - fidelity between them).
     stderr : bool, optional
         Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
         as the parameters, NaN where absent or not identifiable) to

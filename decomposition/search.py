@@ -1,4 +1,11 @@
-"""Structured alternative starts for a decomposition (a prototype, not used by ``decompose``).
+"""Structured alternative starts for a decomposition.
+
+Two entry points share the starts below.  :func:`search_components` is the search stage of
+``decompose`` (``search=True``, the default): on the solver's slot states, for the pixels whose
+answer is in doubt only, with the solver's compiled LM, AMBIGUOUS flags and per-start counters
+(see :func:`search_block`).  :func:`structured_search` is the earlier stand-alone form on a
+finished decomposition's parameters (every pixel, six variable-projection refines; ``streaklab
+bench accuracy --methods search``), kept for comparison.
 
 The sparse-coding step can settle on a wrong split that still fits the data: its typical
 failure is an sss atom whose onset sits before the true direct reflection and absorbs it,
@@ -37,7 +44,8 @@ import numpy as np
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from .refine import refine
 
-__all__ = ["SearchOptions", "relabel", "structured_search"]
+__all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
+           "search_components"]
 
 STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
 
@@ -357,6 +365,15 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
     detected slot state ``st`` (n, K) and noise ``s_eff`` (n,)).
 
+    A pixel is in doubt when it has an sss whose onset lies more than half a width before the
+    earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
+    two or more Gaussians without an sss, a leading edge that rises faster than its detected
+    width allows, or a data term above ``search_doubt_chi2`` times its expected value.  Only
+    those pixels get the starts of :data:`STAGE_STARTS` (amplitudes by NNLS, then the solver's
+    polish: shared width, sss onset at or after the direct, data term only; thresholded,
+    merged and relabelled as :mod:`decomposition.label` will), scored by
+    ``chi2 + search_penalty * k * ln(n_fit)``; the lowest is kept (ties keep the solver's).
+
     -> (state, start (n,) int, doubt (n,) bool, ambiguous (n,) bool).
     """
     from . import components as comp
@@ -386,9 +403,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     comp.threshold(base, t, opts.rel_threshold)
     j0, chi0 = score(base)
 
-    # Pixels in doubt: an sss whose onset lies before the earliest Gaussian, an sss without
-    # any Gaussian, an sss onset more than NEAR_SIGMA widths after the direct, or a fit above
-    # the noise.
+    # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
                             SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
 
