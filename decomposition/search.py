@@ -266,7 +266,7 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
 # ==========================================================================================
 
 #: starts of the search stage, in the order of ``info["search_wins"]``
-STAGE_STARTS = ("solver", "edge", "peak", "edge bare", "peak bare", "narrow")
+STAGE_STARTS = ("solver", "edge", "peak", "peak bare")
 
 
 @dataclass(frozen=True)
@@ -369,7 +369,10 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
     two or more Gaussians without an sss, a leading edge that rises faster than its detected
     width allows, or a data term above ``search_doubt_chi2`` times its expected value.  Only
-    those pixels get the starts of :data:`STAGE_STARTS` (amplitudes by NNLS, then the solver's
+    those pixels get the starts of :data:`STAGE_STARTS` (``edge``: a direct one width after the
+    leading edge and an sss at the same onset; ``peak``: the earliest significant peak as the
+    direct, the sss one width later; both with the detected Gaussians more than
+    ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; amplitudes by NNLS, then the solver's
     polish: shared width, sss onset at or after the direct, data term only; thresholded,
     merged and relabelled as :mod:`decomposition.label` will), scored by
     ``chi2 + search_penalty * k * ln(n_fit)``; the lowest is kept (ties keep the solver's).
@@ -432,8 +435,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     t50 = _crossing(t, y1, 0.5 * h_pk, before)
     sig_edge = np.clip((t50 - t10) / RISE_10_50_SIGMA, dic.grid.sigma_range_ps[0], dic.grid.sigma_range_ps[1])
     narrow_all = sig_edge < NARROW_FRACTION * sig
-    ls_n_all = np.where(narrow_all, np.log(sig_edge), lsig)
-    t_peak_n_all = t[i_pk]
     with np.errstate(invalid="ignore"):
         doubt = narrow_all | (~has_s & (g.sum(axis=1) >= 2))
         doubt |= has_s & (~g.any(axis=1) | (s_on < d0 - 0.5 * sig) | (s_on > d0 + NEAR_SIGMA * sig))
@@ -452,7 +453,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     is_peak[:, 1:-1] = ((ys[:, 1:-1] >= ys[:, :-2]) & (ys[:, 1:-1] > ys[:, 2:])
                         & (ys[:, 1:-1] >= SEARCH_PEAK_LEVEL * top))
     t_peak = np.where(is_peak.any(axis=1), t[np.argmax(is_peak, axis=1)], t[np.argmax(ys, axis=1)])
-    narrow, ls_n, t_peak_n = narrow_all[idx], ls_n_all[idx], t_peak_n_all[idx]
     gd = np.where(g[idx], base["delay"][idx], np.nan)
     allow_later = "r" in components
     bounds = parameter_bounds(dic, opts.bound_factor)
@@ -479,22 +479,14 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         if moved.any():
             m = np.nonzero(moved)[0]
             put(cand[0], m, refined(take(cand[0], m), m))
-    sn = np.exp(ls_n)
-    specs = (("edge", t_edge + sg, t_edge + sg, True, ls), ("peak", t_peak, t_peak + sg, True, ls),
-             ("edge bare", t_edge + sg, t_edge + sg, False, ls), ("peak bare", t_peak, t_peak + sg, False, ls),
-             ("narrow", t_peak_n, t_peak_n + sn, True, ls_n))
-    for name, d_ps, s_ps, keep, lsig_s in specs:
-        sg_s = np.exp(lsig_s)
-        later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * sg_s[:, None]), gd, np.nan)
+    # ("edge bare" and a start at the rise's narrower width never won on the paper's scenes:
+    # a pixel whose rise is too steep is in doubt, and the peak start takes it)
+    specs = (("edge", t_edge + sg, t_edge + sg, True), ("peak", t_peak, t_peak + sg, True),
+             ("peak bare", t_peak, t_peak + sg, False))
+    for name, d_ps, s_ps, keep in specs:
+        later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * sg[:, None]), gd, np.nan)
         later = np.sort(later, axis=1)[:, :max(K - 2, 0)]
-        if name == "narrow":
-            c = take(cand[0], np.arange(idx.size))
-            r = np.nonzero(narrow)[0]
-            if r.size:
-                put(c, r, refined(_stage_state(r.size, K, d_ps[r], lsig_s[r], s_ps[r], la[r], later[r]), r))
-            cand.append(c)      # a copy of the solver's answer where the rise is not narrower
-            continue
-        cand.append(refined(_stage_state(idx.size, K, d_ps, lsig_s, s_ps, la, later)))
+        cand.append(refined(_stage_state(idx.size, K, d_ps, ls, s_ps, la, later)))
     js = []
     for c in cand:
         chi2, _ = _data_chi2(t, pb, mb, c, sb2)
