@@ -79,7 +79,7 @@ def test_travel_limits_are_a_device_error_and_nothing_moves(lab):
 def test_home_search_reports_homing_state_while_it_runs():
     with MirrorSimulator(velocity_deg_per_s=10.0, initial_angle_deg=10.0) as sim:
         with open_mirror(sim.port) as mirror:
-            mirror._command_checked("OR")
+            mirror.send("OR")
             assert mirror.state() == "homing"
             with pytest.raises(DeviceError) as info:
                 mirror.move_to(1.0)  # refused while homing
