@@ -100,7 +100,8 @@ def open_rig(config: ScanConfig, *, lab=None):
     timeout_s = dev["timeout_s"]
     if lab is not None:
         cam_host, cam_port = lab.camera_address
-        mirror_port, backend = lab.mirror_port, lab.usb_backend
+        # the stable link, as a udev by-id link on the rig: a re-plugged port is found again
+        mirror_port, backend = lab.mirror_stable_port, lab.usb_backend
     else:
         cam_host, _, port = dev["camera"].rpartition(":")
         cam_port, mirror_port, backend = int(port), dev["mirror"], None

@@ -102,6 +102,7 @@ BAUDRATE = 57600
 TERMINATOR = b"\r\n"
 XONXOFF = True      # manual, sections 2.7 and 3.1: Xon/Xoff flow control
 _MAX_LINE = 256     # no SMC100 reply comes near this; longer means a garbled line
+_TARGET_TOLERANCE_DEG = 1e-6   # PA? echoes the target to 6 decimals (format_value sends at most 6)
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,7 @@ class SMC100Mirror:
         self.timeout_s = transport.timeout_s
         self.poll_interval_s = float(poll_interval_s)
         self._closed = False
+        self._target_deg = None   # the last accepted PA target, checked against PA? once settled
 
     # ------------------------------------------------------------------ command table
     def _line(self, name: str, value: str = "") -> bytes:
@@ -324,11 +326,14 @@ class SMC100Mirror:
         return self._query_float("SL?"), self._query_float("SR?")
 
     def enable(self, enabled: bool = True) -> None:
-        """Leave (``MM1``) or enter (``MM0``) the DISABLE state."""
+        """Leave (``MM1``) or enter (``MM0``) the DISABLE state (entering it stops motion)."""
+        if not enabled:
+            self._target_deg = None
         self.send("MM", "1" if enabled else "0")
 
     def reset(self) -> None:
         """Reset the controller (``RS``): it comes back NOT REFERENCED and needs :meth:`home`."""
+        self._target_deg = None
         self.send("RS")
 
     # ------------------------------------------------------------------ ScanMirror
@@ -353,14 +358,20 @@ class SMC100Mirror:
         Raises :class:`DeviceError` (e.g. code ``C``: out of the travel range,
         ``H``: not referenced yet) when the controller refuses the move.
         """
-        self.send("PA", format_value(angle_deg))
+        text = format_value(angle_deg)
+        self._target_deg = None
+        self.send("PA", text)
+        self._target_deg = float(text)
 
     def move_by(self, delta_deg: float) -> None:
         """Start a relative move by ``delta_deg`` (degrees, ``PR``); refused like :meth:`move_to`."""
-        self.send("PR", format_value(delta_deg))
+        text = format_value(delta_deg)
+        self._target_deg = None
+        self.send("PR", text)
 
     def stop(self) -> None:
-        """Stop any motion (``ST``)."""
+        """Stop any motion (``ST``); the stage stays where it stopped, short of the target."""
+        self._target_deg = None
         self.send("ST")
 
     def wait_settled(self, *, timeout_s: float = 10.0) -> float:
@@ -369,8 +380,26 @@ class SMC100Mirror:
         Raises :class:`DeviceTimeout` if it is still moving after ``timeout_s``
         and :class:`DeviceError` if the controller drops to a state from which
         it will not become ready by itself (not referenced, disabled).
+
+        After :meth:`move_to`, the controller's target (``PA?``) must be the
+        angle that was sent: a move command lost with a dropped connection
+        (the link was reopened, ``TE`` of the new link says ``@``) would
+        otherwise look like a finished move to the old angle.  A mismatch is a
+        :class:`DeviceError` with code ``"target"``.
         """
-        return self._wait_for_ready(timeout_s, waiting_for="motion")
+        angle = self._wait_for_ready(timeout_s, waiting_for="motion")
+        self._check_target()
+        return angle
+
+    def _check_target(self) -> None:
+        if self._target_deg is None:
+            return
+        target = self.target_position()
+        if abs(target - self._target_deg) > _TARGET_TOLERANCE_DEG:
+            sent, self._target_deg = self._target_deg, None
+            raise DeviceError("target", f"the controller's target is {target:g} deg, not the "
+                              f"{sent:g} deg sent: the move command was lost", command="PA?",
+                              device=self.port)
 
     def home(self, *, timeout_s: float = 30.0) -> None:
         """Reference the stage and leave it at the home position (0 degrees).
@@ -392,6 +421,7 @@ class SMC100Mirror:
         if word == "disabled":
             self.enable(True)
             word = "ready"
+        self._target_deg = None
         if word == "ready":
             self.move_to(0.0)
         elif word == "not_referenced":
@@ -400,6 +430,7 @@ class SMC100Mirror:
             raise DeviceError(code, f"cannot home in state {CONTROLLER_STATES[code][1]}",
                               command="OR", device=self.port)
         self._wait_for_ready(max(deadline - time.monotonic(), 1e-3), waiting_for="homing")
+        self._check_target()
 
     def _wait_for_ready(self, timeout_s: float, *, waiting_for: str) -> float:
         if not timeout_s > 0:

@@ -205,3 +205,34 @@ def test_failed_session_tells_how_to_resume(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "failed after 4 attempts: DeviceTimeout" in err and "3 of 8 lines are safely in" in err
     assert f"--out {tmp_path / 'r.zarr'} --simulate --resume" in err
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("kind", ["close", "power_cycle"])
+def test_a_mirror_replug_or_power_cycle_during_a_capture_is_survived(tmp_path, kind):
+    # close: the serial adapter is re-plugged (a new /dev/pts/N behind the stable link) and the
+    # PA in flight is lost; power_cycle: the same, and the controller comes back NOT REFERENCED.
+    cfg = sim_config()
+    with start_lab(cfg) as lab:
+        def arm(session, line):
+            if line == 1:
+                lab.mirror.inject(kind, "PA")
+
+        result = run_capture(cfg, tmp_path / "run.zarr", lab=lab, on_line=arm)
+        homings = list(lab.mirror.received).count("1OR")
+    assert result.status == "complete" and result.acquired == [0, 1, 2, 3]
+    run = open_run(tmp_path / "run.zarr")
+    np.testing.assert_allclose(run["angle_deg"][:], cfg.angles_deg, atol=1e-6)   # every line where asked
+    assert run.attrs["sessions"][0]["retries_used"] >= (1 if kind == "power_cycle" else 0)
+    assert homings == (2 if kind == "power_cycle" else 1)                          # re-homed after the reset
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("xonxoff", [True, False])
+def test_the_rig_opens_the_mirror_on_the_stable_link_with_the_configured_flow_control(xonxoff):
+    from acquisition.rig import open_rig
+
+    cfg = sim_config(devices={"mirror_xonxoff": xonxoff})
+    with start_lab(cfg) as lab, open_rig(cfg, lab=lab) as (camera, mirror, sync):
+        assert mirror.port == lab.mirror_stable_port != lab.mirror_port
+        assert mirror.transport.serial.xonxoff is xonxoff

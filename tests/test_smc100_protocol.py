@@ -131,6 +131,7 @@ def test_home_when_already_referenced_moves_to_zero():
         (b"1TS\r\n", b"1TS000028\r\n"),
         (b"1TS\r\n", b"1TS000033\r\n"),
         (b"1TP\r\n", b"1TP0.0000\r\n"),
+        (b"1PA?\r\n", b"1PA0.000000\r\n"),
     ])
     mirror.home(timeout_s=5)
     t.assert_done()
@@ -143,6 +144,7 @@ def test_home_when_disabled_leaves_disable_then_moves_to_zero():
         (b"1PA0\r\n", None), (b"1TE\r\n", b"1TE@\r\n"),
         (b"1TS\r\n", b"1TS000033\r\n"),
         (b"1TP\r\n", b"1TP0\r\n"),
+        (b"1PA?\r\n", b"1PA0\r\n"),
     ])
     mirror.home(timeout_s=5)
     t.assert_done()
@@ -155,6 +157,35 @@ def test_wait_settled_returns_final_position():
         (b"1TP\r\n", b"1TP7.2500\r\n"),
     ])
     assert mirror.wait_settled(timeout_s=5) == 7.25
+    t.assert_done()
+
+
+def test_a_move_lost_with_a_reconnect_is_detected_when_settled():
+    # PA goes out, the link drops before the controller took it; TE on the reopened link says "@".
+    t, mirror = scripted([
+        (b"1PA12.5\r\n", None),
+        (b"1TE\r\n", OSError(5, "Input/output error")), (b"1TE\r\n", b"1TE@\r\n"),
+        (b"1TS\r\n", b"1TS000033\r\n"),
+        (b"1TP\r\n", b"1TP3\r\n"),
+        (b"1PA?\r\n", b"1PA3.000000\r\n"),
+        (b"1TS\r\n", b"1TS000033\r\n"), (b"1TP\r\n", b"1TP3\r\n"),   # no target check any more
+    ])
+    mirror.move_to(12.5)
+    with pytest.raises(DeviceError, match="target is 3 deg, not the 12.5 deg sent") as info:
+        mirror.wait_settled(timeout_s=1)
+    assert info.value.code == "target"
+    assert mirror.wait_settled(timeout_s=1) == 3.0
+    t.assert_done()
+
+
+def test_move_then_wait_settled_checks_the_target_once():
+    t, mirror = scripted([
+        (b"1PA-2.25\r\n", None), (b"1TE\r\n", b"1TE@\r\n"),
+        (b"1TS\r\n", b"1TS000033\r\n"), (b"1TP\r\n", b"1TP-2.25\r\n"),
+        (b"1PA?\r\n", b"1PA-2.250000\r\n"),
+    ])
+    mirror.move_to(-2.25)
+    assert mirror.wait_settled(timeout_s=1) == -2.25
     t.assert_done()
 
 

@@ -348,7 +348,8 @@ def test_st_without_an_address_stops_all_controllers(lab):
         mirror.home(timeout_s=5)
         mirror.move_to(40.0)
         mirror.transport.write(b"ST\r\n")
-        stopped = mirror.wait_settled(timeout_s=1)
+        assert mirror.status()[1] == "33"                             # READY from MOVING: stopped
+        stopped = mirror.position()
         assert stopped < 39.0 and sim.state_code == "33"
         mirror.transport.write(b"TP\r\n")                             # other commands need the address
         assert mirror.position() == pytest.approx(stopped)
