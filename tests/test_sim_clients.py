@@ -1,0 +1,131 @@
+"""The simulators driven by client libraries the project did not write (test-only dependencies).
+
+* laser sync: python-usbtmc and pyvisa + pyvisa-py, through pyusb with the
+  simulator as the pyusb backend (python-usbtmc takes the ``usb.core.Device``;
+  pyvisa-py finds devices with pyusb's default backend lookup, which is
+  pointed at the simulator, as libusb would be on the rig);
+* scan mirror: the yaqd-newport SMC100 daemon, on the simulator's pty, started
+  against an already homed controller (its start-up resets with ``RS`` and
+  homes with ``OR``), then moving the mirror through a short scan while the
+  camera shows the line at each angle.
+
+None of the clients is modified or wrapped.
+"""
+from __future__ import annotations
+
+import asyncio
+import pathlib
+import time
+
+import numpy as np
+import pytest
+import pyvisa                    # test extra: pyvisa + pyvisa-py (loaded by ResourceManager("@py"))
+import usb.backend.libusb1
+import usb.core
+import usbtmc                    # test extra: python-usbtmc
+from yaqd_newport._newport_smc100 import NewportSMC100   # test extra: yaqd-newport
+
+from drivers.remoteex import RemoteExCamera
+from drivers.sim import SimulatedLab
+from drivers.sim.scene import VirtualScene
+from drivers.smc100 import SMC100Mirror
+
+pytestmark = pytest.mark.timeout(60)
+
+SMALL = VirtualScene.default(n_lines=4, n_x=16, n_t=64, seed=2)
+
+
+def test_python_usbtmc_runs_a_delay_scan_on_the_simulated_sync():
+    with SimulatedLab(seed=1, scene=SMALL, mirror=False) as lab:
+        sim = lab.usb_backend
+        dev = usb.core.find(backend=sim, idVendor=sim.vendor_id, idProduct=sim.product_id)
+        instr = usbtmc.Instrument(dev)
+        instr.timeout = 2.0
+        try:
+            assert instr.ask("*IDN?") == "STREAKLAB,SLS-575SIM,SLS0001,1.0"
+            instr.write("*RST")
+            instr.write(":PULS0:PER 1.25e-08")
+            instr.write(":PULS0:STAT ON")
+            assert instr.ask("SYST:ERR?") == '0,"No error"'
+            assert instr.read_stb() == 0                     # USB488 READ_STATUS_BYTE, interrupt-IN
+            lab.state.mirror_angle_deg = float(SMALL.angle_deg[1])
+            with RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+                for delay_ps in (0.0, 40.0):
+                    instr.write(f":PULS1:DEL {delay_ps * 1e-12!r}")
+                    assert float(instr.ask(":PULS1:DEL?")) == pytest.approx(delay_ps * 1e-12, abs=1e-16)
+                    img = cam.acquire().data
+                    assert np.abs(img - SMALL.expected_counts(1, delay_ps=delay_ps)).mean() < 5.0
+            instr.write(":PULS9:DEL 0")                      # no channel 9
+            assert instr.ask("SYST:ERR?") == '-113,"Undefined header"'
+            instr.clear()                                    # INITIATE_CLEAR / CHECK_CLEAR_STATUS
+            assert instr.ask("*OPC?") == "1"
+        finally:
+            instr.close()
+        assert lab.state.sync_delay_ps == 40.0 and lab.state.sync_output_enabled is True
+
+
+def test_pyvisa_py_finds_and_drives_the_simulated_sync(monkeypatch):
+    with SimulatedLab(seed=1, scene=SMALL, mirror=False) as lab:
+        sim = lab.usb_backend
+        # pyusb's default backend lookup (what pyvisa-py uses) answers with the simulator
+        monkeypatch.setattr(usb.backend.libusb1, "get_backend", lambda *args, **kwargs: sim)
+        rm = pyvisa.ResourceManager("@py")
+        try:
+            name = f"USB0::{sim.vendor_id}::{sim.product_id}::SLS0001::0::INSTR"
+            assert name in rm.list_resources("USB?*")
+            inst = rm.open_resource(name, timeout=2000)
+            assert inst.query("*IDN?").strip() == "STREAKLAB,SLS-575SIM,SLS0001,1.0"
+            inst.write(":PULS0:PER 1.3e-08")
+            inst.write(":PULS1:DEL 2.5e-10")
+            inst.write(":PULS0:STAT ON")
+            assert inst.query("SYST:ERR?").strip() == '0,"No error"'
+            assert inst.query(":PULS0:STAT?;:PULS1:DEL?").strip() == "1;2.5000000000000E-10"
+            inst.close()   # (pyvisa-py 0.8 supports neither clear() nor read_stb() on USB sessions)
+        finally:
+            rm.close()
+        assert lab.state.sync_rate_hz == pytest.approx(1 / 1.3e-08)
+        assert (lab.state.sync_delay_ps, lab.state.sync_output_enabled) == (250.0, True)
+
+
+@pytest.mark.slow   # the daemon's own start-up waits 5 s after its RS
+def test_yaqd_newport_daemon_homes_an_already_homed_controller_and_scans(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))       # the daemon's state file goes here
+
+    async def until(condition, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            assert time.monotonic() < deadline, "the daemon did not get there in time"
+            await asyncio.sleep(0.02)
+
+    async def scan(lab, cam):
+        config = NewportSMC100._parse_config(
+            {"mirror": {"serial_port": lab.mirror_port, "port": 0, "host": "127.0.0.1"}}, "mirror")
+        daemon = NewportSMC100("mirror", config, pathlib.Path(tmp_path / "config.toml"))
+        try:
+            await until(lambda: not daemon.busy(), 20)       # RS, NOT REFERENCED, OR, READY
+            assert daemon._state["status"].startswith("READY")
+            assert daemon._state["hw_limits"] == [-45.0, 45.0]   # read with SL? / SR?
+            lines = []
+            for line in (3, 0, 2):
+                daemon.set_position(float(SMALL.angle_deg[line]))
+                await until(lambda: not daemon.busy(), 10)
+                assert daemon.get_position() == pytest.approx(SMALL.angle_deg[line], abs=1e-6)
+                img = await asyncio.to_thread(lambda: cam.acquire().data)
+                lines.append(lab.camera.last_frame_info["line"])
+                assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0
+            return lines
+        finally:
+            daemon.close()
+            await asyncio.sleep(0.05)
+            daemon._serial.port.close()
+
+    with SimulatedLab(seed=0, scene=SMALL, sync=False) as lab:
+        lab.state.sync_output_enabled = True
+        with SMC100Mirror(lab.mirror_port) as mirror:        # leave the controller homed, off zero
+            mirror.home(timeout_s=5)
+            mirror.move_to(4.0)
+            mirror.wait_settled(timeout_s=5)
+        with RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
+            assert asyncio.run(scan(lab, cam)) == [3, 0, 2]
+        received = list(lab.mirror.received)
+        assert "1RS" in received and received.count("1OR") == 2   # ours, then the daemon's
