@@ -4,17 +4,22 @@
   simulator as the pyusb backend (python-usbtmc takes the ``usb.core.Device``;
   pyvisa-py finds devices with pyusb's default backend lookup, which is
   pointed at the simulator, as libusb would be on the rig);
-* scan mirror: the yaqd-newport SMC100 daemon, on the simulator's pty, started
-  against an already homed controller (its start-up resets with ``RS`` and
-  homes with ``OR``), then moving the mirror through a short scan while the
-  camera shows the line at each angle.
+* scan mirror: the yaqd-newport SMC100 daemon, on the pty that
+  ``streaklab sim-lab`` prints, started against an already homed controller
+  (its start-up resets with ``RS`` and homes with ``OR``), then moving the
+  mirror through a short scan while the camera shows the line at each angle.
 
 None of the clients is modified or wrapped.
 """
 from __future__ import annotations
 
 import asyncio
+import os
 import pathlib
+import selectors
+import signal
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -31,6 +36,8 @@ from drivers.sim.scene import VirtualScene
 from drivers.smc100 import SMC100Mirror
 
 pytestmark = pytest.mark.timeout(60)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 SMALL = VirtualScene.default(n_lines=4, n_x=16, n_t=64, seed=2)
 
@@ -87,8 +94,28 @@ def test_pyvisa_py_finds_and_drives_the_simulated_sync(monkeypatch):
         assert (lab.state.sync_delay_ps, lab.state.sync_output_enabled) == (250.0, True)
 
 
+def _start_sim_lab(*args):
+    """``streaklab sim-lab`` in a subprocess; returns (process, {name: address})."""
+    proc = subprocess.Popen([sys.executable, "-m", "streaklab", "sim-lab", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    info, deadline = {}, time.monotonic() + 30
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    buf = b""
+    while "ready" not in info:
+        left = deadline - time.monotonic()
+        assert left > 0, f"sim-lab printed no 'ready' line; got {buf!r}"
+        if not sel.select(left):
+            continue
+        chunk = os.read(proc.stdout.fileno(), 4096)
+        assert chunk, f"sim-lab exited early: {buf!r}"
+        buf += chunk
+        info = dict(line.partition(" ")[::2] for line in buf.decode().splitlines())
+    return proc, info
+
+
 @pytest.mark.slow   # the daemon's own start-up waits 5 s after its RS
-def test_yaqd_newport_daemon_homes_an_already_homed_controller_and_scans(tmp_path, monkeypatch):
+def test_yaqd_newport_daemon_on_sim_lab_homes_an_already_homed_controller_and_scans(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))       # the daemon's state file goes here
 
     async def until(condition, timeout_s):
@@ -97,35 +124,39 @@ def test_yaqd_newport_daemon_homes_an_already_homed_controller_and_scans(tmp_pat
             assert time.monotonic() < deadline, "the daemon did not get there in time"
             await asyncio.sleep(0.02)
 
-    async def scan(lab, cam):
+    async def scan(port, cam):
         config = NewportSMC100._parse_config(
-            {"mirror": {"serial_port": lab.mirror_port, "port": 0, "host": "127.0.0.1"}}, "mirror")
+            {"mirror": {"serial_port": port, "port": 0, "host": "127.0.0.1"}}, "mirror")
         daemon = NewportSMC100("mirror", config, pathlib.Path(tmp_path / "config.toml"))
         try:
             await until(lambda: not daemon.busy(), 20)       # RS, NOT REFERENCED, OR, READY
             assert daemon._state["status"].startswith("READY")
             assert daemon._state["hw_limits"] == [-45.0, 45.0]   # read with SL? / SR?
-            lines = []
             for line in (3, 0, 2):
                 daemon.set_position(float(SMALL.angle_deg[line]))
                 await until(lambda: not daemon.busy(), 10)
                 assert daemon.get_position() == pytest.approx(SMALL.angle_deg[line], abs=1e-6)
                 img = await asyncio.to_thread(lambda: cam.acquire().data)
-                lines.append(lab.camera.last_frame_info["line"])
-                assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0
-            return lines
+                assert np.abs(img - SMALL.expected_counts(line)).mean() < 5.0   # the camera shows that line
         finally:
             daemon.close()
             await asyncio.sleep(0.05)
             daemon._serial.port.close()
 
-    with SimulatedLab(seed=0, scene=SMALL, sync=False) as lab:
-        lab.state.sync_output_enabled = True
-        with SMC100Mirror(lab.mirror_port) as mirror:        # leave the controller homed, off zero
+    proc, info = _start_sim_lab("--lines", "4", "--x", "16", "--t", "64", "--seed", "2")
+    try:
+        with SMC100Mirror(info["mirror-stable"]) as mirror:   # leave the controller homed, off zero
             mirror.home(timeout_s=5)
             mirror.move_to(4.0)
             mirror.wait_settled(timeout_s=5)
-        with RemoteExCamera(*lab.camera_address, timeout_s=2.0) as cam:
-            assert asyncio.run(scan(lab, cam)) == [3, 0, 2]
-        received = list(lab.mirror.received)
-        assert "1RS" in received and received.count("1OR") == 2   # ours, then the daemon's
+        host, port = info["camera"].rsplit(":", 1)
+        with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
+            asyncio.run(scan(info["mirror-stable"], cam))
+        with SMC100Mirror(info["mirror-stable"]) as mirror:
+            assert mirror.position() == pytest.approx(SMALL.angle_deg[2], abs=1e-6)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
