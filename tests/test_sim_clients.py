@@ -160,3 +160,33 @@ def test_yaqd_newport_daemon_on_sim_lab_homes_an_already_homed_controller_and_sc
         if proc.poll() is None:
             proc.kill()
             proc.wait(5)
+
+
+def test_pyvisa_py_serial_session_with_xonxoff_drives_the_mirror_as_sim_lab_help_says(capsys):
+    from drivers.sim.mirror import MirrorSimulator
+    from streaklab.cli import main
+    from streaklab.commands.simlab import CONNECTING
+
+    with pytest.raises(SystemExit) as info:
+        main(["sim-lab", "--help"])
+    assert info.value.code == 0
+    assert CONNECTING in capsys.readouterr().out and "VI_ASRL_FLOW_XON_XOFF" in CONNECTING
+    with MirrorSimulator(velocity_deg_per_s=100.0, min_home_s=0.01) as sim:
+        rm = pyvisa.ResourceManager("@py")
+        try:
+            inst = rm.open_resource("ASRL" + sim.stable_port + "::INSTR", baud_rate=57600,
+                                    read_termination="\r\n", write_termination="\r\n",
+                                    flow_control=pyvisa.constants.VI_ASRL_FLOW_XON_XOFF, timeout=2000)
+            assert inst.query("1ID?") == "1IDSLAB-GALVO-SIM"
+            inst.write("1OR")
+            deadline = time.monotonic() + 5
+            while inst.query("1TS") != "1TS000032":
+                assert time.monotonic() < deadline
+            inst.write("1PA2.5")
+            while inst.query("1TS") != "1TS000033":
+                assert time.monotonic() < deadline
+            assert inst.query("1TP") == "1TP2.500000" and inst.query("1TE") == "1TE@"
+            inst.close()
+        finally:
+            rm.close()
+        assert sim.lab_state.mirror_angle_deg == 2.5
