@@ -328,6 +328,10 @@ class LineTransport:
                 self._drop()
                 raise ConnectionLost(f"{self.name}: connection lost ({exc})") from exc
 
+    def describe(self) -> str:
+        """How the link is named in messages (the port, ``host:port``)."""
+        return self.name
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r})"
 
