@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import select
 import threading
 import time
 
@@ -157,7 +158,9 @@ def test_late_reply_is_not_taken_for_the_next_one(lab):
         sim.inject("delay", "ID", delay_s=0.5)
         with pytest.raises(DeviceTimeout):
             mirror.identify()
-        time.sleep(0.8)  # the late ID reply is now waiting in the port
+        # wait until the late ID reply is waiting in the port (however slow the machine is)
+        readable, _, _ = select.select([mirror.transport.serial.fd], [], [], 5.0)
+        assert readable
         assert mirror.state() == "not_referenced"
         assert mirror.position() == pytest.approx(0.0)
 
