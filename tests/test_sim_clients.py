@@ -71,6 +71,7 @@ def test_python_usbtmc_runs_a_delay_scan_on_the_simulated_sync():
         assert lab.state.sync_delay_ps == 40.0 and lab.state.sync_output_enabled is True
 
 
+@pytest.mark.filterwarnings("ignore:.*hislip resource discovery:UserWarning")
 def test_pyvisa_py_finds_and_drives_the_simulated_sync(monkeypatch):
     with SimulatedLab(seed=1, scene=SMALL, mirror=False) as lab:
         sim = lab.usb_backend

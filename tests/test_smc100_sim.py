@@ -78,7 +78,7 @@ def test_travel_limits_are_a_device_error_and_nothing_moves(lab):
 
 
 def test_home_search_reports_homing_state_while_it_runs():
-    with MirrorSimulator(velocity_deg_per_s=10.0, initial_angle_deg=10.0) as sim:
+    with MirrorSimulator(velocity_deg_per_s=10.0, initial_angle_deg=3.0) as sim:
         with open_mirror(sim.port) as mirror:
             mirror.send("OR")
             assert mirror.state() == "homing"
@@ -94,12 +94,12 @@ def test_home_during_a_move_waits_for_it_then_returns_to_zero(lab):
     sim, state = lab
     with open_mirror(sim.port) as mirror:
         mirror.home(timeout_s=5)
-        mirror.move_to(30.0)
+        mirror.move_to(15.0)
         assert mirror.state() == "moving"
         mirror.home(timeout_s=5)
         assert mirror.position() == pytest.approx(0.0)
         assert state.mirror_angle_deg == pytest.approx(0.0)
-        assert "1PA30" in sim.received and list(sim.received).count("1PA0") == 1
+        assert "1PA15" in sim.received and list(sim.received).count("1PA0") == 1
 
 
 def test_stop_ends_motion_where_the_stage_is():
