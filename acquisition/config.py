@@ -69,11 +69,13 @@ from pathlib import Path
 
 import numpy as np
 
+from core.errors import StreaklabError
+
 __all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
            "check_calibration", "HASHED_SECTIONS"]
 
 
-class ConfigError(ValueError):
+class ConfigError(StreaklabError, ValueError):
     """A configuration value is missing, unknown or out of range; the message names the key."""
 
 

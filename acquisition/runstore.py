@@ -34,8 +34,10 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from core.durable import fsync_path, sync_chunk
+from core.errors import StreaklabError
+
 from .config import ConfigError, ScanConfig, parse_config
-from .durable import fsync_path, sync_chunk
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
@@ -43,7 +45,7 @@ RUN_KIND = "run"
 LINE_ARRAYS = ("streaks", "angle_deg", "timestamp", "done")
 
 
-class RunStoreError(ValueError):
+class RunStoreError(StreaklabError, ValueError):
     """The path is not a usable run store, or does not fit the session (says exactly why)."""
 
 
@@ -171,7 +173,7 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
 
     The path must not exist or be an empty directory (resuming goes through :func:`open_run`).
     """
-    from streaklab import __version__
+    from core.provenance import __version__
 
     p = Path(path)
     if p.exists() and (p.is_file() or any(p.iterdir())):

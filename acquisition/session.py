@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from core.errors import StreaklabError
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
 from .config import ConfigError, ScanConfig, check_calibration
@@ -41,7 +42,7 @@ log = logging.getLogger(__name__)
 RETRYABLE = (DeviceTimeout, ConnectionLost, DeviceError, ProtocolError)
 
 
-class CaptureError(RuntimeError):
+class CaptureError(StreaklabError, RuntimeError):
     """The session cannot start or continue (bad store, device check failed, config mismatch)."""
 
 

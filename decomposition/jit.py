@@ -10,7 +10,7 @@ All functions are compiled on first use and cached on disk next to this file (nu
 ``cache=True``), so later processes -- dask workers included -- load them instead of compiling
 again.  ``nogil=True`` lets the threaded scheduler run them in parallel.
 
-The forms are those of :mod:`decomposition.model` (see its docstring): the sss kernel is
+The forms are those of :mod:`core.model` (see its docstring): the sss kernel is
 evaluated as g(x) erfcx(u) for u >= 0 and exp(-alpha (x - alpha sigma^2 / 2)) erfc(u) for
 u < 0, so no exponential of a positive number is ever taken.
 """
@@ -68,7 +68,7 @@ def sss_value(x_ps, sigma_ps, alpha_per_ps):
 
     ``x_ps`` is the time after the onset.  h = sqrt(pi/2) sigma g(x) erfcx(u) for
     u = (alpha sigma^2 - x) / (sigma sqrt 2) >= 0, and sqrt(pi/2) sigma
-    exp(-alpha (x - alpha sigma^2 / 2)) erfc(u) otherwise (decomposition.model).
+    exp(-alpha (x - alpha sigma^2 / 2)) erfc(u) otherwise (core.model).
     Returns (h, g).
     """
     g = math.exp(-0.5 * (x_ps / sigma_ps) ** 2)

@@ -37,8 +37,9 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from acquisition.durable import sync_chunk
-from reconstruction.staging import staged_output
+from core.durable import sync_chunk
+from core.errors import OutputExistsError, StreaklabError
+from core.staging import staged_output
 
 __all__ = [
     "RESULT_KIND",
@@ -75,7 +76,7 @@ _LONG_NAMES = {
 }
 
 
-class ResultStoreError(ValueError):
+class ResultStoreError(StreaklabError, ValueError):
     """The path is not a usable result store, or a write does not fit it (says exactly why)."""
 
 
@@ -107,7 +108,7 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
     if p.is_dir() and not any(p.iterdir()):
         return
     if not overwrite:
-        raise FileExistsError(f"{path} already exists; pass --overwrite to replace it "
+        raise OutputExistsError(f"{path} already exists; pass --overwrite to replace it "
                               f"(or --resume to continue a run into it)")
 
 

@@ -24,15 +24,16 @@ import numpy as np
 
 from acquisition.config import check_calibration
 from acquisition.runstore import open_run
+from core.errors import StreaklabError
+from core.staging import check_output_path, staged_output
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
-from .cubestore import check_output_path, create_cube, open_cube
-from .staging import staged_output
+from .cubestore import create_cube, open_cube
 
 __all__ = ["ReconstructionError", "reconstruct"]
 
 
-class ReconstructionError(ValueError):
+class ReconstructionError(StreaklabError, ValueError):
     """The run cannot be reconstructed as asked (says why)."""
 
 
@@ -71,7 +72,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     reconstruction.calibrate.CalibrationError, ReconstructionError, FileExistsError
         With a message naming the problem; nothing has been written then.
     """
-    from streaklab import __version__
+    from core.provenance import __version__
 
     run = open_run(run_path, mode="r")
     out = Path(out_path)

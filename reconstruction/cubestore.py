@@ -16,17 +16,19 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import zarr
 
-__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path"]
+from core.errors import StreaklabError
+from core.staging import check_output_path
+
+__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube"]
 
 CUBE_KIND = "cube"
 
 
-class CubeStoreError(ValueError):
+class CubeStoreError(StreaklabError, ValueError):
     """The path is not a usable cube store (says exactly why)."""
 
 
@@ -56,13 +58,6 @@ class Cube:
 
     def time_axis_ps(self) -> np.ndarray:
         return self.t0_ps + self.time_bin_ps * np.arange(self.shape[2], dtype=np.float64)
-
-
-def check_output_path(path, *, overwrite: bool = False) -> None:
-    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
-    p = Path(path)
-    if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
 
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",

@@ -29,8 +29,10 @@ import h5py
 import numpy as np
 import zarr
 
+from core.errors import StreaklabError
+from core.staging import staged_output
+
 from .cubestore import CubeStoreError, create_cube, open_cube
-from .staging import staged_output
 
 __all__ = ["NexusError", "export_cube", "import_cube"]
 
@@ -38,7 +40,7 @@ META = "streaklab_zarr"
 RESERVED = {"entry"}
 
 
-class NexusError(ValueError):
+class NexusError(StreaklabError, ValueError):
     """The HDF5 file is not a usable NeXus cube (says why)."""
 
 
@@ -124,7 +126,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
     -------
     Path of the written file.
     """
-    from streaklab import __version__
+    from core.provenance import __version__
 
     cube = open_cube(cube_path)
     g = cube.group

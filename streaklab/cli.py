@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from core.errors import StreaklabError
+
 from . import __version__
 
 # name -> (module, one-line help)
@@ -27,7 +29,10 @@ COMMANDS = {
 
 
 class CommandError(Exception):
-    """An error the user can fix; printed without a traceback, exit status 2."""
+    """An error in the command line the user can fix; printed without a traceback, exit status 2.
+
+    The library's own errors (:class:`core.errors.StreaklabError`) are printed the same way.
+    """
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sub.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
-    except CommandError as exc:
+    except (CommandError, StreaklabError) as exc:
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

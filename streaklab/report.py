@@ -91,7 +91,7 @@ def _components_at(store, ys, xs, it=None):
                     "residual": g["residual"][ys, xs]}
         return {"direct": g["direct"][ys, xs, it], "sss": g["sss"][ys, xs, it],
                 "ir": g["ir"][ys, xs, :, it], "residual": g["residual"][ys, xs, it]}
-    from decomposition.model import render_components
+    from core.model import render_components
 
     params = store.params(ys, xs)
     t = store.time_axis_ps()

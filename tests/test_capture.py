@@ -9,7 +9,7 @@ from acquisition.config import parse_config
 from acquisition.rig import run_capture, simulated_scene
 from acquisition.runstore import open_run
 from acquisition.session import CaptureError, CaptureFailed
-from decomposition.model import render_profile
+from core.model import render_profile
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
 from drivers.sim import SimulatedLab
 from reconstruction.build import reconstruct

@@ -4,11 +4,11 @@ import shutil
 import numpy as np
 import pytest
 
-from decomposition import model
+from core import model
+from decomposition.pipeline import decompose_to_store
 from decomposition.resultstore import create_result_store, open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
-from streaklab.commands.decompose import decompose_to_store
 from streaklab.report import choose_pixels, choose_time_ps, measured_profiles
 
 TB = 2.0

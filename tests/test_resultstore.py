@@ -148,7 +148,7 @@ def test_existing_paths_are_protected(tmp_path):
 def test_every_chunk_file_is_fsynced_before_done_and_done_after(tmp_path, monkeypatch):
     """A power cut must not leave a chunk marked done whose results never reached the disk:
     every file the chunk wrote is fsync'd (with its directories) before the done flag's file."""
-    import acquisition.durable as durable
+    import core.durable as durable
 
     synced = []
     real = durable.fsync_path

@@ -1,7 +1,7 @@
 """``streaklab bench stability``: stiff and extreme inputs for ``decompose``.
 
 Every case is a handful of synthetic pixels with known components, built from
-``decomposition.model`` (so the truth is exact), decomposed under
+``core.model`` (so the truth is exact), decomposed under
 warnings-as-errors.  For each case the benchmark reports:
 
 * fidelity of the decomposition against the clean components (mean over pixels),
@@ -54,7 +54,7 @@ class Case:
 
 
 def _params(n, n_ir=1):
-    from decomposition.model import empty_params
+    from core.model import empty_params
 
     return empty_params((n,), n_ir=n_ir)
 
@@ -62,7 +62,7 @@ def _params(n, n_ir=1):
 def build_cases(n_bins: int = 256, time_bin_ps: float = 2.0, seed: int = 0, quick: bool = False) -> list[Case]:
     """The stability cases (see the module docstring)."""
     from decomposition import POOR_FIT, SATURATED, SPIKE, AT_BOUND
-    from decomposition.model import render_profile
+    from core.model import render_profile
 
     L, T = int(n_bins), float(time_bin_ps)
     rng = np.random.default_rng(seed)
@@ -83,7 +83,7 @@ def build_cases(n_bins: int = 256, time_bin_ps: float = 2.0, seed: int = 0, quic
         p["sss_alpha_per_ps"][:] = x / sigma
         p["sss_sigma_ps"][:] = sigma
         # sss peak at 0.3 of the direct's whatever alpha is: b = 0.3 / max h
-        from decomposition.model import sss_kernel
+        from core.model import sss_kernel
         tt = np.linspace(-5 * sigma, 5 * sigma + 5.0 / (x / sigma), 20001)
         p["sss_amplitude"][:] = 0.3 / sss_kernel(tt, sigma, x / sigma).max()
         alpha = x / sigma
@@ -179,7 +179,7 @@ def run_case(case: Case, time_bin_ps: float = 2.0, max_iter: int = 8, **options)
     """
     from decomposition import decompose
     from decomposition.metrics import fidelity
-    from decomposition.model import render_components
+    from core.model import render_components
 
     opts = dict(case.options)
     opts.update(options)

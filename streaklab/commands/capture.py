@@ -28,16 +28,13 @@ def _resume_hint(args, out) -> str:
 
 
 def run(args) -> int:
-    from acquisition.config import ConfigError, load_config
+    from acquisition.config import load_config
     from acquisition.progress import Progress
     from acquisition.rig import run_capture
-    from acquisition.session import CaptureError, CaptureFailed
+    from acquisition.session import CaptureFailed
 
     logging.basicConfig(level=logging.WARNING, format="streaklab capture: %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        raise CommandError(str(exc)) from None
+    config = load_config(args.config)
     out = args.out or config["output"].get("path")
     if not out:
         raise CommandError("no output: pass --out or set output.path in the config")
@@ -89,8 +86,6 @@ def run(args) -> int:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
               f"  {_resume_hint(args, out)}", file=sys.stderr)
         return 130
-    except (CaptureError, ConfigError) as exc:
-        raise CommandError(str(exc)) from None
     finally:
         if progress is not None:
             progress.close()

@@ -81,7 +81,7 @@ def _estimate(store) -> dict:
     if store.write_components:
         est = {"direct": g["direct"][...], "sss": g["sss"][...], "interreflections": g["ir"][...]}
     else:
-        from decomposition.model import render_components
+        from core.model import render_components
 
         t = store.time_axis_ps()
         c = render_components(store.params(), t.size, float(store.attrs["time_bin_ps"]), float(t[0]))
@@ -105,7 +105,7 @@ def _capture_cube(out: Path, *, lines, nx, nt, seed, stream, quiet):
         from reconstruction.build import reconstruct
     except ImportError as exc:
         raise CommandError(f"the capture pipeline is not available ({exc}); use --source simulate") from None
-    from decomposition.model import render_components
+    from core.model import render_components
     from reconstruction.cubestore import open_cube
 
     config = _demo_config(parse_config, lines=lines, nx=nx, nt=nt, seed=seed)
@@ -165,7 +165,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     """Run the demo; returns a dict with the output paths, timings and the fidelities."""
     from decomposition.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
-    from streaklab.commands.decompose import decompose_to_store
+    from decomposition.pipeline import decompose_to_store
     from streaklab.report import make_report
 
     stream = sys.stdout if stream is None else stream

@@ -67,8 +67,8 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     import zarr
 
     from reconstruction.cubestore import open_cube, write_cube
-    from reconstruction.staging import staged_output
-    from streaklab import __version__
+    from core.staging import staged_output
+    from core.provenance import __version__
 
     ny, nx, nt = data.noisy.shape
     n_ir = data.params["ir_delay_ps"].shape[-1]
@@ -141,10 +141,7 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     command = "streaklab simulate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["simulate"] else None
-    try:
-        cube = write_simulation(args.out, data, chunks=args.chunks, overwrite=args.overwrite, command=command)
-    except FileExistsError as exc:
-        raise CommandError(str(exc)) from None
+    cube = write_simulation(args.out, data, chunks=args.chunks, overwrite=args.overwrite, command=command)
     n_ir = data.params["ir_delay_ps"].shape[-1]
     print(f"wrote {cube.path}: cube (y={ny}, x={nx}, t={nt}) with ground truth in group 'truth' "
           f"(up to {n_ir} inter-reflections); {data.noise} noise at NSR {data.nsr:g}, seed {args.seed}",

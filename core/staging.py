@@ -7,9 +7,16 @@ import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
-from .cubestore import check_output_path
+from .errors import OutputExistsError
 
-__all__ = ["staged_output"]
+__all__ = ["check_output_path", "staged_output"]
+
+
+def check_output_path(path, *, overwrite: bool = False) -> None:
+    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
+    p = Path(path)
+    if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
+        raise OutputExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
 
 
 def _remove(p: Path) -> None:

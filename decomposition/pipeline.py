@@ -1,0 +1,361 @@
+"""The chunked pipeline: decompose every pixel of a cube into a result store, chunk by chunk.
+
+The cube is read with dask in pixel chunks (all of t in each), every chunk is decomposed as one
+batch and written into its own region of the result store as soon as it is finished, then
+marked done.  Interrupted runs (Ctrl-C, a crash, a killed process) keep every finished chunk;
+``resume=True`` computes only the rest and gives the same store as an uninterrupted run.
+
+Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``time_bin_ps`` for small inputs.
+:func:`decompose_to_store` is used by ``streaklab decompose``, ``demo`` and ``bench speed``;
+bad input raises :class:`PipelineError` before any work starts.  Its messages name the
+command-line flags, the way most users meet them.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import StreaklabError
+
+__all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
+
+METHODS = ("convscd", "gradbm")
+
+
+class PipelineError(StreaklabError, ValueError):
+    """The input or the settings of a chunked decomposition are unusable (says exactly why)."""
+
+
+class ChunkProgress:
+    """Progress over chunks on a stream: done/total, pixel rate, time left.
+
+    On a terminal the line is redrawn in place; otherwise a line is printed at most every
+    ``interval_s`` seconds and at the end.
+    """
+
+    def __init__(self, total_chunks: int, total_pixels: int, *, already_chunks: int = 0, stream=None,
+                 interval_s: float = 2.0, label: str = "decompose"):
+        self.total_chunks, self.total_pixels = int(total_chunks), int(total_pixels)
+        self.chunks = int(already_chunks)
+        self.pixels = 0
+        self.stream = sys.stderr if stream is None else stream
+        self.interval_s = interval_s
+        self.label = label
+        self.start = time.monotonic()
+        self._last = -math.inf
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, summary: dict) -> None:
+        self.chunks += 1
+        self.pixels += int(summary.get("pixels", 0))
+        now = time.monotonic()
+        if self._tty or now - self._last >= self.interval_s or self.chunks == self.total_chunks:
+            self._last = now
+            self.stream.write(("\r" if self._tty else "") + self.line() + ("" if self._tty else "\n"))
+            self.stream.flush()
+
+    def line(self) -> str:
+        elapsed = max(time.monotonic() - self.start, 1e-9)
+        rate = self.pixels / elapsed
+        left_px = max(self.total_pixels - self.pixels, 0)
+        eta = _fmt_s(left_px / rate) if rate > 0 else "?"
+        pct = 100.0 * self.chunks / max(self.total_chunks, 1)
+        return (f"{self.label}: {self.chunks}/{self.total_chunks} chunks ({pct:.0f}%), "
+                f"{rate:,.0f} px/s, {eta} left")
+
+    def close(self) -> None:
+        if self._tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _fmt_s(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+# ---------------------------------------------------------------------------------------------
+# input
+# ---------------------------------------------------------------------------------------------
+def _open_input(path, *, time_bin_ps, t0_ps, chunks):
+    """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
+    import dask.array as da
+
+    from reconstruction.cubestore import CubeStoreError, open_cube
+
+    p = Path(path)
+    if p.suffix == ".npy" or p.is_file():
+        if time_bin_ps is None:
+            raise PipelineError(f"{path}: a .npy input needs --time-bin-ps (its time axis is not stored)")
+        try:
+            data = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise PipelineError(f"{path}: cannot read as a .npy array: {exc}") from None
+        if data.ndim == 2:
+            data = data[None]
+        if data.ndim != 3:
+            raise PipelineError(f"{path}: expected an array (y, x, t) or (n, t); got shape {data.shape}")
+        if data.dtype.kind not in "fiu":
+            raise PipelineError(f"{path}: expected real numbers; got dtype {data.dtype}")
+        if min(data.shape) == 0:
+            raise PipelineError(f"{path}: empty array of shape {data.shape}")
+        tb = float(time_bin_ps)
+        if not np.isfinite(tb) or tb <= 0:
+            raise PipelineError(f"--time-bin-ps must be positive, got {time_bin_ps}")
+        t0 = tb if t0_ps is None else float(t0_ps)
+        default_chunks = (min(data.shape[0], 16), min(data.shape[1], 64))
+        ch = chunks or default_chunks
+        arr = da.from_array(data, chunks=(ch[0], ch[1], -1))
+        source = {"path": str(p.resolve()), "kind": "npy", "shape": list(data.shape), "attrs": {}}
+        return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
+    if time_bin_ps is not None or t0_ps is not None:
+        raise PipelineError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
+    try:
+        cube = open_cube(str(p))
+    except CubeStoreError as exc:
+        raise PipelineError(f"not a usable cube: {exc}") from None
+    if cube.array.dtype.kind not in "fiu":
+        raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
+    arr = da.from_zarr(cube.array)
+    source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
+              "attrs": _jsonable(cube.attrs)}
+    y_units, y_coord = "pixel", None
+    if "y" in cube.group:
+        y_coord = np.asarray(cube.group["y"][...], np.float64)
+        y_units = str(cube.group["y"].attrs.get("units", "pixel"))
+    default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
+    return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
+            y_coord, y_units)
+
+
+def _jsonable(obj):
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
+    """Run the solver on one all-zero profile: checks the options before any work and names the
+    parameters (and their per-pixel dimensionality) the store must hold."""
+    from decomposition.chunked import _solver
+
+    try:
+        res = _solver()(np.zeros((1, nt)), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                        components=tuple(components), **options)
+    except (TypeError, ValueError) as exc:
+        raise PipelineError(f"the solver refuses these settings: {exc}") from None
+    map_keys, ir_keys = [], []
+    for k, v in res.params.items():
+        nd = np.ndim(v)
+        if nd == 1:
+            map_keys.append(k)
+        elif nd == 2:
+            ir_keys.append(k)
+        else:
+            raise PipelineError(f"solver parameter {k!r} has an unexpected shape {np.shape(v)} for one pixel")
+    info = {k: v for k, v in dict(getattr(res, "info", {}) or {}).items()
+            if isinstance(v, (str, int, float, bool, tuple, list, type(None)))}  # settings, not per-pixel arrays
+    return map_keys, ir_keys, info
+
+
+# ---------------------------------------------------------------------------------------------
+# the pipeline
+# ---------------------------------------------------------------------------------------------
+def decompose_to_store(input_path, out_path, *, method: str = "convscd", components=("d", "s", "r"),
+                       options: dict | None = None, chunks=None, workers: int | None = None,
+                       scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
+                       write_components: bool = True, nan_policy: str = "mark", resume: bool = False,
+                       overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
+                       progress: bool = True, stream=None) -> dict:
+    """Decompose a cube (or .npy array) chunk by chunk into a result store.
+
+    Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
+    invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
+    store creation, cluster start), seconds_compute (reading, solving, writing the chunks) and
+    pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
+    """
+    from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
+    from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
+    from core.provenance import __version__
+
+    stream = sys.stderr if stream is None else stream
+    t_start = time.perf_counter()
+    options = dict(options or {})
+    components = tuple(components)
+    if method not in METHODS:
+        raise PipelineError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if n_ir < 0:
+        raise PipelineError(f"--max-interreflections must be >= 0, got {n_ir}")
+    if nan_policy not in ("mark", "error"):
+        raise PipelineError(f"unknown NaN policy {nan_policy!r}")
+    if resume and overwrite:
+        raise PipelineError("--resume and --overwrite contradict each other; choose one")
+    if chunks is not None and (len(chunks) != 2 or min(chunks) <= 0):
+        raise PipelineError(f"--chunks takes two positive sizes, got {chunks}")
+    if workers is not None and workers <= 0:
+        raise PipelineError(f"--workers must be positive, got {workers}")
+    if threads is not None and (threads <= 0 or workers is not None or scheduler is not None):
+        raise PipelineError("--threads takes a positive count and applies only to the local threaded scheduler "
+                           "(not with --workers or --scheduler)")
+    if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
+        raise PipelineError(f"--option max_reflections={options['max_reflections']} contradicts "
+                           f"--max-interreflections {n_ir}; give only --max-interreflections")
+    options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
+    out_path = str(Path(out_path).resolve())
+
+    arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
+        input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
+    ny, nx, nt = arr.shape
+
+    existing = None
+    if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+        try:
+            existing = open_result_store(out_path, mode="r+")
+        except ResultStoreError as exc:
+            raise PipelineError(f"cannot resume: {exc}") from None
+        if chunks is None:
+            chunks = tuple(existing.chunks)
+    chunks = tuple(int(c) for c in (chunks or default_chunks))
+    chunks = (min(chunks[0], ny), min(chunks[1], nx))
+
+    job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
+           "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
+           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0,
+           # a cube rewritten at the same path (new provenance) is another input
+           "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
+    if existing is not None:
+        before = existing.attrs.get("job", {})
+        diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
+        if diff:
+            details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
+                                if k == "source_attrs_sha256" else f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}"
+                                for k in diff)
+            raise PipelineError(f"cannot resume {out_path}: it was started with different settings ({details}); "
+                               f"use the original settings, or --overwrite to start again")
+    else:
+        from decomposition.resultstore import prepare_output_path
+
+        try:  # refuse an occupied path before spending time on checks
+            prepare_output_path(out_path, overwrite=False, protect=[source["path"]])
+        except FileExistsError:
+            if not overwrite:
+                raise PipelineError(f"{out_path} already exists; pass --overwrite to replace it "
+                                   f"(or --resume to continue a run into it)") from None
+        except ResultStoreError as exc:
+            raise PipelineError(str(exc)) from None
+
+    map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
+                                            components=components, options=options)
+    if nan_policy == "error":
+        bad = count_nonfinite_pixels(arr)
+        if bad:
+            raise PipelineError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "
+                               f"use --nan-policy mark to decompose the rest and mark those invalid")
+
+    client = cluster = None
+    try:
+        if scheduler is not None or workers is not None:  # connect before anything is written
+            client, cluster = _connect(scheduler, workers)
+        if existing is None:
+            attrs = {"method": method, "components": list(components), "options": job["options"],
+                     "solver_info": _jsonable(info), "nan_policy": nan_policy,
+                     "software_version": __version__, "source": source, "job": job,
+                     "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+            try:
+                store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
+                                            t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
+                                            write_components=write_components, signal_units=units, y_coord=y_coord,
+                                            y_units=y_units, attrs=attrs, overwrite=overwrite,
+                                            protect=[source["path"]])
+            except (ResultStoreError, FileExistsError) as exc:
+                raise PipelineError(str(exc)) from None
+        else:
+            store = existing
+            store.remove_partials()
+        pending = store.pending_chunks()
+        gy, gx = store.grid
+        total = gy * gx
+        param_shapes = {k: () for k in map_keys}
+        param_shapes.update({k: (int(n_ir),) for k in ir_keys})
+        tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
+                            pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
+                            n_ir=int(n_ir), with_components=write_components, options=options)
+        pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
+        if progress and resume and existing is not None:
+            print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
+                  file=stream)
+        bar = (ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream)
+               if progress else None)
+        stats = {"invalid": 0, "ir_truncated": 0}
+
+        def on_done(summary):
+            stats["invalid"] += summary["invalid"]
+            stats["ir_truncated"] += summary["ir_truncated"]
+            if bar is not None:
+                bar.update(summary)
+
+        t_compute = time.perf_counter()
+        try:
+            run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except KeyboardInterrupt:
+            if bar is not None:
+                bar.close()
+            done_now = int(store.done_chunks().sum())
+            print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
+                  f"rerun with --resume to finish", file=stream)
+            raise
+        if bar is not None:
+            bar.close()
+        t_end = time.perf_counter()
+        seconds, seconds_compute = t_end - t_start, t_end - t_compute
+        summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
+                   "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
+                   "ir_truncated_pixels": stats["ir_truncated"],
+                   "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
+                   "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan")}
+        return summary
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _region_pixels(store, iy, ix) -> int:
+    ys, xs = store.chunk_slices(iy, ix)
+    return (ys.stop - ys.start) * (xs.stop - xs.start)
+
+
+def _connect(scheduler, workers):
+    """-> (Client, LocalCluster or None)."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # pragma: no cover - distributed is a dependency
+        raise PipelineError(f"--workers/--scheduler need dask.distributed: {exc}") from None
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout="15s"), None
+        except (OSError, TimeoutError) as exc:
+            raise PipelineError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
+    import dask
+
+    # dask.distributed's nannies set MALLOC_TRIM_THRESHOLD_ in their workers by default; an explicit
+    # threshold turns off glibc's adaptive mmap threshold, so every large temporary array of the
+    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (measured:
+    # 22 vs 43 px/s, system time up tenfold).  Keep the rest of the nanny environment (one BLAS
+    # thread per worker process).
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
+        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None)
+    try:
+        return Client(cluster), cluster
+    except BaseException:
+        cluster.close()
+        raise
