@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import select
 import socket
 import termios
 import threading
@@ -154,7 +155,7 @@ def test_serial_transport_on_a_pty_reads_lines_and_blocks(pty_pair):
             t.read_line(timeout_s=0.1)
         assert 0.09 <= time.monotonic() - t0 < 1.0
         os.write(master, b"late\r\n")
-        time.sleep(0.05)   # let the late bytes reach the slave before the drain
+        assert select.select([t.serial.fd], [], [], 2.0)[0]   # the late bytes reached the port
         assert t.drain() == b"late\r\n"
 
 
