@@ -92,6 +92,8 @@ def _state_letter(state: str) -> str:
     if state == "28":
         return "M"
     return "D"
+
+
 _GARBAGE = b"\x8f\x00\xfe#@!\x15\r\n"
 
 
