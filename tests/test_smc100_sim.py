@@ -12,6 +12,7 @@ from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolE
 from drivers.sim.mirror import MirrorSimulator
 from drivers.sim.state import LabState
 from drivers.smc100 import SMC100Mirror
+from drivers.transport import SerialLineTransport
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -409,3 +410,45 @@ def test_replug_after_unplug_brings_the_port_back(lab):
             mirror.position()
         sim.replug()
         assert mirror.position() == pytest.approx(0.0)
+
+
+# (state to start from, line sent, reply expected or None, TE letter afterwards)
+WIRE = [
+    ("ready", b"1PA?\r\n", b"1PA0.000000\r\n", "@"),
+    ("ready", b"1TH\r\n", b"1TH0.000000\r\n", "@"),
+    ("ready", b"1AC?\r\n", b"1AC400\r\n", "@"),
+    ("ready", b"1VE\r\n", b"1VE SMC100CC streaklab simulator 1.0\r\n", "@"),
+    ("ready", b"1HT?\r\n", b"1HT0\r\n", "@"),
+    ("ready", b"1HT1\r\n", None, "K"),
+    ("ready", b"1PR2.5\r\n", None, "@"),
+    ("ready", b"1PR99\r\n", None, "C"),
+    ("ready", b"1MM0\r\n", None, "@"),
+    ("ready", b"1MM5\r\n", None, "C"),
+    ("ready", b"1RS\r\n", None, "@"),
+    ("ready", b"1OR\r\n", None, "K"),
+    ("ready", b"1 P A ?\r\n", b"1PA0.000000\r\n", "@"),
+    ("ready", b"1tp\r\n", b"1TP0.000000\r\n", "@"),
+    ("ready", b"2TP\r\n", None, "@"),              # another controller's address: silence
+    ("ready", b"TP\r\n", None, "@"),               # no address: only ST is for everyone
+    ("ready", b"1TP5\r\n", None, "A"),             # a get command with a value
+    ("not_referenced", b"1PR1\r\n", None, "H"),
+    ("not_referenced", b"1MM1\r\n", None, "H"),
+    ("not_referenced", b"1VA12\r\n", None, "@"),
+    ("not_referenced", b"1HT?\r\n", b"1HT0\r\n", "@"),
+]
+
+
+@pytest.mark.parametrize("start, line, reply, letter", WIRE, ids=[w[1].decode().strip() + "@" + w[0] for w in WIRE])
+def test_command_set_on_the_wire(start, line, reply, letter):
+    with MirrorSimulator(min_home_s=0.0) as sim, SerialLineTransport(sim.port, baudrate=57600, xonxoff=True,
+                                                                     timeout_s=0.5) as t:
+        if start == "ready":
+            t.write(b"1OR\r\n")
+            assert t.query(b"1TE\r\n") == b"1TE@\r\n"
+            while t.query(b"1TS\r\n") != b"1TS000032\r\n":
+                pass
+        if reply is None:
+            t.write(line)
+        else:
+            assert t.query(line) == reply
+        assert t.query(b"1TE\r\n") == f"1TE{letter}\r\n".encode()   # also: nothing else was answered
