@@ -236,3 +236,21 @@ def test_the_rig_opens_the_mirror_on_the_stable_link_with_the_configured_flow_co
     with start_lab(cfg) as lab, open_rig(cfg, lab=lab) as (camera, mirror, sync):
         assert mirror.port == lab.mirror_stable_port != lab.mirror_port
         assert mirror.transport.serial.xonxoff is xonxoff
+
+
+def test_resume_never_deletes_a_folder_streaklab_did_not_mark(tmp_path):
+    """A folder whose files all end in .partial is not taken for an interrupted store creation."""
+    cfg = sim_config(n_lines=2)
+    out = tmp_path / "run.zarr"
+    (out / "sub").mkdir(parents=True)
+    (out / "sub" / "thesis.tex.partial").write_text("three years of work")
+    with pytest.raises(CaptureError, match="neither resumes nor removes it"):
+        run_capture(cfg, out, simulate=True, resume=True)
+    assert (out / "sub" / "thesis.tex.partial").read_text() == "three years of work"
+    # a run store marked as being created (what earlier releases left when killed) is recreated
+    import zarr
+
+    zarr.open_group(str(tmp_path / "old.zarr"), mode="w").attrs.update({"streaklab_kind": "run", "initialised": False})
+    result = run_capture(cfg, tmp_path / "old.zarr", simulate=True, resume=True)
+    assert result.status == "complete" and open_run(tmp_path / "old.zarr").done_mask().all()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no staging left
