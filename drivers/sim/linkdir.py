@@ -3,15 +3,15 @@
 A :class:`~drivers.sim.mirror.MirrorSimulator` keeps its stable port link (the
 ``/dev/serial/by-id``-style symlink to the current pty) in a private folder
 under the temporary directory.  A process that is killed cannot remove it, so
-every folder is marked when it is made: a file :data:`MARKER` holding the
-owning process id and that process's start time (from ``/proc``, where there
-is one, so a recycled pid is not mistaken for the owner).
+every folder is marked when it is made: a file :data:`MARKER` holding
+:func:`core.owner.owner_record` (host, pid and the process's start time, so a
+recycled pid is not mistaken for the owner).
 
 :func:`remove_stale_link_dirs` removes exactly the folders that
 
 * are named ``streaklab-mirror-*`` directly in the temporary directory,
 * are real folders (not links) owned by this user,
-* hold a readable marker whose process is gone, and
+* hold a readable streaklab marker whose process is gone (:func:`core.owner.owner_alive`), and
 * contain nothing but the marker and the simulator's links,
 
 and leaves everything else alone.
@@ -22,6 +22,8 @@ import json
 import os
 import tempfile
 
+from core.owner import owner_alive, owner_record
+
 __all__ = ["PREFIX", "MARKER", "make_link_dir", "remove_link_dir", "remove_stale_link_dirs"]
 
 PREFIX = "streaklab-mirror-"
@@ -29,41 +31,11 @@ MARKER = "owner.json"
 _OWN_NAMES = {MARKER, "ttySMC100", "ttySMC100.new"}
 
 
-def _start_time(pid: int):
-    """Start time of ``pid`` in clock ticks since boot (``/proc/<pid>/stat`` field 22), or None."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            stat = f.read().decode("ascii", "replace")
-    except OSError:
-        return None
-    # the command name (field 2) is in parentheses and may contain spaces
-    fields = stat[stat.rfind(")") + 2:].split()
-    try:
-        return int(fields[19])
-    except (IndexError, ValueError):
-        return None
-
-
-def _alive(pid: int, start) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True           # exists, owned by someone else
-    if start is not None:
-        now = _start_time(pid)
-        if now is not None and now != start:
-            return False      # the pid was recycled by another process
-    return True
-
-
 def make_link_dir(parent: str | None = None) -> str:
     """Create a marked ``streaklab-mirror-*`` folder; returns its path."""
     path = tempfile.mkdtemp(prefix=PREFIX, dir=parent)
-    pid = os.getpid()
     with open(os.path.join(path, MARKER), "w", encoding="ascii") as f:
-        json.dump({"pid": pid, "start": _start_time(pid)}, f)
+        json.dump(owner_record(), f)
     return path
 
 
@@ -102,10 +74,10 @@ def remove_stale_link_dirs(parent: str | None = None) -> list[str]:
             names = set(os.listdir(entry.path))
             with open(os.path.join(entry.path, MARKER), encoding="ascii") as f:
                 owner = json.load(f)
-            pid, start = int(owner["pid"]), owner.get("start")
-        except (OSError, ValueError, KeyError, TypeError):
+        except (OSError, ValueError):
             continue          # not ours, or not readable: leave it
-        if pid <= 0 or not names <= _OWN_NAMES or _alive(pid, start):
+        if not isinstance(owner, dict) or owner.get("producer") != "streaklab" \
+                or not names <= _OWN_NAMES or owner_alive(owner):
             continue
         remove_link_dir(entry.path)
         if not os.path.lexists(entry.path):
