@@ -1,5 +1,7 @@
 """``streaklab sim-lab``: serve the simulated camera and mirror until Ctrl-C.
 
+How other programs connect to each device: :data:`CONNECTING` (also shown by ``--help``).
+
 Prints one ``name value`` line per address, then ``ready``, and flushes, so a
 script can read the addresses from the first lines of output::
 
@@ -12,8 +14,6 @@ script can read the addresses from the first lines of output::
 The laser-sync unit is a pyusb backend object and cannot be served to another
 process; with no sync device to switch it, the laser output is on (``--dark``
 turns it off).
-
-How other programs connect is :data:`CONNECTING` (also shown by ``--help``).
 """
 from __future__ import annotations
 
