@@ -88,6 +88,14 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     with open(out / "flags.csv") as fh:
         flags = list(csv.DictReader(fh))
     assert {r["flag"] for r in flags} >= {"POOR_FIT", "any"}
+    assert {r["flag"] for r in flags if r["method"] == "convscd"} >= {"AMBIGUOUS"}
+    # Which start of the search each searched pixel kept, per point; the counts add up.
+    kept = [line for line in text.splitlines() if "ConvSCD search:" in line]
+    assert len(kept) == 9
+    for line in kept:
+        n_doubt = int(line.split("search:")[1].split()[0])
+        counts = [int(part.split()[-1]) for part in line.split("kept start:")[1].split(",")]
+        assert sum(counts) == n_doubt <= 12
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in methods for n in ("white", "pink", "photon")}
