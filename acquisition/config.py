@@ -225,7 +225,8 @@ _SPEC = {
     },
     "calibration": {
         "time_poly_ps": (_poly, _MISSING),
-        "time_bin_ps": (_positive("a positive bin width in ps"), 2.0),
+        "time_bin_ps": (lambda k, v: _num(k, v, lo=0.0, lo_open=True, hi=1e6,
+                                          what="a positive bin width in ps, at most 1e6"), 2.0),
         "t0_ps": (lambda k, v: _num(k, v, what="a finite time in ps"), _MISSING),
     },
     "output": {

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition import limits as L
+
 __all__ = ["CalibrationError", "dark_image", "load_flat", "uniform_grid", "resample_uniform", "correct_frames"]
 
 
@@ -109,8 +111,12 @@ def uniform_grid(row_times_ps: np.ndarray, time_bin_ps: float, t0_ps: float | No
     t0_ps = float(t0_ps)
     if t0_ps < lo - 1e-9 * T or t0_ps > hi:
         raise CalibrationError(f"t0_ps = {t0_ps} ps lies outside the calibrated window [{lo:.6g}, {hi:.6g}] ps")
-    n_bins = int(np.floor((hi - t0_ps) / T + 1e-9)) + 1
-    return t0_ps, n_bins
+    n = np.floor((hi - t0_ps) / T + 1e-9) + 1
+    if not np.isfinite(n) or n > L.MAX_TIME_BINS:
+        raise CalibrationError(f"calibration.time_bin_ps = {T:g} ps makes {n:.3g} time bins of the calibrated window "
+                               f"of {hi - lo:.6g} ps, above the limit of {L.MAX_TIME_BINS} bins "
+                               f"(limits.MAX_TIME_BINS); use a wider bin")
+    return t0_ps, int(n)
 
 
 def resample_uniform(profiles: np.ndarray, row_times_ps: np.ndarray, *, time_bin_ps: float, t0_ps: float,

@@ -130,3 +130,9 @@ def test_long_angle_list_and_oversized_or_deeply_nested_files_are_refused(tmp_pa
     big.write_text("# " + "x" * (1 << 20) + "\n")
     with pytest.raises(ConfigError, match=r"big\.toml: the configuration is larger than the limit of 1\.00 MiB"):
         load_config(big)
+
+
+def test_time_bin_is_bounded():
+    with pytest.raises(ConfigError, match=r"^calibration\.time_bin_ps: must be a positive bin width in ps, at most "
+                                          r"1e6, got 1e\+300$"):
+        parse_config(cfg(calibration={"time_bin_ps": 1e300}))

@@ -224,6 +224,7 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
     refused([cube_path, "--components", "d,x"], "--components")
     refused([cube_path, "--option", "novalue"], "KEY=VALUE")
     refused([cube_path, "--option", "no_such_option=1"], "the solver refuses these settings")
+    refused([cube_path, "--option", 'sparsity="abc"'], "error: --option sparsity: must be a number, got 'abc'\n")
     refused([cube_path, "--components", "r,s"], "the solver refuses these settings")
     refused([cube_path, "--workers", "2", "--threads", "2"], "--threads")
     # the output path: never the input, never something else without --overwrite

@@ -44,7 +44,14 @@ def add_arguments(parser) -> None:
     where.add_argument("--workers", type=int, default=None, metavar="N",
                        help="run on a local cluster of N worker processes (default: threads in this process)")
     where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                       help="run on an existing dask.distributed cluster (workers must see the same paths)")
+                       help="run on an existing dask.distributed cluster (workers must see the same paths); "
+                            "tls://HOST:PORT with --tls-ca-file/--tls-cert/--tls-key for a secured one")
+    parser.add_argument("--tls-ca-file", default=None, metavar="CA.pem",
+                        help="with --scheduler tls://...: CA certificate of the cluster")
+    parser.add_argument("--tls-cert", default=None, metavar="CERT.pem",
+                        help="with --scheduler tls://...: this client's certificate (may hold the key too)")
+    parser.add_argument("--tls-key", default=None, metavar="KEY.pem",
+                        help="with --scheduler tls://...: this client's private key")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="threads of the local scheduler when neither --workers nor --scheduler is given "
                              "(default: number of cores)")
@@ -195,16 +202,52 @@ def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
+def _one_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+_OPTION_TYPES = {"float": (int, float), "int": (int,), "bool": (bool,)}
+
+
+def _check_option_types(options: dict) -> None:
+    """``--option KEY=VALUE`` against the type the solver's signature declares for KEY (one line)."""
+    import inspect
+
+    from decomposition import decompose
+
+    params = inspect.signature(decompose).parameters
+    for key, value in options.items():
+        p = params.get(key)
+        if p is None or not isinstance(p.annotation, str):
+            continue
+        kinds = [k.strip() for k in p.annotation.split("|")]
+        if "None" in kinds and value is None:
+            continue
+        wanted = [_OPTION_TYPES[k] for k in kinds if k in _OPTION_TYPES]
+        if not wanted:
+            continue
+        ok = any(isinstance(value, t) and (bool in t or not isinstance(value, bool)) for t in wanted)
+        if not ok:
+            words = {"float": "a number", "int": "an integer", "bool": "true or false", "None": "null"}
+            names = " or ".join(words.get(k, k) for k in kinds)
+            raise CommandError(f"--option {key}: must be {names}, got {value!r}")
+
+
 def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
-    """Run the solver on one all-zero profile: checks the options before any work and names the
-    parameters (and their per-pixel dimensionality) the store must hold."""
+    """Run the solver on one all-zero and one pulse profile: checks the options before any work
+    (an all-zero profile alone skips the fit, and with it most options) and names the parameters
+    (and their per-pixel dimensionality) the store must hold."""
     from decomposition.chunked import _solver
 
+    _check_option_types(options)
+    bins = np.arange(nt, dtype=np.float64)
+    pulse = np.exp(-0.5 * ((bins - nt / 3) / 2.0) ** 2)
     try:
-        res = _solver()(np.zeros((1, nt)), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+        res = _solver()(np.stack([np.zeros(nt), pulse]), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
                         components=tuple(components), **options)
-    except (TypeError, ValueError) as exc:
-        raise CommandError(f"the solver refuses these settings: {exc}") from None
+    except (TypeError, ValueError, ArithmeticError) as exc:
+        raise CommandError(f"the solver refuses these settings: {_one_line(exc)}") from None
     map_keys, ir_keys = [], []
     for k, v in res.params.items():
         nd = np.ndim(v)
@@ -227,13 +270,15 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "mark", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
-                       progress: bool = True, stream=None) -> dict:
+                       progress: bool = True, stream=None, tls=None) -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
     invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
     store creation, cluster start), seconds_compute (reading, solving, writing the chunks) and
     pixels_per_s (all stages).  Raises :class:`CommandError` for bad input, before any work starts.
+    ``tls`` (a :class:`decomposition.cluster.TlsFiles`) holds the credentials of a ``tls://``
+    scheduler.
     """
     from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
@@ -316,7 +361,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     client = cluster = None
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
-            client, cluster = _connect(scheduler, workers)
+            client, cluster = _connect(scheduler, workers, tls)
         if existing is None:
             attrs = {"method": method, "components": list(components), "options": job["options"],
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
@@ -361,6 +406,12 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()
+            if client is not None:  # let the workers' running chunks end before counting what is on disk
+                from decomposition.cluster import quiet_distributed
+
+                with quiet_distributed():
+                    _close_quietly(client, cluster)
+                client = cluster = None
             done_now = int(store.done_chunks().sum())
             print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
                   f"rerun with --resume to finish", file=stream)
@@ -382,48 +433,69 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             cluster.close()
 
 
+def _close_quietly(client, cluster) -> None:
+    """Close an interrupted run's client and cluster (a second Ctrl-C meanwhile is ignored)."""
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        for thing in (client, cluster):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:  # shutting down after an interrupt: nothing left to save
+                    pass
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
 def _region_pixels(store, iy, ix) -> int:
     ys, xs = store.chunk_slices(iy, ix)
     return (ys.stop - ys.start) * (xs.stop - xs.start)
 
 
-def _connect(scheduler, workers):
-    """-> (Client, LocalCluster or None)."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as exc:  # pragma: no cover - distributed is a dependency
-        raise CommandError(f"--workers/--scheduler need dask.distributed: {exc}") from None
-    if scheduler is not None:
-        try:
-            return Client(scheduler, timeout="15s"), None
-        except (OSError, TimeoutError) as exc:
-            raise CommandError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
-    import dask
+def _connect(scheduler, workers, tls=None):
+    """-> (Client, LocalCluster or None); see :mod:`decomposition.cluster`."""
+    from decomposition.cluster import ClusterError, connect_scheduler, start_local_cluster
 
-    # dask.distributed's nannies set MALLOC_TRIM_THRESHOLD_ in their workers by default; an explicit
-    # threshold turns off glibc's adaptive mmap threshold, so every large temporary array of the
-    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (measured:
-    # 22 vs 43 px/s, system time up tenfold).  Keep the rest of the nanny environment (one BLAS
-    # thread per worker process).
-    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
-    env.pop("MALLOC_TRIM_THRESHOLD_", None)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
-        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None)
     try:
-        return Client(cluster), cluster
-    except BaseException:
-        cluster.close()
-        raise
+        if scheduler is not None:
+            return connect_scheduler(scheduler, tls=tls), None
+        return start_local_cluster(int(workers))
+    except ClusterError as exc:
+        raise CommandError(str(exc)) from None
+
+
+def _tls_files(args):
+    given = [f for f, v in (("--tls-ca-file", args.tls_ca_file), ("--tls-cert", args.tls_cert),
+                            ("--tls-key", args.tls_key)) if v is not None]
+    if not given:
+        return None
+    if args.scheduler is None:
+        raise CommandError(f"{given[0]} is for --scheduler tls://...; --workers starts its own secured cluster")
+    if args.tls_ca_file is None or args.tls_cert is None:
+        raise CommandError("--scheduler tls://... needs both --tls-ca-file and --tls-cert (and --tls-key unless "
+                           "the certificate file holds the key)")
+    from decomposition.cluster import ClusterError, TlsFiles
+
+    try:
+        return TlsFiles(args.tls_ca_file, args.tls_cert, args.tls_key)
+    except ClusterError as exc:
+        raise CommandError(str(exc)) from None
 
 
 def run(args) -> int:
+    tls = _tls_files(args)
     summary = decompose_to_store(
         args.input, args.out, method=args.method, components=parse_components(args.components),
         options=_parse_options(args.option), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls)
     ny, nx, nt = summary["shape"]
     if summary["chunks_done"] == 0:
         print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
