@@ -202,6 +202,27 @@ def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
+def chunk_bytes(by: int, bx: int, nt: int, n_ir: int, write_components: bool = True) -> int:
+    """Estimated peak memory of solving one (by, bx) pixel chunk of ``nt`` bins: the block (float64),
+    the solver's batched temporaries (about four profiles per pixel), the rendered components
+    (float32) and the dictionaries of candidate pulses (about 1000 atoms of nt bins)."""
+    per_pixel = nt * (8 + 4 * 8 + (4 * (3 + n_ir) if write_components else 0))
+    return by * bx * per_pixel + 1000 * nt * 8
+
+
+def _check_sizes(input_path, nt, chunks, n_ir, write_components) -> None:
+    """The input's time bins and one chunk's working memory against the documented limits."""
+    from acquisition import limits as L
+
+    try:
+        L.check_count("t", int(nt), L.MAX_TIME_BINS, "time bins")
+        L.check_memory("--chunks", chunk_bytes(chunks[0], chunks[1], nt, n_ir, write_components),
+                       L.MAX_CHUNK_BYTES, what=f"to solve a {chunks[0]} x {chunks[1]} pixel chunk of {nt} bins "
+                                               f"(limits.MAX_CHUNK_BYTES)")
+    except L.LimitError as exc:
+        raise CommandError(f"{input_path}: {exc}") from None
+
+
 def _one_line(exc) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
@@ -323,6 +344,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             chunks = tuple(existing.chunks)
     chunks = tuple(int(c) for c in (chunks or default_chunks))
     chunks = (min(chunks[0], ny), min(chunks[1], nx))
+    _check_sizes(input_path, nt, chunks, n_ir, write_components)
 
     job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
            "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
