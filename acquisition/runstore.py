@@ -279,7 +279,12 @@ def open_run(path, *, mode: str = "r") -> RunStore:
     if g.attrs.get("initialised") is not True:
         raise RunStoreError(f"{path}: the run store's creation was interrupted before any line was taken")
     for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
-        if name not in g or not isinstance(g[name], zarr.Array):
+        try:
+            ok = name in g and isinstance(g[name], zarr.Array)
+        except Exception as exc:  # damaged metadata (zarr.json): JSON or zarr's own errors
+            raise RunStoreError(f"{path}/{name}: unreadable array metadata ({type(exc).__name__}: "
+                                f"{str(exc).splitlines()[0] if str(exc) else ''}); the run store is damaged") from None
+        if not ok:
             raise RunStoreError(f"{path}: run store lacks the {name!r} array")
     try:
         config = parse_config(g.attrs["config"], source=g.attrs.get("config_source"))

@@ -23,6 +23,7 @@ session stops at once with :class:`SettingRejected` naming the config key.  A st
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import logging
 import threading
 import time
@@ -54,8 +55,9 @@ class CaptureFailed(CaptureError):
     """A device kept failing after the retries; the finished lines are on disk and resumable."""
 
     def __init__(self, message: str, *, cause: BaseException, lines_done: int, n_lines: int,
-                 store_created: bool = True):
+                 store_created: bool = True, remedy: str = "fix the device"):
         super().__init__(message)
+        self.remedy = remedy        # what to do before resuming
         self.cause = cause
         self.lines_done = lines_done
         self.n_lines = n_lines
@@ -346,7 +348,14 @@ class CaptureSession:
             return reached, frames
 
         reached, frames = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
-        self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+        try:
+            self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+        except OSError as exc:  # a full or read-only disk: the lines before this one are safe
+            full = exc.errno == errno.ENOSPC
+            raise CaptureFailed(f"line {line}: cannot write it to {self.out}: "
+                                f"{'no space left on the device' if full else exc.strerror or exc}",
+                                cause=exc, lines_done=self.lines_done(), n_lines=self.n_lines,
+                                remedy="free space on that disk" if full else "make the run store writable") from None
         self.acquired.append(line)
 
     # ------------------------------------------------------------------ run
@@ -389,6 +398,10 @@ class CaptureSession:
         except CaptureFailed as exc:
             self._end_entry("failed", error=str(exc))
             raise
+        except OSError as exc:  # creating the run store: read-only, full, a file where a folder should be
+            reason = "a file stands where a folder should be" if exc.errno == errno.ENOTDIR else \
+                "no space left on the device" if exc.errno == errno.ENOSPC else exc.strerror or str(exc)
+            raise CaptureError(f"cannot write the run store {self.out}: {reason}") from None
         finally:
             self.make_safe()
 

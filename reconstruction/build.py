@@ -43,6 +43,15 @@ def _describe_lines(idx) -> str:
     return shown + (f", ... ({len(idx)} in all)" if len(idx) > 10 else "")
 
 
+def _read_line(streaks, line: int, run_path) -> np.ndarray:
+    try:
+        return streaks[line]
+    except Exception as exc:  # a damaged chunk: the codec's (zstd) or zarr's own error
+        raise ReconstructionError(f"{run_path}: line {line} cannot be read ({type(exc).__name__}: "
+                                  f"{str(exc).splitlines()[0] if str(exc) else ''}); the run store is damaged, "
+                                  f"nothing was written") from None
+
+
 def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, flat_path=None,
                 allow_partial: bool = False, overwrite: bool = False, progress=None):
     """Reconstruct the calibrated cube of a run store.
@@ -162,7 +171,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             block = np.full((ys.size, nx, n_bins), np.nan, dtype=np.float32)
             ok = done[ys]
             if ok.any():
-                raw = np.stack([streaks[int(i)] for i in ys[ok]])            # (b, frame, x, rows) uint16
+                raw = np.stack([_read_line(streaks, int(i), run.path) for i in ys[ok]])  # (b, frame, x, rows)
                 corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
                 block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
                                              t0_ps=t0_ps, n_bins=n_bins)

@@ -6,7 +6,9 @@ Subcommand modules are imported only when their command runs, so ``streaklab
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import re
 import sys
 
 from . import __version__
@@ -28,6 +30,25 @@ COMMANDS = {
 
 class CommandError(Exception):
     """An error the user can fix; printed without a traceback, exit status 2."""
+
+
+_STAGED = re.compile(r"/\.([^/]+)\.(?:partial|old)-[0-9a-f]{8}")   # staged outputs are written beside --out
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for a file-system error: the path (the user's --out, not its staging name) and the reason."""
+    reason = exc.strerror or str(exc).splitlines()[0]
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on the device"
+    elif exc.errno == errno.ENOTDIR:
+        reason = "a file stands where a folder should be"
+    name = exc.filename
+    if name is None:  # h5py puts the path and the reason into its message
+        found = re.search(r"name = '([^']+)'.*error message = '([^']+)'", str(exc))
+        if not found:
+            return f"cannot write: {_STAGED.sub(lambda m: '/' + m.group(1), reason)}"
+        name, reason = found.groups()
+    return f"cannot write {_STAGED.sub(lambda m: '/' + m.group(1), str(name))}: {reason}"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except CommandError as exc:
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # read-only or full file system, a file where a folder should be, /proc, ...
+        print(f"streaklab {name}: error: {describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"\nstreaklab {name}: interrupted", file=sys.stderr)

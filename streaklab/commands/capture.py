@@ -87,7 +87,7 @@ def run(args) -> int:
                   f"  {_resume_hint(args, out, resume=False)}", file=sys.stderr)
         else:
             print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
-                  f"fix the device and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
+                  f"{exc.remedy} and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"

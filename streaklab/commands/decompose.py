@@ -147,8 +147,31 @@ def _fmt_s(seconds: float) -> str:
 # ---------------------------------------------------------------------------------------------
 # input
 # ---------------------------------------------------------------------------------------------
+class InputDamaged(ValueError):
+    """A chunk of the input cube cannot be read (a damaged file); the message names the chunk."""
+
+
+class CheckedReader:
+    """A zarr array for ``dask.array.from_array`` whose read errors (a damaged chunk: the codec's or
+    zarr's own exception) become one :class:`InputDamaged` naming the cube and the pixels."""
+
+    def __init__(self, array, path: str):
+        self.array, self.path = array, path
+        self.shape, self.dtype, self.ndim = array.shape, array.dtype, array.ndim
+
+    def __getitem__(self, key):
+        try:
+            return self.array[key]
+        except Exception as exc:
+            where = ", ".join(f"{k.start}:{k.stop}" if isinstance(k, slice) else str(k)
+                              for k in (key if isinstance(key, tuple) else (key,)))
+            raise InputDamaged(f"{self.path}: cube[{where}] cannot be read ({type(exc).__name__}: "
+                               f"{str(exc).splitlines()[0] if str(exc) else ''}); the cube is damaged") from None
+
+
 def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
+    import dask
     import dask.array as da
 
     from reconstruction.cubestore import CubeStoreError, open_cube
@@ -186,7 +209,9 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         raise CommandError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise CommandError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    arr = da.from_zarr(cube.array)
+    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, asarray=True, lock=False,
+                        name=f"cube-{hashlib.sha256(str(p.resolve()).encode()).hexdigest()[:16]}-"
+                             f"{dask.base.tokenize(cube.array.shape, cube.array.chunks, str(cube.attrs))}")
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
@@ -425,6 +450,23 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         t_compute = time.perf_counter()
         try:
             run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except (InputDamaged, OSError) as exc:  # a damaged input chunk; a full or read-only disk
+            if bar is not None:
+                bar.close()
+            if client is not None:
+                from decomposition.cluster import quiet_distributed
+
+                with quiet_distributed():
+                    _close_quietly(client, cluster)
+                client = cluster = None
+            done_now = int(store.done_chunks().sum())
+            print(f"decompose: stopped; {done_now}/{total} chunks are on disk in {out_path}; fix the problem below "
+                  f"and rerun with --resume to finish", file=stream)
+            if isinstance(exc, OSError):
+                from streaklab.cli import describe_os_error
+
+                raise CommandError(describe_os_error(exc)) from None
+            raise CommandError(str(exc)) from None
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()
