@@ -53,7 +53,7 @@ A configuration has these sections (every key is listed with its default; see
     n_x = 64                       # simulated camera: slit pixels
     n_t = 256                      # simulated camera: streak rows
 
-Sizes and waits are bounded by the documented limits of :mod:`acquisition.limits` (at most
+Sizes and waits are bounded by the documented limits of :mod:`core.limits` (at most
 100 000 scan lines, every ``*_timeout_s`` and ``exposure_s`` at most 86 400 s, the retry
 waits above).  Unknown sections and keys, wrong types and out-of-range values raise
 :class:`ConfigError` whose message starts with the dotted key, e.g.
@@ -71,13 +71,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import limits as L
+from core import limits as L
+from core.errors import StreaklabError
 
 __all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
            "check_calibration", "HASHED_SECTIONS"]
 
 
-class ConfigError(ValueError):
+class ConfigError(StreaklabError, ValueError):
     """A configuration value is missing, unknown or out of range; the message names the key."""
 
 
@@ -332,14 +333,36 @@ def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
     return ScanConfig(data=data, source=source)
 
 
-def load_config(path) -> ScanConfig:
-    """Read and validate a TOML scan configuration file."""
+# Configurations installed with the package, by the name ``--config`` accepts for them.
+EXAMPLE_CONFIGS = {"sim": "sim_scan.toml"}
+
+
+def example_config_path(name: str = "sim") -> Path:
+    """The packaged example configuration ``name`` (see EXAMPLE_CONFIGS)."""
+    if name not in EXAMPLE_CONFIGS:
+        raise ConfigError(f"no example configuration {name!r}; available: {', '.join(EXAMPLE_CONFIGS)}")
+    return Path(__file__).resolve().parent / "examples" / EXAMPLE_CONFIGS[name]
+
+
+def resolve_config_path(path) -> Path:
+    """``path`` itself, or the packaged example when ``path`` is one of its names (``sim``) and no
+    file of that name exists."""
     p = Path(path)
+    if str(path) in EXAMPLE_CONFIGS and not p.exists():
+        return example_config_path(str(path))
+    return p
+
+
+def load_config(path) -> ScanConfig:
+    """Read and validate a TOML scan configuration file (or a packaged example, by name: ``sim``)."""
+    p = resolve_config_path(path)
     try:
         with open(p, "rb") as f:
             text = f.read(L.MAX_CONFIG_BYTES + 1)
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}") from None
+        hint = ("; 'sim' names the packaged example of the simulated lab, and 'streaklab example-config --out "
+                "scan.toml' writes a copy to edit" if isinstance(exc, FileNotFoundError) else "")
+        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}{hint}") from None
     if len(text) > L.MAX_CONFIG_BYTES:
         raise ConfigError(f"{path}: the configuration is larger than the limit of "
                           f"{L.format_bytes(L.MAX_CONFIG_BYTES)} (limits.MAX_CONFIG_BYTES)")

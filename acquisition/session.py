@@ -33,12 +33,13 @@ from typing import Callable
 
 import numpy as np
 
+from core.errors import StreaklabError
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
-from . import limits as L
+from core import limits as L
 from .config import ConfigError, ScanConfig, check_calibration
-from .runstore import (RunStore, RunStoreError, config_differences, create_run, is_uninitialised_run, open_run,
-                       remove_uninitialised_run)
+from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
+                       is_uninitialised_run, open_run, remove_uninitialised_run)
 
 __all__ = ["CaptureError", "CaptureFailed", "SettingRejected", "SessionResult", "CaptureSession", "RETRYABLE"]
 
@@ -47,7 +48,7 @@ log = logging.getLogger(__name__)
 RETRYABLE = (DeviceTimeout, ConnectionLost, DeviceError, ProtocolError)
 
 
-class CaptureError(RuntimeError):
+class CaptureError(StreaklabError, RuntimeError):
     """The session cannot start or continue (bad store, device check failed, config mismatch)."""
 
 
@@ -157,7 +158,7 @@ class CaptureSession:
     def _attempt(self, what: str, fn):
         """Run ``fn()``; on a device fault retry up to ``retries`` times, then raise CaptureFailed.
 
-        The waits between attempts are :func:`acquisition.limits.backoff_waits` (each capped), and
+        The waits between attempts are :func:`core.limits.backoff_waits` (each capped), and
         all of them together stop at ``limits.MAX_BACKOFF_TOTAL_S``.
         """
         waits = L.backoff_waits(self.retries, self.backoff_s)
@@ -308,6 +309,9 @@ class CaptureSession:
                     f"cannot resume {out}: it was captured with a different configuration "
                     f"({'; '.join(diffs) or 'hash differs'}). Resume with the original configuration, "
                     f"or start a new run with another --out")
+            absent = store.absent_chunks()
+            if absent:
+                raise CaptureError(f"cannot resume: {describe_absent(store, absent)}")
             self.store = store
             if not store.dark_done():
                 dark, shape = self._take_dark()
@@ -414,7 +418,7 @@ class CaptureSession:
                 sessions[-1] = {**sessions[-1], "ended_utc": _utc_now(), "status": status,
                                 "lines_acquired": len(self.acquired), "retries_used": self.retries_used,
                                 **({"error": error} if error else {})}
-                self.store.group.attrs["sessions"] = sessions
+                self.store.set_sessions(sessions)
         except Exception as exc:  # bookkeeping must never mask the session's outcome
             log.warning("could not record the session's end in %s: %s", self.out, exc)
 

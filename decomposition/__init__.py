@@ -1,5 +1,5 @@
 """Decomposition of transient time profiles into direct, inter-reflection and sss components."""
-from .model import (  # noqa: F401
+from core.model import (  # noqa: F401
     gaussian_kernel,
     render_components,
     render_profile,

@@ -29,7 +29,7 @@ import numpy as np
 
 from . import components as comp
 from . import convscd as cs
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, time_axis_ps
 
 __all__ = [
     "decompose",

@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from acquisition.limits import MAX_HANDSHAKE_BYTES
+from core.errors import StreaklabError
+from core.limits import MAX_HANDSHAKE_BYTES
 
 __all__ = ["ClusterError", "TlsFiles", "PROBE_TIMEOUT_S", "CONNECT_TIMEOUT_S", "probe_scheduler",
            "connect_scheduler", "start_local_cluster", "quiet_distributed"]
@@ -39,7 +40,7 @@ PROBE_TIMEOUT_S = 10.0      # a dask server sends its handshake as soon as a con
 CONNECT_TIMEOUT_S = 15.0
 
 
-class ClusterError(RuntimeError):
+class ClusterError(StreaklabError, RuntimeError):
     """The cluster cannot be reached, is not a dask cluster, or cannot be started (says why)."""
 
 

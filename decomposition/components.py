@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .convscd import FAM_GAUSS, FAM_NONE, FAM_SSS, _eval_atoms
-from .model import empty_params, render_components
+from core.model import empty_params, render_components
 
 __all__ = ["peak_heights", "threshold", "merge_gaussians", "classify", "render_params"]
 

@@ -149,7 +149,7 @@ from scipy import fft as sfft
 from .atomlm import NEAR_SIGMA as _NEAR_SIGMA
 from .atomlm import atom_profiles, lm_refine
 from .pick import select as _select
-from .model import sss_kernel
+from core.model import sss_kernel
 from .pickcorr import pixel_correlations
 
 __all__ = [

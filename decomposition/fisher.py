@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .refine import _CHUNK, _SSS, _apply_weights, _design, kernel_derivatives, slot_arrays
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
@@ -176,12 +176,12 @@ def fisher_information(params, noise_sigma, *, n_bins: int, time_bin_ps: float =
     Parameters
     ----------
     params : dict of ndarray
-        Parameter dict (keys of :mod:`decomposition.model`), leading shape (...,),
+        Parameter dict (keys of :mod:`core.model`), leading shape (...,),
         NaN where absent.
     noise_sigma : float or array_like broadcastable to (...,)
         Noise standard deviation per time bin, in the units of the profile (> 0).
     n_bins, time_bin_ps, t0_ps
-        Time axis of the profiles (see :func:`decomposition.model.time_axis_ps`).
+        Time axis of the profiles (see :func:`core.model.time_axis_ps`).
     shared_sigma : bool
         All components of a pixel share one width (see ``refine(shared_sigma=True)``):
         that single parameter takes the sigma row of the pixel's first present
@@ -287,7 +287,7 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
     Parameters
     ----------
     params : dict of ndarray
-        True parameters (keys of :mod:`decomposition.model`), leading shape (...,).
+        True parameters (keys of :mod:`core.model`), leading shape (...,).
     noise_sigma : float or array_like broadcastable to (...,)
         White Gaussian noise standard deviation per time bin (>= 0), in the
         units of the profile.

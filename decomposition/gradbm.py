@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import IR_KEYS, empty_params, sss_kernel, time_axis_ps
+from core.model import IR_KEYS, empty_params, sss_kernel, time_axis_ps
 
 __all__ = ["GRADBM_DEFAULTS", "gradbm"]
 
@@ -282,7 +282,7 @@ def gradbm(profiles, time_bin_ps: float = 2.0, t0_ps: float | None = None, *, co
     Returns
     -------
     dict of ndarray
-        Parameter dict (keys of :mod:`decomposition.model`): shapes (N,) and
+        Parameter dict (keys of :mod:`core.model`): shapes (N,) and
         (N, max_interreflections); NaN where a component is absent.  Inter-reflections are in
         order of delay.
     """

@@ -13,7 +13,7 @@ for a pixel whose truth holds no component at all.
 Inter-reflections are compared by order of arrival (r2 with r2, r3 with r3, ...), which is how
 both the ground truth and a decomposition list them.
 
-Per-parameter helpers compare parameter dicts (keys of :mod:`decomposition.model`) on the
+Per-parameter helpers compare parameter dicts (keys of :mod:`core.model`) on the
 pixels where both sides hold the component.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ _CLASSES = ("direct", "sss", "interreflections")
 def component_profiles(obj) -> dict[str, np.ndarray]:
     """Component classes of ``obj`` as ``{"direct", "sss", "interreflections"}`` arrays.
 
-    ``obj`` is a dict with those keys (as :func:`decomposition.model.render_components`
+    ``obj`` is a dict with those keys (as :func:`core.model.render_components`
     returns) or an object with those attributes (a decomposition result).  A missing
     ``direct``/``sss`` is taken as zeros, a missing ``interreflections`` as R = 0.
     """

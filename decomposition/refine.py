@@ -73,7 +73,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import special
 
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, _GL_NODES, _GL_WEIGHTS, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, _GL_NODES, _GL_WEIGHTS, time_axis_ps
 
 __all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots"]
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_components, sss_kernel, time_axis_ps
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_components, sss_kernel, time_axis_ps
 
 __all__ = [
     "FIG3_KINDS",

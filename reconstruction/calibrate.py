@@ -14,12 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition import limits as L
+from core import limits as L
+from core.errors import StreaklabError
 
 __all__ = ["CalibrationError", "dark_image", "load_flat", "uniform_grid", "resample_uniform", "correct_frames"]
 
 
-class CalibrationError(ValueError):
+class CalibrationError(StreaklabError, ValueError):
     """A dark, flat or time calibration that cannot be applied (says why)."""
 
 

@@ -16,17 +16,21 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import zarr
 
-__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "check_output_path"]
+from core.errors import StreaklabError
+from core.integrity import create_array, has_checksums, scan_group
+from core.staging import check_output_path
+
+__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
+           "verify_cube"]
 
 CUBE_KIND = "cube"
 
 
-class CubeStoreError(ValueError):
+class CubeStoreError(StreaklabError, ValueError):
     """The path is not a usable cube store (says exactly why)."""
 
 
@@ -56,13 +60,6 @@ class Cube:
 
     def time_axis_ps(self) -> np.ndarray:
         return self.t0_ps + self.time_bin_ps * np.arange(self.shape[2], dtype=np.float64)
-
-
-def check_output_path(path, *, overwrite: bool = False) -> None:
-    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
-    p = Path(path)
-    if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
-        raise FileExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
 
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",
@@ -103,16 +100,16 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
     }
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(attrs)
-    arr = g.create_array("cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
-                         dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
-    t = g.create_array("t", shape=(nt,), dtype="float64", dimension_names=["t"],
-                       attributes={"units": "ps", "long_name": "time of bin centre"})
+    arr = create_array(g, "cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
+                       dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
+    t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
+                     attributes={"units": "ps", "long_name": "time of bin centre"})
     t[:] = float(t0_ps) + time_bin_ps * np.arange(nt)
-    y = g.create_array("y", shape=(ny,), dtype="float64", dimension_names=["y"],
-                       attributes={"units": y_units, "long_name": "scan line"})
+    y = create_array(g, "y", shape=(ny,), dtype="float64", dimension_names=["y"],
+                     attributes={"units": y_units, "long_name": "scan line"})
     y[:] = np.arange(ny, dtype=np.float64) if y_coord is None else np.asarray(y_coord, np.float64)
-    x = g.create_array("x", shape=(nx,), dtype="float64", dimension_names=["x"],
-                       attributes={"units": "pixel", "long_name": "slit position"})
+    x = create_array(g, "x", shape=(nx,), dtype="float64", dimension_names=["x"],
+                     attributes={"units": "pixel", "long_name": "slit position"})
     x[:] = np.arange(nx, dtype=np.float64)
     return Cube(str(path), g, arr, time_bin_ps, float(t0_ps), dict(arr.attrs))
 
@@ -133,7 +130,7 @@ def open_cube(path, *, mode: str = "r") -> Cube:
     if not os.path.exists(path):
         raise CubeStoreError(f"{path}: no such file or directory")
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise CubeStoreError(f"{path} is not a Zarr group: {exc}") from None
     if "cube" not in g:
@@ -156,3 +153,21 @@ def open_cube(path, *, mode: str = "r") -> Cube:
         raise CubeStoreError(f"{path}/cube has a non-positive time_bin_ps ({time_bin_ps})")
     t0_ps = float(attrs.get("t0_ps", time_bin_ps))
     return Cube(str(path), g, arr, time_bin_ps, t0_ps, attrs)
+
+
+@dataclass(frozen=True)
+class CubeCheck:
+    """What :func:`verify_cube` found: ``checksums`` (False for stores of earlier releases) and
+    ``damaged``, every damaged chunk of every array (``cube`` chunks are (y, x, t) pixel blocks)."""
+
+    checksums: bool
+    damaged: list
+
+    @property
+    def ok(self) -> bool:
+        return not self.damaged
+
+
+def verify_cube(cube: Cube) -> CubeCheck:
+    """Read every chunk of every array of a cube store (sub-groups such as ``truth`` included)."""
+    return CubeCheck(checksums=has_checksums(cube.array), damaged=list(scan_group(cube.path, cube.group)))

@@ -11,6 +11,8 @@ import importlib
 import re
 import sys
 
+from core.errors import OutputExistsError, StreaklabError
+
 from . import __version__
 
 # name -> (module, one-line help)
@@ -18,21 +20,35 @@ COMMANDS = {
     "demo": ("streaklab.commands.demo", "run the whole pipeline on the simulated lab and report"),
     "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
+    "example-config": ("streaklab.commands.example_config", "print or write the example scan configuration"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
     "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),
     "decompose": ("streaklab.commands.decompose", "decompose every pixel of a cube"),
+    "verify": ("streaklab.commands.verify", "read every chunk of a store; name damaged lines/chunks and how to redo them"),
     "report": ("streaklab.commands.report", "figures and a summary of a result store"),
     "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability"),
 }
 
 
 class CommandError(Exception):
-    """An error the user can fix; printed without a traceback, exit status 2."""
+    """An error in the command line the user can fix; printed without a traceback, exit status 2.
+
+    The library's own errors (:class:`core.errors.StreaklabError`) are printed the same way.
+    """
 
 
-_STAGED = re.compile(r"/\.([^/]+)\.(?:partial|old)-[0-9a-f]{8}")   # staged outputs are written beside --out
+def output_exists(exc: FileExistsError) -> Exception:
+    """A taken output path, in the command line's words (the error itself when it names no path)."""
+    path = getattr(exc, "path", None)
+    if path is None:
+        return exc
+    return CommandError(f"{path} already exists; pass --overwrite to replace it")
+
+
+# staged outputs (and their marker) are written beside --out, under these names
+_STAGED = re.compile(r"/\.([^/]+)\.(?:partial-[0-9a-f]{8}|old-[0-9a-f]{8}|staging-[0-9a-f]{8}\.json)")
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -76,7 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     args = sub.parse_args(argv[1:])
     try:
         return int(module.run(args) or 0)
-    except CommandError as exc:
+    except (CommandError, StreaklabError) as exc:
+        if isinstance(exc, OutputExistsError):
+            exc = output_exists(exc)
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # read-only or full file system, a file where a folder should be, /proc, ...

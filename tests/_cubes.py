@@ -1,7 +1,7 @@
 """Small synthetic cubes shared by the chunked-decomposition tests."""
 import numpy as np
 
-from decomposition import model
+from core import model
 
 TB = 2.0
 

@@ -6,7 +6,7 @@ import pytest
 
 from decomposition import EMPTY, NONFINITE, POOR_FIT, SATURATED, decompose
 from decomposition.metrics import fidelity
-from decomposition.model import empty_params, render_components, render_profile
+from core.model import empty_params, render_components, render_profile
 from decomposition.synthetic import make_profiles
 
 T = 2.0

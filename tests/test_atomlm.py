@@ -4,7 +4,7 @@ import pytest
 
 from decomposition import atomlm
 from decomposition import convscd as cs
-from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 
 T = 2.0
 L = 256
@@ -45,7 +45,7 @@ def _bounds():
     (cs.FAM_SSS, 0.3, 20.0, 6.0, 0.9),             # decays faster than the PSF is wide
 ])
 def test_atom_values_and_derivative_columns(fam, amp, delay, sigma, alpha):
-    """The atom equals decomposition.model's kernel, and each derivative column equals a
+    """The atom equals core.model's kernel, and each derivative column equals a
     central difference of amp * kernel in (amp, delay, log sigma, log alpha)."""
     t = time_axis_ps(L, T)
     lalp = np.log(alpha) if alpha else 0.0

@@ -9,7 +9,7 @@ from acquisition.config import parse_config
 from acquisition.rig import run_capture, simulated_scene
 from acquisition.runstore import open_run
 from acquisition.session import CaptureError, CaptureFailed, SettingRejected
-from decomposition.model import render_profile
+from core.model import render_profile
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
 from drivers.sim import SimulatedLab
 from reconstruction.build import reconstruct
@@ -249,3 +249,21 @@ def test_a_failure_before_the_store_exists_does_not_claim_lines_are_in_it(tmp_pa
     err = capsys.readouterr().err
     assert "safely in" not in err and "--resume" not in err
     assert f"nothing was written to {tmp_path / 'r.zarr'}; fix the device and run again:" in err
+
+
+def test_resume_never_deletes_a_folder_streaklab_did_not_mark(tmp_path):
+    """A folder whose files all end in .partial is not taken for an interrupted store creation."""
+    cfg = sim_config(n_lines=2)
+    out = tmp_path / "run.zarr"
+    (out / "sub").mkdir(parents=True)
+    (out / "sub" / "thesis.tex.partial").write_text("three years of work")
+    with pytest.raises(CaptureError, match="neither resumes nor removes it"):
+        run_capture(cfg, out, simulate=True, resume=True)
+    assert (out / "sub" / "thesis.tex.partial").read_text() == "three years of work"
+    # a run store marked as being created (what earlier releases left when killed) is recreated
+    import zarr
+
+    zarr.open_group(str(tmp_path / "old.zarr"), mode="w").attrs.update({"streaklab_kind": "run", "initialised": False})
+    result = run_capture(cfg, tmp_path / "old.zarr", simulate=True, resume=True)
+    assert result.status == "complete" and open_run(tmp_path / "old.zarr").done_mask().all()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no staging left

@@ -6,7 +6,7 @@ import pytest
 
 from decomposition import convscd as cs
 from decomposition import decompose
-from decomposition.model import gaussian_kernel, sss_kernel, time_axis_ps
+from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.pick import closed_form
 from decomposition.synthetic import make_profiles
 

@@ -14,9 +14,9 @@ import zarr
 from _cubes import TB, small_cube as _cube
 from decomposition import decompose
 from decomposition.resultstore import open_result_store
+from decomposition.pipeline import PipelineError, decompose_to_store
 from reconstruction.cubestore import create_cube, write_cube
-from streaklab.cli import CommandError, main
-from streaklab.commands.decompose import decompose_to_store
+from streaklab.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -188,11 +188,11 @@ def test_killed_process_resumes_to_the_uninterrupted_store(cube_path, reference_
 def test_resume_with_other_settings_is_refused(cube_path, tmp_path):
     out = tmp_path / "res.zarr"
     decompose_to_store(cube_path, out, progress=False)
-    with pytest.raises(CommandError, match="different settings.*method"):
+    with pytest.raises(PipelineError, match="different settings.*method"):
         decompose_to_store(cube_path, out, resume=True, method="gradbm", progress=False)
-    with pytest.raises(CommandError, match="different settings.*n_ir"):
+    with pytest.raises(PipelineError, match="different settings.*n_ir"):
         decompose_to_store(cube_path, out, resume=True, n_ir=4, progress=False)
-    with pytest.raises(CommandError, match="contradict"):
+    with pytest.raises(PipelineError, match="contradict"):
         decompose_to_store(cube_path, out, resume=True, overwrite=True, progress=False)
 
 
@@ -309,7 +309,7 @@ def test_resume_onto_a_rewritten_cube_is_refused(tmp_path):
     decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", progress=False)
     write_cube(tmp_path / "cube.zarr", _cube(2, 3, seed=2), time_bin_ps=TB, provenance={"created_utc": "second"},
                overwrite=True)
-    with pytest.raises(CommandError, match="different settings.*source_attrs_sha256"):
+    with pytest.raises(PipelineError, match="different settings.*source_attrs_sha256"):
         decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", resume=True, progress=False)
 
 

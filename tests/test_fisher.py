@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from decomposition.fisher import cramer_rao_bound, fisher_information, parameter_names, standard_errors
-from decomposition.model import empty_params, render_profile, time_axis_ps
+from core.model import empty_params, render_profile, time_axis_ps
 from decomposition.refine import refine
 
 T = 2.0

@@ -6,7 +6,7 @@ import pytest
 
 from decomposition.gradbm import gradbm
 from decomposition.metrics import fidelity
-from decomposition.model import render_components, render_profile
+from core.model import render_components, render_profile
 from decomposition.synthetic import make_profiles
 
 L = 192
@@ -103,7 +103,7 @@ def test_time_axis_is_respected():
     # 1 ps bins starting at 500 ps; positional and keyword time axis agree.
     p = {"direct_delay_ps": np.array([560.4]), "direct_amplitude": np.array([1.0]),
          "direct_sigma_ps": np.array([2.5])}
-    from decomposition.model import render_profile as rp
+    from core.model import render_profile as rp
     y = rp(p, 200, time_bin_ps=1.0, t0_ps=500.0)
     a = gradbm(y, 1.0, 500.0)
     b = gradbm(y, time_bin_ps=1.0, t0_ps=500.0)

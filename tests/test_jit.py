@@ -1,10 +1,10 @@
-"""Compiled scalar kernels (decomposition.jit) against scipy and decomposition.model."""
+"""Compiled scalar kernels (decomposition.jit) against scipy and core.model."""
 import numpy as np
 import pytest
 from scipy import special
 
 from decomposition import jit
-from decomposition.model import sss_kernel
+from core.model import sss_kernel
 
 
 def test_erfcx_matches_scipy_across_the_series_switch_and_far_tail():

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from acquisition import limits as L
+from core import limits as L
 from acquisition.config import parse_config
 from acquisition.session import CaptureError, CaptureFailed, CaptureSession
 from drivers.errors import DeviceTimeout

@@ -5,7 +5,7 @@ import pytest
 from decomposition.metrics import (
     delay_error_ps, delay_rmse_ps, detection_counts, fidelity, mean_fidelity, parameter_error,
 )
-from decomposition.model import render_components
+from core.model import render_components
 from decomposition.synthetic import make_profiles
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from decomposition.model import (
+from core.model import (
     empty_params, gaussian_kernel, render_components, render_profile, sss_kernel, time_axis_ps,
 )
 

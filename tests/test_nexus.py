@@ -109,7 +109,7 @@ def test_command_line_round_trip_and_refusals(tmp_path, capsys):
 
 
 def test_declared_sizes_and_damaged_metadata_are_refused_before_writing(tmp_path, capsys, monkeypatch):
-    from acquisition import limits
+    from core import limits
     # a tiny file declaring a 20000 x 20000 x 512 signal (chunks never written read as the fill value)
     with h5py.File(tmp_path / "huge.h5", "w") as f:
         e = f.create_group("entry")

@@ -8,7 +8,7 @@ from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.api import SPIKE
 from decomposition.metrics import mean_fidelity
-from decomposition.model import sss_kernel
+from core.model import sss_kernel
 from decomposition.pickcorr import pixel_correlations
 from decomposition.synthetic import make_profiles
 

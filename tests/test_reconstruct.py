@@ -170,7 +170,7 @@ def test_module_entry_point_runs(tmp_path):
 
 
 def test_time_bins_memory_and_disk_are_checked_before_anything_is_written(tmp_path, monkeypatch):
-    from acquisition import limits
+    from core import limits
 
     run = make_run(tmp_path / "run.zarr")
     cfg = dict(run.group.attrs["config"])

@@ -4,7 +4,7 @@ import warnings
 import numpy as np
 import pytest
 
-from decomposition.model import empty_params, gaussian_kernel, render_profile, sss_kernel
+from core.model import empty_params, gaussian_kernel, render_profile, sss_kernel
 from decomposition.refine import kernel_derivatives, refine
 
 T = 2.0

@@ -332,7 +332,7 @@ def test_fault_kinds_are_checked():
 def test_scene_rendering_equals_render_profile_on_a_linear_sweep():
     from dataclasses import replace
 
-    from decomposition.model import render_profile
+    from core.model import render_profile
 
     linear = replace(SCENE, time_calibration=np.array([2.0, 2.0]))
     for line in (0, 4):

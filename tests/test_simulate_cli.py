@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import zarr
 
-from decomposition.model import PARAM_KEYS, render_components
+from core.model import PARAM_KEYS, render_components
 from decomposition.synthetic import make_cube
 from reconstruction.cubestore import open_cube
 from streaklab.cli import main

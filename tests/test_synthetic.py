@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from decomposition.model import render_profile, time_axis_ps
+from core.model import render_profile, time_axis_ps
 from decomposition.synthetic import (
     SceneRanges, add_noise, draw_params, make_cube, make_profiles, noise_realisation, parse_kind,
 )

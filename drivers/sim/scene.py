@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from decomposition.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 
 __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "GAIN_DOUBLING_STEPS"]
 

@@ -11,7 +11,9 @@ from streaklab.cli import CommandError
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--config", required=True, help="scan configuration (TOML)")
+    parser.add_argument("--config", required=True,
+                        help="scan configuration (TOML), or 'sim' for the packaged example of the simulated lab "
+                             "('streaklab example-config' prints it)")
     parser.add_argument("--out", help="run store to write (default: output.path of the config)")
     parser.add_argument("--simulate", action="store_true",
                         help="capture from a simulated lab started in this process (ignores [devices])")
@@ -28,16 +30,13 @@ def _resume_hint(args, out, *, resume: bool = True) -> str:
 
 
 def run(args) -> int:
-    from acquisition.config import ConfigError, load_config
+    from acquisition.config import load_config
     from acquisition.progress import Progress
     from acquisition.rig import run_capture
-    from acquisition.session import CaptureError, CaptureFailed
+    from acquisition.session import CaptureFailed
 
     logging.basicConfig(level=logging.WARNING, format="streaklab capture: %(message)s")
-    try:
-        config = load_config(args.config)
-    except ConfigError as exc:
-        raise CommandError(str(exc)) from None
+    config = load_config(args.config)
     out = args.out or config["output"].get("path")
     if not out:
         raise CommandError("no output: pass --out or set output.path in the config")
@@ -93,8 +92,6 @@ def run(args) -> int:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
               f"  {_resume_hint(args, out)}", file=sys.stderr)
         return 130
-    except (CaptureError, ConfigError) as exc:
-        raise CommandError(str(exc)) from None
     finally:
         if progress is not None:
             progress.close()

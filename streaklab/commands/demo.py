@@ -26,7 +26,6 @@ from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "run_demo", "class_fidelity"]
 
-EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "acquisition" / "examples" / "sim_scan.toml"
 _PRODUCTS = ("run.zarr", "cube.zarr", "result.zarr", "figs", "fidelity.json")
 
 
@@ -39,11 +38,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lines", type=int, default=16, help="scan lines (y) (default 16)")
     parser.add_argument("--nx", type=int, default=64, help="slit pixels (x) (default 64)")
     parser.add_argument("--nt", type=int, default=256, help="streak rows / time bins (default 256)")
-    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd")
+    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd",
+                        help="solver: convscd (default) or the gradbm baseline")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="decompose on a local cluster of N processes (default: threads)")
     parser.add_argument("--nsr", type=float, default=0.05, help="noise-to-signal ratio of --source simulate")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the simulated scene and its noise (default 0); same seed, same data")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -81,7 +82,7 @@ def _estimate(store) -> dict:
     if store.write_components:
         est = {"direct": g["direct"][...], "sss": g["sss"][...], "interreflections": g["ir"][...]}
     else:
-        from decomposition.model import render_components
+        from core.model import render_components
 
         t = store.time_axis_ps()
         c = render_components(store.params(), t.size, float(store.attrs["time_bin_ps"]), float(t[0]))
@@ -105,7 +106,7 @@ def _capture_cube(out: Path, *, lines, nx, nt, seed, stream, quiet):
         from reconstruction.build import reconstruct
     except ImportError as exc:
         raise CommandError(f"the capture pipeline is not available ({exc}); use --source simulate") from None
-    from decomposition.model import render_components
+    from core.model import render_components
     from reconstruction.cubestore import open_cube
 
     config = _demo_config(parse_config, lines=lines, nx=nx, nt=nt, seed=seed)
@@ -133,7 +134,10 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
     """The example simulated scan, resized to the demo's lines, pixels and rows."""
     import tomllib
 
-    raw = tomllib.loads(EXAMPLE_CONFIG.read_text())
+    from acquisition.config import example_config_path
+
+    example = example_config_path("sim")
+    raw = tomllib.loads(example.read_text())
     raw.setdefault("scan", {})["count"] = int(lines)
     raw["scan"].pop("angles_deg", None)
     sim = raw.setdefault("simulation", {})
@@ -143,7 +147,7 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
     if int(nt) != 256:
         c0, c1, c2 = raw["calibration"]["time_poly_ps"]
         raw["calibration"]["time_poly_ps"] = [c0, c1 * 256 / nt, c2 * (256 / nt) ** 2]
-    return parse_config(raw, source=str(EXAMPLE_CONFIG))
+    return parse_config(raw, source=str(example))
 
 
 def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
@@ -165,7 +169,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     """Run the demo; returns a dict with the output paths, timings and the fidelities."""
     from decomposition.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
-    from streaklab.commands.decompose import decompose_to_store
+    from decomposition.pipeline import decompose_to_store
     from streaklab.report import make_report
 
     stream = sys.stdout if stream is None else stream

@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import sys
 
-from streaklab.cli import CommandError
-
 
 def add_arguments(parser) -> None:
     parser.add_argument("cube", help="cube store (Zarr directory)")
@@ -13,12 +11,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from reconstruction.cubestore import CubeStoreError
-    from reconstruction.nexus import NexusError, export_cube
+    from reconstruction.nexus import export_cube
 
-    try:
-        out = export_cube(args.cube, args.out, overwrite=args.overwrite)
-    except (CubeStoreError, NexusError, FileExistsError) as exc:
-        raise CommandError(str(exc)) from None
+    out = export_cube(args.cube, args.out, overwrite=args.overwrite)
     print(f"wrote {out} (NeXus: /entry/data, signal 'cube', axes y, x, t)", file=sys.stderr)
     return 0

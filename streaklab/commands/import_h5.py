@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import sys
 
-from streaklab.cli import CommandError
-
 
 def add_arguments(parser) -> None:
     parser.add_argument("h5", help="NeXus/HDF5 file (from 'streaklab export' or any NXdata with a 3-D signal)")
@@ -13,12 +11,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from reconstruction.cubestore import CubeStoreError
-    from reconstruction.nexus import NexusError, import_cube
+    from reconstruction.nexus import import_cube
 
-    try:
-        out = import_cube(args.h5, args.out, overwrite=args.overwrite)
-    except (CubeStoreError, NexusError, FileExistsError) as exc:
-        raise CommandError(str(exc)) from None
+    out = import_cube(args.h5, args.out, overwrite=args.overwrite)
     print(f"wrote {out}", file=sys.stderr)
     return 0

@@ -18,20 +18,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from acquisition.config import ConfigError
-    from acquisition.runstore import RunStoreError
-    from reconstruction.build import ReconstructionError, reconstruct
-    from reconstruction.calibrate import CalibrationError
-    from reconstruction.cubestore import CubeStoreError
+    from reconstruction.build import reconstruct
 
     if args.chunks is not None and min(args.chunks) <= 0:
         raise CommandError(f"--chunks must be positive, got {args.chunks[0]} {args.chunks[1]}")
-    try:
-        cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
-                           allow_partial=args.allow_partial, overwrite=args.overwrite)
-    except (RunStoreError, ConfigError, CalibrationError, ReconstructionError, CubeStoreError,
-            FileExistsError) as exc:
-        raise CommandError(str(exc)) from None
+    cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
+                       allow_partial=args.allow_partial, overwrite=args.overwrite)
     ny, nx, nt = cube.shape
     missing = cube.attrs["provenance"].get("lines_missing", [])
     note = f", {len(missing)} unfinished lines left NaN" if missing else ""

@@ -24,13 +24,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from decomposition.resultstore import ResultStoreError
     from streaklab.report import make_report
 
     pixels = [_pixel(p) for p in args.pixels] if args.pixels else None
     try:
         rep = make_report(args.result, args.out, time_ps=args.time_ps, pixels=pixels)
-    except (ResultStoreError, ValueError) as exc:
+    except ValueError as exc:
         raise CommandError(str(exc)) from None
     print(rep["summary"], end="")
     for f in rep["files"]:

@@ -35,6 +35,8 @@ import os
 import shutil
 from pathlib import Path
 
+from .errors import StreaklabError
+
 __all__ = [
     "LimitError", "MAX_SCAN_LINES", "MAX_IMAGE_PIXELS", "MAX_LINE_BYTES", "MAX_TIME_BINS", "MAX_CUBE_BYTES",
     "MAX_CHUNK_BYTES", "MAX_TIMEOUT_S", "MAX_RETRIES", "MAX_BACKOFF_WAIT_S", "MAX_BACKOFF_TOTAL_S",
@@ -58,7 +60,7 @@ MAX_CONFIG_BYTES = 1 << 20
 MAX_HANDSHAKE_BYTES = 1 << 20
 
 
-class LimitError(ValueError):
+class LimitError(StreaklabError, ValueError):
     """A request exceeds a documented limit or the memory / disk space there is (names key and limit)."""
 
 
