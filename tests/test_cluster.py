@@ -26,8 +26,10 @@ def _plus_one(x):
 
 
 @pytest.mark.timeout(90)
-def test_the_local_cluster_serves_the_run_and_refuses_strangers():
+def test_the_local_cluster_serves_the_run_and_refuses_strangers(tmp_path):
     from distributed import Client, Security
+
+    from decomposition.cluster import TlsFiles, connect_scheduler
 
     client, cluster = start_local_cluster(2)
     try:
@@ -44,6 +46,14 @@ def test_the_local_cluster_serves_the_run_and_refuses_strangers():
         with pytest.raises(ClusterError, match="is a TLS scheduler: pass --tls-ca-file"):
             probe_scheduler(address, security=Security(), timeout_s=5)
         probe_scheduler(address, security=cluster.security, timeout_s=5)      # with them it is a scheduler
+        # --scheduler tls://... with the run's credentials as PEM files (what --tls-* pass) connects
+        sec = cluster.security
+        for name, pem in (("ca.pem", sec.tls_ca_file), ("cert.pem", sec.tls_client_cert),
+                          ("key.pem", sec.tls_client_key)):
+            (tmp_path / name).write_text(pem)
+        with connect_scheduler(address, tls=TlsFiles(str(tmp_path / "ca.pem"), str(tmp_path / "cert.pem"),
+                                                     str(tmp_path / "key.pem")), timeout_s=10) as other:
+            assert other.submit(_plus_one, 41).result(timeout=30) == 42
         assert len(client.scheduler_info()["workers"]) == 2 and client.submit(_plus_one, 2).result(timeout=30) == 3
     finally:
         client.close()
