@@ -110,5 +110,24 @@ def test_damaged_array_metadata_is_named_in_one_line(tmp_path, capsys):
     assert main(["reconstruct", str(tmp_path / "run.zarr"), "--out", str(tmp_path / "c.zarr")]) == 2
     assert _lines(capsys) == [f"streaklab reconstruct: error: {tmp_path / 'run.zarr'}/done: unreadable array "
                               f"metadata (JSONDecodeError: Unterminated string starting at: line 1 column 33 "
-                              f"(char 32)); the run store is damaged"]
+                              f"(char 32)); the store is damaged"]
     assert not (tmp_path / "c.zarr").exists()
+
+
+def test_damaged_cube_and_result_metadata_are_named_in_one_line(tmp_path, cube, capsys):
+    out = tmp_path / "r.zarr"
+    assert main(["decompose", str(cube), "--out", str(out), "--quiet"]) == 0
+    (out / "valid" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "arr')
+    for argv in (["decompose", str(cube), "--out", str(out), "--resume", "--quiet"],
+                 ["report", str(out), "--out", str(tmp_path / "figs")]):
+        assert main(argv) == 2
+        err = _lines(capsys)
+        assert len(err) == 1 and err[0].endswith(f"{out}/valid: unreadable array metadata (JSONDecodeError: "
+                                                 f"Unterminated string starting at: line 1 column 33 (char 32)); "
+                                                 f"the store is damaged"), err
+    (cube / "cube" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "arr')
+    assert main(["decompose", str(cube), "--out", str(tmp_path / "r2.zarr"), "--quiet"]) == 2
+    assert _lines(capsys) == [f"streaklab decompose: error: not a usable cube: {cube}/cube: unreadable array "
+                              f"metadata (JSONDecodeError: Unterminated string starting at: line 1 column 33 "
+                              f"(char 32)); the store is damaged"]
+    assert not (tmp_path / "r2.zarr").exists()
