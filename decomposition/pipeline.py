@@ -221,17 +221,20 @@ def _one_line(exc) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
-def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
-    """Run the solver on one all-zero and one pulse profile: checks the options before any work
-    (an all-zero profile alone skips the fit, and with it most options) and names the parameters
-    (and their per-pixel dimensionality) the store must hold."""
+def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options, pulse=False):
+    """Run the solver on one all-zero profile: checks the options before any work and names the
+    parameters (and their per-pixel dimensionality) the store must hold.  An all-zero profile
+    skips the fit, and with it most options: ``pulse=True`` solves a pulse too (once the kernels
+    are loaded: it runs the compiled fit)."""
     from decomposition.chunked import _solver
 
     _check_option_types(options)
-    bins = np.arange(nt, dtype=np.float64)
-    pulse = np.exp(-0.5 * ((bins - nt / 3) / 2.0) ** 2)
+    profiles = np.zeros((1, nt))
+    if pulse:
+        bins = np.arange(nt, dtype=np.float64)
+        profiles = np.stack([profiles[0], np.exp(-0.5 * ((bins - nt / 3) / 2.0) ** 2)])
     try:
-        res = _solver()(np.stack([np.zeros(nt), pulse]), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+        res = _solver()(profiles, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
                         components=tuple(components), **options)
     except (TypeError, ValueError, ArithmeticError) as exc:
         raise PipelineError(f"the solver refuses these settings: {_one_line(exc)}") from None
@@ -350,6 +353,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                   options=options, stream=stream, quiet=not progress)
     except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
         seconds_compile = 0.0
+    _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=options,
+                  pulse=True)   # the options the fit uses, before any output exists
     if nan_policy == "error":
         bad = count_nonfinite_pixels(arr)
         if bad:
