@@ -47,19 +47,24 @@ def start_simulated_lab(config: ScanConfig):
     from drivers.sim import SimulatedLab
 
     scene = simulated_scene(config)
-    lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True)
+    tr = config["camera"]["time_range"]
+    # A time such as "1 ns" is a single-sweep unit's time range; a number a synchroscan unit's.
+    lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True,
+                       camera_options={"single_sweep": isinstance(tr, str)})
     lab.start()
     # The simulated sweep is what the scene says; warn if the config's calibration describes another.
-    from drivers.sim.scene import TIME_RANGE_SCALE
+    from drivers.sim.scene import TIME_RANGE_SCALE, time_range_scale
 
-    tr = config["camera"]["time_range"]
-    if tr in TIME_RANGE_SCALE:
+    try:
         truth = scene.row_times_ps(0.0, tr)
+    except ValueError:
+        truth = None                            # a setting the simulated unit refuses: the session says so
+    if truth is not None and "time_poly_ps" in config["calibration"]:
         mine = calibration_times_ps(config["calibration"]["time_poly_ps"], scene.n_t)
         if np.max(np.abs(truth - mine)) > 1.0:
             log.warning("calibration.time_poly_ps differs from the simulated sweep by up to %.3g ps "
-                        "(simulated: %s at time_range %d)", float(np.max(np.abs(truth - mine))),
-                        list(np.round(scene.time_calibration * TIME_RANGE_SCALE[tr]
+                        "(simulated: %s at time_range %s)", float(np.max(np.abs(truth - mine))),
+                        list(np.round(scene.time_calibration * time_range_scale(tr)
                                       / TIME_RANGE_SCALE[scene.time_range], 9)), tr)
     return lab
 
@@ -100,7 +105,8 @@ def open_rig(config: ScanConfig, *, lab=None):
     timeout_s = dev["timeout_s"]
     if lab is not None:
         cam_host, cam_port = lab.camera_address
-        mirror_port, backend = lab.mirror_port, lab.usb_backend
+        # the stable link, as a udev by-id link on the rig: a re-plugged port is found again
+        mirror_port, backend = lab.mirror_stable_port, lab.usb_backend
     else:
         cam_host, _, port = dev["camera"].rpartition(":")
         cam_port, mirror_port, backend = int(port), dev["mirror"], None
@@ -114,7 +120,8 @@ def open_rig(config: ScanConfig, *, lab=None):
         camera = enter("camera", f"{cam_host}:{cam_port}",
                        lambda: RemoteExCamera(cam_host, cam_port, timeout_s=timeout_s, connect_timeout_s=timeout_s))
         mirror = enter("mirror", mirror_port,
-                       lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s))
+                       lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s,
+                                            xonxoff=dev["mirror_xonxoff"]))
         sync_where = "the simulated USB backend" if backend is not None else \
             ", ".join(f"{k}={dev[k]!r}" for k in ("sync_vendor_id", "sync_product_id", "sync_serial") if k in dev) \
             or "USB (no id configured)"

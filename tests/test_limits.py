@@ -49,6 +49,9 @@ class _Mirror:
     def identify(self):
         return "fake mirror"
 
+    def state(self):
+        return "ready"
+
     def home(self, timeout_s):
         pass
 

@@ -1,10 +1,14 @@
 """``streaklab sim-lab``: serve the simulated camera and mirror until Ctrl-C.
 
+How other programs connect to each device: :data:`CONNECTING` (also shown by ``--help``).
+
 Prints one ``name value`` line per address, then ``ready``, and flushes, so a
 script can read the addresses from the first lines of output::
 
     camera 127.0.0.1:40123
     camera-data-port 40124
+    streak-unit synchroscan
+    scaling-table yes
     mirror /dev/pts/7
     mirror-stable /tmp/streaklab-mirror-xyz/ttySMC100
     ready
@@ -12,6 +16,13 @@ script can read the addresses from the first lines of output::
 The laser-sync unit is a pyusb backend object and cannot be served to another
 process; with no sync device to switch it, the laser output is on (``--dark``
 turns it off).
+
+Another program talks to the camera as to HPD-TA's RemoteEx: TCP to ``camera``
+(commands) and to ``camera-data-port`` (image data), opened in either order,
+each greeting read whenever it likes, then ``AppStart()``.  An Odemis-style
+client (which sets ``Time Range`` to ``1 ns``) needs ``--single-sweep``.
+``streaklab live`` with ``devices.camera`` set to the ``camera`` address shows
+the live image.
 """
 from __future__ import annotations
 
@@ -22,7 +33,30 @@ import threading
 from streaklab.cli import CommandError
 
 
+CONNECTING = """\
+connecting other programs (addresses are the lines printed before 'ready'):
+  camera   RemoteEx over TCP at the 'camera' host:port, images on 'camera-data-port';
+           any RemoteEx client (an Odemis-style driver, streaklab's own) connects there.
+  mirror   an SMC100 controller, address 1, on a serial port: open the 'mirror-stable'
+           path (it follows a simulated re-plug) at 57600 baud, 8N1, Xon/Xoff, CR LF.
+             pyserial      serial.Serial(PATH, 57600, xonxoff=True, timeout=1)
+             pyvisa-py     pyvisa.ResourceManager("@py").open_resource("ASRL" + PATH + "::INSTR",
+                               baud_rate=57600, read_termination="\\r\\n", write_termination="\\r\\n",
+                               flow_control=pyvisa.constants.VI_ASRL_FLOW_XON_XOFF)
+             yaqd-newport  serial_port = PATH in the newport-smc100 daemon's TOML
+           then e.g. "1ID?", "1OR", "1TS" (until 32), "1PA2.5", "1TS" (until 33), "1TP".
+  sync     not served to other processes (a pyusb backend object): a program in the same
+           Python process takes drivers.sim.SimulatedLab().usb_backend and uses
+           usb.core.find(backend=...) (python-usbtmc: usbtmc.Instrument(device)), or points
+           pyusb's default backend lookup at it for pyvisa-py ("USB0::...::INSTR").
+"""
+
+
 def add_arguments(parser) -> None:
+    import argparse
+
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = CONNECTING
     parser.add_argument("--seed", type=int, default=0, help="noise and scene seed (default 0)")
     parser.add_argument("--camera-port", type=int, default=0,
                         help="RemoteEx command port (data port = +1); default: a free ephemeral pair")
@@ -31,6 +65,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--t", dest="n_t", type=int, default=256, help="streak rows (default 256)")
     parser.add_argument("--dark", action="store_true", help="laser output off: the camera sees dark frames only")
     parser.add_argument("--no-mirror", action="store_true", help="serve the camera only")
+    parser.add_argument("--single-sweep", action="store_true",
+                        help="a single-sweep streak unit (Time Range such as '1 ns') instead of synchroscan (1..4)")
+    parser.add_argument("--no-scaling-table", action="store_true",
+                        help="images carry no table scaling (ImgDataGet(...,ScalingTable,...) is refused)")
 
 
 def run(args) -> int:
@@ -44,7 +82,8 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(f"scene: {exc}") from None
     lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
-                       mirror=not args.no_mirror, sync=False)
+                       mirror=not args.no_mirror, sync=False,
+                       camera_options={"single_sweep": args.single_sweep, "scaling_table": not args.no_scaling_table})
     try:
         lab.start()
     except (OSError, RuntimeError) as exc:
@@ -60,6 +99,8 @@ def run(args) -> int:
         info = lab.describe()
         print(f"camera {info['camera']}")
         print(f"camera-data-port {info['camera_data_port']}")
+        print(f"streak-unit {info['streak_unit']}")
+        print(f"scaling-table {'yes' if info['scaling_table'] else 'no'}")
         if "mirror" in info:
             print(f"mirror {info['mirror']}")
             print(f"mirror-stable {info['mirror_stable']}")
