@@ -378,9 +378,14 @@ class CaptureSession:
                 raise CaptureError("calibration.time_poly_ps is not given and the camera has no scaling table")
             return
         try:
-            check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
+            t = check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
         except ConfigError as exc:
             raise CaptureError(f"{exc} (the camera has {shape[1]} streak rows)") from None
+        # the cube's time grid must stay within the limit too: refuse now, not after the scan
+        tb = float(self.config["calibration"]["time_bin_ps"])
+        refused = L.time_bin_message(tb, float(np.ptp(t)), float(np.ptp(t)) / tb + 1)
+        if refused:
+            raise CaptureError(f"{refused} (the camera has {shape[1]} streak rows)")
 
     def take_line(self, line: int) -> None:
         angle = float(self.config.angles_deg[line])

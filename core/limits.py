@@ -35,13 +35,15 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from .errors import StreaklabError
 
 __all__ = [
     "LimitError", "MAX_SCAN_LINES", "MAX_IMAGE_PIXELS", "MAX_LINE_BYTES", "MAX_TIME_BINS", "MAX_CUBE_BYTES",
     "MAX_CHUNK_BYTES", "MAX_TIMEOUT_S", "MAX_RETRIES", "MAX_BACKOFF_WAIT_S", "MAX_BACKOFF_TOTAL_S",
     "MAX_CONFIG_BYTES", "MAX_HANDSHAKE_BYTES", "available_memory", "check_count", "check_memory", "check_disk",
-    "backoff_waits", "format_bytes",
+    "backoff_waits", "format_bytes", "time_bin_message",
 ]
 
 GiB = 1 << 30
@@ -136,6 +138,14 @@ def check_disk(key: str, nbytes: int, limit: int, path, *, what: str = "") -> in
         raise LimitError(f"{key}: needs {format_bytes(nbytes)}{what}, but only {format_bytes(free)} are free "
                          f"on the file system of {p}")
     return nbytes
+
+
+def time_bin_message(time_bin_ps: float, window_ps: float, n_bins: float) -> str | None:
+    """Why ``n_bins`` bins of ``time_bin_ps`` over a ``window_ps`` window are refused, or None."""
+    if np.isfinite(n_bins) and n_bins <= MAX_TIME_BINS:
+        return None
+    return (f"calibration.time_bin_ps = {time_bin_ps:g} ps makes {n_bins:.3g} time bins of the calibrated window "
+            f"of {window_ps:.6g} ps, above the limit of {MAX_TIME_BINS} bins (limits.MAX_TIME_BINS); use a wider bin")
 
 
 def backoff_waits(retries: int, backoff_s: float) -> list[float]:

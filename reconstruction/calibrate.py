@@ -113,10 +113,9 @@ def uniform_grid(row_times_ps: np.ndarray, time_bin_ps: float, t0_ps: float | No
     if t0_ps < lo - 1e-9 * T or t0_ps > hi:
         raise CalibrationError(f"t0_ps = {t0_ps} ps lies outside the calibrated window [{lo:.6g}, {hi:.6g}] ps")
     n = np.floor((hi - t0_ps) / T + 1e-9) + 1
-    if not np.isfinite(n) or n > L.MAX_TIME_BINS:
-        raise CalibrationError(f"calibration.time_bin_ps = {T:g} ps makes {n:.3g} time bins of the calibrated window "
-                               f"of {hi - lo:.6g} ps, above the limit of {L.MAX_TIME_BINS} bins "
-                               f"(limits.MAX_TIME_BINS); use a wider bin")
+    refused = L.time_bin_message(T, hi - lo, n)
+    if refused:
+        raise CalibrationError(refused)
     return t0_ps, int(n)
 
 

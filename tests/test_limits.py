@@ -108,3 +108,13 @@ def test_frames_that_cannot_fit_in_memory_are_refused_after_the_first_frame(tmp_
                                            r"\(limits\.MAX_LINE_BYTES\), above the limit of 4\.00 GiB; take fewer"):
         session.run()
     assert camera.acquired == 1 and not (tmp_path / "r.zarr").exists()
+
+
+def test_a_time_bin_too_fine_for_the_cube_is_refused_before_any_line(tmp_path):
+    # 32 rows of 2 ps: a 62 ps window; 1e-6 ps bins would make 6.2e7 bins in the cube
+    session = CaptureSession(_config(calibration={"time_bin_ps": 1e-6}), tmp_path / "r.zarr", _Camera((4, 32)),
+                             _Mirror(), _Sync())
+    with pytest.raises(CaptureError, match=r"^calibration\.time_bin_ps = 1e-06 ps makes 6\.2e\+07 time bins of "
+                                           r"the calibrated window of 62 ps, above the limit of 65536 bins"):
+        session.run()
+    assert not (tmp_path / "r.zarr").exists()
