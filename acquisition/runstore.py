@@ -2,13 +2,17 @@
 
 One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table)::
 
-    streaks           (line, frame, x, t)  uint16   counts as read from the camera, one chunk per line
-    done              (line,)              bool     True once the line's data is on disk
-    angle_deg         (line,)              float64  mirror angle reached (deg), NaN until done
-    timestamp         (line,)              float64  acquisition end, seconds since 1970-01-01 UTC
-    target_angle_deg  (line,)              float64  the angle the config asked for (deg)
-    dark              (dark_frame, x, t)   uint16   frames taken with the sync output off
-    dark_done         ()                   bool     True once the dark frames are on disk
+    streaks           (line, frame, x, row)  uint16   counts as read from the camera, one chunk per line
+    done              (line,)                bool     True once the line's data is on disk
+    angle_deg         (line,)                float64  mirror angle reached (deg), NaN until done
+    timestamp         (line,)                float64  acquisition end, seconds since 1970-01-01 UTC
+    target_angle_deg  (line,)                float64  the angle the config asked for (deg)
+    dark              (dark_frame, x, row)   uint16   frames taken with the sync output off
+    dark_done         ()                     bool     True once the dark frames are on disk
+    line, x, row      coordinates; time_ps (row,) the row's calibrated time (ps)
+
+Every array is checksummed (:mod:`core.integrity`); :func:`verify_run` reads every chunk
+and reports damage by line.
 
 Every frame of a line is kept (``frame`` axis) instead of their mean or sum: the data
 stay the camera's own uint16 counts, a reconstruction can reject a bad frame (a
@@ -36,6 +40,9 @@ import zarr
 
 from core.durable import fsync_path, sync_chunk
 from core.errors import StreaklabError
+from core.integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked,
+                            scan_array, writable)
+from core.staging import OutputPathError, check_no_links, staged_output
 
 from .config import ConfigError, ScanConfig, parse_config
 
@@ -85,7 +92,7 @@ class RunStore:
 
     def __getitem__(self, name) -> zarr.Array:
         if name not in self._arrays:
-            self._arrays[name] = self.group[name]
+            self._arrays[name] = writable(self.group[name])
         return self._arrays[name]
 
     @property
@@ -111,10 +118,40 @@ class RunStore:
 
     def done_mask(self) -> np.ndarray:
         """Per-line done flags, shape (line,), bool."""
-        return np.asarray(self["done"][...], dtype=bool)
+        return np.asarray(read_checked(self["done"], slice(None), store=self.path), dtype=bool)
 
     def dark_done(self) -> bool:
-        return bool(self["dark_done"][...])
+        return bool(read_checked(self["dark_done"], (), store=self.path))
+
+    # -- integrity -------------------------------------------------------------------------
+    def absent_chunks(self) -> list[ChunkDamage]:
+        """Chunks the store says were written (lines marked done, the dark frames) whose files are gone.
+
+        Only a stat per chunk; arrays of earlier releases (no checksums) are not judged.
+        """
+        done = [int(i) for i in np.flatnonzero(self.done_mask())]
+        out = []
+        for name in ("streaks", "angle_deg", "timestamp"):
+            arr = self[name]
+            for coords in missing_chunks(self.path, arr, [(i,) + (0,) * (arr.ndim - 1) for i in done]):
+                out.append(ChunkDamage(name, coords, "missing"))
+        if self.dark_done() and self["dark"].shape[0]:
+            out.extend(ChunkDamage("dark", c, "missing") for c in missing_chunks(self.path, self["dark"], [(0, 0, 0)]))
+        return out
+
+    def verify(self) -> "RunCheck":
+        """Read every chunk the store says holds data; see :class:`RunCheck`."""
+        return verify_run(self)
+
+    def mark_lines_not_done(self, lines) -> None:
+        """Clear the done flag of ``lines`` (durably), so ``capture --resume`` takes them again."""
+        for line in lines:
+            self["done"][int(line)] = False
+            self._sync_chunk("done", (int(line),))
+
+    def mark_dark_not_done(self) -> None:
+        self["dark_done"][...] = False
+        self._sync_chunk("dark_done", ())
 
     # -- writing ---------------------------------------------------------------------------
     def _sync_chunk(self, name: str, coords: tuple[int, ...]) -> None:
@@ -164,7 +201,84 @@ class RunStore:
         """Append one entry (start time, device identities, ...) to the ``sessions`` attribute."""
         sessions = list(self.group.attrs.get("sessions", []))
         sessions.append(dict(info))
-        self.group.attrs["sessions"] = sessions
+        self.set_sessions(sessions)
+
+    def set_sessions(self, sessions: list) -> None:
+        """Replace the ``sessions`` attribute and consolidate the metadata again (rewriting the root
+        document drops its consolidated part)."""
+        self.group.attrs["sessions"] = list(sessions)
+        consolidate(self.path)
+
+
+@dataclass
+class RunCheck:
+    """What :func:`verify_run` found.
+
+    Attributes
+    ----------
+    checksums : bool
+        The data arrays carry crc32c checksums (False for stores of earlier releases, where
+        only undecodable chunks can be found, not changed bytes).
+    lines : dict line -> list of ChunkDamage
+        Lines marked done with a damaged chunk (``streaks``, ``angle_deg``, ``timestamp`` or
+        the line's ``done`` flag itself).
+    dark : list of ChunkDamage
+        Damage to the dark frames (or their flag).
+    other : list of ChunkDamage
+        Damage that a recapture does not mend (``target_angle_deg``, coordinates).
+    """
+
+    checksums: bool
+    lines: dict
+    dark: list
+    other: list
+
+    @property
+    def ok(self) -> bool:
+        return not (self.lines or self.dark or self.other)
+
+
+def verify_run(run: RunStore) -> RunCheck:
+    """Read every chunk of ``run`` that should hold data and report the damaged ones by line."""
+    path = run.path
+    lines: dict[int, list] = {}
+    n = run.n_lines
+    done_arr = run["done"]
+    done = np.zeros(n, bool)
+    for line in range(n):                                   # the flags one by one: one may be damaged itself
+        bad = list(scan_array(path, done_arr, [(line,)], must_exist=lambda c: False))
+        if bad:
+            lines.setdefault(line, []).extend(bad)
+        else:
+            done[line] = bool(done_arr[line])
+    ok_lines = [(int(i),) for i in np.flatnonzero(done)]
+    for name in ("streaks", "angle_deg", "timestamp"):
+        arr = run[name]
+        for d in scan_array(path, arr, [c + (0,) * (arr.ndim - 1) for c in ok_lines]):
+            lines.setdefault(d.coords[0], []).append(d)
+    dark = list(scan_array(path, run["dark_done"], must_exist=lambda c: False))
+    if not dark and run.dark_done():
+        dark = list(scan_array(path, run["dark"]))
+    other = []
+    for name in sorted(run.group.array_keys()):
+        if name not in LINE_ARRAYS + ("dark", "dark_done"):
+            other.extend(scan_array(path, run[name]))
+    return RunCheck(checksums=has_checksums(run["streaks"]), lines=dict(sorted(lines.items())), dark=dark,
+                    other=other)
+
+
+def describe_absent(run: RunStore, absent: list[ChunkDamage]) -> str:
+    """One line: which lines (and dark frames) are marked done but lack their chunks, and the fix."""
+    lines = sorted({d.coords[0] for d in absent if d.array != "dark"})
+    parts = []
+    if lines:
+        shown = ", ".join(map(str, lines[:10])) + (f", ... ({len(lines)} in all)" if len(lines) > 10 else "")
+        parts.append(f"line{'s' if len(lines) > 1 else ''} {shown} {'are' if len(lines) > 1 else 'is'} marked done "
+                     f"but {', '.join(sorted({d.array for d in absent if d.array != 'dark'}))} chunks are missing")
+    if any(d.array == "dark" for d in absent):
+        parts.append("the dark frames are marked done but their chunk is missing")
+    return (f"{run.path}: {'; '.join(parts)}; run 'streaklab verify {run.path} --mark-for-resume', then "
+            f"'streaklab capture ... --resume' to recapture just those")
 
 
 def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], devices: dict | None = None,
@@ -172,6 +286,8 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     """Create an empty run store laid out for ``config`` and images of ``image_shape`` = (x, t).
 
     The path must not exist or be an empty directory (resuming goes through :func:`open_run`).
+    The store is built beside ``path`` and renamed into place once every array exists, so a
+    killed creation never leaves a half store at ``path``.
     """
     from core.provenance import __version__
 
@@ -184,44 +300,76 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     n_lines = config.n_lines
     n_frames = int(config["camera"]["frames_per_line"])
     n_dark = int(config["dark"]["frames"])
+    with staged_output(p, kind=RUN_KIND) as tmp:
+        _write_skeleton(tmp, config, n_lines=n_lines, n_frames=n_frames, n_dark=n_dark, nx=nx, nt=nt,
+                        devices=devices, software_version=software_version or __version__)
+    fsync_path(p.parent)
+    return open_run(p, mode="r+")
+
+
+def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, nx, nt, devices,
+                    software_version) -> None:
     g = zarr.open_group(str(p), mode="w")
-    # Marked uninitialised until every array exists: a store killed during creation is recreated on resume.
+    # Marked uninitialised until every array exists (earlier releases built the store in place, and
+    # --resume recreates a store they left so marked).
     g.attrs.update({"streaklab_kind": RUN_KIND, "initialised": False})
-    g.create_array("streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
-                   fill_value=0, dimension_names=["line", "frame", "x", "t"],
-                   attributes={"units": "counts", "long_name": "streak images as acquired (t = streak pixel row)"})
-    g.create_array("done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
-                   dimension_names=["line"], attributes={"long_name": "line acquired and on disk"})
-    g.create_array("angle_deg", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
-                   dimension_names=["line"], attributes={"units": "deg", "long_name": "mirror angle reached"})
-    g.create_array("timestamp", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
-                   dimension_names=["line"],
-                   attributes={"units": "seconds since 1970-01-01", "calendar": "proleptic_gregorian",
-                               "long_name": "end of the line's acquisition (UTC)"})
-    target = g.create_array("target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
-                            attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
+    create_array(g, "streaks", shape=(n_lines, n_frames, nx, nt), chunks=(1, n_frames, nx, nt), dtype="uint16",
+                 fill_value=0, dimension_names=["line", "frame", "x", "row"],
+                 attributes={"units": "counts", "long_name": "streak images as acquired",
+                             "coordinates": "time_ps"})
+    create_array(g, "done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
+                 dimension_names=["line"],
+                 attributes={"long_name": "line acquired and on disk", "flag_values": [0, 1],
+                             "flag_meanings": "not_acquired acquired",
+                             "comment": "readers trust only this flag: a line without it is treated as never "
+                                        "acquired, whatever bytes its chunk holds"})
+    create_array(g, "angle_deg", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
+                 dimension_names=["line"], attributes={"units": "deg", "long_name": "mirror angle reached"})
+    create_array(g, "timestamp", shape=(n_lines,), chunks=(1,), dtype="float64", fill_value=np.nan,
+                 dimension_names=["line"],
+                 attributes={"units": "seconds since 1970-01-01", "calendar": "proleptic_gregorian",
+                             "long_name": "end of the line's acquisition (UTC)"})
+    target = create_array(g, "target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
+                          attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
     target[:] = config.angles_deg
-    g.create_array("dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
-                   dimension_names=["dark_frame", "x", "t"],
-                   attributes={"units": "counts", "long_name": "dark frames (sync output off)"})
-    g.create_array("dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
-                   attributes={"long_name": "dark frames on disk"})
+    create_array(g, "dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
+                 dimension_names=["dark_frame", "x", "row"],
+                 attributes={"units": "counts", "long_name": "dark frames (sync output off)",
+                             "coordinates": "time_ps"})
+    create_array(g, "dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
+                 attributes={"long_name": "dark frames on disk", "flag_values": [0, 1],
+                             "flag_meanings": "not_taken taken"})
+    # coordinates, so that xarray gives labelled axes
+    create_array(g, "line", shape=(n_lines,), dtype="int64", dimension_names=["line"],
+                 attributes={"units": "1", "long_name": "scan line, in acquisition order (scan.angles_deg)"})[:] = \
+        np.arange(n_lines)
+    create_array(g, "x", shape=(nx,), dtype="float64", dimension_names=["x"],
+                 attributes={"units": "pixel", "long_name": "slit position"})[:] = np.arange(nx, dtype=np.float64)
+    create_array(g, "row", shape=(nt,), dtype="int64", dimension_names=["row"],
+                 attributes={"units": "1", "long_name": "streak pixel row (the sweep direction)"})[:] = np.arange(nt)
+    cal = config["calibration"]
+    time_ps = np.polynomial.polynomial.polyval(np.arange(nt, dtype=np.float64),
+                                               [float(c) for c in cal["time_poly_ps"]])
+    create_array(g, "time_ps", shape=(nt,), dtype="float64", dimension_names=["row"],
+                 attributes={"units": "ps", "long_name": "time of the row after the laser pulse",
+                             "comment": "calibration.time_poly_ps at the row plus sync.trigger_delay_ps, as "
+                                        "configured when the run was created; not uniform in general"})[:] = \
+        time_ps + float(config["sync"]["trigger_delay_ps"])
     g.attrs.update({
         "streaklab_kind": RUN_KIND,
         "config": config.data,
         "config_hash": config.hash,
         "config_source": config.source,
-        "software_version": software_version or __version__,
+        "software_version": software_version,
         "devices": dict(devices or {}),
         "created_utc": _utc_now(),
         "sessions": [],
         "initialised": True,
     })
-    for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
+    for name in g.array_keys():
         fsync_path(p / name / "zarr.json")
     fsync_path(p / "zarr.json")
     fsync_path(p)
-    return open_run(p, mode="r+")
 
 
 def _remove_partials(path: Path) -> int:
@@ -235,12 +383,14 @@ def _remove_partials(path: Path) -> int:
 def is_uninitialised_run(path) -> bool:
     """True for a run store whose creation was interrupted (no line can be in it).
 
-    That is a run group still marked ``initialised = False``, or a directory holding
-    nothing but ``*.partial`` files (killed before the group's metadata was in place).
+    That is only a group that streaklab itself marked as a run still being created
+    (``streaklab_kind = "run"``, ``initialised = False``; earlier releases created the store
+    in place).  Nothing else is ever taken for one, whatever files it holds: a folder of
+    ``*.partial`` files may be anybody's.
     """
     p = Path(path)
-    if p.is_dir() and not (p / "zarr.json").exists():
-        return all(f.name.endswith(".partial") for f in p.rglob("*") if f.is_file())
+    if not (p / "zarr.json").is_file():
+        return False
     try:
         g = zarr.open_group(str(path), mode="r")
     except Exception:
@@ -270,8 +420,12 @@ def open_run(path, *, mode: str = "r") -> RunStore:
     p = Path(path)
     if not p.exists():
         raise RunStoreError(f"{path}: no such file or directory")
+    if p.is_dir() and not (p / "zarr.json").exists():
+        raise RunStoreError(f"{path} is not a Zarr group (it has no zarr.json); streaklab did not create it as "
+                            f"a run store, so it neither resumes nor removes it: choose another --out, or remove "
+                            f"it yourself")
     try:
-        g = zarr.open_group(str(p), mode=mode)
+        g = zarr.open_group(str(p), mode=mode, use_consolidated=False)
     except Exception as exc:
         raise RunStoreError(f"{path} is not a Zarr group: {exc}") from None
     kind = g.attrs.get("streaklab_kind")
@@ -294,5 +448,9 @@ def open_run(path, *, mode: str = "r") -> RunStore:
         raise RunStoreError(f"{path}: {s.shape[0]} lines in streaks, {g['done'].shape} done flags, "
                             f"{config.n_lines} lines in the stored config")
     if mode != "r":
+        try:
+            check_no_links(p)
+        except OutputPathError as exc:
+            raise RunStoreError(str(exc)) from None
         _remove_partials(p)
     return RunStore(str(p), g, config)

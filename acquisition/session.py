@@ -32,8 +32,8 @@ from core.errors import StreaklabError
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
 from .config import ConfigError, ScanConfig, check_calibration
-from .runstore import (RunStore, RunStoreError, config_differences, create_run, is_uninitialised_run, open_run,
-                       remove_uninitialised_run)
+from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
+                       is_uninitialised_run, open_run, remove_uninitialised_run)
 
 __all__ = ["CaptureError", "CaptureFailed", "SessionResult", "CaptureSession", "RETRYABLE"]
 
@@ -235,6 +235,9 @@ class CaptureSession:
                     f"cannot resume {out}: it was captured with a different configuration "
                     f"({'; '.join(diffs) or 'hash differs'}). Resume with the original configuration, "
                     f"or start a new run with another --out")
+            absent = store.absent_chunks()
+            if absent:
+                raise CaptureError(f"cannot resume: {describe_absent(store, absent)}")
             self.store = store
             if not store.dark_done():
                 dark, shape = self._take_dark()
@@ -330,7 +333,7 @@ class CaptureSession:
                 sessions[-1] = {**sessions[-1], "ended_utc": _utc_now(), "status": status,
                                 "lines_acquired": len(self.acquired), "retries_used": self.retries_used,
                                 **({"error": error} if error else {})}
-                self.store.group.attrs["sessions"] = sessions
+                self.store.set_sessions(sessions)
         except Exception as exc:  # bookkeeping must never mask the session's outcome
             log.warning("could not record the session's end in %s: %s", self.out, exc)
 

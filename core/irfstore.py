@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
+from .integrity import create_array, read_checked
 from .irf import InstrumentResponse, ResponseError
 from .provenance import __version__
 from .staging import staged_output
@@ -68,10 +69,10 @@ def write_response_group(group: zarr.Group, irf: InstrumentResponse) -> None:
     """Write ``irf`` into an empty Zarr group (arrays ``response`` and ``irf_t`` and the attributes)."""
     attrs = _attributes(irf)
     group.attrs.update(attrs)
-    r = group.create_array("response", shape=(irf.n_samples,), dtype="float64", dimension_names=["irf_t"],
+    r = create_array(group, "response", shape=(irf.n_samples,), dtype="float64", dimension_names=["irf_t"],
                            attributes={"units": "1/ps", "long_name": "instrument response (unit area)"})
     r[:] = irf.samples
-    t = group.create_array("irf_t", shape=(irf.n_samples,), dtype="float64", dimension_names=["irf_t"],
+    t = create_array(group, "irf_t", shape=(irf.n_samples,), dtype="float64", dimension_names=["irf_t"],
                            attributes={"units": "ps", "long_name": "time relative to the response's reference instant"})
     t[:] = irf.time_axis_ps()
 
@@ -94,7 +95,7 @@ def read_response_group(group: zarr.Group, *, where: str = "the group") -> Instr
     """Read a response written by :func:`write_response_group`."""
     if "response" not in group:
         raise ResponseStoreError(f"{where} has no 'response' array")
-    return _from_parts(group["response"][...], dict(group.attrs), where)
+    return _from_parts(read_checked(group["response"], ..., store=where), dict(group.attrs), where)
 
 
 def save_response(path, irf: InstrumentResponse, *, overwrite: bool = False) -> Path:
@@ -103,7 +104,7 @@ def save_response(path, irf: InstrumentResponse, *, overwrite: bool = False) -> 
     Written beside ``path`` and renamed into place; an existing ``path`` needs ``overwrite``.
     """
     path = Path(path)
-    with staged_output(path, overwrite=overwrite) as tmp:
+    with staged_output(path, overwrite=overwrite, kind="file" if path.suffix == ".npz" else RESPONSE_KIND) as tmp:
         if path.suffix == ".npz":
             with open(tmp, "wb") as fh:
                 np.savez(fh, response=irf.samples, irf_t=irf.time_axis_ps(),
@@ -126,7 +127,7 @@ def load_response(path) -> InstrumentResponse:
             raise ResponseStoreError(f"{path} is not an instrument-response .npz file: {exc}") from None
         return _from_parts(samples, attrs, str(path))
     try:
-        g = zarr.open_group(str(path), mode="r")
+        g = zarr.open_group(str(path), mode="r", use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise ResponseStoreError(f"{path} is not a Zarr group: {exc}") from None
     if g.attrs.get("streaklab_kind") != RESPONSE_KIND and "irf" in g and isinstance(g["irf"], zarr.Group):

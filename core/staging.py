@@ -1,22 +1,145 @@
-"""Write-then-rename for output stores and files: an error never leaves half an output or destroys an old one."""
+"""Where outputs may go, and write-then-rename: an error never leaves half an output or destroys an old one.
+
+:func:`check_output_path` is the one rule for output paths (never an input, never a store of
+another kind); :func:`check_no_links` refuses writes into a store with a symbolic link inside.
+
+While a command writes ``out``, three names beside it belong to it::
+
+    .OUT.partial-TOKEN          the new store or file being written
+    .OUT.old-TOKEN              the old ``out``, for the moment between the two renames and its removal
+    .OUT.staging-TOKEN.json     the marker: which process (host, pid, start time) owns the other two
+
+A process killed while it holds them leaves them behind; the next staged write into the same
+directory (:func:`clean_stale_staging`) removes what such dead owners left, and puts an old
+``out`` back where the kill fell between the two renames.  Nothing without a marker, and
+nothing whose owner still runs, is touched.
+"""
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
+import socket
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import OutputExistsError
+from .integrity import consolidate
 
-__all__ = ["check_output_path", "staged_output"]
+__all__ = ["check_output_path", "OutputPathError", "describe_existing", "check_no_links", "staged_output",
+           "clean_stale_staging"]
+
+class OutputPathError(OutputExistsError):
+    """An output path that would destroy an input, or a store of another kind (says which)."""
 
 
-def check_output_path(path, *, overwrite: bool = False) -> None:
-    """Refuse to write over an existing, non-empty path unless ``overwrite``."""
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+
+
+def describe_existing(path) -> str | None:
+    """What lies at ``path``: a streaklab store kind (``"run"``, ``"cube"``, ...), ``"zarr"`` (a Zarr
+    store of other software), ``"hdf5"``, ``"file"``, ``"directory"``, or None when nothing is there."""
     p = Path(path)
-    if p.exists() and (p.is_file() or any(p.iterdir())) and not overwrite:
+    if not p.exists():
+        return None
+    if p.is_file():
+        with open(p, "rb") as f:
+            return "hdf5" if f.read(8) == _HDF5_MAGIC else "file"
+    meta = p / "zarr.json"
+    if not meta.is_file():
+        return "zarr" if (p / ".zgroup").exists() or (p / ".zarray").exists() else "directory"
+    try:
+        attrs = json.loads(meta.read_text()).get("attributes", {}) or {}
+    except (OSError, ValueError):
+        return "zarr"
+    kind = attrs.get("streaklab_kind")
+    return str(kind) if kind else "zarr"
+
+
+_WHAT = {"run": "a streaklab run store (raw capture data)", "zarr": "a Zarr store of other software",
+         "hdf5": "an HDF5 file", "file": "a file that is not HDF5", "directory": "a directory"}
+
+
+def _what(found: str) -> str:
+    return _WHAT.get(found, f"a streaklab {found!r} store")
+
+
+def _store_inside(directory: Path) -> Path | None:
+    """The first Zarr store found below ``directory`` (a directory holding ``zarr.json``), or None."""
+    for dirpath, dirnames, filenames in os.walk(directory):
+        if "zarr.json" in filenames or ".zgroup" in filenames or ".zarray" in filenames:
+            return Path(dirpath)
+    return None
+
+
+def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | None = None) -> None:
+    """The one rule for where a command may write a new store or file (nothing is removed here).
+
+    Parameters
+    ----------
+    path : the output path.
+    overwrite : bool
+        An existing, non-empty ``path`` is refused without it.
+    inputs : paths the command reads; an output equal to one of them, inside one (e.g.
+        ``run.zarr/streaks``) or containing one is refused, even with ``overwrite``.
+    kind : what the command writes: a streaklab store kind (``"cube"``, ``"decomposition"``,
+        ...) or ``"hdf5"``.  ``overwrite`` replaces only a store of that same kind (or plain
+        files and directories that are no store and hold none); a store of another kind, above
+        all a run store of raw data, or a directory holding any Zarr store, is refused: its owner
+        removes it, streaklab never does.  Without ``kind`` any existing path may be replaced.
+
+    Raises
+    ------
+    OutputPathError
+        The output would overlap an input, or would replace a store of another kind.
+    OutputExistsError
+        ``path`` exists and ``overwrite`` is not given.
+    """
+    p = Path(path).resolve()
+    for q in inputs:
+        q = Path(q).resolve()
+        if p == q or p in q.parents or q in p.parents:
+            where = "lies inside" if q in p.parents else "holds"
+            raise OutputPathError(f"refusing to write to {path}: it {where} the input {q}; choose another path")
+    if not p.exists() or (p.is_dir() and not any(p.iterdir())):
+        return
+    if not overwrite:
         raise OutputExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
+    if kind is None:
+        return
+    found = describe_existing(p)
+    if found == "directory":                 # no store itself; but replacing it would delete any store inside
+        inner = _store_inside(p)
+        if inner is not None:
+            raise OutputPathError(f"refusing to replace {path}: it holds {_what(describe_existing(inner))} at "
+                                  f"{inner}; remove it yourself if you mean to, or choose another path")
+        return
+    if found == kind or found == "file":     # the same kind, or no store at all
+        return
+    raise OutputPathError(f"refusing to replace {path}: it is {_what(found)}, and --overwrite replaces only "
+                          f"{'an HDF5 file' if kind == 'hdf5' else f'a {kind} store'}; remove it yourself if "
+                          f"you mean to, or choose another path")
+
+
+def check_no_links(store) -> None:
+    """Refuse to write into a store holding a symbolic link anywhere below its root.
+
+    Writes (resuming a run or a decomposition, repairing) go through the store's own paths;
+    a link inside (``res.zarr/direct/c -> elsewhere``) would send them outside the store.
+    The root itself may be a link: it is the path the user named.
+    """
+    root = Path(store)
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            q = Path(dirpath) / name
+            if q.is_symlink():
+                raise OutputPathError(f"{q} is a symbolic link inside the store {store} (to {os.readlink(q)}); "
+                                      f"refusing to write through it: replace the link by the data, or copy the store")
+
+
+_MARKER = re.compile(r"^\.(?P<name>.+)\.staging-(?P<token>[0-9a-f]{8})\.json$")
 
 
 def _remove(p: Path) -> None:
@@ -26,22 +149,94 @@ def _remove(p: Path) -> None:
         p.unlink()
 
 
+def _names(out: Path, token: str) -> tuple[Path, Path, Path]:
+    d = out.parent
+    return (d / f".{out.name}.partial-{token}", d / f".{out.name}.old-{token}",
+            d / f".{out.name}.staging-{token}.json")
+
+
+def _start_time(pid: int) -> str | None:
+    """The process's start time (clock ticks since boot) on Linux, to tell a reused pid apart."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+def _owner_alive(info: dict) -> bool:
+    if info.get("host") != socket.gethostname():
+        return True                          # another machine's process: cannot tell, so it may be running
+    pid = int(info.get("pid", -1))
+    if pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    started = info.get("started")
+    return started is None or _start_time(pid) in (None, started)
+
+
+def clean_stale_staging(directory) -> list[Path]:
+    """Remove what killed streaklab writes left in ``directory``; returns the paths removed.
+
+    Only names recorded by a marker (see the module docstring) whose owning process is gone.
+    When the kill fell between the two renames (``out`` absent, the old one still beside it),
+    the old ``out`` is put back instead of being removed.
+    """
+    removed = []
+    d = Path(directory)
+    try:
+        markers = [p for p in d.iterdir() if _MARKER.match(p.name)]
+    except OSError:
+        return removed
+    for marker in markers:
+        m = _MARKER.match(marker.name)
+        try:
+            info = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(info, dict) or info.get("producer") != "streaklab" or _owner_alive(info):
+            continue
+        out = d / m["name"]
+        tmp, trash, _ = _names(out, m["token"])
+        if trash.exists() and not out.exists() and not out.is_symlink():
+            os.replace(trash, out)
+        for p in (tmp, trash):
+            if p.exists() or p.is_symlink():
+                _remove(p)
+                removed.append(p)
+        marker.unlink(missing_ok=True)
+    return removed
+
+
 @contextmanager
-def staged_output(out, *, overwrite: bool = False):
+def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None = None):
     """Yield a temporary path beside ``out``; on success move it to ``out``.
 
-    ``out`` is checked first (an existing non-empty path needs ``overwrite``).  The
+    ``out`` is checked first by :func:`check_output_path` (an existing
+    non-empty path needs ``overwrite``; never an input; never a store of another ``kind``).  The
     caller writes a directory store or a file at the yielded path.  If the body raises,
     the temporary is removed and ``out`` is untouched; otherwise an existing ``out``
-    is replaced only once the new one is complete.
+    is replaced only once the new one is complete.  What earlier, killed runs left beside
+    ``out`` is cleaned first (:func:`clean_stale_staging`).
     """
     out = Path(out).resolve()
-    check_output_path(out, overwrite=overwrite)
-    tmp = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
+    check_output_path(out, overwrite=overwrite, inputs=inputs, kind=kind)
+    clean_stale_staging(out.parent)
+    token = uuid.uuid4().hex[:8]
+    tmp, trash, marker = _names(out, token)
+    pid = os.getpid()
+    marker.write_text(json.dumps({"producer": "streaklab", "host": socket.gethostname(), "pid": pid,
+                                  "started": _start_time(pid), "out": out.name}))
     try:
         yield tmp
+        if (tmp / "zarr.json").is_file():       # a complete Zarr store: index it for other readers
+            consolidate(tmp)
         if out.exists():
-            trash = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(out, trash)
             try:
                 os.replace(tmp, out)
@@ -54,3 +249,4 @@ def staged_output(out, *, overwrite: bool = False):
     finally:
         if tmp.exists() or tmp.is_symlink():
             _remove(tmp)
+        marker.unlink(missing_ok=True)

@@ -90,7 +90,8 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         ``rms_residual``   (by, bx) float64, sqrt(mean over t of residual**2)
         ``flags``          (by, bx) uint8
         ``valid``          (by, bx) bool, pixel finite and decomposed
-        ``direct``, ``sss``, ``residual`` (by, bx, L) and ``ir`` (by, bx, n_ir, L), float32,
+        ``direct``, ``sss``, ``residual`` (by, bx, L) and ``ir`` (by, bx, n_ir, L), in the solver's
+        precision (float64),
         only if ``with_components``
         ``stats``          dict: pixels, invalid, ir_truncated, seconds
     """
@@ -144,9 +145,9 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         out["params"] = {k: scatter(v, np.nan, np.float64) for k, v in params.items()}
         out["rms_residual"] = scatter(rms, np.nan, np.float64)
         out["flags"] = scatter(flags, _nonfinite_flag(), np.uint8)
-        if with_components:
+        if with_components:  # in the solver's precision: the store decides what fits its arrays
             for k, v in comps.items():
-                out[k] = scatter(v, np.nan, np.float32)
+                out[k] = scatter(v, np.nan, np.result_type(np.asarray(v).dtype, np.float32))
     else:  # nothing to solve: shapes come from the caller's expectations
         out["params"] = None
         if with_components:

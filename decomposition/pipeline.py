@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import StreaklabError
+from core.integrity import CheckedReader, DataIntegrityError, read_checked
 
 __all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
 
@@ -123,16 +124,24 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         raise PipelineError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    arr = da.from_zarr(cube.array)
+    # read through the checksum check: a damaged chunk is named, not a traceback from a worker
+    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, fancy=False, asarray=True)
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
     if "y" in cube.group:
-        y_coord = np.asarray(cube.group["y"][...], np.float64)
+        y_coord = np.asarray(read_checked(cube.group["y"], slice(None), store=str(p)), np.float64)
         y_units = str(cube.group["y"].attrs.get("units", "pixel"))
     default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
     return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
             y_coord, y_units)
+
+
+def _flag_table() -> dict:
+    """The solver's flag table (bit -> name): the one place the flag names are defined."""
+    from decomposition.api import FLAG_NAMES
+
+    return {int(bit): str(name) for bit, name in dict(FLAG_NAMES).items()}
 
 
 def _jsonable(obj):
@@ -214,9 +223,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     existing = None
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+        from decomposition.resultstore import prepare_output_path
+
         try:
+            prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
             existing = open_result_store(out_path, mode="r+")
-        except ResultStoreError as exc:
+            existing.check_done_chunks_present()
+        except (ResultStoreError, DataIntegrityError) as exc:
             raise PipelineError(f"cannot resume: {exc}") from None
         if chunks is None:
             chunks = tuple(existing.chunks)
@@ -240,13 +253,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     else:
         from decomposition.resultstore import prepare_output_path
 
-        try:  # refuse an occupied path before spending time on checks
-            prepare_output_path(out_path, overwrite=False, protect=[source["path"]])
-        except FileExistsError:
-            if not overwrite:
-                raise PipelineError(f"{out_path} already exists; pass --overwrite to replace it "
-                                   f"(or --resume to continue a run into it)") from None
-        except ResultStoreError as exc:
+        try:  # refuse an occupied path (or one overlapping the input) before spending time on checks
+            prepare_output_path(out_path, overwrite=overwrite, protect=[source["path"]])
+        except (FileExistsError, ResultStoreError) as exc:
             raise PipelineError(str(exc)) from None
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
@@ -271,7 +280,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
                                             write_components=write_components, signal_units=units, y_coord=y_coord,
                                             y_units=y_units, attrs=attrs, overwrite=overwrite,
-                                            protect=[source["path"]])
+                                            protect=[source["path"]], flag_names=_flag_table())
             except (ResultStoreError, FileExistsError) as exc:
                 raise PipelineError(str(exc)) from None
         else:
@@ -302,6 +311,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         t_compute = time.perf_counter()
         try:
             run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except DataIntegrityError as exc:           # a damaged chunk of the input
+            if bar is not None:
+                bar.close()
+            raise DataIntegrityError(f"{exc} (the chunks finished before it are in {out_path}; --resume "
+                                     f"continues once the input is mended)") from None
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()

@@ -1,13 +1,13 @@
 """The decomposition result store: one Zarr v3 group per decomposed cube.
 
-Layout (every array has ``dimension_names``; ``xarray.open_zarr(path, consolidated=False)`` opens it)::
+Layout (every array has ``dimension_names``; ``xarray.open_zarr(path)`` opens it)::
 
     direct_delay_ps, direct_amplitude, direct_sigma_ps,          (y, x)     float64, NaN = absent
     sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps  (y, x)     float64, NaN = absent
     ir_delay_ps, ir_amplitude, ir_sigma_ps                       (y, x, r)  float64, NaN = absent
     <any further solver parameter, e.g. *_stderr>                (y, x) or (y, x, r)
     rms_residual   (y, x)        float64  sqrt(mean over t of residual**2), signal units
-    flags          (y, x)        uint8    the solver's per-pixel quality flags
+    flags          (y, x)        uint16   the solver's per-pixel quality flags (+ OUT_OF_RANGE, 256)
     valid          (y, x)        bool     the pixel's profile was finite and was decomposed
     done           (y, x)        bool     the pixel's chunk has been written completely
     direct, sss, residual  (y, x, t)     float32  rendered components (optional)
@@ -39,10 +39,13 @@ import zarr
 
 from core.durable import sync_chunk
 from core.errors import OutputExistsError, StreaklabError
-from core.staging import staged_output
+from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
+                            read_checked, scan_array, writable)
+from core.staging import OutputPathError, check_no_links, check_output_path, staged_output
 
 __all__ = [
     "RESULT_KIND",
+    "OUT_OF_RANGE",
     "FORMAT_VERSION",
     "CORE_MAP_KEYS",
     "CORE_IR_KEYS",
@@ -56,6 +59,10 @@ __all__ = [
 ]
 
 RESULT_KIND = "decomposition"
+#: The store's own bit in ``flags``, above the solver's eight: a rendered component or the residual of
+#: the pixel exceeds the float32 range of the component arrays; those values are stored as NaN (the
+#: float64 parameters are exact).
+OUT_OF_RANGE = 256
 FORMAT_VERSION = 1
 CORE_MAP_KEYS = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps",
                  "sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps", "sss_sigma_ps")
@@ -92,24 +99,34 @@ def _units_for(key: str, signal_units: str) -> str:
 
 
 def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
-    """Check that a new store may be written at ``path`` (nothing is removed here).
+    """Check that a new result store may be written at ``path`` (nothing is removed here).
 
-    An absent or empty path is fine; anything else needs ``overwrite`` (the old content is
-    replaced only once the new store is complete).  A path in ``protect`` (or one containing
-    it, e.g. the input cube) is refused even with ``overwrite``.
+    The rule is :func:`core.staging.check_output_path`: an absent or empty path is
+    fine; anything else needs ``overwrite`` and may then only be a result store (or no store at
+    all); a path in ``protect`` (the input), inside it or containing it is always refused.
     """
-    p = Path(path).resolve()
-    for q in protect:
-        q = Path(q).resolve()
-        if p == q or p in q.parents:
-            raise ResultStoreError(f"refusing to write the result to {path}: it holds the input {q}")
-    if not p.exists() and not p.is_symlink():
-        return
-    if p.is_dir() and not any(p.iterdir()):
-        return
-    if not overwrite:
+    try:
+        check_output_path(path, overwrite=overwrite, inputs=protect, kind=RESULT_KIND)
+    except OutputPathError as exc:
+        raise ResultStoreError(str(exc)) from None
+    except OutputExistsError:
         raise OutputExistsError(f"{path} already exists; pass --overwrite to replace it "
-                              f"(or --resume to continue a run into it)")
+                                f"(or --resume to continue a run into it)") from None
+
+
+@dataclass
+class ResultCheck:
+    """What :meth:`ResultStore.verify` found: ``checksums`` (False for stores of earlier releases),
+    ``chunks`` (pixel chunk (iy, ix) -> list of ChunkDamage, for chunks marked done or whose
+    ``done`` flags are damaged) and ``other`` (damaged coordinate arrays)."""
+
+    checksums: bool
+    chunks: dict
+    other: list
+
+    @property
+    def ok(self) -> bool:
+        return not (self.chunks or self.other)
 
 
 @dataclass
@@ -154,7 +171,72 @@ class ResultStore:
 
     def done_mask(self) -> np.ndarray:
         """(ny, nx) bool: pixels whose chunk is completely written."""
-        return np.asarray(self.group["done"][...], dtype=bool)
+        return np.asarray(read_checked(self.group["done"], slice(None), store=self.path), dtype=bool)
+
+    # ----- integrity ---------------------------------------------------------------------------
+    def pixel_arrays(self) -> list[str]:
+        """Arrays chunked on the pixel grid (everything but the coordinates)."""
+        names = list(self.param_keys) + list(_QUALITY) + ["done"]
+        return names + (list(COMPONENT_NAMES) if self.write_components else [])
+
+    def _chunk_coords(self, name: str, iy: int, ix: int) -> tuple:
+        return (iy, ix) + (0,) * (self.group[name].ndim - 2)
+
+    def absent_chunks(self) -> list[ChunkDamage]:
+        """Chunk files missing where ``done`` says the chunk is written (a stat each)."""
+        done = [(int(a), int(b)) for a, b in np.argwhere(self.done_chunks())]
+        out = []
+        for name in self.pixel_arrays():
+            if name == "done":
+                continue
+            arr = self.group[name]
+            out.extend(ChunkDamage(name, c, "missing")
+                       for c in missing_chunks(self.path, arr, [self._chunk_coords(name, *ij) for ij in done]))
+        return out
+
+    def check_done_chunks_present(self) -> None:
+        """Raise :class:`DataIntegrityError` naming the chunks marked done whose files are missing."""
+        absent = self.absent_chunks()
+        if not absent:
+            return
+        where = sorted({d.coords[:2] for d in absent})
+        shown = ", ".join(f"({iy}, {ix})" for iy, ix in where[:10]) + (f", ... ({len(where)} in all)"
+                                                                       if len(where) > 10 else "")
+        raise DataIntegrityError(
+            f"{self.path}: pixel chunk{'s' if len(where) > 1 else ''} {shown} {'are' if len(where) > 1 else 'is'} "
+            f"marked done but {', '.join(sorted({d.array for d in absent}))} chunk files are missing; run "
+            f"'streaklab verify {self.path} --mark-for-resume', then 'streaklab decompose ... --resume' to "
+            f"recompute just those")
+
+    def verify(self) -> "ResultCheck":
+        """Read every chunk marked done; damage is reported per pixel chunk (see :class:`ResultCheck`)."""
+        g, path = self.group, self.path
+        gy, gx = self.grid
+        chunks: dict[tuple, list] = {}
+        done_arr = g["done"]
+        done = []
+        for ij in np.ndindex(gy, gx):
+            bad = list(scan_array(path, done_arr, [ij], must_exist=lambda c: False))
+            if bad:
+                chunks.setdefault(ij, []).extend(bad)
+            elif done_arr[self.chunk_slices(*ij)].all():
+                done.append(ij)
+        for name in self.pixel_arrays():
+            if name == "done":
+                continue
+            arr = g[name]
+            for d in scan_array(path, arr, [self._chunk_coords(name, *ij) for ij in done]):
+                chunks.setdefault(d.coords[:2], []).append(d)
+        other = [d for name in ("t", "y", "x", "r") for d in scan_array(path, g[name])]
+        return ResultCheck(checksums=has_checksums(done_arr), chunks=dict(sorted(chunks.items())), other=other)
+
+    def mark_chunks_not_done(self, chunks) -> None:
+        """Clear ``done`` over the given pixel chunks (durably) so ``decompose --resume`` recomputes them."""
+        done = writable(self.group["done"])
+        for iy, ix in chunks:
+            ys, xs = self.chunk_slices(int(iy), int(ix))
+            done[ys, xs] = np.zeros((ys.stop - ys.start, xs.stop - xs.start), dtype=bool)
+            sync_chunk(self.path, "done", (int(iy), int(ix)))
 
     def done_chunks(self) -> np.ndarray:
         """(gy, gx) bool: chunks completely written."""
@@ -217,14 +299,39 @@ class ResultStore:
             value = np.asarray(value)
             if value.shape != shape:
                 raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
+        writes = self._fit_to_dtypes(writes, region)
         for k, value, _ in writes:
-            g[k][ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
+            writable(g[k])[ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
         # whose data never reached the disk (resume would skip it)
         for k, _, shape in writes:
             sync_chunk(self.path, k, (iy, ix) + (0,) * (len(shape) - 2))
-        g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
+        writable(g["done"])[ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
         sync_chunk(self.path, "done", (iy, ix))
+
+    def _fit_to_dtypes(self, writes: list, region: tuple) -> list:
+        """Values too large for their array's float dtype (float32 components) become NaN, and
+        their pixels get :data:`OUT_OF_RANGE` in ``flags``: never an inf that looks like data."""
+        g = self.group
+        over = np.zeros(region, dtype=bool)
+        fitted = []
+        for k, value, shape in writes:
+            dt = g[k].dtype
+            value = np.asarray(value)
+            if dt.kind == "f" and value.dtype.kind == "f" and value.dtype.itemsize > dt.itemsize:
+                big = np.isfinite(value) & (np.abs(value) > np.finfo(dt).max)
+                if big.any():
+                    value = np.where(big, np.nan, value)
+                    over |= big.reshape(region + (-1,)).any(axis=-1)
+            fitted.append((k, value, shape))
+        if over.any():
+            if g["flags"].dtype.itemsize < 2:                  # a store of an earlier release
+                raise ResultStoreError(f"{self.path}: results of {int(over.sum())} pixels do not fit the float32 "
+                                       f"component arrays, and this store's uint8 flags cannot mark them; "
+                                       f"decompose into a new store")
+            fitted = [(k, (np.asarray(v).astype(np.uint16) | np.where(over, OUT_OF_RANGE, 0).astype(np.uint16))
+                       if k == "flags" else v, s) for k, v, s in fitted]
+        return fitted
 
     # ----- reads -------------------------------------------------------------------------------
     def params(self, ys=slice(None), xs=slice(None)) -> dict[str, np.ndarray]:
@@ -238,7 +345,8 @@ class ResultStore:
 def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t0_ps: float,
                         param_keys=None, ir_param_keys=(), write_components: bool = True,
                         signal_units: str = "counts", y_coord=None, y_units: str = "pixel",
-                        attrs: dict | None = None, overwrite: bool = False, protect=()) -> ResultStore:
+                        attrs: dict | None = None, overwrite: bool = False, protect=(),
+                        flag_names: dict | None = None) -> ResultStore:
     """Create an empty result store (parameters NaN, nothing done) ready for chunk writes.
 
     Parameters
@@ -261,6 +369,9 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
         Also create the component cubes (as big as the input each).
     attrs : dict, optional
         Extra group attributes (method, options, source, ...); JSON-serialisable.
+    flag_names : dict bit -> name, optional
+        The solver's flag table, written as the CF ``flag_masks`` / ``flag_meanings`` of ``flags``
+        (with the store's own :data:`OUT_OF_RANGE` bit).
     """
     ny, nx, nt = (int(s) for s in shape)
     by, bx = (int(c) for c in chunks)
@@ -277,15 +388,17 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     if reserved & set(all_keys):
         raise ResultStoreError(f"parameter names clash with store arrays: {sorted(reserved & set(all_keys))}")
     prepare_output_path(path, overwrite=overwrite, protect=protect)
-    with staged_output(path, overwrite=True) as tmp:  # complete before it appears at ``path``
+    # complete before it appears at ``path``
+    with staged_output(path, overwrite=True, inputs=protect, kind=RESULT_KIND) as tmp:
         _write_skeleton(tmp, shape=(ny, nx, nt), chunks=(by, bx), n_ir=n_ir, time_bin_ps=time_bin_ps,
                         t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
-                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs)
+                        signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs,
+                        flag_names=flag_names)
     return open_result_store(path, mode="r+")
 
 
 def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, ir_keys, write_components,
-                    signal_units, y_coord, y_units, attrs):
+                    signal_units, y_coord, y_units, attrs, flag_names):
     ny, nx, nt = shape
     by, bx = chunks
     all_keys = map_keys + ir_keys
@@ -304,12 +417,13 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(meta)
 
-    def arr(name, shp, chk, dtype, dims, fill, units=None):
+    def arr(name, shp, chk, dtype, dims, fill, units=None, **extra):
         a = {"long_name": _LONG_NAMES.get(name, name)}
         if units is not None:
             a["units"] = units
-        return g.create_array(name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
-                              fill_value=fill, attributes=a)
+        a.update(extra)
+        return create_array(g, name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
+                            fill_value=fill, attributes=a)
 
     for k in map_keys:
         arr(k, (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, _units_for(k, signal_units))
@@ -317,9 +431,17 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
         arr(k, (ny, nx, n_ir), (by, bx, max(n_ir, 1)), "float64", ["y", "x", "r"], np.nan,
             _units_for(k, signal_units))
     arr("rms_residual", (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, signal_units)
-    arr("flags", (ny, nx), (by, bx), "uint8", ["y", "x"], 0)
-    arr("valid", (ny, nx), (by, bx), "bool", ["y", "x"], False)
-    arr("done", (ny, nx), (by, bx), "bool", ["y", "x"], False)
+    table = {**{int(b): str(n) for b, n in dict(flag_names or {}).items()}, OUT_OF_RANGE: "OUT_OF_RANGE"}
+    arr("flags", (ny, nx), (by, bx), "uint16", ["y", "x"], 0, "1",
+        flag_masks=sorted(table), flag_meanings=" ".join(table[b] for b in sorted(table)),
+        comment="bit field; 0 = no flag. OUT_OF_RANGE is the store's own: a component did not fit float32 "
+                "and is stored as NaN")
+    arr("valid", (ny, nx), (by, bx), "bool", ["y", "x"], False, "1", flag_values=[0, 1],
+        flag_meanings="not_decomposed decomposed",
+        comment="False: the profile had NaN/inf samples (or was never computed); its results are NaN")
+    arr("done", (ny, nx), (by, bx), "bool", ["y", "x"], False, "1", flag_values=[0, 1],
+        flag_meanings="pending written",
+        comment="True once every array of the pixel's chunk is on disk; --resume recomputes the rest")
     if write_components:
         for k in ("direct", "sss", "residual"):
             arr(k, (ny, nx, nt), (by, bx, nt), "float32", ["y", "x", "t"], np.nan, signal_units)
@@ -348,17 +470,24 @@ def _from_group(path: str, g: zarr.Group) -> ResultStore:
                        write_components=bool(a["write_components"]), attrs=a)
 
 
-def open_result_store(path, *, mode: str = "r") -> ResultStore:
+def open_result_store(path, *, mode: str = "r", check_links: bool = True) -> ResultStore:
     """Open and validate a result store; raises :class:`ResultStoreError` naming what is wrong.
 
-    ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes).
+    ``mode`` is ``"r"`` (read only) or ``"r+"`` (chunk writes); ``r+`` refuses a store with a
+    symbolic link inside (see :func:`core.staging.check_no_links`) unless
+    ``check_links`` is False (the per-chunk writers of a run whose store was checked on opening).
     """
     if mode not in ("r", "r+"):
         raise ValueError(f"mode must be 'r' or 'r+', got {mode!r}")
     if not os.path.exists(path):
         raise ResultStoreError(f"{path}: no such file or directory")
+    if mode == "r+" and check_links:
+        try:
+            check_no_links(path)
+        except OutputPathError as exc:
+            raise ResultStoreError(str(exc)) from None
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise ResultStoreError(f"{path} is not a Zarr group: {exc}") from None
     kind = g.attrs.get("streaklab_kind")
@@ -388,4 +517,4 @@ class ChunkWriter:
     path: str
 
     def __call__(self, iy: int, ix: int, result: dict) -> None:
-        open_result_store(self.path, mode="r+").write_chunk(iy, ix, result)
+        open_result_store(self.path, mode="r+", check_links=False).write_chunk(iy, ix, result)

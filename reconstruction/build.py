@@ -23,12 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.config import check_calibration
-from acquisition.runstore import open_run
+from acquisition.runstore import describe_absent, open_run
 from core.errors import StreaklabError
+from core.integrity import create_array, read_checked
 from core.staging import check_output_path, staged_output
 
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
-from .cubestore import create_cube, open_cube
+from .cubestore import CUBE_KIND, create_cube, open_cube
 
 __all__ = ["ReconstructionError", "reconstruct"]
 
@@ -78,7 +79,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     out = Path(out_path)
     if out.resolve() == Path(run.path).resolve():
         raise ReconstructionError(f"--out {out_path} is the run store itself; choose another path")
-    check_output_path(out, overwrite=overwrite)
+    inputs = [run.path] + ([flat_path] if flat_path is not None else [])
+    check_output_path(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND)
 
     cfg = run.config
     nx, n_rows = run.image_shape
@@ -102,13 +104,16 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             f"finish the run with 'streaklab capture --resume', or pass --allow-partial to fill them with NaN")
     if not run.dark_done():
         raise ReconstructionError(f"{run.path}: the dark frames were never recorded; the run is damaged")
-    dark = dark_image(run["dark"][...], (nx, n_rows))
+    absent = run.absent_chunks()
+    if absent:
+        raise ReconstructionError(describe_absent(run, absent))
+    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
     flat, flat_sha = (None, None)
     if flat_path is not None:
         flat, flat_sha = load_flat(flat_path, (nx, n_rows))
 
-    target = np.asarray(run["target_angle_deg"][...], dtype=np.float64)
-    reached = np.asarray(run["angle_deg"][...], dtype=np.float64)
+    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
+    reached = np.asarray(read_checked(run["angle_deg"], slice(None), store=run.path), dtype=np.float64)
     order = np.argsort(target, kind="stable")                       # y -> run line
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     provenance = {
@@ -135,16 +140,17 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
     }
 
-    with staged_output(out, overwrite=overwrite) as tmp:
+    with staged_output(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND) as tmp:
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
         g = cube.group
-        g.create_array("line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
-                       attributes={"long_name": "run line filling this y"})[:] = order
-        g.create_array("line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
-                       attributes={"long_name": "line acquired (False: unfinished, cube is NaN)"})[:] = done[order]
-        g.create_array("angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
-                       attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
+        create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
+                     attributes={"long_name": "run line filling this y"})[:] = order
+        create_array(g, "line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
+                     attributes={"long_name": "line acquired (False: unfinished, cube is NaN)", "flag_values": [0, 1],
+                                 "flag_meanings": "unfinished acquired"})[:] = done[order]
+        create_array(g, "angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
+                     attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
         by = cube.array.chunks[0]
         streaks = run["streaks"]
         for y0 in range(0, n_lines, by):
@@ -152,7 +158,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             block = np.full((ys.size, nx, n_bins), np.nan, dtype=np.float32)
             ok = done[ys]
             if ok.any():
-                raw = np.stack([streaks[int(i)] for i in ys[ok]])            # (b, frame, x, rows) uint16
+                raw = np.stack([read_checked(streaks, int(i), store=run.path)
+                                for i in ys[ok]])                             # (b, frame, x, rows) uint16
                 corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
                 block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
                                              t0_ps=t0_ps, n_bins=n_bins)

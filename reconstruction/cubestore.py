@@ -23,12 +23,13 @@ import numpy as np
 import zarr
 
 from core.errors import StreaklabError
+from core.integrity import consolidate, create_array, has_checksums, scan_group
 from core.irf import InstrumentResponse
-from core.irfstore import read_response_group, write_response_group
+from core.irfstore import RESPONSE_KIND, read_response_group, write_response_group
 from core.staging import check_output_path, staged_output
 
-__all__ = ["CUBE_KIND", "IRF_GROUP", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube",
-           "write_cube_response", "read_cube_response"]
+__all__ = ["CUBE_KIND", "IRF_GROUP", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
+           "verify_cube", "write_cube_response", "read_cube_response"]
 
 CUBE_KIND = "cube"
 IRF_GROUP = "irf"
@@ -104,16 +105,16 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
     }
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(attrs)
-    arr = g.create_array("cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
-                         dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
-    t = g.create_array("t", shape=(nt,), dtype="float64", dimension_names=["t"],
-                       attributes={"units": "ps", "long_name": "time of bin centre"})
+    arr = create_array(g, "cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
+                       dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
+    t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
+                     attributes={"units": "ps", "long_name": "time of bin centre"})
     t[:] = float(t0_ps) + time_bin_ps * np.arange(nt)
-    y = g.create_array("y", shape=(ny,), dtype="float64", dimension_names=["y"],
-                       attributes={"units": y_units, "long_name": "scan line"})
+    y = create_array(g, "y", shape=(ny,), dtype="float64", dimension_names=["y"],
+                     attributes={"units": y_units, "long_name": "scan line"})
     y[:] = np.arange(ny, dtype=np.float64) if y_coord is None else np.asarray(y_coord, np.float64)
-    x = g.create_array("x", shape=(nx,), dtype="float64", dimension_names=["x"],
-                       attributes={"units": "pixel", "long_name": "slit position"})
+    x = create_array(g, "x", shape=(nx,), dtype="float64", dimension_names=["x"],
+                     attributes={"units": "pixel", "long_name": "slit position"})
     x[:] = np.arange(nx, dtype=np.float64)
     return Cube(str(path), g, arr, time_bin_ps, float(t0_ps), dict(arr.attrs))
 
@@ -134,7 +135,7 @@ def open_cube(path, *, mode: str = "r") -> Cube:
     if not os.path.exists(path):
         raise CubeStoreError(f"{path}: no such file or directory")
     try:
-        g = zarr.open_group(str(path), mode=mode)
+        g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise CubeStoreError(f"{path} is not a Zarr group: {exc}") from None
     if "cube" not in g:
@@ -157,6 +158,24 @@ def open_cube(path, *, mode: str = "r") -> Cube:
         raise CubeStoreError(f"{path}/cube has a non-positive time_bin_ps ({time_bin_ps})")
     t0_ps = float(attrs.get("t0_ps", time_bin_ps))
     return Cube(str(path), g, arr, time_bin_ps, t0_ps, attrs)
+
+
+@dataclass(frozen=True)
+class CubeCheck:
+    """What :func:`verify_cube` found: ``checksums`` (False for stores of earlier releases) and
+    ``damaged``, every damaged chunk of every array (``cube`` chunks are (y, x, t) pixel blocks)."""
+
+    checksums: bool
+    damaged: list
+
+    @property
+    def ok(self) -> bool:
+        return not self.damaged
+
+
+def verify_cube(cube: Cube) -> CubeCheck:
+    """Read every chunk of every array of a cube store (sub-groups such as ``truth`` included)."""
+    return CubeCheck(checksums=has_checksums(cube.array), damaged=list(scan_group(cube.path, cube.group)))
 
 
 def _cube_path(cube) -> str:
@@ -182,8 +201,9 @@ def write_cube_response(cube, irf: InstrumentResponse, *, overwrite: bool = Fals
     if target.exists() and not overwrite:
         raise CubeStoreError(f"{path} already holds an instrument response (its '{IRF_GROUP}' group); "
                              f"pass overwrite=True (--overwrite) to replace it")
-    with staged_output(target, overwrite=overwrite) as tmp:
+    with staged_output(target, overwrite=overwrite, kind=RESPONSE_KIND) as tmp:
         write_response_group(zarr.open_group(str(tmp), mode="w"), irf)
+    consolidate(path)                   # the cube's consolidated metadata lists the new group
 
 
 def read_cube_response(cube) -> InstrumentResponse | None:

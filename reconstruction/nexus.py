@@ -30,9 +30,10 @@ import numpy as np
 import zarr
 
 from core.errors import StreaklabError
+from core.integrity import create_array, read_checked
 from core.staging import staged_output
 
-from .cubestore import CubeStoreError, create_cube, open_cube
+from .cubestore import CUBE_KIND, CubeStoreError, create_cube, open_cube
 
 __all__ = ["NexusError", "export_cube", "import_cube"]
 
@@ -77,7 +78,7 @@ def _simple_attr(value):
     return None
 
 
-def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
+def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str, store) -> None:
     if arr.dtype.kind not in "biuf":
         raise NexusError(f"array {arr.path!r} has dtype {arr.dtype}, which this exporter does not handle")
     kwargs = {}
@@ -86,11 +87,11 @@ def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
                   "compression_opts": 4, "shuffle": True}
     ds = parent.create_dataset(name, shape=arr.shape, dtype=arr.dtype, **kwargs)
     if arr.ndim == 0:
-        ds[()] = arr[...]
+        ds[()] = read_checked(arr, (), store=store)
     elif arr.size:
         step = arr.chunks[0]
         for i in range(0, arr.shape[0], step):
-            ds[i:i + step] = arr[i:i + step]
+            ds[i:i + step] = read_checked(arr, slice(i, i + step), store=store)
     attrs = dict(arr.attrs)
     for k, v in attrs.items():
         native = _simple_attr(v)
@@ -101,16 +102,17 @@ def _copy_array(arr: zarr.Array, parent: h5py.Group, name: str) -> None:
                             "chunks": list(arr.chunks), "fill_value": _fill_json(arr.metadata.fill_value)})
 
 
-def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, skip=(), groups_into: h5py.Group | None = None) -> None:
+def _copy_group_contents(g: zarr.Group, h: h5py.Group, *, store, skip=(),
+                         groups_into: h5py.Group | None = None) -> None:
     """Copy ``g``'s arrays into ``h`` and its sub-groups (as NXcollection) into ``groups_into`` (default ``h``)."""
     for name, arr in sorted(g.arrays()):
         if name not in skip:
-            _copy_array(arr, h, name)
+            _copy_array(arr, h, name, store)
     for name, sub in sorted(g.groups()):
         hs = (h if groups_into is None else groups_into).create_group(name)
         hs.attrs["NX_class"] = "NXcollection"
         hs.attrs[META] = _json({"attributes": dict(sub.attrs)})
-        _copy_group_contents(sub, hs)
+        _copy_group_contents(sub, hs, store=store)
 
 
 def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
@@ -134,7 +136,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
     if clash:
         raise NexusError(f"{cube_path}: a sub-group named {clash[0]!r} collides with the NeXus layout")
     out = Path(out_path)
-    with staged_output(out, overwrite=overwrite) as tmp:
+    with staged_output(out, overwrite=overwrite, inputs=[cube_path], kind="hdf5") as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["NX_class"] = "NXroot"
             f.attrs["default"] = "entry"
@@ -154,7 +156,7 @@ def export_cube(cube_path, out_path, *, overwrite: bool = False) -> Path:
             data.attrs["t0_ps"] = cube.t0_ps
             data.attrs["provenance"] = _json(root_attrs.get("provenance", cube.attrs.get("provenance", {})))
             data.attrs[META] = _json({"attributes": root_attrs})
-            _copy_group_contents(g, data, groups_into=entry)
+            _copy_group_contents(g, data, store=cube_path, groups_into=entry)
     return out
 
 
@@ -183,8 +185,8 @@ def _restore_array(ds: h5py.Dataset, g: zarr.Group, name: str) -> None:
     shape = ds.shape
     chunks = tuple(meta["chunks"]) if shape else None
     kwargs = {"chunks": chunks} if chunks else {}
-    arr = g.create_array(name, shape=shape, dtype=ds.dtype, fill_value=_fill_value(meta["fill_value"], ds.dtype),
-                         dimension_names=meta["dimension_names"], attributes=meta["attributes"], **kwargs)
+    arr = create_array(g, name, shape=shape, dtype=ds.dtype, fill_value=_fill_value(meta["fill_value"], ds.dtype),
+                       dimension_names=meta["dimension_names"], attributes=meta["attributes"], **kwargs)
     if not shape:
         arr[...] = ds[()]
     elif ds.size:
@@ -252,7 +254,7 @@ def import_cube(h5_path, out_path, *, overwrite: bool = False) -> Path:
         f = h5py.File(p, "r")
     except OSError as exc:
         raise NexusError(f"{h5_path} is not an HDF5 file: {exc}") from None
-    with f, staged_output(out_path, overwrite=overwrite) as tmp:
+    with f, staged_output(out_path, overwrite=overwrite, inputs=[h5_path], kind=CUBE_KIND) as tmp:
         entry, data = _find_nxdata(f, h5_path)
         if META in data.attrs:
             meta = json.loads(data.attrs[META])

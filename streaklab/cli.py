@@ -25,6 +25,7 @@ COMMANDS = {
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
     "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),
     "decompose": ("streaklab.commands.decompose", "decompose every pixel of a cube"),
+    "verify": ("streaklab.commands.verify", "read every chunk of a store; name damaged lines/chunks and how to redo them"),
     "report": ("streaklab.commands.report", "figures and a summary of a result store"),
     "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability"),
 }

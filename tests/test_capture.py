@@ -205,3 +205,21 @@ def test_failed_session_tells_how_to_resume(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "failed after 4 attempts: DeviceTimeout" in err and "3 of 8 lines are safely in" in err
     assert f"--out {tmp_path / 'r.zarr'} --simulate --resume" in err
+
+
+def test_resume_never_deletes_a_folder_streaklab_did_not_mark(tmp_path):
+    """A folder whose files all end in .partial is not taken for an interrupted store creation."""
+    cfg = sim_config(n_lines=2)
+    out = tmp_path / "run.zarr"
+    (out / "sub").mkdir(parents=True)
+    (out / "sub" / "thesis.tex.partial").write_text("three years of work")
+    with pytest.raises(CaptureError, match="neither resumes nor removes it"):
+        run_capture(cfg, out, simulate=True, resume=True)
+    assert (out / "sub" / "thesis.tex.partial").read_text() == "three years of work"
+    # a run store marked as being created (what earlier releases left when killed) is recreated
+    import zarr
+
+    zarr.open_group(str(tmp_path / "old.zarr"), mode="w").attrs.update({"streaklab_kind": "run", "initialised": False})
+    result = run_capture(cfg, tmp_path / "old.zarr", simulate=True, resume=True)
+    assert result.status == "complete" and open_run(tmp_path / "old.zarr").done_mask().all()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no staging left

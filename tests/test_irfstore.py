@@ -9,7 +9,9 @@ from core.errors import OutputExistsError
 from core.irf import afterpulse_response, render_shifted, tailed_response
 from core.irfstore import ResponseStoreError, load_response, save_response
 from core.provenance import __version__
-from reconstruction.cubestore import CubeStoreError, read_cube_response, write_cube, write_cube_response
+from reconstruction.cubestore import (
+    CubeStoreError, open_cube, read_cube_response, verify_cube, write_cube, write_cube_response,
+)
 
 
 def _same(a, b):
@@ -60,6 +62,9 @@ def test_cube_store_holds_an_optional_response(tmp_path):
     ds = xr.open_zarr(cube.path, consolidated=False)
     assert "irf_t" not in ds.dims and ds.cube.shape == (2, 3, 40)
     assert xr.open_zarr(cube.path, group="irf", consolidated=False).response.dims == ("irf_t",)
+    # The cube's consolidated index lists the response too, and verify reads its checksummed chunks.
+    assert xr.open_zarr(cube.path, group="irf").irf_t.attrs["units"] == "ps"
+    assert verify_cube(open_cube(cube.path)).ok
 
 
 def test_unusable_paths_are_named(tmp_path):

@@ -165,3 +165,33 @@ def test_every_chunk_file_is_fsynced_before_done_and_done_after(tmp_path, monkey
     done_file = f"{root}/done/c/1/2"
     assert files[-1] == done_file and files.count(done_file) == 1
     assert f"{root}/done/c/1" in synced and f"{root}/direct/c/1/2" in synced
+
+
+def test_values_beyond_float32_are_flagged_never_inf(tmp_path):
+    from decomposition.resultstore import OUT_OF_RANGE
+
+    store = _store(tmp_path)
+    res = _chunk_result(store, 0, 0, seed=2)
+    res["direct"][1, 2, 5] = 1e39                     # finite in float64, inf as float32
+    res["residual"][0, 0, :] = -5e38
+    store.write_chunk(0, 0, res)
+    g = open_result_store(store.path).group
+    direct, resid, flags = g["direct"][0:2, 0:3], g["residual"][0:2, 0:3], g["flags"][0:2, 0:3]
+    assert not np.isinf(direct).any() and not np.isinf(resid).any()
+    assert np.isnan(direct[1, 2, 5]) and np.isnan(resid[0, 0]).all()
+    assert direct[1, 2, 4] == np.float32(res["direct"][1, 2, 4])     # the rest of the pixel is kept
+    expect = res["flags"].astype(np.uint16)
+    expect[1, 2] |= OUT_OF_RANGE
+    expect[0, 0] |= OUT_OF_RANGE
+    np.testing.assert_array_equal(flags, expect)
+
+
+def test_quality_arrays_say_what_they_mean(tmp_path):
+    from decomposition.api import FLAG_NAMES
+
+    store = _store(tmp_path, flag_names=FLAG_NAMES)
+    a = store.group["flags"].attrs
+    assert a["flag_masks"] == sorted(FLAG_NAMES) + [256]
+    assert a["flag_meanings"].split() == [FLAG_NAMES[b] for b in sorted(FLAG_NAMES)] + ["OUT_OF_RANGE"]
+    assert store.group["valid"].attrs["flag_meanings"] == "not_decomposed decomposed"
+    assert store.group["done"].attrs["flag_values"] == [0, 1] and store.group["done"].attrs["units"] == "1"

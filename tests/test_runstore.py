@@ -44,9 +44,15 @@ def test_xarray_opens_run_with_dims(tmp_path):
     xr = pytest.importorskip("xarray")
     run = make(tmp_path)
     run.write_line(0, np.ones((2, 4, 8), np.uint16), angle_deg=1.0, timestamp=1.7e9)
-    ds = xr.open_zarr(tmp_path / "run.zarr", consolidated=False)
-    assert ds["streaks"].dims == ("line", "frame", "x", "t")
-    assert ds["dark"].dims == ("dark_frame", "x", "t")
+    ds = xr.open_zarr(tmp_path / "run.zarr")
+    assert ds["streaks"].dims == ("line", "frame", "x", "row")
+    assert ds["dark"].dims == ("dark_frame", "x", "row")
+    # labelled axes: line index, slit pixel, streak row and its calibrated time (poly [0, 2] ps)
+    assert set(ds["streaks"].coords) == {"line", "x", "row", "time_ps"}
+    np.testing.assert_array_equal(ds["line"], [0, 1, 2])
+    np.testing.assert_array_equal(ds["time_ps"], 2.0 * np.arange(8))
+    assert ds["time_ps"].attrs["units"] == "ps" and ds["x"].attrs["units"] == "pixel"
+    assert ds["done"].attrs["flag_meanings"] == "not_acquired acquired"
     assert ds["done"].dims == ("line",) and bool(ds["done"][0])
     assert ds["timestamp"].dtype.kind == "M"  # decoded as UTC datetimes
     assert ds.attrs["streaklab_kind"] == "run"
@@ -88,10 +94,13 @@ def test_config_differences_lists_keys():
 def test_interrupted_creation_is_recognised(tmp_path):
     from acquisition.runstore import is_uninitialised_run, remove_uninitialised_run
 
-    torn = tmp_path / "torn.zarr"
+    torn = tmp_path / "torn.zarr"            # not marked by streaklab: never taken for a torn run
     torn.mkdir()
     (torn / "zarr.json.1234.partial").write_text("{")
-    assert is_uninitialised_run(torn)
+    assert not is_uninitialised_run(torn)
+    with pytest.raises(RunStoreError, match="no zarr.json.*neither resumes nor removes it"):
+        open_run(torn, mode="r+")
+    assert (torn / "zarr.json.1234.partial").exists()
     g = zarr.open_group(str(tmp_path / "half.zarr"), mode="w")
     g.attrs.update({"streaklab_kind": "run", "initialised": False})
     assert is_uninitialised_run(tmp_path / "half.zarr")
@@ -106,3 +115,17 @@ def test_interrupted_creation_is_recognised(tmp_path):
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes/a.txt").write_text("mine")
     assert not is_uninitialised_run(tmp_path / "notes")
+
+
+def test_stores_carry_consolidated_metadata_through_resumed_sessions(tmp_path):
+    import warnings
+
+    xr = pytest.importorskip("xarray")
+    run = make(tmp_path)
+    run.add_session({"started_utc": "now"})                  # an attribute rewrite keeps it consolidated
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                       # no "consolidated metadata not found" warning
+        ds = xr.open_zarr(tmp_path / "run.zarr")
+    assert ds.attrs["sessions"] == [{"started_utc": "now"}]
+    meta = zarr.open_group(str(tmp_path / "run.zarr"), mode="r").metadata.consolidated_metadata
+    assert meta is not None and "streaks" in meta.metadata

@@ -66,6 +66,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     """
     import zarr
 
+    from core.integrity import create_array
     from reconstruction.cubestore import open_cube, write_cube
     from core.staging import staged_output
     from core.provenance import __version__
@@ -85,29 +86,29 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     if chunks is None:
         chunks = (min(ny, 16), min(nx, 64))
     by, bx = min(int(chunks[0]), ny), min(int(chunks[1]), nx)
-    with staged_output(path, overwrite=overwrite) as tmp:
+    with staged_output(path, overwrite=overwrite, kind="cube") as tmp:
         write_cube(tmp, data.noisy, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps, chunks=(by, bx),
                    units=SIGNAL_UNITS, provenance=provenance)
         root = zarr.open_group(str(tmp), mode="r+")
         g = root.create_group("truth")
         g.attrs.update({"streaklab_kind": "truth", "description": "ground truth of the simulated cube",
                         "units": SIGNAL_UNITS, **settings})
-        t = g.create_array("t", shape=(nt,), dtype="float64", dimension_names=["t"],
-                           attributes={"units": "ps", "long_name": "time of bin centre"})
+        t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
+                         attributes={"units": "ps", "long_name": "time of bin centre"})
         t[:] = data.t0_ps + data.time_bin_ps * np.arange(nt)
         for dim, size in (("y", ny), ("x", nx)):
-            c = g.create_array(dim, shape=(size,), dtype="float64", dimension_names=[dim],
-                               attributes=dict(root[dim].attrs))
+            c = create_array(g, dim, shape=(size,), dtype="float64", dimension_names=[dim],
+                             attributes=dict(root[dim].attrs))
             c[:] = root[dim][:]
-        r = g.create_array("r", shape=(n_ir,), chunks=(max(n_ir, 1),), dtype="int64", dimension_names=["r"],
-                           attributes={"units": "1", "long_name": "bounce number of the inter-reflection"})
+        r = create_array(g, "r", shape=(n_ir,), chunks=(max(n_ir, 1),), dtype="int64", dimension_names=["r"],
+                         attributes={"units": "1", "long_name": "bounce number of the inter-reflection"})
         if n_ir:
             r[:] = np.arange(2, 2 + n_ir)
         for key, value in data.params.items():
             dims = ["y", "x", "r"] if value.ndim == 3 else ["y", "x"]
             ch = (by, bx) + ((max(n_ir, 1),) if value.ndim == 3 else ())
-            a = g.create_array(key, shape=value.shape, chunks=ch, dtype="float64", dimension_names=dims,
-                               fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
+            a = create_array(g, key, shape=value.shape, chunks=ch, dtype="float64", dimension_names=dims,
+                             fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
             if value.size:
                 a[...] = value
         comps = {"direct": (data.components["direct"], ["y", "x", "t"], "direct reflection"),
@@ -116,8 +117,8 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
                         "inter-reflections r2, r3, ... in order of arrival")}
         for name, (value, dims, long_name) in comps.items():
             ch = (by, bx) + ((max(n_ir, 1),) if len(dims) == 4 else ()) + (nt,)
-            a = g.create_array(name, shape=value.shape, chunks=ch, dtype="float32", dimension_names=dims,
-                               fill_value=0.0, attributes={"units": SIGNAL_UNITS, "long_name": f"clean {long_name}"})
+            a = create_array(g, name, shape=value.shape, chunks=ch, dtype="float32", dimension_names=dims,
+                             fill_value=0.0, attributes={"units": SIGNAL_UNITS, "long_name": f"clean {long_name}"})
             if value.size:
                 a[...] = value.astype(np.float32)
     return open_cube(path)

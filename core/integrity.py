@@ -1,0 +1,185 @@
+"""Checksummed Zarr arrays, and finding damaged chunks in them.
+
+Every array streaklab writes is created through :func:`create_array`: its codec chain ends in
+zarr 3's ``crc32c`` codec (a checksum of the compressed chunk, checked on every read), and it
+writes chunks even when they hold only the fill value, so that a chunk file that is absent where
+the store says data was written means damage, never "all fill".  Writers that reopen an array
+use :func:`writable` for the same reason.
+
+Reads that meet a damaged chunk raise :class:`DataIntegrityError`, one line naming the store,
+the array and the chunk (:func:`read_checked`, :class:`CheckedReader` for dask).
+:func:`check_chunk` and :func:`scan_array` are the chunk walk shared by the ``verify``
+functions of every store kind.  Arrays written by earlier releases have no checksum
+(:func:`has_checksums`); for them only undecodable chunks can be found.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+import zarr
+from zarr.codecs import Crc32cCodec, ZstdCodec
+
+from .errors import StreaklabError
+
+__all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "has_checksums", "chunk_file",
+           "chunk_region", "chunk_grid", "consolidate", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
+           "missing_chunks"]
+
+_WRITE_ALL = {"write_empty_chunks": True}
+
+
+class DataIntegrityError(StreaklabError, ValueError):
+    """A chunk of a store is missing or fails its checksum (names the store, array and chunk)."""
+
+
+@dataclass(frozen=True)
+class ChunkDamage:
+    """One damaged chunk: ``array`` (path in the store), chunk ``coords``, ``problem`` (a phrase)."""
+
+    array: str
+    coords: tuple
+    problem: str
+
+    def __str__(self) -> str:
+        return f"{self.array} chunk {_coords(self.coords)}: {self.problem}"
+
+
+def _coords(coords) -> str:
+    return "(" + ", ".join(str(int(c)) for c in coords) + ")" if coords else "()"
+
+
+def create_array(group: zarr.Group, name: str, **kwargs) -> zarr.Array:
+    """``group.create_array`` with zstd + crc32c and every written chunk stored."""
+    kwargs.setdefault("compressors", (ZstdCodec(level=0), Crc32cCodec()))
+    kwargs.setdefault("config", dict(_WRITE_ALL))
+    return group.create_array(name, **kwargs)
+
+
+def writable(arr: zarr.Array) -> zarr.Array:
+    """The same array, writing chunks that hold only the fill value too."""
+    return arr.with_config(dict(_WRITE_ALL))
+
+
+def consolidate(store_path) -> None:
+    """Write the store's consolidated metadata (every array's metadata in the root ``zarr.json``), so
+    ``xarray.open_zarr(path)`` opens it in one read without a warning.  streaklab itself never
+    relies on it (it opens with ``use_consolidated=False``); array metadata never changes after a
+    store is created, and group attributes live in the root document itself, so it stays correct
+    while runs resume."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # "not part of the Zarr 3 specification yet": known
+        zarr.consolidate_metadata(str(store_path))
+
+
+def has_checksums(arr: zarr.Array) -> bool:
+    return any(isinstance(c, Crc32cCodec) for c in arr.metadata.codecs)
+
+
+def chunk_file(store_path, arr: zarr.Array, coords) -> Path:
+    """Path of chunk ``coords`` of ``arr`` in the directory store at ``store_path``."""
+    return Path(store_path).joinpath(*arr.path.split("/"), *arr.metadata.encode_chunk_key(tuple(coords)).split("/"))
+
+
+def chunk_grid(arr: zarr.Array) -> tuple[int, ...]:
+    return tuple(-(-s // c) for s, c in zip(arr.shape, arr.chunks))
+
+
+def chunk_region(arr: zarr.Array, coords) -> tuple[slice, ...]:
+    return tuple(slice(i * c, min(s, (i + 1) * c)) for i, c, s in zip(coords, arr.chunks, arr.shape))
+
+
+def check_chunk(store_path, arr: zarr.Array, coords, *, must_exist: bool) -> str | None:
+    """None if chunk ``coords`` is sound, else the problem ("missing", "fails its checksum", ...).
+
+    An absent chunk is a problem only when ``must_exist`` (the store says it was written) and
+    the array is checksummed (earlier releases skipped chunks holding only the fill value).
+    """
+    if arr.size == 0:
+        return None
+    if not chunk_file(store_path, arr, coords).is_file():
+        return "missing" if must_exist and has_checksums(arr) else None
+    try:
+        arr[chunk_region(arr, coords)]
+    except Exception as exc:  # noqa: BLE001 - any failure to decode is damage
+        return _problem(exc)
+    return None
+
+
+def _problem(exc: BaseException) -> str:
+    text = str(exc)
+    if "checksum" in text.lower():
+        return "fails its checksum (the bytes on disk changed)"
+    return f"cannot be decoded ({type(exc).__name__}: {text.splitlines()[0] if text else ''})"
+
+
+def scan_array(store_path, arr: zarr.Array, chunks: Iterable[tuple] | None = None, *,
+               must_exist=lambda coords: True) -> Iterator[ChunkDamage]:
+    """Check the given chunks of ``arr`` (default all); yield a :class:`ChunkDamage` for each bad one."""
+    if chunks is None:
+        chunks = np.ndindex(*chunk_grid(arr)) if arr.ndim else [()]
+    for coords in chunks:
+        problem = check_chunk(store_path, arr, tuple(coords), must_exist=must_exist(tuple(coords)))
+        if problem:
+            yield ChunkDamage(arr.path, tuple(int(c) for c in coords), problem)
+
+
+def scan_group(store_path, group: zarr.Group, *, skip=()) -> Iterator[ChunkDamage]:
+    """Check every chunk of every array in ``group`` and its sub-groups (all must exist), except ``skip``."""
+    for name, node in sorted(group.members(max_depth=None), key=lambda m: m[0]):
+        if isinstance(node, zarr.Array) and name not in skip:
+            yield from scan_array(store_path, node)
+
+
+def missing_chunks(store_path, arr: zarr.Array, chunks: Iterable[tuple]) -> list[tuple]:
+    """The chunks among ``chunks`` whose files are absent (only a stat each; checksummed arrays only)."""
+    if not has_checksums(arr) or arr.size == 0:
+        return []
+    return [tuple(c) for c in chunks if not chunk_file(store_path, arr, c).is_file()]
+
+
+def _chunks_of(arr: zarr.Array, selection) -> str:
+    """The chunk(s) a basic selection touches, for messages."""
+    if not isinstance(selection, tuple):
+        selection = (selection,)
+    parts = []
+    for dim, (sel, c, s) in enumerate(zip(selection + (slice(None),) * (arr.ndim - len(selection)),
+                                          arr.chunks, arr.shape)):
+        if isinstance(sel, slice):
+            start, stop, _ = sel.indices(s)
+            lo, hi = start // c, max(start, stop - 1) // c
+            parts.append(str(lo) if lo == hi else f"{lo}..{hi}")
+        else:
+            parts.append(str(int(sel) % s // c if s else 0))
+    return "(" + ", ".join(parts) + ")"
+
+
+def read_checked(arr: zarr.Array, selection, *, store) -> np.ndarray:
+    """``arr[selection]``; a damaged chunk raises :class:`DataIntegrityError` naming it."""
+    try:
+        return arr[selection]
+    except Exception as exc:  # noqa: BLE001
+        if isinstance(exc, (KeyboardInterrupt, MemoryError)):
+            raise
+        raise DataIntegrityError(f"{store}: array {arr.path!r}, chunk {_chunks_of(arr, selection)} "
+                                 f"{_problem(exc)}; run 'streaklab verify {store}' to list every damaged "
+                                 f"chunk and how to redo just those") from None
+
+
+class CheckedReader:
+    """Array-like over a Zarr array for ``dask.array.from_array``: reads through :func:`read_checked`."""
+
+    def __init__(self, arr: zarr.Array, store: str):
+        self.arr, self.store = arr, str(store)
+        self.shape, self.dtype, self.ndim = arr.shape, arr.dtype, arr.ndim
+        self.chunks = arr.chunks
+
+    def __dask_tokenize__(self):
+        return ("streaklab-checked", self.store, self.arr.path, self.shape, str(self.dtype))
+
+    def __getitem__(self, selection):
+        return read_checked(self.arr, selection, store=self.store)
