@@ -98,13 +98,16 @@ def read_response_group(group: zarr.Group, *, where: str = "the group") -> Instr
     return _from_parts(read_checked(group["response"], ..., store=where), dict(group.attrs), where)
 
 
-def save_response(path, irf: InstrumentResponse, *, overwrite: bool = False) -> Path:
+def save_response(path, irf: InstrumentResponse, *, overwrite: bool = False, inputs=()) -> Path:
     """Save a response as a standalone Zarr store, or as ``.npz`` when ``path`` ends in ``.npz``.
 
-    Written beside ``path`` and renamed into place; an existing ``path`` needs ``overwrite``.
+    Written beside ``path`` and renamed into place; an existing ``path`` needs ``overwrite`` and
+    is replaced only when it is a response (or a plain file); ``inputs`` (the stores the
+    response was estimated from) are never written over (:func:`core.staging.check_output_path`).
     """
     path = Path(path)
-    with staged_output(path, overwrite=overwrite, kind="file" if path.suffix == ".npz" else RESPONSE_KIND) as tmp:
+    kind = "file" if path.suffix == ".npz" else RESPONSE_KIND
+    with staged_output(path, overwrite=overwrite, inputs=inputs, kind=kind) as tmp:
         if path.suffix == ".npz":
             with open(tmp, "wb") as fh:
                 np.savez(fh, response=irf.samples, irf_t=irf.time_axis_ps(),

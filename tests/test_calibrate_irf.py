@@ -119,6 +119,11 @@ def test_calibrate_irf_recovers_the_simulated_response_end_to_end(tmp_path, caps
     assert main(["calibrate-irf", run, "--out", str(tmp_path / "irf.npz")]) == 0
     np.testing.assert_array_equal(load_response(tmp_path / "irf.npz").samples, est.samples)
     assert load_response(tmp_path / "irf.npz").provenance["run_store"].endswith("run.zarr")
+    # Never over the capture itself, nor over a store of another kind.
+    assert main(["calibrate-irf", cube, "--out", run, "--overwrite"]) == 2
+    assert "refusing to replace" in capsys.readouterr().err
+    assert main(["calibrate-irf", cube, "--out", cube + "/cube"]) == 2
+    assert "input" in capsys.readouterr().err
     # A stored response is kept unless --overwrite.
     assert main(["calibrate-irf", cube]) == 2
     assert "already holds an instrument response" in capsys.readouterr().err

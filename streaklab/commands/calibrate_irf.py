@@ -62,7 +62,7 @@ def run(args) -> int:
         fit = fit_response(cube, options=opts, source={"store": str(source.resolve())})
     irf = fit.response
     if args.out is not None:
-        where = str(save_response(args.out, irf, overwrite=args.overwrite))
+        where = str(save_response(args.out, irf, overwrite=args.overwrite, inputs=(source,)))
     else:
         write_cube_response(cube, irf, overwrite=args.overwrite)
         where = f"{source}/irf"
