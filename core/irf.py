@@ -217,6 +217,12 @@ class InstrumentResponse:
         """Sample times on the response's axis, shape (M,), ps."""
         return self.t0_ps + self.time_step_ps * np.arange(self.n_samples, dtype=np.float64)
 
+    @property
+    def spectrum(self) -> np.ndarray:
+        """rfft of the zero-padded samples, shape ((N + 1) / 2,), complex, read-only: the interpolant is
+        (1/N) [X_0 + 2 Re sum_k X_k exp(i omega_k (t - window_start_ps))] on the padded window."""
+        return self._spectrum
+
     def angular_frequencies(self) -> np.ndarray:
         """omega_k = 2 pi k / (N time_step_ps), k = 0 .. (N - 1) / 2, rad/ps."""
         return 2.0 * np.pi * np.arange(self._spectrum.size) / self.window_ps
