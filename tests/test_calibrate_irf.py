@@ -129,3 +129,15 @@ def test_calibrate_irf_recovers_the_simulated_response_end_to_end(tmp_path, caps
     assert "already holds an instrument response" in capsys.readouterr().err
     assert main(["calibrate-irf", cube, "--overwrite", "--post-ps", "300"]) == 0
     assert read_cube_response(cube).provenance["post_peak_ps"] == 300.0
+
+
+def test_simulated_lab_takes_a_response_by_name():
+    from drivers.sim.lab import SimulatedLab
+
+    lab = SimulatedLab(seed=0, response="afterpulse", mirror=False, sync=False)
+    assert lab.scene.response.model["name"] == "afterpulse"
+    assert SimulatedLab(seed=0, mirror=False, sync=False).scene.response is None
+    with pytest.raises(ValueError, match="not both"):
+        SimulatedLab(seed=0, scene=lab.scene, response="tailed", mirror=False, sync=False)
+    with pytest.raises(ValueError, match="unknown simulated response"):
+        SimulatedLab(seed=0, response="lorentzian", mirror=False, sync=False)
