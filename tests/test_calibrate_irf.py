@@ -129,6 +129,10 @@ def test_calibrate_irf_recovers_the_simulated_response_end_to_end(tmp_path, caps
     assert "already holds an instrument response" in capsys.readouterr().err
     assert main(["calibrate-irf", cube, "--overwrite", "--post-ps", "300"]) == 0
     assert read_cube_response(cube).provenance["post_peak_ps"] == 300.0
+    # The response travels with the cube through NeXus/HDF5.
+    h5, back = str(tmp_path / "cube.h5"), str(tmp_path / "back.zarr")
+    assert main(["export", cube, "--out", h5]) == 0 and main(["import", h5, "--out", back]) == 0
+    np.testing.assert_array_equal(read_cube_response(back).samples, read_cube_response(cube).samples)
 
 
 def test_simulated_lab_takes_a_response_by_name():
