@@ -320,13 +320,35 @@ def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
     return ScanConfig(data=data, source=source)
 
 
-def load_config(path) -> ScanConfig:
-    """Read and validate a TOML scan configuration file."""
+# Configurations installed with the package, by the name ``--config`` accepts for them.
+EXAMPLE_CONFIGS = {"sim": "sim_scan.toml"}
+
+
+def example_config_path(name: str = "sim") -> Path:
+    """The packaged example configuration ``name`` (see EXAMPLE_CONFIGS)."""
+    if name not in EXAMPLE_CONFIGS:
+        raise ConfigError(f"no example configuration {name!r}; available: {', '.join(EXAMPLE_CONFIGS)}")
+    return Path(__file__).resolve().parent / "examples" / EXAMPLE_CONFIGS[name]
+
+
+def resolve_config_path(path) -> Path:
+    """``path`` itself, or the packaged example when ``path`` is one of its names (``sim``) and no
+    file of that name exists."""
     p = Path(path)
+    if str(path) in EXAMPLE_CONFIGS and not p.exists():
+        return example_config_path(str(path))
+    return p
+
+
+def load_config(path) -> ScanConfig:
+    """Read and validate a TOML scan configuration file (or a packaged example, by name: ``sim``)."""
+    p = resolve_config_path(path)
     try:
         text = p.read_bytes()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}") from None
+        hint = ("; 'sim' names the packaged example of the simulated lab, and 'streaklab example-config --out "
+                "scan.toml' writes a copy to edit" if isinstance(exc, FileNotFoundError) else "")
+        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}{hint}") from None
     try:
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:

@@ -9,7 +9,7 @@ import argparse
 import importlib
 import sys
 
-from core.errors import StreaklabError
+from core.errors import OutputExistsError, StreaklabError
 
 from . import __version__
 
@@ -18,6 +18,7 @@ COMMANDS = {
     "demo": ("streaklab.commands.demo", "run the whole pipeline on the simulated lab and report"),
     "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
+    "example-config": ("streaklab.commands.example_config", "print or write the example scan configuration"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "calibrate-irf": ("streaklab.commands.calibrate_irf",
@@ -36,6 +37,14 @@ class CommandError(Exception):
 
     The library's own errors (:class:`core.errors.StreaklabError`) are printed the same way.
     """
+
+
+def output_exists(exc: FileExistsError) -> Exception:
+    """A taken output path, in the command line's words (the error itself when it names no path)."""
+    path = getattr(exc, "path", None)
+    if path is None:
+        return exc
+    return CommandError(f"{path} already exists; pass --overwrite to replace it")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except (CommandError, StreaklabError) as exc:
+        if isinstance(exc, OutputExistsError):
+            exc = output_exists(exc)
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
