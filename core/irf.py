@@ -244,11 +244,24 @@ class InstrumentResponse:
         return float(np.sum(self.samples * self.time_axis_ps()) * self.time_step_ps)
 
     def fwhm_ps(self) -> float:
-        """Full width at half maximum of the interpolant, ps (sampled on a grid of step/16)."""
-        t = self.window_start_ps + np.arange(16 * self.n_padded) * (self.time_step_ps / 16)
-        v = self.evaluate(t)
-        above = np.flatnonzero(v >= 0.5 * self.peak_per_ps)
-        return float(t[above[-1]] - t[above[0]]) if above.size else 0.0
+        """Full width at half maximum of the interpolant, ps: between its outermost half-maximum
+        crossings, each located on a grid of step / 64 and refined by a root search."""
+        half = 0.5 * self.peak_per_ps
+        above = np.flatnonzero(self.samples >= half)
+        dt = self.time_step_ps
+        fine = np.linspace(-1.0, 1.0, 129) * dt
+        f = lambda t: float(self.evaluate(t)) - half
+        out = []
+        for j, side in ((above[0], 0), (above[-1], -1)):
+            t = self.t0_ps + j * dt + fine
+            up = np.flatnonzero(self.evaluate(t) >= half)[side]
+            nb = up - 1 if side == 0 else up + 1
+            if 0 <= nb < t.size:
+                a, b = sorted((t[up], t[nb]))
+                out.append(optimize.brentq(f, a, b, xtol=1e-12))
+            else:
+                out.append(t[up])
+        return float(out[1] - out[0])
 
     # --------------------------------------------------------------- evaluation
     def evaluate(self, t_ps, *, derivative: int = 0) -> np.ndarray:

@@ -76,6 +76,9 @@ class ResponseEstimateOptions:
         Samples at or above this level mark a pixel saturated (in the data's units).
     min_pixels : int
         Usable pixels needed.
+    max_pixels : int
+        At most this many pixels are aligned and averaged: those with the highest
+        peak-to-noise ratio (bounds time and memory on a large cube; the others add little).
     iterations : int
         Alignment-and-average rounds.
     outlier_factor : float
@@ -89,6 +92,7 @@ class ResponseEstimateOptions:
     min_snr: float = 10.0
     saturation_level: float | None = None
     min_pixels: int = 8
+    max_pixels: int = 4096
     iterations: int = 3
     outlier_factor: float = 4.0
 
@@ -97,7 +101,7 @@ class ResponseEstimateOptions:
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ResponseEstimateError(f"{name} must be positive and finite, got {v!r}")
-        for name, lo in (("min_background_bins", 1), ("min_pixels", 1), ("iterations", 1)):
+        for name, lo in (("min_background_bins", 1), ("min_pixels", 1), ("max_pixels", 1), ("iterations", 1)):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
                 raise ResponseEstimateError(f"{name} must be an integer >= {lo}, got {v!r}")
@@ -167,10 +171,10 @@ def _average(y, delay_bins, amp, pre, m):
 
 def _template(c, time_bin_ps, pre):
     try:
-        return InstrumentResponse(np.clip(c, 0.0, None) if c.min() < -0.05 * c.max() else c,
-                                  time_bin_ps, -pre * time_bin_ps)
+        return InstrumentResponse(c, time_bin_ps, -pre * time_bin_ps)
     except ResponseError as exc:
-        raise ResponseEstimateError(f"the averaged response is unusable: {exc}") from None
+        raise ResponseEstimateError(f"the averaged response is unusable: {exc} (noisy data: use more pixels "
+                                    f"or more frames, or a shorter post_peak_ps / --post-ps)") from None
 
 
 def fit_response(data, time_bin_ps: float | None = None, *, t0_ps: float | None = None,
@@ -211,7 +215,8 @@ def fit_response(data, time_bin_ps: float | None = None, *, t0_ps: float | None 
     lead, n_bins = x.shape[:-1], x.shape[-1]
     x = x.reshape(-1, n_bins)
     n_pix = x.shape[0]
-    dropped = {"non_finite": 0, "saturated": 0, "no_baseline": 0, "low_signal": 0, "outlier": 0}
+    dropped = {"non_finite": 0, "saturated": 0, "no_baseline": 0, "low_signal": 0, "outlier": 0,
+               "beyond_max_pixels": 0}
 
     finite = np.all(np.isfinite(x), axis=1)
     dropped["non_finite"] = int(np.sum(~finite))
@@ -257,7 +262,7 @@ def fit_response(data, time_bin_ps: float | None = None, *, t0_ps: float | None 
     ok &= snr_ok
 
     def refuse(extra=""):
-        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v)
+        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in dropped.items() if v and k != "beyond_max_pixels")
         raise ResponseEstimateError(
             f"only {int(ok.sum())} of {n_pix} pixels have a usable direct return (need at least {opts.min_pixels})"
             f"{': ' + why if why else ''}{extra}; a calibration capture needs a single bright return per pixel "
@@ -266,6 +271,12 @@ def fit_response(data, time_bin_ps: float | None = None, *, t0_ps: float | None 
     if ok.sum() < opts.min_pixels:
         refuse()
     idx = np.flatnonzero(ok)
+    if idx.size > opts.max_pixels:
+        snr = amp0[idx] / np.maximum(noise[idx], 1e-300)
+        chosen = np.sort(idx[np.argsort(-snr, kind="stable")[:opts.max_pixels]])
+        dropped["beyond_max_pixels"] = int(idx.size - chosen.size)
+        ok[np.setdiff1d(idx, chosen)] = False
+        idx = chosen
     y = x[idx] - background[idx, None]
     jj = j[idx]
     amp = amp0[idx]

@@ -174,6 +174,15 @@ def test_atoms_vectorise_over_any_leading_shape():
     assert render_shifted(irf, AXIS, 50.0).shape == (AXIS.size,)
 
 
+def test_widths_and_moments():
+    g = gaussian_response(4.0, time_step_ps=T)
+    assert g.fwhm_ps() == pytest.approx(2 * np.sqrt(2 * np.log(2)) * 4.0, rel=1e-9)
+    assert g.centroid_ps() == pytest.approx(0.0, abs=1e-9)
+    tr = tailed_response(4.0, 0.25, 20.0, time_step_ps=T)
+    # The centroid of (1 - f) N + f EMG lies f * tau after the Gaussian's centre.
+    assert tr.centroid_ps() + tr.model["offset_ps"] == pytest.approx(0.25 * 20.0, rel=1e-9)
+
+
 def test_response_validation_names_the_problem():
     t = np.arange(-20, 21) * 1.0
     good = np.exp(-0.5 * (t / 3) ** 2)

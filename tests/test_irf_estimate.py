@@ -71,11 +71,18 @@ def test_pixels_that_cannot_help_are_left_out_and_counted():
     prof[11:14] += 40 * render_shifted(TRUTH, AXIS, d[11:14] + 60.0)  # a second reflection
     prof[14, 30] = np.nan
     fit = fit_response(prof, T)
-    assert fit.dropped == {"non_finite": 1, "saturated": 4, "no_baseline": 3, "low_signal": 4, "outlier": 3}
+    assert fit.dropped == {"non_finite": 1, "saturated": 4, "no_baseline": 3, "low_signal": 4, "outlier": 3,
+                           "beyond_max_pixels": 0}
     assert fit.used.sum() == 45 and not fit.used[:15].any()
     assert np.all(np.isnan(fit.delay_ps[:15])) and np.all(np.isfinite(fit.delay_ps[15:]))
     good = a[15:]
     assert np.sqrt(np.mean(_peak_normalised_error(fit, TRUTH) ** 2)) < 2.5 / np.sqrt(np.sum(good ** 2))
+    # A cap on the pixels keeps the brightest (amplitude over noise).
+    capped = fit_response(prof, T, options=ResponseEstimateOptions(max_pixels=10))
+    assert capped.used.sum() == 10 and capped.dropped["beyond_max_pixels"] == 60 - 12 - 10
+    assert np.min(capped.amplitude[capped.used]) > np.median(fit.amplitude[fit.used])
+    bright = capped.amplitude[capped.used]
+    assert np.sqrt(np.mean(_peak_normalised_error(capped, TRUTH) ** 2)) < 2.5 / np.sqrt(np.sum(bright ** 2))
     # An explicit saturation level catches clipping below the flat-top test.
     prof2, _, _ = calibration_profiles(TRUTH, 20, seed=3)
     level = np.sort(prof2.max(axis=1))[4]
