@@ -18,17 +18,17 @@ from streaklab.cli import CommandError
 def add_arguments(parser) -> None:
     parser.add_argument("source", metavar="RUN_OR_CUBE",
                         help="cube store (or run store) of a capture of the calibration target")
-    parser.add_argument("--out", help="store the response here (Zarr directory, or a file ending in .npz) "
+    parser.add_argument("--out", metavar="IRF", help="store the response here (Zarr directory, or a file ending in .npz) "
                                       "instead of in the cube's 'irf' group; required for a run store")
-    parser.add_argument("--pre-ps", type=float, help="extent of the response before its peak, ps "
+    parser.add_argument("--pre-ps", type=float, metavar="PS", help="extent of the response before its peak, ps "
                                                      "(default: three half-maximum widths plus two bins)")
-    parser.add_argument("--post-ps", type=float, help="extent after the peak, ps (default: what three quarters "
+    parser.add_argument("--post-ps", type=float, metavar="PS", help="extent after the peak, ps (default: what three quarters "
                                                       "of the pixels cover)")
-    parser.add_argument("--min-snr", type=float, default=10.0,
+    parser.add_argument("--min-snr", type=float, default=10.0, metavar="RATIO",
                         help="peak-to-noise ratio a pixel needs to be used (default 10)")
-    parser.add_argument("--saturation-level", type=float,
+    parser.add_argument("--saturation-level", type=float, metavar="LEVEL",
                         help="samples at or above this level (cube units) mark a pixel saturated")
-    parser.add_argument("--min-pixels", type=int, default=8, help="usable pixels needed (default 8)")
+    parser.add_argument("--min-pixels", type=int, default=8, metavar="N", help="usable pixels needed (default 8)")
     parser.add_argument("--overwrite", action="store_true", help="replace a response already stored there")
 
 
