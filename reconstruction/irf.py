@@ -43,7 +43,7 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from core.errors import StreaklabError
-from core.irf import InstrumentResponse, ResponseError, render_shifted
+from core.irf import InstrumentResponse, ResponseError, gaussian_fit, render_shifted
 from core.provenance import __version__
 
 from .cubestore import Cube
@@ -358,6 +358,7 @@ def fit_response(data, time_bin_ps: float | None = None, *, t0_ps: float | None 
         "software_version": __version__,
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
+    provenance["gaussian_fit"] = gaussian_fit(raw)
     response = InstrumentResponse(raw.samples, dt, raw.t0_ps, provenance).centred()
     return ResponseFit(response, delay_ps.reshape(lead), amplitude.reshape(lead), background.reshape(lead),
                        ok.reshape(lead), dropped)

@@ -107,6 +107,8 @@ def test_calibrate_irf_recovers_the_simulated_response_end_to_end(tmp_path, caps
     assert abs(est.fwhm_ps() - truth.fwhm_ps()) < 0.5
     prov = est.provenance
     assert prov["pixels_used"] == 128 and prov["store"].endswith("cube.zarr") and prov["software_version"]
+    # Over the span above 1 % of the peak the best Gaussian misses this response by 2-3 % RMS.
+    assert 0.02 < prov["gaussian_fit"]["rms_misfit"] < 0.035
     # The per-pixel delays are the mirror's known delay map (both refer to the response's peak).
     scene = simulated_scene(load_config(tmp_path / "cal.toml"))
     delays = fit_response(open_cube(cube)).delay_ps

@@ -6,7 +6,8 @@ import pytest
 from scipy import integrate
 
 from core.irf import (
-    InstrumentResponse, ResponseError, afterpulse_response, gaussian_response, model_value, render_shifted,
+    InstrumentResponse, ResponseError, afterpulse_response, gaussian_fit, gaussian_response, model_value,
+    render_shifted,
     render_sss, tailed_response,
 )
 from core.model import gaussian_kernel, sss_kernel
@@ -181,6 +182,22 @@ def test_widths_and_moments():
     tr = tailed_response(4.0, 0.25, 20.0, time_step_ps=T)
     # The centroid of (1 - f) N + f EMG lies f * tau after the Gaussian's centre.
     assert tr.centroid_ps() + tr.model["offset_ps"] == pytest.approx(0.25 * 20.0, rel=1e-9)
+
+
+def test_gaussian_fit_says_how_far_a_response_is_from_the_gaussian():
+    exact = gaussian_fit(gaussian_response(5.0, time_step_ps=T))
+    assert exact["rms_misfit"] < 1e-8 and exact["sigma_ps"] == pytest.approx(5.0, rel=1e-7)
+    assert exact["center_ps"] == pytest.approx(0.0, abs=1e-7)
+    misfits = [gaussian_fit(tailed_response(5.0, f, 30.0, time_step_ps=T))["rms_misfit"] for f in (1e-4, 0.05, 0.2)]
+    assert misfits[0] < 1e-3 < misfits[1] < misfits[2]
+    # The residual it reports is the residual of its own Gaussian.
+    irf = afterpulse_response(5.0, 0.1, 40.0, time_step_ps=T)
+    fit = gaussian_fit(irf)
+    t = irf.time_axis_ps()
+    v = irf.samples / irf.peak_per_ps
+    sel = slice(np.flatnonzero(v >= 0.01)[0], np.flatnonzero(v >= 0.01)[-1] + 1)
+    g = fit["amplitude"] * gaussian_kernel(t[sel] - fit["center_ps"], fit["sigma_ps"])
+    assert fit["rms_misfit"] == pytest.approx(np.sqrt(np.mean((g - v[sel]) ** 2)), rel=1e-9)
 
 
 def test_response_validation_names_the_problem():

@@ -69,6 +69,7 @@ def run(args) -> int:
     prov = irf.provenance
     print(f"wrote the instrument response to {where}: {prov['pixels_used']} of {prov['pixels_total']} pixels, "
           f"FWHM {irf.fwhm_ps():.3g} ps, {irf.n_samples} samples of {irf.time_step_ps:g} ps, "
-          f"delays spread {prov['delay_spread_ps']:.3g} ps, alignment +-{prov['alignment_sd_ps']:.2g} ps",
-          file=sys.stderr)
+          f"delays spread {prov['delay_spread_ps']:.3g} ps, alignment +-{prov['alignment_sd_ps']:.2g} ps; "
+          f"the best Gaussian (sigma {prov['gaussian_fit']['sigma_ps']:.3g} ps) would leave "
+          f"{100 * prov['gaussian_fit']['rms_misfit']:.2g} % of the peak as RMS misfit", file=sys.stderr)
     return 0
