@@ -20,6 +20,7 @@ COMMANDS = {
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
     "example-config": ("streaklab.commands.example_config", "print or write the example scan configuration"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
+    "live": ("streaklab.commands.live", "live streak image and time profile for alignment (Ctrl-C stops)"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "calibrate-irf": ("streaklab.commands.calibrate_irf",
                       "estimate the instrument response from a capture of a calibration target"),
