@@ -56,7 +56,7 @@ class Samples:
                                         spikes were removed)
     noise_eff : ndarray (P,)            the noise the solver uses: after spike removal,
                                         floored at ``noise_floor``
-    flags : ndarray (P,) uint8          NONFINITE, SATURATED, SPIKE, EMPTY as found here
+    flags : ndarray (P,) uint16         NONFINITE, SATURATED, SPIKE, EMPTY as found here
     lead : tuple                        leading shape of the input
     axis : TimeAxis
     saturation_level : float or None
