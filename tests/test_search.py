@@ -175,3 +175,27 @@ def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
     res = decompose(y, T2)
     assert res.info["search_doubt"] >= 1
     assert not np.any(res.flags & AMBIGUOUS)
+
+
+def test_tie_widths_and_sss_onset_clipping_on_slot_states():
+    from decomposition.components import clip_sss_onset
+    from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+    from decomposition.slots import new_state, tie_widths
+
+    st = new_state(3, 3)
+    st["fam"][:] = [[FAM_GAUSS, FAM_SSS, FAM_GAUSS], [FAM_SSS, FAM_NONE, FAM_NONE], [FAM_GAUSS, FAM_GAUSS, FAM_NONE]]
+    st["amp"][:] = [[1.0, 0.5, 1.0], [1.0, 0.0, 0.0], [2.0, 1.0, 0.0]]
+    st["delay"][:] = [[50.0, 45.0, 80.0], [30.0, 0.0, 0.0], [20.0, 40.0, 0.0]]
+    st["lsig"][:] = np.log([[3.0, 3.0, 3.3], [2.0, 9.0, 9.0], [2.0, 2.0, 7.0]])
+    tie_widths(st)
+    act = st["fam"] != FAM_NONE
+    for i in range(3):
+        assert np.unique(st["lsig"][i][act[i]]).size == 1
+    # pixel 0: the area-weighted mean of log sigma (areas 3, 1.5, 3.3)
+    w = np.array([3.0, 1.5, 3.3])
+    np.testing.assert_allclose(st["lsig"][0, 0], np.sum(w * np.log([3.0, 3.0, 3.3])) / w.sum())
+    assert st["lsig"][2, 2] == np.log(7.0)                   # an empty slot keeps its value
+    moved = clip_sss_onset(st)
+    assert moved.tolist() == [True, False, False]
+    assert st["delay"][0, 1] == 50.0                         # moved to the direct
+    assert st["delay"][1, 0] == 30.0                         # no Gaussian: the onset stays

@@ -40,7 +40,7 @@ TARGET_NSR = 0.055
 TARGET_FLOOR_NSR = 0.005
 NOISES = ("white", "pink", "photon")
 METHODS = ("convscd", "gradbm")
-# Opt-in: ConvSCD followed by the structured alternative starts of decomposition.search
+# Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
 EXTRA_METHODS = ("search",)
 #: the "any flag" row of the flag table: every bit of the 16-bit flags
@@ -64,7 +64,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--noise", default=",".join(NOISES), help="noise types, comma-separated (default all three)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="methods, comma-separated (default convscd,gradbm; also search: ConvSCD followed "
-                             "by the structured alternative starts of decomposition.search); the oracle always runs")
+                             "by the stand-alone structured_search of decomposition.search, six refines on every "
+                             "pixel); the oracle always runs")
     parser.add_argument("--kinds", default="a,b,c", help="scene kinds (default a,b,c: Fig. 3(a)-(c))")
     parser.add_argument("--scenes", default="paper",
                         help="scene preset: paper (the paper's parameter space, default) or legacy")
