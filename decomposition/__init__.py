@@ -17,6 +17,7 @@ from .flags import (  # noqa: F401
     SATURATED,
     SPIKE,
     TRUNCATED,
+    WIDE_PSF,
     Flag,
     flag_names,
 )

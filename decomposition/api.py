@@ -24,7 +24,7 @@ import numpy as np
 from . import convscd as cs
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
-                    SPIKE, TRUNCATED, flag_names, mark)
+                    SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .label import label_components
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
@@ -46,6 +46,7 @@ __all__ = [
     "AT_BOUND",
     "TRUNCATED",
     "AMBIGUOUS",
+    "WIDE_PSF",
     "FLAG_NAMES",
 ]
 

@@ -13,6 +13,8 @@ TRUNCATED   128   more inter-reflections found than ``max_reflections``
 AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   (:mod:`decomposition.search`) with materially different splits
                   reach objectives within the noise of each other
+WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
+                  (an sss hump taken for a broad direct, typically)
 =========== ===== ==============================================================
 
 Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).
@@ -27,7 +29,7 @@ import enum
 import numpy as np
 
 __all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
-           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS"]
+           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF"]
 
 #: dtype of a flags array
 FLAG_DTYPE = np.uint16
@@ -45,6 +47,7 @@ class Flag(enum.IntFlag):
     AT_BOUND = 64
     TRUNCATED = 128
     AMBIGUOUS = 512
+    WIDE_PSF = 1024
 
 
 #: bit value -> flag name, in bit order
@@ -59,6 +62,7 @@ MAX_ITER = Flag.MAX_ITER
 AT_BOUND = Flag.AT_BOUND
 TRUNCATED = Flag.TRUNCATED
 AMBIGUOUS = Flag.AMBIGUOUS
+WIDE_PSF = Flag.WIDE_PSF
 
 
 def flag_names(bits) -> list[str]:

@@ -10,6 +10,7 @@ leaves with the same width.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +19,7 @@ from . import components as comp
 from . import convscd as cs
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
 from .detect import Detection, solver_inputs
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
+from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, WIDE_PSF, mark
 from core.model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
@@ -30,7 +31,8 @@ __all__ = ["Labels", "label_components", "at_bound"]
 @dataclass(frozen=True)
 class Labels:
     """Named components of every pixel: ``params`` (keys of :mod:`core.model`, shapes
-    (P,) and (P, R), NaN where absent) and ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED)."""
+    (P,) and (P, R), NaN where absent) and ``flags`` (P,) (MAX_ITER, AT_BOUND, WIDE_PSF,
+    TRUNCATED)."""
 
     params: dict
     flags: np.ndarray
@@ -67,6 +69,8 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
     if opts.sss_after_direct:
         comp.clip_sss_onset(st)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
+    wide = ((st["fam"] != FAM_NONE) & (st["lsig"] > math.log(dic.grid.sigma_range_ps[1]) + BOUND_TOL)).any(axis=1)
+    mark(flags, live[wide], WIDE_PSF)
     got, trunc = comp.classify(st, samples.scale[live], R)
     mark(flags, live[trunc], TRUNCATED)
     for k, v in got.items():

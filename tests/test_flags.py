@@ -7,7 +7,8 @@ from decomposition import flags as fl
 def test_bit_values_are_those_of_existing_stores():
     # the on-disk format: these values are written into every result store's flags array
     want = {"EMPTY": 1, "SATURATED": 2, "POOR_FIT": 4, "SPIKE": 8, "NONFINITE": 16, "MAX_ITER": 32,
-            "AT_BOUND": 64, "TRUNCATED": 128, "AMBIGUOUS": 512}
+            "AT_BOUND": 64, "TRUNCATED": 128, "AMBIGUOUS": 512,
+            "WIDE_PSF": 1024}
     assert {f.name: int(f) for f in fl.Flag} == want
     assert fl.FLAG_NAMES == {v: k for k, v in want.items()}
     for name, v in want.items():          # the old names stay importable from the package
@@ -30,3 +31,16 @@ def test_no_solver_bit_collides_with_the_result_store_bit():
 
     assert all(int(f) & OUT_OF_RANGE == 0 for f in fl.Flag)
     assert max(int(f) for f in fl.Flag) <= np.iinfo(fl.FLAG_DTYPE).max
+
+
+def test_wide_psf_flags_a_width_above_the_kernel_grid_only():
+    from core.model import empty_params, render_profile
+
+    p = empty_params((2,), n_ir=1)
+    p["direct_delay_ps"][:] = 200.0
+    p["direct_amplitude"][:] = 1.0
+    p["direct_sigma_ps"][:] = [5.0, 18.0]          # the grid spans 1-10 ps
+    y = render_profile(p, 512, 2.0) + np.random.default_rng(0).normal(0, 1e-3, (2, 512))
+    res = decomposition.decompose(y, 2.0, components="d")
+    np.testing.assert_allclose(res.params["direct_sigma_ps"], [5.0, 18.0], rtol=0.02)
+    assert [bool(f & fl.WIDE_PSF) for f in res.flags] == [False, True]
