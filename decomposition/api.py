@@ -135,6 +135,18 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     spike_sigma : float
         Single-sample spikes this many noise sigmas above both neighbours, and
         too narrow for the narrowest kernel, are excluded and flagged (0 = off).
+        Count data (``noise="poisson"``) are tested against their counting
+        statistics instead, at a fixed false-alarm rate per profile
+        (:func:`decomposition.prepare.find_count_spikes`); there ``spike_sigma``
+        only switches the test on (> 0) or off.
+    noise : {"gaussian", "poisson", "auto"}
+        Noise model of the samples.  "gaussian": noise estimated from the data
+        (the paper's setting).  "poisson": the samples are photon counts, whose
+        variance is their expected value (spike test in Poisson terms, the
+        solver's noise the Poisson noise at the signal).  "auto": "poisson" for
+        count data -- an integer dtype, or floats that are all non-negative whole
+        numbers (:func:`decomposition.noise.is_count_data`) -- else "gaussian".
+        ``info["noise_model"]`` says which was used.
     shared_sigma : bool
         One PSF width per pixel shared by all its components (eq. (2) has a
         single camera PSF c(t)); False lets every atom have its own width.
@@ -189,7 +201,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold)
+                              rel_threshold=opts.rel_threshold, noise=opts.noise)
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
             "saturation_level": samples.saturation_level}
@@ -221,6 +233,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     lead, L = samples.lead, samples.n_bins
     params = _reshape_params(params, lead, R)
     info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    info["noise_model"] = samples.noise_model
     info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
         params.update(component_errors(samples, params, **physics))
