@@ -173,11 +173,16 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
+        Count data (``noise="poisson"``) are always refitted, with weights
+        1 / Poisson variance of the model, reweighted POISSON_REFITS times
+        (:mod:`decomposition.refit`): the Poisson maximum-likelihood fit.
     stderr : bool, optional
         Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
         as the parameters, NaN where absent or not identifiable) to
         ``params``, from the Fisher information at the solution with the noise
         estimated from the residual (:func:`decomposition.fisher.standard_errors`).
+        Count data: from the Poisson Fisher information (weights 1 / model
+        count, the noise scale known).
         Default: the same as ``refine``.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
@@ -225,7 +230,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
                "sss_after_direct": opts.sss_after_direct and method == "convscd"}
-    if opts.refine and samples.live.size:
+    if (opts.refine or samples.noise_model == "poisson") and samples.live.size:
         params, rinfo = refine_components(samples, params, **physics)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)

@@ -99,8 +99,10 @@ MIN_NOISE_SAMPLES = 12
 SPIKE_FALSE_ALARM = 1e-6
 
 #: Count data: the Poisson variance of a sample is its model value, floored at this many
-#: counts (the weight 1 / variance stays finite where the model is ~0, far from the signal).
-POISSON_VARIANCE_FLOOR = 0.5
+#: counts (the weight 1 / variance stays finite where the model is ~0, far from the signal;
+#: larger floors bias the fit: 0.5 counts gave a -2.3 % lifetime bias at 100 photons per
+#: pixel, 0.02 counts -0.7 %, within its statistical error).
+POISSON_VARIANCE_FLOOR = 0.02
 
 #: Count data: reweighted refits, each with the weights 1 / max(model, floor) of the previous
 #: model (iteratively reweighted least squares: its fixed point is the Poisson maximum-likelihood
