@@ -22,7 +22,8 @@ A configuration has these sections (every key is listed with its default; see
     [camera]
     exposure_s = 0.01
     frames_per_line = 1            # frames acquired (and later averaged) per scan line
-    time_range = 1                 # the streak unit's time-range setting
+    time_range = 1                 # the streak unit's time range: a synchroscan setting number (1),
+                                   # or a single-sweep time such as "1 ns"
     gain = 0                       # optional; omitted = leave the camera's gain alone
     acquire_timeout_s = 10.0
 
@@ -35,7 +36,11 @@ A configuration has these sections (every key is listed with its default; see
     frames = 4                     # dark frames taken with the sync output off (0 = none)
 
     [calibration]
+    time_source = "auto"           # row times for reconstruction: "camera" (the camera's scaling
+                                   # table, recorded at capture), "config" (time_poly_ps), or "auto"
+                                   # (the table when the run has one, else time_poly_ps)
     time_poly_ps = [0.0, 2.0]      # t(row) = sum_k c_k row**k in ps, row = streak pixel row
+                                   # (required unless time_source = "camera")
     time_bin_ps = 2.0              # uniform time bin of the reconstructed cube
     t0_ps = ...                    # optional: time of the first cube bin (default: first
                                    # multiple of time_bin_ps inside the calibrated range)
@@ -71,7 +76,7 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
-           "check_calibration", "HASHED_SECTIONS"]
+           "check_calibration", "check_row_times", "HASHED_SECTIONS", "TIME_SOURCES"]
 
 
 class ConfigError(StreaklabError, ValueError):
@@ -164,6 +169,26 @@ def _angle_list(key, v):
     return out
 
 
+def _time_range(key, v):
+    from drivers.remoteex_wire import normalize_time_range
+
+    if isinstance(v, bool) or not isinstance(v, (int, str)):
+        _fail(key, f"must be a setting number (synchroscan) or a time such as \"1 ns\" (single sweep), got {v!r}")
+    try:
+        return normalize_time_range(v)
+    except ValueError:
+        _fail(key, f"must be a setting number (synchroscan) or a time such as \"1 ns\" (single sweep), got {v!r}")
+
+
+TIME_SOURCES = ("auto", "camera", "config")
+
+
+def _time_source(key, v):
+    if v not in TIME_SOURCES:
+        _fail(key, f"must be one of {', '.join(repr(t) for t in TIME_SOURCES)}, got {v!r}")
+    return v
+
+
 def _poly(key, v):
     if not isinstance(v, list) or not v:
         _fail(key, f"must be a non-empty list of polynomial coefficients [c0, c1, ...] in ps, got {v!r}")
@@ -193,7 +218,7 @@ _SPEC = {
     "camera": {
         "exposure_s": (_positive("a positive number of seconds"), 0.01),
         "frames_per_line": (lambda k, v: _int(k, v, lo=1, hi=10000, what="an integer in 1..10000"), 1),
-        "time_range": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer (the time-range setting)"), 1),
+        "time_range": (_time_range, 1),
         "gain": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), _MISSING),
         "acquire_timeout_s": (_positive("a positive number of seconds"), 10.0),
     },
@@ -206,6 +231,8 @@ _SPEC = {
         "frames": (lambda k, v: _int(k, v, lo=0, hi=10000, what="an integer in 0..10000"), 4),
     },
     "calibration": {
+        # No default filled in: configurations that do not name it keep their hash ("auto").
+        "time_source": (_time_source, _MISSING),
         "time_poly_ps": (_poly, _MISSING),
         "time_bin_ps": (_positive("a positive bin width in ps"), 2.0),
         "t0_ps": (lambda k, v: _num(k, v, what="a finite time in ps"), _MISSING),
@@ -299,18 +326,41 @@ def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
         scan["angles_deg"] = [float(a) for a in np.linspace(scan["start_deg"], scan["stop_deg"], scan["count"])]
         for k in ("start_deg", "stop_deg", "count"):   # normalised form: the explicit angle list only
             del scan[k]
-    if "time_poly_ps" not in data["calibration"]:
-        _fail("calibration.time_poly_ps", "is required (pixel row -> ps polynomial of the streak sweep)")
+    if "time_poly_ps" not in data["calibration"] and data["calibration"].get("time_source", "auto") != "camera":
+        _fail("calibration.time_poly_ps", "is required (pixel row -> ps polynomial of the streak sweep) unless "
+                                          "calibration.time_source = \"camera\"")
     return ScanConfig(data=data, source=source)
 
 
-def load_config(path) -> ScanConfig:
-    """Read and validate a TOML scan configuration file."""
+# Configurations installed with the package, by the name ``--config`` accepts for them.
+EXAMPLE_CONFIGS = {"sim": "sim_scan.toml"}
+
+
+def example_config_path(name: str = "sim") -> Path:
+    """The packaged example configuration ``name`` (see EXAMPLE_CONFIGS)."""
+    if name not in EXAMPLE_CONFIGS:
+        raise ConfigError(f"no example configuration {name!r}; available: {', '.join(EXAMPLE_CONFIGS)}")
+    return Path(__file__).resolve().parent / "examples" / EXAMPLE_CONFIGS[name]
+
+
+def resolve_config_path(path) -> Path:
+    """``path`` itself, or the packaged example when ``path`` is one of its names (``sim``) and no
+    file of that name exists."""
     p = Path(path)
+    if str(path) in EXAMPLE_CONFIGS and not p.exists():
+        return example_config_path(str(path))
+    return p
+
+
+def load_config(path) -> ScanConfig:
+    """Read and validate a TOML scan configuration file (or a packaged example, by name: ``sim``)."""
+    p = resolve_config_path(path)
     try:
         text = p.read_bytes()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}") from None
+        hint = ("; 'sim' names the packaged example of the simulated lab, and 'streaklab example-config --out "
+                "scan.toml' writes a copy to edit" if isinstance(exc, FileNotFoundError) else "")
+        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}{hint}") from None
     try:
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -344,7 +394,20 @@ def check_calibration(time_poly_ps, n_rows: int, *, key: str = "calibration.time
     ConfigError
         Naming the key and the first row where monotonicity fails.
     """
-    t = calibration_times_ps(time_poly_ps, n_rows)
+    return check_row_times(calibration_times_ps(time_poly_ps, n_rows), n_rows, key=key)
+
+
+def check_row_times(t, n_rows: int, *, key: str) -> np.ndarray:
+    """Row times (polynomial or camera table) checked: one per row, finite, strictly monotonic.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key and the first row where monotonicity fails.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if t.shape != (n_rows,):
+        raise ConfigError(f"{key}: holds {t.size} row times but the streak axis has {n_rows} rows")
     if n_rows < 2:
         raise ConfigError(f"{key}: the streak axis needs at least 2 rows, got {n_rows}")
     if not np.all(np.isfinite(t)):

@@ -10,6 +10,9 @@ One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table):
     dark              (dark_frame, x, row)   uint16   frames taken with the sync output off
     dark_done         ()                     bool     True once the dark frames are on disk
     line, x, row      coordinates; time_ps (row,) the row's calibrated time (ps)
+    camera_row_times_ps (row,)               float64  the camera's own sweep calibration (its scaling
+                                                      table, ps after the trigger); only where the
+                                                      camera offers one
 
 Every array is checksummed (:mod:`core.integrity`); :func:`verify_run` reads every chunk
 and reports damage by line.
@@ -122,6 +125,13 @@ class RunStore:
 
     def dark_done(self) -> bool:
         return bool(read_checked(self["dark_done"], (), store=self.path))
+
+    def camera_row_times_ps(self) -> np.ndarray | None:
+        """The camera's scaling table recorded at capture, shape (row,), ps; None if the camera had none."""
+        if "camera_row_times_ps" not in self.group:
+            return None
+        return np.asarray(read_checked(self["camera_row_times_ps"], slice(None), store=self.path),
+                          dtype=np.float64)
 
     # -- integrity -------------------------------------------------------------------------
     def absent_chunks(self) -> list[ChunkDamage]:
@@ -282,8 +292,12 @@ def describe_absent(run: RunStore, absent: list[ChunkDamage]) -> str:
 
 
 def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], devices: dict | None = None,
-               software_version: str | None = None) -> RunStore:
+               software_version: str | None = None, camera_row_times_ps=None,
+               camera_time_info: dict | None = None) -> RunStore:
     """Create an empty run store laid out for ``config`` and images of ``image_shape`` = (x, t).
+
+    ``camera_row_times_ps`` (row,) is the camera's own sweep calibration, if it has one;
+    ``camera_time_info`` says where it came from (stored as the array's attributes).
 
     The path must not exist or be an empty directory (resuming goes through :func:`open_run`).
     The store is built beside ``path`` and renamed into place once every array exists, so a
@@ -300,15 +314,21 @@ def create_run(path, config: ScanConfig, *, image_shape: tuple[int, int], device
     n_lines = config.n_lines
     n_frames = int(config["camera"]["frames_per_line"])
     n_dark = int(config["dark"]["frames"])
+    table = None
+    if camera_row_times_ps is not None:
+        table = np.asarray(camera_row_times_ps, dtype=np.float64)
+        if table.shape != (nt,):
+            raise RunStoreError(f"camera_row_times_ps has shape {table.shape}, the images {nt} rows")
     with staged_output(p, kind=RUN_KIND) as tmp:
         _write_skeleton(tmp, config, n_lines=n_lines, n_frames=n_frames, n_dark=n_dark, nx=nx, nt=nt,
-                        devices=devices, software_version=software_version or __version__)
+                        devices=devices, software_version=software_version or __version__,
+                        camera_table=table, camera_time_info=camera_time_info)
     fsync_path(p.parent)
     return open_run(p, mode="r+")
 
 
 def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, nx, nt, devices,
-                    software_version) -> None:
+                    software_version, camera_table=None, camera_time_info=None) -> None:
     g = zarr.open_group(str(p), mode="w")
     # Marked uninitialised until every array exists (earlier releases built the store in place, and
     # --resume recreates a store they left so marked).
@@ -348,12 +368,22 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
     create_array(g, "row", shape=(nt,), dtype="int64", dimension_names=["row"],
                  attributes={"units": "1", "long_name": "streak pixel row (the sweep direction)"})[:] = np.arange(nt)
     cal = config["calibration"]
-    time_ps = np.polynomial.polynomial.polyval(np.arange(nt, dtype=np.float64),
-                                               [float(c) for c in cal["time_poly_ps"]])
+    if camera_table is not None:
+        create_array(g, "camera_row_times_ps", shape=(nt,), dtype="float64", dimension_names=["row"],
+                     attributes={"units": "ps", "long_name": "row times from the camera's scaling table "
+                                                             "(after the trigger)",
+                                 **dict(camera_time_info or {})})[:] = camera_table
+    # time_ps follows the row times a reconstruction uses by default (calibration.time_source)
+    if camera_table is not None and cal.get("time_source", "auto") != "config":
+        time_ps, origin = camera_table, "the camera's scaling table (camera_row_times_ps)"
+    else:
+        time_ps = np.polynomial.polynomial.polyval(np.arange(nt, dtype=np.float64),
+                                                   [float(c) for c in cal["time_poly_ps"]])
+        origin = "calibration.time_poly_ps at the row"
     create_array(g, "time_ps", shape=(nt,), dtype="float64", dimension_names=["row"],
                  attributes={"units": "ps", "long_name": "time of the row after the laser pulse",
-                             "comment": "calibration.time_poly_ps at the row plus sync.trigger_delay_ps, as "
-                                        "configured when the run was created; not uniform in general"})[:] = \
+                             "comment": f"{origin} plus sync.trigger_delay_ps, as known when the run was "
+                                        f"created; not uniform in general"})[:] = \
         time_ps + float(config["sync"]["trigger_delay_ps"])
     g.attrs.update({
         "streaklab_kind": RUN_KIND,

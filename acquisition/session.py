@@ -3,8 +3,11 @@
 The session drives the devices only through the :mod:`drivers.interfaces`
 protocols, so the same code runs on the real rig and on ``drivers.sim``::
 
-    check    identify camera, mirror and laser sync; configure them; home the mirror
-    dark     sync output off, ``dark.frames`` frames at the home position (skipped if on disk)
+    check    identify camera, mirror and laser sync; configure them (the streak unit in
+             Operate mode, sweeping); home the mirror
+    dark     sync output off, ``dark.frames`` frames at the home position (skipped if on disk);
+             a new run also records the camera's own sweep calibration (its scaling table)
+             where the camera offers one
     lines    sync output on; for every line not yet done: move the mirror, wait until it
              settles, take ``frames_per_line`` frames, check the sync's error queue, write
              the frames durably, mark the line done
@@ -31,7 +34,7 @@ import numpy as np
 from core.errors import StreaklabError
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
-from .config import ConfigError, ScanConfig, check_calibration
+from .config import ConfigError, ScanConfig, check_calibration, check_row_times
 from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
                        is_uninitialised_run, open_run, remove_uninitialised_run)
 
@@ -182,9 +185,22 @@ class CaptureSession:
         cam = cfg["camera"]
         self._attempt("camera setup", lambda: self.camera.configure(
             time_range=cam["time_range"], exposure_s=cam["exposure_s"], gain=cam.get("gain")))
+        set_mode = getattr(self.camera, "set_streak_mode", None)
+        if set_mode is not None:
+            # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on.
+            self._attempt("camera streak mode", lambda: self._operate(set_mode))
         self._attempt("mirror homing", lambda: self.mirror.home(timeout_s=max(30.0, cfg["scan"]["settle_timeout_s"])))
         self.devices = ids
         return ids
+
+    @staticmethod
+    def _operate(set_mode) -> None:
+        try:
+            set_mode("Operate")
+        except DeviceError as exc:
+            if exc.code != 2:            # 2: this streak unit has no Mode control; nothing to switch
+                raise
+            log.info("camera has no streak mode control (%s)", exc)
 
     def _acquire_frames(self, n: int, what: str) -> np.ndarray:
         timeout_s = self.config["camera"]["acquire_timeout_s"]
@@ -245,15 +261,39 @@ class CaptureSession:
                 store.write_dark(dark)
             return
         dark, shape = self._take_dark()
-        self._check_shape(shape)
-        store = create_run(out, self.config, image_shape=shape, devices=self.devices)
+        table = self._camera_row_times(shape[1])
+        self._check_shape(shape, camera_table=table is not None)
+        info = {"source": "ImgDataGet(Current,ScalingTable,Vertical)",
+                "time_range": str(self.config["camera"]["time_range"])}
+        store = create_run(out, self.config, image_shape=shape, devices=self.devices, camera_row_times_ps=table,
+                           camera_time_info=info)
         store.write_dark(dark)
         self.store = store
 
-    def _check_shape(self, shape) -> None:
+    def _camera_row_times(self, n_rows: int):
+        """The camera's scaling table for the current image (ps, one per row), or None if it has none."""
+        reader = getattr(self.camera, "scaling_table_ps", None)
+        if reader is None:
+            return None
+        table = self._attempt("camera scaling table", reader)
+        if table is None:
+            if self.config["calibration"].get("time_source") == "camera":
+                raise CaptureError("calibration.time_source = \"camera\", but the camera offers no scaling table "
+                                   "for this time range; set time_source = \"config\" and give time_poly_ps")
+            return None
+        try:
+            return check_row_times(table, n_rows, key="the camera's scaling table")
+        except ConfigError as exc:
+            raise CaptureError(str(exc)) from None
+
+    def _check_shape(self, shape, *, camera_table: bool = False) -> None:
         if self.store is not None and tuple(self.store.image_shape) != tuple(shape):
             raise CaptureError(f"the camera delivers {shape} images but the run store holds "
                                f"{self.store.image_shape}; was the camera binning changed?")
+        if "time_poly_ps" not in self.config["calibration"]:
+            if not camera_table and (self.store is None or self.store.camera_row_times_ps() is None):
+                raise CaptureError("calibration.time_poly_ps is not given and the camera has no scaling table")
+            return
         try:
             check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
         except ConfigError as exc:

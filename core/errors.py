@@ -16,4 +16,12 @@ class StreaklabError(Exception):
 
 
 class OutputExistsError(StreaklabError, FileExistsError):
-    """An output path is already taken and replacing it was not asked for."""
+    """An output path is already taken and replacing it was not asked for.
+
+    ``path`` (when given) names it, so that a command can word the error its own way
+    ("pass --overwrite") instead of the library's ("pass overwrite=True").
+    """
+
+    def __init__(self, message, path=None):
+        super().__init__(message)
+        self.path = None if path is None else str(path)

@@ -106,7 +106,7 @@ def check_output_path(path, *, overwrite: bool = False, inputs=(), kind: str | N
     if not p.exists() or (p.is_dir() and not any(p.iterdir())):
         return
     if not overwrite:
-        raise OutputExistsError(f"{path} already exists; pass overwrite=True (--overwrite) to replace it")
+        raise OutputExistsError(f"{path} already exists; pass overwrite=True to replace it", path=path)
     if kind is None:
         return
     found = describe_existing(p)

@@ -23,7 +23,7 @@ from .detect import detect_components, detect_gradbm
 from .flags import (AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED, SPIKE,  # noqa: F401
                     TRUNCATED, flag_names)
 from .label import label_components
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
@@ -214,8 +214,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     noise_eff = samples.noise_eff
     if method == "gradbm":
         info.update(method_options)
-        params = empty_params((samples.values.shape[0],), n_ir=R)
-        detect_gradbm(samples, R, fams, params, method_options)
+        params = detect_gradbm(samples, R, fams, method_options)
     else:
         dic = cs.get_dictionary(samples.n_bins, axis.time_bin_ps, axis.t0_ps, grid, "d" in fams, "s" in fams)
         info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),

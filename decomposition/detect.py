@@ -20,7 +20,7 @@ from . import components as comp
 from . import convscd as cs
 from .constants import RESTART_FACTOR
 from .masks import SampleMask
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
+from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from .noise import signal_noise_sigma
 from .options import SolverOptions
 from .pickcorr import PickWorkspace
@@ -134,13 +134,14 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
                      lm_iterations=lm_total, restarted=restarted)
 
 
-def detect_gradbm(samples: Samples, n_ir: int, components, params: dict, options: dict) -> None:
-    """The GradBM baseline on every live pixel; writes its parameters into ``params`` (P-shaped)."""
+def detect_gradbm(samples: Samples, n_ir: int, components, options: dict) -> dict:
+    """The GradBM baseline on every live pixel -> parameters (P-shaped, NaN where absent)."""
     from .gradbm import gradbm  # imported lazily: the baseline is optional for the ConvSCD path
 
     live, scale = samples.live, samples.scale
+    params = empty_params((samples.values.shape[0],), n_ir=n_ir)
     if live.size == 0:
-        return
+        return params
     T, t0 = samples.axis.time_bin_ps, samples.axis.t0_ps
     got = gradbm(samples.profiles[live], T, t0, components=tuple(sorted(components)), max_interreflections=n_ir,
                  **options)
@@ -156,3 +157,4 @@ def detect_gradbm(samples: Samples, n_ir: int, components, params: dict, options
             if k == "ir_amplitude":
                 v = v * scale[live, None]
             params[k][live, : v.shape[1]] = v
+    return params

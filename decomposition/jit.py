@@ -17,10 +17,17 @@ u < 0, so no exponential of a positive number is ever taken.
 from __future__ import annotations
 
 import math
+import sys
+import threading
+import time
+from contextlib import contextmanager
 
 import numba
+from numba.core import event as _numba_event
 
-__all__ = ["njit", "erfcx", "sss_value"]
+__all__ = ["njit", "erfcx", "sss_value", "compile_notice", "warm_up"]
+
+COMPILE_NOTICE = "compiling the solver's kernels once (about 10-15 s on first use; later runs load them from the cache)"
 
 SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 _INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
@@ -78,3 +85,102 @@ def sss_value(x_ps, sigma_ps, alpha_per_ps):
     else:
         h = math.exp(-alpha_per_ps * (x_ps - 0.5 * alpha_per_ps * sigma_ps * sigma_ps)) * math.erfc(u)
     return SQRT_PI_2 * sigma_ps * h, g
+
+
+class _CompileWatch(_numba_event.Listener):
+    """Calls ``on_first`` when numba first starts compiling (a kernel not found in the disk cache)."""
+
+    def __init__(self, on_first):
+        self.on_first = on_first
+        self.started = None
+
+    def on_start(self, event):
+        if self.started is None:
+            self.started = time.monotonic()
+            self.on_first()
+
+    def on_end(self, event):
+        pass
+
+
+@contextmanager
+def compile_notice(stream=None, *, label: str = "decompose"):
+    """Say so, once, on ``stream`` (default stderr) if numba compiles anything within the block.
+
+    Prints nothing when every kernel comes from numba's disk cache.  When something is compiled:
+    one line as compiling starts, on a terminal a short count of seconds redrawn in place while it
+    runs, and one line with the time it took at the end (over the count, on a terminal).  Yields the watch (``.started`` is None if
+    nothing was compiled).
+    """
+    stream = sys.stderr if stream is None else stream
+    tty = hasattr(stream, "isatty") and stream.isatty()
+    done = threading.Event()
+
+    def tick():
+        while not done.wait(1.0):
+            stream.write(f"\r{label}: compiling ... {time.monotonic() - watch.started:.0f} s")
+            stream.flush()
+
+    def on_first():
+        stream.write(f"{label}: {COMPILE_NOTICE} ...\n")
+        stream.flush()
+        if tty:
+            threading.Thread(target=tick, daemon=True, name="compile-notice").start()
+
+    watch = _CompileWatch(on_first)
+    try:
+        with _numba_event.install_listener("numba:compile", watch):
+            yield watch
+    finally:
+        done.set()
+        if watch.started is not None:
+            seconds = time.monotonic() - watch.started
+            stream.write(("\r" if tty else "") + f"{label}: kernels compiled and cached in {seconds:.1f} s\n")
+            stream.flush()
+
+
+def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convscd", components=("d", "r", "s"),
+            options: dict | None = None, stream=None, label: str = "decompose", quiet: bool = False):
+    """Load (or compile, with :func:`compile_notice`, and cache) every kernel a decomposition with
+    these settings uses, by decomposing a few synthetic profiles of every scene kind.
+
+    Run before timing anything, and before starting worker processes (they then load the cached
+    kernels instead of each compiling them).  Costs a fraction of a second once the cache is warm.
+    Returns the number of seconds spent compiling (0.0 when everything came from the cache).
+    """
+    import numpy as np
+
+    from .api import decompose
+    from .synthetic import make_profiles
+
+    n_bins = int(max(64, min(int(n_bins), 512)))
+    comps = set(components)
+    full = "+".join((["d"] if "d" in comps else []) + (["s"] if "s" in comps else [])
+                    + (["r2", "r3"] if "r" in comps else []))
+    kinds = tuple(dict.fromkeys(([full] if full else []) + (["d"] if "d" in comps else [])
+                                + (["d+s"] if {"d", "s"} <= comps else []) + (["d+s+r2"] if comps >= {"d", "s", "r"} else [])))
+    # low and high noise, and a pixel with a spike (its fit excludes a sample, which takes the
+    # weighted code paths): each takes paths, and argument layouts, that the others do not
+    def scenes(tb, nb):
+        return np.concatenate([make_profiles(2 * len(kinds), nb, nsr=nsr, noise="white", seed=0, kinds=kinds,
+                                             time_bin_ps=tb).noisy for nsr in (0.05, 0.2)])
+
+    try:
+        noisy = scenes(float(time_bin_ps), n_bins)
+    except ValueError:  # a window too short for the scenes: the kernels are the same on the default axis
+        time_bin_ps, n_bins = 2.0, 256
+        noisy = scenes(time_bin_ps, n_bins)
+    spiked = noisy[:1].copy()
+    spiked[0, n_bins // 5] += 20.0 * np.abs(spiked).max()
+    noisy = np.concatenate([noisy, spiked])
+    opts = dict(options or {})
+    with (_quiet_notice() if quiet else compile_notice(stream, label=label)) as watch:
+        decompose(noisy, time_bin_ps=float(time_bin_ps), method=method, components=tuple(components), **opts)
+    return 0.0 if watch.started is None else time.monotonic() - watch.started
+
+
+@contextmanager
+def _quiet_notice():
+    watch = _CompileWatch(lambda: None)
+    with _numba_event.install_listener("numba:compile", watch):
+        yield watch

@@ -45,19 +45,20 @@ def _number(name, v, *, lo=None, lo_open=False, integer=False, allow_none=False)
         return None
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise OptionError(f"option {name}: expected {'an integer' if integer else 'a number'}, got {v!r}")
+    given = v
     if integer:
         if isinstance(v, numbers.Integral):
             v = int(v)
         elif float(v).is_integer():
             v = int(v)
         else:
-            raise OptionError(f"option {name}: expected an integer, got {v!r}")
+            raise OptionError(f"option {name}: expected an integer, got {given!r}")
     else:
         v = float(v)
         if not math.isfinite(v):
-            raise OptionError(f"option {name}: must be finite, got {v!r}")
+            raise OptionError(f"option {name}: must be finite, got {given!r}")
     if lo is not None and (v <= lo if lo_open else v < lo):
-        raise OptionError(f"option {name}: must be {'>' if lo_open else '>='} {lo:g}, got {v!r}")
+        raise OptionError(f"option {name}: must be {'>' if lo_open else '>='} {lo:g}, got {given!r}")
     return v
 
 

@@ -24,7 +24,8 @@ class StreakImage:
     data : ndarray, shape (x, t), uint16
         Counts; axis 0 is the spatial (slit) axis, axis 1 the streak (time) axis.
     metadata : dict
-        Settings in force when it was taken: ``time_range``, ``exposure_s``,
+        Settings in force when it was taken: ``time_range`` (a synchroscan setting
+        number or a single-sweep time such as ``"1 ns"``), ``exposure_s``,
         ``gain``, ``delay_ps`` and anything else the camera reports.
     """
 
@@ -35,7 +36,7 @@ class StreakImage:
 @runtime_checkable
 class StreakCamera(Protocol):
     def identify(self) -> str: ...
-    def configure(self, *, time_range: int | None = None, exposure_s: float | None = None,
+    def configure(self, *, time_range: int | str | None = None, exposure_s: float | None = None,
                   gain: int | None = None) -> None: ...
     def acquire(self, *, timeout_s: float = 10.0) -> StreakImage: ...
     def stop(self) -> None: ...

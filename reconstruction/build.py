@@ -3,6 +3,8 @@
 For every finished scan line: average its frames, subtract the mean dark frame,
 divide by the flat field (optional), and resample each slit pixel's profile from
 the calibrated row times onto the uniform grid of ``calibration.time_bin_ps``.
+The row times are the camera's own scaling table (recorded at capture) or the
+configured polynomial, see :func:`row_times`; the provenance says which.
 Lines are placed along y in order of their target mirror angle (scene order),
 whatever order they were acquired in.  The cube is written through
 :mod:`reconstruction.cubestore`, beside three per-y arrays that tie it to the run:
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.config import check_calibration
+from acquisition.config import TIME_SOURCES, ConfigError, check_calibration, check_row_times
 from acquisition.runstore import describe_absent, open_run
 from core.errors import StreaklabError
 from core.integrity import create_array, read_checked
@@ -31,7 +33,7 @@ from core.staging import check_output_path, staged_output
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
-__all__ = ["ReconstructionError", "reconstruct"]
+__all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS"]
 
 
 class ReconstructionError(StreaklabError, ValueError):
@@ -44,8 +46,58 @@ def _describe_lines(idx) -> str:
     return shown + (f", ... ({len(idx)} in all)" if len(idx) > 10 else "")
 
 
+# Camera table and configured polynomial may differ this much (ps, any row) before the cube's
+# provenance flags the difference as a disagreement.
+TIME_AGREEMENT_PS = 1.0
+
+
+def row_times(run, n_rows: int, time_source: str | None = None) -> tuple[np.ndarray, dict]:
+    """The row times (ps after the trigger, before the trigger delay) a reconstruction uses, and why.
+
+    ``time_source`` (default: the run's ``calibration.time_source``, else ``auto``):
+    ``camera`` the camera's scaling table recorded at capture, ``config`` the configured
+    polynomial, ``auto`` the table when the run has one, else the polynomial.  When both
+    exist they are compared; the provenance records the largest difference.
+    """
+    cal = run.config["calibration"]
+    source = time_source or cal.get("time_source", "auto")
+    if source not in TIME_SOURCES:
+        raise ReconstructionError(f"time source must be one of {', '.join(TIME_SOURCES)}, got {source!r}")
+    table = run.camera_row_times_ps()
+    poly = None
+    if "time_poly_ps" in cal:
+        poly = check_calibration(cal["time_poly_ps"], n_rows, key=f"{run.path}: calibration.time_poly_ps")
+    if table is not None:
+        try:
+            table = check_row_times(table, n_rows, key=f"{run.path}: camera_row_times_ps")
+        except ConfigError as exc:
+            raise ReconstructionError(str(exc)) from None
+    if source == "camera" and table is None:
+        raise ReconstructionError(f"{run.path}: time source 'camera', but the camera offered no scaling table "
+                                  f"when this run was captured; use the configured polynomial (time source 'config')")
+    if source == "config" and poly is None:
+        raise ReconstructionError(f"{run.path}: time source 'config', but the run's configuration has no "
+                                  f"calibration.time_poly_ps")
+    use_table = table is not None and source in ("camera", "auto")
+    info = {
+        "time_calibration_source": "camera scaling table" if use_table else "config polynomial",
+        "time_calibration_requested": source,
+        "camera_scaling_table": table is not None,
+        "camera_vs_config_max_diff_ps": None,
+        "camera_and_config_agree": None,
+    }
+    if table is not None and poly is not None:
+        diff = float(np.max(np.abs(table - poly)))
+        info["camera_vs_config_max_diff_ps"] = diff
+        info["camera_and_config_agree"] = diff <= TIME_AGREEMENT_PS
+    if use_table:
+        info["time_calibration_row_times_ps"] = [float(v) for v in table]
+    return (table if use_table else poly), info
+
+
 def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, flat_path=None,
-                allow_partial: bool = False, overwrite: bool = False, progress=None):
+                allow_partial: bool = False, overwrite: bool = False, progress=None,
+                time_source: str | None = None):
     """Reconstruct the calibrated cube of a run store.
 
     Parameters
@@ -61,6 +113,10 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     overwrite : bool
         Replace an existing ``out_path`` (only after the new cube is complete).
     progress : callable(done_lines, total_lines), optional
+    time_source : {"auto", "camera", "config"}, optional
+        Where the row times come from (see :func:`row_times`); default: the run's
+        ``calibration.time_source``, else ``auto``.  The cube's provenance records which
+        was used (``time_calibration_source``) and how far the two differ.
 
     Returns
     -------
@@ -85,9 +141,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     cfg = run.config
     nx, n_rows = run.image_shape
     n_lines = run.n_lines
-    key = f"{run.path}: calibration.time_poly_ps"
-    row_times_ps = check_calibration(cfg["calibration"]["time_poly_ps"], n_rows, key=key) \
-        + float(cfg["sync"]["trigger_delay_ps"])
+    sweep_ps, time_info = row_times(run, n_rows, time_source)
+    row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
     time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
     t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
     if n_bins < 2:
@@ -132,9 +187,10 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "dark_frames": int(run["dark"].shape[0]),
         "flat_field": None if flat_path is None else str(Path(flat_path).resolve()),
         "flat_field_sha256": flat_sha,
-        "time_calibration_poly_ps": [float(c) for c in cfg["calibration"]["time_poly_ps"]],
+        "time_calibration_poly_ps": [float(c) for c in cfg["calibration"].get("time_poly_ps", [])] or None,
+        **time_info,
         "trigger_delay_ps": float(cfg["sync"]["trigger_delay_ps"]),
-        "time_range": int(cfg["camera"]["time_range"]),
+        "time_range": cfg["camera"]["time_range"],
         "exposure_s": float(cfg["camera"]["exposure_s"]),
         "resampling": "linear interpolation from calibrated row times",
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),

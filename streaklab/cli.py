@@ -9,7 +9,7 @@ import argparse
 import importlib
 import sys
 
-from core.errors import StreaklabError
+from core.errors import OutputExistsError, StreaklabError
 
 from . import __version__
 
@@ -18,7 +18,9 @@ COMMANDS = {
     "demo": ("streaklab.commands.demo", "run the whole pipeline on the simulated lab and report"),
     "simulate": ("streaklab.commands.simulate", "write a synthetic cube with its ground truth"),
     "sim-lab": ("streaklab.commands.simlab", "serve the simulated camera and mirror until Ctrl-C"),
+    "example-config": ("streaklab.commands.example_config", "print or write the example scan configuration"),
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
+    "live": ("streaklab.commands.live", "live streak image and time profile for alignment (Ctrl-C stops)"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
     "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),
@@ -34,6 +36,14 @@ class CommandError(Exception):
 
     The library's own errors (:class:`core.errors.StreaklabError`) are printed the same way.
     """
+
+
+def output_exists(exc: FileExistsError) -> Exception:
+    """A taken output path, in the command line's words (the error itself when it names no path)."""
+    path = getattr(exc, "path", None)
+    if path is None:
+        return exc
+    return CommandError(f"{path} already exists; pass --overwrite to replace it")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -62,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except (CommandError, StreaklabError) as exc:
+        if isinstance(exc, OutputExistsError):
+            exc = output_exists(exc)
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

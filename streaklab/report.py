@@ -10,6 +10,13 @@
 
 Component frames and profiles come from the stored component cubes; a store written with
 ``--no-components`` has them rendered from its parameters with the forward model instead.
+
+Maps are drawn as xarray's ``DataArray.plot()`` draws a (y, x) array: cells centred on the
+store's coordinates, x increasing to the right and y upwards, axes in the coordinates' units.
+Colour limits are the 1st and 99th percentiles of each panel; a frame panel far below the
+strongest panel of its figure (an absent component, or rounding noise) is shown flat and titled
+"none at this time".  Profile titles give the pixel's coordinates in the maps' units and its
+quality flags by name.
 """
 from __future__ import annotations
 
@@ -18,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles"]
+__all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles", "frames_figure",
+           "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "pixel_title"]
 
 # One-way depth per ps of round-trip delay: c / 2 in mm/ps.
 _MM_PER_PS_DEPTH = 0.299792458 / 2.0
@@ -131,34 +139,80 @@ def measured_profiles(store, ys, xs, it=None):
     return None
 
 
-def _image(ax, fig, data, store, title, label, cmap="viridis", symmetric=False, pad=0.05):
+def cell_edges(centres) -> np.ndarray:
+    """Edges of the cells centred on ``centres`` (n + 1 values): midpoints between neighbours, the
+    ends half a step out -- where xarray's ``.plot()`` puts them, so uneven scan angles are drawn
+    where they were taken."""
+    c = np.asarray(centres, np.float64)
+    if c.size == 1:
+        return np.array([c[0] - 0.5, c[0] + 0.5])
+    mid = 0.5 * (c[1:] + c[:-1])
+    return np.concatenate([[c[0] - (mid[0] - c[0])], mid, [c[-1] + (c[-1] - mid[-1])]])
+
+
+def colour_limits(data, *, symmetric=False, floor=None):
+    """(vmin, vmax) for an image: the 1st and 99th percentiles of its finite values.
+
+    ``floor`` (> 0) is the smallest range worth showing, set from the scale of the data the image
+    is compared with (a frame: the strongest panel of its figure): an image whose values all lie
+    within it -- an empty component, or numerical noise at 1e-19 of the signal -- gets limits of
+    that size and shows flat instead of stretching its noise over the whole colour map.  Without
+    ``floor`` the image's own magnitude sets it (a constant map shows flat, not as noise).
+    """
+    a = np.asarray(data, np.float64)
+    a = a[np.isfinite(a)]
+    lo, hi = (float(v) for v in np.percentile(a, [1, 99])) if a.size else (0.0, 0.0)
+    if floor is None or not np.isfinite(floor) or floor <= 0:
+        scale = max(abs(lo), abs(hi))
+        floor = 1e-6 * scale if scale > 0 else 1.0
+    if symmetric:
+        m = max(abs(lo), abs(hi), float(floor))
+        return -m, m
+    if hi - lo >= floor:
+        return lo, hi
+    if lo >= -floor and hi <= floor:     # nothing above the floor: an empty panel, zero at the bottom
+        return (0.0, float(floor)) if lo >= 0 else (-float(floor), float(floor))
+    mid = 0.5 * (lo + hi)
+    return mid - 0.5 * floor, mid + 0.5 * floor
+
+
+def _coord(store, name):
+    arr = store.group[name]
+    return np.asarray(arr[...], np.float64), str(arr.attrs.get("units", "pixel"))
+
+
+def _image(ax, fig, data, store, title, label, cmap="viridis", symmetric=False, pad=0.05, floor=None):
+    """A (y, x) map drawn as xarray's ``.plot()`` draws it: cells centred on the coordinates, x
+    increasing to the right and y upwards."""
     plt = _plt()
-    y = np.asarray(store.group["y"][...])
-    x = np.asarray(store.group["x"][...])
+    y, y_units = _coord(store, "y")
+    x, x_units = _coord(store, "x")
     cm = plt.get_cmap(cmap).with_extremes(bad="0.85")
-    finite = np.isfinite(data)
-    vmin = vmax = None
-    if finite.any():
-        vmin, vmax = np.percentile(data[finite], [1, 99])
-        if symmetric:
-            vmax = max(abs(vmin), abs(vmax))
-            vmin = -vmax
-        if vmin == vmax:
-            vmin, vmax = vmin - 0.5, vmax + 0.5
-    dy = (y[-1] - y[0]) / max(len(y) - 1, 1) if len(y) > 1 else 1.0
-    dx = (x[-1] - x[0]) / max(len(x) - 1, 1) if len(x) > 1 else 1.0
-    extent = (x[0] - dx / 2, x[-1] + dx / 2, y[-1] + dy / 2, y[0] - dy / 2)
-    im = ax.imshow(np.ma.masked_invalid(data), cmap=cm, vmin=vmin, vmax=vmax, extent=extent, aspect="auto",
-                   interpolation="nearest")
+    vmin, vmax = colour_limits(data, symmetric=symmetric, floor=floor)
+    xb, yb = cell_edges(x), cell_edges(y)
+    mesh = ax.pcolormesh(xb, yb, np.ma.masked_invalid(data), cmap=cm, vmin=vmin, vmax=vmax, shading="flat")
+    ax.set_xlim(xb.min(), xb.max())
+    ax.set_ylim(yb.min(), yb.max())
     ax.set_title(title, fontsize=10)
-    ax.set_xlabel(f"x ({store.group['x'].attrs.get('units', 'pixel')})")
-    ax.set_ylabel(f"y ({store.group['y'].attrs.get('units', 'pixel')})")
-    cb = fig.colorbar(im, ax=ax, shrink=0.9, pad=pad)
+    ax.set_xlabel(f"x ({x_units})")
+    ax.set_ylabel(f"y ({y_units})")
+    cb = fig.colorbar(mesh, ax=ax, shrink=0.9, pad=pad)
     cb.set_label(label)
     return cb
 
 
-def plot_frames(store, time_ps: float, path) -> Path:
+def _save(fig, path) -> Path:
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return Path(path)
+
+
+# Below this fraction of the strongest panel of a frame figure, a panel counts as empty.
+EMPTY_PANEL_FRACTION = 1e-3
+
+
+def frames_figure(store, time_ps: float):
+    """The frames figure (matplotlib Figure): one panel per component at the bin nearest ``time_ps``."""
     plt = _plt()
     t = store.time_axis_ps()
     it = int(np.argmin(np.abs(t - time_ps)))
@@ -174,21 +228,35 @@ def plot_frames(store, time_ps: float, path) -> Path:
     if comps["residual"] is not None:
         panels.append(("residual", comps["residual"]))
     done = store.done_mask()
+    panels = [(name, np.where(done, np.asarray(img, np.float64), np.nan)) for name, img in panels]
+    # One scale for the figure: the strongest panel's; a panel far below it is shown as empty.
+    scale = max((_robust_max(img) for _, img in panels), default=0.0)
+    floor = EMPTY_PANEL_FRACTION * scale if scale > 0 else None
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False)
     units = _units(store)
     for ax, (name, img) in zip(axes[0], panels):
-        img = np.where(done, np.asarray(img, np.float64), np.nan)
         resid = name == "residual"
-        _image(ax, fig, img, store, name, f"signal ({units})", cmap="coolwarm" if resid else "magma", symmetric=resid)
+        empty = floor is not None and _robust_max(img) < floor
+        _image(ax, fig, img, store, f"{name} (none at this time)" if empty else name, f"signal ({units})",
+               cmap="coolwarm" if resid else "magma", symmetric=resid, floor=floor)
     how = "" if store.write_components else " (components rendered from parameters)"
     fig.suptitle(f"decomposed frames at t = {t[it]:.1f} ps{how}")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return fig
 
 
-def plot_maps(store, path) -> Path:
+def _robust_max(img) -> float:
+    a = np.abs(np.asarray(img, np.float64))
+    a = a[np.isfinite(a)]
+    return float(np.percentile(a, 99)) if a.size else 0.0
+
+
+def plot_frames(store, time_ps: float, path) -> Path:
+    return _save(frames_figure(store, time_ps), path)
+
+
+def maps_figure(store):
+    """The parameter-maps figure (matplotlib Figure)."""
     plt = _plt()
     g = store.group
     done = store.done_mask()
@@ -209,12 +277,42 @@ def plot_maps(store, path) -> Path:
             sec.set_ylabel("depth c·t/2 (mm)")
     fig.suptitle(f"parameter maps ({store.attrs.get('method', '?')}); grey = absent or not computed")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return fig
 
 
-def plot_profiles(store, pixels, path) -> Path:
+def plot_maps(store, path) -> Path:
+    return _save(maps_figure(store), path)
+
+
+def flag_text(bits: int) -> str:
+    """Quality flags by name (decomposition.FLAG_NAMES), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
+    from decomposition import FLAG_NAMES
+
+    bits = int(bits)
+    names = [str(name) for bit, name in sorted(FLAG_NAMES.items(), key=lambda kv: int(kv[0])) if bits & int(bit)]
+    known = 0
+    for bit in FLAG_NAMES:
+        known |= int(bit)
+    if bits & ~known:
+        names.append(f"bits {bits & ~known:#x}")
+    return ", ".join(names) if names else "none"
+
+
+def _at(value, units) -> str:
+    return f"{value:.4g}" if units == "pixel" else f"{value:.4g} {units}"
+
+
+def pixel_title(store, y: int, x: int) -> str:
+    """A profile's title: where the pixel is, in the maps' coordinates and units, and its flags."""
+    yc, y_units = _coord(store, "y")
+    xc, x_units = _coord(store, "x")
+    note = "" if store.group["valid"][y, x] else "; not decomposed: non-finite input"
+    return (f"y = {_at(yc[y], y_units)}, x = {_at(xc[x], x_units)} (--pixels {y},{x}); "
+            f"flags: {flag_text(store.group['flags'][y, x])}{note}")
+
+
+def profiles_figure(store, pixels):
+    """The time-profiles figure (matplotlib Figure) of ``pixels`` [(y index, x index), ...]."""
     plt = _plt()
     t = store.time_axis_ps()
     units = _units(store)
@@ -237,16 +335,16 @@ def plot_profiles(store, pixels, path) -> Path:
         if resid is not None:
             ax.plot(t, resid, color="tab:red", lw=0.8, ls="--", label="residual")
         ax.set_ylabel(f"signal ({units})")
-        flags = int(store.group["flags"][y, x])
-        note = "" if store.group["valid"][y, x] else "  [not decomposed: non-finite input]"
-        ax.set_title(f"pixel y={y}, x={x}; flags={flags}{note}", fontsize=10)
+        ax.set_title(pixel_title(store, y, x), fontsize=10)
         ax.legend(fontsize=7, ncol=3, loc="upper right")
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time (ps)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return fig
+
+
+def plot_profiles(store, pixels, path) -> Path:
+    return _save(profiles_figure(store, pixels), path)
 
 
 def _pct(a, q):

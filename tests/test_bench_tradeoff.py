@@ -4,11 +4,13 @@ import csv
 
 import pytest
 
+from _timing import first_call_costs_a_second
 from streaklab.bench import tradeoff
 
 
 @pytest.mark.timeout(90)
-def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys):
+def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys, monkeypatch):
+    first_call_costs_a_second(monkeypatch)  # as compiling the kernels does on a fresh install
     parser = argparse.ArgumentParser()
     tradeoff.add_arguments(parser)
     args = parser.parse_args(["--quick", "--out", str(tmp_path)])
@@ -25,7 +27,7 @@ def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys):
     iso = [r for r in rows if r["scene"] == "isolated_direct"]
     assert len(iso) == 2 and all(float(r["nsr"]) == 0.05 for r in iso)
     for r in rows:
-        assert float(r["time_per_pixel_s"]) > 0
+        assert 0 < float(r["time_per_pixel_s"]) < 1.0 / 12 / 2  # no point carries the first call's second
         assert -1.0 <= float(r["mean_fidelity"]) <= 1.0
         assert float(r["direct_delay_crb_median_ps"]) > 0
     # Refinement of grid-snapped parameters cannot leave the delays on the 2 ps grid.
@@ -36,4 +38,4 @@ def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys):
     png = (tmp_path / "tradeoff.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     out = capsys.readouterr().out
-    assert "issue-6 targets" in out and "isolated direct" in out
+    assert "\ntargets:\n" in out and "isolated direct" in out

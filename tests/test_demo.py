@@ -1,6 +1,7 @@
 """``streaklab demo`` end to end (small settings) and ``streaklab bench speed`` on a tiny cube."""
 import argparse
 import json
+import re
 
 import numpy as np
 import pytest
@@ -63,18 +64,35 @@ def test_demo_on_a_synthetic_cube(tmp_path, capsys):
 
 
 @pytest.mark.timeout(120)
-def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys):
+def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys, monkeypatch):
     from streaklab.bench import speed
 
     parser = argparse.ArgumentParser()
     speed.add_arguments(parser)
+    # from a folder outside the repository, with a relative --out
+    monkeypatch.chdir(tmp_path)
     args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
-                              "--chunks", "1", "16", "--out", str(tmp_path)])
+                              "--chunks", "1", "16", "--out", "bench-rel"])
     assert speed.run(args) == 0
     printed = capsys.readouterr().out
+    tmp_path = tmp_path / "bench-rel"
     report = json.loads((tmp_path / "speed.json").read_text())
     (run,) = report["runs"]
     assert run["method"] == "gradbm" and run["pixels"] == 32 and run["chunks_done"] == 2
     assert run["pixels_per_s"] > 0 and run["peak_rss_tree_mib"] > 10 and report["floor"]["pixels_per_s"] > 0
     assert "FFT floor" in printed and "paper-size 600x672x512" in printed
     assert not list(tmp_path.glob("work-*"))  # the synthetic cube and results are cleaned up
+    (line,) = [ln for ln in printed.splitlines() if ln.startswith("gradbm")]
+    peak = float(re.search(r"peak memory ([\d,]+) MiB \(one process\)", line).group(1).replace(",", ""))
+    assert peak == pytest.approx(run["peak_rss_mib"], abs=1) and peak >= run["peak_rss_one_process_mib"] - 1
+
+
+def test_bench_speed_memory_line_states_one_peak_that_bounds_its_parts():
+    from streaklab.bench.speed import memory_text
+
+    # the 50 ms samples of the process tree missed a peak that one process's ru_maxrss saw
+    s = {"scheduler": "processes", "peak_rss_tree_mib": 532.0, "peak_rss_one_process_mib": 647.0,
+         "peak_rss_mib": 647.0}
+    text = memory_text(s)
+    total, one = (float(v) for v in re.findall(r"([\d,.]+) MiB", text))
+    assert total >= one and total == 647 and "all processes" in text and "532" not in text

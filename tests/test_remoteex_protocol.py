@@ -1,9 +1,13 @@
-"""RemoteEx driver: exact bytes on the wire against a scripted loopback server.
+"""RemoteEx driver: exact bytes on the wire.
 
-Each test gives the server a script of (expected command bytes, canned reply
-bytes, data-port bytes).  The server asserts every command it receives, byte for
-byte, in order, and the test fails if the driver sent anything else or left a
-step unsent.
+Each test gives a script of (expected command bytes, canned reply bytes,
+data-port bytes); every command must match byte for byte, in order, and the
+test fails if the driver sent anything else or left a step unsent.  Most tests
+run in memory (``scripted_camera`` of ``tests/_remoteex_script.py``: no socket,
+no thread, no sleep).  The tests that use ``ScriptedServer`` are the
+integration tier: the same kind of script through a loopback TCP server, for
+what only real sockets show (replies split across packets, real timeouts, a
+closed connection, refused connections).
 """
 import socket
 import threading
@@ -19,6 +23,8 @@ from drivers.remoteex import (
     format_seconds, parse_exposure, parse_reply,
 )
 from drivers.sim.camera import bind_port_pair
+
+from _remoteex_script import scripted_camera
 
 pytestmark = pytest.mark.timeout(20)
 
@@ -104,7 +110,7 @@ def test_implements_streak_camera_interface():
 
 
 def test_connect_sends_app_start_and_exact_setting_commands():
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"AppStart()\r", b"0,AppStart\r"),
         (b"DevParamSet(Streak,Time Range,3)\r", b"0,DevParamSet\r"),
         (b"CamParamSet(Acquire,Exposure,12.5 ms)\r", b"0,CamParamSet\r"),
@@ -119,8 +125,7 @@ def test_connect_sends_app_start_and_exact_setting_commands():
         (b"AcqStatus()\r", b"0,AcqStatus,busy,Acquire\r"),
         (b"AcqStop()\r", b"0,AcqStop\r"),
         (b"AppEnd()\r", b"0,AppEnd\r"),
-    ])
-    cam = camera(srv, start_app=True)
+    ], start_app=True)
     cam.configure(time_range=3, exposure_s=0.0125, gain=12)
     cam.set_delay_ps(150.0)
     assert cam.exposure_s() == pytest.approx(0.0125)
@@ -132,13 +137,13 @@ def test_connect_sends_app_start_and_exact_setting_commands():
     cam.stop()
     cam.app_end()
     cam.close()
-    srv.check()
+    srv.assert_done()
 
 
 def test_acquire_sequence_and_pixel_layout():
     # 3 columns (slit, x) by 2 rows (sweep, t), little-endian uint16, row-major.
     pixels = np.array([[1, 2, 3], [256, 513, 65535]], dtype="<u2")
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"DevParamSet(Streak,Time Range,2)\r", b"0,DevParamSet\r"),
         (b"CamParamSet(Acquire,Exposure,10 ms)\r", b"0,CamParamSet\r"),
         (b"DevParamSet(Streak,MCP Gain,30)\r", b"0,DevParamSet\r"),
@@ -148,12 +153,11 @@ def test_acquire_sequence_and_pixel_layout():
         (b"AcqStatus()\r", b"0,AcqStatus,idle\r"),
         (b"ImgDataGet(Current,Data)\r", b"0,ImgDataGet,3,2,2,Data\r", pixels.tobytes()),
     ])
-    cam = camera(srv)
     cam.configure(time_range=2, exposure_s=0.01, gain=30)
     cam.set_delay_ps(0)
     img = cam.acquire(timeout_s=5)
     cam.close()
-    srv.check()
+    srv.assert_done()
     assert img.data.dtype == np.uint16 and img.data.shape == (3, 2)
     np.testing.assert_array_equal(img.data, pixels.T)
     assert img.metadata["time_range"] == 2 and img.metadata["exposure_s"] == pytest.approx(0.01)
@@ -161,7 +165,7 @@ def test_acquire_sequence_and_pixel_layout():
 
 
 def test_acquire_reads_settings_it_does_not_know_and_tolerates_missing_delay_generator():
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"AcqStart(Acquire)\r", b"0,AcqStart\r"),
         (b"AcqStatus()\r", b"0,AcqStatus,idle\r"),
         (b"ImgDataGet(Current,Data)\r", b"0,ImgDataGet,1,1,2,Data\r", b"\x07\x00"),
@@ -170,10 +174,9 @@ def test_acquire_reads_settings_it_does_not_know_and_tolerates_missing_delay_gen
         (b"DevParamGet(Streak,MCP Gain)\r", b"0,DevParamGet,5\r"),
         (b"DevParamGet(Delaybox,Delay A)\r", b"2,DevParamGet\r"),
     ])
-    cam = camera(srv)
     img = cam.acquire()
     cam.close()
-    srv.check()
+    srv.assert_done()
     assert img.data.tolist() == [[7]]
     assert img.metadata["time_range"] == 4 and img.metadata["exposure_s"] == 2.0
     assert img.metadata["gain"] == 5 and img.metadata["delay_ps"] is None
@@ -182,12 +185,11 @@ def test_acquire_reads_settings_it_does_not_know_and_tolerates_missing_delay_gen
 @pytest.mark.parametrize("bpp,dtype", [(1, "<u1"), (4, "<u4")])
 def test_other_pixel_depths_are_converted_to_uint16(bpp, dtype):
     pixels = np.array([[0, 9], [200, 255]], dtype=dtype)
-    srv = ScriptedServer([(b"ImgDataGet(Current,Data)\r", f"0,ImgDataGet,2,2,{bpp},Data\r".encode(),
-                           pixels.tobytes())])
-    cam = camera(srv)
+    cam, srv, _data = scripted_camera([(b"ImgDataGet(Current,Data)\r", f"0,ImgDataGet,2,2,{bpp},Data\r".encode(),
+                                        pixels.tobytes())])
     out = cam.read_image()
     cam.close()
-    srv.check()
+    srv.assert_done()
     assert out.dtype == np.uint16
     np.testing.assert_array_equal(out, pixels.T)
 
@@ -206,22 +208,20 @@ def test_unsolicited_notifications_between_command_and_reply_are_skipped():
 
 
 def test_reply_names_are_matched_case_insensitively_and_foreign_replies_skipped():
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"AcqStatus()\r", b"0,CamParamGet,stale\r0,acqstatus,idle\r"),
     ])
-    cam = camera(srv)
     assert cam.acq_status()[0] == "idle"
     cam.close()
-    srv.check()
+    srv.assert_done()
 
 
 @pytest.mark.parametrize("code", sorted(ERROR_MEANINGS))
 def test_error_codes_become_device_errors_and_connection_stays_usable(code):
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"CamParamSet(Acquire,Exposure,20 s)\r", f"{code},CamParamSet\r".encode()),
         (b"AcqStatus()\r", b"0,AcqStatus,idle\r"),
     ])
-    cam = camera(srv)
     with pytest.raises(DeviceError) as info:
         cam.configure(exposure_s=20.0)
     assert info.value.code == code
@@ -229,7 +229,7 @@ def test_error_codes_become_device_errors_and_connection_stays_usable(code):
     assert "CamParamSet(Acquire,Exposure,20 s)" in str(info.value)
     assert cam.acq_status()[0] == "idle"
     cam.close()
-    srv.check()
+    srv.assert_done()
 
 
 def test_failed_app_start_closes_the_connection():
@@ -241,13 +241,12 @@ def test_failed_app_start_closes_the_connection():
 
 
 def test_garbage_reply_is_a_protocol_error_with_the_raw_bytes():
-    srv = ScriptedServer([(b"AcqStatus()\r", b"\xff\xfenot remoteex\r")])
-    cam = camera(srv)
+    cam, srv, _data = scripted_camera([(b"AcqStatus()\r", b"\xff\xfenot remoteex\r")])
     with pytest.raises(ProtocolError) as info:
         cam.acq_status()
     assert info.value.raw == b"\xff\xfenot remoteex"
     cam.close()
-    srv.check()
+    srv.assert_done()
 
 
 def test_wrong_banner_is_a_protocol_error():
@@ -282,24 +281,23 @@ def test_short_image_data_times_out():
 
 @pytest.mark.parametrize("reply", [b"0,ImgDataGet,10,10\r", b"0,ImgDataGet,10,10,3,Data\r", b"0,ImgDataGet,-1,5,2,Data\r"])
 def test_impossible_image_header_is_a_protocol_error(reply):
-    srv = ScriptedServer([(b"ImgDataGet(Current,Data)\r", reply)])
-    cam = camera(srv)
+    cam, srv, _data = scripted_camera([(b"ImgDataGet(Current,Data)\r", reply)])
     with pytest.raises(ProtocolError):
         cam.read_image()
     cam.close()
-    srv.check()
+    srv.assert_done()
 
 
 def test_exit_stops_acquisition_even_when_the_body_raised():
-    srv = ScriptedServer([
+    cam, srv, _data = scripted_camera([
         (b"AcqStart(Acquire)\r", b"0,AcqStart\r"),
         (b"AcqStop()\r", b"0,AcqStop\r"),
     ])
     with pytest.raises(RuntimeError, match="body failed"):
-        with camera(srv) as cam:
+        with cam:
             cam.start()
             raise RuntimeError("body failed")
-    srv.check()
+    srv.assert_done()
     with pytest.raises(ConnectionLost):
         cam.acq_status()   # closed on exit
 
@@ -345,8 +343,7 @@ def test_wire_format_helpers():
 
 
 def test_bad_arguments_are_rejected_before_anything_is_sent():
-    srv = ScriptedServer([])
-    cam = camera(srv)
+    cam, srv, _data = scripted_camera([])
     with pytest.raises(ValueError, match="time_range"):
         cam.configure(time_range=2.5)
     with pytest.raises(ValueError, match="time_range"):
@@ -360,4 +357,4 @@ def test_bad_arguments_are_rejected_before_anything_is_sent():
     with pytest.raises(ValueError, match="timeout_s"):
         cam.acquire(timeout_s=0)
     cam.close()
-    srv.check()
+    srv.assert_done()

@@ -1,4 +1,6 @@
 """RemoteEx driver against the simulated camera, through real loopback TCP."""
+import logging
+import socket
 import threading
 import time
 
@@ -377,3 +379,224 @@ def test_scene_validation_names_the_problem(change, message):
     fields.update(change)
     with pytest.raises(ValueError, match=message):
         VirtualScene(**fields)
+
+
+# ----------------------------------------------------------- data-port hygiene
+def test_stray_bytes_on_the_data_port_do_not_reach_the_next_image():
+    def run(stray):
+        with RemoteExSimulator(lit_state(angle_deg=float(SCENE.angle_deg[2])), SCENE, seed=4) as sim, \
+                RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+            if stray:
+                sim.inject("stray_data", command="AcqStatus")
+            return cam.acquire().data, cam.stray_data_bytes
+
+    clean, _ = run(False)
+    dirty, discarded = run(True)
+    assert discarded == 3
+    np.testing.assert_array_equal(dirty, clean)          # the first pixels are not 257, nothing is shifted
+
+
+def test_a_flood_of_replies_for_another_command_is_skipped_with_few_warnings(lab, caplog):
+    sim, cam, state = lab
+    sim.inject("wrong_name", command="AcqStatus")
+    with caplog.at_level(logging.WARNING, logger="drivers.remoteex"):
+        assert cam.acq_status()[0] == "idle"
+    assert len([r for r in caplog.records if "skipping reply" in r.getMessage()]) <= 2
+    assert cam._warnings.counts["foreign-reply"] == 20000
+
+
+def test_a_transfer_without_a_data_connection_is_code_9():
+    with RemoteExSimulator(lit_state(), SCENE) as sim:
+        cmd = socket.create_connection(sim.address, timeout=5)
+        try:
+            assert cmd.recv(64) == b"RemoteEx Ready\r"
+            cmd.sendall(b"AppStart()\rAcqStart(Acquire)\rAcqStop()\rImgDataGet(Current,Data)\r")
+            buf = b""
+            while buf.count(b"\r") < 4:
+                buf += cmd.recv(4096)
+            assert buf.split(b"\r")[3] == b"9,ImgDataGet"
+        finally:
+            cmd.close()
+
+
+# ----------------------------------------------------------- handbook commands
+@pytest.mark.parametrize("command,args,expected", [
+    ("AppLicenceGet", (), ["1", "1", "1", "0", "1", "0"]),
+    ("AsyncCommandStatus", (), ["0", "0", "0"]),
+    ("DevParamInfoEx", ("Streak", "MCP Gain"), ["1", "1", "MCP Gain", "30", "1", "0", "63"]),
+    ("DevParamInfoEx", ("Streak", "Mode"), ["1", "1", "Mode", "Operate", "2", "2", "Focus", "Operate"]),
+    ("DevParamInfoEx", ("Streak", "Time Range"), ["1", "1", "Time Range", "2", "2", "4", "1", "2", "3", "4"]),
+    ("DevParamInfo", ("Delaybox", "Delay A"), ["Delay A", "0", "1", "0", "1e-06"]),
+    ("DevParamGet", ("TD", "DeviceName"), ["C5680 streak unit (simulated)"]),
+    ("CamParamInfo", ("Acquire", "Exposure"), ["Exposure time", "10 ms", "4"]),
+    ("CamParamInfoEx", ("Setup", "Binning"), ["Binning factor", "1 x 1", "2", "3", "1 x 1", "2 x 2", "4 x 4"]),
+    ("CamParamsList", ("AI",), ["3", "Exposure", "Gain", "NrExposures"]),
+])
+def test_handbook_commands_answer_on_the_simulator(lab, command, args, expected):
+    sim, cam, state = lab
+    assert cam.command(command, *args) == expected
+
+
+def test_dev_params_list_names_every_streak_parameter(lab):
+    sim, cam, state = lab
+    values = cam.command("DevParamsList", "Streak")
+    assert int(values[0]) == len(values) - 1 == 9
+    assert values[1:4] == ["Time Range", "Mode", "Gate Mode"]
+    assert cam.command("DevParamsList", "Delaybox")[0] == "6"
+
+
+@pytest.mark.parametrize("command,args,code", [
+    ("AcqStart", ("Sweep",), 2),
+    ("AcqLiveMonitor", ("Sometimes",), 2),
+    ("DevParamSet", ("Streak", "Mode", "Sweep"), 10),
+    ("DevParamSet", ("Streak", "MCP Gain", "many"), 1),
+    ("DevParamSet", ("Streak", "Time Range", "1 ns"), 10),          # a synchroscan unit takes setting numbers
+    ("DevParamSet", ("Delaybox", "Delay A", "2e-6"), 10),
+    ("CamParamSet", ("Setup", "Binning", "3 x 3"), 10),
+    ("CamParamSet", ("Setup", "CameraInfo", "x"), 7),
+    ("CamParamGet", ("Nowhere", "Exposure"), 2),
+    ("DevParamInfoEx", ("Streak",), 6),
+    ("ImgDataGet", ("current", "ScalingTable", "Horizontal"), 7),
+    ("ImgRingBufferGet", ("Data", "1"), 7),
+])
+def test_handbook_error_codes_on_the_simulator(lab, command, args, code):
+    sim, cam, state = lab
+    cam.acquire()                                   # there is a current image
+    with pytest.raises(DeviceError) as info:
+        cam.command(command, *args)
+    assert info.value.code == code
+
+
+def test_list_valued_device_parameters_accept_their_entries(lab):
+    sim, cam, state = lab
+    cam.set_streak_mode("Focus")
+    assert cam.streak_mode() == "Focus"
+    cam.command("DevParamSet", "Streakcamera", "Trig. slope", "falling")
+    assert cam.command("DevParamGet", "Streak", "Trig. slope") == ["Falling"]
+    cam.command("DevParamSet", "Del", "Trig. Mode", "Ext. rising")
+    assert cam.command("DevParamGet", "Delaybox", "Trig. Mode") == ["Ext. rising"]
+
+
+def test_focus_mode_puts_the_time_integrated_slit_image_on_the_middle_rows(lab):
+    sim, cam, state = lab
+    cam.set_streak_mode("Focus")
+    img = cam.acquire().data.astype(float)
+    expected = SCENE.expected_focus_counts(3)
+    assert np.abs(img - expected).mean() < 5.0
+    row = int(np.argmax(img.sum(axis=0)))
+    assert abs(row - (SCENE.n_t - 1) / 2) <= 1
+    assert cam.scaling_table_ps() is None                # no sweep: no time scaling
+    cam.set_streak_mode("Operate")
+    assert np.abs(cam.acquire().data - SCENE.expected_counts(3)).mean() < 5.0
+
+
+def test_analog_integration_sums_and_photon_counting_drops_the_dark_level(lab):
+    sim, cam, state = lab
+    cam.command("CamParamSet", "AI", "NrExposures", "3")
+    cam.command("CamParamSet", "PC", "NrExposures", "2")
+    means = {}
+    for mode in ("Acquire", "AI", "PC"):
+        cam.acquire_mode = mode
+        means[mode] = cam.acquire().data.astype(float)
+        assert sim.last_frame_info["mode"] == mode
+    signal = SCENE.expected_counts(3) - SCENE.dark_level
+    assert means["AI"].mean() == pytest.approx(3 * means["Acquire"].mean(), rel=0.02)
+    assert means["PC"].mean() == pytest.approx(2 * signal.mean(), rel=0.03)
+    assert means["PC"].min() == 0.0                      # photon counting: no offset, no read noise
+
+
+def test_image_display_and_profiles(lab):
+    sim, cam, state = lab
+    data = cam.acquire().data
+    values, payload = cam.transaction("ImgDataGet", ("current", "Display"), data=lambda v: int(v[0]) * int(v[1]))
+    disp = np.frombuffer(payload, np.uint8).reshape(SCENE.n_t, SCENE.n_x).T
+    assert values[2:] == ["1", "Display"] and disp.max() == 255 and disp.min() == 0
+    assert np.argmax(disp) == np.argmax(data)
+    values, payload = cam.transaction("ImgDataGet", ("current", "Profile", "3", "0", "0", str(SCENE.n_x),
+                                                     str(SCENE.n_t)), data=lambda v: 4 * int(v[0]))
+    np.testing.assert_allclose(np.frombuffer(payload, "<f4"), data.sum(axis=0), rtol=1e-6)
+
+
+def test_single_sweep_unit_takes_time_strings_and_its_scaling_table_is_the_sweep():
+    with RemoteExSimulator(lit_state(angle_deg=float(SCENE.angle_deg[3])), SCENE, single_sweep=True) as sim, \
+            RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        assert cam.time_range() == "1 ns"
+        cam.configure(time_range="2ns")
+        assert cam.time_range() == "2 ns"
+        cam.configure(time_range="1 ns")
+        with pytest.raises(DeviceError) as info:
+            cam.configure(time_range=3)
+        assert info.value.code == 10
+        img = cam.acquire()
+        assert img.metadata["time_range"] == "1 ns"
+        assert np.abs(img.data - SCENE.expected_counts(3, time_range="1 ns")).mean() < 5.0
+        np.testing.assert_allclose(cam.scaling_table_ps(), SCENE.row_times_ps(0.0, "1 ns"), rtol=1e-6)
+
+
+def test_synchroscan_scaling_table_and_a_camera_without_one():
+    with RemoteExSimulator(lit_state(), SCENE) as sim, RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        cam.configure(time_range=3)
+        cam.acquire()
+        np.testing.assert_allclose(cam.scaling_table_ps(), SCENE.row_times_ps(0.0, 3), rtol=1e-6)
+    with RemoteExSimulator(lit_state(), SCENE, scaling_table=False) as sim, \
+            RemoteExCamera(*sim.address, timeout_s=1.0) as cam:
+        cam.acquire()
+        assert cam.scaling_table_ps() is None
+
+
+def test_live_mode_announces_each_image_and_stops(lab):
+    sim, cam, state = lab
+    cam.set_exposure_s(0.02, "Live")
+    cam.start_live(ring_buffers=3)
+    assert cam.acq_status() == ("busy", "Live")
+    assert cam.command("AsyncCommandStatus")[0] == "1"
+    seqs = []
+    for _ in range(3):
+        img, seq = cam.live_image(timeout_s=5.0)
+        seqs.append(seq)
+        assert np.abs(img - SCENE.expected_counts(3, exposure_s=0.02)).mean() < 6.0
+    assert seqs == sorted(seqs) and len(set(seqs)) == 3
+    cam.stop_live()
+    assert cam.acq_status() == ("idle", "")
+    assert cam.command("AsyncCommandStatus") == ["0", "0", "0"]
+
+
+def test_single_live_takes_one_image(lab):
+    sim, cam, state = lab
+    cam.command("AcqLiveMonitor", "NotifyTimeStamp")
+    cam.command("AcqStart", "SingleLive")
+    event = cam.wait_live_event(5.0)
+    assert event[0] == "NotifyTimeStamp" and float(event[1]) >= 0
+    assert cam.acq_status()[0] == "idle"
+    assert cam.read_image().shape == (SCENE.n_x, SCENE.n_t)
+    cam.command("AcqLiveMonitor", "Off")
+
+
+@pytest.mark.parametrize("monitor,compute", [
+    (("Average", "Subarray", "2", "10", "4", "8"), lambda img: [float(f"{img[10:18, 2:6].mean():.6g}")]),
+    (("Maximum", "FullArea"), lambda img: [float(img.max())]),
+    (("Minimum",), lambda img: [float(img.min())]),
+    (("Profile", "3", "FullArea"), lambda img: [img.shape[0]] + [float(f"{v:.6g}") for v in img.sum(axis=1)]),
+    (("Profile", "2", "Subarray", "0", "0", "5", "3"), lambda img: [5] + [float(f"{v:.6g}") for v in
+                                                                        img[0:3, 0:5].sum(axis=0)]),
+])
+def test_live_monitoring_values_describe_the_live_image(lab, monitor, compute):
+    sim, cam, state = lab
+    cam.command("AcqLiveMonitor", *monitor)
+    cam.command("AcqStart", "SingleLive")
+    event = cam.wait_live_event(5.0)
+    image = cam.read_image().T.astype(np.float64)                   # (rows = t, columns = x), as sent
+    assert event[0] == monitor[0]
+    assert [float(v) for v in event[1:]] == pytest.approx(compute(image), rel=1e-6)
+    cam.command("AcqLiveMonitor", "Off")
+
+
+@pytest.mark.parametrize("args,code", [
+    (("Profile", "4", "FullArea"), 10), (("Profile", "2"), 6), (("Average", "Somewhere"), 2),
+    (("Maximum", "Subarray", "0", "0", "999", "1"), 10), (("RingBuffer", "0"), 10),
+])
+def test_live_monitoring_arguments_are_checked(lab, args, code):
+    sim, cam, state = lab
+    with pytest.raises(DeviceError) as info:
+        cam.command("AcqLiveMonitor", *args)
+    assert info.value.code == code

@@ -110,3 +110,91 @@ def test_bad_requests_are_named(result, tmp_path, capsys):
 def test_measured_frame_reads_one_bin(result):
     store = open_result_store(result / "res.zarr")
     np.testing.assert_array_equal(measured_profiles(store, slice(None), slice(None), 20), _cube()[:, :, 20])
+
+
+def _copy(result, tmp_path, name="copy.zarr"):
+    dst = tmp_path / name
+    shutil.copytree(result / "res.zarr", dst)
+    return dst
+
+
+def _panel(fig, title_start):
+    (ax,) = [a for a in fig.axes if a.get_title().startswith(title_start)]
+    (mesh,) = ax.collections
+    return ax, mesh
+
+
+def test_an_all_but_empty_frame_panel_shows_flat_not_its_rounding_noise(result, tmp_path):
+    import zarr
+
+    from streaklab.report import frames_figure
+
+    path = _copy(result, tmp_path)
+    g = zarr.open_group(str(path), mode="r+")
+    rng = np.random.default_rng(0)
+    g["ir"][...] = (7e-19 * rng.random(g["ir"].shape)).astype(np.float32)  # numerical noise, no signal
+    store = open_result_store(path)
+    t_ps = choose_time_ps(store)
+    fig = frames_figure(store, t_ps)
+    _, measured = _panel(fig, "measured")
+    ax, ir = _panel(fig, "inter-reflections")
+    scale = np.nanpercentile(np.abs(measured.get_array().filled(np.nan)), 99)
+    vmin, vmax = ir.get_clim()
+    assert vmin == 0 and vmax >= 1e-3 * scale > 1e-6  # the noise sits at the bottom of the colour map
+    assert np.nanmax(ir.norm(ir.get_array())) < 1e-12  # every cell drawn in the colour of zero
+    assert "none at this time" in ax.get_title()
+    # a panel with signal keeps its own robust limits
+    ax, direct = _panel(fig, "direct")
+    lo, hi = np.nanpercentile(direct.get_array().filled(np.nan), [1, 99])
+    assert direct.get_clim() == pytest.approx((lo, hi)) and "none" not in ax.get_title()
+
+
+def test_maps_are_oriented_as_xarray_plots_them(result, tmp_path):
+    """y upwards and x to the right, cells centred on the coordinates: increasing and decreasing y."""
+    import matplotlib.pyplot as plt
+    import xarray as xr
+    import zarr
+
+    from streaklab.report import maps_figure
+
+    for y in (None, np.array([10.0, 5.0, 0.0, -7.5])):  # line index; mirror angles scanned downwards
+        path = _copy(result, tmp_path, f"y{y is None}.zarr")
+        if y is not None:
+            g = zarr.open_group(str(path), mode="r+")
+            g["y"][...] = y
+            g["y"].attrs["units"] = "deg"
+        store = open_result_store(path)
+        fig = maps_figure(store)
+        ax, mesh = _panel(fig, "direct delay")
+        delay = np.asarray(store.group["direct_delay_ps"][...])
+        da = xr.DataArray(delay, dims=("y", "x"), coords={"y": store.group["y"][...], "x": store.group["x"][...]})
+        ref_fig, ref_ax = plt.subplots()
+        ref = da.plot(ax=ref_ax, add_colorbar=False)
+        np.testing.assert_allclose(mesh.get_coordinates(), ref.get_coordinates())
+        np.testing.assert_array_equal(mesh.get_array(), ref.get_array())
+        assert ax.get_ylim() == pytest.approx(ref_ax.get_ylim()) and ax.get_ylim()[0] < ax.get_ylim()[1]
+        assert ax.get_xlim() == pytest.approx(ref_ax.get_xlim()) and ax.get_xlim()[0] < ax.get_xlim()[1]
+        assert ax.get_ylabel() == ("y (deg)" if y is not None else "y (pixel)")
+        plt.close(fig)
+        plt.close(ref_fig)
+
+
+def test_profile_titles_give_the_maps_coordinates_and_flag_names(result, tmp_path):
+    import zarr
+
+    from decomposition import FLAG_NAMES
+    from streaklab.report import profiles_figure
+
+    path = _copy(result, tmp_path)
+    g = zarr.open_group(str(path), mode="r+")
+    g["y"][...] = [-9.0, -3.0, 3.0, 9.0]
+    g["y"].attrs["units"] = "deg"
+    by_name = {name: bit for bit, name in FLAG_NAMES.items()}
+    flags = g["flags"][...]
+    flags[2, 4] = by_name["POOR_FIT"] | by_name["SPIKE"]
+    flags[0, 1] = 0
+    g["flags"][...] = flags
+    fig = profiles_figure(open_result_store(path), [(2, 4), (0, 1)])
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles[0] == "y = 3 deg, x = 4 (--pixels 2,4); flags: POOR_FIT, SPIKE"
+    assert titles[1] == "y = -9 deg, x = 1 (--pixels 0,1); flags: none"

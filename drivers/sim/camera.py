@@ -2,7 +2,12 @@
 
 The server binds 127.0.0.1 only, on a command port and the data port right
 above it (as RemoteEx does), and serves one client at a time from a background
-thread.  Frames are rendered from a :class:`~drivers.sim.scene.VirtualScene`
+thread.  A client may open the two ports in either order, and read the
+greetings whenever it likes: each connection is greeted as soon as it is
+accepted, and a command that needs the data port uses the newest data
+connection still open (code 9 if there is none).  What the commands do lives in
+:mod:`drivers.sim.remoteex_commands`, the parameter tables in
+:mod:`drivers.sim.remoteex_params`; this module is the networking.  Frames are rendered from a :class:`~drivers.sim.scene.VirtualScene`
 and the shared :class:`~drivers.sim.state.LabState`:
 
 * the line shown is the scene line whose angle is nearest the mirror angle;
@@ -23,11 +28,13 @@ like a RemoteEx server whose application keeps running.
 
 Faults for tests (one-shot, see :mod:`drivers.sim.faults`)::
 
-    sim.inject("drop_reply" | "delay" | "garbage" | "close" | "error" | "notify" | "short_data",
-               command="AcqStatus", code=8, delay_s=1.0, times=1)
+    sim.inject("drop_reply" | "delay" | "garbage" | "close" | "error" | "notify" | "short_data"
+               | "stray_data" | "wrong_name", command="AcqStatus", code=8, delay_s=1.0, times=1)
 
 ``notify`` sends unsolicited code-4 and code-5 messages before the real reply;
-``short_data`` sends the ``ImgDataGet`` reply but only half of the pixel bytes.
+``short_data`` sends the ``ImgDataGet`` reply but only half of the pixel bytes;
+``stray_data`` sends three stray bytes on the data port before answering;
+``wrong_name`` answers 20000 times with a reply for another command, then correctly.
 """
 from __future__ import annotations
 
@@ -39,12 +46,12 @@ import socket
 import threading
 import time
 
-import numpy as np
-
-from drivers.remoteex import COMMAND_BANNER, DATA_BANNER, format_exposure, format_seconds, parse_exposure
+from drivers.remoteex_wire import COMMAND_BANNER, DATA_BANNER
 
 from .faults import COMMON_KINDS, FaultInjector
-from .scene import TIME_RANGE_SCALE, VirtualScene
+from .remoteex_commands import RemoteExCommands, Reply
+from .remoteex_images import frame_seed
+from .scene import VirtualScene
 from .state import LabState
 
 __all__ = ["RemoteExSimulator", "bind_port_pair", "frame_seed"]
@@ -52,12 +59,8 @@ __all__ = ["RemoteExSimulator", "bind_port_pair", "frame_seed"]
 log = logging.getLogger(__name__)
 
 _CMD_RE = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_]*)\s*\((.*)\)\s*$", re.S)
-_STREAK_NAMES = {"streak", "streakcamera", "td"}
-_DELAY_NAMES = {"delaybox", "del", "delay", "del1"}
-_EXPOSURE_LOCATIONS = {"acquire", "live", "ai", "pc"}
-_GAIN_RANGE = (0, 63)
-_EXPOSURE_RANGE_S = (1e-6, 10.0)
-_DELAY_RANGE_S = (0.0, 1e-6)
+STRAY = b"\x01\x01\x01"
+WRONG_NAME_REPEATS = 20000
 GARBAGE = b"\x15\xfe\xff#garbage, not RemoteEx\r"
 
 
@@ -105,28 +108,11 @@ def bind_port_pair(host: str = "127.0.0.1", port: int = 0, attempts: int = 64):
     raise OSError(f"no free pair of adjacent ports on {host} after {attempts} attempts")
 
 
-def _zigzag(v: int) -> int:
-    return 2 * v if v >= 0 else -2 * v - 1
-
-
-def frame_seed(seed: int, angle_deg: float, delay_ps: float, output: bool, index: int) -> np.random.SeedSequence:
-    """Seed sequence of one frame's noise (angle quantised to 1e-6 deg, delay to 1e-3 ps)."""
-    return np.random.SeedSequence([_zigzag(int(seed)), _zigzag(int(round(angle_deg * 1e6))),
-                                   _zigzag(int(round(delay_ps * 1e3))), int(bool(output)), int(index)])
-
-
-class _Reply(Exception):
-    """Internal: a handler's error reply."""
-
-    def __init__(self, code: int):
-        self.code = code
-
-
 class _Gone(Exception):
     """Internal: the client connection is finished."""
 
 
-class RemoteExSimulator:
+class RemoteExSimulator(RemoteExCommands):
     """RemoteEx TCP server in a thread.
 
     Parameters
@@ -145,14 +131,21 @@ class RemoteExSimulator:
         Simulated duration of one acquisition (``AcqStatus`` reports busy meanwhile).
     app_type, app_version : str
         Reported by ``AppInfo(Type)`` and ``AppInfo(Version)``.
+    single_sweep : bool
+        A single-sweep streak unit (``Time Range`` such as ``1 ns``) instead of a
+        synchroscan one (setting numbers 1..4).
+    scaling_table : bool
+        Whether images carry table scaling (``ImgDataGet(...,ScalingTable,Vertical)``).
+    send_timeout_s : float
+        Longest wait to hand bytes to a client that does not read them (it is then dropped).
     """
 
-    FAULT_KINDS = COMMON_KINDS | {"notify", "short_data"}
+    FAULT_KINDS = COMMON_KINDS | {"notify", "short_data", "stray_data", "wrong_name"}
 
     def __init__(self, state: LabState | None = None, scene: VirtualScene | None = None, *, seed: int = 0,
                  host: str = "127.0.0.1", port: int = 0, frame_time_s: float = 0.002,
-                 app_type: str = "HPD-TA", app_version: str = "9.5 (simulated)",
-                 data_accept_timeout_s: float = 5.0):
+                 app_type: str = "HPD-TA", app_version: str = "9.5 (simulated)", single_sweep: bool = False,
+                 scaling_table: bool = True, send_timeout_s: float = 10.0):
         self.state = state if state is not None else LabState()
         self.scene = scene if scene is not None else VirtualScene.default(seed=seed)
         self.seed = int(seed)
@@ -161,28 +154,23 @@ class RemoteExSimulator:
         self.frame_time_s = float(frame_time_s)
         self.app_type = app_type
         self.app_version = app_version
-        self.data_accept_timeout_s = float(data_accept_timeout_s)
+        self.single_sweep = bool(single_sweep)
+        self.scaling_table = bool(scaling_table)
+        if not send_timeout_s > 0:
+            raise ValueError(f"send_timeout_s must be > 0, got {send_timeout_s!r}")
+        self.send_timeout_s = float(send_timeout_s)
         self.faults = FaultInjector(self.FAULT_KINDS)
         self.received: collections.deque[str] = collections.deque(maxlen=4096)
         self.connections = 0
         self.frames_rendered = 0
-        # Device state (outlives connections).
-        self.app_started = False
-        self.exposure_s = self.scene.reference_exposure_s
-        self.gain = int(self.scene.reference_gain)
-        self.time_range = int(self.scene.time_range)
-        self.delaybox_s = 0.0
-        self._busy_until = 0.0
-        self._acquiring = False
-        self._image: np.ndarray | None = None          # (n_t, n_x) uint16, rows = time
-        self._image_meta: dict = {}
-        self._view_key = None
-        self._view_index = -1
+        self._init_device()
         self._dev_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._listeners: tuple[socket.socket, socket.socket] | None = None
         self._conns: list[socket.socket] = []
+        self._cmd: socket.socket | None = None
+        self._data_conns: list[socket.socket] = []
 
     # --------------------------------------------------------------- control
     @property
@@ -240,87 +228,124 @@ class RemoteExSimulator:
         self.stop()
 
     # ----------------------------------------------------------- networking
-    def _wait_readable(self, s: socket.socket, timeout_s: float) -> bool:
-        """Wait until ``s`` is readable, the stop flag is set, or the timeout expires."""
-        end = time.monotonic() + timeout_s
-        while not self._stop.is_set():
-            left = end - time.monotonic()
-            if left <= 0:
-                return False
-            try:
-                r, _, _ = select.select([s], [], [], min(0.05, left))
-            except (OSError, ValueError):
-                return False
-            if r:
-                return True
-        return False
-
     def _serve_forever(self) -> None:
         cmd_l, data_l = self._listeners
-        while not self._stop.is_set():
-            if not self._wait_readable(cmd_l, 3600.0):
-                continue
-            try:
-                conn, _ = cmd_l.accept()
-            except OSError:
-                continue
-            data = None
-            try:
-                self._drain_stale(data_l)
-                conn.sendall(COMMAND_BANNER)
-                if not self._wait_readable(data_l, self.data_accept_timeout_s):
-                    log.info("RemoteEx simulator: client never opened the data port")
+        buf = bytearray()
+        try:
+            while not self._stop.is_set():
+                wait = self.next_event_in_s()
+                wait = 0.05 if wait is None else min(0.05, wait)
+                watched = [data_l, *self._data_conns, self._cmd if self._cmd is not None else cmd_l]
+                try:
+                    ready, _, _ = select.select(watched, [], [], wait)
+                except (OSError, ValueError):
+                    self._prune()
                     continue
-                data, _ = data_l.accept()
-                data.sendall(DATA_BANNER)
-                self.connections += 1
-                self._conns = [conn, data]
-                self._serve_client(conn, data)
-            except (_Gone, OSError) as exc:
-                log.debug("RemoteEx simulator: client gone (%s)", exc)
-            except Exception:
-                log.exception("RemoteEx simulator: internal error; dropping the client")
-            finally:
-                self._conns = []
-                for s in (conn, data):
-                    if s is not None:
-                        try:
-                            s.close()
-                        except OSError:
-                            pass
+                if data_l in ready:
+                    self._accept_data(data_l)
+                for d in [c for c in ready if c in self._data_conns]:
+                    self._read_data_conn(d)
+                if cmd_l in ready and self._cmd is None:
+                    try:
+                        conn, _ = cmd_l.accept()
+                        conn.settimeout(self.send_timeout_s)     # a client that stops reading is dropped
+                        conn.sendall(COMMAND_BANNER)
+                    except OSError:
+                        continue
+                    self._cmd, buf = conn, bytearray()
+                    self.connections += 1
+                    self._conns = [conn, *self._data_conns]
+                try:
+                    if self._cmd is not None and self._cmd in ready:
+                        chunk = self._cmd.recv(4096)
+                        if not chunk:
+                            # Its data connection closes by itself; a newer client's may already be open.
+                            self._drop_client(data_too=False)
+                            continue
+                        buf += chunk
+                        if len(buf) > 1 << 16:
+                            raise _Gone("command line too long")
+                        while (i := buf.find(b"\r")) >= 0:
+                            line = bytes(buf[:i]).lstrip(b"\n")
+                            del buf[: i + 1]
+                            if line.strip():
+                                self._accept_data(data_l)     # a data connection opened just before the command
+                                self._handle_line(self._cmd, line)
+                    self._send_events()
+                except (_Gone, OSError) as exc:
+                    log.debug("RemoteEx simulator: client gone (%s)", exc)
+                    self._drop_client()
+                except Exception:
+                    log.exception("RemoteEx simulator: internal error; dropping the client")
+                    self._drop_client()
+        finally:
+            self._drop_client()
 
-    @staticmethod
-    def _drain_stale(listener: socket.socket) -> None:
-        # A data-port connection queued before the command banner was sent belongs to an
-        # earlier client that gave up; a new client connects only after reading the banner.
+    def _accept_data(self, data_l) -> None:
         while True:
-            r, _, _ = select.select([listener], [], [], 0)
+            try:
+                r, _, _ = select.select([data_l], [], [], 0)
+            except (OSError, ValueError):
+                return
             if not r:
                 return
             try:
-                stale, _ = listener.accept()
-                stale.close()
+                conn, _ = data_l.accept()
+                conn.settimeout(self.send_timeout_s)
+                conn.sendall(DATA_BANNER)
             except OSError:
-                return
-
-    def _serve_client(self, conn: socket.socket, data: socket.socket) -> None:
-        buf = bytearray()
-        while not self._stop.is_set():
-            i = buf.find(b"\r")
-            if i < 0:
-                if not self._wait_readable(conn, 3600.0):
-                    continue
-                chunk = conn.recv(4096)
-                if not chunk:
-                    raise _Gone("client closed the command connection")
-                buf += chunk
-                if len(buf) > 1 << 16:
-                    raise _Gone("command line too long")
                 continue
-            line = bytes(buf[:i]).lstrip(b"\n")
-            del buf[: i + 1]
-            if line.strip():
-                self._handle_line(conn, data, line)
+            self._data_conns.append(conn)
+            self._conns = [c for c in (self._cmd, *self._data_conns) if c is not None]
+
+    def _read_data_conn(self, d: socket.socket) -> None:
+        try:
+            chunk = d.recv(4096)
+        except OSError:
+            chunk = b""
+        if not chunk:                         # that client closed its data connection
+            self._data_conns.remove(d)
+            d.close()
+
+    def _prune(self) -> None:
+        for d in list(self._data_conns):
+            if d.fileno() < 0:
+                self._data_conns.remove(d)
+
+    def _data_conn(self) -> socket.socket | None:
+        """The newest data connection still open."""
+        for d in reversed(list(self._data_conns)):
+            try:
+                r, _, _ = select.select([d], [], [], 0)
+                if r and d.recv(1, socket.MSG_PEEK) == b"":
+                    self._data_conns.remove(d)
+                    d.close()
+                    continue
+            except OSError:
+                self._data_conns.remove(d)
+                continue
+            return d
+        return None
+
+    def _drop_client(self, data_too: bool = True) -> None:
+        for s in [self._cmd, *(self._data_conns if data_too else [])]:
+            if s is not None:
+                try:
+                    s.close()
+                except OSError:
+                    pass
+        self._cmd = None
+        if data_too:
+            self._data_conns = []
+        self._conns = list(self._data_conns)
+        self.outbox.clear()
+
+    def _send_events(self) -> None:
+        with self._dev_lock:
+            self.tick()
+            events, self.outbox[:] = list(self.outbox), []
+        if events and self._cmd is not None:
+            self._cmd.sendall(b"".join(events))
 
     def _client_gone(self, conn: socket.socket) -> bool:
         try:
@@ -337,7 +362,7 @@ class RemoteExSimulator:
             time.sleep(min(0.02, max(0.0, end - time.monotonic())))
 
     # --------------------------------------------------------------- protocol
-    def _handle_line(self, conn, data, line: bytes) -> None:
+    def _handle_line(self, conn, line: bytes) -> None:
         text = line.decode("ascii", errors="replace")
         self.received.append(text)
         m = _CMD_RE.match(text)
@@ -362,13 +387,29 @@ class RemoteExSimulator:
                 self._sleep(conn, fault.delay_s)
             if fault.kind == "notify":
                 conn.sendall(b"4,Livemonitor,1\r5,Message,simulated status notification\r")
-        try:
-            values, payload = self._execute(name, args)
-            reply = ",".join(["0", name] + [str(v) for v in values]) + "\r"
-        except _Reply as r:
-            values, payload = None, None
-            reply = f"{r.code},{name}\r"
+            if fault.kind == "stray_data":
+                d = self._data_conn()
+                if d is not None:
+                    d.sendall(STRAY)
+            if fault.kind == "wrong_name":
+                other = "AcqStatus" if name.lower() != "acqstatus" else "CamParamGet"
+                conn.sendall(f"0,{other},idle\r".encode("ascii") * WRONG_NAME_REPEATS)
+        with self._dev_lock:
+            self.tick()
+            try:
+                values, payload = self.execute(name, args)
+                reply = ",".join(["0", name] + [str(v) for v in values]) + "\r"
+            except Reply as r:
+                values, payload = None, None
+                reply = f"{r.code},{name}\r"
+            events, self.outbox[:] = list(self.outbox), []
+        if events:
+            conn.sendall(b"".join(events))
         if fault is not None and fault.kind == "drop_reply":
+            return
+        data = self._data_conn() if payload is not None else None
+        if payload is not None and data is None:
+            conn.sendall(f"9,{name}\r".encode("ascii"))     # data cannot be sent via TCP/IP
             return
         conn.sendall(reply.encode("ascii"))
         if payload is not None:
@@ -376,173 +417,3 @@ class RemoteExSimulator:
                 data.sendall(payload[: len(payload) // 2])
             else:
                 data.sendall(payload)
-
-    def _execute(self, name: str, args: list[str]):
-        """Run one command; returns ``(reply values, data-port payload or None)``."""
-        key = name.lower()
-        handler = getattr(self, f"_cmd_{key}", None)
-        if handler is None:
-            raise _Reply(2)
-        with self._dev_lock:
-            return handler(args)
-
-    @staticmethod
-    def _need(args, n):
-        if len(args) < n:
-            raise _Reply(6)
-
-    def _need_app(self):
-        if not self.app_started:
-            raise _Reply(3)
-
-    def _poll(self):
-        if self._acquiring and time.monotonic() >= self._busy_until:
-            self._acquiring = False
-
-    # Application
-    def _cmd_appstart(self, args):
-        self.app_started = True
-        return [], None
-
-    def _cmd_append(self, args):
-        self._need_app()
-        self.app_started = False
-        self._acquiring = False
-        return [], None
-
-    def _cmd_appinfo(self, args):
-        self._need(args, 1)
-        info = {"type": self.app_type, "version": self.app_version, "title": "streaklab RemoteEx simulator"}
-        value = info.get(args[0].lower())
-        if value is None:
-            raise _Reply(2)
-        return [value], None
-
-    # Acquisition
-    def _cmd_acqstart(self, args):
-        self._need_app()
-        self._need(args, 1)
-        if args[0].lower() != "acquire":
-            raise _Reply(2)
-        self._poll()
-        if self._acquiring:
-            raise _Reply(7)
-        self._image, self._image_meta = self._render()
-        self._acquiring = True
-        self._busy_until = time.monotonic() + self.frame_time_s
-        return [], None
-
-    def _cmd_acqstatus(self, args):
-        self._need_app()
-        self._poll()
-        return (["busy", "Acquire"] if self._acquiring else ["idle"]), None
-
-    def _cmd_acqstop(self, args):
-        self._acquiring = False
-        return [], None
-
-    def _cmd_imgdataget(self, args):
-        self._need_app()
-        self._need(args, 2)
-        if args[0].lower() != "current" or args[1].lower() != "data":
-            raise _Reply(2)
-        self._poll()
-        if self._acquiring:
-            raise _Reply(3)
-        if self._image is None:
-            raise _Reply(7)
-        img = self._image
-        return [img.shape[1], img.shape[0], 2, "Data"], img.astype("<u2").tobytes()
-
-    # Camera
-    def _cmd_camparamget(self, args):
-        self._need_app()
-        self._need(args, 2)
-        if args[0].lower() not in _EXPOSURE_LOCATIONS or args[1].lower() != "exposure":
-            raise _Reply(2)
-        return [format_exposure(self.exposure_s)], None
-
-    def _cmd_camparamset(self, args):
-        self._need_app()
-        self._need(args, 3)
-        if args[0].lower() not in _EXPOSURE_LOCATIONS or args[1].lower() != "exposure":
-            raise _Reply(2)
-        try:
-            value = parse_exposure(args[2])
-        except ValueError:
-            raise _Reply(1) from None
-        if not _EXPOSURE_RANGE_S[0] <= value <= _EXPOSURE_RANGE_S[1]:
-            raise _Reply(10)
-        self.exposure_s = value
-        return [], None
-
-    # External devices
-    def _device(self, args):
-        dev = args[0].lower()
-        if dev in _STREAK_NAMES:
-            return "streak"
-        if dev in _DELAY_NAMES:
-            return "delay"
-        raise _Reply(2)
-
-    def _cmd_devparamget(self, args):
-        self._need_app()
-        self._need(args, 2)
-        dev, param = self._device(args), args[1].lower()
-        if dev == "streak":
-            values = {"time range": str(self.time_range), "mcp gain": str(self.gain),
-                      "devicename": "C5680 streak unit (simulated)"}
-        else:
-            values = {"delay a": format_seconds(self.delaybox_s), "devicename": "delay generator (simulated)"}
-        if param not in values:
-            raise _Reply(2)
-        return [values[param]], None
-
-    def _cmd_devparamset(self, args):
-        self._need_app()
-        self._need(args, 3)
-        dev, param, raw = self._device(args), args[1].lower(), args[2]
-        try:
-            number = float(raw)
-        except ValueError:
-            raise _Reply(1) from None
-        if dev == "streak" and param == "time range":
-            if number != int(number) or int(number) not in TIME_RANGE_SCALE:
-                raise _Reply(10)
-            self.time_range = int(number)
-        elif dev == "streak" and param == "mcp gain":
-            if number != int(number) or not _GAIN_RANGE[0] <= number <= _GAIN_RANGE[1]:
-                raise _Reply(10)
-            self.gain = int(number)
-        elif dev == "delay" and param == "delay a":
-            if not _DELAY_RANGE_S[0] <= number <= _DELAY_RANGE_S[1]:
-                raise _Reply(10)
-            self.delaybox_s = number
-        else:
-            raise _Reply(2)
-        return [], None
-
-    # -------------------------------------------------------------- frames
-    def _render(self):
-        with self.state.lock:
-            angle = float(self.state.mirror_angle_deg)
-            light = bool(self.state.sync_output_enabled)
-            sync_delay_ps = float(self.state.sync_delay_ps)
-        delay_ps = sync_delay_ps + self.delaybox_s * 1e12
-        key = (round(angle, 6), round(delay_ps, 3), light, self.exposure_s, self.gain, self.time_range)
-        if key == self._view_key:
-            self._view_index += 1
-        else:
-            self._view_key, self._view_index = key, 0
-        rng = np.random.default_rng(frame_seed(self.seed, angle, delay_ps, light, self._view_index))
-        line = self.scene.line_index(angle)
-        frame = self.scene.render_frame(line, rng, delay_ps=delay_ps, exposure_s=self.exposure_s, gain=self.gain,
-                                        time_range=self.time_range, light=light)
-        self.frames_rendered += 1
-        meta = {"line": line, "angle_deg": angle, "delay_ps": delay_ps, "light": light, "index": self._view_index}
-        return np.ascontiguousarray(frame.T), meta     # (n_t, n_x): image rows are the sweep direction
-
-    @property
-    def last_frame_info(self) -> dict:
-        """Line, angle, delay, light and noise index of the most recent frame."""
-        return dict(self._image_meta)

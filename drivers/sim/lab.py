@@ -43,6 +43,8 @@ class SimulatedLab:
         False leaves it out, None starts it when its module is available.
     mirror_options, sync_options : dict, optional
         Extra keyword arguments for ``MirrorSimulator`` and ``UsbtmcBackend``.
+    camera_options : dict, optional
+        Extra keyword arguments for ``RemoteExSimulator`` (``single_sweep``, ``scaling_table``).
 
     Attributes
     ----------
@@ -55,12 +57,13 @@ class SimulatedLab:
 
     def __init__(self, seed: int = 0, scene: VirtualScene | None = None, *, camera_port: int = 0,
                  frame_time_s: float = 0.002, mirror: bool | None = True, sync: bool | None = True,
-                 mirror_options: dict | None = None, sync_options: dict | None = None):
+                 mirror_options: dict | None = None, sync_options: dict | None = None,
+                 camera_options: dict | None = None):
         self.seed = int(seed)
         self.scene = scene if scene is not None else VirtualScene.default(seed=self.seed)
         self.state = LabState()
         self.camera = RemoteExSimulator(self.state, self.scene, seed=self.seed, port=camera_port,
-                                        frame_time_s=frame_time_s)
+                                        frame_time_s=frame_time_s, **dict(camera_options or {}))
         self._want_mirror, self._want_sync = mirror, sync
         self.unavailable: dict[str, str] = {}   # simulators left out because their module is missing
         self._mirror_options = dict(mirror_options or {})
@@ -160,7 +163,9 @@ class SimulatedLab:
     def describe(self) -> dict:
         """Addresses of the running simulators, for printing or logging."""
         host, port = self.camera_address
-        out = {"camera": f"{host}:{port}", "camera_data_port": self.camera.data_port, "seed": self.seed}
+        out = {"camera": f"{host}:{port}", "camera_data_port": self.camera.data_port, "seed": self.seed,
+               "streak_unit": "single-sweep" if self.camera.single_sweep else "synchroscan",
+               "scaling_table": self.camera.scaling_table}
         if self.mirror is not None:
             out["mirror"] = self.mirror.port
             out["mirror_stable"] = self.mirror.stable_port

@@ -33,13 +33,41 @@ import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 
-__all__ = ["VirtualScene", "TIME_RANGE_SCALE", "GAIN_DOUBLING_STEPS"]
+__all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN_DOUBLING_STEPS",
+           "time_range_scale"]
 
-# Sweep duration of each streak time-range setting relative to setting 2.
+# Sweep duration of each synchroscan time-range setting relative to setting 2.
 TIME_RANGE_SCALE = {1: 0.5, 2: 1.0, 3: 2.0, 4: 4.0}
+# A single-sweep time range such as "1 ns" stretches the reference sweep (setting 2, whose
+# window is about 560 ps) by its nominal duration over this one.
+SINGLE_SWEEP_REFERENCE_S = 500e-12
 # MCP gain steps that double the signal.
 GAIN_DOUBLING_STEPS = 10.0
 UINT16_MAX = np.iinfo(np.uint16).max
+# Focus mode (no sweep): the slit image sits on this fraction of the rows, Gaussian of this width.
+FOCUS_ROW_FRACTION = 0.5
+FOCUS_SIGMA_ROWS = 1.5
+
+
+def time_range_scale(time_range) -> float:
+    """Sweep duration of a time range relative to synchroscan setting 2.
+
+    ``time_range`` is a synchroscan setting number (key of :data:`TIME_RANGE_SCALE`) or a
+    single-sweep time such as ``"1 ns"`` (nominal duration over :data:`SINGLE_SWEEP_REFERENCE_S`).
+    """
+    from drivers.remoteex_wire import normalize_time_range, time_range_seconds
+
+    try:
+        tr = normalize_time_range(time_range)
+    except ValueError:
+        raise ValueError(f"time_range must be one of {sorted(TIME_RANGE_SCALE)} or a time such as '1 ns', "
+                         f"got {time_range!r}") from None
+    if isinstance(tr, int):
+        if tr not in TIME_RANGE_SCALE:
+            raise ValueError(f"time_range must be one of {sorted(TIME_RANGE_SCALE)} or a time such as '1 ns', "
+                             f"got {time_range!r}")
+        return TIME_RANGE_SCALE[tr]
+    return time_range_seconds(tr) / SINGLE_SWEEP_REFERENCE_S
 
 
 @dataclass(eq=False)
@@ -136,22 +164,19 @@ class VirtualScene:
             raise ValueError(f"time_range must be one of {sorted(TIME_RANGE_SCALE)}, got {self.time_range!r}")
 
     # ------------------------------------------------------------- geometry
-    def row_times_ps(self, delay_ps: float = 0.0, time_range: int | None = None) -> np.ndarray:
+    def row_times_ps(self, delay_ps: float = 0.0, time_range: int | str | None = None) -> np.ndarray:
         """Scene time seen by each streak row, shape (n_t,), ps.
 
         Parameters
         ----------
         delay_ps : float
             Trigger delay: the window opens this much later.
-        time_range : int, optional
-            Streak time-range setting (key of :data:`TIME_RANGE_SCALE`);
-            defaults to the scene's own.
+        time_range : int or str, optional
+            Streak time range (see :func:`time_range_scale`); defaults to the scene's own.
         """
         scale = 1.0
         if time_range is not None:
-            if time_range not in TIME_RANGE_SCALE:
-                raise ValueError(f"time_range must be one of {sorted(TIME_RANGE_SCALE)}, got {time_range!r}")
-            scale = TIME_RANGE_SCALE[time_range] / TIME_RANGE_SCALE[self.time_range]
+            scale = time_range_scale(time_range) / TIME_RANGE_SCALE[self.time_range]
         rows = np.arange(self.n_t, dtype=np.float64)
         return np.polynomial.polynomial.polyval(rows, self.time_calibration) * scale + float(delay_ps)
 
@@ -164,7 +189,7 @@ class VirtualScene:
         """Parameter dict of one scan line, leading shape (n_x,)."""
         return {k: v[line] for k, v in self.params.items()}
 
-    def clean_line(self, line: int, delay_ps: float = 0.0, time_range: int | None = None) -> np.ndarray:
+    def clean_line(self, line: int, delay_ps: float = 0.0, time_range: int | str | None = None) -> np.ndarray:
         """Noise-free profile of one scan line at the calibrated row times.
 
         Returns
@@ -196,7 +221,7 @@ class VirtualScene:
         return out
 
     def expected_counts(self, line: int, *, delay_ps: float = 0.0, exposure_s: float | None = None,
-                        gain: int | None = None, time_range: int | None = None,
+                        gain: int | None = None, time_range: int | str | None = None,
                         light: bool = True) -> np.ndarray:
         """Mean counts of a frame (before noise and clipping), shape (n_x, n_t), float64."""
         signal = self.signal_scale(exposure_s, gain) * self.clean_line(line, delay_ps, time_range) if light \
@@ -210,19 +235,42 @@ class VirtualScene:
         return self.photon_scale * exposure_s / self.reference_exposure_s \
             * 2.0 ** ((gain - self.reference_gain) / GAIN_DOUBLING_STEPS)
 
+    def expected_focus_counts(self, line: int, *, exposure_s: float | None = None, gain: int | None = None,
+                              light: bool = True) -> np.ndarray:
+        """Mean counts in focus mode (sweep off), shape (n_x, n_t), float64.
+
+        Without the sweep all of a pixel's light over the window lands on the slit image:
+        a Gaussian of ``FOCUS_SIGMA_ROWS`` rows centred on row ``FOCUS_ROW_FRACTION * (n_t - 1)``.
+        """
+        out = np.full((self.n_x, self.n_t), self.dark_level, dtype=np.float64)
+        if light:
+            total = self.clean_line(line).sum(axis=-1)                       # (n_x,)
+            rows = np.arange(self.n_t, dtype=np.float64)
+            g = np.exp(-0.5 * ((rows - FOCUS_ROW_FRACTION * (self.n_t - 1)) / FOCUS_SIGMA_ROWS) ** 2)
+            out += self.signal_scale(exposure_s, gain) * total[:, None] * (g / g.sum())[None, :]
+        return out
+
     def render_frame(self, line: int, rng: np.random.Generator, *, delay_ps: float = 0.0,
                      exposure_s: float | None = None, gain: int | None = None,
-                     time_range: int | None = None, light: bool = True) -> np.ndarray:
-        """One noisy frame.
+                     time_range: int | str | None = None, light: bool = True, focus: bool = False,
+                     dark: bool = True) -> np.ndarray:
+        """One noisy frame (``focus``: sweep off, see :meth:`expected_focus_counts`).
+
+        ``dark=False`` leaves out the dark level and the read noise (photon counting).
 
         Returns
         -------
         ndarray, shape (n_x, n_t), uint16 counts.
         """
-        counts = np.full((self.n_x, self.n_t), self.dark_level, dtype=np.float64)
+        counts = np.full((self.n_x, self.n_t), self.dark_level if dark else 0.0, dtype=np.float64)
         if light:
-            mean = self.signal_scale(exposure_s, gain) * self.clean_line(line, delay_ps, time_range)
+            if focus:
+                mean = self.expected_focus_counts(line, exposure_s=exposure_s, gain=gain) - self.dark_level
+            else:
+                mean = self.signal_scale(exposure_s, gain) * self.clean_line(line, delay_ps, time_range)
             counts += rng.poisson(np.clip(mean, 0.0, 1e12))
+        if not dark:
+            return np.clip(counts, 0, UINT16_MAX).astype(np.uint16)
         counts += rng.normal(0.0, self.read_noise, size=counts.shape) if self.read_noise > 0 else 0.0
         return np.clip(np.rint(counts), 0, UINT16_MAX).astype(np.uint16)
 

@@ -11,7 +11,9 @@ from streaklab.cli import CommandError
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--config", required=True, help="scan configuration (TOML)")
+    parser.add_argument("--config", required=True,
+                        help="scan configuration (TOML), or 'sim' for the packaged example of the simulated lab "
+                             "('streaklab example-config' prints it)")
     parser.add_argument("--out", help="run store to write (default: output.path of the config)")
     parser.add_argument("--simulate", action="store_true",
                         help="capture from a simulated lab started in this process (ignores [devices])")

@@ -111,6 +111,9 @@ def run(args) -> int:
         return 0
     print(f"decomposed {summary['pixels']} pixels of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
           f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
+    if summary.get("seconds_compile"):
+        print(f"note: {summary['seconds_compile']:.1f} s of that compiled the solver's kernels, once; "
+              f"later runs load them from the cache")
     if summary["invalid_pixels"]:
         print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
     if summary["ir_truncated_pixels"]:

@@ -26,7 +26,6 @@ from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "run_demo", "class_fidelity"]
 
-EXAMPLE_CONFIG = Path(__file__).resolve().parents[2] / "acquisition" / "examples" / "sim_scan.toml"
 _PRODUCTS = ("run.zarr", "cube.zarr", "result.zarr", "figs", "fidelity.json")
 
 
@@ -39,11 +38,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lines", type=int, default=16, help="scan lines (y) (default 16)")
     parser.add_argument("--nx", type=int, default=64, help="slit pixels (x) (default 64)")
     parser.add_argument("--nt", type=int, default=256, help="streak rows / time bins (default 256)")
-    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd")
+    parser.add_argument("--method", choices=("convscd", "gradbm"), default="convscd",
+                        help="solver: convscd (default) or the gradbm baseline")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="decompose on a local cluster of N processes (default: threads)")
     parser.add_argument("--nsr", type=float, default=0.05, help="noise-to-signal ratio of --source simulate")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the simulated scene and its noise (default 0); same seed, same data")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -133,7 +134,10 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
     """The example simulated scan, resized to the demo's lines, pixels and rows."""
     import tomllib
 
-    raw = tomllib.loads(EXAMPLE_CONFIG.read_text())
+    from acquisition.config import example_config_path
+
+    example = example_config_path("sim")
+    raw = tomllib.loads(example.read_text())
     raw.setdefault("scan", {})["count"] = int(lines)
     raw["scan"].pop("angles_deg", None)
     sim = raw.setdefault("simulation", {})
@@ -143,7 +147,7 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
     if int(nt) != 256:
         c0, c1, c2 = raw["calibration"]["time_poly_ps"]
         raw["calibration"]["time_poly_ps"] = [c0, c1 * 256 / nt, c2 * (256 / nt) ** 2]
-    return parse_config(raw, source=str(EXAMPLE_CONFIG))
+    return parse_config(raw, source=str(example))
 
 
 def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):

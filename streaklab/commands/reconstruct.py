@@ -15,6 +15,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--allow-partial", action="store_true",
                         help="reconstruct a run with unfinished lines (their cube rows are NaN, line_valid False)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    parser.add_argument("--time-source", choices=("auto", "camera", "config"),
+                        help="row times: the camera's scaling table recorded at capture, the configured "
+                             "polynomial, or auto (the table when the run has one); default: the run's "
+                             "calibration.time_source")
 
 
 def run(args) -> int:
@@ -23,10 +27,15 @@ def run(args) -> int:
     if args.chunks is not None and min(args.chunks) <= 0:
         raise CommandError(f"--chunks must be positive, got {args.chunks[0]} {args.chunks[1]}")
     cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
-                       allow_partial=args.allow_partial, overwrite=args.overwrite)
+                       allow_partial=args.allow_partial, overwrite=args.overwrite,
+                       time_source=args.time_source)
     ny, nx, nt = cube.shape
     missing = cube.attrs["provenance"].get("lines_missing", [])
     note = f", {len(missing)} unfinished lines left NaN" if missing else ""
+    prov = cube.attrs["provenance"]
     print(f"wrote {cube.path}: cube (y={ny}, x={nx}, t={nt}) float32, {cube.time_bin_ps:g} ps bins from "
-          f"{cube.t0_ps:g} ps{note}", file=sys.stderr)
+          f"{cube.t0_ps:g} ps{note}; row times from the {prov.get('time_calibration_source')}", file=sys.stderr)
+    if prov.get("camera_and_config_agree") is False:
+        print(f"streaklab reconstruct: warning: the camera's scaling table and calibration.time_poly_ps differ by "
+              f"up to {prov['camera_vs_config_max_diff_ps']:.3g} ps", file=sys.stderr)
     return 0

@@ -5,6 +5,8 @@ script can read the addresses from the first lines of output::
 
     camera 127.0.0.1:40123
     camera-data-port 40124
+    streak-unit synchroscan
+    scaling-table yes
     mirror /dev/pts/7
     mirror-stable /tmp/streaklab-mirror-xyz/ttySMC100
     ready
@@ -12,6 +14,13 @@ script can read the addresses from the first lines of output::
 The laser-sync unit is a pyusb backend object and cannot be served to another
 process; with no sync device to switch it, the laser output is on (``--dark``
 turns it off).
+
+Another program talks to the camera as to HPD-TA's RemoteEx: TCP to ``camera``
+(commands) and to ``camera-data-port`` (image data), opened in either order,
+each greeting read whenever it likes, then ``AppStart()``.  An Odemis-style
+client (which sets ``Time Range`` to ``1 ns``) needs ``--single-sweep``.
+``streaklab live`` with ``devices.camera`` set to the ``camera`` address shows
+the live image.
 """
 from __future__ import annotations
 
@@ -31,6 +40,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--t", dest="n_t", type=int, default=256, help="streak rows (default 256)")
     parser.add_argument("--dark", action="store_true", help="laser output off: the camera sees dark frames only")
     parser.add_argument("--no-mirror", action="store_true", help="serve the camera only")
+    parser.add_argument("--single-sweep", action="store_true",
+                        help="a single-sweep streak unit (Time Range such as '1 ns') instead of synchroscan (1..4)")
+    parser.add_argument("--no-scaling-table", action="store_true",
+                        help="images carry no table scaling (ImgDataGet(...,ScalingTable,...) is refused)")
 
 
 def run(args) -> int:
@@ -44,7 +57,8 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(f"scene: {exc}") from None
     lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
-                       mirror=not args.no_mirror, sync=False)
+                       mirror=not args.no_mirror, sync=False,
+                       camera_options={"single_sweep": args.single_sweep, "scaling_table": not args.no_scaling_table})
     try:
         lab.start()
     except (OSError, RuntimeError) as exc:
@@ -60,6 +74,8 @@ def run(args) -> int:
         info = lab.describe()
         print(f"camera {info['camera']}")
         print(f"camera-data-port {info['camera_data_port']}")
+        print(f"streak-unit {info['streak_unit']}")
+        print(f"scaling-table {'yes' if info['scaling_table'] else 'no'}")
         if "mirror" in info:
             print(f"mirror {info['mirror']}")
             print(f"mirror-stable {info['mirror_stable']}")
