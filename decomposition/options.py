@@ -156,7 +156,7 @@ class SolverOptions:
     block_size: int = 256
     refine: bool = False
     stderr: bool | None = None
-    noise: str = "gaussian"
+    noise: str = "auto"
 
     def __post_init__(self):
         for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine"):

@@ -36,8 +36,7 @@ def test_pure_poisson_counts_get_no_spike_flags(peak_counts):
     assert np.array_equal(s.fit, s0.fit)
     assert np.array_equal(s.flags & EMPTY, s0.flags & EMPTY)
     # "auto" recognises the counts, as int64 and as whole-number floats
-    assert prepare_samples(x, ax, grid, noise="auto").noise_model == "poisson"
-    assert prepare_samples(x.astype(np.float64), ax, grid, noise="auto").noise_model == "poisson"
+    assert resolve_noise_model("auto", x) == resolve_noise_model("auto", x.astype(float)) == "poisson"
 
 
 def test_gaussian_rule_on_counts_is_what_the_count_test_replaces():
