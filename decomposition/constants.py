@@ -30,6 +30,7 @@ __all__ = [
     "SPIKE_FALSE_ALARM",
     "POISSON_VARIANCE_FLOOR",
     "POISSON_REFITS",
+    "PEARSON_MIN_COUNTS",
     "BOUND_TOL",
     "SSS_SLOT",
 ]
@@ -109,6 +110,11 @@ POISSON_VARIANCE_FLOOR = 0.02
 #: fit; two refits from the detection's least-squares model reach it to well within the
 #: standard errors).
 POISSON_REFITS = 2
+
+#: Count data: the noise scale of a fit is measured on the samples whose model is at least
+#: this many counts (there the Pearson residual (y - mu)^2 / mu of Poisson counts averages 1
+#: within a few per cent; below, the variance floor and the skew of the law take over).
+PEARSON_MIN_COUNTS = 5.0
 
 #: A refined log sigma or log alpha within this of its bound (in log units, i.e. relative
 #: 1e-9) is at the bound (AT_BOUND flag): the projection puts it exactly there, rounding

@@ -9,8 +9,9 @@ Excluded samples (saturated, spikes, non-finite) have weight 0 in both.
 Count data (``noise="poisson"``): the weights are 1 / variance of the Poisson law at the
 model (:func:`sample_weights`), and the refit is repeated POISSON_REFITS times, each with the
 previous model's weights (iteratively reweighted least squares, whose fixed point is the
-Poisson maximum-likelihood fit); the standard errors use the same weights with the known
-noise scale (the dispersion, 1 for pure counts), i.e. the Poisson Fisher information.
+Poisson maximum-likelihood fit); the standard errors use weights 1 / model count with the
+noise scale measured on the fit (:func:`decomposition.noise.fit_dispersion`, 1 for pure
+counts): the Poisson Fisher information.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import numpy as np
 
 from core.model import render_profile
 from .constants import POISSON_REFITS
-from .noise import poisson_weights
+from .noise import fit_dispersion, poisson_weights
 from .prepare import Samples
 
 __all__ = ["refine_components", "component_errors", "sample_weights"]
@@ -29,11 +30,15 @@ def sample_weights(samples: Samples, params: dict) -> np.ndarray:
     the model of ``params`` (P-shaped) on the fitted samples."""
     if samples.noise_model != "poisson":
         return samples.weights
+    return poisson_weights(_model(samples, params), samples.fit, samples.dispersion)
+
+
+def _model(samples: Samples, params: dict) -> np.ndarray:
+    """(P, L) model of P-shaped ``params`` (0 where a pixel has none)."""
     axis = samples.axis
     with np.errstate(invalid="ignore"):
         model = render_profile(params, samples.n_bins, axis.time_bin_ps, axis.t0_ps)
-    model = np.where(np.isfinite(model), model, 0.0)
-    return poisson_weights(model, samples.fit, samples.dispersion)
+    return np.where(np.isfinite(model), model, 0.0)
 
 
 def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool):
@@ -60,10 +65,16 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
 
     axis = samples.axis
     shape = samples.lead + (samples.n_bins,)
-    counts = samples.noise_model == "poisson"
     n_pix = samples.values.shape[0]
     flat = {k: np.reshape(v, (n_pix,) + np.shape(v)[len(samples.lead):]) for k, v in params.items()}
+    noise = None
+    if samples.noise_model == "poisson":
+        # weights 1 / Poisson variance, the noise scale measured on the fit (1 for pure counts)
+        model = _model(samples, flat)
+        weights = poisson_weights(model, samples.fit)
+        noise = fit_dispersion(samples.values, model, samples.fit).reshape(samples.lead)
+    else:
+        weights = samples.weights
     return standard_errors(samples.values.reshape(shape), params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
-                           weights=sample_weights(samples, flat).reshape(shape), shared_sigma=shared_sigma,
-                           sss_after_direct=sss_after_direct,
-                           noise_sigma=samples.dispersion.reshape(samples.lead) if counts else None)
+                           weights=weights.reshape(shape), shared_sigma=shared_sigma,
+                           sss_after_direct=sss_after_direct, noise_sigma=noise)
