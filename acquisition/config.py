@@ -7,6 +7,7 @@ A configuration has these sections (every key is listed with its default; see
     camera = "127.0.0.1:1001"      # RemoteEx command port "host:port" (data port = port + 1)
     mirror = "/dev/ttyUSB0"        # serial port name or pyserial URL of the motion controller
     mirror_address = 1             # controller address on the serial line (1..31)
+    mirror_xonxoff = true          # Xon/Xoff flow control on the mirror's serial port (SMC100 manual)
     sync_vendor_id = 0x0000        # USB vendor id of the laser-sync unit      } give both ids,
     sync_product_id = 0x0000       # USB product id                            } or the serial,
     sync_serial = ""               # USB serial number                         } or all three
@@ -126,6 +127,12 @@ def _str(key, v, *, allow_empty=False):
     return v
 
 
+def _bool(key, v):
+    if not isinstance(v, bool):
+        _fail(key, f"must be true or false, got {v!r}")
+    return v
+
+
 def _host_port(key, v):
     v = _str(key, v)
     host, sep, port = v.rpartition(":")
@@ -203,6 +210,7 @@ _SPEC = {
         "camera": (_host_port, "127.0.0.1:1001"),
         "mirror": (_str, "/dev/ttyUSB0"),
         "mirror_address": (lambda k, v: _int(k, v, lo=1, hi=31, what="an integer in 1..31"), 1),
+        "mirror_xonxoff": (_bool, True),
         "sync_vendor_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_product_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_serial": (_str, _MISSING),

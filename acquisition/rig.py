@@ -105,7 +105,8 @@ def open_rig(config: ScanConfig, *, lab=None):
     timeout_s = dev["timeout_s"]
     if lab is not None:
         cam_host, cam_port = lab.camera_address
-        mirror_port, backend = lab.mirror_port, lab.usb_backend
+        # the stable link, as a udev by-id link on the rig: a re-plugged port is found again
+        mirror_port, backend = lab.mirror_stable_port, lab.usb_backend
     else:
         cam_host, _, port = dev["camera"].rpartition(":")
         cam_port, mirror_port, backend = int(port), dev["mirror"], None
@@ -119,7 +120,8 @@ def open_rig(config: ScanConfig, *, lab=None):
         camera = enter("camera", f"{cam_host}:{cam_port}",
                        lambda: RemoteExCamera(cam_host, cam_port, timeout_s=timeout_s, connect_timeout_s=timeout_s))
         mirror = enter("mirror", mirror_port,
-                       lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s))
+                       lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s,
+                                            xonxoff=dev["mirror_xonxoff"]))
         sync_where = "the simulated USB backend" if backend is not None else \
             ", ".join(f"{k}={dev[k]!r}" for k in ("sync_vendor_id", "sync_product_id", "sync_serial") if k in dev) \
             or "USB (no id configured)"

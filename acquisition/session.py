@@ -158,11 +158,19 @@ class CaptureSession:
                     self.sleep(self.backoff_s * 2 ** attempt)
 
     def _recover(self) -> None:
-        """Best effort after a fault: stop any acquisition still running on the camera."""
+        """Best effort after a fault: stop any acquisition still running on the camera, and
+        home the mirror again if it lost its reference (a power cycle, a reset, a re-plug)."""
         try:
             self.camera.stop()
         except DriverError as exc:
             log.info("camera stop after a fault failed too: %s", exc)
+        try:
+            state = self.mirror.state()
+            if state in ("not_referenced", "disabled"):
+                log.warning("mirror is %s after the fault; homing it again", state.replace("_", " "))
+                self.mirror.home(timeout_s=max(30.0, self.config["scan"]["settle_timeout_s"]))
+        except DriverError as exc:
+            log.info("mirror check after a fault failed too: %s", exc)
 
     # ------------------------------------------------------------------ steps
     def check_devices(self) -> dict:

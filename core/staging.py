@@ -20,13 +20,14 @@ import json
 import os
 import re
 import shutil
-import socket
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import OutputExistsError
 from .integrity import consolidate
+from .owner import owner_alive
+from .owner import owner_record
 
 __all__ = ["check_output_path", "OutputPathError", "describe_existing", "check_no_links", "staged_output",
            "clean_stale_staging"]
@@ -155,31 +156,6 @@ def _names(out: Path, token: str) -> tuple[Path, Path, Path]:
             d / f".{out.name}.staging-{token}.json")
 
 
-def _start_time(pid: int) -> str | None:
-    """The process's start time (clock ticks since boot) on Linux, to tell a reused pid apart."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return None
-    return stat.rsplit(")", 1)[1].split()[19]
-
-
-def _owner_alive(info: dict) -> bool:
-    if info.get("host") != socket.gethostname():
-        return True                          # another machine's process: cannot tell, so it may be running
-    pid = int(info.get("pid", -1))
-    if pid <= 0:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass
-    started = info.get("started")
-    return started is None or _start_time(pid) in (None, started)
-
-
 def clean_stale_staging(directory) -> list[Path]:
     """Remove what killed streaklab writes left in ``directory``; returns the paths removed.
 
@@ -199,7 +175,7 @@ def clean_stale_staging(directory) -> list[Path]:
             info = json.loads(marker.read_text())
         except (OSError, ValueError):
             continue
-        if not isinstance(info, dict) or info.get("producer") != "streaklab" or _owner_alive(info):
+        if not isinstance(info, dict) or info.get("producer") != "streaklab" or owner_alive(info):
             continue
         out = d / m["name"]
         tmp, trash, _ = _names(out, m["token"])
@@ -229,9 +205,7 @@ def staged_output(out, *, overwrite: bool = False, inputs=(), kind: str | None =
     clean_stale_staging(out.parent)
     token = uuid.uuid4().hex[:8]
     tmp, trash, marker = _names(out, token)
-    pid = os.getpid()
-    marker.write_text(json.dumps({"producer": "streaklab", "host": socket.gethostname(), "pid": pid,
-                                  "started": _start_time(pid), "out": out.name}))
+    marker.write_text(json.dumps(owner_record(out=out.name)))
     try:
         yield tmp
         if (tmp / "zarr.json").is_file():       # a complete Zarr store: index it for other readers

@@ -6,7 +6,7 @@ and decay rates refined continuously, each step accepted only where the pixel's 
 
     F = 1/2 ||residual||^2 + mu sum_k log(1 + pen_k |amp_k| / eps)
 
-decreases (see :mod:`decomposition.convscd` for the objective, the sample codes and the
+decreases (see :mod:`decomposition.convscd` for the objective, the sample masks and the
 constraints).  This module is that loop, one pixel at a time in compiled code
 (:mod:`decomposition.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
 within +-8 sigma of its delay, an sss kernel from 8 sigma before its onset; its exponential
@@ -481,8 +481,8 @@ def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_it
     iters = np.zeros(P, np.int64)
     if P:
         _lm_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
-                   np.ascontiguousarray(mask.fit), np.ascontiguousarray(mask.censored), out["fam"], out["amp"], out["delay"], out["lsig"],
-                   out["lalp"], out["pen"], np.asarray(mu, np.float64), np.asarray(eps, np.float64), o, model,
+                   np.ascontiguousarray(mask.fit), np.ascontiguousarray(mask.censored), out["fam"], out["amp"],
+                   out["delay"], out["lsig"], out["lalp"], out["pen"], np.asarray(mu, np.float64), np.asarray(eps, np.float64), o, model,
                    int(n_iter), bool(tie_sigma), bool(sss_after_direct), float(tol),
                    float(bounds["delay"][0]), float(bounds["delay"][1]), float(bounds["lsig"][0]),
                    float(bounds["lsig"][1]), float(bounds["lalp"][0]), float(bounds["lalp"][1]), iters)

@@ -284,7 +284,7 @@ def solve_block(p, mask: SampleMask, s_eff, dic: Dictionary, *, max_components=4
         obj[gi] = obj[gi] - bdec[go]
         sub = take(st, gi)
         sub, o, nl, m_sub = refine_atoms(t, p[gi], mask[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
-                                tie_sigma, sss_after_direct, lm_tol, return_model=True)
+                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
         exact = o       # F evaluated exactly after refinement (not the FFT pick's estimate)
         drop_zero(sub)
         put(st, gi, sub)
@@ -393,9 +393,10 @@ def _backward_direct(p, mask, s_eff, dic, st, info, opts):
     r_ = np.arange(cand.size)
     alt["fam"][r_, dsl[cand]] = FAM_NONE
     alt["amp"][r_, dsl[cand]] = 0.0
-    alt, o, nl, m = refine_atoms(t, p[cand], mask[cand], alt, mu, eps, parameter_bounds(dic, opts.get("bound_factor", 4.0)),
-                        2 * opts.get("n_lm", 4), None, opts.get("tie_sigma", True),
-                        opts.get("sss_after_direct", True), opts.get("lm_tol", 1e-2), return_model=True)
+    bounds = parameter_bounds(dic, opts.get("bound_factor", 4.0))
+    alt, o, nl, m = refine_atoms(t, p[cand], mask[cand], alt, mu, eps, bounds, 2 * opts.get("n_lm", 4), None,
+                                 opts.get("tie_sigma", True), opts.get("sss_after_direct", True),
+                                 opts.get("lm_tol", 1e-2), return_model=True)
     drop_zero(alt)
     hist = info["objective"]
     last = hist.shape[1] - 1 - np.argmax(np.isfinite(hist[cand])[:, ::-1], axis=1)

@@ -69,9 +69,9 @@ def solver_inputs(samples: Samples, rows: np.ndarray):
 def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -> dict:
     max_gauss = (opts.max_components if "r" in components else 1) if "d" in components else 0
     return dict(workspace=workspace, max_components=opts.max_components, max_gauss=max_gauss,
-                allow_sss="s" in components, sparsity=opts.sparsity, eps_rel=opts.eps_rel, max_iter=opts.max_iter, n_lm=opts.n_lm,
-                bound_factor=opts.bound_factor, tie_sigma=opts.shared_sigma,
-                sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
+                allow_sss="s" in components, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
+                max_iter=opts.max_iter, n_lm=opts.n_lm, bound_factor=opts.bound_factor,
+                tie_sigma=opts.shared_sigma, sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
 
 
 def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: dict):
@@ -90,8 +90,8 @@ def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: 
 def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions, components) -> Detection:
     """Sparse coding of every live pixel, block by block (``opts.block_size`` pixels).
 
-    ``opts`` must be resolved (:meth:`SolverOptions.resolved`).  Blocks are solved as one
-    batch each; a pixel's result depends only on its own samples.
+    ``opts`` must be resolved (:meth:`SolverOptions.resolved`).  Each block is solved as one
+    batch (the block-wide choice between the plain and the masked pick follows its samples).
     """
     P = samples.values.shape[0]
     live = samples.live

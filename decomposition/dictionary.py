@@ -10,6 +10,7 @@ Correlations with every atom at every shift are one FFT pass (:meth:`Dictionary.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from scipy import fft as sfft
@@ -116,25 +117,30 @@ class DictionaryCache:
     Building a dictionary costs a few FFTs of every kernel; the chunked pipeline solves many
     blocks with the same settings in one process, so :func:`get_dictionary` keeps them in
     :data:`DICTIONARY_CACHE` (one per process, ``clear()`` empties it).  Dictionaries are
-    read-only once built, so sharing one between threads is safe.
+    read-only once built, so sharing one between threads is safe; the cache itself is guarded
+    by a lock (the threaded scheduler solves chunks concurrently).
     """
 
     def __init__(self, maxsize: int = 16):
         self.maxsize = int(maxsize)
         self._items: dict = {}
+        self._lock = threading.Lock()
 
     def get(self, n_bins, time_bin_ps, t0_ps, grid: GridSpec, gauss: bool, sss: bool) -> "Dictionary":
         key = (int(n_bins), float(time_bin_ps), float(t0_ps), grid, bool(gauss), bool(sss))
-        dic = self._items.pop(key, None)
+        with self._lock:
+            dic = self._items.pop(key, None)
         if dic is None:
-            dic = Dictionary(*key)
-        self._items[key] = dic            # most recently used last
-        while len(self._items) > self.maxsize:
-            self._items.pop(next(iter(self._items)))
+            dic = Dictionary(*key)        # built outside the lock; two threads may both build one
+        with self._lock:
+            self._items[key] = dic        # most recently used last
+            while len(self._items) > self.maxsize:
+                self._items.pop(next(iter(self._items)))
         return dic
 
     def clear(self) -> None:
-        self._items.clear()
+        with self._lock:
+            self._items.clear()
 
     def __len__(self) -> int:
         return len(self._items)

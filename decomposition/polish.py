@@ -16,8 +16,8 @@ from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
 
 
-def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10, bound_factor=4.0,
-                 tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
+def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.0, eps_rel=0.01, n_lm=10,
+                 bound_factor=4.0, tie_sigma=True, sss_after_direct=True, lm_tol=1e-6):
     """Final least-squares refinement of a fixed set of atoms (after thresholding and merging).
 
     The sparse step has chosen the atoms; this is the usual debiasing step
@@ -33,7 +33,7 @@ def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.
     eps = eps_rel * s_eff
     bounds = parameter_bounds(dic, bound_factor)
     st, obj, nl, model = refine_atoms(t, p, mask, st, mu, eps, bounds, n_lm, None, tie_sigma, sss_after_direct, lm_tol,
-                             return_model=True)
+                                      return_model=True)
     if sss_after_direct:
         # A direct and an sss with the same onset and width are degenerate to first order
         # (dh/dt = g - alpha h), so a gap stuck near 0 is re-tried from one PSF width.
@@ -48,8 +48,8 @@ def polish_block(p, mask: SampleMask, st, s_eff, dic: Dictionary, *, sparsity=3.
             alt = take(st, retry)
             alt["delay"][np.arange(retry.size), ssl[retry]] = (alt["delay"][np.arange(retry.size), dsl[retry]]
                                                                 + sig_s[retry])
-            alt, o_alt, nl2, m_alt = refine_atoms(t, p[retry], mask[retry], alt, mu[retry], eps[retry], bounds, n_lm, None,
-                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
+            alt, o_alt, nl2, m_alt = refine_atoms(t, p[retry], mask[retry], alt, mu[retry], eps[retry], bounds, n_lm,
+                                                  None, tie_sigma, sss_after_direct, lm_tol, return_model=True)
             better = o_alt < obj[retry]
             put(st, retry[better], take(alt, better))
             model[retry[better]] = m_alt[better]

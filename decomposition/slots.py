@@ -76,8 +76,8 @@ def linked_onsets(st, near_sigma=None):
     return onset_links(st["fam"], st["delay"], st["lsig"], NEAR_SIGMA if near_sigma is None else near_sigma)
 
 
-def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False, tol=None,
-        return_model=False):
+def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False,
+                 tol=None, return_model=False):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,), the level a step must beat (None: computed

@@ -11,6 +11,13 @@ the system timer ``T0``)::
     :PULS0:STAT ON|OFF          output of all channels on/off
     :PULS<n>:DEL <s>            delay of channel n after T0
 
+The driver is a command table (:data:`COMMANDS`: header, whether it can be
+set and queried, the value type on the wire) over a message transport: by
+default :class:`~drivers.usbtmc.UsbtmcTransport`; anything with ``write``,
+``query``, ``lock``, ``describe`` and ``close`` works, e.g. a
+:class:`~drivers.transport.ScriptedTransport` with ``terminator=b"\\n"`` in
+protocol tests.
+
 Every setting command is followed by ``SYST:ERR?`` reads until the queue is
 empty; an error becomes :class:`~drivers.errors.DeviceError` carrying the SCPI
 code and text.  Times go over the wire in seconds, as shortest round-trip
@@ -20,9 +27,66 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass
 
 from .errors import DeviceError, DeviceTimeout, ConnectionLost, ProtocolError
 from .usbtmc import UsbtmcTransport
+
+
+@dataclass(frozen=True)
+class ScpiCommand:
+    """One entry of the command table.
+
+    Attributes
+    ----------
+    header : str
+        Program header; ``{channel}`` is filled in for per-channel commands.
+    value : str
+        Type of the value on the wire: ``"none"`` (no value), ``"seconds"``
+        (NRf number), ``"bool"`` (``ON``/``OFF`` to set, ``0``/``1`` answered),
+        ``"text"`` (a response only).
+    settable, queryable : bool
+        Sent as ``header value`` / as ``header?``.
+    """
+
+    header: str
+    value: str = "none"
+    settable: bool = True
+    queryable: bool = False
+
+
+COMMANDS = {
+    "identify": ScpiCommand("*IDN", value="text", settable=False, queryable=True),
+    "reset": ScpiCommand("*RST"),
+    "operation_complete": ScpiCommand("*OPC", value="text", settable=False, queryable=True),
+    "next_error": ScpiCommand("SYST:ERR", value="text", settable=False, queryable=True),
+    "period": ScpiCommand(":PULS0:PER", value="seconds", queryable=True),
+    "output": ScpiCommand(":PULS0:STAT", value="bool", queryable=True),
+    "delay": ScpiCommand(":PULS{channel}:DEL", value="seconds", queryable=True),
+}
+
+
+def program_message(name: str, value=None, *, channel: int | None = None, query: bool = False) -> str:
+    """The SCPI text for table command ``name`` (without the terminator).
+
+    ``query=True`` gives ``header?``; otherwise ``header`` plus the value in the
+    table's wire format.
+    """
+    cmd = COMMANDS[name]
+    header = cmd.header.format(channel=channel) if "{channel}" in cmd.header else cmd.header
+    if query:
+        if not cmd.queryable:
+            raise ValueError(f"{name} cannot be queried")
+        return header + "?"
+    if not cmd.settable:
+        raise ValueError(f"{name} cannot be set")
+    if cmd.value == "none":
+        return header
+    if cmd.value == "seconds":
+        return f"{header} {format_number(value)}"
+    if cmd.value == "bool":
+        return f"{header} {'ON' if value else 'OFF'}"
+    raise ValueError(f"{name}: cannot send a {cmd.value} value")
 
 _ERROR_REPLY = re.compile(r'^\s*([+-]?\d+)\s*,\s*"(.*)"\s*$', re.S)
 _MAX_ERRORS = 64  # a device error queue is at most a few dozen entries; more means a broken reply loop
@@ -52,7 +116,7 @@ class ScpiLaserSync:
     camera_channel : int
         Channel that triggers the streak camera; the default for
         :meth:`set_trigger_delay`.
-    transport : UsbtmcTransport, optional
+    transport : UsbtmcTransport or LineTransport, optional
         An already open transport (then the USB arguments are ignored).
     """
 
@@ -110,7 +174,7 @@ class ScpiLaserSync:
     # ------------------------------------------------------------ LaserSync
     def identify(self) -> str:
         """``*IDN?``: manufacturer, model, serial number, firmware."""
-        text = self.query("*IDN?").strip()
+        text = self.query(program_message("identify", query=True)).strip()
         if text.count(",") != 3:
             raise ProtocolError("*IDN? response is not four comma-separated fields", text.encode())
         return text
@@ -118,8 +182,8 @@ class ScpiLaserSync:
     def reset(self) -> None:
         """``*RST`` and wait for it to complete (``*OPC?``)."""
         with self.transport.lock:
-            self.write("*RST")
-            if self.query("*OPC?").strip() != "1":
+            self.write(program_message("reset"))
+            if self.query(program_message("operation_complete", query=True)).strip() != "1":
                 raise ProtocolError("*OPC? did not answer 1", b"")
 
     def read_errors(self) -> list[tuple[int, str]]:
@@ -127,7 +191,7 @@ class ScpiLaserSync:
         errors = []
         with self.transport.lock:
             for _ in range(_MAX_ERRORS):
-                reply = self.query("SYST:ERR?")
+                reply = self.query(program_message("next_error", query=True))
                 m = _ERROR_REPLY.match(reply)
                 if m is None:
                     raise ProtocolError("malformed SYST:ERR? response", reply.encode())
@@ -142,11 +206,11 @@ class ScpiLaserSync:
         rate_hz = float(rate_hz)
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"rate_hz must be finite and > 0, got {rate_hz!r}")
-        self._set(f":PULS0:PER {format_number(1.0 / rate_hz)}")
+        self._set(program_message("period", 1.0 / rate_hz))
 
     def repetition_rate(self) -> float:
         """Current repetition rate, Hz."""
-        period = self._query_number(":PULS0:PER?")
+        period = self._query_number(program_message("period", query=True))
         if period <= 0:
             raise ProtocolError("non-positive period", str(period).encode())
         return 1.0 / period
@@ -157,19 +221,19 @@ class ScpiLaserSync:
         delay_ps = float(delay_ps)
         if not math.isfinite(delay_ps):
             raise ValueError(f"delay_ps must be finite, got {delay_ps!r}")
-        self._set(f":PULS{channel}:DEL {format_number(delay_ps * 1e-12)}")
+        self._set(program_message("delay", delay_ps * 1e-12, channel=channel))
 
     def trigger_delay(self, channel: int | None = None) -> float:
         """Delay of ``channel`` (default: the camera channel), picoseconds."""
         channel = self.camera_channel if channel is None else self._channel(channel)
-        return round(self._query_number(f":PULS{channel}:DEL?") * 1e12, 6)
+        return round(self._query_number(program_message("delay", channel=channel, query=True)) * 1e12, 6)
 
     def set_output(self, enabled: bool) -> None:
         """Enable or disable the output of all channels (``:PULS0:STAT``)."""
-        self._set(f":PULS0:STAT {'ON' if enabled else 'OFF'}")
+        self._set(program_message("output", bool(enabled)))
 
     def output_enabled(self) -> bool:
-        text = self.query(":PULS0:STAT?").strip()
+        text = self.query(program_message("output", query=True)).strip()
         if text not in ("0", "1"):
             raise ProtocolError("malformed :PULS0:STAT? response", text.encode())
         return text == "1"

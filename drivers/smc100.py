@@ -1,48 +1,39 @@
 """Scan-mirror driver: a Newport SMC100-style single-axis controller over a serial line.
 
-Wire protocol (Newport SMC100CC/PP User's Manual, "Command set"): ASCII lines
-``{address}{command}{value}\\r\\n``, 57600 baud, 8 data bits, no parity, one
-stop bit, no flow control.  Commands used here:
+The driver is a command table (:data:`COMMANDS`: what each command looks like on
+the wire, whether it answers, whether ``TE`` is checked after it) over a
+:class:`~drivers.transport.LineTransport` (by default a
+:class:`~drivers.transport.SerialLineTransport`; a
+:class:`~drivers.transport.ScriptedTransport` in protocol tests).
 
-=========  ==========================  ======================================
-command    meaning                     reply
-=========  ==========================  ======================================
-``xxID?``  stage identifier            ``xxID<text>``
-``xxOR``   execute home search         none (check with ``TE``)
-``xxPA<v>``move absolute to ``v``      none (check with ``TE``)
-``xxST``   stop motion                 none
-``xxTE``   last command error          ``xxTE<letter>`` (``@`` = no error)
-``xxTP``   current position            ``xxTP<float>``
-``xxTS``   positioner error and state  ``xxTS<4 hex digits><2-char state>``
-=========  ==========================  ======================================
+Wire protocol (Newport SMC100CC/PP User's Manual, EDH0206En, section 6.3
+"Command syntax" and 6.5 "Command set"): ASCII lines
+``{address}{command}{value}\\r\\n``.  Port settings (manual, sections 2.7 and
+3.1): 57600 baud, 8 data bits, no parity, one stop bit, **Xon/Xoff** flow
+control -- ``xonxoff=True`` by default, configurable for adapters that must not
+use it.
 
-``TE``, ``TP`` and ``TS`` are "get" commands without a ``?`` in the manual's
-syntax tables (``xxTE``, ``xxTP``, ``xxTS``); ``ID`` can also be set, so its
-query form carries the ``?``.  Commands that change something never answer;
-the manual's advice is to read ``TE`` afterwards, which this driver does after
-every ``PA`` and ``OR``.  Reading ``TE`` clears the controller's error register.
+``TE``, ``TP``, ``TS``, ``TH`` and ``VE`` are "get" commands without a ``?``
+in the manual's syntax tables; settable parameters (``ID``, ``PA``, ``VA``,
+``AC``, ``SL``, ``SR``) carry the ``?`` in their query form.  Commands that
+change something never answer; the manual's advice is to read ``TE``
+afterwards, which this driver does after ``PA``, ``PR``, ``OR`` and ``MM``.
+Reading ``TE`` clears the controller's error register.
 
-Thread safety: one lock per connection; a command and its reply are exchanged
-under it, and every reply is checked to start with the address and command
-echo that was sent, so two threads sharing a driver never see each other's
-replies.  Every wait has a timeout.  No pyserial or OS exception leaves this
-module: they become :class:`~drivers.errors.ConnectionLost`.
+Thread safety: the transport's lock covers a command and its reply, and a
+setting command and its ``TE`` read; every reply is checked to start with the
+address and command echo that was sent, so two threads sharing a driver never
+see each other's replies.  Every wait has a timeout.  No pyserial or OS
+exception leaves this module: they become :class:`~drivers.errors.ConnectionLost`.
 """
 from __future__ import annotations
 
 import math
-import threading
 import time
-
-import serial
-
-try:  # pyserial's POSIX backend lets termios.error (not an OSError) out of flush()/tcdrain
-    from termios import error as _TermiosError
-except ImportError:  # pragma: no cover - not POSIX
-    class _TermiosError(Exception):
-        pass
+from dataclasses import dataclass
 
 from .errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
+from .transport import LineTransport, SerialLineTransport
 
 # SMC100 manual, TE command: the documented command error letters.
 COMMAND_ERRORS = {
@@ -109,9 +100,56 @@ POSITIONER_ERRORS = {
 
 BAUDRATE = 57600
 TERMINATOR = b"\r\n"
-_MAX_LINE = 256  # no SMC100 reply comes near this; longer means a garbled line
-_READ_SLICE_S = 0.05  # one blocking read; the reply deadline is checked between reads
-_IO_ERRORS = (serial.SerialException, OSError, _TermiosError)
+XONXOFF = True      # manual, sections 2.7 and 3.1: Xon/Xoff flow control
+_MAX_LINE = 256     # no SMC100 reply comes near this; longer means a garbled line
+_TARGET_TOLERANCE_DEG = 1e-6   # PA? echoes the target to 6 decimals (format_value sends at most 6)
+
+
+@dataclass(frozen=True)
+class Command:
+    """One entry of the command table.
+
+    Attributes
+    ----------
+    mnemonic : str
+        The two-letter command name.
+    query : bool
+        Sent with a trailing ``?`` (the query form of a settable parameter).
+    reply : bool
+        The controller answers with ``{address}{mnemonic}{value}``.
+    checked : bool
+        A setting whose success is read back with ``TE`` (under the same lock).
+    meaning : str
+        What it does (manual, section 6.5).
+    """
+
+    mnemonic: str
+    query: bool = False
+    reply: bool = False
+    checked: bool = False
+    meaning: str = ""
+
+
+# SMC100 manual, section 6.5: the commands this driver sends.
+COMMANDS = {
+    "ID?": Command("ID", query=True, reply=True, meaning="stage identifier"),
+    "TE": Command("TE", reply=True, meaning="last command error (and clear it)"),
+    "TP": Command("TP", reply=True, meaning="current (encoder) position"),
+    "TH": Command("TH", reply=True, meaning="current set-point position"),
+    "TS": Command("TS", reply=True, meaning="positioner error bits and controller state"),
+    "VE": Command("VE", reply=True, meaning="controller revision information"),
+    "PA?": Command("PA", query=True, reply=True, meaning="target position"),
+    "VA?": Command("VA", query=True, reply=True, meaning="velocity"),
+    "AC?": Command("AC", query=True, reply=True, meaning="acceleration"),
+    "SL?": Command("SL", query=True, reply=True, meaning="negative software limit"),
+    "SR?": Command("SR", query=True, reply=True, meaning="positive software limit"),
+    "PA": Command("PA", checked=True, meaning="move absolute"),
+    "PR": Command("PR", checked=True, meaning="move relative"),
+    "OR": Command("OR", checked=True, meaning="execute home search"),
+    "MM": Command("MM", checked=True, meaning="enter (0) / leave (1) DISABLE state"),
+    "RS": Command("RS", meaning="reset controller (to NOT REFERENCED)"),
+    "ST": Command("ST", meaning="stop motion"),
+}
 
 
 def format_value(value: float) -> str:
@@ -133,158 +171,110 @@ class SMC100Mirror:
 
     Parameters
     ----------
-    port : str
-        Serial port name (``/dev/ttyUSB0``, a pseudo-terminal path) or any
-        pyserial URL (``loop://``, ``rfc2217://host:port``).
+    port : str, optional
+        Serial port name (``/dev/ttyUSB0``, a pseudo-terminal path, a stable
+        ``/dev/serial/by-id`` link) or any pyserial URL (``loop://``,
+        ``rfc2217://host:port``).  Not needed when ``transport`` is given.
     address : int
         Controller address on the RS-485 chain, 1..31 (default 1).
     timeout_s : float
         Time to wait for one reply, seconds.
     poll_interval_s : float
         Period of ``TS`` polling while waiting for motion or homing to end, seconds.
+    xonxoff : bool
+        Xon/Xoff flow control on the serial port (default True, as the manual specifies).
+    transport : LineTransport, optional
+        An already open transport (then ``port``, ``timeout_s`` and ``xonxoff`` are not used).
 
     Notes
     -----
     Angles are in degrees (the rotation stage's native unit).  On a dropped
-    connection the driver reopens the port once and repeats the exchange; if
-    that fails it raises :class:`~drivers.errors.ConnectionLost`.
+    connection the transport reopens the port once and repeats the exchange; if
+    that fails the driver raises :class:`~drivers.errors.ConnectionLost`.
     """
 
-    def __init__(self, port: str, *, address: int = 1, timeout_s: float = 1.0,
-                 poll_interval_s: float = 0.02):
-        if not isinstance(address, int) or not 1 <= address <= 31:
+    def __init__(self, port: str | None = None, *, address: int = 1, timeout_s: float = 1.0,
+                 poll_interval_s: float = 0.02, xonxoff: bool = XONXOFF,
+                 transport: LineTransport | None = None):
+        if isinstance(address, bool) or not isinstance(address, int) or not 1 <= address <= 31:
             raise ValueError(f"controller address must be an integer 1..31, got {address!r}")
         if not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0, got {timeout_s!r}")
         if not poll_interval_s > 0:
             raise ValueError(f"poll_interval_s must be > 0, got {poll_interval_s!r}")
-        self.port = str(port)
+        if not isinstance(xonxoff, bool):
+            raise ValueError(f"xonxoff must be True or False, got {xonxoff!r}")
+        if transport is None:
+            if port is None:
+                raise ValueError("SMC100Mirror needs a serial port (or a transport)")
+            transport = SerialLineTransport(str(port), baudrate=BAUDRATE, xonxoff=xonxoff,
+                                            timeout_s=timeout_s, terminator=TERMINATOR, max_line=_MAX_LINE)
+        self.transport = transport
+        self.port = str(port) if port is not None else transport.name
         self.address = address
-        self.timeout_s = float(timeout_s)
+        self.timeout_s = transport.timeout_s
         self.poll_interval_s = float(poll_interval_s)
-        self._lock = threading.RLock()
-        self._serial = None
-        self._stale = False  # a reply may still be in flight from a timed-out exchange
         self._closed = False
-        with self._lock:
-            self._serial = self._open()
+        self._target_deg = None   # the last accepted PA target, checked against PA? once settled
 
-    # ------------------------------------------------------------------ transport
-    def _open(self):
-        try:
-            return serial.serial_for_url(
-                self.port, baudrate=BAUDRATE, bytesize=serial.EIGHTBITS,
-                parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
-                xonxoff=False, rtscts=False, timeout=_READ_SLICE_S,
-                write_timeout=self.timeout_s)
-        except (*_IO_ERRORS, ValueError) as exc:
-            raise ConnectionLost(f"cannot open serial port {self.port!r}: {exc}") from exc
+    # ------------------------------------------------------------------ command table
+    def _line(self, name: str, value: str = "") -> bytes:
+        cmd = COMMANDS[name]
+        return f"{self.address}{cmd.mnemonic}{value}{'?' if cmd.query else ''}".encode("ascii") + TERMINATOR
 
-    def _reopen(self) -> None:
-        self._drop_serial()
-        self._serial = self._open()
-        self._stale = False
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ConnectionLost(f"{self.port}: driver is closed")
 
-    def _drop_serial(self) -> None:
-        ser, self._serial = self._serial, None
-        if ser is not None:
-            try:
-                ser.close()
-            except _IO_ERRORS:
-                pass
-
-    def _write_line(self, text: str) -> None:
-        data = text.encode("ascii") + TERMINATOR
-        if self._stale:
-            # Whatever a timed-out exchange left behind must not be taken as this reply.
-            self._serial.reset_input_buffer()
-            self._stale = False
-        self._serial.write(data)
-        self._serial.flush()
-
-    def _read_line(self, deadline: float) -> bytes:
-        buf = bytearray()
-        ser = self._serial
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                self._stale = True
-                raise DeviceTimeout(
-                    f"{self.port}: no complete reply within {self.timeout_s:g} s (got {bytes(buf)!r})")
-            chunk = ser.read(max(1, min(ser.in_waiting, _MAX_LINE)))
-            if not chunk:
-                continue
-            buf += chunk
-            end = buf.find(b"\n")
-            if end >= 0:
-                line, rest = bytes(buf[:end + 1]), buf[end + 1:]
-                if rest:
-                    # The controller answers one line per query; more means noise.
-                    self._stale = True
-                return line
-            if len(buf) > _MAX_LINE:
-                self._stale = True
-                raise ProtocolError(f"{self.port}: reply line too long", bytes(buf))
-
-    def _exchange(self, command: str, *, reply: bool):
-        """Send ``command`` (without address); return the reply payload after the echo, or None."""
-        echo = f"{self.address}{command.rstrip('?')}"
-        attempt = 0
-        with self._lock:
-            if self._closed:
-                raise ConnectionLost(f"{self.port}: driver is closed")
-            while True:
-                try:
-                    if self._serial is None:
-                        self._serial = self._open()
-                    self._write_line(f"{self.address}{command}")
-                    if not reply:
-                        return None
-                    deadline = time.monotonic() + self.timeout_s
-                    raw = self._read_line(deadline)
-                    break
-                except (DeviceTimeout, ProtocolError):
-                    self._stale = True
-                    raise
-                except serial.SerialTimeoutException as exc:  # output blocked (flow control)
-                    self._stale = True
-                    raise DeviceTimeout(f"{self.port}: write not done within {self.timeout_s:g} s") from exc
-                except _IO_ERRORS as exc:
-                    if attempt == 0:
-                        attempt += 1
-                        try:
-                            self._reopen()
-                            continue
-                        except ConnectionLost:
-                            pass
-                    self._drop_serial()
-                    raise ConnectionLost(f"{self.port}: connection lost ({exc})") from exc
-            try:
-                text = raw.decode("ascii")
-            except UnicodeDecodeError:
-                text = None
-            if text is None or not text.endswith("\r\n") or not text.startswith(echo):
-                self._stale = True  # resynchronise before the next command
-                raise ProtocolError(f"{self.port}: reply to {command!r} is not "
-                                    f"'{echo}<value>' + CR LF", raw)
-        return text[len(echo):-2], raw
-
-    def _query(self, command: str):
-        return self._exchange(command, reply=True)
-
-    def _command_checked(self, command: str) -> None:
-        """Send a setting command, then read TE and raise :class:`DeviceError` if it failed."""
-        with self._lock:  # no other thread's command may come between the command and its TE
-            self._exchange(command, reply=False)
-            code = self.last_error()
+    def send(self, name: str, value: str = "") -> None:
+        """Send the table command ``name`` with ``value``; check ``TE`` afterwards if the table says so."""
+        cmd = COMMANDS[name]
+        if cmd.reply:
+            raise ValueError(f"{name} answers; use query()")
+        self._check_open()
+        line = self._line(name, value)
+        with self.transport.lock:  # no other thread's command may come between the command and its TE
+            self.transport.write(line)
+            code = self.last_error() if cmd.checked else "@"
         if code != "@":
             raise DeviceError(code, COMMAND_ERRORS.get(code, "undocumented error code"),
-                              command=f"{self.address}{command}", device=self.port)
+                              command=line.decode("ascii").strip(), device=self.port)
+
+    def query(self, name: str) -> tuple[str, bytes]:
+        """Send the table query ``name``; return the reply's value (after the echo) and its raw bytes."""
+        cmd = COMMANDS[name]
+        if not cmd.reply:
+            raise ValueError(f"{name} does not answer; use send()")
+        self._check_open()
+        echo = f"{self.address}{cmd.mnemonic}"
+        try:
+            raw = self.transport.query(self._line(name))
+        except ProtocolError as exc:
+            raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF",
+                                exc.raw) from None
+        try:
+            text = raw.decode("ascii")
+        except UnicodeDecodeError:
+            text = None
+        if text is None or not text.startswith(echo):
+            self.transport.stale = True  # resynchronise before the next command
+            raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF", raw)
+        return text[len(echo):-len(TERMINATOR)], raw
+
+    def _query_float(self, name: str) -> float:
+        payload, raw = self.query(name)
+        try:
+            value = float(payload)
+        except ValueError:
+            raise ProtocolError(f"{self.port}: malformed {name} reply", raw) from None
+        if not math.isfinite(value):
+            raise ProtocolError(f"{self.port}: non-finite {name} reply", raw)
+        return value
 
     # ------------------------------------------------------------------ protocol
     def last_error(self) -> str:
         """Read (and thereby clear) the controller's last command error letter; ``@`` = none."""
-        payload, raw = self._query("TE")
+        payload, raw = self.query("TE")
         if len(payload) != 1 or payload not in COMMAND_ERRORS:
             raise ProtocolError(f"{self.port}: malformed TE reply", raw)
         return payload
@@ -299,7 +289,7 @@ class SMC100Mirror:
         state_code : str
             Controller state, e.g. ``"0A"`` (not referenced), ``"28"`` (moving), ``"33"`` (ready).
         """
-        payload, raw = self._query("TS")
+        payload, raw = self.query("TS")
         if len(payload) != 6:
             raise ProtocolError(f"{self.port}: malformed TS reply", raw)
         try:
@@ -311,10 +301,45 @@ class SMC100Mirror:
             raise ProtocolError(f"{self.port}: unknown controller state {code!r}", raw)
         return bits, code
 
+    def version(self) -> str:
+        """Controller firmware revision text (``VE``)."""
+        return self.query("VE")[0].strip()
+
+    def target_position(self) -> float:
+        """Target of the current or last move, degrees (``PA?``)."""
+        return self._query_float("PA?")
+
+    def setpoint_position(self) -> float:
+        """Set-point (theoretical) position of the motion profile, degrees (``TH``)."""
+        return self._query_float("TH")
+
+    def velocity(self) -> float:
+        """Configured velocity, degrees per second (``VA?``)."""
+        return self._query_float("VA?")
+
+    def acceleration(self) -> float:
+        """Configured acceleration, degrees per second squared (``AC?``)."""
+        return self._query_float("AC?")
+
+    def travel_limits(self) -> tuple[float, float]:
+        """Software travel limits (``SL?``, ``SR?``), degrees."""
+        return self._query_float("SL?"), self._query_float("SR?")
+
+    def enable(self, enabled: bool = True) -> None:
+        """Leave (``MM1``) or enter (``MM0``) the DISABLE state (entering it stops motion)."""
+        if not enabled:
+            self._target_deg = None
+        self.send("MM", "1" if enabled else "0")
+
+    def reset(self) -> None:
+        """Reset the controller (``RS``): it comes back NOT REFERENCED and needs :meth:`home`."""
+        self._target_deg = None
+        self.send("RS")
+
     # ------------------------------------------------------------------ ScanMirror
     def identify(self) -> str:
         """Stage identifier reported by ``ID?``."""
-        payload, raw = self._query("ID?")
+        payload, raw = self.query("ID?")
         if not payload.strip():
             raise ProtocolError(f"{self.port}: empty ID reply", raw)
         return payload.strip()
@@ -325,14 +350,7 @@ class SMC100Mirror:
 
     def position(self) -> float:
         """Current mirror angle in degrees (``TP``)."""
-        payload, raw = self._query("TP")
-        try:
-            angle = float(payload)
-        except ValueError:
-            raise ProtocolError(f"{self.port}: malformed TP reply", raw) from None
-        if not math.isfinite(angle):
-            raise ProtocolError(f"{self.port}: non-finite position", raw)
-        return angle
+        return self._query_float("TP")
 
     def move_to(self, angle_deg: float) -> None:
         """Start an absolute move to ``angle_deg`` (degrees); returns once the controller accepted it.
@@ -340,11 +358,21 @@ class SMC100Mirror:
         Raises :class:`DeviceError` (e.g. code ``C``: out of the travel range,
         ``H``: not referenced yet) when the controller refuses the move.
         """
-        self._command_checked(f"PA{format_value(angle_deg)}")
+        text = format_value(angle_deg)
+        self._target_deg = None
+        self.send("PA", text)
+        self._target_deg = float(text)
+
+    def move_by(self, delta_deg: float) -> None:
+        """Start a relative move by ``delta_deg`` (degrees, ``PR``); refused like :meth:`move_to`."""
+        text = format_value(delta_deg)
+        self._target_deg = None
+        self.send("PR", text)
 
     def stop(self) -> None:
-        """Stop any motion (``ST``)."""
-        self._exchange("ST", reply=False)
+        """Stop any motion (``ST``); the stage stays where it stopped, short of the target."""
+        self._target_deg = None
+        self.send("ST")
 
     def wait_settled(self, *, timeout_s: float = 10.0) -> float:
         """Poll ``TS`` until the controller is READY; return the final angle in degrees.
@@ -352,14 +380,33 @@ class SMC100Mirror:
         Raises :class:`DeviceTimeout` if it is still moving after ``timeout_s``
         and :class:`DeviceError` if the controller drops to a state from which
         it will not become ready by itself (not referenced, disabled).
+
+        After :meth:`move_to`, the controller's target (``PA?``) must be the
+        angle that was sent: a move command lost with a dropped connection
+        (the link was reopened, ``TE`` of the new link says ``@``) would
+        otherwise look like a finished move to the old angle.  A mismatch is a
+        :class:`DeviceError` with code ``"target"``.
         """
-        return self._wait_for_ready(timeout_s, waiting_for="motion")
+        angle = self._wait_for_ready(timeout_s, waiting_for="motion")
+        self._check_target()
+        return angle
+
+    def _check_target(self) -> None:
+        if self._target_deg is None:
+            return
+        target = self.target_position()
+        if abs(target - self._target_deg) > _TARGET_TOLERANCE_DEG:
+            sent, self._target_deg = self._target_deg, None
+            raise DeviceError("target", f"the controller's target is {target:g} deg, not the "
+                              f"{sent:g} deg sent: the move command was lost", command="PA?",
+                              device=self.port)
 
     def home(self, *, timeout_s: float = 30.0) -> None:
         """Reference the stage and leave it at the home position (0 degrees).
 
         Not referenced: send ``OR`` and wait for the HOMING state to end.
         Already referenced (the controller refuses ``OR`` in READY): move to 0.
+        Disabled: leave DISABLE (``MM1``), then move to 0.
         Moving: wait for the move to end, then move to 0.  Homing: wait for it.
         ``timeout_s`` bounds the whole operation.
         """
@@ -371,14 +418,19 @@ class SMC100Mirror:
         if word == "moving":
             self._wait_for_ready(deadline - time.monotonic(), waiting_for="motion")
             word = "ready"
+        if word == "disabled":
+            self.enable(True)
+            word = "ready"
+        self._target_deg = None
         if word == "ready":
             self.move_to(0.0)
         elif word == "not_referenced":
-            self._command_checked("OR")
+            self.send("OR")
         elif word != "homing":
             raise DeviceError(code, f"cannot home in state {CONTROLLER_STATES[code][1]}",
                               command="OR", device=self.port)
         self._wait_for_ready(max(deadline - time.monotonic(), 1e-3), waiting_for="homing")
+        self._check_target()
 
     def _wait_for_ready(self, timeout_s: float, *, waiting_for: str) -> float:
         if not timeout_s > 0:
@@ -402,9 +454,8 @@ class SMC100Mirror:
     # ------------------------------------------------------------------ lifetime
     def close(self) -> None:
         """Close the serial port (idempotent).  Does not move the stage."""
-        with self._lock:
-            self._closed = True
-            self._drop_serial()
+        self._closed = True
+        self.transport.close()
 
     def __enter__(self):
         return self

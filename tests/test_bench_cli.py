@@ -55,39 +55,89 @@ def test_largest_nsr_at_level():
     assert 0.001 < value < 0.01
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(90)
 def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     out = tmp_path / "acc"
     assert main(["bench", "accuracy", "--quick", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
+    methods = ("convscd", "gradbm", "oracle")
     keys = {(r["method"], r["noise"], float(r["nsr"])) for r in rows}
-    assert keys == {(m, n, x) for m in ("convscd", "gradbm") for n in ("white", "pink", "photon")
-                    for x in (0.001, 0.055, 0.2)}
+    assert keys == {(m, n, x) for m in methods for n in ("white", "pink", "photon") for x in (0.001, 0.055, 0.2)}
     for r in rows:
         f = float(r["mean_fidelity"])
         assert np.isfinite(f) and f <= 1.0
         assert int(r["pixels"]) == 12 and float(r["seconds_per_pixel"]) > 0
+        assert r["scenes"] == "paper" and r["render"] == "bin"
         assert {"mean_fidelity[d+s]", "mean_fidelity[d+s+r2]", "mean_fidelity[d+s+r2+r3]"} <= set(r)
-    # Nearly clean data decompose well; heavy noise costs fidelity.
+        assert float(r["gap_to_oracle"]) == pytest.approx(f - float(r["oracle_mean_fidelity"]), abs=1e-5)
     by = {(r["method"], r["noise"], float(r["nsr"])): float(r["mean_fidelity"]) for r in rows}
-    for m in ("convscd", "gradbm"):
-        assert by[(m, "white", 0.001)] > 0.7 and by[(m, "white", 0.2)] < by[(m, "white", 0.001)]
+    # The oracle, started at the truth, is near perfect on nearly clean data; heavy noise costs fidelity.
+    assert by[("oracle", "white", 0.001)] > 0.99
+    for m in methods:
+        assert by[(m, "white", 0.2)] < by[(m, "white", 0.001)]
+    # Regime rows: every regime variable partitions the 12 pixels of each point.
+    with open(out / "regimes.csv") as fh:
+        reg = list(csv.DictReader(fh))
+    assert {(r["noise"], float(r["nsr"])) for r in reg} == {(n, x) for n in ("white", "pink", "photon")
+                                                             for x in (0.001, 0.055, 0.2)}
+    white = [r for r in reg if r["noise"] == "white" and float(r["nsr"]) == 0.001]
+    for regime in {r["regime"] for r in white}:
+        assert sum(int(r["n"]) for r in white if r["regime"] == regime) == 12
+    with open(out / "flags.csv") as fh:
+        flags = list(csv.DictReader(fh))
+    assert {r["flag"] for r in flags} >= {"POOR_FIT", "any"}
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in ("convscd", "gradbm")
-                                                    for n in ("white", "pink", "photon")}
-    assert set(summary["seconds_per_pixel"]) == {"convscd", "gradbm"}
+    assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in methods for n in ("white", "pink", "photon")}
+    assert set(summary["seconds_per_pixel"]) == set(methods)
     for m in ("convscd", "gradbm"):
         for n in ("white", "pink", "photon"):
             assert any(line.split()[:2] == [m, n] for line in text.splitlines())
     assert "run time per pixel" in text and "ms" in text
+    assert "gap convscd" in text and "gap gradbm" in text
+    # The targets against the oracle print as met / not met (NSR 0.11 is not on the quick grid).
+    assert "accuracy targets against the oracle:" in text
+    assert "NSR 0.11, 2 ps bins" in text and "[not measured]" in text
+    assert any(("[met]" in line or "[NOT met]" in line) and "direct delay error" in line for line in text.splitlines())
+
+
+def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):
+    out = tmp_path / "legacy"
+    assert main(["bench", "accuracy", "--pixels", "6", "--n-bins", "128", "--nsr", "0.01", "--noise", "white",
+                 "--methods", "convscd", "--scenes", "legacy", "--time-bin-ps", "2,4", "--out", str(out)]) == 0
+    with open(out / "accuracy.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {(r["method"], float(r["time_bin_ps"])) for r in rows} == {(m, t) for m in ("convscd", "oracle")
+                                                                       for t in (2.0, 4.0)}
+    assert all(r["scenes"] == "legacy" and r["render"] == "point" for r in rows)
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["by_time_bin_ps"]) == {"2", "4"}
+
+
+def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
+    out = tmp_path / "search"
+    assert main(["bench", "accuracy", "--pixels", "6", "--n-bins", "256", "--nsr", "0.01", "--noise", "white",
+                 "--methods", "convscd,search", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    with open(out / "accuracy.csv") as fh:
+        rows = {r["method"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {"convscd", "search", "oracle"}
+    # The search starts from the ConvSCD result, so its time includes ConvSCD's.
+    assert float(rows["search"]["seconds_per_pixel"]) > float(rows["convscd"]["seconds_per_pixel"])
+    assert -1.0 <= float(rows["search"]["mean_fidelity"]) <= 1.0
+    assert "gap search" in text and any(line.strip().startswith("[") and "search mean fidelity" in line
+                                        for line in text.splitlines())
 
 
 def test_accuracy_bad_options(tmp_path, capsys):
     assert main(["bench", "accuracy", "--quick", "--noise", "brown", "--out", str(tmp_path / "a")]) == 2
     assert "--noise" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--quick", "--scenes", "nosuch", "--out", str(tmp_path / "b")]) == 2
+    assert "--scenes" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--quick", "--time-bin-ps", "2,-1", "--out", str(tmp_path / "c")]) == 2
+    assert "--time-bin-ps" in capsys.readouterr().err
     (tmp_path / "file").write_text("x")
     assert main(["bench", "accuracy", "--quick", "--out", str(tmp_path / "file")]) == 2
     assert "not a folder" in capsys.readouterr().err

@@ -30,6 +30,18 @@ def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys, monkeypatch):
         assert 0 < float(r["time_per_pixel_s"]) < 1.0 / 12 / 2  # no point carries the first call's second
         assert -1.0 <= float(r["mean_fidelity"]) <= 1.0
         assert float(r["direct_delay_crb_median_ps"]) > 0
+        # Every setting beside the oracle on the same data (one oracle value per scene and NSR).
+        assert float(r["gap_to_oracle"]) == pytest.approx(float(r["mean_fidelity"]) - float(r["oracle_mean_fidelity"]),
+                                                          abs=1e-5)
+    for nsr in (0.01, 0.055, 0.11):
+        assert len({r["oracle_mean_fidelity"] for r in fig3 if float(r["nsr"]) == nsr}) == 1
+    assert float(next(r for r in fig3 if float(r["nsr"]) == 0.01)["oracle_mean_fidelity"]) > 0.95
+    # Per regime: the default setting and GradBM beside the oracle; each variable partitions the pixels.
+    reg = list(csv.DictReader(open(tmp_path / "regimes.csv")))
+    assert {"fidelity[default]", "fidelity[gradbm]", "fidelity[oracle]", "gap[default]", "gap[gradbm]"} <= set(reg[0])
+    at = [r for r in reg if float(r["nsr"]) == 0.055]
+    for regime in {r["regime"] for r in at}:
+        assert sum(int(r["n"]) for r in at if r["regime"] == regime) == 12
     # Refinement of grid-snapped parameters cannot leave the delays on the 2 ps grid.
     on = {float(r["nsr"]): float(r["direct_delay_rmse_ps"]) for r in fig3 if r["setting"] == "convscd grid 10x10 on-grid"}
     ref = {float(r["nsr"]): float(r["direct_delay_rmse_ps"]) for r in fig3

@@ -207,6 +207,37 @@ def test_failed_session_tells_how_to_resume(tmp_path, capsys, monkeypatch):
     assert f"--out {tmp_path / 'r.zarr'} --simulate --resume" in err
 
 
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("kind", ["close", "power_cycle"])
+def test_a_mirror_replug_or_power_cycle_during_a_capture_is_survived(tmp_path, kind):
+    # close: the serial adapter is re-plugged (a new /dev/pts/N behind the stable link) and the
+    # PA in flight is lost; power_cycle: the same, and the controller comes back NOT REFERENCED.
+    cfg = sim_config(n_lines=3)
+    with start_lab(cfg) as lab:
+        def arm(session, line):
+            if line == 0:
+                lab.mirror.inject(kind, "PA")
+
+        result = run_capture(cfg, tmp_path / "run.zarr", lab=lab, on_line=arm)
+        homings = list(lab.mirror.received).count("1OR")
+    assert result.status == "complete" and result.acquired == [0, 1, 2]
+    run = open_run(tmp_path / "run.zarr")
+    np.testing.assert_allclose(run["angle_deg"][:], cfg.angles_deg, atol=1e-6)   # every line where asked
+    assert run.attrs["sessions"][0]["retries_used"] >= (1 if kind == "power_cycle" else 0)
+    assert homings == (2 if kind == "power_cycle" else 1)                          # re-homed after the reset
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("xonxoff", [True, False])
+def test_the_rig_opens_the_mirror_on_the_stable_link_with_the_configured_flow_control(xonxoff):
+    from acquisition.rig import open_rig
+
+    cfg = sim_config(devices={"mirror_xonxoff": xonxoff})
+    with start_lab(cfg) as lab, open_rig(cfg, lab=lab) as (camera, mirror, sync):
+        assert mirror.port == lab.mirror_stable_port != lab.mirror_port
+        assert mirror.transport.serial.xonxoff is xonxoff
+
+
 def test_resume_never_deletes_a_folder_streaklab_did_not_mark(tmp_path):
     """A folder whose files all end in .partial is not taken for an interrupted store creation."""
     cfg = sim_config(n_lines=2)

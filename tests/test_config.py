@@ -24,6 +24,8 @@ def test_defaults_and_line_angles():
     assert c["camera"]["frames_per_line"] == 1 and c["dark"]["frames"] == 4
     assert c["calibration"]["time_bin_ps"] == 2.0 and "t0_ps" not in c["calibration"]
     assert c["session"]["retries"] == 3
+    assert c["devices"]["mirror_xonxoff"] is True     # SMC100 manual: Xon/Xoff flow control
+    assert parse_config(cfg(devices={"mirror_xonxoff": False}))["devices"]["mirror_xonxoff"] is False
 
 
 def test_explicit_angle_list():
@@ -45,6 +47,7 @@ def test_explicit_angle_list():
     ({"sync": {"repetition_rate_hz": 0}}, r"^sync\.repetition_rate_hz:"),
     ({"devices": {"camera": "localhost"}}, r"^devices\.camera: must be 'host:port'"),
     ({"devices": {"camera": "localhost:99999"}}, r"^devices\.camera:"),
+    ({"devices": {"mirror_xonxoff": 1}}, r"^devices\.mirror_xonxoff: must be true or false, got 1$"),
     ({"devices": {"sync_vendor_id": 0x1234}}, r"^devices\.sync_product_id: is required together"),
     ({"devices": {"sync_vendor_id": 0x12345, "sync_product_id": 1}}, r"^devices\.sync_vendor_id:"),
     ({"calibration": {"time_bin_ps": 0}}, r"^calibration\.time_bin_ps:"),

@@ -155,3 +155,28 @@ def test_dictionary_cache_is_explicit_and_bounded():
     assert fresh is not a and np.array_equal(fresh.norm2, a.norm2)
     cache.clear()
     assert len(cache) == 0
+
+
+def test_dictionary_cache_serves_concurrent_threads():
+    import threading
+
+    from decomposition.dictionary import DictionaryCache, get_dictionary
+
+    cache = DictionaryCache(maxsize=1)                 # every other call evicts: the racy path
+    grids = [cs.GridSpec(coarse_sigma=1 + i % 2, coarse_alpha=1, coarse_sss_sigma=1) for i in range(2)]
+    errors = []
+
+    def work(i):
+        try:
+            for j in range(30):
+                d = get_dictionary(64, 2.0, 2.0, grids[(i + j) % 2], True, True, cache=cache)
+                assert d.grid == grids[(i + j) % 2]
+        except Exception as exc:                        # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors and len(cache) == 1

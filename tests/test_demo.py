@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from decomposition.resultstore import open_result_store
-from streaklab.cli import main
+from streaklab.cli import CommandError, main
 from streaklab.commands.demo import class_fidelity
 
 
@@ -71,8 +71,13 @@ def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys, monkeypatch):
     speed.add_arguments(parser)
     # from a folder outside the repository, with a relative --out
     monkeypatch.chdir(tmp_path)
+    # The paper's scenes (sigma up to 10 ps) do not fit 64 bins: a clear error; the legacy ones do.
     args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
                               "--chunks", "1", "16", "--out", "bench-rel"])
+    with pytest.raises(CommandError, match="too short"):
+        speed.run(args)
+    args = parser.parse_args(["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1",
+                              "--chunks", "1", "16", "--scenes", "legacy", "--out", "bench-rel"])
     assert speed.run(args) == 0
     printed = capsys.readouterr().out
     tmp_path = tmp_path / "bench-rel"

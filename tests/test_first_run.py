@@ -241,8 +241,8 @@ def test_accuracy_timings_leave_out_the_first_calls_one_time_cost(monkeypatch):
     from _timing import first_call_costs_a_second
 
     calls = first_call_costs_a_second(monkeypatch)
-    rows, per_pixel = measure(pixels=3, n_bins=64, time_bin_ps=2.0, nsrs=[0.01], noises=["white"],
-                              methods=["convscd"], kinds="a,b,c", seed=0)
+    rows, per_pixel, _ = measure(pixels=3, n_bins=64, time_bin_ps=2.0, nsrs=[0.01], noises=["white"],
+                                 methods=["convscd"], kinds="a,b,c", seed=0, scenes="legacy", bin_integrated=False)
     # 1 s over 3 pixels would be 0.33 s per pixel
     assert rows[0]["seconds_per_pixel"] < 0.1 and per_pixel["convscd"] < 0.1
     assert len(calls) >= 2  # the slow first call happened, untimed

@@ -83,3 +83,15 @@ def test_same_seed_same_store_and_bad_options(tmp_path, capsys):
     assert main(["simulate", "--out", str(tmp_path / "x.zarr"), "--shape", "0", "2", "64"]) == 2
     assert main(["simulate", "--out", str(tmp_path / "x.zarr"), "--shape", "2", "2", "64", "--nsr", "-1"]) == 2
     assert not (tmp_path / "x.zarr").exists()  # nothing half-written
+
+
+def test_paper_scenes_bin_integrated(tmp_path):
+    out = tmp_path / "paper.zarr"
+    assert main(["simulate", "--out", str(out), "--shape", "2", "3", "256", "--nsr", "0", "--noise", "none",
+                 "--seed", "1", "--scenes", "paper", "--bin-integrated"]) == 0
+    ref = make_cube(2, 3, 256, seed=1, ranges="paper", bin_integrated=True)
+    np.testing.assert_allclose(open_cube(out).array[...], ref.noisy, rtol=1e-6, atol=1e-7)
+    truth = zarr.open_group(str(out), mode="r")["truth"]
+    assert truth.attrs["bin_integrated"] is True
+    assert truth.attrs["scene_ranges"]["sigma_ps"] == [1.0, 10.0]
+    assert main(["simulate", "--out", str(tmp_path / "x.zarr"), "--shape", "1", "1", "64", "--scenes", "nosuch"]) == 2

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import select
 import threading
 import time
 
@@ -11,6 +12,7 @@ from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolE
 from drivers.sim.mirror import MirrorSimulator
 from drivers.sim.state import LabState
 from drivers.smc100 import SMC100Mirror
+from drivers.transport import SerialLineTransport
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -77,9 +79,9 @@ def test_travel_limits_are_a_device_error_and_nothing_moves(lab):
 
 
 def test_home_search_reports_homing_state_while_it_runs():
-    with MirrorSimulator(velocity_deg_per_s=10.0, initial_angle_deg=10.0) as sim:
+    with MirrorSimulator(velocity_deg_per_s=10.0, initial_angle_deg=3.0) as sim:
         with open_mirror(sim.port) as mirror:
-            mirror._command_checked("OR")
+            mirror.send("OR")
             assert mirror.state() == "homing"
             with pytest.raises(DeviceError) as info:
                 mirror.move_to(1.0)  # refused while homing
@@ -93,12 +95,12 @@ def test_home_during_a_move_waits_for_it_then_returns_to_zero(lab):
     sim, state = lab
     with open_mirror(sim.port) as mirror:
         mirror.home(timeout_s=5)
-        mirror.move_to(30.0)
+        mirror.move_to(15.0)
         assert mirror.state() == "moving"
         mirror.home(timeout_s=5)
         assert mirror.position() == pytest.approx(0.0)
         assert state.mirror_angle_deg == pytest.approx(0.0)
-        assert "1PA30" in sim.received and list(sim.received).count("1PA0") == 1
+        assert "1PA15" in sim.received and list(sim.received).count("1PA0") == 1
 
 
 def test_stop_ends_motion_where_the_stage_is():
@@ -157,7 +159,9 @@ def test_late_reply_is_not_taken_for_the_next_one(lab):
         sim.inject("delay", "ID", delay_s=0.5)
         with pytest.raises(DeviceTimeout):
             mirror.identify()
-        time.sleep(0.8)  # the late ID reply is now waiting in the port
+        # wait until the late ID reply is waiting in the port (however slow the machine is)
+        readable, _, _ = select.select([mirror.transport.serial.fd], [], [], 5.0)
+        assert readable
         assert mirror.state() == "not_referenced"
         assert mirror.position() == pytest.approx(0.0)
 
@@ -248,3 +252,203 @@ def test_simulator_shuts_down_cleanly():
     assert not thread.is_alive()
     assert not os.path.lexists(link)
     sim.close()  # idempotent
+
+
+# ---------------------------------------------------------------- the manual's command set (section 6.5)
+def raw(mirror, line: bytes) -> bytes:
+    """One raw exchange through the driver's transport (line sent as is, one reply line)."""
+    return mirror.transport.query(line)
+
+
+def test_pa_query_th_and_relative_moves(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(10.0)
+        assert mirror.target_position() == pytest.approx(10.0)      # PA?: the target, while moving
+        assert 0.0 <= mirror.setpoint_position() <= 10.0              # TH: where the profile is now
+        mirror.wait_settled(timeout_s=5)
+        mirror.move_by(-4.0)                                          # PR: relative to the target
+        assert mirror.target_position() == pytest.approx(6.0)
+        assert mirror.wait_settled(timeout_s=5) == pytest.approx(6.0)
+        with pytest.raises(DeviceError) as info:
+            mirror.move_by(40.0)                                      # 46 deg: beyond SR
+        assert info.value.code == "C"
+        assert mirror.target_position() == pytest.approx(6.0)
+        assert raw(mirror, b"1pa?\r\n") == b"1PA6.000000\r\n"        # lower case is accepted
+
+
+def test_rs_resets_to_not_referenced_where_the_stage_is(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.transport.write(b"1VA20\r\n")
+        assert mirror.velocity() == 20.0
+        mirror.send("PA", "5")
+        mirror.wait_settled(timeout_s=5)
+        mirror.reset()
+        assert mirror.status() == (0, "0A")
+        assert state.mirror_referenced is False
+        assert mirror.position() == pytest.approx(5.0)
+        assert mirror.velocity() == 50.0                              # power-up velocity again
+        with pytest.raises(DeviceError) as info:
+            mirror.move_to(1.0)
+        assert info.value.code == "H"
+        mirror.home(timeout_s=5)                                      # OR is allowed again
+        assert mirror.state() == "ready" and mirror.position() == pytest.approx(0.0)
+
+
+def test_mm0_enters_and_mm1_leaves_disable(lab):
+    sim, state = lab
+    with open_mirror(sim.port) as mirror:
+        with pytest.raises(DeviceError) as info:
+            mirror.enable(False)                                      # not referenced yet
+        assert info.value.code == "H"
+        mirror.home(timeout_s=5)
+        mirror.enable(False)
+        assert mirror.status()[1] == "3C" and mirror.state() == "disabled"
+        assert state.mirror_referenced is True
+        with pytest.raises(DeviceError) as info:
+            mirror.move_to(1.0)
+        assert info.value.code == "J"
+        mirror.enable(True)
+        assert mirror.status()[1] == "34"                             # READY from DISABLE
+        mirror.move_to(30.0)
+        mirror.enable(False)                                          # during the move: DISABLE from MOVING
+        assert mirror.status()[1] == "3D"
+        stopped = mirror.position()
+        assert 0.0 <= stopped < 30.0
+        mirror.home(timeout_s=5)                                      # MM1, then PA0
+        assert mirror.position() == pytest.approx(0.0)
+        mirror.transport.write(b"1MM2\r\n")
+        assert mirror.last_error() == "C"
+
+
+def test_ac_va_ve_and_ht(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        assert mirror.acceleration() == 400.0
+        mirror.transport.write(b"1AC250\r\n")
+        assert mirror.last_error() == "@" and mirror.acceleration() == 250.0
+        mirror.transport.write(b"1AC0\r\n")
+        assert mirror.last_error() == "C" and mirror.acceleration() == 250.0
+        mirror.transport.write(b"1VA-1\r\n")
+        assert mirror.last_error() == "C"
+        assert mirror.version() == "SMC100CC streaklab simulator 1.0"
+        assert raw(mirror, b"1HT?\r\n") == b"1HT0\r\n"
+        mirror.transport.write(b"1HT1\r\n")                           # CONFIGURATION only
+        assert mirror.last_error() == "H"
+        mirror.transport.write(b"1XY\r\n")
+        assert mirror.last_error() == "A"
+        mirror.home(timeout_s=5)
+        mirror.move_to(30.0)
+        mirror.transport.write(b"1VA10\r\n")                          # not while moving
+        assert mirror.last_error() == "M"
+
+
+def test_st_without_an_address_stops_all_controllers(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.move_to(40.0)
+        mirror.transport.write(b"ST\r\n")
+        assert mirror.status()[1] == "33"                             # READY from MOVING: stopped
+        stopped = mirror.position()
+        assert stopped < 39.0 and sim.state_code == "33"
+        mirror.transport.write(b"TP\r\n")                             # other commands need the address
+        assert mirror.position() == pytest.approx(stopped)
+        assert mirror.transport.drain() == b""
+
+
+def test_blanks_are_ignored_anywhere_in_a_command(lab):
+    sim, _ = lab
+    with open_mirror(sim.port) as mirror:
+        mirror.home(timeout_s=5)
+        mirror.transport.write(b"1P A1 0.5\r\n")                     # manual 6.3: "2P A1.43 6" == "2PA1.436"
+        assert mirror.last_error() == "@"
+        assert mirror.target_position() == pytest.approx(10.5)
+        assert raw(mirror, b" 1 T E \r\n") == b"1TE@\r\n"
+
+
+# ---------------------------------------------------------------- re-plug, power cycle, crash safety
+def test_power_cycle_is_a_replug_after_which_the_controller_is_not_referenced(lab):
+    sim, state = lab
+    with open_mirror(sim.stable_port) as mirror:
+        mirror.home(timeout_s=5)
+        old = sim.port
+        sim.inject("power_cycle", "TP")
+        assert mirror.position() == pytest.approx(0.0)   # the port vanished: one reconnect, asked again
+        assert sim.port != old
+        assert mirror.state() == "not_referenced"
+        assert state.mirror_referenced is False
+        mirror.home(timeout_s=5)
+        assert mirror.state() == "ready"
+
+
+def test_an_unplug_and_a_replug_arriving_together_do_not_kill_the_simulator(lab):
+    sim, _ = lab
+    with open_mirror(sim.stable_port) as mirror:
+        old = sim.port
+        sim.inject("unplug", "TP")
+        sim.inject("close", "TS")
+        fd = os.open(sim.port, os.O_RDWR | os.O_NOCTTY)
+        os.write(fd, b"1TP\r\n1TS\r\n")                 # both lines reach the controller in one read
+        os.close(fd)
+        deadline = time.monotonic() + 2
+        while sim.port == old and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert sim.port != old
+        assert sim._thread.is_alive()
+        assert mirror.identify() == "SLAB-GALVO-SIM"   # the re-plugged port, through one reconnect
+
+
+def test_replug_after_unplug_brings_the_port_back(lab):
+    sim, _ = lab
+    with open_mirror(sim.stable_port) as mirror:
+        sim.inject("unplug")
+        with pytest.raises(ConnectionLost):
+            mirror.position()
+        sim.replug()
+        assert mirror.position() == pytest.approx(0.0)
+
+
+# (state to start from, line sent, reply expected or None, TE letter afterwards)
+WIRE = [
+    ("ready", b"1PA?\r\n", b"1PA0.000000\r\n", "@"),
+    ("ready", b"1TH\r\n", b"1TH0.000000\r\n", "@"),
+    ("ready", b"1AC?\r\n", b"1AC400\r\n", "@"),
+    ("ready", b"1VE\r\n", b"1VE SMC100CC streaklab simulator 1.0\r\n", "@"),
+    ("ready", b"1HT?\r\n", b"1HT0\r\n", "@"),
+    ("ready", b"1HT1\r\n", None, "K"),
+    ("ready", b"1PR2.5\r\n", None, "@"),
+    ("ready", b"1PR99\r\n", None, "C"),
+    ("ready", b"1MM0\r\n", None, "@"),
+    ("ready", b"1MM5\r\n", None, "C"),
+    ("ready", b"1RS\r\n", None, "@"),
+    ("ready", b"1OR\r\n", None, "K"),
+    ("ready", b"1 P A ?\r\n", b"1PA0.000000\r\n", "@"),
+    ("ready", b"1tp\r\n", b"1TP0.000000\r\n", "@"),
+    ("ready", b"2TP\r\n", None, "@"),              # another controller's address: silence
+    ("ready", b"TP\r\n", None, "@"),               # no address: only ST is for everyone
+    ("ready", b"1TP5\r\n", None, "A"),             # a get command with a value
+    ("not_referenced", b"1PR1\r\n", None, "H"),
+    ("not_referenced", b"1MM1\r\n", None, "H"),
+    ("not_referenced", b"1VA12\r\n", None, "@"),
+    ("not_referenced", b"1HT?\r\n", b"1HT0\r\n", "@"),
+]
+
+
+@pytest.mark.parametrize("start, line, reply, letter", WIRE, ids=[w[1].decode().strip() + "@" + w[0] for w in WIRE])
+def test_command_set_on_the_wire(start, line, reply, letter):
+    with MirrorSimulator(min_home_s=0.0) as sim, SerialLineTransport(sim.port, baudrate=57600, xonxoff=True,
+                                                                     timeout_s=0.5) as t:
+        if start == "ready":
+            t.write(b"1OR\r\n")
+            assert t.query(b"1TE\r\n") == b"1TE@\r\n"
+            while t.query(b"1TS\r\n") != b"1TS000032\r\n":
+                pass
+        if reply is None:
+            t.write(line)
+        else:
+            assert t.query(line) == reply
+        assert t.query(b"1TE\r\n") == f"1TE{letter}\r\n".encode()   # also: nothing else was answered

@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from core.model import render_profile, time_axis_ps
+from core.model import render_components, render_profile, time_axis_ps
 from decomposition.synthetic import (
-    SceneRanges, add_noise, draw_params, make_cube, make_profiles, noise_realisation, parse_kind,
+    SCENE_PRESETS, SceneRanges, add_noise, draw_params, make_cube, make_profiles, noise_realisation, parse_kind,
+    regime_variables, render_bin_integrated, scene_ranges,
 )
 
 
@@ -155,3 +156,104 @@ def test_make_cube_shapes():
     np.testing.assert_allclose(_nsr(c), 0.02, rtol=1e-10)
     flat = make_profiles(12, 128, nsr=0.02, noise="pink", seed=0)
     np.testing.assert_array_equal(c.noisy.reshape(12, 128), flat.noisy)
+
+
+# --------------------------------------------------------------------------- presets, regimes, bin-integrated rendering
+
+def test_paper_preset_draws_inside_its_ranges():
+    r = SCENE_PRESETS["paper"]
+    assert r.sigma_ps == (1.0, 10.0) and r.sss_relative_peak == (0.05, 3.0) and r.ir_relative_peak == (0.01, 1.0)
+    assert r.sss_onset_sigma == (0.0, 3.0) and r.min_gap_sigma == 4.0
+    for T in (1.0, 4.0):
+        d = make_profiles(400, 512, seed=2, time_bin_ps=T, ranges="paper", kinds="a,b,c,d+r2+r3+r4")
+        p, t = d.params, time_axis_ps(512, T)
+        sig = p["direct_sigma_ps"]
+        assert np.all((sig >= 1) & (sig <= 10))
+        assert sig.max() > 9 and sig.min() < 2  # the whole range is visited
+        has_s = np.isfinite(p["sss_delay_ps"])
+        a = p["sss_alpha_per_ps"][has_s]
+        assert np.all((a >= 0.01) & (a <= 0.05))
+        onset = (p["sss_delay_ps"] - p["direct_delay_ps"])[has_s] / sig[has_s]
+        assert np.all((onset >= 0) & (onset <= 3)) and onset.min() < 0.3 and onset.max() > 2.7
+        # sss peak relative to the direct's, measured on a dense (0.25 ps) rendering of 150 pixels.
+        sub = {k: v[has_s][:150] for k, v in p.items()}
+        dense = render_components(sub, int(512 * T * 4), 0.25, t0_ps=T)["sss"]
+        rel_s = dense.max(axis=1) / sub["direct_amplitude"]
+        assert np.all((rel_s > 0.05 * 0.98) & (rel_s < 3.0 * 1.001)) and rel_s.max() > 2 and rel_s.min() < 0.1
+        on = np.isfinite(p["ir_amplitude"])
+        rel_r = (p["ir_amplitude"] / p["direct_amplitude"][:, None])[on]
+        assert np.all((rel_r >= 0.01) & (rel_r <= 1.0)) and rel_r.min() < 0.03
+        # Consecutive Gaussian components 4-16 sigma apart, all inside the window.
+        chain = np.concatenate([p["direct_delay_ps"][:, None], p["ir_delay_ps"]], axis=1)
+        gaps = np.diff(chain, axis=1) / sig[:, None]
+        ok = np.isfinite(gaps)
+        assert np.all(gaps[ok] >= 4 - 1e-9) and np.all(gaps[ok] <= 16 + 1e-9)
+        fin = np.isfinite(chain)
+        edge = 4 * np.broadcast_to(sig[:, None], chain.shape)
+        assert np.all(chain[fin] >= t[0] + edge[fin] - 1e-9) and np.all(chain[fin] <= t[-1] - edge[fin] + 1e-9)
+
+
+def test_legacy_preset_is_the_default_generator():
+    assert SCENE_PRESETS["legacy"] == SceneRanges()
+    a = make_profiles(50, 256, nsr=0.01, seed=4)
+    b = make_profiles(50, 256, nsr=0.01, seed=4, ranges="legacy")
+    np.testing.assert_array_equal(a.noisy, b.noisy)
+    assert scene_ranges("paper") is SCENE_PRESETS["paper"] and scene_ranges(None) == SceneRanges()
+    with pytest.raises(ValueError, match="unknown scene preset"):
+        scene_ranges("nosuch")
+    with pytest.raises(ValueError, match="log-uniformly"):
+        SceneRanges(sss_onset_sigma=(0.0, 1.0), log_uniform=("sss_onset_sigma",))
+    with pytest.raises(ValueError, match="max_gap_sigma"):
+        SceneRanges(min_gap_sigma=6.0, max_gap_sigma=5.0)
+
+
+def test_regime_variables_follow_the_parameters():
+    d = make_profiles(90, 512, seed=3, time_bin_ps=4.0, ranges="paper")
+    r, p = d.regimes, d.params
+    np.testing.assert_allclose(r["sigma_bins"], p["direct_sigma_ps"] / 4.0)
+    np.testing.assert_allclose(r["onset_sigma"], (p["sss_delay_ps"] - p["direct_delay_ps"]) / p["direct_sigma_ps"])
+    np.testing.assert_array_equal(r["n_ir"], [k.count("r") for k in d.kinds])
+    rel = p["ir_amplitude"] / p["direct_amplitude"][:, None]
+    has = r["n_ir"] > 0
+    np.testing.assert_allclose(r["ir_min_peak_ratio"][has], np.nanmin(rel[has], axis=1))
+    assert np.isnan(r["ir_min_peak_ratio"][~has]).all()
+    # The sss peak ratio is that of the rendered components (dense rendering, 0.1 ps).
+    dense = make_profiles(90, 512 * 40, seed=3, time_bin_ps=0.1, t0_ps=4.0, ranges="paper", kinds="a")
+    rd = dense.regimes
+    peak = dense.components["sss"].max(axis=1) / dense.components["direct"].max(axis=1)
+    np.testing.assert_allclose(rd["sss_peak_ratio"], peak, rtol=2e-3)
+    q = regime_variables({**p, "sss_delay_ps": np.full(90, np.nan)}, 4.0)
+    assert np.isnan(q["sss_peak_ratio"]).all() and np.isnan(q["onset_sigma"]).all()
+
+
+@pytest.mark.parametrize("T", [1.0, 4.0])
+def test_bin_integrated_rendering_is_the_bin_mean_of_the_model(T):
+    params = {"direct_delay_ps": np.array([40.0, 61.3]), "direct_amplitude": np.array([1.0, 0.7]),
+              "direct_sigma_ps": np.array([1.0, 6.0]),
+              "sss_delay_ps": np.array([40.5, 70.0]), "sss_amplitude": np.array([0.2, 0.05]),
+              "sss_alpha_per_ps": np.array([0.05, 0.01]), "sss_sigma_ps": np.array([1.0, 6.0]),
+              "ir_delay_ps": np.array([[90.2, np.nan], [150.0, 230.7]]), "ir_amplitude": np.array([[0.3, np.nan],
+                                                                                                  [0.01, 1.0]]),
+              "ir_sigma_ps": np.array([[1.0, np.nan], [6.0, 6.0]])}
+    n = 400 // int(T)
+    got = render_bin_integrated(params, n, T)
+    # Dense midpoint rule over each bin of the point-sampled model.
+    k = 2000
+    fine = render_components(params, n * k, T / k, t0_ps=T - T / 2 + T / (2 * k))
+    for key in ("direct", "sss", "interreflections"):
+        ref = fine[key].reshape(fine[key].shape[:-1] + (n, k)).mean(axis=-1)
+        np.testing.assert_allclose(got[key], ref, rtol=0, atol=2e-7)
+        assert got[key].min() >= 0
+    # Absent components render as zeros; the sss tail keeps full relative precision late in the window.
+    assert np.all(got["interreflections"][0, 1] == 0)
+    late = got["sss"][1, -5:]
+    ref = fine["sss"][1].reshape(n, k).mean(axis=-1)[-5:]
+    np.testing.assert_allclose(late, ref, rtol=1e-5)
+    # make_profiles renders with it and says so.
+    d = make_profiles(5, 256, seed=0, time_bin_ps=T, ranges="paper", bin_integrated=True)
+    np.testing.assert_allclose(d.clean, sum_components(render_bin_integrated(d.params, 256, T)), atol=1e-12)
+    assert d.bin_integrated
+
+
+def sum_components(c):
+    return c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import os
+import select
 import socket
 import termios
+import threading
 import time
 import tty
 
@@ -153,7 +155,7 @@ def test_serial_transport_on_a_pty_reads_lines_and_blocks(pty_pair):
             t.read_line(timeout_s=0.1)
         assert 0.09 <= time.monotonic() - t0 < 1.0
         os.write(master, b"late\r\n")
-        time.sleep(0.05)   # let the late bytes reach the slave before the drain
+        assert select.select([t.serial.fd], [], [], 2.0)[0]   # the late bytes reached the port
         assert t.drain() == b"late\r\n"
 
 
@@ -204,3 +206,35 @@ def test_tcp_transport_lines_blocks_timeout_and_peer_close():
         server.close()
     with pytest.raises(ConnectionLost, match="cannot open 127.0.0.1"):
         TcpLineTransport("127.0.0.1", port, connect_timeout_s=0.5)
+
+
+def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_peer_went():
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    try:
+        t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
+        conn, _ = server.accept()
+        with pytest.raises(DeviceTimeout):
+            t.query(b"slow?\r\n")
+        conn.sendall(b"late answer\r\n")
+        assert conn.recv(64) == b"slow?\r\n"
+        deadline = time.monotonic() + 2
+        while not t.drain() and time.monotonic() < deadline:   # the late line is thrown away
+            pass
+        conn.close()                                           # the peer goes away
+        result = []
+
+        def serve_once():
+            c, _ = server.accept()
+            result.append(c.recv(64))
+            c.sendall(b"fresh\r\n")
+            c.close()
+
+        th = threading.Thread(target=serve_once)
+        th.start()
+        assert t.query(b"again?\r\n", timeout_s=2.0) == b"fresh\r\n"
+        th.join(5)
+        assert result == [b"again?\r\n"]
+        t.close()
+    finally:
+        server.close()

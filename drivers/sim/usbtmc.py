@@ -36,6 +36,15 @@ plus a pulse/delay-generator tree in the style of BNC 575-type units); see
 ``sync_delay_ps`` (delay of the camera channel, 1 by default) and
 ``sync_output_enabled`` (system output and camera channel both on).
 
+Layout: the SCPI instrument is :mod:`drivers.sim.scpi_instrument`; USB
+constants, descriptors and enumeration are :mod:`drivers.sim.usb_device`; this
+module is the device's transfer state machine (Bulk-OUT parsing, Bulk-IN
+responses, class and standard requests, faults).  It stays one module of
+about 560 lines because that state (armed request, pending response, abort
+and halt flags) is shared by every transfer and request handler under one
+condition variable; splitting it would spread one lock's invariants over
+several files.
+
 Fault injection (one-shot, :mod:`drivers.sim.faults`; ``command`` is the SCPI
 header as sent, without a leading colon, case-insensitive, e.g. ``"*IDN?"``)::
 
@@ -50,342 +59,26 @@ from __future__ import annotations
 
 import array
 import collections
-import errno
-import math
 import struct
 import threading
 import time
-from types import SimpleNamespace
 
 import usb.backend
-from usb.core import USBError, USBTimeoutError
 
 from .faults import COMMON_KINDS, FaultInjector
+from .scpi_instrument import COMMANDS_DOC, SCPI_ERRORS, SyncInstrument  # noqa: F401 (re-exported)
 from .state import LabState
-
-# ---------------------------------------------------------------- USB constants
-# libusb error codes as pyusb's libusb1 backend reports them (code, errno)
-_LIBUSB = {
-    "io": (-1, errno.EIO, "Input/Output Error"),
-    "invalid": (-2, errno.EINVAL, "Invalid parameter"),
-    "no_device": (-4, errno.ENODEV, "No such device (it may have been disconnected)"),
-    "not_found": (-5, errno.ENOENT, "Entity not found"),
-    "busy": (-6, errno.EBUSY, "Resource busy"),
-    "timeout": (-7, errno.ETIMEDOUT, "Operation timed out"),
-    "pipe": (-9, errno.EPIPE, "Pipe error"),
-}
-
-
-def _usb_error(kind: str) -> USBError:
-    code, err, text = _LIBUSB[kind]
-    cls = USBTimeoutError if kind == "timeout" else USBError
-    return cls(text, code, err)
-
-
-EP_BULK_OUT = 0x02
-EP_BULK_IN = 0x81
-EP_INTR_IN = 0x83
-MAX_PACKET = 64          # full speed bulk endpoints
-INTERFACE_NUMBER = 0
-CONFIG_VALUE = 1
-
-# USBTMC 1.0 table 2 / USB488 table 2: MsgID values
-DEV_DEP_MSG_OUT = 1
-REQUEST_DEV_DEP_MSG_IN = 2
-DEV_DEP_MSG_IN = 2
-# USBTMC 1.0 table 15 / USB488 table 9: class request codes
-INITIATE_ABORT_BULK_OUT = 1
-CHECK_ABORT_BULK_OUT_STATUS = 2
-INITIATE_ABORT_BULK_IN = 3
-CHECK_ABORT_BULK_IN_STATUS = 4
-INITIATE_CLEAR = 5
-CHECK_CLEAR_STATUS = 6
-GET_CAPABILITIES = 7
-READ_STATUS_BYTE = 128
-# USBTMC 1.0 table 16: USBTMC_status values
-STATUS_SUCCESS = 0x01
-STATUS_PENDING = 0x02
-STATUS_FAILED = 0x80
-STATUS_TRANSFER_NOT_IN_PROGRESS = 0x81
+from .usb_device import (CHECK_ABORT_BULK_IN_STATUS, CHECK_ABORT_BULK_OUT_STATUS, CHECK_CLEAR_STATUS,
+                         CONFIG_VALUE, DEV_DEP_MSG_IN, DEV_DEP_MSG_OUT, EP_BULK_IN, EP_BULK_OUT, EP_INTR_IN,
+                         GET_CAPABILITIES, INITIATE_ABORT_BULK_IN, INITIATE_ABORT_BULK_OUT, INITIATE_CLEAR,
+                         INTERFACE_NUMBER, READ_STATUS_BYTE, REQUEST_DEV_DEP_MSG_IN, STATUS_FAILED,
+                         STATUS_PENDING, STATUS_SUCCESS, STATUS_TRANSFER_NOT_IN_PROGRESS, UsbDescriptors,
+                         _DeviceId, _Handle, _usb_error)
 
 _GARBAGE = bytes([0x7F, 0x00, 0x13, 0x37]) + b"\xde\xad\xbe\xef" * 3
 
-# ---------------------------------------------------------------- SCPI error texts
-# SCPI-99 volume 2, chapter 21 (error/event queue): standard codes and texts
-SCPI_ERRORS = {
-    0: "No error",
-    -100: "Command error",
-    -102: "Syntax error",
-    -104: "Data type error",
-    -108: "Parameter not allowed",
-    -109: "Missing parameter",
-    -113: "Undefined header",
-    -200: "Execution error",
-    -222: "Data out of range",
-    -224: "Illegal parameter value",
-    -240: "Hardware error",
-    -300: "Device-specific error",
-    -310: "System error",
-    -350: "Queue overflow",
-    -410: "Query INTERRUPTED",
-    -420: "Query UNTERMINATED",
-}
 
-COMMANDS_DOC = """\
-*IDN?                    -> "STREAKLAB,SLS-575SIM,<serial>,<firmware>"
-*RST                     system period 12.5 ns (80 MHz), all delays 0, widths 10 ns, output off
-*CLS                     clear the error queue and the event status register
-*OPC? / *OPC / *WAI      operation complete ("1")
-*ESR? / *STB? / *TST?    event status register / status byte / self test ("0")
-SYSTem:ERRor[:NEXT]?     -> <code>,"<text>"  (0,"No error" when the queue is empty)
-:PULSe0:PERiod <s> / ?   system (repetition) period, 5 ns .. 1000 s
-:PULSe0:STATe ON|OFF / ? system output enable (all channels)
-:PULSe<n>:DELay <s> / ?  channel n = 1..4 delay after T0, 0 .. 1 ms, 0.1 ps resolution
-:PULSe<n>:WIDTh <s> / ?  channel n pulse width, 1 ns .. 1 ms
-:PULSe<n>:STATe ON|OFF / ? channel n enable
-"""
-
-_PERIOD_RANGE_S = (5e-9, 1000.0)
-_DELAY_RANGE_S = (0.0, 1e-3)
-_WIDTH_RANGE_S = (1e-9, 1e-3)
-_N_CHANNELS = 4
-_ERROR_QUEUE_LEN = 20
-
-
-class _ScpiError(Exception):
-    def __init__(self, code: int):
-        self.code = code
-
-
-def _keyword(token: str, long_form: str) -> bool:
-    """SCPI keyword match: the short form (the upper-case part) or the whole long form."""
-    token = token.upper()
-    short = "".join(c for c in long_form if c.isupper() or c.isdigit())
-    return token in (short, long_form.upper())
-
-
-class SyncInstrument:
-    """The SCPI instrument behind the USB interface (no USB here).
-
-    Parameters
-    ----------
-    lab_state : LabState
-        Updated on every change of period, channel-1 delay and output state.
-    serial_number : str
-        Reported in ``*IDN?``.
-    camera_channel : int
-        Channel that triggers the streak camera: its delay is ``LabState.sync_delay_ps``
-        and the camera sees light only while it and the system output are on.
-    """
-
-    def __init__(self, lab_state: LabState, serial_number: str, firmware: str = "1.0",
-                 camera_channel: int = 1):
-        if not 1 <= int(camera_channel) <= _N_CHANNELS:
-            raise ValueError(f"camera_channel must be 1..{_N_CHANNELS}, got {camera_channel!r}")
-        self.camera_channel = int(camera_channel)
-        self.lab_state = lab_state
-        self.serial_number = serial_number
-        self.firmware = firmware
-        self.errors: list[int] = []
-        self.esr = 0
-        self.reset()
-
-    def reset(self) -> None:
-        self.period_s = 12.5e-9
-        self.output = False
-        self.delay_s = [0.0] * (_N_CHANNELS + 1)
-        self.width_s = [10e-9] * (_N_CHANNELS + 1)
-        self.channel_on = [True] * (_N_CHANNELS + 1)
-        self._publish()
-
-    def _publish(self) -> None:
-        with self.lab_state.lock:
-            self.lab_state.sync_rate_hz = 1.0 / self.period_s
-            ch = self.camera_channel
-            self.lab_state.sync_delay_ps = round(self.delay_s[ch] * 1e13) / 10.0
-            self.lab_state.sync_output_enabled = bool(self.output and self.channel_on[ch])
-
-    def push_error(self, code: int) -> None:
-        if len(self.errors) >= _ERROR_QUEUE_LEN:
-            self.errors[-1] = -350
-        else:
-            self.errors.append(int(code))
-        # IEEE 488.2 event status register bits: 2 query, 3 device-dependent, 4 execution, 5 command
-        if -199 <= code <= -100:
-            self.esr |= 0x20
-        elif -299 <= code <= -200:
-            self.esr |= 0x10
-        elif -399 <= code <= -300 or code > 0:
-            self.esr |= 0x08
-        elif -499 <= code <= -400:
-            self.esr |= 0x04
-
-    def status_byte(self, message_available: bool) -> int:
-        stb = 0
-        if self.errors:
-            stb |= 0x04          # error/event queue not empty
-        if message_available:
-            stb |= 0x10          # MAV
-        if self.esr:
-            stb |= 0x20          # ESB (all ESR bits enabled)
-        return stb
-
-    @staticmethod
-    def headers(message: str) -> list[str]:
-        """SCPI headers of a program message (for fault matching), leading colon removed."""
-        out = []
-        for unit in message.split(";"):
-            unit = unit.strip()
-            if unit:
-                out.append(unit.split(None, 1)[0].lstrip(":"))
-        return out
-
-    def execute(self, message: str, message_available: bool = False) -> list[str]:
-        """Run one program message (units separated by ``;``); return the query responses."""
-        responses = []
-        for unit in message.split(";"):
-            unit = unit.strip()
-            if not unit:
-                continue
-            try:
-                reply = self._unit(unit, message_available)
-            except _ScpiError as exc:
-                self.push_error(exc.code)
-                continue
-            if reply is not None:
-                responses.append(reply)
-        return responses
-
-    # -- one program message unit
-    def _unit(self, unit: str, message_available: bool):
-        parts = unit.split(None, 1)
-        header, arg = parts[0], (parts[1].strip() if len(parts) > 1 else None)
-        query = header.endswith("?")
-        if query and arg is not None:
-            raise _ScpiError(-108)
-        head = header[:-1] if query else header
-        if head.startswith("*"):
-            return self._common(head.upper(), query, arg, message_available)
-        nodes = head.lstrip(":").split(":")
-        if len(nodes) >= 2 and _keyword(nodes[0], "SYSTem") and _keyword(nodes[1], "ERRor") and \
-                (len(nodes) == 2 or (len(nodes) == 3 and _keyword(nodes[2], "NEXT"))):
-            if not query:
-                raise _ScpiError(-113)
-            code = self.errors.pop(0) if self.errors else 0
-            return f'{code},"{SCPI_ERRORS.get(code, "Device-specific error")}"'
-        if len(nodes) == 2 and nodes[0].upper().startswith("PULS"):
-            return self._pulse(nodes[0], nodes[1], query, arg)
-        raise _ScpiError(-113)
-
-    def _common(self, head: str, query: bool, arg, message_available: bool):
-        if arg is not None:
-            raise _ScpiError(-108)
-        if head == "*IDN" and query:
-            return f"STREAKLAB,SLS-575SIM,{self.serial_number},{self.firmware}"
-        if head == "*RST" and not query:
-            self.reset()
-            return None
-        if head == "*CLS" and not query:
-            self.errors.clear()
-            self.esr = 0
-            return None
-        if head == "*OPC":
-            if query:
-                return "1"
-            self.esr |= 0x01
-            return None
-        if head == "*WAI" and not query:
-            return None
-        if head == "*ESR" and query:
-            value, self.esr = self.esr, 0
-            return str(value)
-        if head == "*STB" and query:
-            return str(self.status_byte(message_available))
-        if head == "*TST" and query:
-            return "0"
-        raise _ScpiError(-113)
-
-    def _pulse(self, node: str, leaf: str, query: bool, arg):
-        upper = node.upper()
-        digits = upper[len("PULSE"):] if upper.startswith("PULSE") else upper[len("PULS"):]
-        if not digits.isdigit():
-            raise _ScpiError(-113)
-        ch = int(digits)
-        if ch > _N_CHANNELS:
-            raise _ScpiError(-113)
-        if _keyword(leaf, "STATe"):
-            if query:
-                return "1" if (self.output if ch == 0 else self.channel_on[ch]) else "0"
-            value = self._boolean(arg)
-            if ch == 0:
-                self.output = value
-            else:
-                self.channel_on[ch] = value
-        elif ch == 0 and _keyword(leaf, "PERiod"):
-            if query:
-                return f"{self.period_s:.12E}"
-            self.period_s = self._number(arg, _PERIOD_RANGE_S)
-        elif ch > 0 and _keyword(leaf, "DELay"):
-            if query:
-                return f"{self.delay_s[ch]:.13E}"
-            value = self._number(arg, _DELAY_RANGE_S)
-            self.delay_s[ch] = round(value * 1e13) / 1e13   # 0.1 ps resolution
-        elif ch > 0 and _keyword(leaf, "WIDTh"):
-            if query:
-                return f"{self.width_s[ch]:.13E}"
-            self.width_s[ch] = round(self._number(arg, _WIDTH_RANGE_S) * 1e13) / 1e13
-        else:
-            raise _ScpiError(-113)
-        self._publish()
-        return None
-
-    @staticmethod
-    def _boolean(arg) -> bool:
-        if arg is None:
-            raise _ScpiError(-109)
-        text = arg.upper()
-        if text in ("ON", "1"):
-            return True
-        if text in ("OFF", "0"):
-            return False
-        raise _ScpiError(-224)
-
-    @staticmethod
-    def _number(arg, bounds) -> float:
-        if arg is None:
-            raise _ScpiError(-109)
-        try:
-            value = float(arg)
-        except ValueError:
-            raise _ScpiError(-104) from None
-        if not math.isfinite(value) or not bounds[0] <= value <= bounds[1]:
-            raise _ScpiError(-222)
-        return value
-
-
-# ---------------------------------------------------------------- descriptors
-def _ns(**fields) -> SimpleNamespace:
-    return SimpleNamespace(**fields)
-
-
-class _DeviceId:
-    """What ``enumerate_devices`` yields: one plug-in of the device (a re-plug is a new one)."""
-
-    def __init__(self, bus: int, address: int, generation: int):
-        self.bus, self.address, self.generation = bus, address, generation
-
-    def __repr__(self):
-        return f"<simulated USBTMC device bus {self.bus} address {self.address}>"
-
-
-class _Handle:
-    def __init__(self, dev: _DeviceId):
-        self.dev = dev
-        self.claimed: set[int] = set()
-        self.open = True
-
-
-class UsbtmcBackend(usb.backend.IBackend):
+class UsbtmcBackend(UsbDescriptors, usb.backend.IBackend):
     """A pyusb backend with one simulated USBTMC/USB488 laser sync unit attached.
 
     Parameters
@@ -482,100 +175,6 @@ class UsbtmcBackend(usb.backend.IBackend):
                 self._dev = _DeviceId(1, self._address, self._generation)
                 self._configuration = CONFIG_VALUE
                 self._plugged = True
-
-    # ------------------------------------------------------------ descriptors
-    def _device_descriptor(self):
-        return _ns(bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0,
-                   bDeviceSubClass=0, bDeviceProtocol=0, bMaxPacketSize0=64,
-                   idVendor=self.vendor_id, idProduct=self.product_id, bcdDevice=0x0100,
-                   iManufacturer=1, iProduct=2, iSerialNumber=3, bNumConfigurations=1,
-                   address=self._dev.address, bus=self._dev.bus, port_number=1,
-                   port_numbers=(1,), speed=2)  # libusb LIBUSB_SPEED_FULL
-
-    @staticmethod
-    def _interface_descriptor():
-        return _ns(bLength=9, bDescriptorType=4, bInterfaceNumber=INTERFACE_NUMBER,
-                   bAlternateSetting=0, bNumEndpoints=3, bInterfaceClass=0xFE,
-                   bInterfaceSubClass=0x03, bInterfaceProtocol=0x01, iInterface=0,
-                   extra_descriptors=[])
-
-    @staticmethod
-    def _endpoint_descriptors():
-        return [
-            _ns(bLength=7, bDescriptorType=5, bEndpointAddress=EP_BULK_OUT, bmAttributes=0x02,
-                wMaxPacketSize=MAX_PACKET, bInterval=0, bRefresh=0, bSynchAddress=0,
-                extra_descriptors=[]),
-            _ns(bLength=7, bDescriptorType=5, bEndpointAddress=EP_BULK_IN, bmAttributes=0x02,
-                wMaxPacketSize=MAX_PACKET, bInterval=0, bRefresh=0, bSynchAddress=0,
-                extra_descriptors=[]),
-            _ns(bLength=7, bDescriptorType=5, bEndpointAddress=EP_INTR_IN, bmAttributes=0x03,
-                wMaxPacketSize=2, bInterval=10, bRefresh=0, bSynchAddress=0,
-                extra_descriptors=[]),
-        ]
-
-    def _configuration_descriptor(self):
-        total = 9 + 9 + 7 * 3
-        return _ns(bLength=9, bDescriptorType=2, wTotalLength=total, bNumInterfaces=1,
-                   bConfigurationValue=CONFIG_VALUE, iConfiguration=0, bmAttributes=0x80,
-                   bMaxPower=50, extra_descriptors=[])
-
-    def _descriptor_bytes(self, dtype: int, index: int, langid: int) -> bytes:
-        if dtype == 1 and index == 0:
-            d = self._device_descriptor()
-            return struct.pack("<BBHBBBBHHHBBBB", 18, 1, d.bcdUSB, d.bDeviceClass, d.bDeviceSubClass,
-                               d.bDeviceProtocol, d.bMaxPacketSize0, d.idVendor, d.idProduct,
-                               d.bcdDevice, 1, 2, 3, 1)
-        if dtype == 2 and index == 0:
-            c, i = self._configuration_descriptor(), self._interface_descriptor()
-            out = struct.pack("<BBHBBBBB", 9, 2, c.wTotalLength, 1, CONFIG_VALUE, 0, 0x80, 50)
-            out += struct.pack("<BBBBBBBBB", 9, 4, i.bInterfaceNumber, 0, i.bNumEndpoints,
-                               0xFE, 0x03, 0x01, 0)
-            for e in self._endpoint_descriptors():
-                out += struct.pack("<BBBBHB", 7, 5, e.bEndpointAddress, e.bmAttributes,
-                                   e.wMaxPacketSize, e.bInterval)
-            return out
-        if dtype == 3:
-            if index == 0:
-                return bytes([4, 3]) + struct.pack("<H", 0x0409)  # LANGID US English
-            if index in self.strings and langid == 0x0409:
-                text = self.strings[index].encode("utf-16-le")
-                return bytes([2 + len(text), 3]) + text
-        raise _usb_error("pipe")  # unknown descriptor: the device STALLs the request
-
-    # ------------------------------------------------------------ IBackend: enumeration
-    def enumerate_devices(self):
-        with self._cv:
-            return [self._dev] if self._plugged else []
-
-    def get_parent(self, dev):
-        return None
-
-    def get_device_descriptor(self, dev):
-        self._check_dev(dev)
-        return self._device_descriptor()
-
-    def get_configuration_descriptor(self, dev, config):
-        self._check_dev(dev)
-        if config != 0:
-            raise IndexError("configuration index out of range")
-        return self._configuration_descriptor()
-
-    def get_interface_descriptor(self, dev, intf, alt, config):
-        self._check_dev(dev)
-        if (config, intf, alt) != (0, 0, 0):
-            raise IndexError("interface/alternate setting index out of range")
-        return self._interface_descriptor()
-
-    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
-        self._check_dev(dev)
-        eps = self._endpoint_descriptors()
-        if (config, intf, alt) != (0, 0, 0) or not 0 <= ep < len(eps):
-            raise IndexError("endpoint index out of range")
-        return eps[ep]
-
-    def _check_dev(self, dev) -> None:
-        if not isinstance(dev, _DeviceId):
-            raise _usb_error("invalid")
 
     # ------------------------------------------------------------ IBackend: handles
     def open_device(self, dev):

@@ -1,17 +1,26 @@
-"""``streaklab bench accuracy``: decomposition fidelity against noise (the paper's Fig. 3(d)).
+"""``streaklab bench accuracy``: decomposition fidelity against noise (the paper's Fig. 3(d)),
+beside what the data allow.
 
-For each noise type (white, pink, photon) and each noise-to-signal ratio on a log-spaced grid
-from 0.001 to 0.2 (plus 0.005 and 0.055, the paper's two reference points), the same
-synthetic scenes of the Fig. 3(a)-(c) kinds (d+s, d+s+r2, d+s+r2+r3, in equal shares) are
-decomposed by ConvSCD and by GradBM through :func:`decomposition.decompose`, and the mean
-fidelity of each method is recorded (:func:`decomposition.metrics.fidelity`).
+For each bin width, each noise type (white, pink, photon) and each noise-to-signal ratio on a
+log-spaced grid from 0.001 to 0.2 (plus 0.005 and 0.055, the paper's two reference points;
+or the values of ``--nsr``), the same synthetic scenes of the Fig. 3(a)-(c) kinds (d+s,
+d+s+r2, d+s+r2+r3, in equal shares) are decomposed by ConvSCD and by GradBM through
+:func:`decomposition.decompose`, and fitted by the oracle
+(:func:`decomposition.oracle.oracle_fit`: least squares of the true component set started at
+the true parameters, a ceiling for any method).  Scenes come from a preset of
+:data:`decomposition.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
+rendered bin-integrated; ``legacy`` for the original generator, point-sampled).
 
-Outputs in ``--out``: ``accuracy.csv`` (one row per method, noise type and NSR),
+Outputs in ``--out``: ``accuracy.csv`` (one row per method, bin width, noise type and NSR,
+with the oracle's mean fidelity and the gap to it), ``regimes.csv`` (mean fidelity of every
+method and the oracle per regime, see :mod:`streaklab.bench.scoring`), ``flags.csv``
+(precision and recall of every flag bit against pixels with fidelity < 0.5),
 ``accuracy.png`` (fidelity against NSR, one panel per noise type) and ``summary.json``.
-Printed: for each method and noise type the largest NSR up to which mean fidelity stays
->= 0.90 (interpolated in log NSR between grid points), each method's run time per pixel,
-and the target (ConvSCD >= 0.90 at NSR 0.055 under white noise, and above GradBM
-at every NSR above 0.005).
+Printed: per point the regime table (method, oracle, gap); for each method and noise type the
+largest NSR up to which mean fidelity stays >= 0.90; each method's run time per pixel; the
+paper's reference check (ConvSCD >= 0.90 at NSR 0.055 under white noise, and above GradBM at
+every NSR above 0.005); and the accuracy targets against the oracle as met / not met lines
+(:data:`streaklab.bench.scoring.TARGETS`).
 """
 from __future__ import annotations
 
@@ -31,6 +40,10 @@ TARGET_NSR = 0.055
 TARGET_FLOOR_NSR = 0.005
 NOISES = ("white", "pink", "photon")
 METHODS = ("convscd", "gradbm")
+# Opt-in: ConvSCD followed by the structured alternative starts of decomposition.search
+# (a prototype, not part of decompose); its time includes the ConvSCD run.
+EXTRA_METHODS = ("search",)
+ORACLE = "oracle"
 
 
 def add_arguments(parser) -> None:
@@ -39,13 +52,23 @@ def add_arguments(parser) -> None:
                         help="profiles per (noise type, NSR) point, in equal shares of the kinds (default 150)")
     parser.add_argument("--quick", action="store_true",
                         help="a few seconds: 12 pixels of 128 bins at NSR 0.001, 0.055, 0.2")
-    parser.add_argument("--n-bins", type=int, default=256, help="time bins per profile (default 256)")
-    parser.add_argument("--time-bin-ps", type=float, default=2.0, help="bin width in ps (default 2)")
+    parser.add_argument("--n-bins", type=int, default=512, help="time bins per profile (default 512)")
+    parser.add_argument("--time-bin-ps", default="2",
+                        help="bin width(s) in ps, comma-separated, e.g. 2,4 (default 2)")
     parser.add_argument("--nsr-points", type=int, default=10,
                         help="log-spaced NSR values from 0.001 to 0.2 (default 10; 0.005 and 0.055 are added)")
+    parser.add_argument("--nsr", default=None,
+                        help="explicit NSR values, comma-separated (instead of the log-spaced grid)")
     parser.add_argument("--noise", default=",".join(NOISES), help="noise types, comma-separated (default all three)")
-    parser.add_argument("--methods", default=",".join(METHODS), help="methods, comma-separated (default convscd,gradbm)")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help="methods, comma-separated (default convscd,gradbm; also search: ConvSCD followed "
+                             "by the structured alternative starts of decomposition.search); the oracle always runs")
     parser.add_argument("--kinds", default="a,b,c", help="scene kinds (default a,b,c: Fig. 3(a)-(c))")
+    parser.add_argument("--scenes", default="paper",
+                        help="scene preset: paper (the paper's parameter space, default) or legacy")
+    parser.add_argument("--render", choices=("bin", "point"), default=None,
+                        help="bin: each bin the mean of the model over its width; point: point samples "
+                             "(default bin for paper scenes, point for legacy)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of scenes and noise (default 0)")
 
 
@@ -93,44 +116,126 @@ def _split(text: str, allowed, what: str):
     return items
 
 
-def measure(*, pixels: int, n_bins: int, time_bin_ps: float, nsrs, noises, methods, kinds, seed: int,
-            progress=None):
-    """Run the sweep; returns (rows, seconds per pixel per method)."""
-    from decomposition import decompose
+def _score(data, est_components, est_params, flags):
+    """Per-pixel fidelity, direct-delay failures and flags of one estimate."""
     from decomposition.metrics import fidelity
+
+    from .scoring import direct_delay_failures
+
+    f = fidelity(data.components, est_components)
+    fail = direct_delay_failures(data.params, est_params)
+    return f, fail, np.asarray(flags).astype(np.int64)
+
+
+def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kinds, seed: int,
+            scenes: str = "paper", bin_integrated: bool = True, progress=None):
+    """Run the sweep.
+
+    Parameters
+    ----------
+    time_bin_ps : float or sequence of float
+        Bin width(s) in ps; each gets its own scenes (same seed).
+    methods : sequence of str
+        Solver methods (``convscd``, ``gradbm``); the oracle is always added.
+    scenes : str
+        Scene preset (:data:`decomposition.synthetic.SCENE_PRESETS`).
+    bin_integrated : bool
+        Render the scenes bin-integrated (the oracle fits them with the same rendering).
+
+    Returns
+    -------
+    rows : list of dict
+        One per (method, bin width, noise, NSR), oracle included.
+    per_pixel : dict
+        Seconds per pixel of each method.
+    points : list of dict
+        One per (bin width, noise, NSR): ``regimes`` (rows of
+        :func:`streaklab.bench.scoring.regime_rows`), ``flags`` (precision/recall rows),
+        failure counts per method (see :func:`streaklab.bench.scoring.check_targets`).
+    """
+    from decomposition import decompose
+    from decomposition.api import FLAG_NAMES
+    from core.model import render_components
+    from decomposition.oracle import oracle_fit
+    from decomposition.search import structured_search
     from decomposition.synthetic import make_profiles
+
+    from .scoring import flag_precision_recall, regime_rows
 
     from decomposition.jit import warm_up
 
-    for method in methods:  # compiling (or loading) the kernels is not part of any point's time
-        warm_up(time_bin_ps=time_bin_ps, n_bins=n_bins, method=method, label="bench accuracy")
-    rows = []
-    spent = {m: 0.0 for m in methods}
-    counted = {m: 0 for m in methods}
-    for noise in noises:
-        for nsr in nsrs:
-            data = make_profiles(pixels, n_bins, nsr=float(nsr), noise=noise, seed=seed, kinds=kinds,
-                                 time_bin_ps=time_bin_ps)
-            labels = sorted(set(data.kinds.tolist()))
-            for method in methods:
-                t_start = time.perf_counter()
-                res = decompose(data.noisy, time_bin_ps=time_bin_ps, method=method)
-                dt = time.perf_counter() - t_start
-                spent[method] += dt
-                counted[method] += pixels
-                f = fidelity(data.components, res)
-                row = {"method": method, "noise": noise, "nsr": float(nsr), "pixels": pixels,
-                       "mean_fidelity": float(np.nanmean(f)), "median_fidelity": float(np.nanmedian(f)),
-                       "p10_fidelity": float(np.nanpercentile(f, 10)),
-                       "fraction_at_level": float(np.mean(f >= LEVEL)),
-                       "seconds_per_pixel": dt / pixels}
-                for lab in labels:
-                    row[f"mean_fidelity[{lab}]"] = float(np.nanmean(f[data.kinds == lab]))
-                rows.append(row)
-                if progress:
-                    progress(row)
-    per_pixel = {m: (spent[m] / counted[m] if counted[m] else float("nan")) for m in methods}
-    return rows, per_pixel
+    bins = [float(time_bin_ps)] if np.isscalar(time_bin_ps) else [float(t) for t in time_bin_ps]
+    every = list(methods) + [ORACLE]
+    solvers = sorted({"convscd" if m == "search" else m for m in methods})
+    for tb in bins:  # compiling (or loading) the kernels is not part of any point's time
+        for method in solvers:
+            warm_up(time_bin_ps=tb, n_bins=n_bins, method=method, label="bench accuracy")
+    rows, points = [], []
+    spent = {m: 0.0 for m in every}
+    counted = {m: 0 for m in every}
+    for tb in bins:
+        for noise in noises:
+            for nsr in nsrs:
+                data = make_profiles(pixels, n_bins, nsr=float(nsr), noise=noise, seed=seed, kinds=kinds,
+                                     time_bin_ps=tb, ranges=scenes, bin_integrated=bin_integrated)
+                labels = sorted(set(data.kinds.tolist()))
+                scored, seconds, results = {}, {}, {}
+                for method in every:
+                    t_start = time.perf_counter()
+                    extra = 0.0
+                    if method == ORACLE:
+                        est = oracle_fit(data.noisy, data.params, time_bin_ps=tb, bin_integrated=bin_integrated)
+                        est_params, flags = est.params, np.zeros(pixels, np.int64)
+                    elif method == "search":
+                        base = results.get("convscd")
+                        if base is None:
+                            base = decompose(data.noisy, time_bin_ps=tb, method="convscd")
+                        else:
+                            extra = seconds["convscd"]
+                        est_params, _ = structured_search(data.noisy, base.params, time_bin_ps=tb)
+                        est = render_components(est_params, n_bins, tb)
+                        flags = base.flags
+                    else:
+                        est = decompose(data.noisy, time_bin_ps=tb, method=method)
+                        est_params, flags = est.params, est.flags
+                        results[method] = est
+                    seconds[method] = time.perf_counter() - t_start + extra
+                    spent[method] += seconds[method]
+                    counted[method] += pixels
+                    scored[method] = _score(data, est, est_params, flags)
+                f_or = scored[ORACLE][0]
+                point = {"time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "n": pixels,
+                         "regimes": regime_rows(data.regimes, {m: scored[m][0] for m in every}, reference=ORACLE),
+                         "flags": []}
+                for method in every:
+                    f, fail, flags = scored[method]
+                    row = {"method": method, "time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "pixels": pixels,
+                           "scenes": scenes, "render": "bin" if bin_integrated else "point",
+                           "mean_fidelity": float(np.nanmean(f)), "median_fidelity": float(np.nanmedian(f)),
+                           "p10_fidelity": float(np.nanpercentile(f, 10)),
+                           "fraction_at_level": float(np.mean(f >= LEVEL)),
+                           "oracle_mean_fidelity": float(np.nanmean(f_or)),
+                           "gap_to_oracle": float(np.nanmean(f) - np.nanmean(f_or)),
+                           "fraction_below_0.5": float(np.mean(f < 0.5)),
+                           "direct_delay_failures": int(fail.sum()),
+                           "unflagged_direct_delay_failures": int((fail & (flags == 0)).sum()),
+                           "seconds_per_pixel": seconds[method] / pixels}
+                    for lab in labels:
+                        row[f"mean_fidelity[{lab}]"] = float(np.nanmean(f[data.kinds == lab]))
+                    rows.append(row)
+                    point[f"delay_failures[{method}]"] = row["direct_delay_failures"]
+                    point[f"unflagged_failures[{method}]"] = row["unflagged_direct_delay_failures"]
+                    if method != ORACLE:
+                        for bit, name in sorted(FLAG_NAMES.items()):
+                            point["flags"].append({"method": method, "flag": name, "bit": bit,
+                                                   **flag_precision_recall(flags, bit, f)})
+                        point["flags"].append({"method": method, "flag": "any", "bit": 255,
+                                               **flag_precision_recall(flags, 255, f)})
+                    if progress:
+                        progress(row)
+                points.append(point)
+    per_pixel = {m: (spent[m] / counted[m] if counted[m] else float("nan")) for m in every}
+    return rows, per_pixel, points
 
 
 def summarise(rows, methods, noises):
@@ -178,15 +283,22 @@ def _plot(path: Path, rows, methods, noises, per_pixel):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(noises), figsize=(4.2 * len(noises), 3.6), sharey=True, squeeze=False)
-    style = {"convscd": ("C0", "o"), "gradbm": ("C3", "s")}
+    style = {"convscd": ("C0", "o"), "gradbm": ("C3", "s"), "search": ("C2", "D"), ORACLE: ("0.3", "^")}
+    bins = sorted({r["time_bin_ps"] for r in rows})
+    dashes = ["-", "--", ":", "-."]
     for ax, noise in zip(axes[0], noises):
-        for m in methods:
-            sel = sorted((r["nsr"], r["mean_fidelity"]) for r in rows if r["method"] == m and r["noise"] == noise)
-            if not sel:
-                continue
-            x, y = zip(*sel)
-            color, marker = style.get(m, (None, "^"))
-            ax.plot(x, y, marker=marker, color=color, label=f"{m} ({per_pixel[m] * 1e3:.2g} ms/pixel)")
+        for m in list(methods) + [ORACLE]:
+            for k, tb in enumerate(bins):
+                sel = sorted((r["nsr"], r["mean_fidelity"]) for r in rows
+                             if r["method"] == m and r["noise"] == noise and r["time_bin_ps"] == tb)
+                if not sel:
+                    continue
+                x, y = zip(*sel)
+                color, marker = style.get(m, (None, "^"))
+                label = f"{m} ({per_pixel[m] * 1e3:.2g} ms/pixel)" if k == 0 else None
+                if len(bins) > 1:
+                    label = f"{m}, {tb:g} ps bins" + (f" ({per_pixel[m] * 1e3:.2g} ms/pixel)" if k == 0 else "")
+                ax.plot(x, y, marker=marker, color=color, ls=dashes[k % len(dashes)], label=label)
         ax.axhline(LEVEL, color="0.5", lw=0.8, ls="--")
         ax.axvline(TARGET_NSR, color="0.7", lw=0.8, ls=":")
         ax.set_xscale("log")
@@ -195,54 +307,23 @@ def _plot(path: Path, rows, methods, noises, per_pixel):
         ax.set_ylim(max(-0.05, min(0.5, ax.get_ylim()[0])), 1.02)
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("mean decomposition fidelity")
-    axes[0][0].legend(loc="lower left", fontsize=8)
+    axes[0][0].legend(loc="lower left", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def run(args) -> int:
-    noises = _split(args.noise, NOISES, "noise")
-    methods = _split(args.methods, METHODS, "methods")
-    if args.quick:
-        pixels, n_bins, nsrs = 12, 128, np.array([0.001, TARGET_NSR, 0.2])
-    else:
-        pixels, n_bins = args.pixels, args.n_bins
-        try:
-            nsrs = nsr_grid(args.nsr_points)
-        except ValueError as exc:
-            raise CommandError(str(exc)) from None
-    if pixels <= 0:
-        raise CommandError(f"--pixels must be positive, got {pixels}")
-    if not math.isfinite(args.time_bin_ps) or args.time_bin_ps <= 0:
-        raise CommandError(f"--time-bin-ps must be positive, got {args.time_bin_ps}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CommandError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-
-    def progress(r):
-        print(f"  {r['method']:8s} {r['noise']:6s} NSR {r['nsr']:<8.4g} mean fidelity {r['mean_fidelity']:7.3f}"
-              f"  ({r['seconds_per_pixel'] * 1e3:.3g} ms/pixel)", file=sys.stderr)
-
-    print(f"accuracy: {pixels} profiles x {len(nsrs)} NSR values x {len(noises)} noise types, {n_bins} bins "
-          f"of {args.time_bin_ps:g} ps, kinds {args.kinds}, seed {args.seed}", file=sys.stderr)
+def _floats(text: str, what: str):
     try:
-        rows, per_pixel = measure(pixels=pixels, n_bins=n_bins, time_bin_ps=args.time_bin_ps, nsrs=nsrs,
-                                  noises=noises, methods=methods, kinds=args.kinds, seed=args.seed,
-                                  progress=progress)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
-    summary = summarise(rows, methods, noises)
-    summary.update({"seconds_per_pixel": per_pixel, "pixels": pixels, "n_bins": n_bins,
-                    "time_bin_ps": args.time_bin_ps, "nsr": [float(x) for x in nsrs], "noises": noises,
-                    "methods": methods, "kinds": args.kinds, "seed": args.seed, "quick": bool(args.quick)})
-    csv_path, png_path, json_path = out / "accuracy.csv", out / "accuracy.png", out / "summary.json"
-    _write_csv(csv_path, rows)
-    _plot(png_path, rows, methods, noises, per_pixel)
-    json_path.write_text(json.dumps(summary, indent=2) + "\n")
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        vals = []
+    if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise CommandError(f"--{what} must be a comma-separated list of positive numbers, got {text!r}")
+    return vals
 
-    print(f"largest NSR with mean fidelity >= {LEVEL:.2f}:")
+
+def _print_levels(summary, nsrs, prefix=""):
     for key, v in summary["largest_nsr_at_level"].items():
         m, n = key.split("/")
         if v["nsr"] is None:
@@ -251,17 +332,102 @@ def run(args) -> int:
             text = f">= {v['nsr']:.4g} (holds over the whole grid)"
         else:
             text = f"{v['nsr']:.4g}"
-        print(f"  {m:8s} {n:6s} {text}")
-    print("run time per pixel: " + ", ".join(f"{m} {per_pixel[m] * 1e3:.3g} ms" for m in methods))
-    tgt = summary["target"]
-    if "convscd_white_fidelity_at_0.055" in tgt and tgt["convscd_white_fidelity_at_0.055"] is not None:
-        f55 = tgt["convscd_white_fidelity_at_0.055"]
-        print(f"target: ConvSCD mean fidelity at NSR {TARGET_NSR} (white) = {f55:.3f} "
-              f"({'meets' if f55 >= LEVEL else 'misses'} >= {LEVEL:.2f})")
-    for key, v in tgt.items():
-        if key.startswith("convscd_beats_gradbm"):
-            n = key[key.index("[") + 1:-1]
-            detail = "yes" if v["holds"] else "no, not at NSR " + ", ".join(f"{x:.4g}" for x in v["nsr_where_not"])
-            print(f"target: ConvSCD above GradBM at every NSR > {TARGET_FLOOR_NSR} ({n}): {detail}")
-    print(f"wrote {csv_path}, {png_path}, {json_path}")
+        print(f"  {prefix}{m:8s} {n:6s} {text}")
+
+
+def run(args) -> int:
+    from decomposition.synthetic import SCENE_PRESETS
+
+    from .scoring import check_targets, format_regime_table
+
+    noises = _split(args.noise, NOISES, "noise")
+    methods = _split(args.methods, METHODS + EXTRA_METHODS, "methods")
+    scenes = str(args.scenes).strip().lower()
+    if scenes not in SCENE_PRESETS:
+        raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
+    render = args.render or ("bin" if scenes == "paper" else "point")
+    bins = _floats(args.time_bin_ps, "time-bin-ps")
+    if args.quick:
+        pixels, n_bins, nsrs = 12, 128, np.array([0.001, TARGET_NSR, 0.2])
+    else:
+        pixels, n_bins = args.pixels, args.n_bins
+        try:
+            nsrs = np.array(sorted(set(_floats(args.nsr, "nsr")))) if args.nsr else nsr_grid(args.nsr_points)
+        except ValueError as exc:
+            raise CommandError(str(exc)) from None
+    if pixels <= 0:
+        raise CommandError(f"--pixels must be positive, got {pixels}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CommandError(f"--out {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+
+    def progress(r):
+        print(f"  {r['method']:8s} {r['time_bin_ps']:g} ps {r['noise']:6s} NSR {r['nsr']:<8.4g} "
+              f"mean fidelity {r['mean_fidelity']:7.3f}  ({r['seconds_per_pixel'] * 1e3:.3g} ms/pixel)",
+              file=sys.stderr)
+
+    print(f"accuracy: {pixels} profiles x {len(nsrs)} NSR values x {len(noises)} noise types, {n_bins} bins "
+          f"of {', '.join(f'{b:g}' for b in bins)} ps, {scenes} scenes ({render}-sampled), kinds {args.kinds}, "
+          f"seed {args.seed}", file=sys.stderr)
+    try:
+        rows, per_pixel, points = measure(pixels=pixels, n_bins=n_bins, time_bin_ps=bins, nsrs=nsrs,
+                                          noises=noises, methods=methods, kinds=args.kinds, seed=args.seed,
+                                          scenes=scenes, bin_integrated=render == "bin", progress=progress)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    every = list(methods) + [ORACLE]
+    by_bin = {f"{tb:g}": summarise([r for r in rows if r["time_bin_ps"] == tb], every, noises) for tb in bins}
+    summary = dict(by_bin[f"{bins[0]:g}"])
+    targets = check_targets(points) if "convscd" in methods else []
+    search_targets = check_targets(points, method="search") if "search" in methods else []
+    summary.update({"by_time_bin_ps": by_bin, "seconds_per_pixel": per_pixel, "pixels": pixels, "n_bins": n_bins,
+                    "time_bin_ps": bins, "nsr": [float(x) for x in nsrs], "noises": noises,
+                    "methods": every, "kinds": args.kinds, "scenes": scenes, "render": render, "seed": args.seed,
+                    "quick": bool(args.quick),
+                    "oracle_targets": [{"target": t, "met": s, "detail": d} for t, s, d in targets + search_targets]})
+    csv_path, png_path, json_path = out / "accuracy.csv", out / "accuracy.png", out / "summary.json"
+    reg_path, flag_path = out / "regimes.csv", out / "flags.csv"
+    _write_csv(csv_path, rows)
+    keys = ("time_bin_ps", "noise", "nsr")
+    _write_csv(reg_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["regimes"]])
+    _write_csv(flag_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["flags"]])
+    _plot(png_path, rows, methods, noises, per_pixel)
+    json_path.write_text(json.dumps(summary, indent=2) + "\n")
+
+    print("mean fidelity beside the oracle's (true component set, fitted from the truth), and the gap:")
+    for p in points:
+        print(f"  {p['time_bin_ps']:g} ps bins, {p['noise']} noise, NSR {p['nsr']:g} ({p['n']} pixels):")
+        for line in format_regime_table(p["regimes"], every, ORACLE):
+            print(line)
+        fails = ", ".join(f"{m} {p[f'delay_failures[{m}]']} ({p[f'unflagged_failures[{m}]']} unflagged)"
+                          for m in every)
+        print(f"    direct delay error > 2 sigma: {fails}")
+        for fr in p["flags"]:
+            if fr["flagged"] or fr["flag"] == "any":
+                print(f"    flag {fr['flag']:<10s} ({fr['method']}): {fr['flagged']} flagged, {fr['poor']} with "
+                      f"fidelity < 0.5; precision {fr['precision']:.2f}, recall {fr['recall']:.2f}")
+
+    for tb in bins:
+        print(f"largest NSR with mean fidelity >= {LEVEL:.2f}" + (f" ({tb:g} ps bins):" if len(bins) > 1 else ":"))
+        _print_levels(by_bin[f"{tb:g}"], nsrs)
+    print("run time per pixel: " + ", ".join(f"{m} {per_pixel[m] * 1e3:.3g} ms" for m in every))
+    for tb in bins:
+        tgt = by_bin[f"{tb:g}"]["target"]
+        at = f" ({tb:g} ps bins)" if len(bins) > 1 else ""
+        if "convscd_white_fidelity_at_0.055" in tgt and tgt["convscd_white_fidelity_at_0.055"] is not None:
+            f55 = tgt["convscd_white_fidelity_at_0.055"]
+            print(f"target: ConvSCD mean fidelity at NSR {TARGET_NSR} (white){at} = {f55:.3f} "
+                  f"({'meets' if f55 >= LEVEL else 'misses'} >= {LEVEL:.2f})")
+        for key, v in tgt.items():
+            if key.startswith("convscd_beats_gradbm"):
+                n = key[key.index("[") + 1:-1]
+                detail = "yes" if v["holds"] else "no, not at NSR " + ", ".join(f"{x:.4g}" for x in v["nsr_where_not"])
+                print(f"target: ConvSCD above GradBM at every NSR > {TARGET_FLOOR_NSR} ({n}){at}: {detail}")
+    if targets or search_targets:
+        print("accuracy targets against the oracle:")
+        for text, status, detail in targets + search_targets:
+            mark = "not measured" if status is None else ("met" if status else "NOT met")
+            print(f"  [{mark}] {text}: {detail}")
+    print(f"wrote {csv_path}, {reg_path}, {flag_path}, {png_path}, {json_path}")
     return 0

@@ -1,7 +1,8 @@
 """``streaklab bench speed``: pixels per second of ``streaklab decompose`` on a synthetic cube.
 
 A seeded synthetic cube (default 64 x 672 x 512 (y, x, t), Fig. 3 kinds a/b/c, white noise at
-NSR 0.05) is written as a cube store, then decomposed by each method with 1 and 2 workers
+NSR 0.05; ``--scenes paper`` (default, the paper's parameter space, bin-integrated) or
+``legacy``) is written as a cube store, then decomposed by each method with 1 and 2 workers
 through :func:`decomposition.pipeline.decompose_to_store` -- the code path of the
 command, all stages included: opening the cube, the solver check, starting the local cluster,
 reading, solving and writing every chunk into a result store.  ``--workers N`` means what it
@@ -53,6 +54,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--chunks", type=int, nargs=2, default=(16, 64), metavar=("BY", "BX"),
                         help="pixel chunk of the cube and the computation (default 16 64)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the synthetic cube (default 0)")
+    parser.add_argument("--scenes", default="paper",
+                        help="scene preset of the cube: paper (the paper's parameter space, bin-integrated; "
+                             "default) or legacy (the original generator, point-sampled)")
     parser.add_argument("--out", default="bench-output/speed",
                         help="folder for speed.json (default bench-output/speed)")
     parser.add_argument("--keep", action="store_true", help="keep the synthetic cube and result stores")
@@ -77,19 +81,24 @@ def _parse_workers(text):
     return out
 
 
-def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8):
-    """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds."""
+def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy"):
+    """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds.
+
+    ``scenes`` names a preset of :data:`decomposition.synthetic.SCENE_PRESETS`; ``paper``
+    scenes are rendered bin-integrated, ``legacy`` ones point-sampled."""
     from decomposition.synthetic import make_cube
     from reconstruction.cubestore import create_cube
 
     ny, nx, nt = shape
     t0 = time.perf_counter()
     cube = create_cube(path, shape, time_bin_ps=2.0, t0_ps=2.0, chunks=chunks, units="arbitrary",
-                       provenance={"producer": "streaklab bench speed", "nsr": nsr, "noise": "white", "seed": seed},
+                       provenance={"producer": "streaklab bench speed", "nsr": nsr, "noise": "white", "seed": seed,
+                                   "scenes": scenes},
                        overwrite=True)
     for i, y0 in enumerate(range(0, ny, rows_per_block)):
         rows = min(rows_per_block, ny - y0)
-        data = make_cube(rows, nx, nt, nsr=nsr, noise="white", seed=seed * 100003 + i)
+        data = make_cube(rows, nx, nt, nsr=nsr, noise="white", seed=seed * 100003 + i, ranges=scenes,
+                         bin_integrated=scenes == "paper")
         cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
     return time.perf_counter() - t0
 
@@ -201,6 +210,10 @@ def run(args) -> int:
     if bad or not methods:
         raise CommandError(f"--methods takes convscd and/or gradbm; got {args.methods!r}")
     workers = _parse_workers(args.workers)
+    from decomposition.synthetic import SCENE_PRESETS
+
+    if args.scenes not in SCENE_PRESETS:
+        raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise CommandError(f"--out {out} exists and is not a folder")
@@ -213,7 +226,11 @@ def run(args) -> int:
         cube_path = work / "cube.zarr"
         print(f"writing a synthetic {ny} x {nx} x {nt} cube (white noise, NSR {args.nsr:g}, seed {args.seed}, "
               f"chunks {chunks[0]} x {chunks[1]}) ...", flush=True)
-        gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks)
+        try:
+            gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks,
+                                         scenes=args.scenes)
+        except ValueError as exc:
+            raise CommandError(f"{exc} (or --scenes legacy)") from None
         from decomposition.jit import warm_up
 
         for method in methods:  # compile once here, if needed, not inside the first timed run

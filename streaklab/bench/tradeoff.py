@@ -4,7 +4,9 @@ For every method and setting -- ConvSCD on kernel grids of several densities up
 to the paper's 500 x 500 (parameters snapped to the grid, as in the paper, and
 continuous), each with and without the off-grid refinement of
 :mod:`decomposition.refine`, and the GradBM baseline -- the benchmark decomposes
-the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds at NSR 0.01,
+the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds (``--scenes``: the
+``paper`` preset of :data:`decomposition.synthetic.SCENE_PRESETS` by default, bin-integrated;
+or ``legacy``, point-sampled) at NSR 0.01,
 0.055 and 0.11 under white, pink and photon noise, and records
 
 * run time per pixel (wall clock of the whole decompose() call, refinement
@@ -13,6 +15,11 @@ the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds at NSR 0.01,
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
   mistaken for another component; the median shows the accuracy of the typical pixel),
+* the oracle's mean fidelity on the same data (:func:`decomposition.oracle.oracle_fit`: the true
+  component set fitted by least squares from the true parameters, what the data allow) and
+  each setting's gap to it; for the default setting and GradBM also per regime (sss/direct
+  peak ratio, onset in sigma, sigma in bins, number of inter-reflections;
+  :mod:`streaklab.bench.scoring`), written to ``regimes.csv``,
 * the Cramér-Rao bound of those two for comparison: the bound for white
   Gaussian noise of the same power (exact for white noise, a reference level
   for the others) with one unknown PSF width per pixel (how the scenes are
@@ -45,7 +52,7 @@ import numpy as np
 NSRS = (0.01, 0.055, 0.11)
 NOISES = ("white", "pink", "photon")
 FIELDS = ("scene", "method", "setting", "grid", "refine", "default", "noise", "nsr", "n_pixels",
-          "time_per_pixel_s", "mean_fidelity", "direct_delay_rmse_ps", "direct_delay_median_abs_error_ps",
+          "time_per_pixel_s", "mean_fidelity", "oracle_mean_fidelity", "gap_to_oracle", "direct_delay_rmse_ps", "direct_delay_median_abs_error_ps",
           "direct_amplitude_rmse", "direct_detected_fraction",
           "direct_delay_crb_rms_ps", "direct_delay_crb_median_ps", "direct_amplitude_crb_rms")
 
@@ -63,6 +70,10 @@ def add_arguments(parser) -> None:
                         help="comma-separated ConvSCD grid sizes N (N sigmas x N alphas); default 10,50,500")
     parser.add_argument("--noise", default=None, help="comma-separated noise types (default white,pink,photon)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed (default: %(default)s)")
+    parser.add_argument("--scenes", default="paper",
+                        help="scene preset: paper (the paper's parameter space, default) or legacy")
+    parser.add_argument("--render", choices=("bin", "point"), default=None,
+                        help="bin-integrated or point-sampled scenes (default bin for paper, point for legacy)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -143,10 +154,20 @@ def _crb(data):
     noise = np.linalg.norm(data.noisy - data.clean, axis=-1) / math.sqrt(n_bins)
     # The scenes have one PSF width per pixel (as eq. (2)), and so does the default solver model.
     return cramer_rao_bound(data.params, noise, n_bins=n_bins, time_bin_ps=data.time_bin_ps,
-                            t0_ps=data.t0_ps, shared_sigma=True)
+                            t0_ps=data.t0_ps, shared_sigma=True, bin_integrated=data.bin_integrated)
 
 
-def _measure(data, comps, params, seconds, crb):
+def _oracle(data):
+    """Per-pixel fidelity of the oracle on ``data`` (the true set fitted from the truth)."""
+    from decomposition.metrics import fidelity
+    from decomposition.oracle import oracle_fit
+
+    fit = oracle_fit(data.noisy, data.params, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps,
+                     bin_integrated=data.bin_integrated)
+    return fidelity(data.components, fit)
+
+
+def _measure(data, comps, params, seconds, crb, oracle_fid):
     from decomposition.metrics import fidelity, parameter_error
 
     n = data.noisy.shape[0]
@@ -155,6 +176,9 @@ def _measure(data, comps, params, seconds, crb):
         "n_pixels": n,
         "time_per_pixel_s": seconds / n,
         "mean_fidelity": float(np.nanmean(fid)),
+        "oracle_mean_fidelity": float(np.nanmean(oracle_fid)),
+        "gap_to_oracle": float(np.nanmean(fid) - np.nanmean(oracle_fid)),
+        "fidelity": fid,
         "direct_delay_rmse_ps": _rms(parameter_error(data.params, params, "direct_delay_ps")),
         "direct_delay_median_abs_error_ps": _median(np.abs(parameter_error(data.params, params, "direct_delay_ps"))),
         "direct_detected_fraction": float(np.mean(np.isfinite(parameter_error(data.params, params,
@@ -178,6 +202,17 @@ def _write_csv(path, rows):
         w.writeheader()
         for r in rows:
             w.writerow({k: _fmt(r[k]) for k in FIELDS})
+
+
+def _write_rows(path, rows):
+    fields = []
+    for r in rows:
+        fields += [k for k in r if k not in fields]
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _fmt(r.get(k, "")) for k in fields})
 
 
 def _plot(path, rows, nsrs):
@@ -229,6 +264,10 @@ def _plot(path, rows, nsrs):
                     if p[4]:
                         ax.plot(p[1], p[k], "*", markerfacecolor="none", markeredgecolor="k",
                                 markersize=18, zorder=5)
+        orc = [r["oracle_mean_fidelity"] for r in fig3 if math.isclose(r["nsr"], nsr)]
+        if orc and np.isfinite(np.nanmean(orc)):
+            ax_f.axhline(float(np.nanmean(orc)), color="0.3", ls="-.", lw=1.0,
+                         label="oracle (true set, fitted from the truth)")
         crb = [r["direct_delay_crb_median_ps"] for r in fig3 if math.isclose(r["nsr"], nsr)]
         if crb and np.isfinite(np.nanmean(crb)):
             # |error| of an efficient estimator is half-normal: median 0.674 x its standard deviation.
@@ -301,44 +340,70 @@ def run(args) -> int:
     bad = [n for n in noises if n not in NOISE_TYPES]
     if bad:
         raise CommandError(f"unknown noise type(s) {bad}; choose from {list(NOISE_TYPES)}")
+    from decomposition.synthetic import SCENE_PRESETS
+
+    scenes = str(args.scenes).strip().lower()
+    if scenes not in SCENE_PRESETS:
+        raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
+    binned = (args.render or ("bin" if scenes == "paper" else "point")) == "bin"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
+    from .scoring import format_regime_table, regime_rows
+
     settings = _settings(grids, quick)
+    regime_out = []
     _warm_up(settings, n_bins, T)
     rows = []
-    print(f"bench tradeoff: {n_pixels} pixels x {n_bins} bins per scene, grids {grids}, noise {noises}")
+    print(f"bench tradeoff: {n_pixels} pixels x {n_bins} bins per scene, grids {grids}, noise {noises}, "
+          f"{scenes} scenes ({'bin-integrated' if binned else 'point-sampled'})")
     for noise in noises:
         for nsr in NSRS:
-            data = make_profiles(n_pixels, n_bins, nsr=nsr, noise=noise, seed=args.seed, time_bin_ps=T)
+            data = make_profiles(n_pixels, n_bins, nsr=nsr, noise=noise, seed=args.seed, time_bin_ps=T,
+                                 ranges=scenes, bin_integrated=binned)
             crb = _crb(data)
+            oracle_fid = _oracle(data)
+            by_regime = {}
             for label, method, curve, grid, opts, with_refine, is_default in settings:
                 comps, params, sec = _run_setting(data.noisy, T, method, opts, with_refine)
-                m = _measure(data, comps, params, sec, crb)
+                m = _measure(data, comps, params, sec, crb, oracle_fid)
+                fid = m.pop("fidelity")
+                if is_default or method == "gradbm":
+                    by_regime["default" if is_default else "gradbm"] = fid
                 rows.append(dict(scene="fig3", method=curve, setting=label, grid=grid, refine=with_refine,
                                  default=is_default, noise=noise, nsr=nsr, **m))
                 print(f"  {noise:6s} NSR {nsr:<6g} {label:38s} {m['time_per_pixel_s'] * 1e3:8.3f} ms/px  "
-                      f"fidelity {m['mean_fidelity']:.4f}  delay RMSE {m['direct_delay_rmse_ps']:.4f} ps, "
+                      f"fidelity {m['mean_fidelity']:.4f} (oracle {m['oracle_mean_fidelity']:.4f}, "
+                      f"gap {m['gap_to_oracle']:+.4f})  delay RMSE {m['direct_delay_rmse_ps']:.4f} ps, "
                       f"median |err| {m['direct_delay_median_abs_error_ps']:.4f} ps "
                       f"(CRB median {m['direct_delay_crb_median_ps']:.4f})")
+            by_regime["oracle"] = oracle_fid
+            reg = regime_rows(data.regimes, by_regime, reference="oracle")
+            print(f"  {noise} NSR {nsr:g}, by regime (default setting and GradBM beside the oracle):")
+            for line in format_regime_table(reg, list(by_regime), "oracle"):
+                print("  " + line)
+            regime_out += [dict(noise=noise, nsr=nsr, **r) for r in reg]
 
     # Isolated direct components at NSR 0.05, white: the default setting against the CRB.
     iso = make_profiles(max(n_pixels, 30 if quick else 300), n_bins, nsr=0.05, noise="white", seed=args.seed + 1,
-                        kinds="d", time_bin_ps=T)
+                        kinds="d", time_bin_ps=T, ranges=scenes, bin_integrated=binned)
     iso_crb = _crb(iso)
+    iso_oracle = _oracle(iso)
     iso_rows = {}
     for label, method, curve, grid, opts, with_refine, is_default in settings:
         if not label.startswith("convscd default"):
             continue
         comps, params, sec = _run_setting(iso.noisy, T, method, opts, with_refine)
-        m = _measure(iso, comps, params, sec, iso_crb)
+        m = _measure(iso, comps, params, sec, iso_crb, iso_oracle)
+        m.pop("fidelity")
         row = dict(scene="isolated_direct", method=curve, setting=label, grid=grid, refine=with_refine,
                    default=is_default, noise="white", nsr=0.05, **m)
         rows.append(row)
         iso_rows["default" if is_default else "other"] = row
 
-    csv_path, png_path = out / "tradeoff.csv", out / "tradeoff.png"
+    csv_path, png_path, reg_path = out / "tradeoff.csv", out / "tradeoff.png", out / "regimes.csv"
     _write_csv(csv_path, rows)
+    _write_rows(reg_path, regime_out)
     _plot(png_path, rows, NSRS)
 
     # ---- targets
@@ -379,6 +444,6 @@ def run(args) -> int:
           + ("" if ok else ": " + "; ".join(worse)))
     print(f"\ndefault setting (starred): decompose() defaults, off-grid refinement "
           f"{'on' if _default_refines() else 'off'}")
-    print(f"wrote {csv_path}\nwrote {png_path}")
+    print(f"wrote {csv_path}\nwrote {reg_path}\nwrote {png_path}")
     print("all targets met" if ok_all else "some targets NOT met")
     return 0

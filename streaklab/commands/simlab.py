@@ -1,5 +1,7 @@
 """``streaklab sim-lab``: serve the simulated camera and mirror until Ctrl-C.
 
+How other programs connect to each device: :data:`CONNECTING` (also shown by ``--help``).
+
 Prints one ``name value`` line per address, then ``ready``, and flushes, so a
 script can read the addresses from the first lines of output::
 
@@ -31,7 +33,30 @@ import threading
 from streaklab.cli import CommandError
 
 
+CONNECTING = """\
+connecting other programs (addresses are the lines printed before 'ready'):
+  camera   RemoteEx over TCP at the 'camera' host:port, images on 'camera-data-port';
+           any RemoteEx client (an Odemis-style driver, streaklab's own) connects there.
+  mirror   an SMC100 controller, address 1, on a serial port: open the 'mirror-stable'
+           path (it follows a simulated re-plug) at 57600 baud, 8N1, Xon/Xoff, CR LF.
+             pyserial      serial.Serial(PATH, 57600, xonxoff=True, timeout=1)
+             pyvisa-py     pyvisa.ResourceManager("@py").open_resource("ASRL" + PATH + "::INSTR",
+                               baud_rate=57600, read_termination="\\r\\n", write_termination="\\r\\n",
+                               flow_control=pyvisa.constants.VI_ASRL_FLOW_XON_XOFF)
+             yaqd-newport  serial_port = PATH in the newport-smc100 daemon's TOML
+           then e.g. "1ID?", "1OR", "1TS" (until 32), "1PA2.5", "1TS" (until 33), "1TP".
+  sync     not served to other processes (a pyusb backend object): a program in the same
+           Python process takes drivers.sim.SimulatedLab().usb_backend and uses
+           usb.core.find(backend=...) (python-usbtmc: usbtmc.Instrument(device)), or points
+           pyusb's default backend lookup at it for pyvisa-py ("USB0::...::INSTR").
+"""
+
+
 def add_arguments(parser) -> None:
+    import argparse
+
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = CONNECTING
     parser.add_argument("--seed", type=int, default=0, help="noise and scene seed (default 0)")
     parser.add_argument("--camera-port", type=int, default=0,
                         help="RemoteEx command port (data port = +1); default: a free ephemeral pair")

@@ -46,6 +46,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--kinds", default="a,b,c",
                         help="component sets in equal shares, comma-separated: a = d+s, b = d+s+r2, "
                              "c = d+s+r2+r3, or any set like d+r2 (default a,b,c)")
+    parser.add_argument("--scenes", default="legacy",
+                        help="scene preset: legacy (default) or paper (the paper's parameter space: sigma 1-10 ps, "
+                             "sss peak 0.05-3 x and inter-reflections 0.01-1 x the direct's, onset 0-3 sigma)")
+    parser.add_argument("--bin-integrated", action="store_true",
+                        help="render each bin as the mean of the model over its width (default: point samples)")
     parser.add_argument("--chunks", nargs=2, type=int, metavar=("BY", "BX"),
                         help="chunk size in pixels (time is never split); default 16 64")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -76,7 +81,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     ranges = dataclasses.asdict(data.ranges)
     settings = {"nsr": data.nsr, "noise": data.noise, "seed": data.seed,
                 "kinds": sorted(set(np.asarray(data.kinds).ravel().tolist())),
-                "time_bin_ps": data.time_bin_ps, "t0_ps": data.t0_ps,
+                "time_bin_ps": data.time_bin_ps, "t0_ps": data.t0_ps, "bin_integrated": data.bin_integrated,
                 "scene_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in ranges.items()}}
     provenance = {"producer": "streaklab simulate", "software_version": __version__,
                   "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -138,7 +143,8 @@ def run(args) -> int:
         raise CommandError(f"--time-bin-ps must be positive, got {args.time_bin_ps}")
     try:
         data = make_cube(ny, nx, nt, nsr=args.nsr, noise=args.noise, seed=args.seed,
-                         time_bin_ps=args.time_bin_ps, t0_ps=args.t0_ps, kinds=args.kinds)
+                         time_bin_ps=args.time_bin_ps, t0_ps=args.t0_ps, kinds=args.kinds, ranges=args.scenes,
+                         bin_integrated=bool(args.bin_integrated))
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     command = "streaklab simulate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["simulate"] else None

@@ -1,0 +1,90 @@
+"""Scoring of the accuracy benchmarks: regime rows, flag precision/recall, delay failures, targets."""
+import math
+
+import numpy as np
+import pytest
+
+from streaklab.bench.scoring import (
+    MIN_REGIME_PIXELS, REGIMES, check_targets, direct_delay_failures, flag_precision_recall, format_regime_table,
+    regime_rows,
+)
+
+
+def _regimes(n, rng):
+    return {"sss_peak_ratio": rng.uniform(0.05, 3, n), "onset_sigma": rng.uniform(0, 3, n),
+            "sigma_bins": rng.uniform(0.25, 5, n), "n_ir": rng.integers(0, 3, n),
+            "ir_min_peak_ratio": rng.uniform(0.01, 1.0, n)}
+
+
+def test_regime_rows_partition_the_pixels_and_give_gaps():
+    rng = np.random.default_rng(0)
+    n = 200
+    reg = _regimes(n, rng)
+    reg["sss_peak_ratio"][:7] = np.nan  # pixels without an sss
+    oracle = rng.uniform(0.9, 1.0, n)
+    method = oracle - np.where(reg["n_ir"] == 2, 0.3, 0.0)
+    rows = regime_rows(reg, {"convscd": method, "oracle": oracle})
+    assert rows[0]["regime"] == "all" and rows[0]["n"] == n
+    assert rows[0]["gap[convscd]"] == pytest.approx(method.mean() - oracle.mean())
+    for title, key, bins in REGIMES:
+        mine = [r for r in rows if r["regime"] == title]
+        assert sum(r["n"] for r in mine) == n
+    na = [r for r in rows if r["bin"] == "n/a"]
+    assert len(na) == 1 and na[0]["n"] == 7
+    two = next(r for r in rows if r["regime"] == "inter-reflections" and r["bin"] == ">= 2")
+    assert two["n"] == int((reg["n_ir"] == 2).sum())
+    assert two["gap[convscd]"] == pytest.approx(-0.3)
+    zero = next(r for r in rows if r["regime"] == "inter-reflections" and r["bin"] == "0")
+    assert zero["gap[convscd]"] == pytest.approx(0.0, abs=1e-12)
+    assert all(r["few"] == (r["n"] < MIN_REGIME_PIXELS) for r in rows)
+    text = "\n".join(format_regime_table(rows, ["convscd", "oracle"]))
+    assert "gap convscd" in text and "-0.300" in text and "fewer than" in text
+    with pytest.raises(ValueError, match="reference"):
+        regime_rows(reg, {"convscd": method})
+
+
+def test_flag_precision_recall_on_a_constructed_case():
+    fid = np.array([0.1, 0.2, 0.3, 0.9, 0.95, 0.99, 0.4, np.nan])
+    flags = np.array([4, 4, 0, 4, 0, 0, 64, 4], dtype=np.uint8)
+    # POOR_FIT (4): flags pixels 0, 1, 3 (7 has no truth); poor pixels are 0, 1, 2, 6.
+    r = flag_precision_recall(flags, 4, fid)
+    assert (r["n"], r["flagged"], r["poor"], r["flagged_poor"]) == (7, 3, 4, 2)
+    assert r["precision"] == pytest.approx(2 / 3) and r["recall"] == pytest.approx(0.5)
+    # Any bit: pixels 0, 1, 3, 6.
+    r = flag_precision_recall(flags, 255, fid)
+    assert r["precision"] == pytest.approx(3 / 4) and r["recall"] == pytest.approx(3 / 4)
+    # A bit never set: precision undefined, recall zero.
+    r = flag_precision_recall(flags, 128, fid)
+    assert math.isnan(r["precision"]) and r["recall"] == 0.0
+
+
+def test_direct_delay_failures_count_misses_and_far_delays():
+    truth = {"direct_delay_ps": np.array([10.0, 10.0, 10.0, np.nan]), "direct_sigma_ps": np.array([2.0, 2.0, 2.0, 2.0])}
+    est = {"direct_delay_ps": np.array([13.9, 14.1, np.nan, 5.0])}
+    np.testing.assert_array_equal(direct_delay_failures(truth, est), [False, True, True, False])
+
+
+def _point(noise, nsr, gap, tb=2.0, fails=0, unflagged=0, few_gap=None):
+    rows = [{"regime": "all", "bin": "all", "n": 600, "few": False, "gap[convscd]": gap}]
+    if few_gap is not None:
+        rows.append({"regime": "sigma (bins)", "bin": "< 1", "n": 5, "few": True, "gap[convscd]": few_gap})
+    return {"time_bin_ps": tb, "noise": noise, "nsr": nsr, "n": 600, "regimes": rows,
+            "delay_failures[convscd]": fails, "unflagged_failures[convscd]": unflagged}
+
+
+def test_check_targets_met_not_met_and_not_measured():
+    points = [_point("white", 0.001, -0.01, few_gap=-0.5), _point("white", 0.055, -0.04, fails=3),
+              _point("pink", 0.055, -0.04, fails=9, unflagged=1)]
+    out = {text: (status, detail) for text, status, detail in check_targets(points)}
+    get = lambda *words: next(v for k, v in out.items() if all(w in k for w in words))  # noqa: E731
+    assert get("white noise, NSR 0.001,")[0] is True  # the row with 5 pixels does not count
+    assert get("white noise, NSR 0.055,")[0] is False and "-0.040" in get("white noise, NSR 0.055,")[1]
+    assert get("white noise, NSR 0.11,")[0] is None
+    assert get("pink noise, NSR 0.055,")[0] is True  # within 0.05 under pink noise
+    assert get("photon noise, NSR 0.055,")[0] is None
+    # White noise, NSR <= 0.055: 3 of 1200 pixels (0.25 %) fail, all flagged -> met.
+    status, detail = get("direct delay error")
+    assert status is True and "3 of 1200" in detail
+    points[1]["unflagged_failures[convscd]"] = 1
+    status, _ = next((s, d) for t, s, d in check_targets(points) if "direct delay error" in t)
+    assert status is False
