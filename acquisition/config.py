@@ -57,6 +57,10 @@ A configuration has these sections (every key is listed with its default; see
     seed = 0                       # seed of the simulated lab used by ``--simulate``
     n_x = 64                       # simulated camera: slit pixels
     n_t = 256                      # simulated camera: streak rows
+    scene = "default"              # optional: "default" (the table-top scene) or "calibration"
+                                   # (a flat mirror: one direct return per pixel, for calibrate-irf)
+    response = "gaussian"          # optional: the simulated camera's instrument response,
+                                   # "gaussian", "tailed" (diffusion tail) or "afterpulse"
 
 Unknown sections and keys, wrong types and out-of-range values raise
 :class:`ConfigError` whose message starts with the dotted key, e.g.
@@ -124,6 +128,15 @@ def _int(key, v, *, lo=None, hi=None, what="an integer"):
 def _str(key, v, *, allow_empty=False):
     if not isinstance(v, str) or (not allow_empty and not v.strip()):
         _fail(key, f"must be a non-empty string, got {v!r}")
+    return v
+
+
+def _choice(key, v, names):
+    from drivers.sim import scene
+
+    known = getattr(scene, names)
+    if v not in known:
+        _fail(key, f"must be one of {', '.join(repr(n) for n in known)}, got {v!r}")
     return v
 
 
@@ -256,6 +269,9 @@ _SPEC = {
         "seed": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), 0),
         "n_x": (lambda k, v: _int(k, v, lo=1, hi=4096, what="an integer in 1..4096"), 64),
         "n_t": (lambda k, v: _int(k, v, lo=16, hi=4096, what="an integer in 16..4096"), 256),
+        # Optional and without a filled-in default, so the hash of configs that do not name them is unchanged.
+        "scene": (lambda k, v: _choice(k, v, "SIMULATED_SCENES"), _MISSING),
+        "response": (lambda k, v: _choice(k, v, "SIMULATED_RESPONSES"), _MISSING),
     },
 }
 

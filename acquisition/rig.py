@@ -28,18 +28,25 @@ log = logging.getLogger(__name__)
 def simulated_scene(config: ScanConfig):
     """The virtual scene for ``--simulate``: one scene line per scan line, at the scan's angles.
 
-    Uses ``VirtualScene.default`` with ``simulation.n_x`` slit pixels, ``simulation.n_t``
-    streak rows and ``simulation.seed``; its line angles are the config's, sorted.
+    Uses ``VirtualScene.default`` (or ``VirtualScene.calibration`` with
+    ``simulation.scene = "calibration"``) with ``simulation.n_x`` slit pixels,
+    ``simulation.n_t`` streak rows, ``simulation.seed`` and the instrument response named by
+    ``simulation.response``; its line angles are the config's, sorted.
     """
-    from drivers.sim.scene import VirtualScene
+    from drivers.sim.scene import VirtualScene, simulated_response
 
     sim = config["simulation"]
-    base = VirtualScene.default(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
+    response = simulated_response(sim.get("response", "gaussian"))
+    if sim.get("scene", "default") == "calibration":
+        base = VirtualScene.calibration(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"],
+                                        response=response)
+    else:
+        base = VirtualScene.default(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
     return VirtualScene(params=base.params, angle_deg=np.sort(config.angles_deg), n_t=base.n_t,
                         time_calibration=base.time_calibration, photon_scale=base.photon_scale,
                         dark_level=base.dark_level, read_noise=base.read_noise,
                         reference_exposure_s=base.reference_exposure_s, reference_gain=base.reference_gain,
-                        time_range=base.time_range)
+                        time_range=base.time_range, response=response)
 
 
 def start_simulated_lab(config: ScanConfig):

@@ -10,24 +10,29 @@ Layout (every array has ``dimension_names``, so ``xarray.open_zarr`` opens it):
 Group and ``cube`` attributes: ``streaklab_kind = "cube"``, ``time_bin_ps``, ``t0_ps`` (time of
 bin 0), ``units`` of the signal, and ``provenance`` (a dict: what produced it, from what, with
 which software version).  Other producers may add groups beside it (``truth`` for simulated
-ground truth).  This module only reads and writes that layout; it knows nothing of solvers.
+ground truth; ``irf``, the instrument response measured for this cube, in the layout of
+:mod:`core.irfstore`: see :func:`write_cube_response` and :func:`read_cube_response`).  This module only reads and writes that layout; it knows nothing of solvers.
 """
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import zarr
 
 from core.errors import StreaklabError
-from core.integrity import create_array, has_checksums, scan_group
-from core.staging import check_output_path
+from core.integrity import consolidate, create_array, has_checksums, scan_group
+from core.irf import InstrumentResponse
+from core.irfstore import RESPONSE_KIND, read_response_group, write_response_group
+from core.staging import check_output_path, staged_output
 
-__all__ = ["CUBE_KIND", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
-           "verify_cube"]
+__all__ = ["CUBE_KIND", "IRF_GROUP", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
+           "verify_cube", "write_cube_response", "read_cube_response"]
 
 CUBE_KIND = "cube"
+IRF_GROUP = "irf"
 
 
 class CubeStoreError(StreaklabError, ValueError):
@@ -171,3 +176,43 @@ class CubeCheck:
 def verify_cube(cube: Cube) -> CubeCheck:
     """Read every chunk of every array of a cube store (sub-groups such as ``truth`` included)."""
     return CubeCheck(checksums=has_checksums(cube.array), damaged=list(scan_group(cube.path, cube.group)))
+
+
+def _cube_path(cube) -> str:
+    return cube.path if isinstance(cube, Cube) else str(cube)
+
+
+def write_cube_response(cube, irf: InstrumentResponse, *, overwrite: bool = False) -> None:
+    """Store an instrument response in the cube store's ``irf`` group.
+
+    Parameters
+    ----------
+    cube : Cube or path
+    irf : InstrumentResponse
+    overwrite : bool
+        Replace a response the cube already holds.
+
+    The group is written beside its final place and renamed into it, so a cube holds either
+    the whole new response, or the old one, or none.
+    """
+    path = _cube_path(cube)
+    open_cube(path)
+    target = Path(path) / IRF_GROUP
+    if target.exists() and not overwrite:
+        raise CubeStoreError(f"{path} already holds an instrument response (its '{IRF_GROUP}' group); "
+                             f"pass overwrite=True (--overwrite) to replace it")
+    with staged_output(target, overwrite=overwrite, kind=RESPONSE_KIND) as tmp:
+        write_response_group(zarr.open_group(str(tmp), mode="w"), irf)
+    consolidate(path)                   # the cube's consolidated metadata lists the new group
+
+
+def read_cube_response(cube) -> InstrumentResponse | None:
+    """The instrument response stored in a cube store, or None if it holds none."""
+    path = _cube_path(cube)
+    g = cube.group if isinstance(cube, Cube) else open_cube(path).group
+    if IRF_GROUP not in g:
+        return None
+    sub = g[IRF_GROUP]
+    if not isinstance(sub, zarr.Group):
+        raise CubeStoreError(f"{path}/{IRF_GROUP} is not a group")
+    return read_response_group(sub, where=f"{path}/{IRF_GROUP}")

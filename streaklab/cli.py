@@ -22,6 +22,8 @@ COMMANDS = {
     "capture": ("streaklab.commands.capture", "run a capture session into a Zarr run store"),
     "live": ("streaklab.commands.live", "live streak image and time profile for alignment (Ctrl-C stops)"),
     "reconstruct": ("streaklab.commands.reconstruct", "turn a run store into a calibrated (y, x, t) cube"),
+    "calibrate-irf": ("streaklab.commands.calibrate_irf",
+                      "estimate the instrument response from a capture of a calibration target"),
     "export": ("streaklab.commands.export", "export a cube to NeXus/HDF5"),
     "import": ("streaklab.commands.import_h5", "import a NeXus/HDF5 cube back into Zarr"),
     "decompose": ("streaklab.commands.decompose", "decompose every pixel of a cube"),

@@ -13,11 +13,12 @@ renders what the :class:`~drivers.sim.scene.VirtualScene` looks like under them.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import logging
 
 from .camera import RemoteExSimulator
-from .scene import VirtualScene
+from .scene import VirtualScene, simulated_response
 from .state import LabState
 
 __all__ = ["SimulatedLab"]
@@ -34,6 +35,9 @@ class SimulatedLab:
         Seed of the camera noise (and of the default scene's geometry).
     scene : VirtualScene, optional
         What the camera sees; ``VirtualScene.default(seed=seed)`` if omitted.
+    response : InstrumentResponse or str, optional
+        The simulated camera's instrument response for the default scene (a response, or a
+        name of :data:`~drivers.sim.scene.SIMULATED_RESPONSES`); a given ``scene`` keeps its own.
     camera_port : int
         RemoteEx command port; 0 (default) picks a free ephemeral pair.
     frame_time_s : float
@@ -58,9 +62,16 @@ class SimulatedLab:
     def __init__(self, seed: int = 0, scene: VirtualScene | None = None, *, camera_port: int = 0,
                  frame_time_s: float = 0.002, mirror: bool | None = True, sync: bool | None = True,
                  mirror_options: dict | None = None, sync_options: dict | None = None,
-                 camera_options: dict | None = None):
+                 camera_options: dict | None = None, response=None):
         self.seed = int(seed)
-        self.scene = scene if scene is not None else VirtualScene.default(seed=self.seed)
+        if scene is not None and response is not None:
+            raise ValueError("give the response to the scene (VirtualScene(response=...)) or to SimulatedLab, not both")
+        if scene is None:
+            scene = VirtualScene.default(seed=self.seed)
+            if response is not None:
+                scene = dataclasses.replace(
+                    scene, response=simulated_response(response) if isinstance(response, str) else response)
+        self.scene = scene
         self.state = LabState()
         self.camera = RemoteExSimulator(self.state, self.scene, seed=self.seed, port=camera_port,
                                         frame_time_s=frame_time_s, **dict(camera_options or {}))

@@ -24,6 +24,15 @@ Counts of one frame::
 with ``gain_factor = 2 ** ((gain - reference_gain) / GAIN_DOUBLING_STEPS)`` (an
 MCP gain is close to exponential in its setting).  No light reaches the camera
 when the laser output is off: the frame is dark level plus read noise only.
+
+The camera's instrument response is the Gaussian of each component's ``*_sigma_ps``
+unless the scene is given a ``response`` (:class:`core.irf.InstrumentResponse`); then every
+direct return and inter-reflection is a shifted copy of that response and the sss the
+response convolved with its exponential, each scaled so that its amplitude is the peak
+height (the ``*_sigma_ps`` parameters are then unused).  :func:`simulated_response` gives
+the named ones (``"tailed"``: a diffusion tail, ``"afterpulse"``: a small delayed copy), and
+:meth:`VirtualScene.calibration` a calibration target (a flat mirror: one direct return per
+pixel at a known delay map).
 """
 from __future__ import annotations
 
@@ -31,10 +40,33 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.irf import InstrumentResponse, afterpulse_response, render_shifted, render_sss, tailed_response
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 
 __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN_DOUBLING_STEPS",
-           "time_range_scale"]
+           "time_range_scale", "SIMULATED_RESPONSES", "SIMULATED_SCENES", "simulated_response"]
+
+# Instrument responses of the simulated camera, by name; "gaussian" is each component's own sigma.
+SIMULATED_RESPONSES = ("gaussian", "tailed", "afterpulse")
+# Scenes of the simulated lab, by name (classmethods of VirtualScene).
+SIMULATED_SCENES = ("default", "calibration")
+
+
+def simulated_response(name: str) -> InstrumentResponse | None:
+    """The simulated camera's instrument response by name (None for ``"gaussian"``).
+
+    ``"tailed"``: a 6 ps Gaussian with 20 % of its area in a 40 ps exponential diffusion
+    tail; ``"afterpulse"``: a 6 ps Gaussian followed 60 ps later by a copy of 5 % of its
+    area.  Both sampled every 2 ps (exact to far below 1e-12 of the peak), peak at t = 0.
+    """
+    if name == "gaussian":
+        return None
+    prov = {"source": "simulated camera", "name": name}
+    if name == "tailed":
+        return tailed_response(6.0, 0.2, 40.0, time_step_ps=2.0, provenance=prov)
+    if name == "afterpulse":
+        return afterpulse_response(6.0, 0.05, 60.0, time_step_ps=2.0, provenance=prov)
+    raise ValueError(f"unknown simulated response {name!r} (known: {', '.join(SIMULATED_RESPONSES)})")
 
 # Sweep duration of each synchroscan time-range setting relative to setting 2.
 TIME_RANGE_SCALE = {1: 0.5, 2: 1.0, 3: 2.0, 4: 4.0}
@@ -96,6 +128,8 @@ class VirtualScene:
         Gaussian read-noise standard deviation in counts.
     reference_exposure_s, reference_gain, time_range
         Settings at which ``photon_scale`` and ``time_calibration`` hold.
+    response : InstrumentResponse, optional
+        The camera's instrument response; None (default) is each component's Gaussian.
     """
 
     params: dict
@@ -108,6 +142,7 @@ class VirtualScene:
     reference_exposure_s: float = 0.01
     reference_gain: int = 30
     time_range: int = 2
+    response: InstrumentResponse | None = None
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -162,6 +197,8 @@ class VirtualScene:
                 raise ValueError(f"{name} must be non-negative and finite, got {v!r}")
         if self.time_range not in TIME_RANGE_SCALE:
             raise ValueError(f"time_range must be one of {sorted(TIME_RANGE_SCALE)}, got {self.time_range!r}")
+        if self.response is not None and not isinstance(self.response, InstrumentResponse):
+            raise ValueError(f"response must be an InstrumentResponse or None, got {type(self.response).__name__}")
 
     # ------------------------------------------------------------- geometry
     def row_times_ps(self, delay_ps: float = 0.0, time_range: int | str | None = None) -> np.ndarray:
@@ -202,6 +239,12 @@ class VirtualScene:
             return hit
         times = self.row_times_ps(delay_ps, time_range)                      # (n_t,)
         p = self.line_params(line)
+        if self.response is not None:
+            out = self._render_with_response(p, times)
+            if len(self._cache) >= 64:
+                self._cache.clear()
+            self._cache[key] = out
+            return out
         # Render every (pixel, row) pair as a one-bin profile sampled at t0_ps = 0,
         # with the delays moved by the row's time: g(t_r - d) = g(0 - (d - t_r)).
         shifted = {}
@@ -218,6 +261,21 @@ class VirtualScene:
         if len(self._cache) >= 64:
             self._cache.clear()
         self._cache[key] = out
+        return out
+
+    def _render_with_response(self, p: dict, times: np.ndarray) -> np.ndarray:
+        """One line's profiles with the scene's ``response``: (n_x, n_t), peak-height amplitudes."""
+        out = np.zeros((p["direct_delay_ps"].shape[0], times.size))
+        pairs = [(p["direct_delay_ps"], p["direct_amplitude"])]
+        pairs += [(p["ir_delay_ps"][:, r], p["ir_amplitude"][:, r]) for r in range(p["ir_delay_ps"].shape[1])]
+        for delay, amp in pairs:
+            ok = np.isfinite(delay) & np.isfinite(amp)
+            if ok.any():
+                out[ok] += amp[ok, None] * render_shifted(self.response, times, delay[ok])
+        delay, amp, alpha = p["sss_delay_ps"], p["sss_amplitude"], p["sss_alpha_per_ps"]
+        ok = np.isfinite(delay) & np.isfinite(amp) & np.isfinite(alpha) & (alpha >= 0)
+        if ok.any():
+            out[ok] += amp[ok, None] * render_sss(self.response, times, delay[ok], alpha[ok])
         return out
 
     def expected_counts(self, line: int, *, delay_ps: float = 0.0, exposure_s: float | None = None,
@@ -275,6 +333,36 @@ class VirtualScene:
         return np.clip(np.rint(counts), 0, UINT16_MAX).astype(np.uint16)
 
     # ------------------------------------------------------------- defaults
+    @classmethod
+    def calibration(cls, n_lines: int = 8, n_x: int = 64, n_t: int = 256, seed: int = 0,
+                    response: InstrumentResponse | None = None) -> "VirtualScene":
+        """A calibration target: a flat mirror filling the view, one direct return per pixel.
+
+        The mirror is tilted, so the return's delay runs across the view (known delay map:
+        ``params["direct_delay_ps"]``, from 25 % to 33 % of the window, every pixel at another
+        sub-bin offset) at a uniform amplitude of 0.8; nothing else returns light.  The
+        sweep is that of :meth:`default`.
+
+        Parameters
+        ----------
+        n_lines, n_x, n_t, seed
+            As in :meth:`default` (``seed`` perturbs the tilt).
+        response : InstrumentResponse, optional
+            The camera's response (None: the Gaussian, sigma 6 ps).
+        """
+        base = cls.default(n_lines=n_lines, n_x=n_x, n_t=n_t, seed=seed)
+        window_ps = float(np.polynomial.polynomial.polyval(base.n_t - 1, base.time_calibration))
+        rng = np.random.default_rng(seed + 1)
+        y = (np.arange(base.n_lines) + 0.5) / base.n_lines
+        x = (np.arange(base.n_x) + 0.5) / base.n_x
+        Y, X = np.meshgrid(y, x, indexing="ij")
+        p = empty_params((base.n_lines, base.n_x), n_ir=0)
+        p["direct_delay_ps"][:] = window_ps * (0.25 + (0.05 + rng.uniform(-0.005, 0.005)) * X + 0.03 * Y)
+        p["direct_amplitude"][:] = 0.8
+        p["direct_sigma_ps"][:] = 6.0
+        return cls(params=p, angle_deg=base.angle_deg, n_t=base.n_t, time_calibration=base.time_calibration,
+                   response=response)
+
     @classmethod
     def default(cls, n_lines: int = 16, n_x: int = 64, n_t: int = 256, seed: int = 0) -> "VirtualScene":
         """A plausible table-top scene.
