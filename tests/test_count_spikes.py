@@ -142,3 +142,18 @@ def test_white_noise_data_unchanged_by_auto():
     assert a.noise_model == "gaussian" and a.dispersion is None
     for name in ("profiles", "scale", "fit", "noise", "noise_eff", "flags"):
         assert np.array_equal(getattr(a, name), getattr(g, name))
+
+
+def test_bench_speed_writes_a_count_cube(tmp_path):
+    """``bench speed --photons N``: whole-number Poisson counts of N photons per pixel on
+    average, which ``noise="auto"`` takes as counts."""
+    from reconstruction.cubestore import open_cube
+    from streaklab.bench.speed import write_synthetic_cube
+
+    path = tmp_path / "cube.zarr"
+    write_synthetic_cube(path, (4, 50, 256), nsr=0.05, seed=1, chunks=(4, 50), photons=100.0)
+    x = np.asarray(open_cube(path).array[:])
+    assert is_count_data(x)
+    totals = x.reshape(-1, 256).sum(axis=1)
+    # 200 pixel totals, each Poisson(100) over the window: their mean within 4 standard errors
+    assert abs(totals.mean() - 100.0) < 4.0 * math.sqrt(100.0 / totals.size)
