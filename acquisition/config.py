@@ -50,8 +50,9 @@ A configuration has these sections (every key is listed with its default; see
     path = "run.zarr"              # run store (``--out`` overrides it)
 
     [session]
-    retries = 3                    # attempts per line after the first, on a device fault
-    retry_backoff_s = 0.5
+    retries = 3                    # attempts per line after the first, on a device fault (0..20)
+    retry_backoff_s = 0.5          # wait before retry k: retry_backoff_s * 2**k, at most 60 s each
+                                   # and 600 s for all retries of one step together
 
     [simulation]
     seed = 0                       # seed of the simulated lab used by ``--simulate``
@@ -62,7 +63,9 @@ A configuration has these sections (every key is listed with its default; see
     response = "gaussian"          # optional: the simulated camera's instrument response,
                                    # "gaussian", "tailed" (diffusion tail) or "afterpulse"
 
-Unknown sections and keys, wrong types and out-of-range values raise
+Sizes and waits are bounded by the documented limits of :mod:`core.limits` (at most
+100 000 scan lines, every ``*_timeout_s`` and ``exposure_s`` at most 86 400 s, the retry
+waits above).  Unknown sections and keys, wrong types and out-of-range values raise
 :class:`ConfigError` whose message starts with the dotted key, e.g.
 ``scan.count: must be a positive integer, got 0``.
 """
@@ -78,6 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core import limits as L
 from core.errors import StreaklabError
 
 __all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
@@ -178,9 +182,24 @@ def _positive(what="a positive number"):
     return lambda k, v: _num(k, v, lo=0.0, lo_open=True, what=what)
 
 
+def _seconds(key, v):
+    """A positive time in seconds, at most limits.MAX_TIMEOUT_S (a wait that long is a mistake)."""
+    return _num(key, v, lo=0.0, lo_open=True, hi=L.MAX_TIMEOUT_S,
+                what=f"a positive number of seconds, at most {L.MAX_TIMEOUT_S:g} (limits.MAX_TIMEOUT_S)")
+
+
+def _line_count(key, v):
+    v = _int(key, v, lo=1, what="a positive integer")
+    if v > L.MAX_SCAN_LINES:
+        _fail(key, f"{v} lines exceeds the limit of {L.MAX_SCAN_LINES} lines (limits.MAX_SCAN_LINES)")
+    return v
+
+
 def _angle_list(key, v):
     if not isinstance(v, list) or not v:
         _fail(key, f"must be a non-empty list of angles in degrees, got {v!r}")
+    if len(v) > L.MAX_SCAN_LINES:
+        _fail(key, f"{len(v)} lines exceeds the limit of {L.MAX_SCAN_LINES} lines (limits.MAX_SCAN_LINES)")
     out = [_num(f"{key}[{i}]", a, lo=-360.0, hi=360.0, what="an angle in degrees in [-360, 360]")
            for i, a in enumerate(v)]
     if len(set(out)) != len(out):
@@ -227,21 +246,21 @@ _SPEC = {
         "sync_vendor_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_product_id": (lambda k, v: _int(k, v, lo=0, hi=0xFFFF, what="a USB id in 0..0xFFFF"), _MISSING),
         "sync_serial": (_str, _MISSING),
-        "timeout_s": (_positive("a positive number of seconds"), 5.0),
+        "timeout_s": (_seconds, 5.0),
     },
     "scan": {
         "start_deg": (lambda k, v: _num(k, v, lo=-360.0, hi=360.0, what="an angle in [-360, 360] deg"), _MISSING),
         "stop_deg": (lambda k, v: _num(k, v, lo=-360.0, hi=360.0, what="an angle in [-360, 360] deg"), _MISSING),
-        "count": (lambda k, v: _int(k, v, lo=1, what="a positive integer"), _MISSING),
+        "count": (_line_count, _MISSING),
         "angles_deg": (_angle_list, _MISSING),
-        "settle_timeout_s": (_positive("a positive number of seconds"), 10.0),
+        "settle_timeout_s": (_seconds, 10.0),
     },
     "camera": {
-        "exposure_s": (_positive("a positive number of seconds"), 0.01),
+        "exposure_s": (_seconds, 0.01),
         "frames_per_line": (lambda k, v: _int(k, v, lo=1, hi=10000, what="an integer in 1..10000"), 1),
         "time_range": (_time_range, 1),
         "gain": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), _MISSING),
-        "acquire_timeout_s": (_positive("a positive number of seconds"), 10.0),
+        "acquire_timeout_s": (_seconds, 10.0),
     },
     "sync": {
         "trigger_delay_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e12, what="a delay in ps in [0, 1e12]"), 0.0),
@@ -255,15 +274,19 @@ _SPEC = {
         # No default filled in: configurations that do not name it keep their hash ("auto").
         "time_source": (_time_source, _MISSING),
         "time_poly_ps": (_poly, _MISSING),
-        "time_bin_ps": (_positive("a positive bin width in ps"), 2.0),
+        "time_bin_ps": (lambda k, v: _num(k, v, lo=0.0, lo_open=True, hi=1e6,
+                                          what="a positive bin width in ps, at most 1e6"), 2.0),
         "t0_ps": (lambda k, v: _num(k, v, what="a finite time in ps"), _MISSING),
     },
     "output": {
         "path": (_str, _MISSING),
     },
     "session": {
-        "retries": (lambda k, v: _int(k, v, lo=0, hi=100, what="an integer in 0..100"), 3),
-        "retry_backoff_s": (lambda k, v: _num(k, v, lo=0.0, hi=60.0, what="a number of seconds in [0, 60]"), 0.5),
+        "retries": (lambda k, v: _int(k, v, lo=0, hi=L.MAX_RETRIES,
+                                      what=f"an integer in 0..{L.MAX_RETRIES} (limits.MAX_RETRIES)"), 3),
+        "retry_backoff_s": (lambda k, v: _num(k, v, lo=0.0, hi=L.MAX_BACKOFF_WAIT_S,
+                                              what=f"a number of seconds in [0, {L.MAX_BACKOFF_WAIT_S:g}] "
+                                                   f"(limits.MAX_BACKOFF_WAIT_S)"), 0.5),
     },
     "simulation": {
         "seed": (lambda k, v: _int(k, v, lo=0, what="a non-negative integer"), 0),
@@ -350,6 +373,12 @@ def parse_config(raw: dict, *, source: str | None = None) -> ScanConfig:
         scan["angles_deg"] = [float(a) for a in np.linspace(scan["start_deg"], scan["stop_deg"], scan["count"])]
         for k in ("start_deg", "stop_deg", "count"):   # normalised form: the explicit angle list only
             del scan[k]
+    sess = data["session"]
+    total = sum(L.backoff_waits(sess["retries"], sess["retry_backoff_s"]))
+    if total > L.MAX_BACKOFF_TOTAL_S:
+        _fail("session.retries", f"{sess['retries']} retries with retry_backoff_s = {sess['retry_backoff_s']:g} "
+                                 f"wait {total:g} s in all, above the limit of {L.MAX_BACKOFF_TOTAL_S:g} s "
+                                 f"(limits.MAX_BACKOFF_TOTAL_S); use fewer retries or a shorter back-off")
     if "time_poly_ps" not in data["calibration"] and data["calibration"].get("time_source", "auto") != "camera":
         _fail("calibration.time_poly_ps", "is required (pixel row -> ps polynomial of the streak sweep) unless "
                                           "calibration.time_source = \"camera\"")
@@ -380,15 +409,21 @@ def load_config(path) -> ScanConfig:
     """Read and validate a TOML scan configuration file (or a packaged example, by name: ``sim``)."""
     p = resolve_config_path(path)
     try:
-        text = p.read_bytes()
+        with open(p, "rb") as f:
+            text = f.read(L.MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         hint = ("; 'sim' names the packaged example of the simulated lab, and 'streaklab example-config --out "
                 "scan.toml' writes a copy to edit" if isinstance(exc, FileNotFoundError) else "")
         raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror or exc}{hint}") from None
+    if len(text) > L.MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: the configuration is larger than the limit of "
+                          f"{L.format_bytes(L.MAX_CONFIG_BYTES)} (limits.MAX_CONFIG_BYTES)")
     try:
         raw = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML: arrays or tables nested too deeply") from None
     return parse_config(raw, source=str(p))
 
 

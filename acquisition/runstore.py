@@ -44,7 +44,7 @@ import zarr
 from core.durable import fsync_path, sync_chunk
 from core.errors import StreaklabError
 from core.integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked,
-                            scan_array, writable)
+                            open_member, scan_array, writable)
 from core.staging import OutputPathError, check_no_links, staged_output
 
 from .config import ConfigError, ScanConfig, parse_config
@@ -465,7 +465,7 @@ def open_run(path, *, mode: str = "r") -> RunStore:
     if g.attrs.get("initialised") is not True:
         raise RunStoreError(f"{path}: the run store's creation was interrupted before any line was taken")
     for name in ("streaks", "done", "angle_deg", "timestamp", "target_angle_deg", "dark", "dark_done"):
-        if name not in g or not isinstance(g[name], zarr.Array):
+        if not isinstance(open_member(g, name, path, RunStoreError), zarr.Array):
             raise RunStoreError(f"{path}: run store lacks the {name!r} array")
     try:
         config = parse_config(g.attrs["config"], source=g.attrs.get("config_source"))

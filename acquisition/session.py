@@ -15,13 +15,18 @@ protocols, so the same code runs on the real rig and on ``drivers.sim``::
 
 A device fault (:class:`~drivers.errors.DeviceTimeout`, ``ConnectionLost``,
 ``DeviceError``, ``ProtocolError``) during a step is retried ``session.retries``
-times (the line restarts from the mirror move); after that the session stops with
-:class:`CaptureFailed`, every finished line intact and resumable.  A stop request
+times (the line restarts from the mirror move), waiting ``retry_backoff_s * 2**k``
+before retry k, at most ``limits.MAX_BACKOFF_WAIT_S`` each and
+``limits.MAX_BACKOFF_TOTAL_S`` in all; after that the session stops with
+:class:`CaptureFailed`, every finished line intact and resumable.  A device that
+answers a configured setting with an error rejects it: that is not retried, the
+session stops at once with :class:`SettingRejected` naming the config key.  A stop request
 (Ctrl-C, see :func:`capture`) ends the session after the current line.
 """
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import logging
 import threading
 import time
@@ -34,11 +39,13 @@ import numpy as np
 from core.errors import StreaklabError
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, DriverError, ProtocolError
 
+from core import limits as L
+
 from .config import ConfigError, ScanConfig, check_calibration, check_row_times
 from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
                        is_uninitialised_run, open_run, remove_uninitialised_run)
 
-__all__ = ["CaptureError", "CaptureFailed", "SessionResult", "CaptureSession", "RETRYABLE"]
+__all__ = ["CaptureError", "CaptureFailed", "SettingRejected", "SessionResult", "CaptureSession", "RETRYABLE"]
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +59,24 @@ class CaptureError(StreaklabError, RuntimeError):
 class CaptureFailed(CaptureError):
     """A device kept failing after the retries; the finished lines are on disk and resumable."""
 
-    def __init__(self, message: str, *, cause: BaseException, lines_done: int, n_lines: int):
+    def __init__(self, message: str, *, cause: BaseException, lines_done: int, n_lines: int,
+                 store_created: bool = True, remedy: str = "fix the device"):
         super().__init__(message)
+        self.remedy = remedy        # what to do before resuming
         self.cause = cause
         self.lines_done = lines_done
         self.n_lines = n_lines
+        self.store_created = store_created  # False: it failed before the run store existed
+
+
+class SettingRejected(CaptureError):
+    """A device refused a configured setting: retrying cannot help; nothing has been acquired."""
+
+    def __init__(self, key: str, value, device: str, cause: DeviceError):
+        super().__init__(f"{key} = {value!r}: the {device} rejects this setting ({cause}); "
+                         f"nothing was acquired; change {key} in the configuration")
+        self.key = key
+        self.cause = cause
 
 
 @dataclass
@@ -140,7 +160,13 @@ class CaptureSession:
         return 0 if self.store is None else int(self.store.done_mask().sum())
 
     def _attempt(self, what: str, fn):
-        """Run ``fn()``; on a device fault retry up to ``retries`` times, then raise CaptureFailed."""
+        """Run ``fn()``; on a device fault retry up to ``retries`` times, then raise CaptureFailed.
+
+        The waits between attempts are :func:`core.limits.backoff_waits` (each capped), and
+        all of them together stop at ``limits.MAX_BACKOFF_TOTAL_S``.
+        """
+        waits = L.backoff_waits(self.retries, self.backoff_s)
+        waited = 0.0
         for attempt in range(self.retries + 1):
             try:
                 return fn()
@@ -149,13 +175,26 @@ class CaptureSession:
                     done = self.lines_done()
                     raise CaptureFailed(
                         f"{what} failed after {attempt + 1} attempts: {type(exc).__name__}: {exc}",
-                        cause=exc, lines_done=done, n_lines=self.n_lines) from exc
+                        cause=exc, lines_done=done, n_lines=self.n_lines,
+                        store_created=self.store is not None) from exc
                 self.retries_used += 1
                 log.warning("%s: %s: %s (attempt %d of %d; retrying)", what, type(exc).__name__, exc,
                             attempt + 1, self.retries + 1)
                 self._recover()
-                if self.backoff_s:
-                    self.sleep(self.backoff_s * 2 ** attempt)
+                wait = min(waits[attempt], L.MAX_BACKOFF_TOTAL_S - waited)
+                if wait > 0:
+                    self.sleep(wait)
+                    waited += wait
+
+    def _setting(self, key: str, value, device: str, fn) -> None:
+        """Apply one configured setting: faults are retried, a device error (a rejection) is not."""
+        def apply():
+            try:
+                fn()
+            except DeviceError as exc:
+                raise SettingRejected(key, value, device, exc) from None
+
+        self._attempt(f"{device} setting {key}", apply)
 
     def _recover(self) -> None:
         """Best effort after a fault: stop any acquisition still running on the camera, and
@@ -180,19 +219,30 @@ class CaptureSession:
         for name, dev in (("camera", self.camera), ("mirror", self.mirror), ("sync", self.sync)):
             ids[name] = str(self._attempt(f"{name} check (identify)", dev.identify))
 
-        def setup_sync():
+        def reset_sync():
             self.sync.set_output(False)
             self.sync.read_errors()                                       # clear stale errors
-            self.sync.set_repetition_rate(cfg["sync"]["repetition_rate_hz"])
-            self.sync.set_trigger_delay(cfg["sync"]["trigger_delay_ps"], channel=cfg["sync"]["channel"])
-            errors = self.sync.read_errors()
-            if errors:
-                raise DeviceError(errors[0][0], errors[0][1], command="sync setup", device="laser sync")
 
-        self._attempt("laser-sync setup", setup_sync)
+        def sync_setting(fn):
+            def apply():
+                fn()
+                errors = self.sync.read_errors()
+                if errors:
+                    raise DeviceError(errors[0][0], errors[0][1], device="laser sync")
+            return apply
+
+        sync = cfg["sync"]
+        self._attempt("laser-sync setup", reset_sync)
+        self._setting("sync.repetition_rate_hz", sync["repetition_rate_hz"], "laser sync",
+                      sync_setting(lambda: self.sync.set_repetition_rate(sync["repetition_rate_hz"])))
+        self._setting("sync.trigger_delay_ps", sync["trigger_delay_ps"], "laser sync",
+                      sync_setting(lambda: self.sync.set_trigger_delay(sync["trigger_delay_ps"],
+                                                                       channel=sync["channel"])))
         cam = cfg["camera"]
-        self._attempt("camera setup", lambda: self.camera.configure(
-            time_range=cam["time_range"], exposure_s=cam["exposure_s"], gain=cam.get("gain")))
+        for key in ("time_range", "exposure_s", "gain"):
+            if cam.get(key) is not None:
+                self._setting(f"camera.{key}", cam[key], "camera",
+                              lambda key=key: self.camera.configure(**{key: cam[key]}))
         set_mode = getattr(self.camera, "set_streak_mode", None)
         if set_mode is not None:
             # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on.
@@ -210,10 +260,16 @@ class CaptureSession:
                 raise
             log.info("camera has no streak mode control (%s)", exc)
 
-    def _acquire_frames(self, n: int, what: str) -> np.ndarray:
+    def _acquire_frames(self, n: int, what: str, key: str, also=()) -> np.ndarray:
+        """``n`` frames (frame, x, t) uint16; ``key`` is the config key that asks for ``n``.
+
+        The first frame tells the image size: the memory for all ``n`` (and for each ``(count,
+        key)`` of ``also``) is checked against ``limits.MAX_LINE_BYTES`` and the available
+        memory before the second is taken.
+        """
         timeout_s = self.config["camera"]["acquire_timeout_s"]
         frames = []
-        for _ in range(n):
+        for i in range(n):
             img = self.camera.acquire(timeout_s=timeout_s)
             data = np.asarray(img.data)
             if data.ndim != 2 or data.dtype != np.uint16:
@@ -221,8 +277,24 @@ class CaptureSession:
                                     f"expected uint16 (x, t)")
             if frames and data.shape != frames[0].shape:
                 raise ProtocolError(f"{what}: image shape changed from {frames[0].shape} to {data.shape}")
+            if i == 0:
+                for count, k in ((n, key), *also):
+                    self._check_frame_memory(count, data, k)
             frames.append(data)
         return np.stack(frames) if frames else np.zeros((0, 0, 0), np.uint16)
+
+    def _check_frame_memory(self, n: int, image: np.ndarray, key: str) -> None:
+        pixels = int(image.size)
+        if pixels > L.MAX_IMAGE_PIXELS:
+            raise CaptureError(f"the camera delivers {image.shape[0]} x {image.shape[1]} images ({pixels} pixels), "
+                               f"above the limit of {L.MAX_IMAGE_PIXELS} pixels (limits.MAX_IMAGE_PIXELS)")
+        try:
+            # the frames and their stacked copy
+            L.check_memory(key, 2 * n * image.nbytes, L.MAX_LINE_BYTES,
+                           what=f"for {n} frames of {image.shape[0]} x {image.shape[1]} pixels "
+                                f"(limits.MAX_LINE_BYTES)")
+        except L.LimitError as exc:
+            raise CaptureError(f"{exc}; take fewer frames") from None
 
     def _take_dark(self) -> tuple[np.ndarray, tuple[int, int]]:
         """Dark frames (sync output off), shape (dark_frame, x, t), and the image shape (x, t).
@@ -233,7 +305,10 @@ class CaptureSession:
 
         def take():
             self.sync.set_output(False)
-            return self._acquire_frames(n, "dark frames")
+            # the lines' frames must fit too: checked as soon as the first frame gives the image size
+            return self._acquire_frames(n, "dark frames", "dark.frames",
+                                        also=[(int(self.config["camera"]["frames_per_line"]),
+                                               "camera.frames_per_line")])
 
         frames = self._attempt("dark frames", take)
         return frames[: int(self.config["dark"]["frames"])], tuple(frames.shape[1:])
@@ -303,9 +378,14 @@ class CaptureSession:
                 raise CaptureError("calibration.time_poly_ps is not given and the camera has no scaling table")
             return
         try:
-            check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
+            t = check_calibration(self.config["calibration"]["time_poly_ps"], shape[1])
         except ConfigError as exc:
             raise CaptureError(f"{exc} (the camera has {shape[1]} streak rows)") from None
+        # the cube's time grid must stay within the limit too: refuse now, not after the scan
+        tb = float(self.config["calibration"]["time_bin_ps"])
+        refused = L.time_bin_message(tb, float(np.ptp(t)), float(np.ptp(t)) / tb + 1)
+        if refused:
+            raise CaptureError(f"{refused} (the camera has {shape[1]} streak rows)")
 
     def take_line(self, line: int) -> None:
         angle = float(self.config.angles_deg[line])
@@ -315,7 +395,7 @@ class CaptureSession:
         def acquire():
             self.mirror.move_to(angle)
             reached = float(self.mirror.wait_settled(timeout_s=settle_s))
-            frames = self._acquire_frames(n, f"line {line}")
+            frames = self._acquire_frames(n, f"line {line}", "camera.frames_per_line")
             if frames.shape[1:] != self.store.image_shape:
                 raise CaptureError(f"line {line}: the camera delivers {frames.shape[1:]} images, the run store "
                                    f"holds {self.store.image_shape}")
@@ -326,7 +406,14 @@ class CaptureSession:
             return reached, frames
 
         reached, frames = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
-        self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+        try:
+            self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+        except OSError as exc:  # a full or read-only disk: the lines before this one are safe
+            full = exc.errno == errno.ENOSPC
+            raise CaptureFailed(f"line {line}: cannot write it to {self.out}: "
+                                f"{'no space left on the device' if full else exc.strerror or exc}",
+                                cause=exc, lines_done=self.lines_done(), n_lines=self.n_lines,
+                                remedy="free space on that disk" if full else "make the run store writable") from None
         self.acquired.append(line)
 
     # ------------------------------------------------------------------ run
@@ -369,6 +456,10 @@ class CaptureSession:
         except CaptureFailed as exc:
             self._end_entry("failed", error=str(exc))
             raise
+        except OSError as exc:  # creating the run store: read-only, full, a file where a folder should be
+            reason = "a file stands where a folder should be" if exc.errno == errno.ENOTDIR else \
+                "no space left on the device" if exc.errno == errno.ENOSPC else exc.strerror or str(exc)
+            raise CaptureError(f"cannot write the run store {self.out}: {reason}") from None
         finally:
             self.make_safe()
 

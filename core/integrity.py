@@ -26,7 +26,7 @@ from .errors import StreaklabError
 
 __all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "has_checksums", "chunk_file",
            "chunk_region", "chunk_grid", "consolidate", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
-           "missing_chunks"]
+           "missing_chunks", "open_member"]
 
 _WRITE_ALL = {"write_empty_chunks": True}
 
@@ -183,3 +183,16 @@ class CheckedReader:
 
     def __getitem__(self, selection):
         return read_checked(self.arr, selection, store=self.store)
+
+
+def open_member(group: zarr.Group, name: str, store, error=ValueError):
+    """``group[name]`` (None when absent); damaged metadata (a ``zarr.json`` that does not parse)
+    raises ``error`` naming the array, instead of the JSON parser's or zarr's own exception."""
+    try:
+        return group[name] if name in group else None
+    except Exception as exc:  # noqa: BLE001 - json.JSONDecodeError, zarr's metadata errors, ...
+        if isinstance(exc, (KeyboardInterrupt, MemoryError)):
+            raise
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise error(f"{store}/{name}: unreadable array metadata ({type(exc).__name__}: {first}); "
+                    f"the store is damaged") from None

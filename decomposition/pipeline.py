@@ -169,16 +169,75 @@ def _jsonable(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options):
-    """Run the solver on one all-zero profile: checks the options before any work and names the
-    parameters (and their per-pixel dimensionality) the store must hold."""
-    from decomposition.chunked import _solver
+def chunk_bytes(by: int, bx: int, nt: int, n_ir: int, write_components: bool = True) -> int:
+    """Estimated peak memory of solving one (by, bx) pixel chunk of ``nt`` bins: the block (float64),
+    the solver's batched temporaries (about four profiles per pixel), the rendered components
+    (float32) and the dictionaries of candidate pulses (about 1000 atoms of nt bins)."""
+    per_pixel = nt * (8 + 4 * 8 + (4 * (3 + n_ir) if write_components else 0))
+    return by * bx * per_pixel + 1000 * nt * 8
+
+
+def _check_sizes(input_path, nt, chunks, n_ir, write_components) -> None:
+    """The input's time bins and one chunk's working memory against the documented limits."""
+    from core import limits as L
 
     try:
-        res = _solver()(np.zeros((1, nt)), time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+        L.check_count("t", int(nt), L.MAX_TIME_BINS, "time bins")
+        L.check_memory("--chunks", chunk_bytes(chunks[0], chunks[1], nt, n_ir, write_components),
+                       L.MAX_CHUNK_BYTES, what=f"to solve a {chunks[0]} x {chunks[1]} pixel chunk of {nt} bins "
+                                               f"(limits.MAX_CHUNK_BYTES)")
+    except L.LimitError as exc:
+        raise PipelineError(f"{input_path}: {exc}") from None
+
+
+_OPTION_TYPES = {"float": (int, float), "int": (int,), "bool": (bool,)}
+
+
+def _check_option_types(options: dict) -> None:
+    """Solver options against the type the solver's signature declares for each (one line)."""
+    import inspect
+
+    from decomposition import decompose
+
+    params = inspect.signature(decompose).parameters
+    for key, value in options.items():
+        p = params.get(key)
+        if p is None or not isinstance(p.annotation, str):
+            continue
+        kinds = [k.strip() for k in p.annotation.split("|")]
+        if "None" in kinds and value is None:
+            continue
+        wanted = [_OPTION_TYPES[k] for k in kinds if k in _OPTION_TYPES]
+        if not wanted:
+            continue
+        if not any(isinstance(value, t) and (bool in t or not isinstance(value, bool)) for t in wanted):
+            words = {"float": "a number", "int": "an integer", "bool": "true or false", "None": "null"}
+            raise PipelineError(f"--option {key}: must be {' or '.join(words.get(k, k) for k in kinds)}, "
+                                f"got {value!r}")
+
+
+def _one_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options, pulse=False):
+    """Run the solver on one all-zero profile: checks the options before any work and names the
+    parameters (and their per-pixel dimensionality) the store must hold.  An all-zero profile
+    skips the fit, and with it most options: ``pulse=True`` solves a pulse too (once the kernels
+    are loaded: it runs the compiled fit)."""
+    from decomposition.chunked import _solver
+
+    _check_option_types(options)
+    profiles = np.zeros((1, nt))
+    if pulse:
+        bins = np.arange(nt, dtype=np.float64)
+        profiles = np.stack([profiles[0], np.exp(-0.5 * ((bins - nt / 3) / 2.0) ** 2)])
+    try:
+        res = _solver()(profiles, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
                         components=tuple(components), **options)
-    except (TypeError, ValueError) as exc:
-        raise PipelineError(f"the solver refuses these settings: {exc}") from None
+    except (TypeError, ValueError, ArithmeticError) as exc:
+        raise PipelineError(f"the solver refuses these settings: {_one_line(exc)}") from None
     map_keys, ir_keys = [], []
     for k, v in res.params.items():
         nd = np.ndim(v)
@@ -201,7 +260,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
-                       progress: bool = True, stream=None) -> dict:
+                       progress: bool = True, stream=None, tls=None) -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
@@ -209,6 +268,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
     the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
     seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
+    ``tls`` (a :class:`decomposition.cluster.TlsFiles`) holds the credentials of a ``tls://``
+    scheduler.
     """
     from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
@@ -260,6 +321,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             chunks = tuple(existing.chunks)
     chunks = tuple(int(c) for c in (chunks or default_chunks))
     chunks = (min(chunks[0], ny), min(chunks[1], nx))
+    _check_sizes(input_path, nt, chunks, n_ir, write_components)  # before the probe and warm-up allocate
 
     job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
            "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
@@ -299,6 +361,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                   options=options, stream=stream, quiet=not progress)
     except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
         seconds_compile = 0.0
+    _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=options,
+                  pulse=True)   # the options the fit uses, before any output exists
     if nan_policy == "raise":
         bad = count_nonfinite_pixels(arr)
         if bad:
@@ -308,7 +372,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     client = cluster = None
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
-            client, cluster = _connect(scheduler, workers)
+            client, cluster = _connect(scheduler, workers, tls)
         if existing is None:
             attrs = {"method": method, "components": list(components), "options": job["options"],
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
@@ -355,9 +419,22 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                 bar.close()
             raise DataIntegrityError(f"{exc} (the chunks finished before it are in {out_path}; --resume "
                                      f"continues once the input is mended)") from None
+        except OSError as exc:                      # a full or read-only disk
+            if bar is not None:
+                bar.close()
+            if client is not None:
+                _close_quietly(client, cluster)
+                client = cluster = None
+            done_now = int(store.done_chunks().sum())
+            print(f"decompose: stopped; {done_now}/{total} chunks are on disk in {out_path}; fix the problem below "
+                  f"and rerun with --resume to finish", file=stream)
+            raise
         except KeyboardInterrupt:
             if bar is not None:
                 bar.close()
+            if client is not None:  # let the workers' running chunks end before counting what is on disk
+                _close_quietly(client, cluster)
+                client = cluster = None
             done_now = int(store.done_chunks().sum())
             print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
                   f"rerun with --resume to finish", file=stream)
@@ -385,31 +462,37 @@ def _region_pixels(store, iy, ix) -> int:
     return (ys.stop - ys.start) * (xs.stop - xs.start)
 
 
-def _connect(scheduler, workers):
-    """-> (Client, LocalCluster or None)."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError as exc:  # pragma: no cover - distributed is a dependency
-        raise PipelineError(f"--workers/--scheduler need dask.distributed: {exc}") from None
-    if scheduler is not None:
-        try:
-            return Client(scheduler, timeout="15s"), None
-        except (OSError, TimeoutError) as exc:
-            raise PipelineError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
-    import dask
+def _close_quietly(client, cluster) -> None:
+    """Close an interrupted run's client and cluster, silencing distributed's shutdown chatter
+    (a second Ctrl-C meanwhile is ignored)."""
+    import signal
+    import threading
 
-    # dask.distributed's nannies set MALLOC_TRIM_THRESHOLD_ in their workers by default; an explicit
-    # threshold turns off glibc's adaptive mmap threshold, so every large temporary array of the
-    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (measured:
-    # 22 vs 43 px/s, system time up tenfold).  Keep the rest of the nanny environment (one BLAS
-    # thread per worker process).
-    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
-    env.pop("MALLOC_TRIM_THRESHOLD_", None)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": env}):
-        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None)
+    from decomposition.cluster import quiet_distributed
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        return Client(cluster), cluster
-    except BaseException:
-        cluster.close()
-        raise
+        with quiet_distributed():
+            for thing in (client, cluster):
+                if thing is not None:
+                    try:
+                        thing.close()
+                    except Exception:  # shutting down after an interrupt: nothing left to save
+                        pass
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _connect(scheduler, workers, tls=None):
+    """-> (Client, LocalCluster or None); see :mod:`decomposition.cluster`."""
+    from decomposition.cluster import ClusterError, connect_scheduler, start_local_cluster
+
+    try:
+        if scheduler is not None:
+            return connect_scheduler(scheduler, tls=tls), None
+        return start_local_cluster(int(workers))
+    except ClusterError as exc:
+        raise PipelineError(str(exc)) from None

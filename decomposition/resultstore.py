@@ -40,7 +40,7 @@ import zarr
 from core.durable import sync_chunk
 from core.errors import OutputExistsError, StreaklabError
 from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
-                            read_checked, scan_array, writable)
+                            open_member, read_checked, scan_array, writable)
 from core.staging import OutputPathError, check_no_links, check_output_path, staged_output
 
 __all__ = [
@@ -501,7 +501,7 @@ def open_result_store(path, *, mode: str = "r", check_links: bool = True) -> Res
     needed = list(a.get("param_keys", [])) + list(_QUALITY) + ["done", "t", "y", "x", "r"]
     if a.get("write_components"):
         needed += list(COMPONENT_NAMES)
-    missing = [k for k in needed if k not in g]
+    missing = [k for k in needed if open_member(g, k, path, ResultStoreError) is None]
     if missing:
         raise ResultStoreError(f"{path} is incomplete: arrays {missing} are missing")
     return _from_group(str(path), g)

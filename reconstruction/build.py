@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.config import TIME_SOURCES, ConfigError, check_calibration, check_row_times
+from core import limits as L
 from acquisition.runstore import describe_absent, open_run
 from core.errors import StreaklabError
 from core.integrity import create_array, read_checked
@@ -148,6 +149,16 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     if n_bins < 2:
         raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
                                   f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+
+    by = min(n_lines, 16) if chunks is None else min(int(chunks[0]), n_lines)
+    try:
+        # one block of lines in memory: raw frames (uint16), their float64 mean, the resampled block
+        L.check_memory("--chunks", by * nx * (run.frames_per_line * n_rows * 2 + n_rows * 8 + n_bins * (8 + 4)),
+                       L.MAX_CHUNK_BYTES, what=f"to reconstruct {by} lines at a time")
+        L.check_disk("cube", n_lines * nx * n_bins * 4, L.MAX_CUBE_BYTES, out.parent,
+                     what=f"for a {n_lines} x {nx} x {n_bins} float32 cube (limits.MAX_CUBE_BYTES)")
+    except L.LimitError as exc:
+        raise ReconstructionError(f"{run.path}: {exc}") from None
 
     done = run.done_mask()
     missing = np.flatnonzero(~done)

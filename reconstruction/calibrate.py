@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core import limits as L
 from core.errors import StreaklabError
 
 __all__ = ["CalibrationError", "dark_image", "load_flat", "uniform_grid", "resample_uniform", "correct_frames"]
@@ -111,8 +112,11 @@ def uniform_grid(row_times_ps: np.ndarray, time_bin_ps: float, t0_ps: float | No
     t0_ps = float(t0_ps)
     if t0_ps < lo - 1e-9 * T or t0_ps > hi:
         raise CalibrationError(f"t0_ps = {t0_ps} ps lies outside the calibrated window [{lo:.6g}, {hi:.6g}] ps")
-    n_bins = int(np.floor((hi - t0_ps) / T + 1e-9)) + 1
-    return t0_ps, n_bins
+    n = np.floor((hi - t0_ps) / T + 1e-9) + 1
+    refused = L.time_bin_message(T, hi - lo, n)
+    if refused:
+        raise CalibrationError(refused)
+    return t0_ps, int(n)
 
 
 def resample_uniform(profiles: np.ndarray, row_times_ps: np.ndarray, *, time_bin_ps: float, t0_ps: float,

@@ -23,7 +23,7 @@ import numpy as np
 import zarr
 
 from core.errors import StreaklabError
-from core.integrity import consolidate, create_array, has_checksums, scan_group
+from core.integrity import consolidate, create_array, has_checksums, open_member, scan_group
 from core.irf import InstrumentResponse
 from core.irfstore import RESPONSE_KIND, read_response_group, write_response_group
 from core.staging import check_output_path, staged_output
@@ -138,11 +138,11 @@ def open_cube(path, *, mode: str = "r") -> Cube:
         g = zarr.open_group(str(path), mode=mode, use_consolidated=False)
     except Exception as exc:  # zarr raises several types for "not a group"
         raise CubeStoreError(f"{path} is not a Zarr group: {exc}") from None
-    if "cube" not in g:
+    arr = open_member(g, "cube", path, CubeStoreError)
+    if arr is None:
         kind = g.attrs.get("streaklab_kind")
         hint = f" (it is a streaklab {kind!r} store)" if kind else ""
         raise CubeStoreError(f"{path} has no 'cube' array{hint}")
-    arr = g["cube"]
     if not isinstance(arr, zarr.Array):
         raise CubeStoreError(f"{path}/cube is not an array")
     if arr.ndim != 3:

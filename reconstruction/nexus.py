@@ -29,6 +29,7 @@ import h5py
 import numpy as np
 import zarr
 
+from core import limits as L
 from core.errors import StreaklabError
 from core.integrity import create_array, read_checked
 from core.staging import staged_output
@@ -180,8 +181,21 @@ def _find_nxdata(f: h5py.File, path) -> tuple[h5py.Group, h5py.Group]:
     return entry, data
 
 
+def _meta(obj) -> dict:
+    """``obj``'s @streaklab_zarr attribute as a dict, or a NexusError naming the object."""
+    text = obj.attrs[META]
+    try:
+        meta = json.loads(text.decode() if isinstance(text, bytes) else text)
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError, RecursionError) as exc:
+        raise NexusError(f"{obj.file.filename}: {obj.name}@{META} is not valid JSON ({type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0] if str(exc) else ''}); the file is damaged") from None
+    if not isinstance(meta, dict):
+        raise NexusError(f"{obj.file.filename}: {obj.name}@{META} must be a JSON object; the file is damaged")
+    return meta
+
+
 def _restore_array(ds: h5py.Dataset, g: zarr.Group, name: str) -> None:
-    meta = json.loads(ds.attrs[META])
+    meta = _meta(ds)
     shape = ds.shape
     chunks = tuple(meta["chunks"]) if shape else None
     kwargs = {"chunks": chunks} if chunks else {}
@@ -205,7 +219,7 @@ def _restore_group(h: h5py.Group, g: zarr.Group, *, skip=()) -> None:
                 raise NexusError(f"{obj.name} lacks @{META}; the file was changed after export")
             _restore_array(obj, g, name)
         else:
-            meta = json.loads(obj.attrs.get(META, "{}"))
+            meta = _meta(obj) if META in obj.attrs else {}
             sub = g.create_group(name, attributes=meta.get("attributes", {}))
             _restore_group(obj, sub)
 
@@ -240,6 +254,51 @@ def _import_foreign(data: h5py.Group, tmp: Path, path) -> None:
         cube.array[i:i + step] = sig[i:i + step]
 
 
+def _check_sizes(h5_path, f: h5py.File, entry: h5py.Group, data: h5py.Group, out_path) -> None:
+    """Every size the file declares, against the documented limits, before anything is written.
+
+    An HDF5 file may declare datasets far larger than itself (unwritten chunks read as the fill
+    value), so the declared shapes are what the import would write.
+    """
+    if META in data.attrs:
+        datasets = []
+        entry.visititems(lambda name, obj: datasets.append(obj) if isinstance(obj, h5py.Dataset) else None)
+        signal = data.get("cube")
+        chunk_rows = {}
+        for ds in datasets:
+            meta = _meta(ds) if META in ds.attrs else {}
+            chunks = meta.get("chunks") if ds.shape else []
+            if ds.shape and (not isinstance(chunks, list) or len(chunks) != ds.ndim
+                             or not all(isinstance(c, int) and c > 0 for c in chunks)):
+                raise NexusError(f"{h5_path}: {ds.name}@{META} chunks must be {ds.ndim} positive integers, "
+                                 f"got {chunks!r}")
+            chunk_rows[ds.name] = min(chunks[0], ds.shape[0]) if ds.shape else 1
+    else:
+        signal_name = data.attrs.get("signal")
+        signal_name = signal_name.decode() if isinstance(signal_name, bytes) else signal_name
+        signal = data.get(signal_name) if signal_name else None
+        if not isinstance(signal, h5py.Dataset):
+            return  # _import_foreign names the problem
+        datasets = [signal]
+        chunk_rows = {signal.name: min(16, signal.shape[0]) if signal.shape else 1}
+    try:
+        if isinstance(signal, h5py.Dataset) and signal.ndim == 3:
+            L.check_count(f"{signal.name} (t)", int(signal.shape[2]), L.MAX_TIME_BINS, "time bins")
+        total = 0
+        for ds in datasets:
+            itemsize = max(ds.dtype.itemsize, 4)
+            row_bytes = int(np.prod(ds.shape[1:], dtype=np.float64)) * (ds.dtype.itemsize + itemsize)
+            L.check_memory(ds.name, chunk_rows[ds.name] * row_bytes, L.MAX_CHUNK_BYTES,
+                           what=f"to copy {chunk_rows[ds.name]} rows of {ds.shape} at a time (limits.MAX_CHUNK_BYTES)")
+            total += int(np.prod(ds.shape, dtype=np.float64)) * itemsize
+        key = signal.name if isinstance(signal, h5py.Dataset) else data.name
+        L.check_disk(key, total, L.MAX_CUBE_BYTES, Path(out_path).parent,
+                     what=f"to import {'it' if len(datasets) == 1 else f'it and {len(datasets) - 1} more arrays'} "
+                          f"(limits.MAX_CUBE_BYTES)")
+    except L.LimitError as exc:
+        raise NexusError(f"{h5_path}: {exc}") from None
+
+
 def import_cube(h5_path, out_path, *, overwrite: bool = False) -> Path:
     """Rebuild a cube store from a NeXus/HDF5 file (see :func:`export_cube`).
 
@@ -256,8 +315,9 @@ def import_cube(h5_path, out_path, *, overwrite: bool = False) -> Path:
         raise NexusError(f"{h5_path} is not an HDF5 file: {exc}") from None
     with f, staged_output(out_path, overwrite=overwrite, inputs=[h5_path], kind=CUBE_KIND) as tmp:
         entry, data = _find_nxdata(f, h5_path)
+        _check_sizes(h5_path, f, entry, data, out_path)   # before anything is written at tmp
         if META in data.attrs:
-            meta = json.loads(data.attrs[META])
+            meta = _meta(data)
             g = zarr.open_group(str(tmp), mode="w", attributes=meta.get("attributes", {}))
             _restore_group(data, g)
             _restore_group(entry, g, skip={data.name.rsplit("/", 1)[-1]})

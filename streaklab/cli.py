@@ -6,7 +6,9 @@ Subcommand modules are imported only when their command runs, so ``streaklab
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import re
 import sys
 
 from core.errors import OutputExistsError, StreaklabError
@@ -48,6 +50,26 @@ def output_exists(exc: FileExistsError) -> Exception:
     return CommandError(f"{path} already exists; pass --overwrite to replace it")
 
 
+# staged outputs (and their marker) are written beside --out, under these names
+_STAGED = re.compile(r"/\.([^/]+)\.(?:partial-[0-9a-f]{8}|old-[0-9a-f]{8}|staging-[0-9a-f]{8}\.json)")
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for a file-system error: the path (the user's --out, not its staging name) and the reason."""
+    reason = exc.strerror or str(exc).splitlines()[0]
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on the device"
+    elif exc.errno == errno.ENOTDIR:
+        reason = "a file stands where a folder should be"
+    name = exc.filename
+    if name is None:  # h5py puts the path and the reason into its message
+        found = re.search(r"name = '([^']+)'.*error message = '([^']+)'", str(exc))
+        if not found:
+            return f"cannot write: {_STAGED.sub(lambda m: '/' + m.group(1), reason)}"
+        name, reason = found.groups()
+    return f"cannot write {_STAGED.sub(lambda m: '/' + m.group(1), str(name))}: {reason}"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="streaklab",
@@ -77,6 +99,9 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, OutputExistsError):
             exc = output_exists(exc)
         print(f"streaklab {name}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # read-only or full file system, a file where a folder should be, /proc, ...
+        print(f"streaklab {name}: error: {describe_os_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"\nstreaklab {name}: interrupted", file=sys.stderr)

@@ -8,7 +8,7 @@ import pytest
 from acquisition.config import parse_config
 from acquisition.rig import run_capture, simulated_scene
 from acquisition.runstore import open_run
-from acquisition.session import CaptureError, CaptureFailed
+from acquisition.session import CaptureError, CaptureFailed, SettingRejected
 from core.model import render_profile
 from drivers.errors import ConnectionLost, DeviceError, DeviceTimeout, ProtocolError
 from drivers.sim import SimulatedLab
@@ -169,15 +169,43 @@ def test_capture_command_rejects_bad_config_naming_the_key(tmp_path, capsys):
 
 
 @pytest.mark.timeout(30)
-def test_device_error_during_setup_stops_before_anything_is_written(tmp_path):
+def test_a_rejected_setting_stops_at_once_naming_the_key(tmp_path):
     cfg = sim_config()
     with start_lab(cfg) as lab:
-        lab.sync.inject("error", "PULS0:PER", code=-222, times=50)
-        with pytest.raises(CaptureFailed, match=r"laser-sync setup failed after 3 attempts") as info:
+        # rejected once only: a retry would succeed, so the session must not have retried
+        lab.sync.inject("error", "PULS0:PER", code=-222, times=1)
+        with pytest.raises(SettingRejected, match=r"^sync\.repetition_rate_hz = 80000000\.0: the laser sync rejects "
+                                                  r"this setting \(.*-222: Data out of range.*\); nothing was "
+                                                  r"acquired") as info:
             run_capture(cfg, tmp_path / "run.zarr", lab=lab)
         assert isinstance(info.value.cause, DeviceError) and info.value.cause.code == -222
-        assert info.value.lines_done == 0 and not (tmp_path / "run.zarr").exists()
+        assert not (tmp_path / "run.zarr").exists()
         assert lab.state.sync_output_enabled is False
+        lab.camera.inject("error", "DevParamSet", code=7, times=1)
+        with pytest.raises(SettingRejected, match=r"^camera\.time_range = 2: the camera rejects this setting"):
+            run_capture(cfg, tmp_path / "run.zarr", lab=lab)
+        assert not (tmp_path / "run.zarr").exists()
+
+
+def test_a_rejected_setting_is_one_line_without_a_resume_hint(tmp_path, capsys, monkeypatch):
+    from streaklab.cli import main
+
+    cfg = sim_config()
+    (tmp_path / "scan.toml").write_text(
+        "[scan]\nangles_deg = [0.0, 1.0]\n[calibration]\ntime_poly_ps = [0.0, 2.0]\n"
+        "[sync]\nrepetition_rate_hz = 1e12\n[session]\nretry_backoff_s = 0.0\n")
+    with start_lab(cfg) as lab:
+        import acquisition.rig as rig
+
+        real = rig.run_capture
+        monkeypatch.setattr(rig, "run_capture", lambda config, out, **kw: real(config, out, **{**kw, "lab": lab}))
+        lab.sync.inject("error", "PULS0:PER", code=-222, times=50)
+        assert main(["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(tmp_path / "r.zarr"),
+                     "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("streaklab capture: error: sync.repetition_rate_hz = 1000000000000.0"), err
+    assert "safely in" not in err[0] and "resume" not in err[0]
+    assert not (tmp_path / "r.zarr").exists()
 
 
 def test_unreachable_camera_is_named(tmp_path, capsys):
@@ -205,6 +233,22 @@ def test_failed_session_tells_how_to_resume(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "failed after 4 attempts: DeviceTimeout" in err and "3 of 8 lines are safely in" in err
     assert f"--out {tmp_path / 'r.zarr'} --simulate --resume" in err
+
+
+def test_a_failure_before_the_store_exists_does_not_claim_lines_are_in_it(tmp_path, capsys, monkeypatch):
+    import acquisition.rig
+    from streaklab.cli import main
+
+    def failing(config, out, **kwargs):
+        raise CaptureFailed("camera check (identify) failed after 4 attempts: DeviceTimeout: no reply",
+                            cause=DeviceTimeout("no reply"), lines_done=0, n_lines=16, store_created=False)
+
+    monkeypatch.setattr(acquisition.rig, "run_capture", failing)
+    (tmp_path / "scan.toml").write_text("[scan]\nangles_deg = [0.0, 1.0]\n[calibration]\ntime_poly_ps = [0.0, 2.0]\n")
+    assert main(["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(tmp_path / "r.zarr")]) == 1
+    err = capsys.readouterr().err
+    assert "safely in" not in err and "--resume" not in err
+    assert f"nothing was written to {tmp_path / 'r.zarr'}; fix the device and run again:" in err
 
 
 @pytest.mark.timeout(30)

@@ -104,3 +104,38 @@ def test_calibration_monotonic_check():
     assert np.all(np.diff(check_calibration([500.0, -2.0], 100)) < 0)  # decreasing is fine
     with pytest.raises(ConfigError, match=r"strictly monotonic over rows 0\.\.99.*row 49"):
         check_calibration([0.0, 2.0, -0.0204], 100)
+
+
+@pytest.mark.parametrize("sections, message", [
+    # one scan line per angle: 1e9 lines would be a 7.45 GiB angle list before anything is checked
+    ({"scan": {"count": 10**9}}, r"^scan\.count: 1000000000 lines exceeds the limit of 100000 lines"),
+    ({"scan": {"count": 2**63 - 1}}, r"^scan\.count: 9223372036854775807 lines exceeds the limit of 100000"),
+    ({"devices": {"timeout_s": 1e308}}, r"^devices\.timeout_s: must be a positive number of seconds, at most 86400"),
+    ({"camera": {"acquire_timeout_s": 1e6}}, r"^camera\.acquire_timeout_s: .*at most 86400"),
+    ({"scan": {"settle_timeout_s": 1e20}}, r"^scan\.settle_timeout_s: .*at most 86400"),
+    ({"session": {"retries": 100}}, r"^session\.retries: must be an integer in 0\.\.20 \(limits\.MAX_RETRIES\)"),
+    # 20 retries of 0.5 s doubling, each capped at 60 s: 63.5 + 13 x 60 = 843.5 s of waiting for one step
+    ({"session": {"retries": 20}}, r"^session\.retries: 20 retries .* wait 843\.5 s in all, above the limit of 600 s"),
+])
+def test_sizes_and_waits_are_limited_naming_key_and_limit(sections, message):
+    with pytest.raises(ConfigError, match=message):
+        parse_config(cfg(**sections))
+
+
+def test_long_angle_list_and_oversized_or_deeply_nested_files_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match=r"^scan\.angles_deg: 100001 lines exceeds the limit of 100000"):
+        parse_config({"scan": {"angles_deg": list(range(100_001))}, "calibration": BASE["calibration"]})
+    nested = tmp_path / "nested.toml"
+    nested.write_text("x = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ConfigError, match=r"nested\.toml: not valid TOML: arrays or tables nested too deeply$"):
+        load_config(nested)
+    big = tmp_path / "big.toml"
+    big.write_text("# " + "x" * (1 << 20) + "\n")
+    with pytest.raises(ConfigError, match=r"big\.toml: the configuration is larger than the limit of 1\.00 MiB"):
+        load_config(big)
+
+
+def test_time_bin_is_bounded():
+    with pytest.raises(ConfigError, match=r"^calibration\.time_bin_ps: must be a positive bin width in ps, at most "
+                                          r"1e6, got 1e\+300$"):
+        parse_config(cfg(calibration={"time_bin_ps": 1e300}))

@@ -227,7 +227,9 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
     refused([cube_path, "--components", "r,s"], "need the direct family")
     refused([cube_path, "--option", "sparsity=-1"], "--option sparsity: must be >= 0")
     refused([cube_path, "--option", "sparsity=abc"], "--option sparsity: expected a number, got 'abc'")
+    refused([cube_path, "--option", 'sparsity="abc"'], "error: --option sparsity: expected a number, got 'abc'\n")
     refused([cube_path, "--option", "multistart=1"], "--option multistart: expected true or false")
+    refused([cube_path, "--option", "noise=shot"], "--option noise: must be one of auto, gaussian, poisson")
     refused([cube_path, "--workers", "2", "--threads", "2"], "--threads")
     # the output path: never the input, never something else without --overwrite
     assert main(["decompose", str(cube_path), "--out", str(cube_path), "--overwrite", "--quiet"]) == 2
@@ -333,3 +335,26 @@ def test_resume_onto_a_rewritten_cube_is_refused(tmp_path):
                overwrite=True)
     with pytest.raises(PipelineError, match="different settings.*source_attrs_sha256"):
         decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", resume=True, progress=False)
+
+
+def test_sizes_declared_by_a_small_crafted_cube_are_refused_before_any_allocation(tmp_path, capsys):
+    def crafted(name, shape, chunks):
+        g = zarr.open_group(str(tmp_path / name), mode="w")
+        g.attrs["streaklab_kind"] = "cube"
+        g.create_array("cube", shape=shape, chunks=chunks, dtype="float32", fill_value=0.0,
+                       dimension_names=["y", "x", "t"]).attrs.update({"time_bin_ps": 2.0, "t0_ps": 2.0})
+        return tmp_path / name
+
+    out = tmp_path / "res.zarr"
+    # a few hundred bytes of metadata: 1.25e9 bins would make even the option probe ask for 9.31 GiB
+    long_t = crafted("long.zarr", (1, 1, 1_250_000_000), (1, 1, 1_250_000_000))
+    assert main(["decompose", str(long_t), "--out", str(out), "--quiet"]) == 2
+    assert capsys.readouterr().err == (f"streaklab decompose: error: {long_t}: t: 1250000000 time bins exceeds the "
+                                       f"limit of 65536 time bins\n")
+    wide = crafted("wide.zarr", (4096, 4096, 512), (4096, 4096, 512))
+    assert main(["decompose", str(wide), "--out", str(out), "--quiet"]) == 2
+    # 4096 x 4096 pixels of 512 bins: 16.8e6 x 512 x 64 bytes
+    assert capsys.readouterr().err == (f"streaklab decompose: error: {wide}: --chunks: needs 512.00 GiB to solve a "
+                                       f"4096 x 4096 pixel chunk of 512 bins (limits.MAX_CHUNK_BYTES), above the "
+                                       f"limit of 2.00 GiB\n")
+    assert not out.exists()

@@ -106,3 +106,42 @@ def test_command_line_round_trip_and_refusals(tmp_path, capsys):
     np.testing.assert_array_equal(open_cube(tmp_path / "back.zarr").array[...], np.ones((2, 3, 4)))
     assert main(["export", str(tmp_path / "missing.zarr"), "--out", str(tmp_path / "m.h5")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_declared_sizes_and_damaged_metadata_are_refused_before_writing(tmp_path, capsys, monkeypatch):
+    from core import limits
+    # a tiny file declaring a 20000 x 20000 x 512 signal (chunks never written read as the fill value)
+    with h5py.File(tmp_path / "huge.h5", "w") as f:
+        e = f.create_group("entry")
+        e.attrs["NX_class"] = "NXentry"
+        d = e.create_group("data")
+        d.attrs.update({"NX_class": "NXdata", "signal": "s", "axes": ["y", "x", "t"]})
+        d.create_dataset("s", shape=(20000, 20000, 512), dtype="float32", chunks=(1, 100, 512))
+        d["y"], d["x"], d["t"] = np.arange(20000.0), np.arange(20000.0), 2.0 * np.arange(512)
+    assert (tmp_path / "huge.h5").stat().st_size < 1_000_000
+    out = tmp_path / "huge.zarr"
+    monkeypatch.setattr(limits.shutil, "disk_usage", lambda p: type("Usage", (), {"free": 79 << 30})())
+    assert main(["import", str(tmp_path / "huge.h5"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    # 20000 x 20000 x 512 float32 = 762.9 GiB: within the 1 TiB limit for cubes, but not on a 79 GiB disk
+    assert len(err) == 1 and err[0].startswith(f"streaklab import: error: {tmp_path / 'huge.h5'}: ") and \
+        "/entry/data/s: needs 762.94 GiB to import it (limits.MAX_CUBE_BYTES), but only 79.00 GiB are free" in err[0], err
+    assert not out.exists() and not list(tmp_path.glob(".huge.zarr*"))
+    with h5py.File(tmp_path / "long.h5", "w") as f:
+        e = f.create_group("entry")
+        e.attrs["NX_class"] = "NXentry"
+        d = e.create_group("data")
+        d.attrs.update({"NX_class": "NXdata", "signal": "s", "axes": ["y", "x", "t"]})
+        d.create_dataset("s", shape=(1, 1, 10**8), dtype="float32", chunks=(1, 1, 10**6))
+    with pytest.raises(NexusError, match=r"long\.h5: /entry/data/s \(t\): 100000000 time bins exceeds the limit "
+                                         r"of 65536 time bins$"):
+        import_cube(tmp_path / "long.h5", out)
+    # an exported file whose metadata JSON was damaged
+    make_cube(tmp_path / "c.zarr")
+    export_cube(tmp_path / "c.zarr", tmp_path / "c.h5")
+    with h5py.File(tmp_path / "c.h5", "a") as f:
+        f["entry/data/cube"].attrs["streaklab_zarr"] = '{"chunks": [2, 4, 40], "attributes": {'
+    with pytest.raises(NexusError, match=r"c\.h5: /entry/data/cube@streaklab_zarr is not valid JSON "
+                                         r"\(JSONDecodeError: .*\); the file is damaged$"):
+        import_cube(tmp_path / "c.h5", out)
+    assert not out.exists()

@@ -167,3 +167,29 @@ def test_module_entry_point_runs(tmp_path):
                         str(tmp_path / "cube.zarr")], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert open_cube(tmp_path / "cube.zarr").shape[:2] == (len(ANGLES), NX)
+
+
+def test_time_bins_memory_and_disk_are_checked_before_anything_is_written(tmp_path, monkeypatch):
+    from core import limits
+
+    run = make_run(tmp_path / "run.zarr")
+    cfg = dict(run.group.attrs["config"])
+    # 1e-6 ps bins over the 116.7 ps window: 1.17e8 bins, a 4.18 GiB-per-line-block request
+    cfg["calibration"] = {**cfg["calibration"], "time_bin_ps": 1e-6}
+    run.group.attrs["config"] = cfg
+    with pytest.raises(CalibrationError, match=r"^calibration\.time_bin_ps = 1e-06 ps makes 1\.17e\+08 time bins "
+                                               r"of the calibrated window of 116\.676 ps, above the limit of 65536"):
+        reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
+    assert not (tmp_path / "cube.zarr").exists()
+    cfg["calibration"] = {**cfg["calibration"], "time_bin_ps": 2.0}
+    run.group.attrs["config"] = cfg
+    monkeypatch.setattr(limits, "available_memory", lambda: 1000)
+    with pytest.raises(ReconstructionError, match=r"--chunks: needs .* to reconstruct 6 lines at a time, but only "
+                                                  r"1000 B of memory is available"):
+        reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
+    monkeypatch.undo()
+    monkeypatch.setattr(limits.shutil, "disk_usage", lambda p: type("U", (), {"free": 100})())
+    with pytest.raises(ReconstructionError, match=r"cube: needs 6\.91 KiB for a 6 x 5 x 59 float32 cube "
+                                                  r"\(limits\.MAX_CUBE_BYTES\), but only 100 B are free"):
+        reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
+    assert not (tmp_path / "cube.zarr").exists()

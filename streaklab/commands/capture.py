@@ -22,11 +22,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress display")
 
 
-def _resume_hint(args, out) -> str:
+def _resume_hint(args, out, *, resume: bool = True) -> str:
     cmd = ["streaklab", "capture", "--config", args.config, "--out", str(out)]
     if args.simulate:
         cmd.append("--simulate")
-    return shlex.join(cmd + ["--resume"])
+    return shlex.join(cmd + (["--resume"] if resume else []))
 
 
 def run(args) -> int:
@@ -81,8 +81,12 @@ def run(args) -> int:
                              on_line=on_line, on_start=on_start)
     except CaptureFailed as exc:
         print(f"streaklab capture: error: {exc}", file=sys.stderr)
-        print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
-              f"fix the device and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
+        if not exc.store_created and not args.resume:
+            print(f"streaklab capture: nothing was written to {out}; fix the device and run again:\n"
+                  f"  {_resume_hint(args, out, resume=False)}", file=sys.stderr)
+        else:
+            print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
+                  f"{exc.remedy} and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"

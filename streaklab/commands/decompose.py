@@ -34,7 +34,14 @@ def add_arguments(parser) -> None:
     where.add_argument("--workers", type=int, default=None, metavar="N",
                        help="run on a local cluster of N worker processes (default: threads in this process)")
     where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                       help="run on an existing dask.distributed cluster (workers must see the same paths)")
+                       help="run on an existing dask.distributed cluster (workers must see the same paths); "
+                            "tls://HOST:PORT with --tls-ca-file/--tls-cert/--tls-key for a secured one")
+    parser.add_argument("--tls-ca-file", default=None, metavar="CA.pem",
+                        help="with --scheduler tls://...: CA certificate of the cluster")
+    parser.add_argument("--tls-cert", default=None, metavar="CERT.pem",
+                        help="with --scheduler tls://...: this client's certificate (may hold the key too)")
+    parser.add_argument("--tls-key", default=None, metavar="KEY.pem",
+                        help="with --scheduler tls://...: this client's private key")
     parser.add_argument("--threads", type=int, default=None, metavar="N",
                         help="threads of the local scheduler when neither --workers nor --scheduler is given "
                              "(default: number of cores)")
@@ -98,13 +105,29 @@ def _parse_options(items, method: str = "convscd") -> dict:
     return out
 
 
+def _tls_files(args):
+    given = [f for f, v in (("--tls-ca-file", args.tls_ca_file), ("--tls-cert", args.tls_cert),
+                            ("--tls-key", args.tls_key)) if v is not None]
+    if not given:
+        return None
+    if args.scheduler is None:
+        raise CommandError(f"{given[0]} is for --scheduler tls://...; --workers starts its own secured cluster")
+    if args.tls_ca_file is None or args.tls_cert is None:
+        raise CommandError("--scheduler tls://... needs both --tls-ca-file and --tls-cert (and --tls-key unless "
+                           "the certificate file holds the key)")
+    from decomposition.cluster import TlsFiles
+
+    return TlsFiles(args.tls_ca_file, args.tls_cert, args.tls_key)
+
+
 def run(args) -> int:
+    tls = _tls_files(args)
     summary = decompose_to_store(
         args.input, args.out, method=args.method, components=parse_components(args.components),
         options=_parse_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls)
     ny, nx, nt = summary["shape"]
     if summary["chunks_done"] == 0:
         print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")

@@ -1,0 +1,201 @@
+"""Dask clusters for the chunked decomposition: a local cluster that refuses strangers, and a
+checked connection to an existing scheduler.
+
+A dask cluster runs whatever code its clients send, so who may connect matters:
+
+* :func:`start_local_cluster` (``decompose --workers N``) starts the scheduler and its workers
+  on 127.0.0.1 with TLS and credentials made for this run only
+  (``distributed.Security.temporary()``: a fresh key and self-signed certificate, held in
+  memory, never written to disk).  Every connection must present that certificate, so another
+  process on the machine, even of the same user, cannot submit work; the credentials go away
+  with the run.
+* :func:`connect_scheduler` (``decompose --scheduler ADDRESS``) first probes the address with a
+  timeout: a dask server greets every new connection at once with a short handshake, so an
+  address that says nothing, or whose first message declares an absurd length (an HTTP
+  server's reply read as a frame length), is refused as "not a dask scheduler" before dask
+  reads from it.  A ``tls://`` scheduler takes the credentials of :class:`TlsFiles`
+  (``--tls-ca-file``, ``--tls-cert``, ``--tls-key``) or of dask's own configuration
+  (``distributed.comm.tls.*``).
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import socket
+import ssl
+import struct
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from core.errors import StreaklabError
+from core.limits import MAX_HANDSHAKE_BYTES
+
+__all__ = ["ClusterError", "TlsFiles", "PROBE_TIMEOUT_S", "CONNECT_TIMEOUT_S", "probe_scheduler",
+           "connect_scheduler", "start_local_cluster", "quiet_distributed"]
+
+PROBE_TIMEOUT_S = 10.0      # a dask server sends its handshake as soon as a connection is accepted
+CONNECT_TIMEOUT_S = 15.0
+
+
+class ClusterError(StreaklabError, RuntimeError):
+    """The cluster cannot be reached, is not a dask cluster, or cannot be started (says why)."""
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """Credentials for a ``tls://`` scheduler: CA certificate, this client's certificate and key (PEM files).
+
+    ``key_file`` may be omitted when ``cert_file`` holds the key too.
+    """
+
+    ca_file: str
+    cert_file: str
+    key_file: str | None = None
+
+    def __post_init__(self):
+        for flag, path in (("--tls-ca-file", self.ca_file), ("--tls-cert", self.cert_file),
+                           ("--tls-key", self.key_file)):
+            if path is not None and not Path(path).is_file():
+                raise ClusterError(f"{flag} {path}: no such file")
+
+    def security(self):
+        from distributed import Security
+
+        return Security(tls_ca_file=self.ca_file, tls_client_cert=self.cert_file, tls_client_key=self.key_file,
+                        require_encryption=True)
+
+
+def _split(address: str) -> tuple[str, str, int]:
+    if "://" not in address:
+        address = "tcp://" + address
+    u = urlsplit(address)
+    if u.scheme not in ("tcp", "tls") or not u.hostname or u.port is None:
+        raise ClusterError(f"--scheduler {address}: expected tcp://HOST:PORT or tls://HOST:PORT")
+    return u.scheme, u.hostname, u.port
+
+
+def probe_scheduler(address: str, *, security=None, timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Check that a dask scheduler answers at ``address``; raise :class:`ClusterError` if not.
+
+    Connects with a timeout (TLS with the client credentials of ``security`` for ``tls://``),
+    sends nothing, and reads the 8-byte length that opens the server's handshake.
+    """
+    scheme, host, port = _split(address)
+    try:
+        raw = socket.create_connection((host, port), timeout=timeout_s)
+    except OSError as exc:
+        raise ClusterError(f"cannot reach the dask scheduler at {address}: {exc.strerror or exc}") from None
+    with contextlib.closing(raw) as sock:
+        sock.settimeout(timeout_s)
+        if scheme == "tls":
+            ctx = None if security is None else security.get_connection_args("client").get("ssl_context")
+            if ctx is None:
+                raise ClusterError(f"{address} is a TLS scheduler: pass --tls-ca-file and --tls-cert (and --tls-key), "
+                                   f"or configure distributed.comm.tls")
+            try:
+                sock = ctx.wrap_socket(sock, server_hostname=host)
+            except (ssl.SSLError, OSError) as exc:
+                raise ClusterError(f"the scheduler at {address} refused the TLS credentials: {exc}") from None
+        head = b""
+        try:
+            while len(head) < 8:
+                part = sock.recv(8 - len(head))
+                if not part:
+                    break
+                head += part
+        except (TimeoutError, socket.timeout):
+            raise ClusterError(f"{address} is not a dask scheduler: it sent no dask handshake within "
+                               f"{timeout_s:g} s") from None
+        except ssl.SSLError as exc:
+            raise ClusterError(f"the scheduler at {address} refused the TLS credentials: {exc}") from None
+        except OSError as exc:
+            raise ClusterError(f"cannot reach the dask scheduler at {address}: {exc.strerror or exc}") from None
+    if len(head) < 8:
+        hint = " (it wants TLS: use tls://)" if scheme == "tcp" and head[:1] == b"\x15" else ""
+        raise ClusterError(f"{address} is not a dask scheduler: it closed the connection without a "
+                           f"handshake{hint}")
+    (n,) = struct.unpack("<Q", head)
+    if not 0 < n <= MAX_HANDSHAKE_BYTES:
+        raise ClusterError(f"{address} is not a dask scheduler: its first message begins {head!r}, a frame "
+                           f"of {n} bytes (limits.MAX_HANDSHAKE_BYTES is {MAX_HANDSHAKE_BYTES})")
+
+
+def connect_scheduler(address: str, *, tls: TlsFiles | None = None, timeout_s: float = CONNECT_TIMEOUT_S):
+    """A ``distributed.Client`` of the scheduler at ``address``, after :func:`probe_scheduler`."""
+    from distributed import Client, Security
+
+    # the given credentials, else dask's configuration (distributed.comm.tls.*), if any
+    security = tls.security() if tls is not None else Security()
+    probe_scheduler(address, security=security, timeout_s=min(timeout_s, PROBE_TIMEOUT_S))
+    try:
+        return Client(address, security=security, timeout=f"{timeout_s}s")
+    except (OSError, TimeoutError) as exc:
+        raise ClusterError(f"cannot connect to the dask scheduler at {address}: {exc}") from None
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint():
+    """Worker processes started inside inherit an ignored SIGINT: a Ctrl-C at the terminal (sent
+    to the whole process group) reaches only this process, which stops the run in order."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def start_local_cluster(n_workers: int):
+    """Start a local cluster of ``n_workers`` single-threaded processes, TLS with per-run credentials.
+
+    Returns ``(client, cluster)``; the caller closes both.
+    """
+    import dask
+    from distributed import Client, LocalCluster, Security
+
+    try:
+        security = Security.temporary()
+    except ImportError as exc:
+        raise ClusterError(f"--workers needs the 'cryptography' package for the cluster's credentials: {exc}") \
+            from None
+    # dask.distributed's nannies set MALLOC_TRIM_THRESHOLD_ in their workers by default; an explicit
+    # threshold turns off glibc's adaptive mmap threshold, so every large temporary array of the
+    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (measured:
+    # 22 vs 43 px/s, system time up tenfold).  Keep the rest of the nanny environment (one BLAS
+    # thread per worker process).
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    # The scheduler and the workers also run an HTTP server (status pages, metrics) that TLS does
+    # not cover: it serves nothing here, and listens on 127.0.0.1 only, on a free port.
+    no_http = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env, **no_http}), _workers_ignore_sigint():
+        cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True, host="127.0.0.1",
+                               protocol="tls://", security=security, dashboard_address="127.0.0.1:0",
+                               scheduler_kwargs={"dashboard": False},
+                               # workers log errors only: cancelling the chunks of an interrupted run
+                               # would print a warning per running task
+                               silence_logs=logging.ERROR)
+    try:
+        return Client(cluster, security=security), cluster
+    except BaseException:
+        cluster.close()
+        raise
+
+
+@contextlib.contextmanager
+def quiet_distributed():
+    """Silence dask.distributed's loggers (shutting down an interrupted run logs every cancelled comm)."""
+    loggers = [logging.getLogger(n) for n in ("distributed", "tornado", "asyncio")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
