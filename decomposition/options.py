@@ -44,7 +44,7 @@ def _number(name, v, *, lo=None, lo_open=False, integer=False, allow_none=False)
     if v is None and allow_none:
         return None
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
-        raise OptionError(f"option {name}: expected {'an integer' if integer else 'a number'}, got {v!r}")
+        raise OptionError(f"option {name}: must be {'an integer' if integer else 'a number'}, got {v!r}")
     given = v
     if integer:
         if isinstance(v, numbers.Integral):
@@ -52,7 +52,7 @@ def _number(name, v, *, lo=None, lo_open=False, integer=False, allow_none=False)
         elif float(v).is_integer():
             v = int(v)
         else:
-            raise OptionError(f"option {name}: expected an integer, got {given!r}")
+            raise OptionError(f"option {name}: must be an integer, got {given!r}")
     else:
         v = float(v)
         if not math.isfinite(v):
@@ -66,7 +66,7 @@ def _flag(name, v, allow_none=False):
     if v is None and allow_none:
         return None
     if not isinstance(v, (bool, np.bool_)):
-        raise OptionError(f"option {name}: expected true or false, got {v!r}")
+        raise OptionError(f"option {name}: must be true or false, got {v!r}")
     return bool(v)
 
 

@@ -190,30 +190,15 @@ def _check_sizes(input_path, nt, chunks, n_ir, write_components) -> None:
         raise PipelineError(f"{input_path}: {exc}") from None
 
 
-_OPTION_TYPES = {"float": (int, float), "int": (int,), "bool": (bool,)}
-
-
 def _check_option_types(options: dict) -> None:
-    """Solver options against the type the solver's signature declares for each (one line)."""
-    import inspect
+    """Solver options against their fields (:mod:`decomposition.options`: name, type, range), in one line."""
+    from decomposition.gradbm import GRADBM_DEFAULTS
+    from decomposition.options import OptionError, options_from_mapping
 
-    from decomposition import decompose
-
-    params = inspect.signature(decompose).parameters
-    for key, value in options.items():
-        p = params.get(key)
-        if p is None or not isinstance(p.annotation, str):
-            continue
-        kinds = [k.strip() for k in p.annotation.split("|")]
-        if "None" in kinds and value is None:
-            continue
-        wanted = [_OPTION_TYPES[k] for k in kinds if k in _OPTION_TYPES]
-        if not wanted:
-            continue
-        if not any(isinstance(value, t) and (bool in t or not isinstance(value, bool)) for t in wanted):
-            words = {"float": "a number", "int": "an integer", "bool": "true or false", "None": "null"}
-            raise PipelineError(f"--option {key}: must be {' or '.join(words.get(k, k) for k in kinds)}, "
-                                f"got {value!r}")
+    try:
+        options_from_mapping({k: v for k, v in options.items() if k not in GRADBM_DEFAULTS}, strict=False)
+    except OptionError as exc:
+        raise PipelineError(f"--{exc}") from None   # "--option NAME: what is wrong"
 
 
 def _one_line(exc) -> str:

@@ -21,10 +21,10 @@ def test_info_records_every_option_with_its_resolved_value():
 
 @pytest.mark.parametrize("values, pattern", [
     ({"sparsity": -1.0}, "option sparsity: must be >= 0"),
-    ({"sparsity": "3"}, "option sparsity: expected a number"),
-    ({"max_components": 2.5}, "option max_components: expected an integer"),
+    ({"sparsity": "3"}, "option sparsity: must be a number"),
+    ({"max_components": 2.5}, "option max_components: must be an integer"),
     ({"max_components": 0}, "option max_components: must be >= 1"),
-    ({"multistart": 1}, "option multistart: expected true or false"),
+    ({"multistart": 1}, "option multistart: must be true or false"),
     ({"eps_rel": 0.0}, "option eps_rel: must be > 0"),
     ({"sigma_range_ps": (3.0, 1.0)}, "option sigma_range_ps: must be 0 < lo <= hi"),
     ({"lm_tol": float("nan")}, "option lm_tol: must be finite"),
