@@ -43,7 +43,8 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from core.errors import StreaklabError
-from core.irf import InstrumentResponse, ResponseError, gaussian_fit, render_shifted
+from core.irf import InstrumentResponse, ResponseError, render_shifted
+from core.irf_models import gaussian_fit
 from core.provenance import __version__
 
 from .cubestore import Cube

@@ -5,7 +5,8 @@ from scipy.optimize import least_squares
 
 from acquisition.config import ConfigError, load_config, parse_config
 from acquisition.rig import simulated_scene
-from core.irf import gaussian_response, render_shifted, render_sss
+from core.irf import render_shifted, render_sss
+from core.irf_models import gaussian_response
 from core.irfstore import load_response
 from drivers.sim.scene import VirtualScene, simulated_response
 from reconstruction.cubestore import open_cube, read_cube_response

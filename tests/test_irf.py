@@ -5,11 +5,8 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from core.irf import (
-    InstrumentResponse, ResponseError, afterpulse_response, gaussian_fit, gaussian_response, model_value,
-    render_shifted,
-    render_sss, tailed_response,
-)
+from core.irf import InstrumentResponse, ResponseError, render_shifted, render_sss
+from core.irf_models import afterpulse_response, gaussian_fit, gaussian_response, model_value, tailed_response
 from core.model import gaussian_kernel, sss_kernel
 
 T = 2.0                                        # ps per bin

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from core.irf import gaussian_response, render_shifted, render_sss, tailed_response
+from core.irf import render_shifted, render_sss
+from core.irf_models import gaussian_response, tailed_response
 from core.model import gaussian_kernel
 from decomposition.irf_dictionary import FAM_SHIFTED, FAM_SSS, ResponseDictionary
 

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from core.irf import afterpulse_response, render_shifted, tailed_response
+from core.irf import render_shifted
+from core.irf_models import afterpulse_response, tailed_response
 from reconstruction.cubestore import open_cube, write_cube
 from reconstruction.irf import (
     ResponseEstimateError, ResponseEstimateOptions, estimate_response, fit_response,

@@ -6,7 +6,8 @@ import pytest
 import zarr
 
 from core.errors import OutputExistsError
-from core.irf import afterpulse_response, render_shifted, tailed_response
+from core.irf import render_shifted
+from core.irf_models import afterpulse_response, tailed_response
 from core.irfstore import ResponseStoreError, load_response, save_response
 from core.provenance import __version__
 from reconstruction.cubestore import (

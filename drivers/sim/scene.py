@@ -40,7 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.irf import InstrumentResponse, afterpulse_response, render_shifted, render_sss, tailed_response
+from core.irf import InstrumentResponse, render_shifted, render_sss
+from core.irf_models import afterpulse_response, tailed_response
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 
 __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN_DOUBLING_STEPS",
