@@ -141,6 +141,18 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     spike_sigma : float
         Single-sample spikes this many noise sigmas above both neighbours, and
         too narrow for the narrowest kernel, are excluded and flagged (0 = off).
+        Count data (``noise="poisson"``) are tested against their counting
+        statistics instead, at a fixed false-alarm rate per profile
+        (:func:`decomposition.prepare.find_count_spikes`); there ``spike_sigma``
+        only switches the test on (> 0) or off.
+    noise : {"gaussian", "poisson", "auto"}
+        Noise model of the samples.  "gaussian": noise estimated from the data
+        (the paper's setting).  "poisson": the samples are photon counts, whose
+        variance is their expected value (spike test in Poisson terms, the
+        solver's noise the Poisson noise at the signal).  "auto": "poisson" for
+        count data -- an integer dtype, or floats that are all non-negative whole
+        numbers (:func:`decomposition.noise.is_count_data`) -- else "gaussian".
+        ``info["noise_model"]`` says which was used.
     shared_sigma : bool
         One PSF width per pixel shared by all its components (eq. (2) has a
         single camera PSF c(t)); False lets every atom have its own width.
@@ -167,14 +179,17 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
+        Count data (``noise="poisson"``) are always refitted, with weights
+        1 / Poisson variance of the model, reweighted POISSON_REFITS times
+        (:mod:`decomposition.refit`): the Poisson maximum-likelihood fit.
     search : bool
         Structured alternative starts for the pixels whose first answer is in
         doubt (an sss onset before the earliest Gaussian or far after it, an sss
         without a Gaussian, Gaussians without an sss, a leading edge steeper than
         the detected width, a fit above the noise): a direct and an sss on the
-        leading edge, the earliest significant peak as the direct, each with and
-        without the later Gaussians, and a narrower width; each polished, the
-        lowest penalised objective kept (:mod:`decomposition.search`).
+        leading edge, the earliest significant peak as the direct with and
+        without the later Gaussians; each polished, the lowest penalised
+        objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
@@ -188,6 +203,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         as the parameters, NaN where absent or not identifiable) to
         ``params``, from the Fisher information at the solution with the noise
         estimated from the residual (:func:`decomposition.fisher.standard_errors`).
+        Count data: from the Poisson Fisher information (weights 1 / model
+        count, the noise scale known).
         Default: the same as ``refine``.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
@@ -211,7 +228,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold)
+                              rel_threshold=opts.rel_threshold, noise=opts.noise)
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
             "saturation_level": samples.saturation_level}
@@ -242,7 +259,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
                "sss_after_direct": opts.sss_after_direct and method == "convscd"}
-    if opts.refine and samples.live.size:
+    if (opts.refine or samples.noise_model == "poisson") and samples.live.size:
         params, rinfo = refine_components(samples, params, **physics)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)
@@ -250,6 +267,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     lead, L = samples.lead, samples.n_bins
     params = _reshape_params(params, lead, R)
     info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    info["noise_model"] = samples.noise_model
     info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
         params.update(component_errors(samples, params, **physics))

@@ -316,13 +316,20 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                     weights=None, shared_sigma: bool = False, sss_after_direct: bool = False,
-                    bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                    bin_integrated: bool = False, noise_sigma=None) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
-    The noise level of each pixel is estimated from its residual,
-    sigma_n^2 = ||y - mu(theta)||^2 / (L - P_free), with P_free the number of
+    Unless ``noise_sigma`` gives it, the noise level of each pixel is estimated from its
+    residual, sigma_n^2 = ||y - mu(theta)||^2 / (L - P_free), with P_free the number of
     fitted parameters of the pixel; this is accurate when ``params`` is the
     least-squares fit (e.g. the output of :func:`decomposition.refine.refine`).
+
+    Count data: with ``weights`` 1 / variance of the Poisson law at the model
+    (:func:`decomposition.noise.poisson_weights`) and ``noise_sigma=1`` this is the Poisson
+    Fisher information sum_i (d mu_i / d theta)^2 / mu_i, the bound the Poisson
+    maximum-likelihood fit reaches.  (The residual estimate would be biased there: where
+    the variance is floored, far from the signal, a weighted squared residual averages
+    less than one.)
 
     Parameters
     ----------
@@ -342,6 +349,9 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         The fit kept sss onsets at or after the direct delay.  Where that
         constraint is active (onset equal to the direct delay) the two delays
         are one parameter, and both get its standard error.
+    noise_sigma : float or array_like broadcastable to (...,), optional
+        Known standard deviation of a unit-weight sample (1 where ``weights`` are the
+        inverse variances); default: estimated from the residual as above.
 
     Returns
     -------
@@ -387,6 +397,8 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
+    if noise_sigma is not None:
+        noise = np.where(dof > 0, _noise(noise_sigma, lead), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
                  bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct)
     if np.any(~np.isfinite(noise)):

@@ -12,6 +12,15 @@ median over the second differences whose three samples are all fitted.  Two vari
   curvature in it, and a smooth misfit (an offset) is removed by the differencing too.
 
 Both are the only home of this rule in the package.
+
+Count data (``noise="poisson"``, photon counting) have a known noise law instead: the
+variance of a sample is its expected count.  :func:`is_count_data` is the rule that
+``noise="auto"`` applies to recognise them, :func:`anscombe` stabilises their variance to ~1
+(the spike test works there), :func:`count_dispersion` measures the noise in that domain (1
+for pure Poisson counts, more with read noise or a gain above one count per unit),
+:func:`count_signal_sigma` gives the noise at the signal of a normalised count profile,
+:func:`poisson_weights` the least-squares weights 1 / variance for a model, and
+:func:`fit_dispersion` the noise scale of a fitted count profile (the standard errors' one).
 """
 from __future__ import annotations
 
@@ -20,9 +29,11 @@ import warnings
 
 import numpy as np
 
-from .constants import MAD_TO_SIGMA, MIN_NOISE_SAMPLES, SIGNAL_REGION_FRACTION
+from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
+                        SIGNAL_REGION_FRACTION)
 
-__all__ = ["noise_sigma", "signal_noise_sigma"]
+__all__ = ["noise_sigma", "signal_noise_sigma", "is_count_data", "anscombe", "count_dispersion",
+           "count_signal_sigma", "poisson_weights", "fit_dispersion"]
 
 
 def _usable(fit: np.ndarray) -> np.ndarray:
@@ -87,3 +98,94 @@ def signal_noise_sigma(residual: np.ndarray, model: np.ndarray, fit: np.ndarray,
         med = np.nanmedian(np.where(ok, d2, np.nan), axis=1)
     med = np.where(np.isfinite(med) & (ok.sum(axis=1) >= min_samples), med, 0.0)
     return MAD_TO_SIGMA * med / math.sqrt(6.0)
+
+
+def is_count_data(values: np.ndarray) -> bool:
+    """The ``noise="auto"`` rule: are these photon counts?
+
+    True for an integer (or boolean) dtype, and for floating-point input whose finite samples
+    are all non-negative whole numbers (counts stored as float) with at least one non-zero;
+    False otherwise (negative values, e.g. background-subtracted data, or any fractional
+    sample).  Non-finite samples are ignored (they are excluded from the fit anyway).
+    """
+    v = np.asarray(values)
+    if np.issubdtype(v.dtype, np.integer) or v.dtype == np.bool_:
+        return True
+    if not np.issubdtype(v.dtype, np.floating):
+        return False
+    f = v[np.isfinite(v)]
+    return bool(f.size) and bool(np.all(f >= 0)) and bool(np.any(f > 0)) and bool(np.all(f == np.floor(f)))
+
+
+def anscombe(counts: np.ndarray) -> np.ndarray:
+    """2 sqrt(x + 3/8): Poisson counts of any mean above ~1 get variance ~1 (less below)."""
+    return 2.0 * np.sqrt(np.maximum(counts, 0.0) + 0.375)
+
+
+def count_dispersion(counts: np.ndarray, fit: np.ndarray, min_samples: int = MIN_NOISE_SAMPLES) -> np.ndarray:
+    """(P,) noise standard deviation of the count profiles in the Anscombe domain, at least 1.
+
+    The robust second-difference estimate (as :func:`noise_sigma`) of the stabilised profile
+    over the samples above SIGNAL_REGION_FRACTION of the peak (where the counts are large
+    enough for the stabilisation to hold), kept only where it exceeds the Poisson law's own
+    value 1: read noise, or a gain above one unit per photon.  1 for rows with fewer than
+    ``min_samples`` usable second differences there.
+    """
+    x = np.maximum(counts, 0.0)
+    region = fit & (x >= SIGNAL_REGION_FRACTION * x.max(axis=1, keepdims=True))
+    a = anscombe(x)
+    d2 = np.abs(a[:, 2:] - 2.0 * a[:, 1:-1] + a[:, :-2])
+    ok = _usable(region)
+    s = _mad_sigma(d2, ok)
+    s = np.where(ok.sum(axis=1) >= min_samples, s, 0.0)
+    return np.maximum(s, 1.0)
+
+
+def count_signal_sigma(counts: np.ndarray, fit: np.ndarray, scale: np.ndarray,
+                       dispersion: np.ndarray | None = None) -> np.ndarray:
+    """(P,) Poisson noise at the signal of count profiles, in units of the normalised profile.
+
+    sqrt(median count over the fitted samples above SIGNAL_REGION_FRACTION of the peak)
+    / scale, times the dispersion (its square is the variance per count) where given: the
+    value :func:`signal_noise_sigma` measures on the residual of a good fit, known here from
+    the counts before any fit.  0 for rows without a positive scale.
+    """
+    x = np.where(fit, counts, np.nan)
+    region = fit & (counts >= SIGNAL_REGION_FRACTION * scale[:, None])
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(np.where(region, x, np.nan), axis=1)
+        s = np.sqrt(np.where(np.isfinite(med), med, 0.0)) / scale
+    s = np.where(scale > 0, s, 0.0)
+    return s if dispersion is None else s * dispersion
+
+
+def poisson_weights(model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+    """Least-squares weights 1 / variance of count data for a model, 0 off the fitted samples.
+
+    The variance of a sample is its model count (times dispersion^2 where given), floored
+    at POISSON_VARIANCE_FLOOR counts.
+    """
+    var = np.maximum(model_counts, POISSON_VARIANCE_FLOOR)
+    if dispersion is not None:
+        var = var * np.square(dispersion)[:, None]
+    return np.where(fit, 1.0 / var, 0.0)
+
+
+def fit_dispersion(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray,
+                   min_samples: int = MIN_NOISE_SAMPLES) -> np.ndarray:
+    """(P,) noise scale of count profiles from their fit: sqrt(Pearson chi^2 / n), at least 1.
+
+    Over the fitted samples whose model is at least PEARSON_MIN_COUNTS counts (there each
+    (y - mu)^2 / mu averages 1 for Poisson counts, and the variance floor plays no part);
+    1 (the Poisson law) for rows with fewer than ``min_samples`` such samples, and wherever
+    the estimate is below 1.  Unlike :func:`count_dispersion` it sees no curvature of the
+    profile, so it stays at 1 for pure counts however high the peak.
+    """
+    ok = fit & (model_counts >= PEARSON_MIN_COUNTS)
+    mu = np.where(ok, model_counts, 1.0)
+    chi2 = np.where(ok, (counts - mu) ** 2 / mu, 0.0).sum(axis=1)
+    n = ok.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.where(n >= min_samples, np.sqrt(chi2 / np.maximum(n, 1)), 1.0)
+    return np.maximum(d, 1.0)

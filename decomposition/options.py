@@ -29,6 +29,8 @@ __all__ = [
     "component_letters",
     "NAN_POLICIES",
     "parse_nan_policy",
+    "NOISE_MODELS",
+    "parse_noise_model",
 ]
 
 
@@ -154,6 +156,7 @@ class SolverOptions:
     block_size: int = 256
     refine: bool = False
     stderr: bool | None = None
+    noise: str = "auto"
     search: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
@@ -176,6 +179,7 @@ class SolverOptions:
         for name in ("eps_rel", "poor_fit"):
             _set(self, name, _number(name, getattr(self, name), lo=0, lo_open=True))
         _set(self, "bound_factor", _number("bound_factor", self.bound_factor, lo=1))
+        _set(self, "noise", parse_noise_model(self.noise))
 
     def resolved(self, components) -> "SolverOptions":
         """Defaults that depend on other settings filled in: ``max_iter``, ``stderr``, and
@@ -259,3 +263,17 @@ def parse_nan_policy(policy: str) -> str:
         return _NAN_ALIASES[str(policy)]
     except KeyError:
         raise ValueError(f"nan_policy must be one of {', '.join(NAN_POLICIES)}, got {policy!r}") from None
+
+
+
+#: noise models of the samples: "gaussian" (the noise is estimated from the data, white), "poisson"
+#: (the samples are photon counts: variance = expected count), "auto" (poisson for count data,
+#: see :func:`decomposition.noise.is_count_data`, else gaussian)
+NOISE_MODELS = ("auto", "gaussian", "poisson")
+
+
+def parse_noise_model(noise) -> str:
+    """A noise model -> its name in :data:`NOISE_MODELS`."""
+    if isinstance(noise, str) and noise in NOISE_MODELS:
+        return noise
+    raise OptionError(f"option noise: must be one of {', '.join(NOISE_MODELS)}, got {noise!r}")

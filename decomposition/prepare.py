@@ -1,7 +1,8 @@
 """Stage 1 of :func:`decomposition.decompose`: prepare the samples.
 
 Input check, per-pixel normalisation to unit peak, the masks of the samples that are fitted
-and of those that are censored (saturated), single-sample spikes, and the noise estimate.
+and of those that are censored (saturated), the noise model (Gaussian, or Poisson for photon
+counts), single-sample spikes (tested in the noise model's own terms), and the noise estimate.
 Nothing here depends on the solver; every later stage reads the :class:`Samples` it returns.
 """
 from __future__ import annotations
@@ -11,13 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .constants import DICT_SUPPORT_SIGMA
+from statistics import NormalDist
+
+from .constants import DICT_SUPPORT_SIGMA, SPIKE_FALSE_ALARM
 from .masks import SampleMask
 from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
-from .noise import noise_sigma
-from .options import GridSpec, parse_nan_policy
+from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, noise_sigma
+from .options import GridSpec, parse_nan_policy, parse_noise_model
 
-__all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes"]
+__all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes", "find_count_spikes",
+           "resolve_noise_model"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +64,8 @@ class Samples:
     lead : tuple                        leading shape of the input
     axis : TimeAxis
     saturation_level : float or None
+    noise_model : {"gaussian", "poisson"}    resolved (``"auto"`` decided by the count rule)
+    dispersion : ndarray (P,) or None      count data: noise std in the Anscombe domain (>= 1)
     """
 
     values: np.ndarray
@@ -75,6 +81,8 @@ class Samples:
     lead: tuple
     axis: TimeAxis
     saturation_level: float | None
+    noise_model: str = "gaussian"
+    dispersion: np.ndarray | None = None
 
     @property
     def n_bins(self) -> int:
@@ -111,9 +119,19 @@ def check_window(n_bins: int, axis: TimeAxis, grid: GridSpec) -> None:
             f"({DICT_SUPPORT_SIGMA:g} x sigma_max {grid.sigma_range_ps[1]:g} ps / time_bin_ps {T:g} ps + 1)")
 
 
+def resolve_noise_model(noise: str, values) -> str:
+    """``"auto"`` -> "poisson" for count data (:func:`decomposition.noise.is_count_data`), else
+    "gaussian"; "gaussian" and "poisson" are kept."""
+    noise = parse_noise_model(noise)
+    if noise == "auto":
+        return "poisson" if is_count_data(values) else "gaussian"
+    return noise
+
+
 def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str = "raise",
                     saturation_level: float | None = None, spike_sigma: float = 8.0,
-                    noise_floor: float = 1e-3, rel_threshold: float = 0.05) -> Samples:
+                    noise_floor: float = 1e-3, rel_threshold: float = 0.05,
+                    noise: str = "gaussian") -> Samples:
     """Validate, mask and normalise profiles (..., L); estimate their noise.
 
     Parameters
@@ -131,6 +149,11 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         Floor of the noise estimate relative to the pixel's peak.
     rel_threshold : float
         Spikes below this fraction of the peak are left alone (see :func:`find_spikes`).
+    noise : {"gaussian", "poisson", "auto"}
+        Noise model.  "poisson": the samples are counts; spikes are tested against the
+        counting statistics (:func:`find_count_spikes`, ``spike_sigma`` only switches the
+        test on or off) and the solver's noise is the Poisson noise at the signal.  "auto":
+        "poisson" for count data (:func:`resolve_noise_model`).
     """
     nan_policy = parse_nan_policy(nan_policy)
     arr = _as_profiles(profiles)
@@ -140,6 +163,7 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
     raw = arr.reshape(P, L)
     if saturation_level is None and np.issubdtype(arr.dtype, np.integer):
         saturation_level = float(np.iinfo(arr.dtype).max)
+    noise_model = resolve_noise_model(noise, raw)
     x = raw.astype(np.float64)
 
     flags = np.zeros(P, FLAG_DTYPE)
@@ -170,9 +194,17 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         s_est[idx_live] = noise_sigma(pn[idx_live], fit[idx_live])
     s_eff = np.maximum(s_est, noise_floor)
 
+    counts = noise_model == "poisson"
+    disp = np.ones(P) if counts else None
+    if counts and idx_live.size:
+        disp[idx_live] = count_dispersion(xs[idx_live], fit[idx_live])
     if spike_sigma and idx_live.size:
-        sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
-                         spike_sigma, rel_threshold)
+        if counts:
+            sp = find_count_spikes(xs[idx_live], fit[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
+                                   disp[idx_live], min_rel=rel_threshold)
+        else:
+            sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
+                             spike_sigma, rel_threshold)
         mark(flags, idx_live[sp.any(axis=1)], SPIKE)
         fit[idx_live] = fit[idx_live] & ~sp
         # re-normalise without the spikes
@@ -183,9 +215,13 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         idx_live = idx_live[ok]
         pn[idx_live] = xs[idx_live] / scale[idx_live, None]
         s_eff[idx_live] = np.maximum(noise_sigma(pn[idx_live], fit[idx_live]), noise_floor)
+    if counts and idx_live.size:
+        # the noise the solver weighs its sparsity with is the noise at the components
+        s_sig = count_signal_sigma(xs[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
+        s_eff[idx_live] = np.maximum(s_eff[idx_live], s_sig)
     return Samples(values=x, profiles=pn, scale=scale, fit=fit, censored=sat, finite=finite, live=idx_live,
                    noise=s_est, noise_eff=s_eff, flags=flags, lead=lead, axis=axis,
-                   saturation_level=saturation_level)
+                   saturation_level=saturation_level, noise_model=noise_model, dispersion=disp)
 
 
 def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_rel=0.05):
@@ -222,4 +258,58 @@ def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_re
     big = np.maximum(k_sigma * s[:, None], min_rel * np.abs(pn).max(axis=1, keepdims=True))
     sp = (c - nb > big) & (nb < 0.5 * r_min * c + 3.0 * s[:, None]) & fit[:, 1:-1]
     out[:, 1:-1] = sp
+    return out
+
+
+def _count_threshold(n_bins: int) -> float:
+    """Per-sample threshold (standard deviations) for SPIKE_FALSE_ALARM per profile of n_bins."""
+    return NormalDist().inv_cdf(1.0 - SPIKE_FALSE_ALARM / max(n_bins - 2, 1))
+
+
+def find_count_spikes(counts, fit, time_bin_ps, sigma_min_ps, dispersion=None, min_rel=0.05):
+    """Single-sample spikes of count profiles, tested against the counting statistics.
+
+    The rule of :func:`find_spikes` in Poisson terms, on the variance-stabilised profile
+    a = 2 sqrt(x + 3/8) (:func:`decomposition.noise.anscombe`; variance ~1 per sample, the
+    ``dispersion`` squared where larger).  With c the sample, n the larger neighbour and
+    r = exp(-T^2 / (2 sigma_min^2)) the smallest neighbour-to-peak ratio a real component has,
+    a sample is a spike when both
+
+    * it is significantly above the neighbour: a(c) - a(n) > z sqrt(2) dispersion, and
+    * the neighbour is significantly below what the narrowest kernel would leave there:
+      a(r c) - a(n) > z sqrt(1 + r) dispersion (a(r c) has variance ~r),
+
+    and c - n exceeds ``min_rel`` of the pixel's peak, as for Gaussian data.  z is the normal
+    quantile for the false-alarm rate SPIKE_FALSE_ALARM per profile
+    (:mod:`decomposition.constants`), whatever the count level: a profile without spikes is
+    flagged with about that probability.
+
+    Parameters
+    ----------
+    counts : ndarray (P, L)       counts (0 on samples that are not fitted)
+    fit : ndarray (P, L) bool     fitted samples (only those can be spikes)
+    time_bin_ps, sigma_min_ps : float
+    dispersion : ndarray (P,), optional
+        Noise std in the Anscombe domain (default 1, pure Poisson).
+    min_rel : float
+
+    Returns
+    -------
+    ndarray (P, L) bool
+    """
+    x = np.asarray(counts, np.float64)
+    P, L = x.shape
+    out = np.zeros((P, L), bool)
+    if L < 3:
+        return out
+    disp = np.ones(P) if dispersion is None else np.asarray(dispersion, np.float64)
+    r_min = math.exp(-0.5 * (time_bin_ps / sigma_min_ps) ** 2)
+    z = _count_threshold(L) * disp[:, None]
+    c = x[:, 1:-1]
+    nb = np.maximum(x[:, :-2], x[:, 2:])
+    a_c, a_nb, a_rc = anscombe(c), anscombe(nb), anscombe(r_min * c)
+    above = a_c - a_nb > z * math.sqrt(2.0)
+    narrow = a_rc - a_nb > z * math.sqrt(1.0 + r_min)
+    big = c - nb > min_rel * np.abs(x).max(axis=1, keepdims=True)
+    out[:, 1:-1] = above & narrow & big & fit[:, 1:-1]
     return out

@@ -229,6 +229,7 @@ def test_bad_inputs_are_refused_before_any_work(tmp_path, cube_path, capsys):
     refused([cube_path, "--option", "sparsity=-1"], "--option sparsity: must be >= 0")
     refused([cube_path, "--option", "sparsity=abc"], "--option sparsity: must be a number, got 'abc'")
     refused([cube_path, "--option", "multistart=1"], "--option multistart: must be true or false")
+    refused([cube_path, "--option", "noise=shot"], "--option noise: must be one of auto, gaussian, poisson")
     refused([cube_path, "--workers", "2", "--threads", "2"], "--threads")
     # the output path: never the input, never something else without --overwrite
     assert main(["decompose", str(cube_path), "--out", str(cube_path), "--overwrite", "--quiet"]) == 2

@@ -47,6 +47,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--shape", type=int, nargs=3, default=DEFAULT_SHAPE, metavar=("NY", "NX", "NT"),
                         help="synthetic cube (default 64 672 512)")
     parser.add_argument("--nsr", type=float, default=0.05, help="white-noise NSR (default 0.05)")
+    parser.add_argument("--photons", type=float, default=None, metavar="N",
+                        help="photon counts instead of white noise: Poisson counts of N expected photons per "
+                             "pixel (whole numbers, so decompose takes its Poisson noise model)")
     parser.add_argument("--methods", default="convscd,gradbm", help="comma-separated (default convscd,gradbm)")
     parser.add_argument("--workers", default="1,2",
                         help="comma-separated worker counts (local cluster processes), or threads:N for the "
@@ -81,25 +84,34 @@ def _parse_workers(text):
     return out
 
 
-def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy"):
+def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy", photons=None):
     """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds.
 
     ``scenes`` names a preset of :data:`decomposition.synthetic.SCENE_PRESETS`; ``paper``
-    scenes are rendered bin-integrated, ``legacy`` ones point-sampled."""
+    scenes are rendered bin-integrated, ``legacy`` ones point-sampled.  With ``photons`` the
+    samples are Poisson counts of the clean profiles scaled to that many expected photons per
+    pixel (``nsr`` is then unused)."""
     from decomposition.synthetic import make_cube
     from reconstruction.cubestore import create_cube
 
     ny, nx, nt = shape
     t0 = time.perf_counter()
     cube = create_cube(path, shape, time_bin_ps=2.0, t0_ps=2.0, chunks=chunks, units="arbitrary",
-                       provenance={"producer": "streaklab bench speed", "nsr": nsr, "noise": "white", "seed": seed,
-                                   "scenes": scenes},
+                       provenance={"producer": "streaklab bench speed", "nsr": nsr,
+                                   "noise": "white" if photons is None else f"photon counts, {photons:g} per pixel",
+                                   "seed": seed, "scenes": scenes},
                        overwrite=True)
     for i, y0 in enumerate(range(0, ny, rows_per_block)):
         rows = min(rows_per_block, ny - y0)
-        data = make_cube(rows, nx, nt, nsr=nsr, noise="white", seed=seed * 100003 + i, ranges=scenes,
-                         bin_integrated=scenes == "paper")
-        cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
+        data = make_cube(rows, nx, nt, nsr=nsr if photons is None else 0.0, noise="white", seed=seed * 100003 + i,
+                         ranges=scenes, bin_integrated=scenes == "paper")
+        if photons is None:
+            cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
+        else:
+            clean = data.clean
+            total = np.maximum(clean.sum(axis=-1, keepdims=True), 1e-300)
+            rng = np.random.default_rng(seed * 100003 + i)
+            cube.array[y0:y0 + rows] = rng.poisson(clean * (photons / total)).astype(np.float32)
     return time.perf_counter() - t0
 
 
@@ -212,6 +224,8 @@ def run(args) -> int:
     workers = _parse_workers(args.workers)
     from decomposition.synthetic import SCENE_PRESETS
 
+    if args.photons is not None and not (np.isfinite(args.photons) and args.photons > 0):
+        raise CommandError(f"--photons must be a positive number, got {args.photons:g}")
     if args.scenes not in SCENE_PRESETS:
         raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
     out = Path(args.out)
@@ -224,11 +238,13 @@ def run(args) -> int:
     with tempfile.TemporaryDirectory(dir=out, prefix="work-") as tmp:
         work = Path(tmp) if not args.keep else out
         cube_path = work / "cube.zarr"
-        print(f"writing a synthetic {ny} x {nx} x {nt} cube (white noise, NSR {args.nsr:g}, seed {args.seed}, "
+        noise_text = (f"white noise, NSR {args.nsr:g}" if args.photons is None
+                      else f"photon counts, {args.photons:g} per pixel")
+        print(f"writing a synthetic {ny} x {nx} x {nt} cube ({noise_text}, seed {args.seed}, "
               f"chunks {chunks[0]} x {chunks[1]}) ...", flush=True)
         try:
             gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks,
-                                         scenes=args.scenes)
+                                         scenes=args.scenes, photons=args.photons)
         except ValueError as exc:
             raise CommandError(f"{exc} (or --scenes legacy)") from None
         from decomposition.jit import warm_up
@@ -269,7 +285,7 @@ def run(args) -> int:
             print(f"target, convscd with {how}: [{'met' if ok else 'NOT met'}] "
                   f"{s['pixels_per_s']:,.0f} px/s all stages (target >= {TARGET_PX_PER_S:,}), paper-size cube "
                   f"{s['paper_cube_s'] / 60:.1f} min (target < {TARGET_PAPER_S / 60:.1f}){where}")
-    report = {"shape": [ny, nx, nt], "nsr": args.nsr, "seed": args.seed, "chunks": list(chunks),
+    report = {"shape": [ny, nx, nt], "nsr": args.nsr, "photons": args.photons, "seed": args.seed, "chunks": list(chunks),
               "cpu_count": os.cpu_count(), "cube_write_s": gen_s, "floor": floor, "runs": rows,
               "paper_shape": list(PAPER_SHAPE)}
     (out / "speed.json").write_text(json.dumps(report, indent=2))
