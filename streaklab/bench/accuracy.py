@@ -24,7 +24,6 @@ every NSR above 0.005); and the accuracy targets against the oracle as met / not
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
 import sys
@@ -34,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from streaklab.cli import CommandError
+
+from .tables import write_csv
 
 LEVEL = 0.90
 TARGET_NSR = 0.055
@@ -271,17 +272,6 @@ def summarise(rows, methods, noises):
     return out
 
 
-def _write_csv(path: Path, rows):
-    fields = []
-    for r in rows:
-        fields += [k for k in r if k not in fields]
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-
-
 def _plot(path: Path, rows, methods, noises, per_pixel):
     import matplotlib
 
@@ -394,10 +384,10 @@ def run(args) -> int:
                     "oracle_targets": [{"target": t, "met": s, "detail": d} for t, s, d in targets + search_targets]})
     csv_path, png_path, json_path = out / "accuracy.csv", out / "accuracy.png", out / "summary.json"
     reg_path, flag_path = out / "regimes.csv", out / "flags.csv"
-    _write_csv(csv_path, rows)
+    write_csv(csv_path, rows)
     keys = ("time_bin_ps", "noise", "nsr")
-    _write_csv(reg_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["regimes"]])
-    _write_csv(flag_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["flags"]])
+    write_csv(reg_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["regimes"]])
+    write_csv(flag_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["flags"]])
     _plot(png_path, rows, methods, noises, per_pixel)
     json_path.write_text(json.dumps(summary, indent=2) + "\n")
 

@@ -42,12 +42,13 @@ types without it; the default setting starred) in ``--out``, and prints whether 
 """
 from __future__ import annotations
 
-import csv
 import math
 import time
 from pathlib import Path
 
 import numpy as np
+
+from .tables import write_csv
 
 NSRS = (0.01, 0.055, 0.11)
 NOISES = ("white", "pink", "photon")
@@ -188,31 +189,6 @@ def _measure(data, comps, params, seconds, crb, oracle_fid):
         "direct_delay_crb_median_ps": _median(crb["direct_delay_ps_crb"]),
         "direct_amplitude_crb_rms": _rms(crb["direct_amplitude_crb"]),
     }
-
-
-def _fmt(v):
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return v
-
-
-def _write_csv(path, rows):
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=FIELDS)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: _fmt(r[k]) for k in FIELDS})
-
-
-def _write_rows(path, rows):
-    fields = []
-    for r in rows:
-        fields += [k for k in r if k not in fields]
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: _fmt(r.get(k, "")) for k in fields})
 
 
 def _plot(path, rows, nsrs):
@@ -402,8 +378,8 @@ def run(args) -> int:
         iso_rows["default" if is_default else "other"] = row
 
     csv_path, png_path, reg_path = out / "tradeoff.csv", out / "tradeoff.png", out / "regimes.csv"
-    _write_csv(csv_path, rows)
-    _write_rows(reg_path, regime_out)
+    write_csv(csv_path, rows, FIELDS)
+    write_csv(reg_path, regime_out)
     _plot(png_path, rows, NSRS)
 
     # ---- targets
