@@ -34,17 +34,9 @@ Rendering: point samples of the model at the bin centres (the solver's own model
 (``bin_integrated=True``) each bin the mean of the continuous model over its width, in closed
 form (:func:`render_bin_integrated`), as a detector bin records it.
 
-Noise (the paper's three fundamental types):
-
-    "photon"    Poisson (shot) noise: counts ~ Poisson(lambda * p) / lambda, variance
-                proportional to the clean signal p.  lambda (photons per unit signal) is
-                chosen per pixel so that the expected NSR is the requested one.
-    "detector"  pink noise: white Gaussian noise shaped in the Fourier domain by 1/sqrt(f),
-                so its power spectrum falls as 1/f (zero mean: the DC term is removed).
-    "white"     fluctuation noise: independent Gaussian samples.
-
-Each realisation is then rescaled per pixel so that NSR = ||noise||_2 / ||clean||_2 holds
-exactly (to rounding).  Everything is seeded: the same seed gives the same arrays.  The scene
+Noise: one of the paper's three fundamental types ("photon", "detector" (pink), "white"; see
+:mod:`decomposition.synthetic_noise`), rescaled per pixel to the exact requested NSR.
+Everything is seeded: the same seed gives the same arrays.  The scene
 and the noise use separate streams spawned from the seed, so the same seed gives the same
 scene whatever the noise type and NSR.
 """
