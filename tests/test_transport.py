@@ -208,6 +208,39 @@ def test_tcp_transport_lines_blocks_timeout_and_peer_close():
         TcpLineTransport("127.0.0.1", port, connect_timeout_s=0.5)
 
 
+def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command():
+    # The first part of a late reply has arrived when the next command goes out; its rest is
+    # still on the wire.  The resynchronisation waits for the end of that line and drops it, so
+    # the rest is not taken for the next command's reply.
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    try:
+        t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
+        conn, _ = server.accept()
+        with pytest.raises(DeviceTimeout):
+            t.query(b"1ID?\r\n")
+        assert conn.recv(64) == b"1ID?\r\n"
+        conn.sendall(b"1ID SMC_")
+        assert select.select([t.sock], [], [], 2.0)[0]       # the first part is at the client
+        seen = []
+
+        def rest_then_answer():
+            time.sleep(0.05)                                  # the rest is later on the wire
+            conn.sendall(b"sim\r\n")
+            seen.append(conn.recv(64))
+            conn.sendall(b"1TS000033\r\n")
+
+        th = threading.Thread(target=rest_then_answer)
+        th.start()
+        assert t.query(b"1TS\r\n", timeout_s=2.0) == b"1TS000033\r\n"
+        th.join(5)
+        assert seen == [b"1TS\r\n"]
+        t.close()
+        conn.close()
+    finally:
+        server.close()
+
+
 def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_peer_went():
     server = socket.create_server(("127.0.0.1", 0))
     port = server.getsockname()[1]

@@ -16,6 +16,9 @@ from ..errors import ConnectionLost, DeviceTimeout, ProtocolError
 
 __all__ = ["LineTransport", "IO_ERRORS", "WriteBlocked"]
 
+# Longest wait for the rest of a late reply caught mid-line when resynchronising (s).
+RESYNC_WAIT_S = 0.2
+
 IO_ERRORS = (serial.SerialException, OSError, _TermiosError)
 
 
@@ -165,8 +168,26 @@ class LineTransport:
 
     def _write_now(self, data: bytes) -> None:
         if self.stale:
-            self._drain_now()
+            self._resync_now()
         self._send(data)
+
+    def _resync_now(self) -> None:
+        """Discard stale input before a command, including the rest of a late line still in flight.
+
+        A late reply can be caught mid-line (its first bytes have arrived, the rest is on the
+        wire); discarding only what has arrived would leave its tail to be read as the next
+        command's reply.  So when the discarded bytes stop inside a line, the rest of that line
+        is awaited, for at most ``RESYNC_WAIT_S`` (or the timeout, if shorter), and discarded too.
+        """
+        dropped = self._drain_now()
+        if not dropped or dropped.endswith(self.terminator):
+            return
+        deadline = time.monotonic() + min(self.timeout_s, RESYNC_WAIT_S)
+        while not dropped.endswith(self.terminator):
+            chunk = self._receive(self.max_line, deadline)
+            if not chunk:
+                return
+            dropped += chunk
 
     def _drain_now(self) -> bytes:
         dropped = bytes(self._rx) + self._discard_input()
