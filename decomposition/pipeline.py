@@ -404,24 +404,16 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                 bar.close()
             raise DataIntegrityError(f"{exc} (the chunks finished before it are in {out_path}; --resume "
                                      f"continues once the input is mended)") from None
-        except OSError as exc:                      # a full or read-only disk
-            if bar is not None:
-                bar.close()
-            if client is not None:
-                _close_quietly(client, cluster)
-                client = cluster = None
-            done_now = int(store.done_chunks().sum())
-            print(f"decompose: stopped; {done_now}/{total} chunks are on disk in {out_path}; fix the problem below "
-                  f"and rerun with --resume to finish", file=stream)
-            raise
-        except KeyboardInterrupt:
+        except (OSError, KeyboardInterrupt) as exc:  # a full or read-only disk, or Ctrl-C
             if bar is not None:
                 bar.close()
             if client is not None:  # let the workers' running chunks end before counting what is on disk
                 _close_quietly(client, cluster)
                 client = cluster = None
             done_now = int(store.done_chunks().sum())
-            print(f"decompose: interrupted; {done_now}/{total} chunks are on disk in {out_path}; "
+            how, fix = (("interrupted", "") if isinstance(exc, KeyboardInterrupt)
+                        else ("stopped", "fix the problem below and "))
+            print(f"decompose: {how}; {done_now}/{total} chunks are on disk in {out_path}; {fix}"
                   f"rerun with --resume to finish", file=stream)
             raise
         if bar is not None:
