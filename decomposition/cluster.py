@@ -137,9 +137,12 @@ def connect_scheduler(address: str, *, tls: TlsFiles | None = None, timeout_s: f
 
 
 @contextlib.contextmanager
-def _workers_ignore_sigint():
-    """Worker processes started inside inherit an ignored SIGINT: a Ctrl-C at the terminal (sent
-    to the whole process group) reaches only this process, which stops the run in order."""
+def ignore_sigint():
+    """SIGINT ignored inside (on the main thread; elsewhere a no-op), restored after.
+
+    Worker processes started inside inherit the ignored SIGINT, so a Ctrl-C at the terminal (sent
+    to the whole process group) reaches only this process, which stops the run in order; a run
+    closing its cluster after an interrupt is not broken off by a second Ctrl-C."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -173,7 +176,7 @@ def start_local_cluster(n_workers: int):
     # The scheduler and the workers also run an HTTP server (status pages, metrics) that TLS does
     # not cover: it serves nothing here, and listens on 127.0.0.1 only, on a free port.
     no_http = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": env, **no_http}), _workers_ignore_sigint():
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": env, **no_http}), ignore_sigint():
         cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True, host="127.0.0.1",
                                protocol="tls://", security=security, dashboard_address="127.0.0.1:0",
                                scheduler_kwargs={"dashboard": False},

@@ -257,7 +257,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     scheduler.
     """
     from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
-    from decomposition.resultstore import ChunkWriter, ResultStoreError, create_result_store, open_result_store
+    from decomposition.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
+                                           prepare_output_path)
     from core.provenance import __version__
     from decomposition.options import parse_nan_policy
 
@@ -294,7 +295,6 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     existing = None
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
-        from decomposition.resultstore import prepare_output_path
 
         try:
             prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
@@ -328,7 +328,6 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             raise PipelineError(f"cannot resume {out_path}: it was started with different settings ({details}); "
                                f"use the original settings, or --overwrite to start again")
     else:
-        from decomposition.resultstore import prepare_output_path
 
         try:  # refuse an occupied path (or one overlapping the input) before spending time on checks
             prepare_output_path(out_path, overwrite=overwrite, protect=[source["path"]])
@@ -442,25 +441,15 @@ def _region_pixels(store, iy, ix) -> int:
 def _close_quietly(client, cluster) -> None:
     """Close an interrupted run's client and cluster, silencing distributed's shutdown chatter
     (a second Ctrl-C meanwhile is ignored)."""
-    import signal
-    import threading
+    from decomposition.cluster import ignore_sigint, quiet_distributed
 
-    from decomposition.cluster import quiet_distributed
-
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        with quiet_distributed():
-            for thing in (client, cluster):
-                if thing is not None:
-                    try:
-                        thing.close()
-                    except Exception:  # shutting down after an interrupt: nothing left to save
-                        pass
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+    with ignore_sigint(), quiet_distributed():
+        for thing in (client, cluster):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:  # shutting down after an interrupt: nothing left to save
+                    pass
 
 
 def _connect(scheduler, workers, tls=None):
