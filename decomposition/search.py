@@ -42,6 +42,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
+from .constants import (MAD_TO_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
+                        SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
 from .refine import refine
 
 __all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
@@ -70,11 +72,11 @@ class SearchOptions:
     """
 
     penalty: float = 1.0
-    ir_gap_sigma: float = 3.0
-    edge_level: float = 0.1
-    peak_level: float = 0.2
-    default_sigma_ps: float = 3.0
-    default_alpha_per_ps: float = 0.03
+    ir_gap_sigma: float = SEARCH_IR_GAP_SIGMA
+    edge_level: float = SEARCH_EDGE_LEVEL
+    peak_level: float = SEARCH_PEAK_LEVEL
+    default_sigma_ps: float = SEARCH_DEFAULT_SIGMA_PS
+    default_alpha_per_ps: float = SEARCH_DEFAULT_ALPHA_PER_PS
     max_iter: int = 30
 
     def __post_init__(self):
@@ -169,7 +171,7 @@ def _smooth(y, width_bins):
 def _noise_sigma(y):
     """Per-pixel white-noise level from the median absolute first difference."""
     d = np.diff(y, axis=-1)
-    return 1.4826 * np.median(np.abs(d - np.median(d, axis=-1, keepdims=True)), axis=-1) / np.sqrt(2.0)
+    return MAD_TO_SIGMA * np.median(np.abs(d - np.median(d, axis=-1, keepdims=True)), axis=-1) / np.sqrt(2.0)
 
 
 def _n_params(params):
