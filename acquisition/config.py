@@ -198,8 +198,7 @@ def _line_count(key, v):
 def _angle_list(key, v):
     if not isinstance(v, list) or not v:
         _fail(key, f"must be a non-empty list of angles in degrees, got {v!r}")
-    if len(v) > L.MAX_SCAN_LINES:
-        _fail(key, f"{len(v)} lines exceeds the limit of {L.MAX_SCAN_LINES} lines (limits.MAX_SCAN_LINES)")
+    _line_count(key, len(v))
     out = [_num(f"{key}[{i}]", a, lo=-360.0, hi=360.0, what="an angle in degrees in [-360, 360]")
            for i, a in enumerate(v)]
     if len(set(out)) != len(out):

@@ -47,7 +47,7 @@ from core.integrity import (ChunkDamage, consolidate, create_array, has_checksum
                             open_member, scan_array, writable)
 from core.staging import OutputPathError, check_no_links, staged_output
 
-from .config import ConfigError, ScanConfig, parse_config
+from .config import ConfigError, ScanConfig, calibration_times_ps, parse_config
 
 __all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
@@ -377,8 +377,7 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
     if camera_table is not None and cal.get("time_source", "auto") != "config":
         time_ps, origin = camera_table, "the camera's scaling table (camera_row_times_ps)"
     else:
-        time_ps = np.polynomial.polynomial.polyval(np.arange(nt, dtype=np.float64),
-                                                   [float(c) for c in cal["time_poly_ps"]])
+        time_ps = calibration_times_ps(cal["time_poly_ps"], nt)
         origin = "calibration.time_poly_ps at the row"
     create_array(g, "time_ps", shape=(nt,), dtype="float64", dimension_names=["row"],
                  attributes={"units": "ps", "long_name": "time of the row after the laser pulse",

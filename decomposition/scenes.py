@@ -72,8 +72,7 @@ class SceneRanges:
     log_uniform: tuple[str, ...] = ()
 
     def __post_init__(self):
-        for name in ("sigma_ps", "alpha_per_ps", "direct_amplitude", "sss_relative_peak",
-                     "ir_relative_peak", "direct_position", "sss_onset_sigma"):
+        for name in _RANGE_NAMES:
             lo, hi = (float(v) for v in getattr(self, name))
             if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
                 raise ValueError(f"SceneRanges.{name} must be a finite (lo, hi) with lo <= hi, got {(lo, hi)}")
