@@ -275,8 +275,6 @@ class RemoteExCamera(RemoteExLink):
         -------
         ndarray, shape (rows,), float64, ps; or None.
         """
-        count = {}
-
         def announced(values):
             try:
                 n = int(values[0])
@@ -285,7 +283,6 @@ class RemoteExCamera(RemoteExLink):
                                     ",".join(values).encode()) from None
             if not 0 < n <= 1 << 20:
                 raise ProtocolError(f"ImgDataGet(ScalingTable) announced {n} values", ",".join(values).encode())
-            count["n"] = n
             return 4 * n
 
         with self._lock:
