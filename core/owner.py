@@ -13,7 +13,7 @@ import os
 import socket
 from pathlib import Path
 
-__all__ = ["owner_record", "owner_alive", "start_time"]
+__all__ = ["owner_record", "owner_alive", "owner_gone", "start_time"]
 
 
 def start_time(pid: int) -> str | None:
@@ -50,3 +50,9 @@ def owner_alive(info: dict) -> bool:
         pass
     started = info.get("started")
     return started is None or start_time(pid) in (None, started)
+
+
+def owner_gone(info) -> bool:
+    """True when ``info`` is a marker that streaklab wrote and its owner is known to be gone: what
+    streaklab left may then be cleaned up (anything else is left alone)."""
+    return isinstance(info, dict) and info.get("producer") == "streaklab" and not owner_alive(info)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from .errors import OutputExistsError
 from .integrity import consolidate
-from .owner import owner_alive
+from .owner import owner_gone
 from .owner import owner_record
 
 __all__ = ["check_output_path", "OutputPathError", "describe_existing", "check_no_links", "staged_output",
@@ -175,7 +175,7 @@ def clean_stale_staging(directory) -> list[Path]:
             info = json.loads(marker.read_text())
         except (OSError, ValueError):
             continue
-        if not isinstance(info, dict) or info.get("producer") != "streaklab" or owner_alive(info):
+        if not owner_gone(info):
             continue
         out = d / m["name"]
         tmp, trash, _ = _names(out, m["token"])

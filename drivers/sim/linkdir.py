@@ -11,7 +11,7 @@ recycled pid is not mistaken for the owner).
 
 * are named ``streaklab-mirror-*`` directly in the temporary directory,
 * are real folders (not links) owned by this user,
-* hold a readable streaklab marker whose process is gone (:func:`core.owner.owner_alive`), and
+* hold a readable streaklab marker whose process is gone (:func:`core.owner.owner_gone`), and
 * contain nothing but the marker and the simulator's links,
 
 and leaves everything else alone.
@@ -22,7 +22,7 @@ import json
 import os
 import tempfile
 
-from core.owner import owner_alive, owner_record
+from core.owner import owner_gone, owner_record
 
 __all__ = ["PREFIX", "MARKER", "make_link_dir", "remove_link_dir", "remove_stale_link_dirs"]
 
@@ -76,8 +76,7 @@ def remove_stale_link_dirs(parent: str | None = None) -> list[str]:
                 owner = json.load(f)
         except (OSError, ValueError):
             continue          # not ours, or not readable: leave it
-        if not isinstance(owner, dict) or owner.get("producer") != "streaklab" \
-                or not names <= _OWN_NAMES or owner_alive(owner):
+        if not owner_gone(owner) or not names <= _OWN_NAMES:
             continue
         remove_link_dir(entry.path)
         if not os.path.lexists(entry.path):
