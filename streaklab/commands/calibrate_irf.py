@@ -12,6 +12,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from core.staging import describe_existing
 from streaklab.cli import CommandError
 
 
@@ -32,15 +33,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace a response already stored there")
 
 
-def _kind(path) -> str | None:
-    import zarr
-
-    try:
-        return zarr.open_group(str(path), mode="r").attrs.get("streaklab_kind")
-    except Exception:  # noqa: BLE001 - the stores' own openers name the problem below
-        return None
-
-
 def run(args) -> int:
     from core.irfstore import save_response
     from reconstruction.build import reconstruct
@@ -50,7 +42,7 @@ def run(args) -> int:
     opts = ResponseEstimateOptions(pre_peak_ps=args.pre_ps, post_peak_ps=args.post_ps, min_snr=args.min_snr,
                                    saturation_level=args.saturation_level, min_pixels=args.min_pixels)
     source = Path(args.source)
-    if _kind(source) == "run":
+    if describe_existing(source) == "run":
         if args.out is None:
             raise CommandError(f"{source} is a run store: give --out for the response "
                                f"(or reconstruct it and calibrate the cube, which keeps the response)")
