@@ -164,7 +164,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition.search import structured_search
     from decomposition.synthetic import make_profiles
 
-    from .scoring import flag_precision_recall, regime_rows
+    from .scoring import POOR_FIDELITY, flag_precision_recall, regime_rows
 
     from decomposition.jit import warm_up
 
@@ -223,7 +223,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                            "fraction_at_level": float(np.mean(f >= LEVEL)),
                            "oracle_mean_fidelity": float(np.nanmean(f_or)),
                            "gap_to_oracle": float(np.nanmean(f) - np.nanmean(f_or)),
-                           "fraction_below_0.5": float(np.mean(f < 0.5)),
+                           "fraction_below_0.5": float(np.mean(f < POOR_FIDELITY)),
                            "direct_delay_failures": int(fail.sum()),
                            "unflagged_direct_delay_failures": int((fail & (flags == 0)).sum()),
                            "seconds_per_pixel": seconds[method] / pixels}
