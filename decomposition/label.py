@@ -48,6 +48,20 @@ def at_bound(state: dict, bounds: dict) -> np.ndarray:
     return hit.any(axis=1)
 
 
+def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions) -> dict:
+    """The atoms a pixel keeps, as every output reports them (in place): the relative threshold,
+    Gaussians merged (refinement can bring two together), one width per pixel with
+    ``shared_sigma`` (a merge leaves the merged atom wider), no sss onset before the direct with
+    ``sss_after_direct``.  The search stage scores its starts through the same rule."""
+    comp.threshold(st, t_ps, opts.rel_threshold)
+    comp.merge_gaussians(st, time_bin_ps, opts.merge_tol_bins)
+    if opts.shared_sigma:
+        tie_widths(st)
+    if opts.sss_after_direct:
+        comp.clip_sss_onset(st)
+    return st
+
+
 def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions) -> Labels:
     """Snap (``off_grid=False``), threshold, merge and classify the detected atoms."""
     P = samples.values.shape[0]
@@ -62,12 +76,7 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
         p, mask = solver_inputs(samples, live)
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    comp.threshold(st, t, opts.rel_threshold)
-    comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)   # refinement can bring two atoms together
-    if opts.shared_sigma:
-        tie_widths(st)          # a merge leaves the merged atom wider: one width per pixel in every output
-    if opts.sss_after_direct:
-        comp.clip_sss_onset(st)
+    final_atoms(st, t, dic.time_bin_ps, opts)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     wide = ((st["fam"] != FAM_NONE) & (st["lsig"] > math.log(dic.grid.sigma_range_ps[1]) + BOUND_TOL)).any(axis=1)
     mark(flags, live[wide], WIDE_PSF)

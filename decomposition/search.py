@@ -384,7 +384,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     from . import components as comp
     from .constants import FAM_GAUSS, FAM_SSS
     from .polish import refit_amplitudes
-    from .slots import drop_zero, parameter_bounds, put, refine_atoms, take, tie_widths
+    from .label import final_atoms
+    from .slots import drop_zero, parameter_bounds, put, refine_atoms, take
 
     n, L = p.shape
     K = st["fam"].shape[1]
@@ -466,13 +467,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         state, _, _ = refine_atoms(t, pb[rows], mb[rows], state, mu[rows], eps[rows], bounds, opts.n_polish, None,
                                    shared, opts.sss_after_direct, opts.lm_tol)
         drop_zero(state)
-        comp.threshold(state, t, opts.rel_threshold)
-        comp.merge_gaussians(state, T, opts.merge_tol_bins)
-        if shared:
-            tie_widths(state)
-        if opts.sss_after_direct:
-            comp.clip_sss_onset(state)      # scored as it will be labelled
-        return state
+        return final_atoms(state, t, T, opts)      # scored as it will be labelled
 
     # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
     cand = [take(base, idx)]
