@@ -305,12 +305,11 @@ def _stage_state(n, K, direct_ps, lsig, sss_ps, lalp, later_ps):
 
 
 def _data_chi2(t, p, mask, st, s2):
-    """(chi2 = weighted RSS / s^2 per pixel, model (n, L)) of a slot state."""
+    """chi2 = weighted RSS / s^2 per pixel of a slot state."""
     from .slots import render
 
-    model = render(t, st)
-    r = mask.residual(p, model)
-    return np.einsum("pl,pl->p", r, r) / s2, model
+    r = mask.residual(p, render(t, st))
+    return np.einsum("pl,pl->p", r, r) / s2
 
 
 def _n_free(st, shared_sigma):
@@ -401,13 +400,9 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     log_l = np.log(nfit)
     shared = opts.shared_sigma
 
-    def score(state):
-        chi2, _ = _data_chi2(t, p, mask, state, s2)
-        return chi2 + opts.search_penalty * _n_free(state, shared) * log_l, chi2
-
     base = {k: v.copy() for k, v in st.items()}
     comp.threshold(base, t, opts.rel_threshold)
-    j0, chi0 = score(base)
+    chi0 = _data_chi2(t, p, mask, base, s2)
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
@@ -486,7 +481,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         cand.append(refined(_stage_state(idx.size, K, d_ps, ls, s_ps, la, later)))
     js = []
     for c in cand:
-        chi2, _ = _data_chi2(t, pb, mb, c, sb2)
+        chi2 = _data_chi2(t, pb, mb, c, sb2)
         js.append(chi2 + opts.search_penalty * _n_free(c, shared) * log_l[idx])
     js = np.stack(js)                                   # (starts, m)
     if not opts.sss_alone:
