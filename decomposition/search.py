@@ -168,6 +168,15 @@ def _smooth(y, width_bins):
     return np.fft.irfft(np.fft.rfft(pad, axis=-1) * h, n=2 * n, axis=-1)[:, :n]
 
 
+def _first_peak(ys, level):
+    """Index of each profile's earliest significant local maximum (at least ``level`` x its
+    peak), or of its maximum where it has none.  ys: (n, L) -> (n,) int."""
+    top = ys.max(axis=1, keepdims=True)
+    is_peak = np.zeros_like(ys, dtype=bool)
+    is_peak[:, 1:-1] = (ys[:, 1:-1] >= ys[:, :-2]) & (ys[:, 1:-1] > ys[:, 2:]) & (ys[:, 1:-1] >= level * top)
+    return np.where(is_peak.any(axis=1), np.argmax(is_peak, axis=1), np.argmax(ys, axis=1))
+
+
 def _noise_sigma(y):
     """Per-pixel white-noise level from the median absolute first difference."""
     d = np.diff(y, axis=-1)
@@ -228,10 +237,7 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
     above = ys >= opt.edge_level * top
     i_edge = np.argmax(above, axis=1)
     t_edge = t[i_edge]
-    is_peak = np.zeros_like(ys, dtype=bool)
-    is_peak[:, 1:-1] = (ys[:, 1:-1] >= ys[:, :-2]) & (ys[:, 1:-1] > ys[:, 2:]) & (ys[:, 1:-1] >= opt.peak_level * top)
-    has_peak = is_peak.any(axis=1)
-    t_peak = np.where(has_peak, t[np.argmax(is_peak, axis=1)], t[np.argmax(ys, axis=1)])
+    t_peak = t[_first_peak(ys, opt.peak_level)]
 
     starts = {"solver": relabel(params, n_ir)}
     for name, d_delay, s_delay, keep in (("edge", t_edge + sigma, t_edge + sigma, True),
@@ -423,10 +429,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     # PSF width from the rise of the earliest significant peak (10 % to 50 % of its height
     # takes 0.97 sigma for a Gaussian), from a profile smoothed by one bin only
     y1 = _smooth(p, np.ones(n))
-    top1 = y1.max(axis=1, keepdims=True)
-    pk1 = np.zeros_like(y1, dtype=bool)
-    pk1[:, 1:-1] = (y1[:, 1:-1] >= y1[:, :-2]) & (y1[:, 1:-1] > y1[:, 2:]) & (y1[:, 1:-1] >= SEARCH_PEAK_LEVEL * top1)
-    i_pk = np.where(pk1.any(axis=1), np.argmax(pk1, axis=1), np.argmax(y1, axis=1))
+    i_pk = _first_peak(y1, SEARCH_PEAK_LEVEL)
     h_pk = y1[np.arange(n), i_pk]
     before = np.arange(L)[None, :] <= i_pk[:, None]
     t10 = _crossing(t, y1, 0.1 * h_pk, before)
@@ -447,10 +450,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     ys = _smooth(pb, np.maximum(sg / T, 0.5))
     top = ys.max(axis=1, keepdims=True)
     t_edge = t[np.argmax(ys >= SEARCH_EDGE_LEVEL * top, axis=1)]
-    is_peak = np.zeros_like(ys, dtype=bool)
-    is_peak[:, 1:-1] = ((ys[:, 1:-1] >= ys[:, :-2]) & (ys[:, 1:-1] > ys[:, 2:])
-                        & (ys[:, 1:-1] >= SEARCH_PEAK_LEVEL * top))
-    t_peak = np.where(is_peak.any(axis=1), t[np.argmax(is_peak, axis=1)], t[np.argmax(ys, axis=1)])
+    t_peak = t[_first_peak(ys, SEARCH_PEAK_LEVEL)]
     gd = np.where(g[idx], base["delay"][idx], np.nan)
     allow_later = "r" in components
     bounds = parameter_bounds(dic, opts.bound_factor)
