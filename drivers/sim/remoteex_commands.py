@@ -51,7 +51,7 @@ import numpy as np
 from drivers.remoteex_wire import format_seconds, normalize_time_range, parse_exposure
 
 from .remoteex_images import RemoteExImages
-from .remoteex_params import SINGLE_SWEEP_RANGES, ParamError, Reply, camera_params, delay_params, need as _need, streak_params
+from .remoteex_params import SINGLE_SWEEP_RANGES, Reply, camera_params, delay_params, need as _need, streak_params
 
 __all__ = ["RemoteExCommands", "Reply"]
 
@@ -331,10 +331,7 @@ class RemoteExCommands(RemoteExImages):
         param = self._cam_param(args)
         if self._mode is not None and param.name in ("Binning", "HWidth", "VWidth", "ScanMode"):
             raise Reply(3)
-        try:
-            param.set(args[2])
-        except ParamError as exc:
-            raise Reply(exc.code) from None
+        param.set(args[2])
         return [], None
 
     def _cmd_camparaminfo(self, args):
@@ -403,10 +400,7 @@ class RemoteExCommands(RemoteExImages):
                 raw = str(normalize_time_range(raw))
             except ValueError:
                 raise Reply(10) from None
-        try:
-            param.set(raw)
-        except ParamError as exc:
-            raise Reply(exc.code) from None
+        param.set(raw)
         return [], None
 
     def _cmd_devparaminfo(self, args):

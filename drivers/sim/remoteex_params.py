@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from drivers.remoteex_wire import format_exposure, parse_exposure
 
-__all__ = ["Param", "ParamError", "Reply", "need", "BOOL", "NUMERIC", "LIST", "STRING", "EXPTIME", "DISPLAY",
+__all__ = ["Param", "Reply", "need", "BOOL", "NUMERIC", "LIST", "STRING", "EXPTIME", "DISPLAY",
            "streak_params", "delay_params", "camera_params", "EXPOSURE_CHOICES",
            "SYNCHROSCAN_RANGES", "SINGLE_SWEEP_RANGES"]
 
@@ -51,14 +51,6 @@ def need(args, n: int) -> None:
     """Code 6 (parameter missing) unless ``args`` has at least ``n`` entries."""
     if len(args) < n:
         raise Reply(6)
-
-
-class ParamError(Exception):
-    """A parameter write refused with a RemoteEx error code."""
-
-    def __init__(self, code: int):
-        super().__init__(code)
-        self.code = code
 
 
 @dataclass
@@ -92,23 +84,23 @@ class Param:
         self.label = self.label or self.name
 
     def set(self, raw: str) -> None:
-        """Validate and store a written value; raises :class:`ParamError` with the reply code."""
+        """Validate and store a written value; raises :class:`Reply` with the error code."""
         raw = raw.strip()
         if self.kind == DISPLAY:
-            raise ParamError(7)
+            raise Reply(7)
         if self.kind == LIST:
             for c in self.choices:
                 if c.lower() == raw.lower() or c.replace(" ", "").lower() == raw.replace(" ", "").lower():
                     self.value = c
                     return
-            raise ParamError(10)
+            raise Reply(10)
         if self.kind == NUMERIC:
             try:
                 number = float(raw)
             except ValueError:
-                raise ParamError(1) from None
+                raise Reply(1) from None
             if (self.lo is not None and number < self.lo) or (self.hi is not None and number > self.hi):
-                raise ParamError(10)
+                raise Reply(10)
             self.value = raw
             return
         if self.kind == BOOL:
@@ -121,15 +113,15 @@ class Param:
                 try:
                     self.value = "1" if float(raw) != 0 else "0"
                 except ValueError:
-                    raise ParamError(1) from None
+                    raise Reply(1) from None
             return
         if self.kind == EXPTIME:
             try:
                 seconds = parse_exposure(raw)
             except ValueError:
-                raise ParamError(1) from None
+                raise Reply(1) from None
             if not self.lo <= seconds <= self.hi:
-                raise ParamError(10)
+                raise Reply(10)
             self.value = format_exposure(seconds)
             return
         self.value = raw                                  # STRING
