@@ -378,13 +378,10 @@ class MirrorSimulator:
     def _reset(self) -> None:
         """Power-up state where the stage is: NOT REFERENCED from reset, power-up VA and AC."""
         pos = self._advance()
-        self._from_deg = self._to_deg = pos
-        self._t0 = self._t1 = time.monotonic()
-        self._state = "0A"
         self._error = "@"
         self.velocity_deg_per_s = self._power_up_velocity
         self.acceleration_deg_per_s2 = self._power_up_acceleration
-        self._publish(pos)
+        self._halt(pos, "0A")
 
     def _halt(self, pos: float, state: str) -> None:
         self._from_deg = self._to_deg = pos
