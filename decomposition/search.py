@@ -420,7 +420,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     d0 = np.where(g, base["delay"], np.inf).min(axis=1)
     s_on = np.where(has_s, np.where(s_at, base["delay"], -np.inf).max(axis=1), np.nan)
     act = base["fam"] != 0
-    lsig = np.where(act.any(axis=1), np.where(act, base["lsig"], np.nan).max(axis=1, initial=-np.inf),
+    lsig = np.where(act.any(axis=1), np.where(act, base["lsig"], -np.inf).max(axis=1),
                     np.log(SEARCH_DEFAULT_SIGMA_PS))
     lsig = np.where(np.isfinite(lsig), lsig, np.log(SEARCH_DEFAULT_SIGMA_PS))
     sig = np.exp(lsig)
