@@ -9,6 +9,7 @@ input and output in a module of its own:
    then, for the pixels whose answer is in doubt, structured alternative starts kept by a
    penalised objective (:mod:`decomposition.search`);
 3. refine them off the grid, optionally (:mod:`decomposition.refit`);
+   for count data, the atoms polished with Poisson weights (:mod:`decomposition.countpolish`);
 4. label them direct / inter-reflections / sss (:mod:`decomposition.label`);
 5. render the fit and flag its quality (:mod:`decomposition.quality`, :mod:`decomposition.flags`).
 
@@ -22,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import convscd as cs
+from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
                     SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
@@ -179,9 +181,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
-        Count data (``noise="poisson"``) are always refitted, with weights
-        1 / Poisson variance of the model, reweighted POISSON_REFITS times
-        (:mod:`decomposition.refit`): the Poisson maximum-likelihood fit.
+        Count data (``noise="poisson"``) are always polished with weights
+        1 / Poisson variance of the model, reweighted POISSON_REFITS times, by
+        the solver's compiled LM (:mod:`decomposition.countpolish`): the Poisson
+        maximum-likelihood fit, without a NumPy refit (``refine=True`` adds one).
     search : bool
         Structured alternative starts for the pixels whose first answer is in
         doubt (an sss onset before the earliest Gaussian or far after it, an sss
@@ -250,6 +253,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        if samples.noise_model == "poisson":
+            det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
         labels = label_components(samples, det, dic, opts)
         params, noise_eff = labels.params, det.noise_eff
         flags |= labels.flags
@@ -259,7 +264,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
                "sss_after_direct": opts.sss_after_direct and method == "convscd"}
-    if (opts.refine or samples.noise_model == "poisson") and samples.live.size:
+    if (opts.refine or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
         params, rinfo = refine_components(samples, params, **physics)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)

@@ -147,21 +147,19 @@ def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
 
 
 @njit
-def _objective(L, K, p, fit, cens, model, fam, amp, pen, mu, eps, r, jw):
-    """F of one pixel; fills the masked residual ``r`` and the Jacobian row weights ``jw`` (0/1)."""
+def _objective(L, K, p, fit, cens, w, model, fam, amp, pen, mu, eps, r, jw):
+    """F of one pixel; fills the weighted residual ``r`` (w * (p - model)) and the Jacobian
+    row weights ``jw`` (w on the samples that count, 0 elsewhere)."""
     ss = 0.0
     for i in range(L):
         d = p[i] - model[i]
-        if fit[i]:
-            r[i] = d
-            jw[i] = 1.0
-        elif cens[i] and d > 0.0:          # censored from below: only a model under the data misfits
-            r[i] = d
-            jw[i] = 1.0
+        if fit[i] or (cens[i] and d > 0.0):   # censored from below: only a model under the data misfits
+            r[i] = w[i] * d
+            jw[i] = w[i]
+            ss += r[i] * d
         else:
             r[i] = 0.0
             jw[i] = 0.0
-        ss += r[i] * r[i]
     pensum = 0.0
     for k in range(K):
         if fam[k] != FAM_NONE:
@@ -292,7 +290,7 @@ def _damped_step(n, JtJ, g, fixed, lam, A, x, idx):
 
 
 @njit
-def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, model, n_iter, tie_sigma,
+def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, eps, obj, model, n_iter, tie_sigma,
                sss_after_direct, tol, d_lo, d_hi, s_lo, s_hi, a_lo, a_hi, iters):
     P, L = p.shape
     KA = fam.shape[1]
@@ -358,7 +356,7 @@ def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, o
         if K == 0:
             for i in range(L):
                 md[i] = 0.0
-            obj[pi] = _objective(L, 0, p[pi], fit[pi], cens[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+            obj[pi] = _objective(L, 0, p[pi], fit[pi], cens[pi], wts[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
             iters[pi] = 0
             continue
         nw = 0.0
@@ -368,7 +366,7 @@ def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, o
         nw = max(nw, 1.0)
         n = 4 * K
         _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, md)
-        cur = _objective(L, K, p[pi], fit[pi], cens[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+        cur = _objective(L, K, p[pi], fit[pi], cens[pi], wts[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
         if math.isnan(obj[pi]):
             obj[pi] = cur
         level = obj[pi]                  # what a step must beat
@@ -405,7 +403,7 @@ def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, o
                 if near:
                     td[s_k] = max(td[s_k], td[d_k])
             _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
-            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
+            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wts[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:
                 old = level
                 level = tobj
@@ -434,7 +432,7 @@ def _lm_pixels(t0, T, p, fit, cens, fam, amp, delay, lsig, lalp, pen, mu, eps, o
 
 
 def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj=None, *, tie_sigma=False,
-              sss_after_direct=False, tol=0.0):
+              sss_after_direct=False, tol=0.0, weights=None):
     """Refine the active atoms of every pixel by Levenberg-Marquardt; F never increases.
 
     Parameters
@@ -461,6 +459,10 @@ def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_it
         See the module docstring.
     tol : float
         A pixel stops once an accepted step gains less than ``tol`` * F / (fitted samples).
+    weights : ndarray (P, L), optional
+        Least-squares weights of the samples the masks let count (relative inverse variances,
+        finite and >= 0): the data term becomes 1/2 sum w (p - model)^2.  Default: 1 for all
+        (the unweighted objective, exactly).
 
     Returns
     -------
@@ -479,9 +481,17 @@ def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_it
     o = np.full(P, np.nan) if obj is None else np.array(obj, np.float64, copy=True)
     model = np.empty((P, L))
     iters = np.zeros(P, np.int64)
+    if weights is None:
+        wts = np.ones((P, L))
+    else:
+        wts = np.ascontiguousarray(weights, np.float64)
+        if wts.shape != (P, L):
+            raise ValueError(f"weights have shape {wts.shape}, the profiles {(P, L)}")
+        if not (np.isfinite(wts).all() and (wts >= 0).all()):
+            raise ValueError("weights must be finite and >= 0")
     if P:
         _lm_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
-                   np.ascontiguousarray(mask.fit), np.ascontiguousarray(mask.censored), out["fam"], out["amp"],
+                   np.ascontiguousarray(mask.fit), np.ascontiguousarray(mask.censored), wts, out["fam"], out["amp"],
                    out["delay"], out["lsig"], out["lalp"], out["pen"], np.asarray(mu, np.float64), np.asarray(eps, np.float64), o, model,
                    int(n_iter), bool(tie_sigma), bool(sss_after_direct), float(tol),
                    float(bounds["delay"][0]), float(bounds["delay"][1]), float(bounds["lsig"][0]),

@@ -6,8 +6,9 @@ max(p - model, 0)^2), or neither (excluded: non-finite, a spike).  The two boole
 a :class:`SampleMask` travel from the input check (:mod:`decomposition.prepare`) down to the
 compiled kernels (:mod:`decomposition.atomlm`); nothing on the way is a number that could be
 mistaken for a least-squares weight.  Real weights (1 / variance) are a different thing and
-are taken only where they are weights: :func:`decomposition.refine.refine` and
-:func:`decomposition.fisher.standard_errors`.
+are taken only where they are weights, as an argument of their own: the compiled LM's
+``weights`` (:func:`decomposition.atomlm.lm_refine`, the count polish),
+:func:`decomposition.refine.refine` and :func:`decomposition.fisher.standard_errors`.
 """
 from __future__ import annotations
 
@@ -90,9 +91,9 @@ class SampleMask:
 def check_mask(mask, shape=None) -> SampleMask:
     """``mask`` itself if it is a :class:`SampleMask` (of ``shape``); a clear error otherwise.
 
-    Numeric arrays are refused: the solver has no per-sample weights, and a weight of 0.5
-    must not silently become "excluded" (real weights go to
-    :func:`decomposition.refine.refine`).
+    Numeric arrays are refused: a weight of 0.5 must not silently become "excluded" (real
+    weights are the separate ``weights`` argument of :func:`decomposition.atomlm.lm_refine`, or
+    go to :func:`decomposition.refine.refine`).
     """
     if not isinstance(mask, SampleMask):
         what = f"an array of {mask.dtype}" if isinstance(mask, np.ndarray) else type(mask).__name__

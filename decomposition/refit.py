@@ -9,7 +9,9 @@ Excluded samples (saturated, spikes, non-finite) have weight 0 in both.
 Count data (``noise="poisson"``): the weights are 1 / variance of the Poisson law at the
 model (:func:`sample_weights`), and the refit is repeated POISSON_REFITS times, each with the
 previous model's weights (iteratively reweighted least squares, whose fixed point is the
-Poisson maximum-likelihood fit); the standard errors use weights 1 / model count with the
+Poisson maximum-likelihood fit).  ``decompose`` reaches that fit without this stage, in the
+compiled polish of :mod:`decomposition.countpolish`; this refit runs for count data only with
+``refine=True`` (and for the GradBM baseline).  The standard errors use weights 1 / model count with the
 noise scale measured on the fit (:func:`decomposition.noise.fit_dispersion`, 1 for pure
 counts): the Poisson Fisher information.
 """

@@ -77,7 +77,7 @@ def linked_onsets(st, near_sigma=None):
 
 
 def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False,
-                 tol=None, return_model=False):
+                 tol=None, return_model=False, weights=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,), the level a step must beat (None: computed
@@ -88,10 +88,12 @@ def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_s
     below what one sample's misfit can resolve; it shrinks as the fit improves, so noiseless
     data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels
     whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
-    onset moves with the direct and its gap stays >= 0.
+    onset moves with the direct and its gap stays >= 0.  ``weights`` (P, L): least-squares
+    weights of the samples (relative inverse variances; default 1).
     """
     out, o, iters, model = lm_refine(*axis_of(t), p, mask, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
-                                     sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol)
+                                     sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol,
+                                     weights=weights)
     it = int(iters.max(initial=0))
     return (out, o, it, model) if return_model else (out, o, it)
 

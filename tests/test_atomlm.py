@@ -212,3 +212,51 @@ def test_onset_tie_rule_has_one_home_and_reads_as_stated():
     assert linked.any() and not linked.all()
     far, _, _ = onset_links(fam, delay, lsig, near_sigma=np.inf)   # the polish's retry: any onset
     assert np.array_equal(far, (fam == cs.FAM_GAUSS).any(1) & (fam == cs.FAM_SSS).any(1))
+
+
+def test_weights_of_one_are_the_unweighted_fit_exactly():
+    """weights=ones is the default objective bit for bit."""
+    rng = np.random.default_rng(4)
+    atoms = [(cs.FAM_GAUSS, 0.9, 100.0, 3.0, None), (cs.FAM_SSS, 0.05, 104.0, 3.0, 0.02)]
+    p = (_profile(atoms) + 0.01 * rng.standard_normal(L))[None]
+    st = _state([[(cs.FAM_GAUSS, 0.7, 97.0, 4.0, None), (cs.FAM_SSS, 0.04, 103.0, 4.0, 0.03)]])
+    mask = SampleMask.all_fitted(p.shape)
+    args = (T0, T, p, mask, st, np.zeros(1), np.full(1, 1e-3), _bounds(), 30)
+    a = atomlm.lm_refine(*args)
+    b = atomlm.lm_refine(*args, weights=np.ones(p.shape))
+    for k in a[0]:
+        np.testing.assert_array_equal(a[0][k], b[0][k])
+    np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_zero_weights_ignore_corrupted_samples():
+    """Samples corrupted by a large bump, weighted 0, leave the fit at the clean truth; with
+    weight 1 they pull it away (known answer: the generating parameters)."""
+    truth = [(cs.FAM_GAUSS, 0.8, 200.0, 4.0, None)]
+    p = _profile(truth)
+    t = time_axis_ps(L, T)
+    bad = np.abs(t - 215.0) < 8.0
+    p = np.where(bad, p + 0.3, p)[None]
+    w = np.where(bad, 0.0, 1.0)[None]
+    st = _state([[(cs.FAM_GAUSS, 0.6, 204.0, 5.0, None)]])
+    mask = SampleMask.all_fitted(p.shape)
+    args = (T0, T, p, mask, st, np.zeros(1), np.full(1, 1e-3), _bounds(), 60)
+    got, _, _, _ = atomlm.lm_refine(*args, weights=w)
+    assert got["amp"][0, 0] == pytest.approx(0.8, rel=1e-6)
+    assert got["delay"][0, 0] == pytest.approx(200.0, abs=1e-5)
+    assert np.exp(got["lsig"][0, 0]) == pytest.approx(4.0, rel=1e-6)
+    plain, _, _, _ = atomlm.lm_refine(*args)
+    assert abs(plain["delay"][0, 0] - 200.0) > 0.5
+
+
+@pytest.mark.parametrize("weights, message", [
+    (np.ones((1, L - 1)), "shape"),
+    (np.full((1, L), -1.0), ">= 0"),
+    (np.full((1, L), np.nan), "finite"),
+])
+def test_bad_weights_are_refused(weights, message):
+    st = _state([[(cs.FAM_GAUSS, 0.6, 100.0, 3.0, None)]])
+    p = _profile([(cs.FAM_GAUSS, 0.6, 100.0, 3.0, None)])[None]
+    with pytest.raises(ValueError, match=message):
+        atomlm.lm_refine(T0, T, p, SampleMask.all_fitted(p.shape), st, np.zeros(1), np.full(1, 1e-3), _bounds(), 5,
+                         weights=weights)

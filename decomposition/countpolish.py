@@ -1,0 +1,73 @@
+"""Stage 2c of :func:`decomposition.decompose` for count data: the atoms polished with Poisson weights.
+
+Photon counts have a variance equal to their expected value, so the least-squares fit that
+matches their statistics weighs each sample by 1 / its model count.  Detection and search fit
+the atoms unweighted; for count data (``noise="poisson"``) this stage polishes every live
+pixel's atoms once more with the solver's compiled Levenberg-Marquardt on the data term alone
+(as the detection's own polish, :func:`decomposition.polish.polish_block`), with the weights
+
+    w_i = 1 / max(model_i, POISSON_VARIANCE_FLOOR)          (counts; times dispersion^-2)
+
+of the current model, POISSON_REFITS times, each from the previous polish's model: iteratively
+reweighted least squares, whose fixed point is the Poisson maximum-likelihood fit.  The weights
+are rescaled by the pixel's (noise / peak)^2 so that the objective keeps the solver's units; the
+scale of the weights does not move the optimum.  Work is on blocks of ``opts.block_size`` pixels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .constants import POISSON_REFITS
+from .detect import Detection, solver_inputs
+from .noise import poisson_weights
+from .options import SolverOptions
+from .prepare import Samples
+from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
+
+__all__ = ["count_weights", "polish_counts"]
+
+
+def count_weights(model, used, scale, noise, dispersion=None) -> np.ndarray:
+    """(n, L) solver weights of count profiles for a model in the solver's units (unit peak).
+
+    Parameters
+    ----------
+    model : ndarray (n, L)        model of the normalised profiles (counts / scale)
+    used : ndarray (n, L) bool    samples that count (fitted or censored)
+    scale : ndarray (n,)          counts per unit of the normalised profiles
+    noise : ndarray (n,)          the solver's noise of each pixel, normalised units
+    dispersion : ndarray (n,), optional
+        Noise scale of the counts (1: the Poisson law).
+
+    Returns
+    -------
+    ndarray (n, L): (scale * noise)^2 / variance of the counts; 0 where not ``used``.
+    """
+    w = poisson_weights(model * scale[:, None], used, dispersion)
+    return w * np.square(scale * noise)[:, None]
+
+
+def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) -> dict:
+    """The slot state of ``det`` polished with Poisson weights (see the module docstring)."""
+    state = {k: v.copy() for k, v in det.state.items()}
+    live = samples.live
+    if samples.noise_model != "poisson" or live.size == 0:
+        return state
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
+    bounds = parameter_bounds(dic, opts.bound_factor)
+    for b0 in range(0, live.size, opts.block_size):
+        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
+        px = live[rows]
+        p, mask = solver_inputs(samples, px)
+        st = take(state, rows)
+        noise = det.noise_eff[px]
+        dispersion = None if samples.dispersion is None else samples.dispersion[px]
+        mu = np.zeros(rows.size)
+        eps = opts.eps_rel * noise
+        for _ in range(POISSON_REFITS):
+            w = count_weights(render(t, st), mask.used, samples.scale[px], noise, dispersion)
+            st, _, _ = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
+                                    opts.sss_after_direct, opts.lm_tol, weights=w)
+        drop_zero(st)
+        put(state, rows, st)
+    return state
