@@ -58,11 +58,14 @@ class Detection:
 def solver_inputs(samples: Samples, rows: np.ndarray):
     """Profiles and sample masks of ``rows`` for the solver.
 
-    Saturated samples keep their (normalised) recorded value and are censored (only a
-    model below them is a misfit).  Returns (p (n, L), :class:`SampleMask`).
+    Saturated samples keep their (normalised, background-subtracted) recorded value and are
+    censored (only a model below them is a misfit).  Returns (p (n, L), :class:`SampleMask`).
     """
     sat = samples.censored[rows]
-    p = np.where(sat, samples.values[rows] / samples.scale[rows, None], samples.profiles[rows])
+    v = samples.values[rows]
+    if samples.background is not None:
+        v = v - samples.background[rows, None]
+    p = np.where(sat, v / samples.scale[rows, None], samples.profiles[rows])
     return p, samples.mask[rows]
 
 
