@@ -24,7 +24,7 @@ import numpy as np
 from . import convscd as cs
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
-                    SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
+                    OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .label import label_components
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
@@ -47,6 +47,7 @@ __all__ = [
     "TRUNCATED",
     "AMBIGUOUS",
     "WIDE_PSF",
+    "OFF_WINDOW",
     "FLAG_NAMES",
 ]
 

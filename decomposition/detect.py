@@ -81,7 +81,7 @@ def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: 
     """Sparse solve (no censored sample), threshold, merge and polish (censored samples too)."""
     st, si = cs.solve_multistart(p, mask.uncensored(), noise, dic, sss_alone=opts.sss_alone,
                                  restart=opts.multistart, **solve_opts)
-    comp.threshold(st, t, opts.rel_threshold)
+    comp.threshold(st, t, opts.rel_threshold, noise, opts.significance_chi2)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
     st, model, nl = cs.polish_block(p, mask, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
                                     n_lm=opts.n_polish, bound_factor=opts.bound_factor,
