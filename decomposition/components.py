@@ -10,7 +10,8 @@ log sigma, log alpha.  This module turns them into the parameter dict of
    is at least ``rel_threshold`` of the largest such peak height in the pixel,
    or if it is significant against the noise where it lies (its in-window energy
    sum c_i^2 / s^2 at least ``significance_chi2``): a faint echo far from a bright
-   direct is real when the noise says so, whatever its ratio to the direct.
+   direct is real when the noise says so, whatever its ratio to the direct (only an
+   atom resolved from the larger ones: a faint atom under a bright one corrects its shape).
    Peak height (not the raw coefficient) is used because the two families
    have differently scaled kernels; it is what a user sees in the profile.
    An atom that runs off the window's edge (:func:`off_window`) is judged by its
@@ -33,7 +34,7 @@ import math
 
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA
 from .slots import eval_atoms
 from core.model import empty_params, render_components
 
@@ -95,6 +96,20 @@ def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) ->
     return act & (centre_out | (window_fraction(st, t_ps) < 1.0 - mass_out))
 
 
+def _resolved(st: dict, h: np.ndarray) -> np.ndarray:
+    """(P, K) bool: active atoms whose delay (a Gaussian's centre, an sss onset) lies more than
+    RESOLVED_SIGMA widths from that of every larger atom (by in-window peak ``h``) of the pixel.
+    A faint atom under a larger one is the model's correction of its shape, not a component of
+    its own, so only resolved atoms may pass on significance alone."""
+    act = st["fam"] != FAM_NONE
+    sig = np.exp(st["lsig"])
+    gap = np.abs(st["delay"][:, :, None] - st["delay"][:, None, :])
+    width = np.maximum(sig[:, :, None], sig[:, None, :])
+    larger = act[:, None, :] & (h[:, None, :] > h[:, :, None])
+    near = larger & ~(gap > RESOLVED_SIGMA * width)
+    return act & ~near.any(axis=2)
+
+
 def _drop(st, mask):
     st["fam"][mask] = FAM_NONE
     st["amp"][mask] = 0.0
@@ -110,7 +125,8 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     when it is significant against the noise where it lies: its in-window energy
     sum_i c_i^2 / s^2 at least ``significance_chi2`` (``noise`` s (P,), units of the profile;
     for an atom of known shape that energy is the increase of the data term when it is
-    removed, the likelihood-ratio statistic).  Without ``noise`` or with
+    removed, the likelihood-ratio statistic), and it is resolved from every larger atom
+    (its delay more than RESOLVED_SIGMA widths from theirs, :mod:`decomposition.constants`).  Without ``noise`` or with
     ``significance_chi2 = 0`` the relative rule alone.  Atoms with no sample in the window are
     always dropped.
     """
@@ -120,7 +136,7 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     if noise is not None and significance_chi2 > 0:
         s2 = np.asarray(noise, np.float64).reshape(-1, 1) ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
-            keep |= (s2 > 0) & (e >= significance_chi2 * s2)
+            keep |= (s2 > 0) & (e >= significance_chi2 * s2) & _resolved(st, h)
     _drop(st, (st["fam"] != FAM_NONE) & ~keep)
     # atoms entirely outside the window render as zero everywhere inside it
     _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))

@@ -44,6 +44,7 @@ __all__ = [
     "BACKGROUND_CLIP_SIGMA",
     "BACKGROUND_ITERATIONS",
     "OFF_WINDOW_MASS",
+    "RESOLVED_SIGMA",
 ]
 
 #: empty slot
@@ -170,3 +171,8 @@ BACKGROUND_ITERATIONS = 5
 #: runs off the window's edge (OFF_WINDOW flag); a Gaussian centred on the first or the last
 #: bin has half of it outside
 OFF_WINDOW_MASS = 0.2
+#: an atom below the relative threshold may be kept on its significance alone only when its
+#: delay is more than this many PSF widths from that of every larger atom of its pixel (the
+#: inter-reflection gap of the search stage): a faint atom closer than that is the model's
+#: correction of the larger one's shape (seen on noiseless data), not a component
+RESOLVED_SIGMA = 3.0
