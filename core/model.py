@@ -37,8 +37,14 @@ everywhere in streaklab (ground truth, solver output, result stores):
     direct_delay_ps, direct_amplitude, direct_sigma_ps            shape (...,)
     sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps   shape (...,)
     ir_delay_ps, ir_amplitude, ir_sigma_ps                        shape (..., R)
+    background                                                    shape (...,), optional
 
-NaN marks an absent component.
+NaN marks an absent component.  ``background`` is a constant offset per pixel, in the
+units of the profiles (the dark level of TCSPC / SPAD / lidar data): the model adds it to
+every bin.  It is optional -- a dict without it, or with NaN, has no background, exactly as
+before the key existed -- and it is not one of :data:`PARAM_KEYS` (every parameter dict has
+those; only decompositions asked for the background family carry this one,
+:data:`BACKGROUND_KEY`).
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ __all__ = [
     "DIRECT_KEYS",
     "SSS_KEYS",
     "IR_KEYS",
+    "BACKGROUND_KEY",
     "time_axis_ps",
     "gaussian_kernel",
     "sss_kernel",
@@ -66,6 +73,8 @@ DIRECT_KEYS = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps")
 SSS_KEYS = ("sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps", "sss_sigma_ps")
 IR_KEYS = ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps")
 PARAM_KEYS = DIRECT_KEYS + SSS_KEYS + IR_KEYS
+#: constant offset per pixel, shape (...,), units of the profiles (optional; NaN = none)
+BACKGROUND_KEY = "background"
 
 # Gauss-Legendre nodes on [-1/2, 1/2] for bin-integrated sampling.
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(16)
@@ -255,7 +264,9 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
 
     Returns
     -------
-    dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L).
+    dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L), and
+    ``background`` (..., L) (the constant offset on every bin; 0 where NaN) only when
+    ``params`` has the :data:`BACKGROUND_KEY` key.
     """
     t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
     tb = _check_time_bin(time_bin_ps) if bin_integrated else None
@@ -281,11 +292,21 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
         ir = _render_family(t, params["ir_delay_ps"], params["ir_amplitude"], params["ir_sigma_ps"], None, tb)
     else:
         ir = np.zeros(shape + (0, t.size))
-    return {"direct": direct, "sss": sss, "interreflections": ir}
+    out = {"direct": direct, "sss": sss, "interreflections": ir}
+    if BACKGROUND_KEY in params:
+        b = np.asarray(params[BACKGROUND_KEY], np.float64)
+        if b.shape != shape:
+            raise ValueError(f"params[{BACKGROUND_KEY!r}] has shape {b.shape}, expected {shape}")
+        out["background"] = np.broadcast_to(np.where(np.isfinite(b), b, 0.0)[..., None], shape + (t.size,)).copy()
+    return out
 
 
 def render_profile(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                    *, bin_integrated: bool = False) -> np.ndarray:
-    """Clean (noise-free) profile: the sum of all rendered components, shape (..., L)."""
+    """Clean (noise-free) profile: the sum of all rendered components and the background
+    (if ``params`` has one), shape (..., L)."""
     c = render_components(params, n_bins, time_bin_ps, t0_ps, bin_integrated=bin_integrated)
-    return c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)
+    total = c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)
+    if "background" in c:
+        total = total + c["background"]
+    return total

@@ -13,6 +13,7 @@ from .flags import (  # noqa: F401
     FLAG_NAMES,
     MAX_ITER,
     NONFINITE,
+    OFF_WINDOW,
     POOR_FIT,
     SATURATED,
     SPIKE,

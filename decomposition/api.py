@@ -26,9 +26,9 @@ from . import convscd as cs
 from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
-                    SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
+                    OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .label import label_components
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
@@ -49,6 +49,7 @@ __all__ = [
     "TRUNCATED",
     "AMBIGUOUS",
     "WIDE_PSF",
+    "OFF_WINDOW",
     "FLAG_NAMES",
 ]
 
@@ -99,9 +100,17 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     t0_ps : float, optional
         Time of the first bin (default ``time_bin_ps``: the paper's t = T..LT).
     components : str or sequence
-        Families to look for: "d" direct, "r" inter-reflections, "s" sss
-        (e.g. "d,s").  Families left out are neither built into the
-        dictionary nor searched; without "r" at most one Gaussian per pixel.
+        Families to look for: "d" direct, "r" inter-reflections, "s" sss,
+        "b" background (e.g. "d,s" or "d,r,s,b").  Families left out are neither built
+        into the dictionary nor searched; without "r" at most one Gaussian per pixel.
+        "b", a constant offset per pixel (``params["background"]``, units of the
+        profiles): estimated robustly from the samples at the noise level and subtracted
+        before the sparse coding (:func:`decomposition.background.estimate_background`),
+        then fitted jointly with the amplitudes in the refinement, which always runs with
+        it; kept where significant (its likelihood-ratio statistic at least
+        ``significance_chi2``), else reported as exactly 0.0 and the pixel refitted
+        without it.  NaN where the pixel is not decomposed; without "b" there is no
+        ``background`` key and nothing changes.  ConvSCD only.
     sigma_range_ps, n_sigma, alpha_range_per_ps, n_alpha
         Reference kernel grid.  The paper's setting (sigma 1-10 ps, alpha
         0.01-0.05 /ps, 500 samples each) is the default; it is searched
@@ -127,7 +136,15 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Sparsity weight mu = sparsity * s^2 and eps = eps_rel * s, with s the
         per-pixel noise estimate floored at ``noise_floor`` x the pixel's peak.
     rel_threshold : float
-        The paper's 5% threshold (peak height relative to the largest component).
+        The paper's 5% threshold: an atom whose peak height inside the window is at least
+        this fraction of the pixel's largest in-window peak is kept.
+    significance_chi2 : float
+        An atom below the relative threshold is still kept when it is significant against
+        the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
+        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`),
+        and a fitted background is kept when its likelihood-ratio statistic is at least
+        this (:func:`decomposition.background.background_significant`).  0 turns the
+        significance rule for atoms off (the relative threshold alone).
     merge_tol_bins : float
         Gaussians of one pixel closer than this (in bins) are merged.
     bound_factor : float
@@ -226,12 +243,16 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     grid, opts, method_options = options_from_mapping(options, strict=False)
     if method == "convscd" and method_options:
         raise TypeError(f"unknown options for method 'convscd': {sorted(method_options)}")
+    background = "b" in fams
+    if background and method != "convscd":
+        raise ValueError(f"components: the background family ('b') is fitted by method 'convscd' only, "
+                         f"not {method!r}")
     opts = opts.resolved(fams)
     R = opts.max_reflections
 
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise)
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
             "saturation_level": samples.saturation_level}
@@ -264,8 +285,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
     physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
                "sss_after_direct": opts.sss_after_direct and method == "convscd"}
-    if (opts.refine or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
-        params, rinfo = refine_components(samples, params, **physics)
+    if background:
+        # the first estimate, refitted jointly with the amplitudes below (NaN: not decomposed)
+        params[BACKGROUND_KEY] = np.full(samples.values.shape[0], np.nan)
+        params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
+    bg_stderr = None
+    if (opts.refine or background or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
+        params, rinfo = refine_components(samples, params, **physics, significance_chi2=opts.significance_chi2)
+        bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)
     flags |= fit.flags
@@ -276,6 +303,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
         params.update(component_errors(samples, params, **physics))
+        if background:
+            params[BACKGROUND_KEY + "_stderr"] = (bg_stderr if bg_stderr is not None
+                                                  else np.full(lead, np.nan))
     return DecompositionResult(
         direct=fit.direct.reshape(lead + (L,)),
         sss=fit.sss.reshape(lead + (L,)),
@@ -288,7 +318,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 
 def _reshape_params(params: dict, lead: tuple, n_ir: int) -> dict:
-    for k in DIRECT_KEYS + SSS_KEYS:
+    for k in DIRECT_KEYS + SSS_KEYS + ((BACKGROUND_KEY,) if BACKGROUND_KEY in params else ()):
         params[k] = params[k].reshape(lead)
     for k in IR_KEYS:
         params[k] = params[k].reshape(lead + (n_ir,))

@@ -6,10 +6,16 @@ log sigma, log alpha.  This module turns them into the parameter dict of
 ``core.model`` (direct d, inter-reflections r2, r3, ..., sss s):
 
 1. Threshold (the paper's global 5% rule, applied per pixel): an atom is kept
-   only if the peak height of its rendered component *inside the time window*
-   is at least ``rel_threshold`` of the largest such peak height in the pixel.
+   if the peak height of its rendered component *inside the time window*
+   is at least ``rel_threshold`` of the largest such peak height in the pixel,
+   or if it is significant against the noise where it lies (its in-window energy
+   sum c_i^2 / s^2 at least ``significance_chi2``): a faint echo far from a bright
+   direct is real when the noise says so, whatever its ratio to the direct (only an
+   atom resolved from the larger ones: a faint atom under a bright one corrects its shape).
    Peak height (not the raw coefficient) is used because the two families
    have differently scaled kernels; it is what a user sees in the profile.
+   An atom that runs off the window's edge (:func:`off_window`) is judged by its
+   in-window part like every other.
 2. Merge: Gaussian atoms of one pixel whose delays differ by less than
    ``merge_tol_bins`` time bins are one component split in two; they are
    replaced by a single Gaussian with the same total area, area-weighted mean
@@ -24,24 +30,84 @@ run over the (few) slots.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA
 from .slots import eval_atoms
 from core.model import empty_params, render_components
 
-__all__ = ["peak_heights", "threshold", "merge_gaussians", "clip_sss_onset", "classify", "render_params"]
+__all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "merge_gaussians",
+           "clip_sss_onset", "classify", "render_params"]
+
+
+def _in_window(st: dict, t_ps: np.ndarray):
+    """Unit-amplitude atoms of the active slots on the window: (rows, slots, phi (n, L))."""
+    act = st["fam"] != FAM_NONE
+    pi, ki = np.nonzero(act)
+    phi = eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
+    return pi, ki, phi
 
 
 def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Peak height inside the window of every active atom, shape (P, K); 0 for empty slots."""
+    return window_measures(st, t_ps)[0]
+
+
+def window_measures(st: dict, t_ps: np.ndarray):
+    """What the window sees of every active atom: its peak height max_i |c_i| and its energy
+    sum_i c_i^2 over the window's samples, both (P, K), units of the profile and its square;
+    0 for empty slots."""
     act = st["fam"] != FAM_NONE
-    out = np.zeros(act.shape)
+    h, e = np.zeros(act.shape), np.zeros(act.shape)
     if act.any():
-        pi, ki = np.nonzero(act)
-        phi = eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
-        out[pi, ki] = np.abs(st["amp"][pi, ki]) * phi.max(axis=1)
+        pi, ki, phi = _in_window(st, t_ps)
+        a = np.abs(st["amp"][pi, ki])
+        h[pi, ki] = a * phi.max(axis=1)
+        e[pi, ki] = a * a * np.einsum("nl,nl->n", phi, phi)
+    return h, e
+
+
+def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
+    """Fraction of every active atom's area inside the window, (P, K) in [0, 1] (1 for empty
+    slots): T sum_i phi(t_i) over the kernel's area (sigma sqrt(2 pi) for a Gaussian,
+    sigma sqrt(2 pi) / alpha for the sss kernel, :mod:`core.model`)."""
+    act = st["fam"] != FAM_NONE
+    out = np.ones(act.shape)
+    if act.any() and t_ps.size > 1:
+        T = float(t_ps[1] - t_ps[0])
+        pi, ki, phi = _in_window(st, t_ps)
+        area = np.exp(st["lsig"][pi, ki]) * math.sqrt(2.0 * math.pi)
+        sss = st["fam"][pi, ki] == FAM_SSS
+        area = np.where(sss, area / np.exp(np.where(sss, st["lalp"][pi, ki], 0.0)), area)
+        out[pi, ki] = np.clip(T * phi.sum(axis=1) / area, 0.0, 1.0)
     return out
+
+
+def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
+    """(P, K) bool: active atoms that run off either edge of the window -- a Gaussian centred
+    more than half a bin before the first sample or after the last, or any atom with more than
+    ``mass_out`` of its area outside the window (:func:`window_fraction`)."""
+    act = st["fam"] != FAM_NONE
+    half = 0.5 * float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 0.0
+    gauss = st["fam"] == FAM_GAUSS
+    centre_out = gauss & ((st["delay"] < t_ps[0] - half) | (st["delay"] > t_ps[-1] + half))
+    return act & (centre_out | (window_fraction(st, t_ps) < 1.0 - mass_out))
+
+
+def _resolved(st: dict, h: np.ndarray) -> np.ndarray:
+    """(P, K) bool: active atoms whose delay (a Gaussian's centre, an sss onset) lies more than
+    RESOLVED_SIGMA widths from that of every larger atom (by in-window peak ``h``) of the pixel.
+    A faint atom under a larger one is the model's correction of its shape, not a component of
+    its own, so only resolved atoms may pass on significance alone."""
+    act = st["fam"] != FAM_NONE
+    sig = np.exp(st["lsig"])
+    gap = np.abs(st["delay"][:, :, None] - st["delay"][:, None, :])
+    width = np.maximum(sig[:, :, None], sig[:, None, :])
+    larger = act[:, None, :] & (h[:, None, :] > h[:, :, None])
+    near = larger & ~(gap > RESOLVED_SIGMA * width)
+    return act & ~near.any(axis=2)
 
 
 def _drop(st, mask):
@@ -49,11 +115,29 @@ def _drop(st, mask):
     st["amp"][mask] = 0.0
 
 
-def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05) -> dict:
-    """Drop atoms whose in-window peak is below ``rel_threshold`` x the pixel's largest."""
-    h = peak_heights(st, t_ps)
+def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=None,
+              significance_chi2: float = 0.0) -> dict:
+    """Drop the atoms that are neither large nor significant inside the window (in place).
+
+    An atom is kept when its in-window peak is at least ``rel_threshold`` x the pixel's
+    largest in-window peak (the paper's relative rule, on what the window shows: an atom
+    extrapolated to a peak before the first bin counts with its height at the first bin), or
+    when it is significant against the noise where it lies: its in-window energy
+    sum_i c_i^2 / s^2 at least ``significance_chi2`` (``noise`` s (P,), units of the profile;
+    for an atom of known shape that energy is the increase of the data term when it is
+    removed, the likelihood-ratio statistic), and it is resolved from every larger atom
+    (its delay more than RESOLVED_SIGMA widths from theirs, :mod:`decomposition.constants`).  Without ``noise`` or with
+    ``significance_chi2 = 0`` the relative rule alone.  Atoms with no sample in the window are
+    always dropped.
+    """
+    h, e = window_measures(st, t_ps)
     top = h.max(axis=1, keepdims=True)
-    _drop(st, (st["fam"] != FAM_NONE) & ~(h >= rel_threshold * top))
+    keep = h >= rel_threshold * top
+    if noise is not None and significance_chi2 > 0:
+        s2 = np.asarray(noise, np.float64).reshape(-1, 1) ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            keep |= (s2 > 0) & (e >= significance_chi2 * s2) & _resolved(st, h)
+    _drop(st, (st["fam"] != FAM_NONE) & ~keep)
     # atoms entirely outside the window render as zero everywhere inside it
     _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))
     return st

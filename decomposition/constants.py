@@ -40,6 +40,11 @@ __all__ = [
     "SEARCH_DEFAULT_ALPHA_PER_PS",
     "RISE_10_50_SIGMA",
     "NARROW_FRACTION",
+    "BACKGROUND_START_QUANTILE",
+    "BACKGROUND_CLIP_SIGMA",
+    "BACKGROUND_ITERATIONS",
+    "OFF_WINDOW_MASS",
+    "RESOLVED_SIGMA",
 ]
 
 #: empty slot
@@ -151,3 +156,23 @@ RISE_10_50_SIGMA = math.sqrt(2 * math.log(10)) - math.sqrt(2 * math.log(2))
 #: the search's narrow start is tried where the width from the rise is below this fraction
 #: of the detected width
 NARROW_FRACTION = 0.7
+
+# --- the background family and the window (:mod:`decomposition.background`, label) ---------
+
+#: the first background estimate starts at this quantile of a profile's samples: below the
+#: median (components only add light), above the far noise tail (-0.67 sigma of pure noise)
+BACKGROUND_START_QUANTILE = 0.25
+#: samples within this many noise sigmas of the current estimate are at the noise level
+BACKGROUND_CLIP_SIGMA = 3.0
+#: clipped-mean iterations of the estimate (each moves it to the mean of the samples at the
+#: noise level; five settle it to well below the noise on the paper's windows)
+BACKGROUND_ITERATIONS = 5
+#: a component whose area outside the window is more than this fraction of its total area
+#: runs off the window's edge (OFF_WINDOW flag); a Gaussian centred on the first or the last
+#: bin has half of it outside
+OFF_WINDOW_MASS = 0.2
+#: an atom below the relative threshold may be kept on its significance alone only when its
+#: delay is more than this many PSF widths from that of every larger atom of its pixel (the
+#: inter-reflection gap of the search stage): a faint atom closer than that is the model's
+#: correction of the larger one's shape (seen on noiseless data), not a component
+RESOLVED_SIGMA = 3.0

@@ -8,7 +8,8 @@ pixel's atoms once more with the solver's compiled Levenberg-Marquardt on the da
 
     w_i = 1 / max(model_i, POISSON_VARIANCE_FLOOR)          (counts; times dispersion^-2)
 
-of the current model, POISSON_REFITS times, each from the previous polish's model: iteratively
+of the current model (plus the background family's estimate, where it is fitted),
+POISSON_REFITS times, each from the previous polish's model: iteratively
 reweighted least squares, whose fixed point is the Poisson maximum-likelihood fit.  The weights
 are rescaled by the pixel's (noise / peak)^2 so that the objective keeps the solver's units; the
 scale of the weights does not move the optimum.  Work is on blocks of ``opts.block_size`` pixels.
@@ -27,7 +28,7 @@ from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
 __all__ = ["count_weights", "polish_counts"]
 
 
-def count_weights(model, used, scale, noise, dispersion=None) -> np.ndarray:
+def count_weights(model, used, scale, noise, dispersion=None, background=None) -> np.ndarray:
     """(n, L) solver weights of count profiles for a model in the solver's units (unit peak).
 
     Parameters
@@ -38,12 +39,18 @@ def count_weights(model, used, scale, noise, dispersion=None) -> np.ndarray:
     noise : ndarray (n,)          the solver's noise of each pixel, normalised units
     dispersion : ndarray (n,), optional
         Noise scale of the counts (1: the Poisson law).
+    background : ndarray (n,), optional
+        Counts subtracted before the normalisation (the background family's estimate): part
+        of every sample's expected count, so of its variance.
 
     Returns
     -------
     ndarray (n, L): (scale * noise)^2 / variance of the counts; 0 where not ``used``.
     """
-    w = poisson_weights(model * scale[:, None], used, dispersion)
+    counts = model * scale[:, None]
+    if background is not None:
+        counts = counts + background[:, None]
+    w = poisson_weights(counts, used, dispersion)
     return w * np.square(scale * noise)[:, None]
 
 
@@ -62,10 +69,11 @@ def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) ->
         st = take(state, rows)
         noise = det.noise_eff[px]
         dispersion = None if samples.dispersion is None else samples.dispersion[px]
+        background = None if samples.background is None else samples.background[px]
         mu = np.zeros(rows.size)
         eps = opts.eps_rel * noise
         for _ in range(POISSON_REFITS):
-            w = count_weights(render(t, st), mask.used, samples.scale[px], noise, dispersion)
+            w = count_weights(render(t, st), mask.used, samples.scale[px], noise, dispersion, background)
             st, _, _ = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
                                     opts.sss_after_direct, opts.lm_tol, weights=w)
         drop_zero(st)

@@ -58,11 +58,14 @@ class Detection:
 def solver_inputs(samples: Samples, rows: np.ndarray):
     """Profiles and sample masks of ``rows`` for the solver.
 
-    Saturated samples keep their (normalised) recorded value and are censored (only a
-    model below them is a misfit).  Returns (p (n, L), :class:`SampleMask`).
+    Saturated samples keep their (normalised, background-subtracted) recorded value and are
+    censored (only a model below them is a misfit).  Returns (p (n, L), :class:`SampleMask`).
     """
     sat = samples.censored[rows]
-    p = np.where(sat, samples.values[rows] / samples.scale[rows, None], samples.profiles[rows])
+    v = samples.values[rows]
+    if samples.background is not None:
+        v = v - samples.background[rows, None]
+    p = np.where(sat, v / samples.scale[rows, None], samples.profiles[rows])
     return p, samples.mask[rows]
 
 
@@ -78,7 +81,7 @@ def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: 
     """Sparse solve (no censored sample), threshold, merge and polish (censored samples too)."""
     st, si = cs.solve_multistart(p, mask.uncensored(), noise, dic, sss_alone=opts.sss_alone,
                                  restart=opts.multistart, **solve_opts)
-    comp.threshold(st, t, opts.rel_threshold)
+    comp.threshold(st, t, opts.rel_threshold, noise, opts.significance_chi2)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
     st, model, nl = cs.polish_block(p, mask, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
                                     n_lm=opts.n_polish, bound_factor=opts.bound_factor,

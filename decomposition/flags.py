@@ -15,6 +15,11 @@ AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   reach objectives within the noise of each other
 WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
                   (an sss hump taken for a broad direct, typically)
+OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian centred
+                  before the first bin or after the last, or more than
+                  OFF_WINDOW_MASS of a component's area outside the window
+                  (:func:`decomposition.components.off_window`); its parameters
+                  are extrapolated, only its in-window part was judged
 =========== ===== ==============================================================
 
 Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).
@@ -29,7 +34,7 @@ import enum
 import numpy as np
 
 __all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
-           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF"]
+           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF", "OFF_WINDOW"]
 
 #: dtype of a flags array
 FLAG_DTYPE = np.uint16
@@ -48,6 +53,7 @@ class Flag(enum.IntFlag):
     TRUNCATED = 128
     AMBIGUOUS = 512
     WIDE_PSF = 1024
+    OFF_WINDOW = 2048
 
 
 #: bit value -> flag name, in bit order
@@ -63,6 +69,7 @@ AT_BOUND = Flag.AT_BOUND
 TRUNCATED = Flag.TRUNCATED
 AMBIGUOUS = Flag.AMBIGUOUS
 WIDE_PSF = Flag.WIDE_PSF
+OFF_WINDOW = Flag.OFF_WINDOW
 
 
 def flag_names(bits) -> list[str]:

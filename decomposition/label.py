@@ -19,7 +19,7 @@ from . import components as comp
 from . import convscd as cs
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
 from .detect import Detection, solver_inputs
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, WIDE_PSF, mark
+from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, WIDE_PSF, mark
 from core.model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
@@ -32,7 +32,7 @@ __all__ = ["Labels", "label_components", "at_bound"]
 class Labels:
     """Named components of every pixel: ``params`` (keys of :mod:`core.model`, shapes
     (P,) and (P, R), NaN where absent) and ``flags`` (P,) (MAX_ITER, AT_BOUND, WIDE_PSF,
-    TRUNCATED)."""
+    TRUNCATED, OFF_WINDOW)."""
 
     params: dict
     flags: np.ndarray
@@ -48,12 +48,14 @@ def at_bound(state: dict, bounds: dict) -> np.ndarray:
     return hit.any(axis=1)
 
 
-def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions) -> dict:
-    """The atoms a pixel keeps, as every output reports them (in place): the relative threshold,
-    Gaussians merged (refinement can bring two together), one width per pixel with
-    ``shared_sigma`` (a merge leaves the merged atom wider), no sss onset before the direct with
-    ``sss_after_direct``.  The search stage scores its starts through the same rule."""
-    comp.threshold(st, t_ps, opts.rel_threshold)
+def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions, noise=None) -> dict:
+    """The atoms a pixel keeps, as every output reports them (in place): the in-window threshold
+    (relative, or significant against the pixel's ``noise`` (n,), normalised units;
+    :func:`decomposition.components.threshold`), Gaussians merged (refinement can bring two
+    together), one width per pixel with ``shared_sigma`` (a merge leaves the merged atom wider),
+    no sss onset before the direct with ``sss_after_direct``.  The search stage scores its
+    starts through the same rule."""
+    comp.threshold(st, t_ps, opts.rel_threshold, noise, opts.significance_chi2)
     comp.merge_gaussians(st, time_bin_ps, opts.merge_tol_bins)
     if opts.shared_sigma:
         tie_widths(st)
@@ -76,7 +78,8 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
         p, mask = solver_inputs(samples, live)
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    final_atoms(st, t, dic.time_bin_ps, opts)
+    final_atoms(st, t, dic.time_bin_ps, opts, det.noise_eff[live])
+    mark(flags, live[comp.off_window(st, t).any(axis=1)], OFF_WINDOW)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     wide = ((st["fam"] != FAM_NONE) & (st["lsig"] > math.log(dic.grid.sigma_range_ps[1]) + BOUND_TOL)).any(axis=1)
     mark(flags, live[wide], WIDE_PSF)

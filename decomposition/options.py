@@ -145,6 +145,7 @@ class SolverOptions:
     eps_rel: float = 0.01
     noise_floor: float = 1e-3
     rel_threshold: float = 0.05
+    significance_chi2: float = 25.0
     merge_tol_bins: float = 1.0
     bound_factor: float = 4.0
     poor_fit: float = 3.0
@@ -173,7 +174,8 @@ class SolverOptions:
         _set(self, "max_iter", _number("max_iter", self.max_iter, lo=1, integer=True, allow_none=True))
         for name in ("n_lm", "n_polish"):
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
-        for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "merge_tol_bins", "spike_sigma",
+        for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "significance_chi2", "merge_tol_bins",
+                     "spike_sigma",
                      "search_penalty", "search_doubt_chi2", "ambiguity_sigma", "ambiguity_split"):
             _set(self, name, _number(name, getattr(self, name), lo=0))
         for name in ("eps_rel", "poor_fit"):
@@ -216,15 +218,18 @@ def options_from_mapping(values: dict, *, strict: bool = True):
 
 # --------------------------------------------------------------------------- vocabularies
 
-_FAMILY_NAMES = {"d": "d", "direct": "d", "r": "r", "ir": "r", "interreflections": "r", "s": "s", "sss": "s"}
+_FAMILY_NAMES = {"d": "d", "direct": "d", "r": "r", "ir": "r", "interreflections": "r", "s": "s", "sss": "s",
+                 "b": "b", "background": "b"}
 
 
 def component_letters(components) -> tuple[str, ...]:
     """Component families -> their letters, in the order given, without duplicates.
 
     Accepts ``"d,r,s"``, ``"d+s"``, ``"d s"``, ``"ds"`` or a sequence (``("d", "s")``, long names
-    ``"direct"``, ``"ir"``, ``"sss"`` too).  Inter-reflections ("r") need the direct family ("d"):
-    both are Gaussians, and an inter-reflection is a Gaussian after the direct one.
+    ``"direct"``, ``"ir"``, ``"sss"``, ``"background"`` too).  Inter-reflections ("r") need the
+    direct family ("d"): both are Gaussians, and an inter-reflection is a Gaussian after the
+    direct one.  The background ("b", a constant offset per pixel) needs a component family
+    besides it: an offset alone is no decomposition.
     """
     if isinstance(components, str):
         items = components.replace(",", " ").replace("+", " ").split()
@@ -236,18 +241,22 @@ def component_letters(components) -> tuple[str, ...]:
     for c in items:
         key = str(c).strip().lower()
         if key not in _FAMILY_NAMES:
-            raise ValueError(f"components: unknown component family {c!r} (choose from 'd', 'r', 's'); "
+            raise ValueError(f"components: unknown component family {c!r} (choose from 'd', 'r', 's', 'b'); "
                              f"got {components!r}")
         out.append(_FAMILY_NAMES[key])
     if not out:
-        raise ValueError(f"components must be a non-empty selection of 'd', 'r', 's'; got {components!r}")
+        raise ValueError(f"components must be a non-empty selection of 'd', 'r', 's', 'b'; got {components!r}")
     if "r" in out and "d" not in out:
         raise ValueError("components: inter-reflections ('r') need the direct family ('d') too")
+    if set(out) == {"b"}:
+        raise ValueError(f"components: the background ('b') needs a component family besides it "
+                         f"('d' or 's'); got {components!r}")
     return tuple(dict.fromkeys(out))
 
 
 def parse_components(components) -> frozenset:
-    """``"d,r,s"`` / ``("d", "s")`` / ``"ds"`` -> frozenset of family letters (see :func:`component_letters`)."""
+    """``"d,r,s"`` / ``("d", "s")`` / ``"ds"`` / ``"d,s,b"`` -> frozenset of family letters (see
+    :func:`component_letters`)."""
     return frozenset(component_letters(components))
 
 

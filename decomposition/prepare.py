@@ -17,6 +17,7 @@ from statistics import NormalDist
 from .constants import DICT_SUPPORT_SIGMA, SPIKE_FALSE_ALARM
 from .masks import SampleMask
 from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
+from .background import estimate_background
 from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, noise_sigma
 from .options import GridSpec, parse_nan_policy, parse_noise_model
 
@@ -66,6 +67,10 @@ class Samples:
     saturation_level : float or None
     noise_model : {"gaussian", "poisson"}    resolved (``"auto"`` decided by the count rule)
     dispersion : ndarray (P,) or None      count data: noise std in the Anscombe domain (>= 1)
+    background : ndarray (P,) or None      the background family: the first estimate of each
+                                        pixel's constant offset, units of ``values``
+                                        (:func:`decomposition.background.estimate_background`),
+                                        already subtracted from ``profiles``; None without it
     """
 
     values: np.ndarray
@@ -83,6 +88,7 @@ class Samples:
     saturation_level: float | None
     noise_model: str = "gaussian"
     dispersion: np.ndarray | None = None
+    background: np.ndarray | None = None
 
     @property
     def n_bins(self) -> int:
@@ -131,7 +137,7 @@ def resolve_noise_model(noise: str, values) -> str:
 def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str = "raise",
                     saturation_level: float | None = None, spike_sigma: float = 8.0,
                     noise_floor: float = 1e-3, rel_threshold: float = 0.05,
-                    noise: str = "gaussian") -> Samples:
+                    noise: str = "gaussian", background: bool = False) -> Samples:
     """Validate, mask and normalise profiles (..., L); estimate their noise.
 
     Parameters
@@ -154,6 +160,11 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         counting statistics (:func:`find_count_spikes`, ``spike_sigma`` only switches the
         test on or off) and the solver's noise is the Poisson noise at the signal.  "auto":
         "poisson" for count data (:func:`resolve_noise_model`).
+    background : bool
+        The background family: estimate each pixel's constant offset
+        (:func:`decomposition.background.estimate_background`, on the finite unsaturated
+        samples) and subtract it from the normalised ``profiles`` the solver sees
+        (``values`` keep it; counting statistics use the raw counts).
     """
     nan_policy = parse_nan_policy(nan_policy)
     arr = _as_profiles(profiles)
@@ -181,7 +192,13 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         fit[sat] = False
         mark(flags, sat.any(axis=1), SATURATED)
     fit[~finite] = False
-    xs = np.where(fit, x, 0.0)
+    b_est = None
+    if background:
+        b_est = np.zeros(P)
+        if finite.any():
+            b_est[finite] = estimate_background(x[finite], fit[finite], counts=noise_model == "poisson")
+    xb = x if b_est is None else x - b_est[:, None]      # what the components must explain
+    xs = np.where(fit, xb, 0.0)
     scale = np.abs(xs).max(axis=1)
     live = finite & (scale > 0)
     mark(flags, finite & ~(scale > 0), EMPTY)
@@ -196,11 +213,12 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
 
     counts = noise_model == "poisson"
     disp = np.ones(P) if counts else None
+    raw = np.where(fit, x, 0.0) if counts else None     # counting statistics see the raw counts
     if counts and idx_live.size:
-        disp[idx_live] = count_dispersion(xs[idx_live], fit[idx_live])
+        disp[idx_live] = count_dispersion(raw[idx_live], fit[idx_live])
     if spike_sigma and idx_live.size:
         if counts:
-            sp = find_count_spikes(xs[idx_live], fit[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
+            sp = find_count_spikes(raw[idx_live], fit[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
                                    disp[idx_live], min_rel=rel_threshold)
         else:
             sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
@@ -208,7 +226,7 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         mark(flags, idx_live[sp.any(axis=1)], SPIKE)
         fit[idx_live] = fit[idx_live] & ~sp
         # re-normalise without the spikes
-        xs = np.where(fit, x, 0.0)
+        xs = np.where(fit, xb, 0.0)
         scale[idx_live] = np.abs(xs[idx_live]).max(axis=1)
         ok = scale[idx_live] > 0
         mark(flags, idx_live[~ok], EMPTY)
@@ -217,11 +235,12 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         s_eff[idx_live] = np.maximum(noise_sigma(pn[idx_live], fit[idx_live]), noise_floor)
     if counts and idx_live.size:
         # the noise the solver weighs its sparsity with is the noise at the components
-        s_sig = count_signal_sigma(xs[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
+        s_sig = count_signal_sigma(np.where(fit, x, 0.0)[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
         s_eff[idx_live] = np.maximum(s_eff[idx_live], s_sig)
     return Samples(values=x, profiles=pn, scale=scale, fit=fit, censored=sat, finite=finite, live=idx_live,
                    noise=s_est, noise_eff=s_eff, flags=flags, lead=lead, axis=axis,
-                   saturation_level=saturation_level, noise_model=noise_model, dispersion=disp)
+                   saturation_level=saturation_level, noise_model=noise_model, dispersion=disp,
+                   background=b_est)
 
 
 def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_rel=0.05):

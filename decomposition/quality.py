@@ -40,6 +40,8 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
     flags = np.zeros(P, FLAG_DTYPE)
     rend = comp.render_params(params, L, axis.time_bin_ps, axis.t0_ps)
     total = rend["direct"] + rend["sss"] + rend["interreflections"].sum(axis=-2)
+    if "background" in rend:
+        total = total + rend["background"]
     residual = samples.values - total
     if live.size:
         rr = residual[live]

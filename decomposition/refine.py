@@ -17,6 +17,10 @@ pixel's refined parameters are kept only when they lower its residual sum of
 squares below that of the input parameters (with the input amplitudes) and
 keep every present amplitude positive; otherwise the input is returned as is.
 
+A constant offset per pixel (``params["background"]``, the ``b`` family) is either held
+fixed (subtracted from the profile; the default) or, with ``fit_background``, fitted jointly
+with the amplitudes as one more linear parameter (:mod:`decomposition.varpro`).
+
 Kernels and derivatives: :mod:`decomposition.kernels`; the batched variable-projection
 LM: :mod:`decomposition.varpro`.
 """
@@ -27,7 +31,7 @@ import numpy as np
 
 from .constants import SSS_SLOT
 from .kernels import kernel_derivatives  # noqa: F401  (public here since the first release)
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .varpro import Layout, refine_block
 
 __all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots", "apply_weights"]
@@ -138,7 +142,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
-           bin_integrated: bool = False):
+           bin_integrated: bool = False, fit_background=False):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -185,12 +189,18 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         whose value is then ignored even if it is NaN).  Default: all ones.
     bin_integrated : bool
         Fit bin-averaged kernels instead of point samples (as in model.render_*).
+    fit_background : bool or array_like of bool, shape (...,)
+        Pixels that fit a constant offset jointly with the amplitudes (started from
+        ``params["background"]`` where finite, else 0).  Elsewhere an offset in ``params``
+        (finite ``params["background"]``) is held fixed: subtracted before the fit and
+        returned unchanged.
 
     Returns
     -------
     params : dict of ndarray
         Refined parameters, same keys and shapes as a full parameter dict,
-        NaN where a component is absent.  Pixels whose fit did not improve keep
+        NaN where a component is absent; with a ``background`` key (shape (...,), units
+        of ``profiles``) when the input had one or ``fit_background`` is set anywhere.  Pixels whose fit did not improve keep
         their input parameters exactly.
     info : dict of ndarray, each of the leading shape (...,)
         ``iterations`` (int), ``converged`` (bool), ``refined`` (bool: refined
@@ -228,6 +238,17 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     slots = slot_arrays(params, lead)
     y = y.reshape(-1, n_bins)
     n = y.shape[0]
+    fit_bg = np.broadcast_to(np.asarray(fit_background, bool), lead).reshape(n)
+    has_bg = BACKGROUND_KEY in params or fit_bg.any()
+    b_in = np.zeros(n)
+    if BACKGROUND_KEY in params:
+        b_given = np.asarray(params[BACKGROUND_KEY], np.float64)
+        if b_given.shape != lead:
+            raise ValueError(f"params[{BACKGROUND_KEY!r}] has shape {b_given.shape}, expected {lead}")
+        b_in = np.where(np.isfinite(b_given.reshape(n)), b_given.reshape(n), 0.0)
+    # a held offset is subtracted (zero-weight samples stay 0)
+    held = np.where(fit_bg, 0.0, b_in)
+    y = y - held[:, None] * (np.ones_like(y) if sw is None else (sw > 0))
     k = 2 + slots["n_ir"]
     lay = Layout(k, shared_sigma)
     span = n_bins * float(time_bin_ps)
@@ -239,6 +260,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     yw = y if sw is None else y * sw
 
     res = {name: slots[name].copy() for name in ("delay", "amplitude", "sigma", "alpha")}
+    b_out = b_in.copy()
     info = {"iterations": np.zeros(n, np.int64), "converged": np.zeros(n, bool),
             "refined": np.zeros(n, bool), "rss_input": np.zeros(n), "rss": np.zeros(n)}
     for start in range(0, n, int(block_size)):
@@ -246,6 +268,9 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         sc = scale[sl]
         sub = {name: slots[name][sl] for name in ("delay", "sigma", "alpha", "present")}
         sub["amplitude"] = slots["amplitude"][sl] / sc[:, None]
+        if fit_bg[sl].any():
+            sub["fit_background"] = fit_bg[sl]
+            sub["background"] = b_in[sl] / sc
         with np.errstate(under="ignore"):
             out, inf = refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
                                      int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
@@ -254,6 +279,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],
                                         slots["amplitude"][sl])
+        b_out[sl] = np.where(fit_bg[sl], out["background"] * sc, b_in[sl])
         for key in ("iterations", "converged", "refined"):
             info[key][sl] = inf[key]
         info["rss_input"][sl] = inf["rss_input"] * sc * sc
@@ -261,5 +287,9 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     res["present"] = slots["present"]
     res["n_ir"] = slots["n_ir"]
     out_params = params_from_slots(res, lead)
+    if has_bg:
+        b_nan = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(n) if BACKGROUND_KEY in params else np.full(n, np.nan)
+        # an absent (NaN) offset stays absent unless it was fitted
+        out_params[BACKGROUND_KEY] = np.where(fit_bg | np.isfinite(b_nan), b_out, np.nan).reshape(lead)
     info = {key: v.reshape(lead) for key, v in info.items()}
     return out_params, info

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.model import render_profile
+from core.model import BACKGROUND_KEY, render_profile
 from .constants import POISSON_REFITS
 from .noise import fit_dispersion, poisson_weights
 from .prepare import Samples
 
-__all__ = ["refine_components", "component_errors", "sample_weights"]
+__all__ = ["refine_components", "component_errors", "sample_weights", "background_stats"]
 
 
 def sample_weights(samples: Samples, params: dict) -> np.ndarray:
@@ -43,22 +43,70 @@ def _model(samples: Samples, params: dict) -> np.ndarray:
     return np.where(np.isfinite(model), model, 0.0)
 
 
-def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool):
-    """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape)."""
+def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
+                      significance_chi2: float | None = None):
+    """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
+
+    With a ``background`` in ``params`` (the ``b`` family) the offset of every live pixel is
+    fitted jointly with the amplitudes; then, where it is not significant
+    (:func:`decomposition.background.background_significant` at ``significance_chi2``, the
+    likelihood-ratio statistic of :func:`background_stats`), it is set to 0 and the pixel
+    refitted without it.  ``info`` then also holds ``background_chi2`` (the statistic) and
+    ``background_stderr`` (units of the profiles; NaN where the offset was left out).
+    """
+    from .background import background_significant
     from .refine import refine
 
     axis = samples.axis
     n_fits = POISSON_REFITS if samples.noise_model == "poisson" else 1
-    iterations = np.zeros(samples.values.shape[0], np.int64)
-    refined = np.zeros(samples.values.shape[0], bool)
-    for _ in range(n_fits):
-        params, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
-                               weights=sample_weights(samples, params), shared_sigma=shared_sigma,
-                               sss_after_direct=sss_after_direct)
-        iterations += rinfo["iterations"].reshape(-1)
-        refined |= rinfo["refined"].reshape(-1)
+    P = samples.values.shape[0]
+    iterations = np.zeros(P, np.int64)
+    refined = np.zeros(P, bool)
+    with_bg = BACKGROUND_KEY in params
+    fit_bg = np.zeros(P, bool)
+    if with_bg:
+        fit_bg[samples.live] = True
+
+    def fits(params, fit_bg):
+        for _ in range(n_fits):
+            params, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
+                                   weights=sample_weights(samples, params), shared_sigma=shared_sigma,
+                                   sss_after_direct=sss_after_direct, fit_background=fit_bg)
+            nonlocal iterations, refined
+            iterations += rinfo["iterations"].reshape(-1)
+            refined |= rinfo["refined"].reshape(-1)
+        return params
+
+    params = fits(params, fit_bg)
     lead = samples.lead
-    return params, {"refine_iterations": iterations.reshape(lead), "refined": refined.reshape(lead)}
+    info = {"refine_iterations": iterations, "refined": refined}
+    if with_bg:
+        chi2, stderr = background_stats(samples, params)
+        keep = background_significant(chi2, 25.0 if significance_chi2 is None else significance_chi2) & fit_bg
+        drop = fit_bg & ~keep
+        if drop.any():
+            params = dict(params)
+            params[BACKGROUND_KEY] = np.where(drop, 0.0, params[BACKGROUND_KEY])
+            params = fits(params, keep)
+        info.update(background_chi2=chi2, background_stderr=np.where(keep, stderr, np.nan))
+    return params, {k: v.reshape(lead) for k, v in info.items()}
+
+
+def background_stats(samples: Samples, params: dict):
+    """Likelihood-ratio statistic and standard error (units of the profiles) of each pixel's
+    fitted offset (:func:`decomposition.background.background_test`) under the noise model:
+    Gaussian, weights the fit mask and the pixel's noise estimate; count data, weights
+    1 / Poisson variance of the model (which includes the offset), noise scale the dispersion."""
+    from .background import background_test
+
+    axis = samples.axis
+    if samples.noise_model == "poisson":
+        weights = poisson_weights(_model(samples, params), samples.fit, samples.dispersion)
+        noise = np.ones(samples.values.shape[0])
+    else:
+        weights = samples.weights
+        noise = samples.noise_eff * samples.scale
+    return background_test(samples.values, params, weights, noise, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps)
 
 
 def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool) -> dict:
@@ -69,6 +117,12 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
     shape = samples.lead + (samples.n_bins,)
     n_pix = samples.values.shape[0]
     flat = {k: np.reshape(v, (n_pix,) + np.shape(v)[len(samples.lead):]) for k, v in params.items()}
+    values = samples.values
+    comp_params = params
+    if BACKGROUND_KEY in params:
+        # the components' errors with the offset held at its fitted value
+        values = values - np.nan_to_num(flat[BACKGROUND_KEY])[:, None]
+        comp_params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     noise = None
     if samples.noise_model == "poisson":
         # weights 1 / Poisson variance, the noise scale measured on the fit (1 for pure counts)
@@ -77,6 +131,6 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
         noise = fit_dispersion(samples.values, model, samples.fit).reshape(samples.lead)
     else:
         weights = samples.weights
-    return standard_errors(samples.values.reshape(shape), params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
+    return standard_errors(values.reshape(shape), comp_params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                            weights=weights.reshape(shape), shared_sigma=shared_sigma,
                            sss_after_direct=sss_after_direct, noise_sigma=noise)

@@ -407,7 +407,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     shared = opts.shared_sigma
 
     base = {k: v.copy() for k, v in st.items()}
-    comp.threshold(base, t, opts.rel_threshold)
+    comp.threshold(base, t, opts.rel_threshold, s_eff, opts.significance_chi2)
     chi0 = _data_chi2(t, p, mask, base, s2)
 
     # Pixels in doubt (see the docstring).
@@ -465,7 +465,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         state, _, _ = refine_atoms(t, pb[rows], mb[rows], state, mu[rows], eps[rows], bounds, opts.n_polish, None,
                                    shared, opts.sss_after_direct, opts.lm_tol)
         drop_zero(state)
-        return final_atoms(state, t, T, opts)      # scored as it will be labelled
+        return final_atoms(state, t, T, opts, np.sqrt(sb2[rows]))      # scored as it will be labelled
 
     # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
     cand = [take(base, idx)]

@@ -29,6 +29,14 @@ and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
 Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
 step lowers its RSS by less than ``ftol`` relative, or when no step helps.
 
+Background: a constant offset per pixel (the ``b`` family) is one more linear parameter
+with no nonlinear one.  It is eliminated exactly by projecting every stacked row (basis,
+derivatives and data, each weighted) onto the complement of the weighted constant
+u = sqrt(w): with P_u = I - u u^T / (u^T u), the projector of [Phi, u] is that of
+P_u Phi times P_u, so the amplitudes, the residual and Kaufman's Jacobian of the joint fit
+are those of the projected rows, and the offset follows from the residual
+(:func:`background_level`).  Pixels without the flag are untouched.
+
 See :mod:`decomposition.refine` for the public function and its options.
 """
 from __future__ import annotations
@@ -38,7 +46,7 @@ import numpy as np
 from .constants import SSS_SLOT
 from .kernels import kernel_derivatives
 
-__all__ = ["Layout", "design_rows", "refine_block", "CHUNK_PIXELS"]
+__all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
 
 
 def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
@@ -79,6 +87,34 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     if sw is not None:
         m[:, :-1] *= sw[:, None, :]
     return m
+
+
+def _project_constant(m, bg, sw):
+    """Project the rows of the pixels ``bg`` (n,) bool of ``m`` (n, Q, L) onto the complement
+    of the weighted constant sqrt(w) (``sw`` (n, L); all ones without weights), in place."""
+    if bg is None or not bg.any():
+        return m
+    u = np.ones((int(bg.sum()), m.shape[-1])) if sw is None else sw[bg]
+    uu = np.einsum("nl,nl->n", u, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = u / np.sqrt(np.where(uu > 0, uu, 1.0))[:, None]
+    sub = m[bg]
+    sub -= np.einsum("nql,nl->nq", sub, u)[..., None] * u[:, None, :]
+    m[bg] = sub
+    return m
+
+
+def background_level(t, y, delay, sigma, alpha, present, c, tb, sw=None):
+    """Least-squares offset (n,) given the amplitudes ``c`` (n, K) at the nonlinear parameters:
+    b = u . (y - Phi c) / (u . u) with u = sqrt(w) (``y`` weighted like the rows, as in
+    :func:`design_rows`); 0 for a pixel without weighted samples."""
+    m = design_rows(t, y, delay, sigma, alpha, present, tb, False, sw)
+    k = present.shape[1]
+    r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])
+    u = np.ones_like(r) if sw is None else sw
+    uu = np.einsum("nl,nl->n", u, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(uu > 0, np.einsum("nl,nl->n", u, r) / np.where(uu > 0, uu, 1.0), 0.0)
 
 
 def _regularise(gram, present):
@@ -173,7 +209,7 @@ class Layout:
 CHUNK_PIXELS = 48
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
     """:func:`_evaluate_chunk` over cache-sized chunks of pixels.
 
     Pixels are taken in order of their last present slot, and each chunk is
@@ -194,7 +230,8 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
         k_eff = int(last[sel].max()) + 1
         sub_lay, cols = lay.truncated(k_eff)
         c, rss, a, g = _evaluate_chunk(sub_lay, t, y[sel], theta[np.ix_(sel, cols)], present[sel, :k_eff],
-                                       free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel])
+                                       free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel],
+                                       None if bg is None else bg[sel])
         c_out[sel, :k_eff] = c
         rss_out[sel] = rss
         if jac:
@@ -203,23 +240,24 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None):
     return c_out, rss_out, a_out, g_out
 
 
-def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None):
+def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
     """Amplitudes, residual sum of squares and (if jac) the LM normal equations at theta.
 
     With V = W dPhi (rows; W carries the amplitudes c and the parameter
     mapping of the layout), G = Phi Phi^T and B = Phi V^T, Kaufman's projected
     Jacobian J = Phi^T G^-1 B - V^T gives J^T J = V V^T - B^T G^-1 B and
     J^T r = -V r (because Phi r = 0), so one batched Gram product of the
-    stacked rows [Phi; dPhi; y] is all the L-length work.
+    stacked rows [Phi; dPhi; y] is all the L-length work.  Pixels ``bg`` (n,) bool also
+    fit a constant offset (rows projected, :func:`_project_constant`).
     """
     k, q = lay.k, lay.q
     delay, sigma, alpha = lay.unpack(theta)
-    m = design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw)
+    m = _project_constant(design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw), bg, sw)
     mm = m @ m.swapaxes(-1, -2)
     gram = _regularise(mm[:, :k, :k], present)
     c = np.linalg.solve(gram, mm[:, :k, -1][..., None])[..., 0]
     c = np.where(present, c, 0.0)
-    r = y - np.einsum("nk,nkl->nl", c, m[:, :k])
+    r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])      # the data row (projected where bg)
     rss = np.einsum("nl,nl->n", r, r)
     if not jac:
         return c, rss, None, None
@@ -262,8 +300,18 @@ def _keep_order(theta, present):
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
                   keep_order=True):
+    """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
+    docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
+    constant offset, and ``background`` (n,), their input offsets (normalised units; the
+    never-worse reference uses them); the returned ``background`` is the fitted offset there
+    (the input where the refined values were not kept) and 0 elsewhere."""
     n = y.shape[0]
     present = slots["present"]
+    bg = slots.get("fit_background")
+    if bg is not None:
+        bg = np.asarray(bg, bool)
+        if not bg.any():
+            bg = None
     free = lay.free(present)
     lo, hi = bounds
     theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
@@ -286,9 +334,12 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         phi0 = design_rows(t, y[ch], d0[ch], s0[ch], a0[ch], present[ch], tb, False,
                        None if sw is None else sw[ch])[:, :lay.k]
         r0 = y[ch] - np.einsum("nk,nkl->nl", amp_in[ch], phi0)
+        if bg is not None:
+            u0 = np.ones_like(r0) if sw is None else sw[ch]
+            r0 = r0 - np.where(bg[ch], np.nan_to_num(slots["background"][ch]), 0.0)[:, None] * u0
         rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg)
     viol = _amp_violations(c, present)
     lam = np.full(n, lam0)
     nu = np.full(n, 2.0)
@@ -318,7 +369,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, 0.0)
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
-                                         None if sw is None else sw[idx])
+                                         None if sw is None else sw[idx], None if bg is None else bg[idx])
         viol_t = _amp_violations(c_t, present[idx])
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
         accept = ok & (rss_t < rss[idx])
@@ -354,7 +405,12 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         "sigma": np.where(kept[:, None], sigma, slots["sigma"]),
         "alpha": np.where(kept & present[:, SSS_SLOT], alpha, slots["alpha"]),
         "amplitude": np.where(kept[:, None], c, slots["amplitude"]),
+        "background": np.zeros(n),
     }
+    if bg is not None:
+        b_fit = background_level(t, y, delay, sigma, alpha, present, c, tb, sw)
+        b_in = np.nan_to_num(slots["background"])
+        out["background"] = np.where(bg, np.where(kept, b_fit, b_in), 0.0)
     info = {
         "iterations": iters,
         "converged": converged,

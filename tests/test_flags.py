@@ -8,7 +8,7 @@ def test_bit_values_are_those_of_existing_stores():
     # the on-disk format: these values are written into every result store's flags array
     want = {"EMPTY": 1, "SATURATED": 2, "POOR_FIT": 4, "SPIKE": 8, "NONFINITE": 16, "MAX_ITER": 32,
             "AT_BOUND": 64, "TRUNCATED": 128, "AMBIGUOUS": 512,
-            "WIDE_PSF": 1024}
+            "WIDE_PSF": 1024, "OFF_WINDOW": 2048}
     assert {f.name: int(f) for f in fl.Flag} == want
     assert fl.FLAG_NAMES == {v: k for k, v in want.items()}
     for name, v in want.items():          # the old names stay importable from the package

@@ -300,10 +300,12 @@ def test_decompose_refine_with_saturated_uint16_input():
     y = np.clip(clean + 300.0 * rng.standard_normal(clean.shape), 0, 65535).astype(np.uint16)
     sat = y == 65535
     assert sat.any(axis=-1).all()
-    base = decompose(y, T)
+    # additive noise of 300 units, not photon counts: the Gaussian model (integer input would
+    # otherwise be taken for counts, whose variance is the model)
+    base = decompose(y, T, noise="gaussian")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = decompose(y, T, refine=True)
+        res = decompose(y, T, refine=True, noise="gaussian")
     # Never worse on the samples that are fitted (saturated ones are excluded) ...
     rss = lambda r: np.sum(np.where(sat, 0.0, r.residual) ** 2, axis=-1)  # noqa: E731
     assert np.all(rss(res) <= rss(base) * (1 + 1e-12))

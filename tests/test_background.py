@@ -1,0 +1,244 @@
+"""The background family ``b``, significance inside the window and the OFF_WINDOW flag."""
+import numpy as np
+import pytest
+
+from core.model import empty_params, render_components, render_profile
+from decomposition import decompose
+from decomposition.background import background_significant, background_test, estimate_background
+from decomposition.components import off_window, threshold, window_fraction
+from decomposition.constants import FAM_GAUSS, FAM_SSS
+from decomposition.flags import FLAG_NAMES, OFF_WINDOW, POOR_FIT
+from decomposition.options import parse_components
+from decomposition.refine import refine
+from decomposition.slots import new_state
+
+T = 2.0
+
+
+def _scene(n, rng, *, amp=1.0, n_bins=256):
+    p = empty_params((n,), n_ir=0)
+    p["direct_delay_ps"][:] = rng.uniform(60, 120, n)
+    p["direct_amplitude"][:] = amp
+    p["direct_sigma_ps"][:] = 3.0
+    p["sss_delay_ps"][:] = p["direct_delay_ps"] + 6.0
+    p["sss_amplitude"][:] = 0.08 * amp
+    p["sss_sigma_ps"][:] = 3.0
+    p["sss_alpha_per_ps"][:] = 0.03
+    return p, render_profile(p, n_bins, T)
+
+
+# --------------------------------------------------------------------------- the model and the options
+
+def test_render_adds_background_only_when_present():
+    p, clean = _scene(3, np.random.default_rng(0))
+    assert "background" not in render_components(p, 256, T)
+    q = dict(p, background=np.array([0.5, np.nan, -0.25]))
+    c = render_components(q, 256, T)
+    np.testing.assert_array_equal(c["background"][0], 0.5)
+    np.testing.assert_array_equal(c["background"][1], 0.0)       # NaN: no background
+    np.testing.assert_allclose(render_profile(q, 256, T) - clean, c["background"])
+    with pytest.raises(ValueError, match="background"):
+        render_components(dict(p, background=np.zeros(4)), 256, T)
+
+
+@pytest.mark.parametrize("spec, letters", [("d,s,b", {"d", "s", "b"}), ("d,r,s,b", {"d", "r", "s", "b"}),
+                                           ("s,b", {"s", "b"}), ("dsb", {"d", "s", "b"}),
+                                           (("direct", "background"), {"d", "b"})])
+def test_components_accept_background(spec, letters):
+    assert parse_components(spec) == frozenset(letters)
+
+
+@pytest.mark.parametrize("spec, match", [("b", "needs a component family"), ("d,x", "unknown component family 'x'"),
+                                         ("r,b", "need the direct"), ("", "non-empty")])
+def test_bad_components_rejected(spec, match):
+    with pytest.raises(ValueError, match=match):
+        parse_components(spec)
+
+
+def test_background_needs_convscd():
+    _, clean = _scene(2, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="convscd"):
+        decompose(clean, T, method="gradbm", components="d,s,b")
+
+
+# --------------------------------------------------------------------------- the two rules
+
+def test_estimate_background_known_offset():
+    rng = np.random.default_rng(1)
+    _, clean = _scene(200, rng)
+    y = clean + 0.07 + 0.01 * rng.standard_normal(clean.shape)
+    b = estimate_background(y)
+    # the faint sss tail within the clip biases it up by a fraction of the noise (the joint fit
+    # of the refinement removes that)
+    assert abs(b.mean() - 0.07) < 0.005 and b.std() < 0.003
+    direct = render_profile({k: v for k, v in _scene(200, rng)[0].items() if k.startswith("direct")}, 256, T)
+    counts = rng.poisson(400 * direct + 3.0).astype(float)
+    bc = estimate_background(counts, counts >= 0, counts=True)
+    assert abs(bc.mean() - 3.0) < 0.3
+    with pytest.raises(ValueError, match="shape"):
+        estimate_background(np.zeros(5))
+
+
+def test_background_test_is_the_increase_of_the_data_term():
+    """delta chi2 equals RSS(b removed, amplitudes refitted) - RSS(joint fit), in noise units."""
+    rng = np.random.default_rng(2)
+    p, clean = _scene(5, rng)
+    y = clean + 0.02 + 0.01 * rng.standard_normal(clean.shape)
+    comps = render_components({k: (np.where(np.isfinite(v), 1.0, v) if k.endswith("amplitude") else v)
+                               for k, v in p.items()}, 256, T)
+    A = np.stack([comps["direct"], comps["sss"]], axis=1)
+    A1 = np.concatenate([A, np.ones((5, 1, 256))], axis=1)
+    rss = []
+    for design in (A1, A):
+        c = np.stack([np.linalg.lstsq(design[i].T, y[i], rcond=None)[0] for i in range(5)])
+        rss.append(((y - np.einsum("pk,pkl->pl", c, design)) ** 2).sum(axis=1))
+        if design is A1:
+            b = c[:, -1]
+    s = np.full(5, 0.01)
+    dchi2, se = background_test(y, dict(p, background=b), np.ones_like(y), s, time_bin_ps=T)
+    np.testing.assert_allclose(dchi2, (rss[1] - rss[0]) / s**2, rtol=1e-6)
+    assert np.all(se > 0) and np.all(se < 0.01)
+    assert background_significant(np.array([24.9, 25.0]), 25.0).tolist() == [False, True]
+
+
+def test_refine_fits_background_jointly():
+    rng = np.random.default_rng(3)
+    p, clean = _scene(40, rng)
+    y = clean + 0.05 + 0.005 * rng.standard_normal(clean.shape)
+    start = {k: v.copy() for k, v in p.items()}
+    start["direct_delay_ps"] = start["direct_delay_ps"] + 0.5
+    out, info = refine(y, dict(start, background=np.zeros(40)), time_bin_ps=T, shared_sigma=True,
+                       sss_after_direct=True, fit_background=True)
+    assert info["refined"].all()
+    np.testing.assert_allclose(out["background"], 0.05, atol=0.003)
+    np.testing.assert_allclose(out["sss_alpha_per_ps"], 0.03, rtol=0.05)
+    # held fixed: subtracted and returned as given
+    held, _ = refine(y, dict(start, background=np.full(40, 0.05)), time_bin_ps=T, shared_sigma=True)
+    np.testing.assert_array_equal(held["background"], 0.05)
+    np.testing.assert_allclose(held["direct_delay_ps"], p["direct_delay_ps"], atol=0.1)
+
+
+# --------------------------------------------------------------------------- decompose with "b"
+
+def test_background_recovered_white_and_lifetime_unbiased():
+    rng = np.random.default_rng(4)
+    p, clean = _scene(60, rng)
+    y = clean + 0.01 * rng.standard_normal(clean.shape)
+    ref = decompose(y, T, components="d,s")
+    off = decompose(y + 0.05, T, components="d,s")
+    got = decompose(y + 0.05, T, components="d,s,b", stderr=True)
+    b = got.params["background"]
+    assert abs(b.mean() - 0.05) < 0.001 and np.all(np.abs(b - 0.05) < 0.005)
+    assert np.all(np.isfinite(got.params["background_stderr"]))
+    a_ref, a_off, a_b = (np.median(r.params["sss_alpha_per_ps"]) for r in (ref, off, got))
+    # the lifetime with the offset fitted is that of the same data without an offset
+    assert abs(a_b - a_ref) < 0.0002 and abs(a_b - 0.03) < 0.002
+    assert abs(a_off - 0.03) > 0.002             # the offset left in biases the lifetime
+    assert not np.any(got.flags & POOR_FIT)
+    np.testing.assert_allclose(got.residual.std(axis=1), 0.01, rtol=0.2)
+
+
+def test_background_recovered_poisson_counts():
+    rng = np.random.default_rng(5)
+    p, clean = _scene(60, rng, amp=400.0)
+    y = rng.poisson(clean + 5.0).astype(np.uint16)
+    got = decompose(y, T, components="d,s,b", stderr=True)
+    assert got.info["noise_model"] == "poisson"
+    b, se = got.params["background"], got.params["background_stderr"]
+    assert abs(b.mean() - 5.0) < 0.1
+    # the spread matches the stated standard error
+    assert 0.6 < b.std() / np.median(se) < 1.5
+    assert abs(np.median(got.params["sss_alpha_per_ps"]) - 0.03) < 0.001
+
+
+def test_background_left_out_where_there_is_none():
+    rng = np.random.default_rng(6)
+    p, clean = _scene(60, rng)
+    y = clean + 0.01 * rng.standard_normal(clean.shape)
+    ref = decompose(y, T, components="d,s", refine=True)     # "b" always refines
+    got = decompose(y, T, components="d,s,b")
+    b = got.params["background"]
+    # not significant in (nearly) every pixel: reported as exactly 0
+    assert np.mean(b == 0.0) >= 0.95
+    zero = b == 0.0
+    # the same answer as without the family (the first estimate, subtracted before the sparse
+    # coding, can move a pixel's detection)
+    rel = np.abs(got.params["sss_alpha_per_ps"] / ref.params["sss_alpha_per_ps"] - 1)
+    assert np.mean(rel[zero] < 1e-3) >= 0.95
+    assert "background" not in ref.params
+
+
+def test_background_nan_where_not_decomposed():
+    rng = np.random.default_rng(7)
+    _, clean = _scene(3, rng)
+    y = clean + 0.02
+    y[1, 5] = np.nan
+    got = decompose(y, T, components="d,s,b", nan_policy="omit")
+    assert np.isnan(got.params["background"][1]) and np.isfinite(got.params["background"][[0, 2]]).all()
+
+
+# --------------------------------------------------------------------------- thresholds and the window
+
+def _state(fams, delays, amps, sigma=3.0, alpha=0.03):
+    st = new_state(1, len(fams))
+    for k, (f, d, a) in enumerate(zip(fams, delays, amps)):
+        st["fam"][0, k], st["delay"][0, k], st["amp"][0, k] = f, d, a
+    st["lsig"][:] = np.log(sigma)
+    st["lalp"][:] = np.log(alpha)
+    return st
+
+
+def test_window_fraction_and_off_window_known_answers():
+    t = 0.0 + T * np.arange(256)
+    st = _state([FAM_GAUSS, FAM_GAUSS, FAM_GAUSS, FAM_SSS], [-3.0, 0.0, 200.0, 600.0], [1, 1, 1, 1])
+    frac = window_fraction(st, t)[0]
+    # a Gaussian centred on the first sample has half of its area inside (plus half a bin)
+    assert abs(frac[1] - 0.5 - 0.5 * T / (3.0 * np.sqrt(2 * np.pi))) < 0.01
+    assert frac[2] > 0.999 and frac[3] < 0.01
+    assert off_window(st, t)[0].tolist() == [True, True, False, True]
+
+
+def test_threshold_keeps_a_significant_faint_atom():
+    t = T * np.arange(256)
+    st = _state([FAM_GAUSS, FAM_GAUSS], [50.0, 300.0], [1.0, 0.01])
+    kept = threshold({k: v.copy() for k, v in st.items()}, t, 0.05)
+    assert kept["fam"][0].tolist() == [FAM_GAUSS, 0]                 # the relative rule alone
+    # energy of the faint atom: 1e-4 * sum g^2 = 1e-4 * sqrt(pi) sigma / T = 2.66e-4
+    e = 1e-4 * np.sqrt(np.pi) * 3.0 / T
+    for s, keep in ((np.sqrt(e / 25.0) * 0.99, True), (np.sqrt(e / 25.0) * 1.01, False)):
+        out = threshold({k: v.copy() for k, v in st.items()}, t, 0.05, np.array([s]), 25.0)
+        assert (out["fam"][0, 1] == FAM_GAUSS) == keep
+
+
+def _echo_scene(n, rng, direct_delay_ps):
+    """A direct truncated at the window start and an echo at 1 % of the direct's peak, 5 noise
+    sigmas above the noise."""
+    p = empty_params((n,), n_ir=1)
+    p["direct_delay_ps"][:] = direct_delay_ps
+    p["direct_amplitude"][:] = 1.0
+    p["direct_sigma_ps"][:] = 3.0
+    p["ir_delay_ps"][:, 0] = rng.uniform(150, 350, n)
+    p["ir_amplitude"][:, 0] = 0.01
+    p["ir_sigma_ps"][:, 0] = 3.0
+    y = render_profile(p, 256, T, 0.0) + 0.002 * rng.standard_normal((n, 256))
+    return p, y
+
+
+def test_one_percent_echo_found_with_truncated_direct():
+    rng = np.random.default_rng(8)
+    p, y = _echo_scene(200, rng, -3.0)
+    r = decompose(y, T, t0_ps=0.0, components="d,r")
+    found = (np.abs(r.params["ir_delay_ps"] - p["ir_delay_ps"][:, :1]) < 9.0).any(axis=1)
+    assert found.mean() >= 0.95
+    assert np.all(r.flags & OFF_WINDOW)                       # the direct runs off the first bin
+    # with the relative rule alone the echo is lost
+    r0 = decompose(y[:20], T, t0_ps=0.0, components="d,r", significance_chi2=0.0)
+    assert not np.isfinite(r0.params["ir_delay_ps"]).any()
+
+
+def test_off_window_not_set_for_components_inside():
+    rng = np.random.default_rng(9)
+    p, y = _echo_scene(20, rng, 60.0)
+    r = decompose(y, T, t0_ps=0.0, components="d,r")
+    assert not np.any(r.flags & OFF_WINDOW)
+    assert FLAG_NAMES[2048] == "OFF_WINDOW"
