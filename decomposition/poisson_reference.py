@@ -22,8 +22,9 @@ the Poisson deviance
 by Levenberg-Marquardt on the Fisher-scoring system: the step solves
 ``(J^T W J + lambda diag(J^T W J)) delta = J^T (y - mu) / mu`` with ``W = 1 / mu`` (the expected
 information), accepted only where it lowers D; all pixels of a block at once (batched
-solves), with the analytic derivatives of the two renderers.  Amplitudes stay >= 0 and alpha
-> 0 (a step leaving them is refused); expected counts are floored at 1e-8 of the pixel's
+solves), with the analytic derivatives of the two renderers.  Amplitudes stay >= 0, alpha
+> 0 and delays within the window widened by a few response widths (a step leaving them is
+refused); expected counts are floored at 1e-8 of the pixel's
 largest count (the ringing of a sampled response far from it).
 
 Standard errors: the square roots of the diagonal of the inverse expected Fisher
@@ -40,7 +41,7 @@ import numpy as np
 from core.irf import InstrumentResponse, render_shifted, render_sss
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 
-from .synthetic_effects import bin_averaged_response
+from .synthetic_effects import bin_averaged_response, response_sigma_ps
 
 __all__ = ["PoissonReferenceOptions", "PoissonReferenceFit", "poisson_reference_fit", "poisson_reference_bound",
            "poisson_deviance"]
@@ -68,12 +69,18 @@ class PoissonReferenceOptions:
         Initial damping (> 0), divided by 3 after an accepted step, times 4 after a refused one.
     block_size : int
         Pixels fitted together (>= 1).
+    delay_margin_widths : float
+        Delays stay within the window widened on each side by this many widths of the
+        response (its FWHM / 2.355; > 0): beyond that a component leaves too little of itself
+        in the window to be placed (a direct before the first bin could otherwise slide away
+        with its amplitude growing to match the edge it leaves).  A step leaving it is refused.
     """
 
     max_iter: int = 100
     tol: float = 1e-8
     lambda_start: float = 1e-3
     block_size: int = 512
+    delay_margin_widths: float = 4.0
 
     def __post_init__(self):
         if int(self.max_iter) < 1:
@@ -84,6 +91,9 @@ class PoissonReferenceOptions:
             raise ValueError(f"PoissonReferenceOptions.lambda_start must be positive, got {self.lambda_start}")
         if int(self.block_size) < 1:
             raise ValueError(f"PoissonReferenceOptions.block_size must be >= 1, got {self.block_size}")
+        if not (np.isfinite(self.delay_margin_widths) and self.delay_margin_widths > 0):
+            raise ValueError(f"PoissonReferenceOptions.delay_margin_widths must be positive, "
+                             f"got {self.delay_margin_widths}")
 
 
 @dataclass(frozen=True)
@@ -140,6 +150,7 @@ class _Layout:
         self.bg = 5 + 2 * self.n_ir
         self.size = self.bg + 1
         self.amplitudes = np.concatenate([[1, 3], self.ir_amp, [self.bg]]).astype(np.int64)
+        self.delays = np.concatenate([[0, 2], self.ir_delay]).astype(np.int64)
 
 
 def _pack(params: dict, background, lead: tuple, n: int):
@@ -269,7 +280,7 @@ def _stderr(h: np.ndarray, free: np.ndarray) -> np.ndarray:
     return np.where(free, out, np.nan)
 
 
-def _fit_block(y, theta, free, model: _Model, opts: PoissonReferenceOptions):
+def _fit_block(y, theta, free, model: _Model, opts: PoissonReferenceOptions, delay_bounds):
     n = y.shape[0]
     lay = model.lay
     floor = _MU_FLOOR * np.maximum(y.max(axis=1), 1.0)[:, None]
@@ -295,6 +306,8 @@ def _fit_block(y, theta, free, model: _Model, opts: PoissonReferenceOptions):
         cand = theta[idx] + step
         ok = np.all(np.where(free[idx][:, lay.amplitudes], cand[:, lay.amplitudes] >= 0, True), axis=1)
         ok &= np.where(free[idx, 4], cand[:, 4] > 0, True) & np.all(np.isfinite(cand), axis=1)
+        dl = cand[:, lay.delays]
+        ok &= np.all(~free[idx][:, lay.delays] | ((dl >= delay_bounds[0]) & (dl <= delay_bounds[1])), axis=1)
         cand = np.where(ok[:, None], cand, theta[idx])
         mu_new, jac_new = model(cand, free[idx])
         dev_new = np.where(ok, poisson_deviance(y[idx], np.maximum(mu_new, floor[idx])), np.inf)
@@ -387,10 +400,16 @@ def poisson_reference_fit(counts, truth_params: dict, response: InstrumentRespon
     mu = np.zeros((n, L))
     info = {"iterations": np.zeros(n, np.int64), "converged": np.zeros(n, bool), "deviance": np.zeros(n),
             "deviance_start": np.zeros(n)}
+    margin = float(options.delay_margin_widths) * response_sigma_ps(response)
+    bounds = (float(t[0]) - margin, float(t[-1]) + margin)
+    start = theta[:, lay.delays]
+    if np.any(free[:, lay.delays] & ((start < bounds[0]) | (start > bounds[1]))):
+        raise ValueError(f"truth_params: a delay lies outside the window widened by {margin:.3g} ps "
+                         f"({bounds[0]:.6g} .. {bounds[1]:.6g} ps); raise options.delay_margin_widths")
     bs = int(options.block_size)
     for lo in range(0, n, bs):
         sl = slice(lo, min(n, lo + bs))
-        th, er, m, inf = _fit_block(y[sl], theta[sl].copy(), free[sl], model, options)
+        th, er, m, inf = _fit_block(y[sl], theta[sl].copy(), free[sl], model, options, bounds)
         theta[sl], err[sl], mu[sl] = th, er, m
         for k, v in inf.items():
             info[k][sl] = v

@@ -10,7 +10,7 @@ from decomposition.metrics import fidelity
 from decomposition.poisson_reference import (PoissonReferenceOptions, poisson_deviance, poisson_reference_bound,
                                              poisson_reference_fit)
 from decomposition.synthetic import make_profiles
-from decomposition.synthetic_effects import render_with_response
+from decomposition.synthetic_effects import render_with_response, response_sigma_ps
 
 L, T = 128, 2.0
 IRF = tailed_response(3.0, 0.2, 20.0, time_step_ps=T)
@@ -120,3 +120,16 @@ def test_bad_input_is_refused():
         PoissonReferenceOptions(max_iter=0)
     with pytest.raises(ValueError, match="tol"):
         PoissonReferenceOptions(tol=0.0)
+
+
+def test_a_truncated_direct_stays_near_the_window():
+    """A direct before the first bin shows only its falling edge; its delay is kept within the
+    window widened by 4 response widths (it could otherwise slide away, its amplitude growing)."""
+    d = make_profiles(60, L, seed=2, kinds="d+s", response=IRF, photons_per_pixel=300.0,
+                      direct_before_window_ps=(1.0, 8.0))
+    f = poisson_reference_fit(d.noisy, d.params, IRF)
+    width = 4.0 * response_sigma_ps(IRF)
+    assert np.all(f.params["direct_delay_ps"] >= d.t0_ps - width - 1e-9)
+    assert np.all(f.info["deviance"] <= f.info["deviance_start"] + 1e-9)
+    with pytest.raises(ValueError, match="outside the window"):
+        poisson_reference_fit(d.noisy, d.params, IRF, options=PoissonReferenceOptions(delay_margin_widths=0.1))

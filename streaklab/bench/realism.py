@@ -182,10 +182,10 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
     from decomposition.synthetic import make_profiles
 
     rows = []
-    for k, effect in enumerate(effects):
+    for effect in effects:
         setup = effect_setup(effect, time_bin_ps)
         for level in photons:
-            data = make_profiles(pixels, n_bins, seed=seed + 1000 * k, kinds=setup["kinds"],
+            data = make_profiles(pixels, n_bins, seed=seed + 1000 * EFFECTS.index(effect), kinds=setup["kinds"],
                                  time_bin_ps=time_bin_ps, photons_per_pixel=float(level), **setup["options"])
             by_variant = {}
             for variant in variants:
