@@ -36,6 +36,12 @@ form (:func:`render_bin_integrated`), as a detector bin records it.
 
 Noise: one of the paper's three fundamental types ("photon", "detector" (pink), "white"; see
 :mod:`decomposition.synthetic_noise`), rescaled per pixel to the exact requested NSR.
+Effects beyond the paper's model, on request (:mod:`decomposition.synthetic_effects`): a
+non-Gaussian instrument response (``response=``), a constant background (``background=``),
+true photon counts at a chosen level (``photons_per_pixel=``, integer Poisson counts instead
+of the NSR noise), a weak late echo (``echo_ratio=``) and a direct reflection before the
+window's first bin (``direct_before_window_ps=``).  Their defaults add nothing.
+
 Everything is seeded: the same seed gives the same arrays.  The scene
 and the noise use separate streams spawned from the seed, so the same seed gives the same
 scene whatever the noise type and NSR.
@@ -51,6 +57,8 @@ from core.model import render_components, sss_kernel, time_axis_ps
 
 from .scenes import (FIG3_KINDS, SCENE_PRESETS, SceneRanges, draw_params, parse_kind, parse_kinds,
                      regime_variables, scene_ranges)
+from .synthetic_effects import (SyntheticEffects, count_photons, place_direct_before_window, render_with_response,
+                                response_sigma_ps, set_echo)
 from .synthetic_noise import NOISE_TYPES, _noise_type, add_noise, noise_realisation
 
 __all__ = [
@@ -60,6 +68,7 @@ __all__ = [
     "SCENE_PRESETS",
     "scene_ranges",
     "SyntheticData",
+    "SyntheticEffects",
     "regime_variables",
     "render_bin_integrated",
     "parse_kind",
@@ -81,22 +90,37 @@ class SyntheticData:
     components : dict of ndarray
         Clean rendered classes: ``direct`` S + (L,), ``sss`` S + (L,), ``interreflections`` S + (R, L).
     clean : ndarray, S + (L,)
-        Sum of the components.
+        Sum of the components plus the background: the expected value of ``noisy``.
     noisy : ndarray, S + (L,)
-        ``clean`` plus the noise realisation.
+        ``clean`` plus the noise realisation; int64 photon counts with ``photons_per_pixel``.
     kinds : ndarray of str, S
         Component set of each pixel in canonical form (``"d+s+r2"``).
     time_bin_ps, t0_ps : float
         Time axis: bin i at ``t0_ps + i * time_bin_ps`` (ps).
     nsr : float
-        Noise-to-signal ratio ||noise|| / ||clean|| of every pixel.
+        Noise-to-signal ratio ||noise|| / ||clean|| of every pixel (NaN for photon counts).
     noise : str
-        Noise type (``"white"``, ``"pink"``, ``"photon"`` or ``"none"``).
+        Noise type (``"white"``, ``"pink"``, ``"photon"``, ``"none"``, or ``"counts"`` for
+        true photon counts).
     seed : int or None
     ranges : SceneRanges
         The ranges the scene was drawn from.
     bin_integrated : bool
         Whether the profiles are bin averages of the continuous model (else point samples).
+    response : InstrumentResponse or None
+        The instrument response the components were rendered with (None: each pixel's
+        Gaussian of ``*_sigma_ps``).
+    background : ndarray, S
+        Constant level of every bin of each pixel (included in ``clean``), in the data's units.
+    photons_per_pixel : float or None
+        Expected signal photons per pixel when ``noisy`` holds photon counts (then every
+        amplitude, component, ``clean`` and ``background`` is in expected counts per bin).
+    counts_per_unit : ndarray, S, or None
+        Counts per signal unit of each pixel (the factor the scene was scaled by to counts).
+    echo : ndarray of bool, S, or None
+        Pixels whose latest inter-reflection was set to ``echo_ratio`` x the direct.
+    effects : SyntheticEffects
+        The effect options the data were made with.
     """
 
     params: dict
@@ -112,6 +136,12 @@ class SyntheticData:
     ranges: SceneRanges = field(default_factory=SceneRanges)
 
     bin_integrated: bool = False
+    response: object = None
+    background: np.ndarray | float = 0.0
+    photons_per_pixel: float | None = None
+    counts_per_unit: np.ndarray | None = None
+    echo: np.ndarray | None = None
+    effects: SyntheticEffects = field(default_factory=SyntheticEffects)
 
     @property
     def noise_profile(self) -> np.ndarray:
@@ -125,14 +155,12 @@ class SyntheticData:
 
 # --------------------------------------------------------------------------- scene parameters
 
-def _rng(seed) -> tuple[np.random.Generator, np.random.Generator]:
-    """Two independent streams (scene, noise) from one seed."""
+def _rng(seed, n: int = 2) -> tuple[np.random.Generator, ...]:
+    """``n`` independent streams (scene, noise[, effects]) from one seed; the first two do not
+    depend on ``n``."""
     if isinstance(seed, np.random.Generator):
-        scene, noise = seed.spawn(2)
-        return scene, noise
-    ss = np.random.SeedSequence(seed)
-    scene, noise = ss.spawn(2)
-    return np.random.default_rng(scene), np.random.default_rng(noise)
+        return tuple(seed.spawn(n))
+    return tuple(np.random.default_rng(c) for c in np.random.SeedSequence(seed).spawn(n))
 
 
 # --------------------------------------------------------------------------- bin-integrated rendering
@@ -210,7 +238,9 @@ def render_bin_integrated(params: dict, n_bins: int, time_bin_ps: float = 2.0,
 
 def make_profiles(n_pixels: int, n_bins: int, *, nsr: float = 0.0, noise: str = "white", seed=None,
                   kinds=("a", "b", "c"), time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                  ranges: SceneRanges | None = None, bin_integrated: bool = False) -> SyntheticData:
+                  ranges: SceneRanges | None = None, bin_integrated: bool | None = None, response=None,
+                  background: float = 0.0, photons_per_pixel: float | None = None,
+                  echo_ratio: float | None = None, direct_before_window_ps=None) -> SyntheticData:
     """``n_pixels`` synthetic profiles (N, L) with ground truth; see the module docstring.
 
     Parameters
@@ -229,38 +259,101 @@ def make_profiles(n_pixels: int, n_bins: int, *, nsr: float = 0.0, noise: str = 
     ranges : SceneRanges or str, optional
         Scene ranges, or the name of a preset of :data:`SCENE_PRESETS` (``"legacy"``, the
         default, or ``"paper"``).
-    bin_integrated : bool
+    bin_integrated : bool, optional
         Render each bin as the mean of the continuous model over its width
         (:func:`render_bin_integrated`, what a detector bin records) instead of a point sample
-        at its centre (the solver's own model).
+        at its centre (the solver's own model).  Default: True with ``photons_per_pixel``
+        (counts are bin integrals), else False.
+    response : core.irf.InstrumentResponse, optional
+        Render every component with this instrument response instead of the Gaussian PSF
+        (see :mod:`decomposition.synthetic_effects`).  The scene is then laid out with one
+        width for every pixel, the response's FWHM / 2.355, which is what the
+        ``*_sigma_ps`` keys of the truth hold.
+    background : float
+        Constant level added to every bin (>= 0, signal units; the direct amplitudes are
+        0.5-1).  Included in ``clean``.
+    photons_per_pixel : float, optional
+        True photon counting instead of the NSR noise: ``noisy`` holds integer counts drawn
+        from Poisson laws with the bin-integrated expected counts as means, scaled so that
+        each pixel's expected signal photons (background excluded) are this number; the
+        truth is scaled to expected counts.  Needs ``nsr = 0``.
+    echo_ratio : float, optional
+        Each pixel's latest inter-reflection at this fraction (0-1] of its direct's amplitude
+        (a weak late echo); the kinds must hold an inter-reflection.
+    direct_before_window_ps : float or (lo, hi), optional
+        Put each direct reflection this far (ps; a range is drawn uniformly per pixel)
+        before the first bin, its sss onset following it: a direct truncated at the
+        window's start.
+
+    The default of every effect option adds nothing: the same seed gives the same arrays as
+    without them.  The effects are validated by :class:`SyntheticEffects`.
     """
     kind = _noise_type(noise)
     if float(nsr) > 0 and kind == "none":
         raise ValueError("noise 'none' needs nsr = 0")
+    effects = SyntheticEffects(response=response, background=background, photons_per_pixel=photons_per_pixel,
+                               echo_ratio=echo_ratio, direct_before_window_ps=direct_before_window_ps)
+    if effects.counting and float(nsr) > 0:
+        raise ValueError(f"photons_per_pixel sets the noise (Poisson counts): leave nsr at 0, got nsr={nsr!r}")
+    if bin_integrated is None:
+        bin_integrated = effects.counting
     ranges = scene_ranges(ranges)
+    if effects.response is not None:
+        width = response_sigma_ps(effects.response)
+        ranges = replace(ranges, sigma_ps=(width, width))
     t0 = float(time_bin_ps) if t0_ps is None else float(t0_ps)
-    scene_rng, noise_rng = _rng(seed)
+    streams = _rng(seed, 3 if effects.any else 2)
+    scene_rng, noise_rng = streams[:2]
     params, labels = draw_params(n_pixels, n_bins, kinds=kinds, time_bin_ps=time_bin_ps, t0_ps=t0,
                                  rng=scene_rng, ranges=ranges)
-    if bin_integrated:
+    echo = None
+    if effects.echo_ratio is not None:
+        echo = set_echo(params, effects.echo_ratio)
+    if effects.direct_before_window_ps is not None:
+        place_direct_before_window(params, t0, effects.direct_before_window_ps, streams[2])
+    if effects.response is not None:
+        comps = render_with_response(params, n_bins, time_bin_ps, t0, effects.response,
+                                     bin_integrated=bool(bin_integrated))
+    elif bin_integrated:
         comps = render_bin_integrated(params, n_bins, time_bin_ps, t0)
     else:
         comps = render_components(params, n_bins, time_bin_ps, t0)
-    clean = comps["direct"] + comps["sss"] + comps["interreflections"].sum(axis=-2)
-    if kind == "none" or float(nsr) == 0:
-        noisy = clean.copy()
+    signal = comps["direct"] + comps["sss"] + comps["interreflections"].sum(axis=-2)
+    lead = signal.shape[:-1]
+    lam = None
+    if effects.counting:
+        noisy, lam = count_photons(signal, effects.background, effects.photons_per_pixel, noise_rng)
+        for key in ("direct_amplitude", "sss_amplitude"):
+            params[key] = params[key] * lam
+        params["ir_amplitude"] = params["ir_amplitude"] * lam[..., None]
+        comps = {"direct": comps["direct"] * lam[..., None], "sss": comps["sss"] * lam[..., None],
+                 "interreflections": comps["interreflections"] * lam[..., None, None]}
+        back = effects.background * lam
+        clean = signal * lam[..., None] + back[..., None]
+        kind, nsr = "counts", float("nan")
     else:
-        noisy = add_noise(clean, nsr, kind, rng=noise_rng)
+        back = np.full(lead, effects.background)
+        clean = signal + effects.background if effects.background > 0 else signal
+        if kind == "none" or float(nsr) == 0:
+            noisy = clean.copy()
+        else:
+            noisy = add_noise(clean, nsr, kind, rng=noise_rng)
     return SyntheticData(params=params, components=comps, clean=clean, noisy=noisy, kinds=labels,
                          time_bin_ps=float(time_bin_ps), t0_ps=t0, nsr=float(nsr), noise=kind,
                          seed=seed if isinstance(seed, (int, np.integer)) else None, ranges=ranges,
-                         bin_integrated=bool(bin_integrated))
+                         bin_integrated=bool(bin_integrated), response=effects.response, background=back,
+                         photons_per_pixel=effects.photons_per_pixel, counts_per_unit=lam, echo=echo,
+                         effects=effects)
 
 
 def make_cube(ny: int, nx: int, nt: int, *, nsr: float = 0.0, noise: str = "white", seed=None,
               time_bin_ps: float = 2.0, t0_ps: float | None = None, kinds=("a", "b", "c"),
-              ranges: SceneRanges | None = None, bin_integrated: bool = False) -> SyntheticData:
+              ranges: SceneRanges | None = None, bin_integrated: bool | None = None,
+              **effects) -> SyntheticData:
     """A synthetic (ny, nx, nt) cube with ground truth: :func:`make_profiles` reshaped.
+
+    ``effects``: the effect options of :func:`make_profiles` (``response``, ``background``,
+    ``photons_per_pixel``, ``echo_ratio``, ``direct_before_window_ps``).
 
     Returns
     -------
@@ -271,11 +364,13 @@ def make_cube(ny: int, nx: int, nt: int, *, nsr: float = 0.0, noise: str = "whit
     if ny <= 0 or nx <= 0 or int(nt) <= 1:
         raise ValueError(f"cube shape must be positive with at least 2 time bins, got {(ny, nx, nt)}")
     d = make_profiles(ny * nx, nt, nsr=nsr, noise=noise, seed=seed, kinds=kinds, time_bin_ps=time_bin_ps,
-                      t0_ps=t0_ps, ranges=ranges, bin_integrated=bin_integrated)
+                      t0_ps=t0_ps, ranges=ranges, bin_integrated=bin_integrated, **effects)
 
     def rs(a):
         return a.reshape((ny, nx) + a.shape[1:])
 
     return replace(d, params={k: rs(v) for k, v in d.params.items()},
                    components={k: rs(v) for k, v in d.components.items()},
-                   clean=rs(d.clean), noisy=rs(d.noisy), kinds=rs(d.kinds))
+                   clean=rs(d.clean), noisy=rs(d.noisy), kinds=rs(d.kinds), background=rs(d.background),
+                   counts_per_unit=None if d.counts_per_unit is None else rs(d.counts_per_unit),
+                   echo=None if d.echo is None else rs(d.echo))

@@ -18,7 +18,7 @@ where ``time_scale`` stretches the sweep for other time-range settings.
 
 Counts of one frame::
 
-    mean   = photon_scale * exposure_s / reference_exposure_s * gain_factor * profile
+    mean   = photon_scale * exposure_s / reference_exposure_s * gain_factor * (profile + background)
     counts = dark_level + Poisson(mean) + Normal(0, read_noise), rounded, clipped to uint16
 
 with ``gain_factor = 2 ** ((gain - reference_gain) / GAIN_DOUBLING_STEPS)`` (an
@@ -131,6 +131,11 @@ class VirtualScene:
         Settings at which ``photon_scale`` and ``time_calibration`` hold.
     response : InstrumentResponse, optional
         The camera's instrument response; None (default) is each component's Gaussian.
+    background : float
+        Ambient light reaching every pixel at a constant rate, in profile-amplitude units
+        per row (>= 0, default 0): added to every clean profile, so it is scaled like the
+        signal by exposure and gain and photon-counted with it (unlike ``dark_level``, a
+        noiseless offset).
     """
 
     params: dict
@@ -144,6 +149,7 @@ class VirtualScene:
     reference_gain: int = 30
     time_range: int = 2
     response: InstrumentResponse | None = None
+    background: float = 0.0
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -192,7 +198,7 @@ class VirtualScene:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be positive and finite, got {v!r}")
-        for name in ("dark_level", "read_noise"):
+        for name in ("dark_level", "read_noise", "background"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be non-negative and finite, got {v!r}")
@@ -242,6 +248,8 @@ class VirtualScene:
         p = self.line_params(line)
         if self.response is not None:
             out = self._render_with_response(p, times)
+            if self.background > 0:
+                out = out + self.background
             if len(self._cache) >= 64:
                 self._cache.clear()
             self._cache[key] = out
@@ -259,6 +267,8 @@ class VirtualScene:
             else:
                 shifted[k] = np.broadcast_to(v[:, None], (v.shape[0], self.n_t))
         out = render_profile(shifted, 1, time_bin_ps=1.0, t0_ps=0.0)[..., 0]
+        if self.background > 0:
+            out = out + self.background
         if len(self._cache) >= 64:
             self._cache.clear()
         self._cache[key] = out

@@ -1,0 +1,359 @@
+"""``streaklab bench realism``: decomposition of realistic photon counts, beside the Poisson reference.
+
+For each effect of real data (:data:`EFFECTS`: a tailed instrument response, an afterpulse, a
+constant background, a weak 1 % late echo, a direct reflection truncated at the window's
+start) and each photon level (expected signal photons per pixel, default 100, 300, 1,000 and
+10,000), the same synthetic scenes (:func:`decomposition.synthetic.make_profiles` with the
+effect, integer Poisson counts, bin-integrated) are decomposed by the variants
+
+    ignored     ``decompose(counts, time_bin_ps, stderr=True)``: the defaults, the effect ignored
+    modelled    ``decompose(counts, time_bin_ps, irf=<true response>, components="d,r,s,b"
+                (",b" only where the effect is a background), noise="poisson", stderr=True)``
+    reference   :func:`decomposition.poisson_reference.poisson_reference_fit`: Poisson maximum
+                likelihood with the true response and component set, started at the truth
+
+A variant that raises (``modelled`` on a streaklab without the ``irf=`` option or the ``b``
+family) is reported as an error on its rows, with the message, and no figures.
+
+Scored per (effect, photon level, variant): the direct delay error (bias in ps and in PSF
+widths, RMSE in ps) and the sss lifetime error tau = 1 / alpha (bias and RMSE relative to
+the true lifetime), on the pixels where the variant reports the component; each RMSE over the
+reference's; mean fidelity; the found rate of the weak echo (an inter-reflection within 2 PSF
+widths of its true delay); and the calibration of the reported standard errors, median
+|error| / stderr, against 0.674 (the half-normal median).  Targets (:data:`TARGETS`, checked
+for ``ignored`` and ``modelled`` at every level): bias within 1 % (of the lifetime; of the
+PSF width for the delay), RMSE within 1.1 x the reference's, median |error| / stderr within
+10 % of 0.674, the echo found in >= 95 % of pixels.
+
+Outputs in ``--out``: ``realism.csv`` (one row per effect, photon level and variant) and
+``summary.json`` (the settings, the rows and the targets as met / not met / not measured).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from streaklab.cli import CommandError
+
+from .tables import write_csv
+
+EFFECTS = ("tailed", "afterpulse", "background", "echo", "truncated")
+VARIANTS = ("ignored", "modelled", "reference")
+PHOTONS = (100.0, 300.0, 1000.0, 10000.0)
+#: PSF core width of every scene, ps (the responses' Gaussian core)
+SIGMA_PS = 4.0
+HALF_NORMAL_MEDIAN = 0.6745
+#: Targets, for the variants ``ignored`` and ``modelled``.
+TARGETS = {"bias": 0.01, "rmse_over_reference": 1.1, "stderr_calibration": 0.10, "echo_found": 0.95,
+           "min_photons": 100.0, "variants": ("ignored", "modelled")}
+
+
+def effect_setup(effect: str, time_bin_ps: float) -> dict:
+    """Generator options, scene kinds, the true response and whether a background is modelled.
+
+    ``tailed``: 20 % of the response's area in a 30 ps diffusion tail; ``afterpulse``: 5 % of
+    it 40 ps after the main peak; the other effects have the Gaussian response (sigma
+    :data:`SIGMA_PS`) and add a background of 0.02 signal units (2-4 % of the direct's peak),
+    a 1 % echo as the latest inter-reflection, or the direct 1-8 ps before the first bin.
+    """
+    from core.irf_models import afterpulse_response, gaussian_response, tailed_response
+
+    tb = float(time_bin_ps)
+    if effect == "tailed":
+        irf = tailed_response(SIGMA_PS, 0.2, 30.0, time_step_ps=tb)
+    elif effect == "afterpulse":
+        irf = afterpulse_response(SIGMA_PS, 0.05, 40.0, time_step_ps=tb)
+    elif effect in EFFECTS:
+        irf = gaussian_response(SIGMA_PS, time_step_ps=tb)
+    else:
+        raise ValueError(f"unknown effect {effect!r}; choose from {', '.join(EFFECTS)}")
+    options = {"response": irf}
+    kinds = "d+s"
+    if effect == "background":
+        options["background"] = 0.02
+    elif effect == "echo":
+        options["echo_ratio"] = 0.01
+        kinds = "d+s+r2"
+    elif effect == "truncated":
+        options["direct_before_window_ps"] = (1.0, 8.0)
+    return {"options": options, "kinds": kinds, "response": irf, "background": effect == "background"}
+
+
+def _errors(truth: dict, est: dict, key: str):
+    """Estimate minus truth on the pixels where both hold ``key`` (NaN elsewhere), (N,)."""
+    t = np.asarray(truth[key], np.float64)
+    e = np.asarray(est.get(key, np.full(t.shape, np.nan)), np.float64)
+    return np.where(np.isfinite(t) & np.isfinite(e), e - t, np.nan)
+
+
+def _rmse(x):
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else float("nan")
+
+
+def _mean_se(x):
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return float("nan"), float("nan")
+    return float(x.mean()), float(x.std(ddof=1) / math.sqrt(x.size)) if x.size > 1 else float("nan")
+
+
+def _calibration(err, stderr):
+    z = np.abs(err) / np.asarray(stderr, np.float64)
+    z = z[np.isfinite(z)]
+    return float(np.median(z)) if z.size else float("nan")
+
+
+def echo_found(truth: dict, est: dict, echo: np.ndarray, n_sigma: float = 2.0) -> float:
+    """Fraction of the echo pixels with an estimated inter-reflection of positive amplitude
+    within ``n_sigma`` true PSF widths of the echo's true delay (the latest true one)."""
+    t_ir = np.asarray(truth["ir_delay_ps"], np.float64)
+    n_true = np.isfinite(t_ir).sum(axis=-1)
+    last = np.take_along_axis(t_ir, np.maximum(n_true - 1, 0)[:, None], axis=1)[:, 0]
+    sigma = np.asarray(truth["ir_sigma_ps"], np.float64)[:, 0]
+    e_ir = np.asarray(est["ir_delay_ps"], np.float64)
+    e_amp = np.asarray(est["ir_amplitude"], np.float64)
+    near = np.abs(e_ir - last[:, None]) <= n_sigma * sigma[:, None]
+    hit = np.any(near & (e_amp > 0), axis=1)
+    return float(hit[echo].mean()) if echo.any() else float("nan")
+
+
+def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
+    """Figures of one estimate against the truth of ``data`` (see the module docstring)."""
+    from decomposition.metrics import fidelity
+
+    truth = data.params
+    d_err = _errors(truth, est_params, "direct_delay_ps")
+    alpha_t = np.asarray(truth["sss_alpha_per_ps"], np.float64)
+    alpha_e = np.asarray(est_params.get("sss_alpha_per_ps", np.full(alpha_t.shape, np.nan)), np.float64)
+    both = np.isfinite(alpha_t) & np.isfinite(alpha_e) & (alpha_e > 0)
+    tau_rel = np.where(both, alpha_t / np.where(both, alpha_e, 1.0) - 1.0, np.nan)   # (tau_e - tau) / tau
+    has_d, has_s = np.isfinite(truth["direct_delay_ps"]), np.isfinite(alpha_t)
+    bias_d, se_d = _mean_se(d_err)
+    bias_t, se_t = _mean_se(tau_rel)
+    out = {"direct_found": float(np.isfinite(d_err)[has_d].mean()) if has_d.any() else float("nan"),
+           "direct_delay_bias_ps": bias_d, "direct_delay_bias_se_ps": se_d,
+           "direct_delay_bias_sigma": bias_d / SIGMA_PS, "direct_delay_rmse_ps": _rmse(d_err),
+           "sss_found": float(both[has_s].mean()) if has_s.any() else float("nan"),
+           "lifetime_bias_rel": bias_t, "lifetime_bias_se_rel": se_t, "lifetime_rmse_rel": _rmse(tau_rel),
+           "mean_fidelity": float(np.nanmean(fidelity(data.components, est_components))),
+           "echo_found": echo_found(truth, est_params, data.echo) if with_echo else float("nan")}
+    if "sss_alpha_per_ps_stderr" in est_params:
+        out["stderr_median_z_lifetime"] = _calibration(_errors(truth, est_params, "sss_alpha_per_ps"),
+                                                       est_params["sss_alpha_per_ps_stderr"])
+        out["stderr_median_z_delay"] = _calibration(d_err, est_params.get("direct_delay_ps_stderr", np.nan))
+    else:
+        out["stderr_median_z_lifetime"] = out["stderr_median_z_delay"] = float("nan")
+    return out
+
+
+def run_variant(variant: str, data, setup: dict, time_bin_ps: float):
+    """One variant's estimate: (params, components)."""
+    from decomposition import decompose
+    from decomposition.poisson_reference import poisson_reference_fit
+
+    if variant == "reference":
+        fit = poisson_reference_fit(data.noisy, data.params, setup["response"],
+                                    background=data.background if setup["background"] else None,
+                                    time_bin_ps=time_bin_ps, t0_ps=data.t0_ps)
+        return fit.params, fit
+    if variant == "ignored":
+        res = decompose(data.noisy, time_bin_ps, t0_ps=data.t0_ps, stderr=True)
+    elif variant == "modelled":
+        comps = "d,r,s,b" if setup["background"] else "d,r,s"
+        res = decompose(data.noisy, time_bin_ps, t0_ps=data.t0_ps, irf=setup["response"], components=comps,
+                        noise="poisson", stderr=True)
+    else:
+        raise ValueError(f"unknown variant {variant!r}")
+    return res.params, res
+
+
+def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps: float, seed: int,
+            progress=None) -> list[dict]:
+    """Run the sweep; one row per (effect, photon level, variant), see :func:`score`.
+
+    A variant that raises TypeError or ValueError gets ``status = "error: ..."`` and no figures.
+    """
+    from decomposition.synthetic import make_profiles
+
+    rows = []
+    for effect in effects:
+        setup = effect_setup(effect, time_bin_ps)
+        for level in photons:
+            data = make_profiles(pixels, n_bins, seed=seed + 1000 * EFFECTS.index(effect), kinds=setup["kinds"],
+                                 time_bin_ps=time_bin_ps, photons_per_pixel=float(level), **setup["options"])
+            by_variant = {}
+            for variant in variants:
+                row = {"effect": effect, "photons_per_pixel": float(level), "variant": variant, "pixels": pixels}
+                t_start = time.perf_counter()
+                try:
+                    params, comps = run_variant(variant, data, setup, time_bin_ps)
+                except (TypeError, ValueError) as exc:
+                    row["status"] = f"error: {type(exc).__name__}: {exc}"
+                else:
+                    row["status"] = "ok"
+                    row.update(score(data, params, comps, with_echo=effect == "echo"))
+                row["seconds_per_pixel"] = (time.perf_counter() - t_start) / pixels
+                by_variant[variant] = row
+                rows.append(row)
+            ref = by_variant.get("reference")
+            for row in by_variant.values():
+                for key in ("direct_delay_rmse_ps", "lifetime_rmse_rel"):
+                    ratio = float("nan")
+                    if ref is not None and ref["status"] == "ok" and row["status"] == "ok":
+                        ratio = row[key] / ref[key] if ref[key] > 0 else float("nan")
+                    row[key.replace("_ps", "").replace("_rel", "") + "_over_reference"] = ratio
+                if progress:
+                    progress(row)
+    return rows
+
+
+def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
+    """:data:`TARGETS` on the rows: (text, True met / False not met / None not measured, detail)."""
+    out = []
+    for row in rows:
+        if row["variant"] not in TARGETS["variants"] or row["photons_per_pixel"] < TARGETS["min_photons"]:
+            continue
+        where = f"{row['variant']}, {row['effect']}, {row['photons_per_pixel']:g} photons"
+        if row["status"] != "ok":
+            out.append((where, None, row["status"]))
+            continue
+        checks = [
+            ("lifetime bias", abs(row["lifetime_bias_rel"]) <= TARGETS["bias"],
+             f"{row['lifetime_bias_rel']:+.2%} +- {row['lifetime_bias_se_rel']:.2%} (<= {TARGETS['bias']:.0%})"),
+            ("direct delay bias", abs(row["direct_delay_bias_sigma"]) <= TARGETS["bias"],
+             f"{row['direct_delay_bias_sigma']:+.3f} sigma (<= {TARGETS['bias']:g} sigma)"),
+            ("lifetime RMSE", row["lifetime_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
+             f"{row['lifetime_rmse_over_reference']:.2f} x reference (<= {TARGETS['rmse_over_reference']:g})"),
+            ("direct delay RMSE", row["direct_delay_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
+             f"{row['direct_delay_rmse_over_reference']:.2f} x reference (<= {TARGETS['rmse_over_reference']:g})"),
+        ]
+        for key, label in (("stderr_median_z_lifetime", "lifetime stderr"), ("stderr_median_z_delay", "delay stderr")):
+            z = row[key]
+            checks.append((label, abs(z / HALF_NORMAL_MEDIAN - 1) <= TARGETS["stderr_calibration"],
+                           f"median |e|/se {z:.3f} (0.674 +- {TARGETS['stderr_calibration']:.0%})"))
+        if row["effect"] == "echo":
+            checks.append(("echo found", row["echo_found"] >= TARGETS["echo_found"],
+                           f"{row['echo_found']:.1%} (>= {TARGETS['echo_found']:.0%})"))
+        for name, ok, detail in checks:
+            measured = "nan" not in detail
+            out.append((f"{where}: {name}", bool(ok) if measured else None, detail if measured else "not measured"))
+    return out
+
+
+def _split(text: str, allowed, what: str):
+    items = [s.strip().lower() for s in str(text).split(",") if s.strip()]
+    bad = [s for s in items if s not in allowed]
+    if bad or not items:
+        raise CommandError(f"--{what}: unknown {bad or 'empty list'}; choose from {', '.join(allowed)}")
+    return list(dict.fromkeys(items))
+
+
+def _levels(text: str):
+    try:
+        vals = [float(v) for v in str(text).split(",") if v.strip()]
+    except ValueError:
+        vals = []
+    if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
+        raise CommandError(f"--photons must be a comma-separated list of positive numbers, got {text!r}")
+    return sorted(set(vals))
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--out", default="bench-output/realism", help="output folder (default bench-output/realism)")
+    parser.add_argument("--pixels", type=int, default=200, help="profiles per effect and photon level (default 200)")
+    parser.add_argument("--quick", action="store_true",
+                        help="a few seconds: 6 pixels of 160 bins at 300 and 10,000 photons")
+    parser.add_argument("--n-bins", type=int, default=256, help="time bins per profile (default 256)")
+    parser.add_argument("--time-bin-ps", type=float, default=2.0, help="bin width in ps (default 2)")
+    parser.add_argument("--photons", default=",".join(f"{p:g}" for p in PHOTONS),
+                        help="expected signal photons per pixel, comma-separated (default 100,300,1000,10000)")
+    parser.add_argument("--effects", default=",".join(EFFECTS),
+                        help=f"effects, comma-separated (default all: {','.join(EFFECTS)})")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="variants, comma-separated (default ignored,modelled,reference)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of scenes and counts (default 0)")
+
+
+def _fmt(v, spec):
+    if not (isinstance(v, float) and math.isfinite(v)):
+        return "-"
+    if spec.endswith("%") and abs(v) >= 10:   # beyond 1000 %: keep the column
+        width = int(spec.strip("+").split(".")[0])
+        return format((">" if v > 0 else "<-") + "999%", f">{width}s")
+    return format(v, spec)
+
+
+def run(args) -> int:
+    effects = _split(args.effects, EFFECTS, "effects")
+    variants = _split(args.variants, VARIANTS, "variants")
+    tb = float(args.time_bin_ps)
+    if not (math.isfinite(tb) and tb > 0):
+        raise CommandError(f"--time-bin-ps must be positive, got {args.time_bin_ps}")
+    if args.quick:
+        pixels, n_bins, photons = 6, 160, [300.0, 10000.0]
+    else:
+        pixels, n_bins, photons = int(args.pixels), int(args.n_bins), _levels(args.photons)
+    if pixels <= 0:
+        raise CommandError(f"--pixels must be positive, got {pixels}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CommandError(f"--out {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    if any(v != "reference" for v in variants):
+        from decomposition.jit import warm_up
+
+        warm_up(time_bin_ps=tb, n_bins=n_bins, label="bench realism")
+
+    def progress(r):
+        print(f"  {r['effect']:10s} {r['photons_per_pixel']:>7g} photons {r['variant']:9s} "
+              + (f"fidelity {r['mean_fidelity']:.3f}" if r["status"] == "ok" else r["status"]), file=sys.stderr)
+
+    print(f"realism: {pixels} profiles x {len(photons)} photon levels x {len(effects)} effects, {n_bins} bins of "
+          f"{tb:g} ps, variants {','.join(variants)}, seed {args.seed}", file=sys.stderr)
+    try:
+        rows = measure(effects=effects, photons=photons, variants=variants, pixels=pixels, n_bins=n_bins,
+                       time_bin_ps=tb, seed=int(args.seed), progress=progress)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    targets = check_targets(rows)
+    csv_path, json_path = out / "realism.csv", out / "summary.json"
+    write_csv(csv_path, rows)
+    summary = {"effects": effects, "variants": variants, "photons_per_pixel": photons, "pixels": pixels,
+               "n_bins": n_bins, "time_bin_ps": tb, "sigma_ps": SIGMA_PS, "seed": int(args.seed),
+               "quick": bool(args.quick), "targets": {k: list(v) if isinstance(v, tuple) else v
+                                                      for k, v in TARGETS.items()},
+               "target_checks": [{"target": t, "met": s, "detail": d} for t, s, d in targets], "rows": rows}
+    json_path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
+
+    print("direct delay and sss lifetime errors beside the Poisson reference (true response and set, from the truth);")
+    print("targets: bias within 1 %, RMSE <= 1.1 x reference, median |e|/se within 10 % of 0.674, echo found >= 95 %")
+    head = (f"  {'effect':10s} {'photons':>7s} {'variant':9s} {'d bias ps':>9s} {'d RMSE':>7s} {'x ref':>5s} "
+            f"{'tau bias':>8s} {'+-':>6s} {'tau RMSE':>8s} {'x ref':>5s} {'fid':>6s} {'|e|/se tau':>10s} "
+            f"{'|e|/se d':>8s} {'echo':>6s}")
+    print(head)
+    for r in rows:
+        lead = f"  {r['effect']:10s} {r['photons_per_pixel']:>7g} {r['variant']:9s}"
+        if r["status"] != "ok":
+            print(f"{lead} {r['status']}")
+            continue
+        print(f"{lead} {_fmt(r['direct_delay_bias_ps'], '+9.3f')} {_fmt(r['direct_delay_rmse_ps'], '7.3f')} "
+              f"{_fmt(r['direct_delay_rmse_over_reference'], '5.2f')} {_fmt(r['lifetime_bias_rel'], '+8.2%')} "
+              f"{_fmt(r['lifetime_bias_se_rel'], '6.2%')} {_fmt(r['lifetime_rmse_rel'], '8.2%')} "
+              f"{_fmt(r['lifetime_rmse_over_reference'], '5.2f')} {_fmt(r['mean_fidelity'], '6.3f')} "
+              f"{_fmt(r['stderr_median_z_lifetime'], '10.3f')} {_fmt(r['stderr_median_z_delay'], '8.3f')} "
+              f"{_fmt(r['echo_found'], '6.1%')}")
+    if targets:
+        met = sum(1 for _, s, _ in targets if s)
+        missed = sum(1 for _, s, _ in targets if s is False)
+        print(f"targets ({met} met, {missed} not met, {len(targets) - met - missed} not measured):")
+        for text, status, detail in targets:
+            mark = "not measured" if status is None else ("met" if status else "NOT met")
+            print(f"  [{mark}] {text}: {detail}")
+    print(f"wrote {csv_path}, {json_path}")
+    return 0
