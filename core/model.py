@@ -240,7 +240,7 @@ def _render_family(t, delay, amplitude, sigma, alpha=None, time_bin_ps=None):
 
 
 def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                      *, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                      *, bin_integrated: bool = False, irf=None) -> dict[str, np.ndarray]:
     """Render each component class of a parameter dict on the time axis.
 
     Parameters
@@ -252,12 +252,21 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
         Time axis (see :func:`time_axis_ps`).
     bin_integrated : bool
         Average each kernel over its bin instead of point-sampling it.
+    irf : core.irf.InstrumentResponse, optional
+        Render with this instrument response instead of the Gaussian PSF
+        (:func:`core.irf_components.render_components_response`; the ``*_sigma_ps`` keys are
+        then unused).  Not combinable with ``bin_integrated``.
 
     Returns
     -------
     dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L).
     """
     t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
+    if irf is not None:
+        if bin_integrated:
+            raise ValueError("bin_integrated rendering is for the Gaussian PSF; a response is point-sampled")
+        from .irf_components import render_components_response
+        return render_components_response(params, t, irf)
     tb = _check_time_bin(time_bin_ps) if bin_integrated else None
     shape = None
     for key in ("direct_delay_ps", "sss_delay_ps"):
@@ -285,7 +294,8 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
 
 
 def render_profile(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                   *, bin_integrated: bool = False) -> np.ndarray:
-    """Clean (noise-free) profile: the sum of all rendered components, shape (..., L)."""
-    c = render_components(params, n_bins, time_bin_ps, t0_ps, bin_integrated=bin_integrated)
+                   *, bin_integrated: bool = False, irf=None) -> np.ndarray:
+    """Clean (noise-free) profile: the sum of all rendered components, shape (..., L)
+    (``irf``: an instrument response instead of the Gaussian, see :func:`render_components`)."""
+    c = render_components(params, n_bins, time_bin_ps, t0_ps, bin_integrated=bin_integrated, irf=irf)
     return c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)
