@@ -419,10 +419,13 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     has_s = s_at.any(axis=1)
     d0 = np.where(g, base["delay"], np.inf).min(axis=1)
     s_on = np.where(has_s, np.where(s_at, base["delay"], -np.inf).max(axis=1), np.nan)
-    act = base["fam"] != 0
-    lsig = np.where(act.any(axis=1), np.where(act, base["lsig"], -np.inf).max(axis=1),
-                    np.log(SEARCH_DEFAULT_SIGMA_PS))
-    lsig = np.where(np.isfinite(lsig), lsig, np.log(SEARCH_DEFAULT_SIGMA_PS))
+    # Every start begins at the default width, not at the solver's: from a narrow start the
+    # polish grows the width to the data's, while the solver's widths on a pixel in doubt are
+    # often an sss hump's (too wide) and trap it.  Paper scenes, 300 px, 2 ps bins, white
+    # noise, mean fidelity at NSR 0.001 / 0.055 / 0.11: default width 0.904 / 0.861 / 0.850;
+    # the largest atom width 0.885 / 0.820 / 0.798; the narrowest Gaussian's 0.888 / 0.828 /
+    # 0.809; the width from the leading edge's rise 0.895 / 0.854 / 0.835.
+    lsig = np.full(n, np.log(SEARCH_DEFAULT_SIGMA_PS))
     sig = np.exp(lsig)
     lalp = np.where(has_s, np.where(s_at, base["lalp"], -np.inf).max(axis=1),
                     np.log(SEARCH_DEFAULT_ALPHA_PER_PS))

@@ -285,14 +285,18 @@ def plot_maps(store, path) -> Path:
 
 
 def flag_text(bits: int) -> str:
-    """Quality flags by name (decomposition.FLAG_NAMES), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
+    """Quality flags of a result store's pixel by name (the solver's decomposition.FLAG_NAMES and
+    the store's own OUT_OF_RANGE), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
     from decomposition import FLAG_NAMES
+    from decomposition.resultstore import OUT_OF_RANGE
 
     bits = int(bits)
-    names = [str(name) for bit, name in sorted(FLAG_NAMES.items(), key=lambda kv: int(kv[0])) if bits & int(bit)]
+    table = {int(bit): str(name) for bit, name in FLAG_NAMES.items()}
+    table[OUT_OF_RANGE] = "OUT_OF_RANGE"
+    names = [name for bit, name in sorted(table.items()) if bits & bit]
     known = 0
-    for bit in FLAG_NAMES:
-        known |= int(bit)
+    for bit in table:
+        known |= bit
     if bits & ~known:
         names.append(f"bits {bits & ~known:#x}")
     return ", ".join(names) if names else "none"

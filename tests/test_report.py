@@ -198,3 +198,15 @@ def test_profile_titles_give_the_maps_coordinates_and_flag_names(result, tmp_pat
     titles = [ax.get_title() for ax in fig.axes]
     assert titles[0] == "y = 3 deg, x = 4 (--pixels 2,4); flags: POOR_FIT, SPIKE"
     assert titles[1] == "y = -9 deg, x = 1 (--pixels 0,1); flags: none"
+
+
+def test_flag_text_names_solver_and_store_bits():
+    """The solver's bits and the store's own OUT_OF_RANGE by name; unknown bits in hex."""
+    from decomposition.flags import POOR_FIT, SPIKE
+    from decomposition.resultstore import OUT_OF_RANGE
+    from streaklab.report import flag_text
+
+    assert flag_text(0) == "none"
+    assert flag_text(int(POOR_FIT) | int(SPIKE)) == "POOR_FIT, SPIKE"
+    assert flag_text(int(POOR_FIT) | OUT_OF_RANGE) == "POOR_FIT, OUT_OF_RANGE"
+    assert flag_text(1 << 15) == "bits 0x8000"

@@ -83,10 +83,11 @@ def _parse_options(items, method: str = "convscd") -> dict:
     """``KEY=VALUE`` items -> {key: value}; VALUE is read as JSON if it parses, else as a string.
 
     Every key is checked against the solver's option fields (and, for ``gradbm``, the
-    baseline's options), every value against the field's type and range, before any work.
+    baseline's options); the values against the fields' types and ranges by
+    ``decompose_to_store``, before any work.
     """
     from decomposition.gradbm import GRADBM_DEFAULTS
-    from decomposition.options import OptionError, option_names, options_from_mapping
+    from decomposition.options import option_names
 
     out = {}
     for item in items:
@@ -102,11 +103,7 @@ def _parse_options(items, method: str = "convscd") -> dict:
         if key not in option_names() and key not in extra:
             raise CommandError(f"--option {key}: the solver refuses these settings: unknown option "
                                f"(known: {', '.join(sorted(set(option_names()) | extra))})")
-    try:
-        options_from_mapping({k: v for k, v in out.items() if k not in extra}, strict=False)
-    except OptionError as exc:
-        raise CommandError(f"--{exc}") from None   # "--option NAME: what is wrong"
-    return out
+    return out      # values are checked against their fields by the pipeline, before any work
 
 
 def _tls_files(args):
