@@ -249,7 +249,7 @@ def _render_family(t, delay, amplitude, sigma, alpha=None, time_bin_ps=None):
 
 
 def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                      *, bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                      *, bin_integrated: bool = False, irf=None) -> dict[str, np.ndarray]:
     """Render each component class of a parameter dict on the time axis.
 
     Parameters
@@ -261,6 +261,10 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
         Time axis (see :func:`time_axis_ps`).
     bin_integrated : bool
         Average each kernel over its bin instead of point-sampling it.
+    irf : core.irf.InstrumentResponse, optional
+        Render with this instrument response instead of the Gaussian PSF
+        (:func:`core.irf_components.render_components_response`; the ``*_sigma_ps`` keys are
+        then unused).  Not combinable with ``bin_integrated``.
 
     Returns
     -------
@@ -269,6 +273,11 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
     ``params`` has the :data:`BACKGROUND_KEY` key.
     """
     t = time_axis_ps(n_bins, time_bin_ps, t0_ps)
+    if irf is not None:
+        if bin_integrated:
+            raise ValueError("bin_integrated rendering is for the Gaussian PSF; a response is point-sampled")
+        from .irf_components import render_components_response
+        return _with_background(render_components_response(params, t, irf), params, t)
     tb = _check_time_bin(time_bin_ps) if bin_integrated else None
     shape = None
     for key in ("direct_delay_ps", "sss_delay_ps"):
@@ -292,8 +301,13 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
         ir = _render_family(t, params["ir_delay_ps"], params["ir_amplitude"], params["ir_sigma_ps"], None, tb)
     else:
         ir = np.zeros(shape + (0, t.size))
-    out = {"direct": direct, "sss": sss, "interreflections": ir}
+    return _with_background({"direct": direct, "sss": sss, "interreflections": ir}, params, t)
+
+
+def _with_background(out: dict, params: dict, t: np.ndarray) -> dict:
+    """``out`` with the rendered ``background`` (..., L) where ``params`` has the key."""
     if BACKGROUND_KEY in params:
+        shape = out["direct"].shape[:-1]
         b = np.asarray(params[BACKGROUND_KEY], np.float64)
         if b.shape != shape:
             raise ValueError(f"params[{BACKGROUND_KEY!r}] has shape {b.shape}, expected {shape}")
@@ -302,10 +316,11 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
 
 
 def render_profile(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps: float | None = None,
-                   *, bin_integrated: bool = False) -> np.ndarray:
+                   *, bin_integrated: bool = False, irf=None) -> np.ndarray:
     """Clean (noise-free) profile: the sum of all rendered components and the background
-    (if ``params`` has one), shape (..., L)."""
-    c = render_components(params, n_bins, time_bin_ps, t0_ps, bin_integrated=bin_integrated)
+    (if ``params`` has one), shape (..., L) (``irf``: an instrument response instead of the
+    Gaussian, see :func:`render_components`)."""
+    c = render_components(params, n_bins, time_bin_ps, t0_ps, bin_integrated=bin_integrated, irf=irf)
     total = c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)
     if "background" in c:
         total = total + c["background"]

@@ -87,7 +87,7 @@ class DecompositionResult:
 
 def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0_ps: float | None = None,
               components=("d", "r", "s"), nan_policy: str = "raise", saturation_level: float | None = None,
-              **options) -> DecompositionResult:
+              irf=None, **options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
 
     Parameters
@@ -230,6 +230,25 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         The fields of :class:`decomposition.options.GridSpec` and
         :class:`decomposition.options.SolverOptions` above; for ``method="gradbm"`` also
         the baseline's own options (:data:`decomposition.gradbm.GRADBM_DEFAULTS`).
+    irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
+        A measured instrument response to use instead of the Gaussian PSF
+        (:func:`decomposition.response_input.resolve_response`: a path is read with
+        :func:`core.irfstore.load_response`; a response sampled at another step is resampled
+        onto ``time_bin_ps``; one whose samples span more than the window is refused).  Direct
+        and inter-reflections are then shifted copies of the response (amplitude = peak height,
+        delay = the response's reference instant, its peak), sss the response convolved with
+        the decaying exponential; the stages are those of :mod:`decomposition.response_path`
+        (greedy sparse coding over the response's dictionary at sub-bin phases, then
+        variable-projection refinement of delays and alpha with linear amplitudes, always on;
+        ``method="convscd"`` only).  The response has no width: every present component's
+        ``*_sigma_ps`` is its Gaussian-equivalent sigma (FWHM / 2.3548), and
+        ``*_sigma_ps_stderr`` is NaN.  The Gaussian options (``sigma_range_ps``, ``n_sigma``,
+        ``coarse_sigma``, ``coarse_sss_sigma``, ``shared_sigma``, ``multistart``, ``search``,
+        ``sss_alone``, ``refine``) play no part; ``off_grid=False`` is refused.
+        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Cost:
+        the response path is plain NumPy (no compiled kernel); see
+        docs/instrument-response.md for its measured speed next to the Gaussian path's.
+        Default None: the Gaussian PSF of the paper.
 
     Returns
     -------
@@ -249,6 +268,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                          f"not {method!r}")
     opts = opts.resolved(fams)
     R = opts.max_reflections
+    if irf is not None:
+        return _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts)
 
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
@@ -315,6 +336,44 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         flags=flags.reshape(lead),
         info=info,
     )
+
+
+def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts):
+    """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
+    from .response_input import resolve_response, response_record
+    from .response_path import decompose_with_response
+
+    if method != "convscd":
+        raise ValueError(f"irf= works with method='convscd' only, got method={method!r}")
+    if not opts.off_grid:
+        raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
+    n_bins = np.shape(profiles)[-1] if np.ndim(profiles) else 0
+    response = resolve_response(irf, axis.time_bin_ps, n_bins)
+    samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
+                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise)
+    R = opts.max_reflections
+    info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
+            "components": "".join(sorted(fams)), "nan_policy": nan_policy,
+            "saturation_level": samples.saturation_level, "irf": response_record(response)}
+    info.update(asdict(grid), **asdict(opts))
+    flags = samples.flags.copy()
+    out = decompose_with_response(samples, response, grid, opts, fams)
+    flags |= out.flags
+    info.update(out.info)
+    params = out.params
+    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS
+    fit = assess_fit(samples, {k: params[k] for k in core_keys}, samples.noise_eff, opts.poor_fit, irf=response)
+    flags |= fit.flags
+    lead, L = samples.lead, samples.n_bins
+    for k in list(params):
+        params[k] = params[k].reshape(lead + np.shape(params[k])[1:])
+    info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    info["noise_model"] = samples.noise_model
+    return DecompositionResult(
+        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
+        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
+        residual=fit.residual.reshape(lead + (L,)), flags=flags.reshape(lead), info=info)
 
 
 def _reshape_params(params: dict, lead: tuple, n_ir: int) -> dict:

@@ -240,6 +240,7 @@ def classify(st: dict, scale: np.ndarray, n_ir: int):
     return out, truncated
 
 
-def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float) -> dict:
-    """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L))."""
-    return render_components(params, n_bins, time_bin_ps, t0_ps)
+def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, irf=None) -> dict:
+    """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L));
+    with the instrument response ``irf`` instead of the Gaussian PSF when given."""
+    return render_components(params, n_bins, time_bin_ps, t0_ps, irf=irf)

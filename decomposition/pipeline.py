@@ -245,8 +245,16 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
-                       progress: bool = True, stream=None, tls=None) -> dict:
+                       progress: bool = True, stream=None, tls=None, irf="auto") -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
+
+    ``irf`` chooses the instrument response (see :func:`resolve_pipeline_response`): "auto"
+    (default) the response stored in the cube's ``irf`` group when it has one, else the
+    Gaussian PSF; "gaussian" the Gaussian PSF whatever the cube holds; a path to a stored
+    response (:func:`core.irfstore.load_response`) or an :class:`core.irf.InstrumentResponse`.
+    The response used is recorded in the store's attributes (``irf``: its description,
+    Gaussian-equivalent sigma, sha256 of its samples and provenance, plus ``irf_source``;
+    ``{"kind": "gaussian"}`` without one) and is part of the job a ``--resume`` must match.
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
     invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
@@ -292,6 +300,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
         input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
     ny, nx, nt = arr.shape
+    response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
+    irf_attrs = {"kind": "gaussian"}
+    if response is not None:
+        from decomposition.response_input import response_record
+
+        irf_attrs = dict(_jsonable(response_record(response)), kind="response", source=irf_source)
+    solver_options = dict(options, irf=response) if response is not None else options
 
     existing = None
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
@@ -313,6 +328,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
            "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0,
            # a cube rewritten at the same path (new provenance) is another input
            "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
+    if response is not None:             # absent for the Gaussian: older stores resume as before
+        job["irf_sha256"] = irf_attrs["samples_sha256"]
     if existing is not None:
         before = dict(existing.attrs.get("job", {}))
         if "nan_policy" in before:      # stores written with the older words read the same
@@ -335,17 +352,20 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             raise PipelineError(str(exc)) from None
 
     map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
-                                            components=components, options=options)
+                                            components=components, options=solver_options)
     # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
     # and cache them, saying so): workers then find them in the cache instead of each compiling.
+    # The response path has no compiled kernel.
     from decomposition.jit import warm_up
 
-    try:
-        seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
-                                  options=options, stream=stream, quiet=not progress)
-    except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
-        seconds_compile = 0.0
-    _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=options,
+    seconds_compile = 0.0
+    if response is None:
+        try:
+            seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                      options=options, stream=stream, quiet=not progress)
+        except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+            seconds_compile = 0.0
+    _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=solver_options,
                   pulse=True)   # the options the fit uses, before any output exists
     if nan_policy == "raise":
         bad = count_nonfinite_pixels(arr)
@@ -360,7 +380,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         if existing is None:
             attrs = {"method": method, "components": list(components), "options": job["options"],
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
-                     "software_version": __version__, "source": source, "job": job,
+                     "software_version": __version__, "source": source, "job": job, "irf": irf_attrs,
                      "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
             try:
                 store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
@@ -380,7 +400,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         param_shapes.update({k: (int(n_ir),) for k in ir_keys})
         tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
                             pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
-                            n_ir=int(n_ir), with_components=write_components, options=options)
+                            n_ir=int(n_ir), with_components=write_components, options=solver_options)
         pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
         if progress and resume and existing is not None:
             print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
@@ -424,13 +444,50 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                    "ir_truncated_pixels": stats["ir_truncated"],
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
                    "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan"),
-                   "seconds_compile": seconds_compile}
+                   "seconds_compile": seconds_compile, "irf": irf_attrs}
         return summary
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def resolve_pipeline_response(irf, input_path, input_kind: str, time_bin_ps: float, n_bins: int):
+    """The response a chunked decomposition uses -> (InstrumentResponse or None, where it came from).
+
+    ``irf``: "auto" (the cube's stored ``irf`` group if any, else None: the Gaussian),
+    "gaussian" (None), a path, or an :class:`core.irf.InstrumentResponse`.  The response is
+    checked against the input's time axis here (:func:`decomposition.response_input.resolve_response`:
+    resampled onto the bins when its step differs, refused when longer than the window), so
+    a bad response stops the run before anything is written.
+    """
+    from core.irf import InstrumentResponse, ResponseError
+    from decomposition.response_input import resolve_response
+
+    if irf is None or (isinstance(irf, str) and irf.lower() == "gaussian"):
+        return None, "gaussian"
+    if isinstance(irf, str) and irf.lower() == "auto":
+        if input_kind != "cube":
+            return None, "gaussian"
+        from reconstruction.cubestore import CubeStoreError, read_cube_response
+
+        try:
+            found = read_cube_response(str(input_path))
+        except (ResponseError, CubeStoreError) as exc:
+            raise PipelineError(f"{input_path}: its stored instrument response is unusable: {exc} "
+                                f"(--irf gaussian ignores it)") from None
+        if found is None:
+            return None, "gaussian"
+        raw, where = found, f"{Path(input_path).resolve()}/irf (stored in the cube)"
+    elif isinstance(irf, InstrumentResponse):
+        raw, where = irf, "given"
+    else:
+        raw, where = str(irf), str(Path(str(irf)).resolve())
+    try:
+        return resolve_response(raw, time_bin_ps, n_bins), where
+    except ResponseError as exc:
+        raise PipelineError(f"--irf {irf if not isinstance(irf, InstrumentResponse) else 'response'}: {exc}") from None
 
 
 def _region_pixels(store, iy, ix) -> int:

@@ -31,14 +31,15 @@ class Fit:
     flags: np.ndarray
 
 
-def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: float) -> Fit:
-    """Render ``params`` (P-shaped), form the residual, flag poor fits and empty pixels."""
+def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: float, irf=None) -> Fit:
+    """Render ``params`` (P-shaped; with the instrument response ``irf`` when given, else the
+    Gaussian PSF), form the residual, flag poor fits and empty pixels."""
     L = samples.n_bins
     axis = samples.axis
     P = samples.values.shape[0]
     live, scale, sat = samples.live, samples.scale, samples.censored
     flags = np.zeros(P, FLAG_DTYPE)
-    rend = comp.render_params(params, L, axis.time_bin_ps, axis.t0_ps)
+    rend = comp.render_params(params, L, axis.time_bin_ps, axis.t0_ps, irf=irf)
     total = rend["direct"] + rend["sss"] + rend["interreflections"].sum(axis=-2)
     if "background" in rend:
         total = total + rend["background"]

@@ -63,6 +63,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     parser.add_argument("--overwrite", action="store_true", help="replace whatever is at --out")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("--irf", default="auto", metavar="PATH|gaussian|auto",
+                        help="instrument response: a stored response (.npz, response store, or a cube's irf "
+                             "group); 'gaussian' forces the Gaussian PSF; default 'auto': the response stored "
+                             "in the input cube if it has one, else the Gaussian")
 
 
 def parse_components(text: str) -> tuple[str, ...]:
@@ -124,8 +128,14 @@ def run(args) -> int:
         options=_parse_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf)
     ny, nx, nt = summary["shape"]
+    irf = summary.get("irf", {})
+    if irf.get("kind") == "response":
+        print(f"instrument response: {irf['source']} (FWHM {irf['fwhm_ps']:.2f} ps, {irf['n_samples']} samples "
+              f"of {irf['time_step_ps']:g} ps, sha256 {irf['samples_sha256'][:12]})")
+    else:
+        print("instrument response: the Gaussian PSF")
     if summary["chunks_done"] == 0:
         print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
         return 0

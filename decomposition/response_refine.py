@@ -1,0 +1,181 @@
+"""Continuous refinement of response atoms: variable projection on blocks of pixels.
+
+For a pixel with K slots (:mod:`decomposition.response_atoms`) the model is
+m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
+amplitudes enter linearly and are never iterated: for any theta they are the weighted
+least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
+columns phi_k, a K x K solve per pixel; a further linear column -- a constant background --
+only adds a row to the column stack there).  theta is moved by Levenberg-Marquardt on the
+projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
+the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), every
+pixel of a block at once; a step is kept per pixel only when it lowers the weighted residual
+sum of squares.  Constraints by projection after each step: delays within ``delay_bounds_ps``,
+log alpha within ``lalp_bounds``, the sss onset not before the pixel's earliest shifted atom
+(``sss_after_direct``), and (``first_is_direct``) no shifted atom before slot 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.irf import InstrumentResponse
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from .response_atoms import slot_atoms
+
+__all__ = ["SlotFit", "solve_amplitudes", "fit_slots"]
+
+_RIDGE = 1e-12
+_LAMBDA0 = 1e-3
+_LAMBDA_MAX = 1e10
+
+
+@dataclass(frozen=True)
+class SlotFit:
+    """Result of :func:`fit_slots` for P pixels of K slots: ``delay``, ``lalp``, ``amp``
+    (P, K); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
+    residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
+
+    delay: np.ndarray
+    lalp: np.ndarray
+    amp: np.ndarray
+    cost: np.ndarray
+    resid: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+
+def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.ndarray):
+    """Weighted least-squares amplitudes of the columns ``phi``.
+
+    Parameters
+    ----------
+    phi : ndarray (P, K, L)     unit-peak atoms (zero rows for empty slots)
+    y : ndarray (P, L)          profiles
+    sw : ndarray (P, L)         square-root sample weights (0 excludes a sample)
+    active : ndarray (P, K) bool
+
+    Returns
+    -------
+    amp : ndarray (P, K)         0 in empty slots
+    resid : ndarray (P, L)       weighted residual sw * (y - sum_k amp_k phi_k)
+    cost : ndarray (P,)          its sum of squares
+    pw : ndarray (P, K, L)       the weighted columns sw * phi
+    minv : ndarray (P, K, K)     inverse of the (regularised) normal matrix
+    """
+    pw = phi * sw[:, None, :]
+    yw = y * sw
+    m = np.einsum("pkl,pjl->pkj", pw, pw)
+    diag = np.einsum("pkk->pk", m)
+    ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
+    m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
+    minv = np.linalg.inv(m)
+    amp = np.einsum("pkj,pj->pk", minv, np.einsum("pkl,pl->pk", pw, yw))
+    amp = np.where(active, amp, 0.0)
+    resid = yw - np.einsum("pk,pkl->pl", amp, pw)
+    return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
+
+
+def _project(fam, delay, lalp, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct):
+    delay = np.clip(delay, *delay_bounds_ps)
+    lalp = np.clip(lalp, *lalp_bounds)
+    sh = fam == FAM_GAUSS
+    if first_is_direct:
+        d0 = np.where(sh[:, :1], delay[:, :1], -np.inf)
+        rest = sh.copy()
+        rest[:, 0] = False
+        delay = np.where(rest, np.maximum(delay, d0), delay)
+    if sss_after_direct:
+        first = np.where(sh, delay, np.inf).min(axis=1, keepdims=True)
+        delay = np.where((fam == FAM_SSS) & np.isfinite(first), np.maximum(delay, first), delay)
+    return delay, lalp
+
+
+def _evaluate(irf, t, y, sw, fam, delay, lalp):
+    phi, dd, dl = slot_atoms(irf, t, fam, delay, lalp, derivatives=True)
+    active = fam != FAM_NONE
+    amp, resid, cost, pw, minv = solve_amplitudes(phi, y, sw, active)
+    return {"phi": phi, "dd": dd, "dl": dl, "amp": amp, "resid": resid, "cost": cost, "pw": pw, "minv": minv}
+
+
+def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.ndarray, fam: np.ndarray,
+              delay: np.ndarray, lalp: np.ndarray, *, n_iter: int, lm_tol: float,
+              delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool = True,
+              first_is_direct: bool = False) -> SlotFit:
+    """Refine the delays (and sss log alpha) of every active slot of a block of pixels.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse          on the axis' step
+    t_ps : ndarray (L,)               time axis, ps
+    y : ndarray (P, L)                profiles (any scale; 0 where the weight is 0)
+    sw : ndarray (P, L)               square-root sample weights
+    fam, delay, lalp : ndarray (P, K) starting slots (delays ps, log alpha of 1/ps)
+    n_iter : int                      Levenberg-Marquardt iterations at most (0: amplitudes only)
+    lm_tol : float
+        A pixel stops when an accepted step gains less than ``lm_tol`` x its residual sum of
+        squares per fitted sample.
+    delay_bounds_ps, lalp_bounds : (float, float)
+    sss_after_direct, first_is_direct : bool
+        Constraints (see the module docstring).
+
+    Returns
+    -------
+    SlotFit
+    """
+    t = np.asarray(t_ps, np.float64)
+    fam = np.asarray(fam)
+    P, K = fam.shape
+    delay, lalp = _project(fam, np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0),
+                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+    cur = _evaluate(irf, t, y, sw, fam, delay, lalp)
+    amp, cost = cur["amp"], cur["cost"]
+    iters = np.zeros(P, np.int64)
+    conv = np.zeros(P, bool)
+    lam = np.full(P, _LAMBDA0)
+    n_used = np.maximum((sw > 0).sum(axis=1), 1)
+    free = np.concatenate([fam != FAM_NONE, fam == FAM_SSS], axis=1)               # (P, 2K)
+    conv |= ~free.any(axis=1)
+    state = {"delay": delay.copy(), "lalp": lalp.copy(), "amp": amp.copy(), "cost": cost.copy()}
+    cache = cur
+    for _ in range(int(n_iter)):
+        idx = np.flatnonzero(~conv)
+        if idx.size == 0:
+            break
+        c = {k: v[idx] for k, v in cache.items()}
+        f = fam[idx]
+        a = c["amp"]
+        g = np.concatenate([a[:, :, None] * c["dd"], a[:, :, None] * c["dl"]], axis=1) * sw[idx][:, None, :]
+        fr = free[idx]
+        g = np.where(fr[:, :, None], g, 0.0)
+        # projected columns: g - pw^T minv (pw g^T)
+        proj = np.einsum("pkl,pjl->pkj", c["pw"], g)                               # (n, K, 2K)
+        gp = g - np.einsum("pkj,pkm,pml->pjl", proj, c["minv"], c["pw"])
+        jtj = np.einsum("pjl,pml->pjm", gp, gp)
+        jtr = np.einsum("pjl,pl->pj", g, c["resid"])
+        dg = np.einsum("pjj->pj", jtj)
+        scale_d = np.where(fr, dg + 1e-300, 1.0)
+        lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
+        lhs += np.eye(2 * K)[None] * (~fr)[:, :, None]
+        step = np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0]
+        nd = state["delay"][idx] + np.where(fr[:, :K], step[:, :K], 0.0)
+        nl = state["lalp"][idx] + np.where(fr[:, K:], step[:, K:], 0.0)
+        nd, nl = _project(f, nd, nl, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+        trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl)
+        ok = np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
+        gain = c["cost"] - trial["cost"]
+        iters[idx] += 1
+        acc = idx[ok]
+        state["delay"][acc], state["lalp"][acc] = nd[ok], nl[ok]
+        state["amp"][acc], state["cost"][acc] = trial["amp"][ok], trial["cost"][ok]
+        lam[acc] /= 3.0
+        lam[idx[~ok]] *= 4.0
+        small = ok & (gain < lm_tol * trial["cost"] / n_used[idx])
+        conv[idx[small]] = True
+        conv[idx[~ok & (lam[idx] > _LAMBDA_MAX)]] = True
+        for k in cache:                    # the accepted pixels' evaluation for the next step
+            cache[k][acc] = trial[k][ok]
+    return SlotFit(delay=np.where(fam != FAM_NONE, state["delay"], np.nan),
+                   lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
+                   amp=np.where(fam != FAM_NONE, state["amp"], 0.0), cost=state["cost"], resid=cache["resid"],
+                   iterations=iters, converged=conv)

@@ -1,0 +1,84 @@
+"""``streaklab decompose`` with an instrument response: a response stored in the cube is used
+by default and recorded in the result store; --irf PATH and --irf gaussian choose otherwise;
+bad responses stop the run before anything is written."""
+import numpy as np
+import pytest
+
+from core.irf import render_shifted, render_sss
+from core.irf_models import tailed_response
+from core.irfstore import save_response
+from decomposition import decompose
+from decomposition.pipeline import PipelineError, decompose_to_store
+from decomposition.resultstore import open_result_store
+from reconstruction.cubestore import write_cube, write_cube_response
+from streaklab.cli import main
+
+T = 2.0
+L = 512
+
+
+@pytest.fixture(scope="module")
+def irf():
+    return tailed_response(6.0, 0.2, 40.0, time_step_ps=T)
+
+
+@pytest.fixture(scope="module")
+def cubes(tmp_path_factory, irf):
+    tmp = tmp_path_factory.mktemp("irfcube")
+    rng = np.random.default_rng(7)
+    t = T + T * np.arange(L)
+    d = rng.uniform(150, 250, (2, 3))
+    clean = (render_shifted(irf, t, d) + 0.4 * render_shifted(irf, t, d + 120.0)
+             + 0.03 * render_sss(irf, t, d, np.full(d.shape, 0.03)))
+    data = (1000.0 * clean + 10.0 * rng.standard_normal(clean.shape)).astype(np.float32)
+    with_irf = tmp / "with_irf.zarr"
+    write_cube(with_irf, data, time_bin_ps=T, chunks=(1, 3))
+    write_cube_response(str(with_irf), irf)
+    plain = tmp / "plain.zarr"
+    write_cube(plain, data, time_bin_ps=T, chunks=(1, 3))
+    save_response(tmp / "irf.npz", irf)
+    return tmp, data, d
+
+
+def test_cube_response_used_by_default_and_recorded(cubes, irf, capsys):
+    tmp, data, d = cubes
+    out = tmp / "res_default.zarr"
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out), "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "instrument response:" in said and "stored in the cube" in said
+    store = open_result_store(str(out))
+    rec = store.attrs["irf"]
+    assert rec["kind"] == "response" and rec["fwhm_ps"] == pytest.approx(irf.fwhm_ps(), rel=1e-6)
+    assert rec["model"]["name"] == irf.model["name"] and "stored in the cube" in rec["source"]
+    assert store.attrs["job"]["irf_sha256"] == rec["samples_sha256"]
+    p = store.params()
+    ref = decompose(data.astype(np.float64), T, irf=irf).params
+    assert np.allclose(p["direct_delay_ps"], ref["direct_delay_ps"], atol=1e-4)
+    assert np.abs(p["direct_delay_ps"] - d).max() < 0.5
+    assert np.abs(p["ir_delay_ps"][..., 0] - (d + 120.0)).max() < 0.5
+
+
+def test_irf_path_and_gaussian_override(cubes, capsys):
+    tmp, data, d = cubes
+    out = tmp / "res_path.zarr"
+    assert main(["decompose", str(tmp / "plain.zarr"), "--out", str(out), "--quiet",
+                 "--irf", str(tmp / "irf.npz")]) == 0
+    assert "irf.npz" in capsys.readouterr().out
+    assert open_result_store(str(out)).attrs["irf"]["kind"] == "response"
+    out_g = tmp / "res_gauss.zarr"
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out_g), "--quiet", "--irf", "gaussian"]) == 0
+    assert "the Gaussian PSF" in capsys.readouterr().out
+    store = open_result_store(str(out_g))
+    assert store.attrs["irf"] == {"kind": "gaussian"} and "irf_sha256" not in store.attrs["job"]
+
+
+def test_bad_responses_stop_before_writing(cubes, irf, tmp_path):
+    tmp, _, _ = cubes
+    with pytest.raises(PipelineError, match="no such file"):
+        decompose_to_store(str(tmp / "plain.zarr"), str(tmp_path / "a.zarr"), irf=str(tmp_path / "none.npz"),
+                           progress=False)
+    short = tmp_path / "short.zarr"
+    write_cube(short, np.ones((1, 1, 200), np.float32), time_bin_ps=T)
+    with pytest.raises(PipelineError, match="longer than the profiles' window"):
+        decompose_to_store(str(short), str(tmp_path / "b.zarr"), irf=irf, progress=False)
+    assert not (tmp_path / "a.zarr").exists() and not (tmp_path / "b.zarr").exists()
