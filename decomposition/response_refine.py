@@ -68,14 +68,14 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     """
     pw = phi * sw[:, None, :]
     yw = y * sw
-    m = np.einsum("pkl,pjl->pkj", pw, pw)
+    m = np.matmul(pw, pw.transpose(0, 2, 1))
     diag = np.einsum("pkk->pk", m)
     ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
     minv = np.linalg.inv(m)
-    amp = np.einsum("pkj,pj->pk", minv, np.einsum("pkl,pl->pk", pw, yw))
+    amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
     amp = np.where(active, amp, 0.0)
-    resid = yw - np.einsum("pk,pkl->pl", amp, pw)
+    resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
     return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
 
 
@@ -160,10 +160,10 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
         fr = free[idx]
         g = np.where(fr[:, :, None], g, 0.0)
         # projected columns: g - pw^T minv (pw g^T)
-        proj = np.einsum("pkl,pjl->pkj", c["pw"], g)                               # (n, K, 2K)
-        gp = g - np.einsum("pkj,pkm,pml->pjl", proj, c["minv"], c["pw"])
-        jtj = np.einsum("pjl,pml->pjm", gp, gp)
-        jtr = np.einsum("pjl,pl->pj", g, c["resid"])
+        proj = np.matmul(c["pw"], g.transpose(0, 2, 1))                            # (n, K, 2K)
+        gp = g - np.matmul(np.matmul(proj.transpose(0, 2, 1), c["minv"]), c["pw"])
+        jtj = np.matmul(gp, gp.transpose(0, 2, 1))
+        jtr = np.matmul(g, c["resid"][:, :, None])[..., 0]
         dg = np.einsum("pjj->pj", jtj)
         scale_d = np.where(fr, dg + 1e-300, 1.0)
         lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
