@@ -73,7 +73,8 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
     minv = np.linalg.inv(m)
-    amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
+    with np.errstate(invalid="ignore"):     # a trial of non-finite cost is rejected by the caller
+        amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
     amp = np.where(active, amp, 0.0)
     resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
     return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
