@@ -14,11 +14,11 @@ import numpy as np
 
 from statistics import NormalDist
 
-from .constants import DICT_SUPPORT_SIGMA, SPIKE_FALSE_ALARM
+from .constants import DICT_SUPPORT_SIGMA, SIGNIFICANCE_LAG_BINS, SPIKE_FALSE_ALARM
 from .masks import SampleMask
 from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
 from .background import estimate_background
-from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, noise_sigma
+from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, lagged_noise_sigma, noise_sigma
 from .options import GridSpec, parse_nan_policy, parse_noise_model
 
 __all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes", "find_count_spikes",
@@ -61,6 +61,11 @@ class Samples:
                                         spikes were removed)
     noise_eff : ndarray (P,)            the noise the solver uses: after spike removal,
                                         floored at ``noise_floor``
+    significance_noise : ndarray (P,)   the noise the in-window significance test weighs an atom's
+                                        energy with: ``noise_eff`` or, where larger, the noise
+                                        across SIGNIFICANCE_LAG_BINS samples
+                                        (:func:`decomposition.noise.lagged_noise_sigma`; correlated
+                                        noise makes component-sized bumps)
     flags : ndarray (P,) uint16         NONFINITE, SATURATED, SPIKE, EMPTY as found here
     lead : tuple                        leading shape of the input
     axis : TimeAxis
@@ -82,6 +87,7 @@ class Samples:
     live: np.ndarray
     noise: np.ndarray
     noise_eff: np.ndarray
+    significance_noise: np.ndarray
     flags: np.ndarray
     lead: tuple
     axis: TimeAxis
@@ -237,8 +243,12 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         # the noise the solver weighs its sparsity with is the noise at the components
         s_sig = count_signal_sigma(np.where(fit, x, 0.0)[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
         s_eff[idx_live] = np.maximum(s_eff[idx_live], s_sig)
+    s_sig = s_eff.copy()
+    if idx_live.size:
+        lag = min(SIGNIFICANCE_LAG_BINS, max(1, L // 4))
+        s_sig[idx_live] = np.maximum(s_eff[idx_live], lagged_noise_sigma(pn[idx_live], fit[idx_live], lag))
     return Samples(values=x, profiles=pn, scale=scale, fit=fit, censored=sat, finite=finite, live=idx_live,
-                   noise=s_est, noise_eff=s_eff, flags=flags, lead=lead, axis=axis,
+                   noise=s_est, noise_eff=s_eff, significance_noise=s_sig, flags=flags, lead=lead, axis=axis,
                    saturation_level=saturation_level, noise_model=noise_model, dispersion=disp,
                    background=b_est)
 

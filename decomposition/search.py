@@ -368,9 +368,10 @@ def _crossing(t, y, level, allowed):
     return t[j] + np.clip(frac, 0.0, 1.0) * T * (i > 0)
 
 
-def search_block(p, mask, st, s_eff, dic, opts, components):
+def search_block(p, mask, st, s_eff, dic, opts, components, significance_noise=None):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
-    detected slot state ``st`` (n, K) and noise ``s_eff`` (n,)).
+    detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_noise`` (n,), the
+    noise of the in-window significance test, default ``s_eff``).
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
@@ -407,7 +408,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
     shared = opts.shared_sigma
 
     base = {k: v.copy() for k, v in st.items()}
-    comp.threshold(base, t, opts.rel_threshold, s_eff, opts.significance_chi2)
+    s_sig = s_eff if significance_noise is None else np.maximum(s_eff, significance_noise)
+    comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
     chi0 = _data_chi2(t, p, mask, base, s2)
 
     # Pixels in doubt (see the docstring).
@@ -465,7 +467,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components):
         state, _, _ = refine_atoms(t, pb[rows], mb[rows], state, mu[rows], eps[rows], bounds, opts.n_polish, None,
                                    shared, opts.sss_after_direct, opts.lm_tol)
         drop_zero(state)
-        return final_atoms(state, t, T, opts, np.sqrt(sb2[rows]))      # scored as it will be labelled
+        return final_atoms(state, t, T, opts, s_sig[idx][rows])      # scored as it will be labelled
 
     # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
     cand = [take(base, idx)]
@@ -541,6 +543,6 @@ def search_components(samples, det, dic, opts, components) -> SearchStage:
         p, mask = solver_inputs(samples, live[rows])
         sub = {k: v[rows] for k, v in state.items()}
         st, start[rows], doubt[rows], amb[rows] = search_block(p, mask, sub, det.noise_eff[live[rows]], dic, opts,
-                                                              components)
+                                                              components, samples.significance_noise[live[rows]])
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)

@@ -242,3 +242,45 @@ def test_off_window_not_set_for_components_inside():
     r = decompose(y, T, t0_ps=0.0, components="d,r")
     assert not np.any(r.flags & OFF_WINDOW)
     assert FLAG_NAMES[2048] == "OFF_WINDOW"
+
+
+def test_lagged_noise_is_sigma_for_white_noise_and_larger_for_pink():
+    """Known answers: white noise of sigma 0.01 reads 0.01 at every lag (within the estimate's
+    sampling spread); a random walk (the extreme of low-frequency noise) reads sqrt(lag / 2)
+    times its step, far above what second differences see."""
+    from decomposition.noise import lagged_noise_sigma, noise_sigma
+
+    rng = np.random.default_rng(3)
+    white = 0.01 * rng.standard_normal((50, 4096))
+    for lag in (1, 4, 64):
+        np.testing.assert_allclose(np.median(lagged_noise_sigma(white, None, lag)), 0.01, rtol=0.03)
+    walk = np.cumsum(0.01 * rng.standard_normal((50, 4096)), axis=1)
+    for lag in (4, 64):
+        np.testing.assert_allclose(np.median(lagged_noise_sigma(walk, None, lag)), 0.01 * np.sqrt(lag / 2),
+                                   rtol=0.1)
+    assert np.median(noise_sigma(walk)) < 0.01
+    with pytest.raises(ValueError, match="lag_bins"):
+        lagged_noise_sigma(white, None, 0)
+
+
+def test_pink_noise_bumps_are_mostly_not_significant_components():
+    """One direct under strong pink noise (NSR 0.1): weighed with the sample-to-sample noise,
+    the significance route turns the noise's slow bumps into 3.3 extra components per pixel;
+    with the noise across SIGNIFICANCE_LAG_BINS samples, 0.77 (the relative rule alone: 0).
+    The energy test assumes white noise; this keeps its error on correlated noise bounded."""
+    from decomposition.synthetic_noise import noise_realisation
+
+    rng = np.random.default_rng(12)
+    n, L = 60, 512
+    p = empty_params((n,), n_ir=0)
+    p["direct_delay_ps"][:] = rng.uniform(300, 700, n)
+    p["direct_amplitude"][:] = 1.0
+    p["direct_sigma_ps"][:] = 3.0
+    clean = render_profile(p, L, T)
+    y = clean + noise_realisation(clean, 0.1, "pink", rng=rng)
+    count = lambda r: (np.isfinite(r.params["ir_delay_ps"]).sum(axis=1)  # noqa: E731
+                       + np.isfinite(r.params["sss_delay_ps"]))
+    got = count(decompose(y, T))
+    ref = count(decompose(y, T, significance_chi2=0.0))
+    assert ref.mean() == 0.0
+    assert got.mean() < 1.0
