@@ -269,7 +269,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     opts = opts.resolved(fams)
     R = opts.max_reflections
     if irf is not None:
-        return _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts)
+        return _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts,
+                                   background)
 
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
@@ -338,7 +339,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     )
 
 
-def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts):
+def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
     """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
     from .response_input import resolve_response, response_record
     from .response_path import decompose_with_response
@@ -351,7 +352,7 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
     response = resolve_response(irf, axis.time_bin_ps, n_bins)
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
                               spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise)
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
     R = opts.max_reflections
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
@@ -362,7 +363,7 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
     flags |= out.flags
     info.update(out.info)
     params = out.params
-    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS
+    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if background else ())
     fit = assess_fit(samples, {k: params[k] for k in core_keys}, samples.noise_eff, opts.poor_fit, irf=response)
     flags |= fit.flags
     lead, L = samples.lead, samples.n_bins

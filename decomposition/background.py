@@ -78,7 +78,7 @@ def estimate_background(values, fit=None, *, counts: bool = False) -> np.ndarray
 
 
 def background_test(values, params: dict, weights, noise_sigma_units, *, time_bin_ps: float,
-                    t0_ps: float | None = None):
+                    t0_ps: float | None = None, irf=None):
     """Likelihood-ratio statistic and standard error of each pixel's fitted offset.
 
     With the components' nonlinear parameters fixed, the model is linear in the amplitudes
@@ -98,6 +98,9 @@ def background_test(values, params: dict, weights, noise_sigma_units, *, time_bi
     noise_sigma_units : ndarray (P,)
         Noise standard deviation at unit weight, units of the profiles (1 for count data
         weighted by their Poisson variance).
+    irf : core.irf.InstrumentResponse, optional
+        The components are the response's atoms (the response path of
+        :func:`decomposition.decompose`) instead of Gaussians.
 
     Returns
     -------
@@ -111,7 +114,7 @@ def background_test(values, params: dict, weights, noise_sigma_units, *, time_bi
     unit = {k: (np.where(np.isfinite(val), 1.0, np.nan) if k.endswith("amplitude") else val)
             for k, val in params.items() if k != BACKGROUND_KEY and not k.endswith("_stderr")}
     with np.errstate(invalid="ignore"):
-        comps = render_components(unit, L, time_bin_ps, t0_ps)
+        comps = render_components(unit, L, time_bin_ps, t0_ps, irf=irf)
     rows = [comps["direct"], comps["sss"]] + [comps["interreflections"][:, j] for j in
                                               range(comps["interreflections"].shape[1])]
     A = np.stack(rows + [np.ones((P, L))], axis=1)                         # (P, K + 1, L)

@@ -35,11 +35,12 @@ def sample_weights(samples: Samples, params: dict) -> np.ndarray:
     return poisson_weights(_model(samples, params), samples.fit, samples.dispersion)
 
 
-def _model(samples: Samples, params: dict) -> np.ndarray:
-    """(P, L) model of P-shaped ``params`` (0 where a pixel has none)."""
+def _model(samples: Samples, params: dict, irf=None) -> np.ndarray:
+    """(P, L) model of P-shaped ``params`` (0 where a pixel has none; ``irf``: the response's
+    atoms instead of Gaussians)."""
     axis = samples.axis
     with np.errstate(invalid="ignore"):
-        model = render_profile(params, samples.n_bins, axis.time_bin_ps, axis.t0_ps)
+        model = render_profile(params, samples.n_bins, axis.time_bin_ps, axis.t0_ps, irf=irf)
     return np.where(np.isfinite(model), model, 0.0)
 
 
@@ -92,21 +93,23 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     return params, {k: v.reshape(lead) for k, v in info.items()}
 
 
-def background_stats(samples: Samples, params: dict):
+def background_stats(samples: Samples, params: dict, irf=None):
     """Likelihood-ratio statistic and standard error (units of the profiles) of each pixel's
     fitted offset (:func:`decomposition.background.background_test`) under the noise model:
     Gaussian, weights the fit mask and the pixel's noise estimate; count data, weights
-    1 / Poisson variance of the model (which includes the offset), noise scale the dispersion."""
+    1 / Poisson variance of the model (which includes the offset), noise scale the dispersion.
+    ``irf``: the components are the response's atoms (the response path)."""
     from .background import background_test
 
     axis = samples.axis
     if samples.noise_model == "poisson":
-        weights = poisson_weights(_model(samples, params), samples.fit, samples.dispersion)
+        weights = poisson_weights(_model(samples, params, irf), samples.fit, samples.dispersion)
         noise = np.ones(samples.values.shape[0])
     else:
         weights = samples.weights
         noise = samples.noise_eff * samples.scale
-    return background_test(samples.values, params, weights, noise, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps)
+    return background_test(samples.values, params, weights, noise, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
+                           irf=irf)
 
 
 def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool) -> dict:

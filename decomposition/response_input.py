@@ -32,8 +32,10 @@ __all__ = ["resolve_response", "response_record", "STEP_RTOL", "TRIM_REL"]
 #: time steps that differ by less than this (relative) are the same step
 STEP_RTOL = 1e-9
 #: leading and trailing samples below this fraction of the peak are cropped before use: far
-#: below any noise, and a model response's tail is sampled down to 1e-15 of its peak
-TRIM_REL = 1e-9
+#: below any noise (a model response's tail is sampled down to 1e-15 of its peak); an
+#: exponential tail cropped there loses ~1e-7 x its decay time x the peak rate, under 1e-5 of
+#: the response's area for tails up to 100 widths
+TRIM_REL = 1e-7
 
 
 def _coerce(irf) -> InstrumentResponse:

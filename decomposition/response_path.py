@@ -25,12 +25,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
+from .background import background_significant
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS, POISSON_REFITS, SSS_SLOT
 from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
 from .noise import fit_dispersion, poisson_weights
 from .options import GridSpec, SolverOptions
 from .prepare import Samples
+from .refit import background_stats
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
 from .response_fisher import slot_standard_errors
 from .response_label import label_response, param_slots, slots_to_params
@@ -69,32 +71,45 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
                                    sss_after_direct=opts.sss_after_direct)
 
     fam, delay, lalp = param_slots(params, R)
-    y = samples.profiles[live]
     fit_mask = samples.fit[live]
     counts = samples.noise_model == "poisson"
-    disp = samples.dispersion[live] if counts else None
-    iterations = np.zeros(live.size, np.int64)
-    amp = np.zeros(fam.shape)
-    sw = fit_mask.astype(np.float64)
-    for _ in range(POISSON_REFITS if counts else 1):
-        if counts:
-            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
-            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
-        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=opts.n_polish, lm_tol=opts.lm_tol,
-                      delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
-                      sss_after_direct=opts.sss_after_direct, first_is_direct=True)
-        iterations += f.iterations
-        delay, lalp, amp = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp
-        bad = (fam != FAM_NONE) & ~(amp > 0)
-        if bad.any():
-            fam = fam.copy()
-            fam[bad] = FAM_NONE
-            r = np.flatnonzero(bad.any(axis=1))
-            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0, lm_tol=opts.lm_tol,
-                          delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
-                          sss_after_direct=opts.sss_after_direct, first_is_direct=True)
-            amp[r] = g.amp
-        params = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
+    refine_kw = dict(irf=irf, t=t, ax=ax, fit_mask=fit_mask, scale=scale, opts=opts, bounds=bounds,
+                     disp=samples.dispersion[live] if counts else None, sigma_eq=sigma_eq, R=R)
+    with_bg = samples.background is not None
+    b_est = samples.background[live] if with_bg else np.zeros(live.size)
+    # the profiles are the samples less the first estimate of the offset (0 without the family)
+    slots = _refine(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
+    fam, delay, lalp, amp, params, background, iterations = slots
+    bg_info = {}
+    if with_bg:
+        full = empty_params((P,), n_ir=R)
+        for k, v in params.items():
+            full[k][live] = v
+        full[BACKGROUND_KEY] = np.zeros(P)
+        full[BACKGROUND_KEY][live] = background
+        chi2, stderr = background_stats(samples, full, irf)
+        keep = background_significant(chi2[live], opts.significance_chi2)
+        drop = np.flatnonzero(~keep)
+        if drop.size:
+            # refit without the offset: the data themselves, the offset exactly 0
+            y0 = np.where(fit_mask[drop], samples.values[live[drop]], 0.0) / scale[drop, None]
+            p0 = {k: v[drop] for k, v in params.items()}
+            p0[BACKGROUND_KEY] = np.zeros(drop.size)
+            sub = {k: (v[drop] if k in ("fit_mask", "scale", "disp") and v is not None else v)
+                   for k, v in refine_kw.items()}
+            d_slots = _refine(y0, fam[drop], delay[drop], lalp[drop], np.zeros(drop.size), False, p0, **sub)
+            fam, delay, lalp, amp = fam.copy(), delay.copy(), lalp.copy(), amp.copy()
+            fam[drop], delay[drop], lalp[drop], amp[drop] = d_slots[:4]
+            for k in params:
+                params[k][drop] = d_slots[4][k]
+            background[drop] = 0.0
+            iterations[drop] += d_slots[6]
+        params[BACKGROUND_KEY] = background
+        bg_stderr = np.full(P, np.nan)
+        bg_stderr[live[keep]] = stderr[live[keep]]
+        chi2_out = np.zeros(P)
+        chi2_out[live] = chi2[live]
+        bg_info = {"background_chi2": chi2_out, "background_stderr": bg_stderr}
 
     flags = np.zeros(P, FLAG_DTYPE)
     mark(flags, live[~det.converged], MAX_ITER)
@@ -105,16 +120,68 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     mark(flags, live[at_b], AT_BOUND)
 
     out = empty_params((P,), n_ir=R)
+    if with_bg:
+        out[BACKGROUND_KEY] = np.full(P, np.nan)          # NaN where not decomposed
     for k, v in params.items():
         out[k][live] = v
     if opts.stderr:
         out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct))
+        if with_bg:
+            out[BACKGROUND_KEY + "_stderr"] = bg_info["background_stderr"]
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
             "response_alphas_per_ps": [float(a) for a in np.geomspace(a_lo, a_hi, grid.coarse_alpha)]
             if "s" in components else [],
             "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),
             "refine_iterations": _scatter(P, live, iterations, 0).reshape(samples.lead)}
+    if with_bg:
+        info["background_chi2"] = bg_info["background_chi2"].reshape(samples.lead)
     return ResponseOutcome(params=out, flags=flags, info=info)
+
+
+def _refine(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
+            sigma_eq, R):
+    """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
+    (n,) counts / units already subtracted), with a jointly fitted constant offset where
+    ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
+    previous model (offset included).  ``params``: the starting model (n-shaped, units, the
+    ``background`` key read for the first weights).
+
+    Returns fam, delay, lalp, amp (n, K), params (n-shaped, units, no ``background`` key),
+    background (n,) units (``held`` plus the fitted correction), iterations (n,).
+    """
+    L = y.shape[1]
+    counts = disp is not None
+    n = y.shape[0]
+    iterations = np.zeros(n, np.int64)
+    amp = np.zeros(fam.shape)
+    background = held.astype(np.float64).copy()
+    sw = fit_mask.astype(np.float64)
+    bg_cols = np.ones(n, bool) if fit_bg else None
+    fit_kw = dict(lm_tol=opts.lm_tol, delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
+                  sss_after_direct=opts.sss_after_direct, first_is_direct=True)
+    params = dict(params)
+    params[BACKGROUND_KEY] = background
+    for _ in range(POISSON_REFITS if counts else 1):
+        if counts:
+            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
+            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
+        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=opts.n_polish, fit_background=bg_cols, **fit_kw)
+        iterations += f.iterations
+        delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
+        bad = (fam != FAM_NONE) & ~(amp > 0)
+        if bad.any():
+            fam = fam.copy()
+            fam[bad] = FAM_NONE
+            r = np.flatnonzero(bad.any(axis=1))
+            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
+                          fit_background=None if bg_cols is None else bg_cols[r], **fit_kw)
+            amp[r], b_fit = g.amp, b_fit.copy()
+            b_fit[r] = g.background
+        background = held + b_fit * scale
+        params = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
+        params[BACKGROUND_KEY] = background
+    params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
+    return fam, delay, lalp, amp, params, background, iterations
 
 
 def _scatter(P, live, v, fill):
@@ -129,6 +196,9 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     scale = samples.scale[live]
     fit_mask = samples.fit[live]
     y = samples.profiles[live]
+    if BACKGROUND_KEY in params:
+        # the components' errors with the offset held at its fitted value
+        y = np.where(fit_mask, samples.values[live] - params[BACKGROUND_KEY][:, None], 0.0) / scale[:, None]
     noise = None
     if samples.noise_model == "poisson":
         model = np.nan_to_num(render_profile(params, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))

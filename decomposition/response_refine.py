@@ -4,8 +4,9 @@ For a pixel with K slots (:mod:`decomposition.response_atoms`) the model is
 m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
 amplitudes enter linearly and are never iterated: for any theta they are the weighted
 least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
-columns phi_k, a K x K solve per pixel; a further linear column -- a constant background --
-only adds a row to the column stack there).  theta is moved by Levenberg-Marquardt on the
+columns phi_k, a K x K solve per pixel; with ``fit_background`` a constant column -- the
+background family's offset -- is one more column of that solve, fitted jointly with the
+amplitudes and projected out of the delays' Jacobian like them).  theta is moved by Levenberg-Marquardt on the
 projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
 the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), every
 pixel of a block at once; a step is kept per pixel only when it lowers the weighted residual
@@ -33,12 +34,14 @@ _LAMBDA_MAX = 1e10
 @dataclass(frozen=True)
 class SlotFit:
     """Result of :func:`fit_slots` for P pixels of K slots: ``delay``, ``lalp``, ``amp``
-    (P, K); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
+    (P, K); ``background`` (P,) the fitted constant offset (units of ``y``; 0 where it is not
+    fitted); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
     residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
 
     delay: np.ndarray
     lalp: np.ndarray
     amp: np.ndarray
+    background: np.ndarray
     cost: np.ndarray
     resid: np.ndarray
     iterations: np.ndarray
@@ -65,14 +68,15 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     """
     pw = phi * sw[:, None, :]
     yw = y * sw
-    m = np.einsum("pkl,pjl->pkj", pw, pw)
+    m = np.matmul(pw, pw.transpose(0, 2, 1))
     diag = np.einsum("pkk->pk", m)
     ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
     minv = np.linalg.inv(m)
-    amp = np.einsum("pkj,pj->pk", minv, np.einsum("pkl,pl->pk", pw, yw))
+    with np.errstate(invalid="ignore"):     # a trial of non-finite cost is rejected by the caller
+        amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
     amp = np.where(active, amp, 0.0)
-    resid = yw - np.einsum("pk,pkl->pl", amp, pw)
+    resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
     return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
 
 
@@ -91,9 +95,13 @@ def _project(fam, delay, lalp, delay_bounds_ps, lalp_bounds, sss_after_direct, f
     return delay, lalp
 
 
-def _evaluate(irf, t, y, sw, fam, delay, lalp):
+def _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg=None):
     phi, dd, dl = slot_atoms(irf, t, fam, delay, lalp, derivatives=True)
     active = fam != FAM_NONE
+    if fit_bg is not None:      # the constant column (last), no nonlinear parameter
+        phi = np.concatenate([phi, np.broadcast_to(fit_bg[:, None, None].astype(np.float64),
+                                                   (phi.shape[0], 1, phi.shape[2]))], axis=1)
+        active = np.concatenate([active, fit_bg[:, None]], axis=1)
     amp, resid, cost, pw, minv = solve_amplitudes(phi, y, sw, active)
     return {"phi": phi, "dd": dd, "dl": dl, "amp": amp, "resid": resid, "cost": cost, "pw": pw, "minv": minv}
 
@@ -101,7 +109,7 @@ def _evaluate(irf, t, y, sw, fam, delay, lalp):
 def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.ndarray, fam: np.ndarray,
               delay: np.ndarray, lalp: np.ndarray, *, n_iter: int, lm_tol: float,
               delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool = True,
-              first_is_direct: bool = False) -> SlotFit:
+              first_is_direct: bool = False, fit_background=None) -> SlotFit:
     """Refine the delays (and sss log alpha) of every active slot of a block of pixels.
 
     Parameters
@@ -118,6 +126,9 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     delay_bounds_ps, lalp_bounds : (float, float)
     sss_after_direct, first_is_direct : bool
         Constraints (see the module docstring).
+    fit_background : ndarray (P,) bool, optional
+        Pixels that also fit a constant offset (a column of ones in the amplitudes' solve);
+        elsewhere the model has none.
 
     Returns
     -------
@@ -128,7 +139,8 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     P, K = fam.shape
     delay, lalp = _project(fam, np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0),
                            delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
-    cur = _evaluate(irf, t, y, sw, fam, delay, lalp)
+    fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), (P,))
+    cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
     amp, cost = cur["amp"], cur["cost"]
     iters = np.zeros(P, np.int64)
     conv = np.zeros(P, bool)
@@ -144,15 +156,15 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
             break
         c = {k: v[idx] for k, v in cache.items()}
         f = fam[idx]
-        a = c["amp"]
+        a = c["amp"][:, :K]
         g = np.concatenate([a[:, :, None] * c["dd"], a[:, :, None] * c["dl"]], axis=1) * sw[idx][:, None, :]
         fr = free[idx]
         g = np.where(fr[:, :, None], g, 0.0)
         # projected columns: g - pw^T minv (pw g^T)
-        proj = np.einsum("pkl,pjl->pkj", c["pw"], g)                               # (n, K, 2K)
-        gp = g - np.einsum("pkj,pkm,pml->pjl", proj, c["minv"], c["pw"])
-        jtj = np.einsum("pjl,pml->pjm", gp, gp)
-        jtr = np.einsum("pjl,pl->pj", g, c["resid"])
+        proj = np.matmul(c["pw"], g.transpose(0, 2, 1))                            # (n, K, 2K)
+        gp = g - np.matmul(np.matmul(proj.transpose(0, 2, 1), c["minv"]), c["pw"])
+        jtj = np.matmul(gp, gp.transpose(0, 2, 1))
+        jtr = np.matmul(g, c["resid"][:, :, None])[..., 0]
         dg = np.einsum("pjj->pj", jtj)
         scale_d = np.where(fr, dg + 1e-300, 1.0)
         lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
@@ -161,7 +173,7 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
         nd = state["delay"][idx] + np.where(fr[:, :K], step[:, :K], 0.0)
         nl = state["lalp"][idx] + np.where(fr[:, K:], step[:, K:], 0.0)
         nd, nl = _project(f, nd, nl, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
-        trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl)
+        trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl, None if fit_bg is None else fit_bg[idx])
         ok = np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
         gain = c["cost"] - trial["cost"]
         iters[idx] += 1
@@ -177,5 +189,7 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
             cache[k][acc] = trial[k][ok]
     return SlotFit(delay=np.where(fam != FAM_NONE, state["delay"], np.nan),
                    lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
-                   amp=np.where(fam != FAM_NONE, state["amp"], 0.0), cost=state["cost"], resid=cache["resid"],
+                   amp=np.where(fam != FAM_NONE, state["amp"][:, :K], 0.0),
+                   background=state["amp"][:, K] if fit_bg is not None else np.zeros(P),
+                   cost=state["cost"], resid=cache["resid"],
                    iterations=iters, converged=conv)
