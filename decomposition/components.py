@@ -38,7 +38,8 @@ from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_S
 from .slots import eval_atoms
 from core.model import empty_params, render_components
 
-__all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "merge_gaussians",
+__all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "keep_atoms",
+           "merge_gaussians",
            "clip_sss_onset", "classify", "render_params"]
 
 
@@ -131,16 +132,26 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     always dropped.
     """
     h, e = window_measures(st, t_ps)
+    keep = keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
+    _drop(st, (st["fam"] != FAM_NONE) & ~keep)
+    # atoms entirely outside the window render as zero everywhere inside it
+    _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))
+    return st
+
+
+def keep_atoms(st: dict, h: np.ndarray, e: np.ndarray, rel_threshold: float, noise=None,
+               significance_chi2: float = 0.0) -> np.ndarray:
+    """(P, K) bool: the atoms of ``st`` that :func:`threshold`'s rule keeps, from their in-window
+    peak heights ``h`` and energies ``e`` (P, K) (:func:`window_measures`, or the same measures
+    of a measured response's atoms) and the pixels' ``noise`` (P,); the one home of the rule
+    for every kind of atom.  Widths for the resolution test are ``st["lsig"]``."""
     top = h.max(axis=1, keepdims=True)
     keep = h >= rel_threshold * top
     if noise is not None and significance_chi2 > 0:
         s2 = np.asarray(noise, np.float64).reshape(-1, 1) ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
             keep |= (s2 > 0) & (e >= significance_chi2 * s2) & _resolved(st, h)
-    _drop(st, (st["fam"] != FAM_NONE) & ~keep)
-    # atoms entirely outside the window render as zero everywhere inside it
-    _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))
-    return st
+    return keep
 
 
 def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0) -> dict:

@@ -26,15 +26,22 @@ __all__ = ["label_response", "param_slots", "slots_to_params"]
 
 
 def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, *, rel_threshold: float,
-                   merge_tol_ps: float, sss_after_direct: bool):
-    """Slots (n, K) -> (params (n-shaped, amplitudes times ``scale``), truncated (n,) bool)."""
+                   merge_tol_ps: float, sss_after_direct: bool, noise=None, significance_chi2: float = 0.0):
+    """Slots (n, K) -> (params (n-shaped, amplitudes times ``scale``), truncated (n,) bool).
+
+    The threshold is the Gaussian path's rule (:func:`decomposition.components.keep_atoms`: the
+    relative rule on in-window peaks, or significant against ``noise`` (n,), normalised units),
+    on the response's own atoms."""
     st = {k: v.copy() for k, v in st.items()}
     fam = st["fam"]
     if (fam != FAM_NONE).any():
         phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(st["delay"]), np.nan_to_num(st["lalp"]))
-        h = np.abs(st["amp"]) * phi.max(axis=2)
-        top = h.max(axis=1, keepdims=True)
-        drop = (fam != FAM_NONE) & ~((h >= rel_threshold * top) & (h > 0))
+        a = np.abs(st["amp"])
+        h = a * phi.max(axis=2)
+        e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
+        st["lsig"] = np.full(fam.shape, math.log(sigma_eq_ps))      # the widths the rule resolves by
+        keep = comp.keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
+        drop = (fam != FAM_NONE) & ~(keep & (h > 0))
         fam[drop] = FAM_NONE
         K = fam.shape[1]
         for i in range(K):

@@ -68,7 +68,9 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     det = detect_response(samples, irf, dic, opts, components, bounds)
     params, trunc = label_response(det.state, irf, t, scale, sigma_eq, R, rel_threshold=opts.rel_threshold,
                                    merge_tol_ps=opts.merge_tol_bins * ax.time_bin_ps,
-                                   sss_after_direct=opts.sss_after_direct)
+                                   sss_after_direct=opts.sss_after_direct,
+                                   noise=np.maximum(samples.noise_eff[live], samples.significance_noise[live]),
+                                   significance_chi2=opts.significance_chi2)
 
     fam, delay, lalp = param_slots(params, R)
     fit_mask = samples.fit[live]

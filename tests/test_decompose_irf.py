@@ -190,3 +190,20 @@ def test_default_is_unchanged_without_irf():
     assert "irf" not in a.info
     for k in a.params:
         assert np.array_equal(a.params[k], b.params[k], equal_nan=True)
+
+
+def test_faint_echo_kept_by_the_significance_rule(tailed):
+    """An echo at 2 % of the direct, 20 noise sigmas high: below the relative 5 % rule, kept
+    because it is significant inside the window (the Gaussian path's rule, one home:
+    components.keep_atoms); with significance_chi2=0 the relative rule alone drops it."""
+    rng = np.random.default_rng(21)
+    n = 12
+    d = rng.uniform(150, 250, n)
+    e = d + rng.uniform(150, 300, n)
+    y = render_shifted(tailed, T_PS, d) + 0.02 * render_shifted(tailed, T_PS, e)
+    y = y + 0.001 * rng.standard_normal(y.shape)
+    res = decompose(y, T, irf=tailed, components="d,r")
+    found = np.abs(res.params["ir_delay_ps"][:, 0] - e) < 1.0
+    assert found.all()
+    rel = decompose(y, T, irf=tailed, components="d,r", significance_chi2=0.0)
+    assert not np.isfinite(rel.params["ir_delay_ps"]).any()
