@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from .irf import InstrumentResponse, render_shifted, render_sss
+from .model import params_shape
 
 __all__ = ["gaussian_equivalent_sigma_ps", "render_components_response"]
 
@@ -67,15 +68,7 @@ def render_components_response(params: dict, t_ps: np.ndarray, irf: InstrumentRe
     dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L).
     """
     t = np.asarray(t_ps, np.float64)
-    shape = None
-    for key in ("direct_delay_ps", "sss_delay_ps"):
-        if key in params:
-            shape = np.shape(params[key])
-            break
-    if shape is None and "ir_delay_ps" in params:
-        shape = np.shape(params["ir_delay_ps"])[:-1]
-    if shape is None:
-        raise ValueError("params holds no component delays")
+    shape = params_shape(params)
     zeros = np.zeros(shape + (t.size,))
     direct = (_family(irf, t, params["direct_delay_ps"], params["direct_amplitude"])
               if "direct_delay_ps" in params else zeros)

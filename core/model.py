@@ -64,6 +64,7 @@ __all__ = [
     "render_components",
     "render_profile",
     "empty_params",
+    "params_shape",
 ]
 
 _SQRT_PI_2 = np.sqrt(np.pi / 2.0)
@@ -279,15 +280,7 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
         from .irf_components import render_components_response
         return _with_background(render_components_response(params, t, irf), params, t)
     tb = _check_time_bin(time_bin_ps) if bin_integrated else None
-    shape = None
-    for key in ("direct_delay_ps", "sss_delay_ps"):
-        if key in params:
-            shape = np.shape(params[key])
-            break
-    if shape is None and "ir_delay_ps" in params:
-        shape = np.shape(params["ir_delay_ps"])[:-1]
-    if shape is None:
-        raise ValueError("params holds no component delays")
+    shape = params_shape(params)
 
     def fam(keys, alpha_key=None):
         if keys[0] not in params:
@@ -302,6 +295,20 @@ def render_components(params: dict, n_bins: int, time_bin_ps: float = 2.0, t0_ps
     else:
         ir = np.zeros(shape + (0, t.size))
     return _with_background({"direct": direct, "sss": sss, "interreflections": ir}, params, t)
+
+
+def params_shape(params: dict) -> tuple:
+    """The pixels' shape (...,) of a parameter dict, from its first delay key."""
+    shape = None
+    for key in ("direct_delay_ps", "sss_delay_ps"):
+        if key in params:
+            shape = np.shape(params[key])
+            break
+    if shape is None and "ir_delay_ps" in params:
+        shape = np.shape(params["ir_delay_ps"])[:-1]
+    if shape is None:
+        raise ValueError("params holds no component delays")
+    return shape
 
 
 def _with_background(out: dict, params: dict, t: np.ndarray) -> dict:

@@ -34,6 +34,7 @@ import numpy as np
 
 from streaklab.cli import CommandError
 
+from .arguments import choices, output_folder, positive_floats
 from .tables import write_csv
 
 LEVEL = 0.90
@@ -110,14 +111,6 @@ def largest_nsr_at_level(nsr, fidelity, level: float = LEVEL):
     f0, f1 = f[i - 1], f[i]
     frac = 1.0 if not np.isfinite(f1) or f0 == f1 else (f0 - level) / (f0 - f1)
     return float(math.exp(x0 + min(max(frac, 0.0), 1.0) * (x1 - x0))), "interpolated"
-
-
-def _split(text: str, allowed, what: str):
-    items = [s.strip().lower() for s in text.split(",") if s.strip()]
-    bad = [s for s in items if s not in allowed]
-    if bad or not items:
-        raise CommandError(f"--{what}: unknown {bad or 'empty list'}; choose from {', '.join(allowed)}")
-    return items
 
 
 def _score(data, est_components, est_params, flags):
@@ -309,16 +302,6 @@ def _plot(path: Path, rows, methods, noises, per_pixel):
     plt.close(fig)
 
 
-def _floats(text: str, what: str):
-    try:
-        vals = [float(v) for v in str(text).split(",") if v.strip()]
-    except ValueError:
-        vals = []
-    if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
-        raise CommandError(f"--{what} must be a comma-separated list of positive numbers, got {text!r}")
-    return vals
-
-
 def _print_levels(summary, nsrs, prefix=""):
     for key, v in summary["largest_nsr_at_level"].items():
         m, n = key.split("/")
@@ -336,27 +319,24 @@ def run(args) -> int:
 
     from .scoring import check_targets, format_regime_table
 
-    noises = _split(args.noise, NOISES, "noise")
-    methods = _split(args.methods, METHODS + EXTRA_METHODS, "methods")
+    noises = choices(args.noise, NOISES, "noise")
+    methods = choices(args.methods, METHODS + EXTRA_METHODS, "methods")
     scenes = str(args.scenes).strip().lower()
     if scenes not in SCENE_PRESETS:
         raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
     render = args.render or ("bin" if scenes == "paper" else "point")
-    bins = _floats(args.time_bin_ps, "time-bin-ps")
+    bins = positive_floats(args.time_bin_ps, "time-bin-ps")
     if args.quick:
         pixels, n_bins, nsrs = 12, 128, np.array([0.001, TARGET_NSR, 0.2])
     else:
         pixels, n_bins = args.pixels, args.n_bins
         try:
-            nsrs = np.array(sorted(set(_floats(args.nsr, "nsr")))) if args.nsr else nsr_grid(args.nsr_points)
+            nsrs = np.array(sorted(set(positive_floats(args.nsr, "nsr")))) if args.nsr else nsr_grid(args.nsr_points)
         except ValueError as exc:
             raise CommandError(str(exc)) from None
     if pixels <= 0:
         raise CommandError(f"--pixels must be positive, got {pixels}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CommandError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
 
     def progress(r):
         print(f"  {r['method']:8s} {r['time_bin_ps']:g} ps {r['noise']:6s} NSR {r['nsr']:<8.4g} "

@@ -34,12 +34,12 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from streaklab.cli import CommandError
 
+from .arguments import choices, output_folder, positive_floats
 from .tables import write_csv
 
 EFFECTS = ("tailed", "afterpulse", "background", "echo", "truncated")
@@ -246,24 +246,6 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
     return out
 
 
-def _split(text: str, allowed, what: str):
-    items = [s.strip().lower() for s in str(text).split(",") if s.strip()]
-    bad = [s for s in items if s not in allowed]
-    if bad or not items:
-        raise CommandError(f"--{what}: unknown {bad or 'empty list'}; choose from {', '.join(allowed)}")
-    return list(dict.fromkeys(items))
-
-
-def _levels(text: str):
-    try:
-        vals = [float(v) for v in str(text).split(",") if v.strip()]
-    except ValueError:
-        vals = []
-    if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
-        raise CommandError(f"--photons must be a comma-separated list of positive numbers, got {text!r}")
-    return sorted(set(vals))
-
-
 def add_arguments(parser) -> None:
     parser.add_argument("--out", default="bench-output/realism", help="output folder (default bench-output/realism)")
     parser.add_argument("--pixels", type=int, default=200, help="profiles per effect and photon level (default 200)")
@@ -290,21 +272,18 @@ def _fmt(v, spec):
 
 
 def run(args) -> int:
-    effects = _split(args.effects, EFFECTS, "effects")
-    variants = _split(args.variants, VARIANTS, "variants")
+    effects = choices(args.effects, EFFECTS, "effects")
+    variants = choices(args.variants, VARIANTS, "variants")
     tb = float(args.time_bin_ps)
     if not (math.isfinite(tb) and tb > 0):
         raise CommandError(f"--time-bin-ps must be positive, got {args.time_bin_ps}")
     if args.quick:
         pixels, n_bins, photons = 6, 160, [300.0, 10000.0]
     else:
-        pixels, n_bins, photons = int(args.pixels), int(args.n_bins), _levels(args.photons)
+        pixels, n_bins, photons = int(args.pixels), int(args.n_bins), sorted(set(positive_floats(args.photons, "photons")))
     if pixels <= 0:
         raise CommandError(f"--pixels must be positive, got {pixels}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CommandError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     if any(v != "reference" for v in variants):
         from decomposition.jit import warm_up
 
