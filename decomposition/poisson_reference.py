@@ -329,7 +329,6 @@ def _fit_block(y, theta, free, model: _Model, opts: PoissonReferenceOptions, del
 
 
 def _unpack(theta, err, free, lay, lead, truth_params):
-    n = theta.shape[0]
     out = {k: np.array(v, dtype=np.float64, copy=True) for k, v in truth_params.items()
            if k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
 
