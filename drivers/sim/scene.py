@@ -246,16 +246,19 @@ class VirtualScene:
             return hit
         times = self.row_times_ps(delay_ps, time_range)                      # (n_t,)
         p = self.line_params(line)
-        if self.response is not None:
-            out = self._render_with_response(p, times)
-            if self.background > 0:
-                out = out + self.background
-            if len(self._cache) >= 64:
-                self._cache.clear()
-            self._cache[key] = out
-            return out
-        # Render every (pixel, row) pair as a one-bin profile sampled at t0_ps = 0,
-        # with the delays moved by the row's time: g(t_r - d) = g(0 - (d - t_r)).
+        out = self._render_with_response(p, times) if self.response is not None else self._render_gaussian(p, times)
+        if self.background > 0:
+            out = out + self.background
+        if len(self._cache) >= 64:
+            self._cache.clear()
+        self._cache[key] = out
+        return out
+
+    def _render_gaussian(self, p: dict, times: np.ndarray) -> np.ndarray:
+        """One line's profiles with the Gaussian PSF: (n_x, n_t).
+
+        Every (pixel, row) pair is rendered as a one-bin profile sampled at t0_ps = 0, with the
+        delays moved by the row's time: g(t_r - d) = g(0 - (d - t_r))."""
         shifted = {}
         for k, v in p.items():
             if k in ("direct_delay_ps", "sss_delay_ps"):
@@ -266,13 +269,7 @@ class VirtualScene:
                 shifted[k] = np.broadcast_to(v[:, None, :], (v.shape[0], self.n_t, v.shape[1]))
             else:
                 shifted[k] = np.broadcast_to(v[:, None], (v.shape[0], self.n_t))
-        out = render_profile(shifted, 1, time_bin_ps=1.0, t0_ps=0.0)[..., 0]
-        if self.background > 0:
-            out = out + self.background
-        if len(self._cache) >= 64:
-            self._cache.clear()
-        self._cache[key] = out
-        return out
+        return render_profile(shifted, 1, time_bin_ps=1.0, t0_ps=0.0)[..., 0]
 
     def _render_with_response(self, p: dict, times: np.ndarray) -> np.ndarray:
         """One line's profiles with the scene's ``response``: (n_x, n_t), peak-height amplitudes."""
