@@ -77,11 +77,12 @@ def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -
                 tie_sigma=opts.shared_sigma, sss_after_direct=opts.sss_after_direct, lm_tol=opts.lm_tol)
 
 
-def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: dict, significance_noise):
-    """Sparse solve (no censored sample), threshold, merge and polish (censored samples too)."""
+def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: dict, significance_sigma):
+    """Sparse solve (no censored sample), threshold (``significance_sigma``: the noise of its
+    significance test, :meth:`Samples.significance_sigma`), merge and polish (censored samples too)."""
     st, si = cs.solve_multistart(p, mask.uncensored(), noise, dic, sss_alone=opts.sss_alone,
                                  restart=opts.multistart, **solve_opts)
-    comp.threshold(st, t, opts.rel_threshold, np.maximum(noise, significance_noise), opts.significance_chi2)
+    comp.threshold(st, t, opts.rel_threshold, significance_sigma, opts.significance_chi2)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
     st, model, nl = cs.polish_block(p, mask, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
                                     n_lm=opts.n_polish, bound_factor=opts.bound_factor,
@@ -109,14 +110,14 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
         bi = live[b0:b0 + opts.block_size]
         pb, mb = solver_inputs(samples, bi)
         sb = noise_eff[bi].copy()
-        sig_b = samples.significance_noise[bi]
-        st, sinfo, model_b, nl = _solve(pb, mb, sb, dic, t, opts, solve_opts, sig_b)
+        st, sinfo, model_b, nl = _solve(pb, mb, sb, dic, t, opts, solve_opts, samples.significance_sigma(bi, sb))
         lm_total += sinfo["lm_iterations"] + nl
         s_sig = signal_noise_sigma(pb - model_b, model_b, mb.fit)
         again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
         if again.size:
             sb[again] = s_sig[again]
-            st2, sinfo2, _, nl2 = _solve(pb[again], mb[again], sb[again], dic, t, opts, solve_opts, sig_b[again])
+            st2, sinfo2, _, nl2 = _solve(pb[again], mb[again], sb[again], dic, t, opts, solve_opts,
+                                         samples.significance_sigma(bi[again], sb[again]))
             lm_total += sinfo2["lm_iterations"] + nl2
             put(st, again, st2)
             for key in ("objective", "n_iter", "converged"):

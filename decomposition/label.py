@@ -78,7 +78,7 @@ def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts:
         p, mask = solver_inputs(samples, live)
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    final_atoms(st, t, dic.time_bin_ps, opts, np.maximum(det.noise_eff[live], samples.significance_noise[live]))
+    final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]))
     mark(flags, live[comp.off_window(st, t).any(axis=1)], OFF_WINDOW)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     wide = ((st["fam"] != FAM_NONE) & (st["lsig"] > math.log(dic.grid.sigma_range_ps[1]) + BOUND_TOL)).any(axis=1)

@@ -61,11 +61,10 @@ class Samples:
                                         spikes were removed)
     noise_eff : ndarray (P,)            the noise the solver uses: after spike removal,
                                         floored at ``noise_floor``
-    significance_noise : ndarray (P,)   the noise the in-window significance test weighs an atom's
-                                        energy with: ``noise_eff`` or, where larger, the noise
-                                        across SIGNIFICANCE_LAG_BINS samples
+    lagged_noise : ndarray (P,)         noise across SIGNIFICANCE_LAG_BINS samples
                                         (:func:`decomposition.noise.lagged_noise_sigma`; correlated
-                                        noise makes component-sized bumps)
+                                        noise makes component-sized bumps), 0 for pixels not
+                                        decomposed; see :meth:`significance_sigma`
     flags : ndarray (P,) uint16         NONFINITE, SATURATED, SPIKE, EMPTY as found here
     lead : tuple                        leading shape of the input
     axis : TimeAxis
@@ -87,7 +86,7 @@ class Samples:
     live: np.ndarray
     noise: np.ndarray
     noise_eff: np.ndarray
-    significance_noise: np.ndarray
+    lagged_noise: np.ndarray
     flags: np.ndarray
     lead: tuple
     axis: TimeAxis
@@ -104,6 +103,11 @@ class Samples:
     def mask(self) -> SampleMask:
         """The fit and censored masks (:class:`~decomposition.masks.SampleMask`)."""
         return SampleMask(self.fit, self.censored)
+
+    def significance_sigma(self, rows, noise) -> np.ndarray:
+        """(n,) the noise the in-window significance test weighs an atom's energy with, for the
+        pixels ``rows`` whose solver noise is ``noise`` (n,): the larger of the two noises."""
+        return np.maximum(noise, self.lagged_noise[rows])
 
     @property
     def weights(self) -> np.ndarray:
@@ -243,12 +247,12 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         # the noise the solver weighs its sparsity with is the noise at the components
         s_sig = count_signal_sigma(np.where(fit, x, 0.0)[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
         s_eff[idx_live] = np.maximum(s_eff[idx_live], s_sig)
-    s_sig = s_eff.copy()
+    s_lag = np.zeros(P)
     if idx_live.size:
         lag = min(SIGNIFICANCE_LAG_BINS, max(1, L // 4))
-        s_sig[idx_live] = np.maximum(s_eff[idx_live], lagged_noise_sigma(pn[idx_live], fit[idx_live], lag))
+        s_lag[idx_live] = lagged_noise_sigma(pn[idx_live], fit[idx_live], lag)
     return Samples(values=x, profiles=pn, scale=scale, fit=fit, censored=sat, finite=finite, live=idx_live,
-                   noise=s_est, noise_eff=s_eff, significance_noise=s_sig, flags=flags, lead=lead, axis=axis,
+                   noise=s_est, noise_eff=s_eff, lagged_noise=s_lag, flags=flags, lead=lead, axis=axis,
                    saturation_level=saturation_level, noise_model=noise_model, dispersion=disp,
                    background=b_est)
 

@@ -69,7 +69,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     params, trunc = label_response(det.state, irf, t, scale, sigma_eq, R, rel_threshold=opts.rel_threshold,
                                    merge_tol_ps=opts.merge_tol_bins * ax.time_bin_ps,
                                    sss_after_direct=opts.sss_after_direct,
-                                   noise=np.maximum(samples.noise_eff[live], samples.significance_noise[live]),
+                                   noise=samples.significance_sigma(live, samples.noise_eff[live]),
                                    significance_chi2=opts.significance_chi2)
 
     fam, delay, lalp = param_slots(params, R)

@@ -368,10 +368,11 @@ def _crossing(t, y, level, allowed):
     return t[j] + np.clip(frac, 0.0, 1.0) * T * (i > 0)
 
 
-def search_block(p, mask, st, s_eff, dic, opts, components, significance_noise=None):
+def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
-    detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_noise`` (n,), the
-    noise of the in-window significance test, default ``s_eff``).
+    detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,), the
+    noise of the in-window significance test (:meth:`Samples.significance_sigma`), default
+    ``s_eff``).
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
@@ -408,7 +409,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_noise=N
     shared = opts.shared_sigma
 
     base = {k: v.copy() for k, v in st.items()}
-    s_sig = s_eff if significance_noise is None else np.maximum(s_eff, significance_noise)
+    s_sig = s_eff if significance_sigma is None else significance_sigma
     comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
     chi0 = _data_chi2(t, p, mask, base, s2)
 
@@ -543,6 +544,8 @@ def search_components(samples, det, dic, opts, components) -> SearchStage:
         p, mask = solver_inputs(samples, live[rows])
         sub = {k: v[rows] for k, v in state.items()}
         st, start[rows], doubt[rows], amb[rows] = search_block(p, mask, sub, det.noise_eff[live[rows]], dic, opts,
-                                                              components, samples.significance_noise[live[rows]])
+                                                              components,
+                                                              samples.significance_sigma(live[rows],
+                                                                                         det.noise_eff[live[rows]]))
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)
