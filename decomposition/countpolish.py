@@ -72,10 +72,11 @@ def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) ->
         background = None if samples.background is None else samples.background[px]
         mu = np.zeros(rows.size)
         eps = opts.eps_rel * noise
+        model = render(t, st)
         for _ in range(POISSON_REFITS):
-            w = count_weights(render(t, st), mask.used, samples.scale[px], noise, dispersion, background)
-            st, _, _ = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
-                                    opts.sss_after_direct, opts.lm_tol, weights=w)
+            w = count_weights(model, mask.used, samples.scale[px], noise, dispersion, background)
+            st, _, _, model = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
+                                           opts.sss_after_direct, opts.lm_tol, return_model=True, weights=w)
         drop_zero(st)
         put(state, rows, st)
     return state

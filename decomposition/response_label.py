@@ -34,12 +34,12 @@ def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, *,
     on the response's own atoms."""
     st = {k: v.copy() for k, v in st.items()}
     fam = st["fam"]
+    st["lsig"] = np.full(fam.shape, math.log(sigma_eq_ps))     # what the rule resolves by, and the output's
     if (fam != FAM_NONE).any():
         phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(st["delay"]), np.nan_to_num(st["lalp"]))
         a = np.abs(st["amp"])
         h = a * phi.max(axis=2)
         e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
-        st["lsig"] = np.full(fam.shape, math.log(sigma_eq_ps))      # the widths the rule resolves by
         keep = comp.keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
         drop = (fam != FAM_NONE) & ~(keep & (h > 0))
         fam[drop] = FAM_NONE
@@ -55,7 +55,6 @@ def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, *,
     st["delay"] = np.where(fam != FAM_NONE, st["delay"], 0.0)
     if sss_after_direct:
         comp.clip_sss_onset(st)
-    st["lsig"] = np.full(fam.shape, math.log(sigma_eq_ps))
     st["lalp"] = np.where(fam == FAM_SSS, st["lalp"], 0.0)
     return comp.classify(st, np.asarray(scale, np.float64), n_ir)
 
