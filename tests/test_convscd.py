@@ -8,7 +8,7 @@ from decomposition import convscd as cs
 from decomposition import decompose
 from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.masks import SampleMask
-from decomposition.noise import noise_sigma
+from decomposition.noise import masked_median, noise_sigma
 from decomposition.slots import parameter_bounds
 from decomposition.pick import closed_form
 from decomposition.synthetic import make_profiles
@@ -69,6 +69,29 @@ def test_noise_estimate_is_robust_to_signal():
     assert np.median(est) == pytest.approx(s, rel=0.1)
     assert np.all(np.abs(est / s - 1) < 0.3)
     assert np.all(noise_sigma(np.zeros((2, 64))) == 0)
+
+
+def test_masked_median_is_the_nanmedian_of_the_kept_entries():
+    """Odd and even counts, ties, NaN and inf entries, rows with one entry and with none:
+    the same values as numpy's nanmedian of the row with the other entries set to NaN."""
+    rng = np.random.default_rng(11)
+    v = np.round(rng.normal(size=(40, 31)), 1)          # rounded: ties between kept entries
+    ok = rng.random(v.shape) < 0.5
+    v[0, :3] = [np.nan, np.inf, -np.inf]
+    ok[0, :3] = True
+    ok[1] = False
+    ok[2] = False
+    ok[2, 7] = True
+    ok[3] = True
+    ok[4] = False
+    ok[4, [2, 9]] = True
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(np.where(ok, v, np.nan), axis=1)
+    got = masked_median(v, ok)
+    np.testing.assert_array_equal(got, ref)
+    assert np.isnan(got[1]) and got[2] == v[2, 7] and got[4] == (v[4, 2] + v[4, 9]) / 2
+    assert masked_median(np.zeros((3, 0)), np.zeros((3, 0), bool)).shape == (3,)
 
 
 def test_objective_never_increases_and_iterations_are_bounded():
