@@ -30,7 +30,7 @@ from .jit import njit, sss_value
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
-__all__ = ["lm_refine", "atom_profiles"]
+__all__ = ["lm_refine", "atom_profiles", "state_models"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
@@ -129,6 +129,47 @@ def atom_profiles(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):
     if fam.size:
         _profiles(float(t0_ps), float(time_bin_ps), fam, np.ascontiguousarray(delay_ps, np.float64),
                   np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), out)
+    return out
+
+
+@njit
+def _models(t0, T, fam, amp, delay, lsig, lalp, out):
+    P, L = out.shape
+    K = fam.shape[1]
+    J = np.empty((4, L))
+    for pi in range(P):
+        for k in range(K):
+            if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
+                lo, hi = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, 0)
+                a = amp[pi, k]
+                for m in range(lo, hi):
+                    out[pi, m] += J[0, m] * a
+
+
+def state_models(t0_ps, time_bin_ps, n_bins, fam, amp, delay_ps, lsig, lalp):
+    """Model of every pixel of a slot state: the sum of its active atoms, in slot order.
+
+    Parameters
+    ----------
+    t0_ps, time_bin_ps : float
+        Bin i at t0_ps + i * time_bin_ps.
+    n_bins : int
+    fam : int array (P, K)
+        FAM_GAUSS, FAM_SSS or FAM_NONE (adds nothing).
+    amp, delay_ps, lsig, lalp : arrays (P, K)
+        Amplitude, delay (ps), log sigma_ps and log alpha_per_ps of every slot.
+
+    Returns
+    -------
+    ndarray (P, n_bins) float64: sum over k of amp[:, k] times the unit atom of
+    :func:`atom_profiles`, accumulated in slot order (the same values as adding those rows).
+    """
+    fam = np.ascontiguousarray(fam, np.int8)
+    out = np.zeros((fam.shape[0], int(n_bins)))
+    if fam.size:
+        _models(float(t0_ps), float(time_bin_ps), fam, np.ascontiguousarray(amp, np.float64),
+                np.ascontiguousarray(delay_ps, np.float64), np.ascontiguousarray(lsig, np.float64),
+                np.ascontiguousarray(lalp, np.float64), out)
     return out
 
 

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from .atomlm import atom_profiles, lm_refine
+from .atomlm import atom_profiles, lm_refine, state_models
 from .constants import FAM_NONE, NEAR_SIGMA
 from .masks import SampleMask
 from .onsets import onset_links
@@ -35,17 +35,8 @@ def eval_atoms(t, fam, delay, lsig, lalp):
 
 
 def render(t, st):
-    """Model (P, L) of the slot state ``st``."""
-    act = st["fam"] != FAM_NONE
-    P, K = act.shape
-    model = np.zeros((P, t.size))
-    if not act.any():
-        return model
-    pi, ki = np.nonzero(act)
-    phi = eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
-    phi *= st["amp"][pi, ki][:, None]
-    np.add.at(model, pi, phi)
-    return model
+    """Model (P, L) of the slot state ``st`` (compiled: :func:`decomposition.atomlm.state_models`)."""
+    return state_models(*axis_of(t), t.size, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"])
 
 
 def objective(p, mask: SampleMask, model, st, mu, eps):

@@ -260,3 +260,26 @@ def test_bad_weights_are_refused(weights, message):
     with pytest.raises(ValueError, match=message):
         atomlm.lm_refine(T0, T, p, SampleMask.all_fitted(p.shape), st, np.zeros(1), np.full(1, 1e-3), _bounds(), 5,
                          weights=weights)
+
+
+def test_state_models_are_the_slot_sums_of_the_atoms():
+    """state_models renders each pixel as its active atoms added in slot order: the same
+    values, bit for bit, as summing atom_profiles rows; empty slots and empty pixels add nothing."""
+    st = _state([[(cs.FAM_GAUSS, 0.8, 101.3, 4.2, None), (cs.FAM_SSS, 0.05, 104.0, 4.2, 0.03),
+                  (cs.FAM_GAUSS, 0.2, 300.0, 4.2, None)],
+                 [(cs.FAM_SSS, 0.3, -10.0, 2.0, 0.011)],
+                 []])
+    for key in ("fam", "amp", "delay", "lsig", "lalp"):     # the sss to the last slot: an empty one between
+        st[key][0, 3] = st[key][0, 1]
+    st["fam"][0, 1] = cs.FAM_NONE
+    st["amp"][0, 1] = 7.0                                      # an empty slot's amplitude counts for nothing
+    got = atomlm.state_models(T0, T, L, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"])
+    want = np.zeros((3, L))
+    for p in range(3):
+        for k in range(st["fam"].shape[1]):
+            if st["fam"][p, k] != cs.FAM_NONE:
+                want[p] += atomlm.atom_profiles(T0, T, L, st["fam"][p, k:k + 1], st["delay"][p, k:k + 1],
+                                                st["lsig"][p, k:k + 1], st["lalp"][p, k:k + 1])[0] * st["amp"][p, k]
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(render(time_axis_ps(L, T), st), want)
+    assert want[0].max() > 0.5 and want[1].max() > 0 and not want[2].any()
