@@ -310,6 +310,17 @@ def _stage_state(n, K, direct_ps, lsig, sss_ps, lalp, later_ps):
     return st
 
 
+def _same_start(built, direct_ps, sss_ps, later_ps):
+    """(m,) int: for each pixel the first of the ``built`` starts (1-based; 0: none) whose direct
+    delay, sss onset (m,) and later Gaussians (m, G) are the ones given (NaN matching NaN)."""
+    same = np.zeros(direct_ps.size, np.int64)
+    for j, (d, s, later) in enumerate(built, start=1):
+        eq = (d == direct_ps) & (s == sss_ps) & np.all((later == later_ps) | (np.isnan(later) & np.isnan(later_ps)),
+                                                       axis=1)
+        same[(same == 0) & eq] = j
+    return same
+
+
 def _data_chi2(t, p, mask, st, s2):
     """chi2 = weighted RSS / s^2 per pixel of a slot state."""
     from .slots import render
@@ -392,7 +403,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     from .constants import FAM_GAUSS, FAM_SSS
     from .polish import refit_amplitudes
     from .label import final_atoms
-    from .slots import drop_zero, parameter_bounds, put, refine_atoms, take
+    from .slots import drop_zero, new_state, parameter_bounds, put, refine_atoms, take
 
     n, L = p.shape
     K = st["fam"].shape[1]
@@ -481,10 +492,26 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # a pixel whose rise is too steep is in doubt, and the peak start takes it)
     specs = (("edge", t_edge + sg, t_edge + sg, True), ("peak", t_peak, t_peak + sg, True),
              ("peak bare", t_peak, t_peak + sg, False))
+    built = []                  # (direct, sss onset, later Gaussians) of the starts so far
     for name, d_ps, s_ps, keep in specs:
         later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * sg[:, None]), gd, np.nan)
         later = np.sort(later, axis=1)[:, :max(K - 2, 0)]
-        cand.append(refined(_stage_state(idx.size, K, d_ps, ls, s_ps, la, later)))
+        # a start identical to an earlier one (``peak bare`` where the peak start has no later
+        # Gaussians) has that start's result: polished once
+        same = _same_start(built, d_ps, s_ps, later)
+        built.append((d_ps, s_ps, later))
+        if not same.any():
+            cand.append(refined(_stage_state(idx.size, K, d_ps, ls, s_ps, la, later)))
+            continue
+        c = new_state(idx.size, K)
+        for j in range(1, len(cand)):
+            rows = np.nonzero(same == j)[0]
+            if rows.size:
+                put(c, rows, take(cand[j], rows))
+        new = np.nonzero(same == 0)[0]
+        if new.size:
+            put(c, new, refined(_stage_state(new.size, K, d_ps[new], ls[new], s_ps[new], la[new], later[new]), new))
+        cand.append(c)
     js = []
     for c in cand:
         chi2 = _data_chi2(t, pb, mb, c, sb2)
