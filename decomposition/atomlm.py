@@ -11,7 +11,10 @@ constraints).  This module is that loop, one pixel at a time in compiled code
 (:mod:`decomposition.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
 within +-8 sigma of its delay, an sss kernel from 8 sigma before its onset; its exponential
 tail by a one-pole recursion), and the normal equations sum only over the overlap of two
-atoms' supports.  Nothing of size (pixels, atoms, parameters, time) is ever allocated.
+atoms' supports -- over the sss tail past every other atom, where each column is h times a
+polynomial of degree <= 1 in t, in closed form from five sums (:func:`_tail_sums`; the
+derivative columns are not even written there).  Nothing of size (pixels, atoms, parameters,
+time) is ever allocated.
 
 Parameters per slot: (amp, delay_ps, log sigma_ps, log alpha_per_ps), columns 4k..4k+3.
 Options as in the solver: ``tie_sigma`` keeps one width for pixels whose atoms share it
@@ -37,40 +40,85 @@ _TINY = 1e-290                        # tail values below this are exact zeros (
 
 
 @njit
-def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
+def _tail_start(t0, T, L, lo, delay, sig, alp):
+    """First sample of an sss atom's exponential tail (where erfc(u) is 2 to double precision, so
+    every column of the atom is h times a polynomial in t of degree <= 1): the atom's samples
+    from ``lo`` up to the last bin within alpha sigma^2 + TAIL_SIGMA sigma of its onset are
+    evaluated exactly, the later ones by the one-pole recursion."""
+    we = int(math.ceil((delay + alp * sig * sig + TAIL_SIGMA * sig - t0) / T))
+    return min(max(lo, we + 1), L)
+
+
+@njit
+def _gauss_support(t0, T, L, delay, sig):
+    """[lo, hi) of a Gaussian atom: the bins within GAUSS_SUPPORT_SIGMA widths of its delay."""
+    lo = min(max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0), L)
+    hi = max(min(int(math.ceil((delay + GAUSS_SUPPORT_SIGMA * sig - t0) / T)) + 1, L), lo)
+    return lo, hi
+
+
+@njit
+def _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi):
+    """(sss slot, first sample of its pure tail) of one pixel: the samples of its sss atom's
+    exponential tail past the support of every other atom, where the normal equations are
+    summed in closed form (:func:`_tail_sums`); (-1, L) without one sss atom.
+    ``lo``, ``hi`` (K,): the supports of the slots (only the other atoms' are read)."""
+    s_k = -1
+    for k in range(K):
+        if fam[k] == FAM_SSS:
+            if s_k >= 0:
+                return -1, L                 # two sss atoms: no closed form
+            s_k = k
+    if s_k < 0:
+        return -1, L
+    sig = math.exp(lsig[s_k])
+    lo_s = max(int(math.floor((delay[s_k] - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0)
+    if lo_s >= L:
+        return -1, L
+    p_tail = _tail_start(t0, T, L, lo_s, delay[s_k], sig, math.exp(lalp[s_k]))
+    for k in range(K):
+        if k != s_k and fam[k] != FAM_NONE and hi[k] > lo[k]:
+            p_tail = max(p_tail, hi[k])
+    return s_k, p_tail
+
+
+@njit
+def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
     """Atom ``amp * phi`` and its 4 derivative columns into J[row:row+4, lo:hi]; returns (lo, hi).
 
-    Columns: d/d amp (= phi), d/d delay_ps, d/d log sigma, d/d log alpha.  Outside [lo, hi)
-    every column is zero (and J is not written there).
+    Columns: d/d amp (= phi), d/d delay_ps, d/d log sigma, d/d log alpha; the derivative
+    columns only before ``deriv_end`` (0: the atom's values alone).  Outside [lo, hi) every
+    column is zero (and J is not written there).
     """
     sig = math.exp(lsig)
     if fam == FAM_GAUSS:
-        lo = min(max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0), L)
-        hi = max(min(int(math.ceil((delay + GAUSS_SUPPORT_SIGMA * sig - t0) / T)) + 1, L), lo)
+        lo, hi = _gauss_support(t0, T, L, delay, sig)
         for i in range(lo, hi):
             x = (t0 + i * T - delay) / sig
             ph = math.exp(-0.5 * x * x)
-            aph = amp * ph
             J[row, i] = ph
-            J[row + 1, i] = aph * x / sig
-            J[row + 2, i] = aph * x * x
-            J[row + 3, i] = 0.0
+            if i < deriv_end:
+                aph = amp * ph
+                J[row + 1, i] = aph * x / sig
+                J[row + 2, i] = aph * x * x
+                J[row + 3, i] = 0.0
         return lo, hi
     alp = math.exp(lalp)
     lo = max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0)
-    we = int(math.ceil((delay + alp * sig * sig + TAIL_SIGMA * sig - t0) / T))
     if lo >= L:
         return L, L
     hi = L
     s2 = sig * sig
     i = lo
-    while i < L and i <= we:
+    i_tail = _tail_start(t0, T, L, lo, delay, sig, alp)
+    while i < i_tail:
         x = t0 + i * T - delay
         h, g = sss_value(x, sig, alp)
         J[row, i] = h
-        J[row + 1, i] = -amp * (g - alp * h)
-        J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
-        J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+        if i < deriv_end:
+            J[row + 1, i] = -amp * (g - alp * h)
+            J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
+            J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
         i += 1
     if i < L:
         # exponential tail (g = 0 there): h = sqrt(2 pi) sigma exp(alpha^2 sigma^2 / 2 - alpha x),
@@ -85,9 +133,10 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row):
                 hi = i
                 break
             J[row, i] = h
-            J[row + 1, i] = c1 * h
-            J[row + 2, i] = c2 * h
-            J[row + 3, i] = c1 * (alp * s2 - x) * h
+            if i < deriv_end:
+                J[row + 1, i] = c1 * h
+                J[row + 2, i] = c2 * h
+                J[row + 3, i] = c1 * (alp * s2 - x) * h
             h *= rho
             x += T
             i += 1
@@ -100,7 +149,7 @@ def _profiles(t0, T, fam, delay, lsig, lalp, out):
     J = np.empty((4, L))
     for i in range(n):
         if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
-            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0)
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0)
             for m in range(lo, hi):
                 out[i, m] = J[0, m]
 
@@ -140,7 +189,7 @@ def _models(t0, T, fam, amp, delay, lsig, lalp, out):
     for pi in range(P):
         for k in range(K):
             if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
-                lo, hi = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, 0)
+                lo, hi = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, 0, 0)
                 a = amp[pi, k]
                 for m in range(lo, hi):
                     out[pi, m] += J[0, m] * a
@@ -175,11 +224,21 @@ def state_models(t0_ps, time_bin_ps, n_bins, fam, amp, delay_ps, lsig, lalp):
 
 @njit
 def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
-    """Evaluate the pixel's K active slots into J and sum their model into ``model`` (L,)."""
+    """Evaluate the pixel's K active slots into J and sum their model into ``model`` (L,).
+
+    The sss atom's derivative columns are left out in its pure tail (:func:`_pure_tail`), which
+    the normal equations sum in closed form from its values.
+    """
     for i in range(L):
         model[i] = 0.0
     for k in range(K):
-        a, b = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k)
+        if fam[k] == FAM_GAUSS:
+            lo[k], hi[k] = _gauss_support(t0, T, L, delay[k], math.exp(lsig[k]))
+        else:
+            lo[k] = hi[k] = 0
+    s_k, p_tail = _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi)
+    for k in range(K):
+        a, b = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k, p_tail if k == s_k else L)
         lo[k] = a
         hi[k] = b
         ak = amp[k]
@@ -225,26 +284,32 @@ def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
 
 
 @njit
-def _merge_column(J, dst, src, lo_d, hi_d, lo_s, hi_s):
-    """J[dst] += J[src] over their supports; returns the new support of dst (zero-extended)."""
+def _merge_column(J, dst, src, lo_d, hi_d, lo_s, hi_s, stop):
+    """J[dst] += J[src] over their supports, written for samples before ``stop`` only; returns the
+    new support of dst (zero-extended; the union of both, ``stop`` notwithstanding)."""
     a = min(lo_d, lo_s)
     b = max(hi_d, hi_s)
-    for i in range(a, b):
+    for i in range(a, min(b, stop)):
         if i < lo_d or i >= hi_d:
             J[dst, i] = 0.0
-    for i in range(lo_s, hi_s):
+    for i in range(lo_s, min(hi_s, stop)):
         J[dst, i] += J[src, i]
     return a, b
 
 
 @njit
-def _normal_equations(K, fam, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, free, clo, chi, act, bp, pa, pb):
+def _normal_equations(t0, T, K, fam, amp, delay, lsig, lalp, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, free,
+                      clo, chi, act, bp, pa, pb):
     """J^T J and J^T r over the free columns, summing over support overlaps only.
 
-    Every entry is the plain sum over its overlap in increasing sample order; the samples are
-    swept once, segment by segment (between the supports' ends), updating every pair of columns
-    that both cover the segment, so the sums run side by side instead of one after another.
-    ``act`` (4K,), ``bp`` (8K,), ``pa`` and ``pb`` (4K (4K + 1) / 2,) int64 are scratch.
+    The samples are swept once, segment by segment (between the supports' ends), updating every
+    pair of columns that both cover the segment, four sums side by side.  The segment where only
+    an sss atom's exponential tail is left (after its exactly evaluated part and past every other
+    atom) is summed in closed form instead: there every covering column is (a + b x) h, h the
+    tail and x the time after the onset less alpha sigma^2, so each entry is a combination of
+    sum h^2 w, sum x h^2 w, sum x^2 h^2 w (and sum h r, sum x h r for J^T r) -- five sums
+    instead of one per pair.  ``act`` (4K,), ``bp`` (8K + 2,), ``pa`` and ``pb`` (4K (4K + 1) / 2,)
+    int64 are scratch.
     """
     n = 4 * K
     for c in range(n):
@@ -253,33 +318,41 @@ def _normal_equations(K, fam, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, 
         clo[c] = lo[k]
         chi[c] = hi[k]
         free[c] = fam[k] != FAM_NONE and (q != 3 or fam[k] == FAM_SSS)
+    # the sss atom's pure tail [p_tail, hi[s]): its exponential tail past every other atom
+    L_END = J.shape[1]
+    s_k, p_tail = _pure_tail(t0, T, L_END, K, fam, delay, lsig, lalp, lo, hi)
+    sig = math.exp(lsig[s_k]) if s_k >= 0 else 1.0
+    alp = math.exp(lalp[s_k]) if s_k >= 0 else 1.0
+    if s_k < 0 or p_tail >= hi[s_k]:
+        p_tail = L_END
     if tied:
         for k in range(1, K):
             if hi[k] > lo[k]:
-                clo[2], chi[2] = _merge_column(J, 2, 4 * k + 2, clo[2], chi[2], lo[k], hi[k])
+                clo[2], chi[2] = _merge_column(J, 2, 4 * k + 2, clo[2], chi[2], lo[k], hi[k], p_tail)
             free[4 * k + 2] = False
     if linked:
         dc = 4 * dsl + 1
         sc = 4 * ssl + 1
-        clo[dc], chi[dc] = _merge_column(J, dc, sc, clo[dc], chi[dc], clo[sc], chi[sc])
+        clo[dc], chi[dc] = _merge_column(J, dc, sc, clo[dc], chi[dc], clo[sc], chi[sc], p_tail)
     for a in range(n):
         g[a] = 0.0
         for b in range(n):
             JtJ[a, b] = 0.0
-    # segment ends: every free column's support ends, sorted, duplicates dropped
+    # segment ends: every free column's support ends and the pure tail's start, sorted, once each
     nb = 0
-    for a in range(n):
-        if free[a] and chi[a] > clo[a]:
-            for e in (clo[a], chi[a]):
-                j = 0
-                while j < nb and bp[j] < e:
-                    j += 1
-                if j < nb and bp[j] == e:
-                    continue
-                for q in range(nb, j, -1):
-                    bp[q] = bp[q - 1]
-                bp[j] = e
-                nb += 1
+    for a in range(n + 1):
+        if a < n and not (free[a] and chi[a] > clo[a]):
+            continue
+        for e in ((clo[a], chi[a]) if a < n else (p_tail, p_tail)):
+            j = 0
+            while j < nb and bp[j] < e:
+                j += 1
+            if j < nb and bp[j] == e:
+                continue
+            for q in range(nb, j, -1):
+                bp[q] = bp[q - 1]
+            bp[j] = e
+            nb += 1
     for sgi in range(nb - 1):
         u = bp[sgi]
         v = bp[sgi + 1]
@@ -288,6 +361,11 @@ def _normal_equations(K, fam, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, 
             if free[a] and clo[a] <= u and chi[a] >= v:
                 act[na] = a
                 na += 1
+        if na == 0:
+            continue
+        if u >= p_tail:
+            _tail_sums(t0, T, J, r, jw, u, v, s_k, amp[s_k], delay[s_k], sig, alp, act, na, JtJ, g)
+            continue
         # J^T r: four columns at a time
         for x0 in range(0, na, 4):
             a0 = act[x0]
@@ -347,6 +425,60 @@ def _normal_equations(K, fam, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g, 
     for a in range(n):
         for b in range(a + 1, n):
             JtJ[b, a] = JtJ[a, b]
+
+
+@njit
+def _tail_sums(t0, T, J, r, jw, u, v, s_k, amp, delay, sig, alp, act, na, JtJ, g):
+    """Add the samples [u, v) of the sss atom's pure tail (slot ``s_k``) to J^T J and J^T r.
+
+    There the covering columns are the atom's own and the merged width and delay columns, each
+    (a + b x) h with h = J[4 s_k] and x = t - delay - alpha sigma^2: amplitude (1, 0), delay
+    (c1, 0), width (c2, 0), log alpha (0, -c1), c1 = amp alpha, c2 = amp (1 + alpha^2 sigma^2)
+    (the columns :func:`_eval_slot` writes there).
+    """
+    s2 = sig * sig
+    c1 = amp * alp
+    c2 = amp * (1.0 + alp * alp * s2)
+    m0 = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    n0 = 0.0
+    n1 = 0.0
+    row = 4 * s_k
+    xs = t0 - delay - alp * s2
+    for i in range(u, v):
+        h = J[row, i]
+        x = xs + i * T
+        hw = h * h * jw[i]
+        hr = h * r[i]
+        m0 += hw
+        m1 += x * hw
+        m2 += x * x * hw
+        n0 += hr
+        n1 += x * hr
+    for xa in range(na):
+        a = act[xa]
+        aa, ba = _tail_coef(a, row, c1, c2)
+        g[a] += aa * n0 + ba * n1
+        for xb in range(xa, na):
+            b = act[xb]
+            ab, bb = _tail_coef(b, row, c1, c2)
+            JtJ[a, b] += aa * ab * m0 + (aa * bb + ba * ab) * m1 + ba * bb * m2
+
+
+@njit
+def _tail_coef(col, row, c1, c2):
+    """(a, b) of column ``col`` in the pure tail of the sss atom whose columns start at ``row``:
+    its own amplitude, delay, width and decay columns, or a merged width (column 2, tied widths)
+    or delay (the direct's, linked onsets) column."""
+    q = col - row
+    if q == 0:
+        return 1.0, 0.0
+    if q == 3:
+        return 0.0, -c1
+    if q == 2 or col % 4 == 2:
+        return c2, 0.0
+    return c1, 0.0          # the atom's delay, or the direct's delay merged with it
 
 
 @njit
@@ -425,7 +557,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
     A = np.zeros((nmax, nmax + 1))
     idx = np.zeros(nmax, np.int64)
     act = np.zeros(nmax, np.int64)
-    bp = np.zeros(2 * nmax, np.int64)
+    bp = np.zeros(2 * nmax + 2, np.int64)
     pa = np.zeros(nmax * (nmax + 1) // 2, np.int64)
     pb = np.zeros(nmax * (nmax + 1) // 2, np.int64)
     sf = np.zeros(KA, np.int8)
@@ -486,7 +618,8 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
             obj[pi] = cur
         level = obj[pi]                  # what a step must beat
         tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
-        _normal_equations(K, f, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi, act, bp, pa, pb)
+        _normal_equations(t0, T, K, f, am, de, ls, la, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi,
+                          act, bp, pa, pb)
         lam = 1e-3
         it = 0
         while it < n_iter:
@@ -534,7 +667,8 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                     md[i] = tmodel[i]
                 J, Jt = Jt, J
                 tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
-                _normal_equations(K, f, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi, act, bp, pa, pb)
+                _normal_equations(t0, T, K, f, am, de, ls, la, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi,
+                          act, bp, pa, pb)
                 lam = max(lam / 3.0, 1e-9)
                 if old - tobj <= tol * old / nw:
                     break

@@ -55,7 +55,7 @@ def test_atom_values_and_derivative_columns(fam, amp, delay, sigma, alpha):
 
     def render(a, d, ls, la):
         J = np.zeros((4, L))
-        lo, hi = atomlm._eval_slot(T0, T, L, fam, a, d, ls, la, J, 0)
+        lo, hi = atomlm._eval_slot(T0, T, L, fam, a, d, ls, la, J, 0, L)
         out = np.zeros(L)
         out[lo:hi] = a * J[0, lo:hi]
         return out, J, lo, hi
@@ -283,3 +283,61 @@ def test_state_models_are_the_slot_sums_of_the_atoms():
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(render(time_axis_ps(L, T), st), want)
     assert want[0].max() > 0.5 and want[1].max() > 0 and not want[2].any()
+
+
+@pytest.mark.parametrize("tie, link, weighted", [(True, True, False), (True, False, True), (False, False, False),
+                                                 (False, True, True)])
+def test_normal_equations_equal_the_direct_sums(tie, link, weighted):
+    """J^T W J and J^T r of the compiled refinement (the sss tail past the other atoms summed in
+    closed form, the rest over support overlaps) equal the plain products of the full Jacobian
+    -- width columns merged for tied widths, the sss delay added to the direct's for a linked
+    onset, fixed columns zero -- to rounding, on d + s (+ r2, + an early r inside the tail) pixels."""
+    rng = np.random.default_rng(5)
+    checked = 0
+    for trial in range(40):
+        s = rng.uniform(0.8, 8.0)
+        d = rng.uniform(20, 300)
+        atoms = [(cs.FAM_GAUSS, 1.0, d, s, None), (cs.FAM_SSS, rng.uniform(0.01, 0.3), d + rng.uniform(0, 2 * s), s,
+                                                    rng.uniform(0.005, 0.2))]
+        if trial % 2:
+            atoms.append((cs.FAM_GAUSS, rng.uniform(0.1, 0.5), d + rng.uniform(20, 200), s, None))
+        if trial % 5 == 0:
+            atoms.insert(0, (cs.FAM_GAUSS, 0.3, rng.uniform(0, L * T), s, None))   # anywhere, even first
+        K = len(atoms)
+        fam = np.array([a[0] for a in atoms], np.int8)
+        amp = np.array([a[1] for a in atoms])
+        delay = np.array([a[2] for a in atoms])
+        lsig = np.log([a[3] for a in atoms])
+        lalp = np.log([a[4] or 1.0 for a in atoms])
+        J = np.zeros((4 * K, L))
+        lo, hi = np.zeros(K, np.int64), np.zeros(K, np.int64)
+        model = np.zeros(L)
+        atomlm._render(T0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model)
+        full = np.zeros((4 * K, L))
+        for k in range(K):
+            atomlm._eval_slot(T0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], full, 4 * k, L)
+        r = rng.normal(0, 0.05, L)
+        jw = rng.uniform(0.2, 3.0, L) * (rng.random(L) > 0.1) if weighted else np.ones(L)
+        tied, linked, dsl, ssl = atomlm._links(K, fam, delay, lsig, tie, link)
+        n = 4 * K
+        JtJ, g = np.zeros((n, n)), np.zeros(n)
+        free, clo, chi, act = np.zeros(n, np.bool_), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64)
+        bp, pa, pb = np.zeros(2 * n + 2, np.int64), np.zeros(n * (n + 1) // 2, np.int64), np.zeros(n * (n + 1) // 2, np.int64)
+        atomlm._normal_equations(T0, T, K, fam, amp, delay, lsig, lalp, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, g,
+                                 free, clo, chi, act, bp, pa, pb)
+        ref = full.copy()
+        keep = np.array([fam[c // 4] != cs.FAM_NONE and (c % 4 != 3 or fam[c // 4] == cs.FAM_SSS) for c in range(n)])
+        if tied:
+            ref[2] = full[2::4].sum(axis=0)
+            keep[6::4] = False
+        if linked:
+            ref[4 * dsl + 1] = full[4 * dsl + 1] + full[4 * ssl + 1]
+        ref[~keep] = 0.0
+        want_jtj = (ref * jw) @ ref.T
+        want_g = ref @ r
+        scale = np.sqrt(np.outer(np.diag(want_jtj), np.diag(want_jtj))) + 1e-300
+        np.testing.assert_array_less(np.abs(JtJ - want_jtj) / scale, 1e-11)
+        np.testing.assert_array_less(np.abs(g - want_g) / (np.sqrt(np.diag(want_jtj) * (r @ (jw * r))) + 1e-300), 1e-11)
+        assert np.array_equal(free, keep)
+        checked += linked == link and tied == tie
+    assert checked > 20                    # the rule asked for applied on most pixels
