@@ -67,6 +67,45 @@ def test_rewriting_a_chunk_is_idempotent(tmp_path):
         np.testing.assert_array_equal(store.group[k][...], v)
 
 
+def test_chunk_writer_opens_its_store_once_and_pickles_as_its_path(tmp_path, monkeypatch):
+    """A writer keeps the store it opened for its later chunks (threads share it); a pickled copy
+    carries only the path and opens the store again where it runs."""
+    import pickle
+    import threading
+
+    import decomposition.resultstore as rs
+
+    store = _store(tmp_path)
+    opened = []
+    real = rs.open_result_store
+
+    def counting(*args, **kwargs):
+        opened.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rs, "open_result_store", counting)
+    writer = ChunkWriter(store.path)
+    jobs = [(iy, ix) for iy in range(3) for ix in range(3)]
+    threads = [threading.Thread(target=writer, args=(iy, ix, _chunk_result(store, iy, ix, seed=10 * iy + ix)))
+               for iy, ix in jobs]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert len(opened) == 1
+    again = real(store.path)
+    assert again.done_mask().all()
+    for iy, ix in jobs:
+        ys, xs = again.chunk_slices(iy, ix)
+        want = _chunk_result(store, iy, ix, seed=10 * iy + ix)
+        np.testing.assert_array_equal(again.group["sss"][ys, xs], want["sss"].astype(np.float32))
+    copy = pickle.loads(pickle.dumps(writer))
+    assert copy == writer and copy is not writer
+    copy(0, 0, _chunk_result(store, 0, 0, seed=99))
+    assert len(opened) == 2
+    np.testing.assert_array_equal(real(store.path).group["flags"][0:2, 0:3], _chunk_result(store, 0, 0, seed=99)["flags"])
+
+
 def test_mismatched_writes_are_refused_before_anything_is_written(tmp_path):
     store = _store(tmp_path)
     res = _chunk_result(store, 0, 0, seed=3)
