@@ -33,7 +33,7 @@ from .jit import njit, sss_value
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
-__all__ = ["lm_refine", "atom_profiles", "state_models"]
+__all__ = ["lm_refine", "atom_profiles", "state_models", "nnls_amplitudes"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
@@ -219,6 +219,87 @@ def state_models(t0_ps, time_bin_ps, n_bins, fam, amp, delay_ps, lsig, lalp):
         _models(float(t0_ps), float(time_bin_ps), fam, np.ascontiguousarray(amp, np.float64),
                 np.ascontiguousarray(delay_ps, np.float64), np.ascontiguousarray(lsig, np.float64),
                 np.ascontiguousarray(lalp, np.float64), out)
+    return out
+
+
+@njit
+def _nnls_pixels(t0, T, p, fit, fam, amp, delay, lsig, lalp, sweeps):
+    P, L = p.shape
+    K = fam.shape[1]
+    J = np.zeros((K + 3, L))
+    lo = np.zeros(K, np.int64)
+    hi = np.zeros(K, np.int64)
+    G = np.zeros((K, K))
+    b = np.zeros(K)
+    a = np.zeros(K)
+    w = np.zeros(L)
+    for pi in range(P):
+        for i in range(L):
+            w[i] = 1.0 if fit[pi, i] else 0.0
+        for k in range(K):
+            if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
+                lo[k], hi[k] = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, k, 0)
+            else:
+                lo[k] = hi[k] = 0
+        for k in range(K):
+            s = 0.0
+            for i in range(lo[k], hi[k]):
+                s += J[k, i] * w[i] * (p[pi, i] * w[i])
+            b[k] = s
+            for j in range(k, K):
+                s = 0.0
+                for i in range(max(lo[k], lo[j]), min(hi[k], hi[j])):
+                    s += J[k, i] * w[i] * (J[j, i] * w[i])
+                G[k, j] = s
+                G[j, k] = s
+            a[k] = amp[pi, k] if fam[pi, k] != FAM_NONE else 0.0
+        for _ in range(sweeps):
+            for k in range(K):
+                if fam[pi, k] == FAM_NONE:
+                    a[k] = 0.0
+                    continue
+                gkk = G[k, k]
+                r = b[k]
+                for j in range(K):
+                    r -= G[k, j] * a[j]
+                r += gkk * a[k]
+                a[k] = max(r / gkk, 0.0) if gkk > 0.0 else 0.0
+        for k in range(K):
+            amp[pi, k] = a[k]
+
+
+def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, sweeps=20):
+    """Non-negative least-squares amplitudes of fixed atoms, every pixel of a block.
+
+    Exact coordinate descent on the convex problem min_a ||w (p - sum_k a_k phi_k)||^2, a >= 0
+    (``sweeps`` sweeps over the slots, starting from ``amp``), with the unit atoms phi_k of
+    :func:`atom_profiles` and w the fitted samples.
+
+    Parameters
+    ----------
+    t0_ps, time_bin_ps : float
+        Bin i at t0_ps + i * time_bin_ps.
+    p : ndarray (P, L)
+        Profiles (unit peak).
+    fit : ndarray (P, L) bool
+        Samples that count.
+    fam, delay_ps, lsig, lalp : arrays (P, K)
+        The atoms (FAM_NONE slots get amplitude 0).
+    amp : ndarray (P, K)
+        Starting amplitudes.
+    sweeps : int
+
+    Returns
+    -------
+    ndarray (P, K): the amplitudes (0 for empty slots and atoms the data do not support).
+    """
+    P, L = np.shape(p)
+    out = np.array(amp, np.float64, order="C", copy=True)
+    if P:
+        _nnls_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
+                     np.ascontiguousarray(fit, np.bool_), np.ascontiguousarray(fam, np.int8), out,
+                     np.ascontiguousarray(delay_ps, np.float64), np.ascontiguousarray(lsig, np.float64),
+                     np.ascontiguousarray(lalp, np.float64), int(sweeps))
     return out
 
 

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .atomlm import nnls_amplitudes
 from .constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
 from .masks import SampleMask, check_mask
-from .slots import drop_zero, eval_atoms, linked_onsets, parameter_bounds, put, refine_atoms, take, tie_widths
+from .slots import drop_zero, linked_onsets, parameter_bounds, put, refine_atoms, take, tie_widths
 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
 
@@ -77,30 +78,12 @@ def snap_to_grid(st, dic: Dictionary):
 
 
 def refit_amplitudes(p, mask: SampleMask, st, dic: Dictionary):
-    """Non-negative least-squares amplitudes for fixed atom shapes (batched, small K)."""
+    """Non-negative least-squares amplitudes for fixed atom shapes (in place; compiled per pixel:
+    :func:`decomposition.atomlm.nnls_amplitudes`, 20 sweeps of exact coordinate descent on the
+    convex problem over the fitted samples, from the current amplitudes); atoms left at zero
+    are dropped."""
     check_mask(mask, p.shape)
-    L = p.shape[1]
-    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    P, K = st["fam"].shape
-    act = st["fam"] != FAM_NONE
-    phi = np.zeros((P, K, L))
-    if act.any():
-        pi, ki = np.nonzero(act)
-        phi[pi, ki] = eval_atoms(t, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
-                                  st["lalp"][pi, ki])
-    w = mask.fit.astype(np.float64)
-    phw = phi * w[:, None, :]
-    G = np.einsum("pkl,pjl->pkj", phw, phw)
-    b = np.einsum("pkl,pl->pk", phw, p * w)
-    amp = np.where(act, st["amp"], 0.0)
-    # a few sweeps of exact coordinate descent on the (convex) NNLS problem
-    for _ in range(20):
-        for k in range(K):
-            gkk = G[:, k, k]
-            resid = b[:, k] - np.einsum("pj,pj->p", G[:, k, :], amp) + gkk * amp[:, k]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                newv = np.where(gkk > 0, np.maximum(resid / gkk, 0.0), 0.0)
-            amp[:, k] = np.where(act[:, k], newv, 0.0)
-    st["amp"] = amp
+    st["amp"] = nnls_amplitudes(dic.t0_ps, dic.time_bin_ps, p, mask.fit, st["fam"], st["amp"], st["delay"],
+                                st["lsig"], st["lalp"], sweeps=20)
     drop_zero(st)
     return st

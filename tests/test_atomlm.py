@@ -341,3 +341,25 @@ def test_normal_equations_equal_the_direct_sums(tie, link, weighted):
         assert np.array_equal(free, keep)
         checked += linked == link and tied == tie
     assert checked > 20                    # the rule asked for applied on most pixels
+
+
+def test_nnls_amplitudes_recover_known_amplitudes_and_stay_non_negative():
+    """Noiseless sums of fixed atoms: the amplitudes come back from any start; an atom the data
+    do not contain (here: one whose best amplitude is negative) is held at 0; samples that are
+    not fitted do not count; empty slots stay 0."""
+    atoms = [(cs.FAM_GAUSS, 0.8, 101.3, 4.2, None), (cs.FAM_SSS, 0.05, 104.0, 4.2, 0.03),
+             (cs.FAM_GAUSS, 0.2, 300.0, 4.2, None)]
+    st = _state([atoms, atoms])
+    p = np.stack([_profile(atoms), _profile(atoms[:2]) - _profile([atoms[2]])])    # pixel 1: the r2 pulls down
+    fit = np.ones(p.shape, bool)
+    p[:, 30:40] = 50.0                                 # corrupted samples, excluded
+    fit[:, 30:40] = False
+    start = np.array([[0.1, 0.1, 0.1, 3.0], [2.0, 0.0, 1.0, 3.0]])      # the empty 4th slot's value is ignored
+    got = atomlm.nnls_amplitudes(T0, T, p, fit, st["fam"], start, st["delay"], st["lsig"], st["lalp"], sweeps=400)
+    np.testing.assert_allclose(got[0, :3], [0.8, 0.05, 0.2], rtol=1e-6)
+    assert got[1, 2] == 0.0 and got[1, 0] > 0 and got[1, 1] > 0
+    assert got[0, 3] == 0.0 and got[1, 3] == 0.0
+    # the constrained optimum: no feasible direction lowers the fitted-sample residual
+    phi = atomlm.atom_profiles(T0, T, L, st["fam"][1, :3], st["delay"][1, :3], st["lsig"][1, :3], st["lalp"][1, :3])
+    grad = phi[:, fit[1]] @ (p[1, fit[1]] - got[1, :3] @ phi[:, fit[1]])
+    assert abs(grad[0]) < 1e-8 and abs(grad[1]) < 1e-8 and grad[2] < 0
