@@ -29,14 +29,17 @@ import math
 import numpy as np
 
 from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
-from .jit import njit, sss_value
+from .jit import SQRT_PI_2, erfcx, njit
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
 __all__ = ["lm_refine", "atom_profiles", "state_models", "nnls_amplitudes"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
+_SQRT_2 = math.sqrt(2.0)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
+_RESTART = 8                          # bins between fresh evaluations of the stepped factors
+_ERFC_FROM = 5.0                      # u from which an sss value is g erfcx(u), below it f erfc(u)
 
 
 @njit
@@ -91,17 +94,30 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
     column is zero (and J is not written there).
     """
     sig = math.exp(lsig)
+    # Gaussian factors g(x) = exp(-x^2 / 2), x in widths, stepped from bin to bin as
+    # g(x + b) = g(x) e(x), e(x + b) = e(x) exp(-b^2), b = T / sigma: two products instead of an
+    # exponential per bin, evaluated afresh every _RESTART bins (the rounding stays below ~30 ulp);
+    # for narrow atoms (b > 1, a few bins each) every bin is evaluated afresh
+    b = T / sig
+    step = _RESTART if b <= 1.0 else 1
+    cb = math.exp(-b * b)
     if fam == FAM_GAUSS:
         lo, hi = _gauss_support(t0, T, L, delay, sig)
+        ph = 0.0
+        e = 0.0
         for i in range(lo, hi):
             x = (t0 + i * T - delay) / sig
-            ph = math.exp(-0.5 * x * x)
+            if (i - lo) % step == 0:
+                ph = math.exp(-0.5 * x * x)
+                e = math.exp(-x * b - 0.5 * b * b)
             J[row, i] = ph
             if i < deriv_end:
                 aph = amp * ph
                 J[row + 1, i] = aph * x / sig
                 J[row + 2, i] = aph * x * x
                 J[row + 3, i] = 0.0
+            ph *= e
+            e *= cb
         return lo, hi
     alp = math.exp(lalp)
     lo = max(int(math.floor((delay - GAUSS_SUPPORT_SIGMA * sig - t0) / T)), 0)
@@ -111,14 +127,39 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
     s2 = sig * sig
     i = lo
     i_tail = _tail_start(t0, T, L, lo, delay, sig, alp)
+    # h = sqrt(pi/2) sigma g(x) erfcx(u), u = (alpha sigma^2 - x) / (sigma sqrt 2), where u is
+    # large (the stable form of jit.sss_value); elsewhere the equal sqrt(pi/2) sigma f(x) erfc(u)
+    # with f(x) = g(x) exp(u^2) = exp(alpha^2 sigma^2 / 2 - alpha x) < exp(u^2) stepped by
+    # exp(-alpha T) per bin: one erfc per bin
+    rho = math.exp(-alp * T)
+    scale = SQRT_PI_2 * sig
+    g = 0.0
+    e = 0.0
+    f = 0.0
+    f_on = False
     while i < i_tail:
         x = t0 + i * T - delay
-        h, g = sss_value(x, sig, alp)
+        if (i - lo) % step == 0:
+            xs = x / sig
+            g = math.exp(-0.5 * xs * xs)
+            e = math.exp(-xs * b - 0.5 * b * b)
+            f_on = False
+        u = (alp * s2 - x) / (sig * _SQRT_2)
+        if u >= _ERFC_FROM:
+            h = scale * (g * erfcx(u))
+        else:
+            if not f_on:
+                f = math.exp(0.5 * alp * alp * s2 - alp * x)      # <= exp(u^2) < exp(25)
+                f_on = True
+            h = scale * (f * math.erfc(u))
         J[row, i] = h
         if i < deriv_end:
             J[row + 1, i] = -amp * (g - alp * h)
             J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
             J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+        g *= e
+        e *= cb
+        f *= rho
         i += 1
     if i < L:
         # exponential tail (g = 0 there): h = sqrt(2 pi) sigma exp(alpha^2 sigma^2 / 2 - alpha x),
