@@ -26,7 +26,8 @@ this module uses the structure of the kernels instead of FFTs:
   Gaussian norms: the same FIR or window sums of k^2.
 
 Here d_lo = max(-H, -ceil(8 sigma / T)).  q is computed from exact kernel values on its
-support (:func:`decomposition.jit.sss_value`, the forward model's stable forms), so the
+support (the forward model's stable forms: g erfcx(u) where u >= 5, the equal f erfc(u) with f
+stepped from sample to sample elsewhere, :func:`_sss_samples`), so the
 recursion reproduces the sampled kernel up to rounding (1e-14 of the largest value in the
 tests, alpha from 1e-4 to 5 /ps, sigma from a fraction of a bin to 10 ps).
 
@@ -44,7 +45,9 @@ import math
 import numpy as np
 
 from .constants import GAUSS_SUPPORT_SIGMA
-from .jit import njit, sss_value
+from .jit import SQRT_PI_2, erfcx, njit
+
+_SQRT_2 = math.sqrt(2.0)
 
 __all__ = ["pixel_correlations", "PickWorkspace"]
 
@@ -191,11 +194,10 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
             al = alphas[a]
             rho = math.exp(-al * T)
             rhos[1 + a] = rho
+            _sss_samples(d_lo, kn, T, s, al, rho, K[0], hbuf)
             pk = 0.0
             for t in range(kn):
-                h = sss_value((d_lo + t) * T, s, al)[0]
-                hbuf[t] = h
-                pk = max(pk, h)
+                pk = max(pk, hbuf[t])
             if not pk > 0.0:
                 pk = 1.0
             peak[i, 1 + a] = pk
@@ -228,6 +230,30 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
         n2[i, 0] = EN[0, :S]
         for a in range(na):
             _recurse(E[1 + a], EN[1 + a], n_ext, rhos[1 + a], c[i, 1 + a], n2[i, 1 + a])
+
+
+@njit
+def _sss_samples(d_lo, kn, T, sig, alp, rho, gauss, out):
+    """out[t] = sss kernel h((d_lo + t) T) for t < kn (the values of :func:`decomposition.jit.sss_value`),
+    given the unit Gaussian ``gauss`` at the same times: g erfcx(u) where u >= 5, else the equal
+    f erfc(u), f = exp(alpha^2 sigma^2 / 2 - alpha x) <= exp(u^2) stepped by ``rho`` = exp(-alpha T)
+    (one erfc per sample instead of three transcendentals)."""
+    scale = SQRT_PI_2 * sig
+    s2 = sig * sig
+    f = 0.0
+    f_on = False
+    for t in range(kn):
+        x = (d_lo + t) * T
+        u = (alp * s2 - x) / (sig * _SQRT_2)
+        if u >= 5.0:
+            out[t] = scale * (gauss[t] * erfcx(u))
+            f_on = False
+        else:
+            if not f_on:
+                f = math.exp(0.5 * alp * alp * s2 - alp * x)
+                f_on = True
+            out[t] = scale * (f * math.erfc(u))
+            f *= rho
 
 
 @njit
