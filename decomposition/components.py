@@ -35,8 +35,9 @@ import math
 import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA
+from .atomlm import state_models
 from .slots import eval_atoms
-from core.model import empty_params, render_components
+from core.model import BACKGROUND_KEY, empty_params, render_components
 
 __all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "keep_atoms",
            "merge_gaussians",
@@ -252,6 +253,37 @@ def classify(st: dict, scale: np.ndarray, n_ir: int):
 
 
 def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, irf=None) -> dict:
-    """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L));
-    with the instrument response ``irf`` instead of the Gaussian PSF when given."""
-    return render_components(params, n_bins, time_bin_ps, t0_ps, irf=irf)
+    """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L),
+    and ``background`` (P, L) where ``params`` has one); with the instrument response ``irf``
+    instead of the Gaussian PSF when given.
+
+    The Gaussian-PSF components are the solver's own compiled atoms
+    (:func:`decomposition.atomlm.state_models`: the kernels of :mod:`core.model` within 1e-12
+    relative, Gaussians cut at GAUSS_SUPPORT_SIGMA widths where they are below exp(-32) of
+    their peak); an absent component (NaN delay, amplitude or width) renders as zeros.
+    """
+    if irf is not None:
+        return render_components(params, n_bins, time_bin_ps, t0_ps, irf=irf)
+    P = np.shape(params["direct_delay_ps"])[0]
+    L = int(n_bins)
+
+    def one(fam, delay, amp, sigma, alpha=None):
+        delay, amp, sigma = (np.asarray(v, np.float64).reshape(-1) for v in (delay, amp, sigma))
+        alpha = np.ones_like(delay) if alpha is None else np.asarray(alpha, np.float64).reshape(-1)
+        on = np.isfinite(delay) & np.isfinite(amp) & np.isfinite(sigma) & (sigma > 0) & np.isfinite(alpha) & (alpha > 0)
+        f = np.where(on, fam, FAM_NONE).astype(np.int8)[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return state_models(t0_ps, time_bin_ps, L, f, np.where(on, amp, 0.0)[:, None],
+                                np.where(on, delay, 0.0)[:, None], np.log(np.where(on, sigma, 1.0))[:, None],
+                                np.log(np.where(on, alpha, 1.0))[:, None])
+
+    out = {"direct": one(FAM_GAUSS, params["direct_delay_ps"], params["direct_amplitude"], params["direct_sigma_ps"]),
+           "sss": one(FAM_SSS, params["sss_delay_ps"], params["sss_amplitude"], params["sss_sigma_ps"],
+                      params["sss_alpha_per_ps"])}
+    R = np.shape(params["ir_delay_ps"])[-1]
+    out["interreflections"] = one(FAM_GAUSS, params["ir_delay_ps"], params["ir_amplitude"],
+                                  params["ir_sigma_ps"]).reshape(P, R, L)
+    if BACKGROUND_KEY in params:
+        b = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(P)
+        out["background"] = np.broadcast_to(np.where(np.isfinite(b), b, 0.0)[:, None], (P, L)).copy()
+    return out
