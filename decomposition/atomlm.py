@@ -33,7 +33,7 @@ from .jit import SQRT_PI_2, erfcx, njit
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
-__all__ = ["lm_refine", "atom_profiles", "state_models", "nnls_amplitudes"]
+__all__ = ["lm_refine", "atom_profiles", "atom_window_sums", "state_models", "nnls_amplitudes"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT_2 = math.sqrt(2.0)
@@ -193,6 +193,42 @@ def _profiles(t0, T, fam, delay, lsig, lalp, out):
             lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0)
             for m in range(lo, hi):
                 out[i, m] = J[0, m]
+
+
+@njit
+def _window_sums(t0, T, L, fam, delay, lsig, lalp, out):
+    J = np.empty((4, L))
+    for i in range(fam.size):
+        if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0)
+            top = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            for m in range(lo, hi):
+                v = J[0, m]
+                top = max(top, v)
+                s1 += v
+                s2 += v * v
+            out[i, 0] = top
+            out[i, 1] = s1
+            out[i, 2] = s2
+
+
+def atom_window_sums(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):
+    """Largest value, sum and sum of squares over the window of every unit atom of
+    :func:`atom_profiles` (the same atoms, without the (n, n_bins) array).
+
+    Returns
+    -------
+    ndarray (n, 3) float64: max_i phi(t_i), sum_i phi(t_i), sum_i phi(t_i)^2; zeros for
+    FAM_NONE rows.
+    """
+    fam = np.ascontiguousarray(fam, np.int8)
+    out = np.zeros((fam.size, 3))
+    if fam.size:
+        _window_sums(float(t0_ps), float(time_bin_ps), int(n_bins), fam, np.ascontiguousarray(delay_ps, np.float64),
+                     np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), out)
+    return out
 
 
 def atom_profiles(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):

@@ -35,8 +35,8 @@ import math
 import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA
-from .atomlm import state_models
-from .slots import eval_atoms
+from .atomlm import atom_window_sums, state_models
+from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
 __all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "keep_atoms",
@@ -45,11 +45,13 @@ __all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "
 
 
 def _in_window(st: dict, t_ps: np.ndarray):
-    """Unit-amplitude atoms of the active slots on the window: (rows, slots, phi (n, L))."""
+    """What the window sees of the unit atoms of the active slots: (rows, slots, sums (n, 3)) with
+    the largest value, the sum and the sum of squares of each atom over the window's samples."""
     act = st["fam"] != FAM_NONE
     pi, ki = np.nonzero(act)
-    phi = eval_atoms(t_ps, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki], st["lalp"][pi, ki])
-    return pi, ki, phi
+    sums = atom_window_sums(*axis_of(t_ps), t_ps.size, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
+                            st["lalp"][pi, ki])
+    return pi, ki, sums
 
 
 def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -64,10 +66,10 @@ def window_measures(st: dict, t_ps: np.ndarray):
     act = st["fam"] != FAM_NONE
     h, e = np.zeros(act.shape), np.zeros(act.shape)
     if act.any():
-        pi, ki, phi = _in_window(st, t_ps)
+        pi, ki, sums = _in_window(st, t_ps)
         a = np.abs(st["amp"][pi, ki])
-        h[pi, ki] = a * phi.max(axis=1)
-        e[pi, ki] = a * a * np.einsum("nl,nl->n", phi, phi)
+        h[pi, ki] = a * sums[:, 0]
+        e[pi, ki] = a * a * sums[:, 2]
     return h, e
 
 
@@ -79,11 +81,11 @@ def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
     out = np.ones(act.shape)
     if act.any() and t_ps.size > 1:
         T = float(t_ps[1] - t_ps[0])
-        pi, ki, phi = _in_window(st, t_ps)
+        pi, ki, sums = _in_window(st, t_ps)
         area = np.exp(st["lsig"][pi, ki]) * math.sqrt(2.0 * math.pi)
         sss = st["fam"][pi, ki] == FAM_SSS
         area = np.where(sss, area / np.exp(np.where(sss, st["lalp"][pi, ki], 0.0)), area)
-        out[pi, ki] = np.clip(T * phi.sum(axis=1) / area, 0.0, 1.0)
+        out[pi, ki] = np.clip(T * sums[:, 1] / area, 0.0, 1.0)
     return out
 
 

@@ -385,3 +385,18 @@ def test_nnls_amplitudes_recover_known_amplitudes_and_stay_non_negative():
     phi = atomlm.atom_profiles(T0, T, L, st["fam"][1, :3], st["delay"][1, :3], st["lsig"][1, :3], st["lalp"][1, :3])
     grad = phi[:, fit[1]] @ (p[1, fit[1]] - got[1, :3] @ phi[:, fit[1]])
     assert abs(grad[0]) < 1e-8 and abs(grad[1]) < 1e-8 and grad[2] < 0
+
+
+def test_window_sums_are_those_of_the_atom_rows():
+    """atom_window_sums: the largest value, the sum and the sum of squares of each atom_profiles
+    row (atoms inside, across and outside the window; empty rows give zeros)."""
+    fam = np.array([cs.FAM_GAUSS, cs.FAM_SSS, cs.FAM_NONE, cs.FAM_SSS, cs.FAM_GAUSS], np.int8)
+    delay = np.array([80.0, 150.5, 10.0, -30.0, -400.0])
+    lsig = np.log([2.5, 4.0, 3.0, 6.0, 3.0])
+    lalp = np.log([1.0, 0.02, 1.0, 0.05, 1.0])
+    rows = atomlm.atom_profiles(T0, T, L, fam, delay, lsig, lalp)
+    got = atomlm.atom_window_sums(T0, T, L, fam, delay, lsig, lalp)
+    np.testing.assert_array_equal(got[:, 0], rows.max(axis=1))
+    np.testing.assert_allclose(got[:, 1], rows.sum(axis=1), rtol=1e-13)
+    np.testing.assert_allclose(got[:, 2], (rows * rows).sum(axis=1), rtol=1e-13)
+    assert not got[2].any() and not got[4].any() and got[1, 1] > 10 and got[3, 0] > 0
