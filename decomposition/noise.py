@@ -30,6 +30,7 @@ import numpy as np
 
 from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
                         SIGNAL_REGION_FRACTION)
+from .jit import njit
 
 __all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "signal_noise_sigma", "is_count_data", "anscombe", "count_dispersion",
            "count_signal_sigma", "poisson_weights", "fit_dispersion"]
@@ -40,28 +41,47 @@ def _usable(fit: np.ndarray) -> np.ndarray:
     return fit[:, 2:] & fit[:, 1:-1] & fit[:, :-2]
 
 
+@njit
+def _masked_medians(values, ok, out):
+    P, N = values.shape
+    buf = np.empty(N)
+    for i in range(P):
+        m = 0
+        for j in range(N):
+            v = values[i, j]
+            if ok[i, j] and not math.isnan(v):
+                buf[m] = v
+                m += 1
+        if m == 0:
+            out[i] = np.nan
+            continue
+        k = m // 2
+        part = np.partition(buf[:m], k)
+        hi = part[k]
+        lo = hi
+        if m % 2 == 0:
+            lo = part[0]
+            for j in range(1, k):
+                lo = max(lo, part[j])
+        out[i] = (lo + hi) / 2.0
+
+
 def masked_median(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """Median of each row of ``values`` (P, N) over its entries where ``ok`` (P, N) is True.
 
     The value ``np.nanmedian`` gives for the row with every other entry (and every NaN) set to
-    NaN -- the middle sample, or the mean of the two middle ones -- from one sort of the rows,
-    without the masked arrays ``np.nanmedian`` builds along an axis (2-3x faster).
+    NaN -- the middle sample, or the mean of the two middle ones -- by a compiled selection per
+    row (no sort, and none of the masked arrays ``np.nanmedian`` builds along an axis).
 
     Returns
     -------
     ndarray (P,), NaN for rows without an entry.
     """
-    if values.shape[1] == 0:
-        return np.full(values.shape[0], np.nan)
-    ok = ok & ~np.isnan(values)
-    n = ok.sum(axis=1)
-    srt = np.sort(np.where(ok, values, np.inf), axis=1)
-    hi = np.minimum(n // 2, values.shape[1] - 1)
-    lo = np.maximum(np.where(n % 2 == 1, hi, hi - 1), 0)
-    rows = np.arange(values.shape[0])
-    with np.errstate(invalid="ignore", over="ignore"):
-        med = (srt[rows, lo] + srt[rows, hi]) / 2.0
-    return np.where(n > 0, med, np.nan)
+    values = np.ascontiguousarray(values, np.float64)
+    out = np.empty(values.shape[0])
+    if values.shape[0]:
+        _masked_medians(values, np.ascontiguousarray(ok, np.bool_), out)
+    return out
 
 
 def _mad_sigma(d2: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
