@@ -109,13 +109,13 @@ def _window_sums(k2, kn, d_lo, L, pre, cs, out):
 
 
 @njit
-def _fir4(xp, x_off, K, row, k_n, d_lo, s_lo, n_s, O):
+def _fir4(xp, x_off, K, row, k_n, d_lo, s_lo, n_s, O, o_off=0):
     """:func:`_fir` for the four kernels K[row:row + 4] at once (one load of x serves four
     kernels); ``K`` rows need a zero at k_n (taps go in pairs)."""
-    o0 = O[row, :n_s]
-    o1 = O[row + 1, :n_s]
-    o2 = O[row + 2, :n_s]
-    o3 = O[row + 3, :n_s]
+    o0 = O[row, o_off:o_off + n_s]
+    o1 = O[row + 1, o_off:o_off + n_s]
+    o2 = O[row + 2, o_off:o_off + n_s]
+    o3 = O[row + 3, o_off:o_off + n_s]
     o0[:] = 0.0
     o1[:] = 0.0
     o2[:] = 0.0
@@ -139,19 +139,38 @@ def _fir4(xp, x_off, K, row, k_n, d_lo, s_lo, n_s, O):
 
 
 @njit
-def _fir_rows(xp, x_off, K, nk, k_n, d_lo, s_lo, n_s, O):
-    """O[a, j] = sum_t K[a, t] x(s_lo + j + d_lo + t) for every kernel a < nk."""
+def _fir_row0(xp, x_off, K, nk, k_n, d_lo, s_lo, n_s, O):
+    """Row 0 of :func:`_fir_rows` alone, by the same arithmetic (taps in pairs as in
+    :func:`_fir4` when it would take row 0 with three others, else :func:`_fir`)."""
+    if nk < 4:
+        _fir(xp, x_off, K[0], k_n, d_lo, s_lo, n_s, O[0])
+        return
+    o0 = O[0, :n_s]
+    o0[:] = 0.0
+    base = x_off + s_lo + d_lo
+    for t in range(0, k_n, 2):
+        b = base + t
+        x0 = xp[b: b + n_s]
+        x1 = xp[b + 1: b + 1 + n_s]
+        a0, a1 = K[0, t], K[0, t + 1]
+        for j in range(n_s):
+            o0[j] += a0 * x0[j] + a1 * x1[j]
+
+
+@njit
+def _fir_rows(xp, x_off, K, nk, k_n, d_lo, s_lo, n_s, O, o_off=0):
+    """O[a, o_off + j] = sum_t K[a, t] x(s_lo + j + d_lo + t) for every kernel a < nk."""
     a = 0
     while a + 4 <= nk:
-        _fir4(xp, x_off, K, a, k_n, d_lo, s_lo, n_s, O)
+        _fir4(xp, x_off, K, a, k_n, d_lo, s_lo, n_s, O, o_off)
         a += 4
     while a < nk:
-        _fir(xp, x_off, K[a], k_n, d_lo, s_lo, n_s, O[a])
+        _fir(xp, x_off, K[a], k_n, d_lo, s_lo, n_s, O[a, o_off:])
         a += 1
 
 
 @njit
-def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
+def _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2, peak):
     n, L = r.shape
     S = L + pre
     na = alphas.size
@@ -172,6 +191,10 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
     cs = np.empty(2 * D + 7)
     for i in range(n):
         s = sig[i]
+        for a in range(nk):
+            peak[i, a] = 1.0
+        if not (need_g[i] or need_s[i]):
+            continue                     # nothing this pixel may take: its rows are not read
         half = int(math.ceil(GAUSS_SUPPORT_SIGMA * s / T))
         d_lo = max(-H, -half)            # kernels are zero before -H
         d_hi = min(half + 1, L + pre - 1)  # Gaussian and q negligible beyond (d <= L + pre - 1 anyway)
@@ -189,6 +212,19 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
             K[0, t] = g
             K2[0, t] = g * g
         peak[i, 0] = 1.0
+        if not need_s[i]:
+            # the Gaussian alone (the pixel has its sss atom): its row by the same arithmetic
+            for t in range(kn, kn + 4):
+                K[0, t] = 0.0
+                K2[0, t] = 0.0
+            _fir_row0(xp, off, K, nk, kn + 3, d_lo, -pre, n_ext, E)
+            if weighted:
+                _fir_row0(wp, off, K2, nk, kn + 3, d_lo, -pre, n_ext, EN)
+            else:
+                _window_sums(K2[0], kn + 3, d_lo, L, pre, cs, EN[0, :n_ext])
+            c[i, 0] = E[0, :S]
+            n2[i, 0] = EN[0, :S]
+            continue
         # sss kernels: h sampled on [d_lo, d_hi], q_m = h_m - rho h_{m-1} there
         for a in range(na):
             al = alphas[a]
@@ -220,16 +256,20 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak):
             r1 = rhos[1 + a]
             _fold4(K[1 + a], kn4, r1)
             _fold4(K2[1 + a], kn4, r1 * r1)
-        _fir_rows(xp, off, K, nk, kn4, d_lo, -pre, n_ext, E)
+        # shifts from j0 on only where the Gaussian is not wanted (sss onsets before j0 are not
+        # allowed): every value from j0 on is computed as over all shifts
+        j0 = 0 if need_g[i] else min(max(j_sss[i], 0), n_ext)
+        _fir_rows(xp, off, K, nk, kn4, d_lo, -pre + j0, n_ext - j0, E, j0)
         if weighted:
-            _fir_rows(wp, off, K2, nk, kn4, d_lo, -pre, n_ext, EN)
+            _fir_rows(wp, off, K2, nk, kn4, d_lo, -pre + j0, n_ext - j0, EN, j0)
         else:
             for a in range(nk):
                 _window_sums(K2[a], kn4, d_lo, L, pre, cs, EN[a, :n_ext])
-        c[i, 0] = E[0, :S]
-        n2[i, 0] = EN[0, :S]
+        if need_g[i]:
+            c[i, 0] = E[0, :S]
+            n2[i, 0] = EN[0, :S]
         for a in range(na):
-            _recurse(E[1 + a], EN[1 + a], n_ext, rhos[1 + a], c[i, 1 + a], n2[i, 1 + a])
+            _recurse(E[1 + a], EN[1 + a], n_ext, rhos[1 + a], c[i, 1 + a], n2[i, 1 + a], j0)
 
 
 @njit
@@ -273,10 +313,11 @@ def _fold4(k, n, rho):
 
 
 @njit
-def _recurse(e4, en4, n_e, rho, c_out, n_out):
+def _recurse(e4, en4, n_e, rho, c_out, n_out, j_stop):
     """c(j) = e(j) + rho c(j + 1) and n(j) = en(j) + rho^2 n(j + 1), backwards from c = n = 0 at
-    j = n_e, written for j < c_out.size; given e4(j) = sum_{k<4} rho^k e(j + k) and the same
-    for en with rho^2 (the kernels were folded by :func:`_fold4`; both vanish from n_e on).
+    j = n_e, written for j_stop <= j < c_out.size (the blocks of four below are not computed);
+    given e4(j) = sum_{k<4} rho^k e(j + k) and the same for en with rho^2 (the kernels were
+    folded by :func:`_fold4`; both vanish from n_e on).
 
     c(j) = e4(j) + rho^4 c(j + 4): four independent chains (eight with the norms) instead of
     one chain of dependent multiply-adds.  ``e4``, ``en4`` need room for n_e + 4 values.
@@ -292,6 +333,8 @@ def _recurse(e4, en4, n_e, rho, c_out, n_out):
     n0 = n1 = n2 = n3 = 0.0
     for jb in range(nb // 4):
         b = nb - 4 - 4 * jb
+        if b + 3 < j_stop:
+            break
         c0 = e4[b] + r4 * c0
         c1 = e4[b + 1] + r4 * c1
         c2 = e4[b + 2] + r4 * c2
@@ -333,7 +376,7 @@ class PickWorkspace:
 
 
 def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins, w1=None,
-                       out: PickWorkspace | None = None):
+                       out: PickWorkspace | None = None, need_gauss=None, need_sss=None, sss_from=None):
     """Correlations and window-truncated squared norms of atoms at each pixel's own width.
 
     Parameters
@@ -358,6 +401,14 @@ def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins,
     out : PickWorkspace, optional
         Write ``c`` and ``n2`` into this workspace (views, overwritten by its next use)
         instead of fresh arrays.
+    need_gauss, need_sss : bool ndarray (n,), optional
+        Pixels that may take the Gaussian / an sss kernel (default: all).  The rows a pixel may
+        not take are not computed: their ``c`` and ``n2`` hold whatever the buffers held, and
+        their ``peak`` is 1.
+    sss_from : int ndarray (n,), optional
+        Index of the first shift at which each pixel may take an sss kernel (default 0).
+        Where the Gaussian is not needed, the sss rows are computed from that shift on only.
+        Every value computed is the one a call without these arguments gives, bit for bit.
 
     Returns
     -------
@@ -397,6 +448,9 @@ def pixel_correlations(r, sig_ps, alphas_per_ps, *, time_bin_ps, pre, half_bins,
         c = np.empty((n, nk, L + pre))
         n2 = np.empty((n, nk, L + pre))
     peak = np.empty((n, nk))
+    need_g = np.ones(n, np.bool_) if need_gauss is None else np.ascontiguousarray(need_gauss, np.bool_).reshape(n)
+    need_s = np.ones(n, np.bool_) if need_sss is None else np.ascontiguousarray(need_sss, np.bool_).reshape(n)
+    j_sss = np.zeros(n, np.int64) if sss_from is None else np.ascontiguousarray(sss_from, np.int64).reshape(n)
     if n:
-        _block(r, w1, weighted, sig, alphas, T, pre, H, c, n2, peak)
+        _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2, peak)
     return c, n2, peak

@@ -70,14 +70,18 @@ def score_pixel(r, fit, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_
     kf = [FAM_GAUSS] + [FAM_SSS] * alphas.size
     ka = np.concatenate([[np.nan], alphas])
     H = int(math.ceil(DICT_SUPPORT_SIGMA * float(sig.max()) / T)) + 1
+    delay = dic.t0_ps + dic.shifts * T
+    # only what each pixel may take is correlated: no sss kernel once it has its sss atom, no sss
+    # onset before its direct
     c, n2, peak = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H,
                                      w1=fit.astype(np.float64) if weighted else None,
-                                     out=workspace)   # consumed by _select below
+                                     out=workspace,   # consumed by _select below
+                                     need_gauss=allow_g, need_sss=allow_s,
+                                     sss_from=np.searchsorted(delay, min_s, side="left"))
     if weighted:
         n2 = np.where(n2 > 1e-12, n2, 0.0)
     is_s = np.array(kf) == FAM_SSS
     allow = np.where(is_s[None, :], allow_s[:, None], allow_g[:, None])[..., None]
-    delay = dic.t0_ps + dic.shifts * T
     allow = allow & ~(is_s[None, :, None] & (delay[None, None, :] < min_s[:, None, None]))
     best, zb, db = _select(c, n2, mu, eps, allow)
     a_i, j_i = np.divmod(best, dic.shifts.size)

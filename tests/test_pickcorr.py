@@ -163,3 +163,35 @@ def test_reused_buffers_give_the_same_results():
     keep = c_a.copy()
     pixel_correlations(small[0], small[1], al, out=other, **kw)
     np.testing.assert_array_equal(c_a, keep)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("n_alpha", [3, 2])
+def test_rows_a_pixel_may_not_take_are_skipped_and_the_rest_unchanged(weighted, n_alpha):
+    """need_gauss / need_sss / sss_from: every value of the rows a pixel may take (the Gaussian
+    at every shift, the sss kernels from sss_from on) is bit for bit that of a full call."""
+    rng = np.random.default_rng(4)
+    n, L, T, pre = 12, 200, 2.0, 9
+    r = rng.normal(size=(n, L))
+    sig = rng.choice(SIGMAS, n)
+    alphas = ALPHAS[1:1 + n_alpha]
+    w1 = (rng.random((n, L)) > 0.1).astype(float) if weighted else None
+    H = int(math.ceil(4 * sig.max() / T)) + 1
+    c0, n0, p0 = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H, w1=w1)
+    need_g = np.arange(n) % 3 != 1              # rows 1, 4, ...: sss only
+    need_s = np.arange(n) % 3 != 0              # rows 0, 3, ...: Gaussian only
+    start = rng.integers(0, L + pre, n)
+    ws = PickWorkspace()
+    ws.arrays(n, 1 + alphas.size, L + pre)[0][:] = np.nan     # stale buffer contents stay unread
+    c1, n1, p1 = pixel_correlations(r, sig, alphas, time_bin_ps=T, pre=pre, half_bins=H, w1=w1, out=ws,
+                                    need_gauss=need_g, need_sss=need_s, sss_from=start)
+    for i in range(n):
+        if need_g[i]:
+            np.testing.assert_array_equal(c1[i, 0], c0[i, 0])
+            np.testing.assert_array_equal(n1[i, 0], n0[i, 0])
+        if need_s[i]:
+            j = 0 if need_g[i] else start[i]
+            np.testing.assert_array_equal(c1[i, 1:, j:], c0[i, 1:, j:])
+            np.testing.assert_array_equal(n1[i, 1:, j:], n0[i, 1:, j:])
+            np.testing.assert_array_equal(p1[i, 1:], p0[i, 1:])
+    assert np.isnan(c1[np.nonzero(~need_s)[0], 1:]).all()    # not computed
