@@ -86,13 +86,15 @@ def _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi):
 
 
 @njit
-def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
+def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model):
     """Atom ``amp * phi`` and its 4 derivative columns into J[row:row+4, lo:hi]; returns (lo, hi).
 
     Columns: d/d amp (= phi), d/d delay_ps, d/d log sigma, d/d log alpha; the derivative
     columns only before ``deriv_end`` (0: the atom's values alone).  Outside [lo, hi) every
-    column is zero (and J is not written there).
+    column is zero (and J is not written there).  ``model`` (L,): amp * phi is added to it, sample
+    by sample (an empty array: nothing is added).
     """
+    add = model.size > 0
     sig = math.exp(lsig)
     # Gaussian factors g(x) = exp(-x^2 / 2), x in widths, stepped from bin to bin as
     # g(x + b) = g(x) e(x), e(x + b) = e(x) exp(-b^2), b = T / sigma: two products instead of an
@@ -111,6 +113,8 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
                 ph = math.exp(-0.5 * x * x)
                 e = math.exp(-x * b - 0.5 * b * b)
             J[row, i] = ph
+            if add:
+                model[i] += amp * ph
             if i < deriv_end:
                 aph = amp * ph
                 J[row + 1, i] = aph * x / sig
@@ -153,6 +157,8 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
                 f_on = True
             h = scale * (f * math.erfc(u))
         J[row, i] = h
+        if add:
+            model[i] += amp * h
         if i < deriv_end:
             J[row + 1, i] = -amp * (g - alp * h)
             J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
@@ -169,18 +175,29 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
         rho = math.exp(-alp * T)
         c1 = amp * alp
         c2 = amp * (1.0 + alp * alp * s2)
-        while i < L:
+        while i < L and i < deriv_end:
             if h < _TINY:
                 hi = i
                 break
             J[row, i] = h
-            if i < deriv_end:
-                J[row + 1, i] = c1 * h
-                J[row + 2, i] = c2 * h
-                J[row + 3, i] = c1 * (alp * s2 - x) * h
+            if add:
+                model[i] += amp * h
+            J[row + 1, i] = c1 * h
+            J[row + 2, i] = c2 * h
+            J[row + 3, i] = c1 * (alp * s2 - x) * h
             h *= rho
             x += T
             i += 1
+        if hi == L:                      # values alone from here on
+            while i < L:
+                if h < _TINY:
+                    hi = i
+                    break
+                J[row, i] = h
+                if add:
+                    model[i] += amp * h
+                h *= rho
+                i += 1
     return lo, hi
 
 
@@ -188,9 +205,10 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end):
 def _profiles(t0, T, fam, delay, lsig, lalp, out):
     n, L = out.shape
     J = np.empty((4, L))
+    none = np.empty(0)
     for i in range(n):
         if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
-            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0)
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0, none)
             for m in range(lo, hi):
                 out[i, m] = J[0, m]
 
@@ -198,9 +216,10 @@ def _profiles(t0, T, fam, delay, lsig, lalp, out):
 @njit
 def _window_sums(t0, T, L, fam, delay, lsig, lalp, out):
     J = np.empty((4, L))
+    none = np.empty(0)
     for i in range(fam.size):
         if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
-            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0)
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0, none)
             top = 0.0
             s1 = 0.0
             s2 = 0.0
@@ -266,10 +285,7 @@ def _models(t0, T, fam, amp, delay, lsig, lalp, out):
     for pi in range(P):
         for k in range(K):
             if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
-                lo, hi = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, 0, 0)
-                a = amp[pi, k]
-                for m in range(lo, hi):
-                    out[pi, m] += J[0, m] * a
+                _eval_slot(t0, T, L, fam[pi, k], amp[pi, k], delay[pi, k], lsig[pi, k], lalp[pi, k], J, 0, 0, out[pi])
 
 
 def state_models(t0_ps, time_bin_ps, n_bins, fam, amp, delay_ps, lsig, lalp):
@@ -310,12 +326,14 @@ def _nnls_pixels(t0, T, p, fit, fam, amp, delay, lsig, lalp, sweeps):
     b = np.zeros(K)
     a = np.zeros(K)
     w = np.zeros(L)
+    none = np.empty(0)
     for pi in range(P):
         for i in range(L):
             w[i] = 1.0 if fit[pi, i] else 0.0
         for k in range(K):
             if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
-                lo[k], hi[k] = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, k, 0)
+                lo[k], hi[k] = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, k, 0,
+                                          none)
             else:
                 lo[k] = hi[k] = 0
         for k in range(K):
@@ -396,12 +414,8 @@ def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
             lo[k] = hi[k] = 0
     s_k, p_tail = _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi)
     for k in range(K):
-        a, b = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k, p_tail if k == s_k else L)
-        lo[k] = a
-        hi[k] = b
-        ak = amp[k]
-        for i in range(a, b):
-            model[i] += ak * J[4 * k, i]
+        lo[k], hi[k] = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k,
+                                  p_tail if k == s_k else L, model)
 
 
 @njit

@@ -55,7 +55,7 @@ def test_atom_values_and_derivative_columns(fam, amp, delay, sigma, alpha):
 
     def render(a, d, ls, la):
         J = np.zeros((4, L))
-        lo, hi = atomlm._eval_slot(T0, T, L, fam, a, d, ls, la, J, 0, L)
+        lo, hi = atomlm._eval_slot(T0, T, L, fam, a, d, ls, la, J, 0, L, np.empty(0))
         out = np.zeros(L)
         out[lo:hi] = a * J[0, lo:hi]
         return out, J, lo, hi
@@ -337,7 +337,7 @@ def test_normal_equations_equal_the_direct_sums(tie, link, weighted):
         atomlm._render(T0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model)
         full = np.zeros((4 * K, L))
         for k in range(K):
-            atomlm._eval_slot(T0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], full, 4 * k, L)
+            atomlm._eval_slot(T0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], full, 4 * k, L, np.empty(0))
         r = rng.normal(0, 0.05, L)
         jw = rng.uniform(0.2, 3.0, L) * (rng.random(L) > 0.1) if weighted else np.ones(L)
         tied, linked, dsl, ssl = atomlm._links(K, fam, delay, lsig, tie, link)
