@@ -766,6 +766,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
             lalp[pi, k] = sv[3, k]
             pen[pi, k] = sv[4, k]
         f = fam[pi]
+        wp = wts[pi] if wts.shape[0] == P else wts[0]     # one row of ones when unweighted
         am = amp[pi]
         de = delay[pi]
         ls = lsig[pi]
@@ -775,7 +776,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
         if K == 0:
             for i in range(L):
                 md[i] = 0.0
-            obj[pi] = _objective(L, 0, p[pi], fit[pi], cens[pi], wts[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+            obj[pi] = _objective(L, 0, p[pi], fit[pi], cens[pi], wp, md, f, am, pe, mu[pi], eps[pi], r, jw)
             iters[pi] = 0
             continue
         nw = 0.0
@@ -785,7 +786,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
         nw = max(nw, 1.0)
         n = 4 * K
         _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, md)
-        cur = _objective(L, K, p[pi], fit[pi], cens[pi], wts[pi], md, f, am, pe, mu[pi], eps[pi], r, jw)
+        cur = _objective(L, K, p[pi], fit[pi], cens[pi], wp, md, f, am, pe, mu[pi], eps[pi], r, jw)
         if math.isnan(obj[pi]):
             obj[pi] = cur
         level = obj[pi]                  # what a step must beat
@@ -823,7 +824,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 if near:
                     td[s_k] = max(td[s_k], td[d_k])
             _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
-            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wts[pi], tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
+            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wp, tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:
                 old = level
                 level = tobj
@@ -903,7 +904,7 @@ def lm_refine(t0_ps, time_bin_ps, p, mask: SampleMask, st, mu, eps, bounds, n_it
     model = np.empty((P, L))
     iters = np.zeros(P, np.int64)
     if weights is None:
-        wts = np.ones((P, L))
+        wts = np.ones((1, L))                # one row serves every pixel
     else:
         wts = np.ascontiguousarray(weights, np.float64)
         if wts.shape != (P, L):
