@@ -98,12 +98,11 @@ def _trimmed(r: InstrumentResponse) -> InstrumentResponse:
 def response_record(irf: InstrumentResponse) -> dict:
     """What a result records about the response that made it: ``describe()``, the
     Gaussian-equivalent sigma, a checksum of the samples and the provenance (JSON-able)."""
-    import hashlib
-
     from core.irf_components import gaussian_equivalent_sigma_ps
+    from core.irfstore import samples_sha256
 
     rec = dict(irf.describe())
     rec["gaussian_equivalent_sigma_ps"] = gaussian_equivalent_sigma_ps(irf)
-    rec["samples_sha256"] = hashlib.sha256(np.ascontiguousarray(irf.samples, "<f8").tobytes()).hexdigest()
+    rec["samples_sha256"] = samples_sha256(irf)
     rec["provenance"] = irf.provenance
     return rec
