@@ -341,7 +341,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
     """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
-    from .response_input import resolve_response, response_record
+    from .response_input import resolve_response, response_record, spike_neighbour_ratio
     from .response_path import decompose_with_response
 
     if method != "convscd":
@@ -350,13 +350,17 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
         raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
     n_bins = np.shape(profiles)[-1] if np.ndim(profiles) else 0
     response = resolve_response(irf, axis.time_bin_ps, n_bins)
+    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
+    ratio = spike_neighbour_ratio(response, axis.time_bin_ps, opts.rel_threshold)
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
-                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
+                              spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background,
+                              spike_neighbour_ratio=ratio if ratio > 0 else None)
     R = opts.max_reflections
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
-            "saturation_level": samples.saturation_level, "irf": response_record(response)}
+            "saturation_level": samples.saturation_level, "irf": response_record(response),
+            "spike_neighbour_ratio": ratio}
     info.update(asdict(grid), **asdict(opts))
     flags = samples.flags.copy()
     out = decompose_with_response(samples, response, grid, opts, fams)
