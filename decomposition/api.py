@@ -33,6 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
 __all__ = [
@@ -211,6 +212,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         without the later Gaussians; each polished, the lowest penalised
         objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
+    prune : bool
+        Backward step after the search: where a pixel has an sss and a Gaussian
+        less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
+        onset and a Gaussian filling the gap), that Gaussian is dropped, the
+        rest polished, and the pruned answer kept where the search's penalised
+        objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
+        counts the pixels.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -298,6 +306,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        if opts.prune:
+            state, pruned = prune_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["pruned"] = int(pruned.sum())
         if samples.noise_model == "poisson":
             det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
         labels = label_components(samples, det, dic, opts)

@@ -46,7 +46,7 @@ from .constants import (MAD_TO_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAUL
                         SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
 from .refine import refine
 
-__all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
+__all__ = ["SearchOptions", "penalised_objective", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
            "search_components"]
 
 STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
@@ -318,6 +318,13 @@ def _data_chi2(t, p, mask, st, s2):
     return np.einsum("pl,pl->p", r, r) / s2
 
 
+def penalised_objective(t, p, mask, st, s2, log_n, opts):
+    """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
+    (``s2`` (n,) the noise variance, ``log_n`` (n,) the log of the fitted samples, k the free
+    parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
+    return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
+
+
 def _n_free(st, shared_sigma):
     """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
     one width per pixel (``shared_sigma``) or per atom."""
@@ -487,8 +494,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         cand.append(refined(_stage_state(idx.size, K, d_ps, ls, s_ps, la, later)))
     js = []
     for c in cand:
-        chi2 = _data_chi2(t, pb, mb, c, sb2)
-        js.append(chi2 + opts.search_penalty * _n_free(c, shared) * log_l[idx])
+        js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
     js = np.stack(js)                                   # (starts, m)
     if not opts.sss_alone:
         # the paper's model gives every pixel a direct: a start that lost it competes only
