@@ -39,6 +39,7 @@ __all__ = [
     "SEARCH_IR_GAP_SIGMA",
     "SEARCH_EDGE_GAP_SIGMA",
     "PRUNE_GAP_SIGMA",
+    "PRUNE_ONSET_SIGMA",
     "SEARCH_DEFAULT_SIGMA_PS",
     "SEARCH_DEFAULT_ALPHA_PER_PS",
     "RISE_10_50_SIGMA",
@@ -163,6 +164,9 @@ SEARCH_EDGE_GAP_SIGMA = 1.5
 #: PSF widths after the direct, where the pixel has an sss (3, 4, 6 and 8 measured alike on the
 #: paper's scenes, whose inter-reflections lie 6-14 widths apart; 3 pruned fewer at NSR 0.11)
 PRUNE_GAP_SIGMA = 4.0
+#: its second start without that Gaussian moves the sss onset to this many widths after the
+#: direct (0.5 and 1 measured alike)
+PRUNE_ONSET_SIGMA = 1.0
 #: width (ps) and attenuation (1/ps) of a start where the detection found none
 SEARCH_DEFAULT_SIGMA_PS = 3.0
 SEARCH_DEFAULT_ALPHA_PER_PS = 0.03
