@@ -33,6 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .grow import grow_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
@@ -212,6 +213,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         without the later Gaussians; each polished, the lowest penalised
         objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
+    grow : bool
+        Forward step after the search: where a pixel's data term exceeds
+        search_doubt_chi2 times its expected value and it has a free slot, a
+        Gaussian at its largest residual away from its Gaussians, polished
+        with the rest, kept where the search's penalised objective is lower
+        and the Gaussians stay resolved (:mod:`decomposition.grow`);
+        ``info["grown"]`` counts the pixels.
     prune : bool
         Backward step after the search: where a pixel has an sss and a Gaussian
         less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
@@ -306,6 +314,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        if opts.grow:
+            state, grown = grow_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["grown"] = int(grown.sum())
         if opts.prune:
             state, pruned = prune_components(samples, det, dic, opts)
             det = dataclasses.replace(det, state=state)

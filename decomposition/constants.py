@@ -40,6 +40,7 @@ __all__ = [
     "SEARCH_EDGE_GAP_SIGMA",
     "PRUNE_GAP_SIGMA",
     "PRUNE_ONSET_SIGMA",
+    "GROW_EXCLUDE_SIGMA",
     "SEARCH_DEFAULT_SIGMA_PS",
     "SEARCH_DEFAULT_ALPHA_PER_PS",
     "RISE_10_50_SIGMA",
@@ -167,6 +168,9 @@ PRUNE_GAP_SIGMA = 4.0
 #: its second start without that Gaussian moves the sss onset to this many widths after the
 #: direct (0.5 and 1 measured alike)
 PRUNE_ONSET_SIGMA = 1.0
+#: the forward step (:mod:`decomposition.grow`) places its Gaussian at the largest residual
+#: more than this many widths from every Gaussian of the pixel (2 and 3 measured alike)
+GROW_EXCLUDE_SIGMA = 2.0
 #: width (ps) and attenuation (1/ps) of a start where the detection found none
 SEARCH_DEFAULT_SIGMA_PS = 3.0
 SEARCH_DEFAULT_ALPHA_PER_PS = 0.03

@@ -97,7 +97,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
 
 
 def prune_components(samples, det, dic, opts):
-    """Stage 2c of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
+    """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
     from .detect import solver_inputs
     from .slots import put

@@ -4,6 +4,8 @@ import numpy as np
 from core.model import empty_params, render_components, render_profile
 from decomposition.metrics import fidelity
 
+from _states import polished, solver_setup
+
 
 def _truth(n, close_ir_amplitude=0.0, gap_sigma=2.0):
     truth = empty_params((n,), n_ir=1)
@@ -19,15 +21,6 @@ def _truth(n, close_ir_amplitude=0.0, gap_sigma=2.0):
         truth["ir_amplitude"][:, 0] = close_ir_amplitude
         truth["ir_sigma_ps"][:, 0] = 6.0
     return truth
-
-
-def _block(y, T=2.0):
-    from decomposition.dictionary import get_dictionary
-    from decomposition.options import GridSpec, SolverOptions
-
-    opts = SolverOptions().resolved("drs")
-    dic = get_dictionary(y.shape[1], T, 0.0, GridSpec(), True, True)
-    return dic, opts
 
 
 def _state(truth, n, K=4, spurious=True):
@@ -57,21 +50,6 @@ def _state(truth, n, K=4, spurious=True):
     return st
 
 
-def _polished(y, st, dic, opts, noise=1e-3):
-    """The state's amplitudes solved and all its atoms polished by the solver's LM."""
-    from decomposition.masks import SampleMask
-    from decomposition.polish import refit_amplitudes
-    from decomposition.slots import parameter_bounds, refine_atoms
-
-    n, L = y.shape
-    mask = SampleMask.all_fitted(y.shape)
-    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    refit_amplitudes(y, mask, st, dic)
-    st, _, _ = refine_atoms(t, y, mask, st, np.zeros(n), np.full(n, opts.eps_rel * noise),
-                            parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, True, True, opts.lm_tol)
-    return st
-
-
 def test_prune_drops_the_gaussian_that_fills_a_late_sss_onset():
     from decomposition.masks import SampleMask
     from decomposition.prune import close_gaussian, prune_block
@@ -79,15 +57,15 @@ def test_prune_drops_the_gaussian_that_fills_a_late_sss_onset():
     n, L, T = 6, 512, 2.0
     truth = _truth(n)
     y = render_profile(truth, L, T) + np.random.default_rng(0).normal(0, 1e-3, (n, L))
-    dic, opts = _block(y, T)
-    st = _polished(y, _state(truth, n), dic, opts)
+    dic, opts = solver_setup(L, T)
+    st = polished(y, _state(truth, n), dic, opts)
     assert close_gaussian(st)[0].all()
     out, pruned = prune_block(y, SampleMask.all_fitted(y.shape), st, np.full(n, 1e-3), dic, opts)
     assert pruned.all()
     from decomposition.constants import FAM_GAUSS, FAM_SSS
     assert np.all((out["fam"] == FAM_GAUSS).sum(axis=1) == 1)
     s_on = np.where(out["fam"] == FAM_SSS, out["delay"], np.nan)
-    np.testing.assert_allclose(np.nanmax(s_on, axis=1), truth["sss_delay_ps"], atol=2.5)   # moved back (from +8 ps)
+    np.testing.assert_allclose(np.nanmax(s_on, axis=1), truth["sss_delay_ps"], atol=1.0)   # moved back (from +8 ps)
 
 
 def test_prune_keeps_a_true_close_inter_reflection():
@@ -97,8 +75,8 @@ def test_prune_keeps_a_true_close_inter_reflection():
     n, L, T = 6, 512, 2.0
     truth = _truth(n, close_ir_amplitude=0.3, gap_sigma=3.0)      # a real one 3 widths late
     y = render_profile(truth, L, T) + np.random.default_rng(1).normal(0, 1e-3, (n, L))
-    dic, opts = _block(y, T)
-    st = _polished(y, _state(truth, n, spurious=False), dic, opts)
+    dic, opts = solver_setup(L, T)
+    st = polished(y, _state(truth, n, spurious=False), dic, opts)
     out, pruned = prune_block(y, SampleMask.all_fitted(y.shape), st, np.full(n, 1e-3), dic, opts)
     assert not pruned.any()
     for k in st:
