@@ -26,7 +26,7 @@ import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
-from .background import background_significant
+from .background import background_significant, background_threshold
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS, POISSON_REFITS, SSS_SLOT
 from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
 from .noise import fit_dispersion, poisson_weights
@@ -90,7 +90,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
         full[BACKGROUND_KEY] = np.zeros(P)
         full[BACKGROUND_KEY][live] = background
         chi2, stderr = background_stats(samples, full, irf)
-        keep = background_significant(chi2[live], opts.significance_chi2)
+        keep = background_significant(chi2[live], background_threshold(fit_mask, opts.background_chi2))
         drop = np.flatnonzero(~keep)
         if drop.size:
             # refit without the offset: the data themselves, the offset exactly 0
