@@ -309,10 +309,11 @@ def add_arguments(parser) -> None:
 
 
 def _fmt(v, spec):
+    digits = spec.strip("+").split(".")[0]
+    width = int(digits) if digits else 0
     if not (isinstance(v, float) and math.isfinite(v)):
-        return "-"
+        return format("-", f">{width}s")
     if spec.endswith("%") and abs(v) >= 10:   # beyond 1000 %: keep the column
-        width = int(spec.strip("+").split(".")[0])
         return format((">" if v > 0 else "<-") + "999%", f">{width}s")
     return format(v, spec)
 
