@@ -33,6 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
 __all__ = [
@@ -214,6 +215,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         without the later Gaussians; each polished, the lowest penalised
         objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
+    prune : bool
+        Backward step after the search: where a pixel has an sss and a Gaussian
+        less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
+        onset and a Gaussian filling the gap), that Gaussian is dropped, the
+        rest polished, and the pruned answer kept where the search's penalised
+        objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
+        counts the pixels.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -248,7 +256,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         ``*_sigma_ps_stderr`` is NaN.  The Gaussian options (``sigma_range_ps``, ``n_sigma``,
         ``coarse_sigma``, ``coarse_sss_sigma``, ``shared_sigma``, ``multistart``, ``search``,
         ``sss_alone``, ``refine``) play no part; ``off_grid=False`` is refused.
-        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Cost:
+        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Flags
+        are the Gaussian path's where they apply, by the same rules (spikes judged against the
+        response's shape; no WIDE_PSF or AMBIGUOUS: docs/instrument-response.md).  Cost:
         the response path is plain NumPy (no compiled kernel); see
         docs/instrument-response.md for its measured speed next to the Gaussian path's.
         Default None: the Gaussian PSF of the paper.
@@ -299,6 +309,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        if opts.prune:
+            state, pruned = prune_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["pruned"] = int(pruned.sum())
         if samples.noise_model == "poisson":
             det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
         labels = label_components(samples, det, dic, opts)
@@ -344,7 +358,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
     """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
-    from .response_input import resolve_response, response_record
+    from .response_input import resolve_response, response_record, spike_neighbour_ratio
     from .response_path import decompose_with_response
 
     if method != "convscd":
@@ -353,13 +367,17 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
         raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
     n_bins = np.shape(profiles)[-1] if np.ndim(profiles) else 0
     response = resolve_response(irf, axis.time_bin_ps, n_bins)
+    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
+    ratio = spike_neighbour_ratio(response, axis.time_bin_ps, opts.rel_threshold)
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
-                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
+                              spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background,
+                              spike_neighbour_ratio=ratio if ratio > 0 else None)
     R = opts.max_reflections
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
-            "saturation_level": samples.saturation_level, "irf": response_record(response)}
+            "saturation_level": samples.saturation_level, "irf": response_record(response),
+            "spike_neighbour_ratio": ratio}
     info.update(asdict(grid), **asdict(opts))
     flags = samples.flags.copy()
     out = decompose_with_response(samples, response, grid, opts, fams)

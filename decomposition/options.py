@@ -160,13 +160,14 @@ class SolverOptions:
     stderr: bool | None = None
     noise: str = "auto"
     search: bool = True
+    prune: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
     ambiguity_sigma: float = 3.0
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "prune"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
         for name in ("max_components", "block_size"):

@@ -29,12 +29,15 @@ import numpy as np
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .background import background_significant, background_threshold
-from .constants import BOUND_TOL, FAM_NONE, FAM_SSS, POISSON_REFITS, POISSON_VARIANCE_FLOOR, SSS_SLOT
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
+from .components import runs_off_window
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS, POISSON_VARIANCE_FLOOR, SSS_SLOT
+from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
+from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
 from .options import GridSpec, SolverOptions
 from .prepare import Samples
 from .refit import background_stats
+from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
 from .response_fisher import slot_standard_errors
 from .response_label import label_response, param_slots, slots_to_params
@@ -46,7 +49,7 @@ __all__ = ["ResponseOutcome", "decompose_with_response"]
 @dataclass(frozen=True)
 class ResponseOutcome:
     """``params`` (P-shaped, keys of :mod:`core.model`, ``<key>_stderr`` too with ``stderr``),
-    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED), ``info`` (dict)."""
+    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED, OFF_WINDOW), ``info`` (dict)."""
 
     params: dict
     flags: np.ndarray
@@ -122,10 +125,12 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     flags = np.zeros(P, FLAG_DTYPE)
     mark(flags, live[~det.converged], MAX_ITER)
     mark(flags, live[trunc], TRUNCATED)
-    sss = fam[:, SSS_SLOT] == FAM_SSS
-    lo, hi = bounds["lalp"]
-    at_b = sss & ((lalp[:, SSS_SLOT] <= lo + BOUND_TOL) | (lalp[:, SSS_SLOT] >= hi - BOUND_TOL))
-    mark(flags, live[at_b], AT_BOUND)
+    # the Gaussian path's rules on the final atoms: alpha at its bound (the response has no width
+    # to hit one), a component running off the window's edge
+    state = {"fam": fam, "lsig": np.zeros(fam.shape), "lalp": lalp}
+    mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": bounds["lalp"]})], AT_BOUND)
+    inside = slot_window_fraction(irf, t, fam, delay, lalp)
+    mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t).any(axis=1)], OFF_WINDOW)
 
     out = empty_params((P,), n_ir=R)
     if with_bg:
