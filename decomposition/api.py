@@ -110,7 +110,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         before the sparse coding (:func:`decomposition.background.estimate_background`),
         then fitted jointly with the amplitudes in the refinement, which always runs with
         it; kept where significant (its likelihood-ratio statistic at least
-        ``significance_chi2``), else reported as exactly 0.0 and the pixel refitted
+        ``background_chi2``), else reported as exactly 0.0 and the pixel refitted
         without it.  NaN where the pixel is not decomposed; without "b" there is no
         ``background`` key and nothing changes.  ConvSCD only.
     sigma_range_ps, n_sigma, alpha_range_per_ps, n_alpha
@@ -143,10 +143,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     significance_chi2 : float
         An atom below the relative threshold is still kept when it is significant against
         the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
-        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`),
-        and a fitted background is kept when its likelihood-ratio statistic is at least
-        this (:func:`decomposition.background.background_significant`).  0 turns the
-        significance rule for atoms off (the relative threshold alone).
+        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`).
+        0 turns the significance rule for atoms off (the relative threshold alone).
+    background_chi2 : float, optional
+        A fitted background ("b") is kept when its likelihood-ratio statistic is at least
+        this (>= 0; 0 keeps every fitted offset).  Default: ln(n) for a pixel of n fitted
+        samples, the Bayesian information criterion for one parameter (5.5 for 256 bins;
+        :func:`decomposition.background.background_threshold`).
     merge_tol_bins : float
         Gaussians of one pixel closer than this (in bins) are merged.
     bound_factor : float
@@ -339,7 +342,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
     bg_stderr = None
     if (opts.refine or background or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
-        params, rinfo = refine_components(samples, params, **physics, significance_chi2=opts.significance_chi2)
+        params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2)
         bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)

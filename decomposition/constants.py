@@ -48,6 +48,7 @@ __all__ = [
     "BACKGROUND_START_QUANTILE",
     "BACKGROUND_CLIP_SIGMA",
     "BACKGROUND_ITERATIONS",
+    "BACKGROUND_COUNT_WINDOW_BINS",
     "OFF_WINDOW_MASS",
     "RESOLVED_SIGMA",
 ]
@@ -190,6 +191,10 @@ BACKGROUND_CLIP_SIGMA = 3.0
 #: clipped-mean iterations of the estimate (each moves it to the mean of the samples at the
 #: noise level; five settle it to well below the noise on the paper's windows)
 BACKGROUND_ITERATIONS = 5
+#: count data: a sample is at the background level when the mean count of this many bins
+#: centred on it is (a single count cannot tell a faint component from the background: below
+#: one count per bin the Poisson noise of one sample is larger than either)
+BACKGROUND_COUNT_WINDOW_BINS = 16
 #: a component whose area outside the window is more than this fraction of its total area
 #: runs off the window's edge (OFF_WINDOW flag); a Gaussian centred on the first or the last
 #: bin has half of it outside

@@ -146,6 +146,7 @@ class SolverOptions:
     noise_floor: float = 1e-3
     rel_threshold: float = 0.05
     significance_chi2: float = 25.0
+    background_chi2: float | None = None
     merge_tol_bins: float = 1.0
     bound_factor: float = 4.0
     poor_fit: float = 3.0
@@ -174,6 +175,7 @@ class SolverOptions:
             _set(self, name, _number(name, getattr(self, name), lo=1, integer=True))
         _set(self, "max_reflections", _number("max_reflections", self.max_reflections, lo=0, integer=True))
         _set(self, "max_iter", _number("max_iter", self.max_iter, lo=1, integer=True, allow_none=True))
+        _set(self, "background_chi2", _number("background_chi2", self.background_chi2, lo=0, allow_none=True))
         for name in ("n_lm", "n_polish"):
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
         for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "significance_chi2", "merge_tol_bins",

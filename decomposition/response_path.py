@@ -10,7 +10,8 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   inter-reflection before the direct, no sss onset before it with ``sss_after_direct``);
   count data (``noise="poisson"``) refitted POISSON_REFITS times with weights 1 / Poisson
   variance of the previous model (the Poisson maximum-likelihood fit, as in
-  :mod:`decomposition.refit`);
+  :mod:`decomposition.refit`); count data's pixels left without an sss tried again with one
+  (:func:`_add_missed_sss`);
 * standard errors (``stderr``): the Fisher information of the response's atoms
   (:mod:`decomposition.response_fisher`).
 
@@ -19,6 +20,7 @@ The refinement always runs here (``n_polish`` iterations): the detection's reloc
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -26,9 +28,9 @@ import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
-from .background import background_significant
+from .background import background_significant, background_threshold
 from .components import runs_off_window
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS, SSS_SLOT
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS, POISSON_VARIANCE_FLOOR, SSS_SLOT
 from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
@@ -84,6 +86,10 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     b_est = samples.background[live] if with_bg else np.zeros(live.size)
     # the profiles are the samples less the first estimate of the offset (0 without the family)
     slots = _refine(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
+    sss_added = 0
+    if counts and "s" in components:
+        slots, sss_added = _add_missed_sss(samples, slots, b_est, with_bg, np.geomspace(a_lo, a_hi, grid.coarse_alpha),
+                                           opts.significance_chi2, refine_kw)
     fam, delay, lalp, amp, params, background, iterations = slots
     bg_info = {}
     if with_bg:
@@ -93,7 +99,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
         full[BACKGROUND_KEY] = np.zeros(P)
         full[BACKGROUND_KEY][live] = background
         chi2, stderr = background_stats(samples, full, irf)
-        keep = background_significant(chi2[live], opts.significance_chi2)
+        keep = background_significant(chi2[live], background_threshold(fit_mask, opts.background_chi2))
         drop = np.flatnonzero(~keep)
         if drop.size:
             # refit without the offset: the data themselves, the offset exactly 0
@@ -138,6 +144,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
             "response_alphas_per_ps": [float(a) for a in np.geomspace(a_lo, a_hi, grid.coarse_alpha)]
             if "s" in components else [],
+            "response_sss_added": sss_added,
             "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),
             "refine_iterations": _scatter(P, live, iterations, 0).reshape(samples.lead)}
     if with_bg:
@@ -189,6 +196,88 @@ def _refine(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, 
         params[BACKGROUND_KEY] = background
     params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     return fam, delay, lalp, amp, params, background, iterations
+
+
+def _count_deviance(samples: Samples, params: dict, background, irf) -> np.ndarray:
+    """(n,) Poisson deviance of the live pixels' counts under ``params`` (n-shaped, counts)
+    plus ``background`` (n,), over the fitted samples, divided by the squared dispersion."""
+    live, ax = samples.live, samples.axis
+    p = dict(params)
+    p[BACKGROUND_KEY] = background
+    with np.errstate(invalid="ignore"):
+        mu = np.nan_to_num(render_profile(p, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))
+    fit = samples.fit[live]
+    y = np.where(fit, samples.values[live], 0.0)
+    mu = np.where(fit, np.maximum(mu, POISSON_VARIANCE_FLOOR), 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        term = np.where(y > 0, y * np.log(np.where(y > 0, y, 1.0) / mu), 0.0) - (y - mu)
+    return 2.0 * np.where(fit, term, 0.0).sum(axis=1) / np.square(samples.dispersion[live])
+
+
+def _add_missed_sss(samples: Samples, slots, b_est, with_bg, alphas_per_ps, significance_chi2: float, refine_kw):
+    """Count data: an sss for the live pixels whose detection found none (direct present).
+
+    The pursuit weighs every sample with one noise, the Poisson noise at the signal; an sss
+    tail lies where the counts, and so their noise, are far lower, and at ~100 photons per
+    pixel the pursuit stopped after the direct in ~20 % of the pixels whose sss raises the
+    Poisson likelihood by far more than the significance threshold.  Each such pixel is
+    refined (:func:`_refine`, Poisson weights) once per alpha of ``alphas_per_ps`` with an sss
+    started at its direct delay; the best trial is kept where it lowers the Poisson deviance
+    (:func:`_count_deviance`, the likelihood-ratio statistic of the sss) by at least
+    ``significance_chi2``, the significance an atom must have.
+
+    Returns the slots (as :func:`_refine` returns them) and the number of pixels given an sss.
+    """
+    fam, delay, lalp, amp, params, background, iterations = slots
+    cand = np.flatnonzero((fam[:, SSS_SLOT] == FAM_NONE) & (fam[:, 0] != FAM_NONE))
+    if cand.size == 0:
+        return slots, 0
+    irf = refine_kw["irf"]
+    sub = {k: (v[cand] if k in ("fit_mask", "scale", "disp") and v is not None else v) for k, v in refine_kw.items()}
+    y = samples.profiles[samples.live[cand]]
+    p0 = {k: v[cand] for k, v in params.items()}
+    p0[BACKGROUND_KEY] = background[cand]
+    sub_samples = _rows(samples, cand)
+    d_best = _count_deviance(sub_samples, {k: v[cand] for k, v in params.items()}, background[cand], irf)
+    trial, dev = None, None
+    iterations = iterations.copy()
+    for alpha in alphas_per_ps:
+        f, d, la = fam[cand].copy(), delay[cand].copy(), lalp[cand].copy()
+        f[:, SSS_SLOT], d[:, SSS_SLOT], la[:, SSS_SLOT] = FAM_SSS, d[:, 0], math.log(alpha)
+        t_a = _refine(y, f, d, la, b_est[cand], with_bg, p0, **sub)
+        iterations[cand] += t_a[6]
+        dev_a = np.where(t_a[0][:, SSS_SLOT] == FAM_SSS, _count_deviance(sub_samples, t_a[4], t_a[5], irf), np.inf)
+        if trial is None:
+            trial, dev = t_a, dev_a
+        else:
+            win = dev_a < dev
+            trial, dev = _pick_rows(win, t_a, trial), np.where(win, dev_a, dev)
+    take = d_best - dev >= significance_chi2
+    if not take.any():
+        return (fam, delay, lalp, amp, params, background, iterations), 0
+    rows = cand[take]
+    fam, delay, lalp, amp, background = (a.copy() for a in (fam, delay, lalp, amp, background))
+    fam[rows], delay[rows], lalp[rows], amp[rows] = (a[take] for a in trial[:4])
+    params = {k: v.copy() for k, v in params.items()}
+    for k in params:
+        params[k][rows] = trial[4][k][take]
+    background[rows] = trial[5][take]
+    return (fam, delay, lalp, amp, params, background, iterations), int(rows.size)
+
+
+def _pick_rows(win, a, b):
+    """The slot tuple of :func:`_refine` with the rows of ``a`` where ``win``, of ``b`` elsewhere."""
+    def pick(x, y):
+        if isinstance(x, dict):
+            return {k: pick(x[k], y[k]) for k in x}
+        w = win.reshape((-1,) + (1,) * (np.ndim(x) - 1))
+        return np.where(w, x, y)
+    return tuple(pick(x, y) for x, y in zip(a, b))
+
+
+def _rows(samples: Samples, rows) -> Samples:
+    """``samples`` with only the live pixels ``rows`` (indices into ``samples.live``) live."""
+    return dataclasses.replace(samples, live=samples.live[rows])
 
 
 def _scatter(P, live, v, fill):
