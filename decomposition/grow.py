@@ -24,7 +24,7 @@ import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, GROW_EXCLUDE_SIGMA, RESOLVED_SIGMA
 
-__all__ = ["min_gaussian_gap_sigma", "grow_block", "grow_components"]
+__all__ = ["min_gaussian_gap_sigma", "residual_peak", "grow_block", "grow_components"]
 
 
 def min_gaussian_gap_sigma(st) -> np.ndarray:
@@ -40,13 +40,49 @@ def min_gaussian_gap_sigma(st) -> np.ndarray:
         return gap / np.exp(np.where(g, st["lsig"], -np.inf).max(axis=1))
 
 
+def residual_peak(t_ps, residual, used, centres_ps, width_ps):
+    """Where a forward step puts its trial atom: the largest smoothed residual more than
+    ``GROW_EXCLUDE_SIGMA`` widths from every peaked atom a pixel has.
+
+    Parameters
+    ----------
+    t_ps : ndarray (L,)           sample times, ps (uniform)
+    residual : ndarray (n, L)     data minus model (any units; in noise sigmas for the score)
+    used : ndarray (n, L) bool    samples that may hold the trial's position
+    centres_ps : ndarray (n, K)   delays of the atoms to stay away from, ps (NaN: none)
+    width_ps : ndarray (n,)       the pixel's PSF width, ps (the smoothing's and the exclusion's)
+
+    Returns
+    -------
+    at_ps : ndarray (n,)
+        The trial delay, ps (the first sample where no sample is allowed).
+    score : ndarray (n,)
+        The smoothed residual there times sqrt(2 sqrt(pi) w), w the smoothing width in bins:
+        for a residual in noise sigmas, the matched-filter z of a Gaussian of that width
+        (its square the chi2 such an atom would gain, its amplitude free, the rest held);
+        -inf where no sample is allowed.
+    """
+    from .search import _smooth
+
+    T = float(t_ps[1] - t_ps[0])
+    w = np.maximum(np.asarray(width_ps, np.float64) / T, 0.5)
+    res = np.where(used, _smooth(residual, w), -np.inf)
+    with np.errstate(invalid="ignore"):
+        near = (np.abs(t_ps[None, :, None] - centres_ps[:, None, :])
+                < GROW_EXCLUDE_SIGMA * np.asarray(width_ps, np.float64)[:, None, None]).any(axis=2)
+    res = np.where(near, -np.inf, res)
+    i = np.argmax(res, axis=1)
+    peak = res[np.arange(res.shape[0]), i]
+    return t_ps[i], peak * np.sqrt(2.0 * np.sqrt(np.pi) * w)
+
+
 def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
     in-window test and of the candidate test, default ``s_eff``) -> (state, grown (n,) bool)."""
     from .label import final_atoms
     from .polish import refit_amplitudes
-    from .search import _data_chi2, _smooth, penalised_objective
+    from .search import _data_chi2, penalised_objective
     from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
 
     n, L = p.shape
@@ -69,11 +105,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     gc = cur["fam"] == FAM_GAUSS
     sigma_ps = np.exp(np.where(gc, cur["lsig"], -np.inf).max(axis=1))
     # the largest smoothed residual away from the Gaussians the pixel has
-    res = np.where(mb.used, _smooth(pb - render(t, cur), np.maximum(sigma_ps / T, 0.5)), -np.inf)
-    gd = np.where(gc, cur["delay"], np.nan)
-    with np.errstate(invalid="ignore"):
-        near = (np.abs(t[None, :, None] - gd[:, None, :]) < GROW_EXCLUDE_SIGMA * sigma_ps[:, None, None]).any(axis=2)
-    at_ps = t[np.argmax(np.where(near, -np.inf, res), axis=1)]
+    at_ps, _ = residual_peak(t, pb - render(t, cur), mb.used, np.where(gc, cur["delay"], np.nan), sigma_ps)
     alt = take(cur, np.arange(idx.size))
     r = np.arange(idx.size)
     slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
