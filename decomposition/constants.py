@@ -172,6 +172,11 @@ PRUNE_ONSET_SIGMA = 1.0
 #: the forward step (:mod:`decomposition.grow`) places its Gaussian at the largest residual
 #: more than this many widths from every Gaussian of the pixel (2 and 3 measured alike)
 GROW_EXCLUDE_SIGMA = 2.0
+#: the response path's echo trial (:mod:`decomposition.response_grow`) is refitted only where
+#: the matched-filter estimate of its chi2 at the trial position is at least this fraction of
+#: ``significance_chi2`` (the deviance of the refit decides; the estimate only saves the refits
+#: of pixels with nothing to find)
+GROW_TRIAL_FRACTION = 0.5
 #: width (ps) and attenuation (1/ps) of a start where the detection found none
 SEARCH_DEFAULT_SIGMA_PS = 3.0
 SEARCH_DEFAULT_ALPHA_PER_PS = 0.03
