@@ -27,13 +27,13 @@ from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
                     OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
-from .label import label_components
+from .label import final_state, label_components
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
-from .grow import grow_components
+from .grow import grow_components, grow_counts
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
@@ -327,7 +327,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info["pruned"] = int(pruned.sum())
         if samples.noise_model == "poisson":
             det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
-        labels = label_components(samples, det, dic, opts)
+        final = None
+        if samples.noise_model == "poisson" and opts.grow and "r" in fams:
+            # after the threshold: the echo is kept by its own deviance test, weighed with the
+            # counts where it lies, not by the threshold's noise at the direct's peak
+            final, grown = grow_counts(samples, dataclasses.replace(det, state=final_state(samples, det, dic, opts)),
+                                       dic, opts)
+            info["grown_counts"] = int(grown.sum())
+        labels = label_components(samples, det, dic, opts, state=final)
         params, noise_eff = labels.params, det.noise_eff
         flags |= labels.flags
         info.update(objective=det.objective.reshape(samples.lead + (opts.max_iter + 1,)),

@@ -177,6 +177,10 @@ GROW_EXCLUDE_SIGMA = 2.0
 #: ``significance_chi2`` (the deviance of the refit decides; the estimate only saves the refits
 #: of pixels with nothing to find)
 GROW_TRIAL_FRACTION = 0.5
+#: an echo is a bump of the PSF's width: the forward step of count data tries one only where
+#: the atom gains more there than one this many times wider at the same place (a broad excess
+#: -- an sss tail the fit lacks, an offset it does not model -- is no echo)
+GROW_BROAD_FACTOR = 3.0
 #: width (ps) and attenuation (1/ps) of a start where the detection found none
 SEARCH_DEFAULT_SIGMA_PS = 3.0
 SEARCH_DEFAULT_ALPHA_PER_PS = 0.03

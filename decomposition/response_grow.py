@@ -4,36 +4,42 @@ The pursuit (:mod:`decomposition.response_detect`) weighs every sample with one 
 count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A component
 where the counts are few never pays its penalty there: at ~100 photons per pixel an sss tail,
 and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own Poisson
-noise is 1 sigma of the noise at the direct's peak).  After the refinement every live pixel is
-offered, in rounds, what it may still lack:
+noise is 1 sigma of the noise at the direct's peak).  After the refinement (:func:`grow_response`):
 
-* an sss (count data, "s" asked, none yet): started at the direct delay, once per coarse
-  alpha;
-* an echo, a shifted copy of the response ("r" asked, a free inter-reflection slot): at the
-  largest residual in noise sigmas -- for counts in the variance-stabilised domain,
-  anscombe(y) - anscombe(mu) (:func:`decomposition.noise.anscombe_residual`), for Gaussian
-  data the residual over the significance noise -- smoothed over the
-  response's width and more than GROW_EXCLUDE_SIGMA widths from the pixel's shifted atoms
-  (:func:`decomposition.grow.residual_peak`, the Gaussian path's forward step's rule), where
-  the deviance that atom alone would remove there, its amplitude at its best and the rest
-  held, is at least GROW_TRIAL_FRACTION of ``significance_chi2`` (a cheap test before the
-  refit).
+1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
+   than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
+   reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
+   about half of the pixels of a 5-sigma echo in white noise) is replaced by a shifted copy at
+   its peak where that lowers the penalised deviance, deviance + ``search_penalty`` x ln(n)
+   per free parameter (the search stage's objective; the copy has one parameter fewer).
+2. **Rounds**, on the pixels with a direct, repeated on those that grew until none does:
 
-Every trial is refined with the rest (:func:`decomposition.response_refine.refit_slots`,
-Poisson weights for counts), and a pixel keeps the trial of lowest deviance where that lowers
-its deviance by at least ``significance_chi2`` (:func:`deviance`: the Poisson deviance for
-counts, RSS / s^2 with the significance noise otherwise -- the likelihood-ratio statistic of
-the added component, the rule the in-window threshold applies to every atom) and its shifted
-atoms stay resolved (RESOLVED_SIGMA widths apart, or no closer than before,
-:func:`decomposition.grow.min_gaussian_gap_sigma`: an atom that slid onto the direct splits
-its peak).  Rounds repeat on the pixels that grew until none does.
+   * an sss (count data, "s" asked, none yet): started at the direct delay, once per coarse
+     alpha, the best alpha's refit kept where its sss survives (as the trial always was);
+   * an echo, a shifted copy of the response ("r" asked, a free slot): at the largest residual
+     in noise sigmas after the direct -- for counts on the variance-stabilised scale,
+     :func:`decomposition.noise.anscombe_residual` (the Pearson residual makes a stray count
+     where the model is ~0 a 7-sigma event that outranks the echo's cluster), for Gaussian data
+     the residual over the significance noise -- smoothed over the response's width and more
+     than GROW_EXCLUDE_SIGMA widths from the pixel's shifted atoms
+     (:func:`decomposition.grow.residual_peak`, the Gaussian path's rule); refitted only where
+     :func:`decomposition.grow.worth_refitting` says so, and kept only where the refit lost no
+     atom and the shifted atoms stay resolved (RESOLVED_SIGMA widths apart, or no closer than
+     before: an atom that slid onto the direct splits its peak).
 
-Before the rounds, an sss whose onset lies more than NEAR_SIGMA widths after the direct (the
-sss is light entering where the direct is reflected; one far after it, at its bound of alpha,
-is an echo the pursuit took for an sss) is replaced by a shifted copy at its peak where that
-lowers the penalised deviance, deviance + ``search_penalty`` x ln(n) per free parameter (the
-search stage's objective; the shifted copy has one parameter fewer); the rounds may then give
-the pixel an sss at its direct.
+   Each trial is refitted with the rest (:func:`decomposition.response_refine.refit_slots`,
+   Poisson weights for counts), and a pixel takes the trial of lowest deviance where it lowers
+   its deviance (:func:`deviance`: the Poisson deviance for counts, RSS / s^2 with the
+   significance noise otherwise) by at least ``significance_chi2`` -- the likelihood-ratio
+   statistic of the added component, the threshold the in-window rule applies to every atom.
+3. **Weak echoes**: an echo added above that, taken out of the final model alone, raises the
+   deviance by less than ``significance_chi2`` (:func:`decomposition.noise.removal_deviance`)
+   is dropped and its pixel refitted without it (an echo can let the refit move the direct onto
+   light it had missed, and then explain next to nothing itself).
+
+The echo steps need ``grow=True`` and ``significance_chi2 > 0`` (they find what only the
+significance rule keeps).  ``info``: ``response_sss_added``, ``response_echo_added``,
+``response_sss_swapped``.
 """
 from __future__ import annotations
 
@@ -43,8 +49,9 @@ import numpy as np
 
 from core.irf import render_shifted, render_sss
 from core.model import BACKGROUND_KEY, render_profile
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_TRIAL_FRACTION, NEAR_SIGMA, RESOLVED_SIGMA, SSS_SLOT
-from .grow import min_gaussian_gap_sigma, residual_peak
+from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA,
+                        RESOLVED_SIGMA, SSS_SLOT)
+from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
 from .response_refine import Slots, refit_slots
@@ -207,7 +214,7 @@ def _gap_sigma(fam, delay, sigma_eq_ps) -> np.ndarray:
 
 
 def _all_kept(fam_trial, fam_refit) -> np.ndarray:
-    """(m,) the refit kept every atom of the trial (a forward step adds one, it loses none)."""
+    """(m,) the refit kept every atom of the trial (the echo step adds one, it loses none)."""
     return np.all(fam_refit == fam_trial, axis=1)
 
 
@@ -226,7 +233,7 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, alphas_per_ps):
     gain = np.zeros(m)
     for alpha in alphas_per_ps:
         phi = render_sss(ctx.irf, ctx.t, sub.delay[:, 0], np.full(m, alpha))
-        gain = np.maximum(gain, _held_gain(ctx, rows, mu, phi))
+        gain = np.maximum(gain, _held_gain(ctx, rows, mu, phi)[0])
     i = np.flatnonzero(gain >= _gate(ctx))
     dev = np.full(m, np.inf)
     spent = np.zeros(m, np.int64)
@@ -239,7 +246,8 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, alphas_per_ps):
         f[:, SSS_SLOT], d[:, SSS_SLOT], la[:, SSS_SLOT] = FAM_SSS, d[:, 0], math.log(alpha)
         t_a = ctx.refit(rows[i], f, d, la, base.params, base.background)
         spent[i] += t_a.iterations
-        dev_a = np.where(_all_kept(f, t_a.fam), deviance(ctx, rows[i], t_a.params, t_a.background), np.inf)
+        dev_a = np.where(t_a.fam[:, SSS_SLOT] == FAM_SSS, deviance(ctx, rows[i], t_a.params, t_a.background),
+                         np.inf)
         if trial is None:
             trial, dev_i = t_a, dev_a
         else:
@@ -249,25 +257,26 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, alphas_per_ps):
     return _put(sub, i, trial, np.ones(i.size, bool))._replace(iterations=spent), dev
 
 
-def _held_gain(ctx: GrowContext, rows, mu, phi) -> np.ndarray:
-    """(m,) the deviance one more atom of shape ``phi`` (m, L) would remove from the model
-    ``mu`` (m, L) of the pixels ``rows``, its amplitude at its best (>= 0), the rest held: for
-    counts :func:`decomposition.noise.atom_gain`, for Gaussian data (sum r phi)^2 / (s^2 sum
-    phi^2) where positive."""
+def _held_gain(ctx: GrowContext, rows, mu, phi):
+    """The deviance one more atom of shape ``phi`` (m, L) would remove from the model ``mu``
+    (m, L) of the pixels ``rows``, its amplitude at its best (>= 0), the rest held: for counts
+    :func:`decomposition.noise.atom_gain`, for Gaussian data (sum r phi)^2 / (s^2 sum phi^2)
+    where positive -> (gain (m,), amplitude (m,) units of the samples per unit of ``phi``)."""
     fit = ctx.fit[rows]
     phi = np.where(fit, phi, 0.0)
     y = ctx.values[rows]
     if ctx.counts:
-        return atom_gain(y, mu, phi, fit, ctx.samples.dispersion[ctx.samples.live[rows]])[0]
+        return atom_gain(y, mu, phi, fit, ctx.samples.dispersion[ctx.samples.live[rows]])
     c = np.einsum("pl,pl->p", np.where(fit, y - mu, 0.0), phi)
     n2 = np.maximum(np.einsum("pl,pl->p", phi, phi), 1e-300)
-    return np.where(c > 0, c * c / n2, 0.0) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
+    gain = np.where(c > 0, c * c / n2, 0.0) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
+    return gain, np.maximum(c, 0.0) / n2
 
 
 def _echo_trial(ctx: GrowContext, cur: Slots, rows):
     """The echo trial of the pixels ``rows`` -> (slots, deviance, tried (m,) bool).  Pixels
-    whose trial would remove less than GROW_TRIAL_FRACTION x ``significance_chi2`` of the
-    deviance with the rest held (:func:`_held_gain`) are not refitted (deviance inf)."""
+    whose trial :func:`decomposition.grow.worth_refitting` turns down (its atom at the trial
+    position with the rest held, :func:`_held_gain`) are not refitted (deviance inf)."""
     sub = _sub(cur, rows)
     m, K = sub.fam.shape
     mu = ctx.model(sub.params, sub.background)
@@ -281,7 +290,11 @@ def _echo_trial(ctx: GrowContext, cur: Slots, rows):
     dev = np.full(m, np.inf)
     if tried.any():
         i = np.flatnonzero(tried)
-        tried[i] = _held_gain(ctx, rows[i], mu[i], render_shifted(ctx.irf, ctx.t, at_ps[i])) >= _gate(ctx)
+        gain, amp = _held_gain(ctx, rows[i], mu[i], render_shifted(ctx.irf, ctx.t, at_ps[i]))
+        # the wider atom: a Gaussian GROW_BROAD_FACTOR response widths wide (unit peak)
+        wide = np.exp(-0.5 * np.square((ctx.t[None, :] - at_ps[i, None]) / (GROW_BROAD_FACTOR * ctx.sigma_eq_ps)))
+        gain_wide, _ = _held_gain(ctx, rows[i], mu[i], wide)
+        tried[i] = worth_refitting(gain, gain_wide, amp, sub.params["direct_amplitude"][i], ctx.opts.significance_chi2)
     if not tried.any():
         return sub._replace(iterations=np.zeros(m, np.int64)), dev, tried
     i = np.flatnonzero(tried)
