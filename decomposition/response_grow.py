@@ -223,13 +223,12 @@ def _gate(ctx: GrowContext) -> float:
     return GROW_TRIAL_FRACTION * ctx.opts.significance_chi2
 
 
-def _sss_trial(ctx: GrowContext, cur: Slots, rows, alphas_per_ps):
-    """The best sss trial of the pixels ``rows`` over ``alphas_per_ps`` -> (slots, deviance).
-    Pixels where no alpha's atom at the direct would remove :func:`_gate` of the deviance with
-    the rest held are not refitted (deviance inf)."""
+def _sss_trial(ctx: GrowContext, cur: Slots, rows, mu, alphas_per_ps):
+    """The best sss trial of the pixels ``rows`` (their model ``mu`` (m, L)) over
+    ``alphas_per_ps`` -> (slots, deviance).  Pixels where no alpha's atom at the direct would
+    remove :func:`_gate` of the deviance with the rest held are not refitted (deviance inf)."""
     sub = _sub(cur, rows)
     m = rows.size
-    mu = ctx.model(sub.params, sub.background)
     gain = np.zeros(m)
     for alpha in alphas_per_ps:
         phi = render_sss(ctx.irf, ctx.t, sub.delay[:, 0], np.full(m, alpha))
@@ -273,13 +272,13 @@ def _held_gain(ctx: GrowContext, rows, mu, phi):
     return gain, np.maximum(c, 0.0) / n2
 
 
-def _echo_trial(ctx: GrowContext, cur: Slots, rows):
-    """The echo trial of the pixels ``rows`` -> (slots, deviance, tried (m,) bool).  Pixels
+def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
+    """The echo trial of the pixels ``rows`` (their model ``mu`` (m, L)) -> (slots, deviance,
+    tried (m,) bool).  Pixels
     whose trial :func:`decomposition.grow.worth_refitting` turns down (its atom at the trial
     position with the rest held, :func:`_held_gain`) are not refitted (deviance inf)."""
     sub = _sub(cur, rows)
     m, K = sub.fam.shape
-    mu = ctx.model(sub.params, sub.background)
     z = _residual_sigmas(ctx, rows, mu)
     shifted = sub.fam == FAM_GAUSS
     # an echo comes after the direct (slot 0; the refit keeps every shifted atom after it)
@@ -369,19 +368,20 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps, components) 
         if active.size == 0:
             break
         sub = _sub(slots, active)
-        d_cur = deviance(ctx, active, sub.params, sub.background)
+        mu = ctx.model(sub.params, sub.background)
+        d_cur = _model_deviance(ctx, active, mu)
         best, d_best = sub, np.full(active.size, np.inf)
         is_sss = np.zeros(active.size, bool)
         its = np.zeros(active.size, np.int64)
         if with_s:
             c = np.flatnonzero(sub.fam[:, SSS_SLOT] == FAM_NONE)
             if c.size:
-                t_s, d_s = _sss_trial(ctx, slots, active[c], alphas_per_ps)
+                t_s, d_s = _sss_trial(ctx, slots, active[c], mu[c], alphas_per_ps)
                 its[c] += t_s.iterations
                 best = _put(best, c, t_s, np.ones(c.size, bool))
                 d_best[c], is_sss[c] = d_s, True
         if with_r:
-            t_e, d_e, tried = _echo_trial(ctx, slots, active)
+            t_e, d_e, tried = _echo_trial(ctx, slots, active, mu)
             its += t_e.iterations
             win = tried & (d_e < d_best)
             best = _pick_rows(win, t_e, best)
