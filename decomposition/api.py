@@ -222,7 +222,11 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Gaussian at its largest residual away from its Gaussians, polished
         with the rest, kept where the search's penalised objective is lower
         and the Gaussians stay resolved (:mod:`decomposition.grow`);
-        ``info["grown"]`` counts the pixels.
+        ``info["grown"]`` counts the pixels.  Count data (``noise="poisson"``) also get
+        a trial Gaussian at a faint echo after the threshold, kept where the Poisson
+        deviance drops by ``significance_chi2`` (:func:`decomposition.grow.grow_counts`;
+        ``info["grown_counts"]``); with ``irf=`` the response path's echo steps
+        (:mod:`decomposition.response_grow`).  Both need ``significance_chi2 > 0``.
     prune : bool
         Backward step after the search: where a pixel has an sss and a Gaussian
         less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
