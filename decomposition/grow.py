@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .candidates import each_block, polish_candidate
 from .constants import FAM_GAUSS, FAM_NONE, GROW_EXCLUDE_SIGMA, RESOLVED_SIGMA
 
 __all__ = ["min_gaussian_gap_sigma", "grow_block", "grow_components"]
@@ -44,10 +45,8 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
     in-window test and of the candidate test, default ``s_eff``) -> (state, grown (n,) bool)."""
-    from .label import final_atoms
-    from .polish import refit_amplitudes
     from .search import _data_chi2, _smooth, penalised_objective
-    from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
+    from .slots import put, render, take
 
     n, L = p.shape
     T = dic.time_bin_ps
@@ -82,12 +81,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     alt["lsig"][r, slot] = np.log(sigma_ps)
     alt["amp"][r, slot] = 1.0
     alt["pen"][r, slot] = 1.0
-    refit_amplitudes(pb, mb, alt, dic)
-    alt, _, _ = refine_atoms(t, pb, mb, alt, np.zeros(idx.size), opts.eps_rel * np.sqrt(s2),
-                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
-                             opts.sss_after_direct, opts.lm_tol)
-    drop_zero(alt)
-    alt = final_atoms(alt, t, T, opts, s_sig[idx])
+    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
     better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     w = np.nonzero(resolved & better)[0]
@@ -100,17 +94,5 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
 def grow_components(samples, det, dic, opts):
     """Stage 2c of :func:`decomposition.decompose` (``grow=True``): :func:`grow_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, grown (n_live,))."""
-    from .detect import solver_inputs
-    from .slots import put
-
-    live = samples.live
-    state = {k: v.copy() for k, v in det.state.items()}
-    grown = np.zeros(live.size, bool)
-    for b0 in range(0, live.size, opts.block_size):
-        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        p, mask = solver_inputs(samples, live[rows])
-        noise = det.noise_eff[live[rows]]
-        st, grown[rows] = grow_block(p, mask, {k: v[rows] for k, v in state.items()}, noise, dic, opts,
-                                     samples.significance_sigma(live[rows], noise))
-        put(state, rows, st)
-    return state, grown
+    return each_block(samples, det, opts,
+                      lambda p, mask, st, noise, sig: grow_block(p, mask, st, noise, dic, opts, sig))
