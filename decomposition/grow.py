@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from .candidates import each_block, polish_candidate
 from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, GROW_BROAD_FACTOR, GROW_EXCLUDE_SIGMA, GROW_TRIAL_FRACTION,
                         RESOLVED_SIGMA)
 
@@ -107,10 +108,8 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
     in-window test and of the candidate test, default ``s_eff``) -> (state, grown (n,) bool)."""
-    from .label import final_atoms
-    from .polish import refit_amplitudes
     from .search import _data_chi2, penalised_objective
-    from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
+    from .slots import put, render, take
 
     n, L = p.shape
     T = dic.time_bin_ps
@@ -141,12 +140,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     alt["lsig"][r, slot] = np.log(sigma_ps)
     alt["amp"][r, slot] = 1.0
     alt["pen"][r, slot] = 1.0
-    refit_amplitudes(pb, mb, alt, dic)
-    alt, _, _ = refine_atoms(t, pb, mb, alt, np.zeros(idx.size), opts.eps_rel * np.sqrt(s2),
-                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
-                             opts.sss_after_direct, opts.lm_tol)
-    drop_zero(alt)
-    alt = final_atoms(alt, t, T, opts, s_sig[idx])
+    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
     better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     w = np.nonzero(resolved & better)[0]
@@ -159,20 +153,8 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
 def grow_components(samples, det, dic, opts):
     """Stage 2c of :func:`decomposition.decompose` (``grow=True``): :func:`grow_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, grown (n_live,))."""
-    from .detect import solver_inputs
-    from .slots import put
-
-    live = samples.live
-    state = {k: v.copy() for k, v in det.state.items()}
-    grown = np.zeros(live.size, bool)
-    for b0 in range(0, live.size, opts.block_size):
-        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        p, mask = solver_inputs(samples, live[rows])
-        noise = det.noise_eff[live[rows]]
-        st, grown[rows] = grow_block(p, mask, {k: v[rows] for k, v in state.items()}, noise, dic, opts,
-                                     samples.significance_sigma(live[rows], noise))
-        put(state, rows, st)
-    return state, grown
+    return each_block(samples, det, opts,
+                      lambda p, mask, st, noise, sig: grow_block(p, mask, st, noise, dic, opts, sig))
 
 
 def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, background, dic, opts):
@@ -255,36 +237,28 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
 
 def grow_counts(samples, det, dic, opts):
     """The forward step of count data on the Gaussian path (``grow=True``, ``noise="poisson"``,
-    after the Poisson polish): the rule of the response path's echo trial
+    after the Poisson polish and the threshold): the rule of the response path's echo trial
     (:mod:`decomposition.response_grow`) with a Gaussian of the pixel's width.
 
     The pursuit and the search weigh every sample with the Poisson noise at the direct's peak;
     a faint Gaussian where the counts are few (a 1 % echo 5 sigma above its own noise is 1 sigma
     of that) never pays there, and :func:`grow_block`'s test of the data term, in the same
-    noise, never looks.  Here every pixel with a Gaussian and a free slot gets a trial Gaussian
-    at its largest smoothed residual on the Anscombe scale (:func:`residual_peak`) after its
-    earliest Gaussian and more than GROW_EXCLUDE_SIGMA widths from its Gaussians, refitted with
-    the rest (Poisson weights) where that atom alone would remove GROW_TRIAL_FRACTION x
-    ``significance_chi2`` of the deviance (:func:`decomposition.noise.atom_gain`), and kept where
-    no atom was lost, the Gaussians stay resolved and the Poisson deviance drops by
-    ``significance_chi2``.  -> (state, grown (n_live,) bool).
+    noise, never looks.  Here every pixel with a Gaussian no wider than the grid and a free slot
+    gets a trial Gaussian at its largest smoothed residual on the Anscombe scale
+    (:func:`residual_peak`) after its earliest Gaussian and more than GROW_EXCLUDE_SIGMA widths
+    from its Gaussians; :func:`worth_refitting` tests it with the rest held
+    (:func:`decomposition.noise.atom_gain`); it is polished with the rest (Poisson weights,
+    :func:`decomposition.countpolish.polish_count_state`) and kept where no atom was lost, the
+    Gaussians stay resolved and the Poisson deviance drops by ``significance_chi2``.
+    -> (state, grown (n_live,) bool).
     """
-    from .detect import solver_inputs
-    from .slots import put
-
-    live = samples.live
-    state = {k: v.copy() for k, v in det.state.items()}
-    grown = np.zeros(live.size, bool)
     if samples.noise_model != "poisson" or not opts.grow or opts.significance_chi2 <= 0:
-        return state, grown
-    for b0 in range(0, live.size, opts.block_size):
-        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        px = live[rows]
-        p, mask = solver_inputs(samples, px)
-        st, grown[rows] = grow_count_block(
-            np.where(samples.fit[px], samples.values[px], 0.0), samples.fit[px], p, mask,
-            {k: v[rows] for k, v in state.items()}, samples.scale[px], det.noise_eff[px],
-            None if samples.dispersion is None else samples.dispersion[px],
-            None if samples.background is None else samples.background[px], dic, opts)
-        put(state, rows, st)
-    return state, grown
+        return {k: v.copy() for k, v in det.state.items()}, np.zeros(samples.live.size, bool)
+
+    def step(p, mask, st, noise, _, px):
+        return grow_count_block(np.where(samples.fit[px], samples.values[px], 0.0), samples.fit[px], p, mask, st,
+                                samples.scale[px], noise,
+                                None if samples.dispersion is None else samples.dispersion[px],
+                                None if samples.background is None else samples.background[px], dic, opts)
+
+    return each_block(samples, det, opts, step, pixels=True)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .candidates import each_block, polish_candidate
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA
 
 __all__ = ["close_gaussian", "prune_block", "prune_components"]
@@ -45,14 +46,11 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     """The backward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the labels'
     in-window test, default ``s_eff``) -> (state, pruned (n,) bool)."""
-    from .label import final_atoms
-    from .polish import refit_amplitudes
     from .search import penalised_objective
-    from .slots import drop_zero, parameter_bounds, put, refine_atoms, take
+    from .slots import put, take
 
     n, L = p.shape
-    T = dic.time_bin_ps
-    t = dic.t0_ps + T * np.arange(L)
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     out = {k: v.copy() for k, v in st.items()}
     pruned = np.zeros(n, bool)
     cand, slot = close_gaussian(out)
@@ -76,13 +74,8 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     best = cur
     j_best = penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     won = np.zeros(idx.size, bool)
-    bounds = parameter_bounds(dic, opts.bound_factor)
     for alt in (dropped, moved):
-        refit_amplitudes(pb, mb, alt, dic)
-        alt, _, _ = refine_atoms(t, pb, mb, alt, np.zeros(idx.size), opts.eps_rel * np.sqrt(s2), bounds,
-                                 opts.n_polish, None, opts.shared_sigma, opts.sss_after_direct, opts.lm_tol)
-        drop_zero(alt)
-        alt = final_atoms(alt, t, T, opts, s_sig[idx])
+        alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
         j = penalised_objective(t, pb, mb, alt, s2, log_n, opts)
         w = np.nonzero(j < j_best)[0]
         if w.size:
@@ -99,17 +92,5 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
 def prune_components(samples, det, dic, opts):
     """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
-    from .detect import solver_inputs
-    from .slots import put
-
-    live = samples.live
-    state = {k: v.copy() for k, v in det.state.items()}
-    pruned = np.zeros(live.size, bool)
-    for b0 in range(0, live.size, opts.block_size):
-        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        p, mask = solver_inputs(samples, live[rows])
-        noise = det.noise_eff[live[rows]]
-        st, pruned[rows] = prune_block(p, mask, {k: v[rows] for k, v in state.items()}, noise, dic, opts,
-                                       samples.significance_sigma(live[rows], noise))
-        put(state, rows, st)
-    return state, pruned
+    return each_block(samples, det, opts,
+                      lambda p, mask, st, noise, sig: prune_block(p, mask, st, noise, dic, opts, sig))

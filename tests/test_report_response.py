@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zarr
 
-from core.irf import render_shifted, render_sss
+from _cubes import response_profiles
 from core.irf_models import tailed_response
 from decomposition.pipeline import decompose_to_store
 from decomposition.resultstore import RESPONSE_GROUP, ResultStoreError, open_result_store
@@ -26,12 +26,7 @@ def irf():
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory, irf):
     tmp = tmp_path_factory.mktemp("report_irf")
-    rng = np.random.default_rng(3)
-    t = T + T * np.arange(L)
-    d = rng.uniform(100, 160, (2, 3))
-    clean = (render_shifted(irf, t, d) + 0.4 * render_shifted(irf, t, d + 90.0)
-             + 0.03 * render_sss(irf, t, d, np.full(d.shape, 0.03)))
-    data = (1000.0 * clean + 5.0 * rng.standard_normal(clean.shape)).astype(np.float32)
+    data, d = response_profiles(irf, L, seed=3, delay_range_ps=(100, 160), echo_after_ps=90.0, noise=5.0, time_bin_ps=T)
     write_cube(tmp / "cube.zarr", data, time_bin_ps=T, chunks=(1, 3))
     decompose_to_store(tmp / "cube.zarr", tmp / "res.zarr", irf=irf, progress=False)
     decompose_to_store(tmp / "cube.zarr", tmp / "bare.zarr", irf=irf, write_components=False, progress=False)
