@@ -18,8 +18,8 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
      alpha, the best alpha's refit kept where its sss survives (as the trial always was);
    * an echo, a shifted copy of the response ("r" asked, a free slot): at the largest residual
      in noise sigmas after the direct -- for counts on the variance-stabilised scale,
-     :func:`decomposition.noise.anscombe_residual` (the Pearson residual makes a stray count
-     where the model is ~0 a 7-sigma event that outranks the echo's cluster), for Gaussian data
+     :func:`decomposition.noise.anscombe_residual` (bounded where the model is ~0, where the
+     Pearson residual makes one stray count a 7-sigma event), for Gaussian data
      the residual over the significance noise -- smoothed over the response's width and more
      than GROW_EXCLUDE_SIGMA widths from the pixel's shifted atoms
      (:func:`decomposition.grow.residual_peak`, the Gaussian path's rule); refitted only where
