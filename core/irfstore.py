@@ -19,6 +19,7 @@ group attributes as a JSON string.
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -32,7 +33,7 @@ from .provenance import __version__
 from .staging import staged_output
 
 __all__ = ["RESPONSE_KIND", "ResponseStoreError", "write_response_group", "read_response_group",
-           "save_response", "load_response"]
+           "save_response", "load_response", "samples_sha256"]
 
 RESPONSE_KIND = "instrument_response"
 FORMAT_VERSION = 1
@@ -41,6 +42,12 @@ REFERENCE = "t = 0 is the instant a component's delay refers to (streaklab: the 
 
 class ResponseStoreError(ResponseError):
     """A path or group does not hold a usable instrument response (says why)."""
+
+
+def samples_sha256(irf: InstrumentResponse) -> str:
+    """sha256 (hex) of the response's samples as little-endian float64: what a result records to
+    name the response it was made with, and what a stored copy is checked against."""
+    return hashlib.sha256(np.ascontiguousarray(irf.samples, "<f8").tobytes()).hexdigest()
 
 
 def _utc_now() -> str:

@@ -27,12 +27,14 @@ from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
                     OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
-from .label import label_components
+from .label import final_state, label_components
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .grow import grow_components, grow_counts
+from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
 __all__ = [
@@ -108,7 +110,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         before the sparse coding (:func:`decomposition.background.estimate_background`),
         then fitted jointly with the amplitudes in the refinement, which always runs with
         it; kept where significant (its likelihood-ratio statistic at least
-        ``significance_chi2``), else reported as exactly 0.0 and the pixel refitted
+        ``background_chi2``), else reported as exactly 0.0 and the pixel refitted
         without it.  NaN where the pixel is not decomposed; without "b" there is no
         ``background`` key and nothing changes.  ConvSCD only.
     sigma_range_ps, n_sigma, alpha_range_per_ps, n_alpha
@@ -141,10 +143,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     significance_chi2 : float
         An atom below the relative threshold is still kept when it is significant against
         the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
-        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`),
-        and a fitted background is kept when its likelihood-ratio statistic is at least
-        this (:func:`decomposition.background.background_significant`).  0 turns the
-        significance rule for atoms off (the relative threshold alone).
+        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`).
+        0 turns the significance rule for atoms off (the relative threshold alone).
+    background_chi2 : float, optional
+        A fitted background ("b") is kept when its likelihood-ratio statistic is at least
+        this (>= 0; 0 keeps every fitted offset).  Default: ln(n) for a pixel of n fitted
+        samples, the Bayesian information criterion for one parameter (5.5 for 256 bins;
+        :func:`decomposition.background.background_threshold`).
     merge_tol_bins : float
         Gaussians of one pixel closer than this (in bins) are merged.
     bound_factor : float
@@ -211,6 +216,24 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         without the later Gaussians; each polished, the lowest penalised
         objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
+    grow : bool
+        Forward step after the search: where a pixel's data term exceeds
+        search_doubt_chi2 times its expected value and it has a free slot, a
+        Gaussian at its largest residual away from its Gaussians, polished
+        with the rest, kept where the search's penalised objective is lower
+        and the Gaussians stay resolved (:mod:`decomposition.grow`);
+        ``info["grown"]`` counts the pixels.  Count data (``noise="poisson"``) also get
+        a trial Gaussian at a faint echo after the threshold, kept where the Poisson
+        deviance drops by ``significance_chi2`` (:func:`decomposition.grow.grow_counts`;
+        ``info["grown_counts"]``); with ``irf=`` the response path's echo steps
+        (:mod:`decomposition.response_grow`).  Both need ``significance_chi2 > 0``.
+    prune : bool
+        Backward step after the search: where a pixel has an sss and a Gaussian
+        less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
+        onset and a Gaussian filling the gap), that Gaussian is dropped, the
+        rest polished, and the pruned answer kept where the search's penalised
+        objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
+        counts the pixels.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -245,7 +268,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         ``*_sigma_ps_stderr`` is NaN.  The Gaussian options (``sigma_range_ps``, ``n_sigma``,
         ``coarse_sigma``, ``coarse_sss_sigma``, ``shared_sigma``, ``multistart``, ``search``,
         ``sss_alone``, ``refine``) play no part; ``off_grid=False`` is refused.
-        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Cost:
+        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Flags
+        are the Gaussian path's where they apply, by the same rules (spikes judged against the
+        response's shape; no WIDE_PSF or AMBIGUOUS: docs/instrument-response.md).  Cost:
         the response path is plain NumPy (no compiled kernel); see
         docs/instrument-response.md for its measured speed next to the Gaussian path's.
         Default None: the Gaussian PSF of the paper.
@@ -296,9 +321,24 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        if opts.grow:
+            state, grown = grow_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["grown"] = int(grown.sum())
+        if opts.prune:
+            state, pruned = prune_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["pruned"] = int(pruned.sum())
         if samples.noise_model == "poisson":
             det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
-        labels = label_components(samples, det, dic, opts)
+        final = None
+        if samples.noise_model == "poisson" and opts.grow and "r" in fams:
+            # after the threshold: the echo is kept by its own deviance test, weighed with the
+            # counts where it lies, not by the threshold's noise at the direct's peak
+            final, grown = grow_counts(samples, dataclasses.replace(det, state=final_state(samples, det, dic, opts)),
+                                       dic, opts)
+            info["grown_counts"] = int(grown.sum())
+        labels = label_components(samples, det, dic, opts, state=final)
         params, noise_eff = labels.params, det.noise_eff
         flags |= labels.flags
         info.update(objective=det.objective.reshape(samples.lead + (opts.max_iter + 1,)),
@@ -313,7 +353,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
     bg_stderr = None
     if (opts.refine or background or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
-        params, rinfo = refine_components(samples, params, **physics, significance_chi2=opts.significance_chi2)
+        params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2)
         bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit)
@@ -341,7 +381,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
     """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
-    from .response_input import resolve_response, response_record
+    from .response_input import resolve_response, response_record, spike_neighbour_ratio
     from .response_path import decompose_with_response
 
     if method != "convscd":
@@ -350,13 +390,17 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
         raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
     n_bins = np.shape(profiles)[-1] if np.ndim(profiles) else 0
     response = resolve_response(irf, axis.time_bin_ps, n_bins)
+    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
+    ratio = spike_neighbour_ratio(response, axis.time_bin_ps, opts.rel_threshold)
     samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
-                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
+                              spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background,
+                              spike_neighbour_ratio=ratio if ratio > 0 else None)
     R = opts.max_reflections
     info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
             "components": "".join(sorted(fams)), "nan_policy": nan_policy,
-            "saturation_level": samples.saturation_level, "irf": response_record(response)}
+            "saturation_level": samples.saturation_level, "irf": response_record(response),
+            "spike_neighbour_ratio": ratio}
     info.update(asdict(grid), **asdict(opts))
     flags = samples.flags.copy()
     out = decompose_with_response(samples, response, grid, opts, fams)

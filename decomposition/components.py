@@ -39,7 +39,8 @@ from .atomlm import atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
-__all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "threshold", "keep_atoms",
+__all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "runs_off_window", "threshold",
+           "keep_atoms",
            "merge_gaussians",
            "clip_sss_onset", "classify", "render_params"]
 
@@ -92,12 +93,38 @@ def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
 def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
     """(P, K) bool: active atoms that run off either edge of the window -- a Gaussian centred
     more than half a bin before the first sample or after the last, or any atom with more than
-    ``mass_out`` of its area outside the window (:func:`window_fraction`)."""
-    act = st["fam"] != FAM_NONE
+    ``mass_out`` of its area outside the window (:func:`window_fraction`); the rule of
+    :func:`runs_off_window` on the Gaussian atoms."""
+    return runs_off_window(st["fam"] != FAM_NONE, st["fam"] == FAM_GAUSS, st["delay"],
+                           window_fraction(st, t_ps), t_ps, mass_out)
+
+
+def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray, fraction_in: np.ndarray,
+                    t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
+    """The OFF_WINDOW rule, (P, K) bool, for atoms of any shape.
+
+    An active atom runs off the window when it peaks at its delay (``peaked``: a Gaussian, a
+    shifted copy of a measured response; not an sss, whose delay is its onset) and that delay
+    lies more than half a bin before the first sample or after the last, or when less than
+    ``1 - mass_out`` of its area lies inside the window.
+
+    Parameters
+    ----------
+    active, peaked : ndarray (P, K) bool
+    delay_ps : ndarray (P, K)
+        Delays, ps (read where ``active & peaked``).
+    fraction_in : ndarray (P, K)
+        Fraction of each atom's area inside the window, in [0, 1] (:func:`window_fraction`, or
+        the same measure of a response's atoms).
+    t_ps : ndarray (L,)
+        The window's sample times, ps (uniform).
+    mass_out : float
+        Largest fraction of the area allowed outside (OFF_WINDOW_MASS).
+    """
     half = 0.5 * float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 0.0
-    gauss = st["fam"] == FAM_GAUSS
-    centre_out = gauss & ((st["delay"] < t_ps[0] - half) | (st["delay"] > t_ps[-1] + half))
-    return act & (centre_out | (window_fraction(st, t_ps) < 1.0 - mass_out))
+    with np.errstate(invalid="ignore"):
+        centre_out = peaked & ((delay_ps < t_ps[0] - half) | (delay_ps > t_ps[-1] + half))
+    return active & (centre_out | (fraction_in < 1.0 - mass_out))
 
 
 def _resolved(st: dict, h: np.ndarray) -> np.ndarray:

@@ -37,6 +37,10 @@ __all__ = [
     "SEARCH_EDGE_LEVEL",
     "SEARCH_PEAK_LEVEL",
     "SEARCH_IR_GAP_SIGMA",
+    "SEARCH_EDGE_GAP_SIGMA",
+    "PRUNE_GAP_SIGMA",
+    "PRUNE_ONSET_SIGMA",
+    "GROW_EXCLUDE_SIGMA",
     "SEARCH_DEFAULT_SIGMA_PS",
     "SEARCH_DEFAULT_ALPHA_PER_PS",
     "RISE_10_50_SIGMA",
@@ -44,6 +48,7 @@ __all__ = [
     "BACKGROUND_START_QUANTILE",
     "BACKGROUND_CLIP_SIGMA",
     "BACKGROUND_ITERATIONS",
+    "BACKGROUND_COUNT_WINDOW_BINS",
     "OFF_WINDOW_MASS",
     "RESOLVED_SIGMA",
 ]
@@ -149,6 +154,33 @@ SEARCH_PEAK_LEVEL = 0.2
 #: a detected Gaussian more than this many PSF widths after a start's direct is kept as its
 #: inter-reflection; closer ones are dropped (the start's direct replaces them)
 SEARCH_IR_GAP_SIGMA = 3.0
+#: the ``edge`` start's sss onset, this many (start) PSF widths after its direct.  An onset at
+#: the direct (0) lost the sss-hump pixels: from there the polish slides both atoms onto the
+#: hump (a wide shared width, the direct tens of ps late).  Paper scenes, 300 px, mean fidelity
+#: (2 ps bins, white NSR 0.001 / 0.055 / 0.11; pink and photon NSR 0.055; 4 ps white 0.055):
+#: gap 0: 0.932 / 0.870 / 0.854, 0.845, 0.801, 0.848 (direct off by > 2 sigma: 6 / 11 / 12
+#: pixels); 1.5: 0.958 / 0.912 / 0.886, 0.878, 0.849, 0.883 (0 / 0 / 3); 2: 0.961 / 0.909 /
+#: 0.888, 0.882, 0.843, 0.884; 2.5: 0.951 / 0.906 / 0.891; 4: 0.951 / 0.906 / 0.882.
+SEARCH_EDGE_GAP_SIGMA = 1.5
+#: the backward step (:mod:`decomposition.prune`) tries to drop a Gaussian closer than this many
+#: PSF widths after the direct, where the pixel has an sss (3, 4, 6 and 8 measured alike on the
+#: paper's scenes, whose inter-reflections lie 6-14 widths apart; 3 pruned fewer at NSR 0.11)
+PRUNE_GAP_SIGMA = 4.0
+#: its second start without that Gaussian moves the sss onset to this many widths after the
+#: direct (0.5 and 1 measured alike)
+PRUNE_ONSET_SIGMA = 1.0
+#: the forward step (:mod:`decomposition.grow`) places its Gaussian at the largest residual
+#: more than this many widths from every Gaussian of the pixel (2 and 3 measured alike)
+GROW_EXCLUDE_SIGMA = 2.0
+#: the response path's echo trial (:mod:`decomposition.response_grow`) is refitted only where
+#: the matched-filter estimate of its chi2 at the trial position is at least this fraction of
+#: ``significance_chi2`` (the deviance of the refit decides; the estimate only saves the refits
+#: of pixels with nothing to find)
+GROW_TRIAL_FRACTION = 0.5
+#: an echo is a bump of the PSF's width: the forward step of count data tries one only where
+#: the atom gains more there than one this many times wider at the same place (a broad excess
+#: -- an sss tail the fit lacks, an offset it does not model -- is no echo)
+GROW_BROAD_FACTOR = 3.0
 #: width (ps) and attenuation (1/ps) of a start where the detection found none
 SEARCH_DEFAULT_SIGMA_PS = 3.0
 SEARCH_DEFAULT_ALPHA_PER_PS = 0.03
@@ -168,6 +200,10 @@ BACKGROUND_CLIP_SIGMA = 3.0
 #: clipped-mean iterations of the estimate (each moves it to the mean of the samples at the
 #: noise level; five settle it to well below the noise on the paper's windows)
 BACKGROUND_ITERATIONS = 5
+#: count data: a sample is at the background level when the mean count of this many bins
+#: centred on it is (a single count cannot tell a faint component from the background: below
+#: one count per bin the Poisson noise of one sample is larger than either)
+BACKGROUND_COUNT_WINDOW_BINS = 16
 #: a component whose area outside the window is more than this fraction of its total area
 #: runs off the window's edge (OFF_WINDOW flag); a Gaussian centred on the first or the last
 #: bin has half of it outside

@@ -25,7 +25,7 @@ from .options import SolverOptions
 from .prepare import Samples
 from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
 
-__all__ = ["count_weights", "polish_counts"]
+__all__ = ["count_weights", "polish_count_state", "polish_counts"]
 
 
 def count_weights(model, used, scale, noise, dispersion=None, background=None) -> np.ndarray:
@@ -54,6 +54,32 @@ def count_weights(model, used, scale, noise, dispersion=None, background=None) -
     return w * np.square(scale * noise)[:, None]
 
 
+def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bounds, opts: SolverOptions) -> dict:
+    """One block's slot state ``st`` (n, K) polished with Poisson weights, POISSON_REFITS times
+    from its own model (see the module docstring); atoms whose amplitude ends non-positive
+    are dropped.
+
+    Parameters
+    ----------
+    t : ndarray (L,)              time axis, ps
+    p, mask                       normalised profiles (n, L) and their SampleMask
+    st : dict                     slot state (n, K), normalised units (not modified)
+    scale, noise : ndarray (n,)   counts per normalised unit; the solver's noise
+    dispersion, background : ndarray (n,) or None
+    bounds : dict                 :func:`decomposition.slots.parameter_bounds`
+    """
+    st = {k: v.copy() for k, v in st.items()}
+    mu = np.zeros(p.shape[0])
+    eps = opts.eps_rel * noise
+    model = render(t, st)
+    for _ in range(POISSON_REFITS):
+        w = count_weights(model, mask.used, scale, noise, dispersion, background)
+        st, _, _, model = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
+                                       opts.sss_after_direct, opts.lm_tol, return_model=True, weights=w)
+    drop_zero(st)
+    return st
+
+
 def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) -> dict:
     """The slot state of ``det`` polished with Poisson weights (see the module docstring)."""
     state = {k: v.copy() for k, v in det.state.items()}
@@ -66,17 +92,9 @@ def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) ->
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         px = live[rows]
         p, mask = solver_inputs(samples, px)
-        st = take(state, rows)
-        noise = det.noise_eff[px]
         dispersion = None if samples.dispersion is None else samples.dispersion[px]
         background = None if samples.background is None else samples.background[px]
-        mu = np.zeros(rows.size)
-        eps = opts.eps_rel * noise
-        model = render(t, st)
-        for _ in range(POISSON_REFITS):
-            w = count_weights(model, mask.used, samples.scale[px], noise, dispersion, background)
-            st, _, _, model = refine_atoms(t, p, mask, st, mu, eps, bounds, opts.n_polish, None, opts.shared_sigma,
-                                           opts.sss_after_direct, opts.lm_tol, return_model=True, weights=w)
-        drop_zero(st)
+        st = polish_count_state(t, p, mask, take(state, rows), samples.scale[px], det.noise_eff[px], dispersion,
+                                background, bounds, opts)
         put(state, rows, st)
     return state

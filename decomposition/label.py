@@ -25,7 +25,7 @@ from .options import SolverOptions
 from .prepare import Samples
 from .slots import parameter_bounds, tie_widths
 
-__all__ = ["Labels", "label_components", "at_bound"]
+__all__ = ["Labels", "final_state", "label_components", "at_bound"]
 
 
 @dataclass(frozen=True)
@@ -64,21 +64,32 @@ def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOpti
     return st
 
 
-def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions) -> Labels:
-    """Snap (``off_grid=False``), threshold, merge and classify the detected atoms."""
-    P = samples.values.shape[0]
+def final_state(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions) -> dict:
+    """The detected atoms of the live pixels as every output reports them: snapped
+    (``off_grid=False``), thresholded and merged (:func:`final_atoms`); slot state (n, K)."""
     live = samples.live
-    R = opts.max_reflections
-    flags = np.zeros(P, FLAG_DTYPE)
-    params = empty_params((P,), n_ir=R)
-    mark(flags, live[~det.converged], MAX_ITER)
     st = {k: v.copy() for k, v in det.state.items()}
     if not opts.off_grid:
         cs.snap_to_grid(st, dic)
         p, mask = solver_inputs(samples, live)
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]))
+    return final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]))
+
+
+def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions,
+                     state: dict | None = None) -> Labels:
+    """Snap (``off_grid=False``), threshold, merge and classify the detected atoms; ``state``:
+    the final atoms already (:func:`final_state`, and a later step's additions), classified as
+    they are."""
+    P = samples.values.shape[0]
+    live = samples.live
+    R = opts.max_reflections
+    flags = np.zeros(P, FLAG_DTYPE)
+    params = empty_params((P,), n_ir=R)
+    mark(flags, live[~det.converged], MAX_ITER)
+    st = final_state(samples, det, dic, opts) if state is None else {k: v.copy() for k, v in state.items()}
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
     mark(flags, live[comp.off_window(st, t).any(axis=1)], OFF_WINDOW)
     mark(flags, live[at_bound(st, parameter_bounds(dic, opts.bound_factor))], AT_BOUND)
     wide = ((st["fam"] != FAM_NONE) & (st["lsig"] > math.log(dic.grid.sigma_range_ps[1]) + BOUND_TOL)).any(axis=1)

@@ -19,8 +19,12 @@ variance of a sample is its expected count.  :func:`is_count_data` is the rule t
 (the spike test works there), :func:`count_dispersion` measures the noise in that domain (1
 for pure Poisson counts, more with read noise or a gain above one count per unit),
 :func:`count_signal_sigma` gives the noise at the signal of a normalised count profile,
-:func:`poisson_weights` the least-squares weights 1 / variance for a model, and
-:func:`fit_dispersion` the noise scale of a fitted count profile (the standard errors' one).
+:func:`poisson_weights` the least-squares weights 1 / variance for a model,
+:func:`fit_dispersion` the noise scale of a fitted count profile (the standard errors' one),
+:func:`poisson_deviance` / :func:`count_deviance` the likelihood-ratio statistic of a model
+(the one home of the deviance), :func:`removal_deviance` each atom's share of it, :func:`atom_gain` what one more atom would
+remove, and
+:func:`anscombe_residual` the residual in noise sigmas where the counts are.
 """
 from __future__ import annotations
 
@@ -32,8 +36,12 @@ from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POI
                         SIGNAL_REGION_FRACTION)
 from .jit import njit
 
-__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "signal_noise_sigma", "is_count_data", "anscombe", "count_dispersion",
-           "count_signal_sigma", "poisson_weights", "fit_dispersion"]
+#: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
+ATOM_GAIN_BISECTIONS = 40
+
+__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "signal_noise_sigma", "is_count_data", "anscombe",
+           "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
+           "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
 
 def _usable(fit: np.ndarray) -> np.ndarray:
@@ -259,3 +267,139 @@ def fit_dispersion(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.where(n >= min_samples, np.sqrt(chi2 / np.maximum(n, 1)), 1.0)
     return np.maximum(d, 1.0)
+
+
+def _deviance_terms(y: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """Per-sample Poisson deviance 2 [y log(y / mu) - (y - mu)] (y >= 0, mu > 0; 0 log 0 = 0)."""
+    ratio = np.where(y > 0, y / np.where(y > 0, mu, 1.0), 1.0)
+    return 2.0 * (np.where(y > 0, y * np.log(ratio), 0.0) - (y - mu))
+
+
+def poisson_deviance(counts, expected) -> np.ndarray:
+    """Poisson deviance 2 sum [y log(y / mu) - (y - mu)] over the last axis, shape S.
+
+    ``counts`` y >= 0 and ``expected`` mu > 0 broadcast to S + (L,); y log(y / mu) is 0 at y = 0.
+    """
+    y = np.asarray(counts, np.float64)
+    mu = np.asarray(expected, np.float64)
+    return np.sum(_deviance_terms(y, mu), axis=-1)
+
+
+def _masked_deviance(counts, model_counts, fit, dispersion):
+    y = np.where(fit, np.asarray(counts, np.float64), 0.0)
+    mu = np.where(fit, np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), POISSON_VARIANCE_FLOOR), 1.0)
+    dev = np.where(fit, _deviance_terms(y, mu), 0.0).sum(axis=-1)
+    if dispersion is not None:
+        dev = dev / np.square(np.asarray(dispersion, np.float64))
+    return dev
+
+
+def count_deviance(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+    """(P,) Poisson deviance of count profiles under a model, over the fitted samples, in chi2 units.
+
+    Twice the log-likelihood ratio of the saturated model to this one: the difference of two
+    models' deviances is their likelihood-ratio statistic, which a component must lower it by
+    (``significance_chi2``) to be kept.
+
+    Parameters
+    ----------
+    counts : ndarray (P, L)          the counts (read on the fitted samples only)
+    model_counts : ndarray (P, L)    expected counts, floored at POISSON_VARIANCE_FLOOR as the
+                                     weights are (NaN read as 0)
+    fit : ndarray (P, L) bool        samples that count
+    dispersion : ndarray (P,), optional
+        Noise scale of the counts (1: the Poisson law); the deviance is divided by its square.
+    """
+    return _masked_deviance(counts, model_counts, fit, dispersion)
+
+
+def removal_deviance(counts: np.ndarray, model_counts: np.ndarray, atoms_counts: np.ndarray, fit: np.ndarray,
+                     dispersion=None) -> np.ndarray:
+    """(P, K) increase of the count deviance when each atom alone is taken out of the model.
+
+    The others held as they are: for Gaussian noise at the least-squares amplitudes this is
+    the atom's energy sum c_i^2 / s^2; for counts it is the same likelihood-ratio statistic
+    with the Poisson law where the atom lies (a faint atom far from a bright one is weighed
+    with the few counts there, not with the noise at the bright one).
+
+    Parameters
+    ----------
+    counts, model_counts : ndarray (P, L)
+        Counts and the full model's expected counts.
+    atoms_counts : ndarray (P, K, L)
+        Each atom's expected counts (zero rows for empty slots: 0 there).
+    fit : ndarray (P, L) bool
+    dispersion : ndarray (P,), optional
+    """
+    base = _masked_deviance(counts, model_counts, fit, dispersion)
+    K = atoms_counts.shape[1]
+    out = np.zeros(atoms_counts.shape[:2])
+    for k in range(K):
+        on = np.any(atoms_counts[:, k] != 0, axis=-1)
+        if on.any():
+            out[on, k] = _masked_deviance(counts[on], model_counts[on] - atoms_counts[on, k], fit[on],
+                                          None if dispersion is None else np.asarray(dispersion)[on]) - base[on]
+    return out
+
+
+def atom_gain(counts: np.ndarray, model_counts: np.ndarray, atom: np.ndarray, fit: np.ndarray, dispersion=None):
+    """The count deviance one more atom removes, its amplitude at its best, the rest held.
+
+    Maximises D(a) = D(mu) - D(mu + a phi) = 2 sum [y log(1 + a phi / mu) - a phi] over a >= 0,
+    with mu floored at POISSON_VARIANCE_FLOOR first (the atom added to the floored model; the
+    deviance floors the sum, which differs by at most the floor where the atom is ~0): D is
+    concave, its maximum the root of the score sum y phi / (mu + a phi) - sum phi, decreasing in
+    a, found by bisection on [0, sum y / sum phi] over the atom's support (past that bound the
+    score is negative).
+
+    Parameters
+    ----------
+    counts, model_counts : ndarray (P, L)
+        Counts and the model's expected counts.
+    atom : ndarray (P, L)
+        The atom's shape (non-negative; a its amplitude in counts per unit of it).
+    fit : ndarray (P, L) bool
+    dispersion : ndarray (P,), optional
+        The gain is divided by its square (chi2 units).
+
+    Returns
+    -------
+    gain : ndarray (P,)        >= 0 (0 where the best amplitude is 0)
+    amplitude : ndarray (P,)   counts per unit of ``atom``
+    """
+    y = np.where(fit, np.asarray(counts, np.float64), 0.0)
+    phi = np.where(fit, np.maximum(np.asarray(atom, np.float64), 0.0), 0.0)
+    mu = np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), POISSON_VARIANCE_FLOOR)
+    on = phi > 1e-12 * np.maximum(phi.max(axis=1, keepdims=True), 1e-300)
+    phi = np.where(on, phi, 0.0)
+    y_on = np.where(on, y, 0.0)
+    sp = phi.sum(axis=1)
+    lo = np.zeros(y.shape[0])
+    hi = y_on.sum(axis=1) / np.maximum(sp, 1e-300)
+    for _ in range(ATOM_GAIN_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        score = np.einsum("pl,pl->p", y_on, phi / (mu + mid[:, None] * phi)) - sp
+        up = score > 0
+        lo, hi = np.where(up, mid, lo), np.where(up, hi, mid)
+    gain = 2.0 * (np.where(y_on > 0, y_on * np.log1p(lo[:, None] * phi / mu), 0.0).sum(axis=1) - lo * sp)
+    gain = np.maximum(gain, 0.0)
+    if dispersion is not None:
+        gain = gain / np.square(np.asarray(dispersion, np.float64))
+    return gain, lo
+
+
+def anscombe_residual(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+    """(P, L) residual of count profiles in noise sigmas, in the variance-stabilised domain:
+    :func:`anscombe` (y) - :func:`anscombe` (mu), 0 off the fitted samples, divided by the
+    dispersion where given.
+
+    Its variance is ~1 wherever mu is above ~1 count and less below, and it stays bounded where
+    the model is ~0: a single stray count there reads 1.1 sigma, where the Pearson residual
+    (y - mu) / sqrt(max(mu, POISSON_VARIANCE_FLOOR)) reads 7 -- so that a few stray counts far
+    in a tail do not outrank a component's cluster of counts.
+    """
+    mu = np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), 0.0)
+    z = np.where(fit, anscombe(np.asarray(counts, np.float64)) - anscombe(mu), 0.0)
+    if dispersion is not None:
+        z = z / np.asarray(dispersion, np.float64)[:, None]
+    return z

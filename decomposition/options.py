@@ -146,6 +146,7 @@ class SolverOptions:
     noise_floor: float = 1e-3
     rel_threshold: float = 0.05
     significance_chi2: float = 25.0
+    background_chi2: float | None = None
     merge_tol_bins: float = 1.0
     bound_factor: float = 4.0
     poor_fit: float = 3.0
@@ -159,19 +160,22 @@ class SolverOptions:
     stderr: bool | None = None
     noise: str = "auto"
     search: bool = True
+    grow: bool = True
+    prune: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
     ambiguity_sigma: float = 3.0
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
         for name in ("max_components", "block_size"):
             _set(self, name, _number(name, getattr(self, name), lo=1, integer=True))
         _set(self, "max_reflections", _number("max_reflections", self.max_reflections, lo=0, integer=True))
         _set(self, "max_iter", _number("max_iter", self.max_iter, lo=1, integer=True, allow_none=True))
+        _set(self, "background_chi2", _number("background_chi2", self.background_chi2, lo=0, allow_none=True))
         for name in ("n_lm", "n_polish"):
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
         for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "significance_chi2", "merge_tol_bins",

@@ -254,7 +254,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     response (:func:`core.irfstore.load_response`) or an :class:`core.irf.InstrumentResponse`.
     The response used is recorded in the store's attributes (``irf``: its description,
     Gaussian-equivalent sigma, sha256 of its samples and provenance, plus ``irf_source``;
-    ``{"kind": "gaussian"}`` without one) and is part of the job a ``--resume`` must match.
+    ``{"kind": "gaussian"}`` without one), kept itself in the store's ``irf`` group (its
+    samples, time step and provenance, :meth:`ResultStore.response`), and its sha256 is part of
+    the job a ``--resume`` must match.
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
     invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
@@ -387,7 +389,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
                                             write_components=write_components, signal_units=units, y_coord=y_coord,
                                             y_units=y_units, attrs=attrs, overwrite=overwrite,
-                                            protect=[source["path"]], flag_names=_flag_table())
+                                            protect=[source["path"]], flag_names=_flag_table(), irf=response)
             except (ResultStoreError, FileExistsError) as exc:
                 raise PipelineError(str(exc)) from None
         else:

@@ -41,6 +41,7 @@ import numpy as np
 from core.irf import InstrumentResponse, render_shifted, render_sss
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 
+from .noise import poisson_deviance
 from .synthetic_effects import bin_averaged_response, response_sigma_ps
 
 __all__ = ["PoissonReferenceOptions", "PoissonReferenceFit", "poisson_reference_fit", "poisson_reference_bound",
@@ -124,17 +125,6 @@ class PoissonReferenceFit:
     sss: np.ndarray
     interreflections: np.ndarray
     info: dict
-
-
-def poisson_deviance(counts, expected) -> np.ndarray:
-    """Poisson deviance 2 sum [y log(y / mu) - (y - mu)] over the last axis, shape S.
-
-    ``counts`` y >= 0 and ``expected`` mu > 0 broadcast to S + (L,); y log(y / mu) is 0 at y = 0.
-    """
-    y = np.asarray(counts, np.float64)
-    mu = np.asarray(expected, np.float64)
-    ratio = np.where(y > 0, y / np.where(y > 0, mu, 1.0), 1.0)
-    return 2.0 * np.sum(np.where(y > 0, y * np.log(ratio), 0.0) - (y - mu), axis=-1)
 
 
 # --------------------------------------------------------------------------- layout

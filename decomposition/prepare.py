@@ -22,7 +22,7 @@ from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data
 from .options import GridSpec, parse_nan_policy, parse_noise_model
 
 __all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes", "find_count_spikes",
-           "resolve_noise_model"]
+           "min_neighbour_ratio", "resolve_noise_model"]
 
 
 @dataclass(frozen=True)
@@ -147,7 +147,8 @@ def resolve_noise_model(noise: str, values) -> str:
 def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str = "raise",
                     saturation_level: float | None = None, spike_sigma: float = 8.0,
                     noise_floor: float = 1e-3, rel_threshold: float = 0.05,
-                    noise: str = "gaussian", background: bool = False) -> Samples:
+                    noise: str = "gaussian", background: bool = False,
+                    spike_neighbour_ratio: float | None = None) -> Samples:
     """Validate, mask and normalise profiles (..., L); estimate their noise.
 
     Parameters
@@ -155,7 +156,8 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
     profiles : array_like (..., L), any real dtype
     axis : TimeAxis
     grid : GridSpec
-        For the shortest window and the narrowest kernel (spike test).
+        For the shortest window and the narrowest kernel (spike test, unless
+        ``spike_neighbour_ratio`` is given).
     nan_policy : {"raise", "omit"}
     saturation_level : float, optional
         Samples >= this are censored.  Default: the dtype maximum for integer input.
@@ -175,6 +177,11 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         (:func:`decomposition.background.estimate_background`, on the finite unsaturated
         samples) and subtract it from the normalised ``profiles`` the solver sees
         (``values`` keep it; counting statistics use the raw counts).
+    spike_neighbour_ratio : float, optional
+        The smallest ratio of a real component's larger neighbour sample to the sample itself,
+        in (0, 1] (:func:`min_neighbour_ratio`); default that of a centred Gaussian of the
+        grid's narrowest sigma.  With a measured response the response's own
+        (:func:`decomposition.response_input.spike_neighbour_ratio`).
     """
     nan_policy = parse_nan_policy(nan_policy)
     arr = _as_profiles(profiles)
@@ -229,10 +236,10 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
     if spike_sigma and idx_live.size:
         if counts:
             sp = find_count_spikes(raw[idx_live], fit[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
-                                   disp[idx_live], min_rel=rel_threshold)
+                                   disp[idx_live], min_rel=rel_threshold, neighbour_ratio=spike_neighbour_ratio)
         else:
             sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
-                             spike_sigma, rel_threshold)
+                             spike_sigma, rel_threshold, neighbour_ratio=spike_neighbour_ratio)
         mark(flags, idx_live[sp.any(axis=1)], SPIKE)
         fit[idx_live] = fit[idx_live] & ~sp
         # re-normalise without the spikes
@@ -257,13 +264,28 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
                    background=b_est)
 
 
-def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_rel=0.05):
+def min_neighbour_ratio(time_bin_ps: float, sigma_min_ps: float, given: float | None = None) -> float:
+    """r_min of the spike tests: the smallest ratio of a real component's larger neighbour to a
+    sample -- exp(-T^2 / (2 sigma_min^2)) for Gaussians of sigma >= sigma_min (the neighbours of
+    a centred peak), or ``given`` (another kernel's, e.g. a measured response's), in (0, 1]."""
+    if given is None:
+        return math.exp(-0.5 * (time_bin_ps / sigma_min_ps) ** 2)
+    r = float(given)
+    if not (0.0 < r <= 1.0):
+        raise ValueError(f"the spike test's neighbour ratio must lie in (0, 1], got {given!r}")
+    return r
+
+
+def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_rel=0.05, *, neighbour_ratio=None):
     """Single-sample spikes: too narrow for the narrowest kernel and far above the noise.
 
     A component with sigma >= sigma_min has neighbours at least
-    exp(-T^2 / (2 sigma_min^2)) of a centred peak; a sample whose larger
+    r_min = exp(-T^2 / (2 sigma_min^2)) of a centred peak (``neighbour_ratio``: another
+    kernel's r_min, :func:`min_neighbour_ratio`); a sample whose larger
     neighbour is below half of that (plus a noise margin) and which exceeds
-    both neighbours by ``k_sigma`` noise sigmas is a spike.
+    both neighbours by ``k_sigma`` noise sigmas is a spike.  The half keeps the rule true for
+    any sum of such components with non-negative amplitudes: the larger of two sums of
+    neighbours is at least half their total.
 
     Parameters
     ----------
@@ -275,6 +297,8 @@ def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_re
     min_rel : float
         Spikes must also exceed this fraction of the pixel's peak: a smaller one could never
         become a reported component (and isolated counts of photon-limited data are no spikes).
+    neighbour_ratio : float, optional
+        r_min in place of the Gaussian's (``sigma_min_ps`` is then not used).
 
     Returns
     -------
@@ -285,7 +309,7 @@ def find_spikes(profiles, fit, noise, time_bin_ps, sigma_min_ps, k_sigma, min_re
     out = np.zeros((P, L), bool)
     if L < 3:
         return out
-    r_min = math.exp(-0.5 * (T / sigma_min_ps) ** 2)
+    r_min = min_neighbour_ratio(T, sigma_min_ps, neighbour_ratio)
     c = pn[:, 1:-1]
     nb = np.maximum(pn[:, :-2], pn[:, 2:])
     big = np.maximum(k_sigma * s[:, None], min_rel * np.abs(pn).max(axis=1, keepdims=True))
@@ -299,13 +323,15 @@ def _count_threshold(n_bins: int) -> float:
     return NormalDist().inv_cdf(1.0 - SPIKE_FALSE_ALARM / max(n_bins - 2, 1))
 
 
-def find_count_spikes(counts, fit, time_bin_ps, sigma_min_ps, dispersion=None, min_rel=0.05):
+def find_count_spikes(counts, fit, time_bin_ps, sigma_min_ps, dispersion=None, min_rel=0.05, *,
+                      neighbour_ratio=None):
     """Single-sample spikes of count profiles, tested against the counting statistics.
 
     The rule of :func:`find_spikes` in Poisson terms, on the variance-stabilised profile
     a = 2 sqrt(x + 3/8) (:func:`decomposition.noise.anscombe`; variance ~1 per sample, the
     ``dispersion`` squared where larger).  With c the sample, n the larger neighbour and
-    r = exp(-T^2 / (2 sigma_min^2)) the smallest neighbour-to-peak ratio a real component has,
+    r = exp(-T^2 / (2 sigma_min^2)) the smallest neighbour-to-peak ratio a real component has
+    (``neighbour_ratio`` when given, :func:`min_neighbour_ratio`),
     a sample is a spike when both
 
     * it is significantly above the neighbour: a(c) - a(n) > z sqrt(2) dispersion, and
@@ -325,6 +351,8 @@ def find_count_spikes(counts, fit, time_bin_ps, sigma_min_ps, dispersion=None, m
     dispersion : ndarray (P,), optional
         Noise std in the Anscombe domain (default 1, pure Poisson).
     min_rel : float
+    neighbour_ratio : float, optional
+        r in place of the Gaussian's (``sigma_min_ps`` is then not used).
 
     Returns
     -------
@@ -336,7 +364,7 @@ def find_count_spikes(counts, fit, time_bin_ps, sigma_min_ps, dispersion=None, m
     if L < 3:
         return out
     disp = np.ones(P) if dispersion is None else np.asarray(dispersion, np.float64)
-    r_min = math.exp(-0.5 * (time_bin_ps / sigma_min_ps) ** 2)
+    r_min = min_neighbour_ratio(time_bin_ps, sigma_min_ps, neighbour_ratio)
     z = _count_threshold(L) * disp[:, None]
     c = x[:, 1:-1]
     nb = np.maximum(x[:, :-2], x[:, 2:])

@@ -45,17 +45,18 @@ def _model(samples: Samples, params: dict, irf=None) -> np.ndarray:
 
 
 def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
-                      significance_chi2: float | None = None):
+                      background_chi2: float | None = None):
     """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
 
     With a ``background`` in ``params`` (the ``b`` family) the offset of every live pixel is
     fitted jointly with the amplitudes; then, where it is not significant
-    (:func:`decomposition.background.background_significant` at ``significance_chi2``, the
+    (:func:`decomposition.background.background_significant` at the threshold of
+    :func:`decomposition.background.background_threshold` for ``background_chi2``, the
     likelihood-ratio statistic of :func:`background_stats`), it is set to 0 and the pixel
     refitted without it.  ``info`` then also holds ``background_chi2`` (the statistic) and
     ``background_stderr`` (units of the profiles; NaN where the offset was left out).
     """
-    from .background import background_significant
+    from .background import background_significant, background_threshold
     from .refine import refine
 
     axis = samples.axis
@@ -83,7 +84,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     info = {"refine_iterations": iterations, "refined": refined}
     if with_bg:
         chi2, stderr = background_stats(samples, params)
-        keep = background_significant(chi2, 25.0 if significance_chi2 is None else significance_chi2) & fit_bg
+        keep = background_significant(chi2, background_threshold(samples.fit, background_chi2)) & fit_bg
         drop = fit_bg & ~keep
         if drop.any():
             params = dict(params)

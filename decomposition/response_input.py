@@ -27,8 +27,11 @@ import numpy as np
 from core.irf import InstrumentResponse, ResponseError
 from core.irfstore import load_response
 
-__all__ = ["resolve_response", "response_record", "STEP_RTOL", "TRIM_REL"]
+__all__ = ["resolve_response", "response_record", "spike_neighbour_ratio", "STEP_RTOL", "TRIM_REL",
+           "SPIKE_PHASES"]
 
+#: sub-bin positions of the peak at which :func:`spike_neighbour_ratio` samples the response
+SPIKE_PHASES = 32
 #: time steps that differ by less than this (relative) are the same step
 STEP_RTOL = 1e-9
 #: leading and trailing samples below this fraction of the peak are cropped before use: far
@@ -98,12 +101,43 @@ def _trimmed(r: InstrumentResponse) -> InstrumentResponse:
 def response_record(irf: InstrumentResponse) -> dict:
     """What a result records about the response that made it: ``describe()``, the
     Gaussian-equivalent sigma, a checksum of the samples and the provenance (JSON-able)."""
-    import hashlib
-
     from core.irf_components import gaussian_equivalent_sigma_ps
+    from core.irfstore import samples_sha256
 
     rec = dict(irf.describe())
     rec["gaussian_equivalent_sigma_ps"] = gaussian_equivalent_sigma_ps(irf)
-    rec["samples_sha256"] = hashlib.sha256(np.ascontiguousarray(irf.samples, "<f8").tobytes()).hexdigest()
+    rec["samples_sha256"] = samples_sha256(irf)
     rec["provenance"] = irf.provenance
     return rec
+
+
+def spike_neighbour_ratio(irf: InstrumentResponse, time_bin_ps: float, min_rel: float) -> float:
+    """r_min of the spike test for components shaped like ``irf``: the smallest ratio of the
+    larger neighbour to a sample, max(c(u - T), c(u + T)) / c(u), over every sample u of a
+    shifted copy of the response (SPIKE_PHASES sub-bin shifts) that reaches ``min_rel`` of its
+    peak -- a smaller sample is no spike candidate (:func:`decomposition.prepare.find_spikes`
+    leaves spikes under ``min_rel`` of the pixel's peak alone).  The counterpart of the Gaussian
+    path's exp(-T^2 / (2 sigma_min^2)); in [0, 1], 0 for a response with no neighbour above zero
+    (a single sample: no spike can be told from it).
+
+    Parameters
+    ----------
+    irf : InstrumentResponse
+        Sampled at ``time_bin_ps`` (:func:`resolve_response`).
+    time_bin_ps : float
+        T, ps.
+    min_rel : float
+        Fraction of the peak below which a sample is not considered.
+    """
+    from core.irf import render_shifted
+
+    T = float(time_bin_ps)
+    j = np.arange(-1, int(math.ceil(irf.window_ps / T)) + 2)
+    t = irf.window_start_ps + T * j
+    c = render_shifted(irf, t, -T * np.arange(SPIKE_PHASES) / SPIKE_PHASES)      # (phases, n), unit peak
+    mid, nb = c[:, 1:-1], np.maximum(c[:, :-2], c[:, 2:])
+    top = c.max(axis=1, keepdims=True)
+    cand = mid >= max(float(min_rel), 1e-6) * top
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(cand, np.maximum(nb, 0.0) / mid, np.inf)
+    return float(np.clip(ratio.min(), 0.0, 1.0))

@@ -11,6 +11,10 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   count data (``noise="poisson"``) refitted POISSON_REFITS times with weights 1 / Poisson
   variance of the previous model (the Poisson maximum-likelihood fit, as in
   :mod:`decomposition.refit`);
+* forward steps (:mod:`decomposition.response_grow`): an sss for count data's pixels left
+  without one, an echo where the residual in noise sigmas holds one, an sss far after the
+  direct turned into the echo it is -- each kept where the deviance drops by
+  ``significance_chi2``;
 * standard errors (``stderr``): the Fisher information of the response's atoms
   (:mod:`decomposition.response_fisher`).
 
@@ -26,17 +30,21 @@ import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
-from .background import background_significant
-from .constants import BOUND_TOL, FAM_NONE, FAM_SSS, POISSON_REFITS, SSS_SLOT
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, TRUNCATED, mark
+from .background import background_significant, background_threshold
+from .components import runs_off_window
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
+from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
 from .options import GridSpec, SolverOptions
 from .prepare import Samples
 from .refit import background_stats
+from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
 from .response_fisher import slot_standard_errors
-from .response_label import label_response, param_slots, slots_to_params
-from .response_refine import fit_slots
+from .response_label import label_response, param_slots
+from .response_grow import GrowContext, grow_response
+from .response_refine import refit_slots
 
 __all__ = ["ResponseOutcome", "decompose_with_response"]
 
@@ -44,7 +52,7 @@ __all__ = ["ResponseOutcome", "decompose_with_response"]
 @dataclass(frozen=True)
 class ResponseOutcome:
     """``params`` (P-shaped, keys of :mod:`core.model`, ``<key>_stderr`` too with ``stderr``),
-    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED), ``info`` (dict)."""
+    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED, OFF_WINDOW), ``info`` (dict)."""
 
     params: dict
     flags: np.ndarray
@@ -80,7 +88,10 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     with_bg = samples.background is not None
     b_est = samples.background[live] if with_bg else np.zeros(live.size)
     # the profiles are the samples less the first estimate of the offset (0 without the family)
-    slots = _refine(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
+    slots = refit_slots(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
+    grow_ctx = GrowContext(samples, irf, b_est, with_bg, refine_kw, sigma_eq, opts)
+    slots, grow_info = grow_response(grow_ctx, slots, alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
+                                     components=components)
     fam, delay, lalp, amp, params, background, iterations = slots
     bg_info = {}
     if with_bg:
@@ -90,7 +101,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
         full[BACKGROUND_KEY] = np.zeros(P)
         full[BACKGROUND_KEY][live] = background
         chi2, stderr = background_stats(samples, full, irf)
-        keep = background_significant(chi2[live], opts.significance_chi2)
+        keep = background_significant(chi2[live], background_threshold(fit_mask, opts.background_chi2))
         drop = np.flatnonzero(~keep)
         if drop.size:
             # refit without the offset: the data themselves, the offset exactly 0
@@ -99,7 +110,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
             p0[BACKGROUND_KEY] = np.zeros(drop.size)
             sub = {k: (v[drop] if k in ("fit_mask", "scale", "disp") and v is not None else v)
                    for k, v in refine_kw.items()}
-            d_slots = _refine(y0, fam[drop], delay[drop], lalp[drop], np.zeros(drop.size), False, p0, **sub)
+            d_slots = refit_slots(y0, fam[drop], delay[drop], lalp[drop], np.zeros(drop.size), False, p0, **sub)
             fam, delay, lalp, amp = fam.copy(), delay.copy(), lalp.copy(), amp.copy()
             fam[drop], delay[drop], lalp[drop], amp[drop] = d_slots[:4]
             for k in params:
@@ -116,10 +127,12 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     flags = np.zeros(P, FLAG_DTYPE)
     mark(flags, live[~det.converged], MAX_ITER)
     mark(flags, live[trunc], TRUNCATED)
-    sss = fam[:, SSS_SLOT] == FAM_SSS
-    lo, hi = bounds["lalp"]
-    at_b = sss & ((lalp[:, SSS_SLOT] <= lo + BOUND_TOL) | (lalp[:, SSS_SLOT] >= hi - BOUND_TOL))
-    mark(flags, live[at_b], AT_BOUND)
+    # the Gaussian path's rules on the final atoms: alpha at its bound (the response has no width
+    # to hit one), a component running off the window's edge
+    state = {"fam": fam, "lsig": np.zeros(fam.shape), "lalp": lalp}
+    mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": bounds["lalp"]})], AT_BOUND)
+    inside = slot_window_fraction(irf, t, fam, delay, lalp)
+    mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t).any(axis=1)], OFF_WINDOW)
 
     out = empty_params((P,), n_ir=R)
     if with_bg:
@@ -133,57 +146,12 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
             "response_alphas_per_ps": [float(a) for a in np.geomspace(a_lo, a_hi, grid.coarse_alpha)]
             if "s" in components else [],
+            **grow_info,
             "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),
             "refine_iterations": _scatter(P, live, iterations, 0).reshape(samples.lead)}
     if with_bg:
         info["background_chi2"] = bg_info["background_chi2"].reshape(samples.lead)
     return ResponseOutcome(params=out, flags=flags, info=info)
-
-
-def _refine(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
-            sigma_eq, R):
-    """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
-    (n,) counts / units already subtracted), with a jointly fitted constant offset where
-    ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
-    previous model (offset included).  ``params``: the starting model (n-shaped, units, the
-    ``background`` key read for the first weights).
-
-    Returns fam, delay, lalp, amp (n, K), params (n-shaped, units, no ``background`` key),
-    background (n,) units (``held`` plus the fitted correction), iterations (n,).
-    """
-    L = y.shape[1]
-    counts = disp is not None
-    n = y.shape[0]
-    iterations = np.zeros(n, np.int64)
-    amp = np.zeros(fam.shape)
-    background = held.astype(np.float64).copy()
-    sw = fit_mask.astype(np.float64)
-    bg_cols = np.ones(n, bool) if fit_bg else None
-    fit_kw = dict(lm_tol=opts.lm_tol, delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
-                  sss_after_direct=opts.sss_after_direct, first_is_direct=True)
-    params = dict(params)
-    params[BACKGROUND_KEY] = background
-    for _ in range(POISSON_REFITS if counts else 1):
-        if counts:
-            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
-            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
-        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=opts.n_polish, fit_background=bg_cols, **fit_kw)
-        iterations += f.iterations
-        delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
-        bad = (fam != FAM_NONE) & ~(amp > 0)
-        if bad.any():
-            fam = fam.copy()
-            fam[bad] = FAM_NONE
-            r = np.flatnonzero(bad.any(axis=1))
-            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
-                          fit_background=None if bg_cols is None else bg_cols[r], **fit_kw)
-            amp[r], b_fit = g.amp, b_fit.copy()
-            b_fit[r] = g.background
-        background = held + b_fit * scale
-        params = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
-        params[BACKGROUND_KEY] = background
-    params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
-    return fam, delay, lalp, amp, params, background, iterations
 
 
 def _scatter(P, live, v, fill):

@@ -17,14 +17,18 @@ log alpha within ``lalp_bounds``, the sss onset not before the pixel's earliest 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from core.irf import InstrumentResponse
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from core.model import BACKGROUND_KEY, render_profile
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS
+from .noise import poisson_weights
 from .response_atoms import slot_atoms
+from .response_label import slots_to_params
 
-__all__ = ["SlotFit", "solve_amplitudes", "fit_slots"]
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
 
 _RIDGE = 1e-12
 _LAMBDA0 = 1e-3
@@ -193,3 +197,65 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
                    background=state["amp"][:, K] if fit_bg is not None else np.zeros(P),
                    cost=state["cost"], resid=cache["resid"],
                    iterations=iters, converged=conv)
+
+
+class Slots(NamedTuple):
+    """The response path's answer for n live pixels: slot arrays ``fam``, ``delay`` (ps),
+    ``lalp``, ``amp`` (normalised units) (n, K) in the refinement layout (slot 0 direct, 1 sss,
+    2.. inter-reflections), ``params`` (n-shaped, units of the samples, no ``background``
+    key), ``background`` (n,) units, ``iterations`` (n,) LM iterations spent."""
+
+    fam: np.ndarray
+    delay: np.ndarray
+    lalp: np.ndarray
+    amp: np.ndarray
+    params: dict
+    background: np.ndarray
+    iterations: np.ndarray
+
+
+def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
+                sigma_eq, R) -> Slots:
+    """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
+    (n,) counts / units already subtracted), with a jointly fitted constant offset where
+    ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
+    previous model (offset included).  ``params``: the starting model (n-shaped, units, the
+    ``background`` key read for the first weights).
+
+    Returns :class:`Slots`: fam, delay, lalp, amp (n, K), params (n-shaped, units, no
+    ``background`` key), background (n,) units (``held`` plus the fitted correction),
+    iterations (n,).
+    """
+    L = y.shape[1]
+    counts = disp is not None
+    n = y.shape[0]
+    iterations = np.zeros(n, np.int64)
+    amp = np.zeros(fam.shape)
+    background = held.astype(np.float64).copy()
+    sw = fit_mask.astype(np.float64)
+    bg_cols = np.ones(n, bool) if fit_bg else None
+    fit_kw = dict(lm_tol=opts.lm_tol, delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
+                  sss_after_direct=opts.sss_after_direct, first_is_direct=True)
+    params = dict(params)
+    params[BACKGROUND_KEY] = background
+    for _ in range(POISSON_REFITS if counts else 1):
+        if counts:
+            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
+            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
+        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=opts.n_polish, fit_background=bg_cols, **fit_kw)
+        iterations += f.iterations
+        delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
+        bad = (fam != FAM_NONE) & ~(amp > 0)
+        if bad.any():
+            fam = fam.copy()
+            fam[bad] = FAM_NONE
+            r = np.flatnonzero(bad.any(axis=1))
+            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
+                          fit_background=None if bg_cols is None else bg_cols[r], **fit_kw)
+            amp[r], b_fit = g.amp, b_fit.copy()
+            b_fit[r] = g.background
+        background = held + b_fit * scale
+        params = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
+        params[BACKGROUND_KEY] = background
+    params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
+    return Slots(fam, delay, lalp, amp, params, background, iterations)

@@ -13,6 +13,8 @@ Layout (every array has ``dimension_names``; ``xarray.open_zarr(path)`` opens it
     direct, sss, residual  (y, x, t)     float32  rendered components (optional)
     ir                     (y, x, r, t)  float32  rendered inter-reflections r2, r3, ... (optional)
     t (t,) ps, y (y,), x (x,), r (r,)    coordinates (r: bounce number 2, 3, ... of slot r2, r3, ...)
+    irf/response, irf/irf_t  (irf_t,)    float64  the instrument response the fits were made with
+                                                  (optional: absent for the Gaussian PSF)
 
 Every array is chunked on the same pixel grid ``(by, bx)`` (with all of ``t`` and ``r`` in one
 chunk), so each pixel chunk of a computation owns exactly one Zarr chunk of every array: writers
@@ -25,6 +27,13 @@ Group attributes: ``streaklab_kind = "decomposition"``, ``method``, ``options`` 
 option), ``components`` (families searched), ``n_ir`` (R), ``chunks``, ``write_components``,
 ``nan_policy``, ``param_keys``, ``software_version``, ``source`` (path, shape, attributes of the
 decomposed cube), ``time_bin_ps``, ``t0_ps``, ``units`` (signal units).
+
+The optional group ``irf`` holds the instrument response the solver used (after resampling onto
+the bins and cropping), in the layout of :mod:`core.irfstore` (the same as a cube store's ``irf``
+group: samples in 1/ps, sample times in ps, the response's attributes and provenance), so
+anything that re-renders the fits from the parameters renders them with the same response
+(:meth:`ResultStore.response`); ``xarray.open_zarr(path, group="irf")`` reads it without
+streaklab.  Stores of the Gaussian PSF, and those written before the group existed, have none.
 
 This module only reads and writes that layout; it knows nothing of solvers.
 """
@@ -41,11 +50,14 @@ import zarr
 from core.durable import sync_chunk
 from core.errors import OutputExistsError, StreaklabError
 from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
-                            open_member, read_checked, scan_array, writable)
+                            open_member, read_checked, scan_array, scan_group, writable)
+from core.irf import InstrumentResponse, ResponseError
+from core.irfstore import read_response_group, samples_sha256, write_response_group
 from core.staging import OutputPathError, check_no_links, check_output_path, staged_output
 
 __all__ = [
     "RESULT_KIND",
+    "RESPONSE_GROUP",
     "OUT_OF_RANGE",
     "FORMAT_VERSION",
     "CORE_MAP_KEYS",
@@ -65,6 +77,8 @@ RESULT_KIND = "decomposition"
 #: float64 parameters are exact).
 OUT_OF_RANGE = 256
 FORMAT_VERSION = 1
+#: the group that holds the instrument response of the fits (absent: the Gaussian PSF)
+RESPONSE_GROUP = "irf"
 CORE_MAP_KEYS = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps",
                  "sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps", "sss_sigma_ps")
 CORE_IR_KEYS = ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps")
@@ -119,7 +133,7 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
 class ResultCheck:
     """What :meth:`ResultStore.verify` found: ``checksums`` (False for stores of earlier releases),
     ``chunks`` (pixel chunk (iy, ix) -> list of ChunkDamage, for chunks marked done or whose
-    ``done`` flags are damaged) and ``other`` (damaged coordinate arrays)."""
+    ``done`` flags are damaged) and ``other`` (damaged coordinate arrays and response arrays)."""
 
     checksums: bool
     chunks: dict
@@ -229,6 +243,8 @@ class ResultStore:
             for d in scan_array(path, arr, [self._chunk_coords(name, *ij) for ij in done]):
                 chunks.setdefault(d.coords[:2], []).append(d)
         other = [d for name in ("t", "y", "x", "r") for d in scan_array(path, g[name])]
+        if self.has_response:
+            other.extend(scan_group(path, g[RESPONSE_GROUP]))
         return ResultCheck(checksums=has_checksums(done_arr), chunks=dict(sorted(chunks.items())), other=other)
 
     def mark_chunks_not_done(self, chunks) -> None:
@@ -346,12 +362,39 @@ class ResultStore:
     def time_axis_ps(self) -> np.ndarray:
         return np.asarray(self.group["t"][...], dtype=np.float64)
 
+    @property
+    def has_response(self) -> bool:
+        """Whether the store holds the instrument response of its fits (group ``irf``)."""
+        return RESPONSE_GROUP in self.group
+
+    def response(self) -> InstrumentResponse | None:
+        """The instrument response the fits were made with, or None (the Gaussian PSF, or a store
+        written before result stores kept the response: ``attrs["irf"]`` then still describes it).
+
+        Raises :class:`ResultStoreError` when the group is unreadable or its samples are not
+        those whose sha256 the store recorded (``attrs["irf"]["samples_sha256"]``)."""
+        if not self.has_response:
+            return None
+        where = f"{self.path}/{RESPONSE_GROUP}"
+        sub = self.group[RESPONSE_GROUP]
+        if not isinstance(sub, zarr.Group):
+            raise ResultStoreError(f"{where} is not a group")
+        try:
+            irf = read_response_group(sub, where=where)
+        except ResponseError as exc:
+            raise ResultStoreError(str(exc)) from None
+        recorded = dict(self.attrs.get("irf") or {}).get("samples_sha256")
+        if recorded is not None and recorded != samples_sha256(irf):
+            raise ResultStoreError(f"{where}: its samples are not the response the store recorded "
+                                   f"(sha256 {samples_sha256(irf)[:12]}..., recorded {str(recorded)[:12]}...)")
+        return irf
+
 
 def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t0_ps: float,
                         param_keys=None, ir_param_keys=(), write_components: bool = True,
                         signal_units: str = "counts", y_coord=None, y_units: str = "pixel",
                         attrs: dict | None = None, overwrite: bool = False, protect=(),
-                        flag_names: dict | None = None) -> ResultStore:
+                        flag_names: dict | None = None, irf: InstrumentResponse | None = None) -> ResultStore:
     """Create an empty result store (parameters NaN, nothing done) ready for chunk writes.
 
     Parameters
@@ -377,7 +420,12 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
     flag_names : dict bit -> name, optional
         The solver's flag table, written as the CF ``flag_masks`` / ``flag_meanings`` of ``flags``
         (with the store's own :data:`OUT_OF_RANGE` bit).
+    irf : InstrumentResponse, optional
+        The instrument response the fits are made with, kept in the group :data:`RESPONSE_GROUP`
+        (see the module docstring); None for the Gaussian PSF.
     """
+    if irf is not None and not isinstance(irf, InstrumentResponse):
+        raise ResultStoreError(f"irf must be an InstrumentResponse or None, got {type(irf).__name__}")
     ny, nx, nt = (int(s) for s in shape)
     by, bx = (int(c) for c in chunks)
     n_ir = int(n_ir)
@@ -399,6 +447,8 @@ def create_result_store(path, *, shape, chunks, n_ir: int, time_bin_ps: float, t
                         t0_ps=t0_ps, map_keys=map_keys, ir_keys=ir_keys, write_components=write_components,
                         signal_units=signal_units, y_coord=y_coord, y_units=y_units, attrs=attrs,
                         flag_names=flag_names)
+        if irf is not None:
+            write_response_group(zarr.open_group(str(tmp), mode="r+").create_group(RESPONSE_GROUP), irf)
     return open_result_store(path, mode="r+")
 
 

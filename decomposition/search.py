@@ -46,7 +46,7 @@ from .constants import (MAD_TO_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAUL
                         SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
 from .refine import refine
 
-__all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
+__all__ = ["SearchOptions", "penalised_objective", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
            "search_components"]
 
 STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
@@ -329,6 +329,13 @@ def _data_chi2(t, p, mask, st, s2):
     return np.einsum("pl,pl->p", r, r) / s2
 
 
+def penalised_objective(t, p, mask, st, s2, log_n, opts):
+    """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
+    (``s2`` (n,) the noise variance, ``log_n`` (n,) the log of the fitted samples, k the free
+    parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
+    return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
+
+
 def _n_free(st, shared_sigma):
     """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
     one width per pixel (``shared_sigma``) or per atom."""
@@ -390,7 +397,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     two or more Gaussians without an sss, a leading edge that rises faster than its detected
     width allows, or a data term above ``search_doubt_chi2`` times its expected value.  Only
     those pixels get the starts of :data:`STAGE_STARTS` (``edge``: a direct one width after the
-    leading edge and an sss at the same onset; ``peak``: the earliest significant peak as the
+    leading edge and an sss ``SEARCH_EDGE_GAP_SIGMA`` widths after it; ``peak``: the earliest significant peak as the
     direct, the sss one width later; both with the detected Gaussians more than
     ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; amplitudes by NNLS, then the solver's
     polish: shared width, sss onset at or after the direct, data term only; thresholded,
@@ -425,8 +432,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     chi0 = _data_chi2(t, p, mask, base, s2)
 
     # Pixels in doubt (see the docstring).
-    from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
-                            SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
+    from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
+                            SEARCH_EDGE_LEVEL, SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
 
     g = base["fam"] == FAM_GAUSS
     s_at = base["fam"] == FAM_SSS
@@ -490,7 +497,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
             put(cand[0], m, refined(take(cand[0], m), m))
     # ("edge bare" and a start at the rise's narrower width never won on the paper's scenes:
     # a pixel whose rise is too steep is in doubt, and the peak start takes it)
-    specs = (("edge", t_edge + sg, t_edge + sg, True), ("peak", t_peak, t_peak + sg, True),
+    specs = (("edge", t_edge + sg, t_edge + (1.0 + SEARCH_EDGE_GAP_SIGMA) * sg, True), ("peak", t_peak, t_peak + sg, True),
              ("peak bare", t_peak, t_peak + sg, False))
     built = []                  # (direct, sss onset, later Gaussians) of the starts so far
     for name, d_ps, s_ps, keep in specs:
@@ -514,8 +521,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         cand.append(c)
     js = []
     for c in cand:
-        chi2 = _data_chi2(t, pb, mb, c, sb2)
-        js.append(chi2 + opts.search_penalty * _n_free(c, shared) * log_l[idx])
+        js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
     js = np.stack(js)                                   # (starts, m)
     if not opts.sss_alone:
         # the paper's model gives every pixel a direct: a start that lost it competes only

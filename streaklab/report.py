@@ -9,7 +9,10 @@
 * ``summary.txt``   what was decomposed, how, and what was found.
 
 Component frames and profiles come from the stored component cubes; a store written with
-``--no-components`` has them rendered from its parameters with the forward model instead.
+``--no-components`` has them rendered from its parameters with the forward model instead, with
+the instrument response the store was decomposed with when it holds one (its ``irf`` group,
+:meth:`decomposition.resultstore.ResultStore.response`), else with the Gaussian PSF.  The
+summary says which response the fits were drawn with (:func:`response_text`).
 
 Maps are drawn as xarray's ``DataArray.plot()`` draws a (y, x) array: cells centred on the
 store's coordinates, x increasing to the right and y upwards, axes in the coordinates' units.
@@ -26,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles", "frames_figure",
-           "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "pixel_title"]
+           "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "pixel_title",
+           "rendered_components", "response_text", "RENDER_BLOCK_PIXELS"]
 
 # One-way depth per ps of round-trip delay: c / 2 in mm/ps.
 _MM_PER_PS_DEPTH = 0.299792458 / 2.0
@@ -89,9 +93,66 @@ def choose_pixels(store, n: int = 3) -> list[tuple[int, int]]:
     return picks[:n]
 
 
+#: pixels rendered at a time when a report renders components from parameters (bounds the memory
+#: of a response's atoms: a few MB per bin of the response's padded window)
+RENDER_BLOCK_PIXELS = 4096
+
+
+def rendered_components(store, ys, xs, it=None, *, irf="stored"):
+    """Components of a region rendered from the store's parameters with the forward model.
+
+    Parameters
+    ----------
+    store : ResultStore
+    ys, xs : slice
+        The (y, x) region.
+    it : int, optional
+        One time index (default: every bin).
+    irf : "stored", InstrumentResponse or None
+        The response to render with: "stored" (default) the store's own
+        (:meth:`~decomposition.resultstore.ResultStore.response`; the Gaussian PSF when it holds
+        none), None the Gaussian PSF with each component's ``*_sigma_ps``.
+
+    Returns
+    -------
+    dict: ``direct``, ``sss`` (ny', nx', t) and ``ir`` (ny', nx', R, t), signal units (without the
+    time axis when ``it`` is given).
+    """
+    from core.model import render_components
+
+    from core.irf import InstrumentResponse
+
+    if isinstance(irf, str) and irf == "stored":
+        response = store.response()
+    elif irf is None or isinstance(irf, InstrumentResponse):
+        response = irf
+    else:
+        raise ValueError(f"irf must be 'stored', an InstrumentResponse or None, got {irf!r}")
+    params = store.params(ys, xs)
+    lead = np.shape(params["direct_delay_ps"])
+    t = store.time_axis_ps()
+    tb = float(store.attrs["time_bin_ps"])
+    n_t, t0 = (t.size, float(t[0])) if it is None else (1, float(t[it]))
+    flat = {k: np.asarray(v).reshape((-1,) + np.shape(v)[len(lead):]) for k, v in params.items()}
+    n = int(np.prod(lead, dtype=np.int64))
+    parts = {"direct": [], "sss": [], "interreflections": []}
+    for lo in range(0, max(n, 1), RENDER_BLOCK_PIXELS):
+        block = {k: v[lo:lo + RENDER_BLOCK_PIXELS] for k, v in flat.items()}
+        c = render_components(block, n_t, tb, t0, irf=response)
+        for k in parts:
+            parts[k].append(c[k])
+    out = {"direct": np.concatenate(parts["direct"]).reshape(lead + (n_t,)),
+           "sss": np.concatenate(parts["sss"]).reshape(lead + (n_t,)),
+           "ir": np.concatenate(parts["interreflections"]).reshape(lead + (store.n_ir, n_t))}
+    if it is not None:
+        out = {k: v[..., 0] for k, v in out.items()}
+    return out
+
+
 def _components_at(store, ys, xs, it=None):
     """Component arrays of a region: dict direct, sss, ir (summed over slots unless a single
-    time is asked for), each (..., t) or (...) at time index ``it``; from the store or rendered."""
+    time is asked for), each (..., t) or (...) at time index ``it``; from the store or rendered
+    (:func:`rendered_components`, with the store's response)."""
     g = store.group
     if store.write_components:
         if it is None:
@@ -99,17 +160,33 @@ def _components_at(store, ys, xs, it=None):
                     "residual": g["residual"][ys, xs]}
         return {"direct": g["direct"][ys, xs, it], "sss": g["sss"][ys, xs, it],
                 "ir": g["ir"][ys, xs, :, it], "residual": g["residual"][ys, xs, it]}
-    from core.model import render_components
+    return dict(rendered_components(store, ys, xs, it), residual=None)
 
-    params = store.params(ys, xs)
-    t = store.time_axis_ps()
-    tb = float(store.attrs["time_bin_ps"])
-    if it is None:
-        c = render_components(params, t.size, tb, float(t[0]))
-        return {"direct": c["direct"], "sss": c["sss"], "ir": c["interreflections"], "residual": None}
-    c = render_components(params, 1, tb, float(t[it]))
-    return {"direct": c["direct"][..., 0], "sss": c["sss"][..., 0], "ir": c["interreflections"][..., 0],
-            "residual": None}
+
+def response_text(store) -> str:
+    """Which instrument response the report's fits are drawn with, one line: the store's own
+    response (its ``irf`` group), the Gaussian PSF, or -- for a store that records a response
+    (``attrs["irf"]``) without holding it, written before result stores kept it -- what that
+    means for the figures."""
+    rec = dict(store.attrs.get("irf") or {})
+    how = ("from the stored components" if store.write_components else "rendered from the parameters")
+    irf = store.response()
+    if irf is not None:
+        name = (irf.model or {}).get("name")
+        what = f"{'the ' + name + ' model' if name else 'a measured'} response"
+        src = f", from {rec['source']}" if rec.get("source") else ""
+        return (f"instrument response: {what} kept in the result store ({irf.n_samples} samples of "
+                f"{irf.time_step_ps:g} ps, FWHM {irf.fwhm_ps():.3g} ps{src}); fits drawn {how} with it")
+    if rec.get("kind") == "response":
+        sha = str(rec.get("samples_sha256", "?"))[:12]
+        if store.write_components:
+            return (f"instrument response: a response (sha256 {sha}...) that this store records but does not "
+                    f"hold (written before result stores kept it); fits drawn from the stored components, "
+                    f"which the decomposition rendered with it")
+        return (f"instrument response: a response (sha256 {sha}...) that this store records but does not "
+                f"hold (written before result stores kept it); fits rendered from the parameters with the "
+                f"Gaussian PSF of each component's Gaussian-equivalent sigma instead, an approximation")
+    return f"instrument response: the Gaussian PSF (each component's own sigma); fits drawn {how}"
 
 
 def measured_profiles(store, ys, xs, it=None):
@@ -239,7 +316,9 @@ def frames_figure(store, time_ps: float):
         empty = floor is not None and _robust_max(img) < floor
         _image(ax, fig, img, store, f"{name} (none at this time)" if empty else name, f"signal ({units})",
                cmap="coolwarm" if resid else "magma", symmetric=resid, floor=floor)
-    how = "" if store.write_components else " (components rendered from parameters)"
+    how = "" if store.write_components else (
+        " (components rendered from parameters with the "
+        + ("stored instrument response)" if store.has_response else "Gaussian PSF)"))
     fig.suptitle(f"decomposed frames at t = {t[it]:.1f} ps{how}")
     fig.tight_layout()
     return fig
@@ -284,15 +363,22 @@ def plot_maps(store, path) -> Path:
     return _save(maps_figure(store), path)
 
 
-def flag_text(bits: int) -> str:
-    """Quality flags of a result store's pixel by name (the solver's decomposition.FLAG_NAMES and
-    the store's own OUT_OF_RANGE), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
+def _flag_table() -> dict:
+    """bit -> name of every flag a result store's ``flags`` may hold: the solver's
+    (decomposition.FLAG_NAMES) and the store's own OUT_OF_RANGE."""
     from decomposition import FLAG_NAMES
     from decomposition.resultstore import OUT_OF_RANGE
 
-    bits = int(bits)
     table = {int(bit): str(name) for bit, name in FLAG_NAMES.items()}
     table[OUT_OF_RANGE] = "OUT_OF_RANGE"
+    return dict(sorted(table.items()))
+
+
+def flag_text(bits: int) -> str:
+    """Quality flags of a result store's pixel by name (the solver's decomposition.FLAG_NAMES and
+    the store's own OUT_OF_RANGE), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
+    bits = int(bits)
+    table = _flag_table()
     names = [name for bit, name in sorted(table.items()) if bits & bit]
     known = 0
     for bit in table:
@@ -371,6 +457,7 @@ def summary_text(store) -> str:
         f"options: {a.get('options', {})}; streaklab {a.get('software_version', '?')}",
         f"pixels: {n}; done {int(done.sum())} ({100.0 * done.sum() / n:.1f}%); decomposed {int(valid.sum())}; "
         f"non-finite input {int((done & ~np.asarray(g['valid'][...], bool)).sum())}",
+        response_text(store),
     ]
     if not done.all():
         lines.append("INCOMPLETE: rerun 'streaklab decompose ... --resume' to finish")
@@ -400,10 +487,8 @@ def summary_text(store) -> str:
     rms = rms[np.isfinite(rms)]
     if rms.size:
         lines.append(f"rms residual: median {np.median(rms):.4g} {_units(store)}, 95% {_pct(rms, 95):.4g}")
-    flags = np.asarray(g["flags"][...])[valid]
-    from decomposition import FLAG_NAMES
-
-    counts = {FLAG_NAMES.get(1 << b, f"bit {b}"): int(((flags >> b) & 1).sum()) for b in range(8)}
+    flags = np.asarray(g["flags"][...])[valid].astype(np.int64)
+    counts = {name: int(((flags & bit) != 0).sum()) for bit, name in _flag_table().items()}
     flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
     lines.append(f"flagged pixels: {int((flags != 0).sum())}" + (f" ({flagged})" if flagged else ""))
     return "\n".join(lines) + "\n"

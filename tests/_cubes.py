@@ -26,3 +26,18 @@ def small_cube(ny, nx, nt=128, seed=0, nsr=0.01):
     noise = rng.standard_normal(clean.shape)
     noise *= nsr * np.linalg.norm(clean, axis=-1, keepdims=True) / np.linalg.norm(noise, axis=-1, keepdims=True)
     return (clean + noise).astype(np.float32)
+
+
+def response_profiles(irf, n_bins, *, seed, delay_range_ps, echo_after_ps, noise, time_bin_ps=2.0, shape=(2, 3)):
+    """Counts-scaled profiles (float32, ``shape`` + (n_bins,)) of a direct, an echo at 0.4 of it
+    ``echo_after_ps`` later and a faint sss (alpha 0.03/ps), all shaped by the instrument
+    response ``irf``, plus white noise of standard deviation ``noise`` (peak ~1000)
+    -> (profiles, direct delays (ps) ``shape``)."""
+    from core.irf import render_shifted, render_sss
+
+    rng = np.random.default_rng(seed)
+    t = time_bin_ps + time_bin_ps * np.arange(n_bins)
+    d = rng.uniform(*delay_range_ps, shape)
+    clean = (render_shifted(irf, t, d) + 0.4 * render_shifted(irf, t, d + echo_after_ps)
+             + 0.03 * render_sss(irf, t, d, np.full(d.shape, 0.03)))
+    return (1000.0 * clean + noise * rng.standard_normal(clean.shape)).astype(np.float32), d

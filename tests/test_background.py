@@ -4,11 +4,13 @@ import pytest
 
 from core.model import empty_params, render_components, render_profile
 from decomposition import decompose
-from decomposition.background import background_significant, background_test, estimate_background
+from decomposition.background import (background_significant, background_test, background_threshold,
+                                      estimate_background)
 from decomposition.components import off_window, threshold, window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_SSS
 from decomposition.flags import FLAG_NAMES, OFF_WINDOW, POOR_FIT
 from decomposition.options import parse_components
+from decomposition.synthetic import make_profiles
 from decomposition.refine import refine
 from decomposition.slots import new_state
 
@@ -77,6 +79,37 @@ def test_estimate_background_known_offset():
     assert abs(bc.mean() - 3.0) < 0.3
     with pytest.raises(ValueError, match="shape"):
         estimate_background(np.zeros(5))
+
+
+def test_estimate_background_of_faint_counts():
+    """Below one count per bin the estimate judges a sample by the mean count around it: a faint
+    sss tail is not taken for background (the per-sample clip took ~0.2 counts per bin for it)."""
+    for background, true_counts in ((0.0, 0.0), (0.02, None)):
+        d = make_profiles(200, 256, seed=5, kinds="d+s", photons_per_pixel=100.0, background=background)
+        b_true = np.broadcast_to(d.background, (200,)) if true_counts is None else np.zeros(200)
+        b = estimate_background(d.noisy.astype(float), counts=True)
+        assert (b >= 0).all()
+        # true offsets 0 and ~0.21 counts per bin; the faint tails inside the clip add a little
+        assert 0.0 <= np.mean(b - b_true) < 0.04 and np.std(b - b_true) < 0.06
+
+
+def test_background_threshold_is_the_information_criterion():
+    fit = np.ones((3, 256), bool)
+    fit[1, :56] = False
+    fit[2] = False
+    np.testing.assert_allclose(background_threshold(fit), [np.log(256), np.log(200), 0.0])
+    np.testing.assert_array_equal(background_threshold(fit, 25.0), 25.0)
+    assert background_significant(np.array([5.5, 5.6]), background_threshold(fit[:1])).tolist() == [False, True]
+
+
+def test_background_false_positive_rate_white_noise():
+    """No offset in the scene: kept in P(chi2_1 >= ln 256) = 1.9 % of the pixels, none at 25."""
+    d = make_profiles(400, 256, seed=11, kinds="d+s", nsr=0.02)
+    got = decompose(d.noisy, T, t0_ps=d.t0_ps, components="d,r,s,b")
+    rate = np.mean(got.params["background"] != 0.0)
+    assert 0.005 <= rate <= 0.04
+    strict = decompose(d.noisy, T, t0_ps=d.t0_ps, components="d,r,s,b", background_chi2=25.0)
+    assert np.all(strict.params["background"] == 0.0)
 
 
 def test_background_test_is_the_increase_of_the_data_term():

@@ -62,7 +62,7 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
-    methods = ("convscd", "gradbm", "oracle")
+    methods = ("convscd", "gradbm", "oracle", "detectable")
     keys = {(r["method"], r["noise"], float(r["nsr"])) for r in rows}
     assert keys == {(m, n, x) for m in methods for n in ("white", "pink", "photon") for x in (0.001, 0.055, 0.2)}
     for r in rows:
@@ -75,6 +75,13 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     by = {(r["method"], r["noise"], float(r["nsr"])): float(r["mean_fidelity"]) for r in rows}
     # The oracle, started at the truth, is near perfect on nearly clean data; heavy noise costs fidelity.
     assert by[("oracle", "white", 0.001)] > 0.99
+    # The detectable ceiling never has more components than the oracle: at most its fidelity,
+    # the same where the noise hides nothing.
+    for n in ("white", "pink", "photon"):
+        for x in (0.001, 0.055, 0.2):
+            assert by[("detectable", n, x)] <= by[("oracle", n, x)] + 0.02
+    assert by[("detectable", "white", 0.001)] > 0.99
+    assert text.count("against the detectable ceiling") == 2 * 9          # convscd and gradbm, per point
     for m in methods:
         assert by[(m, "white", 0.2)] < by[(m, "white", 0.001)]
     # Regime rows: every regime variable partitions the 12 pixels of each point.
@@ -117,7 +124,7 @@ def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):
                  "--methods", "convscd", "--scenes", "legacy", "--time-bin-ps", "2,4", "--out", str(out)]) == 0
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert {(r["method"], float(r["time_bin_ps"])) for r in rows} == {(m, t) for m in ("convscd", "oracle")
+    assert {(r["method"], float(r["time_bin_ps"])) for r in rows} == {(m, t) for m in ("convscd", "oracle", "detectable")
                                                                        for t in (2.0, 4.0)}
     assert all(r["scenes"] == "legacy" and r["render"] == "point" for r in rows)
     summary = json.loads((out / "summary.json").read_text())
@@ -131,7 +138,7 @@ def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = {r["method"]: r for r in csv.DictReader(fh)}
-    assert set(rows) == {"convscd", "search", "oracle"}
+    assert set(rows) == {"convscd", "search", "oracle", "detectable"}
     # The search starts from the ConvSCD result, so its time includes ConvSCD's.
     assert float(rows["search"]["seconds_per_pixel"]) > float(rows["convscd"]["seconds_per_pixel"])
     assert -1.0 <= float(rows["search"]["mean_fidelity"]) <= 1.0

@@ -18,14 +18,19 @@ def test_quick_runs_ignored_and_reference_and_writes_its_files(tmp_path, capsys)
     with open(out / "realism.csv") as fh:
         rows = list(csv.DictReader(fh))
     keys = {(r["effect"], float(r["photons_per_pixel"]), r["variant"]) for r in rows}
-    assert keys == {(e, p, v) for e in realism.EFFECTS for p in (300.0, 10000.0) for v in ("ignored", "reference")}
+    sweep = [e for e in realism.EFFECTS if e != "echo5sigma"]
+    level = {float(r["photons_per_pixel"]) for r in rows if r["effect"] == "echo5sigma"}
+    assert len(level) == 1                                       # the echo target at its own level
+    n_echo = level.pop()
+    assert keys == ({(e, p, v) for e in sweep for p in (300.0, 10000.0) for v in ("ignored", "reference")}
+                    | {("echo5sigma", n_echo, v) for v in ("ignored", "reference")})
     for r in rows:
         assert r["status"] == "ok"
         f = float(r["mean_fidelity"])
         assert np.isfinite(f) and f <= 1.0
         assert float(r["direct_found"]) > 0
     ref = {(r["effect"], float(r["photons_per_pixel"])): r for r in rows if r["variant"] == "reference"}
-    for effect in realism.EFFECTS:
+    for effect in sweep:
         lo, hi = ref[(effect, 300.0)], ref[(effect, 10000.0)]
         # The reference is its own yardstick, and more photons give it smaller errors.
         assert float(lo["lifetime_rmse_over_reference"]) == pytest.approx(1.0)
@@ -36,6 +41,7 @@ def test_quick_runs_ignored_and_reference_and_writes_its_files(tmp_path, capsys)
     assert summary["variants"] == ["ignored", "reference"] and summary["quick"]
     assert {c["met"] for c in summary["target_checks"]} <= {True, False, None}
     assert "targets (" in text and "bias within 1 %" in text
+    assert "echo target (reference): a 1 % echo 5 sigma above the noise" in text
 
 
 def test_a_variant_that_raises_is_reported_per_row_and_the_rest_runs(tmp_path, monkeypatch, capsys):
@@ -55,6 +61,25 @@ def test_a_variant_that_raises_is_reported_per_row_and_the_rest_runs(tmp_path, m
         assert r["status"].startswith("error: TypeError") and r["mean_fidelity"] == ""
     assert all(r["status"] == "ok" for r in rows if r["variant"] == "reference")
     assert "modelled  error: TypeError" in text and "[not measured] modelled, background" in text
+
+
+def test_five_sigma_photons_puts_the_echo_at_five_sigma():
+    """At the level returned, the expected echo peak over the Poisson noise of its bin is 5 in
+    the scenes (the generator's own counting), the direct before the window, no sss."""
+    setup = realism.effect_setup("echo5sigma", 2.0)
+    n = realism.five_sigma_photons(setup, 41, 256, 2.0, seed=3)
+    d = make_profiles(41, 256, seed=3, kinds=setup["kinds"], time_bin_ps=2.0, photons_per_pixel=n,
+                      **setup["options"])
+    echo = d.components["interreflections"][:, -1]
+    peak = np.argmax(echo, axis=1)
+    rows = np.arange(41)
+    snr = echo[rows, peak] / np.sqrt(d.clean[rows, peak])
+    np.testing.assert_allclose(np.median(snr), 5.0, rtol=1e-6)
+    assert np.all(np.abs(snr - 5.0) < 0.5)                      # the pixels differ by bin phase only
+    assert np.all(d.params["direct_delay_ps"] == d.t0_ps - realism.ECHO_DIRECT_BEFORE_PS)
+    assert np.all(np.isnan(d.params["sss_alpha_per_ps"])) and d.echo.all()
+    # the echo is 1 % of the direct's amplitude
+    np.testing.assert_allclose(d.params["ir_amplitude"][:, 0], 0.01 * d.params["direct_amplitude"])
 
 
 def test_scores_of_the_truth_itself():

@@ -118,7 +118,7 @@ def test_a_scheduler_address_that_is_not_dask_is_refused_in_one_line(cube, tmp_p
 # Every process of the run (the command and its worker processes) slows each chunk's solve down
 # through this sitecustomize, so that the run is reliably still going when Ctrl-C arrives.
 _SLOW_SITE = ("import time\nimport decomposition.chunked as _c\n_f = _c.solve_block\n"
-              "_c.solve_block = lambda *a, **k: (time.sleep(0.5), _f(*a, **k))[1]\n")
+              "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
 
 
 @pytest.mark.timeout(120)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from core.irf import render_shifted
-from core.irf_models import tailed_response
+from core.irf_models import gaussian_response, tailed_response
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE
 from decomposition.response_refine import fit_slots
@@ -53,8 +53,10 @@ def test_background_recovered_and_components_unmoved(tailed, noise):
     z = np.abs(err) / p1["background_stderr"]
     assert np.all(np.isfinite(z)) and np.all(z < 4.0)
     assert 0.35 < np.median(z) < 1.1                    # 0.674 for a calibrated standard error
-    # none where the scene has none: exactly 0.0, no standard error
-    assert np.all(p0["background"] == 0.0) and np.all(np.isnan(p0["background_stderr"]))
+    # none where the scene has none: exactly 0.0, no standard error, but for the ~2 % the
+    # information criterion keeps (test_background.py measures the rate)
+    zero = p0["background"] == 0.0
+    assert np.mean(zero) >= 0.9 and np.all(np.isnan(p0["background_stderr"][zero]))
     # the components: unbiased and where the scene without the offset puts them
     (dd0, tau0), (dd1, tau1) = _biases(d0, p0), _biases(d1, p1)
     tol_tau = 0.01 if "nsr" in noise else 0.02
@@ -90,3 +92,29 @@ def test_fit_slots_constant_column_exact(tailed):
     # without the column the offset is not modelled and the fit is worse
     g = fit_slots(tailed, t, y, np.ones_like(y), fam, start, np.zeros((2, 2)), **kw)
     assert np.all(g.background == 0.0) and np.all(g.cost > 100 * f.cost + 1e-6)
+
+
+def test_background_at_100_photons_kept_and_lifetime_unbiased():
+    """A background of ~0.2 counts per bin (half as many counts as the signal): kept in every
+    pixel by the information criterion (the 5-sigma threshold dropped it in ~22 % of them,
+    where the sss then absorbed it: lifetime bias +22 %)."""
+    irf = gaussian_response(4.0, time_step_ps=T)
+    d = make_profiles(200, L, seed=3, kinds="d+s", response=irf, background=0.02, photons_per_pixel=100.0)
+    r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=irf, components="d,r,s,b", noise="poisson")
+    b, b_true = r.params["background"], np.broadcast_to(d.background, (200,))
+    found = np.isfinite(r.params["sss_alpha_per_ps"])
+    assert found.mean() > 0.75 and np.mean(b[found] != 0.0) >= 0.95
+    assert abs(np.mean(b[found] - b_true[found])) < 0.02            # counts per bin
+    tau_rel = d.params["sss_alpha_per_ps"][found] / r.params["sss_alpha_per_ps"][found] - 1.0
+    assert abs(np.mean(tau_rel)) < 0.06 and np.sqrt(np.mean(tau_rel ** 2)) < 0.4
+
+
+def test_no_background_at_100_photons_left_out():
+    """Counts without an offset: the offset is kept in few pixels (it was kept in 28 %, where
+    the first estimate, ~0.2 counts per bin taken from the sss tail, hid the sss from the
+    pursuit and the offset then took its light)."""
+    irf = gaussian_response(4.0, time_step_ps=T)
+    d = make_profiles(200, L, seed=5, kinds="d+s", response=irf, photons_per_pixel=100.0)
+    r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=irf, components="d,r,s,b", noise="poisson")
+    assert np.mean(r.params["background"] != 0.0) <= 0.03
+    assert np.mean(np.isfinite(r.params["sss_alpha_per_ps"])) >= 0.95

@@ -4,7 +4,7 @@ bad responses stop the run before anything is written."""
 import numpy as np
 import pytest
 
-from core.irf import render_shifted, render_sss
+from _cubes import response_profiles
 from core.irf_models import tailed_response
 from core.irfstore import save_response
 from decomposition import decompose
@@ -25,12 +25,7 @@ def irf():
 @pytest.fixture(scope="module")
 def cubes(tmp_path_factory, irf):
     tmp = tmp_path_factory.mktemp("irfcube")
-    rng = np.random.default_rng(7)
-    t = T + T * np.arange(L)
-    d = rng.uniform(150, 250, (2, 3))
-    clean = (render_shifted(irf, t, d) + 0.4 * render_shifted(irf, t, d + 120.0)
-             + 0.03 * render_sss(irf, t, d, np.full(d.shape, 0.03)))
-    data = (1000.0 * clean + 10.0 * rng.standard_normal(clean.shape)).astype(np.float32)
+    data, d = response_profiles(irf, L, seed=7, delay_range_ps=(150, 250), echo_after_ps=120.0, noise=10.0, time_bin_ps=T)
     with_irf = tmp / "with_irf.zarr"
     write_cube(with_irf, data, time_bin_ps=T, chunks=(1, 3))
     write_cube_response(str(with_irf), irf)

@@ -29,6 +29,7 @@ def test_info_records_every_option_with_its_resolved_value():
     ({"sigma_range_ps": (3.0, 1.0)}, "option sigma_range_ps: must be 0 < lo <= hi"),
     ({"lm_tol": float("nan")}, "option lm_tol: must be finite"),
     ({"no_such": 1}, r"unknown option\(s\) \['no_such'\]"),
+    ({"background_chi2": -1.0}, "option background_chi2: must be >= 0"),
 ])
 def test_bad_values_are_refused_naming_the_option(values, pattern):
     with pytest.raises(OptionError, match=pattern):

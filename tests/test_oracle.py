@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from decomposition.metrics import fidelity
-from decomposition.oracle import OracleOptions, oracle_fit
+from decomposition.oracle import OracleOptions, oracle_fit, significant_truth
 from decomposition.synthetic import make_profiles
 
 
@@ -42,3 +42,31 @@ def test_oracle_options_are_validated():
         OracleOptions(max_iter=0)
     with pytest.raises(ValueError, match="ftol"):
         OracleOptions(ftol=0.0)
+
+
+def test_significant_truth_drops_what_the_noise_hides_and_keeps_the_order():
+    d = make_profiles(60, 512, seed=9, ranges="paper", bin_integrated=True, kinds=("c",))   # d+s+r2+r3
+    ir_e = np.sum(d.components["interreflections"] ** 2, axis=-1)                          # (60, 2)
+    s_e = np.sum(d.components["sss"] ** 2, axis=-1)
+    # a noise level between the two inter-reflections' energies of every pixel: the weaker one hides
+    lo, hi = ir_e.min(axis=1), ir_e.max(axis=1)
+    sigma = np.sqrt(np.sqrt(lo * hi) / 25.0)
+    seen = significant_truth(d.params, d.components, sigma)
+    np.testing.assert_array_equal(seen["direct_delay_ps"], d.params["direct_delay_ps"])
+    weak_first = ir_e[:, 0] < ir_e[:, 1]
+    assert weak_first.any() and (~weak_first).any()
+    # one inter-reflection left, moved to the front, with its own parameters
+    np.testing.assert_array_equal(np.isfinite(seen["ir_delay_ps"]), [[True, False]] * 60)
+    kept = np.where(weak_first, 1, 0)
+    for k in ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps"):
+        np.testing.assert_array_equal(seen[k][:, 0], d.params[k][np.arange(60), kept])
+    # the sss hides where its energy is below 25 sigma^2
+    np.testing.assert_array_equal(np.isfinite(seen["sss_delay_ps"]), s_e >= 25.0 * sigma ** 2)
+    # no noise: nothing hides; the input is not modified
+    same = significant_truth(d.params, d.components, np.zeros(60))
+    for k, v in d.params.items():
+        np.testing.assert_array_equal(same[k], v)
+    with pytest.raises(ValueError, match="significance_chi2"):
+        significant_truth(d.params, d.components, sigma, significance_chi2=-1.0)
+    with pytest.raises(ValueError, match="noise_sigma"):
+        significant_truth(d.params, d.components, np.full(60, np.nan))
