@@ -367,25 +367,62 @@ def atom_gain(counts: np.ndarray, model_counts: np.ndarray, atom: np.ndarray, fi
     gain : ndarray (P,)        >= 0 (0 where the best amplitude is 0)
     amplitude : ndarray (P,)   counts per unit of ``atom``
     """
-    y = np.where(fit, np.asarray(counts, np.float64), 0.0)
-    phi = np.where(fit, np.maximum(np.asarray(atom, np.float64), 0.0), 0.0)
-    mu = np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), POISSON_VARIANCE_FLOOR)
-    on = phi > 1e-12 * np.maximum(phi.max(axis=1, keepdims=True), 1e-300)
-    phi = np.where(on, phi, 0.0)
-    y_on = np.where(on, y, 0.0)
-    sp = phi.sum(axis=1)
-    lo = np.zeros(y.shape[0])
-    hi = y_on.sum(axis=1) / np.maximum(sp, 1e-300)
-    for _ in range(ATOM_GAIN_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        score = np.einsum("pl,pl->p", y_on, phi / (mu + mid[:, None] * phi)) - sp
-        up = score > 0
-        lo, hi = np.where(up, mid, lo), np.where(up, hi, mid)
-    gain = 2.0 * (np.where(y_on > 0, y_on * np.log1p(lo[:, None] * phi / mu), 0.0).sum(axis=1) - lo * sp)
-    gain = np.maximum(gain, 0.0)
+    y = np.ascontiguousarray(counts, np.float64)
+    gain = np.zeros(y.shape[0])
+    amp = np.zeros(y.shape[0])
+    if y.shape[0]:
+        _atom_gains(y, np.ascontiguousarray(model_counts, np.float64), np.ascontiguousarray(atom, np.float64),
+                    np.ascontiguousarray(fit, np.bool_), ATOM_GAIN_BISECTIONS, POISSON_VARIANCE_FLOOR, gain, amp)
     if dispersion is not None:
         gain = gain / np.square(np.asarray(dispersion, np.float64))
-    return gain, lo
+    return gain, amp
+
+
+@njit
+def _atom_gains(counts, model_counts, atom, fit, n_bisect, floor, gain, amp):
+    """:func:`atom_gain`'s bisection and gain, one pixel at a time over the atom's support (the
+    samples where the atom is above 1e-12 of its peak)."""
+    P, L = counts.shape
+    on = np.empty(L, np.int64)
+    for i in range(P):
+        top = 0.0
+        for j in range(L):
+            if fit[i, j]:
+                top = max(top, atom[i, j])
+        cut = 1e-12 * max(top, 1e-300)
+        m = 0
+        sp = 0.0
+        sy = 0.0
+        for j in range(L):
+            if fit[i, j] and atom[i, j] > cut:
+                on[m] = j
+                m += 1
+                sp += atom[i, j]
+                sy += counts[i, j]
+        lo = 0.0
+        hi = sy / max(sp, 1e-300)
+        for _ in range(n_bisect):
+            mid = 0.5 * (lo + hi)
+            score = 0.0
+            for q in range(m):
+                j = on[q]
+                mc = model_counts[i, j]
+                mu = max(mc if math.isfinite(mc) else (0.0 if math.isnan(mc) else mc), floor)
+                score += counts[i, j] * (atom[i, j] / (mu + mid * atom[i, j]))
+            if score - sp > 0.0:
+                lo = mid
+            else:
+                hi = mid
+        g = 0.0
+        for q in range(m):
+            j = on[q]
+            yj = counts[i, j]
+            if yj > 0.0:
+                mc = model_counts[i, j]
+                mu = max(mc if math.isfinite(mc) else (0.0 if math.isnan(mc) else mc), floor)
+                g += yj * math.log1p(lo * atom[i, j] / mu)
+        gain[i] = max(2.0 * (g - lo * sp), 0.0)
+        amp[i] = lo
 
 
 def anscombe_residual(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
