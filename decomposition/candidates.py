@@ -1,6 +1,7 @@
 """Candidate component sets after the detection: polish one, and run a step block by block.
 
-The steps after the sparse coding (:mod:`decomposition.grow`, :mod:`decomposition.prune`) each
+The search stage's starts (:mod:`decomposition.search`) and the steps after it
+(:mod:`decomposition.grow`, :mod:`decomposition.prune`) each
 build an alternative slot state for some pixels, polish it with the solver's compiled LM and
 keep it where the search's penalised objective is lower.  :func:`polish_candidate` is that
 polish, exactly as the search stage scores its starts (amplitudes by NNLS, the LM on the data

@@ -408,9 +408,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     """
     from . import components as comp
     from .constants import FAM_GAUSS, FAM_SSS
-    from .polish import refit_amplitudes
-    from .label import final_atoms
-    from .slots import drop_zero, new_state, parameter_bounds, put, refine_atoms, take
+    from .candidates import polish_candidate
+    from .slots import new_state, put, take
 
     n, L = p.shape
     K = st["fam"].shape[1]
@@ -424,7 +423,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     s2 = np.maximum(s_eff, 1e-300) ** 2
     nfit = np.maximum(mask.used.sum(axis=1), 1)
     log_l = np.log(nfit)
-    shared = opts.shared_sigma
 
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
@@ -477,16 +475,10 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     t_peak = t[_first_peak(ys, SEARCH_PEAK_LEVEL)]
     gd = np.where(g[idx], base["delay"][idx], np.nan)
     allow_later = "r" in components
-    bounds = parameter_bounds(dic, opts.bound_factor)
-    mu = np.zeros(idx.size)
-    eps = opts.eps_rel * np.sqrt(sb2)
+    noise_b = np.sqrt(sb2)
 
-    def refined(state, rows=slice(None)):
-        refit_amplitudes(pb[rows], mb[rows], state, dic)
-        state, _, _ = refine_atoms(t, pb[rows], mb[rows], state, mu[rows], eps[rows], bounds, opts.n_polish, None,
-                                   shared, opts.sss_after_direct, opts.lm_tol)
-        drop_zero(state)
-        return final_atoms(state, t, T, opts, s_sig[idx][rows])      # scored as it will be labelled
+    def refined(state, rows=slice(None)):                  # scored as it will be labelled
+        return polish_candidate(t, pb[rows], mb[rows], state, noise_b[rows], dic, opts, s_sig[idx][rows])
 
     # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
     cand = [take(base, idx)]
