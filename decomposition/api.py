@@ -33,6 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
+from .candidates import residual_significance_noise
 from .grow import grow_components, grow_counts
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
@@ -321,6 +322,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             info.update(search_doubt=int(found.doubt.sum()),
                         search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
                         ambiguous=int(found.ambiguous.sum()))
+        # the steps after the search judge significance with the noise seen in the residual
+        samples = dataclasses.replace(samples, lagged_noise=residual_significance_noise(samples, det, dic, opts))
         if opts.grow:
             state, grown = grow_components(samples, det, dic, opts)
             det = dataclasses.replace(det, state=state)
