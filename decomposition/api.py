@@ -34,7 +34,7 @@ from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
 from .candidates import residual_significance_noise
-from .grow import grow_components, grow_counts
+from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 
@@ -328,6 +328,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             state, grown = grow_components(samples, det, dic, opts)
             det = dataclasses.replace(det, state=state)
             info["grown"] = int(grown.sum())
+            state, swapped = swap_components(samples, det, dic, opts)
+            det = dataclasses.replace(det, state=state)
+            info["swapped"] = int(swapped.sum())
         if opts.prune:
             state, pruned = prune_components(samples, det, dic, opts)
             det = dataclasses.replace(det, state=state)
