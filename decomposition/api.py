@@ -218,12 +218,15 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         objective kept (:mod:`decomposition.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
     grow : bool
-        Forward step after the search: where a pixel's data term exceeds
-        search_doubt_chi2 times its expected value and it has a free slot, a
-        Gaussian at its largest residual away from its Gaussians, polished
-        with the rest, kept where the search's penalised objective is lower
+        Forward step after the search: where a pixel has a free slot and its
+        largest residual bump away from its Gaussians is significant (or its data
+        term exceeds search_doubt_chi2 times its expected value), a Gaussian there,
+        polished with the rest, kept where the search's penalised objective is lower
         and the Gaussians stay resolved (:mod:`decomposition.grow`);
-        ``info["grown"]`` counts the pixels.  Count data (``noise="poisson"``) also get
+        ``info["grown"]`` counts the pixels.  Then the sss swap: where the sss peaks
+        more than SWAP_MODE_GAP_SIGMA widths after the direct, a Gaussian at its peak
+        and its onset moved next to the direct, kept by the same rule
+        (``info["swapped"]``).  Count data (``noise="poisson"``) also get
         a trial Gaussian at a faint echo after the threshold, kept where the Poisson
         deviance drops by ``significance_chi2`` (:func:`decomposition.grow.grow_counts`;
         ``info["grown_counts"]``); with ``irf=`` the response path's echo steps
