@@ -257,7 +257,7 @@ def test_decompose_adds_no_inter_reflection_to_a_direct_and_a_late_sss():
     truth["direct_sigma_ps"][:] = 4.0
     truth["sss_delay_ps"][:] = 108.0
     truth["sss_amplitude"][:] = 0.1
-    truth["sss_alpha_per_ps"][:] = 0.02
+    truth["sss_alpha_per_ps"][:] = 0.03
     truth["sss_sigma_ps"][:] = 4.0
     y = render_profile(truth, L_BINS, T_PS) + np.random.default_rng(7).normal(0, NOISE, (n, L_BINS))
     res = decompose(y, T_PS)
