@@ -31,10 +31,10 @@ An sss whose onset the fit moved late can take in a weak first inter-reflection 
 leaving no bump: :func:`swap_block` tries a Gaussian at the peak of every sss that peaks more
 than ``SWAP_MODE_GAP_SIGMA`` widths after the direct, with the sss onset moved next to the
 direct (mean fidelity at the six points above, seed 0 / 1, after the bump test and the
-residual significance noise: white 0.001 0.983 -> 0.988 / 0.976 -> 0.980, 0.055 0.936 -> 0.943
-/ 0.934 -> 0.943, 0.11 0.900 -> 0.915 / 0.912 -> 0.925, pink 0.887 -> 0.892 / 0.901 -> 0.907,
-photon 0.864 -> 0.873 / 0.850 -> 0.854, 4 ps 0.907 -> 0.917 / 0.922 -> 0.929 with the sss-peak rule alone, 58 % of the pixels tried;
-with the alpha sigma rule too 36 %, the same fidelity to 0.001).
+residual significance noise: white 0.001 0.983 -> 0.988 / 0.976 -> 0.980, 0.055 0.936 -> 0.942
+/ 0.934 -> 0.943, 0.11 0.900 -> 0.916 / 0.912 -> 0.925, pink 0.887 -> 0.892 / 0.901 -> 0.907,
+photon 0.864 -> 0.873 / 0.850 -> 0.854, 4 ps 0.907 -> 0.916 / 0.922 -> 0.928; 36 % of the pixels
+tried, 58 % without the alpha sigma rule at the same fidelity to 0.001).
 
 Count data (``noise="poisson"``) have a forward step of their own, :func:`grow_counts`, after the
 Poisson polish and the threshold: the pursuit, the search and the test above weigh every sample
