@@ -30,6 +30,7 @@ __all__ = [
     "MIN_NOISE_SAMPLES",
     "SPIKE_FALSE_ALARM",
     "POISSON_VARIANCE_FLOOR",
+    "POOR_FIT_DIRECT_SIGMA",
     "POISSON_REFITS",
     "PEARSON_MIN_COUNTS",
     "BOUND_TOL",
@@ -88,6 +89,10 @@ NEAR_SIGMA = 3.0
 #: Largest component peak the pick accepts, in units of the pixel's largest sample: a
 #: coefficient far above the data is a degenerate (near-zero-norm) coordinate, not light.
 AMP_MAX = 20.0
+
+#: POOR_FIT's second test (:mod:`decomposition.quality`) weighs the residual over the direct's
+#: delay +- this many fitted widths (plus one bin) (dimensionless).
+POOR_FIT_DIRECT_SIGMA = 3.0
 
 #: Restart threshold (dimensionless ratio).  Used twice, for the same reason: a fit whose
 #: misfit exceeds its noise expectation by half again is not explained by the noise.
