@@ -10,6 +10,13 @@ the variance-stabilised domain).  The second test sees a direct of the
 wrong shape: its misfit lies on a few samples, diluted in the whole window's RMS, and being
 on the scale of a bin it also raises the noise estimated at the signal (second differences of
 the residual) that the first test forgives.  EMPTY: a finite pixel with no component at all.
+
+AMBIGUOUS (also set by the search, :mod:`decomposition.search`): the direct is weak and just
+before a much larger onset -- its rendered peak below WEAK_DIRECT_FRACTION of the peak of the
+other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_ONSET_SIGMA + 2)
+widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths after
+it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
+larger light, with the true direct inside that light: the data often fit both equally well.
 """
 from __future__ import annotations
 
@@ -18,18 +25,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import components as comp
-from .constants import POOR_FIT_DIRECT_SIGMA
-from .flags import EMPTY, FLAG_DTYPE, POOR_FIT, mark
+from .constants import POOR_FIT_DIRECT_SIGMA, WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA
+from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
 from .noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
-__all__ = ["Fit", "assess_fit", "direct_misfit"]
+__all__ = ["Fit", "assess_fit", "direct_misfit", "weak_direct"]
 
 
 @dataclass(frozen=True)
 class Fit:
     """Rendered components (``direct``, ``sss`` (P, L), ``interreflections`` (P, R, L)), the
-    ``residual`` (P, L) = values - all components, and ``flags`` (P,) (POOR_FIT, EMPTY)."""
+    ``residual`` (P, L) = values - all components, and ``flags`` (P,) (POOR_FIT, EMPTY,
+    AMBIGUOUS)."""
 
     direct: np.ndarray
     sss: np.ndarray
@@ -70,6 +78,8 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
     if params["ir_delay_ps"].shape[-1]:
         has_any |= np.isfinite(params["ir_delay_ps"]).any(axis=1)
     mark(flags, samples.finite & ~has_any, EMPTY)
+    t = axis.t0_ps + axis.time_bin_ps * np.arange(L)
+    mark(flags, weak_direct(params, rend, t), AMBIGUOUS)
     return Fit(direct=rend["direct"], sss=rend["sss"], interreflections=rend["interreflections"],
                residual=residual, flags=flags)
 
@@ -98,3 +108,32 @@ def direct_misfit(samples: Samples, params: dict, residual: np.ndarray, total: n
         r = np.where(near, residual[live], 0.0) / samples.scale[live, None]
         chi2 = np.einsum("pl,pl->p", r, r) / np.maximum(noise, 1e-300) ** 2
     return np.sqrt(chi2 / np.maximum(near.sum(axis=1), 1))
+
+
+def weak_direct(params: dict, rendered: dict, t_ps: np.ndarray) -> np.ndarray:
+    """(P,) bool: the direct is weak and just before a much larger onset (see the module
+    docstring).
+
+    Parameters
+    ----------
+    params : dict of ndarray
+        ``direct_delay_ps``, ``direct_sigma_ps``, ``sss_delay_ps`` (P,) and ``ir_delay_ps``
+        (P, R), in ps.
+    rendered : dict of ndarray
+        The rendered ``direct``, ``sss`` (P, L) and ``interreflections`` (P, R, L).
+    t_ps : ndarray (L,)
+        Sample times in ps.
+    """
+    d = np.asarray(params["direct_delay_ps"], np.float64)
+    w = np.asarray(params["direct_sigma_ps"], np.float64)
+    ir = np.asarray(params["ir_delay_ps"], np.float64)
+    first_ir = np.min(np.where(np.isfinite(ir), ir, np.inf), axis=1) if ir.shape[-1] else np.full(d.shape, np.inf)
+    onset = np.fmin(np.asarray(params["sss_delay_ps"], np.float64), first_ir)
+    T = t_ps[1] - t_ps[0] if t_ps.size > 1 else 1.0
+    other = rendered["sss"] + rendered["interreflections"].sum(axis=-2)
+    with np.errstate(invalid="ignore"):
+        near = (onset - d) <= WEAK_DIRECT_ONSET_SIGMA * w
+        window = (t_ps[None, :] >= d[:, None]) & (t_ps[None, :] <= (d + (WEAK_DIRECT_ONSET_SIGMA + 2.0) * w + T)[:, None])
+    h_other = np.where(window, other, 0.0).max(axis=1)
+    h_direct = rendered["direct"].max(axis=1)
+    return near & (h_other > 0) & (h_direct < WEAK_DIRECT_FRACTION * h_other)

@@ -80,3 +80,31 @@ def test_pixel_without_direct_is_not_judged_on_it():
     none["direct_delay_ps"][:] = np.nan
     total = render_profile(none, L, T)
     np.testing.assert_array_equal(direct_misfit(s, none, s.values - total, total, s.noise_eff[s.live]), 0.0)
+
+
+def _weak_direct_params(direct_amplitude, sss_onset_ps, n=1):
+    return _params((400.0, direct_amplitude, 1.2), (sss_onset_ps, 0.5, 0.025), n)   # sss peak 1.33
+
+
+def test_weak_direct_just_before_a_larger_onset_is_ambiguous():
+    from decomposition.components import render_params
+    from decomposition.flags import AMBIGUOUS
+    from decomposition.quality import weak_direct
+
+    t = T + T * np.arange(L)
+    cases = [(0.05, 403.0, True),     # weak, sss onset 2.5 widths after: in doubt
+             (1.0, 403.0, False),     # a strong direct
+             (0.05, 410.0, False)]    # weak, but the onset 8 widths later: resolved
+    for amp, onset, want in cases:
+        p = _weak_direct_params(amp, onset)
+        rend = render_params(p, L, T, T)
+        if onset < 405.0:                                   # the case is on the side it names
+            peak_ratio = rend["direct"].max() / rend["sss"][0, (t >= 400.0) & (t <= 400.0 + 6 * 1.2 + T)].max()
+            assert (peak_ratio < 0.15) == (amp < 0.5)
+        assert weak_direct(p, rend, t).tolist() == [want]
+    # in the decomposition's flags, through the quality stage
+    p = _weak_direct_params(0.05, 403.0, N)
+    s = prepare_samples(render_profile(p, L, T) + 0.002 * np.random.default_rng(3).standard_normal((N, L)),
+                        time_axis(T), GridSpec())
+    assert np.all(assess_fit(s, p, s.noise_eff, 3.0).flags & AMBIGUOUS)
+    assert not np.any(assess_fit(s, TRUE, s.noise_eff, 3.0).flags & AMBIGUOUS)
