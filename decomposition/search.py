@@ -346,13 +346,13 @@ def _n_free(st, shared_sigma):
     return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)
 
 
-def _near_direct_chi2(t, p, mask, st, s2):
+def _near_direct_chi2(t, residual, mask, st, s2):
     """(n,) the data term per sample, over the used samples within POOR_FIT_DIRECT_SIGMA widths
     (plus one bin) of each pixel's earliest Gaussian, in units of the noise variance ``s2``
-    (n,); 0 for a pixel without a Gaussian.  A direct of the wrong width misfits there while
+    (n,); 0 for a pixel without a Gaussian.  ``residual`` (n, L): of the state ``st`` under the
+    masks (:meth:`SampleMask.residual`).  A direct of the wrong width misfits there while
     the whole window's data term, over hundreds of quiet samples, stays near its expectation."""
     from .constants import FAM_GAUSS, POOR_FIT_DIRECT_SIGMA
-    from .slots import render
 
     g = st["fam"] == FAM_GAUSS
     rows = np.arange(g.shape[0])
@@ -363,7 +363,7 @@ def _near_direct_chi2(t, p, mask, st, s2):
     w = POOR_FIT_DIRECT_SIGMA * np.exp(st["lsig"][rows, k0]) + T
     with np.errstate(invalid="ignore"):
         near = (np.abs(t[None, :] - d0[:, None]) <= w[:, None]) & mask.used
-    r = np.where(near, mask.residual(p, render(t, st)), 0.0)
+    r = np.where(near, residual, 0.0)
     return np.einsum("pl,pl->p", r, r) / np.maximum(near.sum(axis=1), 1) / s2
 
 
@@ -436,7 +436,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     from . import components as comp
     from .constants import FAM_GAUSS, FAM_SSS
     from .candidates import polish_candidate
-    from .slots import new_state, put, take
+    from .slots import new_state, put, render, take
 
     n, L = p.shape
     K = st["fam"].shape[1]
@@ -454,7 +454,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
     comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
-    chi0 = _data_chi2(t, p, mask, base, s2)
+    r0 = mask.residual(p, render(t, base))
+    chi0 = np.einsum("pl,pl->p", r0, r0) / s2
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
@@ -489,7 +490,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         doubt = narrow_all | (~has_s & (g.sum(axis=1) >= 2))
         doubt |= has_s & (~g.any(axis=1) | (s_on < d0 - 0.5 * sig) | (s_on > d0 + NEAR_SIGMA * sig))
         doubt |= chi0 > opts.search_doubt_chi2 * nfit
-        doubt |= _near_direct_chi2(t, p, mask, base, s2) > opts.search_doubt_chi2
+        doubt |= _near_direct_chi2(t, r0, mask, base, s2) > opts.search_doubt_chi2
     idx = np.nonzero(doubt)[0]
     if idx.size == 0:
         return out, start, doubt, ambiguous

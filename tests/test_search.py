@@ -252,7 +252,7 @@ def test_near_direct_chi2_weighs_only_the_samples_around_the_earliest_gaussian()
     p[0, near] += 0.03                                  # a misfit at the direct
     p[1, np.abs(t - 250.0) <= 8.0] += 0.03              # the same misfit at the later Gaussian only
     mask = SampleMask(np.ones((2, L), bool), np.zeros((2, L), bool))
-    got = _near_direct_chi2(t, p, mask, st, np.full(2, 0.01 ** 2))
+    got = _near_direct_chi2(t, mask.residual(p, render(t, st)), mask, st, np.full(2, 0.01 ** 2))
     np.testing.assert_allclose(got, [9.0, 0.0], atol=1e-9)  # (0.03 / 0.01)^2 per sample; nothing
 
 
