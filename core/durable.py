@@ -17,6 +17,7 @@ the caller syncing the flag in a later call.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -91,8 +92,19 @@ def sync_chunks(store_path, chunks) -> None:
         for p in paths:
             fsync_path(p)
         return
-    # a pool per call: no thread outlives the write, and nothing is shared across forks
-    with ThreadPoolExecutor(max_workers=min(SYNC_THREADS, len(paths)),
-                            thread_name_prefix="streaklab-fsync") as pool:
-        for _ in pool.map(fsync_path, paths):
-            pass
+    for _ in _pool().map(fsync_path, paths):
+        pass
+
+
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool() -> ThreadPoolExecutor:
+    """The process's fsync threads, started once (starting 16 threads per chunk cost more than
+    the fsyncs); a forked child starts its own, since threads do not survive a fork."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL[0] != os.getpid():
+            _POOL = (os.getpid(), ThreadPoolExecutor(max_workers=SYNC_THREADS, thread_name_prefix="streaklab-fsync"))
+        return _POOL[1]

@@ -62,3 +62,23 @@ def test_a_failed_file_fsync_is_raised_a_refused_directory_fsync_is_not(tmp_path
 def test_missing_chunks_are_skipped(tmp_path):
     path = _store(tmp_path)
     durable.sync_chunks(path, [("a", (7, 7))])        # an all-fill chunk zarr never wrote
+
+
+def _sync_in_child(path, out):
+    durable.sync_chunks(path, [("a", (0, 0)), ("b", (0, 0))])
+    out.put(durable._POOL[0] == os.getpid())
+
+
+def test_a_forked_child_syncs_with_its_own_threads(tmp_path):
+    """Threads do not survive a fork: a child (a dask worker, say) must not wait on the parent's pool."""
+    import multiprocessing
+
+    path = _store(tmp_path)
+    durable.sync_chunks(path, [("a", (1, 1)), ("b", (1, 1))])        # the parent's pool exists
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_sync_in_child, args=(path, out))
+    child.start()
+    child.join(timeout=30)
+    assert child.exitcode == 0, "the child hung or failed syncing"
+    assert out.get(timeout=5) is True
