@@ -108,3 +108,20 @@ def test_weak_direct_just_before_a_larger_onset_is_ambiguous():
                         time_axis(T), GridSpec())
     assert np.all(assess_fit(s, p, s.noise_eff, 3.0).flags & AMBIGUOUS)
     assert not np.any(assess_fit(s, TRUE, s.noise_eff, 3.0).flags & AMBIGUOUS)
+
+
+def test_direct_not_judged_where_the_noise_at_the_signal_is_unmeasured():
+    # photon-like noise on a dark baseline: the whole-profile noise is the floor, far below the
+    # noise at the peak; a lone direct spans too few samples to measure the latter
+    lone = _params((400.0, 1.0, 3.0), (np.nan, np.nan, np.nan))
+    clean = render_profile(lone, L, T)
+    rng = np.random.default_rng(5)
+    noisy = clean + 0.015 * np.sqrt(clean) * rng.standard_normal(clean.shape)
+    s = prepare_samples(noisy, time_axis(T), GridSpec())
+    total = render_profile(lone, L, T)
+    model = total / s.scale[:, None]
+    assert np.all(signal_noise_sigma(s.values / s.scale[:, None] - model, model, s.fit) == 0.0)
+    # against the floor the true split itself would read as a misfit ...
+    assert np.median(direct_misfit(s, lone, s.values - total, total, s.noise_eff[s.live])) > 3.0
+    # ... so it is not judged there
+    assert not np.any(assess_fit(s, lone, s.noise_eff, 3.0).flags & POOR_FIT)
