@@ -407,11 +407,12 @@ def _crossing(t, y, level, allowed):
     return t[j] + np.clip(frac, 0.0, 1.0) * T * (i > 0)
 
 
-def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None):
+def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None, bump_test: bool = True):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
     detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,), the
     noise of the in-window significance test (:meth:`Samples.significance_sigma`), default
-    ``s_eff``).
+    ``s_eff``; ``bump_test``: the forward step on the rise start tries significant residual
+    bumps too (:func:`decomposition.grow.grow_block`; False for count data)).
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
@@ -556,7 +557,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         # loses to the wide one it would beat
         from .grow import grow_block
 
-        cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx])
+        cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx], bump_test)
     js = []
     for c in cand:
         js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
@@ -617,6 +618,7 @@ def search_components(samples, det, dic, opts, components) -> SearchStage:
         st, start[rows], doubt[rows], amb[rows] = search_block(p, mask, sub, det.noise_eff[live[rows]], dic, opts,
                                                               components,
                                                               samples.significance_sigma(live[rows],
-                                                                                         det.noise_eff[live[rows]]))
+                                                                                         det.noise_eff[live[rows]]),
+                                                              samples.noise_model != "poisson")
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)
