@@ -22,7 +22,8 @@ resolution rule, photon noise lost 0.005 (Gaussians split the direct's peak, whe
 is largest).  The data-term test alone misses a component of energy E sigma^2 unless E is about
 half the window's samples (256 for 512 bins): the weak first inter-reflections the solver
 missed carry 50-800 sigma^2 at chi2 1.03-1.2 times the expected.  With the bump test (seed 0 /
-seed 1, same six points) 0.981 -> 0.982 / 0.975 -> 0.976, 0.921 -> 0.926 / 0.929 -> 0.933,
+seed 1, same six points, on the solver before the search's near-direct tests; the effect with
+them is in docs/decomposition.md) 0.981 -> 0.982 / 0.975 -> 0.976, 0.921 -> 0.926 / 0.929 -> 0.933,
 0.896 -> 0.899 / 0.907 -> 0.909, pink 0.885 -> 0.887 / 0.903 -> 0.901, photon 0.860 -> 0.864 /
 0.842 -> 0.850, 4 ps 0.896 -> 0.904 / 0.916 -> 0.918; against the uncalibrated z (the spread
 taken as 1) pink NSR 0.055 lost 0.006 (seed 0).
