@@ -166,9 +166,13 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     scale = samples.scale[live]
     fit_mask = samples.fit[live]
     y = samples.profiles[live]
+    offset = None
     if BACKGROUND_KEY in params:
-        # the components' errors with the offset held at its fitted value
-        y = np.where(fit_mask, samples.values[live] - params[BACKGROUND_KEY][:, None], 0.0) / scale[:, None]
+        # the data themselves, the offset a fitted column where kept (not where it is exactly 0
+        # after its test dropped it)
+        y = np.where(fit_mask, samples.values[live], 0.0) / scale[:, None]
+        b = np.asarray(params[BACKGROUND_KEY], np.float64)
+        offset = np.where(b != 0.0, b / scale, np.nan)
     noise = None
     if samples.noise_model == "poisson":
         model = np.nan_to_num(render_profile(params, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))
@@ -179,7 +183,8 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     tie = None
     if sss_after_direct:
         tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= 1e-9 * max(ax.time_bin_ps, 1.0)
-    se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie)
+    se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
+                              background=offset)
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

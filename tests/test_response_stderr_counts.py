@@ -1,0 +1,80 @@
+"""Standard errors of the response path on photon counts, against the Poisson Cramer-Rao bound."""
+import numpy as np
+import pytest
+
+from core.irf import render_shifted, render_sss
+from core.irf_models import gaussian_response
+from core.model import empty_params
+from decomposition import decompose
+from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from decomposition.poisson_reference import poisson_reference_bound
+from decomposition.response_fisher import slot_standard_errors
+
+T_PS, L = 2.0, 256
+DIRECT_PS, ONSET_PS, ALPHA = 80.0, 86.0, 0.02
+
+
+def _truth(amplitude):
+    p = empty_params((1,), n_ir=1)
+    p["direct_delay_ps"][:], p["direct_amplitude"][:], p["direct_sigma_ps"][:] = DIRECT_PS, amplitude, 4.0
+    p["sss_delay_ps"][:], p["sss_amplitude"][:], p["sss_sigma_ps"][:] = ONSET_PS, amplitude / 4, 4.0
+    p["sss_alpha_per_ps"][:] = ALPHA
+    return p
+
+
+def test_offset_uncertainty_enters_the_components_errors():
+    """d + s + a constant offset, 600 counts at the direct's peak, 10 counts per bin of offset
+    (point samples), 120 Poisson draws of the same pixel: the reported standard errors are the
+    Poisson Cramer-Rao bound of the model with the offset fitted (the reference's own
+    information, at the truth), not the bound with the offset known, which is 20 % smaller for
+    alpha (a slow sss tail and an offset are partly the same light)."""
+    irf = gaussian_response(4.0, time_step_ps=T_PS)
+    t = T_PS + T_PS * np.arange(L)
+    amplitude, offset = 600.0, 10.0
+    mu = (amplitude * render_shifted(irf, t, np.array([DIRECT_PS]))[0]
+          + amplitude / 4 * render_sss(irf, t, np.array([ONSET_PS]), np.array([ALPHA]))[0] + offset)
+    y = np.random.default_rng(4).poisson(mu, (120, L)).astype(np.float64)
+    res = decompose(y, T_PS, t0_ps=T_PS, irf=irf, components="d,r,s,b", noise="poisson", stderr=True)
+    p = res.params
+    assert np.all(p["background"] > 0) and np.all(np.isfinite(p["sss_alpha_per_ps_stderr"]))
+    with_offset = poisson_reference_bound(_truth(amplitude), irf, n_bins=L, background=offset, time_bin_ps=T_PS,
+                                          t0_ps=T_PS, bin_integrated=False)
+    known = poisson_reference_bound(_truth(amplitude), irf, n_bins=L, time_bin_ps=T_PS, t0_ps=T_PS,
+                                    bin_integrated=False)
+    for key, rel in (("sss_alpha_per_ps", 0.04), ("sss_amplitude", 0.04), ("direct_delay_ps", 0.04),
+                     ("direct_amplitude", 0.04)):
+        reported = np.nanmedian(p[key + "_stderr"])
+        assert reported == pytest.approx(with_offset[key + "_stderr"][0], rel=rel), key
+    # the offset matters most for the lifetime: the bound without it is far below what is reported
+    assert known["sss_alpha_per_ps_stderr"][0] < 0.85 * np.nanmedian(p["sss_alpha_per_ps_stderr"])
+
+
+def test_no_offset_column_where_none_is_fitted():
+    """``slot_standard_errors``: rows whose offset is NaN (none fitted, or dropped by its test)
+    get the errors of the call without the offset; a row with one gets larger ones, and its
+    amplitude error is that of the linear model [atom, 1] (delay held) when the delay's
+    column is orthogonal to both."""
+    irf = gaussian_response(4.0, time_step_ps=T_PS)
+    t = T_PS + T_PS * np.arange(L)
+    fam = np.array([[FAM_GAUSS, FAM_SSS]] * 3, np.int8)
+    delay = np.array([[80.0, 86.0], [90.0, 95.0], [100.0, 104.0]])
+    lalp = np.log(np.full((3, 2), ALPHA))
+    amp = np.array([[1.0, 0.25], [0.8, 0.3], [1.2, 0.2]])
+    sw = np.full((3, L), 30.0)
+    y = np.zeros((3, L))
+    kw = dict(noise_sigma=np.ones(3))
+    base = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, **kw)
+    off = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, background=np.array([np.nan, 0.1, np.nan]),
+                               **kw)
+    for k in ("amp", "delay", "alpha"):
+        np.testing.assert_array_equal(off[k][[0, 2]], base[k][[0, 2]])
+    assert np.all(off["amp"][1] > base["amp"][1]) and off["alpha"][1, 1] > base["alpha"][1, 1]
+    # a direct alone at the window's centre: its delay column is odd about the peak, the atom
+    # and the offset even, so the amplitude's error is that of the two-column linear model
+    one = np.array([[FAM_GAUSS, FAM_NONE]], np.int8)
+    centre = np.array([[t[L // 2], 0.0]])
+    se = slot_standard_errors(irf, t, y[:1], sw[:1], one, centre, lalp[:1], np.array([[1.0, 0.0]]),
+                              background=np.array([0.1]), noise_sigma=np.ones(1))
+    x = np.stack([render_shifted(irf, t, centre[:, 0])[0], np.ones(L)], axis=1) * 30.0
+    expected = np.sqrt(np.linalg.inv(x.T @ x)[0, 0])
+    assert se["amp"][0, 0] == pytest.approx(expected, rel=1e-6)
