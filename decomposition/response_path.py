@@ -41,7 +41,7 @@ from .prepare import Samples
 from .refit import background_stats
 from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .response_fisher import slot_standard_errors
+from .response_fisher import near_window_edge, profile_delay_stderr, slot_standard_errors
 from .response_label import label_response, param_slots
 from .response_grow import GrowContext, grow_response
 from .response_refine import refit_slots
@@ -183,8 +183,19 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     tie = None
     if sss_after_direct:
         tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= 1e-9 * max(ax.time_bin_ps, 1.0)
+    counts = samples.noise_model == "poisson"
     se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
-                              background=offset)
+                              background=offset, covariance=counts)
+    edge = near_window_edge(irf, t, np.where(fam[:, 0] != FAM_NONE, delay[:, 0], np.nan))
+    if counts and edge.any():
+        # a direct at the window's edge: its delay's error from the profile deviance
+        e = np.flatnonzero(edge)
+        prof = profile_delay_stderr(irf, t, samples.values[live[e]], fit_mask[e], scale[e], fam[e], delay[e],
+                                    lalp[e], amp[e], None if offset is None else offset[e], se["cov"][e], noise[e],
+                                    tie_onset=None if tie is None else tie[e])
+        se["delay"][e, 0] = prof
+        if tie is not None:
+            se["delay"][e[tie[e]], SSS_SLOT] = prof[tie[e]]
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

@@ -8,7 +8,7 @@ from core.model import empty_params
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.poisson_reference import poisson_reference_bound
-from decomposition.response_fisher import slot_standard_errors
+from decomposition.response_fisher import near_window_edge, profile_delay_stderr, slot_standard_errors
 
 T_PS, L = 2.0, 256
 DIRECT_PS, ONSET_PS, ALPHA = 80.0, 86.0, 0.02
@@ -78,3 +78,64 @@ def test_no_offset_column_where_none_is_fitted():
     x = np.stack([render_shifted(irf, t, centre[:, 0])[0], np.ones(L)], axis=1) * 30.0
     expected = np.sqrt(np.linalg.inv(x.T @ x)[0, 0])
     assert se["amp"][0, 0] == pytest.approx(expected, rel=1e-6)
+
+
+def _single_direct_fit(irf, t, y):
+    """Poisson ML of one shifted response on a fine grid of delays, the amplitude for each by
+    a dense scan about sum y / sum phi (the deviance as the fit counts it, expected counts
+    floored at POISSON_VARIANCE_FLOOR): (delay, amplitude, profile deviance of the delay)."""
+    from decomposition.noise import count_deviance
+
+    gains = np.linspace(0.6, 1.4, 801)
+    fit = np.ones((gains.size, t.size), bool)
+
+    def profile(d):
+        d = np.atleast_1d(d).astype(np.float64)
+        phi = render_shifted(irf, t, d)
+        dev, amp = np.empty(d.size), np.empty(d.size)
+        for i in range(d.size):
+            a = gains * y.sum() / phi[i].sum()
+            dv = count_deviance(np.broadcast_to(y, fit.shape), a[:, None] * phi[i], fit)
+            j = int(np.argmin(dv))
+            dev[i], amp[i] = dv[j], a[j]
+        return dev, amp
+
+    grid = np.arange(t[0] - 14.0, t[0] + 6.0, 0.05)
+    dev, a = profile(grid)
+    i = int(np.argmin(dev))
+    return grid[i], a[i], profile
+
+
+def test_profile_error_of_a_direct_at_the_window_start():
+    """One direct whose peak lies 6 ps before the first bin, 40 and 4,000 counts at its peak:
+    the delay's error from the profile deviance is half the length of the interval where it
+    rises by 4, each side extrapolated from d_hat +- 2 se, never below the Fisher error --
+    checked against the closed-form profile (the amplitude's Poisson best for each delay);
+    at 4,000 counts, where the deviance is quadratic, it is the Fisher error."""
+    irf = gaussian_response(4.0, time_step_ps=T_PS)
+    t = T_PS + T_PS * np.arange(64)
+    rng = np.random.default_rng(11)
+    fam = np.array([[FAM_GAUSS, FAM_NONE]], np.int8)
+    ratios = []
+    for peak in (40.0, 4000.0):
+        mu = peak * render_shifted(irf, t, np.array([t[0] - 6.0]))[0]
+        y = rng.poisson(np.maximum(mu, 0.0)).astype(np.float64)
+        d_hat, a_hat, profile = _single_direct_fit(irf, t, y)
+        delay, amp = np.array([[d_hat, 0.0]]), np.array([[a_hat, 0.0]])
+        m_hat = a_hat * render_shifted(irf, t, np.array([d_hat]))[0]
+        sw = 1.0 / np.sqrt(np.maximum(m_hat, 0.02))[None]
+        lalp = np.zeros((1, 2))
+        fisher = slot_standard_errors(irf, t, y[None], sw, fam, delay, lalp, amp, noise_sigma=np.ones(1),
+                                      covariance=True)
+        se = fisher["delay"][0, 0]
+        prof = profile_delay_stderr(irf, t, y[None], np.ones((1, t.size), bool), np.ones(1), fam, delay, lalp, amp,
+                                    None, fisher["cov"], np.ones(1))[0]
+        d0 = profile(d_hat)[0][0]
+        rise = [profile(d_hat + s * 2 * se)[0][0] - d0 for s in (-1, 1)]
+        half = [2 * se / np.sqrt(r) if r > 0 else se for r in rise]
+        assert prof == pytest.approx(max(np.mean(half), se), rel=1e-2)
+        assert abs(rise[0] - rise[1]) > (1.0 if peak < 100 else 0.0)    # few counts: not quadratic
+        ratios.append(prof / se)
+    assert ratios[1] == pytest.approx(1.0, abs=0.02)
+    assert near_window_edge(irf, t, np.array([t[0] - 2.0, t[0] + 20.0, t[32], t[-1]])).tolist() == [
+        True, False, False, True]
