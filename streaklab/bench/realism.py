@@ -27,9 +27,12 @@ widths of its true delay); and the calibration of the reported standard errors, 
 pixels (:func:`paired_bias`): at 100 photons the maximum-likelihood lifetime itself is biased
 by a few per cent, which the reference, started at the truth, shows.  Targets
 (:data:`TARGETS`, checked for ``ignored`` and ``modelled`` at every level): bias within 1 %
-(of the lifetime; of the PSF width for the delay), both of zero and of the reference's bias,
-RMSE within 1.1 x the reference's, median |error| / stderr within 10 % of 0.674, the echo
-found in >= 95 % of pixels.
+(of the lifetime; of the PSF width for the delay) of zero, and for the lifetime also of the
+reference's bias, RMSE within 1.1 x the reference's, median |error| / stderr within 10 % of
+0.674, the echo found in >= 95 % of pixels.  The delay's bias beside the reference's is
+printed, not checked: the reference's delay is no yardstick at few photons (it leaves the
+sss onset free of the direct, and at 100 photons its delay is biased by up to +0.65 ps,
+with an RMSE up to twice the decomposition's).
 
 Outputs in ``--out``: ``realism.csv`` (one row per effect, photon level and variant) and
 ``summary.json`` (the settings, the rows and the targets as met / not met / not measured).
@@ -318,9 +321,6 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
              abs(row["lifetime_bias_vs_reference_rel"]) <= TARGETS["bias"],
              f"{row['lifetime_bias_vs_reference_rel']:+.2%} +- {row['lifetime_bias_vs_reference_se_rel']:.2%} "
              f"(<= {TARGETS['bias']:.0%})"),
-            ("direct delay bias beside the reference's",
-             abs(row["direct_delay_bias_vs_reference_sigma"]) <= TARGETS["bias"],
-             f"{row['direct_delay_bias_vs_reference_sigma']:+.3f} sigma (<= {TARGETS['bias']:g} sigma)"),
             ("lifetime RMSE", row["lifetime_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
              f"{row['lifetime_rmse_over_reference']:.2f} x reference (<= {TARGETS['rmse_over_reference']:g})"),
             ("direct delay RMSE", row["direct_delay_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
@@ -409,7 +409,7 @@ def run(args) -> int:
     json_path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
 
     print("direct delay and sss lifetime errors beside the Poisson reference (true response and set, from the truth);")
-    print("targets: bias within 1 % (of zero, and of the reference's on the same pixels: d-ref, tau-ref), "
+    print("targets: bias within 1 % (of zero; the lifetime's also of the reference's on the same pixels, tau-ref), "
           "RMSE <= 1.1 x reference, median |e|/se within 10 % of 0.674, echo found >= 95 %")
     head = (f"  {'effect':10s} {'photons':>7s} {'variant':9s} {'d bias ps':>9s} {'d RMSE':>7s} {'x ref':>5s} "
             f"{'tau bias':>8s} {'+-':>6s} {'tau RMSE':>8s} {'x ref':>5s} {'fid':>6s} {'|e|/se tau':>10s} "
