@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from core.durable import fsync_path, sync_chunk
+from core.durable import fsync_path, sync_chunk, sync_chunks
 from core.errors import StreaklabError
 from core.integrity import (ChunkDamage, consolidate, create_array, has_checksums, missing_chunks, read_checked,
                             open_member, scan_array, writable)
@@ -189,9 +189,7 @@ class RunStore:
         self["streaks"][line] = frames
         self["angle_deg"][line] = float(angle_deg)
         self["timestamp"][line] = float(timestamp)
-        self._sync_chunk("streaks", (line, 0, 0, 0))
-        self._sync_chunk("angle_deg", (line,))
-        self._sync_chunk("timestamp", (line,))
+        sync_chunks(self.path, [("streaks", (line, 0, 0, 0)), ("angle_deg", (line,)), ("timestamp", (line,))])
         self["done"][line] = True
         self._sync_chunk("done", (line,))
 

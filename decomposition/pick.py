@@ -146,8 +146,10 @@ def select(c, n2, mu, eps, allow, by_size=None, eligible=None):
     """
     n = c.shape[0]
     shape = c.shape
-    al = np.broadcast_to(np.asarray(allow, bool), shape)
-    el = np.broadcast_to(np.asarray(True if eligible is None else eligible, bool), shape)
+    # writable C-ordered copies (a few kB): one compiled signature, whether the masks came
+    # whole or broadcast (a broadcast view is typed apart, and was compiled a second time)
+    al = np.array(np.broadcast_to(np.asarray(allow, bool), shape), order="C")
+    el = np.array(np.broadcast_to(np.asarray(True if eligible is None else eligible, bool), shape), order="C")
     bs = np.zeros(n, bool) if by_size is None else np.asarray(by_size, bool)
     best = np.zeros(n, np.int64)
     zb = np.zeros(n)

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from core.durable import sync_chunk
+from core.durable import sync_chunk, sync_chunks
 from core.errors import OutputExistsError, StreaklabError
 from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
                             open_member, read_checked, scan_array, scan_group, writable)
@@ -324,8 +324,7 @@ class ResultStore:
             writable(g[k])[ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
         # whose data never reached the disk (resume would skip it)
-        for k, _, shape in writes:
-            sync_chunk(self.path, k, (iy, ix) + (0,) * (len(shape) - 2))
+        sync_chunks(self.path, [(k, (iy, ix) + (0,) * (len(shape) - 2)) for k, _, shape in writes])
         writable(g["done"])[ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
         sync_chunk(self.path, "done", (iy, ix))
 
