@@ -139,3 +139,23 @@ def test_profile_error_of_a_direct_at_the_window_start():
     assert ratios[1] == pytest.approx(1.0, abs=0.02)
     assert near_window_edge(irf, t, np.array([t[0] - 2.0, t[0] + 20.0, t[32], t[-1]])).tolist() == [
         True, False, False, True]
+
+
+def test_offset_enters_the_gaussian_paths_errors_too():
+    """The Gaussian path (no response): d + s + an offset of 0.05 under white noise 0.01, 300
+    draws of one pixel.  The reported errors are the Cramer-Rao bound with the offset unknown
+    (``cramer_rao_bound(..., offset=True)``) and describe the scatter of the estimates; the
+    bound with it known is 14 % smaller for alpha (reported before: 14 % below the scatter)."""
+    from core.model import render_profile
+    from decomposition.fisher import cramer_rao_bound
+
+    p = _truth(1.0)
+    y = render_profile(p, L, T_PS, T_PS)[0] + 0.05 + 0.01 * np.random.default_rng(5).standard_normal((300, L))
+    q = decompose(y, T_PS, t0_ps=T_PS, components="d,r,s,b", stderr=True).params
+    assert np.all(q["background"] != 0)
+    crb = cramer_rao_bound(p, 0.01, n_bins=L, time_bin_ps=T_PS, t0_ps=T_PS, offset=True)
+    known = cramer_rao_bound(p, 0.01, n_bins=L, time_bin_ps=T_PS, t0_ps=T_PS)
+    se = np.median(q["sss_alpha_per_ps_stderr"])
+    assert se == pytest.approx(crb["sss_alpha_per_ps_crb"][0], rel=0.05)
+    assert se == pytest.approx(np.std(q["sss_alpha_per_ps"]), rel=0.1)
+    assert known["sss_alpha_per_ps_crb"][0] < 0.92 * crb["sss_alpha_per_ps_crb"][0]
