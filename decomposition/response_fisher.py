@@ -9,8 +9,10 @@ the measured dispersion, the Poisson Fisher information).  Where ``sss_after_dir
 the onset at the direct delay the two delays are one parameter and share its error.  A fitted
 constant background (the ``b`` family) is one more column, of ones: its uncertainty enters the
 components' errors (an offset and a slow sss tail are partly the same light, so holding it at
-its fitted value understates the lifetime's error).  The response has no width parameter:
-``*_sigma_ps_stderr`` are NaN.
+its fitted value understates the lifetime's error).  For count data a direct at the window's
+edge (:func:`near_window_edge`) gets its delay's error from the profile deviance instead
+(:func:`profile_delay_stderr`): there the deviance is far from quadratic in the delay.  The
+response has no width parameter: ``*_sigma_ps_stderr`` are NaN.
 """
 from __future__ import annotations
 

@@ -15,7 +15,8 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
-* standard errors (``stderr``): the Fisher information of the response's atoms
+* standard errors (``stderr``): the Fisher information of the response's atoms and a kept
+  offset; for count data a direct at the window's edge from its profile deviance
   (:mod:`decomposition.response_fisher`).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
