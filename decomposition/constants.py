@@ -30,6 +30,9 @@ __all__ = [
     "MIN_NOISE_SAMPLES",
     "SPIKE_FALSE_ALARM",
     "POISSON_VARIANCE_FLOOR",
+    "POOR_FIT_DIRECT_SIGMA",
+    "WEAK_DIRECT_FRACTION",
+    "WEAK_DIRECT_ONSET_SIGMA",
     "POISSON_REFITS",
     "PEARSON_MIN_COUNTS",
     "BOUND_TOL",
@@ -88,6 +91,19 @@ NEAR_SIGMA = 3.0
 #: Largest component peak the pick accepts, in units of the pixel's largest sample: a
 #: coefficient far above the data is a degenerate (near-zero-norm) coordinate, not light.
 AMP_MAX = 20.0
+
+#: POOR_FIT's second test (:mod:`decomposition.quality`) weighs the residual over the direct's
+#: delay +- this many fitted widths (plus one bin) (dimensionless).
+POOR_FIT_DIRECT_SIGMA = 3.0
+
+#: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.quality.weak_direct`):
+#: the direct's peak below this fraction of the other light's (dimensionless), an sss onset or
+#: inter-reflection within WEAK_DIRECT_ONSET_SIGMA direct widths after it.  Paper scenes, 300 px,
+#: seeds 0 and 1, 2 and 4 ps bins, white NSR 0.001 / 0.055 / 0.11 and photon 0.055 (9,600 px):
+#: 13 pixels flagged, 11 of them with fidelity < 0.5 or the direct off by > 2 sigma (fraction
+#: 0.10: 9 (8), 0.2: 18 (14), 0.25: 28 (15); within 3 widths: 10 (8) at 0.15).
+WEAK_DIRECT_FRACTION = 0.15
+WEAK_DIRECT_ONSET_SIGMA = 4.0
 
 #: Restart threshold (dimensionless ratio).  Used twice, for the same reason: a fit whose
 #: misfit exceeds its noise expectation by half again is not explained by the noise.

@@ -3,8 +3,10 @@
 =========== ===== ==============================================================
 EMPTY         1   no component: all-zero pixel or nothing above the noise
 SATURATED     2   samples at the saturation level; excluded from the fit
-POOR_FIT      4   residual RMS > ``poor_fit`` x estimated noise: the data are
-                  outside what the model explains (offset, unmodelled shape, ...)
+POOR_FIT      4   residual RMS > ``poor_fit`` x estimated noise, over the window or
+                  over the direct's own samples: the data are outside what the
+                  model explains (offset, unmodelled shape, a direct of the wrong
+                  width, ...)
 SPIKE         8   single-sample spike(s) (hot pixel / cosmic ray) excluded
 NONFINITE    16   NaN/inf samples (``nan_policy="omit"``); pixel not decomposed
 MAX_ITER     32   the solver hit ``max_iter`` before it converged
@@ -12,7 +14,9 @@ AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
 TRUNCATED   128   more inter-reflections found than ``max_reflections``
 AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   (:mod:`decomposition.search`) with materially different splits
-                  reach objectives within the noise of each other
+                  reach objectives within the noise of each other; or the direct
+                  is weak (< 15 % of the peak) just before a much larger sss or
+                  inter-reflection onset (:func:`decomposition.quality.weak_direct`)
 WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
                   (an sss hump taken for a broad direct, typically)
 OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian centred

@@ -3,7 +3,20 @@
 POOR_FIT: the residual RMS over the fitted samples (censored samples count only where the
 model lies above them) exceeds ``poor_fit`` x the noise -- the larger of the solver's
 estimate and the noise at the signal, since noise that grows with the signal (photon noise)
-is not a misfit.  EMPTY: a finite pixel with no component at all.
+is not a misfit -- or where the residual RMS over the direct's own samples (its delay +-
+POOR_FIT_DIRECT_SIGMA fitted widths, widened by one bin) exceeds ``poor_fit`` x the same noise
+(photon counts: in noise sigmas of
+the variance-stabilised domain).  The second test sees a direct of the
+wrong shape: its misfit lies on a few samples, diluted in the whole window's RMS, and being
+on the scale of a bin it also raises the noise estimated at the signal (second differences of
+the residual) that the first test forgives.  EMPTY: a finite pixel with no component at all.
+
+AMBIGUOUS (also set by the search, :mod:`decomposition.search`): the direct is weak and just
+before a much larger onset -- its rendered peak below WEAK_DIRECT_FRACTION of the peak of the
+other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_ONSET_SIGMA + 2)
+widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths after
+it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
+larger light, with the true direct inside that light: the data often fit both equally well.
 """
 from __future__ import annotations
 
@@ -12,17 +25,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import components as comp
-from .flags import EMPTY, FLAG_DTYPE, POOR_FIT, mark
-from .noise import signal_noise_sigma
+from .constants import POOR_FIT_DIRECT_SIGMA, WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA
+from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
+from .noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
-__all__ = ["Fit", "assess_fit"]
+__all__ = ["Fit", "assess_fit", "direct_misfit", "weak_direct"]
 
 
 @dataclass(frozen=True)
 class Fit:
     """Rendered components (``direct``, ``sss`` (P, L), ``interreflections`` (P, R, L)), the
-    ``residual`` (P, L) = values - all components, and ``flags`` (P,) (POOR_FIT, EMPTY)."""
+    ``residual`` (P, L) = values - all components, and ``flags`` (P,) (POOR_FIT, EMPTY,
+    AMBIGUOUS)."""
 
     direct: np.ndarray
     sss: np.ndarray
@@ -51,11 +66,74 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
         nw = np.maximum((samples.fit[live] | sat[live]).sum(axis=1), 1.0)
         rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
         s_sig = signal_noise_sigma(rr / scale[live, None], total[live] / scale[live, None], samples.fit[live])
-        bad = rms > poor_fit * np.maximum(noise_eff[live], s_sig)
+        s_signal = np.maximum(noise_eff[live], s_sig)
+        bad = rms > poor_fit * s_signal
+        # where the noise at the signal could not be measured (too few samples in the signal
+        # region), the direct's samples are not judged on their own: the whole-profile noise
+        # can be far below theirs (photon noise on a dark baseline)
+        measured = (s_sig > 0) | (samples.noise_model == "poisson")
+        bad |= measured & (direct_misfit(samples, params, residual, total, s_signal) > poor_fit)
         mark(flags, live[bad], POOR_FIT)
     has_any = np.isfinite(params["direct_delay_ps"]) | np.isfinite(params["sss_delay_ps"])
     if params["ir_delay_ps"].shape[-1]:
         has_any |= np.isfinite(params["ir_delay_ps"]).any(axis=1)
     mark(flags, samples.finite & ~has_any, EMPTY)
+    t = axis.t0_ps + axis.time_bin_ps * np.arange(L)
+    mark(flags, weak_direct(params, rend, t), AMBIGUOUS)
     return Fit(direct=rend["direct"], sss=rend["sss"], interreflections=rend["interreflections"],
                residual=residual, flags=flags)
+
+
+def direct_misfit(samples: Samples, params: dict, residual: np.ndarray, total: np.ndarray,
+                  noise: np.ndarray) -> np.ndarray:
+    """(n,) over ``samples.live``: the residual RMS over the fitted samples within
+    POOR_FIT_DIRECT_SIGMA fitted widths (plus one bin) of the direct's delay, in units of the
+    noise of those samples (0 for pixels without a direct).
+
+    The noise (normalised units) is ``noise`` (n,) -- the larger of the solver's and the one
+    at the signal, as in the whole-window test.  For photon counts: the residual in noise
+    sigmas of the variance-stabilised domain (:func:`decomposition.noise.anscombe_residual`).
+    """
+    live = samples.live
+    axis = samples.axis
+    d = np.asarray(params["direct_delay_ps"], np.float64)[live]
+    w_ps = POOR_FIT_DIRECT_SIGMA * np.asarray(params["direct_sigma_ps"], np.float64)[live] + axis.time_bin_ps
+    t = axis.t0_ps + axis.time_bin_ps * np.arange(samples.n_bins)
+    with np.errstate(invalid="ignore"):
+        near = (np.abs(t[None, :] - d[:, None]) <= w_ps[:, None]) & samples.fit[live]
+    if samples.noise_model == "poisson":
+        z = anscombe_residual(samples.values[live], total[live], near, samples.dispersion[live])
+        chi2 = np.einsum("pl,pl->p", z, z)
+    else:
+        r = np.where(near, residual[live], 0.0) / samples.scale[live, None]
+        chi2 = np.einsum("pl,pl->p", r, r) / np.maximum(noise, 1e-300) ** 2
+    return np.sqrt(chi2 / np.maximum(near.sum(axis=1), 1))
+
+
+def weak_direct(params: dict, rendered: dict, t_ps: np.ndarray) -> np.ndarray:
+    """(P,) bool: the direct is weak and just before a much larger onset (see the module
+    docstring).
+
+    Parameters
+    ----------
+    params : dict of ndarray
+        ``direct_delay_ps``, ``direct_sigma_ps``, ``sss_delay_ps`` (P,) and ``ir_delay_ps``
+        (P, R), in ps.
+    rendered : dict of ndarray
+        The rendered ``direct``, ``sss`` (P, L) and ``interreflections`` (P, R, L).
+    t_ps : ndarray (L,)
+        Sample times in ps.
+    """
+    d = np.asarray(params["direct_delay_ps"], np.float64)
+    w = np.asarray(params["direct_sigma_ps"], np.float64)
+    ir = np.asarray(params["ir_delay_ps"], np.float64)
+    first_ir = np.min(np.where(np.isfinite(ir), ir, np.inf), axis=1) if ir.shape[-1] else np.full(d.shape, np.inf)
+    onset = np.fmin(np.asarray(params["sss_delay_ps"], np.float64), first_ir)
+    T = t_ps[1] - t_ps[0] if t_ps.size > 1 else 1.0
+    other = rendered["sss"] + rendered["interreflections"].sum(axis=-2)
+    with np.errstate(invalid="ignore"):
+        near = (onset - d) <= WEAK_DIRECT_ONSET_SIGMA * w
+        window = (t_ps[None, :] >= d[:, None]) & (t_ps[None, :] <= (d + (WEAK_DIRECT_ONSET_SIGMA + 2.0) * w + T)[:, None])
+    h_other = np.where(window, other, 0.0).max(axis=1)
+    h_direct = rendered["direct"].max(axis=1)
+    return near & (h_other > 0) & (h_direct < WEAK_DIRECT_FRACTION * h_other)

@@ -274,7 +274,7 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
 # ==========================================================================================
 
 #: starts of the search stage, in the order of ``info["search_wins"]``
-STAGE_STARTS = ("solver", "edge", "peak", "peak bare")
+STAGE_STARTS = ("solver", "edge", "peak", "peak bare", "rise")
 
 
 @dataclass(frozen=True)
@@ -346,6 +346,27 @@ def _n_free(st, shared_sigma):
     return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)
 
 
+def _near_direct_chi2(t, residual, mask, st, s2):
+    """(n,) the data term per sample, over the used samples within POOR_FIT_DIRECT_SIGMA widths
+    (plus one bin) of each pixel's earliest Gaussian, in units of the noise variance ``s2``
+    (n,); 0 for a pixel without a Gaussian.  ``residual`` (n, L): of the state ``st`` under the
+    masks (:meth:`SampleMask.residual`).  A direct of the wrong width misfits there while
+    the whole window's data term, over hundreds of quiet samples, stays near its expectation."""
+    from .constants import FAM_GAUSS, POOR_FIT_DIRECT_SIGMA
+
+    g = st["fam"] == FAM_GAUSS
+    rows = np.arange(g.shape[0])
+    k0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
+    has = g[rows, k0]
+    d0 = np.where(has, st["delay"][rows, k0], np.nan)
+    T = t[1] - t[0] if t.size > 1 else 1.0
+    w = POOR_FIT_DIRECT_SIGMA * np.exp(st["lsig"][rows, k0]) + T
+    with np.errstate(invalid="ignore"):
+        near = (np.abs(t[None, :] - d0[:, None]) <= w[:, None]) & mask.used
+    r = np.where(near, residual, 0.0)
+    return np.einsum("pl,pl->p", r, r) / np.maximum(near.sum(axis=1), 1) / s2
+
+
 def _split(t, st):
     """Rendered split of a slot state: earliest Gaussian (direct), sss, later Gaussians
     (summed), each (n, L)."""
@@ -395,11 +416,17 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
     two or more Gaussians without an sss, a leading edge that rises faster than its detected
-    width allows, or a data term above ``search_doubt_chi2`` times its expected value.  Only
+    width allows, a data term above ``search_doubt_chi2`` times its expected value, or a data
+    term per sample above ``search_doubt_chi2`` (in noise variances) over the samples within
+    POOR_FIT_DIRECT_SIGMA widths (plus one bin) of the earliest Gaussian (a direct of the
+    wrong width: its misfit is diluted in the whole window's).  Only
     those pixels get the starts of :data:`STAGE_STARTS` (``edge``: a direct one width after the
     leading edge and an sss ``SEARCH_EDGE_GAP_SIGMA`` widths after it; ``peak``: the earliest significant peak as the
     direct, the sss one width later; both with the detected Gaussians more than
-    ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; amplitudes by NNLS, then the solver's
+    ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; ``rise``:
+    the peak start at the grid's narrowest width (the sss one such width after the direct,
+    later Gaussians more than SEARCH_IR_GAP_SIGMA such widths after it), followed by the
+    forward step of :func:`decomposition.grow.grow_block` where ``opts.grow``; amplitudes by NNLS, then the solver's
     polish: shared width, sss onset at or after the direct, data term only; thresholded,
     merged and relabelled as :mod:`decomposition.label` will), scored by
     ``chi2 + search_penalty * k * ln(n_fit)``; the lowest is kept (ties keep the solver's).
@@ -409,7 +436,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     from . import components as comp
     from .constants import FAM_GAUSS, FAM_SSS
     from .candidates import polish_candidate
-    from .slots import new_state, put, take
+    from .slots import new_state, put, render, take
 
     n, L = p.shape
     K = st["fam"].shape[1]
@@ -427,7 +454,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
     comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
-    chi0 = _data_chi2(t, p, mask, base, s2)
+    r0 = mask.residual(p, render(t, base))
+    chi0 = np.einsum("pl,pl->p", r0, r0) / s2
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
@@ -462,6 +490,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         doubt = narrow_all | (~has_s & (g.sum(axis=1) >= 2))
         doubt |= has_s & (~g.any(axis=1) | (s_on < d0 - 0.5 * sig) | (s_on > d0 + NEAR_SIGMA * sig))
         doubt |= chi0 > opts.search_doubt_chi2 * nfit
+        doubt |= _near_direct_chi2(t, r0, mask, base, s2) > opts.search_doubt_chi2
     idx = np.nonzero(doubt)[0]
     if idx.size == 0:
         return out, start, doubt, ambiguous
@@ -492,8 +521,18 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     specs = (("edge", t_edge + sg, t_edge + (1.0 + SEARCH_EDGE_GAP_SIGMA) * sg, True), ("peak", t_peak, t_peak + sg, True),
              ("peak bare", t_peak, t_peak + sg, False))
     built = []                  # (direct, sss onset, later Gaussians) of the starts so far
+    # ``rise``: a direct at the earliest significant peak at the grid's narrowest width, the
+    # sss onset one such width after it, the detected Gaussians more than SEARCH_IR_GAP_SIGMA
+    # of those widths later -- the split of a direct narrower than the detection's width,
+    # whose wide direct swallowed the sss rise (and often an inter-reflection, hence the
+    # forward step on this start below)
+    narrow = np.full(idx.size, float(dic.grid.sigma_range_ps[0]))
+    specs = specs + (("rise", t_peak, t_peak + narrow, True),)
+    widths = {"rise": narrow}
     for name, d_ps, s_ps, keep in specs:
-        later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * sg[:, None]), gd, np.nan)
+        w_ps = widths.get(name, sg)
+        ls = np.log(w_ps)
+        later = np.where(keep & allow_later & (gd > d_ps[:, None] + SEARCH_IR_GAP_SIGMA * w_ps[:, None]), gd, np.nan)
         later = np.sort(later, axis=1)[:, :max(K - 2, 0)]
         # a start identical to an earlier one (``peak bare`` where the peak start has no later
         # Gaussians) has that start's result: polished once
@@ -511,6 +550,13 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         if new.size:
             put(c, new, refined(_stage_state(new.size, K, d_ps[new], ls[new], s_ps[new], la[new], later[new]), new))
         cand.append(c)
+    if allow_later and opts.grow:
+        # the forward step of decomposition.grow on the rise start: an inter-reflection the
+        # wide direct had absorbed is no detected Gaussian, and without it the narrow split
+        # loses to the wide one it would beat
+        from .grow import grow_block
+
+        cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx])
     js = []
     for c in cand:
         js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
