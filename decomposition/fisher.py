@@ -136,12 +136,15 @@ def _onset_at_direct(slots):
 
 
 def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
-                      tie_onset=False):
-    """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information."""
+                      tie_onset=False, offset=None):
+    """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information.
+
+    ``offset`` (n,) bool: pixels with a fitted constant offset, one more row and column (last,
+    of ones: the offset divided by the same scale); without it the matrices are P x P."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
     n, k = slots["present"].shape
-    p = 3 * k + 1
+    p = 3 * k + 1 + (offset is not None)
     info = np.empty((n, p, p))
     free = np.empty((n, p), dtype=bool)
     tied = np.zeros(n, dtype=np.int64)
@@ -150,6 +153,11 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
         ch = slice(i, i + CHUNK_PIXELS)
         sub = {name: slots[name][ch] for name in ("delay", "amplitude", "sigma", "alpha", "present")}
         rows, fr = _jacobian(t, sub, amp_scale[ch], tb)
+        if offset is not None:
+            on = np.asarray(offset, bool)[ch]
+            rows = np.concatenate([rows, np.broadcast_to(on[:, None, None], (on.size, 1, t.size)).astype(float)],
+                                  axis=1)
+            fr = np.concatenate([fr, on[:, None]], axis=1)
         if sw is not None:
             rows *= sw[ch, None, :]
         if shared_sigma:
@@ -262,10 +270,11 @@ def _to_dict(std, slots, lead, suffix):
 
 
 def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False,
-           tie_onset=False):
+           tie_onset=False, offset=None):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated, sw, shared_sigma, tie_onset)
+                                                            bin_integrated, sw, shared_sigma, tie_onset, offset)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
+    std_unit = std_unit[:, :3 * slots["present"].shape[1] + 1]   # the offset's own is not reported
     if tie_onset:
         on = _onset_at_direct(slots)
         std_unit[on, 3 * SSS_SLOT] = std_unit[on, 0]
@@ -284,7 +293,7 @@ def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw
 
 def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2.0,
                      t0_ps: float | None = None, shared_sigma: bool = False,
-                     bin_integrated: bool = False) -> dict[str, np.ndarray]:
+                     bin_integrated: bool = False, offset=None) -> dict[str, np.ndarray]:
     """Cramér-Rao lower bounds (standard deviations) of every present parameter.
 
     Parameters
@@ -299,6 +308,8 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
     shared_sigma : bool
         The components of a pixel share one (unknown) width; every present
         component's ``sigma_ps_crb`` is then the bound of that one width.
+    offset : array_like of bool broadcastable to (...,), optional
+        Pixels whose model also has an unknown constant offset (one more parameter).
 
     Returns
     -------
@@ -311,12 +322,15 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
     """
     lead = np.shape(params["direct_delay_ps"]) if "direct_delay_ps" in params else np.shape(params["ir_delay_ps"])[:-1]
     noise = _noise(noise_sigma, lead)
-    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb", None, shared_sigma)
+    if offset is not None:
+        offset = np.broadcast_to(np.asarray(offset, bool), lead).reshape(-1)
+    return _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, "_crb", None, shared_sigma,
+                  offset=offset)
 
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                     weights=None, shared_sigma: bool = False, sss_after_direct: bool = False,
-                    bin_integrated: bool = False, noise_sigma=None) -> dict[str, np.ndarray]:
+                    bin_integrated: bool = False, noise_sigma=None, offset=None) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     Unless ``noise_sigma`` gives it, the noise level of each pixel is estimated from its
@@ -352,6 +366,11 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     noise_sigma : float or array_like broadcastable to (...,), optional
         Known standard deviation of a unit-weight sample (1 where ``weights`` are the
         inverse variances); default: estimated from the residual as above.
+    offset : array_like of bool broadcastable to (...,), optional
+        Pixels whose fit also had a constant offset (the ``b`` family), already taken out of
+        ``profiles``: one more parameter, a column of ones, whose uncertainty enters the
+        components' errors (an offset and a slow sss tail are partly the same light).  Its
+        own error is not returned.
 
     Returns
     -------
@@ -390,6 +409,9 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         rss[i:i + CHUNK_PIXELS] = np.einsum("nl,nl->n", resid, resid)
     n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
     n_fitted = 3 * present.sum(axis=-1) + present[:, SSS_SLOT]
+    if offset is not None:
+        offset = np.broadcast_to(np.asarray(offset, bool), lead).reshape(n)
+        n_fitted = n_fitted + offset
     if shared_sigma:
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
     if sss_after_direct:
@@ -400,7 +422,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     if noise_sigma is not None:
         noise = np.where(dof > 0, _noise(noise_sigma, lead), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct)
+                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct, offset)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

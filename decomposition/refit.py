@@ -123,9 +123,13 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
     flat = {k: np.reshape(v, (n_pix,) + np.shape(v)[len(samples.lead):]) for k, v in params.items()}
     values = samples.values
     comp_params = params
+    offset = None
     if BACKGROUND_KEY in params:
-        # the components' errors with the offset held at its fitted value
-        values = values - np.nan_to_num(flat[BACKGROUND_KEY])[:, None]
+        # the offset taken out of the data and, where kept (not exactly 0 after its test), one
+        # more parameter of the information
+        b = np.nan_to_num(flat[BACKGROUND_KEY])
+        values = values - b[:, None]
+        offset = (b != 0.0).reshape(samples.lead)
         comp_params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     noise = None
     if samples.noise_model == "poisson":
@@ -137,4 +141,4 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
         weights = samples.weights
     return standard_errors(values.reshape(shape), comp_params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                            weights=weights.reshape(shape), shared_sigma=shared_sigma,
-                           sss_after_direct=sss_after_direct, noise_sigma=noise)
+                           sss_after_direct=sss_after_direct, noise_sigma=noise, offset=offset)

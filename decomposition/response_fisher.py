@@ -6,20 +6,36 @@ sss, a_k d phi_k / d log alpha.  With weights w (the fit's) and noise sigma of a
 sample, the covariance is sigma^2 (J^T W J)^-1; sigma is the residual estimate
 sqrt(RSS_w / (n - p)) (Gaussian noise), or given (count data: 1 / model-count weights and
 the measured dispersion, the Poisson Fisher information).  Where ``sss_after_direct`` holds
-the onset at the direct delay the two delays are one parameter and share its error.  The
+the onset at the direct delay the two delays are one parameter and share its error.  A fitted
+constant background (the ``b`` family) is one more column, of ones: its uncertainty enters the
+components' errors (an offset and a slow sss tail are partly the same light, so holding it at
+its fitted value understates the lifetime's error).  For count data a direct at the window's
+edge (:func:`near_window_edge`) gets its delay's error from the profile deviance instead
+(:func:`profile_delay_stderr`): there the deviance is far from quadratic in the delay.  The
 response has no width parameter: ``*_sigma_ps_stderr`` are NaN.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .constants import FAM_NONE, FAM_SSS, SSS_SLOT
+from .constants import FAM_NONE, FAM_SSS, POISSON_VARIANCE_FLOOR, SSS_SLOT
 from .response_atoms import slot_atoms
 
-__all__ = ["slot_standard_errors"]
+__all__ = ["slot_standard_errors", "profile_delay_stderr", "near_window_edge", "PROFILE_STEP_SE",
+           "PROFILE_EDGE_WIDTHS"]
+
+#: :func:`profile_delay_stderr`'s step along the profile line, in Fisher standard errors (the
+#: deviance rises by 4 there where it is quadratic: the error is half the 95 % profile interval)
+PROFILE_STEP_SE = 2.0
+#: Poisson scoring steps of the amplitudes and offset at each point of the profile line
+PROFILE_SCORING_STEPS = 4
+#: the profile error replaces the Fisher one for a direct whose delay lies within this many
+#: widths of the response (Gaussian-equivalent sigma) of either end of the window, or outside
+PROFILE_EDGE_WIDTHS = 3.0
 
 
-def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma=None, tie_onset=None):
+def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma=None, tie_onset=None,
+                         background=None, covariance=False):
     """Per-slot standard errors in the refinement layout (normalised units).
 
     Parameters
@@ -28,6 +44,14 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
     fam, delay, lalp, amp : (n, K)   the fitted slots (slot 0 direct, SSS_SLOT sss)
     noise_sigma : ndarray (n,), optional   noise of a unit-weight sample (default: from the residual)
     tie_onset : ndarray (n,) bool, optional   the sss onset is held at the direct delay
+    background : ndarray (n,), optional
+        Fitted constant offset (normalised units, ``y`` holds it) where finite: a column of
+        ones in the information; NaN or None: no offset fitted.  Its own error is not returned.
+    covariance : bool
+        Also return ``cov`` (n, 3K + 1, 3K + 1): the covariance of (amplitudes, delays,
+        log alphas, offset) in that order (normalised units, ps, dimensionless), NaN where
+        the information is singular; rows and columns of fixed parameters are zero (a tied
+        onset's row too: it moves with the direct delay).
 
     Returns
     -------
@@ -35,18 +59,23 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
     NaN where the slot is empty or the information matrix is singular.
     """
     n, K = fam.shape
+    L = np.size(t_ps)
     act = fam != FAM_NONE
     phi, dd, dl = slot_atoms(irf, t_ps, fam, delay, lalp, derivatives=True)
-    cols = np.concatenate([phi, amp[:, :, None] * dd, amp[:, :, None] * dl], axis=1) * sw[:, None, :]
-    free = np.concatenate([act, act, fam == FAM_SSS], axis=1)
+    bg = np.zeros(n, bool) if background is None else np.isfinite(np.asarray(background, np.float64))
+    cols = np.concatenate([phi, amp[:, :, None] * dd, amp[:, :, None] * dl, np.ones((n, 1, L))],
+                          axis=1) * sw[:, None, :]
+    free = np.concatenate([act, act, fam == FAM_SSS, bg[:, None]], axis=1)
     if tie_onset is not None and tie_onset.any():
         i_d, i_s = K + 0, K + SSS_SLOT
         tie = tie_onset & act[:, 0] & act[:, SSS_SLOT]
         cols[tie, i_d] += cols[tie, i_s]
         free[tie, i_s] = False
     cols = np.where(free[:, :, None], cols, 0.0)
-    info = np.einsum("pjl,pml->pjm", cols, cols) + np.eye(3 * K)[None] * (~free)[:, :, None]
+    info = np.einsum("pjl,pml->pjm", cols, cols) + np.eye(3 * K + 1)[None] * (~free)[:, :, None]
     model = np.einsum("pk,pkl->pl", amp, phi)
+    if background is not None:
+        model = model + np.where(bg, np.asarray(background, np.float64), 0.0)[:, None]
     resid = (y - model) * sw
     if noise_sigma is None:
         dof = (sw > 0).sum(axis=1) - free.sum(axis=1)
@@ -54,15 +83,128 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
             noise = np.where(dof > 0, np.sqrt(np.einsum("pl,pl->p", resid, resid) / np.maximum(dof, 1)), np.nan)
     else:
         noise = np.asarray(noise_sigma, np.float64) * np.ones(n)
-    cov_diag = np.full((n, 3 * K), np.nan)
+    cov = np.full((n, 3 * K + 1, 3 * K + 1), np.nan)
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(noise) & (np.linalg.cond(info) < 1e14)
     if ok.any():
-        cov_diag[ok] = np.einsum("pjj->pj", np.linalg.inv(info[ok]))
+        cov[ok] = np.linalg.inv(info[ok]) * (free[ok, :, None] & free[ok, None, :])
+    cov_diag = np.einsum("pjj->pj", cov)
     se = np.sqrt(np.maximum(cov_diag, 0.0)) * noise[:, None]
     se = np.where(free, se, np.nan)
     if tie_onset is not None and tie_onset.any():
         tie = tie_onset & act[:, 0] & act[:, SSS_SLOT]
         se[tie, K + SSS_SLOT] = se[tie, K]
     alpha = np.exp(np.where(fam == FAM_SSS, lalp, 0.0))
-    return {"amp": se[:, :K], "delay": se[:, K:2 * K], "alpha": np.where(fam == FAM_SSS, se[:, 2 * K:] * alpha, np.nan)}
+    out = {"amp": se[:, :K], "delay": se[:, K:2 * K],
+           "alpha": np.where(fam == FAM_SSS, se[:, 2 * K:3 * K] * alpha, np.nan)}
+    if covariance:
+        out["cov"] = cov * np.square(noise)[:, None, None]
+    return out
+
+
+def profile_delay_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, background, cov, dispersion, *,
+                         tie_onset=None, step_se: float = PROFILE_STEP_SE):
+    """Standard error of the direct delay from its one-step profile deviance (count data).
+
+    The Fisher information is the curvature of the deviance at the solution; where the
+    deviance is not quadratic over an error's range -- a direct near or before the window's
+    start, whose peak the counts barely hold, slides out with its amplitude growing to match
+    the edge it leaves at little cost -- the error it gives is too small on that side.  Here
+    the delays and log alphas are moved along the profile line of the direct delay d,
+    theta(d) = theta_hat + (d - d_hat) cov[:, d] / var(d) (every other parameter at its
+    conditional best to first order), to d_hat +- ``step_se`` x se(d); there the amplitudes
+    and the offset, linear, are refitted to the counts (PROFILE_SCORING_STEPS Poisson scoring
+    steps from the line's values, kept >= 0: an amplitude that must grow exponentially as its
+    atom leaves the window is not held to the line's first order).  With rise D+ and D- of
+    the Poisson deviance (chi2 units) the half-widths of the profile interval are
+    step_se x se / sqrt(D+-) (the Fisher error on a side where the deviance falls: the
+    solution at a bound), and the error returned is half the interval's length, their mean,
+    never below the Fisher error (a side steeper than quadratic is the first-order line
+    leaving the valley of the delays and alpha it does not refit).  Where the deviance is
+    quadratic, D+- = step_se^2 and the error is the Fisher one.
+
+    Parameters
+    ----------
+    irf, t_ps
+        The response and the time axis (L,), ps.
+    counts : ndarray (n, L)        the counts (read on ``fit``)
+    fit : ndarray (n, L) bool      fitted samples
+    scale : ndarray (n,)           counts per normalised unit
+    fam, delay, lalp, amp : (n, K) the fitted slots (normalised amplitudes)
+    background : ndarray (n,) or None   fitted offset, normalised units, NaN where none
+    cov : ndarray (n, 3K + 1, 3K + 1)   :func:`slot_standard_errors` ``cov`` (dispersion included)
+    dispersion : ndarray (n,)      noise scale of the counts (the deviance is divided by its square)
+    tie_onset : ndarray (n,) bool, optional   the sss onset moves with the direct delay
+    step_se : float                step, in Fisher standard errors (> 0)
+
+    Returns
+    -------
+    ndarray (n,): the direct delay's error, ps; NaN where the direct is absent or the
+    covariance singular (the Fisher error's NaN).
+    """
+    from .noise import count_deviance
+
+    if not (np.isfinite(step_se) and step_se > 0):
+        raise ValueError(f"step_se must be positive, got {step_se}")
+    n, K = fam.shape
+    var = cov[:, K, K]
+    ok = (fam[:, 0] != FAM_NONE) & np.isfinite(var) & (var > 0)
+    out = np.full(n, np.nan)
+    if not ok.any():
+        return out
+    idx = np.flatnonzero(ok)
+    c = np.nan_to_num(cov[idx, :, K])
+    se = np.sqrt(var[idx])
+    line = c / var[idx, None]
+    b0 = np.zeros(idx.size) if background is None else np.nan_to_num(np.asarray(background, np.float64)[idx])
+    theta0 = np.concatenate([amp[idx], delay[idx], lalp[idx], b0[:, None]], axis=1)
+    tie = np.zeros(idx.size, bool) if tie_onset is None else np.asarray(tie_onset, bool)[idx]
+    f, y, m, sc = fam[idx], counts[idx], fit[idx], scale[idx]
+    disp = np.asarray(dispersion, np.float64)[idx]
+
+    has_b = np.zeros(idx.size, bool) if background is None else np.isfinite(np.asarray(background)[idx])
+    on = np.concatenate([f != FAM_NONE, has_b[:, None]], axis=1)
+
+    def deviance(theta, refit):
+        d = theta[:, K:2 * K].copy()
+        d[tie, SSS_SLOT] = d[tie, 0]
+        phi = slot_atoms(irf, t_ps, f, d, theta[:, 2 * K:3 * K])
+        x = np.concatenate([phi, np.ones((idx.size, 1, t_ps.size))], axis=1) * on[:, :, None] * sc[:, None, None]
+        a = np.maximum(np.concatenate([theta[:, :K], theta[:, 3 * K:]], axis=1), 0.0) * on
+        mu = np.einsum("pk,pkl->pl", a, x)
+        for _ in range(refit):
+            # the amplitudes and offset at their Poisson best for these delays: scoring steps
+            w = np.where(m, 1.0 / np.maximum(mu, POISSON_VARIANCE_FLOOR), 0.0)
+            h = np.einsum("pkl,pl,pjl->pkj", x, w, x)
+            dg = np.einsum("pkk->pk", h)
+            # an atom left with (almost) nothing in the window keeps its amplitude
+            h = h + np.eye(K + 1)[None] * (np.where(on, 1e-9 * dg.max(axis=1, keepdims=True) + 1e-12, 1.0))[:, :, None]
+            g = np.einsum("pkl,pl->pk", x, w * (y - mu))
+            step = np.linalg.solve(h, g[:, :, None])[..., 0]
+            a = np.maximum(a + step, 0.0) * on
+            mu = np.einsum("pk,pkl->pl", a, x)
+        return count_deviance(y, mu, m, disp)
+
+    d0 = deviance(theta0, PROFILE_SCORING_STEPS)
+    widths = []
+    for sign in (-1.0, 1.0):
+        rise = deviance(theta0 + sign * step_se * se[:, None] * line, PROFILE_SCORING_STEPS) - d0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            widths.append(np.where(rise > 0, step_se * se / np.sqrt(rise), np.nan))
+    lo_w, hi_w = (np.where(np.isfinite(w), w, se) for w in widths)
+    # half the profile interval's length, never below the Fisher error: a side steeper than
+    # quadratic is the first-order line leaving the valley of the delays and alpha it does
+    # not refit, not more information
+    out[idx] = np.maximum(0.5 * (lo_w + hi_w), se)
+    return out
+
+
+def near_window_edge(irf, t_ps, delay_ps, widths: float = PROFILE_EDGE_WIDTHS) -> np.ndarray:
+    """(n,) bool: delays within ``widths`` response widths (its Gaussian-equivalent sigma, ps)
+    of the first or last sample of ``t_ps``, or outside the window (NaN: False)."""
+    from core.irf_components import gaussian_equivalent_sigma_ps
+
+    w = float(widths) * gaussian_equivalent_sigma_ps(irf)
+    d = np.asarray(delay_ps, np.float64)
+    with np.errstate(invalid="ignore"):
+        return (d < t_ps[0] + w) | (d > t_ps[-1] - w)

@@ -15,7 +15,8 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
-* standard errors (``stderr``): the Fisher information of the response's atoms
+* standard errors (``stderr``): the Fisher information of the response's atoms and a kept
+  offset; for count data a direct at the window's edge from its profile deviance
   (:mod:`decomposition.response_fisher`).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
@@ -41,7 +42,7 @@ from .prepare import Samples
 from .refit import background_stats
 from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .response_fisher import slot_standard_errors
+from .response_fisher import near_window_edge, profile_delay_stderr, slot_standard_errors
 from .response_label import label_response, param_slots
 from .response_grow import GrowContext, grow_response
 from .response_refine import refit_slots
@@ -166,9 +167,13 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     scale = samples.scale[live]
     fit_mask = samples.fit[live]
     y = samples.profiles[live]
+    offset = None
     if BACKGROUND_KEY in params:
-        # the components' errors with the offset held at its fitted value
-        y = np.where(fit_mask, samples.values[live] - params[BACKGROUND_KEY][:, None], 0.0) / scale[:, None]
+        # the data themselves, the offset a fitted column where kept (not where it is exactly 0
+        # after its test dropped it)
+        y = np.where(fit_mask, samples.values[live], 0.0) / scale[:, None]
+        b = np.asarray(params[BACKGROUND_KEY], np.float64)
+        offset = np.where(b != 0.0, b / scale, np.nan)
     noise = None
     if samples.noise_model == "poisson":
         model = np.nan_to_num(render_profile(params, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))
@@ -179,7 +184,19 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     tie = None
     if sss_after_direct:
         tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= 1e-9 * max(ax.time_bin_ps, 1.0)
-    se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie)
+    counts = samples.noise_model == "poisson"
+    se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
+                              background=offset, covariance=counts)
+    edge = near_window_edge(irf, t, np.where(fam[:, 0] != FAM_NONE, delay[:, 0], np.nan))
+    if counts and edge.any():
+        # a direct at the window's edge: its delay's error from the profile deviance
+        e = np.flatnonzero(edge)
+        prof = profile_delay_stderr(irf, t, samples.values[live[e]], fit_mask[e], scale[e], fam[e], delay[e],
+                                    lalp[e], amp[e], None if offset is None else offset[e], se["cov"][e], noise[e],
+                                    tie_onset=None if tie is None else tie[e])
+        se["delay"][e, 0] = prof
+        if tie is not None:
+            se["delay"][e[tie[e]], SSS_SLOT] = prof[tie[e]]
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

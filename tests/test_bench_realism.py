@@ -37,6 +37,14 @@ def test_quick_runs_ignored_and_reference_and_writes_its_files(tmp_path, capsys)
         assert float(hi["direct_delay_rmse_ps"]) < float(lo["direct_delay_rmse_ps"])
         assert float(hi["mean_fidelity"]) > float(lo["mean_fidelity"])
     assert np.isfinite(float(ref[("echo", 10000.0)]["echo_found"]))
+    # every variant's bias beside the reference's on the same pixels; the reference's own is 0
+    for r in rows:
+        gaps = [float(r["direct_delay_bias_vs_reference_ps"])]
+        if r["effect"] != "echo5sigma":                          # its scenes have no sss
+            gaps.append(float(r["lifetime_bias_vs_reference_rel"]))
+        for gap in gaps:
+            assert gap == 0.0 if r["variant"] == "reference" else np.isfinite(gap)
+    assert "tau-ref" in text and "beside the reference's" in text
     summary = json.loads((out / "summary.json").read_text())
     assert summary["variants"] == ["ignored", "reference"] and summary["quick"]
     assert {c["met"] for c in summary["target_checks"]} <= {True, False, None}
@@ -99,3 +107,25 @@ def test_bad_options(tmp_path):
     assert main(["bench", "realism", "--quick", "--effects", "fog", "--out", str(tmp_path / "a")]) == 2
     assert main(["bench", "realism", "--quick", "--variants", "best", "--out", str(tmp_path / "b")]) == 2
     assert main(["bench", "realism", "--photons", "100,-3", "--out", str(tmp_path / "c")]) == 2
+
+
+def test_bias_beside_the_reference_and_the_median_ratio_error():
+    """paired_bias: the mean of the per-pixel differences where both are finite, with its
+    standard error; median_z_stderr: the spread of the median of n half-normal values."""
+    a = np.array([1.0, 2.0, np.nan, 4.0, 5.0])
+    b = np.array([0.5, 1.0, 3.0, np.nan, 4.0])
+    diff, se = realism.paired_bias(a, b)
+    assert diff == pytest.approx(np.mean([0.5, 1.0, 1.0]))
+    assert se == pytest.approx(np.std([0.5, 1.0, 1.0], ddof=1) / np.sqrt(3))
+    rng = np.random.default_rng(0)
+    medians = np.median(np.abs(rng.standard_normal((4000, 400))), axis=1)
+    assert np.median(medians) == pytest.approx(realism.HALF_NORMAL_MEDIAN, abs=0.005)
+    assert np.std(medians) == pytest.approx(realism.median_z_stderr(400), rel=0.05)
+    # per-pixel errors: the relative lifetime error is tau_e / tau - 1 = alpha_t / alpha_e - 1
+    d = make_profiles(6, 200, seed=2, kinds="d+s", photons_per_pixel=1000.0)
+    est = {k: v.copy() for k, v in d.params.items()}
+    est["sss_alpha_per_ps"] = est["sss_alpha_per_ps"] * 0.8
+    est["direct_delay_ps"] = est["direct_delay_ps"] + 1.5
+    d_err, tau_rel = realism.pixel_errors(d.params, est)
+    np.testing.assert_allclose(d_err, 1.5)
+    np.testing.assert_allclose(tau_rel, 0.25)

@@ -22,10 +22,17 @@ widths, RMSE in ps) and the sss lifetime error tau = 1 / alpha (bias and RMSE re
 the true lifetime), on the pixels where the variant reports the component; each RMSE over the
 reference's; mean fidelity; the found rate of the weak echo (an inter-reflection within 2 PSF
 widths of its true delay); and the calibration of the reported standard errors, median
-|error| / stderr, against 0.674 (the half-normal median).  Targets (:data:`TARGETS`, checked
-for ``ignored`` and ``modelled`` at every level): bias within 1 % (of the lifetime; of the
-PSF width for the delay), RMSE within 1.1 x the reference's, median |error| / stderr within
-10 % of 0.674, the echo found in >= 95 % of pixels.
+|error| / stderr, against 0.674 (the half-normal median; printed with its own standard error,
+:func:`median_z_stderr`).  Beside each bias, the bias relative to the reference's on the same
+pixels (:func:`paired_bias`): at 100 photons the maximum-likelihood lifetime itself is biased
+by a few per cent, which the reference, started at the truth, shows.  Targets
+(:data:`TARGETS`, checked for ``ignored`` and ``modelled`` at every level): bias within 1 %
+(of the lifetime; of the PSF width for the delay) of zero, and for the lifetime also of the
+reference's bias, RMSE within 1.1 x the reference's, median |error| / stderr within 10 % of
+0.674, the echo found in >= 95 % of pixels.  The delay's bias beside the reference's is
+printed, not checked: the reference's delay is no yardstick at few photons (it leaves the
+sss onset free of the direct, and at 100 photons its delay is biased by up to +0.65 ps,
+with an RMSE up to twice the decomposition's).
 
 Outputs in ``--out``: ``realism.csv`` (one row per effect, photon level and variant) and
 ``summary.json`` (the settings, the rows and the targets as met / not met / not measured).
@@ -143,9 +150,10 @@ def _mean_se(x):
 
 
 def _calibration(err, stderr):
+    """Median |err| / stderr over the pixels where it is finite, and how many those are."""
     z = np.abs(err) / np.asarray(stderr, np.float64)
     z = z[np.isfinite(z)]
-    return float(np.median(z)) if z.size else float("nan")
+    return (float(np.median(z)) if z.size else float("nan")), int(z.size)
 
 
 def echo_found(truth: dict, est: dict, echo: np.ndarray, n_sigma: float = 2.0) -> float:
@@ -162,16 +170,41 @@ def echo_found(truth: dict, est: dict, echo: np.ndarray, n_sigma: float = 2.0) -
     return float(hit[echo].mean()) if echo.any() else float("nan")
 
 
+def pixel_errors(truth: dict, est_params: dict):
+    """Per-pixel errors of an estimate: the direct delay's (ps) and the relative lifetime's,
+    (tau_e - tau) / tau with tau = 1 / alpha; each (N,), NaN where either side lacks it."""
+    d_err = _errors(truth, est_params, "direct_delay_ps")
+    alpha_t = np.asarray(truth["sss_alpha_per_ps"], np.float64)
+    alpha_e = np.asarray(est_params.get("sss_alpha_per_ps", np.full(alpha_t.shape, np.nan)), np.float64)
+    both = np.isfinite(alpha_t) & np.isfinite(alpha_e) & (alpha_e > 0)
+    tau_rel = np.where(both, alpha_t / np.where(both, alpha_e, 1.0) - 1.0, np.nan)
+    return d_err, tau_rel
+
+
+def paired_bias(err, ref_err):
+    """Mean of ``err - ref_err`` over the pixels where both are finite, and its standard error.
+
+    The bias of a variant beside the reference's on the same pixels: the two share each
+    pixel's noise, so the difference's error is much smaller than either bias's.
+    """
+    return _mean_se(np.asarray(err, np.float64) - np.asarray(ref_err, np.float64))
+
+
+def median_z_stderr(n: int) -> float:
+    """Standard error of the median of ``n`` half-normal |error| / stderr values,
+    1 / (2 sqrt(n) f(m)) with f(m) = 2 phi(0.6745) = 0.636 the density at the median."""
+    f = 2.0 * math.exp(-0.5 * HALF_NORMAL_MEDIAN ** 2) / math.sqrt(2.0 * math.pi)
+    return 1.0 / (2.0 * math.sqrt(n) * f) if n > 0 else float("nan")
+
+
 def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
     """Figures of one estimate against the truth of ``data`` (see the module docstring)."""
     from decomposition.metrics import fidelity
 
     truth = data.params
-    d_err = _errors(truth, est_params, "direct_delay_ps")
+    d_err, tau_rel = pixel_errors(truth, est_params)
     alpha_t = np.asarray(truth["sss_alpha_per_ps"], np.float64)
-    alpha_e = np.asarray(est_params.get("sss_alpha_per_ps", np.full(alpha_t.shape, np.nan)), np.float64)
-    both = np.isfinite(alpha_t) & np.isfinite(alpha_e) & (alpha_e > 0)
-    tau_rel = np.where(both, alpha_t / np.where(both, alpha_e, 1.0) - 1.0, np.nan)   # (tau_e - tau) / tau
+    both = np.isfinite(tau_rel)
     has_d, has_s = np.isfinite(truth["direct_delay_ps"]), np.isfinite(alpha_t)
     bias_d, se_d = _mean_se(d_err)
     bias_t, se_t = _mean_se(tau_rel)
@@ -182,12 +215,14 @@ def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
            "lifetime_bias_rel": bias_t, "lifetime_bias_se_rel": se_t, "lifetime_rmse_rel": _rmse(tau_rel),
            "mean_fidelity": float(np.nanmean(fidelity(data.components, est_components))),
            "echo_found": echo_found(truth, est_params, data.echo) if with_echo else float("nan")}
+    out["stderr_median_z_lifetime"] = out["stderr_median_z_delay"] = float("nan")
+    out["stderr_median_z_lifetime_se"] = out["stderr_median_z_delay_se"] = float("nan")
     if "sss_alpha_per_ps_stderr" in est_params:
-        out["stderr_median_z_lifetime"] = _calibration(_errors(truth, est_params, "sss_alpha_per_ps"),
-                                                       est_params["sss_alpha_per_ps_stderr"])
-        out["stderr_median_z_delay"] = _calibration(d_err, est_params.get("direct_delay_ps_stderr", np.nan))
-    else:
-        out["stderr_median_z_lifetime"] = out["stderr_median_z_delay"] = float("nan")
+        for key, err, se in (("lifetime", _errors(truth, est_params, "sss_alpha_per_ps"),
+                              est_params["sss_alpha_per_ps_stderr"]),
+                             ("delay", d_err, est_params.get("direct_delay_ps_stderr", np.nan))):
+            z, n = _calibration(err, se)
+            out[f"stderr_median_z_{key}"], out[f"stderr_median_z_{key}_se"] = z, median_z_stderr(n)
     return out
 
 
@@ -230,7 +265,7 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
         for level in levels:
             data = make_profiles(pixels, n_bins, seed=seed_e, kinds=setup["kinds"],
                                  time_bin_ps=time_bin_ps, photons_per_pixel=float(level), **setup["options"])
-            by_variant = {}
+            by_variant, errors = {}, {}
             for variant in variants:
                 row = {"effect": effect, "photons_per_pixel": float(level), "variant": variant, "pixels": pixels}
                 t_start = time.perf_counter()
@@ -241,6 +276,7 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
                 else:
                     row["status"] = "ok"
                     row.update(score(data, params, comps, with_echo=effect in ECHO_EFFECTS))
+                    errors[variant] = pixel_errors(data.params, params)
                 row["seconds_per_pixel"] = (time.perf_counter() - t_start) / pixels
                 by_variant[variant] = row
                 rows.append(row)
@@ -251,6 +287,15 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
                     if ref is not None and ref["status"] == "ok" and row["status"] == "ok":
                         ratio = row[key] / ref[key] if ref[key] > 0 else float("nan")
                     row[key.replace("_ps", "").replace("_rel", "") + "_over_reference"] = ratio
+                # the bias beside the reference's on the same pixels (the estimator's own bias
+                # at few photons is the reference's; a variant is judged against both)
+                for i, (key, unit) in enumerate((("direct_delay", "ps"), ("lifetime", "rel"))):
+                    diff = se = float("nan")
+                    if "reference" in errors and row["variant"] in errors:
+                        diff, se = paired_bias(errors[row["variant"]][i], errors["reference"][i])
+                    row[f"{key}_bias_vs_reference_{unit}"] = diff
+                    row[f"{key}_bias_vs_reference_se_{unit}"] = se
+                row["direct_delay_bias_vs_reference_sigma"] = row["direct_delay_bias_vs_reference_ps"] / SIGMA_PS
                 if progress:
                     progress(row)
     return rows
@@ -272,6 +317,10 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
              f"{row['lifetime_bias_rel']:+.2%} +- {row['lifetime_bias_se_rel']:.2%} (<= {TARGETS['bias']:.0%})"),
             ("direct delay bias", abs(row["direct_delay_bias_sigma"]) <= TARGETS["bias"],
              f"{row['direct_delay_bias_sigma']:+.3f} sigma (<= {TARGETS['bias']:g} sigma)"),
+            ("lifetime bias beside the reference's",
+             abs(row["lifetime_bias_vs_reference_rel"]) <= TARGETS["bias"],
+             f"{row['lifetime_bias_vs_reference_rel']:+.2%} +- {row['lifetime_bias_vs_reference_se_rel']:.2%} "
+             f"(<= {TARGETS['bias']:.0%})"),
             ("lifetime RMSE", row["lifetime_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
              f"{row['lifetime_rmse_over_reference']:.2f} x reference (<= {TARGETS['rmse_over_reference']:g})"),
             ("direct delay RMSE", row["direct_delay_rmse_over_reference"] <= TARGETS["rmse_over_reference"],
@@ -280,7 +329,8 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
         for key, label in (("stderr_median_z_lifetime", "lifetime stderr"), ("stderr_median_z_delay", "delay stderr")):
             z = row[key]
             checks.append((label, abs(z / HALF_NORMAL_MEDIAN - 1) <= TARGETS["stderr_calibration"],
-                           f"median |e|/se {z:.3f} (0.674 +- {TARGETS['stderr_calibration']:.0%})"))
+                           f"median |e|/se {z:.3f} +- {row[key + '_se']:.3f} "
+                           f"(0.674 +- {TARGETS['stderr_calibration']:.0%})"))
         if not with_sss:
             checks = [c for c in checks if not c[0].startswith("lifetime")]
         if row["effect"] in ECHO_EFFECTS:
@@ -359,10 +409,11 @@ def run(args) -> int:
     json_path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
 
     print("direct delay and sss lifetime errors beside the Poisson reference (true response and set, from the truth);")
-    print("targets: bias within 1 %, RMSE <= 1.1 x reference, median |e|/se within 10 % of 0.674, echo found >= 95 %")
+    print("targets: bias within 1 % (of zero; the lifetime's also of the reference's on the same pixels, tau-ref), "
+          "RMSE <= 1.1 x reference, median |e|/se within 10 % of 0.674, echo found >= 95 %")
     head = (f"  {'effect':10s} {'photons':>7s} {'variant':9s} {'d bias ps':>9s} {'d RMSE':>7s} {'x ref':>5s} "
             f"{'tau bias':>8s} {'+-':>6s} {'tau RMSE':>8s} {'x ref':>5s} {'fid':>6s} {'|e|/se tau':>10s} "
-            f"{'|e|/se d':>8s} {'echo':>6s}")
+            f"{'|e|/se d':>8s} {'echo':>6s} {'d-ref ps':>8s} {'tau-ref':>8s} {'+-':>6s}")
     print(head)
     for r in rows:
         lead = f"  {r['effect']:10s} {r['photons_per_pixel']:>7g} {r['variant']:9s}"
@@ -374,7 +425,9 @@ def run(args) -> int:
               f"{_fmt(r['lifetime_bias_se_rel'], '6.2%')} {_fmt(r['lifetime_rmse_rel'], '8.2%')} "
               f"{_fmt(r['lifetime_rmse_over_reference'], '5.2f')} {_fmt(r['mean_fidelity'], '6.3f')} "
               f"{_fmt(r['stderr_median_z_lifetime'], '10.3f')} {_fmt(r['stderr_median_z_delay'], '8.3f')} "
-              f"{_fmt(r['echo_found'], '6.1%')}")
+              f"{_fmt(r['echo_found'], '6.1%')} {_fmt(r['direct_delay_bias_vs_reference_ps'], '+8.3f')} "
+              f"{_fmt(r['lifetime_bias_vs_reference_rel'], '+8.2%')} "
+              f"{_fmt(r['lifetime_bias_vs_reference_se_rel'], '6.2%')}")
     for r in rows:
         if r["effect"] == "echo5sigma" and r["status"] == "ok":
             print(f"echo target ({r['variant']}): a 1 % echo {ECHO_SIGMA:g} sigma above the noise at "
