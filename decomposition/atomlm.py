@@ -839,12 +839,12 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 for i in range(L):
                     md[i] = tmodel[i]
                 J, Jt = Jt, J
+                if old - tobj <= tol * old / nw:
+                    break                # converged: this state's normal equations are not needed
                 tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
                 _normal_equations(t0, T, K, f, am, de, ls, la, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi,
                           act, bp, pa, pb)
                 lam = max(lam / 3.0, 1e-9)
-                if old - tobj <= tol * old / nw:
-                    break
             else:
                 lam *= 4.0
                 if lam > 1e8:
