@@ -31,6 +31,7 @@ __all__ = [
     "SPIKE_FALSE_ALARM",
     "POISSON_VARIANCE_FLOOR",
     "POOR_FIT_DIRECT_SIGMA",
+    "SEARCH_NEAR_DIRECT_CHI2",
     "WEAK_DIRECT_FRACTION",
     "WEAK_DIRECT_ONSET_SIGMA",
     "POISSON_REFITS",
@@ -98,6 +99,18 @@ AMP_MAX = 20.0
 #: POOR_FIT's second test (:mod:`decomposition.quality`) weighs the residual over the direct's
 #: delay +- this many fitted widths (plus one bin) (dimensionless).
 POOR_FIT_DIRECT_SIGMA = 3.0
+
+#: The search's near-direct doubt test (:func:`decomposition.search.search_block`): a pixel is
+#: in doubt when its data term per sample over the direct's samples (as POOR_FIT_DIRECT_SIGMA)
+#: exceeds this many noise variances (dimensionless).  The noise there is the pixel's one
+#: estimate, and photon noise is largest at the direct's peak: at 1.5 the demo's simulated
+#: capture (photon and read noise) had 100 more pixels searched, whose starts lost fidelity
+#: (all components 0.901 -> 0.877, direct 0.875 -> 0.861, AMBIGUOUS 197 -> 296); at 3 it reads
+#: 0.895 / 0.872 / 216, and the paper scenes (300 px, seeds 0 and 1, 2 ps white 0.001 / 0.055 /
+#: 0.11, pink and photon 0.055, 4 ps white 0.055) move by -0.003..+0.003, the 4 ps direct-delay
+#: failures unchanged (5 of 600, none unflagged).  At 4 and 6 photon noise lost 0.003 / 0.006
+#: and had unflagged direct-delay failures again.
+SEARCH_NEAR_DIRECT_CHI2 = 3.0
 
 #: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.quality.weak_direct`):
 #: the direct's peak below this fraction of the other light's (dimensionless), an sss onset or

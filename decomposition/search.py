@@ -418,7 +418,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
     two or more Gaussians without an sss, a leading edge that rises faster than its detected
     width allows, a data term above ``search_doubt_chi2`` times its expected value, or a data
-    term per sample above ``search_doubt_chi2`` (in noise variances) over the samples within
+    term per sample above ``SEARCH_NEAR_DIRECT_CHI2`` (in noise variances) over the samples within
     POOR_FIT_DIRECT_SIGMA widths (plus one bin) of the earliest Gaussian (a direct of the
     wrong width: its misfit is diluted in the whole window's).  Only
     those pixels get the starts of :data:`STAGE_STARTS` (``edge``: a direct one width after the
@@ -460,7 +460,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
-                            SEARCH_EDGE_LEVEL, SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
+                            SEARCH_EDGE_LEVEL, SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL)
 
     g = base["fam"] == FAM_GAUSS
     s_at = base["fam"] == FAM_SSS
@@ -491,7 +491,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         doubt = narrow_all | (~has_s & (g.sum(axis=1) >= 2))
         doubt |= has_s & (~g.any(axis=1) | (s_on < d0 - 0.5 * sig) | (s_on > d0 + NEAR_SIGMA * sig))
         doubt |= chi0 > opts.search_doubt_chi2 * nfit
-        doubt |= _near_direct_chi2(t, r0, mask, base, s2) > opts.search_doubt_chi2
+        doubt |= _near_direct_chi2(t, r0, mask, base, s2) > SEARCH_NEAR_DIRECT_CHI2
     idx = np.nonzero(doubt)[0]
     if idx.size == 0:
         return out, start, doubt, ambiguous

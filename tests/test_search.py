@@ -256,6 +256,38 @@ def test_near_direct_chi2_weighs_only_the_samples_around_the_earliest_gaussian()
     np.testing.assert_allclose(got, [9.0, 0.0], atol=1e-9)  # (0.03 / 0.01)^2 per sample; nothing
 
 
+def test_a_correct_fit_under_photon_noise_is_not_in_doubt_at_its_direct():
+    """Photon noise is largest at the direct's peak, where the near-direct test looks, while a
+    pixel has one noise estimate: a correct fit must stay under the test's threshold there (at
+    1.5 noise variances more than 40 % of these pixels were in doubt), and a wrong-width direct above it."""
+    from decomposition.constants import FAM_GAUSS, SEARCH_NEAR_DIRECT_CHI2
+    from decomposition.masks import SampleMask
+    from decomposition.search import _near_direct_chi2
+    from decomposition.slots import new_state, render
+
+    n, L, T = 400, 256, 2.0
+    t = T * np.arange(1, L + 1)
+    st = new_state(n, 3)
+    st["fam"][:, 0] = FAM_GAUSS
+    st["delay"][:, 0] = 150.0
+    st["amp"][:, 0] = 1.0
+    st["lsig"][:] = np.log(4.0)
+    clean = render(t, st)
+    rng = np.random.default_rng(3)
+    floor, gain = 0.01, 2e-4                # variance floor^2 + gain * signal: 3x the floor^2 at the peak
+    p = clean + rng.standard_normal(clean.shape) * np.sqrt(floor ** 2 + gain * clean)
+    s2 = np.full(n, np.median(np.var(p[:, :40], axis=1)))    # the pixel's one estimate: the quiet part's
+    mask = SampleMask(np.ones((n, L), bool), np.zeros((n, L), bool))
+    chi = _near_direct_chi2(t, mask.residual(p, clean), mask, st, s2)
+    assert np.mean(chi > 1.5) > 0.4                               # the old threshold: many in doubt
+    assert np.mean(chi > SEARCH_NEAR_DIRECT_CHI2) < 0.1           # now: a few
+    wide = {k: v.copy() for k, v in st.items()}
+    wide["lsig"][:] = np.log(8.0)
+    wide["amp"][:, 0] = 0.5 * np.sqrt(2.0)                        # same area, twice the width
+    chi_wide = _near_direct_chi2(t, mask.residual(p, render(t, wide)), mask, wide, s2)
+    assert np.all(chi_wide > SEARCH_NEAR_DIRECT_CHI2)
+
+
 @pytest.mark.parametrize("nsr, pixels", [(0.001, [41, 276]), (0.055, [35])])
 def test_search_finds_a_narrow_direct_the_detection_made_wide(nsr, pixels):
     # paper scenes at 4 ps bins: directs of 1.2-2 ps whose detected direct is 3-4x too wide
