@@ -416,8 +416,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
-    two or more Gaussians without an sss, a leading edge that rises faster than its detected
-    width allows, a data term above ``search_doubt_chi2`` times its expected value, or a data
+    two or more Gaussians without an sss, a leading edge that rises faster than the start width
+    (``SEARCH_DEFAULT_SIGMA_PS``) allows, a data term above ``search_doubt_chi2`` times its expected value, or a data
     term per sample above ``SEARCH_NEAR_DIRECT_CHI2`` (in noise variances) over the samples within
     POOR_FIT_DIRECT_SIGMA widths (plus one bin) of the earliest Gaussian (a direct of the
     wrong width: its misfit is diluted in the whole window's).  Only
@@ -517,8 +517,9 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         if moved.any():
             m = np.nonzero(moved)[0]
             put(cand[0], m, refined(take(cand[0], m), m))
-    # ("edge bare" and a start at the rise's narrower width never won on the paper's scenes:
-    # a pixel whose rise is too steep is in doubt, and the peak start takes it)
+    # ("edge bare" and a start at the rise's narrower width never won on the paper's scenes
+    # at 2 ps bins: a pixel whose rise is too steep is in doubt, and the peak start takes it;
+    # at 4 ps the rise reads too wide, hence the ``rise`` start at the grid's narrowest width)
     specs = (("edge", t_edge + sg, t_edge + (1.0 + SEARCH_EDGE_GAP_SIGMA) * sg, True), ("peak", t_peak, t_peak + sg, True),
              ("peak bare", t_peak, t_peak + sg, False))
     built = []                  # (direct, sss onset, later Gaussians) of the starts so far
