@@ -180,94 +180,101 @@ def test_serial_transport_on_a_vanished_port_is_connection_lost(pty_pair):
 
 
 # ---------------------------------------------------------------- TCP
-def test_tcp_transport_lines_blocks_timeout_and_peer_close():
+@pytest.fixture
+def loopback_server():
+    """A listening socket on a free loopback port -> (server, port); every accept gives up
+    after 5 s (a client that never connects fails the test there, not at the suite's timeout)."""
     server = socket.create_server(("127.0.0.1", 0))
-    port = server.getsockname()[1]
+    server.settimeout(5.0)
     try:
-        t = TcpLineTransport("127.0.0.1", port, timeout_s=0.5)
-        conn, _ = server.accept()
-        t.write(b"AppInfo()\r\n")
-        assert conn.recv(64) == b"AppInfo()\r\n"
-        conn.sendall(b"0,ok\r\n\x01\x02\x03")
-        assert t.read_line() == b"0,ok\r\n"
-        assert t.read_exactly(3) == b"\x01\x02\x03"
-        with pytest.raises(DeviceTimeout):
-            t.read_line(timeout_s=0.05)
-        conn.close()
-        with pytest.raises(ConnectionLost, match="closed"):
-            t.read_line()
-        t.reconnect()
-        conn2, _ = server.accept()
-        conn2.sendall(b"again\r\n")
-        assert t.read_line() == b"again\r\n"
-        t.close()
-        conn2.close()
+        yield server, server.getsockname()[1]
     finally:
         server.close()
+
+
+def _accept(server):
+    conn, _ = server.accept()
+    conn.settimeout(5.0)              # every recv on the test's side of the link waits 5 s at most
+    return conn
+
+
+def test_tcp_transport_lines_blocks_timeout_and_peer_close(loopback_server):
+    server, port = loopback_server
+    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.5)
+    conn = _accept(server)
+    t.write(b"AppInfo()\r\n")
+    assert conn.recv(64) == b"AppInfo()\r\n"
+    conn.sendall(b"0,ok\r\n\x01\x02\x03")
+    assert t.read_line() == b"0,ok\r\n"
+    assert t.read_exactly(3) == b"\x01\x02\x03"
+    with pytest.raises(DeviceTimeout):
+        t.read_line(timeout_s=0.05)
+    conn.close()
+    with pytest.raises(ConnectionLost, match="closed"):
+        t.read_line()
+    t.reconnect()
+    conn2 = _accept(server)
+    conn2.sendall(b"again\r\n")
+    assert t.read_line() == b"again\r\n"
+    t.close()
+    conn2.close()
+    server.close()
     with pytest.raises(ConnectionLost, match="cannot open 127.0.0.1"):
         TcpLineTransport("127.0.0.1", port, connect_timeout_s=0.5)
 
 
-def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command():
+def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command(loopback_server):
     # The first part of a late reply has arrived when the next command goes out; its rest is
     # still on the wire.  The resynchronisation waits for the end of that line and drops it, so
     # the rest is not taken for the next command's reply.
-    server = socket.create_server(("127.0.0.1", 0))
-    port = server.getsockname()[1]
-    try:
-        t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
-        conn, _ = server.accept()
-        with pytest.raises(DeviceTimeout):
-            t.query(b"1ID?\r\n")
-        assert conn.recv(64) == b"1ID?\r\n"
-        conn.sendall(b"1ID SMC_")
-        assert select.select([t.sock], [], [], 2.0)[0]       # the first part is at the client
-        seen = []
+    server, port = loopback_server
+    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
+    conn = _accept(server)
+    with pytest.raises(DeviceTimeout):
+        t.query(b"1ID?\r\n")
+    assert conn.recv(64) == b"1ID?\r\n"
+    conn.sendall(b"1ID SMC_")
+    assert select.select([t.sock], [], [], 2.0)[0]       # the first part is at the client
+    seen = []
 
-        def rest_then_answer():
-            time.sleep(0.05)                                  # the rest is later on the wire
-            conn.sendall(b"sim\r\n")
-            seen.append(conn.recv(64))
-            conn.sendall(b"1TS000033\r\n")
+    def rest_then_answer():
+        time.sleep(0.05)                                  # the rest is later on the wire
+        conn.sendall(b"sim\r\n")
+        seen.append(conn.recv(64))
+        conn.sendall(b"1TS000033\r\n")
 
-        th = threading.Thread(target=rest_then_answer)
-        th.start()
-        assert t.query(b"1TS\r\n", timeout_s=2.0) == b"1TS000033\r\n"
-        th.join(5)
-        assert seen == [b"1TS\r\n"]
-        t.close()
-        conn.close()
-    finally:
-        server.close()
+    th = threading.Thread(target=rest_then_answer)
+    th.start()
+    assert t.query(b"1TS\r\n", timeout_s=2.0) == b"1TS000033\r\n"
+    th.join(5)
+    assert seen == [b"1TS\r\n"]
+    t.close()
+    conn.close()
 
 
-def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_peer_went():
-    server = socket.create_server(("127.0.0.1", 0))
-    port = server.getsockname()[1]
-    try:
-        t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
-        conn, _ = server.accept()
-        with pytest.raises(DeviceTimeout):
-            t.query(b"slow?\r\n")
-        conn.sendall(b"late answer\r\n")
-        assert conn.recv(64) == b"slow?\r\n"
-        deadline = time.monotonic() + 2
-        while not t.drain() and time.monotonic() < deadline:   # the late line is thrown away
-            pass
-        conn.close()                                           # the peer goes away
-        result = []
+def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_peer_went(loopback_server):
+    server, port = loopback_server
+    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
+    conn = _accept(server)
+    with pytest.raises(DeviceTimeout):
+        t.query(b"slow?\r\n")
+    conn.sendall(b"late answer\r\n")
+    assert conn.recv(64) == b"slow?\r\n"
+    deadline = time.monotonic() + 2
+    while not t.drain() and time.monotonic() < deadline:   # the late line is thrown away
+        pass
+    conn.close()                                           # the peer goes away
+    result = []
 
-        def serve_once():
-            c, _ = server.accept()
-            result.append(c.recv(64))
-            c.sendall(b"fresh\r\n")
-            c.close()
+    def serve_once():
+        c = _accept(server)
+        result.append(c.recv(64))
+        c.sendall(b"fresh\r\n")
+        c.close()
 
-        th = threading.Thread(target=serve_once)
-        th.start()
-        assert t.query(b"again?\r\n", timeout_s=2.0) == b"fresh\r\n"
-        th.join(5)
-        assert result == [b"again?\r\n"]
-        t.close()
-    finally:
-        server.close()
+    th = threading.Thread(target=serve_once)
+    th.start()
+    assert t.query(b"again?\r\n", timeout_s=2.0) == b"fresh\r\n"
+    th.join(5)
+    assert result == [b"again?\r\n"]
+    t.close()
