@@ -198,6 +198,27 @@ def _accept(server):
     return conn
 
 
+def _after_a_timed_out_query(server, port, command):
+    """A client whose ``command`` query timed out (0.2 s; its reply never sent) -> (transport,
+    the server's end of the link)."""
+    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
+    conn = _accept(server)
+    with pytest.raises(DeviceTimeout):
+        t.query(command)
+    return t, conn
+
+
+def _query_while_serving(t, command, serve):
+    """``t.query(command)`` (2 s) while ``serve()``, the device's side, runs on its own thread
+    -> the reply; the thread is joined (5 s at most) either way."""
+    th = threading.Thread(target=serve)
+    th.start()
+    try:
+        return t.query(command, timeout_s=2.0)
+    finally:
+        th.join(5)
+
+
 def test_tcp_transport_lines_blocks_timeout_and_peer_close(loopback_server):
     server, port = loopback_server
     t = TcpLineTransport("127.0.0.1", port, timeout_s=0.5)
@@ -228,10 +249,7 @@ def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command
     # still on the wire.  The resynchronisation waits for the end of that line and drops it, so
     # the rest is not taken for the next command's reply.
     server, port = loopback_server
-    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
-    conn = _accept(server)
-    with pytest.raises(DeviceTimeout):
-        t.query(b"1ID?\r\n")
+    t, conn = _after_a_timed_out_query(server, port, b"1ID?\r\n")
     assert conn.recv(64) == b"1ID?\r\n"
     conn.sendall(b"1ID SMC_")
     assert select.select([t.sock], [], [], 2.0)[0]       # the first part is at the client
@@ -243,10 +261,7 @@ def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command
         seen.append(conn.recv(64))
         conn.sendall(b"1TS000033\r\n")
 
-    th = threading.Thread(target=rest_then_answer)
-    th.start()
-    assert t.query(b"1TS\r\n", timeout_s=2.0) == b"1TS000033\r\n"
-    th.join(5)
+    assert _query_while_serving(t, b"1TS\r\n", rest_then_answer) == b"1TS000033\r\n"
     assert seen == [b"1TS\r\n"]
     t.close()
     conn.close()
@@ -254,10 +269,7 @@ def test_a_late_reply_caught_mid_line_is_discarded_whole_before_the_next_command
 
 def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_peer_went(loopback_server):
     server, port = loopback_server
-    t = TcpLineTransport("127.0.0.1", port, timeout_s=0.2)
-    conn = _accept(server)
-    with pytest.raises(DeviceTimeout):
-        t.query(b"slow?\r\n")
+    t, conn = _after_a_timed_out_query(server, port, b"slow?\r\n")
     conn.sendall(b"late answer\r\n")
     assert conn.recv(64) == b"slow?\r\n"
     deadline = time.monotonic() + 2
@@ -272,9 +284,6 @@ def test_tcp_transport_discards_a_late_reply_and_reconnects_a_query_after_the_pe
         c.sendall(b"fresh\r\n")
         c.close()
 
-    th = threading.Thread(target=serve_once)
-    th.start()
-    assert t.query(b"again?\r\n", timeout_s=2.0) == b"fresh\r\n"
-    th.join(5)
+    assert _query_while_serving(t, b"again?\r\n", serve_once) == b"fresh\r\n"
     assert result == [b"again?\r\n"]
     t.close()
