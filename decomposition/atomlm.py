@@ -172,32 +172,22 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model):
         # stepped by exp(-alpha T) per bin; all three derivative columns are multiples of h
         x = t0 + i * T - delay
         h = _SQRT_2PI * sig * math.exp(min(0.5 * alp * alp * s2 - alp * x, 0.0))
-        rho = math.exp(-alp * T)
         c1 = amp * alp
         c2 = amp * (1.0 + alp * alp * s2)
-        while i < L and i < deriv_end:
+        while i < L:
             if h < _TINY:
                 hi = i
                 break
             J[row, i] = h
             if add:
                 model[i] += amp * h
-            J[row + 1, i] = c1 * h
-            J[row + 2, i] = c2 * h
-            J[row + 3, i] = c1 * (alp * s2 - x) * h
+            if i < deriv_end:
+                J[row + 1, i] = c1 * h
+                J[row + 2, i] = c2 * h
+                J[row + 3, i] = c1 * (alp * s2 - x) * h
             h *= rho
             x += T
             i += 1
-        if hi == L:                      # values alone from here on
-            while i < L:
-                if h < _TINY:
-                    hi = i
-                    break
-                J[row, i] = h
-                if add:
-                    model[i] += amp * h
-                h *= rho
-                i += 1
     return lo, hi
 
 
