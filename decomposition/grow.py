@@ -55,7 +55,7 @@ from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACT
                         GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
                         SWAP_MODE_GAP_SIGMA)
 
-__all__ = ["min_gaussian_gap_sigma", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
+__all__ = ["min_gaussian_gap_sigma", "with_gaussian", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]
 
 
@@ -155,6 +155,43 @@ def worth_refitting(gain, gain_wide, amplitude, direct_amplitude, significance_c
             & (amplitude < direct_amplitude))
 
 
+def with_gaussian(st, delay_ps, lsig, amp=1.0):
+    """A forward step's trial: a copy of the slot state ``st`` (n, K) with a Gaussian of log
+    width ``lsig`` (n,) at ``delay_ps`` (n,), amplitude ``amp`` (scalar or (n,)), penalty scale
+    1, in each row's first free slot (every row must have one) -> (state, slot (n,))."""
+    from .slots import take
+
+    n = st["fam"].shape[0]
+    alt = take(st, np.arange(n))
+    r = np.arange(n)
+    slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
+    alt["fam"][r, slot] = FAM_GAUSS
+    alt["delay"][r, slot] = delay_ps
+    alt["lsig"][r, slot] = lsig
+    alt["amp"][r, slot] = amp
+    alt["pen"][r, slot] = 1.0
+    return alt, slot
+
+
+def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts):
+    """Polish the trials ``alt`` of rows ``idx`` (whose state is ``cur``) and put those into
+    ``out`` whose penalised objective is lower and whose Gaussians stay resolved (RESOLVED_SIGMA
+    widths apart, or no closer than before) -> the rows of ``idx`` taken."""
+    from .search import penalised_objective
+    from .slots import put, take
+
+    pb, mb = p[idx], mask[idx]
+    s2 = np.maximum(s_eff[idx], 1e-300) ** 2
+    log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
+    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
+    resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
+    better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
+    w = np.flatnonzero(resolved & better)
+    if w.size:
+        put(out, idx[w], take(alt, w))
+    return idx[w]
+
+
 def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test: bool = True):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
@@ -165,8 +202,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     :func:`grow_counts` tests with Poisson weights and against a broad excess: with a response
     tail the Gaussian model lacks, the bump test put a Gaussian on the tail's misfit in 21 % of
     the pixels of ``tests/test_echo.py``'s d+s scene at 100 photons)."""
-    from .search import penalised_objective
-    from .slots import put, render, take
+    from .slots import render, take
 
     n, L = p.shape
     T = dic.time_bin_ps
@@ -197,24 +233,8 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     idx, cur, at_ps, sigma_ps = free[keep], take(cur, np.nonzero(keep)[0]), at_ps[keep], sigma_ps[keep]
     if idx.size == 0:
         return out, grown
-    pb, mb = p[idx], mask[idx]
-    s2 = np.maximum(s_eff[idx], 1e-300) ** 2
-    log_n = np.log(nfit[idx])
-    alt = take(cur, np.arange(idx.size))
-    r = np.arange(idx.size)
-    slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
-    alt["fam"][r, slot] = FAM_GAUSS
-    alt["delay"][r, slot] = at_ps
-    alt["lsig"][r, slot] = np.log(sigma_ps)
-    alt["amp"][r, slot] = 1.0
-    alt["pen"][r, slot] = 1.0
-    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
-    resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
-    better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
-    w = np.nonzero(resolved & better)[0]
-    if w.size:
-        put(out, idx[w], take(alt, w))
-        grown[idx[w]] = True
+    alt, _ = with_gaussian(cur, at_ps, np.log(sigma_ps))
+    grown[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts)] = True
     return out, grown
 
 
@@ -239,8 +259,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     where the penalised objective is lower and every pair of Gaussians stays resolved (the rule
     of :func:`grow_block`).
     """
-    from .search import penalised_objective
-    from .slots import eval_atoms, put, take
+    from .slots import eval_atoms, take
 
     n, L = p.shape
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
@@ -266,26 +285,11 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     late = np.flatnonzero((mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps) & steep)
     if late.size == 0:
         return out, swapped
-    idx, cur, r = cand[late], take(cur, late), np.arange(late.size)
-    alt = take(cur, r)
-    slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
-    alt["fam"][r, slot] = FAM_GAUSS
-    alt["delay"][r, slot] = mode_ps[late]
-    alt["lsig"][r, slot] = np.log(sigma_ps[late])
-    alt["amp"][r, slot] = 1.0
-    alt["pen"][r, slot] = 1.0
-    alt["delay"][r, ss[late]] = d0_ps[late] + PRUNE_ONSET_SIGMA * sigma_ps[late]
+    idx, cur = cand[late], take(cur, late)
+    alt, _ = with_gaussian(cur, mode_ps[late], np.log(sigma_ps[late]))
+    alt["delay"][np.arange(late.size), ss[late]] = d0_ps[late] + PRUNE_ONSET_SIGMA * sigma_ps[late]
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    pb, mb = p[idx], mask[idx]
-    s2 = np.maximum(s_eff[idx], 1e-300) ** 2
-    log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
-    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
-    resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
-    better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
-    w = np.flatnonzero(resolved & better)
-    if w.size:
-        put(out, idx[w], take(alt, w))
-        swapped[idx[w]] = True
+    swapped[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts)] = True
     return out, swapped
 
 
@@ -351,15 +355,8 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
         return out, grown
     idx = cand[tried]
     base = take(cur, tried)
-    alt = take(base, np.arange(tried.size))
-    r = np.arange(tried.size)
-    slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
-    alt["fam"][r, slot] = FAM_GAUSS
-    alt["delay"][r, slot] = at_ps[tried]
-    alt["lsig"][r, slot] = lsig[tried]
-    alt["lalp"][r, slot] = 0.0
-    alt["amp"][r, slot] = a_counts[tried] / scale[idx]
-    alt["pen"][r, slot] = 1.0
+    alt, slot = with_gaussian(base, at_ps[tried], lsig[tried], a_counts[tried] / scale[idx])
+    alt["lalp"][np.arange(tried.size), slot] = 0.0
     fam_trial = alt["fam"].copy()
     alt = polish_count_state(t, p[idx], mask[idx], alt, scale[idx], noise[idx], None if dispersion is None
                              else disp[idx], None if background is None else bg[idx],
