@@ -30,7 +30,7 @@ from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
 from .noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
-__all__ = ["Fit", "assess_fit", "direct_misfit", "weak_direct"]
+__all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,17 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
                residual=residual, flags=flags)
 
 
+def direct_samples(t_ps: np.ndarray, time_bin_ps: float, delay_ps: np.ndarray, sigma_ps: np.ndarray,
+                   used: np.ndarray) -> np.ndarray:
+    """(n, L) bool: the ``used`` samples (n, L) within POOR_FIT_DIRECT_SIGMA widths ``sigma_ps``
+    (n,) plus one bin (``time_bin_ps``) of the direct's ``delay_ps`` (n,; NaN: none, no sample)
+    on the axis ``t_ps`` (L,): where a direct of the wrong shape misfits (this module's second
+    POOR_FIT test, and the search's near-direct doubt)."""
+    w_ps = POOR_FIT_DIRECT_SIGMA * sigma_ps + time_bin_ps
+    with np.errstate(invalid="ignore"):
+        return (np.abs(t_ps[None, :] - delay_ps[:, None]) <= w_ps[:, None]) & used
+
+
 def direct_misfit(samples: Samples, params: dict, residual: np.ndarray, total: np.ndarray,
                   noise: np.ndarray) -> np.ndarray:
     """(n,) over ``samples.live``: the residual RMS over the fitted samples within
@@ -96,11 +107,9 @@ def direct_misfit(samples: Samples, params: dict, residual: np.ndarray, total: n
     """
     live = samples.live
     axis = samples.axis
-    d = np.asarray(params["direct_delay_ps"], np.float64)[live]
-    w_ps = POOR_FIT_DIRECT_SIGMA * np.asarray(params["direct_sigma_ps"], np.float64)[live] + axis.time_bin_ps
     t = axis.t0_ps + axis.time_bin_ps * np.arange(samples.n_bins)
-    with np.errstate(invalid="ignore"):
-        near = (np.abs(t[None, :] - d[:, None]) <= w_ps[:, None]) & samples.fit[live]
+    near = direct_samples(t, axis.time_bin_ps, np.asarray(params["direct_delay_ps"], np.float64)[live],
+                          np.asarray(params["direct_sigma_ps"], np.float64)[live], samples.fit[live])
     if samples.noise_model == "poisson":
         z = anscombe_residual(samples.values[live], total[live], near, samples.dispersion[live])
         chi2 = np.einsum("pl,pl->p", z, z)

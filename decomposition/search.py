@@ -352,7 +352,8 @@ def _near_direct_chi2(t, residual, mask, st, s2):
     (n,); 0 for a pixel without a Gaussian.  ``residual`` (n, L): of the state ``st`` under the
     masks (:meth:`SampleMask.residual`).  A direct of the wrong width misfits there while
     the whole window's data term, over hundreds of quiet samples, stays near its expectation."""
-    from .constants import FAM_GAUSS, POOR_FIT_DIRECT_SIGMA
+    from .constants import FAM_GAUSS
+    from .quality import direct_samples
 
     g = st["fam"] == FAM_GAUSS
     rows = np.arange(g.shape[0])
@@ -360,9 +361,7 @@ def _near_direct_chi2(t, residual, mask, st, s2):
     has = g[rows, k0]
     d0 = np.where(has, st["delay"][rows, k0], np.nan)
     T = t[1] - t[0] if t.size > 1 else 1.0
-    w = POOR_FIT_DIRECT_SIGMA * np.exp(st["lsig"][rows, k0]) + T
-    with np.errstate(invalid="ignore"):
-        near = (np.abs(t[None, :] - d0[:, None]) <= w[:, None]) & mask.used
+    near = direct_samples(t, T, d0, np.exp(st["lsig"][rows, k0]), mask.used)
     r = np.where(near, residual, 0.0)
     return np.einsum("pl,pl->p", r, r) / np.maximum(near.sum(axis=1), 1) / s2
 
