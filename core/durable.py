@@ -64,9 +64,9 @@ def chunk_paths(store_path, name: str, coords: tuple[int, ...]) -> list[Path]:
 
 
 def sync_chunk(store_path, name: str, coords: tuple[int, ...]) -> None:
-    """fsync chunk ``coords`` of array ``name`` in the store at ``store_path``, then its directories."""
-    for p in chunk_paths(store_path, name, coords):
-        fsync_path(p)
+    """fsync chunk ``coords`` of array ``name`` in the store at ``store_path`` and its directories
+    (:func:`sync_chunks` of the one chunk)."""
+    sync_chunks(store_path, [(name, coords)])
 
 
 def sync_chunks(store_path, chunks) -> None:
