@@ -175,9 +175,7 @@ def signal_noise_sigma(residual: np.ndarray, model: np.ndarray, fit: np.ndarray,
     r = residual
     d2 = np.abs(r[:, 2:] - 2.0 * r[:, 1:-1] + r[:, :-2])
     ok = region[:, 1:-1] & _usable(fit)
-    med = masked_median(d2, ok)
-    med = np.where(np.isfinite(med) & (ok.sum(axis=1) >= min_samples), med, 0.0)
-    return MAD_TO_SIGMA * med / math.sqrt(6.0)
+    return np.where(ok.sum(axis=1) >= min_samples, _mad_sigma(d2, ok), 0.0)
 
 
 def is_count_data(values: np.ndarray) -> bool:
