@@ -180,9 +180,11 @@ def start_local_cluster(n_workers: int):
         cluster = LocalCluster(n_workers=int(n_workers), threads_per_worker=1, processes=True, host="127.0.0.1",
                                protocol="tls://", security=security, dashboard_address="127.0.0.1:0",
                                scheduler_kwargs={"dashboard": False},
-                               # workers log errors only: cancelling the chunks of an interrupted run
-                               # would print a warning per running task
-                               silence_logs=logging.ERROR)
+                               # the workers' own logs stay off the terminal: stopping an interrupted run
+                               # makes them warn of every cancelled task and log, at ERROR, a peer's
+                               # closed connection.  What fails in a worker still reaches the run: a
+                               # task's exception is raised by its future, a lost worker as KilledWorker.
+                               silence_logs=logging.CRITICAL + 1)
     try:
         return Client(cluster, security=security), cluster
     except BaseException:

@@ -153,3 +153,24 @@ def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_pat
     n_done = int(open_result_store(out).done_chunks().sum())
     assert 2 <= n_done < 8
     assert f"decompose: interrupted; {n_done}/8 chunks are on disk in {out}; rerun with --resume" in err, err
+
+
+_FAILING_SITE = ("import decomposition.chunked as _c\n"
+                 "def _fail(*a, **k):\n    raise RuntimeError('injected solver failure')\n"
+                 "_c.solve_block = _fail\n")
+
+
+@pytest.mark.timeout(90)
+def test_a_failure_inside_a_worker_process_reaches_the_command(tmp_path):
+    # the workers' logs are silenced (see test above); what fails in one must still stop the run, by name
+    write_cube(tmp_path / "cube.zarr", small_cube(4, 6, seed=1), time_bin_ps=TB)
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(_FAILING_SITE)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
+    proc = subprocess.run([sys.executable, "-m", "streaklab", "decompose", str(tmp_path / "cube.zarr"),
+                           "--out", str(tmp_path / "res.zarr"), "--workers", "2", "--chunks", "1", "3"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=80)
+    assert proc.returncode == 1
+    assert proc.stderr.rstrip().endswith("RuntimeError: injected solver failure"), proc.stderr
+    assert "distributed." not in proc.stderr   # no worker or scheduler log lines
+    assert int(open_result_store(tmp_path / "res.zarr").done_chunks().sum()) == 0
