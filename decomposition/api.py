@@ -33,7 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
-from .candidates import residual_significance_noise
+from .candidates import residual_significance_noise, signal_weights
 from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
@@ -238,6 +238,15 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         rest polished, and the pruned answer kept where the search's penalised
         objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
         counts the pixels.
+    signal_noise : bool
+        Noise that follows the signal (photon / shot noise on float data, the
+        Gaussian noise model): after the detection, each pixel's variance law
+        floor + gain * model is fitted to its residual, and where the gain is
+        significant the search, the forward step, the swap and the backward step
+        score and polish with weights 1 / that variance instead of one noise level
+        for every sample (:func:`decomposition.candidates.signal_weights`).
+        ``info["signal_weighted"]`` counts the pixels weighted.  Count data have
+        their own law (``noise="poisson"``) and are not affected.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -317,6 +326,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),
                     coordinates_searched=int(dic.n_coordinates))
         det = detect_components(samples, dic, opts, fams)
+        if opts.signal_noise and samples.noise_model == "gaussian":
+            det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts))
+            info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
         if opts.search:
             found = search_components(samples, det, dic, opts, fams)
             det = dataclasses.replace(det, state=found.state)

@@ -12,14 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["polish_candidate", "each_block", "residual_significance_noise"]
+__all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights"]
 
 
-def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma):
+def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, weights=None):
     """Polish the slot state ``st`` (n, K) of profiles ``p`` (n, L) -> the polished state.
 
     ``noise`` (n,) is the solver's noise (its penalty scale), ``significance_sigma`` (n,) the
-    noise of the labels' in-window test; ``opts`` a resolved :class:`SolverOptions`.
+    noise of the labels' in-window test; ``opts`` a resolved :class:`SolverOptions`;
+    ``weights`` (n, L) the samples' relative least-squares weights (default: all alike).
     """
     from .label import final_atoms
     from .polish import refit_amplitudes
@@ -28,17 +29,18 @@ def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma):
     refit_amplitudes(p, mask, st, dic)
     st, _, _ = refine_atoms(t_ps, p, mask, st, np.zeros(p.shape[0]), opts.eps_rel * np.asarray(noise),
                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
-                            opts.sss_after_direct, opts.lm_tol)
+                            opts.sss_after_direct, opts.lm_tol, weights=weights)
     drop_zero(st)
     return final_atoms(st, t_ps, dic.time_bin_ps, opts, significance_sigma)
 
 
-def each_block(samples, det, opts, step, pixels: bool = False):
+def each_block(samples, det, opts, step, pixels: bool = False, weights: bool = False):
     """Run ``step(p, mask, state, noise, significance_sigma) -> (state, hit)`` on the detected
     atoms of the live pixels, block by block (normalised profiles and masks of
     :func:`decomposition.detect.solver_inputs`) -> (state of all live pixels, hit (n_live,) bool).
     With ``pixels`` the step also gets the block's pixel indices into ``samples`` (its sixth
-    argument), for what else it reads of them."""
+    argument), for what else it reads of them; with ``weights`` the block's rows of
+    ``det.weights`` (None where the detection has none) as the keyword ``weights``."""
     from .detect import solver_inputs
     from .slots import put
 
@@ -50,7 +52,8 @@ def each_block(samples, det, opts, step, pixels: bool = False):
         p, mask = solver_inputs(samples, live[rows])
         noise = det.noise_eff[live[rows]]
         args = (p, mask, {k: v[rows] for k, v in state.items()}, noise, samples.significance_sigma(live[rows], noise))
-        st, hit[rows] = step(*args, live[rows]) if pixels else step(*args)
+        kw = {"weights": None if det.weights is None else det.weights[rows]} if weights else {}
+        st, hit[rows] = step(*args, live[rows], **kw) if pixels else step(*args, **kw)
         put(state, rows, st)
     return state, hit
 
@@ -102,4 +105,50 @@ def residual_significance_noise(samples, det, dic, opts) -> np.ndarray:
                                     mask.fit, lag)
         white = lagged <= WHITE_LAG_RATIO * det.noise_eff[px]
         out[px] = np.where(white, lagged, out[px])
+    return out
+
+
+def signal_weights(samples, det, dic, opts):
+    """Relative least-squares weights of the stages after the detection, where the noise
+    follows the signal (photon noise) -> (n_live, L) float64, or None where no pixel's does.
+
+    A pixel has one noise level, ``det.noise_eff``; under shot noise the variance is largest
+    at the components' peaks, so a fit weighing every sample alike there takes the noise for
+    structure (a wide direct split into two or three narrow Gaussians).  The variance law
+    ``floor + gain * model`` of every pixel is fitted to its detected fit's residual
+    (:func:`decomposition.noise.signal_variance`).  It is used where the gain is significant
+    (more than SIGNAL_NOISE_Z standard errors) and the variance at the model's peak is more
+    than SIGNAL_NOISE_PEAK_RATIO times the floor above it; the floor is kept at least
+    SIGNAL_NOISE_FLOOR_FRACTION of the peak's variance (no sample weighs without bound where
+    no light arrives).  Weight = noise_eff^2 / variance: the search's data term becomes the
+    sum of residual^2 / variance, 1 per sample for a fit at the noise.  Other pixels get 1.
+    """
+    from .constants import SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
+    from .detect import solver_inputs
+    from .noise import signal_variance
+    from .slots import render
+
+    live = samples.live
+    L = samples.n_bins
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
+    out = None
+    for b0 in range(0, live.size, opts.block_size):
+        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
+        p, mask = solver_inputs(samples, live[rows])
+        model = render(t, {k: v[rows] for k, v in det.state.items()})
+        floor, gain, se = signal_variance(p - model, model, mask.fit, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
+        # a misfit (structure wider than a bin) grows with the lag, independent noise does not
+        _, gain2, _ = signal_variance(p - model, model, mask.fit, lag=2, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
+        peak_var = gain * np.maximum(model, 0.0).max(axis=1)
+        follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
+        follows &= gain2 < SIGNAL_NOISE_LAG_RATIO * gain
+        if not follows.any():
+            continue
+        if out is None:
+            out = np.ones((live.size, L))
+        f = np.nonzero(follows)[0]
+        floor_f = np.maximum(floor[f], SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor[f], 0.0) + peak_var[f]))
+        var = floor_f[:, None] + gain[f, None] * np.maximum(model[f], 0.0)
+        s_eff = det.noise_eff[live[rows[f]]]
+        out[rows[f]] = s_eff[:, None] ** 2 / var
     return out

@@ -44,6 +44,11 @@ class Detection:
     noise_eff : ndarray (P,)                 the noise used in the end (second pass included)
     lm_iterations : int                      LM iterations of the slowest pixel, summed over calls
     restarted : int                          pixels that ran the second (unrestricted) start
+    weights : ndarray (n, L) or None         relative least-squares weights (noise_eff^2 /
+                                             variance) of the stages after the detection, where
+                                             the noise follows the signal
+                                             (:func:`decomposition.candidates.signal_weights`);
+                                             None: every sample weighs the same
     """
 
     state: dict
@@ -53,6 +58,7 @@ class Detection:
     noise_eff: np.ndarray
     lm_iterations: int
     restarted: int
+    weights: np.ndarray | None = None
 
 
 def solver_inputs(samples: Samples, rows: np.ndarray):

@@ -173,17 +173,21 @@ def with_gaussian(st, delay_ps, lsig, amp=1.0):
     return alt, slot
 
 
-def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts):
+def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None):
     """Polish the trials ``alt`` of rows ``idx`` (whose state is ``cur``) and put those into
     ``out`` whose penalised objective is lower and whose Gaussians stay resolved (RESOLVED_SIGMA
-    widths apart, or no closer than before) -> the rows of ``idx`` taken."""
+    widths apart, or no closer than before) -> the rows of ``idx`` taken.  ``weights`` (n, L):
+    the samples' relative least-squares weights (default: all alike)."""
     from .search import penalised_objective
     from .slots import put, take
 
     pb, mb = p[idx], mask[idx]
     s2 = np.maximum(s_eff[idx], 1e-300) ** 2
     log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
-    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
+    wb = None if weights is None else weights[idx]
+    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx], wb)
+    if wb is not None:
+        s2 = s2[:, None] / np.maximum(wb, 1e-300)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
     better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     w = np.flatnonzero(resolved & better)
@@ -192,7 +196,7 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts):
     return idx[w]
 
 
-def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test: bool = True):
+def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test: bool = True, weights=None):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
     in-window test and of the candidate test, default ``s_eff``) -> (state, grown (n,) bool).
@@ -234,7 +238,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     if idx.size == 0:
         return out, grown
     alt, _ = with_gaussian(cur, at_ps, np.log(sigma_ps))
-    grown[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts)] = True
+    grown[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights)] = True
     return out, grown
 
 
@@ -243,10 +247,11 @@ def grow_components(samples, det, dic, opts):
     detected (and searched) atoms of the live pixels, block by block -> (state, grown (n_live,))."""
     bump = samples.noise_model != "poisson"
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig: grow_block(p, mask, st, noise, dic, opts, sig, bump))
+                      lambda p, mask, st, noise, sig, weights: grow_block(p, mask, st, noise, dic, opts, sig, bump,
+                                                                          weights), weights=True)
 
 
-def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
+def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None):
     """The sss swap on one block (arguments of :func:`grow_block`) -> (state, swapped (n,) bool).
 
     An sss whose onset the fit moved late takes in a weak inter-reflection after the direct: its
@@ -289,7 +294,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     alt, _ = with_gaussian(cur, mode_ps[late], np.log(sigma_ps[late]))
     alt["delay"][np.arange(late.size), ss[late]] = d0_ps[late] + PRUNE_ONSET_SIGMA * sigma_ps[late]
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    swapped[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts)] = True
+    swapped[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights)] = True
     return out, swapped
 
 
@@ -298,7 +303,8 @@ def swap_components(samples, det, dic, opts):
     :func:`grow_components`): :func:`swap_block` on the live pixels, block by block
     -> (state, swapped (n_live,))."""
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig: swap_block(p, mask, st, noise, dic, opts, sig))
+                      lambda p, mask, st, noise, sig, weights: swap_block(p, mask, st, noise, dic, opts, sig, weights),
+                      weights=True)
 
 
 def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, background, dic, opts):

@@ -13,6 +13,11 @@ median over the second differences whose three samples are all fitted.  Two vari
 
 Both are the only home of this rule in the package.
 
+Photon noise on float data (the Gaussian noise model) also has a law, variance = floor +
+gain * signal, but of unknown scale: :func:`signal_variance` fits it to a fitted profile's
+residual (the stages after the detection weigh their samples with it where it is
+significant; :func:`decomposition.candidates.signal_weights`).
+
 Count data (``noise="poisson"``, photon counting) have a known noise law instead: the
 variance of a sample is its expected count.  :func:`is_count_data` is the rule that
 ``noise="auto"`` applies to recognise them, :func:`anscombe` stabilises their variance to ~1
@@ -438,3 +443,60 @@ def anscombe_residual(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndar
     if dispersion is not None:
         z = z / np.asarray(dispersion, np.float64)[:, None]
     return z
+
+
+def signal_variance(residual: np.ndarray, model: np.ndarray, fit: np.ndarray, lag: int = 1,
+                    floor_fraction: float = 0.01):
+    """Per-sample noise variance ``floor + gain * max(model, 0)`` fitted to a residual.
+
+    Photon (shot) noise has a variance proportional to the signal: largest at a direct's peak,
+    nothing where no light arrives.  A single noise level per pixel then understates the noise
+    where the components are, and the fit takes noise at the peak for structure.  Here the
+    variance law of each row is read off the residual itself: half the squared first
+    difference of the residual, ``(r[i+1] - r[i])^2 / 2``, has expectation
+    ``floor + gain * (m[i] + m[i+1]) / 2`` for independent noise of that law; ``floor`` and
+    ``gain`` are its weighted least-squares fit (two passes, the second with weights
+    1 / variance^2, the variance of a squared Gaussian difference, the variance kept at least
+    ``floor_fraction`` of its value at the model's peak).  ``lag``: differences across that
+    many samples instead (a misfit wider than a sample grows with the lag; noise does not).
+
+    Parameters
+    ----------
+    residual, model : ndarray (P, L)
+        Data minus model, and the model (same units).
+    fit : ndarray (P, L) bool
+        Samples that count.
+
+    Returns
+    -------
+    floor, gain : ndarray (P,)
+        Fitted intercept (may be slightly negative for pure shot noise) and slope (>= 0).
+    gain_stderr : ndarray (P,)
+        Standard error of ``gain`` (inf where it cannot be estimated).
+    """
+    ok = fit[:, lag:] & fit[:, :-lag]
+    r = np.where(fit, residual, 0.0)
+    y = np.where(ok, 0.5 * (r[:, lag:] - r[:, :-lag]) ** 2, 0.0)
+    m = np.maximum(model, 0.0)
+    x = np.where(ok, 0.5 * (m[:, lag:] + m[:, :-lag]), 0.0)
+    w = ok.astype(np.float64)
+    floor = np.zeros(x.shape[0])
+    gain = np.zeros(x.shape[0])
+    se = np.full(x.shape[0], np.inf)
+    for _ in range(2):
+        n, sx, sxx = w.sum(axis=1), (w * x).sum(axis=1), (w * x * x).sum(axis=1)
+        sy, sxy = (w * y).sum(axis=1), (w * x * y).sum(axis=1)
+        det = n * sxx - sx * sx
+        good = (det > 1e-12 * np.maximum(n * sxx, 1e-300)) & (n > 2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gain = np.where(good, (n * sxy - sx * sy) / np.where(good, det, 1.0), 0.0)
+            floor = np.where(n > 0, (sy - gain * sx) / np.maximum(n, 1e-300), 0.0)
+            # var(y) = 2 variance^2 (half the square of a Gaussian difference of variance 2 v)
+            se = np.where(good, np.sqrt(n / np.where(good, det, 1.0)), np.inf)
+        g = np.maximum(gain, 0.0)
+        top = np.maximum(floor, 0.0) + g * x.max(axis=1)
+        least = np.maximum(floor_fraction * top, np.maximum(1e-12 * y.max(axis=1), 1e-150))
+        v = np.maximum(floor[:, None] + g[:, None] * x, least[:, None])
+        w = np.where(ok, 1.0 / (v * v), 0.0)
+    # the weights above are relative; the information of y at variance v is 1 / (2 v^2)
+    return floor, np.maximum(gain, 0.0), se * np.sqrt(2.0)

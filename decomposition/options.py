@@ -162,13 +162,15 @@ class SolverOptions:
     search: bool = True
     grow: bool = True
     prune: bool = True
+    signal_noise: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
     ambiguity_sigma: float = 3.0
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune",
+                     "signal_noise"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
         for name in ("max_components", "block_size"):

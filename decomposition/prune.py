@@ -42,7 +42,7 @@ def close_gaussian(st, gap_sigma: float = PRUNE_GAP_SIGMA):
     return cand, second
 
 
-def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
+def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None):
     """The backward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the labels'
     in-window test, default ``s_eff``) -> (state, pruned (n,) bool)."""
@@ -60,6 +60,10 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     s_sig = s_eff if significance_sigma is None else significance_sigma
     s2 = np.maximum(s_eff[idx], 1e-300) ** 2
     log_n = np.log(np.maximum(mask.used.sum(axis=1)[idx], 1))
+    wb = None if weights is None else weights[idx]
+    noise = np.sqrt(s2)
+    if wb is not None:
+        s2 = s2[:, None] / np.maximum(wb, 1e-300)
     pb, mb = p[idx], mask[idx]
     cur = take(out, idx)
     dropped = take(out, idx)
@@ -75,7 +79,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None):
     j_best = penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     won = np.zeros(idx.size, bool)
     for alt in (dropped, moved):
-        alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx])
+        alt = polish_candidate(t, pb, mb, alt, noise, dic, opts, s_sig[idx], wb)
         j = penalised_objective(t, pb, mb, alt, s2, log_n, opts)
         w = np.nonzero(j < j_best)[0]
         if w.size:
@@ -93,4 +97,5 @@ def prune_components(samples, det, dic, opts):
     """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig: prune_block(p, mask, st, noise, dic, opts, sig))
+                      lambda p, mask, st, noise, sig, weights: prune_block(p, mask, st, noise, dic, opts, sig, weights),
+                      weights=True)

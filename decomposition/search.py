@@ -321,17 +321,23 @@ def _same_start(built, direct_ps, sss_ps, later_ps):
     return same
 
 
+def _per_sample(s2):
+    """A noise variance of one value per pixel (n,) or per sample (n, L), as (n, 1) or (n, L)."""
+    s2 = np.asarray(s2, np.float64)
+    return s2[:, None] if s2.ndim == 1 else s2
+
+
 def _data_chi2(t, p, mask, st, s2):
-    """chi2 = weighted RSS / s^2 per pixel of a slot state."""
+    """chi2 = sum of residual^2 / s2 per pixel of a slot state (``s2`` (n,) or (n, L))."""
     from .slots import render
 
     r = mask.residual(p, render(t, st))
-    return np.einsum("pl,pl->p", r, r) / s2
+    return np.einsum("pl,pl->p", r, r / _per_sample(s2))
 
 
 def penalised_objective(t, p, mask, st, s2, log_n, opts):
     """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
-    (``s2`` (n,) the noise variance, ``log_n`` (n,) the log of the fitted samples, k the free
+    (``s2`` (n,) the noise variance, or (n, L) that of every sample, ``log_n`` (n,) the log of the fitted samples, k the free
     parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
     return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
 
@@ -363,7 +369,7 @@ def _near_direct_chi2(t, residual, mask, st, s2):
     T = t[1] - t[0] if t.size > 1 else 1.0
     near = direct_samples(t, T, d0, np.exp(st["lsig"][rows, k0]), mask.used)
     r = np.where(near, residual, 0.0)
-    return np.einsum("pl,pl->p", r, r) / np.maximum(near.sum(axis=1), 1) / s2
+    return np.einsum("pl,pl->p", r, r / _per_sample(s2)) / np.maximum(near.sum(axis=1), 1)
 
 
 def _split(t, st):
@@ -406,12 +412,16 @@ def _crossing(t, y, level, allowed):
     return t[j] + np.clip(frac, 0.0, 1.0) * T * (i > 0)
 
 
-def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None, bump_test: bool = True):
+def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None, bump_test: bool = True,
+                 weights=None):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
     detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,), the
     noise of the in-window significance test (:meth:`Samples.significance_sigma`), default
     ``s_eff``; ``bump_test``: the forward step on the rise start tries significant residual
-    bumps too (:func:`decomposition.grow.grow_block`; False for count data)).
+    bumps too (:func:`decomposition.grow.grow_block`; False for count data); ``weights``
+    (n, L): relative least-squares weights of the samples (:attr:`Detection.weights`): every
+    data term below is then the sum of residual^2 / (s_eff^2 / weight), and every polish weighs
+    the samples so).
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
@@ -448,6 +458,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     if n == 0 or not ("d" in components and "s" in components):
         return out, start, np.zeros(n, bool), ambiguous
     s2 = np.maximum(s_eff, 1e-300) ** 2
+    if weights is not None:
+        s2 = s2[:, None] / np.maximum(weights, 1e-300)
     nfit = np.maximum(mask.used.sum(axis=1), 1)
     log_l = np.log(nfit)
 
@@ -455,7 +467,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     s_sig = s_eff if significance_sigma is None else significance_sigma
     comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
     r0 = mask.residual(p, render(t, base))
-    chi0 = np.einsum("pl,pl->p", r0, r0) / s2
+    chi0 = np.einsum("pl,pl->p", r0, r0 / _per_sample(s2))
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
@@ -504,10 +516,12 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     t_peak = t[_first_peak(ys, SEARCH_PEAK_LEVEL)]
     gd = np.where(g[idx], base["delay"][idx], np.nan)
     allow_later = "r" in components
-    noise_b = np.sqrt(sb2)
+    noise_b = np.maximum(s_eff[idx], 1e-300)
+    wb = None if weights is None else weights[idx]
 
     def refined(state, rows=slice(None)):                  # scored as it will be labelled
-        return polish_candidate(t, pb[rows], mb[rows], state, noise_b[rows], dic, opts, s_sig[idx][rows])
+        return polish_candidate(t, pb[rows], mb[rows], state, noise_b[rows], dic, opts, s_sig[idx][rows],
+                                None if wb is None else wb[rows])
 
     # the solver's own answer, its sss onset not before its direct (as labelled), re-polished
     cand = [take(base, idx)]
@@ -557,7 +571,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         # loses to the wide one it would beat
         from .grow import grow_block
 
-        cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx], bump_test)
+        cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx], bump_test, weights=wb)
     js = []
     for c in cand:
         js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
@@ -619,6 +633,7 @@ def search_components(samples, det, dic, opts, components) -> SearchStage:
                                                               components,
                                                               samples.significance_sigma(live[rows],
                                                                                          det.noise_eff[live[rows]]),
-                                                              samples.noise_model != "poisson")
+                                                              samples.noise_model != "poisson",
+                                                              None if det.weights is None else det.weights[rows])
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)
