@@ -286,7 +286,8 @@ SIGNAL_NOISE_PEAK_RATIO = 1.0
 SIGNAL_NOISE_FLOOR_FRACTION = 0.01
 # ... and only where the gain read at a lag of 2 samples is below this multiple of the gain at
 # 1: independent noise gives the same law at both lags, a misfit of a component (structure wider
-# than a sample, at a noise too low to hide it) about 4x.  White noise, paper scenes, 600 px
-# (seed 1): pixels weighted at NSR 0.001 / 0.055 without the test 56 / 7 of 300, with it 30 / 2
-# of 600; photon noise at NSR 0.055: 499 of 600.
+# than a sample, at a noise too low to hide it) about 4x.  Paper scenes, 300 px (seed 2), pixels
+# whose gain is significant -> those that also pass this test: white noise at 2 ps bins, NSR
+# 0.001 / 0.055: 49 -> 5, 6 -> 0; at 4 ps, NSR 0.001: 60 -> 24 (misfits of sub-bin PSFs are a
+# sample wide); photon noise NSR 0.055 at 2 / 4 ps: 261 -> 234, 209 -> 187.
 SIGNAL_NOISE_LAG_RATIO = 1.5
