@@ -121,15 +121,21 @@ _SLOW_SITE = ("import time\nimport decomposition.chunked as _c\n_f = _c.solve_bl
               "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
 
 
-@pytest.mark.timeout(120)
-def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_path):
+def _cube_and_site(tmp_path, site: str):
+    """A 4 x 6 cube of 1 x 3 chunks, and the environment of a command whose processes all run
+    ``site`` first (as their sitecustomize)."""
     write_cube(tmp_path / "cube.zarr", small_cube(4, 6, seed=1), time_bin_ps=TB)
     (tmp_path / "site").mkdir()
-    (tmp_path / "site" / "sitecustomize.py").write_text(_SLOW_SITE)
+    (tmp_path / "site" / "sitecustomize.py").write_text(site)
+    return tmp_path / "cube.zarr", dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
+
+
+@pytest.mark.timeout(120)
+def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_path):
+    cube, env = _cube_and_site(tmp_path, _SLOW_SITE)
     out = tmp_path / "res.zarr"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
     # a terminal's Ctrl-C signals the whole process group: the command and its workers
-    proc = subprocess.Popen([sys.executable, "-m", "streaklab", "decompose", str(tmp_path / "cube.zarr"),
+    proc = subprocess.Popen([sys.executable, "-m", "streaklab", "decompose", str(cube),
                              "--out", str(out), "--workers", "2", "--chunks", "1", "3"], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
@@ -163,11 +169,8 @@ _FAILING_SITE = ("import decomposition.chunked as _c\n"
 @pytest.mark.timeout(90)
 def test_a_failure_inside_a_worker_process_reaches_the_command(tmp_path):
     # the workers' logs are silenced (see test above); what fails in one must still stop the run, by name
-    write_cube(tmp_path / "cube.zarr", small_cube(4, 6, seed=1), time_bin_ps=TB)
-    (tmp_path / "site").mkdir()
-    (tmp_path / "site" / "sitecustomize.py").write_text(_FAILING_SITE)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
-    proc = subprocess.run([sys.executable, "-m", "streaklab", "decompose", str(tmp_path / "cube.zarr"),
+    cube, env = _cube_and_site(tmp_path, _FAILING_SITE)
+    proc = subprocess.run([sys.executable, "-m", "streaklab", "decompose", str(cube),
                            "--out", str(tmp_path / "res.zarr"), "--workers", "2", "--chunks", "1", "3"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=80)
     assert proc.returncode == 1
