@@ -245,8 +245,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         significant the search, the forward step, the swap and the backward step
         score and polish with weights 1 / that variance instead of one noise level
         for every sample (:func:`decomposition.candidates.signal_weights`).
-        ``info["signal_weighted"]`` counts the pixels weighted.  Count data have
-        their own law (``noise="poisson"``) and are not affected.
+        Count data (``noise="poisson"``) are weighted so everywhere, by their
+        Poisson law at the detected model.
+        ``info["signal_weighted"]`` counts the pixels weighted.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -326,7 +327,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),
                     coordinates_searched=int(dic.n_coordinates))
         det = detect_components(samples, dic, opts, fams)
-        if opts.signal_noise and samples.noise_model == "gaussian":
+        if opts.signal_noise:
             det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts))
             info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
         if opts.search:

@@ -112,6 +112,10 @@ def signal_weights(samples, det, dic, opts):
     """Relative least-squares weights of the stages after the detection, where the noise
     follows the signal (photon noise) -> (n_live, L) float64, or None where no pixel's does.
 
+    Count data (``noise="poisson"``): every pixel, from the Poisson law at the detected model
+    (:func:`decomposition.noise.count_variance`, floored at SIGNAL_NOISE_FLOOR_FRACTION of the
+    peak's count).  Float data (the Gaussian noise model), as follows.
+
     A pixel has one noise level, ``det.noise_eff``; under shot noise the variance is largest
     at the components' peaks, so a fit weighing every sample alike there takes the noise for
     structure (a wide direct split into two or three narrow Gaussians).  The variance law
@@ -123,6 +127,8 @@ def signal_weights(samples, det, dic, opts):
     no light arrives).  Weight = noise_eff^2 / variance: the search's data term becomes the
     sum of residual^2 / variance, 1 per sample for a fit at the noise.  Other pixels get 1.
     """
+    if samples.noise_model == "poisson":
+        return _count_weights(samples, det, dic, opts)
     from .constants import SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
     from .detect import solver_inputs
     from .noise import signal_variance
@@ -151,4 +157,25 @@ def signal_weights(samples, det, dic, opts):
         var = floor_f[:, None] + gain[f, None] * np.maximum(model[f], 0.0)
         s_eff = det.noise_eff[live[rows[f]]]
         out[rows[f]] = s_eff[:, None] ** 2 / var
+    return out
+
+
+def _count_weights(samples, det, dic, opts):
+    """:func:`signal_weights` of count data: noise_eff^2 / the Poisson variance of the detected
+    model, in the units of the normalised profiles."""
+    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
+    from .noise import count_variance
+    from .slots import render
+
+    live = samples.live
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
+    out = np.ones((live.size, samples.n_bins))
+    for b0 in range(0, live.size, opts.block_size):
+        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
+        px = live[rows]
+        scale = np.maximum(samples.scale[px], 1e-300)
+        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0) * scale[:, None]
+        disp = None if samples.dispersion is None else samples.dispersion[px]
+        var = count_variance(model, disp, SIGNAL_NOISE_FLOOR_FRACTION) / scale[:, None] ** 2
+        out[rows] = det.noise_eff[px][:, None] ** 2 / var
     return out

@@ -241,16 +241,22 @@ def count_signal_sigma(counts: np.ndarray, fit: np.ndarray, scale: np.ndarray,
     return s if dispersion is None else s * dispersion
 
 
-def poisson_weights(model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
-    """Least-squares weights 1 / variance of count data for a model, 0 off the fitted samples.
-
-    The variance of a sample is its model count (times dispersion^2 where given), floored
-    at POISSON_VARIANCE_FLOOR counts.
-    """
-    var = np.maximum(model_counts, POISSON_VARIANCE_FLOOR)
+def count_variance(model_counts: np.ndarray, dispersion=None, floor_fraction: float = 0.0) -> np.ndarray:
+    """(P, L) variance of count data under a model: its model count (times dispersion^2 where
+    given), floored at POISSON_VARIANCE_FLOOR counts and at ``floor_fraction`` of the row's
+    largest model count."""
+    m = np.asarray(model_counts, np.float64)
+    floor = np.maximum(POISSON_VARIANCE_FLOOR, floor_fraction * np.max(m, axis=1, initial=0.0))
+    var = np.maximum(m, floor[:, None])
     if dispersion is not None:
         var = var * np.square(dispersion)[:, None]
-    return np.where(fit, 1.0 / var, 0.0)
+    return var
+
+
+def poisson_weights(model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+    """Least-squares weights 1 / variance of count data for a model, 0 off the fitted samples
+    (the variance of :func:`count_variance`)."""
+    return np.where(fit, 1.0 / count_variance(model_counts, dispersion), 0.0)
 
 
 def fit_dispersion(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray,

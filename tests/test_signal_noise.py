@@ -132,3 +132,34 @@ def test_weighting_photon_noise_lifts_the_fidelity_on_wide_directs():
     # measured: 0.80 -> 0.83 on 300 such pixels; the pixels that gain most are wide directs
     # split into two or three narrow Gaussians by the noise at their peak
     assert np.nanmean(on) > np.nanmean(off) + 0.01, (np.nanmean(on), np.nanmean(off))
+
+
+def test_count_variance_is_the_model_count_with_its_floors():
+    from decomposition.constants import POISSON_VARIANCE_FLOOR
+    from decomposition.noise import count_variance, poisson_weights
+
+    m = np.array([[0.0, 0.001, 0.5, 3.0, 200.0], [0.0, 0.0, 0.0, 0.0, 0.0]])
+    v = count_variance(m)
+    assert np.array_equal(v[0], [POISSON_VARIANCE_FLOOR, POISSON_VARIANCE_FLOOR, 0.5, 3.0, 200.0])
+    assert np.all(v[1] == POISSON_VARIANCE_FLOOR)
+    # a floor at a fraction of the row's peak count, and the dispersion squared on top
+    v = count_variance(m, np.array([2.0, 1.0]), floor_fraction=0.01)
+    assert np.allclose(v[0], 4.0 * np.array([2.0, 2.0, 2.0, 3.0, 200.0]))
+    assert np.all(v[1] == POISSON_VARIANCE_FLOOR)
+    fit = np.ones(m.shape, bool)
+    fit[0, 3] = False
+    w = poisson_weights(m, fit)
+    assert w[0, 3] == 0 and np.allclose(w[0, [0, 1, 2, 4]], 1 / count_variance(m)[0, [0, 1, 2, 4]])
+
+
+def test_count_data_are_weighted_by_their_poisson_law_and_gain_from_it():
+    from decomposition.metrics import fidelity
+
+    d = make_profiles(150, 512, photons_per_pixel=1000, seed=1, time_bin_ps=2.0, ranges="paper",
+                      bin_integrated=True)
+    on = decompose(d.noisy, time_bin_ps=2.0)
+    assert on.info["noise_model"] == "poisson" and on.info["signal_weighted"] == 150
+    off = decompose(d.noisy, time_bin_ps=2.0, signal_noise=False)
+    # measured on 400 such pixels: 0.680 -> 0.752 (4 ps bins 0.634 -> 0.750)
+    f_on, f_off = np.nanmean(fidelity(d.components, on)), np.nanmean(fidelity(d.components, off))
+    assert f_on > f_off + 0.03, (f_on, f_off)
