@@ -31,7 +31,7 @@ def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, we
                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
                             opts.sss_after_direct, opts.lm_tol, weights=weights)
     drop_zero(st)
-    return final_atoms(st, t_ps, dic.time_bin_ps, opts, significance_sigma)
+    return final_atoms(st, t_ps, dic.time_bin_ps, opts, significance_sigma, weights)
 
 
 def each_block(samples, det, opts, step, pixels: bool = False, weights: bool = False):

@@ -34,8 +34,8 @@ import math
 
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA
-from .atomlm import atom_window_sums, state_models
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA, SIGNIFICANCE_WEIGHT_CAP
+from .atomlm import atom_profiles, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
@@ -60,17 +60,25 @@ def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.
     return window_measures(st, t_ps)[0]
 
 
-def window_measures(st: dict, t_ps: np.ndarray):
+def window_measures(st: dict, t_ps: np.ndarray, weights=None):
     """What the window sees of every active atom: its peak height max_i |c_i| and its energy
     sum_i c_i^2 over the window's samples, both (P, K), units of the profile and its square;
-    0 for empty slots."""
+    0 for empty slots.  ``weights`` (P, L): the energy is sum_i w_i c_i^2 instead (relative
+    weights of the samples, :attr:`Detection.weights`), each weight at most
+    SIGNIFICANCE_WEIGHT_CAP."""
     act = st["fam"] != FAM_NONE
     h, e = np.zeros(act.shape), np.zeros(act.shape)
     if act.any():
         pi, ki, sums = _in_window(st, t_ps)
         a = np.abs(st["amp"][pi, ki])
         h[pi, ki] = a * sums[:, 0]
-        e[pi, ki] = a * a * sums[:, 2]
+        if weights is None:
+            e[pi, ki] = a * a * sums[:, 2]
+        else:
+            phi = atom_profiles(*axis_of(t_ps), t_ps.size, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
+                                st["lalp"][pi, ki])
+            w = np.minimum(np.asarray(weights, np.float64)[pi], SIGNIFICANCE_WEIGHT_CAP)
+            e[pi, ki] = a * a * np.einsum("nl,nl->n", phi * phi, w)
     return h, e
 
 
@@ -147,7 +155,7 @@ def _drop(st, mask):
 
 
 def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=None,
-              significance_chi2: float = 0.0) -> dict:
+              significance_chi2: float = 0.0, weights=None) -> dict:
     """Drop the atoms that are neither large nor significant inside the window (in place).
 
     An atom is kept when its in-window peak is at least ``rel_threshold`` x the pixel's
@@ -159,9 +167,10 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     removed, the likelihood-ratio statistic), and it is resolved from every larger atom
     (its delay more than RESOLVED_SIGMA widths from theirs, :mod:`decomposition.constants`).  Without ``noise`` or with
     ``significance_chi2 = 0`` the relative rule alone.  Atoms with no sample in the window are
-    always dropped.
+    always dropped.  ``weights`` (P, L): the energy weighs each sample so (where the noise
+    follows the signal, s^2 / weight is the noise variance there).
     """
-    h, e = window_measures(st, t_ps)
+    h, e = window_measures(st, t_ps, weights)
     keep = keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
     _drop(st, (st["fam"] != FAM_NONE) & ~keep)
     # atoms entirely outside the window render as zero everywhere inside it

@@ -48,14 +48,15 @@ def at_bound(state: dict, bounds: dict) -> np.ndarray:
     return hit.any(axis=1)
 
 
-def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions, noise=None) -> dict:
+def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions, noise=None,
+                weights=None) -> dict:
     """The atoms a pixel keeps, as every output reports them (in place): the in-window threshold
     (relative, or significant against the pixel's ``noise`` (n,), normalised units;
     :func:`decomposition.components.threshold`), Gaussians merged (refinement can bring two
     together), one width per pixel with ``shared_sigma`` (a merge leaves the merged atom wider),
     no sss onset before the direct with ``sss_after_direct``.  The search stage scores its
     starts through the same rule."""
-    comp.threshold(st, t_ps, opts.rel_threshold, noise, opts.significance_chi2)
+    comp.threshold(st, t_ps, opts.rel_threshold, noise, opts.significance_chi2, weights)
     comp.merge_gaussians(st, time_bin_ps, opts.merge_tol_bins)
     if opts.shared_sigma:
         tie_widths(st)
@@ -74,7 +75,8 @@ def final_state(samples: Samples, det: Detection, dic: cs.Dictionary, opts: Solv
         p, mask = solver_inputs(samples, live)
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    return final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]))
+    return final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]),
+                       det.weights)
 
 
 def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions,

@@ -465,7 +465,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2)
+    comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2, weights)
     r0 = mask.residual(p, render(t, base))
     chi0 = np.einsum("pl,pl->p", r0, r0 / _per_sample(s2))
 

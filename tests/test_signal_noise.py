@@ -163,3 +163,32 @@ def test_count_data_are_weighted_by_their_poisson_law_and_gain_from_it():
     # measured on 400 such pixels: 0.680 -> 0.752 (4 ps bins 0.634 -> 0.750)
     f_on, f_off = np.nanmean(fidelity(d.components, on)), np.nanmean(fidelity(d.components, off))
     assert f_on > f_off + 0.03, (f_on, f_off)
+
+
+def test_the_significance_of_an_atom_counts_its_samples_by_their_weights_capped():
+    from decomposition.components import threshold, window_measures
+    from decomposition.constants import FAM_GAUSS, SIGNIFICANCE_WEIGHT_CAP
+    from decomposition.slots import new_state, render
+
+    t = np.arange(200) * 2.0
+    st = new_state(3, 2)
+    for k, (d, a) in enumerate(((100.0, 1.0), (250.0, 0.012))):     # a direct, a faint later atom
+        st["fam"][:, k] = FAM_GAUSS
+        st["delay"][:, k] = d
+        st["lsig"][:, k] = np.log(3.0)
+        st["amp"][:, k] = a
+    one = {k: v[:1].copy() for k, v in st.items()}
+    one["fam"][:, 0] = 0
+    atom = render(t, one)[0]
+    w = np.ones((3, 200))
+    w[1, 110:] = 3.0                  # the noise after the direct lower: sigma / sqrt(3) there
+    w[2, 110:] = 50.0                 # far lower, counted at the cap
+    _, e = window_measures(st, t, w)
+    assert np.allclose(e[:, 1], [np.sum(atom ** 2), 3 * np.sum(atom ** 2), SIGNIFICANCE_WEIGHT_CAP * np.sum(atom ** 2)])
+    assert np.allclose(e[:, 0], window_measures(st, t)[1][:, 0])   # the direct's samples weigh 1
+    # 25 sigma^2 of energy is the rule: the faint atom has 12 at weight 1, 36 at weight 3
+    s = np.full(3, np.sqrt(np.sum(atom ** 2) / 12.0))
+    kept = threshold({k: v.copy() for k, v in st.items()}, t, 0.05, s, 25.0, w)
+    assert list(kept["fam"][:, 1] == FAM_GAUSS) == [False, True, True]
+    kept = threshold({k: v.copy() for k, v in st.items()}, t, 0.05, s, 25.0)
+    assert not (kept["fam"][:, 1] == FAM_GAUSS).any()
