@@ -101,8 +101,13 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     assert len(kept) == 9
     for line in kept:
         n_doubt = int(line.split("search:")[1].split()[0])
-        counts = [int(part.split()[-1]) for part in line.split("kept start:")[1].split(",")]
+        kept_part, weighted_part = line.split("kept start:")[1].split(";")
+        counts = [int(part.split()[-1]) for part in kept_part.split(",")]
         assert sum(counts) == n_doubt <= 12
+        assert 0 <= int(weighted_part.split()[0]) <= 12 and "noise that follows the signal" in weighted_part
+    # photon noise is weighted by its law in most pixels, white noise in (almost) none
+    weighted = [int(line.split(";")[-1].split()[0]) for line in kept]
+    assert min(weighted[6:]) >= 6 and max(weighted[:3]) <= 1, weighted
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in methods for n in ("white", "pink", "photon")}

@@ -209,7 +209,8 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                         est_params, flags = est.params, est.flags
                         results[method] = est
                         if "search_wins" in est.info:
-                            search_info = {"doubt": est.info["search_doubt"], "wins": est.info["search_wins"]}
+                            search_info = {"doubt": est.info["search_doubt"], "wins": est.info["search_wins"],
+                                           "weighted": est.info.get("signal_weighted", 0)}
                     seconds[method] = time.perf_counter() - t_start + extra
                     spent[method] += seconds[method]
                     counted[method] += pixels
@@ -392,7 +393,8 @@ def run(args) -> int:
             print(line)
         if p.get("search"):
             wins = ", ".join(f"{name} {c}" for name, c in p["search"]["wins"].items())
-            print(f"    ConvSCD search: {p['search']['doubt']} pixels in doubt; kept start: {wins}")
+            print(f"    ConvSCD search: {p['search']['doubt']} pixels in doubt; kept start: {wins}; "
+                  f"{p['search'].get('weighted', 0)} pixels weighted for noise that follows the signal")
         for m in methods:
             worst = min((r for r in p["regimes_detectable"] if not r["few"] or r["regime"] == "all"),
                         key=lambda r: r[f"gap[{m}]"])
