@@ -171,7 +171,7 @@ def test_a_failure_inside_a_worker_process_reaches_the_command(tmp_path):
     # the workers' logs are silenced (see test above); what fails in one must still stop the run, by name
     cube, env = _cube_and_site(tmp_path, _FAILING_SITE)
     proc = subprocess.run([sys.executable, "-m", "streaklab", "decompose", str(cube),
-                           "--out", str(tmp_path / "res.zarr"), "--workers", "2", "--chunks", "1", "3"],
+                           "--out", str(tmp_path / "res.zarr"), "--workers", "1", "--chunks", "1", "3"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=80)
     assert proc.returncode == 1
     assert proc.stderr.rstrip().endswith("RuntimeError: injected solver failure"), proc.stderr
