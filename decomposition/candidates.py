@@ -127,55 +127,52 @@ def signal_weights(samples, det, dic, opts):
     no light arrives).  Weight = noise_eff^2 / variance: the search's data term becomes the
     sum of residual^2 / variance, 1 per sample for a fit at the noise.  Other pixels get 1.
     """
-    if samples.noise_model == "poisson":
-        return _count_weights(samples, det, dic, opts)
-    from .constants import SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
     from .detect import solver_inputs
-    from .noise import signal_variance
     from .slots import render
 
     live = samples.live
     L = samples.n_bins
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
+    law = _count_law if samples.noise_model == "poisson" else _fitted_law
     out = None
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
-        model = render(t, {k: v[rows] for k, v in det.state.items()})
-        floor, gain, se = signal_variance(p - model, model, mask.fit, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
-        # a misfit (structure wider than a bin) grows with the lag, independent noise does not
-        _, gain2, _ = signal_variance(p - model, model, mask.fit, lag=2, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
-        peak_var = gain * np.maximum(model, 0.0).max(axis=1)
-        follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
-        follows &= gain2 < SIGNAL_NOISE_LAG_RATIO * gain
-        if not follows.any():
+        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
+        var = law(samples, live[rows], p, mask, model)
+        f = np.flatnonzero(np.isfinite(var[:, 0]))
+        if f.size == 0:
             continue
         if out is None:
             out = np.ones((live.size, L))
-        f = np.nonzero(follows)[0]
-        floor_f = np.maximum(floor[f], SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor[f], 0.0) + peak_var[f]))
-        var = floor_f[:, None] + gain[f, None] * np.maximum(model[f], 0.0)
-        s_eff = det.noise_eff[live[rows[f]]]
-        out[rows[f]] = s_eff[:, None] ** 2 / var
+        out[rows[f]] = det.noise_eff[live[rows[f]]][:, None] ** 2 / var[f]
     return out
 
 
-def _count_weights(samples, det, dic, opts):
-    """:func:`signal_weights` of count data: noise_eff^2 / the Poisson variance of the detected
-    model, in the units of the normalised profiles."""
+def _fitted_law(samples, px, p, mask, model):
+    """(n, L) noise variance of the normalised profiles ``p`` of pixels ``px`` whose residual from
+    ``model`` (>= 0) shows noise that follows the signal (see :func:`signal_weights`); NaN rows
+    for the others."""
+    from .constants import SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
+    from .noise import signal_variance
+
+    floor, gain, se = signal_variance(p - model, model, mask.fit, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
+    # a misfit (structure wider than a bin) grows with the lag, independent noise does not
+    _, gain2, _ = signal_variance(p - model, model, mask.fit, lag=2, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
+    peak_var = gain * model.max(axis=1)
+    follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
+    follows &= gain2 < SIGNAL_NOISE_LAG_RATIO * gain
+    floor = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
+    var = floor[:, None] + gain[:, None] * model
+    return np.where(follows[:, None], var, np.nan)
+
+
+def _count_law(samples, px, p, mask, model):
+    """(n, L) Poisson variance of count pixels ``px`` at ``model`` (>= 0), in the units of their
+    normalised profiles (:func:`decomposition.noise.count_variance`)."""
     from .constants import SIGNAL_NOISE_FLOOR_FRACTION
     from .noise import count_variance
-    from .slots import render
 
-    live = samples.live
-    t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    out = np.ones((live.size, samples.n_bins))
-    for b0 in range(0, live.size, opts.block_size):
-        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        px = live[rows]
-        scale = np.maximum(samples.scale[px], 1e-300)
-        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0) * scale[:, None]
-        disp = None if samples.dispersion is None else samples.dispersion[px]
-        var = count_variance(model, disp, SIGNAL_NOISE_FLOOR_FRACTION) / scale[:, None] ** 2
-        out[rows] = det.noise_eff[px][:, None] ** 2 / var
-    return out
+    scale = np.maximum(samples.scale[px], 1e-300)
+    disp = None if samples.dispersion is None else samples.dispersion[px]
+    return count_variance(model * scale[:, None], disp, SIGNAL_NOISE_FLOOR_FRACTION) / scale[:, None] ** 2
