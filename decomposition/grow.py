@@ -175,17 +175,18 @@ def with_gaussian(st, delay_ps, lsig, amp=1.0):
 
 def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None):
     """Polish the trials ``alt`` of rows ``idx`` (whose state is ``cur``) and put those into
-    ``out`` whose penalised objective is lower and whose Gaussians stay resolved (RESOLVED_SIGMA
-    widths apart, or no closer than before) -> the rows of ``idx`` taken.  ``weights`` (n, L):
-    the samples' relative least-squares weights (default: all alike)."""
-    from .search import penalised_objective
+    ``out`` whose penalised objective (over :func:`decomposition.search.objective_variance`) is
+    lower and whose Gaussians stay resolved (RESOLVED_SIGMA widths apart, or no closer than
+    before) -> the rows of ``idx`` taken.  ``weights`` (n, L): the samples' relative
+    least-squares weights (default: all alike)."""
+    from .search import objective_variance, penalised_objective
     from .slots import put, take
 
     pb, mb = p[idx], mask[idx]
-    s2 = np.maximum(s_eff[idx], 1e-300) ** 2
     log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
     wb = None if weights is None else weights[idx]
-    alt = polish_candidate(t, pb, mb, alt, np.sqrt(s2), dic, opts, s_sig[idx], wb)
+    alt = polish_candidate(t, pb, mb, alt, np.maximum(s_eff[idx], 1e-300), dic, opts, s_sig[idx], wb)
+    s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx])
     if wb is not None:
         s2 = s2[:, None] / np.maximum(wb, 1e-300)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))

@@ -46,7 +46,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     """The backward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the labels'
     in-window test, default ``s_eff``) -> (state, pruned (n,) bool)."""
-    from .search import penalised_objective
+    from .search import objective_variance, penalised_objective
     from .slots import put, take
 
     n, L = p.shape
@@ -58,10 +58,10 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     if idx.size == 0:
         return out, pruned
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    s2 = np.maximum(s_eff[idx], 1e-300) ** 2
     log_n = np.log(np.maximum(mask.used.sum(axis=1)[idx], 1))
     wb = None if weights is None else weights[idx]
-    noise = np.sqrt(s2)
+    noise = np.maximum(s_eff[idx], 1e-300)
+    s2 = objective_variance(noise, s_sig[idx])
     if wb is not None:
         s2 = s2[:, None] / np.maximum(wb, 1e-300)
     pb, mb = p[idx], mask[idx]

@@ -1,0 +1,39 @@
+"""The noise variance of the penalised objective of the steps after the search: the sample
+noise, or under noise correlated at the components' scale (pink) the significance noise."""
+import numpy as np
+
+from decomposition import decompose
+from decomposition.constants import WHITE_LAG_RATIO
+from decomposition.metrics import fidelity
+from decomposition.search import objective_variance
+from decomposition.synthetic import make_profiles
+
+
+def test_the_significance_noise_takes_over_only_where_the_noise_is_correlated():
+    s_eff = np.array([1.0, 1.0, 2.0, 1e-3])
+    sig = np.array([1.0, WHITE_LAG_RATIO, 2.0 * WHITE_LAG_RATIO * 1.01, 5e-3])
+    assert np.allclose(objective_variance(s_eff, sig), [1.0, 1.0, (2.0 * WHITE_LAG_RATIO * 1.01) ** 2, 25e-6])
+
+
+def _mean_fidelity(d):
+    return float(np.nanmean(fidelity(d.components, decompose(d.noisy, time_bin_ps=2.0))))
+
+
+def test_pink_noise_bumps_no_longer_pass_for_inter_reflections(monkeypatch):
+    import decomposition.search as search
+
+    d = make_profiles(200, 512, nsr=0.11, noise="pink", seed=1, time_bin_ps=2.0, ranges="paper",
+                      bin_integrated=True)
+    now = _mean_fidelity(d)
+    monkeypatch.setattr(search, "objective_variance", lambda s_eff, sig: np.asarray(s_eff, float) ** 2)
+    before = _mean_fidelity(d)
+    # measured on 600 such pixels: 0.818 -> 0.844
+    assert now > before + 0.01, (before, now)
+    # white noise: the same answer either way
+    w = make_profiles(60, 512, nsr=0.055, noise="white", seed=1, time_bin_ps=2.0, ranges="paper",
+                      bin_integrated=True)
+    a = decompose(w.noisy, time_bin_ps=2.0).params
+    monkeypatch.undo()
+    b = decompose(w.noisy, time_bin_ps=2.0).params
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k
