@@ -331,7 +331,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts))
             info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
         if opts.search:
-            found = search_components(samples, det, dic, opts, fams)
+            # the noise at the components' scale, from the detected fit's residual: the search's
+            # objective reads its data term in it where the noise is correlated (pink)
+            osig = residual_significance_noise(samples, det, dic, opts) if samples.noise_model != "poisson" else None
+            found = search_components(samples, det, dic, opts, fams, osig)
             det = dataclasses.replace(det, state=found.state)
             mark(flags, samples.live[found.ambiguous], AMBIGUOUS)
             wins = np.bincount(found.start[found.doubt], minlength=len(STAGE_STARTS))

@@ -429,7 +429,7 @@ def _crossing(t, y, level, allowed):
 
 
 def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=None, bump_test: bool = True,
-                 weights=None):
+                 weights=None, objective_sigma=None):
     """The search on one block of pixels (normalised profiles ``p`` (n, L), their masks, the
     detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,), the
     noise of the in-window significance test (:meth:`Samples.significance_sigma`), default
@@ -437,7 +437,10 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     bumps too (:func:`decomposition.grow.grow_block`; False for count data); ``weights``
     (n, L): relative least-squares weights of the samples (:attr:`Detection.weights`): every
     data term below is then the sum of residual^2 / (s_eff^2 / weight), and every polish weighs
-    the samples so).
+    the samples so); ``objective_sigma`` (n,): the noise at the components' scale
+    (:func:`decomposition.candidates.residual_significance_noise` of the detected fit); where it
+    marks the noise as correlated (:func:`objective_variance`) the starts' objectives, and so the
+    ambiguity test, read the data term in its variance instead of ``s_eff``'s.
 
     A pixel is in doubt when it has an sss whose onset lies more than half a width before the
     earliest Gaussian or more than ``NEAR_SIGMA`` widths after it, an sss without a Gaussian,
@@ -589,8 +592,13 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
         cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx], bump_test, weights=wb)
     js = []
+    if objective_sigma is not None:
+        ratio2 = objective_variance(s_eff[idx], objective_sigma[idx]) / np.maximum(s_eff[idx], 1e-300) ** 2
+        sj2 = sb2 * (ratio2 if np.ndim(sb2) == 1 else ratio2[:, None])
+    else:
+        sj2 = sb2
     for c in cand:
-        js.append(penalised_objective(t, pb, mb, c, sb2, log_l[idx], opts))
+        js.append(penalised_objective(t, pb, mb, c, sj2, log_l[idx], opts))
     js = np.stack(js)                                   # (starts, m)
     if not opts.sss_alone:
         # the paper's model gives every pixel a direct: a start that lost it competes only
@@ -629,9 +637,10 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     return out, start, doubt, ambiguous
 
 
-def search_components(samples, det, dic, opts, components) -> SearchStage:
+def search_components(samples, det, dic, opts, components, objective_sigma=None) -> SearchStage:
     """Stage 2b of :func:`decomposition.decompose`: structured alternative starts for the
-    detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`."""
+    detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`
+    (``objective_sigma`` (P,): its ``objective_sigma`` for every pixel of ``samples``)."""
     from .detect import solver_inputs
     from .slots import put
 
@@ -650,6 +659,8 @@ def search_components(samples, det, dic, opts, components) -> SearchStage:
                                                               samples.significance_sigma(live[rows],
                                                                                          det.noise_eff[live[rows]]),
                                                               samples.noise_model != "poisson",
-                                                              None if det.weights is None else det.weights[rows])
+                                                              None if det.weights is None else det.weights[rows],
+                                                              None if objective_sigma is None else
+                                                              np.maximum(det.noise_eff[live[rows]], objective_sigma[live[rows]]))
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)
