@@ -75,3 +75,12 @@ def test_option_variants_run_clean(noise):
             assert np.isfinite(v).all(), kw
         for k, v in res.params.items():
             assert not np.isinf(v).any(), (kw, k)
+
+
+def test_a_psf_wider_than_the_kernel_grid_is_fitted_and_flagged_wide():
+    from decomposition import WIDE_PSF
+
+    case = next(c for c in build_cases(256, T, seed=0) if c.name == "sigma_10bins")   # 20 ps at 2 ps bins
+    r = run_case(case, T)
+    assert r["expect_ok"] and r["fidelity"] > 0.99
+    assert np.all(r["flags"] & WIDE_PSF)

@@ -64,7 +64,8 @@ def _params(n, n_ir=1):
 
 def build_cases(n_bins: int = 256, time_bin_ps: float = 2.0, seed: int = 0, quick: bool = False) -> list[Case]:
     """The stability cases (see the module docstring)."""
-    from decomposition import POOR_FIT, SATURATED, SPIKE, AT_BOUND, OFF_WINDOW
+    from decomposition import POOR_FIT, SATURATED, SPIKE, AT_BOUND, OFF_WINDOW, WIDE_PSF
+    from decomposition.options import GridSpec
     from decomposition.constants import OFF_WINDOW_MASS
     from core.model import render_profile
 
@@ -108,7 +109,11 @@ def build_cases(n_bins: int = 256, time_bin_ps: float = 2.0, seed: int = 0, quic
         p = _params(2, 0)
         p["direct_delay_ps"][:] = t_mid + rng.uniform(0, T, 2)
         p["direct_amplitude"][:], p["direct_sigma_ps"][:] = 1.0, nb * T
-        if 0.5 <= nb <= 10.0:
+        if 0.5 <= nb <= 10.0 and nb * T > GridSpec().sigma_range_ps[1]:
+            # fitted (refinement goes beyond the kernel grid), and flagged as wider than it
+            add(f"sigma_{nb:g}bins", p, min_fidelity=0.95, allowed_flags=int(WIDE_PSF), required_flags=int(WIDE_PSF),
+                note="sigma beyond the kernel grid's largest: fitted, flagged WIDE_PSF")
+        elif 0.5 <= nb <= 10.0:
             add(f"sigma_{nb:g}bins", p, min_fidelity=0.95)
         else:
             add(f"sigma_{nb:g}bins", p, kind="outside", expect_flag=SPIKE | POOR_FIT | AT_BOUND,
