@@ -157,11 +157,14 @@ def _fitted_law(samples, px, p, mask, model):
     from .noise import signal_variance
 
     floor, gain, se = signal_variance(p - model, model, mask.fit, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
-    # a misfit (structure wider than a bin) grows with the lag, independent noise does not
-    _, gain2, _ = signal_variance(p - model, model, mask.fit, lag=2, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
     peak_var = gain * model.max(axis=1)
     follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
-    follows &= gain2 < SIGNAL_NOISE_LAG_RATIO * gain
+    # a misfit (structure wider than a bin) grows with the lag, independent noise does not
+    c = np.flatnonzero(follows)
+    if c.size:
+        _, gain2, _ = signal_variance(p[c] - model[c], model[c], mask.fit[c], lag=2,
+                                      floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
+        follows[c] = gain2 < SIGNAL_NOISE_LAG_RATIO * gain[c]
     floor = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
     var = floor[:, None] + gain[:, None] * model
     return np.where(follows[:, None], var, np.nan)
