@@ -486,10 +486,13 @@ def signal_variance(residual: np.ndarray, model: np.ndarray, fit: np.ndarray, la
     m = np.maximum(model, 0.0)
     x = np.where(ok, 0.5 * (m[:, lag:] + m[:, :-lag]), 0.0)
     w = ok.astype(np.float64)
-    floor = np.zeros(x.shape[0])
-    gain = np.zeros(x.shape[0])
-    se = np.full(x.shape[0], np.inf)
-    for _ in range(2):
+    for second in (False, True):
+        if second:      # weights 1 / variance^2 of the first pass's law
+            g = np.maximum(gain, 0.0)
+            top = np.maximum(floor, 0.0) + g * x.max(axis=1)
+            least = np.maximum(floor_fraction * top, np.maximum(1e-12 * y.max(axis=1), 1e-150))
+            v = np.maximum(floor[:, None] + g[:, None] * x, least[:, None])
+            w = np.where(ok, 1.0 / (v * v), 0.0)
         n, sx, sxx = w.sum(axis=1), (w * x).sum(axis=1), (w * x * x).sum(axis=1)
         sy, sxy = (w * y).sum(axis=1), (w * x * y).sum(axis=1)
         det = n * sxx - sx * sx
@@ -497,12 +500,7 @@ def signal_variance(residual: np.ndarray, model: np.ndarray, fit: np.ndarray, la
         with np.errstate(invalid="ignore", divide="ignore"):
             gain = np.where(good, (n * sxy - sx * sy) / np.where(good, det, 1.0), 0.0)
             floor = np.where(n > 0, (sy - gain * sx) / np.maximum(n, 1e-300), 0.0)
-            # var(y) = 2 variance^2 (half the square of a Gaussian difference of variance 2 v)
             se = np.where(good, np.sqrt(n / np.where(good, det, 1.0)), np.inf)
-        g = np.maximum(gain, 0.0)
-        top = np.maximum(floor, 0.0) + g * x.max(axis=1)
-        least = np.maximum(floor_fraction * top, np.maximum(1e-12 * y.max(axis=1), 1e-150))
-        v = np.maximum(floor[:, None] + g[:, None] * x, least[:, None])
-        w = np.where(ok, 1.0 / (v * v), 0.0)
-    # the weights above are relative; the information of y at variance v is 1 / (2 v^2)
+    # the weights are relative; var(y) = 2 variance^2 (half the square of a Gaussian difference
+    # of variance 2 v), so the information of y at variance v is 1 / (2 v^2)
     return floor, np.maximum(gain, 0.0), se * np.sqrt(2.0)
