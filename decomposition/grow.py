@@ -186,9 +186,7 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
     wb = None if weights is None else weights[idx]
     alt = polish_candidate(t, pb, mb, alt, np.maximum(s_eff[idx], 1e-300), dic, opts, s_sig[idx], wb)
-    s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx])
-    if wb is not None:
-        s2 = s2[:, None] / np.maximum(wb, 1e-300)
+    s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx], wb)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
     better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     w = np.flatnonzero(resolved & better)

@@ -104,10 +104,12 @@ class Samples:
         """The fit and censored masks (:class:`~decomposition.masks.SampleMask`)."""
         return SampleMask(self.fit, self.censored)
 
-    def significance_sigma(self, rows, noise) -> np.ndarray:
+    def significance_sigma(self, rows, noise, lagged_noise=None) -> np.ndarray:
         """(n,) the noise the in-window significance test weighs an atom's energy with, for the
-        pixels ``rows`` whose solver noise is ``noise`` (n,): the larger of the two noises."""
-        return np.maximum(noise, self.lagged_noise[rows])
+        pixels ``rows`` whose solver noise is ``noise`` (n,): the larger of the two noises
+        (``lagged_noise`` (P,): another estimate of the lagged noise in place of this one's)."""
+        lagged = self.lagged_noise if lagged_noise is None else lagged_noise
+        return np.maximum(noise, lagged[rows])
 
     @property
     def weights(self) -> np.ndarray:

@@ -61,9 +61,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     log_n = np.log(np.maximum(mask.used.sum(axis=1)[idx], 1))
     wb = None if weights is None else weights[idx]
     noise = np.maximum(s_eff[idx], 1e-300)
-    s2 = objective_variance(noise, s_sig[idx])
-    if wb is not None:
-        s2 = s2[:, None] / np.maximum(wb, 1e-300)
+    s2 = objective_variance(noise, s_sig[idx], wb)
     pb, mb = p[idx], mask[idx]
     cur = take(out, idx)
     dropped = take(out, idx)

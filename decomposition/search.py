@@ -342,20 +342,26 @@ def penalised_objective(t, p, mask, st, s2, log_n, opts):
     return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
 
 
-def objective_variance(s_eff, significance_sigma):
-    """(n,) the noise variance the steps after the search divide their data term by: the
-    solver's ``s_eff`` (n,) squared, or the significance noise's (:meth:`Samples.significance_sigma`,
-    after :func:`decomposition.candidates.residual_significance_noise`) where that exceeds
-    WHITE_LAG_RATIO x ``s_eff``, i.e. where the noise is correlated at the components' scale
-    (pink noise).  There a component fitted to the noise lowers the data term by about
+def objective_variance(s_eff, significance_sigma=None, weights=None):
+    """The noise variance a penalised objective divides its data term by: (n,), or (n, L) with
+    ``weights``.  The solver's ``s_eff`` (n,) squared, or the significance noise's
+    (``significance_sigma`` (n,), :meth:`Samples.significance_sigma` after
+    :func:`decomposition.candidates.residual_significance_noise`; None: not used) where that
+    exceeds WHITE_LAG_RATIO x ``s_eff``, i.e. where the noise is correlated at the components'
+    scale (pink noise); divided by the samples' relative least-squares ``weights`` (n, L)
+    (:attr:`Detection.weights`) where given.  There a component fitted to the noise lowers the data term by about
     (lagged / sample noise)^2 times what white noise would, and a parameter-count penalty read in
     sample variances lets noise bumps through as inter-reflections.  Paper scenes, 600 px, pink
     NSR 0.055 / 0.11 at 2 ps bins: 0.884 / 0.818 -> 0.910 / 0.844; white noise is unchanged."""
     from .constants import WHITE_LAG_RATIO
 
     s_eff = np.asarray(s_eff, np.float64)
-    sig = np.asarray(significance_sigma, np.float64)
-    return np.where(sig > WHITE_LAG_RATIO * s_eff, sig, s_eff) ** 2
+    if significance_sigma is None:
+        var = s_eff ** 2
+    else:
+        sig = np.asarray(significance_sigma, np.float64)
+        var = np.where(sig > WHITE_LAG_RATIO * s_eff, sig, s_eff) ** 2
+    return var if weights is None else var[:, None] / np.maximum(weights, 1e-300)
 
 
 def _n_free(st, shared_sigma):
@@ -476,9 +482,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     ambiguous = np.zeros(n, bool)
     if n == 0 or not ("d" in components and "s" in components):
         return out, start, np.zeros(n, bool), ambiguous
-    s2 = np.maximum(s_eff, 1e-300) ** 2
-    if weights is not None:
-        s2 = s2[:, None] / np.maximum(weights, 1e-300)
+    s2 = objective_variance(np.maximum(s_eff, 1e-300), None, weights)
     nfit = np.maximum(mask.used.sum(axis=1), 1)
     log_l = np.log(nfit)
 
@@ -592,11 +596,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
         cand[-1], _ = grow_block(pb, mb, cand[-1], noise_b, dic, opts, s_sig[idx], bump_test, weights=wb)
     js = []
-    if objective_sigma is not None:
-        ratio2 = objective_variance(s_eff[idx], objective_sigma[idx]) / np.maximum(s_eff[idx], 1e-300) ** 2
-        sj2 = sb2 * (ratio2 if np.ndim(sb2) == 1 else ratio2[:, None])
-    else:
-        sj2 = sb2
+    sj2 = sb2 if objective_sigma is None else objective_variance(noise_b, objective_sigma[idx], wb)
     for c in cand:
         js.append(penalised_objective(t, pb, mb, c, sj2, log_l[idx], opts))
     js = np.stack(js)                                   # (starts, m)
@@ -637,10 +637,11 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     return out, start, doubt, ambiguous
 
 
-def search_components(samples, det, dic, opts, components, objective_sigma=None) -> SearchStage:
+def search_components(samples, det, dic, opts, components, objective_lagged_noise=None) -> SearchStage:
     """Stage 2b of :func:`decomposition.decompose`: structured alternative starts for the
     detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`
-    (``objective_sigma`` (P,): its ``objective_sigma`` for every pixel of ``samples``)."""
+    (``objective_lagged_noise`` (P,): the lagged noise of its ``objective_sigma``, in place of
+    ``samples.lagged_noise``)."""
     from .detect import solver_inputs
     from .slots import put
 
@@ -660,7 +661,8 @@ def search_components(samples, det, dic, opts, components, objective_sigma=None)
                                                                                          det.noise_eff[live[rows]]),
                                                               samples.noise_model != "poisson",
                                                               None if det.weights is None else det.weights[rows],
-                                                              None if objective_sigma is None else
-                                                              np.maximum(det.noise_eff[live[rows]], objective_sigma[live[rows]]))
+                                                              None if objective_lagged_noise is None else
+                                                              samples.significance_sigma(live[rows], det.noise_eff[live[rows]],
+                                                                                         objective_lagged_noise))
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)
