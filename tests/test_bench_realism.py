@@ -90,6 +90,36 @@ def test_five_sigma_photons_puts_the_echo_at_five_sigma():
     np.testing.assert_allclose(d.params["ir_amplitude"][:, 0], 0.01 * d.params["direct_amplitude"])
 
 
+def test_echo_sigma_follows_the_photon_count_and_only_a_five_sigma_echo_is_judged():
+    """echo_sigma: the median echo peak over its bin's Poisson noise at any photon level (the
+    generator's counting, an sss under the echo); the found-rate target is judged only where
+    that is >= ECHO_SIGMA, and a weaker echo's rate is no target."""
+    setup = realism.effect_setup("echo", 2.0)
+    n5 = realism.five_sigma_photons(setup, 41, 256, 2.0, seed=3)
+    for photons in (300.0, 10000.0):
+        d = make_profiles(41, 256, seed=3, kinds=setup["kinds"], time_bin_ps=2.0, photons_per_pixel=photons,
+                          **setup["options"])
+        echo = d.components["interreflections"][:, -1]
+        peak = np.argmax(echo, axis=1)
+        snr = echo[np.arange(41), peak] / np.sqrt(d.clean[np.arange(41), peak])
+        assert realism.echo_sigma(photons, n5) == pytest.approx(np.median(snr), rel=1e-6)
+    assert realism.echo_sigma(n5, n5) == realism.ECHO_SIGMA
+    assert np.isnan(realism.echo_sigma(300.0, float("nan")))
+
+    base = {"variant": "modelled", "status": "ok", "lifetime_bias_rel": 0.0, "lifetime_bias_se_rel": 0.0,
+            "direct_delay_bias_sigma": 0.0, "lifetime_bias_vs_reference_rel": 0.0,
+            "lifetime_bias_vs_reference_se_rel": 0.0, "lifetime_rmse_over_reference": 1.0,
+            "direct_delay_rmse_over_reference": 1.0, "stderr_median_z_lifetime": 0.674,
+            "stderr_median_z_lifetime_se": 0.05, "stderr_median_z_delay": 0.674, "stderr_median_z_delay_se": 0.05,
+            "effect": "echo", "echo_found": 0.5}
+    weak = realism.check_targets([{**base, "photons_per_pixel": 300.0, "echo_sigma": 1.4}])
+    strong = realism.check_targets([{**base, "photons_per_pixel": 10000.0, "echo_sigma": 7.9}])
+    assert not [c for c in weak if "echo found" in c[0]]
+    assert [(ok, detail) for text, ok, detail in strong if "echo found" in text] == [
+        (False, "50.0% at 7.9 sigma (>= 95%)")]
+    assert all(ok for _, ok, _ in weak)
+
+
 def test_scores_of_the_truth_itself():
     d = make_profiles(12, 200, seed=1, kinds="d+s+r2", echo_ratio=0.01, photons_per_pixel=1000.0)
     s = realism.score(d, d.params, d.components, with_echo=True)

@@ -29,7 +29,10 @@ by a few per cent, which the reference, started at the truth, shows.  Targets
 (:data:`TARGETS`, checked for ``ignored`` and ``modelled`` at every level): bias within 1 %
 (of the lifetime; of the PSF width for the delay) of zero, and for the lifetime also of the
 reference's bias, RMSE within 1.1 x the reference's, median |error| / stderr within 10 % of
-0.674, the echo found in >= 95 % of pixels.  The delay's bias beside the reference's is
+0.674, the echo found in >= 95 % of pixels where it is at least :data:`ECHO_SIGMA` sigma
+above the noise (``echo_sigma``, its median significance, is in every echo row; a weaker
+echo's found rate is printed, not judged: in the ``echo`` scenes, on an sss tail, the echo
+is 0.25 sigma at 100 photons and 2.5 sigma at 10,000; 5 sigma would take 40,000).  The delay's bias beside the reference's is
 printed, not checked: the reference's delay is no yardstick at few photons (it leaves the
 sss onset free of the direct, and at 100 photons its delay is biased by up to +0.65 ps,
 with an RMSE up to twice the decomposition's).
@@ -226,6 +229,15 @@ def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
     return out
 
 
+def echo_sigma(photons: float, five_sigma: float) -> float:
+    """The echo's median peak over the Poisson noise of its bin at ``photons`` per pixel, from
+    the level ``five_sigma`` where it is :data:`ECHO_SIGMA` (:func:`five_sigma_photons`; the
+    significance grows as the square root of the photon count).  NaN without an echo."""
+    if not math.isfinite(five_sigma):
+        return float("nan")
+    return ECHO_SIGMA * math.sqrt(photons / five_sigma)
+
+
 def run_variant(variant: str, data, setup: dict, time_bin_ps: float):
     """One variant's estimate: (params, components)."""
     from decomposition import decompose
@@ -260,14 +272,17 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
         setup = effect_setup(effect, time_bin_ps)
         seed_e = seed + 1000 * EFFECTS.index(effect)
         levels = photons
+        n_5sigma = (five_sigma_photons(setup, pixels, n_bins, time_bin_ps, seed_e) if effect in ECHO_EFFECTS
+                    else float("nan"))
         if effect == "echo5sigma":
-            levels = [five_sigma_photons(setup, pixels, n_bins, time_bin_ps, seed_e)]
+            levels = [n_5sigma]
         for level in levels:
             data = make_profiles(pixels, n_bins, seed=seed_e, kinds=setup["kinds"],
                                  time_bin_ps=time_bin_ps, photons_per_pixel=float(level), **setup["options"])
             by_variant, errors = {}, {}
             for variant in variants:
-                row = {"effect": effect, "photons_per_pixel": float(level), "variant": variant, "pixels": pixels}
+                row = {"effect": effect, "photons_per_pixel": float(level), "variant": variant, "pixels": pixels,
+                       "echo_sigma": echo_sigma(float(level), n_5sigma)}
                 t_start = time.perf_counter()
                 try:
                     params, comps = run_variant(variant, data, setup, time_bin_ps)
@@ -333,9 +348,11 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
                            f"(0.674 +- {TARGETS['stderr_calibration']:.0%})"))
         if not with_sss:
             checks = [c for c in checks if not c[0].startswith("lifetime")]
-        if row["effect"] in ECHO_EFFECTS:
+        if row["effect"] in ECHO_EFFECTS and row["echo_sigma"] >= ECHO_SIGMA:
+            # the target is an echo 5 sigma above the noise; a weaker one is printed, not judged
             checks.append(("echo found", row["echo_found"] >= TARGETS["echo_found"],
-                           f"{row['echo_found']:.1%} (>= {TARGETS['echo_found']:.0%})"))
+                           f"{row['echo_found']:.1%} at {row['echo_sigma']:.1f} sigma "
+                           f"(>= {TARGETS['echo_found']:.0%})"))
         for name, ok, detail in checks:
             measured = "nan" not in detail
             out.append((f"{where}: {name}", bool(ok) if measured else None, detail if measured else "not measured"))
@@ -428,6 +445,11 @@ def run(args) -> int:
               f"{_fmt(r['echo_found'], '6.1%')} {_fmt(r['direct_delay_bias_vs_reference_ps'], '+8.3f')} "
               f"{_fmt(r['lifetime_bias_vs_reference_rel'], '+8.2%')} "
               f"{_fmt(r['lifetime_bias_vs_reference_se_rel'], '6.2%')}")
+    weak = [r for r in rows if r["effect"] in ECHO_EFFECTS and r["status"] == "ok" and r["echo_sigma"] < ECHO_SIGMA]
+    if weak:
+        print(f"echo found below the target's {ECHO_SIGMA:g} sigma (printed, not judged): "
+              + "; ".join(f"{r['variant']} {r['photons_per_pixel']:g} photons {_fmt(r['echo_found'], '.1%')} "
+                          f"at {r['echo_sigma']:.1f} sigma" for r in weak))
     for r in rows:
         if r["effect"] == "echo5sigma" and r["status"] == "ok":
             print(f"echo target ({r['variant']}): a 1 % echo {ECHO_SIGMA:g} sigma above the noise at "
