@@ -1,4 +1,6 @@
-"""Fixtures shared by the solver's stage tests."""
+"""Fixtures shared by the tests."""
+import signal
+
 import pytest
 
 from decomposition.dictionary import get_dictionary
@@ -14,3 +16,14 @@ def default_dictionary():
         return get_dictionary(n_bins, time_bin_ps, t0, GridSpec(), True, True)
 
     return build
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _ctrl_c_as_at_a_terminal():
+    """Commands the tests start get SIGINT as a terminal's Ctrl-C does, also where the test run
+    itself was started with SIGINT ignored (a background job of a shell without job control):
+    an ignored SIGINT is inherited, a handler is not, and Python leaves an ignored one ignored,
+    so an interrupted ``streaklab decompose`` would run to its end."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
