@@ -191,7 +191,7 @@ def _measure(data, comps, params, seconds, crb, oracle_fid):
     }
 
 
-def _plot(path, rows, nsrs):
+def _plot(path, rows, nsrs, scenes="paper"):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -271,7 +271,8 @@ def _plot(path, rows, nsrs):
     axes[0, -1].plot([], [], "*", markerfacecolor="none", markeredgecolor="k", markersize=12,
                      label="default setting")
     axes[0, -1].legend(fontsize=7, loc="best")
-    fig.suptitle(f"Decomposition error against run time (Fig. 3(a)-(c) scenes, {title_noise}; "
+    what = ("the paper's parameter space" if scenes == "paper" else f"the {scenes} generator's") + ", kinds a-c"
+    fig.suptitle(f"Decomposition error against run time (Fig. 3(a)-(c) scenes from {what}, {title_noise}; "
                  "numbers: kernel grid N x N)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -380,7 +381,7 @@ def run(args) -> int:
     csv_path, png_path, reg_path = out / "tradeoff.csv", out / "tradeoff.png", out / "regimes.csv"
     write_csv(csv_path, rows, FIELDS)
     write_csv(reg_path, regime_out)
-    _plot(png_path, rows, NSRS)
+    _plot(png_path, rows, NSRS, scenes)
 
     # ---- targets
     print("\ntargets:")
