@@ -460,7 +460,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     leading edge and an sss ``SEARCH_EDGE_GAP_SIGMA`` widths after it; ``peak``: the earliest significant peak as the
     direct, the sss one width later; both with the detected Gaussians more than
     ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; ``rise``:
-    the peak start at the grid's narrowest width (the sss one such width after the direct,
+    the peak start at the grid's narrowest width, at least ``SEARCH_RISE_MIN_BINS`` bins (the sss one such width after the direct,
     later Gaussians more than SEARCH_IR_GAP_SIGMA such widths after it), followed by the
     forward step of :func:`decomposition.grow.grow_block` where ``opts.grow``; ``wide``: the
     peak start at the detected direct's width where that exceeds ``SEARCH_WIDE_FACTOR`` times
@@ -499,7 +499,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
                             SEARCH_EDGE_LEVEL, SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL,
-                            SEARCH_WIDE_FACTOR)
+                            SEARCH_RISE_MIN_BINS, SEARCH_WIDE_FACTOR)
 
     g = base["fam"] == FAM_GAUSS
     s_at = base["fam"] == FAM_SSS
@@ -564,12 +564,13 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     specs = (("edge", t_edge + sg, t_edge + (1.0 + SEARCH_EDGE_GAP_SIGMA) * sg, True), ("peak", t_peak, t_peak + sg, True),
              ("peak bare", t_peak, t_peak + sg, False))
     built = []                  # (direct, sss onset, later Gaussians) of the starts so far
-    # ``rise``: a direct at the earliest significant peak at the grid's narrowest width, the
+    # ``rise``: a direct at the earliest significant peak at the grid's narrowest width (not
+    # below SEARCH_RISE_MIN_BINS bins: point samples do not see a narrower width), the
     # sss onset one such width after it, the detected Gaussians more than SEARCH_IR_GAP_SIGMA
     # of those widths later -- the split of a direct narrower than the detection's width,
     # whose wide direct swallowed the sss rise (and often an inter-reflection, hence the
     # forward step on this start below)
-    narrow = np.full(idx.size, float(dic.grid.sigma_range_ps[0]))
+    narrow = np.full(idx.size, max(float(dic.grid.sigma_range_ps[0]), SEARCH_RISE_MIN_BINS * T))
     specs = specs + (("rise", t_peak, t_peak + narrow, True),)
     widths = {"rise": narrow}
     # ``wide``: the peak start at the detected direct's own width where that is more than
