@@ -68,6 +68,25 @@ def test_prune_drops_the_gaussian_that_fills_a_late_sss_onset():
     np.testing.assert_allclose(np.nanmax(s_on, axis=1), truth["sss_delay_ps"], atol=1.0)   # moved back (from +8 ps)
 
 
+def test_prune_reaches_a_gaussian_four_to_six_widths_after_the_direct():
+    # paper scenes, 2 ps bins, pink NSR 0.11: an sss fitted late with a spurious Gaussian 4.1-4.5
+    # widths after the direct, in its onset; with PRUNE_GAP_SIGMA = 4 the step did not try them
+    # (fidelity 0.42 and 0.18), at 6 it drops that Gaussian and the onset moves back
+    from decomposition import decompose
+    from decomposition.constants import PRUNE_GAP_SIGMA
+    from decomposition.synthetic import make_profiles
+
+    d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=0, ranges="paper", bin_integrated=True)
+    px = [12, 91]
+    res = decompose(d.noisy[px], 2.0)
+    assert PRUNE_GAP_SIGMA == 6.0 and res.info["pruned"] == 2
+    truth = {k: v[px] for k, v in d.components.items()}
+    assert np.all(fidelity(truth, res) > 0.9)
+    np.testing.assert_allclose(res.params["ir_delay_ps"][:, 0], d.params["ir_delay_ps"][px, 0], atol=1.0)
+    assert np.all(np.isnan(res.params["ir_delay_ps"][:, 1:]))
+    np.testing.assert_allclose(res.params["sss_delay_ps"], d.params["sss_delay_ps"][px], atol=5.0)
+
+
 def test_prune_keeps_a_true_close_inter_reflection():
     from decomposition.masks import SampleMask
     from decomposition.prune import prune_block
