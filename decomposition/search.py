@@ -669,19 +669,18 @@ def search_components(samples, det, dic, opts, components, objective_lagged_nois
     start = np.zeros(n, np.int64)
     doubt = np.zeros(n, bool)
     amb = np.zeros(n, bool)
+    float_data = samples.noise_model != "poisson"      # the bump test and the wide start are theirs
     for b0 in range(0, n, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, n))
-        p, mask = solver_inputs(samples, live[rows])
+        px = live[rows]
+        p, mask = solver_inputs(samples, px)
         sub = {k: v[rows] for k, v in state.items()}
-        st, start[rows], doubt[rows], amb[rows] = search_block(p, mask, sub, det.noise_eff[live[rows]], dic, opts,
-                                                              components,
-                                                              samples.significance_sigma(live[rows],
-                                                                                         det.noise_eff[live[rows]]),
-                                                              samples.noise_model != "poisson",
-                                                              None if det.weights is None else det.weights[rows],
-                                                              None if objective_lagged_noise is None else
-                                                              samples.significance_sigma(live[rows], det.noise_eff[live[rows]],
-                                                                                         objective_lagged_noise),
-                                                              samples.noise_model != "poisson")
+        noise = det.noise_eff[px]
+        objective_sigma = (None if objective_lagged_noise is None
+                           else samples.significance_sigma(px, noise, objective_lagged_noise))
+        st, start[rows], doubt[rows], amb[rows] = search_block(
+            p, mask, sub, noise, dic, opts, components, samples.significance_sigma(px, noise), bump_test=float_data,
+            weights=None if det.weights is None else det.weights[rows], objective_sigma=objective_sigma,
+            wide_start=float_data)
         put(state, rows, st)
     return SearchStage(state=state, start=start, doubt=doubt, ambiguous=amb)

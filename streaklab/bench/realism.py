@@ -238,6 +238,12 @@ def echo_sigma(photons: float, five_sigma: float) -> float:
     return ECHO_SIGMA * math.sqrt(photons / five_sigma)
 
 
+def echo_judged(row: dict) -> bool:
+    """Whether a row's echo found rate is a target: an echo effect whose echo is at least
+    :data:`ECHO_SIGMA` sigma above the noise (a weaker echo's rate is printed, not judged)."""
+    return row["effect"] in ECHO_EFFECTS and row["echo_sigma"] >= ECHO_SIGMA
+
+
 def run_variant(variant: str, data, setup: dict, time_bin_ps: float):
     """One variant's estimate: (params, components)."""
     from decomposition import decompose
@@ -348,8 +354,7 @@ def check_targets(rows: list[dict]) -> list[tuple[str, bool | None, str]]:
                            f"(0.674 +- {TARGETS['stderr_calibration']:.0%})"))
         if not with_sss:
             checks = [c for c in checks if not c[0].startswith("lifetime")]
-        if row["effect"] in ECHO_EFFECTS and row["echo_sigma"] >= ECHO_SIGMA:
-            # the target is an echo 5 sigma above the noise; a weaker one is printed, not judged
+        if echo_judged(row):
             checks.append(("echo found", row["echo_found"] >= TARGETS["echo_found"],
                            f"{row['echo_found']:.1%} at {row['echo_sigma']:.1f} sigma "
                            f"(>= {TARGETS['echo_found']:.0%})"))
@@ -445,7 +450,7 @@ def run(args) -> int:
               f"{_fmt(r['echo_found'], '6.1%')} {_fmt(r['direct_delay_bias_vs_reference_ps'], '+8.3f')} "
               f"{_fmt(r['lifetime_bias_vs_reference_rel'], '+8.2%')} "
               f"{_fmt(r['lifetime_bias_vs_reference_se_rel'], '6.2%')}")
-    weak = [r for r in rows if r["effect"] in ECHO_EFFECTS and r["status"] == "ok" and r["echo_sigma"] < ECHO_SIGMA]
+    weak = [r for r in rows if r["effect"] in ECHO_EFFECTS and r["status"] == "ok" and not echo_judged(r)]
     if weak:
         print(f"echo found below the target's {ECHO_SIGMA:g} sigma (printed, not judged): "
               + "; ".join(f"{r['variant']} {r['photons_per_pixel']:g} photons {_fmt(r['echo_found'], '.1%')} "

@@ -271,7 +271,7 @@ def _plot(path, rows, nsrs, scenes="paper"):
     axes[0, -1].plot([], [], "*", markerfacecolor="none", markeredgecolor="k", markersize=12,
                      label="default setting")
     axes[0, -1].legend(fontsize=7, loc="best")
-    what = ("the paper's parameter space" if scenes == "paper" else f"the {scenes} generator's") + ", kinds a-c"
+    what = "the paper's parameter space" if scenes == "paper" else f"the {scenes} generator"
     fig.suptitle(f"Decomposition error against run time (Fig. 3(a)-(c) scenes from {what}, {title_noise}; "
                  "numbers: kernel grid N x N)")
     fig.tight_layout()
