@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/streaklab demo --out demo-output
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2
 
 clean:
 	rm -rf $(VENV) demo-output
