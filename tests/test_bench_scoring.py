@@ -6,7 +6,7 @@ import pytest
 
 from streaklab.bench.scoring import (
     MIN_REGIME_PIXELS, REGIMES, check_targets, direct_delay_failures, flag_precision_recall, format_regime_table,
-    regime_rows,
+    paired_gap_se, regime_rows,
 )
 
 
@@ -37,10 +37,25 @@ def test_regime_rows_partition_the_pixels_and_give_gaps():
     zero = next(r for r in rows if r["regime"] == "inter-reflections" and r["bin"] == "0")
     assert zero["gap[convscd]"] == pytest.approx(0.0, abs=1e-12)
     assert all(r["few"] == (r["n"] < MIN_REGIME_PIXELS) for r in rows)
+    # a constant difference has no spread; elsewhere the paired error of the mean difference
+    assert two["gap_se[convscd]"] == pytest.approx(0.0, abs=1e-12)
+    d = method - oracle
+    assert rows[0]["gap_se[convscd]"] == pytest.approx(d.std(ddof=1) / np.sqrt(n))
     text = "\n".join(format_regime_table(rows, ["convscd", "oracle"]))
-    assert "gap convscd" in text and "-0.300" in text and "fewer than" in text
+    assert "gap convscd +- se" in text and "-0.300 +- 0.000" in text and "fewer than" in text
     with pytest.raises(ValueError, match="reference"):
         regime_rows(reg, {"convscd": method})
+
+
+def test_paired_gap_se_is_the_error_of_the_mean_difference():
+    f = np.array([0.9, 0.8, 0.7, np.nan, 0.5])
+    ref = np.array([1.0, 1.0, 0.8, 0.9, np.nan])
+    # pairs with both finite: differences -0.1, -0.2, -0.1
+    d = np.array([-0.1, -0.2, -0.1])
+    assert paired_gap_se(f, ref) == pytest.approx(d.std(ddof=1) / np.sqrt(3))
+    # the same fidelities shuffled between pixels have a different (unpaired) spread
+    assert paired_gap_se(f[[2, 1, 0, 3, 4]], ref) != pytest.approx(paired_gap_se(f, ref))
+    assert math.isnan(paired_gap_se([0.5, np.nan], [0.4, 0.3]))
 
 
 def test_flag_precision_recall_on_a_constructed_case():
@@ -79,6 +94,10 @@ def test_check_targets_met_not_met_and_not_measured():
     get = lambda *words: next(v for k, v in out.items() if all(w in k for w in words))  # noqa: E731
     assert get("white noise, NSR 0.001,")[0] is True  # the row with 5 pixels does not count
     assert get("white noise, NSR 0.055,")[0] is False and "-0.040" in get("white noise, NSR 0.055,")[1]
+    # with the gap's standard error the detail says how far the limit is in those errors
+    points[1]["regimes"][0]["gap_se[convscd]"] = 0.004
+    detail = next(d for t, s, d in check_targets(points) if "white noise, NSR 0.055," in t)
+    assert "-0.040 +- 0.004" in detail and "2.5 se from the limit" in detail
     assert get("white noise, NSR 0.11,")[0] is None
     assert get("pink noise, NSR 0.055,")[0] is True  # within 0.05 under pink noise
     assert get("photon noise, NSR 0.055,")[0] is None

@@ -18,6 +18,7 @@ __all__ = [
     "MIN_REGIME_PIXELS",
     "POOR_FIDELITY",
     "regime_rows",
+    "paired_gap_se",
     "flag_precision_recall",
     "direct_delay_failures",
     "TARGETS",
@@ -48,6 +49,19 @@ def _mean(x):
     return float(x.mean()) if x.size else float("nan")
 
 
+def paired_gap_se(f, f_ref) -> float:
+    """Standard error of a gap between two mean fidelities on the same pixels.
+
+    The pixels are paired (one scene, two fits), so the gap's error is that of the mean of the
+    per-pixel differences, std(f - f_ref, ddof=1) / sqrt(k) over the k pixels where both are
+    finite; NaN below two such pixels.  It is the spread of the scenes drawn: another seed
+    moves a gap by about this much.
+    """
+    d = np.asarray(f, np.float64) - np.asarray(f_ref, np.float64)
+    d = d[np.isfinite(d)]
+    return float(d.std(ddof=1) / np.sqrt(d.size)) if d.size >= 2 else float("nan")
+
+
 def regime_rows(regimes: dict, fidelities: dict, *, reference: str = "oracle",
                 min_pixels: int = MIN_REGIME_PIXELS) -> list[dict]:
     """Mean fidelity of each method overall and per regime, beside the reference's, and the gap.
@@ -68,7 +82,8 @@ def regime_rows(regimes: dict, fidelities: dict, *, reference: str = "oracle",
     list of dict
         One row for all pixels (``regime = "all"``) then one per regime bin, each with
         ``regime``, ``bin``, ``n``, ``few``, ``fidelity[<method>]`` and, for every method other
-        than the reference, ``gap[<method>]`` = its mean fidelity minus the reference's.
+        than the reference, ``gap[<method>]`` = its mean fidelity minus the reference's and
+        ``gap_se[<method>]``, that gap's standard error (:func:`paired_gap_se`).
     """
     if reference not in fidelities:
         raise ValueError(f"reference {reference!r} is not among the methods {list(fidelities)}")
@@ -85,6 +100,8 @@ def regime_rows(regimes: dict, fidelities: dict, *, reference: str = "oracle",
         for m in fidelities:
             if m != reference:
                 out[f"gap[{m}]"] = out[f"fidelity[{m}]"] - out[f"fidelity[{reference}]"]
+                out[f"gap_se[{m}]"] = paired_gap_se(np.asarray(fidelities[m])[sel],
+                                                    np.asarray(fidelities[reference])[sel])
         return out
 
     rows = [row("all", "all", np.ones(n, bool))]
@@ -191,13 +208,18 @@ def check_targets(points: list[dict], *, method: str = "convscd") -> list[tuple[
                     if not np.isfinite(g):
                         continue
                     if worst is None or g < worst[0]:
-                        worst = (g, r["regime"], r["bin"])
+                        worst = (g, r["regime"], r["bin"], r.get(f"gap_se[{method}]", float("nan")))
                 if worst is None:
                     out.append((text, None, "no regime row with enough pixels"))
                     continue
                 ok = worst[0] >= -limit
                 where = "overall" if worst[1] == "all" else f"{worst[1]} {worst[2]}"
-                out.append((text, ok, f"worst gap {worst[0]:+.3f} ({where})"))
+                se = worst[3]
+                err = f" +- {se:.3f}" if np.isfinite(se) else ""
+                # how far the limit lies from the measured gap, in its standard errors: a gap
+                # within about 2 of them is not told apart from the limit by these scenes
+                sep = f", {abs(worst[0] + limit) / se:.1f} se from the limit" if np.isfinite(se) and se > 0 else ""
+                out.append((text, ok, f"worst gap {worst[0]:+.3f}{err} ({where}{sep})"))
     d = TARGETS["delay"]
     for tb in bins:
         here = [p for p in points if p["noise"] == d["noise"] and p["time_bin_ps"] == tb
@@ -219,14 +241,14 @@ def format_regime_table(rows: list[dict], methods, reference: str = "oracle") ->
     """Text lines of a regime table: n, each method's mean fidelity, the reference's, and gaps."""
     others = [m for m in methods if m != reference]
     head = f"    {'regime':<18s} {'bin':<7s} {'n':>5s} " + " ".join(f"{m:>8s}" for m in others)
-    head += f" {reference:>8s} " + " ".join(f"{'gap ' + m:>12s}" for m in others)
+    head += f" {reference:>8s} " + " ".join(f"{'gap ' + m + ' +- se':>22s}" for m in others)
     lines = [head]
     for r in rows:
         mark = "*" if r["few"] else " "
         line = f"    {r['regime']:<18s} {r['bin']:<7s} {r['n']:>5d}{mark}"
         line += " ".join(f"{r[f'fidelity[{m}]']:8.3f}" for m in others)
         line += f" {r[f'fidelity[{reference}]']:8.3f} "
-        line += " ".join(f"{r[f'gap[{m}]']:+12.3f}" for m in others)
+        line += " ".join(f"{r[f'gap[{m}]']:+14.3f} +- {r.get(f'gap_se[{m}]', float('nan')):.3f}" for m in others)
         lines.append(line)
     if any(r["few"] for r in rows):
         lines.append(f"    (* fewer than {MIN_REGIME_PIXELS} pixels: not used for the targets)")
