@@ -11,7 +11,11 @@ one, and can go below 0 when spurious components outweigh the truth.  It is unde
 for a pixel whose truth holds no component at all.
 
 Inter-reflections are compared by order of arrival (r2 with r2, r3 with r3, ...), which is how
-both the ground truth and a decomposition list them.
+both the ground truth and a decomposition list them: the bounce labels count, so a missed
+first echo that leaves the second one labelled r2 costs both slots.  ``ir_pairing="matched"``
+pairs them instead so that the pixel's error is least (each estimated inter-reflection with at
+most one true one, the rest against zero profiles): it measures the echoes found, whatever
+their bounce labels, and tells a lost label order (a faint first echo missed) from a wrong echo.
 
 Per-parameter helpers compare parameter dicts (keys of :mod:`core.model`) on the
 pixels where both sides hold the component.
@@ -73,7 +77,31 @@ def _pad_ir(r, n):
     return np.pad(r, pad)
 
 
-def fidelity(truth, estimate) -> np.ndarray:
+#: Largest number of inter-reflection slots ``ir_pairing="matched"`` pairs (R! pairings are tried).
+MAX_MATCHED_IR = 6
+
+
+def _matched_ir_error(tr, er):
+    """(...,) the least sum over pairings of ||er_i - tr_j|| for (..., R, L) inter-reflection
+    profiles (both padded to R): the pairwise errors once, then every permutation of R slots
+    summed over them, all pixels at a time."""
+    from itertools import permutations
+
+    R = tr.shape[-2]
+    if R == 0:
+        return np.zeros(tr.shape[:-2])
+    if R > MAX_MATCHED_IR:
+        raise ValueError(f"ir_pairing='matched' pairs up to {MAX_MATCHED_IR} inter-reflections per pixel, got {R}")
+    cost = np.linalg.norm(er[..., :, None, :] - tr[..., None, :, :], axis=-1)      # (..., R est, R true)
+    rows = np.arange(R)
+    best = None
+    for perm in permutations(range(R)):
+        total = cost[..., rows, list(perm)].sum(axis=-1)
+        best = total if best is None else np.minimum(best, total)
+    return best
+
+
+def fidelity(truth, estimate, *, ir_pairing: str = "order") -> np.ndarray:
     """Per-pixel decomposition fidelity (see the module docstring).
 
     Parameters
@@ -81,20 +109,29 @@ def fidelity(truth, estimate) -> np.ndarray:
     truth, estimate : dict or result object
         Component profiles: ``direct`` (..., L), ``sss`` (..., L), ``interreflections``
         (..., R, L); R may differ between the two (the shorter is padded with zero profiles).
+    ir_pairing : {"order", "matched"}
+        Inter-reflections compared slot by slot in order of arrival (the bounce labels, the
+        default), or paired to the least error (up to MAX_MATCHED_IR of them).
 
     Returns
     -------
     ndarray, (...,), float64; NaN where the truth has no component.
     """
+    if ir_pairing not in ("order", "matched"):
+        raise ValueError(f"ir_pairing must be 'order' or 'matched', got {ir_pairing!r}")
     t = component_profiles(truth)
     e = component_profiles(estimate)
     if t["direct"].shape != e["direct"].shape:
         raise ValueError(f"truth profiles {t['direct'].shape} and estimate profiles {e['direct'].shape} differ in shape")
     n_ir = max(t["interreflections"].shape[-2], e["interreflections"].shape[-2])
     tr, er = _pad_ir(t["interreflections"], n_ir), _pad_ir(e["interreflections"], n_ir)
+    if ir_pairing == "order":
+        ir_err = np.linalg.norm(er - tr, axis=-1).sum(axis=-1)
+    else:
+        ir_err = _matched_ir_error(tr, er)
     err = (np.linalg.norm(e["direct"] - t["direct"], axis=-1)
            + np.linalg.norm(e["sss"] - t["sss"], axis=-1)
-           + np.linalg.norm(er - tr, axis=-1).sum(axis=-1))
+           + ir_err)
     ref = (np.linalg.norm(t["direct"], axis=-1) + np.linalg.norm(t["sss"], axis=-1)
            + np.linalg.norm(tr, axis=-1).sum(axis=-1))
     out = np.full(ref.shape, np.nan)

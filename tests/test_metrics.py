@@ -40,6 +40,31 @@ def test_missing_and_spurious_classes_cost_their_norm():
     assert fidelity(truth, est) == pytest.approx(0.0)
 
 
+def test_matched_pairing_charges_a_missed_first_echo_once():
+    # One pixel, L = 4.  Truth: d = [3, 4, 0, 0] (norm 5), no sss, a faint r2 = [0, 0, 0.1, 0]
+    # (norm 0.1) and a strong r3 = [0, 0, 0, 2] (norm 2).
+    truth = _comps([3, 4, 0, 0], [0, 0, 0, 0], [[0, 0, 0.1, 0], [0, 0, 0, 2]])
+    # The faint first echo missed; the strong one found and (by arrival) labelled r2.
+    est = _comps([3, 4, 0, 0], [0, 0, 0, 0], [[0, 0, 0, 2], [0, 0, 0, 0]])
+    total = 5 + 0.1 + 2
+    # By order: r2 compared with the faint echo (error |(0,0,0.1,-2)| = sqrt(4.01)) and r3 with
+    # nothing (error 2).
+    assert fidelity(truth, est) == pytest.approx(1 - (np.sqrt(4.01) + 2) / total)
+    # Matched: the strong echo paired with the strong one; only the faint one's norm is lost.
+    assert fidelity(truth, est, ir_pairing="matched") == pytest.approx(1 - 0.1 / total)
+    # In the right order both pairings agree, and the pairing never makes an estimate worse.
+    right = _comps([3, 4, 0, 0], [0, 0, 0, 0], [[0, 0, 0.1, 0], [0, 0, 0, 1.5]])
+    assert fidelity(truth, right, ir_pairing="matched") == pytest.approx(fidelity(truth, right))
+    # Two-echo scenes with their echoes listed in reverse: wrong by order, exact when matched.
+    d = make_profiles(30, 128, seed=1, kinds=("c",))
+    swapped = {"direct": d.components["direct"], "sss": d.components["sss"],
+               "interreflections": d.components["interreflections"][:, ::-1]}
+    assert np.all(fidelity(d.components, swapped) < 1.0)
+    np.testing.assert_allclose(fidelity(d.components, swapped, ir_pairing="matched"), 1.0, atol=1e-12)
+    with pytest.raises(ValueError, match="ir_pairing"):
+        fidelity(truth, est, ir_pairing="nearest")
+
+
 def test_batched_pixels_and_undefined_truth():
     truth = _comps([[1, 0], [0, 0]], [[0, 0], [0, 0]], np.zeros((2, 0, 2)))
     est = _comps([[0.5, 0], [0, 0]], [[0, 0], [0, 1]], np.zeros((2, 0, 2)))
