@@ -109,6 +109,7 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     weighted = [int(line.split(";")[-1].split()[0]) for line in kept]
     assert min(weighted[6:]) >= 6 and max(weighted[:3]) <= 1, weighted
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "regimes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["largest_nsr_at_level"]) == {f"{m}/{n}" for m in methods for n in ("white", "pink", "photon")}
     assert set(summary["seconds_per_pixel"]) == set(methods)

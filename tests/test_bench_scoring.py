@@ -6,7 +6,7 @@ import pytest
 
 from streaklab.bench.scoring import (
     MIN_REGIME_PIXELS, REGIMES, check_targets, direct_delay_failures, flag_precision_recall, format_regime_table,
-    paired_gap_se, regime_rows,
+    gap_matrix, paired_gap_se, regime_rows,
 )
 
 
@@ -107,3 +107,25 @@ def test_check_targets_met_not_met_and_not_measured():
     points[1]["unflagged_failures[convscd]"] = 1
     status, _ = next((s, d) for t, s, d in check_targets(points) if "direct delay error" in t)
     assert status is False
+
+
+def test_gap_matrix_marks_the_rows_that_fail_their_target():
+    def row(regime, b, n, gap, se):
+        return {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS, "gap[convscd]": gap,
+                "gap_se[convscd]": se}
+    white = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.055,
+             "regimes": [row("all", "all", 300, -0.02, 0.005), row("sigma (bins)", "< 1", 40, -0.04, 0.01),
+                         row("sigma (bins)", ">= 4", 5, -0.5, 0.2)]}
+    # no target is set for pink noise at NSR 0.11; this point also lacks the ">= 4" row
+    pink = {"time_bin_ps": 4.0, "noise": "pink", "nsr": 0.11,
+            "regimes": [row("all", "all", 300, -0.09, 0.01), row("sigma (bins)", "< 1", 100, -0.2, 0.02)]}
+    g = gap_matrix([white, pink])
+    assert g["rows"] == ["all", "sigma (bins) < 1", "sigma (bins) >= 4"]
+    assert g["columns"] == ["2 ps white 0.055", "4 ps pink 0.11"]
+    np.testing.assert_allclose(g["limit"], [0.03, np.nan])
+    np.testing.assert_allclose(g["gap"], [[-0.02, -0.09], [-0.04, -0.2], [-0.5, np.nan]])
+    np.testing.assert_allclose(g["se"][:, 0], [0.005, 0.01, 0.2])
+    assert g["n"][2, 1] == 0
+    # judged: enough pixels and a target at the point; failed: judged and below -limit
+    np.testing.assert_array_equal(g["judged"], [[True, False], [True, False], [False, False]])
+    np.testing.assert_array_equal(g["failed"], [[False, False], [True, False], [False, False]])

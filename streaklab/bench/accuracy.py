@@ -19,7 +19,9 @@ inter-reflections paired to the least error instead of by arrival), ``regimes.cs
 method and the oracle per regime, each gap with its standard error over the pixels drawn, see
 :mod:`streaklab.bench.scoring`), ``flags.csv``
 (precision and recall of every flag bit against pixels with fidelity < 0.5),
-``accuracy.png`` (fidelity against NSR, one panel per noise type) and ``summary.json``.
+``accuracy.png`` (fidelity against NSR, one panel per noise type), ``regimes.png`` (the first
+method's gap to the oracle in every regime row at every point, the failing targets outlined)
+and ``summary.json``.
 Printed: per point the regime table (method, oracle, gap +- its standard error) and each method's gap to the
 detectable ceiling (overall and its worst regime row); for each method and noise type the
 largest NSR up to which mean fidelity stays >= 0.90; each method's run time per pixel; the
@@ -330,6 +332,49 @@ def _plot(path: Path, rows, methods, noises, per_pixel):
     plt.close(fig)
 
 
+def _plot_regimes(path: Path, points, method: str) -> None:
+    """``regimes.png``: the gap of ``method`` to the oracle in every regime row (rows) at every
+    point (columns), coloured, each cell with its gap and standard error; outlined where the
+    row fails its target, faded where it is not judged (fewer than MIN_REGIME_PIXELS pixels, or
+    no target at that point)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.patches import Rectangle
+
+    from .scoring import MIN_REGIME_PIXELS, gap_matrix
+
+    g = gap_matrix(points, method)
+    R, C = g["gap"].shape
+    fig, ax = plt.subplots(figsize=(max(6.5, 2.6 + 0.78 * C), 1.8 + 0.34 * R))
+    norm = TwoSlopeNorm(vmin=-0.15, vcenter=0.0, vmax=0.05)
+    shown = np.clip(np.where(np.isfinite(g["gap"]), g["gap"], 0.0), -0.15, 0.05)
+    im = ax.imshow(shown, cmap="RdBu", norm=norm, aspect="auto")
+    for i in range(R):
+        for j in range(C):
+            if not np.isfinite(g["gap"][i, j]):
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, color="0.85"))
+                continue
+            faded = not g["judged"][i, j]
+            if faded:
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, color="white", alpha=0.6))
+            se = g["se"][i, j]
+            text = f"{g['gap'][i, j]:+.3f}" + (f"\n\u00b1{se:.3f}" if np.isfinite(se) else "")
+            ax.text(j, i, text, ha="center", va="center", fontsize=5.5, color="0.45" if faded else "black")
+            if g["failed"][i, j]:
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=1.6, ec="black"))
+    ax.set_xticks(range(C), g["columns"], rotation=60, ha="right", fontsize=7)
+    ax.set_yticks(range(R), g["rows"], fontsize=7)
+    ax.set_title(f"{method} mean fidelity minus the oracle's, by regime\n(outlined: target not met; "
+                 f"faded: not judged, < {MIN_REGIME_PIXELS} px or no target)", fontsize=8)
+    fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="gap to the oracle")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def _print_levels(summary, nsrs, prefix=""):
     for key, v in summary["largest_nsr_at_level"].items():
         m, n = key.split("/")
@@ -397,6 +442,8 @@ def run(args) -> int:
     write_csv(reg_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["regimes"]])
     write_csv(flag_path, [{**{k: p[k] for k in keys}, **r} for p in points for r in p["flags"]])
     _plot(png_path, rows, methods, noises, per_pixel)
+    regimes_png = out / "regimes.png"
+    _plot_regimes(regimes_png, points, "convscd" if "convscd" in methods else methods[0])
     json_path.write_text(json.dumps(summary, indent=2) + "\n")
 
     print("mean fidelity beside the oracle's (true component set, fitted from the truth), and the gap:")
@@ -450,5 +497,5 @@ def run(args) -> int:
         for text, status, detail in targets + search_targets:
             mark = "not measured" if status is None else ("met" if status else "NOT met")
             print(f"  [{mark}] {text}: {detail}")
-    print(f"wrote {csv_path}, {reg_path}, {flag_path}, {png_path}, {json_path}")
+    print(f"wrote {csv_path}, {reg_path}, {flag_path}, {png_path}, {regimes_png}, {json_path}")
     return 0

@@ -19,6 +19,7 @@ __all__ = [
     "POOR_FIDELITY",
     "regime_rows",
     "paired_gap_se",
+    "gap_matrix",
     "flag_precision_recall",
     "direct_delay_failures",
     "TARGETS",
@@ -235,6 +236,61 @@ def check_targets(points: list[dict], *, method: str = "convscd") -> list[tuple[
         ok = bad < d["max_fraction"] * n and unflagged == 0
         out.append((text, ok, f"{bad} of {n} pixels ({bad / n:.1%}), {unflagged} of them unflagged"))
     return out
+
+
+def target_limit(noise: str, nsr: float) -> float:
+    """The gap limit :data:`TARGETS` sets for a (noise, NSR) point, NaN where none is set."""
+    for t_noise, nsrs, limit in TARGETS["gap"]:
+        if t_noise == noise and any(math.isclose(nsr, x) for x in nsrs):
+            return float(limit)
+    return float("nan")
+
+
+def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes") -> dict:
+    """Every regime row's gap at every measured point, as arrays for a figure.
+
+    Parameters
+    ----------
+    points : list of dict
+        As for :func:`check_targets` (``time_bin_ps``, ``noise``, ``nsr`` and the rows of
+        :func:`regime_rows` under ``key``).
+    method : str
+    key : str
+        ``"regimes"`` (gaps to the oracle) or ``"regimes_detectable"``.
+
+    Returns
+    -------
+    dict with ``rows`` (R,) "(regime) (bin)" labels in the order of the first point, ``columns``
+    (C,) "2 ps white 0.055" labels, and (R, C) arrays ``gap``, ``se`` (NaN where a point lacks
+    the row), ``n`` (0 there), ``judged`` (the row counts for a target at that point: it has
+    :data:`MIN_REGIME_PIXELS` pixels and the point a limit) and ``failed`` (judged and the gap
+    below minus the limit); ``limit`` (C,), NaN where no target is set.
+    """
+    labels, seen = [], set()
+    for p in points:
+        for r in p[key]:
+            lab = (r["regime"], r["bin"])
+            if lab not in seen:
+                seen.add(lab)
+                labels.append(lab)
+    R, C = len(labels), len(points)
+    gap, se = np.full((R, C), np.nan), np.full((R, C), np.nan)
+    n = np.zeros((R, C), np.int64)
+    few = np.ones((R, C), bool)
+    limit = np.array([target_limit(p["noise"], p["nsr"]) for p in points])
+    where = {lab: i for i, lab in enumerate(labels)}
+    for j, p in enumerate(points):
+        for r in p[key]:
+            i = where[(r["regime"], r["bin"])]
+            gap[i, j] = r.get(f"gap[{method}]", np.nan)
+            se[i, j] = r.get(f"gap_se[{method}]", np.nan)
+            n[i, j], few[i, j] = r["n"], r["few"]
+    judged = ~few & np.isfinite(gap) & np.isfinite(limit)[None, :]
+    with np.errstate(invalid="ignore"):
+        failed = judged & (gap < -limit[None, :])
+    columns = [f"{p['time_bin_ps']:g} ps {p['noise']} {p['nsr']:g}" for p in points]
+    return {"rows": [f"{a} {b}" if a != "all" else "all" for a, b in labels], "columns": columns,
+            "gap": gap, "se": se, "n": n, "judged": judged, "failed": failed, "limit": limit}
 
 
 def format_regime_table(rows: list[dict], methods, reference: str = "oracle") -> list[str]:
