@@ -156,7 +156,8 @@ def test_drop_reply_times_out_then_the_driver_works_again(lab):
 def test_late_reply_is_not_taken_for_the_next_one(lab):
     sim, _ = lab
     with open_mirror(sim.port) as mirror:
-        sim.inject("delay", "ID", delay_s=0.5)
+        # twice the driver's 0.5 s timeout: a reply as late as the timeout itself races it
+        sim.inject("delay", "ID", delay_s=1.0)
         with pytest.raises(DeviceTimeout):
             mirror.identify()
         # wait until the late ID reply is waiting in the port (however slow the machine is)

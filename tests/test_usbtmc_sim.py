@@ -111,10 +111,10 @@ def test_drop_reply_times_out_within_the_timeout_then_works(lab):
 def test_delayed_reply_is_aborted_and_never_read_as_a_later_answer(lab):
     backend, sync, state = lab
     sync.set_repetition_rate(50e6)
-    backend.inject("delay", "*IDN?", delay_s=0.6)
+    backend.inject("delay", "*IDN?", delay_s=1.0)     # twice the driver's 0.5 s timeout
     with pytest.raises(DeviceTimeout):
         sync.identify()
-    time.sleep(0.5)  # past the moment the late reply would have been ready
+    time.sleep(0.8)  # past the moment the late reply would have been ready
     assert sync.repetition_rate() == pytest.approx(50e6)
     assert sync.identify().startswith("STREAKLAB")
 
