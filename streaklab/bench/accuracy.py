@@ -231,11 +231,12 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                                                            {m: scored[m][0] for m in every if m != ORACLE},
                                                            reference=DETECTABLE),
                          "flags": [], "search": search_info}
+                # the pixels with two or more inter-reflections, by arrival and matched (the whole
+                # point's means are in the rows below)
                 two = np.asarray(data.regimes["n_ir"]) >= 2
-                point["matched"] = {m: {"all": (float(np.nanmean(scored[m][0])), float(np.nanmean(scored[m][3]))),
-                                        "two_ir": (float(np.nanmean(scored[m][0][two])) if two.any() else float("nan"),
-                                                   float(np.nanmean(scored[m][3][two])) if two.any() else float("nan"))}
-                                    for m in every}
+                if two.any():
+                    point["matched_two_ir"] = {m: (float(np.nanmean(scored[m][0][two])),
+                                                   float(np.nanmean(scored[m][3][two]))) for m in every}
                 for method in every:
                     f, fail, flags, f_matched = scored[method]
                     row = {"method": method, "time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "pixels": pixels,
@@ -463,8 +464,8 @@ def run(args) -> int:
             print(f"    {m} against the detectable ceiling (the oracle on the significant components): "
                   f"gap {top[f'gap[{m}]']:+.3f} +- {top[f'gap_se[{m}]']:.3f} overall, worst "
                   f"{worst[f'gap[{m}]']:+.3f} +- {worst[f'gap_se[{m}]']:.3f} ({where})")
-        if p.get("matched"):
-            pairs = ", ".join(f"{m} {p['matched'][m]['two_ir'][1]:.3f} (by arrival {p['matched'][m]['two_ir'][0]:.3f})"
+        if p.get("matched_two_ir"):
+            pairs = ", ".join(f"{m} {p['matched_two_ir'][m][1]:.3f} (by arrival {p['matched_two_ir'][m][0]:.3f})"
                               for m in every)
             print(f"    two or more inter-reflections, paired to the least error instead of by arrival "
                   f"(the bounce labels aside): {pairs}")

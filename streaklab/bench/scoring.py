@@ -20,6 +20,7 @@ __all__ = [
     "regime_rows",
     "paired_gap_se",
     "gap_matrix",
+    "within_limit",
     "flag_precision_recall",
     "direct_delay_failures",
     "TARGETS",
@@ -174,6 +175,12 @@ TARGETS = {
 }
 
 
+def within_limit(gap, limit):
+    """The gap target's rule: a mean fidelity at most ``limit`` below the oracle's (arrays
+    broadcast; False for a NaN gap)."""
+    return np.asarray(gap) >= -np.asarray(limit)
+
+
 def check_targets(points: list[dict], *, method: str = "convscd") -> list[tuple[str, bool | None, str]]:
     """Check :data:`TARGETS` on measured points.
 
@@ -213,7 +220,7 @@ def check_targets(points: list[dict], *, method: str = "convscd") -> list[tuple[
                 if worst is None:
                     out.append((text, None, "no regime row with enough pixels"))
                     continue
-                ok = worst[0] >= -limit
+                ok = bool(within_limit(worst[0], limit))
                 where = "overall" if worst[1] == "all" else f"{worst[1]} {worst[2]}"
                 se = worst[3]
                 err = f" +- {se:.3f}" if np.isfinite(se) else ""
@@ -287,7 +294,7 @@ def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes"
             n[i, j], few[i, j] = r["n"], r["few"]
     judged = ~few & np.isfinite(gap) & np.isfinite(limit)[None, :]
     with np.errstate(invalid="ignore"):
-        failed = judged & (gap < -limit[None, :])
+        failed = judged & ~within_limit(gap, limit[None, :])
     columns = [f"{p['time_bin_ps']:g} ps {p['noise']} {p['nsr']:g}" for p in points]
     return {"rows": [f"{a} {b}" if a != "all" else "all" for a, b in labels], "columns": columns,
             "gap": gap, "se": se, "n": n, "judged": judged, "failed": failed, "limit": limit}
