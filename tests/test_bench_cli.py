@@ -62,7 +62,7 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
-    methods = ("convscd", "gradbm", "oracle", "detectable")
+    methods = ("convscd", "gradbm", "oracle", "detectable", "own-model")
     keys = {(r["method"], r["noise"], float(r["nsr"])) for r in rows}
     assert keys == {(m, n, x) for m in methods for n in ("white", "pink", "photon") for x in (0.001, 0.055, 0.2)}
     for r in rows:
@@ -82,6 +82,10 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
             assert by[("detectable", n, x)] <= by[("oracle", n, x)] + 0.02
     assert by[("detectable", "white", 0.001)] > 0.99
     assert text.count("against the detectable ceiling") == 2 * 9          # convscd and gradbm, per point
+    # The own-model ceiling fits the truth in decompose's point-sampled rendering to these
+    # bin-integrated scenes: near the oracle on nearly clean data, and never well above it.
+    assert 0.95 < by[("own-model", "white", 0.001)] <= by[("oracle", "white", 0.001)] + 0.01
+    assert text.count("against the own-model ceiling") == 2 * 9
     for m in methods:
         assert by[(m, "white", 0.2)] < by[(m, "white", 0.001)]
     # Regime rows: every regime variable partitions the 12 pixels of each point.
@@ -144,7 +148,7 @@ def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = {r["method"]: r for r in csv.DictReader(fh)}
-    assert set(rows) == {"convscd", "search", "oracle", "detectable"}
+    assert set(rows) == {"convscd", "search", "oracle", "detectable", "own-model"}
     # The search starts from the ConvSCD result, so its time includes ConvSCD's.
     assert float(rows["search"]["seconds_per_pixel"]) > float(rows["convscd"]["seconds_per_pixel"])
     assert -1.0 <= float(rows["search"]["mean_fidelity"]) <= 1.0

@@ -9,7 +9,10 @@ d+s+r2, d+s+r2+r3, in equal shares) are decomposed by ConvSCD and by GradBM thro
 (:func:`decomposition.oracle.oracle_fit`: least squares of the true component set started at
 the true parameters, a ceiling for any method) and by the same oracle on the significant
 components only (``detectable``, :func:`decomposition.oracle.significant_truth`: the ceiling of
-a method that finds every component the noise leaves visible and no other).  Scenes come from a preset of
+a method that finds every component the noise leaves visible and no other).  On bin-integrated
+scenes also by the ``own-model`` ceiling: the oracle with the components rendered point-sampled,
+as ``decompose`` renders them; the oracle's lead over it is what that rendering costs, its lead
+over a method what the method's search and model selection cost.  Scenes come from a preset of
 :data:`decomposition.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
 rendered bin-integrated; ``legacy`` for the original generator, point-sampled).
 
@@ -23,7 +26,7 @@ method and the oracle per regime, each gap with its standard error over the pixe
 method's gap to the oracle in every regime row at every point, the failing targets outlined)
 and ``summary.json``.
 Printed: per point the regime table (method, oracle, gap +- its standard error) and each method's gap to the
-detectable ceiling (overall and its worst regime row); for each method and noise type the
+detectable ceiling and to the own-model ceiling (overall and its worst regime row); for each method and noise type the
 largest NSR up to which mean fidelity stays >= 0.90; each method's run time per pixel; the
 paper's reference check (ConvSCD >= 0.90 at NSR 0.055 under white noise, and above GradBM at
 every NSR above 0.005); and the accuracy targets against the oracle as met / not met lines
@@ -60,6 +63,17 @@ ORACLE = "oracle"
 #: the oracle on the significant component set (decomposition.oracle.significant_truth)
 DETECTABLE = "detectable"
 CEILINGS = (ORACLE, DETECTABLE)
+#: the oracle in the solver's own model: the true component set, started at the truth, rendered
+#: point-sampled as decompose renders it, on bin-integrated scenes (on point-sampled ones it is
+#: the oracle itself, so it is left out there); the gap between it and the oracle is what the
+#: model's rendering costs, the gap between a method and it what the method's search costs
+OWN_MODEL = "own-model"
+
+
+def ceilings(bin_integrated: bool) -> tuple:
+    """The ceilings fitted beside the methods: the oracle, the detectable ceiling and, on
+    bin-integrated scenes, the own-model ceiling (:data:`OWN_MODEL`)."""
+    return CEILINGS + ((OWN_MODEL,) if bin_integrated else ())
 
 
 def add_arguments(parser) -> None:
@@ -177,7 +191,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition.jit import warm_up
 
     bins = [float(time_bin_ps)] if np.isscalar(time_bin_ps) else [float(t) for t in time_bin_ps]
-    every = list(methods) + list(CEILINGS)
+    every = list(methods) + list(ceilings(bin_integrated))
     solvers = sorted({"convscd" if m == "search" else m for m in methods})
     for tb in bins:  # compiling (or loading) the kernels is not part of any point's time
         for method in solvers:
@@ -203,6 +217,9 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                         sigma = np.std(data.noisy - data.clean, axis=-1)
                         seen = significant_truth(data.params, data.components, sigma)
                         est = oracle_fit(data.noisy, seen, time_bin_ps=tb, bin_integrated=bin_integrated)
+                        est_params, flags = est.params, np.zeros(pixels, np.int64)
+                    elif method == OWN_MODEL:
+                        est = oracle_fit(data.noisy, data.params, time_bin_ps=tb, bin_integrated=False)
                         est_params, flags = est.params, np.zeros(pixels, np.int64)
                     elif method == "search":
                         base = results.get("convscd")
@@ -231,6 +248,10 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                                                            {m: scored[m][0] for m in every if m != ORACLE},
                                                            reference=DETECTABLE),
                          "flags": [], "search": search_info}
+                if OWN_MODEL in scored:
+                    point["regimes_own_model"] = regime_rows(data.regimes,
+                                                             {m: scored[m][0] for m in list(methods) + [OWN_MODEL]},
+                                                             reference=OWN_MODEL)
                 # the pixels with two or more inter-reflections, by arrival and matched (the whole
                 # point's means are in the rows below)
                 two = np.asarray(data.regimes["n_ir"]) >= 2
@@ -256,7 +277,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                     rows.append(row)
                     point[f"delay_failures[{method}]"] = row["direct_delay_failures"]
                     point[f"unflagged_failures[{method}]"] = row["unflagged_direct_delay_failures"]
-                    if method not in CEILINGS:
+                    if method not in ceilings(True):
                         for bit, name in sorted(FLAG_NAMES.items()):
                             point["flags"].append({"method": method, "flag": name, "bit": bit,
                                                    **flag_precision_recall(flags, bit, f)})
@@ -376,6 +397,16 @@ def _plot_regimes(path: Path, points, method: str) -> None:
     plt.close(fig)
 
 
+def _overall_and_worst(rows, method: str) -> str:
+    """'gap G +- se overall, worst W +- se (regime)' of ``method`` in regime rows against one
+    reference (rows of :func:`streaklab.bench.scoring.regime_rows`; the worst among the judged)."""
+    worst = min((r for r in rows if not r["few"] or r["regime"] == "all"), key=lambda r: r[f"gap[{method}]"])
+    where = "overall" if worst["regime"] == "all" else f"{worst['regime']} {worst['bin']}"
+    top = rows[0]
+    return (f"gap {top[f'gap[{method}]']:+.3f} +- {top[f'gap_se[{method}]']:.3f} overall, worst "
+            f"{worst[f'gap[{method}]']:+.3f} +- {worst[f'gap_se[{method}]']:.3f} ({where})")
+
+
 def _print_levels(summary, nsrs, prefix=""):
     for key, v in summary["largest_nsr_at_level"].items():
         m, n = key.split("/")
@@ -426,7 +457,7 @@ def run(args) -> int:
                                           scenes=scenes, bin_integrated=render == "bin", progress=progress)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    every = list(methods) + list(CEILINGS)
+    every = list(methods) + list(ceilings(render == "bin"))
     by_bin = {f"{tb:g}": summarise([r for r in rows if r["time_bin_ps"] == tb], every, noises) for tb in bins}
     summary = dict(by_bin[f"{bins[0]:g}"])
     targets = check_targets(points) if "convscd" in methods else []
@@ -457,13 +488,11 @@ def run(args) -> int:
             print(f"    ConvSCD search: {p['search']['doubt']} pixels in doubt; kept start: {wins}; "
                   f"{p['search'].get('weighted', 0)} pixels weighted for noise that follows the signal")
         for m in methods:
-            worst = min((r for r in p["regimes_detectable"] if not r["few"] or r["regime"] == "all"),
-                        key=lambda r: r[f"gap[{m}]"])
-            where = "overall" if worst["regime"] == "all" else f"{worst['regime']} {worst['bin']}"
-            top = p["regimes_detectable"][0]
             print(f"    {m} against the detectable ceiling (the oracle on the significant components): "
-                  f"gap {top[f'gap[{m}]']:+.3f} +- {top[f'gap_se[{m}]']:.3f} overall, worst "
-                  f"{worst[f'gap[{m}]']:+.3f} +- {worst[f'gap_se[{m}]']:.3f} ({where})")
+                  f"{_overall_and_worst(p['regimes_detectable'], m)}")
+            if p.get("regimes_own_model"):
+                print(f"    {m} against the own-model ceiling (the oracle in decompose's point-sampled "
+                      f"rendering): {_overall_and_worst(p['regimes_own_model'], m)}")
         if p.get("matched_two_ir"):
             pairs = ", ".join(f"{m} {p['matched_two_ir'][m][1]:.3f} (by arrival {p['matched_two_ir'][m][0]:.3f})"
                               for m in every)
