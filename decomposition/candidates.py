@@ -121,38 +121,49 @@ def signal_weights(samples, det, dic, opts):
     structure (a wide direct split into two or three narrow Gaussians).  The variance law
     ``floor + gain * model`` of every pixel is fitted to its detected fit's residual
     (:func:`decomposition.noise.signal_variance`).  It is used where the gain is significant
-    (more than SIGNAL_NOISE_Z standard errors) and the variance at the model's peak is more
-    than SIGNAL_NOISE_PEAK_RATIO times the floor above it; the floor is kept at least
-    SIGNAL_NOISE_FLOOR_FRACTION of the peak's variance (no sample weighs without bound where
-    no light arrives).  Weight = noise_eff^2 / variance: the search's data term becomes the
-    sum of residual^2 / variance, 1 per sample for a fit at the noise.  Other pixels get 1.
+    (more than SIGNAL_NOISE_Z standard errors), the variance at the model's peak is more
+    than SIGNAL_NOISE_PEAK_RATIO times the floor above it and the law read at a lag of two
+    samples is not SIGNAL_NOISE_LAG_RATIO times larger (a misfit, not noise).  The verdict is
+    then pooled over the live pixels of the call: where at least SIGNAL_NOISE_POOL_FRACTION of
+    them (and SIGNAL_NOISE_POOL_MIN or more) pass, the noise is the detector's shot noise and
+    every pixel whose fitted gain is positive is weighted by its own law (see the constants).
+    The floor is kept at least SIGNAL_NOISE_FLOOR_FRACTION of the peak's variance (no sample
+    weighs without bound where no light arrives).  Weight = noise_eff^2 / variance: the
+    search's data term becomes the sum of residual^2 / variance, 1 per sample for a fit at the
+    noise.  Other pixels get 1.
     """
+    from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN
     from .detect import solver_inputs
     from .slots import render
 
     live = samples.live
     L = samples.n_bins
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    law = _count_law if samples.noise_model == "poisson" else _fitted_law
-    out = None
+    counts = samples.noise_model == "poisson"
+    out = np.ones((live.size, L))
+    passed = np.zeros(live.size, bool)       # the pixel's own tests (all of them for counts)
+    usable = np.zeros(live.size, bool)       # a law to weigh by (positive gain; counts: all)
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
         model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
-        var = law(samples, live[rows], p, mask, model)
-        f = np.flatnonzero(np.isfinite(var[:, 0]))
-        if f.size == 0:
-            continue
-        if out is None:
-            out = np.ones((live.size, L))
-        out[rows[f]] = det.noise_eff[live[rows[f]]][:, None] ** 2 / var[f]
-    return out
+        if counts:
+            var = _count_law(samples, live[rows], p, mask, model)
+            passed[rows] = usable[rows] = True
+        else:
+            var, passed[rows], usable[rows] = _fitted_law(p, mask, model)
+        out[rows[usable[rows]]] = (det.noise_eff[live[rows[usable[rows]]]][:, None] ** 2
+                                   / var[usable[rows]])
+    pooled = passed.sum() >= max(SIGNAL_NOISE_POOL_FRACTION * live.size, SIGNAL_NOISE_POOL_MIN)
+    keep = usable if pooled else passed
+    out[~keep] = 1.0
+    return out if keep.any() else None
 
 
-def _fitted_law(samples, px, p, mask, model):
-    """(n, L) noise variance of the normalised profiles ``p`` of pixels ``px`` whose residual from
-    ``model`` (>= 0) shows noise that follows the signal (see :func:`signal_weights`); NaN rows
-    for the others."""
+def _fitted_law(p, mask, model):
+    """The variance law of normalised profiles ``p`` (n, L) whose residual from ``model`` (>= 0)
+    is read (see :func:`signal_weights`) -> (variance (n, L), passed (n,) bool: the pixel's own
+    tests, usable (n,) bool: a positive gain, so a law to weigh by)."""
     from .constants import SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
     from .noise import signal_variance
 
@@ -166,8 +177,9 @@ def _fitted_law(samples, px, p, mask, model):
                                       floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
         follows[c] = gain2 < SIGNAL_NOISE_LAG_RATIO * gain[c]
     floor = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
-    var = floor[:, None] + gain[:, None] * model
-    return np.where(follows[:, None], var, np.nan)
+    usable = (gain > 0) & (peak_var > 0) & np.isfinite(floor) & (floor > 0)
+    var = np.where(usable[:, None], floor[:, None] + gain[:, None] * model, 1.0)
+    return var, follows & usable, usable
 
 
 def _count_law(samples, px, p, mask, model):
