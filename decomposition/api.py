@@ -248,6 +248,16 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Count data (``noise="poisson"``) are weighted so everywhere, by their
         Poisson law at the detected model.
         ``info["signal_weighted"]`` counts the pixels weighted.
+    signal_noise_law : {"auto", "pixel", "detector"}
+        The variance law of float data whose noise follows the signal.  "auto" (default):
+        where most of a call's pixels show such noise, every pixel is weighted by one law in
+        the data's units, the medians of the pixels' read-noise floors and conversion gains
+        (one detector behind every pixel); elsewhere only the pixels that show it, each by
+        its own law.  "pixel": each pixel by its own law (where most pixels show such noise,
+        every pixel with a positive gain).  "detector": the one law for every pixel whatever
+        the pixels show.  The one law, where used, is recorded in
+        ``info["signal_noise_law_fit"]`` (``floor`` and ``gain`` in the data's units).  Count
+        data are weighted by their Poisson law either way.
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
@@ -328,7 +338,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                     coordinates_searched=int(dic.n_coordinates))
         det = detect_components(samples, dic, opts, fams)
         if opts.signal_noise:
-            det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts))
+            det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts, info))
             info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
         if opts.search:
             # the noise at the components' scale, from the detected fit's residual: the search's

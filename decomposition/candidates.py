@@ -10,6 +10,8 @@ step over the live pixels, ``opts.block_size`` at a time.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 __all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights"]
@@ -108,7 +110,7 @@ def residual_significance_noise(samples, det, dic, opts) -> np.ndarray:
     return out
 
 
-def signal_weights(samples, det, dic, opts):
+def signal_weights(samples, det, dic, opts, info=None):
     """Relative least-squares weights of the stages after the detection, where the noise
     follows the signal (photon noise) -> (n_live, L) float64, or None where no pixel's does.
 
@@ -120,17 +122,35 @@ def signal_weights(samples, det, dic, opts):
     at the components' peaks, so a fit weighing every sample alike there takes the noise for
     structure (a wide direct split into two or three narrow Gaussians).  The variance law
     ``floor + gain * model`` of every pixel is fitted to its detected fit's residual
-    (:func:`decomposition.noise.signal_variance`).  It is used where the gain is significant
-    (more than SIGNAL_NOISE_Z standard errors), the variance at the model's peak is more
-    than SIGNAL_NOISE_PEAK_RATIO times the floor above it and the law read at a lag of two
-    samples is not SIGNAL_NOISE_LAG_RATIO times larger (a misfit, not noise).  The verdict is
-    then pooled over the live pixels of the call: where at least SIGNAL_NOISE_POOL_FRACTION of
-    them (and SIGNAL_NOISE_POOL_MIN or more) pass, the noise is the detector's shot noise and
-    every pixel whose fitted gain is positive is weighted by its own law (see the constants).
-    The floor is kept at least SIGNAL_NOISE_FLOOR_FRACTION of the peak's variance (no sample
-    weighs without bound where no light arrives).  Weight = noise_eff^2 / variance: the
-    search's data term becomes the sum of residual^2 / variance, 1 per sample for a fit at the
-    noise.  Other pixels get 1.
+    (:func:`decomposition.noise.signal_variance`).  A pixel passes its own tests where the gain
+    is significant (more than SIGNAL_NOISE_Z standard errors), the variance at the model's peak
+    is more than SIGNAL_NOISE_PEAK_RATIO times the floor above it and the law read at a lag of
+    two samples is not SIGNAL_NOISE_LAG_RATIO times larger (a misfit, not noise).  The verdict
+    is pooled over the live pixels of the call: where at least SIGNAL_NOISE_POOL_FRACTION of
+    them (and SIGNAL_NOISE_POOL_MIN or more) pass, the noise is a detector's shot noise.  Then,
+    by ``opts.signal_noise_law``:
+
+    ``"auto"`` (the default): every pixel is weighted by the detector's law, one law in the
+    data's units for the whole call: the medians over the live pixels of their laws' floors
+    and gains, each converted to the data's units (floor x scale^2, gain x scale,
+    ``samples.scale`` the pixel's normalisation) -- a detector's read noise and conversion gain
+    are the detector's, not a pixel's, and the median of hundreds of pixels is far more precise
+    than a pixel's own gain, read off the few dozen samples under its signal.  Where the verdict
+    is not pooled, only the pixels that pass their own tests are weighted, each by its own law.
+
+    ``"pixel"``: each pixel by its own law -- where the verdict is pooled, every pixel whose
+    fitted gain is positive; else those that pass their own tests.
+
+    ``"detector"``: the detector's law for every pixel, whatever the verdict (the caller knows
+    that one detector's shot noise lies behind the data); no weights where its gain is not
+    positive.
+
+    With ``info`` (a dict) the detector's law, where one was used, is recorded there as
+    ``signal_noise_law_fit``: ``{"floor": variance, "gain": variance per unit of signal}`` in the
+    data's units.  The floor is kept at least SIGNAL_NOISE_FLOOR_FRACTION of the peak's variance
+    (no sample weighs without bound where no light arrives).  Weight = noise_eff^2 / variance:
+    the search's data term becomes the sum of residual^2 / variance, 1 per sample for a fit at
+    the noise.  Other pixels get 1.
     """
     from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN
     from .detect import solver_inputs
@@ -140,30 +160,78 @@ def signal_weights(samples, det, dic, opts):
     L = samples.n_bins
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     counts = samples.noise_model == "poisson"
+    law = opts.signal_noise_law
     out = np.ones((live.size, L))
-    passed = np.zeros(live.size, bool)       # the pixel's own tests (all of them for counts)
-    usable = np.zeros(live.size, bool)       # a law to weigh by (positive gain; counts: all)
+    models = None if counts or law == "pixel" else np.empty((live.size, L))
+    passed = np.zeros(live.size, bool)       # the pixel's own tests
+    usable = np.zeros(live.size, bool)       # its own law to weigh by (a positive gain)
+    read = np.zeros(live.size, bool)         # a law could be read (the detector law's inputs)
+    floors = np.zeros(live.size)             # each pixel's law in the data's units
+    gains = np.zeros(live.size)
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
         model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
+        noise2 = det.noise_eff[live[rows]][:, None] ** 2
         if counts:
-            var = _count_law(samples, live[rows], p, mask, model)
-            passed[rows] = usable[rows] = True
-        else:
-            var, passed[rows], usable[rows] = _fitted_law(p, mask, model)
-        out[rows[usable[rows]]] = (det.noise_eff[live[rows[usable[rows]]]][:, None] ** 2
-                                   / var[usable[rows]])
+            out[rows] = noise2 / _count_law(samples, live[rows], p, mask, model)
+            continue
+        fitted = _fitted_law(p, mask, model)
+        passed[rows], usable[rows], read[rows] = fitted.passed, fitted.usable, fitted.read
+        s = samples.scale[live[rows]]
+        floors[rows], gains[rows] = fitted.floor * s * s, fitted.gain * s
+        out[rows[fitted.usable]] = noise2[fitted.usable] / fitted.variance[fitted.usable]
+        if models is not None:
+            models[rows] = model
+    if counts:
+        return out
     pooled = passed.sum() >= max(SIGNAL_NOISE_POOL_FRACTION * live.size, SIGNAL_NOISE_POOL_MIN)
+    if law == "detector" or (law == "auto" and pooled):
+        return _detector_weights(samples, det, models, floors, gains, read, info)
     keep = usable if pooled else passed
     out[~keep] = 1.0
     return out if keep.any() else None
 
 
-def _fitted_law(p, mask, model):
-    """The variance law of normalised profiles ``p`` (n, L) whose residual from ``model`` (>= 0)
-    is read (see :func:`signal_weights`) -> (variance (n, L), passed (n,) bool: the pixel's own
-    tests, usable (n,) bool: a positive gain, so a law to weigh by)."""
+def _detector_weights(samples, det, models, floors, gains, read, info):
+    """The weights of one variance law for every live pixel (see :func:`signal_weights`):
+    ``models`` (n_live, L) the detected models (normalised; overwritten with the weights),
+    ``floors``, ``gains`` (n_live,) each pixel's law in the data's units, ``read`` the pixels
+    whose law could be read."""
+    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
+
+    floor = float(np.median(floors[read])) if read.any() else 0.0
+    gain = float(np.median(gains[read])) if read.any() else 0.0
+    if info is not None:
+        info["signal_noise_law_fit"] = {"floor": floor, "gain": gain}
+    if not gain > 0:
+        return None
+    s = np.maximum(samples.scale[samples.live], 1e-300)
+    g = gain / s                                           # each pixel's share, normalised units
+    f = max(floor, 0.0) / (s * s)
+    f = np.maximum(f, SIGNAL_NOISE_FLOOR_FRACTION * (f + g * models.max(axis=1)))    # as a pixel's own law
+    var = f[:, None] + g[:, None] * models
+    return np.divide(det.noise_eff[samples.live][:, None] ** 2, var, out=models)
+
+
+@dataclass(frozen=True)
+class _FittedLaw:
+    """Each pixel's variance law read off its residual (:func:`_fitted_law`): ``floor``,
+    ``gain`` (n,) as fitted, in normalised units; ``read`` (n,) where they could be read;
+    ``passed`` (n,) the pixel's own tests; ``usable`` (n,) a positive gain, and ``variance``
+    (n, L) its law, floored (1 where not usable)."""
+
+    floor: np.ndarray
+    gain: np.ndarray
+    read: np.ndarray
+    passed: np.ndarray
+    usable: np.ndarray
+    variance: np.ndarray
+
+
+def _fitted_law(p, mask, model) -> _FittedLaw:
+    """The variance law of normalised profiles ``p`` (n, L) read off their residual from
+    ``model`` (>= 0); see :func:`signal_weights`."""
     from .constants import SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
     from .noise import signal_variance
 
@@ -176,10 +244,11 @@ def _fitted_law(p, mask, model):
         _, gain2, _ = signal_variance(p[c] - model[c], model[c], mask.fit[c], lag=2,
                                       floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
         follows[c] = gain2 < SIGNAL_NOISE_LAG_RATIO * gain[c]
-    floor = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
-    usable = (gain > 0) & (peak_var > 0) & np.isfinite(floor) & (floor > 0)
-    var = np.where(usable[:, None], floor[:, None] + gain[:, None] * model, 1.0)
-    return var, follows & usable, usable
+    kept = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
+    usable = (gain > 0) & (peak_var > 0) & np.isfinite(kept) & (kept > 0)
+    variance = np.where(usable[:, None], kept[:, None] + gain[:, None] * model, 1.0)
+    return _FittedLaw(floor=floor, gain=gain, read=np.isfinite(se), passed=follows & usable, usable=usable,
+                      variance=variance)
 
 
 def _count_law(samples, px, p, mask, model):

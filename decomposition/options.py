@@ -30,6 +30,7 @@ __all__ = [
     "NAN_POLICIES",
     "parse_nan_policy",
     "NOISE_MODELS",
+    "SIGNAL_NOISE_LAWS",
     "parse_noise_model",
 ]
 
@@ -163,6 +164,7 @@ class SolverOptions:
     grow: bool = True
     prune: bool = True
     signal_noise: bool = True
+    signal_noise_law: str = "auto"
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
     ambiguity_sigma: float = 3.0
@@ -188,6 +190,9 @@ class SolverOptions:
             _set(self, name, _number(name, getattr(self, name), lo=0, lo_open=True))
         _set(self, "bound_factor", _number("bound_factor", self.bound_factor, lo=1))
         _set(self, "noise", parse_noise_model(self.noise))
+        if not (isinstance(self.signal_noise_law, str) and self.signal_noise_law in SIGNAL_NOISE_LAWS):
+            raise OptionError(f"option signal_noise_law: must be one of {', '.join(SIGNAL_NOISE_LAWS)}, "
+                              f"got {self.signal_noise_law!r}")
 
     def resolved(self, components) -> "SolverOptions":
         """Defaults that depend on other settings filled in: ``max_iter``, ``stderr``, and
@@ -285,6 +290,11 @@ def parse_nan_policy(policy: str) -> str:
 #: (the samples are photon counts: variance = expected count), "auto" (poisson for count data,
 #: see :func:`decomposition.noise.is_count_data`, else gaussian)
 NOISE_MODELS = ("auto", "gaussian", "poisson")
+#: Variance laws of noise that follows the signal (``signal_noise_law``): one for every pixel of a
+#: call, in the data's units (one detector's read noise and conversion gain), where most pixels
+#: show such noise ("auto"); each pixel's own ("pixel"); the one law whatever the pixels show
+#: ("detector").
+SIGNAL_NOISE_LAWS = ("auto", "pixel", "detector")
 
 
 def parse_noise_model(noise) -> str:

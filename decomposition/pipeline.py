@@ -302,6 +302,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
         input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
     ny, nx, nt = arr.shape
+    if method == "convscd" and "signal_noise_law" not in options and source["attrs"].get("noise_law") == "detector":
+        # the cube says one detector's read-out lies behind every pixel: its noise has one law
+        options["signal_noise_law"] = "detector"
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
     irf_attrs = {"kind": "gaussian"}
     if response is not None:

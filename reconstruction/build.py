@@ -208,8 +208,11 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     }
 
     with staged_output(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND) as tmp:
+        # one camera's dark-subtracted mean counts: one read noise and one gain for every pixel,
+        # unless a flat field has scaled each pixel (and each row) by its own factor
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
-                           units="counts", provenance=provenance, y_coord=target[order], y_units="deg")
+                           units="counts", provenance=provenance, y_coord=target[order], y_units="deg",
+                           noise_law="detector" if flat is None else None)
         g = cube.group
         create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
                      attributes={"long_name": "run line filling this y"})[:] = order

@@ -28,11 +28,14 @@ from core.irf import InstrumentResponse
 from core.irfstore import RESPONSE_KIND, read_response_group, write_response_group
 from core.staging import check_output_path, staged_output
 
-__all__ = ["CUBE_KIND", "IRF_GROUP", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
+__all__ = ["CUBE_KIND", "IRF_GROUP", "NOISE_LAWS", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
            "verify_cube", "write_cube_response", "read_cube_response"]
 
 CUBE_KIND = "cube"
 IRF_GROUP = "irf"
+#: Values of a cube's ``noise_law`` attribute: "detector", every pixel one detector's read-out in
+#: the same units (one read noise, one conversion gain).
+NOISE_LAWS = ("detector",)
 
 
 class CubeStoreError(StreaklabError, ValueError):
@@ -69,7 +72,7 @@ class Cube:
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",
                 provenance: dict | None = None, y_coord=None, y_units: str = "pixel",
-                overwrite: bool = False, dtype="float32") -> Cube:
+                overwrite: bool = False, dtype="float32", noise_law: str | None = None) -> Cube:
     """Create an empty cube store (filled with NaN) ready for region writes.
 
     Parameters
@@ -83,6 +86,11 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
         Pixel chunk size; the time axis is never split.  Default (min(ny, 16), min(nx, 64)).
     y_coord : array (ny,), optional
         Physical coordinate of each line (default: line index), in ``y_units``.
+    noise_law : str, optional
+        How the noise of the values scales, as an attribute ``noise_law``: ``"detector"`` where
+        every pixel is one detector's read-out in the same units (one read noise and one
+        conversion gain for all; no per-pixel gain correction such as a flat field).  Absent
+        by default: nothing is claimed.
     """
     ny, nx, nt = (int(s) for s in shape)
     if min(ny, nx, nt) <= 0:
@@ -103,6 +111,10 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
         "units": units,
         "provenance": dict(provenance or {}),
     }
+    if noise_law is not None:
+        if noise_law not in NOISE_LAWS:
+            raise CubeStoreError(f"noise_law must be one of {', '.join(NOISE_LAWS)}, got {noise_law!r}")
+        attrs["noise_law"] = noise_law
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(attrs)
     arr = create_array(g, "cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,

@@ -48,3 +48,13 @@ def test_bad_stores_are_named(tmp_path):
         open_cube(tmp_path / "nobin.zarr")
     with pytest.raises(CubeStoreError, match="3-D"):
         write_cube(tmp_path / "flat.zarr", np.ones((3, 4)), time_bin_ps=2.0)
+
+
+def test_a_cube_says_whether_one_detector_lies_behind_it(tmp_path):
+    write_cube(tmp_path / "one.zarr", np.ones((2, 3, 4)), time_bin_ps=2.0, noise_law="detector")
+    write_cube(tmp_path / "any.zarr", np.ones((2, 3, 4)), time_bin_ps=2.0)
+    assert open_cube(tmp_path / "one.zarr").attrs["noise_law"] == "detector"
+    assert "noise_law" not in open_cube(tmp_path / "any.zarr").attrs
+    with pytest.raises(CubeStoreError, match="noise_law must be one of detector, got 'camera'"):
+        write_cube(tmp_path / "bad.zarr", np.ones((2, 3, 4)), time_bin_ps=2.0, noise_law="camera")
+    assert not (tmp_path / "bad.zarr").exists()

@@ -60,6 +60,34 @@ def _assert_same_store(a, b):
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
 
 
+def test_a_cube_of_one_detector_is_decomposed_with_one_noise_law(tmp_path):
+    # shot noise (100 photons per unit) plus read noise, the same for every pixel: one detector
+    rng = np.random.default_rng(3)
+    clean = np.clip(_cube(2, 8, seed=5, nsr=0.0), 0.0, None)
+    data = rng.poisson(clean * 100.0) / 100.0 + rng.normal(0.0, 0.005, clean.shape)
+    write_cube(tmp_path / "one.zarr", data, time_bin_ps=TB, chunks=(2, 8), noise_law="detector")
+    write_cube(tmp_path / "any.zarr", data, time_bin_ps=TB, chunks=(2, 8))
+    decompose_to_store(tmp_path / "one.zarr", tmp_path / "one-res.zarr", progress=False)
+    decompose_to_store(tmp_path / "any.zarr", tmp_path / "any-res.zarr", progress=False)
+    decompose_to_store(tmp_path / "one.zarr", tmp_path / "own-res.zarr", progress=False,
+                       options={"signal_noise_law": "pixel"})
+    one, other, own = (open_result_store(tmp_path / f"{n}-res.zarr") for n in ("one", "any", "own"))
+    # the cube's description chooses the law, recorded with the options; an explicit option wins
+    assert one.attrs["options"]["signal_noise_law"] == "detector"
+    assert "signal_noise_law" not in other.attrs["options"]
+    assert own.attrs["options"]["signal_noise_law"] == "pixel"
+    # and the store holds what the API gives with that law on the stored values (one chunk: bit
+    # for bit)
+    stored = zarr.open_group(str(tmp_path / "one.zarr"), mode="r")["cube"][...].reshape(16, -1)
+    for law, store in (("detector", one), ("auto", other)):
+        res = decompose(stored, time_bin_ps=TB, signal_noise_law=law, max_reflections=3)
+        for k in ("direct_delay_ps", "sss_alpha_per_ps", "ir_delay_ps"):
+            v = np.asarray(res.params[k], np.float64)
+            np.testing.assert_array_equal(store.group[k][...].reshape(v.shape), v, err_msg=(law, k))
+    # (the two laws weigh 16 and 9 of the pixels here: the stores differ)
+    assert not np.array_equal(one.group["direct_delay_ps"][...], other.group["direct_delay_ps"][...])
+
+
 def test_store_equals_the_in_memory_api_and_describes_itself(cube_path, tmp_path, capsys):
     out = tmp_path / "res.zarr"
     assert main(["decompose", str(cube_path), "--out", str(out), "--max-interreflections", "3"]) == 0

@@ -95,9 +95,12 @@ def test_flat_field_is_divided_out(tmp_path):
     flat = np.linspace(0.5, 1.5, NX)[:, None] * np.ones((1, NROWS))
     make_run(tmp_path / "run.zarr", flat=flat)
     np.save(tmp_path / "flat.npy", flat[:, 0] * 3.0)         # per-pixel flat; scale does not matter
-    plain = reconstruct(tmp_path / "run.zarr", tmp_path / "plain.zarr").array[...]
+    plain_cube = reconstruct(tmp_path / "run.zarr", tmp_path / "plain.zarr")
+    plain = plain_cube.array[...]
     fixed = reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr", flat_path=tmp_path / "flat.npy")
     assert fixed.attrs["provenance"]["flat_field_sha256"]
+    # one camera's counts have one noise law; a flat field gives every pixel its own gain
+    assert plain_cube.attrs["noise_law"] == "detector" and "noise_law" not in fixed.attrs
     ratio = plain[:, :, 20] / fixed.array[:, :, 20]
     np.testing.assert_allclose(ratio, np.broadcast_to(flat[:, 0], ratio.shape), rtol=0.03)
     np.save(tmp_path / "badflat.npy", np.ones(NX + 1))
