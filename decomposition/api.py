@@ -33,7 +33,7 @@ from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
 from .refit import component_errors, refine_components
-from .candidates import residual_significance_noise, signal_weights
+from .candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
 from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
@@ -247,7 +247,17 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         for every sample (:func:`decomposition.candidates.signal_weights`).
         Count data (``noise="poisson"``) are weighted so everywhere, by their
         Poisson law at the detected model.
-        ``info["signal_weighted"]`` counts the pixels weighted.
+        ``info["signal_weighted"]`` counts the pixels weighted.  Correlated (pink) noise,
+        judged over the call's pixels (their noise at the components' scale over their
+        sample-to-sample noise, the median above WHITE_LAG_RATIO), is another matter: the
+        search, the forward and backward steps then score every trial with its residual
+        whitened by the call's noise spectrum, read off the detected residuals
+        (:func:`decomposition.candidates.correlated_noise_spectrum`);
+        ``info["correlated_noise"]`` says whether it was.
+    whiten : bool
+        Where the call's noise is judged correlated (above), whiten the penalised objectives'
+        residuals by its spectrum (default True); False: read them in the lagged noise level
+        of each pixel, as before.
     signal_noise_law : {"auto", "pixel", "detector"}
         The variance law of float data whose noise follows the signal.  "auto" (default):
         where most of a call's pixels show such noise, every pixel is weighted by one law in
@@ -340,10 +350,16 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         if opts.signal_noise:
             det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts, info))
             info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
+        # the noise at the components' scale, from the detected fit's residual: the search's
+        # objective reads its data term in it where the noise is correlated (pink); where most
+        # pixels' is, the data terms of every stage after this are whitened by the call's spectrum
+        osig = None
+        if samples.noise_model != "poisson" and (opts.search or opts.grow or opts.prune):
+            osig = residual_significance_noise(samples, det, dic, opts)
+            if opts.whiten:
+                det = dataclasses.replace(det, noise_spectrum=correlated_noise_spectrum(samples, det, dic, opts, osig))
+                info["correlated_noise"] = det.noise_spectrum is not None
         if opts.search:
-            # the noise at the components' scale, from the detected fit's residual: the search's
-            # objective reads its data term in it where the noise is correlated (pink)
-            osig = residual_significance_noise(samples, det, dic, opts) if samples.noise_model != "poisson" else None
             found = search_components(samples, det, dic, opts, fams, osig)
             det = dataclasses.replace(det, state=found.state)
             mark(flags, samples.live[found.ambiguous], AMBIGUOUS)

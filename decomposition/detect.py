@@ -49,6 +49,14 @@ class Detection:
                                              the noise follows the signal
                                              (:func:`decomposition.candidates.signal_weights`);
                                              None: every sample weighs the same
+    noise_spectrum : ndarray (L // 2 + 1,) or None
+                                             the power spectrum of the call's noise per unit of
+                                             a pixel's noise variance where that noise is
+                                             correlated (pink), read off the detected residuals
+                                             (:func:`decomposition.candidates.correlated_noise_spectrum`):
+                                             the penalised objectives of the stages after the
+                                             detection whiten their residuals by it; None: they
+                                             do not
     """
 
     state: dict
@@ -59,6 +67,7 @@ class Detection:
     lm_iterations: int
     restarted: int
     weights: np.ndarray | None = None
+    noise_spectrum: np.ndarray | None = None
 
 
 def solver_inputs(samples: Samples, rows: np.ndarray):

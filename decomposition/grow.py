@@ -173,12 +173,13 @@ def with_gaussian(st, delay_ps, lsig, amp=1.0):
     return alt, slot
 
 
-def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None):
+def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None, spectrum=None):
     """Polish the trials ``alt`` of rows ``idx`` (whose state is ``cur``) and put those into
     ``out`` whose penalised objective (over :func:`decomposition.search.objective_variance`) is
     lower and whose Gaussians stay resolved (RESOLVED_SIGMA widths apart, or no closer than
     before) -> the rows of ``idx`` taken.  ``weights`` (n, L): the samples' relative
-    least-squares weights (default: all alike)."""
+    least-squares weights (default: all alike); ``spectrum``: the call's correlated noise
+    (:attr:`Detection.noise_spectrum`), by which the objectives whiten their residuals."""
     from .search import objective_variance, penalised_objective
     from .slots import put, take
 
@@ -186,7 +187,7 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
     wb = None if weights is None else weights[idx]
     alt = polish_candidate(t, pb, mb, alt, np.maximum(s_eff[idx], 1e-300), dic, opts, s_sig[idx], wb)
-    s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx], wb)
+    s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx], wb, spectrum)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
     better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
     w = np.flatnonzero(resolved & better)
@@ -195,7 +196,8 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     return idx[w]
 
 
-def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test: bool = True, weights=None):
+def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test: bool = True, weights=None,
+               spectrum=None):
     """The forward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the
     in-window test and of the candidate test, default ``s_eff``) -> (state, grown (n,) bool).
@@ -244,7 +246,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     if idx.size == 0:
         return out, grown
     alt, _ = with_gaussian(cur, at_ps, np.log(sigma_ps))
-    grown[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights)] = True
+    grown[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights, spectrum)] = True
     return out, grown
 
 
@@ -253,11 +255,12 @@ def grow_components(samples, det, dic, opts):
     detected (and searched) atoms of the live pixels, block by block -> (state, grown (n_live,))."""
     bump = samples.noise_model != "poisson"
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig, weights: grow_block(p, mask, st, noise, dic, opts, sig, bump,
-                                                                          weights), weights=True)
+                      lambda p, mask, st, noise, sig, weights, spectrum: grow_block(p, mask, st, noise, dic, opts, sig,
+                                                                                    bump, weights, spectrum),
+                      weights=True)
 
 
-def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None):
+def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None, spectrum=None):
     """The sss swap on one block (arguments of :func:`grow_block`) -> (state, swapped (n,) bool).
 
     An sss whose onset the fit moved late takes in a weak inter-reflection after the direct: its
@@ -300,7 +303,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
     alt, _ = with_gaussian(cur, mode_ps[late], np.log(sigma_ps[late]))
     alt["delay"][np.arange(late.size), ss[late]] = d0_ps[late] + PRUNE_ONSET_SIGMA * sigma_ps[late]
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    swapped[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights)] = True
+    swapped[_keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights, spectrum)] = True
     return out, swapped
 
 
@@ -313,8 +316,9 @@ def swap_components(samples, det, dic, opts):
     # scene with a 30 ps tail at 100 photons: a false echo in 10 % of the pixels, 2.5 % without;
     # fidelity of paper scenes at 300-10,000 photons -0.002..-0.008 for it)
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig, weights=None: swap_block(p, mask, st, noise, dic, opts, sig,
-                                                                               weights),
+                      lambda p, mask, st, noise, sig, weights=None, spectrum=None: swap_block(p, mask, st, noise, dic,
+                                                                                              opts, sig, weights,
+                                                                                              spectrum),
                       weights=samples.noise_model != "poisson")
 
 

@@ -44,7 +44,7 @@ from .jit import njit
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
 
-__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "signal_noise_sigma", "is_count_data", "anscombe",
+__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
            "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
            "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
@@ -123,6 +123,33 @@ def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None) -> np.ndarr
     p = profiles
     d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
     return _mad_sigma(d2, None if fit is None else _usable(fit))
+
+
+def residual_spectrum(residual: np.ndarray) -> np.ndarray:
+    """The power spectrum shared by the rows of ``residual`` (P, L), per unit of their variance:
+    (L // 2 + 1,), the median over the rows of |rfft|^2 divided by ln 2 (the mean of an
+    exponentially distributed periodogram value is its median / ln 2; the median ignores the
+    rows where a misfit adds power), floored at 1e-12 of its largest value.  White noise of
+    variance 1 gives L at every frequency; a whitened data term is then
+    sum_f c_f |R_f|^2 / S_f, c_f = 1 at 0 and L/2 and 2 elsewhere (:func:`whitened_chi2`).
+    """
+    r = np.asarray(residual, np.float64)
+    power = np.abs(np.fft.rfft(r, axis=1)) ** 2
+    s = np.median(power, axis=0) / math.log(2.0)
+    return np.maximum(s, 1e-12 * max(float(s.max()), 1e-300))
+
+
+def whitened_chi2(residual: np.ndarray, spectrum: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """(P,) the data term of rows ``residual`` (P, L) in noise of power ``spectrum`` per unit
+    variance (:func:`residual_spectrum`) scaled by each row's ``variance`` (P,): the sum of
+    squares of the residual whitened by that spectrum, whose expectation is L for such noise."""
+    r = np.asarray(residual, np.float64)
+    power = np.abs(np.fft.rfft(r, axis=1)) ** 2
+    c = np.full(power.shape[1], 2.0)
+    c[0] = 1.0
+    if r.shape[1] % 2 == 0:
+        c[-1] = 1.0
+    return power @ (c / np.asarray(spectrum, np.float64)) / np.asarray(variance, np.float64)
 
 
 def lagged_noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None, lag_bins: int = 4) -> np.ndarray:

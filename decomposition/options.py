@@ -165,6 +165,7 @@ class SolverOptions:
     prune: bool = True
     signal_noise: bool = True
     signal_noise_law: str = "auto"
+    whiten: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
     ambiguity_sigma: float = 3.0
@@ -172,7 +173,7 @@ class SolverOptions:
 
     def __post_init__(self):
         for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune",
-                     "signal_noise"):
+                     "signal_noise", "whiten"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
         for name in ("max_components", "block_size"):

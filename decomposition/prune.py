@@ -42,10 +42,11 @@ def close_gaussian(st, gap_sigma: float = PRUNE_GAP_SIGMA):
     return cand, second
 
 
-def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None):
+def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None, spectrum=None):
     """The backward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the labels'
-    in-window test, default ``s_eff``) -> (state, pruned (n,) bool)."""
+    in-window test, default ``s_eff``; ``weights`` and ``spectrum`` as in
+    :func:`decomposition.grow.grow_block`) -> (state, pruned (n,) bool)."""
     from .search import objective_variance, penalised_objective
     from .slots import put, take
 
@@ -61,7 +62,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     log_n = np.log(np.maximum(mask.used.sum(axis=1)[idx], 1))
     wb = None if weights is None else weights[idx]
     noise = np.maximum(s_eff[idx], 1e-300)
-    s2 = objective_variance(noise, s_sig[idx], wb)
+    s2 = objective_variance(noise, s_sig[idx], wb, spectrum)
     pb, mb = p[idx], mask[idx]
     cur = take(out, idx)
     dropped = take(out, idx)
@@ -95,5 +96,6 @@ def prune_components(samples, det, dic, opts):
     """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
     return each_block(samples, det, opts,
-                      lambda p, mask, st, noise, sig, weights: prune_block(p, mask, st, noise, dic, opts, sig, weights),
+                      lambda p, mask, st, noise, sig, weights, spectrum: prune_block(p, mask, st, noise, dic, opts, sig,
+                                                                                     weights, spectrum),
                       weights=True)
