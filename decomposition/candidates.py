@@ -127,9 +127,9 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
     the residual whitened by it (:func:`decomposition.noise.whitened_chi2`): a bump of
     low-frequency noise costs what its power in that noise says, not what a white noise of the
     lagged level says.  Float data only (None for counts), and not where most pixels are
-    weighted for noise that follows the signal (:func:`signal_weights`; photon noise is not
-    stationary, and its variance law says more: whitened instead, photon NSR 0.055 at 4 ps,
-    600 px, 0.865 -> 0.863).
+    weighted for noise that follows the signal (:func:`signal_weights`: such noise is not
+    stationary; on the paper's scenes photon noise is never judged correlated anyway, its
+    lagged noise, a median over mostly dark samples, reading near zero).
     """
     from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, WHITE_LAG_RATIO
     from .detect import solver_inputs

@@ -78,7 +78,7 @@ def test_pink_calls_are_whitened_and_others_are_not():
     assert "correlated_noise" not in decompose(p.noisy, time_bin_ps=2.0, whiten=False).info
     w = make_profiles(60, 512, nsr=0.11, noise="white", seed=1, time_bin_ps=2.0, ranges="paper", bin_integrated=True)
     assert decompose(w.noisy, time_bin_ps=2.0).info["correlated_noise"] is False
-    # photon noise is weighted by its variance law, which says more than a stationary spectrum
+    # photon noise is weighted by its variance law (and not stationary)
     ph = make_profiles(60, 512, nsr=0.11, noise="photon", seed=1, time_bin_ps=2.0, ranges="paper",
                        bin_integrated=True)
     r = decompose(ph.noisy, time_bin_ps=2.0)
