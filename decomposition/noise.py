@@ -34,6 +34,7 @@ remove, and
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -44,7 +45,7 @@ from .jit import njit
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
 
-__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
+__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
            "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
            "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
@@ -123,6 +124,22 @@ def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None) -> np.ndarr
     p = profiles
     d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
     return _mad_sigma(d2, None if fit is None else _usable(fit))
+
+
+@dataclass(frozen=True)
+class SpectralNoise:
+    """Correlated noise: the call's ``spectrum`` (L // 2 + 1,) per unit variance
+    (:func:`residual_spectrum`; :attr:`decomposition.detect.Detection.noise_spectrum`) and each
+    pixel's ``variance`` (n,).  A data term in it is the residual whitened by the spectrum
+    (:func:`whitened_chi2`, :func:`decomposition.search.penalised_objective`); an atom's
+    significance its whitened energy (:func:`decomposition.components.threshold`).  Indexing
+    takes pixels."""
+
+    spectrum: np.ndarray
+    variance: np.ndarray
+
+    def __getitem__(self, rows) -> "SpectralNoise":
+        return SpectralNoise(self.spectrum, np.asarray(self.variance)[rows])
 
 
 def residual_spectrum(residual: np.ndarray) -> np.ndarray:

@@ -44,6 +44,7 @@ import numpy as np
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from .constants import (MAD_TO_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
                         SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
+from .noise import SpectralNoise
 from .refine import refine
 
 __all__ = ["SearchOptions", "penalised_objective", "objective_variance", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
@@ -319,17 +320,6 @@ def _same_start(built, direct_ps, sss_ps, later_ps):
                                                        axis=1)
         same[(same == 0) & eq] = j
     return same
-
-
-@dataclass(frozen=True)
-class SpectralNoise:
-    """Correlated noise of a data term: the call's ``spectrum`` (L // 2 + 1,) per unit variance
-    (:attr:`decomposition.detect.Detection.noise_spectrum`) and each pixel's ``variance`` (n,);
-    :func:`penalised_objective` whitens the residual by it
-    (:func:`decomposition.noise.whitened_chi2`)."""
-
-    spectrum: np.ndarray
-    variance: np.ndarray
 
 
 def _per_sample(s2):

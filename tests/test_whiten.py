@@ -6,7 +6,8 @@ import pytest
 from decomposition import decompose
 from decomposition.metrics import fidelity
 from decomposition.noise import residual_spectrum, whitened_chi2
-from decomposition.search import SpectralNoise, objective_variance
+from decomposition.noise import SpectralNoise
+from decomposition.search import objective_variance
 from decomposition.synthetic import make_profiles
 
 L = 256
