@@ -8,19 +8,29 @@
     "white"     fluctuation noise: independent Gaussian samples.
 
 Each realisation is rescaled per pixel so that NSR = ||noise||_2 / ||clean||_2 holds exactly
-(to rounding).
+(to rounding).  Beyond the paper's three:
+
+    "camera"    shot noise of one camera: Poisson counts at one photon scale lambda for every
+                profile (one conversion gain), so a bright pixel has a lower NSR than a faint
+                one.  lambda is chosen so that the expected NSR of all the profiles together
+                (the norms summed over them) is the requested one, and the realisation is
+                rescaled by one factor so that it holds exactly; every profile's own NSR is
+                left to its brightness.  ``nsr`` must be one value.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 __all__ = ["NOISE_TYPES", "noise_realisation", "add_noise"]
 
-NOISE_TYPES = ("white", "pink", "photon")
+NOISE_TYPES = ("white", "pink", "photon", "camera")
 _NOISE_ALIASES = {
     "white": "white", "fluctuation": "white", "gaussian": "white",
     "pink": "pink", "detector": "pink",
     "photon": "photon", "poisson": "photon", "shot": "photon",
+    "camera": "camera",
     "none": "none",
 }
 # Above this expected count per bin the Poisson law is replaced by its normal limit
@@ -67,6 +77,24 @@ def _photon(rng, clean, nsr):
     return np.where(lam > 0, counts / safe - clean, 0.0)
 
 
+def _camera(rng, clean, nsr):
+    """Poisson noise at one photon scale for every profile of ``clean``, set for the expected
+    NSR of all of them together (see the module docstring), rescaled to it exactly."""
+    if np.any(clean < 0):
+        raise ValueError("camera (Poisson) noise needs non-negative clean profiles")
+    total, energy = float(clean.sum()), float(np.square(clean).sum())
+    if not (total > 0 and nsr > 0):
+        return np.zeros_like(clean)
+    lam = total / (nsr * nsr * energy)              # E||noise||^2 = sum(p) / lambda over all
+    mean = lam * clean
+    small = mean <= _POISSON_NORMAL_LIMIT
+    counts = rng.poisson(np.where(small, mean, 0.0)).astype(np.float64)
+    counts = np.where(small, counts, mean + np.sqrt(mean) * rng.standard_normal(clean.shape))
+    raw = counts / lam - clean
+    norm = float(np.linalg.norm(raw))
+    return raw * (nsr * math.sqrt(energy) / norm) if norm > 0 else raw
+
+
 def noise_realisation(clean, nsr, noise: str = "white", *, rng=None) -> np.ndarray:
     """A noise realisation with exactly ``||noise|| / ||clean|| = nsr`` per profile.
 
@@ -76,14 +104,15 @@ def noise_realisation(clean, nsr, noise: str = "white", *, rng=None) -> np.ndarr
         Clean profiles (signal units).
     nsr : float or array_like broadcasting to (...,)
         Noise-to-signal ratio per profile (>= 0).
-    noise : {"white", "pink", "photon", "none"}
+    noise : {"white", "pink", "photon", "camera", "none"}
         Also accepted: "fluctuation" (white), "detector" (pink), "poisson" (photon).
     rng : numpy.random.Generator or int, optional
 
     Returns
     -------
     ndarray, (..., L), float64.  Zero for all-zero clean profiles (the NSR is undefined there)
-    and for ``nsr == 0``.
+    and for ``nsr == 0``.  ``"camera"``: the NSR of all the profiles together (one value of
+    ``nsr``), see the module docstring.
     """
     clean = np.asarray(clean, dtype=np.float64)
     if clean.ndim < 1 or clean.shape[-1] < 2:
@@ -103,6 +132,10 @@ def noise_realisation(clean, nsr, noise: str = "white", *, rng=None) -> np.ndarr
         if np.any(nsr_b > 0):
             raise ValueError("noise 'none' needs nsr = 0")
         return np.zeros_like(clean)
+    if kind == "camera":
+        if np.ptp(nsr_b) > 0:
+            raise ValueError("camera noise has one NSR for all the profiles together; got several")
+        return _camera(rng, clean, float(nsr_b.flat[0]) if nsr_b.size else 0.0)
     if kind == "white":
         raw = rng.standard_normal(clean.shape)
     elif kind == "pink":

@@ -141,6 +141,16 @@ def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):
     assert set(summary["by_time_bin_ps"]) == {"2", "4"}
 
 
+def test_accuracy_takes_the_shot_noise_of_one_camera(tmp_path, capsys):
+    out = tmp_path / "camera"
+    assert main(["bench", "accuracy", "--pixels", "6", "--n-bins", "128", "--nsr", "0.05", "--noise", "camera",
+                 "--methods", "convscd", "--out", str(out)]) == 0
+    with open(out / "accuracy.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {r["noise"] for r in rows} == {"camera"} and {r["method"] for r in rows} >= {"convscd", "oracle"}
+    assert all(-1.0 <= float(r["mean_fidelity"]) <= 1.0 for r in rows)
+
+
 def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
     out = tmp_path / "search"
     assert main(["bench", "accuracy", "--pixels", "6", "--n-bins", "256", "--nsr", "0.01", "--noise", "white",

@@ -80,6 +80,30 @@ def test_photon_noise_variance_proportional_to_signal():
     assert w[:32].mean() == pytest.approx(w[-32:].mean(), rel=0.05)
 
 
+def test_camera_noise_has_one_photon_scale_for_every_pixel():
+    # pixels of one shape at brightness 1, 4 and 16: one photon scale means the noise variance
+    # follows each sample's signal with one slope, so the NSR halves with every 4x brightness
+    shape = np.hanning(128)
+    clean = np.concatenate([np.broadcast_to(b * shape, (2000, 128)) for b in (1.0, 4.0, 16.0)])
+    n = noise_realisation(clean, 0.05, "camera", rng=5)
+    # the NSR of all the profiles together is the one asked for, exactly
+    assert np.linalg.norm(n) / np.linalg.norm(clean) == pytest.approx(0.05, rel=1e-12)
+    nsr = (np.linalg.norm(n, axis=1) / np.linalg.norm(clean, axis=1)).reshape(3, -1).mean(axis=1)
+    np.testing.assert_allclose(nsr[:2] / nsr[1:], 2.0, rtol=0.03)
+    # variance per unit signal: the same for every brightness (Poisson at one scale)
+    var = n.reshape(3, 2000, 128).var(axis=1)
+    mid = slice(32, 96)
+    slope = (var[:, mid] / clean.reshape(3, 2000, 128)[:, 0, mid]).mean(axis=1)
+    np.testing.assert_allclose(slope, slope.mean(), rtol=0.05)
+    # per-pixel NSR values are refused: the camera has one NSR for all its profiles
+    with pytest.raises(ValueError, match="one NSR"):
+        noise_realisation(clean[:2], np.array([0.05, 0.1]), "camera", rng=0)
+    with pytest.raises(ValueError, match="non-negative"):
+        add_noise(-np.ones((2, 8)), 0.1, "camera", rng=0)
+    d = make_profiles(20, 128, nsr=0.05, noise="camera", seed=3)
+    assert d.noise == "camera" and np.linalg.norm(d.noisy - d.clean) / np.linalg.norm(d.clean) == pytest.approx(0.05)
+
+
 def test_photon_noise_refuses_negative_signal():
     with pytest.raises(ValueError, match="non-negative"):
         add_noise(-np.ones((2, 8)), 0.1, "photon", rng=0)

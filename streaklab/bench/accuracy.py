@@ -53,6 +53,10 @@ LEVEL = 0.90
 TARGET_NSR = 0.055
 TARGET_FLOOR_NSR = 0.005
 NOISES = ("white", "pink", "photon")
+#: Noise types --noise accepts besides the default three: "camera", the shot noise of one camera
+#: (one photon scale for every pixel; decomposition.synthetic_noise), where the NSR of the
+#: point is that of all its pixels together.
+EXTRA_NOISES = ("camera",)
 METHODS = ("convscd", "gradbm")
 # Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
@@ -89,7 +93,8 @@ def add_arguments(parser) -> None:
                         help="log-spaced NSR values from 0.001 to 0.2 (default 10; 0.005 and 0.055 are added)")
     parser.add_argument("--nsr", default=None,
                         help="explicit NSR values, comma-separated (instead of the log-spaced grid)")
-    parser.add_argument("--noise", default=",".join(NOISES), help="noise types, comma-separated (default all three)")
+    parser.add_argument("--noise", default=",".join(NOISES), help="noise types, comma-separated (default the paper's three: white, pink, photon; also camera: "
+                             "the shot noise of one camera, one photon scale for every pixel)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="methods, comma-separated (default convscd,gradbm; also search: ConvSCD followed "
                              "by the stand-alone structured_search of decomposition.search, six refines on every "
@@ -424,7 +429,7 @@ def run(args) -> int:
 
     from .scoring import check_targets, format_regime_table
 
-    noises = choices(args.noise, NOISES, "noise")
+    noises = choices(args.noise, NOISES + EXTRA_NOISES, "noise")
     methods = choices(args.methods, METHODS + EXTRA_METHODS, "methods")
     scenes = str(args.scenes).strip().lower()
     if scenes not in SCENE_PRESETS:
