@@ -208,6 +208,8 @@ def signal_weights(samples, det, dic, opts, info=None):
     out = np.ones((live.size, L))
     models = None if counts or law == "pixel" else np.empty((live.size, L))
     passed = np.zeros(live.size, bool)       # the pixel's own tests
+    z = np.full(live.size, np.nan)           # the pooled verdict's statistics
+    lag_ratio = np.full(live.size, np.nan)
     usable = np.zeros(live.size, bool)       # its own law to weigh by (a positive gain)
     read = np.zeros(live.size, bool)         # a law could be read (the detector law's inputs)
     floors = np.zeros(live.size)             # each pixel's law in the data's units
@@ -222,6 +224,7 @@ def signal_weights(samples, det, dic, opts, info=None):
             continue
         fitted = _fitted_law(p, mask, model)
         passed[rows], usable[rows], read[rows] = fitted.passed, fitted.usable, fitted.read
+        z[rows], lag_ratio[rows] = fitted.z, fitted.lag_ratio
         s = samples.scale[live[rows]]
         floors[rows], gains[rows] = fitted.floor * s * s, fitted.gain * s
         out[rows[fitted.usable]] = noise2[fitted.usable] / fitted.variance[fitted.usable]
@@ -229,12 +232,26 @@ def signal_weights(samples, det, dic, opts, info=None):
             models[rows] = model
     if counts:
         return out
-    pooled = passed.sum() >= max(SIGNAL_NOISE_POOL_FRACTION * live.size, SIGNAL_NOISE_POOL_MIN)
+    pooled = (passed.sum() >= max(SIGNAL_NOISE_POOL_FRACTION * live.size, SIGNAL_NOISE_POOL_MIN)
+              or _pooled_law_holds(z, lag_ratio))
     if law == "detector" or (law == "auto" and pooled):
         return _detector_weights(samples, det, models, floors, gains, read, info)
     keep = usable if pooled else passed
     out[~keep] = 1.0
     return out if keep.any() else None
+
+
+def _pooled_law_holds(z, lag_ratio) -> bool:
+    """The pooled verdict read off the call's statistics rather than its pixels' own tests: the
+    median over the pixels of their gain's significance ``z`` at least SIGNAL_NOISE_POOL_Z and the
+    median of their ``lag_ratio`` below SIGNAL_NOISE_LAG_RATIO (see the constants: read noise
+    can hide each pixel's gain, not the call's)."""
+    from .constants import SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z
+
+    zs, ratios = z[np.isfinite(z)], lag_ratio[np.isfinite(lag_ratio)]
+    if zs.size < SIGNAL_NOISE_POOL_MIN or ratios.size < SIGNAL_NOISE_POOL_MIN:
+        return False
+    return bool(np.median(zs) >= SIGNAL_NOISE_POOL_Z and np.median(ratios) < SIGNAL_NOISE_LAG_RATIO)
 
 
 def _detector_weights(samples, det, models, floors, gains, read, info):
@@ -263,7 +280,9 @@ class _FittedLaw:
     """Each pixel's variance law read off its residual (:func:`_fitted_law`): ``floor``,
     ``gain`` (n,) as fitted, in normalised units; ``read`` (n,) where they could be read;
     ``passed`` (n,) the pixel's own tests; ``usable`` (n,) a positive gain, and ``variance``
-    (n, L) its law, floored (1 where not usable)."""
+    (n, L) its law, floored (1 where not usable); ``z`` (n,) the gain over its error (NaN where
+    not read) and ``lag_ratio`` (n,) the gain read at a lag of two samples over it (NaN where
+    the gain is not positive)."""
 
     floor: np.ndarray
     gain: np.ndarray
@@ -271,6 +290,8 @@ class _FittedLaw:
     passed: np.ndarray
     usable: np.ndarray
     variance: np.ndarray
+    z: np.ndarray
+    lag_ratio: np.ndarray
 
 
 def _fitted_law(p, mask, model) -> _FittedLaw:
@@ -283,16 +304,20 @@ def _fitted_law(p, mask, model) -> _FittedLaw:
     peak_var = gain * model.max(axis=1)
     follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
     # a misfit (structure wider than a bin) grows with the lag, independent noise does not
-    c = np.flatnonzero(follows)
+    lag_ratio = np.full(gain.shape, np.nan)
+    c = np.flatnonzero(gain > 0)
     if c.size:
         _, gain2, _ = signal_variance(p[c] - model[c], model[c], mask.fit[c], lag=2,
                                       floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
-        follows[c] = gain2 < SIGNAL_NOISE_LAG_RATIO * gain[c]
+        lag_ratio[c] = gain2 / gain[c]
+    follows &= lag_ratio < SIGNAL_NOISE_LAG_RATIO
     kept = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
     usable = (gain > 0) & (peak_var > 0) & np.isfinite(kept) & (kept > 0)
     variance = np.where(usable[:, None], kept[:, None] + gain[:, None] * model, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(np.isfinite(se), gain / se, np.nan)
     return _FittedLaw(floor=floor, gain=gain, read=np.isfinite(se), passed=follows & usable, usable=usable,
-                      variance=variance)
+                      variance=variance, z=z, lag_ratio=lag_ratio)
 
 
 def _count_law(samples, px, p, mask, model):

@@ -322,6 +322,14 @@ SIGNAL_NOISE_LAG_RATIO = 1.5
 # 0.055, 395 of 600 pixels weighted 0.814, the fitted law on all 0.843, the true law on all 0.874.
 SIGNAL_NOISE_POOL_FRACTION = 0.5
 SIGNAL_NOISE_POOL_MIN = 16
+# ... or where the call's own statistics say so: the median over its pixels of their gain's
+# significance at least this and the median of their gain read at a lag of two samples over the
+# gain below SIGNAL_NOISE_LAG_RATIO.  Read noise can hide each pixel's gain, not the call's:
+# paper scenes, 400 px, shot noise with read noise (Poisson at 300 photons per unit plus 0.01, at
+# 3,000 plus 0.003) 3.8-5.1 median significance, 1.05-1.07 median lag ratio, where 16-40 % of the
+# pixels pass their own tests; shot noise alone 6.7-8.0 and 1.02-1.05; white and pink noise at NSR
+# 0.001-0.11, 0.0-1.8 and 1.18-2.29 (2 and 4 ps bins).
+SIGNAL_NOISE_POOL_Z = 3.0
 # The in-window significance test of an atom under weights (decomposition.components.
 # window_measures): a sample's weight counts at most this much, i.e. the noise where the atom
 # lies at most half the pixel's.  Under shot noise a weak inter-reflection after the direct lies
