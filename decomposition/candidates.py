@@ -171,7 +171,10 @@ def signal_weights(samples, det, dic, opts, info=None):
     is more than SIGNAL_NOISE_PEAK_RATIO times the floor above it and the law read at a lag of
     two samples is not SIGNAL_NOISE_LAG_RATIO times larger (a misfit, not noise).  The verdict
     is pooled over the live pixels of the call: where at least SIGNAL_NOISE_POOL_FRACTION of
-    them (and SIGNAL_NOISE_POOL_MIN or more) pass, the noise is a detector's shot noise.  Then,
+    them (and SIGNAL_NOISE_POOL_MIN or more) pass, or where the median of their gains'
+    significance is at least SIGNAL_NOISE_POOL_Z and the median of their lag ratios below
+    SIGNAL_NOISE_LAG_RATIO (read noise hides each pixel's gain, not the call's), the noise is a
+    detector's shot noise.  Then,
     by ``opts.signal_noise_law``:
 
     ``"auto"`` (the default): every pixel is weighted by the detector's law, one law in the
