@@ -264,7 +264,8 @@ def _detector_weights(samples, det, models, floors, gains, read, info):
     whose law could be read."""
     from .constants import SIGNAL_NOISE_FLOOR_FRACTION
 
-    floor = float(np.median(floors[read])) if read.any() else 0.0
+    # (a pixel's fitted floor may be slightly negative under pure shot noise; a variance is not)
+    floor = max(float(np.median(floors[read])), 0.0) if read.any() else 0.0
     gain = float(np.median(gains[read])) if read.any() else 0.0
     if info is not None:
         info["signal_noise_law_fit"] = {"floor": floor, "gain": gain}
@@ -272,7 +273,7 @@ def _detector_weights(samples, det, models, floors, gains, read, info):
         return None
     s = np.maximum(samples.scale[samples.live], 1e-300)
     g = gain / s                                           # each pixel's share, normalised units
-    f = max(floor, 0.0) / (s * s)
+    f = floor / (s * s)
     f = np.maximum(f, SIGNAL_NOISE_FLOOR_FRACTION * (f + g * models.max(axis=1)))    # as a pixel's own law
     var = f[:, None] + g[:, None] * models
     return np.divide(det.noise_eff[samples.live][:, None] ** 2, var, out=models)
