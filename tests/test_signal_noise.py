@@ -311,3 +311,17 @@ def test_under_noise_that_follows_the_signal_every_pixel_is_searched(monkeypatch
     # white noise: only the pixels the tests put in doubt
     w = make_profiles(100, 512, nsr=0.11, noise="white", seed=1, time_bin_ps=4.0, ranges="paper", bin_integrated=True)
     assert decompose(w.noisy, time_bin_ps=4.0).info["search_doubt"] < 0.8 * 100
+
+
+@pytest.mark.parametrize("k", [1e-30, 1e30])
+def test_the_one_law_scales_with_the_data(k):
+    # the law is in the data's units: scaling the data by k scales the floor by k^2 and the
+    # gain by k, and changes no delay, width or flag
+    d, noisy = _detector_scene(40, 2.0, 300.0, 0.005, seed=2)
+    a = decompose(noisy, time_bin_ps=2.0, signal_noise_law="detector")
+    b = decompose(noisy * k, time_bin_ps=2.0, signal_noise_law="detector")
+    la, lb = a.info["signal_noise_law_fit"], b.info["signal_noise_law_fit"]
+    assert lb["floor"] == pytest.approx(la["floor"] * k * k, rel=1e-6) and lb["gain"] == pytest.approx(la["gain"] * k, rel=1e-6)
+    for key in ("direct_delay_ps", "direct_sigma_ps", "sss_delay_ps", "ir_delay_ps"):
+        np.testing.assert_allclose(b.params[key], a.params[key], rtol=1e-6, err_msg=key)
+    np.testing.assert_array_equal(a.flags, b.flags)
