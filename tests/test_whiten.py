@@ -104,3 +104,14 @@ def test_whitening_lifts_the_fidelity_under_pink_noise(tb, seed, lift):
     # measured: 2 ps 0.849 -> 0.891, 4 ps 0.872 -> 0.886 (600 px, seed 0: 2 ps 0.853 -> 0.886,
     # 4 ps 0.851 -> 0.880)
     assert on > off + lift, (off, on)
+
+
+def test_the_doubt_test_reads_the_whitened_data_term():
+    # in sample variances nearly every pink pixel's data term is above its expectation, so
+    # nearly every pixel was searched; read whitened, about as many as under white noise
+    p = _pink(200, seed=3)
+    on = decompose(p.noisy, time_bin_ps=2.0)
+    off = decompose(p.noisy, time_bin_ps=2.0, whiten=False)
+    # measured: 140 and 199 of 200
+    assert on.info["search_doubt"] < 0.8 * off.info["search_doubt"], (on.info["search_doubt"], off.info["search_doubt"])
+    assert off.info["search_doubt"] > 0.9 * 200
