@@ -259,6 +259,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     the job a ``--resume`` must match.
 
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
+    noise_law (``signal_noise_law`` and its source: "cube" where the cube's ``noise_law``
+    attribute chose it, "option" or "default"),
     invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
     store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
     the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
@@ -302,9 +304,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
         input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
     ny, nx, nt = arr.shape
+    law_source = "option" if "signal_noise_law" in options else "default"
     if method == "convscd" and "signal_noise_law" not in options and source["attrs"].get("noise_law") == "detector":
         # the cube says one detector's read-out lies behind every pixel: its noise has one law
         options["signal_noise_law"] = "detector"
+        law_source = "cube"
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
     irf_attrs = {"kind": "gaussian"}
     if response is not None:
@@ -449,7 +453,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                    "ir_truncated_pixels": stats["ir_truncated"],
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
                    "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan"),
-                   "seconds_compile": seconds_compile, "irf": irf_attrs}
+                   "seconds_compile": seconds_compile, "irf": irf_attrs,
+                   "noise_law": {"signal_noise_law": options.get("signal_noise_law", "auto"), "source": law_source}}
         return summary
     finally:
         if client is not None:

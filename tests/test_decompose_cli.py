@@ -60,17 +60,19 @@ def _assert_same_store(a, b):
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
 
 
-def test_a_cube_of_one_detector_is_decomposed_with_one_noise_law(tmp_path):
+def test_a_cube_of_one_detector_is_decomposed_with_one_noise_law(tmp_path, capsys):
     # shot noise (100 photons per unit) plus read noise, the same for every pixel: one detector
     rng = np.random.default_rng(3)
     clean = np.clip(_cube(2, 8, seed=5, nsr=0.0), 0.0, None)
     data = rng.poisson(clean * 100.0) / 100.0 + rng.normal(0.0, 0.005, clean.shape)
     write_cube(tmp_path / "one.zarr", data, time_bin_ps=TB, chunks=(2, 8), noise_law="detector")
     write_cube(tmp_path / "any.zarr", data, time_bin_ps=TB, chunks=(2, 8))
-    decompose_to_store(tmp_path / "one.zarr", tmp_path / "one-res.zarr", progress=False)
-    decompose_to_store(tmp_path / "any.zarr", tmp_path / "any-res.zarr", progress=False)
-    decompose_to_store(tmp_path / "one.zarr", tmp_path / "own-res.zarr", progress=False,
-                       options={"signal_noise_law": "pixel"})
+    summaries = [decompose_to_store(tmp_path / "one.zarr", tmp_path / "one-res.zarr", progress=False),
+                 decompose_to_store(tmp_path / "any.zarr", tmp_path / "any-res.zarr", progress=False),
+                 decompose_to_store(tmp_path / "one.zarr", tmp_path / "own-res.zarr", progress=False,
+                                    options={"signal_noise_law": "pixel"})]
+    assert [(s["noise_law"]["signal_noise_law"], s["noise_law"]["source"]) for s in summaries] == [
+        ("detector", "cube"), ("auto", "default"), ("pixel", "option")]
     one, other, own = (open_result_store(tmp_path / f"{n}-res.zarr") for n in ("one", "any", "own"))
     # the cube's description chooses the law, recorded with the options; an explicit option wins
     assert one.attrs["options"]["signal_noise_law"] == "detector"
@@ -86,6 +88,9 @@ def test_a_cube_of_one_detector_is_decomposed_with_one_noise_law(tmp_path):
             np.testing.assert_array_equal(store.group[k][...].reshape(v.shape), v, err_msg=(law, k))
     # (each pixel's own law gives another store: the law matters here)
     assert not np.array_equal(one.group["direct_delay_ps"][...], own.group["direct_delay_ps"][...])
+    # the command says so
+    assert main(["decompose", str(tmp_path / "one.zarr"), "--out", str(tmp_path / "cli.zarr"), "--quiet"]) == 0
+    assert "photon noise: one camera's variance law" in capsys.readouterr().out
 
 
 def test_store_equals_the_in_memory_api_and_describes_itself(cube_path, tmp_path, capsys):

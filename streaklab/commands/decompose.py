@@ -136,6 +136,9 @@ def run(args) -> int:
               f"of {irf['time_step_ps']:g} ps, sha256 {irf['samples_sha256'][:12]})")
     else:
         print("instrument response: the Gaussian PSF")
+    if summary.get("noise_law", {}).get("source") == "cube":
+        print("photon noise: one camera's variance law for every pixel of a chunk (the cube's noise_law; "
+              "--option signal_noise_law=auto to judge it from the pixels)")
     if summary["chunks_done"] == 0:
         print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
         return 0
