@@ -133,7 +133,7 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
     """
     from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, WHITE_LAG_RATIO
     from .detect import solver_inputs
-    from .noise import residual_spectrum
+    from .noise import periodogram, residual_spectrum
     from .slots import render
 
     live = samples.live
@@ -146,12 +146,13 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
         return None
     L = samples.n_bins
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
-    resid = np.empty((live.size, L))
+    power = np.empty((live.size, L // 2 + 1))      # block by block: no (pixels, L) residual held
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
-        resid[rows] = mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()})) / noise[rows, None]
-    return residual_spectrum(resid)
+        resid = mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()})) / noise[rows, None]
+        power[rows] = periodogram(resid)
+    return residual_spectrum(power=power)
 
 
 def signal_weights(samples, det, dic, opts, info=None):

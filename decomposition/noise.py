@@ -45,7 +45,7 @@ from .jit import njit
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
 
-__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
+__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "periodogram", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
            "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
            "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
@@ -142,17 +142,24 @@ class SpectralNoise:
         return SpectralNoise(self.spectrum, np.asarray(self.variance)[rows])
 
 
-def residual_spectrum(residual: np.ndarray) -> np.ndarray:
+def periodogram(rows: np.ndarray) -> np.ndarray:
+    """|rfft|^2 of each row of ``rows`` (P, L) -> (P, L // 2 + 1)."""
+    return np.abs(np.fft.rfft(np.asarray(rows, np.float64), axis=1)) ** 2
+
+
+def residual_spectrum(residual: np.ndarray | None = None, *, power: np.ndarray | None = None) -> np.ndarray:
     """The power spectrum shared by the rows of ``residual`` (P, L), per unit of their variance:
     (L // 2 + 1,), the median over the rows of |rfft|^2 divided by ln 2 (the mean of an
     exponentially distributed periodogram value is its median / ln 2; the median ignores the
     rows where a misfit adds power), floored at 1e-12 of its largest value.  White noise of
     variance 1 gives L at every frequency; a whitened data term is then
     sum_f c_f |R_f|^2 / S_f, c_f = 1 at 0 and L/2 and 2 elsewhere (:func:`whitened_chi2`).
+    ``power`` (P, L // 2 + 1): the rows' :func:`periodogram` instead of the residual.
     """
-    r = np.asarray(residual, np.float64)
-    power = np.abs(np.fft.rfft(r, axis=1)) ** 2
-    s = np.median(power, axis=0) / math.log(2.0)
+    if (residual is None) == (power is None):
+        raise ValueError("residual_spectrum takes the residual or its periodogram, one of them")
+    p = periodogram(residual) if power is None else np.asarray(power, np.float64)
+    s = np.median(p, axis=0) / math.log(2.0)
     return np.maximum(s, 1e-12 * max(float(s.max()), 1e-300))
 
 
@@ -161,7 +168,7 @@ def whitened_chi2(residual: np.ndarray, spectrum: np.ndarray, variance: np.ndarr
     variance (:func:`residual_spectrum`) scaled by each row's ``variance`` (P,): the sum of
     squares of the residual whitened by that spectrum, whose expectation is L for such noise."""
     r = np.asarray(residual, np.float64)
-    power = np.abs(np.fft.rfft(r, axis=1)) ** 2
+    power = periodogram(r)
     c = np.full(power.shape[1], 2.0)
     c[0] = 1.0
     if r.shape[1] % 2 == 0:

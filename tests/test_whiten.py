@@ -115,3 +115,15 @@ def test_the_doubt_test_reads_the_whitened_data_term():
     # measured: 140 and 199 of 200
     assert on.info["search_doubt"] < 0.8 * off.info["search_doubt"], (on.info["search_doubt"], off.info["search_doubt"])
     assert off.info["search_doubt"] > 0.9 * 200
+
+
+def test_the_spectrum_from_periodograms_is_the_same_and_one_input_is_asked_for():
+    from decomposition.noise import periodogram
+
+    rng = np.random.default_rng(4)
+    r = _shaped(rng, 50, 1)
+    np.testing.assert_array_equal(residual_spectrum(r), residual_spectrum(power=periodogram(r)))
+    with pytest.raises(ValueError, match="one of them"):
+        residual_spectrum()
+    with pytest.raises(ValueError, match="one of them"):
+        residual_spectrum(r, power=periodogram(r))
