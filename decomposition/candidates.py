@@ -209,8 +209,7 @@ def signal_weights(samples, det, dic, opts, info=None):
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     counts = samples.noise_model == "poisson"
     law = opts.signal_noise_law
-    out = np.ones((live.size, L))
-    models = None if counts or law == "pixel" else np.empty((live.size, L))
+    out = np.ones((live.size, L)) if counts else None      # float data: once a pixel has a law
     passed = np.zeros(live.size, bool)       # the pixel's own tests
     z = np.full(live.size, np.nan)           # the pooled verdict's statistics
     lag_ratio = np.full(live.size, np.nan)
@@ -231,18 +230,20 @@ def signal_weights(samples, det, dic, opts, info=None):
         z[rows], lag_ratio[rows] = fitted.z, fitted.lag_ratio
         s = samples.scale[live[rows]]
         floors[rows], gains[rows] = fitted.floor * s * s, fitted.gain * s
-        out[rows[fitted.usable]] = noise2[fitted.usable] / fitted.variance[fitted.usable]
-        if models is not None:
-            models[rows] = model
+        if fitted.usable.any():
+            out = np.ones((live.size, L)) if out is None else out
+            out[rows[fitted.usable]] = noise2[fitted.usable] / fitted.variance[fitted.usable]
     if counts:
         return out
     pooled = (passed.sum() >= max(SIGNAL_NOISE_POOL_FRACTION * live.size, SIGNAL_NOISE_POOL_MIN)
               or _pooled_law_holds(z, lag_ratio))
     if law == "detector" or (law == "auto" and pooled):
-        return _detector_weights(samples, det, models, floors, gains, read, info)
+        return _detector_weights(samples, det, dic, opts, floors, gains, read, info, out)
     keep = usable if pooled else passed
+    if out is None or not keep.any():
+        return None
     out[~keep] = 1.0
-    return out if keep.any() else None
+    return out
 
 
 def _pooled_law_holds(z, lag_ratio) -> bool:
@@ -258,12 +259,13 @@ def _pooled_law_holds(z, lag_ratio) -> bool:
     return bool(np.median(zs) >= SIGNAL_NOISE_POOL_Z and np.median(ratios) < SIGNAL_NOISE_LAG_RATIO)
 
 
-def _detector_weights(samples, det, models, floors, gains, read, info):
+def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=None):
     """The weights of one variance law for every live pixel (see :func:`signal_weights`):
-    ``models`` (n_live, L) the detected models (normalised; overwritten with the weights),
     ``floors``, ``gains`` (n_live,) each pixel's law in the data's units, ``read`` the pixels
-    whose law could be read."""
+    whose law could be read; the detected models rendered again block by block; ``out``
+    (n_live, L), if given, is overwritten with the weights."""
     from .constants import SIGNAL_NOISE_FLOOR_FRACTION
+    from .slots import render
 
     # (a pixel's fitted floor may be slightly negative under pure shot noise; a variance is not)
     floor = max(float(np.median(floors[read])), 0.0) if read.any() else 0.0
@@ -272,12 +274,18 @@ def _detector_weights(samples, det, models, floors, gains, read, info):
         info["signal_noise_law_fit"] = {"floor": floor, "gain": gain}
     if not gain > 0:
         return None
-    s = np.maximum(samples.scale[samples.live], 1e-300)
-    g = gain / s                                           # each pixel's share, normalised units
-    f = floor / (s * s)
-    f = np.maximum(f, SIGNAL_NOISE_FLOOR_FRACTION * (f + g * models.max(axis=1)))    # as a pixel's own law
-    var = f[:, None] + g[:, None] * models
-    return np.divide(det.noise_eff[samples.live][:, None] ** 2, var, out=models)
+    live, L = samples.live, samples.n_bins
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
+    out = np.empty((live.size, L)) if out is None else out
+    for b0 in range(0, live.size, opts.block_size):
+        rows = np.arange(b0, min(b0 + opts.block_size, live.size))
+        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
+        s = np.maximum(samples.scale[live[rows]], 1e-300)
+        g = gain / s                                       # each pixel's share, normalised units
+        f = floor / (s * s)
+        f = np.maximum(f, SIGNAL_NOISE_FLOOR_FRACTION * (f + g * model.max(axis=1)))    # as a pixel's own law
+        out[rows] = det.noise_eff[live[rows]][:, None] ** 2 / (f[:, None] + g[:, None] * model)
+    return out
 
 
 @dataclass(frozen=True)
