@@ -264,7 +264,6 @@ def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=No
     ``floors``, ``gains`` (n_live,) each pixel's law in the data's units, ``read`` the pixels
     whose law could be read; the detected models rendered again block by block; ``out``
     (n_live, L), if given, is overwritten with the weights."""
-    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
     from .slots import render
 
     # (a pixel's fitted floor may be slightly negative under pure shot noise; a variance is not)
@@ -282,10 +281,18 @@ def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=No
         model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
         s = np.maximum(samples.scale[live[rows]], 1e-300)
         g = gain / s                                       # each pixel's share, normalised units
-        f = floor / (s * s)
-        f = np.maximum(f, SIGNAL_NOISE_FLOOR_FRACTION * (f + g * model.max(axis=1)))    # as a pixel's own law
+        f = _kept_floor(floor / (s * s), g * model.max(axis=1))
         out[rows] = det.noise_eff[live[rows]][:, None] ** 2 / (f[:, None] + g[:, None] * model)
     return out
+
+
+def _kept_floor(floor, peak_var):
+    """A variance law's floor (n,) kept at least SIGNAL_NOISE_FLOOR_FRACTION of the variance at
+    the model's peak (``peak_var`` (n,), the gain times the peak): no sample weighs without bound
+    where no light arrives."""
+    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
+
+    return np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
 
 
 @dataclass(frozen=True)
@@ -324,7 +331,7 @@ def _fitted_law(p, mask, model) -> _FittedLaw:
                                       floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
         lag_ratio[c] = gain2 / gain[c]
     follows &= lag_ratio < SIGNAL_NOISE_LAG_RATIO
-    kept = np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
+    kept = _kept_floor(floor, peak_var)
     usable = (gain > 0) & (peak_var > 0) & np.isfinite(kept) & (kept > 0)
     variance = np.where(usable[:, None], kept[:, None] + gain[:, None] * model, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):

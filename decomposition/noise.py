@@ -45,7 +45,8 @@ from .jit import njit
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
 
-__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "periodogram", "residual_spectrum", "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
+__all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "periodogram", "residual_spectrum",
+           "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
            "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
            "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
@@ -131,15 +132,10 @@ class SpectralNoise:
     """Correlated noise: the call's ``spectrum`` (L // 2 + 1,) per unit variance
     (:func:`residual_spectrum`; :attr:`decomposition.detect.Detection.noise_spectrum`) and each
     pixel's ``variance`` (n,).  A data term in it is the residual whitened by the spectrum
-    (:func:`whitened_chi2`, :func:`decomposition.search.penalised_objective`); an atom's
-    significance its whitened energy (:func:`decomposition.components.threshold`).  Indexing
-    takes pixels."""
+    (:func:`whitened_chi2`, :func:`decomposition.search.penalised_objective`)."""
 
     spectrum: np.ndarray
     variance: np.ndarray
-
-    def __getitem__(self, rows) -> "SpectralNoise":
-        return SpectralNoise(self.spectrum, np.asarray(self.variance)[rows])
 
 
 def periodogram(rows: np.ndarray) -> np.ndarray:

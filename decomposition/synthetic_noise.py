@@ -58,6 +58,15 @@ def _pink(rng, shape):
     return np.fft.irfft(spec * shaping, n=n, axis=-1)
 
 
+def _poisson_counts(rng, mean):
+    """Poisson counts of expected value ``mean`` (>= 0), float64; above _POISSON_NORMAL_LIMIT
+    their normal limit."""
+    small = mean <= _POISSON_NORMAL_LIMIT
+    counts = rng.poisson(np.where(small, mean, 0.0)).astype(np.float64)
+    gauss = rng.standard_normal(mean.shape)
+    return np.where(small, counts, mean + np.sqrt(mean) * gauss)
+
+
 def _photon(rng, clean, nsr):
     """Poisson noise with the photon count per unit signal set for the expected NSR."""
     if np.any(clean < 0):
@@ -68,11 +77,7 @@ def _photon(rng, clean, nsr):
     ok = (total > 0) & (nsr2 > 0)
     # E||noise||^2 = sum(p) / lambda  =>  lambda = sum(p) / (nsr^2 ||p||^2).
     lam = np.where(ok, total / np.where(ok, nsr2 * energy, 1.0), 0.0)
-    mean = lam * clean
-    small = mean <= _POISSON_NORMAL_LIMIT
-    counts = rng.poisson(np.where(small, mean, 0.0)).astype(np.float64)
-    gauss = rng.standard_normal(clean.shape)
-    counts = np.where(small, counts, mean + np.sqrt(mean) * gauss)
+    counts = _poisson_counts(rng, lam * clean)
     safe = np.where(lam > 0, lam, 1.0)
     return np.where(lam > 0, counts / safe - clean, 0.0)
 
@@ -86,11 +91,7 @@ def _camera(rng, clean, nsr):
     if not (total > 0 and nsr > 0):
         return np.zeros_like(clean)
     lam = total / (nsr * nsr * energy)              # E||noise||^2 = sum(p) / lambda over all
-    mean = lam * clean
-    small = mean <= _POISSON_NORMAL_LIMIT
-    counts = rng.poisson(np.where(small, mean, 0.0)).astype(np.float64)
-    counts = np.where(small, counts, mean + np.sqrt(mean) * rng.standard_normal(clean.shape))
-    raw = counts / lam - clean
+    raw = _poisson_counts(rng, lam * clean) / lam - clean
     norm = float(np.linalg.norm(raw))
     return raw * (nsr * math.sqrt(energy) / norm) if norm > 0 else raw
 
