@@ -166,6 +166,13 @@ def decode_positioner_errors(bits: int) -> list[str]:
     return [name for mask, name in POSITIONER_ERRORS.items() if bits & mask]
 
 
+def _ascii(raw: bytes) -> str | None:
+    try:
+        return raw.decode("ascii")
+    except UnicodeDecodeError:
+        return None
+
+
 class SMC100Mirror:
     """Scan mirror on an SMC100-style controller (implements :class:`drivers.interfaces.ScanMirror`).
 
@@ -247,19 +254,44 @@ class SMC100Mirror:
             raise ValueError(f"{name} does not answer; use send()")
         self._check_open()
         echo = f"{self.address}{cmd.mnemonic}"
-        try:
-            raw = self.transport.query(self._line(name))
-        except ProtocolError as exc:
-            raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF",
-                                exc.raw) from None
-        try:
-            text = raw.decode("ascii")
-        except UnicodeDecodeError:
-            text = None
-        if text is None or not text.startswith(echo):
-            self.transport.stale = True  # resynchronise before the next command
-            raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF", raw)
-        return text[len(echo):-len(TERMINATOR)], raw
+        with self.transport.lock:   # the reply, and any late one before it, belong to this exchange
+            try:
+                raw = self.transport.query(self._line(name))
+            except ProtocolError as exc:
+                raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF",
+                                    exc.raw) from None
+            text = self._reply_after_late_ones(raw, echo)
+            if text is None:
+                self.transport.stale = True  # resynchronise before the next command
+                raise ProtocolError(f"{self.port}: reply to {name!r} is not '{echo}<value>' + CR LF", raw)
+        return text[len(echo):-len(TERMINATOR)], text.encode("ascii")
+
+    def _reply_after_late_ones(self, raw: bytes, echo: str) -> str | None:
+        """The reply to this query, text, or None.  A well-formed reply of this controller to
+        another command is one to an earlier exchange -- late past its timeout, or sent twice by
+        an exchange repeated after the link broke -- so this query's own reply is still on its
+        way: it is read on, within the timeout.  Anything else (garbage, another address), or
+        no reply of ours in time, is None."""
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            text = _ascii(raw)
+            if text is not None and text.startswith(echo):
+                return text
+            if not self._is_reply_to_other_command(text):
+                return None
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            try:
+                raw = self.transport.read_line(timeout_s=remaining)
+            except (DeviceTimeout, ProtocolError):
+                return None
+
+    def _is_reply_to_other_command(self, text: str | None) -> bool:
+        if text is None or not text.endswith(TERMINATOR.decode("ascii")):
+            return False
+        prefix = str(self.address)
+        return any(c.reply and text.startswith(prefix + c.mnemonic) for c in COMMANDS.values())
 
     def _query_float(self, name: str) -> float:
         payload, raw = self.query(name)

@@ -214,6 +214,16 @@ def test_unterminated_reply_times_out_and_the_rest_is_discarded_before_the_next_
     t.assert_done()
 
 
+def test_a_reply_to_an_earlier_exchange_is_passed_over_for_this_ones():
+    # a TE reply sent twice (its exchange repeated after the link broke) or arriving past its
+    # timeout comes before the TS reply: the TS query reads on to its own reply, and the next
+    # exchange is not shifted by one
+    t, mirror = scripted([(b"1TS\r\n", b"1TE@\r\n1TS000033\r\n"), (b"1TP\r\n", b"1TP12.5\r\n")])
+    assert mirror.state() == "ready"
+    assert mirror.position() == pytest.approx(12.5)
+    t.assert_done()
+
+
 @pytest.mark.parametrize("reply", [
     b"1TS12.5\r\n",          # answer to another command
     b"2TP12.5\r\n",          # another controller address
