@@ -328,16 +328,22 @@ def _per_sample(s2):
     return s2[:, None] if s2.ndim == 1 else s2
 
 
-def _data_chi2(t, p, mask, st, s2):
-    """chi2 = sum of residual^2 / s2 per pixel of a slot state (``s2`` (n,) or (n, L))."""
-    from .slots import render
-
-    r = mask.residual(p, render(t, st))
+def _residual_chi2(r, s2):
+    """(n,) the data term of residuals ``r`` (n, L) in the noise ``s2`` of
+    :func:`objective_variance`: sum of r^2 / s2 (``s2`` (n,) or (n, L)), or the residual
+    whitened by the call's spectrum (a :class:`SpectralNoise`)."""
     if isinstance(s2, SpectralNoise):
         from .noise import whitened_chi2
 
         return whitened_chi2(r, s2.spectrum, s2.variance)
     return np.einsum("pl,pl->p", r, r / _per_sample(s2))
+
+
+def _data_chi2(t, p, mask, st, s2):
+    """The data term (:func:`_residual_chi2`) of each pixel of a slot state."""
+    from .slots import render
+
+    return _residual_chi2(mask.residual(p, render(t, st)), s2)
 
 
 def penalised_objective(t, p, mask, st, s2, log_n, opts):
@@ -516,13 +522,10 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     s_sig = s_eff if significance_sigma is None else significance_sigma
     comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2, weights)
     r0 = mask.residual(p, render(t, base))
-    if noise_spectrum is None:
-        chi0 = np.einsum("pl,pl->p", r0, r0 / _per_sample(s2))
-    else:      # read in the call's correlated noise, as the objectives below (pink: in sample
-        # variances nearly every pixel's data term is above its expectation, and in doubt)
-        from .noise import whitened_chi2
-
-        chi0 = whitened_chi2(r0, noise_spectrum, np.maximum(s_eff, 1e-300) ** 2)
+    # read in the call's correlated noise where it has one, as the objectives below (pink: in
+    # sample variances nearly every pixel's data term is above its expectation, and in doubt)
+    chi0 = _residual_chi2(r0, s2 if noise_spectrum is None
+                          else objective_variance(np.maximum(s_eff, 1e-300), spectrum=noise_spectrum))
 
     # Pixels in doubt (see the docstring).
     from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
@@ -566,7 +569,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         return out, start, doubt, ambiguous
 
     # Starts for the pixels in doubt.
-    pb, mb, sb2 = p[idx], mask[idx], s2[idx]
+    pb, mb = p[idx], mask[idx]
     sg, ls, la = sig[idx], lsig[idx], lalp[idx]
     ys = _smooth(pb, np.maximum(sg / T, 0.5))
     top = ys.max(axis=1, keepdims=True)
@@ -645,10 +648,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         cand[i_rise], _ = grow_block(pb, mb, cand[i_rise], noise_b, dic, opts, s_sig[idx], bump_test, weights=wb,
                                      spectrum=noise_spectrum)
     js = []
-    if noise_spectrum is not None:
-        sj2 = objective_variance(noise_b, spectrum=noise_spectrum)
-    else:
-        sj2 = sb2 if objective_sigma is None else objective_variance(noise_b, objective_sigma[idx], wb)
+    sj2 = objective_variance(noise_b, None if objective_sigma is None else objective_sigma[idx], wb, noise_spectrum)
     for c in cand:
         js.append(penalised_objective(t, pb, mb, c, sj2, log_l[idx], opts))
     js = np.stack(js)                                   # (starts, m)
