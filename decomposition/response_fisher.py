@@ -9,9 +9,10 @@ the measured dispersion, the Poisson Fisher information).  Where ``sss_after_dir
 the onset at the direct delay the two delays are one parameter and share its error.  A fitted
 constant background (the ``b`` family) is one more column, of ones: its uncertainty enters the
 components' errors (an offset and a slow sss tail are partly the same light, so holding it at
-its fitted value understates the lifetime's error).  For count data a direct at the window's
-edge (:func:`near_window_edge`) gets its delay's error from the profile deviance instead
-(:func:`profile_delay_stderr`): there the deviance is far from quadratic in the delay.  The
+its fitted value understates the lifetime's error).  For count data the direct delay's and
+the sss alpha's errors come from the profile deviance instead (:func:`profile_stderr`): at few
+counts, and for a direct at the window's edge at any count, the deviance is far from
+quadratic in them, and where it is quadratic the profile gives the Fisher error.  The
 response has no width parameter: ``*_sigma_ps_stderr`` are NaN.
 """
 from __future__ import annotations
@@ -21,17 +22,13 @@ import numpy as np
 from .constants import FAM_NONE, FAM_SSS, POISSON_VARIANCE_FLOOR, SSS_SLOT
 from .response_atoms import slot_atoms
 
-__all__ = ["slot_standard_errors", "profile_delay_stderr", "near_window_edge", "PROFILE_STEP_SE",
-           "PROFILE_EDGE_WIDTHS"]
+__all__ = ["slot_standard_errors", "profile_stderr", "PROFILE_STEP_SE"]
 
-#: :func:`profile_delay_stderr`'s step along the profile line, in Fisher standard errors (the
+#: :func:`profile_stderr`'s step along the profile line, in Fisher standard errors (the
 #: deviance rises by 4 there where it is quadratic: the error is half the 95 % profile interval)
 PROFILE_STEP_SE = 2.0
 #: Poisson scoring steps of the amplitudes and offset at each point of the profile line
 PROFILE_SCORING_STEPS = 4
-#: the profile error replaces the Fisher one for a direct whose delay lies within this many
-#: widths of the response (Gaussian-equivalent sigma) of either end of the window, or outside
-PROFILE_EDGE_WIDTHS = 3.0
 
 
 def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma=None, tie_onset=None,
@@ -102,26 +99,29 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
     return out
 
 
-def profile_delay_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, background, cov, dispersion, *,
-                         tie_onset=None, step_se: float = PROFILE_STEP_SE):
-    """Standard error of the direct delay from its one-step profile deviance (count data).
+def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, background, cov, dispersion, *,
+                   parameter: str = "delay", tie_onset=None, step_se: float = PROFILE_STEP_SE):
+    """Standard error of the direct delay or the sss alpha from the profile deviance (count data).
 
     The Fisher information is the curvature of the deviance at the solution; where the
-    deviance is not quadratic over an error's range -- a direct near or before the window's
-    start, whose peak the counts barely hold, slides out with its amplitude growing to match
-    the edge it leaves at little cost -- the error it gives is too small on that side.  Here
-    the delays and log alphas are moved along the profile line of the direct delay d,
-    theta(d) = theta_hat + (d - d_hat) cov[:, d] / var(d) (every other parameter at its
-    conditional best to first order), to d_hat +- ``step_se`` x se(d); there the amplitudes
-    and the offset, linear, are refitted to the counts (PROFILE_SCORING_STEPS Poisson scoring
-    steps from the line's values, kept >= 0: an amplitude that must grow exponentially as its
-    atom leaves the window is not held to the line's first order).  With rise D+ and D- of
-    the Poisson deviance (chi2 units) the half-widths of the profile interval are
-    step_se x se / sqrt(D+-) (the Fisher error on a side where the deviance falls: the
-    solution at a bound), and the error returned is half the interval's length, their mean,
-    never below the Fisher error (a side steeper than quadratic is the first-order line
-    leaving the valley of the delays and alpha it does not refit).  Where the deviance is
-    quadratic, D+- = step_se^2 and the error is the Fisher one.
+    deviance is not quadratic over an error's range the error it gives is wrong on one side or
+    both: at few photons (100 per pixel) the sss onset is nearly degenerate with the direct and
+    held after it, and the deviance is skewed in the delay and in log alpha; a direct near or
+    before the window's start, whose peak the counts barely hold, slides out with its amplitude
+    growing to match the edge it leaves at little cost.  Here the delays and log alphas are
+    moved along the profile line of the parameter p (the direct delay, or the sss's log alpha),
+    theta(p) = theta_hat + (p - p_hat) cov[:, p] / var(p) (every other parameter at its
+    conditional best to first order), to p_hat +- ``step_se`` x se(p); there the amplitudes and
+    the offset, linear, are refitted to the counts (PROFILE_SCORING_STEPS Poisson scoring steps
+    from the line's values, kept >= 0: an amplitude that must grow exponentially as its atom
+    leaves the window is not held to the line's first order).  With rise D+ and D- of the
+    Poisson deviance (chi2 units) the half-widths of the profile interval are
+    w+- = step_se x se / sqrt(D+-) (the Fisher error on a side where the deviance falls: the
+    solution at a bound), and the error returned is half the interval's length -- (w- + w+) / 2
+    for the delay, alpha (exp(w+) - exp(-w-)) / 2 for alpha, whose interval is taken in log
+    alpha -- never below the Fisher error (a side steeper than quadratic is the first-order line
+    leaving the valley of the parameters it does not refit).  Where the deviance is quadratic,
+    D+- = step_se^2 and the error is the Fisher one (for alpha, alpha sinh(se of log alpha)).
 
     Parameters
     ----------
@@ -134,26 +134,30 @@ def profile_delay_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, b
     background : ndarray (n,) or None   fitted offset, normalised units, NaN where none
     cov : ndarray (n, 3K + 1, 3K + 1)   :func:`slot_standard_errors` ``cov`` (dispersion included)
     dispersion : ndarray (n,)      noise scale of the counts (the deviance is divided by its square)
+    parameter : {"delay", "alpha"} the direct's delay (ps) or the sss's alpha (1/ps)
     tie_onset : ndarray (n,) bool, optional   the sss onset moves with the direct delay
     step_se : float                step, in Fisher standard errors (> 0)
 
     Returns
     -------
-    ndarray (n,): the direct delay's error, ps; NaN where the direct is absent or the
+    ndarray (n,): the parameter's error (ps, or 1/ps); NaN where the slot is absent or the
     covariance singular (the Fisher error's NaN).
     """
     from .noise import count_deviance
 
     if not (np.isfinite(step_se) and step_se > 0):
         raise ValueError(f"step_se must be positive, got {step_se}")
+    if parameter not in ("delay", "alpha"):
+        raise ValueError(f"parameter must be 'delay' or 'alpha', got {parameter!r}")
     n, K = fam.shape
-    var = cov[:, K, K]
-    ok = (fam[:, 0] != FAM_NONE) & np.isfinite(var) & (var > 0)
+    j, present = (K, fam[:, 0] != FAM_NONE) if parameter == "delay" else (2 * K + SSS_SLOT, fam[:, SSS_SLOT] == FAM_SSS)
+    var = cov[:, j, j]
+    ok = present & np.isfinite(var) & (var > 0)
     out = np.full(n, np.nan)
     if not ok.any():
         return out
     idx = np.flatnonzero(ok)
-    c = np.nan_to_num(cov[idx, :, K])
+    c = np.nan_to_num(cov[idx, :, j])
     se = np.sqrt(var[idx])
     line = c / var[idx, None]
     b0 = np.zeros(idx.size) if background is None else np.nan_to_num(np.asarray(background, np.float64)[idx])
@@ -193,18 +197,11 @@ def profile_delay_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, b
             widths.append(np.where(rise > 0, step_se * se / np.sqrt(rise), np.nan))
     lo_w, hi_w = (np.where(np.isfinite(w), w, se) for w in widths)
     # half the profile interval's length, never below the Fisher error: a side steeper than
-    # quadratic is the first-order line leaving the valley of the delays and alpha it does
-    # not refit, not more information
-    out[idx] = np.maximum(0.5 * (lo_w + hi_w), se)
+    # quadratic is the first-order line leaving the valley of the parameters it does not
+    # refit, not more information
+    if parameter == "delay":
+        out[idx] = np.maximum(0.5 * (lo_w + hi_w), se)
+    else:
+        alpha = np.exp(lalp[idx, SSS_SLOT])
+        out[idx] = alpha * np.maximum(0.5 * (np.exp(hi_w) - np.exp(-lo_w)), se)
     return out
-
-
-def near_window_edge(irf, t_ps, delay_ps, widths: float = PROFILE_EDGE_WIDTHS) -> np.ndarray:
-    """(n,) bool: delays within ``widths`` response widths (its Gaussian-equivalent sigma, ps)
-    of the first or last sample of ``t_ps``, or outside the window (NaN: False)."""
-    from core.irf_components import gaussian_equivalent_sigma_ps
-
-    w = float(widths) * gaussian_equivalent_sigma_ps(irf)
-    d = np.asarray(delay_ps, np.float64)
-    with np.errstate(invalid="ignore"):
-        return (d < t_ps[0] + w) | (d > t_ps[-1] - w)

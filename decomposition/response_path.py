@@ -42,7 +42,7 @@ from .prepare import Samples
 from .refit import background_stats
 from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .response_fisher import near_window_edge, profile_delay_stderr, slot_standard_errors
+from .response_fisher import profile_stderr, slot_standard_errors
 from .response_label import label_response, param_slots
 from .response_grow import GrowContext, grow_response
 from .response_refine import refit_slots
@@ -187,16 +187,16 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     counts = samples.noise_model == "poisson"
     se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
                               background=offset, covariance=counts)
-    edge = near_window_edge(irf, t, np.where(fam[:, 0] != FAM_NONE, delay[:, 0], np.nan))
-    if counts and edge.any():
-        # a direct at the window's edge: its delay's error from the profile deviance
-        e = np.flatnonzero(edge)
-        prof = profile_delay_stderr(irf, t, samples.values[live[e]], fit_mask[e], scale[e], fam[e], delay[e],
-                                    lalp[e], amp[e], None if offset is None else offset[e], se["cov"][e], noise[e],
-                                    tie_onset=None if tie is None else tie[e])
-        se["delay"][e, 0] = prof
+    if counts:
+        # the direct delay's and the lifetime's errors from the profile deviance: at few counts
+        # the deviance is skewed in both (the onset held after the direct, a direct at the edge)
+        common = (irf, t, samples.values[live], fit_mask, scale, fam, delay, lalp, amp, offset, se["cov"], noise)
+        for parameter, key, slot in (("delay", "delay", 0), ("alpha", "alpha", SSS_SLOT)):
+            prof = profile_stderr(*common, parameter=parameter, tie_onset=tie)
+            se[key][:, slot] = np.where(np.isfinite(se[key][:, slot]), prof, np.nan)
         if tie is not None:
-            se["delay"][e[tie[e]], SSS_SLOT] = prof[tie[e]]
+            both = tie & (fam[:, 0] != FAM_NONE) & (fam[:, SSS_SLOT] == FAM_SSS)
+            se["delay"][both, SSS_SLOT] = se["delay"][both, 0]
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

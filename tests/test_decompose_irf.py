@@ -213,7 +213,9 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
     """100 photons per pixel: the pursuit, weighing every sample with the Poisson noise at the
     peak, stopped after the direct in ~20 % of the pixels; the Poisson-weighted trial gives
     them their sss, and the direct delay's standard error (which was too small there, the
-    sss's light pulling the delay) is calibrated (median |e| / se 0.674 for normal errors)."""
+    sss's light pulling the delay) is calibrated (median |e| / se 0.674 for normal errors), as
+    is the lifetime's (both from the profile deviance: 0.74 and 0.64 from the Fisher
+    information, 0.71 and 0.59 from the profile, on these 300 pixels)."""
     from decomposition.synthetic import make_profiles
 
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
@@ -224,5 +226,7 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
     assert r.info["response_sss_added"] >= 30
     z = np.abs(p["direct_delay_ps"] - d.params["direct_delay_ps"]) / p["direct_delay_ps_stderr"]
     assert 0.55 < np.nanmedian(z) < 0.85
+    z_alpha = np.abs(p["sss_alpha_per_ps"] - d.params["sss_alpha_per_ps"]) / p["sss_alpha_per_ps_stderr"]
+    assert 0.5 < np.nanmedian(z_alpha) < 0.85
     tau_rel = d.params["sss_alpha_per_ps"] / p["sss_alpha_per_ps"] - 1.0
     assert abs(np.nanmean(tau_rel)) < 0.04
