@@ -6,6 +6,17 @@ where the counts are few never pays its penalty there: at ~100 photons per pixel
 and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own Poisson
 noise is 1 sigma of the noise at the direct's peak).  After the refinement (:func:`grow_response`):
 
+0. **A direct** ("d" asked): a pixel whose fit has no direct, or one that explains next to
+   nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while
+   other atoms hold light, is refitted with a direct started at its sss onset and at the peak
+   of its data smoothed over the response's width (there also with the sss restarted at the
+   direct with each coarse alpha): at few counts the pursuit's first atom can be a fast sss
+   whose onset lies before the direct and which takes the direct's light.  The paper's model
+   gives every pixel a direct, so the trial of lowest deviance that keeps one is taken (with
+   ``sss_alone``, only where it lowers the penalised deviance below); where its direct is not
+   significant in it, or the fit without it lies within ``ambiguity_sigma`` sqrt(2 n) of it
+   with a split more than ``ambiguity_split`` away, the pixel is AMBIGUOUS (the search
+   stage's rule, :mod:`decomposition.search`).
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
@@ -38,8 +49,8 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    light it had missed, and then explain next to nothing itself).
 
 The echo steps need ``grow=True`` and ``significance_chi2 > 0`` (they find what only the
-significance rule keeps).  ``info``: ``response_sss_added``, ``response_echo_added``,
-``response_sss_swapped``.
+significance rule keeps).  ``info``: ``response_direct_restored``, ``response_sss_added``,
+``response_echo_added``, ``response_sss_swapped``.
 """
 from __future__ import annotations
 
@@ -312,6 +323,106 @@ def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
     return trial._replace(iterations=spent), dev, tried
 
 
+def _direct_starts(ctx: GrowContext, sub: Slots, rows) -> list:
+    """Where a direct trial of the pixels ``rows`` starts: the sss onset (an sss that took the
+    direct's light starts before it), and the peak of the data smoothed over the response's
+    width (the brightest return; at the window's first sample for a direct before the window)."""
+    starts = []
+    has_sss = sub.fam[:, SSS_SLOT] == FAM_SSS
+    if has_sss.any():
+        starts.append(np.where(has_sss, sub.delay[:, SSS_SLOT], np.nan))
+    T = ctx.t[1] - ctx.t[0] if ctx.t.size > 1 else 1.0
+    half = max(int(math.ceil(3.0 * ctx.sigma_eq_ps / T)), 1)
+    kernel = np.exp(-0.5 * np.square(np.arange(-half, half + 1) * T / ctx.sigma_eq_ps))
+    y = np.where(ctx.fit[rows], ctx.values[rows], 0.0) - ctx.held[rows, None] * ctx.fit[rows]
+    smooth = np.apply_along_axis(lambda v: np.convolve(v, kernel, mode="same"), 1, y)
+    starts.append(ctx.t[np.argmax(np.where(ctx.fit[rows], smooth, -np.inf), axis=1)])
+    return starts
+
+
+def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots, np.ndarray, np.ndarray]:
+    """A direct for the pixels ("d" asked) whose fit has none, or one that explains next to
+    nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while
+    other atoms hold their light (see the module docstring, step 0).
+
+    A direct is tried at each of :func:`_direct_starts` with the rest; the trial of lowest
+    deviance that keeps a direct is taken where its direct is significant in it (taken out
+    alone, the others held, the deviance rises by ``significance_chi2`` or more: the rule every
+    added atom meets) -- the paper's model gives every pixel a direct, as in the search stage
+    -- or, with ``sss_alone``, where it lowers the penalised deviance (deviance +
+    ``search_penalty`` ln n per free parameter).  A taken trial whose deviance lies within
+    ``ambiguity_sigma`` sqrt(2 n) of the fit it replaces, with a split more than
+    ``ambiguity_split`` (1 - fidelity) from it, is ambiguous: the data do not determine it
+    (the search stage's rule).  -> (slots, restored (n,) bool, ambiguous (n,) bool).
+    """
+    from .components import render_params
+    from .metrics import fidelity
+
+    n = cur.fam.shape[0]
+    restored, ambiguous = np.zeros(n, bool), np.zeros(n, bool)
+    fam = cur.fam
+    other = (fam[:, 1:] != FAM_NONE).any(axis=1)
+    cand = np.flatnonzero(other & (fam[:, 0] != FAM_GAUSS))
+    with_d = np.flatnonzero(other & (fam[:, 0] == FAM_GAUSS))
+    if with_d.size:
+        weak = _removal_deviance(ctx, with_d, _sub(cur, with_d))[:, 0] < ctx.opts.significance_chi2
+        cand = np.union1d(cand, with_d[weak])
+    if cand.size == 0:
+        return cur, restored, ambiguous
+    opts = ctx.opts
+    sub = _sub(cur, cand)
+    d_cur = deviance(ctx, cand, sub.params, sub.background)
+    best, d_best = sub, np.full(cand.size, np.inf)
+    spent = np.zeros(cand.size, np.int64)
+    starts = _direct_starts(ctx, sub, cand)
+    # the sss that took the direct's light is fast; from the peak it is also restarted at the
+    # direct with each coarse alpha, as the pursuit's own sss atoms start
+    trials = [(x, None) for x in starts] + [(starts[-1], a) for a in alphas_per_ps]
+    for start, alpha in trials:
+        i = np.flatnonzero(np.isfinite(start))
+        if alpha is not None:
+            i = i[sub.fam[i, SSS_SLOT] == FAM_SSS]
+        if i.size == 0:
+            continue
+        f, d, la = sub.fam[i].copy(), sub.delay[i].copy(), sub.lalp[i].copy()
+        f[:, 0], d[:, 0] = FAM_GAUSS, start[i]
+        if alpha is not None:
+            d[:, SSS_SLOT], la[:, SSS_SLOT] = start[i], math.log(alpha)
+        t_i = ctx.refit(cand[i], f, d, la, {k: v[i] for k, v in sub.params.items()}, sub.background[i])
+        spent[i] += t_i.iterations
+        dev = np.where(t_i.fam[:, 0] == FAM_GAUSS, deviance(ctx, cand[i], t_i.params, t_i.background), np.inf)
+        win = dev < d_best[i]
+        best = _put(best, i, t_i, win)
+        d_best[i[win]] = dev[win]
+    tried = np.isfinite(d_best)
+    n_fit = ctx.fit[cand].sum(axis=1)
+    if opts.sss_alone:
+        pen = opts.search_penalty * np.log(np.maximum(n_fit, 1))
+        take = tried & (d_best + pen * _n_free(best.fam) < d_cur + pen * _n_free(sub.fam))
+    else:
+        # the paper's model gives every pixel a direct: a trial that keeps one is taken (by
+        # deviance where the pixel had a direct already, one that explained nothing)
+        take = tried & ((sub.fam[:, 0] != FAM_GAUSS) | (d_best < d_cur))
+    out = _put(cur, cand, best, take)
+    its = cur.iterations.copy()
+    its[cand] += spent
+    restored[cand[take]] = True
+    weak = np.zeros(cand.size, bool)
+    if take.any():
+        r = np.flatnonzero(take)
+        weak[r] = _removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] < opts.significance_chi2
+    ambiguous[cand[weak]] = True
+    near = take & ~weak & (d_best - d_cur <= opts.ambiguity_sigma * np.sqrt(2.0 * n_fit))
+    if near.any():
+        r = np.flatnonzero(near)
+        ax, L = ctx.samples.axis, ctx.values.shape[1]
+        split_new = render_params({k: v[r] for k, v in best.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
+        split_old = render_params({k: v[r] for k, v in sub.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
+        with np.errstate(invalid="ignore"):
+            ambiguous[cand[r]] = 1.0 - fidelity(split_new, split_old) > opts.ambiguity_split
+    return out._replace(iterations=its), restored, ambiguous
+
+
 def _swap_far_sss(ctx: GrowContext, cur: Slots):
     """An sss far after the direct replaced by a shifted copy at its peak where the penalised
     deviance is lower (see the module docstring) -> (slots, pixels swapped)."""
@@ -345,20 +456,28 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     return out._replace(iterations=its), int(take.sum())
 
 
-def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps, components) -> tuple[Slots, dict]:
+def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
+                  components) -> tuple[Slots, dict, np.ndarray]:
     """The forward steps (see the module docstring) on the refined slots of the n live pixels.
 
-    Returns the slots and ``{"response_sss_added", "response_echo_added", "response_sss_swapped"}``:
-    the pixels given an sss, the echoes in the answer that it did not have before (far sss
-    turned echoes included), and the pixels whose far sss became an echo.
+    Returns the slots, ``{"response_direct_restored", "response_sss_added",
+    "response_echo_added", "response_sss_swapped"}`` -- the pixels given a direct, the pixels
+    given an sss, the echoes in the answer that it did not have before (far sss turned echoes
+    included), and the pixels whose far sss became an echo -- and (n,) bool: the pixels whose
+    restored direct the data do not determine (AMBIGUOUS).
     """
-    info = {"response_sss_added": 0, "response_echo_added": 0, "response_sss_swapped": 0}
+    info = {"response_sss_added": 0, "response_echo_added": 0, "response_sss_swapped": 0,
+            "response_direct_restored": 0}
     opts = ctx.opts
     # the echo is found by its significance alone: no trial without the rule (or with grow=False)
     with_r = "r" in components and slots.fam.shape[1] > 2 and opts.grow and opts.significance_chi2 > 0
     with_s = "s" in components and ctx.counts
+    ambiguous = np.zeros(slots.fam.shape[0], bool)
+    if "d" in components:
+        slots, restored, ambiguous = _restore_direct(ctx, slots, alphas_per_ps)
+        info["response_direct_restored"] = int(restored.sum())
     if not (with_r or with_s):
-        return slots, info
+        return slots, info, ambiguous
     fam0 = slots.fam.copy()
     if with_r and "s" in components:
         slots, info["response_sss_swapped"] = _swap_far_sss(ctx, slots)
@@ -398,5 +517,5 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps, components) 
         grown[:, :2] = False
         slots, grown = _drop_weak_echoes(ctx, slots, grown)
         info["response_echo_added"] = int(grown.sum())
-    return slots, info
+    return slots, info, ambiguous
 

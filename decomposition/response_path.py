@@ -11,12 +11,13 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   count data (``noise="poisson"``) refitted POISSON_REFITS times with weights 1 / Poisson
   variance of the previous model (the Poisson maximum-likelihood fit, as in
   :mod:`decomposition.refit`);
-* forward steps (:mod:`decomposition.response_grow`): an sss for count data's pixels left
+* forward steps (:mod:`decomposition.response_grow`): a direct where a fast sss took its
+  light (AMBIGUOUS where the data do not determine it), an sss for count data's pixels left
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
 * standard errors (``stderr``): the Fisher information of the response's atoms and a kept
-  offset; for count data a direct at the window's edge from its profile deviance
+  offset; for count data the direct delay's and the sss alpha's from their profile deviance
   (:mod:`decomposition.response_fisher`).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
@@ -34,7 +35,7 @@ from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_par
 from .background import background_significant, background_threshold
 from .components import runs_off_window
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
+from .flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
 from .options import GridSpec, SolverOptions
@@ -53,7 +54,7 @@ __all__ = ["ResponseOutcome", "decompose_with_response"]
 @dataclass(frozen=True)
 class ResponseOutcome:
     """``params`` (P-shaped, keys of :mod:`core.model`, ``<key>_stderr`` too with ``stderr``),
-    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED, OFF_WINDOW), ``info`` (dict)."""
+    ``flags`` (P,) (MAX_ITER, AT_BOUND, TRUNCATED, OFF_WINDOW, AMBIGUOUS), ``info`` (dict)."""
 
     params: dict
     flags: np.ndarray
@@ -91,7 +92,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     # the profiles are the samples less the first estimate of the offset (0 without the family)
     slots = refit_slots(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
     grow_ctx = GrowContext(samples, irf, b_est, with_bg, refine_kw, sigma_eq, opts)
-    slots, grow_info = grow_response(grow_ctx, slots, alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
+    slots, grow_info, ambiguous = grow_response(grow_ctx, slots, alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
                                      components=components)
     fam, delay, lalp, amp, params, background, iterations = slots
     bg_info = {}
@@ -134,6 +135,12 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": bounds["lalp"]})], AT_BOUND)
     inside = slot_window_fraction(irf, t, fam, delay, lalp)
     mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t).any(axis=1)], OFF_WINDOW)
+    # the split the data do not determine: a restored direct within the noise of the fit
+    # without it, or (the search stage's rule) an sss left with no direct where the paper's
+    # model gives every pixel one
+    if "d" in components and not opts.sss_alone:
+        ambiguous = ambiguous | ((fam[:, 0] != FAM_GAUSS) & (fam[:, SSS_SLOT] == FAM_SSS))
+    mark(flags, live[ambiguous], AMBIGUOUS)
 
     out = empty_params((P,), n_ir=R)
     if with_bg:
