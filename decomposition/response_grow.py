@@ -57,6 +57,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.ndimage import convolve1d
 
 from core.irf import render_shifted, render_sss
 from core.model import BACKGROUND_KEY, render_profile
@@ -335,7 +336,7 @@ def _direct_starts(ctx: GrowContext, sub: Slots, rows) -> list:
     half = max(int(math.ceil(3.0 * ctx.sigma_eq_ps / T)), 1)
     kernel = np.exp(-0.5 * np.square(np.arange(-half, half + 1) * T / ctx.sigma_eq_ps))
     y = np.where(ctx.fit[rows], ctx.values[rows], 0.0) - ctx.held[rows, None] * ctx.fit[rows]
-    smooth = np.apply_along_axis(lambda v: np.convolve(v, kernel, mode="same"), 1, y)
+    smooth = convolve1d(y, kernel, axis=1, mode="constant")
     starts.append(ctx.t[np.argmax(np.where(ctx.fit[rows], smooth, -np.inf), axis=1)])
     return starts
 
