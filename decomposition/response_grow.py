@@ -354,7 +354,8 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     ``search_penalty`` ln n per free parameter).  A taken trial whose deviance lies within
     ``ambiguity_sigma`` sqrt(2 n) of the fit it replaces, with a split more than
     ``ambiguity_split`` (1 - fidelity) from it, is ambiguous: the data do not determine it
-    (the search stage's rule).  -> (slots, restored (n,) bool, ambiguous (n,) bool).
+    (the search stage's rule); so is a pixel whose direct explains nothing and no trial
+    replaced.  -> (slots, restored (n,) bool, ambiguous (n,) bool).
     """
     from .components import render_params
     from .metrics import fidelity
@@ -412,6 +413,8 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     if take.any():
         r = np.flatnonzero(take)
         weak[r] = _removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] < opts.significance_chi2
+    # a direct that explains nothing and found no better place: the pixel has no direct to speak of
+    weak |= ~take & (sub.fam[:, 0] == FAM_GAUSS)
     ambiguous[cand[weak]] = True
     near = take & ~weak & (d_best - d_cur <= opts.ambiguity_sigma * np.sqrt(2.0 * n_fit))
     if near.any():
