@@ -301,8 +301,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         ``*_sigma_ps`` is its Gaussian-equivalent sigma (FWHM / 2.3548), and
         ``*_sigma_ps_stderr`` is NaN.  The Gaussian options (``sigma_range_ps``, ``n_sigma``,
         ``coarse_sigma``, ``coarse_sss_sigma``, ``shared_sigma``, ``multistart``, ``search``,
-        ``refine``) play no part (``sss_alone`` decides whether a direct tried where an sss
-        took its light must lower the penalised deviance); ``off_grid=False`` is refused.
+        ``refine``) play no part (``sss_alone``: a pixel left with an sss and no direct is
+        not flagged AMBIGUOUS); ``off_grid=False`` is refused.
         ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Flags
         are the Gaussian path's where they apply, by the same rules (spikes judged against the
         response's shape; no WIDE_PSF: docs/instrument-response.md).  Cost:

@@ -117,11 +117,14 @@ def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, backgro
     leaves the window is not held to the line's first order).  With rise D+ and D- of the
     Poisson deviance (chi2 units) the half-widths of the profile interval are
     w+- = step_se x se / sqrt(D+-) (the Fisher error on a side where the deviance falls: the
-    solution at a bound), and the error returned is half the interval's length -- (w- + w+) / 2
-    for the delay, alpha (exp(w+) - exp(-w-)) / 2 for alpha, whose interval is taken in log
-    alpha -- never below the Fisher error (a side steeper than quadratic is the first-order line
-    leaving the valley of the parameters it does not refit).  Where the deviance is quadratic,
-    D+- = step_se^2 and the error is the Fisher one (for alpha, alpha sinh(se of log alpha)).
+    solution at a bound); each is then read once more where it puts the interval's edge,
+    w+- <- step_se x w+- / sqrt(D+-(step_se x w+-)) (a secant step to the crossing: a skewed
+    deviance is not quadratic between the first step and the edge), and the error returned
+    is half the interval's length -- (w- + w+) / 2 for the delay, alpha (exp(w+) - exp(-w-)) / 2
+    for alpha, whose interval is taken in log alpha -- never below the Fisher error (a side
+    steeper than quadratic is the first-order line leaving the valley of the parameters it
+    does not refit).  Where the deviance is quadratic, D+- = step_se^2 at both steps and the
+    error is the Fisher one (for alpha, alpha sinh(se of log alpha)).
 
     Parameters
     ----------
@@ -190,12 +193,19 @@ def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, backgro
         return count_deviance(y, mu, m, disp)
 
     d0 = deviance(theta0, PROFILE_SCORING_STEPS)
-    widths = []
-    for sign in (-1.0, 1.0):
-        rise = deviance(theta0 + sign * step_se * se[:, None] * line, PROFILE_SCORING_STEPS) - d0
+
+    def half_width(sign, step):
+        # the deviance's rise over d0 at ``step`` (n,) along the line, extrapolated as a
+        # quadratic to where it rises by 1; the Fisher error where it does not rise
+        rise = deviance(theta0 + sign * step[:, None] * line, PROFILE_SCORING_STEPS) - d0
         with np.errstate(invalid="ignore", divide="ignore"):
-            widths.append(np.where(rise > 0, step_se * se / np.sqrt(rise), np.nan))
-    lo_w, hi_w = (np.where(np.isfinite(w), w, se) for w in widths)
+            w = np.where(rise > 0, step / np.sqrt(rise), np.nan)
+        return np.where(np.isfinite(w), w, se)
+
+    # first from step_se Fisher errors, then once more from the interval's edge that predicts
+    # (step_se half-widths, where the rise should be step_se^2): a skewed deviance is not
+    # quadratic between the two, and the second step reads it where the interval ends
+    lo_w, hi_w = (half_width(sign, half_width(sign, step_se * se) * step_se) for sign in (-1.0, 1.0))
     # half the profile interval's length, never below the Fisher error: a side steeper than
     # quadratic is the first-order line leaving the valley of the parameters it does not
     # refit, not more information

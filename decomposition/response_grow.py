@@ -11,12 +11,12 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    other atoms hold light, is refitted with a direct started at its sss onset and at the peak
    of its data smoothed over the response's width (there also with the sss restarted at the
    direct with each coarse alpha): at few counts the pursuit's first atom can be a fast sss
-   whose onset lies before the direct and which takes the direct's light.  The paper's model
-   gives every pixel a direct, so the trial of lowest deviance that keeps one is taken (with
-   ``sss_alone``, only where it lowers the penalised deviance below); where its direct is not
-   significant in it, or the fit without it lies within ``ambiguity_sigma`` sqrt(2 n) of it
-   with a split more than ``ambiguity_split`` away, the pixel is AMBIGUOUS (the search
-   stage's rule, :mod:`decomposition.search`).
+   whose onset lies before the direct and which takes the direct's light.  The best trial
+   that keeps a direct is taken where that direct is significant in it; where the fit without
+   it lies within ``ambiguity_sigma`` sqrt(2 n) with a split more than ``ambiguity_split``
+   away, or where a direct that explains nothing stays, the pixel is AMBIGUOUS (the search
+   stage's rule, :mod:`decomposition.search`).  A pixel left with an sss and no direct is
+   AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response_path`).
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
@@ -346,16 +346,15 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while
     other atoms hold their light (see the module docstring, step 0).
 
-    A direct is tried at each of :func:`_direct_starts` with the rest; the trial of lowest
-    deviance that keeps a direct is taken where its direct is significant in it (taken out
-    alone, the others held, the deviance rises by ``significance_chi2`` or more: the rule every
-    added atom meets) -- the paper's model gives every pixel a direct, as in the search stage
-    -- or, with ``sss_alone``, where it lowers the penalised deviance (deviance +
-    ``search_penalty`` ln n per free parameter).  A taken trial whose deviance lies within
-    ``ambiguity_sigma`` sqrt(2 n) of the fit it replaces, with a split more than
-    ``ambiguity_split`` (1 - fidelity) from it, is ambiguous: the data do not determine it
-    (the search stage's rule); so is a pixel whose direct explains nothing and no trial
-    replaced.  -> (slots, restored (n,) bool, ambiguous (n,) bool).
+    A direct is tried at each of :func:`_direct_starts` with the rest (from the data's peak
+    also with the sss restarted at the direct with each of ``alphas_per_ps``); the trial of
+    lowest deviance that keeps a direct is taken where its direct is significant in it (taken
+    out alone, the others held, the deviance rises by ``significance_chi2`` or more: the rule
+    every kept atom meets).  A taken trial whose deviance lies within ``ambiguity_sigma``
+    sqrt(2 n) of the fit it replaces, with a split more than ``ambiguity_split`` (1 - fidelity)
+    away, is ambiguous: the data do not determine it (the search stage's rule); so is a pixel
+    whose direct explains nothing and that no trial replaced.  -> (slots, restored (n,) bool,
+    ambiguous (n,) bool).
     """
     from .components import render_params
     from .metrics import fidelity
@@ -398,25 +397,20 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
         d_best[i[win]] = dev[win]
     tried = np.isfinite(d_best)
     n_fit = ctx.fit[cand].sum(axis=1)
-    if opts.sss_alone:
-        pen = opts.search_penalty * np.log(np.maximum(n_fit, 1))
-        take = tried & (d_best + pen * _n_free(best.fam) < d_cur + pen * _n_free(sub.fam))
-    else:
-        # the paper's model gives every pixel a direct: a trial that keeps one is taken (by
-        # deviance where the pixel had a direct already, one that explained nothing)
-        take = tried & ((sub.fam[:, 0] != FAM_GAUSS) | (d_best < d_cur))
+    # a direct significant where it lies (taken out alone, the others held, the deviance rises
+    # by significance_chi2: the rule every kept atom meets)
+    take = np.zeros(cand.size, bool)
+    if tried.any():
+        r = np.flatnonzero(tried)
+        take[r] = _removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] >= opts.significance_chi2
     out = _put(cur, cand, best, take)
     its = cur.iterations.copy()
     its[cand] += spent
     restored[cand[take]] = True
-    weak = np.zeros(cand.size, bool)
-    if take.any():
-        r = np.flatnonzero(take)
-        weak[r] = _removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] < opts.significance_chi2
-    # a direct that explains nothing and found no better place: the pixel has no direct to speak of
-    weak |= ~take & (sub.fam[:, 0] == FAM_GAUSS)
-    ambiguous[cand[weak]] = True
-    near = take & ~weak & (d_best - d_cur <= opts.ambiguity_sigma * np.sqrt(2.0 * n_fit))
+    # a direct that explains nothing and found no better place: no direct to speak of (a pixel
+    # left with none is the caller's to judge: with sss_alone an sss may stand alone)
+    ambiguous[cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]] = True
+    near = take & (d_best - d_cur <= opts.ambiguity_sigma * np.sqrt(2.0 * n_fit))
     if near.any():
         r = np.flatnonzero(near)
         ax, L = ctx.samples.axis, ctx.values.shape[1]

