@@ -24,7 +24,7 @@ import numpy as np
 from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY, render_profile
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS
-from .noise import poisson_weights
+from .noise import count_deviance, poisson_weights
 from .response_atoms import slot_atoms
 from .response_label import slots_to_params
 
@@ -219,8 +219,12 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
     (n,) counts / units already subtracted), with a jointly fitted constant offset where
     ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
-    previous model (offset included).  ``params``: the starting model (n-shaped, units, the
-    ``background`` key read for the first weights).
+    previous model (offset included), each refit kept for a pixel only where it lowers the
+    Poisson deviance below the start's (its amplitudes solved at its own delays) and the
+    earlier refits': the weights of a model that lacks a component (1 / the variance floor
+    where a missed sss tail holds counts) can pull a direct tens of ps onto that tail.
+    ``params``: the starting model (n-shaped, units, the ``background`` key read for the first
+    weights).
 
     Returns :class:`Slots`: fam, delay, lalp, amp (n, K), params (n-shaped, units, no
     ``background`` key), background (n,) units (``held`` plus the fitted correction),
@@ -238,12 +242,9 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
                   sss_after_direct=opts.sss_after_direct, first_is_direct=True)
     params = dict(params)
     params[BACKGROUND_KEY] = background
-    for _ in range(POISSON_REFITS if counts else 1):
-        if counts:
-            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
-            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
-        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=opts.n_polish, fit_background=bg_cols, **fit_kw)
-        iterations += f.iterations
+
+    def solve(fam, delay, lalp, sw, n_iter):
+        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=n_iter, fit_background=bg_cols, **fit_kw)
         delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
         bad = (fam != FAM_NONE) & ~(amp > 0)
         if bad.any():
@@ -255,7 +256,45 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
             amp[r], b_fit = g.amp, b_fit.copy()
             b_fit[r] = g.background
         background = held + b_fit * scale
-        params = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
-        params[BACKGROUND_KEY] = background
+        p = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
+        p[BACKGROUND_KEY] = background
+        return [fam, delay, lalp, amp, background, p], f.iterations
+
+    def deviance(p):
+        model = np.nan_to_num(render_profile(p, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
+        return count_deviance(counts_y, model, fit_mask, disp)
+
+    best = dev_best = None
+    if counts:
+        counts_y = y * scale[:, None] + held[:, None]
+    for k in range(POISSON_REFITS if counts else 1):
+        if counts:
+            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
+            sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
+            if k == 0:
+                # the start with its amplitudes solved at its own delays: what a refit must beat.
+                # Weights of a model that lacks a component (1 / the floor where the counts of
+                # a missed sss tail lie) can pull a direct tens of ps onto that tail
+                best, _ = solve(fam, delay, lalp, sw, 0)
+                dev_best = deviance(best[5])
+        cur, its = solve(fam, delay, lalp, sw, opts.n_polish)
+        iterations += its
+        fam, delay, lalp, amp, background, params = cur
+        if counts:
+            # the Poisson deviance, the fit's own objective, decides between the start and the
+            # reweighted refits
+            dev = deviance(params)
+            better = dev < dev_best
+            best = [_rows(better, a, b) for a, b in zip(cur, best)]
+            dev_best = np.where(better, dev, dev_best)
+    if counts:
+        fam, delay, lalp, amp, background, params = best
     params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     return Slots(fam, delay, lalp, amp, params, background, iterations)
+
+
+def _rows(take, a, b):
+    """The rows of ``a`` where ``take`` (n,), of ``b`` elsewhere (arrays, or dicts of them)."""
+    if isinstance(a, dict):
+        return {k: _rows(take, a[k], b[k]) for k in a}
+    return np.where(take.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)
