@@ -9,7 +9,8 @@ Excluded samples (saturated, spikes, non-finite) have weight 0 in both.
 Count data (``noise="poisson"``): the weights are 1 / variance of the Poisson law at the
 model (:func:`sample_weights`), and the refit is repeated POISSON_REFITS times, each with the
 previous model's weights (iteratively reweighted least squares, whose fixed point is the
-Poisson maximum-likelihood fit).  ``decompose`` reaches that fit without this stage, in the
+Poisson maximum-likelihood fit), a pixel keeping a refit only where it lowers the Poisson
+deviance.  ``decompose`` reaches that fit without this stage, in the
 compiled polish of :mod:`decomposition.countpolish`; this refit runs for count data only with
 ``refine=True`` (and for the GradBM baseline).  The standard errors use weights 1 / model count with the
 noise scale measured on the fit (:func:`decomposition.noise.fit_dispersion`, 1 for pure
@@ -21,7 +22,7 @@ import numpy as np
 
 from core.model import BACKGROUND_KEY, render_profile
 from .constants import POISSON_REFITS
-from .noise import fit_dispersion, poisson_weights
+from .noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats"]
@@ -69,14 +70,30 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     if with_bg:
         fit_bg[samples.live] = True
 
+    counts = samples.noise_model == "poisson"
+
+    def deviance(params):
+        return count_deviance(samples.values, _model(samples, params), samples.fit, samples.dispersion)
+
     def fits(params, fit_bg):
+        # count data: a refit is kept for a pixel only where it lowers the Poisson deviance, the
+        # fit's own objective (the weights of a model that lacks a component can pull an atom
+        # onto the counts of a missed tail; see decomposition.countpolish)
+        dev_best = deviance(params) if counts else None
         for _ in range(n_fits):
-            params, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
-                                   weights=sample_weights(samples, params), shared_sigma=shared_sigma,
-                                   sss_after_direct=sss_after_direct, fit_background=fit_bg)
+            new, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
+                                weights=sample_weights(samples, params), shared_sigma=shared_sigma,
+                                sss_after_direct=sss_after_direct, fit_background=fit_bg)
             nonlocal iterations, refined
             iterations += rinfo["iterations"].reshape(-1)
             refined |= rinfo["refined"].reshape(-1)
+            if counts:
+                dev = deviance(new)
+                better = dev < dev_best
+                new = {k: np.where(better.reshape((-1,) + (1,) * (np.ndim(v) - 1)), v, params[k]) if k in params
+                       else v for k, v in new.items()}
+                dev_best = np.where(better, dev, dev_best)
+            params = new
         return params
 
     params = fits(params, fit_bg)
