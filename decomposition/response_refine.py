@@ -221,7 +221,7 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
     previous model (offset included), each refit kept for a pixel only where it lowers the
     Poisson deviance below the start's (its amplitudes solved at its own delays) and the
-    earlier refits': the weights of a model that lacks a component (1 / the variance floor
+    earlier refits', and the next refit starts from the better: the weights of a model that lacks a component (1 / the variance floor
     where a missed sss tail holds counts) can pull a direct tens of ps onto that tail.
     ``params``: the starting model (n-shaped, units, the ``background`` key read for the first
     weights).
@@ -287,8 +287,8 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
             better = dev < dev_best
             best = [_rows(better, a, b) for a, b in zip(cur, best)]
             dev_best = np.where(better, dev, dev_best)
-    if counts:
-        fam, delay, lalp, amp, background, params = best
+            # the next refit starts from the better of the two
+            fam, delay, lalp, amp, background, params = best
     params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     return Slots(fam, delay, lalp, amp, params, background, iterations)
 
