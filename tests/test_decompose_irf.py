@@ -237,7 +237,7 @@ def test_count_data_direct_taken_by_a_fast_sss_is_restored_or_flagged():
     takes the direct's light, a direct is tried at the sss onset and at the data's peak and
     kept where it is significant; a pixel left with an sss and no direct is AMBIGUOUS (the
     paper's model gives every pixel one), but not with ``sss_alone``.  100 photons per pixel,
-    d + s (300 pixels): 7 without a direct, none flagged before; the trial's direct is not
+    d + s (300 pixels): 7 without a direct, none flagged before (6 since the guarded refits); the trial's direct is not
     significant there (its removal raises the deviance by 2-19 < 25), so they stay without one
     and are flagged.  The direct 3-8 ps before the window at 1,000 photons: 91 % with a direct
     before, 95 % now (10 restored, within 9 ps of the truth, each OFF_WINDOW)."""
