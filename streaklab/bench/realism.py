@@ -9,8 +9,11 @@ peak, the direct truncated at the window's start, at the one photon level where 
 effect, integer Poisson counts, bin-integrated) are decomposed by the variants
 
     ignored     ``decompose(counts, time_bin_ps, stderr=True)``: the defaults, the effect ignored
-    modelled    ``decompose(counts, time_bin_ps, irf=<true response>, components="d,r,s,b"
-                (",b" only where the effect is a background), noise="poisson", stderr=True)``
+    modelled    ``decompose(counts, time_bin_ps, irf=<true response as the bins record it>,
+                components="d,r,s,b" (",b" only where the effect is a background),
+                noise="poisson", stderr=True)``: the response averaged over a bin
+                (:func:`decomposition.synthetic_effects.bin_averaged_response`), as the scenes
+                are rendered and as a calibration capture on the same detector measures it
     reference   :func:`decomposition.poisson_reference.poisson_reference_fit`: Poisson maximum
                 likelihood with the true response and component set, started at the truth
 
@@ -74,6 +77,10 @@ TARGETS = {"bias": 0.01, "rmse_over_reference": 1.1, "stderr_calibration": 0.10,
 def effect_setup(effect: str, time_bin_ps: float) -> dict:
     """Generator options, scene kinds, the true response and whether a background is modelled.
 
+    ``recorded_response`` is the true response averaged over a bin: what the scenes' bins
+    record (they are bin-integrated) and what ``calibrate-irf`` would measure on that detector;
+    the ``modelled`` variant decomposes with it.
+
     ``tailed``: 20 % of the response's area in a 30 ps diffusion tail; ``afterpulse``: 5 % of
     it 40 ps after the main peak; the other effects have the Gaussian response (sigma
     :data:`SIGMA_PS`) and add a background of 0.02 signal units (2-4 % of the direct's peak),
@@ -83,6 +90,7 @@ def effect_setup(effect: str, time_bin_ps: float) -> dict:
     bin.
     """
     from core.irf_models import afterpulse_response, gaussian_response, tailed_response
+    from decomposition.synthetic_effects import bin_averaged_response
 
     tb = float(time_bin_ps)
     if effect == "tailed":
@@ -106,7 +114,8 @@ def effect_setup(effect: str, time_bin_ps: float) -> dict:
         options["echo_ratio"] = 0.01
         options["direct_before_window_ps"] = ECHO_DIRECT_BEFORE_PS
         kinds = "d+r2"
-    return {"options": options, "kinds": kinds, "response": irf, "background": effect == "background"}
+    return {"options": options, "kinds": kinds, "response": irf, "background": effect == "background",
+            "recorded_response": bin_averaged_response(irf, tb)}
 
 
 def five_sigma_photons(setup: dict, pixels: int, n_bins: int, time_bin_ps: float, seed: int) -> float:
@@ -258,8 +267,8 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float):
         res = decompose(data.noisy, time_bin_ps, t0_ps=data.t0_ps, stderr=True)
     elif variant == "modelled":
         comps = "d,r,s,b" if setup["background"] else "d,r,s"
-        res = decompose(data.noisy, time_bin_ps, t0_ps=data.t0_ps, irf=setup["response"], components=comps,
-                        noise="poisson", stderr=True)
+        res = decompose(data.noisy, time_bin_ps, t0_ps=data.t0_ps, irf=setup["recorded_response"],
+                        components=comps, noise="poisson", stderr=True)
     else:
         raise ValueError(f"unknown variant {variant!r}")
     return res.params, res
