@@ -16,7 +16,10 @@ AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   (:mod:`decomposition.search`) with materially different splits
                   reach objectives within the noise of each other; or the direct
                   is weak (< 15 % of the peak) just before a much larger sss or
-                  inter-reflection onset (:func:`decomposition.quality.weak_direct`)
+                  inter-reflection onset (:func:`decomposition.quality.weak_direct`);
+                  or, with a measured response, the pixel has an sss and no
+                  direct, or a direct not significant in its own fit
+                  (:mod:`decomposition.response_grow`)
 WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
                   (an sss hump taken for a broad direct, typically)
 OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian centred
