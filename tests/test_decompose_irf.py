@@ -284,3 +284,42 @@ def test_count_refit_never_leaves_a_lower_poisson_deviance():
     err = r.params["direct_delay_ps"] - d.params["direct_delay_ps"][rows]
     assert np.all(np.abs(err) < 1.5)                   # 40.4, 27.2, 25.2 ps before
     assert np.all(np.isfinite(r.params["sss_delay_ps"]))
+
+
+def test_light_before_the_direct_is_a_poor_fit():
+    """Nothing arrives before the direct reflection.  Three pixels of ``bench realism``'s tailed
+    rows at 100 photons (a weak direct, peak 3-5 counts, on a long sss) whose fit puts the
+    direct 22-33 ps late on a noise peak, the sss held at it: 20-30 counts lie before its
+    leading edge where the model expects ~0, and the pixels are POOR_FIT (they carried no flag).
+    The rule itself: a model that holds that light, or none there, leaves the pixel alone."""
+    from decomposition.flags import POOR_FIT
+    from decomposition.quality import direct_lead_ps, light_before_direct
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import effect_setup
+
+    setup = effect_setup("tailed", T)
+    d = make_profiles(2000, 256, seed=0, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
+                      **setup["options"])
+    rows = [1116, 1384, 1842]
+    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
+                  noise="poisson")
+    err = r.params["direct_delay_ps"] - d.params["direct_delay_ps"][rows]
+    assert np.all(err > 15.0) and np.all((r.flags & POOR_FIT) != 0)
+
+    # the rule on a made-up pixel: 10 counts at 20-38 ps, a direct at 60 ps (Gaussian PSF, 4 ps)
+    from decomposition.options import GridSpec
+    from decomposition.prepare import prepare_samples, time_axis
+
+    y = np.zeros((1, 64))
+    y[0, 10:20] = 1.0
+    y[0, 29:31] = 20.0
+    samples = prepare_samples(y, time_axis(T), GridSpec(), noise="poisson")
+    params = {"direct_delay_ps": np.array([60.0]), "direct_sigma_ps": np.array([4.0])}
+    assert direct_lead_ps(params)[0] == pytest.approx(4.0 * np.sqrt(2 * np.log(1e3)))
+    nothing = np.zeros((1, 64))
+    assert light_before_direct(samples, params, nothing)[0]
+    held = nothing.copy()
+    held[0, 10:20] = 1.0
+    assert not light_before_direct(samples, params, held)[0]
+    early = {"direct_delay_ps": np.array([22.0]), "direct_sigma_ps": np.array([4.0])}
+    assert not light_before_direct(samples, early, nothing)[0]       # no count before its edge
