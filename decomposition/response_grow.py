@@ -350,7 +350,8 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     also with the sss restarted at the direct with each of ``alphas_per_ps``); the trial of
     lowest deviance that keeps a direct is taken where its direct is significant in it (taken
     out alone, the others held, the deviance rises by ``significance_chi2`` or more: the rule
-    every kept atom meets).  A taken trial whose deviance lies within ``ambiguity_sigma``
+    every kept atom meets) and its deviance is at most ``ambiguity_sigma`` sqrt(2 n) above the
+    fit it replaces.  A taken trial whose deviance lies within ``ambiguity_sigma``
     sqrt(2 n) of the fit it replaces, with a split more than ``ambiguity_split`` (1 - fidelity)
     away, is ambiguous: the data do not determine it (the search stage's rule); so is a pixel
     whose direct explains nothing and that no trial replaced.  -> (slots, restored (n,) bool,
@@ -399,10 +400,13 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     n_fit = ctx.fit[cand].sum(axis=1)
     # a direct significant where it lies (taken out alone, the others held, the deviance rises
     # by significance_chi2: the rule every kept atom meets)
+    # and a fit no worse than the one it replaces beyond the noise (ambiguity_sigma sqrt(2 n))
+    tol = opts.ambiguity_sigma * np.sqrt(2.0 * n_fit)
     take = np.zeros(cand.size, bool)
     if tried.any():
         r = np.flatnonzero(tried)
-        take[r] = _removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] >= opts.significance_chi2
+        take[r] = ((_removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] >= opts.significance_chi2)
+                   & (d_best[r] - d_cur[r] <= tol[r]))
     out = _put(cur, cand, best, take)
     its = cur.iterations.copy()
     its[cand] += spent
@@ -410,7 +414,7 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     # a direct that explains nothing and found no better place: no direct to speak of (a pixel
     # left with none is the caller's to judge: with sss_alone an sss may stand alone)
     ambiguous[cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]] = True
-    near = take & (d_best - d_cur <= opts.ambiguity_sigma * np.sqrt(2.0 * n_fit))
+    near = take & (d_best - d_cur <= tol)
     if near.any():
         r = np.flatnonzero(near)
         ax, L = ctx.samples.axis, ctx.values.shape[1]
