@@ -93,8 +93,8 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
         # far from the light it fits
         dev = deviance(new)
         better = dev < dev_best
-        for k in best:
-            best[k][better] = st[k][better]
+        rows = np.flatnonzero(better)
+        put(best, rows, take(st, rows))
         model = np.where(better[:, None], new, model)
         dev_best = np.where(better, dev, dev_best)
     drop_zero(best)

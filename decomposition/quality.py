@@ -129,18 +129,16 @@ def direct_misfit(samples: Samples, params: dict, residual: np.ndarray, total: n
     return np.sqrt(chi2 / np.maximum(near.sum(axis=1), 1))
 
 
-def direct_lead_ps(params: dict, irf=None) -> np.ndarray:
-    """(P,) how long before its delay a direct's response rises from PRE_DIRECT_LEVEL of its
-    peak, ps: sqrt(2 ln(1 / level)) widths for the Gaussian PSF (``direct_sigma_ps``), the
-    response's own leading edge with a measured one (``irf``)."""
-    w = np.asarray(params["direct_sigma_ps"], np.float64)
+def direct_lead_ps(sigma_ps, irf=None) -> np.ndarray:
+    """How long before its delay a direct's response rises from PRE_DIRECT_LEVEL of its peak,
+    ps, shape of ``sigma_ps``: sqrt(2 ln(1 / level)) widths ``sigma_ps`` for the Gaussian PSF,
+    the response's own leading edge with a measured one (``irf``)."""
+    w = np.asarray(sigma_ps, np.float64)
     if irf is None:
         return math.sqrt(2.0 * math.log(1.0 / PRE_DIRECT_LEVEL)) * w
-    from core.irf import render_shifted
-
     step = min(irf.time_step_ps, 1.0) / 4.0
     t = -np.arange(0.0, -irf.window_start_ps + step, step)[::-1]
-    shape = render_shifted(irf, t, np.zeros(1))[0]
+    shape = irf.evaluate(t) / irf.peak_per_ps
     return np.full(w.shape, -float(t[np.argmax(shape >= PRE_DIRECT_LEVEL)]))
 
 
@@ -156,7 +154,7 @@ def light_before_direct(samples: Samples, params: dict, total: np.ndarray, irf=N
     axis = samples.axis
     t = axis.t0_ps + axis.time_bin_ps * np.arange(samples.n_bins)
     d = np.asarray(params["direct_delay_ps"], np.float64)[live]
-    edge = d - direct_lead_ps({"direct_sigma_ps": np.asarray(params["direct_sigma_ps"], np.float64)[live]}, irf)
+    edge = d - direct_lead_ps(np.asarray(params["direct_sigma_ps"], np.float64)[live], irf)
     with np.errstate(invalid="ignore"):
         before = samples.fit[live] & (t[None, :] < edge[:, None])
     n = np.where(before, samples.values[live], 0.0).sum(axis=1)

@@ -66,7 +66,7 @@ from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_TR
 from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
-from .response_refine import Slots, refit_slots
+from .response_refine import Slots, refit_slots, select_rows
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
 
@@ -207,12 +207,7 @@ def _put(slots: Slots, rows, new: Slots, take) -> Slots:
 
 def _pick_rows(win, a: Slots, b: Slots) -> Slots:
     """The rows of ``a`` where ``win``, of ``b`` elsewhere."""
-    def pick(x, y):
-        if isinstance(x, dict):
-            return {k: pick(x[k], y[k]) for k in x}
-        w = win.reshape((-1,) + (1,) * (np.ndim(x) - 1))
-        return np.where(w, x, y)
-    return Slots(*(pick(x, y) for x, y in zip(a, b)))
+    return Slots(*(select_rows(win, x, y) for x, y in zip(a, b)))
 
 
 def _n_free(fam) -> np.ndarray:

@@ -92,8 +92,9 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     # the profiles are the samples less the first estimate of the offset (0 without the family)
     slots = refit_slots(samples.profiles[live], fam, delay, lalp, b_est, with_bg, params, **refine_kw)
     grow_ctx = GrowContext(samples, irf, b_est, with_bg, refine_kw, sigma_eq, opts)
-    slots, grow_info, ambiguous = grow_response(grow_ctx, slots, alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
-                                     components=components)
+    slots, grow_info, ambiguous = grow_response(grow_ctx, slots,
+                                                alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
+                                                components=components)
     fam, delay, lalp, amp, params, background, iterations = slots
     bg_info = {}
     if with_bg:

@@ -28,7 +28,7 @@ from .noise import count_deviance, poisson_weights
 from .response_atoms import slot_atoms
 from .response_label import slots_to_params
 
-__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "select_rows"]
 
 _RIDGE = 1e-12
 _LAMBDA0 = 1e-3
@@ -221,8 +221,9 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     ``fit_bg``; count data refitted POISSON_REFITS times with weights 1 / Poisson variance of the
     previous model (offset included), each refit kept for a pixel only where it lowers the
     Poisson deviance below the start's (its amplitudes solved at its own delays) and the
-    earlier refits', and the next refit starts from the better: the weights of a model that lacks a component (1 / the variance floor
-    where a missed sss tail holds counts) can pull a direct tens of ps onto that tail.
+    earlier refits', and the next refit starts from the better: the weights of a model that
+    lacks a component (1 / the variance floor where a missed sss tail holds counts) can pull a
+    direct tens of ps onto that tail.
     ``params``: the starting model (n-shaped, units, the ``background`` key read for the first
     weights).
 
@@ -260,41 +261,40 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
         p[BACKGROUND_KEY] = background
         return [fam, delay, lalp, amp, background, p], f.iterations
 
-    def deviance(p):
-        model = np.nan_to_num(render_profile(p, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
-        return count_deviance(counts_y, model, fit_mask, disp)
+    def render(p):
+        return np.nan_to_num(render_profile(p, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
 
-    best = dev_best = None
     if counts:
         counts_y = y * scale[:, None] + held[:, None]
+        model = render(params)
     for k in range(POISSON_REFITS if counts else 1):
         if counts:
-            model = np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf))
             sw = np.sqrt(poisson_weights(model, fit_mask, disp)) * scale[:, None]
             if k == 0:
-                # the start with its amplitudes solved at its own delays: what a refit must beat.
-                # Weights of a model that lacks a component (1 / the floor where the counts of
-                # a missed sss tail lie) can pull a direct tens of ps onto that tail
+                # the start with its amplitudes solved at its own delays: what a refit must beat
                 best, _ = solve(fam, delay, lalp, sw, 0)
-                dev_best = deviance(best[5])
+                model_best = render(best[5])
+                dev_best = count_deviance(counts_y, model_best, fit_mask, disp)
         cur, its = solve(fam, delay, lalp, sw, opts.n_polish)
         iterations += its
         fam, delay, lalp, amp, background, params = cur
         if counts:
             # the Poisson deviance, the fit's own objective, decides between the start and the
-            # reweighted refits
-            dev = deviance(params)
+            # reweighted refits; the next refit starts from the better of the two
+            model_cur = render(params)
+            dev = count_deviance(counts_y, model_cur, fit_mask, disp)
             better = dev < dev_best
-            best = [_rows(better, a, b) for a, b in zip(cur, best)]
+            best = [select_rows(better, a, b) for a, b in zip(cur, best)]
+            model_best = select_rows(better, model_cur, model_best)
             dev_best = np.where(better, dev, dev_best)
-            # the next refit starts from the better of the two
             fam, delay, lalp, amp, background, params = best
+            model = model_best
     params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
     return Slots(fam, delay, lalp, amp, params, background, iterations)
 
 
-def _rows(take, a, b):
+def select_rows(take, a, b):
     """The rows of ``a`` where ``take`` (n,), of ``b`` elsewhere (arrays, or dicts of them)."""
     if isinstance(a, dict):
-        return {k: _rows(take, a[k], b[k]) for k in a}
+        return {k: select_rows(take, a[k], b[k]) for k in a}
     return np.where(take.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)

@@ -315,7 +315,7 @@ def test_light_before_the_direct_is_a_poor_fit():
     y[0, 29:31] = 20.0
     samples = prepare_samples(y, time_axis(T), GridSpec(), noise="poisson")
     params = {"direct_delay_ps": np.array([60.0]), "direct_sigma_ps": np.array([4.0])}
-    assert direct_lead_ps(params)[0] == pytest.approx(4.0 * np.sqrt(2 * np.log(1e3)))
+    assert direct_lead_ps(params["direct_sigma_ps"])[0] == pytest.approx(4.0 * np.sqrt(2 * np.log(1e3)))
     nothing = np.zeros((1, 64))
     assert light_before_direct(samples, params, nothing)[0]
     held = nothing.copy()
