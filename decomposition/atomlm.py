@@ -33,7 +33,7 @@ from .jit import SQRT_PI_2, erfcx, njit
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
-__all__ = ["lm_refine", "atom_profiles", "atom_window_sums", "state_models", "nnls_amplitudes"]
+__all__ = ["lm_refine", "atom_profiles", "atom_window_sums", "atom_weighted_squares", "state_models", "nnls_amplitudes"]
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT_2 = math.sqrt(2.0)
@@ -237,6 +237,42 @@ def atom_window_sums(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp):
     if fam.size:
         _window_sums(float(t0_ps), float(time_bin_ps), int(n_bins), fam, np.ascontiguousarray(delay_ps, np.float64),
                      np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), out)
+    return out
+
+
+@njit
+def _weighted_squares(t0, T, L, fam, delay, lsig, lalp, w, rows, cap, out):
+    J = np.empty((4, L))
+    none = np.empty(0)
+    for i in range(fam.size):
+        if fam[i] == FAM_GAUSS or fam[i] == FAM_SSS:
+            lo, hi = _eval_slot(t0, T, L, fam[i], 1.0, delay[i], lsig[i], lalp[i], J, 0, 0, none)
+            wr = w[rows[i]]
+            s = 0.0
+            for m in range(lo, hi):
+                v = J[0, m]
+                s += min(wr[m], cap) * v * v
+            out[i] = s
+
+
+def atom_weighted_squares(t0_ps, time_bin_ps, n_bins, fam, delay_ps, lsig, lalp, weights, rows, cap=np.inf):
+    """Weighted sum of squares over the window of every unit atom of :func:`atom_profiles`:
+    sum_i min(w_i, cap) phi(t_i)^2, with w the row ``rows[j]`` of ``weights`` (P, n_bins) for
+    atom j (the same atoms, without the (n, n_bins) array).
+
+    Returns
+    -------
+    ndarray (n,) float64; zeros for FAM_NONE rows.
+    """
+    fam = np.ascontiguousarray(fam, np.int8)
+    w = np.ascontiguousarray(weights, np.float64)
+    if w.ndim != 2 or w.shape[1] != int(n_bins):
+        raise ValueError(f"weights have shape {w.shape}; expected (pixels, {int(n_bins)})")
+    out = np.zeros(fam.size)
+    if fam.size:
+        _weighted_squares(float(t0_ps), float(time_bin_ps), int(n_bins), fam, np.ascontiguousarray(delay_ps, np.float64),
+                          np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), w,
+                          np.ascontiguousarray(rows, np.int64), float(cap), out)
     return out
 
 

@@ -35,7 +35,7 @@ import math
 import numpy as np
 
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA, SIGNIFICANCE_WEIGHT_CAP
-from .atomlm import atom_profiles, atom_window_sums, state_models
+from .atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
@@ -75,10 +75,9 @@ def window_measures(st: dict, t_ps: np.ndarray, weights=None):
         if weights is None:
             e[pi, ki] = a * a * sums[:, 2]
         else:
-            phi = atom_profiles(*axis_of(t_ps), t_ps.size, st["fam"][pi, ki], st["delay"][pi, ki], st["lsig"][pi, ki],
-                                st["lalp"][pi, ki])
-            w = np.minimum(np.asarray(weights, np.float64)[pi], SIGNIFICANCE_WEIGHT_CAP)
-            e[pi, ki] = a * a * np.einsum("nl,nl->n", phi * phi, w)
+            e[pi, ki] = a * a * atom_weighted_squares(*axis_of(t_ps), t_ps.size, st["fam"][pi, ki], st["delay"][pi, ki],
+                                                      st["lsig"][pi, ki], st["lalp"][pi, ki], weights, pi,
+                                                      SIGNIFICANCE_WEIGHT_CAP)
     return h, e
 
 

@@ -400,3 +400,20 @@ def test_window_sums_are_those_of_the_atom_rows():
     np.testing.assert_allclose(got[:, 1], rows.sum(axis=1), rtol=1e-13)
     np.testing.assert_allclose(got[:, 2], (rows * rows).sum(axis=1), rtol=1e-13)
     assert not got[2].any() and not got[4].any() and got[1, 1] > 10 and got[3, 0] > 0
+
+
+def test_weighted_squares_are_those_of_the_atom_rows():
+    """atom_weighted_squares: sum_i min(w_i, cap) phi_i^2 of each atom_profiles row, with the
+    weights of the pixel each atom belongs to; bad weights are refused."""
+    fam = np.array([cs.FAM_GAUSS, cs.FAM_SSS, cs.FAM_NONE, cs.FAM_SSS, cs.FAM_GAUSS], np.int8)
+    delay = np.array([80.0, 150.5, 10.0, -30.0, -400.0])
+    lsig = np.log([2.5, 4.0, 3.0, 6.0, 3.0])
+    lalp = np.log([1.0, 0.02, 1.0, 0.05, 1.0])
+    pix = np.array([1, 0, 2, 1, 0])
+    w = np.random.default_rng(2).uniform(0.0, 12.0, (3, L))
+    rows = atomlm.atom_profiles(T0, T, L, fam, delay, lsig, lalp)
+    got = atomlm.atom_weighted_squares(T0, T, L, fam, delay, lsig, lalp, w, pix, 5.0)
+    np.testing.assert_allclose(got, (rows * rows * np.minimum(w[pix], 5.0)).sum(axis=1), rtol=1e-12)
+    assert got[1] > 0 and got[2] == 0 and got[4] == 0
+    with pytest.raises(ValueError, match="weights have shape"):
+        atomlm.atom_weighted_squares(T0, T, L, fam, delay, lsig, lalp, w[:, :-1], pix)
