@@ -340,6 +340,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
             "saturation_level": samples.saturation_level}
     flags = samples.flags.copy()
     noise_eff = samples.noise_eff
+    flat_noise = None          # the live pixels whose noise was judged not to follow the signal
     if method == "gradbm":
         info.update(method_options)
         params = detect_gradbm(samples, R, fams, method_options)
@@ -351,6 +352,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         if opts.signal_noise:
             det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts, info))
             info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
+            if samples.noise_model != "poisson":
+                flat_noise = (np.ones(samples.live.size, bool) if det.weights is None
+                              else ~(det.weights != 1).any(axis=1))
         # the noise at the components' scale, from the detected fit's residual: the search's
         # objective reads its data term in it where the noise is correlated (pink); where most
         # pixels' is, the data terms of every stage after this are whitened by the call's spectrum
@@ -408,7 +412,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2)
         bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
-    fit = assess_fit(samples, params, noise_eff, opts.poor_fit)
+    fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)
     flags |= fit.flags
     lead, L = samples.lead, samples.n_bins
     params = _reshape_params(params, lead, R)

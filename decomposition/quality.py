@@ -3,7 +3,8 @@
 POOR_FIT: the residual RMS over the fitted samples (censored samples count only where the
 model lies above them) exceeds ``poor_fit`` x the noise -- the larger of the solver's
 estimate and the noise at the signal, since noise that grows with the signal (photon noise)
-is not a misfit -- or where the residual RMS over the direct's own samples (its delay +-
+is not a misfit; the whole-profile noise alone for pixels whose noise was judged not to follow
+the signal (``flat_noise``: there both of the others can be the misfit itself) -- or where the residual RMS over the direct's own samples (its delay +-
 POOR_FIT_DIRECT_SIGMA fitted widths, widened by one bin) exceeds ``poor_fit`` x the same noise
 (photon counts: in noise sigmas of
 the variance-stabilised domain).  The second test sees a direct of the
@@ -54,9 +55,18 @@ class Fit:
     flags: np.ndarray
 
 
-def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: float, irf=None) -> Fit:
+def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: float, irf=None,
+               flat_noise=None) -> Fit:
     """Render ``params`` (P-shaped; with the instrument response ``irf`` when given, else the
-    Gaussian PSF), form the residual, flag poor fits and empty pixels."""
+    Gaussian PSF), form the residual, flag poor fits and empty pixels.
+
+    ``flat_noise`` (n_live,) bool over ``samples.live``, optional: the pixels whose noise has
+    been judged not to follow the signal (float data that :func:`decomposition.candidates.signal_weights`
+    left unweighted).  Their misfit is read against ``noise_eff`` alone: the noise at the
+    signal, measured on the residual, is the misfit itself where the model is wrong on the
+    scale of a bin (a PSF narrower than a bin, fitted by one wide Gaussian: 4 ps bins, white
+    NSR 0.001, a residual RMS 400 times the noise read as 0.9 times the noise at the signal).
+    """
     L = samples.n_bins
     axis = samples.axis
     P = samples.values.shape[0]
@@ -74,12 +84,13 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
         nw = np.maximum((samples.fit[live] | sat[live]).sum(axis=1), 1.0)
         rms = np.sqrt(np.einsum("pl,pl->p", rw, rw) / nw)
         s_sig = signal_noise_sigma(rr / scale[live, None], total[live] / scale[live, None], samples.fit[live])
-        s_signal = np.maximum(noise_eff[live], s_sig)
+        flat = np.zeros(live.size, bool) if flat_noise is None else np.asarray(flat_noise, bool)
+        s_signal = np.where(flat, samples.noise_eff[live], np.maximum(noise_eff[live], s_sig))
         bad = rms > poor_fit * s_signal
         # where the noise at the signal could not be measured (too few samples in the signal
         # region), the direct's samples are not judged on their own: the whole-profile noise
         # can be far below theirs (photon noise on a dark baseline)
-        measured = (s_sig > 0) | (samples.noise_model == "poisson")
+        measured = (s_sig > 0) | flat | (samples.noise_model == "poisson")
         bad |= measured & (direct_misfit(samples, params, residual, total, s_signal) > poor_fit)
         if samples.noise_model == "poisson":
             bad |= light_before_direct(samples, params, total, irf)
