@@ -125,7 +125,7 @@ PRE_DIRECT_SIGMA = 5.0
 
 #: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.quality.weak_direct`):
 #: the direct's peak below this fraction of the other light's (dimensionless), an sss onset or
-#: inter-reflection within WEAK_DIRECT_ONSET_SIGMA direct widths after it.  Paper scenes, 300 px,
+#: inter-reflection within WEAK_DIRECT_ONSET_SIGMA direct widths (plus one bin) after it.  Paper scenes, 300 px,
 #: seeds 0 and 1, 2 and 4 ps bins, white NSR 0.001 / 0.055 / 0.11 and photon 0.055 (9,600 px):
 #: 13 pixels flagged, 11 of them with fidelity < 0.5 or the direct off by > 2 sigma (fraction
 #: 0.10: 9 (8), 0.2: 18 (14), 0.25: 28 (15); within 3 widths: 10 (8) at 0.15).

@@ -20,8 +20,8 @@ finite pixel with no component at all.
 AMBIGUOUS (also set by the search, :mod:`decomposition.search`): the direct is weak and just
 before a much larger onset -- its rendered peak below WEAK_DIRECT_FRACTION of the peak of the
 other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_ONSET_SIGMA + 2)
-widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths after
-it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
+widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths plus
+one bin after it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
 larger light, with the true direct inside that light: the data often fit both equally well.
 """
 from __future__ import annotations
@@ -196,7 +196,7 @@ def weak_direct(params: dict, rendered: dict, t_ps: np.ndarray) -> np.ndarray:
     T = t_ps[1] - t_ps[0] if t_ps.size > 1 else 1.0
     other = rendered["sss"] + rendered["interreflections"].sum(axis=-2)
     with np.errstate(invalid="ignore"):
-        near = (onset - d) <= WEAK_DIRECT_ONSET_SIGMA * w
+        near = (onset - d) <= WEAK_DIRECT_ONSET_SIGMA * w + T
         window = (t_ps[None, :] >= d[:, None]) & (t_ps[None, :] <= (d + (WEAK_DIRECT_ONSET_SIGMA + 2.0) * w + T)[:, None])
     h_other = np.where(window, other, 0.0).max(axis=1)
     h_direct = rendered["direct"].max(axis=1)

@@ -94,7 +94,8 @@ def test_weak_direct_just_before_a_larger_onset_is_ambiguous():
     t = T + T * np.arange(L)
     cases = [(0.05, 403.0, True),     # weak, sss onset 2.5 widths after: in doubt
              (1.0, 403.0, False),     # a strong direct
-             (0.05, 410.0, False)]    # weak, but the onset 8 widths later: resolved
+             (0.05, 410.0, False),    # weak, but the onset 8 widths later: resolved
+             (0.05, 405.5, True)]     # 4.6 widths later, but within one bin of the 4 widths
     for amp, onset, want in cases:
         p = _weak_direct_params(amp, onset)
         rend = render_params(p, L, T, T)
