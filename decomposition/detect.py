@@ -4,8 +4,10 @@ For every block of live pixels: the multi-start greedy ConvSCD solve
 (:func:`decomposition.convscd.solve_multistart`), the 5 % threshold and merging, and the
 polish of the kept atoms on the data term (:func:`decomposition.convscd.polish_block`).
 Where the noise at the signal turns out larger than the whole-profile estimate (photon
-noise), the block's pixels are solved again with the sparsity weight of that noise: the
-weight must follow the noise at the components, not in the quiet tail.
+noise), those pixels are solved again with the sparsity weight of that noise: the weight must
+follow the noise at the components, not in the quiet tail.  On float data this second pass
+runs only where most of the call's pixels show such noise (RESTART_POOL_FRACTION): shot noise
+is the detector's, while a few pixels' larger "noise at the signal" is their misfit.
 
 The GradBM baseline (:func:`detect_gradbm`) takes the place of this stage for
 ``method="gradbm"``.
@@ -18,7 +20,7 @@ import numpy as np
 
 from . import components as comp
 from . import convscd as cs
-from .constants import RESTART_FACTOR
+from .constants import RESTART_FACTOR, RESTART_POOL_FRACTION
 from .masks import SampleMask
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from .noise import signal_noise_sigma
@@ -111,6 +113,9 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
 
     ``opts`` must be resolved (:meth:`SolverOptions.resolved`).  Each block is solved as one
     batch (the block-wide choice between the plain and the masked pick follows its samples).
+    The second noise pass (the module docstring) runs where the noise at the signal exceeds
+    RESTART_FACTOR x the pixel's noise, on float data only where that holds for at least
+    RESTART_POOL_FRACTION of the call's live pixels (see there).
     """
     P = samples.values.shape[0]
     live = samples.live
@@ -119,26 +124,30 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     noise_eff = samples.noise_eff.copy()
     hist = np.full((P, opts.max_iter + 1), np.nan)
     n_iter = np.zeros(P, np.int64)
-    states, converged = [], []
+    blocks = []
     lm_total, restarted = 0, 0
     for b0 in range(0, live.size, opts.block_size):
         bi = live[b0:b0 + opts.block_size]
         pb, mb = solver_inputs(samples, bi)
-        sb = noise_eff[bi].copy()
-        st, sinfo, model_b, nl = _solve(pb, mb, sb, dic, t, opts, solve_opts, samples.significance_sigma(bi, sb))
+        st, sinfo, model_b, nl = _solve(pb, mb, noise_eff[bi], dic, t, opts, solve_opts,
+                                        samples.significance_sigma(bi, noise_eff[bi]))
         lm_total += sinfo["lm_iterations"] + nl
         s_sig = signal_noise_sigma(pb - model_b, model_b, mb.fit)
-        again = np.nonzero(s_sig > RESTART_FACTOR * sb)[0]
-        if again.size:
-            sb[again] = s_sig[again]
-            st2, sinfo2, _, nl2 = _solve(pb[again], mb[again], sb[again], dic, t, opts, solve_opts,
-                                         samples.significance_sigma(bi[again], sb[again]))
+        blocks.append((bi, st, sinfo, np.nonzero(s_sig > RESTART_FACTOR * noise_eff[bi])[0], s_sig))
+    raised = sum(b[3].size for b in blocks)
+    second = samples.noise_model == "poisson" or raised >= RESTART_POOL_FRACTION * live.size
+    states, converged = [], []
+    for bi, st, sinfo, again, s_sig in blocks:
+        if second and again.size:
+            pb, mb = solver_inputs(samples, bi[again])
+            sb = s_sig[again]
+            st2, sinfo2, _, nl2 = _solve(pb, mb, sb, dic, t, opts, solve_opts, samples.significance_sigma(bi[again], sb))
             lm_total += sinfo2["lm_iterations"] + nl2
             put(st, again, st2)
             for key in ("objective", "n_iter", "converged"):
                 sinfo[key][again] = sinfo2[key]
             restarted += sinfo2.get("restarted", 0)
-            noise_eff[bi[again]] = sb[again]
+            noise_eff[bi[again]] = sb
         hist[bi] = sinfo["objective"]
         n_iter[bi] = sinfo["n_iter"]
         restarted += sinfo.get("restarted", 0)
