@@ -35,6 +35,7 @@ __all__ = [
     "SEARCH_NEAR_DIRECT_CHI2",
     "WEAK_DIRECT_FRACTION",
     "WEAK_DIRECT_ONSET_SIGMA",
+    "BRIGHT_ECHO_RATIO",
     "PRE_DIRECT_LEVEL",
     "PRE_DIRECT_SIGMA",
     "POISSON_REFITS",
@@ -132,6 +133,12 @@ PRE_DIRECT_SIGMA = 5.0
 #: 0.10: 9 (8), 0.2: 18 (14), 0.25: 28 (15); within 3 widths: 10 (8) at 0.15).
 WEAK_DIRECT_FRACTION = 0.15
 WEAK_DIRECT_ONSET_SIGMA = 4.0
+#: AMBIGUOUS for an inter-reflection brighter than the direct by more than this ratio of their
+#: peak heights (:func:`decomposition.quality.bright_echo`; dimensionless).  Paper scenes (their
+#: inter-reflections 0.01-1x the direct), 600 px, seed 0, 2 and 4 ps bins, white / pink / photon
+#: at NSR 0.001 / 0.055 / 0.11 (10,800 px): such an echo in 97 / 32 / 21 pixels at a ratio of
+#: 1 / 1.5 / 2, of them 40 / 25 / 18 with fidelity < 0.5 and 29 / 0 / 0 above 0.9.
+BRIGHT_ECHO_RATIO = 1.5
 
 #: Restart threshold (dimensionless ratio).  Used twice, for the same reason: a fit whose
 #: misfit exceeds its noise expectation by half again is not explained by the noise.

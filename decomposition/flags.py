@@ -17,6 +17,8 @@ AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   reach objectives within the noise of each other; or the direct
                   is weak (< 15 % of the peak) just before a much larger sss or
                   inter-reflection onset (:func:`decomposition.quality.weak_direct`);
+                  or an inter-reflection is more than 1.5x as high as the direct
+                  (:func:`decomposition.quality.bright_echo`);
                   or, with a measured response, the pixel has an sss and no
                   direct, or a direct not significant in its own fit
                   (:mod:`decomposition.response_grow`)

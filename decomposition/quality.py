@@ -23,6 +23,9 @@ other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_O
 widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths plus
 one bin after it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
 larger light, with the true direct inside that light: the data often fit both equally well.
+Also an inter-reflection whose peak is more than BRIGHT_ECHO_RATIO times the direct's
+(:func:`bright_echo`): every bounce loses light, and on the paper's scenes such an echo is the
+direct's or the sss's light split off.
 """
 from __future__ import annotations
 
@@ -32,13 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import components as comp
-from .constants import (POOR_FIT_DIRECT_SIGMA, PRE_DIRECT_LEVEL, PRE_DIRECT_SIGMA, WEAK_DIRECT_FRACTION,
-                        WEAK_DIRECT_ONSET_SIGMA)
+from .constants import (BRIGHT_ECHO_RATIO, POOR_FIT_DIRECT_SIGMA, PRE_DIRECT_LEVEL, PRE_DIRECT_SIGMA,
+                        WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA)
 from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
 from .noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
-__all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct", "light_before_direct",
+__all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct", "bright_echo", "light_before_direct",
            "direct_lead_ps"]
 
 
@@ -100,7 +103,7 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
         has_any |= np.isfinite(params["ir_delay_ps"]).any(axis=1)
     mark(flags, samples.finite & ~has_any, EMPTY)
     t = axis.t0_ps + axis.time_bin_ps * np.arange(L)
-    mark(flags, weak_direct(params, rend, t), AMBIGUOUS)
+    mark(flags, weak_direct(params, rend, t) | bright_echo(params), AMBIGUOUS)
     return Fit(direct=rend["direct"], sss=rend["sss"], interreflections=rend["interreflections"],
                residual=residual, flags=flags)
 
@@ -172,6 +175,18 @@ def light_before_direct(samples: Samples, params: dict, total: np.ndarray, irf=N
     m = np.where(before, np.maximum(total[live], 0.0), 0.0).sum(axis=1)
     p = poisson.sf(n - 1.0, np.maximum(m, 1e-12))
     return np.isfinite(d) & before.any(axis=1) & (p < norm.sf(PRE_DIRECT_SIGMA))
+
+
+def bright_echo(params: dict) -> np.ndarray:
+    """(P,) bool: an inter-reflection's amplitude (peak height) is more than BRIGHT_ECHO_RATIO
+    times the direct's (``direct_amplitude`` (P,), ``ir_amplitude`` (P, R); NaN: absent)."""
+    d = np.asarray(params["direct_amplitude"], np.float64)
+    ir = np.asarray(params["ir_amplitude"], np.float64)
+    if ir.shape[-1] == 0:
+        return np.zeros(d.shape, bool)
+    top = np.max(np.where(np.isfinite(ir), ir, -np.inf), axis=-1)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (top > BRIGHT_ECHO_RATIO * d)
 
 
 def weak_direct(params: dict, rendered: dict, t_ps: np.ndarray) -> np.ndarray:

@@ -175,3 +175,27 @@ def test_narrow_chain_direct_is_found_or_flagged_in_decompose():
     off = ~(np.abs(est - params["direct_delay_ps"]) <= 2 * params["direct_sigma_ps"])
     assert np.all(~off | (r.flags[:n_hard] != 0))
     assert not np.any(r.flags[n_hard:] & POOR_FIT)
+
+
+def test_an_echo_brighter_than_the_direct_is_ambiguous():
+    from decomposition.constants import BRIGHT_ECHO_RATIO
+    from decomposition.flags import AMBIGUOUS
+    from decomposition.quality import bright_echo
+
+    p = _params((400.0, 1.0, 1.2), (403.0, 0.5, 0.025), 5)
+    ratio = BRIGHT_ECHO_RATIO
+    p["ir_delay_ps"] = np.array([[420.0, 440.0], [420.0, 440.0], [420.0, np.nan], [420.0, np.nan], [np.nan, np.nan]])
+    p["ir_amplitude"] = np.array([[0.3, 0.99 * ratio], [0.3, 1.01 * ratio], [np.nan, np.nan], [2 * ratio, np.nan],
+                                  [np.nan, np.nan]])
+    p["ir_amplitude"][2, 0] = 0.5
+    p["ir_sigma_ps"] = np.full((5, 2), 1.2)
+    p["direct_delay_ps"][3] = np.nan          # no direct: nothing to compare with
+    p["direct_amplitude"][3] = np.nan
+    assert bright_echo(p).tolist() == [False, True, False, False, False]
+    # no inter-reflection slots at all
+    assert not bright_echo(_params((400.0, 1.0, 1.2), (403.0, 0.5, 0.025), 2)).any()
+    # through the quality stage
+    clean = render_profile(p, L, T)
+    s = prepare_samples(clean + 0.002 * np.random.default_rng(4).standard_normal(clean.shape), time_axis(T), GridSpec())
+    flags = assess_fit(s, p, s.noise_eff, 3.0).flags
+    assert (flags & AMBIGUOUS != 0).tolist()[:3] == [False, True, False]
