@@ -4,9 +4,9 @@ POOR_FIT: the residual RMS over the fitted samples (censored samples count only 
 model lies above them) exceeds ``poor_fit`` x the noise -- the larger of the solver's
 estimate and the noise at the signal, since noise that grows with the signal (photon noise)
 is not a misfit; the whole-profile noise alone for pixels whose noise was judged not to follow
-the signal (``flat_noise``: there both of the others can be the misfit itself) -- or where the residual RMS over the direct's own samples (its delay +-
-POOR_FIT_DIRECT_SIGMA fitted widths, widened by one bin) exceeds ``poor_fit`` x the same noise
-(photon counts: in noise sigmas of
+the signal (``flat_noise``: there both of the others can be the misfit itself) -- or where the
+residual RMS over the direct's own samples (its delay +- POOR_FIT_DIRECT_SIGMA fitted widths,
+widened by one bin) exceeds ``poor_fit`` x the same noise (photon counts: in noise sigmas of
 the variance-stabilised domain).  The second test sees a direct of the
 wrong shape: its misfit lies on a few samples, diluted in the whole window's RMS, and being
 on the scale of a bin it also raises the noise estimated at the signal (second differences of
@@ -21,8 +21,9 @@ AMBIGUOUS (also set by the search, :mod:`decomposition.search`): the direct is w
 before a much larger onset -- its rendered peak below WEAK_DIRECT_FRACTION of the peak of the
 other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_ONSET_SIGMA + 2)
 widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths plus
-one bin after it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the onset of the
-larger light, with the true direct inside that light: the data often fit both equally well.
+one bin after it (:func:`weak_direct`).  Such a Gaussian can be the direct or a bump on the
+onset of the larger light, with the true direct inside that light: the data often fit both
+equally well.
 Also an inter-reflection whose peak is more than BRIGHT_ECHO_RATIO times the direct's
 (:func:`bright_echo`): every bounce loses light, and on the paper's scenes such an echo is the
 direct's or the sss's light split off.
@@ -41,8 +42,8 @@ from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
 from .noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
-__all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct", "bright_echo", "light_before_direct",
-           "direct_lead_ps"]
+__all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct", "bright_echo",
+           "light_before_direct", "direct_lead_ps"]
 
 
 @dataclass(frozen=True)
@@ -64,11 +65,13 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
     Gaussian PSF), form the residual, flag poor fits and empty pixels.
 
     ``flat_noise`` (n_live,) bool over ``samples.live``, optional: the pixels whose noise has
-    been judged not to follow the signal (float data that :func:`decomposition.candidates.signal_weights`
-    left unweighted).  Their misfit is read against ``noise_eff`` alone: the noise at the
-    signal, measured on the residual, is the misfit itself where the model is wrong on the
-    scale of a bin (a PSF narrower than a bin, fitted by one wide Gaussian: 4 ps bins, white
-    NSR 0.001, a residual RMS 400 times the noise read as 0.9 times the noise at the signal).
+    been judged not to follow the signal (float data that
+    :func:`decomposition.candidates.signal_weights` left unweighted).  Their misfit is read
+    against the whole-profile noise ``samples.noise_eff`` alone, not against ``noise_eff`` (which
+    the detection's second noise pass may have raised) or the noise at the signal: both are read
+    off the residual, and where the model is wrong on the scale of a bin they are the misfit
+    itself (4 ps bins, white NSR 0.001: a 1.9 ps direct and its echo fitted as one Gaussian 8 ps
+    wide, the noise raised to 0.16 of the peak, the residual RMS 400 times the true noise).
     """
     L = samples.n_bins
     axis = samples.axis
