@@ -25,18 +25,19 @@ import numpy as np
 from . import convscd as cs
 from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
-from .flags import (AMBIGUOUS, AT_BOUND, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT, SATURATED,  # noqa: F401
-                    OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
-from .label import final_state, label_components
+from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT,  # noqa: F401
+                    SATURATED, OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
+from .label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
 from .quality import assess_fit
-from .refit import component_errors, refine_components
+from .refit import clear_unlit, component_errors, refine_components
 from .candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
 from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
+from .slots import shape_bounds
 
 __all__ = [
     "decompose",
@@ -208,6 +209,11 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         1 / Poisson variance of the model, reweighted POISSON_REFITS times, by
         the solver's compiled LM (:mod:`decomposition.countpolish`): the Poisson
         maximum-likelihood fit, without a NumPy refit (``refine=True`` adds one).
+        Widths and the sss attenuation stay within the solver's bounds (the grid's ranges
+        widened by ``bound_factor``); AT_BOUND where one ends at a bound.  With the
+        background family the refinement always runs, and a pixel whose components are not
+        significant together against its offset alone (``significance_chi2``) is reported
+        EMPTY with the mean as its offset (:func:`decomposition.refit.clear_unlit`).
     search : bool
         Structured alternative starts for the pixels whose first answer is in
         doubt (an sss onset before the earliest Gaussian or far after it, an sss
@@ -409,7 +415,19 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
     bg_stderr = None
     if (opts.refine or background or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
-        params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2)
+        # within the solver's bounds on the widths and the attenuation, and flagged where it ends
+        # at one: left free, a component fitted to one noisy sample on a pure background went
+        # to a width of 0.2 ps and 10^5 times the counts, unflagged
+        bounds = shape_bounds(grid, opts.bound_factor)
+        params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2,
+                                          bounds=bounds)
+        if background:
+            # nothing above the offset: the components are noise fitted on a pure background
+            # (the relative threshold always keeps the largest); the pixel is reported empty
+            params, cleared = clear_unlit(samples, params, opts.significance_chi2)
+            flags[cleared] &= DATA_FLAGS
+            info["cleared_unlit"] = int(cleared.sum())
+        mark(flags, samples.live[params_at_bound({k: v[samples.live] for k, v in params.items()}, bounds)], AT_BOUND)
         bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)

@@ -43,7 +43,7 @@ import enum
 import numpy as np
 
 __all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
-           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF", "OFF_WINDOW"]
+           "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF", "OFF_WINDOW", "DATA_FLAGS"]
 
 #: dtype of a flags array
 FLAG_DTYPE = np.uint16
@@ -79,6 +79,9 @@ TRUNCATED = Flag.TRUNCATED
 AMBIGUOUS = Flag.AMBIGUOUS
 WIDE_PSF = Flag.WIDE_PSF
 OFF_WINDOW = Flag.OFF_WINDOW
+
+#: the bits that describe the samples themselves, not a fit of them
+DATA_FLAGS = FLAG_DTYPE(SATURATED | SPIKE | NONFINITE)
 
 
 def flag_names(bits) -> list[str]:

@@ -25,7 +25,7 @@ from .options import SolverOptions
 from .prepare import Samples
 from .slots import parameter_bounds, tie_widths
 
-__all__ = ["Labels", "final_state", "label_components", "at_bound"]
+__all__ = ["Labels", "final_state", "label_components", "at_bound", "params_at_bound"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,22 @@ def at_bound(state: dict, bounds: dict) -> np.ndarray:
     hit |= (state["fam"] == FAM_SSS) & ((lalp <= bounds["lalp"][0] + BOUND_TOL)
                                         | (lalp >= bounds["lalp"][1] - BOUND_TOL))
     return hit.any(axis=1)
+
+
+def params_at_bound(params: dict, bounds: dict) -> np.ndarray:
+    """(P,) bool: :func:`at_bound`'s rule on named parameters (P-shaped ``params``, NaN where
+    absent; ``bounds`` with "lsig" and "lalp", log sigma_ps and log alpha_per_ps): a present
+    component's width, or the sss attenuation, at its bound."""
+    lo_s, hi_s = bounds["lsig"]
+    lo_a, hi_a = bounds["lalp"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        widths = [np.log(np.asarray(params[k], np.float64)).reshape(len(params[k]), -1)
+                  for k in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps")]
+        lsig = np.concatenate(widths, axis=1)
+        lalp = np.log(np.asarray(params["sss_alpha_per_ps"], np.float64))
+        hit = ((lsig <= lo_s + BOUND_TOL) | (lsig >= hi_s - BOUND_TOL)).any(axis=1)
+        hit |= (lalp <= lo_a + BOUND_TOL) | (lalp >= hi_a - BOUND_TOL)
+    return hit
 
 
 def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions, noise=None,

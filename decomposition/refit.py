@@ -25,7 +25,7 @@ from .constants import POISSON_REFITS
 from .noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
 
-__all__ = ["refine_components", "component_errors", "sample_weights", "background_stats"]
+__all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
 
 def sample_weights(samples: Samples, params: dict) -> np.ndarray:
@@ -46,8 +46,13 @@ def _model(samples: Samples, params: dict, irf=None) -> np.ndarray:
 
 
 def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
-                      background_chi2: float | None = None):
+                      background_chi2: float | None = None, bounds: dict | None = None):
     """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
+
+    ``bounds`` ({"lsig", "lalp"}: log sigma_ps and log alpha_per_ps, as the solver's
+    :func:`decomposition.slots.shape_bounds`): the refinement's bounds on every width and the sss
+    attenuation (default :func:`decomposition.refine.refine`'s, a tenth of a bin to the window
+    and 1e-7-1e3 per ps).
 
     With a ``background`` in ``params`` (the ``b`` family) the offset of every live pixel is
     fitted jointly with the amplitudes; then, where it is not significant
@@ -71,6 +76,8 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
         fit_bg[samples.live] = True
 
     counts = samples.noise_model == "poisson"
+    limits = {} if bounds is None else {"sigma_bounds_ps": tuple(np.exp(bounds["lsig"])),
+                                        "alpha_bounds_per_ps": tuple(np.exp(bounds["lalp"]))}
 
     def deviance(params):
         return count_deviance(samples.values, _model(samples, params), samples.fit, samples.dispersion)
@@ -83,7 +90,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
         for _ in range(n_fits):
             new, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                                 weights=sample_weights(samples, params), shared_sigma=shared_sigma,
-                                sss_after_direct=sss_after_direct, fit_background=fit_bg)
+                                sss_after_direct=sss_after_direct, fit_background=fit_bg, **limits)
             nonlocal iterations, refined
             iterations += rinfo["iterations"].reshape(-1)
             refined |= rinfo["refined"].reshape(-1)
@@ -109,6 +116,36 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
             params = fits(params, keep)
         info.update(background_chi2=chi2, background_stderr=np.where(keep, stderr, np.nan))
     return params, {k: v.reshape(lead) for k, v in info.items()}
+
+
+def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=None):
+    """Pixels whose components are not significant together against their offset alone
+    (:func:`decomposition.background.light_test` below ``significance_chi2``) lose them: every
+    component NaN, the offset the mean of the fitted samples.  -> (params (P-shaped, a new
+    dict), cleared (P,) bool).  ``params`` must hold ``background``; only live pixels are
+    judged."""
+    from .background import light_test
+
+    live = samples.live
+    cleared = np.zeros(samples.values.shape[0], bool)
+    if live.size == 0:
+        return params, cleared
+    counts = samples.noise_model == "poisson"
+    values, fit = samples.values[live], samples.fit[live]
+    stat = light_test(values, _model(samples, params, irf)[live], fit, counts=counts,
+                      noise=samples.noise_eff[live] * samples.scale[live],
+                      dispersion=None if samples.dispersion is None else samples.dispersion[live])
+    cleared[live] = stat < significance_chi2
+    if not cleared.any():
+        return params, cleared
+    out = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
+    for k, v in out.items():
+        if k != BACKGROUND_KEY and not k.endswith("_stderr"):
+            v[cleared] = np.nan
+    n = np.maximum(fit.sum(axis=1), 1)
+    mean = np.where(fit, values, 0.0).sum(axis=1) / n
+    out[BACKGROUND_KEY][live[cleared[live]]] = mean[cleared[live]]
+    return out, cleared
 
 
 def background_stats(samples: Samples, params: dict, irf=None):

@@ -21,7 +21,7 @@ from .masks import SampleMask
 from .onsets import onset_links
 
 __all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "objective",
-           "linked_onsets", "refine_atoms", "parameter_bounds", "axis_of", "tie_widths"]
+           "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
 
 
 def axis_of(t):
@@ -104,12 +104,18 @@ def new_state(P, K):
 def parameter_bounds(dic, bound_factor: float):
     """Bounds of delay (ps), log sigma and log alpha of a :class:`~decomposition.dictionary.Dictionary`'s
     atoms: the window widened by ``pre`` bins, the grid ranges widened by ``bound_factor``."""
-    g = dic.grid
     T = dic.time_bin_ps
+    return {"delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
+            **shape_bounds(dic.grid, bound_factor)}
+
+
+def shape_bounds(grid, bound_factor: float):
+    """{"lsig": (lo, hi), "lalp": (lo, hi)}: log sigma_ps and log alpha_per_ps bounds of a
+    :class:`~decomposition.options.GridSpec`'s ranges widened by ``bound_factor``."""
     return {
-        "delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),
-        "lsig": (math.log(g.sigma_range_ps[0] / bound_factor), math.log(g.sigma_range_ps[1] * bound_factor)),
-        "lalp": (math.log(g.alpha_range_per_ps[0] / bound_factor), math.log(g.alpha_range_per_ps[1] * bound_factor)),
+        "lsig": (math.log(grid.sigma_range_ps[0] / bound_factor), math.log(grid.sigma_range_ps[1] * bound_factor)),
+        "lalp": (math.log(grid.alpha_range_per_ps[0] / bound_factor),
+                 math.log(grid.alpha_range_per_ps[1] * bound_factor)),
     }
 
 

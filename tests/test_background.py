@@ -317,3 +317,79 @@ def test_pink_noise_bumps_are_mostly_not_significant_components():
     ref = count(decompose(y, T, significance_chi2=0.0))
     assert ref.mean() == 0.0
     assert got.mean() < 1.0
+
+
+# --------------------------------------------------------------------------- light above the offset
+
+def test_light_test_is_the_data_term_of_the_offset_alone_less_the_model():
+    from decomposition.background import light_test
+    from decomposition.noise import count_deviance
+
+    rng = np.random.default_rng(12)
+    p, clean = _scene(4, rng, amp=50.0)
+    y = rng.poisson(clean + 2.0).astype(float)
+    fit = np.ones(y.shape, bool)
+    fit[:, :10] = False
+    model = clean + 2.0
+    flat = np.broadcast_to((y[:, 10:].mean(axis=1))[:, None], y.shape)
+    want = count_deviance(y, flat, fit) - count_deviance(y, model, fit)
+    np.testing.assert_allclose(light_test(y, model, fit, counts=True), want, rtol=1e-12)
+    assert np.all(want > 100)
+    z = clean + 0.3 + 0.01 * rng.standard_normal(clean.shape)
+    rss0 = ((z[:, 10:] - z[:, 10:].mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
+    rss = ((z[:, 10:] - (clean + 0.3)[:, 10:]) ** 2).sum(axis=1)
+    np.testing.assert_allclose(light_test(z, clean + 0.3, fit, counts=False, noise=np.full(4, 0.01)),
+                               (rss0 - rss) / 1e-4, rtol=1e-10)
+
+
+@pytest.mark.parametrize("level", [0.2, 5.0])
+def test_pure_background_counts_are_empty_with_their_offset(level):
+    # no light but the offset: every component the fit finds is noise, and the relative
+    # threshold keeps the largest of them whatever its size
+    from decomposition.flags import EMPTY
+
+    y = np.random.default_rng(3).poisson(level, (60, 256)).astype(np.uint16)
+    got = decompose(y, T, components="d,s,r,b")
+    assert np.all(got.flags == EMPTY)
+    assert got.info["cleared_unlit"] == 60
+    for key in ("direct_delay_ps", "sss_delay_ps"):
+        assert np.all(np.isnan(got.params[key]))
+    assert np.all(np.isnan(got.params["ir_delay_ps"]))
+    np.testing.assert_allclose(got.params["background"], y.mean(axis=1), rtol=1e-12)
+
+
+def test_pure_offset_float_data_are_empty_and_a_signal_on_it_is_kept():
+    from decomposition.flags import EMPTY
+
+    rng = np.random.default_rng(4)
+    flat = 3.0 + 0.05 * rng.standard_normal((30, 256))
+    p, clean = _scene(30, rng, amp=1.0)
+    lit = clean + 3.0 + 0.05 * rng.standard_normal(clean.shape)
+    got = decompose(np.concatenate([flat, lit]), T, components="d,s,b")
+    assert np.all(got.flags[:30] == EMPTY)
+    assert got.info["cleared_unlit"] == 30
+    np.testing.assert_allclose(got.params["background"][:30], flat.mean(axis=1), rtol=1e-12)
+    assert not np.any(got.flags[30:] & EMPTY)
+    np.testing.assert_allclose(got.params["direct_delay_ps"][30:], p["direct_delay_ps"], atol=0.5)
+
+
+def test_refined_widths_stay_within_the_solver_bounds_and_are_flagged_there():
+    from decomposition.flags import AT_BOUND
+    from decomposition.label import params_at_bound
+    from decomposition.options import GridSpec
+    from decomposition.slots import shape_bounds
+
+    bounds = shape_bounds(GridSpec(), 4.0)
+    lo_s, hi_s = np.exp(bounds["lsig"])
+    p = empty_params((4,), n_ir=1)
+    p["direct_sigma_ps"][:] = [3.0, lo_s, 3.0, np.nan]
+    p["ir_sigma_ps"][:, 0] = [np.nan, np.nan, hi_s, np.nan]
+    p["sss_sigma_ps"][:] = [3.0, np.nan, np.nan, 3.0]
+    p["sss_alpha_per_ps"][:] = [0.03, np.nan, np.nan, np.exp(bounds["lalp"][0])]
+    assert params_at_bound(p, bounds).tolist() == [False, True, True, True]
+    # a direct far narrower than a bin on a pure background: refined at the bound, flagged
+    y = np.full((1, 256), 20.0)
+    y[0, 100] = 400.0
+    got = decompose(y, T, components="d,b")
+    assert got.params["direct_sigma_ps"][0] >= lo_s * (1 - 1e-9)
+    assert got.flags[0] & AT_BOUND
