@@ -34,7 +34,8 @@ import math
 
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_MASS, RESOLVED_SIGMA, SIGNIFICANCE_WEIGHT_CAP
+from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA,
+                        SIGNIFICANCE_WEIGHT_CAP)
 from .atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
@@ -103,11 +104,12 @@ def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) ->
     ``mass_out`` of its area outside the window (:func:`window_fraction`); the rule of
     :func:`runs_off_window` on the Gaussian atoms."""
     return runs_off_window(st["fam"] != FAM_NONE, st["fam"] == FAM_GAUSS, st["delay"],
-                           window_fraction(st, t_ps), t_ps, mass_out)
+                           window_fraction(st, t_ps), t_ps, mass_out, width_ps=np.exp(st["lsig"]))
 
 
 def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray, fraction_in: np.ndarray,
-                    t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
+                    t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS, width_ps=None,
+                    edge_widths: float = OFF_WINDOW_EDGE_SIGMA) -> np.ndarray:
     """The OFF_WINDOW rule, (P, K) bool, for atoms of any shape.
 
     An active atom runs off the window when it peaks at its delay (``peaked``: a Gaussian, a
@@ -127,10 +129,16 @@ def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray
         The window's sample times, ps (uniform).
     mass_out : float
         Largest fraction of the area allowed outside (OFF_WINDOW_MASS).
+    width_ps : ndarray broadcasting to (P, K) or float, optional
+        The peaked atoms' widths (a Gaussian's sigma; a response's Gaussian-equivalent sigma).
+        Given, a peaked atom also runs off where its delay lies within ``edge_widths`` of them
+        of the window's edge (half a bin outside the first or the last sample): its rise (or
+        fall) is cut, and its delay is read off the other side alone.
     """
     half = 0.5 * float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 0.0
+    reach = 0.0 if width_ps is None else edge_widths * np.asarray(width_ps, np.float64)
     with np.errstate(invalid="ignore"):
-        centre_out = peaked & ((delay_ps < t_ps[0] - half) | (delay_ps > t_ps[-1] + half))
+        centre_out = peaked & ((delay_ps - reach < t_ps[0] - half) | (delay_ps + reach > t_ps[-1] + half))
     return active & (centre_out | (fraction_in < 1.0 - mass_out))
 
 

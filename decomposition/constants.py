@@ -60,6 +60,7 @@ __all__ = [
     "BACKGROUND_ITERATIONS",
     "BACKGROUND_COUNT_WINDOW_BINS",
     "OFF_WINDOW_MASS",
+    "OFF_WINDOW_EDGE_SIGMA",
     "RESOLVED_SIGMA",
     "WHITE_LAG_RATIO",
 ]
@@ -298,6 +299,10 @@ BACKGROUND_COUNT_WINDOW_BINS = 16
 #: runs off the window's edge (OFF_WINDOW flag); a Gaussian centred on the first or the last
 #: bin has half of it outside
 OFF_WINDOW_MASS = 0.2
+#: a peaked component (a Gaussian, a shifted response) whose delay lies within this many of its
+#: widths of the window's edge runs off it too: its rise (or fall) is cut and its delay read
+#: off one side (the OFF_WINDOW flag; dimensionless)
+OFF_WINDOW_EDGE_SIGMA = 2.0
 #: an atom below the relative threshold may be kept on its significance alone only when its
 #: delay is more than this many PSF widths from that of every larger atom of its pixel (the
 #: inter-reflection gap of the search stage): a faint atom closer than that is the model's

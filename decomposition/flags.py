@@ -24,8 +24,9 @@ AMBIGUOUS   512   the data do not determine the split: two starts of the search
                   (:mod:`decomposition.response_grow`)
 WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
                   (an sss hump taken for a broad direct, typically)
-OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian centred
-                  before the first bin or after the last, or more than
+OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian (or a
+                  shifted response) centred within OFF_WINDOW_EDGE_SIGMA widths of
+                  the window's edge or beyond it, or more than
                   OFF_WINDOW_MASS of a component's area outside the window
                   (:func:`decomposition.components.off_window`); its parameters
                   are extrapolated, only its in-window part was judged

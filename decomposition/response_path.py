@@ -135,7 +135,8 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     state = {"fam": fam, "lsig": np.zeros(fam.shape), "lalp": lalp}
     mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": bounds["lalp"]})], AT_BOUND)
     inside = slot_window_fraction(irf, t, fam, delay, lalp)
-    mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t).any(axis=1)], OFF_WINDOW)
+    mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t,
+                                     width_ps=sigma_eq).any(axis=1)], OFF_WINDOW)
     # the split the data do not determine: a restored direct within the noise of the fit
     # without it, or (the search stage's rule) an sss left with no direct where the paper's
     # model gives every pixel one
