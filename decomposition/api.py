@@ -380,7 +380,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                         ambiguous=int(found.ambiguous.sum()))
         # the steps after the search judge significance with the noise seen in the residual
         samples = dataclasses.replace(samples, lagged_noise=residual_significance_noise(samples, det, dic, opts))
-        if opts.grow:
+        if opts.grow and "r" in fams:
+            # (the forward step and the swap add inter-reflections: not where none are asked,
+            # where an added Gaussian was dropped again by the labels, flagged TRUNCATED)
             state, grown = grow_components(samples, det, dic, opts)
             det = dataclasses.replace(det, state=state)
             info["grown"] = int(grown.sum())

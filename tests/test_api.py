@@ -105,6 +105,21 @@ def test_components_without_sss_or_reflections():
         decompose(y, T, components="r")
 
 
+def test_no_inter_reflection_is_grown_where_none_is_asked():
+    # the forward step and the sss swap add Gaussians after the direct; without "r" the labels
+    # dropped each one again and flagged the pixel TRUNCATED (178 of 600 such count pixels)
+    from decomposition.flags import TRUNCATED
+    from decomposition.synthetic import make_profiles
+
+    d = make_profiles(120, 256, seed=7, kinds=["d+s"], time_bin_ps=T, ranges="paper", photons_per_pixel=1000.0,
+                      background=0.05)
+    res = decompose(d.noisy, T, components="d,s")
+    assert "grown" not in res.info and "swapped" not in res.info
+    assert not np.any(res.flags & TRUNCATED)
+    with_r = decompose(d.noisy, T, components="d,s,r")
+    assert with_r.info["grown"] + with_r.info["swapped"] > 0       # where they are asked, they run
+
+
 def test_all_zero_pixel_is_empty_without_warnings():
     _, y = _one_pixel()
     x = np.vstack([np.zeros_like(y[0]), y[0]])
