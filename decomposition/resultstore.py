@@ -5,6 +5,7 @@ Layout (every array has ``dimension_names``; ``xarray.open_zarr(path)`` opens it
     direct_delay_ps, direct_amplitude, direct_sigma_ps,          (y, x)     float64, NaN = absent
     sss_delay_ps, sss_amplitude, sss_alpha_per_ps, sss_sigma_ps  (y, x)     float64, NaN = absent
     ir_delay_ps, ir_amplitude, ir_sigma_ps                       (y, x, r)  float64, NaN = absent
+    background (with the ``b`` family)                            (y, x)     float64, signal units
     <any further solver parameter, e.g. *_stderr>                (y, x) or (y, x, r)
     rms_residual   (y, x)        float64  sqrt(mean over t of residual**2), signal units
     flags          (y, x)        uint16   the solver's per-pixel quality flags (+ OUT_OF_RANGE, 256)
@@ -91,6 +92,7 @@ _LONG_NAMES = {
     "sss_amplitude": "subsurface scattering amplitude b", "sss_alpha_per_ps": "subsurface attenuation alpha",
     "sss_sigma_ps": "subsurface PSF sigma", "ir_delay_ps": "inter-reflection delay",
     "ir_amplitude": "inter-reflection peak height", "ir_sigma_ps": "inter-reflection PSF sigma",
+    "background": "constant offset (background) per pixel",
     "rms_residual": "root-mean-square fit residual", "flags": "solver quality flags (bit field)",
     "valid": "profile finite and decomposed", "done": "chunk written completely",
     "direct": "direct component", "sss": "subsurface scattering component",
@@ -108,7 +110,7 @@ def _units_for(key: str, signal_units: str) -> str:
         return "1/ps"
     if base.endswith("_ps"):
         return "ps"
-    if base.endswith("_amplitude") or base in ("rms_residual",) + COMPONENT_NAMES:
+    if base.endswith("_amplitude") or base in ("rms_residual", "background") + COMPONENT_NAMES:
         return signal_units
     return "1"
 

@@ -320,6 +320,23 @@ def test_npy_input_without_components(tmp_path):
     np.testing.assert_array_equal(store.group["direct_delay_ps"][0], res.params["direct_delay_ps"])
 
 
+def test_the_background_family_is_stored_in_signal_units(tmp_path):
+    # components d,s,b: the fitted offset is a map of the store, in the cube's units
+    from decomposition.synthetic import make_profiles
+
+    d = make_profiles(12, 256, seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper", photons_per_pixel=1000.0,
+                      background=0.05)
+    np.save(tmp_path / "c.npy", d.noisy.reshape(2, 6, 256).astype(np.float32))
+    assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", str(TB), "--out", str(tmp_path / "r.zarr"),
+                 "--components", "d,s,b", "--no-components", "--quiet"]) == 0
+    store = open_result_store(tmp_path / "r.zarr")
+    b = store.group["background"]
+    assert b.attrs["units"] == store.group.attrs["units"] and "offset" in b.attrs["long_name"]
+    res = decompose(d.noisy.astype(np.float32), time_bin_ps=TB, components="d,s,b")
+    np.testing.assert_array_equal(np.asarray(b).ravel(), res.params["background"])
+    np.testing.assert_allclose(np.asarray(b).ravel(), d.background, rtol=0.3)
+
+
 def _slow_solver_in_this_worker():
     """Run inside a dask worker: slow its chunk solve down so that it can be killed mid-run."""
     import time as _time
