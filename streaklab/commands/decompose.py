@@ -1,6 +1,6 @@
 """``streaklab decompose``: decompose every pixel of a cube into a result store, chunk by chunk.
 
-    streaklab decompose cube.zarr --out result.zarr [--method convscd|gradbm] [--components d,s,r]
+    streaklab decompose cube.zarr --out result.zarr [--method convscd|gradbm] [--components d,s,r[,b]]
                         [--workers N | --scheduler tcp://HOST:PORT] [--chunks BY BX]
                         [--resume] [--overwrite] [--no-components]
 
@@ -29,7 +29,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--method", choices=METHODS, default="convscd", help="solver (default convscd)")
     parser.add_argument("--components", default="d,s,r",
                         help="component families to look for, comma-separated from d (direct), s (subsurface), "
-                             "r (inter-reflections); default d,s,r")
+                             "r (inter-reflections), b (a constant background per pixel); default d,s,r")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=None, metavar="N",
                        help="run on a local cluster of N worker processes (default: threads in this process)")
@@ -76,7 +76,7 @@ def parse_components(text: str) -> tuple[str, ...]:
     try:
         return component_letters(text)
     except ValueError as exc:
-        raise CommandError(f"--components takes a comma-separated subset of d, s, r: {exc}") from None
+        raise CommandError(f"--components takes a comma-separated subset of d, s, r, b: {exc}") from None
 
 
 def _parse_options(items, method: str = "convscd") -> dict:
