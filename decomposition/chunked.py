@@ -94,7 +94,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         ``direct``, ``sss``, ``residual`` (by, bx, L) and ``ir`` (by, bx, n_ir, L), in the solver's
         precision (float64),
         only if ``with_components``
-        ``stats``          dict: pixels, invalid, ir_truncated, seconds
+        ``stats``          dict: pixels, invalid, ir_truncated, poor_fit (pixels flagged POOR_FIT), seconds
     """
     start = time.perf_counter()
     block = np.asarray(block)
@@ -110,7 +110,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
            "rms_residual": np.full((by, bx), np.nan)}
     params: dict[str, np.ndarray] = {}
     comps = {}
-    truncated = 0
+    truncated = poor = 0
     if n_ok:
         prof = flat if n_ok == flat.shape[0] else flat[keep]
         res = _solver()(prof, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
@@ -126,9 +126,10 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         resid = np.asarray(res.residual, dtype=np.float64)
         rms = np.sqrt(np.mean(np.square(resid), axis=-1))
         flags = np.asarray(res.flags).astype(FLAG_DTYPE)
-        from decomposition import TRUNCATED  # the solver found more inter-reflections than it reports
+        from decomposition import POOR_FIT, TRUNCATED  # more inter-reflections than it reports; misfits
 
         truncated = max(truncated, int(np.count_nonzero(flags & int(TRUNCATED))))
+        poor = int(np.count_nonzero(flags & int(POOR_FIT)))
         if with_components:
             comps = {"direct": np.asarray(res.direct), "sss": np.asarray(res.sss), "residual": resid,
                      "ir": fit_ir_slots(np.asarray(res.interreflections), n_ir, axis=1, fill=0.0)}
@@ -156,7 +157,7 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
             out["sss"] = np.full((by, bx, nt), np.nan, np.float32)
             out["residual"] = np.full((by, bx, nt), np.nan, np.float32)
             out["ir"] = np.full((by, bx, n_ir, nt), np.nan, np.float32)
-    out["stats"] = {"pixels": by * bx, "invalid": by * bx - n_ok, "ir_truncated": truncated,
+    out["stats"] = {"pixels": by * bx, "invalid": by * bx - n_ok, "ir_truncated": truncated, "poor_fit": poor,
                     "seconds": time.perf_counter() - start}
     return out
 
@@ -212,7 +213,7 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
     Returns
     -------
     list of dask.delayed.Delayed, each computing a summary dict (iy, ix, pixels, invalid,
-    ir_truncated, seconds).
+    ir_truncated, poor_fit, seconds).
     """
     arr = rechunk_pixels(cube, chunks)
     blocks = arr.to_delayed()

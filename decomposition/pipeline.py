@@ -261,7 +261,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
     noise_law (``signal_noise_law`` and its source: "cube" where the cube's ``noise_law``
     attribute chose it, "option" or "default"),
-    invalid_pixels, ir_truncated_pixels, seconds (all stages), seconds_setup (opening, checks,
+    invalid_pixels, ir_truncated_pixels, poor_fit_pixels, seconds (all stages), seconds_setup (opening, checks,
     store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
     the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
     seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
@@ -416,11 +416,12 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                   file=stream)
         bar = (ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream)
                if progress else None)
-        stats = {"invalid": 0, "ir_truncated": 0}
+        stats = {"invalid": 0, "ir_truncated": 0, "poor_fit": 0}
 
         def on_done(summary):
             stats["invalid"] += summary["invalid"]
             stats["ir_truncated"] += summary["ir_truncated"]
+            stats["poor_fit"] += summary.get("poor_fit", 0)
             if bar is not None:
                 bar.update(summary)
 
@@ -450,7 +451,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         seconds, seconds_compute = t_end - t_start, t_end - t_compute
         summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
                    "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
-                   "ir_truncated_pixels": stats["ir_truncated"],
+                   "ir_truncated_pixels": stats["ir_truncated"], "poor_fit_pixels": stats["poor_fit"],
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
                    "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan"),
                    "seconds_compile": seconds_compile, "irf": irf_attrs,

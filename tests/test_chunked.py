@@ -159,6 +159,7 @@ def test_pixels_with_more_interreflections_than_kept_are_counted():
     cube = model.render_profile(p, 160, TB)
     out = solve_block(cube, time_bin_ps=TB, n_ir=1, options={"max_reflections": 1})
     assert out["stats"]["ir_truncated"] == 1
+    assert out["stats"]["poor_fit"] == int(np.count_nonzero(out["flags"] & 4))      # POOR_FIT's bit
     assert out["params"]["ir_delay_ps"].shape == (1, 2, 1)
     np.testing.assert_allclose(out["params"]["ir_delay_ps"][0, 0, 0], 100.0, atol=1.0)  # the earliest is kept
     assert np.isnan(out["params"]["ir_delay_ps"][0, 1, 0])

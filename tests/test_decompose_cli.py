@@ -337,6 +337,21 @@ def test_the_background_family_is_stored_in_signal_units(tmp_path):
     np.testing.assert_allclose(np.asarray(b).ravel(), d.background, rtol=0.3)
 
 
+def test_a_cube_of_mostly_poor_fits_gets_a_note_naming_the_usual_causes(tmp_path, capsys):
+    from decomposition.synthetic import make_profiles
+
+    d = make_profiles(16, 256, nsr=0.01, noise="white", seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper",
+                      background=0.05, bin_integrated=True)
+    np.save(tmp_path / "c.npy", d.noisy.reshape(2, 8, 256).astype(np.float32))
+    args = ["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", str(TB), "--no-components", "--quiet"]
+    assert main(args + ["--out", str(tmp_path / "r1.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "16 of 16 pixels are flagged POOR_FIT" in out and "--components d,s,r,b" in out
+    # the offset modelled: good fits, no note
+    assert main(args + ["--out", str(tmp_path / "r2.zarr"), "--components", "d,s,r,b"]) == 0
+    assert "POOR_FIT" not in capsys.readouterr().out
+
+
 def _slow_solver_in_this_worker():
     """Run inside a dask worker: slow its chunk solve down so that it can be killed mid-run."""
     import time as _time

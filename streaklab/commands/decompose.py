@@ -23,6 +23,10 @@ from streaklab.cli import CommandError
 __all__ = ["add_arguments", "run", "parse_components"]
 
 
+#: print the POOR_FIT note when at least this fraction of the decomposed pixels carry the flag
+POOR_FIT_NOTE_FRACTION = 0.5
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("input", help="cube store (.zarr) or a .npy array (y, x, t) or (n, t)")
     parser.add_argument("--out", required=True, help="result store to write (.zarr directory)")
@@ -149,6 +153,12 @@ def run(args) -> int:
               f"later runs load them from the cache")
     if summary["invalid_pixels"]:
         print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
+    judged = summary["pixels"] - summary["invalid_pixels"]
+    if judged > 0 and summary.get("poor_fit_pixels", 0) >= POOR_FIT_NOTE_FRACTION * judged:
+        print(f"note: {summary['poor_fit_pixels']} of {judged} pixels are flagged POOR_FIT: the model misses light "
+              f"they hold. A constant offset under the data (--components {','.join(parse_components(args.components))}"
+              f"{'' if 'b' in parse_components(args.components) else ',b'} fits one), a response that is not a Gaussian "
+              f"(--irf, streaklab calibrate-irf) or pulses cut by the window's edge are the usual causes")
     if summary["ir_truncated_pixels"]:
         print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
               f"inter-reflections (flagged TRUNCATED); the later ones were dropped "
