@@ -100,9 +100,10 @@ def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
 
 def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
     """(P, K) bool: active atoms that run off either edge of the window -- a Gaussian centred
-    more than half a bin before the first sample or after the last, or any atom with more than
-    ``mass_out`` of its area outside the window (:func:`window_fraction`); the rule of
-    :func:`runs_off_window` on the Gaussian atoms."""
+    within OFF_WINDOW_EDGE_SIGMA of its widths of the window's edge (half a bin outside the first
+    or the last sample) or beyond it, or any atom with more than ``mass_out`` of its area outside
+    the window (:func:`window_fraction`); the rule of :func:`runs_off_window` on the Gaussian
+    atoms."""
     return runs_off_window(st["fam"] != FAM_NONE, st["fam"] == FAM_GAUSS, st["delay"],
                            window_fraction(st, t_ps), t_ps, mass_out, width_ps=np.exp(st["lsig"]))
 
@@ -114,8 +115,9 @@ def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray
 
     An active atom runs off the window when it peaks at its delay (``peaked``: a Gaussian, a
     shifted copy of a measured response; not an sss, whose delay is its onset) and that delay
-    lies more than half a bin before the first sample or after the last, or when less than
-    ``1 - mass_out`` of its area lies inside the window.
+    lies more than half a bin before the first sample or after the last (within ``edge_widths``
+    of its widths of there, with ``width_ps``), or when less than ``1 - mass_out`` of its area
+    lies inside the window.
 
     Parameters
     ----------
