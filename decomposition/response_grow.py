@@ -60,9 +60,9 @@ import numpy as np
 from scipy.ndimage import convolve1d
 
 from core.irf import render_shifted, render_sss
-from core.model import BACKGROUND_KEY, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, render_profile
 from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA,
-                        RESOLVED_SIGMA, SSS_SLOT)
+                        PRE_DIRECT_LEVEL, RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
@@ -185,6 +185,37 @@ def _residual_sigmas(ctx: GrowContext, rows, mu) -> np.ndarray:
 
 def _sub(slots: Slots, rows) -> Slots:
     return Slots(*(({k: v[rows] for k, v in x.items()} if isinstance(x, dict) else x[rows]) for x in slots))
+
+
+def _unseen_direct(ctx: GrowContext, slots: Slots, rows) -> np.ndarray:
+    """(rows.size,) bool: the direct (slot 0) of the pixels ``rows`` lies where no sample sees it
+    -- before the window, its response at the first sample below PRE_DIRECT_LEVEL of its peak --
+    and more than UNSEEN_DIRECT_LEAD_SIGMA Gaussian-equivalent widths before the light it would
+    lead (the sss onset; the first sample without an sss).  Nothing in the data places it there:
+    a direct that explains nothing went to 195 ps before the window under a tailed response
+    (53 widths before its sss), where the response's tail leaves it no trace."""
+    rows = np.asarray(rows, np.int64)
+    if rows.size == 0:
+        return np.zeros(0, bool)
+    d = slots.delay[rows, 0]
+    lag = ctx.t[0] - d
+    with np.errstate(invalid="ignore"):
+        unseen = (lag > 0) & (ctx.irf.evaluate(np.maximum(lag, 0.0)) < PRE_DIRECT_LEVEL * ctx.irf.peak_per_ps)
+        led = np.where(slots.fam[rows, SSS_SLOT] == FAM_SSS, slots.delay[rows, SSS_SLOT], ctx.t[0])
+        return unseen & (led - d > UNSEEN_DIRECT_LEAD_SIGMA * ctx.sigma_eq_ps)
+
+
+def _without_direct(slots: Slots, rows) -> Slots:
+    """``slots`` with the direct (slot 0) of the pixels ``rows`` removed."""
+    if np.size(rows) == 0:
+        return slots
+    fam, amp = slots.fam.copy(), slots.amp.copy()
+    fam[rows, 0], amp[rows, 0] = FAM_NONE, 0.0
+    params = {k: v.copy() for k, v in slots.params.items()}
+    for k in DIRECT_KEYS:
+        if k in params:
+            params[k][rows] = np.nan
+    return slots._replace(fam=fam, amp=amp, params=params)
 
 
 def _put(slots: Slots, rows, new: Slots, take) -> Slots:
@@ -408,7 +439,9 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     restored[cand[take]] = True
     # a direct that explains nothing and found no better place: no direct to speak of (a pixel
     # left with none is the caller's to judge: with sss_alone an sss may stand alone)
-    ambiguous[cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]] = True
+    phantom = cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]
+    ambiguous[phantom] = True
+    out = _without_direct(out, phantom[_unseen_direct(ctx, out, phantom)])
     near = take & (d_best - d_cur <= tol)
     if near.any():
         r = np.flatnonzero(near)

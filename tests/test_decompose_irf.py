@@ -286,6 +286,30 @@ def test_count_refit_never_leaves_a_lower_poisson_deviance():
     assert np.all(np.isfinite(r.params["sss_delay_ps"]))
 
 
+def test_a_direct_no_sample_sees_is_not_reported():
+    """A pixel of ``bench realism``'s tailed rows at 100 photons whose direct explained nothing
+    and went 195 ps before the window (53 widths before its sss), where the response's tail
+    leaves no trace of it: reported without a direct and AMBIGUOUS.  A direct just before the
+    window, whose edge the first samples see (the truncated rows), stays."""
+    from decomposition.flags import AMBIGUOUS
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import effect_setup
+
+    setup = effect_setup("tailed", T)
+    d = make_profiles(2000, 256, seed=0, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
+                      **setup["options"])
+    r = decompose(d.noisy[[1831]], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
+                  noise="poisson")
+    assert np.isnan(r.params["direct_delay_ps"][0]) and np.isfinite(r.params["sss_delay_ps"][0])
+    assert r.flags[0] & AMBIGUOUS
+    trunc = effect_setup("truncated", T)
+    d = make_profiles(40, 256, seed=4000, kinds=trunc["kinds"], time_bin_ps=T, photons_per_pixel=1000.0,
+                      **trunc["options"])
+    r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=trunc["recorded_response"], components="d,r,s", noise="poisson")
+    before = np.isfinite(r.params["direct_delay_ps"]) & (r.params["direct_delay_ps"] < d.t0_ps)
+    assert before.sum() >= 20
+
+
 def test_light_before_the_direct_is_a_poor_fit():
     """Nothing arrives before the direct reflection.  Two pixels of ``bench realism``'s tailed
     rows at 100 photons (a weak direct, peak 3-5 counts, on a long sss) whose fit puts the
