@@ -15,8 +15,9 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    that keeps a direct is taken where that direct is significant in it; where the fit without
    it lies within ``ambiguity_sigma`` sqrt(2 n) with a split more than ``ambiguity_split``
    away, or where a direct that explains nothing stays, the pixel is AMBIGUOUS (the search
-   stage's rule, :mod:`decomposition.search`).  A pixel left with an sss and no direct is
-   AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response_path`).
+   stage's rule, :mod:`decomposition.search`); a direct that explains nothing where no sample
+   sees it, far before its sss, is not reported (:func:`_unseen_direct`).  A pixel left with
+   an sss and no direct is AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response_path`).
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
