@@ -423,14 +423,17 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         bounds = shape_bounds(grid, opts.bound_factor)
         params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2,
                                           bounds=bounds)
+        bg_stderr = rinfo.pop("background_stderr", None)
         if background:
             # nothing above the offset: the components are noise fitted on a pure background
             # (the relative threshold always keeps the largest); the pixel is reported empty
-            params, cleared = clear_unlit(samples, params, opts.significance_chi2)
+            params, cleared, mean_stderr = clear_unlit(samples, params, opts.significance_chi2)
             flags[cleared] &= DATA_FLAGS
             info["cleared_unlit"] = int(cleared.sum())
+            if bg_stderr is not None:
+                bg_stderr = np.where(cleared.reshape(np.shape(bg_stderr)), mean_stderr.reshape(np.shape(bg_stderr)),
+                                     bg_stderr)
         mark(flags, samples.live[params_at_bound({k: v[samples.live] for k, v in params.items()}, bounds)], AT_BOUND)
-        bg_stderr = rinfo.pop("background_stderr", None)
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)
     flags |= fit.flags

@@ -122,14 +122,16 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=No
     """Pixels whose components are not significant together against their offset alone
     (:func:`decomposition.background.light_test` below ``significance_chi2``) lose them: every
     component NaN, the offset the mean of the fitted samples.  -> (params (P-shaped, a new
-    dict), cleared (P,) bool).  ``params`` must hold ``background``; only live pixels are
-    judged."""
+    dict), cleared (P,) bool, stderr (P,): the standard error of a cleared pixel's mean,
+    units of the profiles, NaN elsewhere).  ``params`` must hold ``background``; only live
+    pixels are judged."""
     from .background import light_test
 
     live = samples.live
     cleared = np.zeros(samples.values.shape[0], bool)
+    stderr = np.full(samples.values.shape[0], np.nan)
     if live.size == 0:
-        return params, cleared
+        return params, cleared, stderr
     counts = samples.noise_model == "poisson"
     values, fit = samples.values[live], samples.fit[live]
     stat = light_test(values, _model(samples, params, irf)[live], fit, counts=counts,
@@ -137,15 +139,22 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=No
                       dispersion=None if samples.dispersion is None else samples.dispersion[live])
     cleared[live] = stat < significance_chi2
     if not cleared.any():
-        return params, cleared
+        return params, cleared, stderr
     out = {k: np.array(v, dtype=np.float64, copy=True) for k, v in params.items()}
     for k, v in out.items():
         if k != BACKGROUND_KEY and not k.endswith("_stderr"):
             v[cleared] = np.nan
     n = np.maximum(fit.sum(axis=1), 1)
     mean = np.where(fit, values, 0.0).sum(axis=1) / n
-    out[BACKGROUND_KEY][live[cleared[live]]] = mean[cleared[live]]
-    return out, cleared
+    c = cleared[live]
+    out[BACKGROUND_KEY][live[c]] = mean[c]
+    if counts:      # Poisson: the variance of a count is its mean (times the dispersion's square)
+        disp = np.ones(live.size) if samples.dispersion is None else samples.dispersion[live]
+        se = disp * np.sqrt(np.maximum(mean, 0.0) / n)
+    else:
+        se = samples.noise_eff[live] * samples.scale[live] / np.sqrt(n)
+    stderr[live[c]] = se[c]
+    return out, cleared, stderr
 
 
 def background_stats(samples: Samples, params: dict, irf=None):

@@ -387,8 +387,15 @@ def test_pure_background_counts_are_empty_with_their_offset(level):
     from decomposition.flags import EMPTY
 
     y = np.random.default_rng(3).poisson(level, (60, 256)).astype(np.uint16)
-    got = decompose(y, T, components="d,s,r,b")
+    got = decompose(y, T, components="d,s,r,b", stderr=True)
     assert np.all(got.flags == EMPTY)
+    # the standard error of a mean of Poisson counts (the dispersion measured, about 1)
+    ratio = got.params["background_stderr"] / np.sqrt(y.mean(axis=1) / 256)
+    assert np.all((ratio > 0.8) & (ratio < 1.25))
+    # the same pixels as a (6, 10) image
+    img = decompose(y.reshape(6, 10, 256), T, components="d,s,r,b", stderr=True)
+    np.testing.assert_array_equal(img.params["background_stderr"].ravel(), got.params["background_stderr"])
+    np.testing.assert_array_equal(img.params["background"].ravel(), got.params["background"])
     assert got.info["cleared_unlit"] == 60
     for key in ("direct_delay_ps", "sss_delay_ps"):
         assert np.all(np.isnan(got.params[key]))
