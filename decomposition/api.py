@@ -357,10 +357,11 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         det = detect_components(samples, dic, opts, fams)
         if opts.signal_noise:
             det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts, info))
-            info["signal_weighted"] = 0 if det.weights is None else int((det.weights != 1).any(axis=1).sum())
+            weighted = (np.zeros(samples.live.size, bool) if det.weights is None
+                        else (det.weights != 1).any(axis=1))
+            info["signal_weighted"] = int(weighted.sum())
             if samples.noise_model != "poisson":
-                flat_noise = (np.ones(samples.live.size, bool) if det.weights is None
-                              else ~(det.weights != 1).any(axis=1))
+                flat_noise = ~weighted
         # the noise at the components' scale, from the detected fit's residual: the search's
         # objective reads its data term in it where the noise is correlated (pink); where most
         # pixels' is, the data terms of every stage after this are whitened by the call's spectrum

@@ -30,7 +30,8 @@ from .constants import (BACKGROUND_CLIP_SIGMA, BACKGROUND_COUNT_WINDOW_BINS, BAC
                         BACKGROUND_START_QUANTILE)
 from .noise import noise_sigma
 
-__all__ = ["estimate_background", "background_test", "background_threshold", "background_significant", "light_test"]
+__all__ = ["estimate_background", "background_test", "background_threshold", "background_significant", "offset_alone",
+           "light_test"]
 
 
 def _masked(fn, v, ok):
@@ -199,6 +200,13 @@ def background_significant(delta_chi2, threshold) -> np.ndarray:
     return np.asarray(delta_chi2, np.float64) >= np.asarray(threshold, np.float64)
 
 
+def offset_alone(values, fit) -> np.ndarray:
+    """(P,) the best offset of a model that is nothing but an offset: the mean of each row's
+    fitted samples (``fit`` (P, L) bool), for least squares and the Poisson likelihood alike;
+    NaN for a row without one."""
+    return _masked(np.nanmean, np.asarray(values, np.float64), np.asarray(fit, bool))
+
+
 def light_test(values, model, fit, *, counts: bool, noise=None, dispersion=None) -> np.ndarray:
     """(P,) likelihood-ratio statistic of all of a pixel's components against its offset alone.
 
@@ -224,9 +232,7 @@ def light_test(values, model, fit, *, counts: bool, noise=None, dispersion=None)
 
     v = np.asarray(values, np.float64)
     ok = np.asarray(fit, bool)
-    n = np.maximum(ok.sum(axis=1), 1)
-    b0 = np.where(ok, v, 0.0).sum(axis=1) / n
-    flat = np.broadcast_to(b0[:, None], v.shape)
+    flat = np.broadcast_to(offset_alone(v, ok)[:, None], v.shape)
     if counts:
         return count_deviance(v, flat, ok, dispersion) - count_deviance(v, model, ok, dispersion)
     s2 = np.asarray(noise, np.float64) ** 2

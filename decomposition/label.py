@@ -41,26 +41,26 @@ class Labels:
 def at_bound(state: dict, bounds: dict) -> np.ndarray:
     """(n,) bool: some atom's log sigma, or the sss atom's log alpha, is at its bound."""
     act = state["fam"] != FAM_NONE
-    lsig, lalp = state["lsig"], state["lalp"]
-    hit = act & ((lsig <= bounds["lsig"][0] + BOUND_TOL) | (lsig >= bounds["lsig"][1] - BOUND_TOL))
-    hit |= (state["fam"] == FAM_SSS) & ((lalp <= bounds["lalp"][0] + BOUND_TOL)
-                                        | (lalp >= bounds["lalp"][1] - BOUND_TOL))
+    hit = act & _at_limit(state["lsig"], bounds["lsig"])
+    hit |= (state["fam"] == FAM_SSS) & _at_limit(state["lalp"], bounds["lalp"])
     return hit.any(axis=1)
+
+
+def _at_limit(x, limits) -> np.ndarray:
+    """Values ``x`` (log units) within BOUND_TOL of either of ``limits`` (lo, hi) or beyond
+    (False for NaN)."""
+    return (x <= limits[0] + BOUND_TOL) | (x >= limits[1] - BOUND_TOL)
 
 
 def params_at_bound(params: dict, bounds: dict) -> np.ndarray:
     """(P,) bool: :func:`at_bound`'s rule on named parameters (P-shaped ``params``, NaN where
     absent; ``bounds`` with "lsig" and "lalp", log sigma_ps and log alpha_per_ps): a present
     component's width, or the sss attenuation, at its bound."""
-    lo_s, hi_s = bounds["lsig"]
-    lo_a, hi_a = bounds["lalp"]
     with np.errstate(divide="ignore", invalid="ignore"):
         widths = [np.log(np.asarray(params[k], np.float64)).reshape(len(params[k]), -1)
                   for k in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps")]
-        lsig = np.concatenate(widths, axis=1)
-        lalp = np.log(np.asarray(params["sss_alpha_per_ps"], np.float64))
-        hit = ((lsig <= lo_s + BOUND_TOL) | (lsig >= hi_s - BOUND_TOL)).any(axis=1)
-        hit |= (lalp <= lo_a + BOUND_TOL) | (lalp >= hi_a - BOUND_TOL)
+        hit = _at_limit(np.concatenate(widths, axis=1), bounds["lsig"]).any(axis=1)
+        hit |= _at_limit(np.log(np.asarray(params["sss_alpha_per_ps"], np.float64)), bounds["lalp"])
     return hit
 
 

@@ -24,6 +24,7 @@ from core.model import BACKGROUND_KEY, render_profile
 from .constants import POISSON_REFITS
 from .noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
+from .slots import select_rows
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
@@ -97,8 +98,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
             if counts:
                 dev = deviance(new)
                 better = dev < dev_best
-                new = {k: np.where(better.reshape((-1,) + (1,) * (np.ndim(v) - 1)), v, params[k]) if k in params
-                       else v for k, v in new.items()}
+                new = select_rows(better, new, {k: params.get(k, v) for k, v in new.items()})
                 dev_best = np.where(better, dev, dev_best)
             params = new
         return params
@@ -118,14 +118,14 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     return params, {k: v.reshape(lead) for k, v in info.items()}
 
 
-def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=None):
+def clear_unlit(samples: Samples, params: dict, significance_chi2: float):
     """Pixels whose components are not significant together against their offset alone
     (:func:`decomposition.background.light_test` below ``significance_chi2``) lose them: every
     component NaN, the offset the mean of the fitted samples.  -> (params (P-shaped, a new
     dict), cleared (P,) bool, stderr (P,): the standard error of a cleared pixel's mean,
     units of the profiles, NaN elsewhere).  ``params`` must hold ``background``; only live
     pixels are judged."""
-    from .background import light_test
+    from .background import light_test, offset_alone
 
     live = samples.live
     cleared = np.zeros(samples.values.shape[0], bool)
@@ -134,7 +134,7 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=No
         return params, cleared, stderr
     counts = samples.noise_model == "poisson"
     values, fit = samples.values[live], samples.fit[live]
-    stat = light_test(values, _model(samples, params, irf)[live], fit, counts=counts,
+    stat = light_test(values, _model(samples, params)[live], fit, counts=counts,
                       noise=samples.noise_eff[live] * samples.scale[live],
                       dispersion=None if samples.dispersion is None else samples.dispersion[live])
     cleared[live] = stat < significance_chi2
@@ -145,7 +145,7 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float, irf=No
         if k != BACKGROUND_KEY and not k.endswith("_stderr"):
             v[cleared] = np.nan
     n = np.maximum(fit.sum(axis=1), 1)
-    mean = np.where(fit, values, 0.0).sum(axis=1) / n
+    mean = offset_alone(values, fit)
     c = cleared[live]
     out[BACKGROUND_KEY][live[c]] = mean[c]
     if counts:      # Poisson: the variance of a count is its mean (times the dispersion's square)

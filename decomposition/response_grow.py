@@ -67,7 +67,8 @@ from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_TR
 from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
-from .response_refine import Slots, refit_slots, select_rows
+from .response_refine import Slots, refit_slots
+from .slots import select_rows
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
 

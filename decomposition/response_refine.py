@@ -27,8 +27,9 @@ from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_REFITS
 from .noise import count_deviance, poisson_weights
 from .response_atoms import slot_atoms
 from .response_label import slots_to_params
+from .slots import select_rows
 
-__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "select_rows"]
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
 
 _RIDGE = 1e-12
 _LAMBDA0 = 1e-3
@@ -293,8 +294,3 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     return Slots(fam, delay, lalp, amp, params, background, iterations)
 
 
-def select_rows(take, a, b):
-    """The rows of ``a`` where ``take`` (n,), of ``b`` elsewhere (arrays, or dicts of them)."""
-    if isinstance(a, dict):
-        return {k: select_rows(take, a[k], b[k]) for k in a}
-    return np.where(take.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)

@@ -20,7 +20,7 @@ from .constants import FAM_NONE, NEAR_SIGMA
 from .masks import SampleMask
 from .onsets import onset_links
 
-__all__ = ["new_state", "take", "put", "drop_zero", "eval_atoms", "render", "objective",
+__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
 
 
@@ -55,6 +55,13 @@ def put(st, idx, sub):
     """Write the state ``sub`` into rows ``idx`` of ``st`` in place."""
     for k, v in sub.items():
         st[k][idx] = v
+
+
+def select_rows(take, a, b):
+    """The rows of ``a`` where ``take`` (n,), of ``b`` elsewhere (arrays, or dicts of them)."""
+    if isinstance(a, dict):
+        return {k: select_rows(take, a[k], b[k]) for k in a}
+    return np.where(take.reshape((-1,) + (1,) * (np.ndim(a) - 1)), a, b)
 
 
 def linked_onsets(st, near_sigma=None):

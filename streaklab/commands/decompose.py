@@ -155,10 +155,11 @@ def run(args) -> int:
         print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
     judged = summary["pixels"] - summary["invalid_pixels"]
     if judged > 0 and summary.get("poor_fit_pixels", 0) >= POOR_FIT_NOTE_FRACTION * judged:
+        families = parse_components(args.components)
+        with_b = ",".join(families + (() if "b" in families else ("b",)))
         print(f"note: {summary['poor_fit_pixels']} of {judged} pixels are flagged POOR_FIT: the model misses light "
-              f"they hold. A constant offset under the data (--components {','.join(parse_components(args.components))}"
-              f"{'' if 'b' in parse_components(args.components) else ',b'} fits one), a response that is not a Gaussian "
-              f"(--irf, streaklab calibrate-irf) or pulses cut by the window's edge are the usual causes")
+              f"they hold. A constant offset under the data (--components {with_b} fits one), a response that is "
+              f"not a Gaussian (--irf, streaklab calibrate-irf) or pulses cut by the window's edge are the usual causes")
     if summary["ir_truncated_pixels"]:
         print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
               f"inter-reflections (flagged TRUNCATED); the later ones were dropped "
