@@ -10,22 +10,35 @@ All functions are compiled on first use and cached on disk next to this file (nu
 ``cache=True``), so later processes -- dask workers included -- load them instead of compiling
 again.  ``nogil=True`` lets the threaded scheduler run them in parallel.
 
+A compiled kernel holds the values of the module-level constants it reads (``constants.py``,
+other kernel modules), but numba keys its disk cache on the kernel's own source file alone: a
+changed constant, or a changed kernel in another file, would be served from a stale cache --
+silently wrong numbers after an upgrade that left ``__pycache__`` behind.  The kernels of this
+package are therefore cached under a stamp that also covers :func:`kernel_digest` of their
+folder (every module there that defines a kernel, and ``constants.py``): any change to those
+files compiles every kernel of the folder afresh.  Where numba's cache machinery cannot be
+extended so, the kernels are compiled once per process instead of cached.
+
 The forms are those of :mod:`core.model` (see its docstring): the sss kernel is
 evaluated as g(x) erfcx(u) for u >= 0 and exp(-alpha (x - alpha sigma^2 / 2)) erfc(u) for
 u < 0, so no exponential of a positive number is ever taken.
 """
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
+import os
 import sys
 import threading
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import numba
 from numba.core import event as _numba_event
 
-__all__ = ["njit", "erfcx", "sss_value", "compile_notice", "warm_up"]
+__all__ = ["njit", "erfcx", "sss_value", "compile_notice", "warm_up", "kernel_digest"]
 
 COMPILE_NOTICE = "compiling the solver's kernels once (about 10-15 s on first use; later runs load them from the cache)"
 
@@ -35,17 +48,77 @@ _SQRT_2 = math.sqrt(2.0)
 _ERFCX_SERIES_FROM = 10.0   # u at which the asymptotic series takes over from exp(u^2) erfc(u)
 
 
+#: the file whose constants the kernels of a folder read, beside the kernel modules themselves
+CONSTANTS_FILE = "constants.py"
+#: folders holding kernels made by :func:`njit` (their caches carry :func:`kernel_digest`)
+_KERNEL_DIRS: set = set()
+
+
+@functools.lru_cache(maxsize=None)
+def kernel_digest(folder) -> str:
+    """SHA-256 (hex) of what the compiled kernels of ``folder`` are built from: the bytes of
+    its ``constants.py`` and of every module there that uses ``njit``, with their names.
+
+    Computed once per process and folder (source files do not change under a running
+    process; numba reads each kernel's own file once as well)."""
+    h = hashlib.sha256()
+    for path in sorted(Path(folder).glob("*.py")):
+        data = path.read_bytes()
+        if path.name == CONSTANTS_FILE or b"njit" in data:
+            h.update(path.name.encode() + b"\0" + hashlib.sha256(data).digest())
+    return h.hexdigest()
+
+
+def _kernel_locators():
+    """numba cache locators for the kernels of :data:`_KERNEL_DIRS` (numba's own user-provided,
+    in-tree and user-wide locators, each with :func:`kernel_digest` added to its source stamp),
+    or None where this numba's cache machinery is not laid out as expected."""
+    try:
+        from numba.core import caching
+        impl = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl")
+        bases = [getattr(caching, name, None) or getattr(caching, "_" + name)
+                 for name in ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator")]
+        classes = impl._locator_classes
+    except AttributeError:
+        return None
+
+    class _DigestStamp:
+        def get_source_stamp(self):
+            return (super().get_source_stamp(), kernel_digest(os.path.dirname(os.path.abspath(self._py_file))))
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if os.path.dirname(os.path.abspath(py_file)) not in _KERNEL_DIRS:
+                return None
+            return super().from_function(py_func, py_file)
+
+    ours = [type("Kernel" + base.__name__.lstrip("_"), (_DigestStamp, base), {}) for base in bases]
+    if not any(getattr(c, "__name__", "").startswith("Kernel") for c in classes):
+        classes[0:0] = ours
+    return ours
+
+
+_LOCATORS = _kernel_locators()
+
+
 def njit(fn):
     """``numba.njit`` with the options every kernel of the solver uses.
 
-    Compiled code is cached on disk (beside the source, else in the user's cache directory).
-    Where numba finds no writable place for it, the kernel is compiled without a cache,
-    once per process, instead of failing the import.
+    Compiled code is cached on disk (beside the source, else in the user's cache directory),
+    under a stamp that covers the folder's :func:`kernel_digest` (see the module docstring).
+    Where numba finds no writable place for it, or its cache cannot carry that stamp, the
+    kernel is compiled without a cache, once per process, instead of failing the import or
+    risking a stale kernel.
     """
-    try:
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
-    except RuntimeError:          # "cannot cache function ...: no locator available"
-        return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
+    source = fn.__code__.co_filename
+    if os.path.isfile(source):                # (code without a file is never cached)
+        _KERNEL_DIRS.add(os.path.dirname(os.path.abspath(source)))
+    if _LOCATORS is not None:
+        try:
+            return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+        except RuntimeError:          # "cannot cache function ...: no locator available"
+            pass
+    return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
 @njit

@@ -1,4 +1,6 @@
-"""Compiled scalar kernels (decomposition.jit) against scipy and core.model."""
+"""Compiled scalar kernels (decomposition.jit) against scipy and core.model, and their disk cache."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import special
@@ -30,3 +32,52 @@ def test_a_kernel_without_a_cache_location_still_compiles():
     ns = {"jit": jit}
     exec("@jit.njit\ndef twice(x):\n    return 2.0 * x\n", ns)
     assert ns["twice"](1.5) == 3.0
+
+
+def _run_kernel(root, repo):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), str(repo)]))
+    env.pop("NUMBA_CACHE_DIR", None)
+    code = ("import kpkg.kern as k\n"
+            "print(k.level(), sum(k.level.stats.cache_hits.values()), sum(k.level.stats.cache_misses.values()))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    value, hits, misses = out.stdout.split()
+    return float(value), int(hits), int(misses)
+
+
+def test_a_changed_constant_compiles_the_kernels_that_read_it_afresh(tmp_path):
+    """numba keys its disk cache on a kernel's own file; a constant it reads from constants.py
+    is frozen into the cached code.  The kernels' stamp covers the folder's constants and
+    kernel modules, so a changed constant is never served from a stale cache."""
+    repo = Path(jit.__file__).resolve().parents[1]
+    pkg = tmp_path / "kpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "constants.py").write_text("LEVEL = 1.0\n")
+    (pkg / "kern.py").write_text("from decomposition.jit import njit\nfrom .constants import LEVEL\n\n\n"
+                                 "@njit\ndef level():\n    return LEVEL\n")
+    assert _run_kernel(tmp_path, repo) == (1.0, 0, 1)          # compiled, written to the cache
+    assert _run_kernel(tmp_path, repo) == (1.0, 1, 0)          # loaded from the cache
+    digest = jit.kernel_digest(str(pkg))
+    (pkg / "constants.py").write_text("LEVEL = 2.0\n")
+    jit.kernel_digest.cache_clear()
+    assert jit.kernel_digest(str(pkg)) != digest
+    assert _run_kernel(tmp_path, repo) == (2.0, 0, 1)          # the stale entry is not used
+    assert _run_kernel(tmp_path, repo) == (2.0, 1, 0)
+    (pkg / "notes.py").write_text("WORDS = 'no kernel here'\n")  # a module without kernels: no new stamp
+    jit.kernel_digest.cache_clear()
+    assert _run_kernel(tmp_path, repo) == (2.0, 1, 0)
+
+
+def test_the_solvers_kernels_are_cached_under_the_folders_digest():
+    from decomposition import atomlm
+
+    assert atomlm._gauss_support._cache is not None
+    locator = atomlm._gauss_support._cache._impl.locator
+    assert type(locator).__name__.startswith("Kernel")
+    stamp = locator.get_source_stamp()
+    assert stamp[1] == jit.kernel_digest(str(Path(atomlm.__file__).parent))
