@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import os
 import re
 import sys
 
@@ -33,6 +34,22 @@ COMMANDS = {
     "report": ("streaklab.commands.report", "figures and a summary of a result store"),
     "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability, realism"),
 }
+
+
+#: the BLAS libraries' own thread pools, one thread each unless the user set them: the commands
+#: run their own parallelism (dask threads, or worker processes, to which dask.distributed's
+#: nanny gives one BLAS thread already), and an idle BLAS pool spins on the cores those threads
+#: need (``bench speed``, 2 threads on 2 cores: +5 % pixels/s under white noise).  Set before
+#: any command imports numpy, which reads them once, as it loads its BLAS.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_blas_thread(environ=None) -> None:
+    """Set each of :data:`BLAS_THREAD_VARIABLES` to 1 in ``environ`` (default ``os.environ``)
+    where it is not set already."""
+    environ = os.environ if environ is None else environ
+    for name in BLAS_THREAD_VARIABLES:
+        environ.setdefault(name, "1")
 
 
 class CommandError(Exception):
@@ -89,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.parse_args(argv or ["--help"])
         return 2
     name = argv[0]
+    one_blas_thread()
     module = importlib.import_module(COMMANDS[name][0])
     sub = argparse.ArgumentParser(prog=f"streaklab {name}", description=COMMANDS[name][1])
     module.add_arguments(sub)

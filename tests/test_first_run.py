@@ -291,3 +291,25 @@ def test_warm_up_suits_any_time_axis_and_reports_no_compile_once_cached():
     assert warm_up(time_bin_ps=0.1, n_bins=4096, quiet=True) >= 0.0
     assert warm_up(time_bin_ps=50.0, n_bins=16, components=("d", "s"), quiet=True) >= 0.0
     assert warm_up(time_bin_ps=2.0, n_bins=256, quiet=True) == 0.0  # everything is loaded by now
+
+
+def test_commands_run_with_one_blas_thread_unless_the_user_says_otherwise(monkeypatch, capsys):
+    """Beside dask's own threads an idle BLAS pool spins on the same cores; the command sets the
+    BLAS pools to one thread before numpy loads, and leaves a user's own setting alone."""
+    import os
+    import subprocess
+    import sys
+
+    from streaklab import cli
+
+    for name in cli.BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert main(["example-config"]) == 0
+    capsys.readouterr()
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1" and os.environ["MKL_NUM_THREADS"] == "1"
+    assert os.environ["OMP_NUM_THREADS"] == "3"
+    # numpy reads the variables once, as it loads: the dispatcher itself must not load it
+    probe = subprocess.run([sys.executable, "-c", "import sys, streaklab.cli; print('numpy' in sys.modules)"],
+                           capture_output=True, text=True, timeout=60)
+    assert probe.stdout.strip() == "False", probe.stderr
