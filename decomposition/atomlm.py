@@ -86,13 +86,15 @@ def _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi):
 
 
 @njit
-def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model):
+def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, keep_g=False):
     """Atom ``amp * phi`` and its 4 derivative columns into J[row:row+4, lo:hi]; returns (lo, hi).
 
     Columns: d/d amp (= phi), d/d delay_ps, d/d log sigma, d/d log alpha; the derivative
     columns only before ``deriv_end`` (0: the atom's values alone).  Outside [lo, hi) every
     column is zero (and J is not written there).  ``model`` (L,): amp * phi is added to it, sample
-    by sample (an empty array: nothing is added).
+    by sample (an empty array: nothing is added).  ``keep_g`` (with ``deriv_end`` 0): an sss
+    atom also leaves its Gaussian factor g in J[row + 3] before its tail, from which
+    :func:`_fill_slot` forms the derivative columns later.
     """
     add = model.size > 0
     sig = math.exp(lsig)
@@ -163,6 +165,8 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model):
             J[row + 1, i] = -amp * (g - alp * h)
             J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
             J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+        elif keep_g:
+            J[row + 3, i] = g
         g *= e
         e *= cb
         f *= rho
@@ -189,6 +193,44 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model):
             x += T
             i += 1
     return lo, hi
+
+
+@njit
+def _fill_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, lo, hi, deriv_end):
+    """The derivative columns J[row + 1:row + 4] of a slot rendered by :func:`_eval_slot` with
+    ``keep_g`` and no derivatives (its values in J[row], an sss atom's g in J[row + 3] before
+    its tail), on [lo, min(hi, deriv_end)): the same numbers :func:`_eval_slot` writes with
+    derivatives, from the same values and the same times."""
+    end = min(hi, deriv_end)
+    sig = math.exp(lsig)
+    if fam == FAM_GAUSS:
+        for i in range(lo, end):
+            x = (t0 + i * T - delay) / sig
+            aph = amp * J[row, i]
+            J[row + 1, i] = aph * x / sig
+            J[row + 2, i] = aph * x * x
+            J[row + 3, i] = 0.0
+        return
+    alp = math.exp(lalp)
+    s2 = sig * sig
+    i_tail = _tail_start(t0, T, L, lo, delay, sig, alp)
+    for i in range(lo, min(i_tail, end)):
+        x = t0 + i * T - delay
+        h = J[row, i]
+        g = J[row + 3, i]
+        J[row + 1, i] = -amp * (g - alp * h)
+        J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
+        J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+    if i_tail < end:
+        x = t0 + i_tail * T - delay
+        c1 = amp * alp
+        c2 = amp * (1.0 + alp * alp * s2)
+        for i in range(i_tail, end):
+            h = J[row, i]
+            J[row + 1, i] = c1 * h
+            J[row + 2, i] = c2 * h
+            J[row + 3, i] = c1 * (alp * s2 - x) * h
+            x += T
 
 
 @njit
@@ -425,11 +467,14 @@ def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, 
 
 
 @njit
-def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
+def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model, derivs=True):
     """Evaluate the pixel's K active slots into J and sum their model into ``model`` (L,).
 
     The sss atom's derivative columns are left out in its pure tail (:func:`_pure_tail`), which
-    the normal equations sum in closed form from its values.
+    the normal equations sum in closed form from its values.  Without ``derivs`` only the
+    values (and an sss atom's Gaussian factor) are written: a trial step is judged by its
+    objective alone, and :func:`_fill_derivatives` completes J where it is accepted (in the
+    search's polish about 40 % of the trials are rejected).
     """
     for i in range(L):
         model[i] = 0.0
@@ -440,8 +485,19 @@ def _render(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi, model):
             lo[k] = hi[k] = 0
     s_k, p_tail = _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi)
     for k in range(K):
-        lo[k], hi[k] = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k,
-                                  p_tail if k == s_k else L, model)
+        end = (p_tail if k == s_k else L) if derivs else 0
+        lo[k], hi[k] = _eval_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k, end, model,
+                                  not derivs)
+
+
+@njit
+def _fill_derivatives(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi):
+    """The derivative columns of a state that :func:`_render` evaluated without them (its
+    supports ``lo``, ``hi``): afterwards J is what a render with derivatives writes."""
+    s_k, p_tail = _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi)
+    for k in range(K):
+        _fill_slot(t0, T, L, fam[k], amp[k], delay[k], lsig[k], lalp[k], J, 4 * k, lo[k], hi[k],
+                   p_tail if k == s_k else L)
 
 
 @njit
@@ -849,7 +905,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 near, d_k, s_k = onset_link(K, f, td, ts, NEAR_SIGMA)
                 if near:
                     td[s_k] = max(td[s_k], td[d_k])
-            _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel)
+            _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel, False)
             tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wp, tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:
                 old = level
@@ -867,6 +923,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 J, Jt = Jt, J
                 if old - tobj <= tol * old / nw:
                     break                # converged: this state's normal equations are not needed
+                _fill_derivatives(t0, T, L, K, f, am, de, ls, la, J, lo, hi)
                 tied, linked, dsl, ssl = _links(K, f, de, ls, tie_sigma, sss_after_direct)
                 _normal_equations(t0, T, K, f, am, de, ls, la, J, lo, hi, r, jw, tied, linked, dsl, ssl, JtJ, gv, free, clo, chi,
                           act, bp, pa, pb)
