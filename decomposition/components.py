@@ -306,8 +306,9 @@ def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, i
 
     The Gaussian-PSF components are the solver's own compiled atoms
     (:func:`decomposition.atomlm.state_models`: the kernels of :mod:`core.model` within 1e-12
-    relative, Gaussians cut at GAUSS_SUPPORT_SIGMA widths where they are below exp(-32) of
-    their peak); an absent component (NaN delay, amplitude or width) renders as zeros.
+    relative where they are evaluated, Gaussians cut at GAUSS_SUPPORT_SIGMA widths where they
+    are below exp(-18) of their peak, the sss tail continued where erfc differs from 2 by
+    less than 1e-8 relative); an absent component (NaN delay, amplitude or width) renders as zeros.
     """
     if irf is not None:
         return render_components(params, n_bins, time_bin_ps, t0_ps, irf=irf)

@@ -19,6 +19,7 @@ __all__ = [
     "FAM_SSS",
     "SIGNIFICANCE_LAG_BINS",
     "GAUSS_SUPPORT_SIGMA",
+    "CORR_SUPPORT_SIGMA",
     "DICT_SUPPORT_SIGMA",
     "DICT_PRE_SIGMA",
     "TAIL_SIGMA",
@@ -74,9 +75,19 @@ FAM_GAUSS = 1
 FAM_SSS = 2
 
 #: Gaussian support in the compiled per-pixel kernels, in sigma (dimensionless).  Beyond
-#: +-8 sigma a unit-peak Gaussian is below exp(-32) ~ 1e-14, under float64 rounding of the
-#: sums it enters; the sss kernel's non-recursive part (its rising edge) has the same support.
-GAUSS_SUPPORT_SIGMA = 8.0
+#: +-6 sigma a unit-peak Gaussian is below exp(-18) ~ 1.5e-8 of its peak: under the float32
+#: resolution of a cube's samples (2^-24 ~ 6e-8) and five decades under the lowest noise the
+#: benchmarks use; the sss kernel's non-recursive part (its rising edge) has the same support.
+#: (At 8 sigma, with the sss tail from 6 sqrt 2 sigma on, the refinement took 10-15 % more
+#: time for the same fidelity to four decimals.)
+GAUSS_SUPPORT_SIGMA = 6.0
+
+#: Gaussian support of the own-width correlations of the pick (:mod:`decomposition.pickcorr`),
+#: in sigma: beyond +-8 sigma a unit Gaussian is below exp(-32) ~ 1e-14, under float64
+#: rounding of the sums, so the correlations are the dense sums' (their tests hold them to
+#: 1e-10); the pick compares correlations of atoms against each other, and is not where the
+#: time goes.
+CORR_SUPPORT_SIGMA = 8.0
 
 #: Half-width of the sampled dictionary kernels (FFT pick) and the shortest window the
 #: solver accepts, in sigma (dimensionless).  exp(-18) ~ 1.5e-8 of the peak beyond 6 sigma:
@@ -89,10 +100,11 @@ DICT_SUPPORT_SIGMA = 6.0
 #: a component partly before the first bin is still representable.
 DICT_PRE_SIGMA = 3.0
 
-#: Past alpha sigma^2 + this many sigma after an sss onset, erfc(u) == 2 in float64, so the
-#: kernel is a pure exponential tail and is continued by its one-pole recursion
-#: (u = -6 in units of sqrt 2: erfc(6) ~ 2e-17).
-TAIL_SIGMA = 6.0 * math.sqrt(2.0)
+#: Past alpha sigma^2 + this many sigma after an sss onset the kernel is taken as its pure
+#: exponential tail (erfc(u) as 2) and continued by its one-pole recursion: u = -4 in units
+#: of sqrt 2, where erfc(-u) = erfc(4) ~ 1.5e-8, a relative error of 8e-9, under the float32
+#: resolution of a cube's samples as for :data:`GAUSS_SUPPORT_SIGMA`.
+TAIL_SIGMA = 4.0 * math.sqrt(2.0)
 
 #: An sss onset less than this many PSF widths before the earliest Gaussian is tied to it
 #: (``sss_after_direct``): refined as direct delay + gap with gap >= 0.

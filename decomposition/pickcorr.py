@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
-from .constants import GAUSS_SUPPORT_SIGMA
+from .constants import CORR_SUPPORT_SIGMA
 from .jit import SQRT_PI_2, erfcx, njit
 
 _SQRT_2 = math.sqrt(2.0)
@@ -178,7 +178,7 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2
     smax = 0.0
     for i in range(n):
         smax = max(smax, sig[i])
-    D = min(int(math.ceil(GAUSS_SUPPORT_SIGMA * smax / T)) + 2, H + L + pre)   # |d_lo|, q support bound
+    D = min(int(math.ceil(CORR_SUPPORT_SIGMA * smax / T)) + 2, H + L + pre)   # |d_lo|, q support bound
     off = pre + D + 1                                                 # left padding of r
     xp = np.zeros(off + L + 2 * D + 8)
     wp = np.zeros(off + L + 2 * D + 8)
@@ -195,7 +195,7 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2
             peak[i, a] = 1.0
         if not (need_g[i] or need_s[i]):
             continue                     # nothing this pixel may take: its rows are not read
-        half = int(math.ceil(GAUSS_SUPPORT_SIGMA * s / T))
+        half = int(math.ceil(CORR_SUPPORT_SIGMA * s / T))
         d_lo = max(-H, -half)            # kernels are zero before -H
         d_hi = min(half + 1, L + pre - 1)  # Gaussian and q negligible beyond (d <= L + pre - 1 anyway)
         kn = d_hi - d_lo + 1
