@@ -197,7 +197,10 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         paper's model gives every pixel a direct (``components="s"`` handles
         scenes with sss only).
     block_size : int
-        Pixels per solver block.
+        Pixels per solver block (default 512: ``bench speed``'s cube with its 1,024-pixel
+        chunks, 2 threads, three alternations, against 256: white +2-4 %, 100 photons
+        +7-9 % pixels/s; 128 was slower than 256).  Results agree to rounding: a block
+        size moves 6 of 2,048 white-noise pixels and none at 100 photons.
     refine : bool
         After the sparse step, refine every found component's continuous
         parameters by weighted least squares on the forward model

@@ -134,7 +134,7 @@ support (a Gaussian on +-8 sigma, an sss tail by a one-pole recursion) and
 the normal equations sum only over overlapping supports.  The first call
 in a fresh install compiles the kernels (10-15 s, once; numba caches
 them next to the sources).  Tried without a measurable gain earlier: float32
-FFTs for picking, blocks larger than 256 pixels.
+FFTs for picking, blocks larger than 256 pixels (since then, 512 did: see below).
 
 On the paper scenes (the default ``bench speed`` cube, with the search, grow and prune
 stages), one thread, 2,000 pixels of the bench cube (``make_cube(8, 672, 512, nsr=0.05,
@@ -163,6 +163,19 @@ in rounds and stopping the hopeless ones (the restarts cost what the dropped ite
 and fidelity fell), a short polish of every start with the leading one finished (winners
 change), fewer LM steps per pick or per polish (fidelity moves by up to 0.01 either way),
 fast-math reductions (slower, and not reproducible).
+
+Later, on ``streaklab bench speed --shape 16 672 512 --methods convscd --workers threads:2``
+(white NSR 0.05 / ``--photons 100``): 1,551 / 1,780 px/s before, then -- each step measured
+on its own -- one BLAS thread per command (an idle OpenBLAS pool had spun beside the two dask
+threads; +5 % white), trial steps rendered without their derivative columns (-2 / -3 % LM
+time, identical results), Gaussians cut at 6 widths and the sss tail's recursion from u = -4
+(LM time -13 / -9 %; fidelity the same to 4 decimals), a count refit skipped where it would
+repeat itself (identical results), and blocks of 512 pixels (+2-4 / +7-9 %): 1,676-1,713 /
+2,039-2,054 px/s.  The LM rejects 37-41 % of its trial steps in the search's polish; a first
+damping of 1e-2 instead of 1e-3 rejected fewer and ended lower (summed objective -4 %, photon
+LM time -6 %) but moved bench accuracy's means by -0.005..+0.009 and its targets by -1 / -2 on
+two seeds: not kept.  Memory: numpy's huge pages off (``NUMPY_MADVISE_HUGEPAGE=0``) steadied one
+thread's timing on 2,048 pixels but did not speed up the bench: not set.
 """
 from __future__ import annotations
 

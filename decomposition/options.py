@@ -156,7 +156,7 @@ class SolverOptions:
     shared_sigma: bool = True
     sss_after_direct: bool = True
     sss_alone: bool = False
-    block_size: int = 256
+    block_size: int = 512
     refine: bool = False
     stderr: bool | None = None
     noise: str = "auto"
