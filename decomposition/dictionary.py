@@ -102,13 +102,23 @@ class Dictionary:
 
         ``workers``: FFT threads.  One by default: pixel blocks are parallelised by processes
         or threads (:mod:`decomposition.chunked`); threads inside each would oversubscribe
-        the cores."""
-        X = sfft.rfft(x, n=self.n_fft, axis=-1, workers=workers)
+        the cores.  Rows go through the FFTs :data:`CORRELATE_ROWS` at a time, so that the
+        (rows, A, n_fft) spectra stay in cache (512 rows, 4 atoms: 13.8 -> 9.4 ms; the same
+        numbers)."""
+        x = np.asarray(x)
         spec = self.spec2_conj if squared else self.spec_conj
         if atoms is not None:
             spec = spec[atoms]
-        c = sfft.irfft(X[:, None, :] * spec[None], n=self.n_fft, axis=-1, workers=workers)
-        return np.take(c, self.gather, axis=-1)   # C-contiguous (c[..., idx] is not, and slower)
+        out = np.empty((x.shape[0], spec.shape[0], self.gather.size))
+        for r0 in range(0, x.shape[0], CORRELATE_ROWS):
+            X = sfft.rfft(x[r0:r0 + CORRELATE_ROWS], n=self.n_fft, axis=-1, workers=workers)
+            c = sfft.irfft(X[:, None, :] * spec[None], n=self.n_fft, axis=-1, workers=workers)
+            out[r0:r0 + CORRELATE_ROWS] = np.take(c, self.gather, axis=-1)
+        return out
+
+
+#: rows of a block correlated together by :meth:`Dictionary.correlate`
+CORRELATE_ROWS = 64
 
 
 class DictionaryCache:
