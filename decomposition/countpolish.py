@@ -79,17 +79,15 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
     bg = 0.0 if background is None else background[:, None]
     counts = p * scale[:, None] + bg
 
-    def deviance(m):
-        return count_deviance(counts, m * scale[:, None] + bg, mask.fit, dispersion)
-
-    def deviance_rows(m, rows):
+    def deviance(m, rows):
+        """The Poisson deviance of the pixels ``rows`` for their model ``m`` (normalised)."""
         b = 0.0 if background is None else background[rows, None]
         return count_deviance(counts[rows], m * scale[rows, None] + b, mask.fit[rows],
                               None if dispersion is None else dispersion[rows])
 
-    model = render(t, best)
-    dev_best = deviance(model)
     todo = np.arange(p.shape[0])
+    model = render(t, best)
+    dev_best = deviance(model, todo)
     for _ in range(POISSON_REFITS):
         if todo.size == 0:
             break
@@ -105,7 +103,7 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
         # the Poisson deviance, the fit's own objective, decides: the weights of a model that
         # lacks a component (1 / the floor where a missed tail holds counts) can pull an atom
         # far from the light it fits
-        dev = deviance_rows(new, todo)
+        dev = deviance(new, todo)
         better = dev < dev_best[todo]
         rows = todo[better]
         put(best, rows, take(st, np.flatnonzero(better)))
