@@ -81,3 +81,19 @@ def test_the_solvers_kernels_are_cached_under_the_folders_digest():
     assert type(locator).__name__.startswith("Kernel")
     stamp = locator.get_source_stamp()
     assert stamp[1] == jit.kernel_digest(str(Path(atomlm.__file__).parent))
+
+
+def test_without_a_stamped_cache_kernels_are_compiled_not_cached(tmp_path, monkeypatch):
+    """Where numba's cache cannot carry the folder's digest, a kernel is compiled per process:
+    nothing is written that a later, changed build could load."""
+    import importlib.util
+
+    monkeypatch.setattr(jit, "_LOCATORS", None)
+    src = tmp_path / "kmod.py"
+    src.write_text("from decomposition.jit import njit\nLEVEL = 3.0\n\n\n@njit\ndef level():\n    return LEVEL\n")
+    spec = importlib.util.spec_from_file_location("kmod_uncached", src)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.level() == 3.0
+    assert type(mod.level._cache).__name__ == "NullCache"
+    assert not list(tmp_path.rglob("*.nbi"))
