@@ -222,12 +222,62 @@ def signal_noise_sigma(residual: np.ndarray, model: np.ndarray, fit: np.ndarray,
     -------
     ndarray (P,), in the units of ``residual``.
     """
-    mag = np.abs(model)
-    region = mag >= SIGNAL_REGION_FRACTION * mag.max(axis=1, keepdims=True)
-    r = residual
-    d2 = np.abs(r[:, 2:] - 2.0 * r[:, 1:-1] + r[:, :-2])
-    ok = region[:, 1:-1] & _usable(fit)
-    return np.where(ok.sum(axis=1) >= min_samples, _mad_sigma(d2, ok), 0.0)
+    r = np.ascontiguousarray(residual, np.float64)
+    P = r.shape[0]
+    med = np.empty(P)
+    n_ok = np.zeros(P, np.int64)
+    if P and r.shape[1] > 2:
+        _signal_d2_medians(r, np.ascontiguousarray(model, np.float64), np.ascontiguousarray(fit, np.bool_),
+                           SIGNAL_REGION_FRACTION, med, n_ok)
+    else:
+        med[:] = np.nan
+    med = np.where(np.isfinite(med), med, 0.0)
+    return np.where(n_ok >= min_samples, MAD_TO_SIGMA * med / math.sqrt(6.0), 0.0)
+
+
+@njit
+def _signal_d2_medians(r, model, fit, frac, med, n_ok):
+    """Per row: the median of |second difference| of ``r`` over the second differences whose
+    three samples are fitted and whose middle sample's |model| is at least ``frac`` of the row's
+    largest (NaN where none), and how many such differences there are -- in one pass, without
+    the (P, L) temporaries of the array form."""
+    P, L = r.shape
+    buf = np.empty(L)
+    for i in range(P):
+        top = 0.0
+        has_nan = False
+        for j in range(L):
+            a = abs(model[i, j])
+            if math.isnan(a):
+                has_nan = True
+            elif a > top:
+                top = a
+        thr = frac * top
+        m = 0
+        n = 0
+        for j in range(L - 2):
+            if has_nan or not (fit[i, j] and fit[i, j + 1] and fit[i, j + 2]):
+                continue
+            if not abs(model[i, j + 1]) >= thr:
+                continue
+            n += 1
+            v = abs(r[i, j + 2] - 2.0 * r[i, j + 1] + r[i, j])
+            if not math.isnan(v):
+                buf[m] = v
+                m += 1
+        n_ok[i] = n
+        if m == 0:
+            med[i] = np.nan
+            continue
+        k = m // 2
+        part = np.partition(buf[:m], k)
+        hi = part[k]
+        lo = hi
+        if m % 2 == 0:
+            lo = part[0]
+            for j in range(1, k):
+                lo = max(lo, part[j])
+        med[i] = (lo + hi) / 2.0
 
 
 def is_count_data(values: np.ndarray) -> bool:

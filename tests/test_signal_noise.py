@@ -373,3 +373,41 @@ def test_a_narrow_direct_and_its_echo_are_not_fitted_as_one_wide_gaussian_under_
     r = decompose(data, time_bin_ps=4.0)
     np.testing.assert_allclose(r.params["direct_delay_ps"][:8], params["direct_delay_ps"], atol=1.0)
     np.testing.assert_allclose(r.params["ir_delay_ps"][:8, :2], params["ir_delay_ps"], atol=1.0)
+
+
+def test_the_noise_at_the_signal_reads_a_known_sigma_and_follows_its_definition():
+    """signal_noise_sigma: white noise of known sigma under the signal is read back within its
+    sampling error; samples below SIGNAL_REGION_FRACTION of the peak, unfitted ones and rows
+    without enough differences do not count; and every row equals the definition written out
+    with numpy (median of |second difference| over the region, MAD_TO_SIGMA / sqrt 6)."""
+    import math
+
+    from decomposition.constants import MAD_TO_SIGMA, MIN_NOISE_SAMPLES, SIGNAL_REGION_FRACTION
+    from decomposition.noise import signal_noise_sigma
+
+    n = 300
+    m = _shape(n)
+    rng = np.random.default_rng(11)
+    sigma = 0.02
+    res = sigma * rng.standard_normal(m.shape)
+    far = m < SIGNAL_REGION_FRACTION / 3.0                 # well outside the region (and its edge's
+    res[far] += 50.0 * rng.standard_normal(far.sum())      # differences): never read
+    fit = np.ones(m.shape, bool)
+    fit[::7, 150:170] = False
+    res[::7, 150:170] = np.nan                             # unfitted samples may be anything
+    m[5] = 0.0                                             # a dark row: every sample is "region"
+    m[6, 10] = np.nan                                      # a model with a NaN: no region at all
+    fit[7] = False                                         # nothing fitted
+    got = signal_noise_sigma(res, m, fit)
+    assert got[6] == 0.0 and got[7] == 0.0
+    normal = np.setdiff1d(np.arange(n), [5, 6, 7])
+    # the median-based estimate of one row (~50-150 differences) scatters by ~10 %; its mean by ~0.5 %
+    assert abs(np.mean(got[normal]) / sigma - 1.0) < 0.03
+    # the definition, row by row
+    for i in range(n):
+        mag = np.abs(m[i])
+        region = mag >= SIGNAL_REGION_FRACTION * mag.max()
+        d2 = np.abs(res[i, 2:] - 2.0 * res[i, 1:-1] + res[i, :-2])
+        ok = region[1:-1] & fit[i, 2:] & fit[i, 1:-1] & fit[i, :-2]
+        want = MAD_TO_SIGMA * np.median(d2[ok]) / math.sqrt(6.0) if ok.sum() >= MIN_NOISE_SAMPLES else 0.0
+        assert got[i] == want, i
