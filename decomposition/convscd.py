@@ -171,7 +171,9 @@ threads; +5 % white), trial steps rendered without their derivative columns (-2 
 time, identical results), Gaussians cut at 6 widths and the sss tail's recursion from u = -4
 (LM time -13 / -9 %; fidelity the same to 4 decimals), a count refit skipped where it would
 repeat itself (identical results), and blocks of 512 pixels (+2-4 / +7-9 %): 1,676-1,713 /
-2,039-2,054 px/s.  The LM rejects 37-41 % of its trial steps in the search's polish; a first
+2,039-2,054 px/s; then the FFT correlation 64 rows at a time and the noise at the signal in one
+compiled pass (both identical results).  On the default 64 x 672 x 512 cube: white 1,700 ->
+1,915-1,917 px/s (target 2,000, not met), 100 photons 2,077 -> 2,489-2,536 (met).  The LM rejects 37-41 % of its trial steps in the search's polish; a first
 damping of 1e-2 instead of 1e-3 rejected fewer and ended lower (summed objective -4 %, photon
 LM time -6 %) but moved bench accuracy's means by -0.005..+0.009 and its targets by -1 / -2 on
 two seeds: not kept.  Memory: numpy's huge pages off (``NUMPY_MADVISE_HUGEPAGE=0``) steadied one
