@@ -57,6 +57,23 @@ def _usable(fit: np.ndarray) -> np.ndarray:
 
 
 @njit
+def _median_of_first(buf, m):
+    """Median of ``buf[:m]`` by selection (the middle value, or the mean of the two middle
+    ones, as ``np.median``); NaN for m = 0."""
+    if m == 0:
+        return np.nan
+    k = m // 2
+    part = np.partition(buf[:m], k)
+    hi = part[k]
+    lo = hi
+    if m % 2 == 0:
+        lo = part[0]
+        for j in range(1, k):
+            lo = max(lo, part[j])
+    return (lo + hi) / 2.0
+
+
+@njit
 def _masked_medians(values, ok, out):
     P, N = values.shape
     buf = np.empty(N)
@@ -67,18 +84,7 @@ def _masked_medians(values, ok, out):
             if ok[i, j] and not math.isnan(v):
                 buf[m] = v
                 m += 1
-        if m == 0:
-            out[i] = np.nan
-            continue
-        k = m // 2
-        part = np.partition(buf[:m], k)
-        hi = part[k]
-        lo = hi
-        if m % 2 == 0:
-            lo = part[0]
-            for j in range(1, k):
-                lo = max(lo, part[j])
-        out[i] = (lo + hi) / 2.0
+        out[i] = _median_of_first(buf, m)
 
 
 def masked_median(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -266,18 +272,7 @@ def _signal_d2_medians(r, model, fit, frac, med, n_ok):
                 buf[m] = v
                 m += 1
         n_ok[i] = n
-        if m == 0:
-            med[i] = np.nan
-            continue
-        k = m // 2
-        part = np.partition(buf[:m], k)
-        hi = part[k]
-        lo = hi
-        if m % 2 == 0:
-            lo = part[0]
-            for j in range(1, k):
-                lo = max(lo, part[j])
-        med[i] = (lo + hi) / 2.0
+        med[i] = _median_of_first(buf, m)
 
 
 def is_count_data(values: np.ndarray) -> bool:
