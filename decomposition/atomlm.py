@@ -86,6 +86,33 @@ def _pure_tail(t0, T, L, K, fam, delay, lsig, lalp, lo, hi):
 
 
 @njit
+def _gauss_columns(J, row, i, aph, x, sig):
+    """A Gaussian atom's derivative columns at sample i: ``aph`` its value times its amplitude,
+    ``x`` the time from its delay in widths ``sig``."""
+    J[row + 1, i] = aph * x / sig
+    J[row + 2, i] = aph * x * x
+    J[row + 3, i] = 0.0
+
+
+@njit
+def _sss_columns(J, row, i, amp, h, g, x, sig, alp, s2):
+    """An sss atom's derivative columns at sample i before its tail: ``h`` its kernel, ``g`` the
+    Gaussian factor, ``x`` the time after its onset (ps), ``s2`` = sig^2."""
+    J[row + 1, i] = -amp * (g - alp * h)
+    J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
+    J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+
+
+@njit
+def _tail_columns(J, row, i, h, x, c1, c2, alp, s2):
+    """An sss atom's derivative columns in its exponential tail, multiples of its kernel ``h``
+    (c1 = amp alpha, c2 = amp (1 + alpha^2 sigma^2))."""
+    J[row + 1, i] = c1 * h
+    J[row + 2, i] = c2 * h
+    J[row + 3, i] = c1 * (alp * s2 - x) * h
+
+
+@njit
 def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, keep_g=False):
     """Atom ``amp * phi`` and its 4 derivative columns into J[row:row+4, lo:hi]; returns (lo, hi).
 
@@ -118,10 +145,7 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, 
             if add:
                 model[i] += amp * ph
             if i < deriv_end:
-                aph = amp * ph
-                J[row + 1, i] = aph * x / sig
-                J[row + 2, i] = aph * x * x
-                J[row + 3, i] = 0.0
+                _gauss_columns(J, row, i, amp * ph, x, sig)
             ph *= e
             e *= cb
         return lo, hi
@@ -162,9 +186,7 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, 
         if add:
             model[i] += amp * h
         if i < deriv_end:
-            J[row + 1, i] = -amp * (g - alp * h)
-            J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
-            J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+            _sss_columns(J, row, i, amp, h, g, x, sig, alp, s2)
         elif keep_g:
             J[row + 3, i] = g
         g *= e
@@ -186,9 +208,7 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, 
             if add:
                 model[i] += amp * h
             if i < deriv_end:
-                J[row + 1, i] = c1 * h
-                J[row + 2, i] = c2 * h
-                J[row + 3, i] = c1 * (alp * s2 - x) * h
+                _tail_columns(J, row, i, h, x, c1, c2, alp, s2)
             h *= rho
             x += T
             i += 1
@@ -206,30 +226,20 @@ def _fill_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, lo, hi, deriv_end)
     if fam == FAM_GAUSS:
         for i in range(lo, end):
             x = (t0 + i * T - delay) / sig
-            aph = amp * J[row, i]
-            J[row + 1, i] = aph * x / sig
-            J[row + 2, i] = aph * x * x
-            J[row + 3, i] = 0.0
+            _gauss_columns(J, row, i, amp * J[row, i], x, sig)
         return
     alp = math.exp(lalp)
     s2 = sig * sig
     i_tail = _tail_start(t0, T, L, lo, delay, sig, alp)
     for i in range(lo, min(i_tail, end)):
         x = t0 + i * T - delay
-        h = J[row, i]
-        g = J[row + 3, i]
-        J[row + 1, i] = -amp * (g - alp * h)
-        J[row + 2, i] = amp * sig * (h * (1.0 / sig + alp * alp * sig) - g * (alp * sig + x / sig))
-        J[row + 3, i] = amp * alp * ((alp * s2 - x) * h - s2 * g)
+        _sss_columns(J, row, i, amp, J[row, i], J[row + 3, i], x, sig, alp, s2)
     if i_tail < end:
         x = t0 + i_tail * T - delay
         c1 = amp * alp
         c2 = amp * (1.0 + alp * alp * s2)
         for i in range(i_tail, end):
-            h = J[row, i]
-            J[row + 1, i] = c1 * h
-            J[row + 2, i] = c2 * h
-            J[row + 3, i] = c1 * (alp * s2 - x) * h
+            _tail_columns(J, row, i, J[row, i], x, c1, c2, alp, s2)
             x += T
 
 
