@@ -57,19 +57,51 @@ def _usable(fit: np.ndarray) -> np.ndarray:
 
 
 @njit
+def _select_in_place(a, m, k):
+    """Reorder ``a[:m]`` (no NaN) so that ``a[k]`` is its k-th smallest value, every value before
+    it no larger and every one after it no smaller (quickselect, median-of-three pivots) -> a[k]."""
+    lo, hi = 0, m - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@njit
 def _median_of_first(buf, m):
-    """Median of ``buf[:m]`` by selection (the middle value, or the mean of the two middle
-    ones, as ``np.median``); NaN for m = 0."""
+    """Median of ``buf[:m]`` by selection in place (the middle value, or the mean of the two
+    middle ones, as ``np.median``); NaN for m = 0.  ``buf[:m]`` is reordered."""
     if m == 0:
         return np.nan
     k = m // 2
-    part = np.partition(buf[:m], k)
-    hi = part[k]
+    hi = _select_in_place(buf, m, k)
     lo = hi
     if m % 2 == 0:
-        lo = part[0]
+        lo = buf[0]
         for j in range(1, k):
-            lo = max(lo, part[j])
+            lo = max(lo, buf[j])
     return (lo + hi) / 2.0
 
 

@@ -161,12 +161,17 @@ def relabel(params: dict, n_ir: int | None = None) -> dict:
 
 
 def _smooth(y, width_bins):
-    """Gaussian smoothing along the last axis with a per-pixel width (bins), via FFT."""
+    """Gaussian smoothing along the last axis with a per-pixel width (bins), via FFT (zero-padded
+    to twice the length: no wrap-around); the filter is built and applied in place."""
     n = y.shape[-1]
     f = np.fft.rfftfreq(2 * n)
-    h = np.exp(-2.0 * (np.pi * f[None, :] * width_bins[:, None]) ** 2)
-    pad = np.concatenate([y, np.zeros_like(y)], axis=-1)
-    return np.fft.irfft(np.fft.rfft(pad, axis=-1) * h, n=2 * n, axis=-1)[:, :n]
+    h = np.pi * f[None, :] * np.asarray(width_bins, np.float64)[:, None]
+    h *= h
+    h *= -2.0
+    np.exp(h, out=h)                          # exp(-2 (pi f w)^2)
+    spec = np.fft.rfft(np.asarray(y, np.float64), n=2 * n, axis=-1)
+    spec *= h
+    return np.fft.irfft(spec, n=2 * n, axis=-1)[:, :n]
 
 
 def _first_peak(ys, level):

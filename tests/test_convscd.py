@@ -94,6 +94,23 @@ def test_masked_median_is_the_nanmedian_of_the_kept_entries():
     assert masked_median(np.zeros((3, 0)), np.zeros((3, 0), bool)).shape == (3,)
 
 
+def test_masked_median_selection_on_long_and_adversarial_rows():
+    """The in-place selection on rows of a profile's length: sorted, reversed, all equal, two
+    values, a few distinct values and random rows of every length from 1 to 600 give
+    np.median's value exactly."""
+    rng = np.random.default_rng(5)
+    L = 600
+    rows = [np.arange(L, dtype=float), np.arange(L, 0, -1, dtype=float), np.full(L, 3.25),
+            np.tile([1.0, -1.0], L // 2), rng.integers(0, 4, L).astype(float),
+            np.concatenate([np.zeros(L // 2), np.ones(L // 2)])[::-1]]
+    rows += [rng.normal(size=L) for _ in range(40)]
+    v = np.array(rows)
+    for m in list(range(1, 40)) + [255, 256, 511, 512, 599, 600]:
+        ok = np.zeros(v.shape, bool)
+        ok[:, :m] = True
+        np.testing.assert_array_equal(masked_median(v, ok), np.median(v[:, :m], axis=1), err_msg=f"m={m}")
+
+
 def test_objective_never_increases_and_iterations_are_bounded():
     data = make_profiles(24, 256, nsr=0.08, noise="white", seed=4)
     with warnings.catch_warnings():
