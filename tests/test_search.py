@@ -329,3 +329,32 @@ def test_the_wide_start_keeps_the_small_sss_of_a_wide_direct():
     assert np.all(f > 0.99)
     np.testing.assert_allclose(res.params["sss_delay_ps"], d.params["sss_delay_ps"][px], atol=0.5)
     assert res.info["search_wins"]["wide"] == 2 and not res.flags.any()
+
+
+def test_where_every_start_misfits_the_starts_get_the_forward_step():
+    # paper scene, 4 ps bins, NSR 0.001: a 2.3 ps direct, its sss, and two inter-reflections 32 and
+    # 47 ps later that the detection missed (it fitted a 6.7 ps direct over them); every start
+    # took the detection's later Gaussians and so lacked them, and the best still misfit by
+    # thousands of noise variances (POOR_FIT).  Grown where the best start misfits, the edge
+    # start finds both echoes.
+    from decomposition import decompose
+    from decomposition.flags import POOR_FIT
+    from decomposition.metrics import fidelity
+    from decomposition.search import MISFIT_GROWN_STARTS
+    from decomposition.synthetic import make_profiles
+
+    assert "edge" in MISFIT_GROWN_STARTS
+    d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
+                      bin_integrated=True)
+    px = [413]
+    truth = {k: v[px] for k, v in d.params.items()}
+    res = decompose(d.noisy[px], time_bin_ps=4.0)
+    assert res.info["search_wins"]["edge"] == 1 and not res.flags.any()
+    np.testing.assert_allclose(res.params["ir_delay_ps"][:, :2], truth["ir_delay_ps"], atol=0.1)
+    assert np.isnan(res.params["ir_delay_ps"][:, 2:]).all()
+    np.testing.assert_allclose(res.params["direct_delay_ps"], truth["direct_delay_ps"], atol=0.1)
+    np.testing.assert_allclose(res.params["sss_delay_ps"], truth["sss_delay_ps"], atol=0.1)
+    assert fidelity({k: v[px] for k, v in d.components.items()}, res)[0] > 0.99
+    # without the forward steps the same pixel is the wrong split, flagged POOR_FIT
+    bare = decompose(d.noisy[px], time_bin_ps=4.0, grow=False)
+    assert bare.flags[0] & POOR_FIT and abs(bare.params["direct_delay_ps"][0] - truth["direct_delay_ps"][0]) > 5.0
