@@ -178,6 +178,17 @@ damping of 1e-2 instead of 1e-3 rejected fewer and ended lower (summed objective
 LM time -6 %) but moved bench accuracy's means by -0.005..+0.009 and its targets by -1 / -2 on
 two seeds: not kept.  Memory: numpy's huge pages off (``NUMPY_MADVISE_HUGEPAGE=0``) steadied one
 thread's timing on 2,048 pixels but did not speed up the bench: not set.
+
+Then: medians by an in-place quickselect (numba's ``np.partition`` copied every row: 300 x 512
+masked medians 2.32 -> 1.90 ms) and the search's smoothing with its padding inside the FFT and
+its filter built in place (6.1 -> 4.2 ms), both exact: default cube 1,951 / 2,000 -> 1,996 /
+2,004 px/s alternated; three runs an hour later 1,968-1,975.  Measured, not kept: a looser LM
+stop (``lm_tol`` 0.03 / 0.1: +4.5 / +7.5 % px/s, split over detection and search alike, but
+where the direct / sss split is weakly determined the direct's amplitude error grows from
+0.016 to 0.020 / 0.029, median of 40 pixels in ``tests/test_decompose_irf.py``; position and
+lifetime errors on 1,200 paper pixels unchanged); glibc's malloc told to keep freed blocks up to
+32 MiB (``mallopt``: 25,000-36,000 page faults -> 12 in one thread, +2-3 % there, nothing in the
+threaded bench).
 """
 from __future__ import annotations
 
