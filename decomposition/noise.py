@@ -137,6 +137,12 @@ def masked_median(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
+def _d2_sigma(med: np.ndarray) -> np.ndarray:
+    """The noise sigma of white noise whose |second differences| have the median ``med``
+    (a second difference has variance 6 sigma^2)."""
+    return MAD_TO_SIGMA * med / math.sqrt(6.0)
+
+
 def _mad_sigma(d2: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
     """MAD_TO_SIGMA * median over ``ok`` of |d2| / sqrt(6) per row (0 for rows without one)."""
     if ok is None or ok.all():
@@ -144,7 +150,7 @@ def _mad_sigma(d2: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
     else:
         med = masked_median(d2, ok)
         med = np.where(np.isfinite(med), med, 0.0)
-    return MAD_TO_SIGMA * med / math.sqrt(6.0)
+    return _d2_sigma(med)
 
 
 def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None) -> np.ndarray:
@@ -270,7 +276,7 @@ def signal_noise_sigma(residual: np.ndarray, model: np.ndarray, fit: np.ndarray,
     else:
         med[:] = np.nan
     med = np.where(np.isfinite(med), med, 0.0)
-    return np.where(n_ok >= min_samples, MAD_TO_SIGMA * med / math.sqrt(6.0), 0.0)
+    return np.where(n_ok >= min_samples, _d2_sigma(med), 0.0)
 
 
 @njit

@@ -398,13 +398,6 @@ def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=No
     return var if weights is None else var[:, None] / np.maximum(weights, 1e-300)
 
 
-def _variance_rows(s2, rows):
-    """The rows ``rows`` of an :func:`objective_variance` (an array, or a :class:`SpectralNoise`)."""
-    if isinstance(s2, SpectralNoise):
-        return SpectralNoise(s2.spectrum, s2.variance[rows])
-    return s2[rows]
-
-
 def _n_free(st, shared_sigma):
     """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
     one width per pixel (``shared_sigma``) or per atom."""
@@ -528,6 +521,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     from . import components as comp
     from .constants import FAM_GAUSS, FAM_SSS
     from .candidates import polish_candidate
+    from .grow import grow_block
     from .slots import new_state, put, render, take
 
     n, L = p.shape
@@ -667,8 +661,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         # the forward step of decomposition.grow on the rise start: an inter-reflection the
         # wide direct had absorbed is no detected Gaussian, and without it the narrow split
         # loses to the wide one it would beat
-        from .grow import grow_block
-
         i_rise = 1 + [spec[0] for spec in specs].index("rise")
         cand[i_rise], _ = grow_block(pb, mb, cand[i_rise], noise_b, dic, opts, s_sig[idx], bump_test, weights=wb,
                                      spectrum=noise_spectrum)
@@ -683,8 +675,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         # later Gaussians are the detection's, and an inter-reflection the detection missed
         # (absorbed by a wide direct or by an sss hump) is none of them; without it the right
         # split loses to a wrong one that spreads over the missing echo
-        from .grow import grow_block
-
         chi = js - np.stack([opts.search_penalty * _n_free(c, opts.shared_sigma) * log_l[idx] for c in cand])
         misfit = chi[np.argmin(js, axis=0), np.arange(idx.size)] > opts.search_doubt_chi2 * nfit[idx]
         names = [spec[0] for spec in specs]
@@ -696,8 +686,9 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
             grown, _ = grow_block(pb[rows], mb[rows], take(cand[i], rows), noise_b[rows], dic, opts, s_sig[idx][rows],
                                   bump_test, weights=None if wb is None else wb[rows], spectrum=noise_spectrum)
             put(cand[i], rows, grown)
-            js[i, rows] = penalised_objective(t, pb[rows], mb[rows], grown, _variance_rows(sj2, rows), log_l[idx][rows],
-                                              opts)
+            s2_rows = objective_variance(noise_b[rows], None if objective_sigma is None else objective_sigma[idx][rows],
+                                         None if wb is None else wb[rows], noise_spectrum)
+            js[i, rows] = penalised_objective(t, pb[rows], mb[rows], grown, s2_rows, log_l[idx][rows], opts)
     if not opts.sss_alone:
         # the paper's model gives every pixel a direct: a start that lost it competes only
         # where every start did

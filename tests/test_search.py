@@ -358,21 +358,3 @@ def test_where_every_start_misfits_the_starts_get_the_forward_step():
     # without the forward steps the same pixel is the wrong split, flagged POOR_FIT
     bare = decompose(d.noisy[px], time_bin_ps=4.0, grow=False)
     assert bare.flags[0] & POOR_FIT and abs(bare.params["direct_delay_ps"][0] - truth["direct_delay_ps"][0]) > 5.0
-
-
-def test_the_rows_of_an_objective_variance_of_either_kind():
-    # the search scores a subset of its pixels again (the misfits' grown starts) in the same
-    # noise: per-pixel variances, per-sample variances, or a call's spectrum with per-pixel ones
-    from decomposition.noise import SpectralNoise
-    from decomposition.search import _variance_rows, objective_variance
-
-    rows = np.array([2, 0])
-    s = np.array([1.0, 2.0, 3.0])
-    np.testing.assert_array_equal(_variance_rows(objective_variance(s), rows), [9.0, 1.0])
-    w = np.array([[1.0, 0.5], [1.0, 1.0], [0.25, 1.0]])
-    np.testing.assert_array_equal(_variance_rows(objective_variance(s, weights=w), rows), [[36.0, 9.0], [1.0, 2.0]])
-    spec = np.array([4.0, 2.0, 1.0])
-    sub = _variance_rows(objective_variance(s, spectrum=spec), rows)
-    assert isinstance(sub, SpectralNoise)
-    np.testing.assert_array_equal(sub.variance, [9.0, 1.0])
-    np.testing.assert_array_equal(sub.spectrum, spec)
