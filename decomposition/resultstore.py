@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import os
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +51,7 @@ import zarr
 from core.durable import sync_chunk, sync_chunks
 from core.errors import OutputExistsError, StreaklabError
 from core.integrity import (ChunkDamage, DataIntegrityError, create_array, has_checksums, missing_chunks,
-                            open_member, read_checked, scan_array, scan_group, writable)
+                            open_member, read_checked, scan_array, scan_group, writable, write_regions)
 from core.irf import InstrumentResponse, ResponseError
 from core.irfstore import read_response_group, samples_sha256, write_response_group
 from core.staging import OutputPathError, check_no_links, check_output_path, staged_output
@@ -170,6 +170,8 @@ class ResultStore:
     param_keys: tuple
     write_components: bool
     attrs: dict
+    # name -> array opened for writing (see _arrays)
+    _opened_arrays: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     # ----- chunk grid --------------------------------------------------------------------------
     @property
@@ -281,6 +283,16 @@ class ResultStore:
         return [tuple(int(i) for i in ij) for ij in np.argwhere(~self.done_chunks())]
 
     # ----- writes ------------------------------------------------------------------------------
+    def _arrays(self, names) -> dict:
+        """name -> the array opened for writing (:func:`writable`), each opened once per store
+        object (``group[name]`` reads and parses the array's metadata, which never changes after
+        the store is created)."""
+        cache = self._opened_arrays
+        for k in names:
+            if k not in cache:
+                cache[k] = writable(self.group[k])
+        return {k: cache[k] for k in names}
+
     def write_chunk(self, iy: int, ix: int, result: dict) -> None:
         """Write one chunk's results into its region, then mark it done.
 
@@ -303,10 +315,9 @@ class ResultStore:
         if missing or extra:
             raise ResultStoreError(f"chunk ({iy}, {ix}) parameters do not match the store: "
                                    f"missing {missing}, not in the store {extra}")
-        # each array opened once (every ``group[name]`` reads and parses its metadata)
         names = tuple(self.param_keys) + _QUALITY + (("direct", "sss", "residual", "ir") if self.write_components
                                                      else ()) + ("done",)
-        g = {k: self.group[k] for k in names}
+        g = self._arrays(names)
         writes = []
         for k in self.param_keys:
             trail = g[k].shape[2:]
@@ -322,12 +333,11 @@ class ResultStore:
             if value.shape != shape:
                 raise ResultStoreError(f"chunk ({iy}, {ix}): {k} has shape {value.shape}, the store expects {shape}")
         writes = self._fit_to_dtypes(writes, region, g)
-        for k, value, _ in writes:
-            writable(g[k])[ys, xs] = np.asarray(value).astype(g[k].dtype, copy=False)
+        write_regions((g[k], (ys, xs), np.asarray(value).astype(g[k].dtype, copy=False)) for k, value, _ in writes)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
         # whose data never reached the disk (resume would skip it)
         sync_chunks(self.path, [(k, (iy, ix) + (0,) * (len(shape) - 2)) for k, _, shape in writes])
-        writable(g["done"])[ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
+        g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
         sync_chunk(self.path, "done", (iy, ix))
 
     def _fit_to_dtypes(self, writes: list, region: tuple, arrays) -> list:
