@@ -139,6 +139,8 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     def scatter(values, fill, dtype):
         """(n_ok, ...) values -> (by, bx, ...) with ``fill`` at left-out pixels."""
         values = np.asarray(values)
+        if n_ok == by * bx:     # nothing left out: the solver's own arrays (filling a copy cost 3 % of a chunk)
+            return values.astype(dtype, copy=False).reshape((by, bx) + values.shape[1:])
         full = np.full((by * bx,) + values.shape[1:], fill, dtype=dtype)
         full[keep] = values
         return full.reshape((by, bx) + values.shape[1:])
