@@ -78,13 +78,20 @@ def write_regions(writes) -> None:
     hand-over waits for the interpreter lock (about 2 ms a call on a busy 2-core machine).  The
     order among the writes is not defined; an error from any of them is raised here, after all
     have finished.  This is the batching zarr documents ``Array.async_array`` for, with the sync
-    bridge of zarr itself (``zarr.core.sync.sync``).
+    bridge of zarr itself (``zarr.core.sync.sync``); a zarr without either (``async_array`` became
+    public late in the 3.1 series; the bridge is internal) gets the writes one by one.
     """
     import asyncio
 
-    from zarr.core.sync import sync
-
     jobs = list(writes)
+    try:
+        from zarr.core.sync import sync
+    except ImportError:
+        sync = None
+    if sync is None or not all(hasattr(arr, "async_array") for arr, _, _ in jobs):
+        for arr, sel, value in jobs:
+            arr[sel] = value
+        return
 
     async def _all():
         done = await asyncio.gather(*(arr.async_array.setitem(sel, value) for arr, sel, value in jobs),
