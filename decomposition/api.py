@@ -280,10 +280,15 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     search_penalty, search_doubt_chi2 : float
         Weight of the parameter-count term of the search's objective (1 = BIC);
         a data term above this many times its expected value puts a pixel in doubt.
-    ambiguity_sigma, ambiguity_split : float
-        AMBIGUOUS flag: another start within this many chi-square standard
-        deviations (sqrt(2 n)) of the best objective whose split differs from
-        the best's by more than ``ambiguity_split`` (1 - fidelity between them).
+    ambiguity_chi2, ambiguity_split : float
+        AMBIGUOUS flag of the search: another start whose objective (chi2 + k ln n, a BIC)
+        is within ``ambiguity_chi2`` (default 10: below it the evidence for the best is
+        less than "very strong") of the best's and whose split differs from the best's by
+        more than ``ambiguity_split`` (1 - fidelity between them).
+    ambiguity_sigma : float
+        With a measured response (``irf``): a restored direct is taken where the fit without
+        it lies within this many chi-square standard deviations (sqrt(2 n)) of the fit with
+        it, and marks the pixel AMBIGUOUS where their splits differ by ``ambiguity_split``.
     stderr : bool, optional
         Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
         as the parameters, NaN where absent or not identifiable) to

@@ -168,6 +168,7 @@ class SolverOptions:
     whiten: bool = True
     search_penalty: float = 1.0
     search_doubt_chi2: float = 1.5
+    ambiguity_chi2: float = 10.0
     ambiguity_sigma: float = 3.0
     ambiguity_split: float = 0.3
 
@@ -185,7 +186,7 @@ class SolverOptions:
             _set(self, name, _number(name, getattr(self, name), lo=0, integer=True))
         for name in ("lm_tol", "sparsity", "noise_floor", "rel_threshold", "significance_chi2", "merge_tol_bins",
                      "spike_sigma",
-                     "search_penalty", "search_doubt_chi2", "ambiguity_sigma", "ambiguity_split"):
+                     "search_penalty", "search_doubt_chi2", "ambiguity_chi2", "ambiguity_sigma", "ambiguity_split"):
             _set(self, name, _number(name, getattr(self, name), lo=0))
         for name in ("eps_rel", "poor_fit"):
             _set(self, name, _number(name, getattr(self, name), lo=0, lo_open=True))
