@@ -101,3 +101,27 @@ def test_bench_speed_memory_line_states_one_peak_that_bounds_its_parts():
     text = memory_text(s)
     total, one = (float(v) for v in re.findall(r"([\d,.]+) MiB", text))
     assert total >= one and total == 647 and "all processes" in text and "532" not in text
+
+
+@pytest.mark.timeout(120)
+def test_bench_speed_repeat_runs_each_configuration_in_rounds_and_judges_the_median(tmp_path, capsys):
+    from streaklab.bench import speed
+
+    parser = argparse.ArgumentParser()
+    speed.add_arguments(parser)
+    common = ["--shape", "2", "16", "64", "--methods", "gradbm", "--workers", "threads:1,threads:2",
+              "--chunks", "1", "16", "--scenes", "legacy", "--out", str(tmp_path)]
+    with pytest.raises(CommandError, match="--repeat must be at least 1"):
+        speed.run(parser.parse_args(common + ["--repeat", "0"]))
+    assert speed.run(parser.parse_args(common + ["--repeat", "2"])) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((tmp_path / "speed.json").read_text())
+    runs = report["runs"]
+    # rounds: each configuration once per round, in the same order
+    assert [(r["round"], r["workers"]) for r in runs] == [(0, 1), (0, 2), (1, 1), (1, 2)]
+    assert report["repeat"] == 2 and len(report["summaries"]) == 2
+    for m in report["summaries"]:
+        pps = sorted(r["pixels_per_s"] for r in runs if r["workers"] == m["workers"])
+        assert m["runs"] == 2 and m["pixels_per_s_min"] == pps[0] and m["pixels_per_s_max"] == pps[1]
+        assert m["pixels_per_s_median"] == pytest.approx(0.5 * (pps[0] + pps[1]))
+    assert "round 2 of 2" in printed and printed.count("over 2 runs: median") == 2
