@@ -52,9 +52,13 @@ def _coords(coords) -> str:
     return "(" + ", ".join(str(int(c)) for c in coords) + ")" if coords else "()"
 
 
-def create_array(group: zarr.Group, name: str, **kwargs) -> zarr.Array:
-    """``group.create_array`` with zstd + crc32c and every written chunk stored."""
-    kwargs.setdefault("compressors", (ZstdCodec(level=0), Crc32cCodec()))
+def create_array(group: zarr.Group, name: str, *, zstd_level: int = 0, **kwargs) -> zarr.Array:
+    """``group.create_array`` with zstd + crc32c and every written chunk stored.
+
+    ``zstd_level``: 0 is zstd's default (3); 1 for large arrays written in a hot loop whose data
+    compress no better at 3 (a result store's float32 components: the same ratios, 1.07-51x,
+    in two thirds of the time)."""
+    kwargs.setdefault("compressors", (ZstdCodec(level=int(zstd_level)), Crc32cCodec()))
     kwargs.setdefault("config", dict(_WRITE_ALL))
     return group.create_array(name, **kwargs)
 

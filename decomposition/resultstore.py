@@ -483,13 +483,13 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(meta)
 
-    def arr(name, shp, chk, dtype, dims, fill, units=None, **extra):
+    def arr(name, shp, chk, dtype, dims, fill, units=None, zstd_level=0, **extra):
         a = {"long_name": _LONG_NAMES.get(name, name)}
         if units is not None:
             a["units"] = units
         a.update(extra)
         return create_array(g, name, shape=shp, chunks=chk, dtype=dtype, dimension_names=dims,
-                            fill_value=fill, attributes=a)
+                            fill_value=fill, attributes=a, zstd_level=zstd_level)
 
     for k in map_keys:
         arr(k, (ny, nx), (by, bx), "float64", ["y", "x"], np.nan, _units_for(k, signal_units))
@@ -509,10 +509,11 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
         flag_meanings="pending written",
         comment="True once every array of the pixel's chunk is on disk; --resume recomputes the rest")
     if write_components:
+        # zstd level 1: these are nearly all of a chunk's bytes, and compress no better at 3
         for k in ("direct", "sss", "residual"):
-            arr(k, (ny, nx, nt), (by, bx, nt), "float32", ["y", "x", "t"], np.nan, signal_units)
+            arr(k, (ny, nx, nt), (by, bx, nt), "float32", ["y", "x", "t"], np.nan, signal_units, zstd_level=1)
         arr("ir", (ny, nx, n_ir, nt), (by, bx, max(n_ir, 1), nt), "float32", ["y", "x", "r", "t"], np.nan,
-            signal_units)
+            signal_units, zstd_level=1)
     t = arr("t", (nt,), (nt,), "float64", ["t"], np.nan, "ps")
     t.attrs["long_name"] = "time of bin centre"
     t[:] = float(t0_ps) + float(time_bin_ps) * np.arange(nt)

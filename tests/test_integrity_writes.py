@@ -70,3 +70,18 @@ def test_without_zarrs_batching_bridge_the_writes_go_one_by_one(tmp_path, monkey
     again = zarr.open_group(str(tmp_path / "s.zarr"), mode="r")
     np.testing.assert_array_equal(again["a"][2:4, 0:3], va)
     assert again["c"][0:2, 3:6].all() and again["c"][...].sum() == 6
+
+
+def test_create_array_keeps_the_checksum_at_any_zstd_level(tmp_path):
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    for name, level in (("default", None), ("fast", 1)):
+        kw = {} if level is None else {"zstd_level": level}
+        a = create_array(root, name, shape=(4, 8), chunks=(2, 8), dtype="f4", fill_value=np.nan, **kw)
+        a[...] = np.arange(32, dtype="f4").reshape(4, 8)
+        (zstd,) = [c for c in a.metadata.codecs if isinstance(c, ZstdCodec)]
+        assert zstd.level == (0 if level is None else level)
+        assert any(isinstance(c, Crc32cCodec) for c in a.metadata.codecs)
+        np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "s.zarr"), mode="r")[name][...],
+                                      np.arange(32, dtype="f4").reshape(4, 8))
