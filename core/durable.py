@@ -69,7 +69,7 @@ def sync_chunk(store_path, name: str, coords: tuple[int, ...]) -> None:
     sync_chunks(store_path, [(name, coords)])
 
 
-def sync_chunks(store_path, chunks) -> None:
+def sync_chunks(store_path, chunks, *, known_dirs: set | None = None) -> None:
     """fsync several chunks and their directories together; returns once every one is synced.
 
     Parameters
@@ -78,22 +78,41 @@ def sync_chunks(store_path, chunks) -> None:
         The store's root folder.
     chunks : iterable of (name, coords)
         Array name and chunk coordinates, as for :func:`sync_chunk`.
+    known_dirs : set of str, optional
+        Directories whose own entry in their parent is already on disk, kept by the caller for
+        one store across calls (and filled in here).  A chunk's file and the directory holding
+        it are always synced (the write renames the file into it); a directory above is synced
+        only where the one below it is not known, i.e. new since this caller first met it: a
+        directory whose entries did not change needs no fsync.  A result chunk's 80 fsyncs
+        become about 44 after the first chunk of each row.  None: every directory up to the
+        array's, as before.
 
     The fsyncs run concurrently (up to :data:`SYNC_THREADS`), so the file system can commit
     them together; the order among them is not defined, which is why a done flag must be
-    synced by a later call.  An error from any of them is raised here.
+    synced by a later call.  An error from any of them is raised here, and then no directory
+    is added to ``known_dirs``.
     """
     seen: dict[str, Path] = {}
+    learned: list[str] = []
     for name, coords in chunks:
-        for p in chunk_paths(store_path, name, tuple(coords)):
+        chain = chunk_paths(store_path, name, tuple(coords))
+        keep = len(chain)
+        if known_dirs is not None:
+            keep = 2                                    # the file and the directory holding it
+            while keep < len(chain) and str(chain[keep - 1]) not in known_dirs:
+                keep += 1                               # that one is new: its parent gained an entry
+            learned.extend(str(d) for d in chain[1:keep - 1])
+        for p in chain[:keep]:
             seen.setdefault(str(p), p)
     paths = list(seen.values())
     if len(paths) <= 1:
         for p in paths:
             fsync_path(p)
-        return
-    for _ in _pool().map(fsync_path, paths):
-        pass
+    else:
+        for _ in _pool().map(fsync_path, paths):
+            pass
+    if known_dirs is not None:
+        known_dirs.update(learned)
 
 
 _POOL: tuple[int, ThreadPoolExecutor] | None = None

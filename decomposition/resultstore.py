@@ -172,6 +172,8 @@ class ResultStore:
     attrs: dict
     # name -> array opened for writing (see _arrays)
     _opened_arrays: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    # directories whose entries this object has synced (core.durable.sync_chunks' known_dirs)
+    _synced_dirs: set = field(default_factory=set, init=False, repr=False, compare=False)
 
     # ----- chunk grid --------------------------------------------------------------------------
     @property
@@ -336,9 +338,10 @@ class ResultStore:
         write_regions((g[k], (ys, xs), np.asarray(value).astype(g[k].dtype, copy=False)) for k, value, _ in writes)
         # durable before it is marked done: a power cut must not leave a chunk flagged done
         # whose data never reached the disk (resume would skip it)
-        sync_chunks(self.path, [(k, (iy, ix) + (0,) * (len(shape) - 2)) for k, _, shape in writes])
+        sync_chunks(self.path, [(k, (iy, ix) + (0,) * (len(shape) - 2)) for k, _, shape in writes],
+                    known_dirs=self._synced_dirs)
         g["done"][ys, xs] = np.ones(region, dtype=bool)  # last: the chunk is complete on disk
-        sync_chunk(self.path, "done", (iy, ix))
+        sync_chunks(self.path, [("done", (iy, ix))], known_dirs=self._synced_dirs)
 
     def _fit_to_dtypes(self, writes: list, region: tuple, arrays) -> list:
         """Values too large for their array's float dtype (float32 components) become NaN, and

@@ -82,3 +82,33 @@ def test_a_forked_child_syncs_with_its_own_threads(tmp_path):
     child.join(timeout=30)
     assert child.exitcode == 0, "the child hung or failed syncing"
     assert out.get(timeout=5) is True
+
+
+def test_known_directories_are_not_synced_again_unless_a_new_one_below_them_appeared(tmp_path, monkeypatch):
+    root = zarr.open_group(str(tmp_path / "s.zarr"), mode="w")
+    arr = root.create_array("a", shape=(4, 4, 3), chunks=(2, 2, 3), dtype="f4")
+    arr[...] = np.ones((4, 4, 3), dtype="f4")
+    path = tmp_path / "s.zarr"
+    synced = []
+    real = durable.fsync_path
+    monkeypatch.setattr(durable, "fsync_path", lambda p: (synced.append(str(p)), real(p)))
+    known: set = set()
+
+    def sync(coords):
+        synced.clear()
+        durable.sync_chunks(path, [("a", coords)], known_dirs=known)
+        return sorted(p[len(str(path)) + 1:] for p in synced)
+
+    # the first chunk: its file and every directory up to the array's, as without known_dirs
+    assert sync((0, 0, 0)) == sorted(["a/c/0/0/0", "a/c/0/0", "a/c/0", "a/c", "a"])
+    # again: the file and the directory it is renamed into; nothing above changed
+    assert sync((0, 0, 0)) == ["a/c/0/0", "a/c/0/0/0"]
+    # a neighbour in the same row: its own new directory a/c/0/1 gained a/c/0 an entry
+    assert sync((0, 1, 0)) == ["a/c/0", "a/c/0/1", "a/c/0/1/0"]
+    # a new row: a/c/1 is new, so a/c changed; the array's folder did not
+    assert sync((1, 0, 0)) == ["a/c", "a/c/1", "a/c/1/0", "a/c/1/0/0"]
+    # a failed file fsync adds nothing to what is known
+    monkeypatch.setattr(durable, "fsync_path", lambda p: (_ for _ in ()).throw(OSError(errno.EIO, "io")))
+    with pytest.raises(OSError):
+        durable.sync_chunks(path, [("a", (1, 1, 0))], known_dirs=known)
+    assert str(path / "a/c/1/1") not in known
