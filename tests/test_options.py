@@ -30,6 +30,7 @@ def test_info_records_every_option_with_its_resolved_value():
     ({"lm_tol": float("nan")}, "option lm_tol: must be finite"),
     ({"no_such": 1}, r"unknown option\(s\) \['no_such'\]"),
     ({"background_chi2": -1.0}, "option background_chi2: must be >= 0"),
+    ({"ambiguity_chi2": -1.0}, "option ambiguity_chi2: must be >= 0"),
 ])
 def test_bad_values_are_refused_naming_the_option(values, pattern):
     with pytest.raises(OptionError, match=pattern):
