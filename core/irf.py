@@ -60,7 +60,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as sp_fft
-from scipy import optimize
 
 from .errors import StreaklabError
 
@@ -250,7 +249,9 @@ class InstrumentResponse:
             nb = up - 1 if side == 0 else up + 1
             if 0 <= nb < t.size:
                 a, b = sorted((t[up], t[nb]))
-                out.append(optimize.brentq(f, a, b, xtol=1e-12))
+                from scipy.optimize import brentq   # here: importing scipy.optimize costs 0.2 s
+
+                out.append(brentq(f, a, b, xtol=1e-12))
             else:
                 out.append(t[up])
         return float(out[1] - out[0])

@@ -26,6 +26,7 @@ import time
 
 import dask
 import dask.array as da
+import dask.threaded
 import numpy as np
 from dask.callbacks import Callback
 from .flags import FLAG_DTYPE
@@ -267,8 +268,10 @@ def run_tasks(tasks, *, client=None, num_workers: int | None = None, on_done=Non
     if not tasks:
         return done
     if client is None:
+        # the threaded scheduler itself, not its name: given the name, dask imports
+        # dask.distributed to look for a running client (0.2 s on every run)
         with _ChunkDone(record):
-            dask.compute(*tasks, scheduler="threads", num_workers=num_workers)
+            dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=num_workers)
         return done
     from distributed import as_completed
 

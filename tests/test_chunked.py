@@ -163,3 +163,25 @@ def test_pixels_with_more_interreflections_than_kept_are_counted():
     assert out["params"]["ir_delay_ps"].shape == (1, 2, 1)
     np.testing.assert_allclose(out["params"]["ir_delay_ps"][0, 0, 0], 100.0, atol=1.0)  # the earliest is kept
     assert np.isnan(out["params"]["ir_delay_ps"][0, 1, 0])
+
+
+def test_a_local_run_leaves_dask_distributed_unimported(tmp_path):
+    """The threaded scheduler is handed to dask as a function: given its name, dask imports
+    dask.distributed to look for a client (0.2 s of every ``streaklab decompose``)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    np.save(tmp_path / "c.npy", _cube(2, 3, seed=1))
+    code = ("import sys, numpy as np\n"
+            "from decomposition.pipeline import decompose_to_store\n"
+            f"s = decompose_to_store({str(tmp_path / 'c.npy')!r}, {str(tmp_path / 'r.zarr')!r}, "
+            f"time_bin_ps={TB}, progress=False)\n"
+            "print(s['chunks_done'], 'distributed' in sys.modules)\n")
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    chunks, imported = out.stdout.split()
+    assert int(chunks) >= 1 and imported == "False"
