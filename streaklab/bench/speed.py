@@ -325,7 +325,7 @@ def run(args) -> int:
                   f"(range {m['pixels_per_s_min']:,.0f}-{m['pixels_per_s_max']:,.0f})", flush=True)
     for m in summaries:
         if m["method"] == "convscd" and m["workers"] == 2:
-            how = "2 worker processes" if m["scheduler"] == "processes" else "2 threads"
+            how = _label(m["scheduler"], m["workers"])
             ok = m["pixels_per_s_median"] >= TARGET_PX_PER_S and m["paper_cube_s_median"] <= TARGET_PAPER_S
             where = "" if (ny, nx, nt) == DEFAULT_SHAPE else " (the target is defined on the default --shape)"
             over = f" (median of {m['runs']} runs)" if m["runs"] > 1 else ""
