@@ -121,7 +121,10 @@ def test_decompose_prunes_on_paper_scenes_and_fidelity_does_not_drop():
     assert on.info["pruned"] >= 5 and "pruned" not in off.info
     f_on, f_off = fidelity(data.components, on), fidelity(data.components, off)
     a, b = on.params["ir_delay_ps"], off.params["ir_delay_ps"]
-    changed = ~np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=1)
+    # (a trial may also win by a polish's fraction with the same atoms: changed means an
+    # inter-reflection added, dropped or moved by more than half a picosecond)
+    with np.errstate(invalid="ignore"):
+        changed = ~np.all((np.abs(a - b) < 0.5) | (np.isnan(a) & np.isnan(b)), axis=1)
     assert changed.sum() >= 5
     assert f_on[changed].mean() > f_off[changed].mean() + 0.1
     # fewer Gaussians within 4 widths of the direct
@@ -152,3 +155,24 @@ def test_prune_clears_an_sss_hump_filled_with_several_gaussians(nsr, px):
     assert np.isnan(res.params["ir_delay_ps"][0, n_ir:]).all()
     # without the backward step the hump stays
     assert fidelity(truth, decompose(d.noisy[[px]], time_bin_ps=2.0, prune=False))[0] < 0.5
+
+
+def test_prune_reads_a_fast_sss_hump_as_the_echo_it_took(monkeypatch):
+    # paper scene, 2 ps bins, white NSR 0.055: a 5.4 ps direct, a weak sss (2 % of it) 0.6 widths
+    # later, echoes 6 and 22 widths later (0.33 and 0.5 of it).  The detection fitted the first
+    # echo as an sss decaying at 0.17 /ps, filled the true sss's hump with two Gaussians, and
+    # took every slot, so the swap (which needs a free one) never tried it; fidelity 0.12.
+    import decomposition.prune as prune
+    from decomposition import decompose
+    from decomposition.synthetic import make_profiles
+
+    d = make_profiles(600, 512, nsr=0.055, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
+                      bin_integrated=True)
+    px = [234]
+    truth = {k: v[px] for k, v in d.components.items()}
+    res = decompose(d.noisy[px], time_bin_ps=2.0)
+    assert fidelity(truth, res)[0] > 0.95
+    np.testing.assert_allclose(res.params["ir_delay_ps"][0, :2], d.params["ir_delay_ps"][px[0]], atol=1.0)
+    assert abs(res.params["sss_delay_ps"][0] - d.params["sss_delay_ps"][px[0]]) < 5.0
+    monkeypatch.setattr(prune, "hump_as_echo", lambda t, cur, *a: (np.zeros(0, np.int64), cur))
+    assert fidelity(truth, decompose(d.noisy[px], time_bin_ps=2.0))[0] < 0.3
