@@ -199,3 +199,31 @@ def test_an_echo_brighter_than_the_direct_is_ambiguous():
     s = prepare_samples(clean + 0.002 * np.random.default_rng(4).standard_normal(clean.shape), time_axis(T), GridSpec())
     flags = assess_fit(s, p, s.noise_eff, 3.0).flags
     assert (flags & AMBIGUOUS != 0).tolist()[:3] == [False, True, False]
+
+
+def test_gaussians_closer_than_resolved_sigma_are_ambiguous():
+    from decomposition.constants import RESOLVED_SIGMA
+    from decomposition.flags import AMBIGUOUS
+    from decomposition.quality import unresolved_gaussians
+
+    sigma = 6.0
+    p = _params((400.0, 1.0, sigma), (405.0, 0.1, 0.03), 5)
+    close = RESOLVED_SIGMA * sigma
+    p["ir_delay_ps"] = np.array([[400.0 + 0.99 * close, np.nan],         # the first echo too near the direct
+                                 [400.0 + 1.01 * close, np.nan],         # resolved
+                                 [500.0, 500.0 + 0.5 * close],           # two echoes one hump
+                                 [np.nan, 450.0],                        # the order of the slots does not matter
+                                 [np.nan, np.nan]])
+    p["ir_amplitude"] = np.where(np.isfinite(p["ir_delay_ps"]), 0.3, np.nan)
+    p["ir_sigma_ps"] = np.where(np.isfinite(p["ir_delay_ps"]), sigma, np.nan)
+    p["direct_delay_ps"][3] = 455.0
+    assert unresolved_gaussians(p).tolist() == [True, False, True, True, False]
+    p["direct_sigma_ps"][:] = np.nan                                     # no width (no direct): no judgement
+    assert not unresolved_gaussians(p).any()
+    assert not unresolved_gaussians(_params((400.0, 1.0, 1.2), (403.0, 0.5, 0.025), 2)).any()
+    # through the quality stage
+    p["direct_sigma_ps"][:] = sigma
+    clean = render_profile(p, L, T)
+    s = prepare_samples(clean + 0.002 * np.random.default_rng(4).standard_normal(clean.shape), time_axis(T), GridSpec())
+    flags = assess_fit(s, p, s.noise_eff, 3.0).flags
+    assert (flags & AMBIGUOUS != 0).tolist() == [True, False, True, True, False]
