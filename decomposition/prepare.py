@@ -242,16 +242,18 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         else:
             sp = find_spikes(pn[idx_live], fit[idx_live], s_eff[idx_live], axis.time_bin_ps, grid.sigma_range_ps[0],
                              spike_sigma, rel_threshold, neighbour_ratio=spike_neighbour_ratio)
-        mark(flags, idx_live[sp.any(axis=1)], SPIKE)
+        hit = idx_live[sp.any(axis=1)]
+        mark(flags, hit, SPIKE)
         fit[idx_live] = fit[idx_live] & ~sp
-        # re-normalise without the spikes
-        xs = np.where(fit, xb, 0.0)
-        scale[idx_live] = np.abs(xs[idx_live]).max(axis=1)
-        ok = scale[idx_live] > 0
-        mark(flags, idx_live[~ok], EMPTY)
-        idx_live = idx_live[ok]
-        pn[idx_live] = xs[idx_live] / scale[idx_live, None]
-        s_eff[idx_live] = np.maximum(noise_sigma(pn[idx_live], fit[idx_live]), noise_floor)
+        # re-normalise without the spikes (a pixel without one keeps its samples, scale and noise)
+        xs[hit] = np.where(fit[hit], xb[hit], 0.0)
+        scale[hit] = np.abs(xs[hit]).max(axis=1)
+        ok = scale[hit] > 0
+        mark(flags, hit[~ok], EMPTY)
+        idx_live = np.setdiff1d(idx_live, hit[~ok], assume_unique=True)
+        hit = hit[ok]
+        pn[hit] = xs[hit] / scale[hit, None]
+        s_eff[hit] = np.maximum(noise_sigma(pn[hit], fit[hit]), noise_floor)
     if counts and idx_live.size:
         # the noise the solver weighs its sparsity with is the noise at the components
         s_sig = count_signal_sigma(np.where(fit, x, 0.0)[idx_live], fit[idx_live], scale[idx_live], disp[idx_live])
