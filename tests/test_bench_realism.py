@@ -183,3 +183,26 @@ def test_modelled_takes_the_response_as_the_bins_record_it():
     setup_continuous = dict(setup, recorded_response=setup["response"])
     params_c, _ = realism.run_variant("modelled", data, setup_continuous, 2.0)
     assert np.nanmean(params_c["direct_delay_ps"] - data.params["direct_delay_ps"]) > 0.08
+
+
+def test_targets_name_the_references_own_figure_where_it_is_judged_alone():
+    base = {"status": "ok", "effect": "tailed", "photons_per_pixel": 100.0, "lifetime_bias_rel": -0.021,
+            "lifetime_bias_se_rel": 0.004, "direct_delay_bias_sigma": 0.005, "lifetime_bias_vs_reference_rel": 0.003,
+            "lifetime_bias_vs_reference_se_rel": 0.002, "lifetime_rmse_over_reference": 1.04,
+            "direct_delay_rmse_over_reference": 0.9, "stderr_median_z_lifetime": 0.69,
+            "stderr_median_z_lifetime_se": 0.02, "stderr_median_z_delay": 0.80, "stderr_median_z_delay_se": 0.02,
+            "echo_found": float("nan")}
+    ref = {**base, "variant": "reference", "lifetime_bias_rel": -0.024, "direct_delay_bias_sigma": 0.16,
+           "lifetime_rmse_over_reference": 1.0, "direct_delay_rmse_over_reference": 1.0, "stderr_median_z_delay": 0.67}
+    out = {text.split(": ", 1)[1]: (ok, detail)
+           for text, ok, detail in realism.check_targets([{**base, "variant": "modelled"}, ref])}
+    # judged alone: the reference's figure and verdict beside the variant's
+    assert out["lifetime bias"] == (False, "-2.10% +- 0.40% (<= 1%); the reference: -2.40% +- 0.40%, not met")
+    assert out["direct delay bias"] == (True, "+0.005 sigma (<= 0.01 sigma); the reference: +0.160 sigma, not met")
+    assert out["delay stderr"][0] is False and out["delay stderr"][1].endswith("the reference: median |e|/se 0.670 +- 0.020, met")
+    # judged against the reference: nothing added
+    assert out["lifetime RMSE"] == (True, "1.04 x reference (<= 1.1)")
+    # the reference row itself is no target, and without one nothing is added
+    assert not [t for t, _, _ in realism.check_targets([ref])]
+    alone = {t.split(": ", 1)[1]: d for t, _, d in realism.check_targets([{**base, "variant": "modelled"}])}
+    assert alone["lifetime bias"] == "-2.10% +- 0.40% (<= 1%)"
