@@ -107,9 +107,9 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
             won[rows[w]] = True
 
     every = np.arange(idx.size)
-    for alt in (dropped, moved):
-        alt = polished(alt, every)
-        keep_better(alt, every)
+    keep_better(polished(dropped, every), every)
+    moved_polished = polished(moved, every)
+    keep_better(moved_polished, every)
     if opts.grow:
         # a third trial: the moved one after the forward step, where more than one Gaussian was
         # close all of them dropped first (an sss hump the detection filled with several) --
@@ -117,7 +117,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
         # dropped with it, comes back where the residual asks for it
         gd = np.where(g, moved["delay"], np.inf)
         close = g & (gd > d0[:, None]) & (gd - d0[:, None] < PRUNE_GAP_SIGMA * sigma_ps[:, None])
-        third = take(alt, every)
+        third = take(moved_polished, every)
         rows = np.nonzero(close.any(axis=1))[0]
         if rows.size:
             cleared = take(moved, rows)
