@@ -55,7 +55,7 @@ from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACT
                         GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
                         SWAP_MODE_GAP_SIGMA)
 
-__all__ = ["min_gaussian_gap_sigma", "with_gaussian", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
+__all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]
 
 
@@ -260,6 +260,25 @@ def grow_components(samples, det, dic, opts):
                       weights=True)
 
 
+def late_fast_sss(t_ps, st, d0_ps, sigma_ps):
+    """The sss swap's rule on slot states ``st`` (n, K) whose direct lies at ``d0_ps`` (n,), of
+    width ``sigma_ps`` (n,): -> (the sss's slot (n,), its hump's mode in ps (n,), passes (n,)
+    bool): the hump peaks more than ``SWAP_MODE_GAP_SIGMA`` widths after the direct and decays
+    fast enough against the PSF to pass for a Gaussian (alpha sigma >= ``SWAP_MIN_ALPHA_SIGMA``).
+    A pixel without an sss reads its first slot: the caller leaves such pixels out."""
+    from .slots import eval_atoms
+
+    n = st["fam"].shape[0]
+    r = np.arange(n)
+    ss = np.argmax(st["fam"] == FAM_SSS, axis=1)
+    hump = eval_atoms(t_ps, np.full(n, FAM_SSS, np.int8), st["delay"][r, ss], st["lsig"][r, ss], st["lalp"][r, ss])
+    mode_ps = t_ps[np.argmax(hump, axis=1)]
+    # an sss decaying slowly against the PSF (small alpha sigma) has a hump far broader than a
+    # Gaussian's: it takes in none
+    steep = np.exp(st["lalp"][r, ss]) * sigma_ps >= SWAP_MIN_ALPHA_SIGMA
+    return ss, mode_ps, steep & (mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps)
+
+
 def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None, spectrum=None):
     """The sss swap on one block (arguments of :func:`grow_block`) -> (state, swapped (n,) bool).
 
@@ -273,7 +292,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
     where the penalised objective is lower and every pair of Gaussians stays resolved (the rule
     of :func:`grow_block`).
     """
-    from .slots import eval_atoms, take
+    from .slots import take
 
     n, L = p.shape
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
@@ -285,18 +304,11 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
     if cand.size == 0:
         return out, swapped
     cur = take(out, cand)
-    r = np.arange(cand.size)
     gc = cur["fam"] == FAM_GAUSS
     d0_ps = np.where(gc, cur["delay"], np.inf).min(axis=1)
     sigma_ps = np.exp(np.where(gc, cur["lsig"], -np.inf).max(axis=1))
-    ss = np.argmax(cur["fam"] == FAM_SSS, axis=1)
-    hump = eval_atoms(t, np.full(cand.size, FAM_SSS, np.int8), cur["delay"][r, ss], cur["lsig"][r, ss],
-                      cur["lalp"][r, ss])
-    mode_ps = t[np.argmax(hump, axis=1)]
-    # an sss decaying slowly against the PSF (small alpha sigma) has a hump far broader than a
-    # Gaussian's: it takes in none
-    steep = np.exp(cur["lalp"][r, ss]) * sigma_ps >= SWAP_MIN_ALPHA_SIGMA
-    late = np.flatnonzero((mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps) & steep)
+    ss, mode_ps, passes = late_fast_sss(t, cur, d0_ps, sigma_ps)
+    late = np.flatnonzero(passes)
     if late.size == 0:
         return out, swapped
     idx, cur = cand[late], take(cur, late)

@@ -149,18 +149,12 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
     neither it nor the trials above (fidelity 0.12 -> 0.99).
     """
-    from .constants import SEARCH_DEFAULT_ALPHA_PER_PS, SWAP_MIN_ALPHA_SIGMA, SWAP_MODE_GAP_SIGMA
-    from .grow import with_gaussian
-    from .slots import eval_atoms, take
+    from .constants import SEARCH_DEFAULT_ALPHA_PER_PS
+    from .grow import late_fast_sss, with_gaussian
+    from .slots import take
 
-    n = cur["fam"].shape[0]
-    r = np.arange(n)
-    has_s = (cur["fam"] == FAM_SSS).any(axis=1)
-    ss = np.argmax(cur["fam"] == FAM_SSS, axis=1)
-    hump = eval_atoms(t_ps, np.full(n, FAM_SSS, np.int8), cur["delay"][r, ss], cur["lsig"][r, ss], cur["lalp"][r, ss])
-    mode_ps = t_ps[np.argmax(hump, axis=1)]
-    steep = np.exp(cur["lalp"][r, ss]) * sigma_ps >= SWAP_MIN_ALPHA_SIGMA
-    rows = np.nonzero(has_s & steep & (mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps))[0]
+    _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps)
+    rows = np.nonzero((cur["fam"] == FAM_SSS).any(axis=1) & passes)[0]
     trial = take(moved, rows)
     g = trial["fam"] == FAM_GAUSS
     between = g & (trial["delay"] > d0_ps[rows, None]) & (trial["delay"] < mode_ps[rows, None])
