@@ -749,8 +749,10 @@ def _tail_coef(col, row, c1, c2):
 def _damped_step(n, JtJ, g, fixed, lam, A, x, idx):
     """Marquardt step (JtJ + lam diag(JtJ)) x = g over the non-fixed parameters (0 elsewhere).
 
-    Gaussian elimination with partial pivoting on the free sub-system; an exactly singular
-    system or a non-finite result gives a zero step.
+    The damped matrix is symmetric and positive definite (a Gram matrix plus a positive
+    diagonal; the caller fixes every column whose diagonal is not positive): Cholesky
+    factorisation, then two triangular solves.  A pivot that is not positive (a Gram matrix
+    singular to rounding) or a non-finite result gives a zero step.
     """
     m = 0
     for a in range(n):
@@ -760,34 +762,37 @@ def _damped_step(n, JtJ, g, fixed, lam, A, x, idx):
             m += 1
     if m == 0:
         return
+    # lower triangle of A = L (in place), column m = the right-hand side
     for i in range(m):
-        for j in range(m):
-            A[i, j] = JtJ[idx[i], idx[j]]
-        A[i, i] = JtJ[idx[i], idx[i]] * (1.0 + lam)
-        A[i, m] = g[idx[i]]
-    for c in range(m):
-        piv = c
-        best = abs(A[c, c])
-        for i in range(c + 1, m):
-            if abs(A[i, c]) > best:
-                best = abs(A[i, c])
-                piv = i
-        if best == 0.0:
+        ii = idx[i]
+        for j in range(i):
+            A[i, j] = JtJ[ii, idx[j]]
+        A[i, i] = JtJ[ii, ii] * (1.0 + lam)
+        A[i, m] = g[ii]
+    for j in range(m):
+        d = A[j, j]
+        for k in range(j):
+            d -= A[j, k] * A[j, k]
+        if not d > 0.0:
             return
-        if piv != c:
-            for j in range(c, m + 1):
-                tmp = A[c, j]
-                A[c, j] = A[piv, j]
-                A[piv, j] = tmp
-        for i in range(c + 1, m):
-            f = A[i, c] / A[c, c]
-            if f != 0.0:
-                for j in range(c, m + 1):
-                    A[i, j] -= f * A[c, j]
+        d = math.sqrt(d)
+        A[j, j] = d
+        inv = 1.0 / d
+        for i in range(j + 1, m):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s * inv
+    # L y = g (y over column m), then L^T x = y
+    for i in range(m):
+        s = A[i, m]
+        for k in range(i):
+            s -= A[i, k] * A[k, m]
+        A[i, m] = s / A[i, i]
     for i in range(m - 1, -1, -1):
         s = A[i, m]
-        for j in range(i + 1, m):
-            s -= A[i, j] * x[idx[j]]
+        for k in range(i + 1, m):
+            s -= A[k, i] * x[idx[k]]
         x[idx[i]] = s / A[i, i]
     for i in range(m):
         if not math.isfinite(x[idx[i]]):
