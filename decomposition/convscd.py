@@ -189,6 +189,28 @@ where the direct / sss split is weakly determined the direct's amplitude error g
 lifetime errors on 1,200 paper pixels unchanged); glibc's malloc told to keep freed blocks up to
 32 MiB (``mallopt``: 25,000-36,000 page faults -> 12 in one thread, +2-3 % there, nothing in the
 threaded bench).
+
+Then: the Marquardt step by Cholesky factorisation (the damped Gram matrix is positive definite)
+instead of Gaussian elimination with pivoting: the LM calls of one decompose replayed (2,048
+pixels of the default cube) 0.94 -> 0.91-0.92 s, the same iterations and objectives within
+3e-13; ``--repeat 3`` median 1,984 -> 2,005 px/s (the two medians an hour apart), alternated
+pairs 1,920 (compiling) / 1,993 / 1,963 -> 2,002 / 1,989 / 1,978: within the machine's noise.  Where the LM's
+time goes (each part run twice per iteration in a replay, the increase read as its cost, of
+0.93 s): the normal equations about 0.44 s, the trial render 0.30, the accepted step's
+derivative columns 0.28, the damped solve 0.14 (before Cholesky), the trial objective 0.06.
+The search's polishes are two thirds of the LM's iterations; 19 % of them stop at ``n_polish``
+(30 iterations), a third of the search's LM time.  Threads: 2 threads of one process decompose
+2,041-2,132 px/s where two processes side by side do 2,207 (1,119 + 1,088) and one thread
+1,131-1,142: per stage, the time spent waiting (wall less thread CPU time) is 2 % of the stages'
+time and their CPU time rises 3 % (shared caches); the interpreter lock is not the lever.
+Measured again, not kept: ``lm_tol`` 0.05 everywhere (+3.8 % px/s, three alternated pairs;
+paper scenes 36 points +0.0002, seed 2 +0.0006, within their noise) saves only 6.5 % of the
+search's LM iterations, and on single pixels chosen by earlier tests it moved which start wins
+and a fast-sss-hump pixel's fidelity (0.985 -> 0.922).  The amplitude error quoted above is the
+data's, not the stop's: on that test's scenes (direct and sss at one onset, SNR 100) the
+direct's median amplitude error is 0.016 / 0.024 / 0.021 / 0.063 (seeds 3-6) at 1e-2 and
+0.023 / 0.024 / 0.021 / 0.063 at 0.05, the oracle's 0.004-0.006, and the data term equals the oracle's to 0.01 noise
+variances (the split at a shared onset is weakly determined; the oracle starts at it).
 """
 from __future__ import annotations
 
