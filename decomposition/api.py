@@ -247,6 +247,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         rest polished, and the pruned answer kept where the search's penalised
         objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
         counts the pixels.
+    rescue : bool
+        A second pass for the pixels flagged POOR_FIT at the end (float data whose
+        noise does not follow the signal): decomposed again without the detection's
+        restart (:data:`decomposition.rescue.RESCUE_OPTIONS`), the second answer
+        taken, with its own flags, where its penalised misfit is lower by
+        ``ambiguity_chi2`` (:mod:`decomposition.rescue`); ``info["rescue_tried"]``
+        and ``info["rescued"]`` count the pixels.
     signal_noise : bool
         Noise that follows the signal (photon / shot noise on float data, the
         Gaussian noise model): after the detection, each pixel's variance law
@@ -446,6 +453,11 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         info.update(rinfo)
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)
     flags |= fit.flags
+    if method == "convscd":
+        fit, params, flags = _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, opts, info,
+                                     dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps,
+                                          components=components, nan_policy=nan_policy,
+                                          saturation_level=saturation_level, **options))
     lead, L = samples.lead, samples.n_bins
     params = _reshape_params(params, lead, R)
     info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
@@ -507,6 +519,48 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
         direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
         interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
         residual=fit.residual.reshape(lead + (L,)), flags=flags.reshape(lead), info=info)
+
+
+def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, opts, info, call):
+    """The second pass of :mod:`decomposition.rescue` on the POOR_FIT pixels: ``call`` holds the
+    keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
+    -> (fit, params, flags), the taken pixels' rows replaced (flat, P-shaped)."""
+    from .quality import Fit
+    from .rescue import RESCUE_OPTIONS, penalised_misfit, rescue_rows, take_rescued
+
+    live = samples.live
+    flat = None if flat_noise is None else np.zeros(samples.values.shape[0], bool)
+    if flat is not None:
+        flat[live] = flat_noise
+    poor = np.zeros(samples.values.shape[0], bool)
+    poor[live] = (flags[live] & POOR_FIT) != 0
+    rows = rescue_rows(poor, flat, samples.noise_model == "poisson")
+    if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
+        rows = rows[:0]                   # off, or the first pass was already started so
+    info["rescue_tried"], info["rescued"] = int(rows.size), 0
+    if rows.size == 0:
+        return fit, params, flags
+    L = samples.n_bins
+    again = decompose(np.asarray(profiles).reshape(-1, L)[rows], **dict(call, **RESCUE_OPTIONS, rescue=False))
+    fit_mask = samples.fit[rows]
+    noise = noise_eff[rows] * samples.scale[rows]
+    first = {k: np.asarray(v)[rows] for k, v in params.items()}
+    j1 = penalised_misfit(fit.residual[rows], fit_mask, noise, first)
+    j2 = penalised_misfit(np.nan_to_num(again.residual), fit_mask, noise, again.params)
+    take = take_rescued(j1, j2, opts.ambiguity_chi2)
+    info["rescued"] = int(take.sum())
+    if not take.any():
+        return fit, params, flags
+    r = rows[take]
+    for k in params:
+        params[k] = np.array(params[k], copy=True)
+        params[k][r] = again.params[k][take]
+    flags = flags.copy()
+    flags[r] = again.flags[take]
+    arrays = {name: np.array(getattr(fit, name), copy=True) for name in ("direct", "sss", "interreflections", "residual")}
+    for name in arrays:
+        arrays[name][r] = getattr(again, name)[take]
+    return Fit(flags=fit.flags, **arrays), params, flags
 
 
 def _reshape_params(params: dict, lead: tuple, n_ir: int) -> dict:

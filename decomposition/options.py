@@ -163,6 +163,7 @@ class SolverOptions:
     search: bool = True
     grow: bool = True
     prune: bool = True
+    rescue: bool = True
     signal_noise: bool = True
     signal_noise_law: str = "auto"
     whiten: bool = True
@@ -173,7 +174,7 @@ class SolverOptions:
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune",
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune", "rescue",
                      "signal_noise", "whiten"):
             _set(self, name, _flag(name, getattr(self, name)))
         _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
