@@ -89,3 +89,18 @@ def test_no_second_pass_where_none_misfits_or_it_would_repeat_the_first(sub_bin_
     # photon counts: their misfit is read on the Poisson law, not here
     c = make_profiles(20, 256, seed=4, kinds="a", time_bin_ps=2.0, photons_per_pixel=100.0)
     assert decompose(c.noisy, 2.0, noise="poisson").info["rescue_tried"] == 0
+
+
+def test_the_second_pass_keeps_the_input_layout_and_skips_pixels_not_decomposed(sub_bin_scenes):
+    # a (2, 2, L) cube with one all-NaN pixel (omitted, NONFINITE) and one pixel twice: the
+    # rescued pixels land where they came from, with the answers of the flat call
+    y, _ = sub_bin_scenes
+    flat = decompose(y, 4.0)
+    cube = np.stack([y[0], np.full(y.shape[1], np.nan), y[1], y[0]]).reshape(2, 2, -1)
+    res = decompose(cube, 4.0, nan_policy="omit")
+    assert res.info["rescue_tried"] == 3 and res.info["rescued"] == 3
+    for (i, j), k in (((0, 0), 0), ((1, 0), 1), ((1, 1), 0)):
+        for key in ("direct_delay_ps", "sss_delay_ps", "direct_amplitude"):
+            np.testing.assert_allclose(res.params[key][i, j], flat.params[key][k], rtol=1e-9)
+        np.testing.assert_allclose(res.residual[i, j], flat.residual[k], rtol=1e-9, atol=1e-12)
+    assert np.isnan(res.params["direct_delay_ps"][0, 1]) and res.flags[0, 1] != 0
