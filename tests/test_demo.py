@@ -92,6 +92,32 @@ def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys, monkeypatch):
     assert peak == pytest.approx(run["peak_rss_mib"], abs=1) and peak >= run["peak_rss_one_process_mib"] - 1
 
 
+@pytest.mark.timeout(120)
+def test_bench_speed_hands_solver_options_to_every_run_and_judges_no_target_then(tmp_path, capsys):
+    from streaklab.bench import speed
+
+    parser = argparse.ArgumentParser()
+    speed.add_arguments(parser)
+    common = ["--shape", "2", "16", "64", "--methods", "convscd", "--workers", "threads:2", "--chunks", "1", "16",
+              "--scenes", "legacy", "--out", str(tmp_path)]
+    with pytest.raises(CommandError, match="no_such_option"):
+        speed.run(parser.parse_args(common + ["--option", "no_such_option=1"]))
+    with pytest.raises(CommandError, match="KEY=VALUE"):
+        speed.run(parser.parse_args(common + ["--option", "rescue"]))
+    assert speed.run(parser.parse_args(common + ["--option", "rescue=false", "--option", "n_polish=10"])) == 0
+    printed = capsys.readouterr().out
+    report = json.loads((tmp_path / "speed.json").read_text())
+    assert report["options"] == {"rescue": False, "n_polish": 10}
+    (run,) = report["runs"]
+    assert run["pixels"] == 32 and run["chunks_done"] == 2
+    assert "target, convscd" not in printed and "the target is judged on the defaults" in printed
+    # the options reached the solver: the result store records them
+    assert speed.run(parser.parse_args(common + ["--option", "n_polish=10", "--keep"])) == 0
+    from decomposition.resultstore import open_result_store
+    attrs = open_result_store(tmp_path / "result-convscd-threads2.zarr").attrs
+    assert attrs["options"]["n_polish"] == 10
+
+
 def test_bench_speed_memory_line_states_one_peak_that_bounds_its_parts():
     from streaklab.bench.speed import memory_text
 

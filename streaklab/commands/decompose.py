@@ -83,7 +83,7 @@ def parse_components(text: str) -> tuple[str, ...]:
         raise CommandError(f"--components takes a comma-separated subset of d, s, r, b: {exc}") from None
 
 
-def _parse_options(items, method: str = "convscd") -> dict:
+def parse_solver_options(items, method: str = "convscd") -> dict:
     """``KEY=VALUE`` items -> {key: value}; VALUE is read as JSON if it parses, else as a string.
 
     Every key is checked against the solver's option fields (and, for ``gradbm``, the
@@ -129,7 +129,7 @@ def run(args) -> int:
     tls = _tls_files(args)
     summary = decompose_to_store(
         args.input, args.out, method=args.method, components=parse_components(args.components),
-        options=_parse_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
+        options=parse_solver_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
         t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf)
