@@ -454,7 +454,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)
     flags |= fit.flags
     if method == "convscd":
-        fit, params, flags = _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, opts, info,
+        fit, params, flags = _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, det.noise_spectrum,
+                                     opts, info,
                                      dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps,
                                           components=components, nan_policy=nan_policy,
                                           saturation_level=saturation_level, **options))
@@ -521,7 +522,7 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
         residual=fit.residual.reshape(lead + (L,)), flags=flags.reshape(lead), info=info)
 
 
-def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, opts, info, call):
+def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call):
     """The second pass of :mod:`decomposition.rescue` on the POOR_FIT pixels: ``call`` holds the
     keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
     -> (fit, params, flags), the taken pixels' rows replaced (flat, P-shaped)."""
@@ -545,8 +546,8 @@ def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, opts, 
     fit_mask = samples.fit[rows]
     noise = noise_eff[rows] * samples.scale[rows]
     first = {k: np.asarray(v)[rows] for k, v in params.items()}
-    j1 = penalised_misfit(fit.residual[rows], fit_mask, noise, first)
-    j2 = penalised_misfit(np.nan_to_num(again.residual), fit_mask, noise, again.params)
+    j1 = penalised_misfit(fit.residual[rows], fit_mask, noise, first, spectrum)
+    j2 = penalised_misfit(np.nan_to_num(again.residual), fit_mask, noise, again.params, spectrum)
     take = take_rescued(j1, j2, opts.ambiguity_chi2)
     info["rescued"] = int(take.sum())
     if not take.any():

@@ -12,7 +12,8 @@ objective,
 
     J = sum over the fitted samples of (residual / s)^2 + k ln n,
 
-s the noise the first pass weighed the pixel with, k the number of free parameters (a delay
+(the residual whitened by the call's noise spectrum where the noise is correlated, as the
+search reads it) s the noise the first pass weighed the pixel with, k the number of free parameters (a delay
 and an amplitude per component, the sss attenuation, one shared width) and n the number of
 fitted samples, is lower by at least ``ambiguity_chi2`` (a difference of 10 in this BIC is
 "very strong" evidence on Kass and Raftery's scale, J. Am. Stat. Assoc. 90, 773 (1995): the
@@ -62,12 +63,22 @@ def free_parameters(params: dict) -> np.ndarray:
     return 2 * d + 3 * s + 2 * r + (d | s | (r > 0))
 
 
-def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict) -> np.ndarray:
+def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict,
+                     spectrum: np.ndarray | None = None) -> np.ndarray:
     """(n,) J = sum over the ``fit`` (n, L) samples of (``residual`` / ``noise``)^2 + k ln n_fit,
-    ``residual`` (n, L) and ``noise`` (n,) in the same units, k :func:`free_parameters`."""
-    r = np.where(fit, residual, 0.0) / np.maximum(np.asarray(noise, np.float64), 1e-300)[:, None]
+    ``residual`` (n, L) and ``noise`` (n,) in the same units, k :func:`free_parameters`.  With
+    the call's correlated-noise ``spectrum`` (:attr:`Detection.noise_spectrum`) the data term is
+    the residual whitened by it, as the search reads it (:func:`decomposition.noise.whitened_chi2`)."""
+    from .noise import whitened_chi2
+
+    s = np.maximum(np.asarray(noise, np.float64), 1e-300)
+    r = np.where(fit, residual, 0.0)
+    if spectrum is None:
+        chi2 = np.einsum("pl,pl->p", r / s[:, None], r / s[:, None])
+    else:
+        chi2 = whitened_chi2(r, spectrum, s ** 2)
     n_fit = np.maximum(fit.sum(axis=1), 1)
-    return np.einsum("pl,pl->p", r, r) + free_parameters(params) * np.log(n_fit)
+    return chi2 + free_parameters(params) * np.log(n_fit)
 
 
 def take_rescued(j_first: np.ndarray, j_second: np.ndarray, margin: float) -> np.ndarray:

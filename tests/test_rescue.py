@@ -36,6 +36,29 @@ def test_penalised_misfit_is_chi2_over_the_fitted_samples_plus_k_ln_n():
     np.testing.assert_allclose(penalised_misfit(res, fit, noise, p), want, rtol=1e-12)
 
 
+def test_with_a_noise_spectrum_the_data_term_is_the_whitened_one():
+    from decomposition.noise import periodogram, whitened_chi2
+
+    rng = np.random.default_rng(1)
+    res = rng.normal(0, 2.0, (3, 64))
+    fit = np.ones(res.shape, bool)
+    fit[1, 10:14] = False
+    p = empty_params((3,), n_ir=1)
+    p["direct_delay_ps"][:] = 5.0
+    noise = np.array([2.0, 1.0, 4.0])
+    k_ln_n = free_parameters(p) * np.log(fit.sum(axis=1))
+    n_freq = periodogram(res).shape[1]
+    # the spectrum of white noise (power L per unit variance at every frequency) reads as the
+    # plain chi2 of the fitted samples; a pink one as the whitened residual
+    white = np.full(n_freq, float(res.shape[1]))
+    np.testing.assert_allclose(penalised_misfit(res, fit, noise, p, white), penalised_misfit(res, fit, noise, p),
+                               rtol=1e-10)
+    pink = res.shape[1] * 2.0 / (1.0 + np.arange(n_freq))
+    want = whitened_chi2(np.where(fit, res, 0.0), pink, noise ** 2) + k_ln_n
+    np.testing.assert_allclose(penalised_misfit(res, fit, noise, p, pink), want, rtol=1e-12)
+    assert not np.allclose(want, penalised_misfit(res, fit, noise, p))
+
+
 def test_the_second_answer_needs_the_margin_and_counts_are_left_alone():
     assert take_rescued(np.array([100.0, 100.0, 100.0, 100.0]), np.array([90.0, 90.1, np.nan, 50.0]), 10.0).tolist() == \
         [True, False, False, True]
