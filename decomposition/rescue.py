@@ -12,10 +12,10 @@ objective,
 
     J = sum over the fitted samples of (residual / s)^2 + k ln n,
 
-(the residual whitened by the call's noise spectrum where the noise is correlated, as the
-search reads it) s the noise the first pass weighed the pixel with, k the number of free parameters (a delay
-and an amplitude per component, the sss attenuation, one shared width) and n the number of
-fitted samples, is lower by at least ``ambiguity_chi2`` (a difference of 10 in this BIC is
+s the noise the first pass weighed the pixel with (where the call's noise is correlated, the
+residual whitened by its spectrum instead, as the search reads it), k the number of free
+parameters (a delay and an amplitude per component, the sss attenuation, one shared width) and
+n the number of fitted samples, is lower by at least ``ambiguity_chi2`` (a difference of 10 in this BIC is
 "very strong" evidence on Kass and Raftery's scale, J. Am. Stat. Assoc. 90, 773 (1995): the
 search stage's own bar, :mod:`decomposition.search`).  The second answer comes with its own
 flags (it may still misfit).
@@ -27,7 +27,9 @@ the rest.  Left out, as measured: pixels weighted by a signal variance law (phot
 float data; the second pass on them as well moved those points by -0.001..+0.0006) and count
 data (``noise="poisson"``, the same scenes at 100 / 1,000 / 10,000 photons: 0-26 POOR_FIT
 pixels of 600, and not one whose second answer was better by fidelity, let alone by J).
-The call's ``info`` arrays of the detection (``objective``, ``n_iter``) stay the first pass's.
+The second pass is the whole path, search included: without its search (``search=False`` in
+the second pass) the gain over the 36 points fell from +0.0016 to +0.0002.  The call's ``info``
+arrays of the detection (``objective``, ``n_iter``) stay the first pass's.
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ import numpy as np
 
 from core.model import IR_KEYS
 
-__all__ = ["RESCUE_OPTIONS", "rescue_rows", "penalised_misfit", "take_rescued"]
+__all__ = ["RESCUE_OPTIONS", "rescue_rows", "free_parameters", "penalised_misfit", "take_rescued"]
 
 #: the options of the second pass (besides ``rescue=False``: one second pass only)
 RESCUE_OPTIONS = {"multistart": False}
