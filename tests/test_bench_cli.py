@@ -176,3 +176,28 @@ def test_accuracy_bad_options(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     assert main(["bench", "accuracy", "--quick", "--out", str(tmp_path / "file")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(120)
+def test_accuracy_hands_solver_options_to_convscd_only(tmp_path, capsys, monkeypatch):
+    import decomposition
+
+    assert main(["bench", "accuracy", "--quick", "--option", "no_such=1", "--out", str(tmp_path / "x")]) == 2
+    assert "no_such" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--quick", "--option", "n_polish=-3", "--out", str(tmp_path / "y")]) == 2
+    assert "n_polish" in capsys.readouterr().err
+    seen = []
+    real = decomposition.decompose
+
+    def spy(*a, **k):
+        seen.append((k.get("method"), {key: v for key, v in k.items() if key in ("rescue", "n_polish")}))
+        return real(*a, **k)
+
+    monkeypatch.setattr(decomposition, "decompose", spy)
+    out = tmp_path / "acc"
+    assert main(["bench", "accuracy", "--quick", "--noise", "white", "--methods", "convscd,gradbm",
+                 "--option", "rescue=false", "--option", "n_polish=10", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["options"] == {"rescue": False, "n_polish": 10}
+    assert {m for m, _ in seen} == {"convscd", "gradbm"}
+    assert all(o == ({"rescue": False, "n_polish": 10} if m == "convscd" else {}) for m, o in seen)

@@ -104,6 +104,9 @@ def test_bench_speed_hands_solver_options_to_every_run_and_judges_no_target_then
         speed.run(parser.parse_args(common + ["--option", "no_such_option=1"]))
     with pytest.raises(CommandError, match="KEY=VALUE"):
         speed.run(parser.parse_args(common + ["--option", "rescue"]))
+    with pytest.raises(CommandError, match="n_polish"):        # a bad value, before the cube is written
+        speed.run(parser.parse_args(common + ["--option", "n_polish=-1"]))
+    assert not (tmp_path / "speed.json").exists() and not list(tmp_path.glob("work-*"))
     assert speed.run(parser.parse_args(common + ["--option", "rescue=false", "--option", "n_polish=10"])) == 0
     printed = capsys.readouterr().out
     report = json.loads((tmp_path / "speed.json").read_text())

@@ -15,6 +15,9 @@ as ``decompose`` renders them; the oracle's lead over it is what that rendering 
 over a method what the method's search and model selection cost.  Scenes come from a preset of
 :data:`decomposition.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
 rendered bin-integrated; ``legacy`` for the original generator, point-sampled).
+``--option KEY=VALUE`` (repeatable) decomposes the ConvSCD rows with that solver option, as
+``streaklab decompose --option`` takes it (``rescue=false``: without the second pass for a
+misfit); it is printed and kept in ``summary.json``, and the targets are then those settings'.
 
 Outputs in ``--out``: ``accuracy.csv`` (one row per method, bin width, noise type and NSR,
 with the oracle's mean fidelity and the gap to it, and the mean fidelity with the
@@ -106,6 +109,9 @@ def add_arguments(parser) -> None:
                         help="bin: each bin the mean of the model over its width; point: point samples "
                              "(default bin for paper scenes, point for legacy)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of scenes and noise (default 0)")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="a ConvSCD solver option, as streaklab decompose takes it (repeatable; e.g. "
+                             "rescue=false): the convscd rows (and the search's base) are decomposed so")
 
 
 def nsr_grid(points: int) -> np.ndarray:
@@ -159,7 +165,7 @@ def _score(data, est_components, est_params, flags):
 
 
 def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kinds, seed: int,
-            scenes: str = "paper", bin_integrated: bool = True, progress=None):
+            scenes: str = "paper", bin_integrated: bool = True, progress=None, options=None):
     """Run the sweep.
 
     Parameters
@@ -172,6 +178,9 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
         Scene preset (:data:`decomposition.synthetic.SCENE_PRESETS`).
     bin_integrated : bool
         Render the scenes bin-integrated (the oracle fits them with the same rendering).
+    options : dict, optional
+        Solver options of ConvSCD's ``decompose`` (the ``convscd`` rows and the ``search``
+        method's base); GradBM and the ceilings never see them.
 
     Returns
     -------
@@ -229,14 +238,15 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                     elif method == "search":
                         base = results.get("convscd")
                         if base is None:
-                            base = decompose(data.noisy, time_bin_ps=tb, method="convscd")
+                            base = decompose(data.noisy, time_bin_ps=tb, method="convscd", **dict(options or {}))
                         else:
                             extra = seconds["convscd"]
                         est_params, _ = structured_search(data.noisy, base.params, time_bin_ps=tb)
                         est = render_components(est_params, n_bins, tb)
                         flags = base.flags
                     else:
-                        est = decompose(data.noisy, time_bin_ps=tb, method=method)
+                        est = decompose(data.noisy, time_bin_ps=tb, method=method,
+                                        **(dict(options or {}) if method == "convscd" else {}))
                         est_params, flags = est.params, est.flags
                         results[method] = est
                         if "search_wins" in est.info:
@@ -446,6 +456,11 @@ def run(args) -> int:
             raise CommandError(str(exc)) from None
     if pixels <= 0:
         raise CommandError(f"--pixels must be positive, got {pixels}")
+    options = {}
+    if args.option:
+        from streaklab.commands.decompose import parse_solver_options
+
+        options = parse_solver_options(args.option, "convscd", check_values=True)
     out = output_folder(args.out)
 
     def progress(r):
@@ -455,11 +470,12 @@ def run(args) -> int:
 
     print(f"accuracy: {pixels} profiles x {len(nsrs)} NSR values x {len(noises)} noise types, {n_bins} bins "
           f"of {', '.join(f'{b:g}' for b in bins)} ps, {scenes} scenes ({render}-sampled), kinds {args.kinds}, "
-          f"seed {args.seed}", file=sys.stderr)
+          f"seed {args.seed}" + (f", ConvSCD options {options}" if options else ""), file=sys.stderr)
     try:
         rows, per_pixel, points = measure(pixels=pixels, n_bins=n_bins, time_bin_ps=bins, nsrs=nsrs,
                                           noises=noises, methods=methods, kinds=args.kinds, seed=args.seed,
-                                          scenes=scenes, bin_integrated=render == "bin", progress=progress)
+                                          scenes=scenes, bin_integrated=render == "bin", progress=progress,
+                                          options=options)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     every = list(methods) + list(ceilings(render == "bin"))
@@ -470,7 +486,7 @@ def run(args) -> int:
     summary.update({"by_time_bin_ps": by_bin, "seconds_per_pixel": per_pixel, "pixels": pixels, "n_bins": n_bins,
                     "time_bin_ps": bins, "nsr": [float(x) for x in nsrs], "noises": noises,
                     "methods": every, "kinds": args.kinds, "scenes": scenes, "render": render, "seed": args.seed,
-                    "quick": bool(args.quick),
+                    "quick": bool(args.quick), "options": options,
                     "oracle_targets": [{"target": t, "met": s, "detail": d} for t, s, d in targets + search_targets]})
     csv_path, png_path, json_path = out / "accuracy.csv", out / "accuracy.png", out / "summary.json"
     reg_path, flag_path = out / "regimes.csv", out / "flags.csv"

@@ -286,7 +286,7 @@ def run(args) -> int:
         from streaklab.commands.decompose import parse_solver_options
 
         for method in methods:          # every name checked against each method's options
-            options = parse_solver_options(args.option, method)
+            options = parse_solver_options(args.option, method, check_values=True)
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
     from decomposition.synthetic import SCENE_PRESETS

@@ -83,15 +83,16 @@ def parse_components(text: str) -> tuple[str, ...]:
         raise CommandError(f"--components takes a comma-separated subset of d, s, r, b: {exc}") from None
 
 
-def parse_solver_options(items, method: str = "convscd") -> dict:
+def parse_solver_options(items, method: str = "convscd", check_values: bool = False) -> dict:
     """``KEY=VALUE`` items -> {key: value}; VALUE is read as JSON if it parses, else as a string.
 
     Every key is checked against the solver's option fields (and, for ``gradbm``, the
     baseline's options); the values against the fields' types and ranges by
-    ``decompose_to_store``, before any work.
+    ``decompose_to_store``, before any work, or here with ``check_values`` (for callers that
+    spend time before they decompose: the benchmarks).
     """
     from decomposition.gradbm import GRADBM_DEFAULTS
-    from decomposition.options import option_names
+    from decomposition.options import OptionError, option_names, options_from_mapping
 
     out = {}
     for item in items:
@@ -107,7 +108,12 @@ def parse_solver_options(items, method: str = "convscd") -> dict:
         if key not in option_names() and key not in extra:
             raise CommandError(f"--option {key}: the solver refuses these settings: unknown option "
                                f"(known: {', '.join(sorted(set(option_names()) | extra))})")
-    return out      # values are checked against their fields by the pipeline, before any work
+    if check_values:
+        try:
+            options_from_mapping(out, strict=False)
+        except OptionError as exc:
+            raise CommandError(f"--option: the solver refuses these settings: {exc}") from None
+    return out      # else the values are checked against their fields by the pipeline, before any work
 
 
 def _tls_files(args):
