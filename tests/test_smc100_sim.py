@@ -403,6 +403,34 @@ def test_an_unplug_and_a_replug_arriving_together_do_not_kill_the_simulator(lab)
         assert mirror.identify() == "SLAB-GALVO-SIM"   # the re-plugged port, through one reconnect
 
 
+def test_a_new_port_is_published_only_once_the_stable_link_points_at_it(lab, monkeypatch):
+    # the re-plug's link takes a while to appear (slowed here): until it points at the new pty,
+    # sim.port must still name the old one, or a client that follows sim.port reconnects through
+    # a link to the dead pty (the race behind a rare failure of the test above under load)
+    import drivers.sim.mirror as mirror_module
+
+    sim, _ = lab
+    seen = []
+    real_replace = os.replace
+
+    def slow_replace(src, dst):
+        seen.append(sim.port)                   # what an observer reads while the link is old
+        time.sleep(0.05)
+        real_replace(src, dst)
+
+    monkeypatch.setattr(mirror_module.os, "replace", slow_replace)
+    old = sim.port
+    sim.inject("close", "TS")
+    fd = os.open(sim.port, os.O_RDWR | os.O_NOCTTY)
+    os.write(fd, b"1TS\r\n")
+    os.close(fd)
+    deadline = time.monotonic() + 2
+    while sim.port == old and time.monotonic() < deadline:
+        time.sleep(0.001)
+    assert sim.port != old and seen == [old]
+    assert os.path.realpath(sim.stable_port) == os.path.realpath(sim.port)
+
+
 def test_replug_after_unplug_brings_the_port_back(lab):
     sim, _ = lab
     with open_mirror(sim.stable_port) as mirror:

@@ -187,13 +187,16 @@ class MirrorSimulator:
         tty.setraw(slave)   # no echo, no CR/LF translation: bytes pass unchanged
         tty.setraw(master)
         os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self.port = os.ttyname(slave)
+        port = os.ttyname(slave)
         tmp = self.stable_port + ".new"
         if os.path.lexists(tmp):
             os.unlink(tmp)
-        os.symlink(self.port, tmp)
+        os.symlink(port, tmp)
         os.replace(tmp, self.stable_port)
+        # published last: whoever sees the new port finds stable_port already pointing at it (a
+        # client reconnecting in between would open a link still pointing at the dead pty)
+        self._master, self._slave = master, slave
+        self.port = port
 
     def _close_pty(self) -> None:
         with self._lock:
