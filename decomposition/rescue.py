@@ -35,9 +35,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.model import IR_KEYS
+from .components import free_parameters
 
-__all__ = ["RESCUE_OPTIONS", "rescue_rows", "free_parameters", "penalised_misfit", "take_rescued"]
+__all__ = ["RESCUE_OPTIONS", "rescue_rows", "penalised_misfit", "take_rescued"]
 
 #: the options of the second pass (besides ``rescue=False``: one second pass only)
 RESCUE_OPTIONS = {"multistart": False}
@@ -56,19 +56,11 @@ def rescue_rows(poor: np.ndarray, flat_noise: np.ndarray | None, poisson: bool) 
     return np.flatnonzero(keep)
 
 
-def free_parameters(params: dict) -> np.ndarray:
-    """(n,) free parameters of each pixel's components in ``params`` (n-shaped, NaN absent):
-    a delay and an amplitude per component, the sss attenuation, and one width shared by all."""
-    d = np.isfinite(np.asarray(params["direct_delay_ps"], np.float64))
-    s = np.isfinite(np.asarray(params["sss_delay_ps"], np.float64))
-    r = np.isfinite(np.asarray(params[IR_KEYS[0]], np.float64)).reshape(d.size, -1).sum(axis=1)
-    return 2 * d + 3 * s + 2 * r + (d | s | (r > 0))
-
-
 def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict,
                      spectrum: np.ndarray | None = None) -> np.ndarray:
     """(n,) J = sum over the ``fit`` (n, L) samples of (``residual`` / ``noise``)^2 + k ln n_fit,
-    ``residual`` (n, L) and ``noise`` (n,) in the same units, k :func:`free_parameters`.  With
+    ``residual`` (n, L) and ``noise`` (n,) in the same units, k
+    :func:`decomposition.components.free_parameters`.  With
     the call's correlated-noise ``spectrum`` (:attr:`Detection.noise_spectrum`) the data term is
     the residual whitened by it, as the search reads it (:func:`decomposition.noise.whitened_chi2`)."""
     from .noise import whitened_chi2

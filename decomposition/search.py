@@ -199,14 +199,6 @@ def _noise_sigma(y):
     return MAD_TO_SIGMA * np.median(np.abs(d - np.median(d, axis=-1, keepdims=True)), axis=-1) / np.sqrt(2.0)
 
 
-def _n_params(params):
-    has_d = np.isfinite(params["direct_delay_ps"])
-    has_s = np.isfinite(params["sss_delay_ps"])
-    n_ir = np.isfinite(params["ir_delay_ps"]).sum(axis=1)
-    # delays and amplitudes; one shared sigma; alpha for the sss.
-    return 2 * has_d + 3 * has_s + 2 * n_ir + 1
-
-
 def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                       options: SearchOptions | None = None):
     """Try structured alternative starts for each pixel and keep the lowest penalised objective.
@@ -265,6 +257,8 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
         starts[name] = _assemble(d_delay, sigma, s_delay, alpha, np.where(later, gd, np.nan),
                                  np.where(later, ga, np.nan), n_ir)
 
+    from .components import free_parameters
+
     s2 = np.maximum(_noise_sigma(y), 1e-12 * np.abs(y).max(axis=1)) ** 2
     best, best_j, j_solver, which = None, None, None, np.zeros(n, np.int64)
     for k, name in enumerate(STARTS):
@@ -272,7 +266,7 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
         fit, _ = refine(y, start, time_bin_ps=T, t0_ps=t0_ps, max_iter=int(opt.max_iter), shared_sigma=True,
                         sss_after_direct=True, keep_order=True)
         rss = np.sum((y - render_profile(fit, n_bins, T, t0_ps)) ** 2, axis=1)
-        j = rss / s2 + opt.penalty * _n_params(fit) * np.log(n_bins)
+        j = rss / s2 + opt.penalty * free_parameters(fit) * np.log(n_bins)
         if best is None:
             best, best_j, j_solver = {key: v.copy() for key, v in fit.items()}, j, j.copy()
             continue

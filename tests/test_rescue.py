@@ -8,7 +8,8 @@ from core.model import empty_params
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
 from decomposition.metrics import fidelity
-from decomposition.rescue import RESCUE_OPTIONS, free_parameters, penalised_misfit, rescue_rows, take_rescued
+from decomposition.components import free_parameters
+from decomposition.rescue import RESCUE_OPTIONS, penalised_misfit, rescue_rows, take_rescued
 from decomposition.synthetic import make_profiles
 
 
