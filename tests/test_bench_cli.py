@@ -123,9 +123,33 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     assert "run time per pixel" in text and "ms" in text
     assert "gap convscd" in text and "gap gradbm" in text
     # The targets against the oracle print as met / not met (NSR 0.11 is not on the quick grid).
-    assert "accuracy targets against the oracle:" in text
+    header = next(line for line in text.splitlines() if line.startswith("accuracy targets against the oracle ("))
+    judged = [line for line in text.splitlines() if line.startswith(("  [met]", "  [NOT met]"))]
+    n_met = sum(line.startswith("  [met]") for line in judged)
+    assert header.startswith(f"accuracy targets against the oracle ({n_met} met, {len(judged) - n_met} not met; ")
     assert "NSR 0.11, 2 ps bins" in text and "[not measured]" in text
     assert any(("[met]" in line or "[NOT met]" in line) and "direct delay error" in line for line in text.splitlines())
+
+
+def test_accuracy_gap_targets_name_the_detectable_ceilings_verdict(tmp_path, capsys):
+    # 24 pixels: the "all" row is judged (>= 20 px), so the gap target is measured
+    out = tmp_path / "ceiling"
+    assert main(["bench", "accuracy", "--pixels", "24", "--n-bins", "128", "--nsr", "0.055", "--noise", "white",
+                 "--methods", "convscd", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    line = next(x for x in text.splitlines() if "white noise, NSR 0.055, 2 ps bins" in x)
+    assert line.startswith(("  [met]", "  [NOT met]")) and "; the detectable ceiling: worst gap " in line
+    summary = json.loads((out / "summary.json").read_text())
+    rec = next(r for r in summary["oracle_targets"] if "white noise, NSR 0.055, 2 ps bins" in r["target"])
+    assert rec["ceiling_met"] is (not line.endswith(", not met")) and line.endswith("met")
+    # the ceiling's worst gap is the one regime_rows gave it (regimes.csv), and its verdict follows
+    with open(out / "regimes.csv") as fh:
+        rows = [r for r in csv.DictReader(fh) if int(r["n"]) >= 20]
+    worst = min(float(r["gap[detectable]"]) for r in rows)
+    assert f"detectable ceiling: worst gap {worst:+.3f}" in line
+    assert rec["ceiling_met"] is (worst >= -0.03)
+    header = next(x for x in text.splitlines() if x.startswith("accuracy targets against the oracle ("))
+    assert f"{int(rec['met'] is False and rec['ceiling_met'] is False)} of the not met are missed" in header
 
 
 def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):

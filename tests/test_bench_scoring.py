@@ -6,7 +6,7 @@ import pytest
 
 from streaklab.bench.scoring import (
     MIN_REGIME_PIXELS, REGIMES, check_targets, direct_delay_failures, flag_precision_recall, format_regime_table,
-    gap_matrix, paired_gap_se, regime_rows,
+    gap_matrix, paired_gap_se, regime_rows, target_records, worst_gap,
 )
 
 
@@ -107,6 +107,58 @@ def test_check_targets_met_not_met_and_not_measured():
     points[1]["unflagged_failures[convscd]"] = 1
     status, _ = next((s, d) for t, s, d in check_targets(points) if "direct delay error" in t)
     assert status is False
+
+
+def test_each_gap_target_names_the_detectable_ceilings_own_verdict():
+    def row(regime, b, n, gaps, se=0.01):
+        out = {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS}
+        for m, g in gaps.items():
+            out[f"gap[{m}]"], out[f"gap_se[{m}]"] = g, se
+        return out
+    # white NSR 0.055: the method misses (-0.06 where the weak echoes are) and so does the ceiling
+    # (-0.042 there); white NSR 0.001: the method misses in the sub-bin row, the ceiling meets;
+    # the ceiling's worst row is its own (not the method's), and a few-pixel row is not judged
+    a = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.055, "n": 600, "delay_failures[convscd]": 0,
+         "unflagged_failures[convscd]": 0,
+         "regimes": [row("all", "all", 600, {"convscd": -0.02, "detectable": -0.014}),
+                     row("weakest ir/direct", "< 0.05", 198, {"convscd": -0.06, "detectable": -0.042}),
+                     row("sigma (bins)", "< 1", 5, {"convscd": -0.5, "detectable": -0.5})]}
+    b = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.001, "n": 600, "delay_failures[convscd]": 0,
+         "unflagged_failures[convscd]": 0,
+         "regimes": [row("all", "all", 600, {"convscd": -0.01, "detectable": 0.0}),
+                     row("sigma (bins)", "< 1", 76, {"convscd": -0.036, "detectable": 0.0}),
+                     row("sss onset (sigma)", "1-2", 202, {"convscd": -0.005, "detectable": -0.002})]}
+    assert worst_gap(a["regimes"], "detectable") == (-0.042, "weakest ir/direct", "< 0.05", 0.01)
+    assert worst_gap(b["regimes"], "detectable")[:3] == (-0.002, "sss onset (sigma)", "1-2")
+    assert worst_gap(a["regimes"], "gradbm") is None
+    recs = {r["text"].split(" ps bins")[0].split(", ", 1)[1]: r for r in target_records([a, b])}
+    r55, r01 = recs["white noise, NSR 0.055, 2"], recs["white noise, NSR 0.001, 2"]
+    assert r55["met"] is False and r55["ceiling_met"] is False
+    assert r55["detail"] == ("worst gap -0.060 +- 0.010 (weakest ir/direct < 0.05, 3.0 se from the limit); the "
+                             "detectable ceiling: worst gap -0.042 +- 0.010 (weakest ir/direct < 0.05, 1.2 se "
+                             "from the limit), not met")
+    assert r01["met"] is False and r01["ceiling_met"] is True and r01["detail"].endswith(", met")
+    assert recs["white noise, NSR 0.11, 2"]["ceiling_met"] is None  # not measured
+    delay = next(r for r in recs.values() if "direct delay" in r["text"])
+    assert delay["met"] is True and delay["ceiling_met"] is None
+    # check_targets is the same records as (text, status, detail); without the ceiling's
+    # column (or asked for the ceiling itself) the detail is the method's alone
+    assert check_targets([a, b]) == [(r["text"], r["met"], r["detail"]) for r in target_records([a, b])]
+    for p in (a, b):
+        for r in p["regimes"]:
+            del r["gap[detectable]"]
+    r55 = next(r for r in target_records([a, b]) if "NSR 0.055, 2" in r["text"])
+    assert r55["ceiling_met"] is None and "ceiling" not in r55["detail"]
+
+
+def test_the_target_header_counts_the_targets_the_ceiling_misses_too():
+    from streaklab.bench.accuracy import target_header
+
+    recs = [{"met": True, "ceiling_met": True}, {"met": False, "ceiling_met": False},
+            {"met": False, "ceiling_met": True}, {"met": False, "ceiling_met": None}, {"met": None, "ceiling_met": None}]
+    assert target_header(recs, "detectable").startswith(
+        "accuracy targets against the oracle (1 met, 3 not met; 1 of the not met are missed by the detectable ceiling "
+        "as well")
 
 
 def test_gap_matrix_marks_the_rows_that_fail_their_target():
