@@ -134,7 +134,7 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
 def test_accuracy_gap_targets_name_the_detectable_ceilings_verdict(tmp_path, capsys):
     # 24 pixels: the "all" row is judged (>= 20 px), so the gap target is measured
     out = tmp_path / "ceiling"
-    assert main(["bench", "accuracy", "--pixels", "24", "--n-bins", "128", "--nsr", "0.055", "--noise", "white",
+    assert main(["bench", "accuracy", "--pixels", "24", "--n-bins", "128", "--nsr", "0.055,0.2", "--noise", "white",
                  "--methods", "convscd", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     line = next(x for x in text.splitlines() if "white noise, NSR 0.055, 2 ps bins" in x)
@@ -144,12 +144,23 @@ def test_accuracy_gap_targets_name_the_detectable_ceilings_verdict(tmp_path, cap
     assert rec["ceiling_met"] is (not line.endswith(", not met")) and line.endswith("met")
     # the ceiling's worst gap is the one regime_rows gave it (regimes.csv), and its verdict follows
     with open(out / "regimes.csv") as fh:
-        rows = [r for r in csv.DictReader(fh) if int(r["n"]) >= 20]
+        rows = [r for r in csv.DictReader(fh) if int(r["n"]) >= 20 and float(r["nsr"]) == 0.055]
     worst = min(float(r["gap[detectable]"]) for r in rows)
     assert f"detectable ceiling: worst gap {worst:+.3f}" in line
     assert rec["ceiling_met"] is (worst >= -0.03)
     header = next(x for x in text.splitlines() if x.startswith("accuracy targets against the oracle ("))
     assert f"{int(rec['met'] is False and rec['ceiling_met'] is False)} of the not met are missed" in header
+    # under white noise each point reads its unflagged wrong answers against the oracle's J
+    lines = [x for x in text.splitlines() if "unflagged pixels below fidelity 0.5 (convscd):" in x]
+    assert len(lines) == 2
+    total = 0
+    for line in lines:
+        n_poor = int(line.split("(convscd):")[1].split(";")[0])
+        near = int(line.split("; ")[1].split()[0])
+        rest = int(line.split("or below it), ")[1].split()[0])
+        assert 0 <= near <= n_poor == near + rest <= 24
+        total += n_poor
+    assert total >= 1   # at NSR 0.2 some answers are wrong and unflagged: the reading is exercised
 
 
 def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):

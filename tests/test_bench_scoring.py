@@ -6,7 +6,7 @@ import pytest
 
 from streaklab.bench.scoring import (
     MIN_REGIME_PIXELS, REGIMES, check_targets, direct_delay_failures, flag_precision_recall, format_regime_table,
-    gap_matrix, paired_gap_se, regime_rows, target_records, worst_gap,
+    gap_matrix, paired_gap_se, regime_rows, target_records, white_noise_j, within_data, worst_gap,
 )
 
 
@@ -159,6 +159,47 @@ def test_the_target_header_counts_the_targets_the_ceiling_misses_too():
     assert target_header(recs, "detectable").startswith(
         "accuracy targets against the oracle (1 met, 3 not met; 1 of the not met are missed by the detectable ceiling "
         "as well")
+
+
+def test_white_noise_j_is_chi2_in_the_true_noise_plus_k_ln_n():
+    from core.model import render_components
+
+    rng = np.random.default_rng(3)
+    n, L, T = 4, 200, 2.0
+    truth = {"direct_delay_ps": np.full(n, 60.0), "direct_sigma_ps": np.full(n, 3.0), "direct_amplitude": np.ones(n),
+             "sss_delay_ps": np.full(n, 64.0), "sss_sigma_ps": np.full(n, 3.0), "sss_amplitude": np.full(n, 0.4),
+             "sss_alpha_per_ps": np.full(n, 0.03), "ir_delay_ps": np.full((n, 1), 120.0),
+             "ir_sigma_ps": np.full((n, 1), 3.0), "ir_amplitude": np.array([[0.5], [0.5], [0.01], [0.01]])}
+    comps = render_components(truth, L, T)
+    clean = comps["direct"] + comps["sss"] + comps["interreflections"].sum(axis=-2)
+    noise = rng.normal(0, 0.01, (n, L))
+    noisy = clean + noise
+    sd = noise.std(axis=1)
+    # the truth itself: its own chi2 plus 8 parameters (2 + 3 + 2 and one width) times ln L
+    j_true = white_noise_j(noisy, clean, comps, truth)
+    np.testing.assert_allclose(j_true, (noise ** 2).sum(axis=1) / sd ** 2 + 8 * np.log(L), rtol=1e-12)
+    # an answer without the inter-reflection: 2 parameters fewer, the echo left in its residual
+    no_ir = {**truth, "ir_delay_ps": np.full((n, 1), np.nan), "ir_amplitude": np.full((n, 1), np.nan)}
+    c2 = render_components(no_ir, L, T)
+    j2 = white_noise_j(noisy, clean, c2, no_ir)
+    r2 = noisy - c2["direct"] - c2["sss"]
+    np.testing.assert_allclose(j2, (r2 ** 2).sum(axis=1) / sd ** 2 + 6 * np.log(L), rtol=1e-12)
+    # a 0.5 echo (50 noise sigmas high) missed is far out of the data's reach; a 0.01 one (one
+    # sigma) is not told from the truth: its J is within 10 of the truth's
+    near = within_data(j2, j_true, 10.0)
+    np.testing.assert_array_equal(near, [False, False, True, True])
+    assert within_data(5.0, 0.0, 10.0) and within_data(-3.0, 0.0, 10.0) and not within_data(10.5, 0.0, 10.0)
+
+
+def test_the_delay_target_reads_its_unflagged_failures_against_the_data():
+    pts = [_point("white", 0.001, 0.0, fails=2, unflagged=1), _point("white", 0.055, 0.0, fails=3, unflagged=2)]
+    status, detail = next((s, d) for t, s, d in check_targets(pts) if "direct delay error" in t)
+    assert status is False and detail == "5 of 1200 pixels (0.4%), 3 of them unflagged"
+    for p, k in zip(pts, (0, 2)):
+        p["unflagged_failures_within_data[convscd]"], p["within_data_margin"] = k, 10.0
+    status, detail = next((s, d) for t, s, d in check_targets(pts) if "direct delay error" in t)
+    assert status is False and detail == ("5 of 1200 pixels (0.4%), 3 of them unflagged (2 of those the data do "
+                                          "not tell from the truth: J within 10 of the oracle's, or below it)")
 
 
 def test_gap_matrix_marks_the_rows_that_fail_their_target():

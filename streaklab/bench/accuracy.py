@@ -39,6 +39,13 @@ limit by these scenes: more ``--pixels`` or another ``--seed`` decide it).  Each
 names the detectable ceiling's own worst gap and whether that meets the limit, and the line above
 the list counts the unmet targets the ceiling misses as well: there the components the noise
 hides cost more than the limit, so no method that reports only what the data show meets it.
+Under white noise, where the bench knows each pixel's noise, every point also reads the
+unflagged wrong answers (fidelity < 0.5, no flag) against the oracle's: how many have a
+penalised misfit J = chi2 + k ln n (:func:`streaklab.bench.scoring.white_noise_j`) within the
+search's ``ambiguity_chi2`` (10) of the oracle's or below it -- answers the data do not tell
+from the truth, which no flag built on the data can single out -- and how many leave a split
+better by more than that unreached; the direct-delay target's line reads its unflagged
+failures the same way.
 """
 from __future__ import annotations
 
@@ -153,18 +160,20 @@ def largest_nsr_at_level(nsr, fidelity, level: float = LEVEL):
     return float(math.exp(x0 + min(max(frac, 0.0), 1.0) * (x1 - x0))), "interpolated"
 
 
-def _score(data, est_components, est_params, flags):
-    """Per-pixel fidelity, direct-delay failures, flags and fidelity with the inter-reflections
+def _score(data, est_components, est_params, flags, noise: str):
+    """Per-pixel fidelity, direct-delay failures, flags, fidelity with the inter-reflections
     paired to the least error (:func:`decomposition.metrics.fidelity`, ``ir_pairing="matched"``)
-    of one estimate."""
+    and, under white noise, the penalised misfit J in the true noise
+    (:func:`streaklab.bench.scoring.white_noise_j`; None under other noise) of one estimate."""
     from decomposition.metrics import fidelity
 
-    from .scoring import direct_delay_failures
+    from .scoring import direct_delay_failures, white_noise_j
 
     f = fidelity(data.components, est_components)
     fail = direct_delay_failures(data.params, est_params)
     matched = fidelity(data.components, est_components, ir_pairing="matched")
-    return f, fail, np.asarray(flags).astype(np.int64), matched
+    j = white_noise_j(data.noisy, data.clean, est_components, est_params) if noise == "white" else None
+    return f, fail, np.asarray(flags).astype(np.int64), matched, j
 
 
 def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kinds, seed: int,
@@ -203,7 +212,11 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition.search import structured_search
     from decomposition.synthetic import make_profiles
 
-    from .scoring import POOR_FIDELITY, flag_precision_recall, regime_rows
+    from decomposition.options import SolverOptions
+
+    from .scoring import POOR_FIDELITY, flag_precision_recall, regime_rows, within_data
+
+    margin = SolverOptions().ambiguity_chi2        # the search's own bar for "very strong" evidence
 
     from decomposition.jit import warm_up
 
@@ -258,7 +271,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                     seconds[method] = time.perf_counter() - t_start + extra
                     spent[method] += seconds[method]
                     counted[method] += pixels
-                    scored[method] = _score(data, est, est_params, flags)
+                    scored[method] = _score(data, est, est_params, flags, noise)
                 f_or = scored[ORACLE][0]
                 point = {"time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "n": pixels,
                          "regimes": regime_rows(data.regimes, {m: scored[m][0] for m in every}, reference=ORACLE),
@@ -276,8 +289,19 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
                 if two.any():
                     point["matched_two_ir"] = {m: (float(np.nanmean(scored[m][0][two])),
                                                    float(np.nanmean(scored[m][3][two]))) for m in every}
+                j_or = scored[ORACLE][4]
+                if j_or is not None:
+                    point["within_data_margin"] = margin
                 for method in every:
-                    f, fail, flags, f_matched = scored[method]
+                    f, fail, flags, f_matched, j = scored[method]
+                    if j is not None and method not in ceilings(True):
+                        # the unflagged wrong answers (and direct-delay failures) the data do not
+                        # tell from the truth, against those where a better split exists
+                        near = within_data(j, j_or, margin)
+                        poor = (f < POOR_FIDELITY) & (flags == 0)
+                        point[f"unflagged_poor[{method}]"] = int(poor.sum())
+                        point[f"unflagged_poor_within_data[{method}]"] = int((poor & near).sum())
+                        point[f"unflagged_failures_within_data[{method}]"] = int((fail & (flags == 0) & near).sum())
                     row = {"method": method, "time_bin_ps": tb, "noise": noise, "nsr": float(nsr), "pixels": pixels,
                            "scenes": scenes, "render": "bin" if bin_integrated else "point",
                            "mean_fidelity": float(np.nanmean(f)), "median_fidelity": float(np.nanmedian(f)),
@@ -537,6 +561,12 @@ def run(args) -> int:
         fails = ", ".join(f"{m} {p[f'delay_failures[{m}]']} ({p[f'unflagged_failures[{m}]']} unflagged)"
                           for m in every)
         print(f"    direct delay error > 2 sigma: {fails}")
+        for m in methods:
+            if f"unflagged_poor[{m}]" in p:
+                n_poor, near = p[f"unflagged_poor[{m}]"], p[f"unflagged_poor_within_data[{m}]"]
+                print(f"    unflagged pixels below fidelity 0.5 ({m}): {n_poor}; {near} of them the data do not tell "
+                      f"from the truth (J = chi2 + k ln n in the true noise within {p['within_data_margin']:g} of the "
+                      f"oracle's, or below it), {n_poor - near} where the oracle's split is better by more")
         for fr in p["flags"]:
             if fr["flagged"] or fr["flag"] == "any":
                 print(f"    flag {fr['flag']:<10s} ({fr['method']}): {fr['flagged']} flagged, {fr['poor']} with "
