@@ -206,3 +206,43 @@ def test_targets_name_the_references_own_figure_where_it_is_judged_alone():
     assert not [t for t, _, _ in realism.check_targets([ref])]
     alone = {t.split(": ", 1)[1]: d for t, _, d in realism.check_targets([{**base, "variant": "modelled"}])}
     assert alone["lifetime bias"] == "-2.10% +- 0.40% (<= 1%)"
+
+
+def test_the_rmse_ratio_carries_its_standard_error():
+    """rmse_ratio_se: the delta-method spread of RMSE(a) / RMSE(b) over paired pixels, against
+    the spread of the ratio over many independent draws; zero for identical errors."""
+    rng = np.random.default_rng(5)
+    n, draws = 2000, 1000
+
+    def pair(size):
+        shared = rng.standard_normal(size)
+        # the variant's errors: the reference's plus a part of its own with outliers (5 % of
+        # the pixels four times wider, as a misplaced onset makes them)
+        own = rng.standard_normal(size) * 0.3 * np.where(rng.random(size) < 0.05, 4.0, 1.0)
+        return shared * 1.0 + own, shared * 0.95 + rng.standard_normal(size) * 0.1
+
+    ratios, ses = [], []
+    for _ in range(draws):
+        a, b = pair(n)
+        ratios.append(np.sqrt(np.mean(a ** 2) / np.mean(b ** 2)))
+        ses.append(realism.rmse_ratio_se(a, b))
+    # on average over the draws the estimate is the ratio's true spread (one draw's reads
+    # within about 25 % of it: the outliers set both)
+    assert np.mean(ses) == pytest.approx(np.std(ratios), rel=0.08)
+    a, b = pair(n)
+    b[:7] = np.nan                                       # pixels the reference lacks are left out
+    keep = np.isfinite(b)
+    assert realism.rmse_ratio_se(a, b) == pytest.approx(realism.rmse_ratio_se(a[keep], b[keep]), rel=1e-12)
+    assert realism.rmse_ratio_se(b, b) == 0.0
+    assert np.isnan(realism.rmse_ratio_se(np.array([1.0, np.nan]), np.array([np.nan, 1.0])))
+    # the target line names it, and how many of them lie between the ratio and the bar
+    row = {"status": "ok", "effect": "afterpulse", "photons_per_pixel": 100.0, "variant": "modelled",
+           "lifetime_bias_rel": 0.0, "lifetime_bias_se_rel": 0.001, "direct_delay_bias_sigma": 0.0,
+           "lifetime_bias_vs_reference_rel": 0.0, "lifetime_bias_vs_reference_se_rel": 0.001,
+           "lifetime_rmse_over_reference": 1.11, "lifetime_rmse_over_reference_se": 0.025,
+           "direct_delay_rmse_over_reference": 0.9, "direct_delay_rmse_over_reference_se": 0.0,
+           "stderr_median_z_lifetime": 0.674, "stderr_median_z_lifetime_se": 0.02, "stderr_median_z_delay": 0.674,
+           "stderr_median_z_delay_se": 0.02, "echo_found": float("nan")}
+    out = {t.split(": ", 1)[1]: (ok, d) for t, ok, d in realism.check_targets([row])}
+    assert out["lifetime RMSE"] == (False, "1.11 +- 0.03 x reference, 0.4 se from the limit (<= 1.1)")
+    assert out["direct delay RMSE"] == (True, "0.90 x reference (<= 1.1)")
