@@ -27,9 +27,10 @@ reference's; mean fidelity; the found rate of the weak echo (an inter-reflection
 widths of its true delay); and the calibration of the reported standard errors, median
 |error| / stderr, against 0.674 (the half-normal median; printed with its own standard error,
 :func:`median_z_stderr`); each RMSE ratio's target line carries its standard error over the
-paired pixels (:func:`rmse_ratio_se`) and how many of them lie between it and the bar.  Beside each bias, the bias relative to the reference's on the same
-pixels (:func:`paired_bias`): at 100 photons the maximum-likelihood lifetime itself is biased
-by a few per cent, which the reference, started at the truth, shows.  Targets
+paired pixels (:func:`rmse_ratio_se`) and how many of them lie between it and the bar.
+Beside each bias, the bias relative to the reference's on the same pixels (:func:`paired_bias`):
+at 100 photons the maximum-likelihood lifetime itself is biased by a few per cent, which the
+reference, started at the truth, shows.  Targets
 (:data:`TARGETS`, checked for ``ignored`` and ``modelled`` at every level): bias within 1 %
 (of the lifetime; of the PSF width for the delay) of zero, and for the lifetime also of the
 reference's bias, RMSE within 1.1 x the reference's, median |error| / stderr within 10 % of
