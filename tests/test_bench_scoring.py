@@ -222,3 +222,12 @@ def test_gap_matrix_marks_the_rows_that_fail_their_target():
     # judged: enough pixels and a target at the point; failed: judged and below -limit
     np.testing.assert_array_equal(g["judged"], [[True, False], [True, False], [False, False]])
     np.testing.assert_array_equal(g["failed"], [[False, False], [True, False], [False, False]])
+    assert "ceiling_failed" not in g
+    # the detectable ceiling's own gap, judged on the same cells: where it fails too
+    white["regimes"][0]["gap[detectable]"] = -0.01
+    white["regimes"][1]["gap[detectable]"] = -0.035          # the sub-bin row: beyond 0.03 as well
+    white["regimes"][2]["gap[detectable]"] = -0.4            # few pixels: not judged
+    pink["regimes"][1]["gap[detectable]"] = -0.2             # no target at that point
+    g = gap_matrix([white, pink], ceiling="detectable")
+    np.testing.assert_array_equal(g["ceiling_failed"], [[False, False], [True, False], [False, False]])
+    np.testing.assert_array_equal(g["failed"], [[False, False], [True, False], [False, False]])

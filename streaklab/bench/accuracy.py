@@ -399,8 +399,9 @@ def _plot(path: Path, rows, methods, noises, per_pixel):
 def _plot_regimes(path: Path, points, method: str) -> None:
     """``regimes.png``: the gap of ``method`` to the oracle in every regime row (rows) at every
     point (columns), coloured, each cell with its gap and standard error; outlined where the
-    row fails its target, faded where it is not judged (fewer than MIN_REGIME_PIXELS pixels, or
-    no target at that point)."""
+    row fails its target, hatched where the detectable ceiling's own gap fails it too (the
+    components the noise hides cost more than the limit), faded where it is not judged (fewer
+    than MIN_REGIME_PIXELS pixels, or no target at that point)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -408,9 +409,9 @@ def _plot_regimes(path: Path, points, method: str) -> None:
     from matplotlib.colors import TwoSlopeNorm
     from matplotlib.patches import Rectangle
 
-    from .scoring import MIN_REGIME_PIXELS, gap_matrix
+    from .scoring import GAP_CEILING, MIN_REGIME_PIXELS, gap_matrix
 
-    g = gap_matrix(points, method)
+    g = gap_matrix(points, method, ceiling=GAP_CEILING)
     R, C = g["gap"].shape
     fig, ax = plt.subplots(figsize=(max(6.5, 2.6 + 0.78 * C), 1.8 + 0.34 * R))
     norm = TwoSlopeNorm(vmin=-0.15, vcenter=0.0, vmax=0.05)
@@ -429,10 +430,13 @@ def _plot_regimes(path: Path, points, method: str) -> None:
             ax.text(j, i, text, ha="center", va="center", fontsize=5.5, color="0.45" if faded else "black")
             if g["failed"][i, j]:
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=1.6, ec="black"))
+            if g["ceiling_failed"][i, j]:
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=0, hatch="////", ec="0.35"))
     ax.set_xticks(range(C), g["columns"], rotation=60, ha="right", fontsize=7)
     ax.set_yticks(range(R), g["rows"], fontsize=7)
-    ax.set_title(f"{method} mean fidelity minus the oracle's, by regime\n(outlined: target not met; "
-                 f"faded: not judged, < {MIN_REGIME_PIXELS} px or no target)", fontsize=8)
+    ax.set_title(f"{method} mean fidelity minus the oracle's, by regime\n(outlined: target not met; hatched: "
+                 f"the {GAP_CEILING} ceiling misses it too; faded: not judged, < {MIN_REGIME_PIXELS} px or no "
+                 f"target)", fontsize=8)
     fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="gap to the oracle")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

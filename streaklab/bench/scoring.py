@@ -331,7 +331,7 @@ def target_limit(noise: str, nsr: float) -> float:
     return float("nan")
 
 
-def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes") -> dict:
+def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes", ceiling: str | None = None) -> dict:
     """Every regime row's gap at every measured point, as arrays for a figure.
 
     Parameters
@@ -342,6 +342,8 @@ def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes"
     method : str
     key : str
         ``"regimes"`` (gaps to the oracle) or ``"regimes_detectable"``.
+    ceiling : str, optional
+        A column of the same rows (``"detectable"``) whose own gap is judged too.
 
     Returns
     -------
@@ -349,7 +351,9 @@ def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes"
     (C,) "2 ps white 0.055" labels, and (R, C) arrays ``gap``, ``se`` (NaN where a point lacks
     the row), ``n`` (0 there), ``judged`` (the row counts for a target at that point: it has
     :data:`MIN_REGIME_PIXELS` pixels and the point a limit) and ``failed`` (judged and the gap
-    below minus the limit); ``limit`` (C,), NaN where no target is set.
+    below minus the limit); ``limit`` (C,), NaN where no target is set; with ``ceiling`` also
+    ``ceiling_failed`` (R, C): judged, and the ceiling's own gap in that row below minus the
+    limit (the row asks more than that ceiling delivers).
     """
     labels, seen = [], set()
     for p in points:
@@ -359,7 +363,7 @@ def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes"
                 seen.add(lab)
                 labels.append(lab)
     R, C = len(labels), len(points)
-    gap, se = np.full((R, C), np.nan), np.full((R, C), np.nan)
+    gap, se, top = np.full((R, C), np.nan), np.full((R, C), np.nan), np.full((R, C), np.nan)
     n = np.zeros((R, C), np.int64)
     few = np.ones((R, C), bool)
     limit = np.array([target_limit(p["noise"], p["nsr"]) for p in points])
@@ -369,13 +373,19 @@ def gap_matrix(points: list[dict], method: str = "convscd", key: str = "regimes"
             i = where[(r["regime"], r["bin"])]
             gap[i, j] = r.get(f"gap[{method}]", np.nan)
             se[i, j] = r.get(f"gap_se[{method}]", np.nan)
+            if ceiling is not None:
+                top[i, j] = r.get(f"gap[{ceiling}]", np.nan)
             n[i, j], few[i, j] = r["n"], r["few"]
     judged = ~few & np.isfinite(gap) & np.isfinite(limit)[None, :]
     with np.errstate(invalid="ignore"):
         failed = judged & ~within_limit(gap, limit[None, :])
+        ceiling_failed = judged & np.isfinite(top) & ~within_limit(top, limit[None, :])
     columns = [f"{p['time_bin_ps']:g} ps {p['noise']} {p['nsr']:g}" for p in points]
-    return {"rows": [f"{a} {b}" if a != "all" else "all" for a, b in labels], "columns": columns,
-            "gap": gap, "se": se, "n": n, "judged": judged, "failed": failed, "limit": limit}
+    out = {"rows": [f"{a} {b}" if a != "all" else "all" for a, b in labels], "columns": columns,
+           "gap": gap, "se": se, "n": n, "judged": judged, "failed": failed, "limit": limit}
+    if ceiling is not None:
+        out["ceiling_failed"] = ceiling_failed
+    return out
 
 
 def format_regime_table(rows: list[dict], methods, reference: str = "oracle") -> list[str]:
