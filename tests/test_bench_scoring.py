@@ -134,10 +134,19 @@ def test_each_gap_target_names_the_detectable_ceilings_own_verdict():
     recs = {r["text"].split(" ps bins")[0].split(", ", 1)[1]: r for r in target_records([a, b])}
     r55, r01 = recs["white noise, NSR 0.055, 2"], recs["white noise, NSR 0.001, 2"]
     assert r55["met"] is False and r55["ceiling_met"] is False
+    # beside the ceiling's verdict, the method in the rows the ceiling meets (here only "all")
     assert r55["detail"] == ("worst gap -0.060 +- 0.010 (weakest ir/direct < 0.05, 3.0 se from the limit); the "
                              "detectable ceiling: worst gap -0.042 +- 0.010 (weakest ir/direct < 0.05, 1.2 se "
-                             "from the limit), not met")
+                             "from the limit), not met; convscd in the rows the ceiling meets: worst gap -0.020 "
+                             "+- 0.010 (overall, 1.0 se from the limit), met")
+    assert r55["met_where_ceiling_meets"] is True
+    a["regimes"].append(row("sss onset (sigma)", "1-2", 200, {"convscd": -0.045, "detectable": -0.01}))
+    r = next(r for r in target_records([a, b]) if "NSR 0.055, 2" in r["text"])
+    assert r["met_where_ceiling_meets"] is False and r["detail"].endswith(
+        "in the rows the ceiling meets: worst gap -0.045 +- 0.010 (sss onset (sigma) 1-2, 1.5 se from the limit), not met")
+    a["regimes"].pop()
     assert r01["met"] is False and r01["ceiling_met"] is True and r01["detail"].endswith(", met")
+    assert r01["met_where_ceiling_meets"] is None
     assert recs["white noise, NSR 0.11, 2"]["ceiling_met"] is None  # not measured
     delay = next(r for r in recs.values() if "direct delay" in r["text"])
     assert delay["met"] is True and delay["ceiling_met"] is None
@@ -154,11 +163,13 @@ def test_each_gap_target_names_the_detectable_ceilings_own_verdict():
 def test_the_target_header_counts_the_targets_the_ceiling_misses_too():
     from streaklab.bench.accuracy import target_header
 
-    recs = [{"met": True, "ceiling_met": True}, {"met": False, "ceiling_met": False},
+    recs = [{"met": True, "ceiling_met": True}, {"met": False, "ceiling_met": False, "met_where_ceiling_meets": True},
+            {"met": False, "ceiling_met": False, "met_where_ceiling_meets": False},
             {"met": False, "ceiling_met": True}, {"met": False, "ceiling_met": None}, {"met": None, "ceiling_met": None}]
-    assert target_header(recs, "detectable").startswith(
-        "accuracy targets against the oracle (1 met, 3 not met; 1 of the not met are missed by the detectable ceiling "
-        "as well")
+    assert target_header(recs, "detectable") == (
+        "accuracy targets against the oracle (1 met, 4 not met; 2 of the not met are missed by the detectable ceiling "
+        "as well, where the components the noise hides cost more than the limit, and 1 of those are met in every row "
+        "the ceiling meets):")
 
 
 def test_white_noise_j_is_chi2_in_the_true_noise_plus_k_ln_n():

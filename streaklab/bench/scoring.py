@@ -270,9 +270,12 @@ def target_records(points: list[dict], *, method: str = "convscd", ceiling: str 
 
     Returns
     -------
-    list of dict: ``text``, ``met`` (True, False or None: not measured), ``detail`` and
+    list of dict: ``text``, ``met`` (True, False or None: not measured), ``detail``,
     ``ceiling_met`` (the ceiling's verdict on a gap target: True, False, or None where it was
-    not measured or the target is not a gap target).
+    not measured or the target is not a gap target) and, where the ceiling misses it,
+    ``met_where_ceiling_meets``: the method's verdict over the judged rows where the ceiling's
+    own gap is within the limit (True: the whole miss lies in rows the noise decides; None
+    where there is no such row or the ceiling meets the target).
     """
     out = []
     bins = sorted({p["time_bin_ps"] for p in points})
@@ -290,12 +293,23 @@ def target_records(points: list[dict], *, method: str = "convscd", ceiling: str 
                 if worst is None:
                     out.append(_record(text, None, "no regime row with enough pixels"))
                     continue
-                detail, ceiling_met = _gap_text(worst, limit), None
-                top = worst_gap(here[0]["regimes"], ceiling) if ceiling != method else None
+                detail, ceiling_met, met_beside = _gap_text(worst, limit), None, None
+                rows = here[0]["regimes"]
+                top = worst_gap(rows, ceiling) if ceiling != method else None
                 if top is not None:
                     ceiling_met = bool(within_limit(top[0], limit))
                     detail += f"; the {ceiling} ceiling: {_gap_text(top, limit)}, {'met' if ceiling_met else 'not met'}"
-                out.append(_record(text, bool(within_limit(worst[0], limit)), detail, ceiling_met))
+                    if not ceiling_met:
+                        # the method in the rows where the ceiling meets the limit: a miss there
+                        # is the method's own, whatever the rows the noise decides
+                        fair = [r for r in rows if np.isfinite(r.get(f"gap[{ceiling}]", np.nan))
+                                and within_limit(r[f"gap[{ceiling}]"], limit)]
+                        w = worst_gap(fair, method)
+                        if w is not None:
+                            met_beside = bool(within_limit(w[0], limit))
+                            detail += (f"; {method} in the rows the ceiling meets: {_gap_text(w, limit)}, "
+                                       f"{'met' if met_beside else 'not met'}")
+                out.append(_record(text, bool(within_limit(worst[0], limit)), detail, ceiling_met, met_beside))
     d = TARGETS["delay"]
     for tb in bins:
         here = [p for p in points if p["noise"] == d["noise"] and p["time_bin_ps"] == tb
@@ -319,8 +333,9 @@ def target_records(points: list[dict], *, method: str = "convscd", ceiling: str 
     return out
 
 
-def _record(text, met, detail, ceiling_met=None) -> dict:
-    return {"text": text, "met": met, "detail": detail, "ceiling_met": ceiling_met}
+def _record(text, met, detail, ceiling_met=None, met_where_ceiling_meets=None) -> dict:
+    return {"text": text, "met": met, "detail": detail, "ceiling_met": ceiling_met,
+            "met_where_ceiling_meets": met_where_ceiling_meets}
 
 
 def target_limit(noise: str, nsr: float) -> float:
