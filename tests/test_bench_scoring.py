@@ -170,6 +170,10 @@ def test_the_target_header_counts_the_targets_the_ceiling_misses_too():
         "accuracy targets against the oracle (1 met, 4 not met; 2 of the not met are missed by the detectable ceiling "
         "as well, where the components the noise hides cost more than the limit, and 1 of those are met in every row "
         "the ceiling meets):")
+    assert target_header(recs[3:], "detectable") == (
+        "accuracy targets against the oracle (0 met, 2 not met; none of the not met is missed by the detectable "
+        "ceiling as well):")
+    assert target_header(recs[:1], "detectable") == "accuracy targets against the oracle (1 met, 0 not met):"
 
 
 def test_white_noise_j_is_chi2_in_the_true_noise_plus_k_ln_n():

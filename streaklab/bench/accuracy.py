@@ -462,9 +462,12 @@ def target_header(records: list[dict], ceiling: str) -> str:
     unmet = [r for r in records if r["met"] is False]
     beyond = [r for r in unmet if r["ceiling_met"] is False]
     only = sum(r.get("met_where_ceiling_meets") is True for r in beyond)
-    return (f"accuracy targets against the oracle ({met} met, {len(unmet)} not met; {len(beyond)} of the not met "
-            f"are missed by the {ceiling} ceiling as well, where the components the noise hides cost more than "
-            f"the limit, and {only} of those are met in every row the ceiling meets):")
+    head = f"accuracy targets against the oracle ({met} met, {len(unmet)} not met"
+    if not beyond:
+        return head + (f"; none of the not met is missed by the {ceiling} ceiling as well):" if unmet else "):")
+    return (f"{head}; {len(beyond)} of the not met are missed by the {ceiling} ceiling as well, where the "
+            f"components the noise hides cost more than the limit, and {only} of those are met in every row the "
+            f"ceiling meets):")
 
 
 def _print_levels(summary, nsrs, prefix=""):
