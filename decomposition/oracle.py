@@ -120,12 +120,16 @@ def significant_truth(truth_params: dict, components: dict, noise_sigma, *, sign
     components : dict of ndarray
         The true components as rendered in the data: ``direct`` and ``sss`` S + (L,),
         ``interreflections`` S + (R, L) (:attr:`decomposition.synthetic.SyntheticData.components`).
-    noise_sigma : array_like, S
-        Standard deviation of each pixel's noise, in the profiles' units.
+    noise_sigma : array_like, S or S + (L,)
+        Standard deviation of each pixel's noise, in the profiles' units; or of each sample's
+        (photon counts: the square root of the expected counts), where the energy is then
+        read in that sample's variance.
     significance_chi2 : float
         An sss or an inter-reflection stays where its in-window energy (sum of squares of its
         samples) is at least this many times the noise variance (the solver's
-        ``significance_chi2``).
+        ``significance_chi2``); with per-sample noise, where the sum of its squared samples
+        over their variances is (a sample of zero variance counts where the component is not
+        zero there).
 
     Returns
     -------
@@ -141,13 +145,28 @@ def significant_truth(truth_params: dict, components: dict, noise_sigma, *, sign
     var = np.asarray(noise_sigma, dtype=np.float64) ** 2
     if np.any(~np.isfinite(var)):
         raise ValueError("noise_sigma must be finite")
-    level = significance_chi2 * var
-    hidden = ~(np.sum(np.asarray(components["sss"], np.float64) ** 2, axis=-1) >= level)
+    sss = np.asarray(components["sss"], np.float64)
+    irs = np.asarray(components["interreflections"], np.float64)
+    if var.ndim == 0:
+        var = np.full(sss.shape[:-1], float(var))
+    if var.shape == sss.shape:
+        # per-sample variances: each component's chi2 against zero, a sample of no variance
+        # counting infinitely where the component is not zero there
+        def chi2(c, v):
+            c2 = c * c
+            return np.sum(np.where(v > 0, c2 / np.where(v > 0, v, 1.0), np.where(c2 > 0, np.inf, 0.0)), axis=-1)
+        hidden = ~(chi2(sss, var) >= significance_chi2)
+        keep = chi2(irs, var[..., None, :]) >= significance_chi2                                # S + (R,)
+    elif var.shape == sss.shape[:-1]:
+        level = significance_chi2 * var
+        hidden = ~(np.sum(sss ** 2, axis=-1) >= level)
+        keep = np.sum(irs ** 2, axis=-1) >= level[..., None]                                    # S + (R,)
+    else:
+        raise ValueError(f"noise_sigma must have the pixels' shape {sss.shape[:-1]} or the samples' "
+                         f"{sss.shape}, got {var.shape}")
     for k in SSS_KEYS:
         if k in out:
             out[k][hidden] = np.nan
-    ir_energy = np.sum(np.asarray(components["interreflections"], np.float64) ** 2, axis=-1)   # S + (R,)
-    keep = ir_energy >= level[..., None]
     if "ir_delay_ps" in out and out["ir_delay_ps"].shape[-1]:
         keep &= np.isfinite(out["ir_delay_ps"])
         order = np.argsort(~keep, axis=-1, kind="stable")          # kept ones first, in order

@@ -70,3 +70,31 @@ def test_significant_truth_drops_what_the_noise_hides_and_keeps_the_order():
         significant_truth(d.params, d.components, sigma, significance_chi2=-1.0)
     with pytest.raises(ValueError, match="noise_sigma"):
         significant_truth(d.params, d.components, np.full(60, np.nan))
+
+
+def test_significant_truth_reads_each_sample_in_its_own_variance():
+    # photon counts: the same echo is visible on a dark baseline and hidden under a bright sss
+    d = make_profiles(40, 256, seed=4, kinds="d+s+r2", photons_per_pixel=300.0)
+    comps = d.components
+    var = np.maximum(np.asarray(d.clean, np.float64), 0.0)                 # Poisson: variance = mean
+    seen = significant_truth(d.params, comps, np.sqrt(var))
+    # against a hand computation of each component's chi2 (sum of c^2 / var over its samples)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ir_chi2 = np.nansum(np.where(var[:, None, :] > 0, comps["interreflections"] ** 2 / var[:, None, :], 0.0),
+                            axis=-1)
+        s_chi2 = np.nansum(np.where(var > 0, comps["sss"] ** 2 / var, 0.0), axis=-1)
+    has_ir = np.isfinite(d.params["ir_delay_ps"])
+    n_kept = ((ir_chi2 >= 25.0) & has_ir).sum(axis=1)
+    np.testing.assert_array_equal(np.isfinite(seen["ir_delay_ps"]).sum(axis=1), n_kept)
+    np.testing.assert_array_equal(np.isfinite(seen["sss_delay_ps"]), np.isfinite(d.params["sss_delay_ps"]) & (s_chi2 >= 25.0))
+    assert 0 < n_kept.sum() < has_ir.sum()                     # some echoes hide at 300 photons, some not
+    # a sample of no variance: a component there is infinitely significant, zero there adds nothing
+    one = {"direct": np.zeros((1, 4)), "sss": np.array([[0.0, 1e-9, 0.0, 0.0]]),
+           "interreflections": np.zeros((1, 1, 4))}
+    p1 = {"direct_delay_ps": np.array([1.0]), "sss_delay_ps": np.array([2.0]), "ir_delay_ps": np.array([[3.0]])}
+    out = significant_truth(p1, one, np.array([[1.0, 0.0, 1.0, 1.0]]))
+    assert np.isfinite(out["sss_delay_ps"][0]) and np.isnan(out["ir_delay_ps"][0, 0])
+    # a scalar noise is every pixel's; a shape of neither kind is refused
+    np.testing.assert_array_equal(significant_truth(d.params, comps, 0.0)["ir_delay_ps"], d.params["ir_delay_ps"])
+    with pytest.raises(ValueError, match="pixels' shape"):
+        significant_truth(d.params, comps, np.ones(7))
