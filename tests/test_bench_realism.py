@@ -246,3 +246,58 @@ def test_the_rmse_ratio_carries_its_standard_error():
     out = {t.split(": ", 1)[1]: (ok, d) for t, ok, d in realism.check_targets([row])}
     assert out["lifetime RMSE"] == (False, "1.11 +- 0.03 x reference, 0.4 se from the limit (<= 1.1)")
     assert out["direct delay RMSE"] == (True, "0.90 x reference (<= 1.1)")
+
+
+def test_the_visible_reference_leaves_out_what_the_counts_hide():
+    # the echo scenes' 1 % echo on an sss tail: hidden at 100 photons, the rest visible
+    setup = realism.effect_setup("echo", 2.0)
+    d = make_profiles(40, 256, seed=11, kinds=setup["kinds"], time_bin_ps=2.0, photons_per_pixel=100.0,
+                      **setup["options"])
+    seen = realism.visible_truth(d)
+    np.testing.assert_array_equal(seen["direct_delay_ps"], d.params["direct_delay_ps"])
+    n_true = np.isfinite(d.params["ir_delay_ps"]).sum(axis=1)
+    n_seen = np.isfinite(seen["ir_delay_ps"]).sum(axis=1)
+    assert np.all(n_seen <= n_true) and np.mean(n_seen < n_true) > 0.9
+    # the larger echo stays: every kept one is a true one, in order
+    for i in np.flatnonzero(n_seen):
+        assert set(seen["ir_delay_ps"][i][:n_seen[i]]) <= set(d.params["ir_delay_ps"][i])
+    # with a million photons nothing hides
+    d6 = make_profiles(10, 256, seed=11, kinds=setup["kinds"], time_bin_ps=2.0, photons_per_pixel=1e6,
+                       **setup["options"])
+    np.testing.assert_array_equal(np.isfinite(realism.visible_truth(d6)["ir_delay_ps"]),
+                                  np.isfinite(d6.params["ir_delay_ps"]))
+
+
+def test_targets_name_the_visible_reference_and_the_header_counts_it():
+    base = {"status": "ok", "effect": "echo", "photons_per_pixel": 100.0, "lifetime_bias_rel": 0.004,
+            "lifetime_bias_se_rel": 0.004, "direct_delay_bias_sigma": 0.005, "lifetime_bias_vs_reference_rel": 0.011,
+            "lifetime_bias_vs_reference_se_rel": 0.0025, "lifetime_rmse_over_reference": 1.16,
+            "lifetime_rmse_over_reference_se": 0.02, "direct_delay_rmse_over_reference": 0.9,
+            "stderr_median_z_lifetime": 0.69, "stderr_median_z_lifetime_se": 0.02, "stderr_median_z_delay": 0.67,
+            "stderr_median_z_delay_se": 0.02, "echo_found": float("nan"), "echo_sigma": 0.2}
+    ref = {**base, "variant": "reference", "lifetime_bias_vs_reference_rel": 0.0, "lifetime_bias_vs_reference_se_rel": 0.0,
+           "lifetime_rmse_over_reference": 1.0, "lifetime_rmse_over_reference_se": 0.0,
+           "direct_delay_rmse_over_reference": 1.0}
+    vis = {**base, "variant": "visible", "lifetime_bias_vs_reference_rel": 0.0527,
+           "lifetime_bias_vs_reference_se_rel": 0.0035, "lifetime_rmse_over_reference": 1.41,
+           "lifetime_rmse_over_reference_se": 0.06, "direct_delay_rmse_over_reference": 1.0}
+    recs = {r["text"].split(": ", 1)[1]: r for r in realism.target_records([{**base, "variant": "modelled"}, ref, vis])}
+    rmse = recs["lifetime RMSE"]
+    assert rmse["met"] is False and rmse["visible_met"] is False and rmse["reference_met"] is None
+    assert rmse["detail"] == ("1.16 +- 0.02 x reference, 3.0 se from the limit (<= 1.1); the visible reference: "
+                              "1.41 +- 0.06 x reference, 5.2 se from the limit, not met")
+    bias = recs["lifetime bias beside the reference's"]
+    assert bias["met"] is False and bias["visible_met"] is False
+    assert bias["detail"].endswith("the visible reference: +5.27% +- 0.35%, not met")
+    # judged alone: both yardsticks named, the reference first
+    lb = recs["lifetime bias"]
+    assert lb["detail"] == ("+0.40% +- 0.40% (<= 1%); the reference: +0.40% +- 0.40%, met; the visible reference: "
+                            "+0.40% +- 0.40%, met") and lb["reference_met"] is True and lb["visible_met"] is True
+    header = realism.target_header(list(recs.values()))
+    n_met = sum(r["met"] is True for r in recs.values())
+    assert header == (f"targets ({n_met} met, 2 not met, 0 not measured; 0 of the not met are missed by the "
+                      "reference itself, 2 more by the reference on the visible components):")
+    # without the yardstick rows nothing is added
+    alone = {r["text"].split(": ", 1)[1]: r for r in realism.target_records([{**base, "variant": "modelled"}])}
+    assert alone["lifetime RMSE"]["detail"] == "1.16 +- 0.02 x reference, 3.0 se from the limit (<= 1.1)"
+    assert alone["lifetime RMSE"]["visible_met"] is None
