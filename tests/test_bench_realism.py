@@ -301,3 +301,24 @@ def test_targets_name_the_visible_reference_and_the_header_counts_it():
     alone = {r["text"].split(": ", 1)[1]: r for r in realism.target_records([{**base, "variant": "modelled"}])}
     assert alone["lifetime RMSE"]["detail"] == "1.16 +- 0.02 x reference, 3.0 se from the limit (<= 1.1)"
     assert alone["lifetime RMSE"]["visible_met"] is None
+
+
+def test_quick_with_the_visible_reference(tmp_path, capsys):
+    out = tmp_path / "visible"
+    assert main(["bench", "realism", "--quick", "--effects", "echo,tailed", "--variants", "ignored,reference,visible",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    with open(out / "realism.csv") as fh:
+        rows = {(r["effect"], float(r["photons_per_pixel"]), r["variant"]): r for r in csv.DictReader(fh)}
+    for p in (300.0, 10000.0):
+        # nothing hides in the tailed scenes: the visible reference is the reference itself
+        t_ref, t_vis = rows[("tailed", p, "reference")], rows[("tailed", p, "visible")]
+        assert float(t_vis["lifetime_rmse_rel"]) == pytest.approx(float(t_ref["lifetime_rmse_rel"]), rel=1e-9)
+        assert float(t_vis["lifetime_rmse_over_reference"]) == pytest.approx(1.0)
+    # every judged line names the visible reference where its row is there; the summary says it too
+    judged = [x for x in text.splitlines() if x.startswith(("  [met] ignored", "  [NOT met] ignored"))]
+    assert judged and all("; the visible reference: " in x for x in judged)
+    summary = json.loads((out / "summary.json").read_text())
+    assert {c["visible_met"] for c in summary["target_checks"]} <= {True, False, None}
+    assert any(c["visible_met"] is not None for c in summary["target_checks"])
+    assert "more by the reference on the visible components" in text
