@@ -322,3 +322,21 @@ def test_quick_with_the_visible_reference(tmp_path, capsys):
     assert {c["visible_met"] for c in summary["target_checks"]} <= {True, False, None}
     assert any(c["visible_met"] is not None for c in summary["target_checks"])
     assert "more by the reference on the visible components" in text
+    assert (out / "realism.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_figure_series_lays_out_each_variants_values_by_effect_and_level():
+    def row(effect, photons, variant, v, se=0.01, status="ok"):
+        return {"effect": effect, "photons_per_pixel": photons, "variant": variant, "status": status,
+                "lifetime_rmse_over_reference": v, "lifetime_rmse_over_reference_se": se}
+    rows = [row("tailed", 100.0, "modelled", 1.04), row("tailed", 100.0, "reference", 1.0, 0.0),
+            row("echo", 10000.0, "modelled", 1.16), row("echo", 10000.0, "reference", 1.0, 0.0),
+            row("echo", 10000.0, "visible", 9.9, status="error: ValueError: x")]
+    ser = realism.figure_series(rows, "lifetime_rmse_over_reference", "lifetime_rmse_over_reference_se")
+    assert ser["columns"] == ["tailed, 100 ph", "echo, 10,000 ph"]
+    np.testing.assert_allclose(ser["variants"]["modelled"][0], [1.04, 1.16])
+    np.testing.assert_allclose(ser["variants"]["modelled"][1], [0.01, 0.01])
+    np.testing.assert_allclose(ser["variants"]["reference"][0], [1.0, 1.0])
+    # a variant without a row at a column, or whose row failed, has NaN there
+    assert np.isnan(ser["variants"]["visible"][0]).all()
+    assert np.isnan(realism.figure_series(rows, "lifetime_rmse_over_reference")["variants"]["modelled"][1]).all()

@@ -48,8 +48,11 @@ with an RMSE up to twice the decomposition's).  Each check's line also names the
 figure and verdict where the check judges a row alone, and the visible reference's on every
 check; the header counts the unmet checks each of them misses too (:func:`target_records`).
 
-Outputs in ``--out``: ``realism.csv`` (one row per effect, photon level and variant) and
-``summary.json`` (the settings, the rows and the targets as met / not met / not measured).
+Outputs in ``--out``: ``realism.csv`` (one row per effect, photon level and variant),
+``summary.json`` (the settings, the rows and the targets as met / not met / not measured) and
+``realism.png`` (per effect and photon level, each variant's lifetime RMSE over the reference's,
+lifetime bias and direct-delay bias with their standard errors, the band each target allows
+shaded; :func:`figure_series` gives its values).
 """
 from __future__ import annotations
 
@@ -466,6 +469,83 @@ def target_records(rows: list[dict]) -> list[dict]:
     return out
 
 
+#: the panels of ``realism.png``: (row key, its standard error's key or None, y label, the band
+#: the target allows around its ideal (low, high), the ideal, the y range shown: a value beyond it
+#: is drawn at its edge as an open triangle, with the value written beside it)
+FIGURE_PANELS = (
+    ("lifetime_rmse_over_reference", "lifetime_rmse_over_reference_se", "lifetime RMSE / reference's",
+     (0.0, TARGETS["rmse_over_reference"]), 1.0, (0.5, 2.0)),
+    ("lifetime_bias_rel", "lifetime_bias_se_rel", "lifetime bias (relative)", (-TARGETS["bias"], TARGETS["bias"]), 0.0,
+     (-0.1, 0.1)),
+    ("direct_delay_bias_sigma", None, "direct delay bias (PSF widths)", (-TARGETS["bias"], TARGETS["bias"]), 0.0,
+     (-0.5, 0.5)),
+)
+
+
+def figure_series(rows: list[dict], key: str, se_key: str | None = None) -> dict:
+    """The values of one panel of ``realism.png``: ``columns`` ("effect, N photons", in the rows'
+    order) and per variant ``(value, se)`` arrays over them (NaN where a variant has no row, its
+    row failed, or the figure is not finite; se NaN without ``se_key``)."""
+    cols = []
+    for r in rows:
+        c = f"{r['effect']}, {r['photons_per_pixel']:,.0f} ph"
+        if c not in cols:
+            cols.append(c)
+    out = {"columns": cols, "variants": {}}
+    for r in rows:
+        v = out["variants"].setdefault(r["variant"], (np.full(len(cols), np.nan), np.full(len(cols), np.nan)))
+        if r["status"] != "ok":
+            continue
+        j = cols.index(f"{r['effect']}, {r['photons_per_pixel']:,.0f} ph")
+        v[0][j] = r.get(key, np.nan)
+        if se_key is not None:
+            v[1][j] = r.get(se_key, np.nan)
+    return out
+
+
+def _plot(path, rows: list[dict]) -> None:
+    """``realism.png``: per effect and photon level (columns), each variant's lifetime RMSE over the
+    reference's, lifetime bias and direct-delay bias, with their standard errors where the rows
+    hold them and the band each target allows shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(FIGURE_PANELS), 1, figsize=(max(6.0, 1.0 + 0.55 * len({(r["effect"], r["photons_per_pixel"]) for r in rows})), 7.5),
+                             sharex=True)
+    style = {"ignored": ("C3", "s"), "modelled": ("C0", "o"), "reference": ("0.2", "^"), "visible": ("C2", "v")}
+    for ax, (key, se_key, label, band, ideal, view) in zip(axes, FIGURE_PANELS):
+        ser = figure_series(rows, key, se_key)
+        x = np.arange(len(ser["columns"]))
+        names = list(ser["variants"])
+        for k, name in enumerate(names):
+            val, se = ser["variants"][name]
+            color, marker = style.get(name, (None, "x"))
+            off = (k - (len(names) - 1) / 2) * 0.12
+            inside = (val >= view[0]) & (val <= view[1])
+            ax.errorbar(x[inside] + off, val[inside], yerr=np.where(np.isfinite(se), se, 0.0)[inside], fmt=marker,
+                        color=color, ms=4, lw=0.8, capsize=2, label=name)
+            for j in np.flatnonzero(np.isfinite(val) & ~inside):
+                edge, mk = (view[1], "^") if val[j] > view[1] else (view[0], "v")
+                ax.plot(x[j] + off, edge, mk, mfc="none", color=color, ms=6, clip_on=False)
+                ax.annotate(f"{val[j]:.3g}", (x[j] + off, edge), fontsize=6, color=color, ha="center",
+                            va="top" if mk == "^" else "bottom", xytext=(0, -6 if mk == "^" else 6),
+                            textcoords="offset points")
+        ax.axhspan(band[0], band[1], color="0.85", zorder=0)
+        ax.axhline(ideal, color="0.5", lw=0.7)
+        ax.set_ylim(*view)
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(True, axis="y", alpha=0.3)
+    axes[-1].set_xticks(np.arange(len(ser["columns"])), ser["columns"], rotation=60, ha="right", fontsize=7)
+    axes[0].legend(fontsize=7, ncol=4, loc="lower left")
+    axes[0].set_title("photon counts with real-detector effects, beside the Poisson reference\n"
+                      "(shaded: what each target allows)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def target_header(records: list[dict]) -> str:
     """The line above the target list: met / not met / not measured, and how many of the not met
     the reference misses itself, or the visible reference (records of :func:`target_records`)."""
@@ -535,8 +615,9 @@ def run(args) -> int:
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     targets = target_records(rows)
-    csv_path, json_path = out / "realism.csv", out / "summary.json"
+    csv_path, json_path, png_path = out / "realism.csv", out / "summary.json", out / "realism.png"
     write_csv(csv_path, rows)
+    _plot(png_path, rows)
     summary = {"effects": effects, "variants": variants, "photons_per_pixel": photons, "pixels": pixels,
                "n_bins": n_bins, "time_bin_ps": tb, "sigma_ps": SIGMA_PS, "seed": int(args.seed),
                "quick": bool(args.quick), "targets": {k: list(v) if isinstance(v, tuple) else v
@@ -582,5 +663,5 @@ def run(args) -> int:
         for r in targets:
             mark = "not measured" if r["met"] is None else ("met" if r["met"] else "NOT met")
             print(f"  [{mark}] {r['text']}: {r['detail']}")
-    print(f"wrote {csv_path}, {json_path}")
+    print(f"wrote {csv_path}, {json_path}, {png_path}")
     return 0
