@@ -486,17 +486,19 @@ def figure_series(rows: list[dict], key: str, se_key: str | None = None) -> dict
     """The values of one panel of ``realism.png``: ``columns`` ("effect, N photons", in the rows'
     order) and per variant ``(value, se)`` arrays over them (NaN where a variant has no row, its
     row failed, or the figure is not finite; se NaN without ``se_key``)."""
+    def column(r):
+        return f"{r['effect']}, {r['photons_per_pixel']:,.0f} ph"
+
     cols = []
     for r in rows:
-        c = f"{r['effect']}, {r['photons_per_pixel']:,.0f} ph"
-        if c not in cols:
-            cols.append(c)
+        if column(r) not in cols:
+            cols.append(column(r))
     out = {"columns": cols, "variants": {}}
     for r in rows:
         v = out["variants"].setdefault(r["variant"], (np.full(len(cols), np.nan), np.full(len(cols), np.nan)))
         if r["status"] != "ok":
             continue
-        j = cols.index(f"{r['effect']}, {r['photons_per_pixel']:,.0f} ph")
+        j = cols.index(column(r))
         v[0][j] = r.get(key, np.nan)
         if se_key is not None:
             v[1][j] = r.get(se_key, np.nan)
