@@ -485,7 +485,7 @@ def _print_levels(summary, nsrs, prefix=""):
 def run(args) -> int:
     from decomposition.synthetic import SCENE_PRESETS
 
-    from .scoring import GAP_CEILING, format_regime_table, target_records
+    from .scoring import GAP_CEILING, format_regime_table, target_entry, target_records
 
     noises = choices(args.noise, NOISES + EXTRA_NOISES, "noise")
     methods = choices(args.methods, METHODS + EXTRA_METHODS, "methods")
@@ -535,10 +535,7 @@ def run(args) -> int:
                     "time_bin_ps": bins, "nsr": [float(x) for x in nsrs], "noises": noises,
                     "methods": every, "kinds": args.kinds, "scenes": scenes, "render": render, "seed": args.seed,
                     "quick": bool(args.quick), "options": options,
-                    "oracle_targets": [{"target": r["text"], "met": r["met"], "detail": r["detail"],
-                                        "ceiling_met": r["ceiling_met"],
-                                        "met_where_ceiling_meets": r["met_where_ceiling_meets"]}
-                                       for r in targets]})
+                    "oracle_targets": [target_entry(r) for r in targets]})
     csv_path, png_path, json_path = out / "accuracy.csv", out / "accuracy.png", out / "summary.json"
     reg_path, flag_path = out / "regimes.csv", out / "flags.csv"
     write_csv(csv_path, rows)

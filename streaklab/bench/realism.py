@@ -66,6 +66,7 @@ import numpy as np
 from streaklab.cli import CommandError
 
 from .arguments import choices, output_folder, positive_floats
+from .scoring import target_entry
 from .tables import write_csv
 
 EFFECTS = ("tailed", "afterpulse", "background", "echo", "truncated", "echo5sigma")
@@ -447,16 +448,14 @@ def target_records(rows: list[dict]) -> list[dict]:
             continue
         where = f"{row['variant']}, {row['effect']}, {row['photons_per_pixel']:g} photons"
         if row["status"] != "ok":
-            out.append({"text": where, "met": None, "detail": row["status"], "reference_met": None,
-                        "visible_met": None})
+            out.append(_record(where, None, row["status"]))
             continue
         key = (row["effect"], row["photons_per_pixel"])
         checks = {name: ({} if key not in yard[name] else
                          {c: (ok, value) for c, ok, value, _ in _row_checks(yard[name][key])})
                   for name, _ in YARDSTICKS}
         for name, ok, value, bar in _row_checks(row):
-            rec = {"text": f"{where}: {name}", "met": None, "detail": "not measured", "reference_met": None,
-                   "visible_met": None}
+            rec = _record(f"{where}: {name}", None, "not measured")
             if "nan" not in value:
                 rec["met"], rec["detail"] = bool(ok), f"{value} ({bar})"
                 for yname, label in YARDSTICKS:
@@ -467,6 +466,11 @@ def target_records(rows: list[dict]) -> list[dict]:
                         rec["detail"] += f"; {label}: {y_value}, {'met' if y_ok else 'not met'}"
             out.append(rec)
     return out
+
+
+def _record(text, met, detail) -> dict:
+    """One target record, every yardstick's verdict not yet known (None)."""
+    return {"text": text, "met": met, "detail": detail, **{f"{name}_met": None for name, _ in YARDSTICKS}}
 
 
 #: the panels of ``realism.png``: (row key, its standard error's key or None, y label, the band
@@ -514,8 +518,8 @@ def _plot(path, rows: list[dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(FIGURE_PANELS), 1, figsize=(max(6.0, 1.0 + 0.55 * len({(r["effect"], r["photons_per_pixel"]) for r in rows})), 7.5),
-                             sharex=True)
+    n_cols = len({(r["effect"], r["photons_per_pixel"]) for r in rows})
+    fig, axes = plt.subplots(len(FIGURE_PANELS), 1, figsize=(max(6.0, 1.0 + 0.55 * n_cols), 7.5), sharex=True)
     style = {"ignored": ("C3", "s"), "modelled": ("C0", "o"), "reference": ("0.2", "^"), "visible": ("C2", "v")}
     for ax, (key, se_key, label, band, ideal, view) in zip(axes, FIGURE_PANELS):
         ser = figure_series(rows, key, se_key)
@@ -624,9 +628,7 @@ def run(args) -> int:
                "n_bins": n_bins, "time_bin_ps": tb, "sigma_ps": SIGMA_PS, "seed": int(args.seed),
                "quick": bool(args.quick), "targets": {k: list(v) if isinstance(v, tuple) else v
                                                       for k, v in TARGETS.items()},
-               "target_checks": [{"target": r["text"], "met": r["met"], "detail": r["detail"],
-                                  "reference_met": r["reference_met"], "visible_met": r["visible_met"]}
-                                 for r in targets], "rows": rows}
+               "target_checks": [target_entry(r) for r in targets], "rows": rows}
     json_path.write_text(json.dumps(summary, indent=2, default=float) + "\n")
 
     print("direct delay and sss lifetime errors beside the Poisson reference (true response and set, from the truth);")

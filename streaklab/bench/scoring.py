@@ -28,6 +28,7 @@ __all__ = [
     "white_noise_j",
     "within_data",
     "target_records",
+    "target_entry",
     "worst_gap",
     "GAP_CEILING",
     "format_regime_table",
@@ -331,6 +332,11 @@ def target_records(points: list[dict], *, method: str = "convscd", ceiling: str 
                        f"{here[0]['within_data_margin']:g} of the oracle's, or below it)")
         out.append(_record(text, ok, detail))
     return out
+
+
+def target_entry(record: dict) -> dict:
+    """A target record as ``summary.json`` keeps it: its ``text`` under ``target``, the rest as is."""
+    return {"target": record["text"], **{k: v for k, v in record.items() if k != "text"}}
 
 
 def _record(text, met, detail, ceiling_met=None, met_where_ceiling_meets=None) -> dict:
