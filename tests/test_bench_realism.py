@@ -266,6 +266,8 @@ def test_the_visible_reference_leaves_out_what_the_counts_hide():
                        **setup["options"])
     np.testing.assert_array_equal(np.isfinite(realism.visible_truth(d6)["ir_delay_ps"]),
                                   np.isfinite(d6.params["ir_delay_ps"]))
+    # so the visible reference is the reference there, fitted once, and not at 100 photons
+    assert realism.hides_nothing(d6) and not realism.hides_nothing(d)
 
 
 def test_targets_name_the_visible_reference_and_the_header_counts_it():
