@@ -133,3 +133,23 @@ def test_a_truncated_direct_stays_near_the_window():
     assert np.all(f.info["deviance"] <= f.info["deviance_start"] + 1e-9)
     with pytest.raises(ValueError, match="outside the window"):
         poisson_reference_fit(d.noisy, d.params, IRF, options=PoissonReferenceOptions(delay_margin_widths=0.1))
+
+
+def test_the_sss_onset_stays_at_or_after_the_direct():
+    """At 100 photons per pixel the onset of an sss 0-3 widths after its direct is barely held
+    by the counts: fitted freely it went before the direct in 24 % of ``bench realism``'s tailed
+    pixels.  Held at or after it (the default, the paper's model and every scene's truth), no
+    pixel's onset precedes its direct, the deviance still never rises from the truth's, and
+    where the free fit kept the order nearly all agree (the held fit's path, projected on the
+    way, can end in another of the shallow optima: 9 of 204 pixels here)."""
+    d = make_profiles(300, L, seed=3, kinds="d+s", response=IRF, photons_per_pixel=100.0)
+    held = poisson_reference_fit(d.noisy, d.params, IRF)
+    free = poisson_reference_fit(d.noisy, d.params, IRF, options=PoissonReferenceOptions(sss_after_direct=False))
+    gap_held = held.params["sss_delay_ps"] - held.params["direct_delay_ps"]
+    gap_free = free.params["sss_delay_ps"] - free.params["direct_delay_ps"]
+    assert np.mean(gap_free < -0.5) >= 0.05                      # the free fit does go before
+    assert np.all(gap_held >= -1e-9)
+    assert np.all(held.info["deviance"] <= held.info["deviance_start"] + 1e-9)
+    kept = gap_free > 0.5
+    same = np.isclose(held.params["sss_alpha_per_ps"][kept], free.params["sss_alpha_per_ps"][kept], rtol=1e-3)
+    assert kept.sum() >= 150 and same.mean() >= 0.9
