@@ -371,22 +371,24 @@ def count_signal_sigma(counts: np.ndarray, fit: np.ndarray, scale: np.ndarray,
     return s if dispersion is None else s * dispersion
 
 
-def count_variance(model_counts: np.ndarray, dispersion=None, floor_fraction: float = 0.0) -> np.ndarray:
+def count_variance(model_counts: np.ndarray, dispersion=None, floor_fraction: float = 0.0,
+                   floor_counts: float = POISSON_VARIANCE_FLOOR) -> np.ndarray:
     """(P, L) variance of count data under a model: its model count (times dispersion^2 where
-    given), floored at POISSON_VARIANCE_FLOOR counts and at ``floor_fraction`` of the row's
-    largest model count."""
+    given), floored at ``floor_counts`` (POISSON_VARIANCE_FLOOR) and at ``floor_fraction`` of
+    the row's largest model count."""
     m = np.asarray(model_counts, np.float64)
-    floor = np.maximum(POISSON_VARIANCE_FLOOR, floor_fraction * np.max(m, axis=1, initial=0.0))
+    floor = np.maximum(floor_counts, floor_fraction * np.max(m, axis=1, initial=0.0))
     var = np.maximum(m, floor[:, None])
     if dispersion is not None:
         var = var * np.square(dispersion)[:, None]
     return var
 
 
-def poisson_weights(model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+def poisson_weights(model_counts: np.ndarray, fit: np.ndarray, dispersion=None,
+                    floor_counts: float = POISSON_VARIANCE_FLOOR) -> np.ndarray:
     """Least-squares weights 1 / variance of count data for a model, 0 off the fitted samples
-    (the variance of :func:`count_variance`)."""
-    return np.where(fit, 1.0 / count_variance(model_counts, dispersion), 0.0)
+    (the variance of :func:`count_variance`, floored at ``floor_counts``)."""
+    return np.where(fit, 1.0 / count_variance(model_counts, dispersion, floor_counts=floor_counts), 0.0)
 
 
 def fit_dispersion(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray,
@@ -424,16 +426,17 @@ def poisson_deviance(counts, expected) -> np.ndarray:
     return np.sum(_deviance_terms(y, mu), axis=-1)
 
 
-def _masked_deviance(counts, model_counts, fit, dispersion):
+def _masked_deviance(counts, model_counts, fit, dispersion, floor_counts=POISSON_VARIANCE_FLOOR):
     y = np.where(fit, np.asarray(counts, np.float64), 0.0)
-    mu = np.where(fit, np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), POISSON_VARIANCE_FLOOR), 1.0)
+    mu = np.where(fit, np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), floor_counts), 1.0)
     dev = np.where(fit, _deviance_terms(y, mu), 0.0).sum(axis=-1)
     if dispersion is not None:
         dev = dev / np.square(np.asarray(dispersion, np.float64))
     return dev
 
 
-def count_deviance(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray, dispersion=None) -> np.ndarray:
+def count_deviance(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray, dispersion=None,
+                   floor_counts: float = POISSON_VARIANCE_FLOOR) -> np.ndarray:
     """(P,) Poisson deviance of count profiles under a model, over the fitted samples, in chi2 units.
 
     Twice the log-likelihood ratio of the saturated model to this one: the difference of two
@@ -443,13 +446,17 @@ def count_deviance(counts: np.ndarray, model_counts: np.ndarray, fit: np.ndarray
     Parameters
     ----------
     counts : ndarray (P, L)          the counts (read on the fitted samples only)
-    model_counts : ndarray (P, L)    expected counts, floored at POISSON_VARIANCE_FLOOR as the
+    model_counts : ndarray (P, L)    expected counts, floored at ``floor_counts`` as the
                                      weights are (NaN read as 0)
     fit : ndarray (P, L) bool        samples that count
     dispersion : ndarray (P,), optional
         Noise scale of the counts (1: the Poisson law); the deviance is divided by its square.
+    floor_counts : float
+        Least expected count read (POISSON_VARIANCE_FLOOR: the weights' floor, and the
+        significance tests'; a fit's objective may read the likelihood closer, see
+        :data:`~decomposition.constants.POISSON_FIT_FLOOR`).
     """
-    return _masked_deviance(counts, model_counts, fit, dispersion)
+    return _masked_deviance(counts, model_counts, fit, dispersion, floor_counts)
 
 
 def removal_deviance(counts: np.ndarray, model_counts: np.ndarray, atoms_counts: np.ndarray, fit: np.ndarray,

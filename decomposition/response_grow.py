@@ -40,7 +40,7 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
      before: an atom that slid onto the direct splits its peak).
 
    Each trial is refitted with the rest (:func:`decomposition.response_refine.refit_slots`,
-   Poisson weights for counts), and a pixel takes the trial of lowest deviance where it lowers
+   the Poisson likelihood for counts), and a pixel takes the trial of lowest deviance where it lowers
    its deviance (:func:`deviance`: the Poisson deviance for counts, RSS / s^2 with the
    significance noise otherwise) by at least ``significance_chi2`` -- the likelihood-ratio
    statistic of the added component, the threshold the in-window rule applies to every atom.

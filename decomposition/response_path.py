@@ -8,9 +8,9 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
 * refine: every pixel's delays and sss alpha by variable projection, amplitudes by linear
   least squares (:mod:`decomposition.response_refine`), with the order kept (no
   inter-reflection before the direct, no sss onset before it with ``sss_after_direct``);
-  count data (``noise="poisson"``) refitted POISSON_REFITS times with weights 1 / Poisson
-  variance of the previous model (the Poisson maximum-likelihood fit, as in
-  :mod:`decomposition.refit`);
+  count data (``noise="poisson"``) fitted to their Poisson deviance instead, by Fisher
+  scoring over delays, alphas and amplitudes together (the Poisson maximum-likelihood fit,
+  :func:`decomposition.response_refine.fit_slots` with ``CountData``);
 * forward steps (:mod:`decomposition.response_grow`): a direct where a fast sss took its
   light (AMBIGUOUS where the data do not determine it), an sss for count data's pixels left
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
@@ -34,7 +34,7 @@ from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .background import background_significant, background_threshold
 from .components import runs_off_window
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, SSS_SLOT
 from .flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
@@ -150,7 +150,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     for k, v in params.items():
         out[k][live] = v
     if opts.stderr:
-        out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct))
+        out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct, sigma_eq))
         if with_bg:
             out[BACKGROUND_KEY + "_stderr"] = bg_info["background_stderr"]
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
@@ -170,7 +170,7 @@ def _scatter(P, live, v, fill):
     return out
 
 
-def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_after_direct) -> dict:
+def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_after_direct, sigma_eq_ps) -> dict:
     live, ax = samples.live, samples.axis
     P = samples.values.shape[0]
     scale = samples.scale[live]
@@ -192,7 +192,9 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
         sw = fit_mask.astype(np.float64)
     tie = None
     if sss_after_direct:
-        tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= 1e-9 * max(ax.time_bin_ps, 1.0)
+        # an onset on the direct, or so near it that the two atoms and the onset's derivative
+        # are degenerate (ONSET_TIE_SIGMA)
+        tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= ONSET_TIE_SIGMA * sigma_eq_ps
     counts = samples.noise_model == "poisson"
     se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
                               background=offset, covariance=counts)

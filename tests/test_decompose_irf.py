@@ -237,30 +237,37 @@ def test_count_data_direct_taken_by_a_fast_sss_is_restored_or_flagged():
     takes the direct's light, a direct is tried at the sss onset and at the data's peak and
     kept where it is significant; a pixel left with an sss and no direct is AMBIGUOUS (the
     paper's model gives every pixel one), but not with ``sss_alone``.  100 photons per pixel,
-    d + s (300 pixels): 7 without a direct, none flagged before (6 since the guarded refits); the trial's direct is not
-    significant there (its removal raises the deviance by 2-19 < 25), so they stay without one
-    and are flagged.  The direct 3-8 ps before the window at 1,000 photons: 91 % with a direct
-    before, 95 % now (10 restored, within 9 ps of the truth, each OFF_WINDOW)."""
+    d + s, tailed response (300 pixels): 7 without a direct, none flagged before (6 since the
+    guarded refits; none since the refinement maximises the Poisson likelihood).  The direct 1-8
+    ps before the window at 100 photons (300 pixels): 10 left without one, the trial's direct
+    not significant there, so they are flagged (4 of them by this rule alone).  The direct 3-8 ps before the window at 1,000
+    photons: 91 % with a direct before, 95 % with the direct restored (10 restored, within 9 ps
+    of the truth, each OFF_WINDOW), 96 % since the likelihood fit (8 restored)."""
     from decomposition.flags import AMBIGUOUS
     from decomposition.synthetic import make_profiles
-
-    irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
-    d = make_profiles(300, 256, seed=2, kinds="d+s", response=irf, photons_per_pixel=100.0)
-    for sss_alone in (False, True):
-        r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=irf, components="d,r,s", noise="poisson", sss_alone=sss_alone)
-        p = r.params
-        no_d = ~np.isfinite(p["direct_delay_ps"]) & np.isfinite(p["sss_delay_ps"])
-        amb = (r.flags & AMBIGUOUS) != 0
-        assert no_d.sum() >= 3
-        assert np.all(amb[no_d]) if not sss_alone else not np.any(amb[no_d])
-
     from streaklab.bench.realism import effect_setup
+
     setup = effect_setup("truncated", T)
+    d = make_profiles(300, 256, seed=5, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
+                      **setup["options"])
+    amb, no_d = {}, {}
+    for sss_alone in (False, True):
+        r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
+                      noise="poisson", sss_alone=sss_alone)
+        no_d[sss_alone] = ~np.isfinite(r.params["direct_delay_ps"]) & np.isfinite(r.params["sss_delay_ps"])
+        amb[sss_alone] = (r.flags & AMBIGUOUS) != 0
+    assert no_d[False].sum() >= 5 and np.array_equal(no_d[False], no_d[True])
+    assert np.all(amb[False][no_d[False]])
+    # with sss_alone the rule flags none of them: those still AMBIGUOUS are the restored
+    # direct's (a direct that explained nothing), 6 of the 10
+    alone = no_d[True]
+    assert np.all(amb[False][alone] | ~amb[True][alone]) and np.sum(amb[False][alone] & ~amb[True][alone]) >= 3
+
     d = make_profiles(300, 256, seed=5, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=1000.0,
                       **setup["options"])
     r = decompose(d.noisy, T, t0_ps=d.t0_ps, irf=setup["response"], components="d,r,s", noise="poisson")
     has_d = np.isfinite(r.params["direct_delay_ps"])
-    assert r.info["response_direct_restored"] >= 5 and has_d.mean() >= 0.94
+    assert r.info["response_direct_restored"] >= 5 and has_d.mean() >= 0.95
     err = np.abs(r.params["direct_delay_ps"] - d.params["direct_delay_ps"])
     assert np.nanmedian(err) < 3.0                       # ps; the direct is 3-8 ps outside the window
 
@@ -270,8 +277,8 @@ def test_count_refit_never_leaves_a_lower_poisson_deviance():
     direct alone (within 1 ps) and missed the sss: the first Poisson refit weighs each sample by
     1 / the model's counts, floored at 0.02 where the direct-only model is ~0, so the counts of
     the missed sss tail weigh 50 times a count at the peak, and the weighted fit slid the direct
-    25-40 ps onto the tail (amplitude a quarter of the truth), with no flag.  The refits are now
-    kept only where they lower the Poisson deviance, the fit's own objective, below the start's:
+    25-40 ps onto the tail (amplitude a quarter of the truth), with no flag.  The refinement of
+    counts now takes a step only where it lowers the Poisson deviance, the fit's own objective:
     the direct stays within 1 ps and the forward step then adds the sss."""
     from streaklab.bench.realism import EFFECTS, effect_setup
     from decomposition.synthetic import make_profiles
@@ -286,12 +293,87 @@ def test_count_refit_never_leaves_a_lower_poisson_deviance():
     assert np.all(np.isfinite(r.params["sss_delay_ps"]))
 
 
+def test_count_refinement_reaches_the_poisson_maximum_likelihood():
+    """Four pixels of ``bench realism``'s afterpulse rows at 100 photons (direct + sss, the true
+    response) where the refinement that reweighted a full fit per weight stopped 2-4 deviance
+    units above the Poisson maximum likelihood, with the sss onset 1-9 ps late and lifetimes
+    12-35 % short.  An independent fit (scipy's L-BFGS-B on the Poisson deviance of the same
+    model read at POISSON_FIT_FLOOR, onset >= direct, amplitudes >= 0) started from decompose's
+    answer finds nothing lower by more than 0.05 (it found 1.2 lower with the weights floored at
+    0.02 and the deviance at 1e-6)."""
+    from scipy.optimize import minimize
+
+    from decomposition.constants import POISSON_FIT_FLOOR
+    from decomposition.noise import poisson_deviance
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import EFFECTS, effect_setup
+
+    setup = effect_setup("afterpulse", T)
+    d = make_profiles(2000, 256, seed=1000 * EFFECTS.index("afterpulse"), kinds=setup["kinds"], time_bin_ps=T,
+                      photons_per_pixel=100.0, **setup["options"])
+    rows = [18, 28, 72, 175]
+    irf = setup["recorded_response"]
+    t = d.t0_ps + T * np.arange(256)
+    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=irf, components="d,r,s", noise="poisson")
+    p = r.params
+    assert np.all(np.isfinite(p["direct_delay_ps"])) and np.all(np.isfinite(p["sss_delay_ps"]))
+    assert not np.any(np.isfinite(p["ir_delay_ps"]))
+
+    def deviance(y, x):
+        dd, gap, lalp, a_d, a_s = x
+        mu = (a_d * render_shifted(irf, t, np.array([dd]))[0]
+              + a_s * render_sss(irf, t, np.array([dd + gap]), np.array([math.exp(lalp)]))[0])
+        return float(poisson_deviance(y, np.maximum(mu, POISSON_FIT_FLOOR)))
+
+    bounds = [(None, None), (0.0, None), (math.log(0.002), math.log(0.5)), (0.0, None), (0.0, None)]
+    for j, i in enumerate(rows):
+        y = d.noisy[i].astype(np.float64)
+        x = [p["direct_delay_ps"][j], p["sss_delay_ps"][j] - p["direct_delay_ps"][j],
+             math.log(p["sss_alpha_per_ps"][j]), p["direct_amplitude"][j], p["sss_amplitude"][j]]
+        best = minimize(lambda v: deviance(y, v), x, method="L-BFGS-B", bounds=bounds,
+                        options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-9})
+        assert deviance(y, x) <= best.fun + 0.05
+
+
+def test_count_data_of_a_block():
+    """CountData: the expected counts of an evaluation (its amplitudes on its columns, times the
+    scale, plus the offset held), the weights scale / Poisson sd (the variance floored at
+    POISSON_FIT_FLOOR, times the dispersion squared), and the deviance read at that floor, in
+    chi2 units over the fitted samples."""
+    from decomposition.constants import POISSON_FIT_FLOOR
+    from decomposition.noise import poisson_deviance
+    from decomposition.response_refine import CountData
+
+    phi = np.array([[[1.0, 0.5, 0.0, 0.0], [0.0, 0.2, 0.4, 0.0]]])
+    ev = {"amp": np.array([[2.0, 1.0]]), "phi": phi}
+    fit = np.array([[True, True, True, False]])
+    cd = CountData(np.array([[7.0, 6.0, 1.0, 3.0]]), np.array([3.0]), np.array([0.5]), fit, np.array([1.5]))
+    mu = cd.model_counts(ev)
+    np.testing.assert_allclose(mu, [[6.5, 4.1, 1.7, 0.5]])
+    w = cd.weights(np.array([[6.5, 4.1, 1e-9, 0.5]]))
+    np.testing.assert_allclose(w, [[3.0 / (1.5 * math.sqrt(6.5)), 3.0 / (1.5 * math.sqrt(4.1)),
+                                    3.0 / (1.5 * math.sqrt(POISSON_FIT_FLOOR)), 0.0]])
+    low = np.array([[6.5, 4.1, 1e-9, 0.5]])
+    want = poisson_deviance(np.array([7.0, 6.0, 1.0]), np.array([6.5, 4.1, POISSON_FIT_FLOOR])) / 1.5 ** 2
+    np.testing.assert_allclose(cd.deviance(low), [want])
+    np.testing.assert_allclose(cd.rows([0]).counts, cd.counts)
+
+
 def test_a_direct_no_sample_sees_is_not_reported():
     """A pixel of ``bench realism``'s tailed rows at 100 photons whose direct explained nothing
     and went 195 ps before the window (53 widths before its sss), where the response's tail
-    leaves no trace of it: reported without a direct and AMBIGUOUS.  A direct just before the
-    window, whose edge the first samples see (the truncated rows), stays."""
-    from decomposition.flags import AMBIGUOUS
+    leaves no trace of it, while the refinement reweighted a full fit per weight; it was reported
+    without a direct and AMBIGUOUS.  The deviance-driven refinement now finds its direct (0.8 ps
+    from the truth, no flag).  The rule on made-up slots: a direct 195 ps before the window, 53
+    widths before its sss, is unseen; one just before the window, whose edge the first samples
+    see, or one right before its sss, is not; and on data, a direct just before the window (the
+    truncated rows) stays."""
+    from types import SimpleNamespace
+
+    from core.irf_components import gaussian_equivalent_sigma_ps
+    from decomposition.constants import FAM_GAUSS, FAM_SSS
+    from decomposition.response_grow import _unseen_direct
+    from decomposition.response_refine import Slots
     from decomposition.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
@@ -300,8 +382,15 @@ def test_a_direct_no_sample_sees_is_not_reported():
                       **setup["options"])
     r = decompose(d.noisy[[1831]], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
                   noise="poisson")
-    assert np.isnan(r.params["direct_delay_ps"][0]) and np.isfinite(r.params["sss_delay_ps"][0])
-    assert r.flags[0] & AMBIGUOUS
+    assert abs(r.params["direct_delay_ps"][0] - d.params["direct_delay_ps"][1831]) < 1.5 and r.flags[0] == 0
+
+    irf = setup["recorded_response"]
+    t = d.t0_ps + T * np.arange(256)
+    ctx = SimpleNamespace(t=t, irf=irf, sigma_eq_ps=gaussian_equivalent_sigma_ps(irf))
+    fam = np.array([[FAM_GAUSS, FAM_SSS]] * 3)
+    delay = np.array([[t[0] - 195.0, 15.0], [t[0] - 3.0, 15.0], [t[0] - 195.0, t[0] - 190.0]])
+    slots = Slots(fam, delay, np.zeros(fam.shape), np.ones(fam.shape), {}, np.zeros(3), np.zeros(3, np.int64))
+    assert _unseen_direct(ctx, slots, np.arange(3)).tolist() == [True, False, False]
     trunc = effect_setup("truncated", T)
     d = make_profiles(40, 256, seed=4000, kinds=trunc["kinds"], time_bin_ps=T, photons_per_pixel=1000.0,
                       **trunc["options"])
@@ -312,28 +401,41 @@ def test_a_direct_no_sample_sees_is_not_reported():
 
 def test_light_before_the_direct_is_a_poor_fit():
     """Nothing arrives before the direct reflection.  Two pixels of ``bench realism``'s tailed
-    rows at 100 photons (a weak direct, peak 3-5 counts, on a long sss) whose fit puts the
-    direct 22-33 ps late on a noise peak, the sss held at it: 20-30 counts lie before its
-    leading edge where the model expects ~0, and the pixels are POOR_FIT (they carried no flag).
-    The rule itself: a model that holds that light, or none there, leaves the pixel alone."""
-    from decomposition.flags import POOR_FIT
+    rows at 100 photons (a weak direct, peak 3-5 counts, on a long sss) whose fit put the
+    direct 22-33 ps late on a noise peak, the sss held at it, while the refinement reweighted
+    a full fit per weight: 20-30 counts lay before its leading edge where the model expects
+    ~0.  The refinement now maximises the Poisson likelihood: pixel 1842's direct is within
+    1 ps; pixel 1116's split the counts do not determine (its answer, a faint direct 33 ps
+    early, lies within 0.3 deviance units of the Poisson reference's started at the truth), and
+    both are AMBIGUOUS.  The rule still guards a late direct: the model with the direct 24 ps
+    late and the sss held at it is POOR_FIT material on these very counts, and a model that
+    holds that light, or none there, leaves the pixel alone."""
+    from core.model import render_profile
+    from decomposition.flags import AMBIGUOUS
     from decomposition.quality import direct_lead_ps, light_before_direct
     from decomposition.synthetic import make_profiles
+    from decomposition.options import GridSpec
+    from decomposition.prepare import prepare_samples, time_axis
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
     d = make_profiles(2000, 256, seed=0, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
                       **setup["options"])
     rows = [1116, 1842]
-    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
-                  noise="poisson")
+    irf = setup["recorded_response"]
+    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=irf, components="d,r,s", noise="poisson")
     err = r.params["direct_delay_ps"] - d.params["direct_delay_ps"][rows]
-    assert np.all(err > 15.0) and np.all((r.flags & POOR_FIT) != 0)
+    assert abs(err[1]) < 1.0 and np.all(r.flags & AMBIGUOUS)
+
+    samples = prepare_samples(d.noisy[rows], time_axis(T, d.t0_ps), GridSpec(), noise="poisson")
+    late = {k: np.asarray(v)[rows].copy() for k, v in d.params.items()}
+    late["direct_delay_ps"] = late["direct_delay_ps"] + 24.0
+    late["sss_delay_ps"] = late["direct_delay_ps"].copy()
+    assert np.all(light_before_direct(samples, late, render_profile(late, 256, T, d.t0_ps, irf=irf), irf))
+    truth = {k: np.asarray(v)[rows] for k, v in d.params.items()}
+    assert not np.any(light_before_direct(samples, truth, render_profile(truth, 256, T, d.t0_ps, irf=irf), irf))
 
     # the rule on a made-up pixel: 10 counts at 20-38 ps, a direct at 60 ps (Gaussian PSF, 4 ps)
-    from decomposition.options import GridSpec
-    from decomposition.prepare import prepare_samples, time_axis
-
     y = np.zeros((1, 64))
     y[0, 10:20] = 1.0
     y[0, 29:31] = 20.0
