@@ -18,6 +18,13 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    stage's rule, :mod:`decomposition.search`); a direct that explains nothing where no sample
    sees it, far before its sss, is not reported (:func:`_unseen_direct`).  A pixel left with
    an sss and no direct is AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response_path`).
+0b. **A direct before the window** ("d" asked; its delay before the first sample, so only its
+   falling edge is seen): refitted with the direct started at the window's edge and at
+   EARLY_DIRECT_STARTS_SIGMA response widths before it, the pixel keeping the lowest deviance
+   (its own fit included).  From the edge alone the fit can slide the direct out with its
+   amplitude growing to match what it leaves, and stop there: on ``bench realism``'s
+   truncated rows at 10,000 photons the worst fits lay 13-17 ps early with a deviance 2-36
+   above the reference's.
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
@@ -50,7 +57,8 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    light it had missed, and then explain next to nothing itself).
 
 The echo steps need ``grow=True`` and ``significance_chi2 > 0`` (they find what only the
-significance rule keeps).  ``info``: ``response_direct_restored``, ``response_sss_added``,
+significance rule keeps).  ``info``: ``response_direct_restored``, ``response_early_direct_moved``,
+``response_sss_added``,
 ``response_echo_added``, ``response_sss_swapped``.
 """
 from __future__ import annotations
@@ -62,8 +70,9 @@ from scipy.ndimage import convolve1d
 
 from core.irf import render_shifted, render_sss
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, render_profile
-from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA,
-                        PRE_DIRECT_LEVEL, RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
+from .constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS,
+                        GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, PRE_DIRECT_LEVEL, RESOLVED_SIGMA,
+                        SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
@@ -488,18 +497,55 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     return out._replace(iterations=its), int(take.sum())
 
 
+def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
+    """A direct before the window (its delay before the first sample) refitted from the
+    window's edge and from EARLY_DIRECT_STARTS_SIGMA response widths before it, the rest as
+    they are (a start within EARLY_DIRECT_NEAR_SIGMA widths of the fitted direct is skipped);
+    each pixel keeps the lowest deviance, its own fit included (see the module docstring,
+    step 0b) -> (slots, pixels moved)."""
+    fam, delay = cur.fam, cur.delay
+    rows = np.flatnonzero((fam[:, 0] == FAM_GAUSS) & (delay[:, 0] < ctx.t[0]))
+    if rows.size == 0:
+        return cur, 0
+    sub = _sub(cur, rows)
+    d_best = deviance(ctx, rows, sub.params, sub.background)
+    best = sub
+    spent = np.zeros(rows.size, np.int64)
+    for widths in EARLY_DIRECT_STARTS_SIGMA:
+        start = ctx.t[0] - widths * ctx.sigma_eq_ps
+        i = np.flatnonzero(np.abs(sub.delay[:, 0] - start) > EARLY_DIRECT_NEAR_SIGMA * ctx.sigma_eq_ps)
+        if i.size == 0:
+            continue
+        d = sub.delay[i].copy()
+        d[:, 0] = start
+        trial = ctx.refit(rows[i], sub.fam[i], d, sub.lalp[i], {k: v[i] for k, v in sub.params.items()},
+                          sub.background[i])
+        spent[i] += trial.iterations
+        dev = np.where(np.all(trial.fam == sub.fam[i], axis=1),
+                       deviance(ctx, rows[i], trial.params, trial.background), np.inf)
+        win = dev < d_best[i]
+        best = _put(best, i, trial, win)
+        d_best[i] = np.where(win, dev, d_best[i])
+    moved = np.any(best.delay != sub.delay, axis=1)
+    out = _put(cur, rows, best, np.ones(rows.size, bool))
+    its = cur.iterations.copy()
+    its[rows] += spent
+    return out._replace(iterations=its), int(moved.sum())
+
+
 def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
                   components) -> tuple[Slots, dict, np.ndarray]:
     """The forward steps (see the module docstring) on the refined slots of the n live pixels.
 
-    Returns the slots, ``{"response_direct_restored", "response_sss_added",
-    "response_echo_added", "response_sss_swapped"}`` -- the pixels given a direct, the pixels
+    Returns the slots, ``{"response_direct_restored", "response_early_direct_moved",
+    "response_sss_added", "response_echo_added", "response_sss_swapped"}`` -- the pixels given
+    a direct, the pixels whose direct before the window moved to a better start, the pixels
     given an sss, the echoes in the answer that it did not have before (far sss turned echoes
     included), and the pixels whose far sss became an echo -- and (n,) bool: the pixels whose
     restored direct the data do not determine (AMBIGUOUS).
     """
     info = {"response_sss_added": 0, "response_echo_added": 0, "response_sss_swapped": 0,
-            "response_direct_restored": 0}
+            "response_direct_restored": 0, "response_early_direct_moved": 0}
     opts = ctx.opts
     # the echo is found by its significance alone: no trial without the rule (or with grow=False)
     with_r = "r" in components and slots.fam.shape[1] > 2 and opts.grow and opts.significance_chi2 > 0
@@ -508,6 +554,7 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
     if "d" in components:
         slots, restored, ambiguous = _restore_direct(ctx, slots, alphas_per_ps)
         info["response_direct_restored"] = int(restored.sum())
+        slots, info["response_early_direct_moved"] = _restart_early_direct(ctx, slots)
     if not (with_r or with_s):
         return slots, info, ambiguous
     fam0 = slots.fam.copy()

@@ -335,6 +335,27 @@ def test_count_refinement_reaches_the_poisson_maximum_likelihood():
         assert deviance(y, x) <= best.fun + 0.05
 
 
+def test_a_direct_before_the_window_is_restarted_at_its_edge():
+    """Three pixels of ``bench realism``'s truncated rows at 10,000 photons (the direct 2-3 ps
+    before the first sample, only its falling edge seen) whose fit slid the direct 14-17 ps
+    out, its amplitude grown to match the edge, 12-36 deviance units above the Poisson
+    reference's: refitted from the window's edge and 1 and 2 response widths before it, each
+    keeps its best start and lands within 0.5 ps of the truth (still OFF_WINDOW)."""
+    from decomposition.flags import OFF_WINDOW
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import EFFECTS, effect_setup
+
+    setup = effect_setup("truncated", T)
+    d = make_profiles(2000, 256, seed=1000 * EFFECTS.index("truncated"), kinds=setup["kinds"], time_bin_ps=T,
+                      photons_per_pixel=10000.0, **setup["options"])
+    rows = [1670, 652, 1803]
+    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
+                  noise="poisson")
+    err = r.params["direct_delay_ps"] - d.params["direct_delay_ps"][rows]
+    assert np.all(np.abs(err) < 0.5) and r.info["response_early_direct_moved"] == 3
+    assert np.all(r.flags & OFF_WINDOW)
+
+
 def test_count_data_of_a_block():
     """CountData: the expected counts of an evaluation (its amplitudes on its columns, times the
     scale, plus the offset held), the weights scale / Poisson sd (the variance floored at
