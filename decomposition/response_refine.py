@@ -301,7 +301,10 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         mu_i = cache["mu"][idx]
         jtr = np.einsum("pil,pl->pi", jw, np.where(c.fit & (mu_i >= POISSON_FIT_FLOOR), c.counts - mu_i, 0.0))
         dg = np.einsum("pjj->pj", jtj)
-        lhs = jtj + (lam[idx][:, None] * np.where(fr, dg + 1e-300, 1.0))[:, :, None] * np.eye(n_par)[None]
+        # Marquardt's scaling, floored at 1e-12 of the largest (an atom that has left the
+        # window has no column to scale by)
+        dg = np.maximum(dg, 1e-12 * dg.max(axis=1, keepdims=True)) + 1e-300
+        lhs = jtj + (lam[idx][:, None] * np.where(fr, dg, 1.0))[:, :, None] * np.eye(n_par)[None]
         lhs += np.eye(n_par)[None] * (~fr)[:, :, None]
         step = np.where(fr, np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0], 0.0)
         f = fam[idx]

@@ -356,6 +356,44 @@ def test_a_direct_before_the_window_is_restarted_at_its_edge():
     assert np.all(r.flags & OFF_WINDOW)
 
 
+def test_count_fit_on_degenerate_pixels():
+    """The likelihood fit of counts on pixels that leave it little to fit: one count, none, a
+    pixel 100,000 times brighter than its neighbours, pure background, light only in the
+    first or the last samples.  No warning, no exception; the empty and one-count pixels are
+    EMPTY, so is the pure background where the background family is asked for, and the
+    bright pixel's direct is found."""
+    import warnings
+
+    from decomposition.flags import EMPTY
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import effect_setup
+
+    setup = effect_setup("tailed", T)
+    d = make_profiles(8, 256, seed=1, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
+                      **setup["options"])
+    y = d.noisy.copy()
+    y[0] = 0
+    y[0, 100] = 1
+    y[1] = 0
+    y[2] = d.noisy[2] * 100000
+    y[3] = np.random.default_rng(0).poisson(3.0, 256)
+    y[4] = 0
+    y[4, :2] = [50, 20]
+    y[5] = 0
+    y[5, -3:] = [5, 20, 60]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for comps in ("d,r,s", "d,r,s,b", "s"):
+            r = decompose(y, T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components=comps, noise="poisson",
+                          stderr=True)
+            assert np.all(r.flags[:2] & EMPTY)
+            if comps == "d,r,s,b":
+                assert r.flags[3] & EMPTY
+            if "d" in comps:
+                # its counts are a 100-photon draw scaled: the delay is as good as that draw allows
+                assert abs(r.params["direct_delay_ps"][2] - d.params["direct_delay_ps"][2]) < 2.0
+
+
 def test_count_data_of_a_block():
     """CountData: the expected counts of an evaluation (its amplitudes on its columns, times the
     scale, plus the offset held), the weights scale / Poisson sd (the variance floored at
