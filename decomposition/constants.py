@@ -126,8 +126,9 @@ ONSET_TIE_SIGMA = 0.05
 #: sample less these many response widths (Gaussian-equivalent), the lowest deviance kept
 #: (:func:`decomposition.response_grow.grow_response`, step 0b).  ``bench realism``'s truncated
 #: rows (the direct 1-8 ps before the window, 4 ps widths), direct-delay RMSE over the Poisson
-#: reference's at 100 / 1,000 / 10,000 photons: 1.13 / 1.01 / 1.39 without, 1.07 / 1.03 / -
-#: from 1 width alone, 1.06 / 0.96 / 0.90 with these three.
+#: reference's at 100 / 1,000 / 10,000 photons: 1.11 / 0.97 / 1.38 without, 1.03 / 0.92 / 0.89
+#: with these three starts (from 1 width alone: 1.07 / 1.03 at 100 / 1,000 photons, on the same
+#: pixels where both report a direct).
 EARLY_DIRECT_STARTS_SIGMA = (0.0, 1.0, 2.0)
 #: ... a start within this many widths of the fitted direct is not refitted (the same answer;
 #: truncated rows 6.5 -> 5.9 ms per pixel at 100 photons, 6.1 -> 5.6 at 10,000, delay RMSE
@@ -236,11 +237,11 @@ POISSON_VARIANCE_FLOOR = 0.02
 #: weights at POISSON_VARIANCE_FLOOR and the deviance read at 1e-6 the steps disagreed with the
 #: objective where a count sits on a model below 0.02: they stalled 1-4 deviance units above the
 #: optimum, lifetimes short.  The floor trades efficiency where the model is complete against
-#: robustness to light it lacks (an echo the counts hide pulls an sss tail).  ``bench realism``,
-#: 100 photons, 2,000 px, lifetime RMSE over the Poisson reference's (afterpulse / tailed /
-#: truncated / echo / background): floor 0.02: 1.05 / 1.05 / 1.08 / 1.12 / 1.02; 1e-3: 1.00 /
-#: 1.00 / 1.04 / 1.17 / 1.02; 1e-4: 0.99 / 0.99 / 1.03 / 1.22 / 1.02; 1e-6: 0.99 / 0.99 / 1.04 /
-#: 1.34 / 1.02.  The significance tests keep POISSON_VARIANCE_FLOOR.
+#: robustness to light it lacks (an echo the counts hide pulls an sss tail).  ``bench realism``'s
+#: scenes, 100 photons, 2,000 px, lifetime RMSE over the Poisson reference's (afterpulse /
+#: truncated / echo): floor 0.02: 1.11 / 1.11 / 1.15; 5e-3: 1.03 / 1.04 / 1.10; 1e-3: 1.01 /
+#: 1.01 / 1.11 (tailed 1.02, background 1.05).  The significance tests keep
+#: POISSON_VARIANCE_FLOOR.
 POISSON_FIT_FLOOR = 1e-3
 
 #: Count data: reweighted refits, each with the weights 1 / max(model, floor) of the previous
