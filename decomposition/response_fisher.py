@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import FAM_NONE, FAM_SSS, POISSON_VARIANCE_FLOOR, SSS_SLOT
+from .constants import FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLOT
 from .response_atoms import slot_atoms
 
 __all__ = ["slot_standard_errors", "profile_stderr", "PROFILE_STEP_SE"]
@@ -115,7 +115,7 @@ def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, backgro
     the offset, linear, are refitted to the counts (PROFILE_SCORING_STEPS Poisson scoring steps
     from the line's values, kept >= 0: an amplitude that must grow exponentially as its atom
     leaves the window is not held to the line's first order).  With rise D+ and D- of the
-    Poisson deviance (chi2 units) the half-widths of the profile interval are
+    Poisson deviance (chi2 units; read at POISSON_FIT_FLOOR, the fit's own objective) the half-widths of the profile interval are
     w+- = step_se x se / sqrt(D+-) (the Fisher error on a side where the deviance falls: the
     solution at a bound); each is then read once more where it puts the interval's edge,
     w+- <- step_se x w+- / sqrt(D+-(step_se x w+-)) (a secant step to the crossing: a skewed
@@ -181,7 +181,7 @@ def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, backgro
         mu = np.einsum("pk,pkl->pl", a, x)
         for _ in range(refit):
             # the amplitudes and offset at their Poisson best for these delays: scoring steps
-            w = np.where(m, 1.0 / np.maximum(mu, POISSON_VARIANCE_FLOOR), 0.0)
+            w = np.where(m, 1.0 / np.maximum(mu, POISSON_FIT_FLOOR), 0.0)
             h = np.einsum("pkl,pl,pjl->pkj", x, w, x)
             dg = np.einsum("pkk->pk", h)
             # an atom left with (almost) nothing in the window keeps its amplitude
@@ -190,7 +190,7 @@ def profile_stderr(irf, t_ps, counts, fit, scale, fam, delay, lalp, amp, backgro
             step = np.linalg.solve(h, g[:, :, None])[..., 0]
             a = np.maximum(a + step, 0.0) * on
             mu = np.einsum("pk,pkl->pl", a, x)
-        return count_deviance(y, mu, m, disp)
+        return count_deviance(y, mu, m, disp, floor_counts=POISSON_FIT_FLOOR)
 
     d0 = deviance(theta0, PROFILE_SCORING_STEPS)
 

@@ -34,7 +34,7 @@ from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .background import background_significant, background_threshold
 from .components import runs_off_window
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, SSS_SLOT
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, SSS_SLOT
 from .flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from .label import at_bound
 from .noise import fit_dispersion, poisson_weights
@@ -186,7 +186,7 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
     noise = None
     if samples.noise_model == "poisson":
         model = np.nan_to_num(render_profile(params, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))
-        sw = np.sqrt(poisson_weights(model, fit_mask)) * scale[:, None]
+        sw = np.sqrt(poisson_weights(model, fit_mask, floor_counts=POISSON_FIT_FLOOR)) * scale[:, None]
         noise = fit_dispersion(samples.values[live], model, fit_mask)
     else:
         sw = fit_mask.astype(np.float64)

@@ -6,7 +6,7 @@ from core.irf import render_shifted, render_sss
 from core.irf_models import gaussian_response
 from core.model import empty_params
 from decomposition import decompose
-from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
 from decomposition.poisson_reference import poisson_reference_bound
 from decomposition.response_fisher import profile_stderr, slot_standard_errors
 
@@ -83,7 +83,7 @@ def test_no_offset_column_where_none_is_fitted():
 def _single_direct_fit(irf, t, y):
     """Poisson ML of one shifted response on a fine grid of delays, the amplitude for each by
     a dense scan about sum y / sum phi (the deviance as the fit counts it, expected counts
-    floored at POISSON_VARIANCE_FLOOR): (delay, amplitude, profile deviance of the delay)."""
+    floored at POISSON_FIT_FLOOR): (delay, amplitude, profile deviance of the delay)."""
     from decomposition.noise import count_deviance
 
     gains = np.linspace(0.6, 1.4, 801)
@@ -95,7 +95,7 @@ def _single_direct_fit(irf, t, y):
         dev, amp = np.empty(d.size), np.empty(d.size)
         for i in range(d.size):
             a = gains * y.sum() / phi[i].sum()
-            dv = count_deviance(np.broadcast_to(y, fit.shape), a[:, None] * phi[i], fit)
+            dv = count_deviance(np.broadcast_to(y, fit.shape), a[:, None] * phi[i], fit, floor_counts=POISSON_FIT_FLOOR)
             j = int(np.argmin(dv))
             dev[i], amp[i] = dv[j], a[j]
         return dev, amp
@@ -124,7 +124,7 @@ def test_profile_error_of_a_direct_at_the_window_start():
         d_hat, a_hat, profile = _single_direct_fit(irf, t, y)
         delay, amp = np.array([[d_hat, 0.0]]), np.array([[a_hat, 0.0]])
         m_hat = a_hat * render_shifted(irf, t, np.array([d_hat]))[0]
-        sw = 1.0 / np.sqrt(np.maximum(m_hat, 0.02))[None]
+        sw = 1.0 / np.sqrt(np.maximum(m_hat, POISSON_FIT_FLOOR))[None]
         lalp = np.zeros((1, 2))
         fisher = slot_standard_errors(irf, t, y[None], sw, fam, delay, lalp, amp, noise_sigma=np.ones(1),
                                       covariance=True)
@@ -170,7 +170,7 @@ def test_profile_errors_of_the_delay_and_the_lifetime_with_the_onset_held():
                          render_sss(irf, t, np.array([delay_ps]), np.array([np.exp(log_alpha)]))[0]])
 
     def deviance(y, amplitudes, a):
-        return count_deviance(y[None], np.maximum(amplitudes @ a, 0.0)[None], one)[0]
+        return count_deviance(y[None], np.maximum(amplitudes @ a, 0.0)[None], one, floor_counts=POISSON_FIT_FLOOR)[0]
 
     truth = atoms(60.0, np.log(0.03))
     ratios = {100.0: [], 30000.0: []}
@@ -181,7 +181,7 @@ def test_profile_errors_of_the_delay_and_the_lifetime_with_the_onset_held():
             x = minimize(lambda v: deviance(y, np.exp(v[2:]), atoms(*v[:2])), np.r_[60.0, np.log(0.03), np.log(w)],
                          method="Powell", options=dict(xtol=1e-9, ftol=1e-13)).x
             delay, lalp, amp = np.array([[x[0], x[0]]]), np.array([[0.0, x[1]]]), np.exp(x[2:])[None]
-            sw = 1.0 / np.sqrt(np.maximum(amp[0] @ atoms(*x[:2]), 0.02))[None]
+            sw = 1.0 / np.sqrt(np.maximum(amp[0] @ atoms(*x[:2]), POISSON_FIT_FLOOR))[None]
             fisher = slot_standard_errors(irf, t, y[None], sw, fam, delay, lalp, amp, noise_sigma=np.ones(1),
                                           covariance=True, tie_onset=tie)
             theta0 = np.r_[amp[0], x[0], x[0], 0.0, x[1], 0.0]   # (amplitudes, delays, log alphas, offset)
