@@ -246,3 +246,12 @@ def test_gap_matrix_marks_the_rows_that_fail_their_target():
     g = gap_matrix([white, pink], ceiling="detectable")
     np.testing.assert_array_equal(g["ceiling_failed"], [[False, False], [True, False], [False, False]])
     np.testing.assert_array_equal(g["failed"], [[False, False], [True, False], [False, False]])
+
+
+def test_target_line_marks_each_status():
+    from streaklab.bench.scoring import target_line
+
+    rec = {"text": "convscd: x", "detail": "worst gap -0.010"}
+    assert target_line({**rec, "met": True}) == "  [met] convscd: x: worst gap -0.010"
+    assert target_line({**rec, "met": False}) == "  [NOT met] convscd: x: worst gap -0.010"
+    assert target_line({**rec, "met": None}) == "  [not measured] convscd: x: worst gap -0.010"

@@ -485,7 +485,7 @@ def _print_levels(summary, nsrs, prefix=""):
 def run(args) -> int:
     from decomposition.synthetic import SCENE_PRESETS
 
-    from .scoring import GAP_CEILING, format_regime_table, target_entry, target_records
+    from .scoring import GAP_CEILING, format_regime_table, target_entry, target_line, target_records
 
     noises = choices(args.noise, NOISES + EXTRA_NOISES, "noise")
     methods = choices(args.methods, METHODS + EXTRA_METHODS, "methods")
@@ -600,7 +600,6 @@ def run(args) -> int:
     if targets:
         print(target_header(targets, GAP_CEILING))
         for r in targets:
-            mark = "not measured" if r["met"] is None else ("met" if r["met"] else "NOT met")
-            print(f"  [{mark}] {r['text']}: {r['detail']}")
+            print(target_line(r))
     print(f"wrote {csv_path}, {reg_path}, {flag_path}, {png_path}, {regimes_png}, {json_path}")
     return 0

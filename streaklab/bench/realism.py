@@ -68,7 +68,7 @@ import numpy as np
 from streaklab.cli import CommandError
 
 from .arguments import choices, output_folder, positive_floats
-from .scoring import target_entry
+from .scoring import target_entry, target_line
 from .tables import write_csv
 
 EFFECTS = ("tailed", "afterpulse", "background", "echo", "truncated", "echo5sigma")
@@ -678,7 +678,6 @@ def run(args) -> int:
     if targets:
         print(target_header(targets))
         for r in targets:
-            mark = "not measured" if r["met"] is None else ("met" if r["met"] else "NOT met")
-            print(f"  [{mark}] {r['text']}: {r['detail']}")
+            print(target_line(r))
     print(f"wrote {csv_path}, {json_path}, {png_path}")
     return 0

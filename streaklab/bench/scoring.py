@@ -29,6 +29,7 @@ __all__ = [
     "within_data",
     "target_records",
     "target_entry",
+    "target_line",
     "worst_gap",
     "GAP_CEILING",
     "format_regime_table",
@@ -337,6 +338,12 @@ def target_records(points: list[dict], *, method: str = "convscd", ceiling: str 
 def target_entry(record: dict) -> dict:
     """A target record as ``summary.json`` keeps it: its ``text`` under ``target``, the rest as is."""
     return {"target": record["text"], **{k: v for k, v in record.items() if k != "text"}}
+
+
+def target_line(record: dict) -> str:
+    """A target record as the benches print it: ``  [met] text: detail`` (``NOT met``, ``not measured``)."""
+    mark = "not measured" if record["met"] is None else ("met" if record["met"] else "NOT met")
+    return f"  [{mark}] {record['text']}: {record['detail']}"
 
 
 def _record(text, met, detail, ceiling_met=None, met_where_ceiling_meets=None) -> dict:
