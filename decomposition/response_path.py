@@ -17,7 +17,7 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
 * standard errors (``stderr``): the Fisher information of the response's atoms and a kept
-  offset; for count data the direct delay's and the sss alpha's from their profile deviance
+  offset, for count data with the Poisson weights of the fitted model
   (:mod:`decomposition.response_fisher`).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
@@ -43,7 +43,7 @@ from .prepare import Samples
 from .refit import background_stats
 from .response_atoms import slot_window_fraction
 from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .response_fisher import profile_stderr, slot_standard_errors
+from .response_fisher import slot_standard_errors
 from .response_label import label_response, param_slots
 from .response_grow import GrowContext, grow_response
 from .response_refine import refit_slots
@@ -195,19 +195,8 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
         # an onset on the direct, or so near it that the two atoms and the onset's derivative
         # are degenerate (ONSET_TIE_SIGMA)
         tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= ONSET_TIE_SIGMA * sigma_eq_ps
-    counts = samples.noise_model == "poisson"
     se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
-                              background=offset, covariance=counts)
-    if counts:
-        # the direct delay's and the lifetime's errors from the profile deviance: at few counts
-        # the deviance is skewed in both (the onset held after the direct, a direct at the edge)
-        common = (irf, t, samples.values[live], fit_mask, scale, fam, delay, lalp, amp, offset, se["cov"], noise)
-        for parameter, key, slot in (("delay", "delay", 0), ("alpha", "alpha", SSS_SLOT)):
-            prof = profile_stderr(*common, parameter=parameter, tie_onset=tie)
-            se[key][:, slot] = np.where(np.isfinite(se[key][:, slot]), prof, np.nan)
-        if tie is not None:
-            both = tie & (fam[:, 0] != FAM_NONE) & (fam[:, SSS_SLOT] == FAM_SSS)
-            se["delay"][both, SSS_SLOT] = se["delay"][both, 0]
+                              background=offset)
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

@@ -214,8 +214,7 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
     peak, stopped after the direct in ~20 % of the pixels; the Poisson-weighted trial gives
     them their sss, and the direct delay's standard error (which was too small there, the
     sss's light pulling the delay) is calibrated (median |e| / se 0.674 for normal errors), as
-    is the lifetime's (both from the profile deviance: 0.74 and 0.64 from the Fisher
-    information, 0.70 and 0.60 from the profile, on these 300 pixels)."""
+    is the lifetime's (the Fisher information of the Poisson fit)."""
     from decomposition.synthetic import make_profiles
 
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
