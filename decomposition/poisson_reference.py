@@ -30,6 +30,12 @@ the onset went before the direct in a quarter of ``bench realism``'s tailed pixe
 the lifetime came out +6 % against +0.6 % held); expected counts are floored at 1e-8 of the
 pixel's largest count (the ringing of a sampled response far from it).
 
+Started at the truth, the fit stays in the optimum nearest it; at few photons the likelihood
+can have another, higher, maximum (a direct at the window's edge slid further in, an sss
+onset and the direct trading light).  :func:`best_of` keeps, per pixel, the fit of lowest
+deviance among fits of the same counts and component set from several starts: the maximum
+likelihood as far as those starts find it.
+
 Standard errors: the square roots of the diagonal of the inverse expected Fisher
 information ``J^T diag(1 / mu) J`` over the fitted parameters, at the solution
 (:func:`poisson_reference_fit`) or at any parameters (:func:`poisson_reference_bound`, the
@@ -48,7 +54,7 @@ from .noise import poisson_deviance
 from .synthetic_effects import bin_averaged_response, response_sigma_ps
 
 __all__ = ["PoissonReferenceOptions", "PoissonReferenceFit", "poisson_reference_fit", "poisson_reference_bound",
-           "poisson_deviance"]
+           "best_of", "poisson_deviance"]
 
 # Expected counts are floored at this fraction of a pixel's largest count (at least 1).
 _MU_FLOOR = 1e-8
@@ -424,6 +430,57 @@ def poisson_reference_fit(counts, truth_params: dict, response: InstrumentRespon
         direct=comps[0].reshape(lead + (L,)), sss=comps[1].reshape(lead + (L,)),
         interreflections=comps[2].reshape(lead + (lay.n_ir, L)),
         info={k: v.reshape(lead) for k, v in info.items()})
+
+
+def best_of(fits, *, tie_tolerance: float = 1e-6) -> PoissonReferenceFit:
+    """Per pixel, the fit of lowest Poisson deviance among ``fits``.
+
+    Parameters
+    ----------
+    fits : sequence of PoissonReferenceFit
+        Fits of the same counts and component set (same shapes, the same response and
+        background term) from different starts; their deviances are the same objective.
+    tie_tolerance : float
+        A fit replaces an earlier one only where its deviance is lower by more than
+        ``tie_tolerance`` x max(deviance, 1): two starts that converge to the same optimum
+        stop a convergence tolerance apart (``PoissonReferenceOptions.tol``, 1e-8), and the
+        earlier fit is kept there.
+
+    Returns
+    -------
+    PoissonReferenceFit
+        Every field taken per pixel from the winning fit; ``info`` gains ``start`` (S, int):
+        the index in ``fits`` of the fit kept.
+    """
+    if not (np.isfinite(tie_tolerance) and tie_tolerance >= 0):
+        raise ValueError(f"tie_tolerance must be finite and >= 0, got {tie_tolerance}")
+    fits = list(fits)
+    if not fits:
+        raise ValueError("best_of needs at least one fit")
+    devs = [np.asarray(f.info["deviance"], np.float64) for f in fits]
+    if (any(f.params.keys() != fits[0].params.keys() for f in fits) or any(d.shape != devs[0].shape for d in devs)
+            or any(f.interreflections.shape != fits[0].interreflections.shape for f in fits)):
+        raise ValueError("best_of: the fits differ in their component set or shape")
+    win = np.zeros(devs[0].shape, np.int64)
+    kept = np.where(np.isfinite(devs[0]), devs[0], np.inf)
+    for i, d in enumerate(devs[1:], start=1):
+        better = np.isfinite(d) & (d < kept - tie_tolerance * np.maximum(np.where(np.isfinite(kept), kept, 1.0), 1.0))
+        win = np.where(better, i, win)
+        kept = np.where(better, d, kept)
+    lead = win.shape
+
+    def pick(arrays):
+        a = np.stack([np.asarray(x) for x in arrays])
+        idx = win.reshape((1,) + lead + (1,) * (a.ndim - 1 - len(lead)))
+        return np.take_along_axis(a, idx, axis=0)[0]
+
+    params = {k: pick([f.params[k] for f in fits]) for k in fits[0].params}
+    info = {k: pick([f.info[k] for f in fits]) for k in fits[0].info}
+    info["start"] = win
+    return PoissonReferenceFit(params=params, background=pick([f.background for f in fits]),
+                               background_stderr=pick([f.background_stderr for f in fits]),
+                               direct=pick([f.direct for f in fits]), sss=pick([f.sss for f in fits]),
+                               interreflections=pick([f.interreflections for f in fits]), info=info)
 
 
 def _components(theta, free, model: _Model, n, L):

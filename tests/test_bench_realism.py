@@ -133,9 +133,12 @@ def test_scores_of_the_truth_itself():
     assert realism.echo_found(d.params, est, d.echo) == pytest.approx(3 / 12)
 
 
-def test_bad_options(tmp_path):
+def test_bad_options(tmp_path, capsys):
     assert main(["bench", "realism", "--quick", "--effects", "fog", "--out", str(tmp_path / "a")]) == 2
-    assert main(["bench", "realism", "--quick", "--variants", "best", "--out", str(tmp_path / "b")]) == 2
+    assert main(["bench", "realism", "--quick", "--variants", "fastest", "--out", str(tmp_path / "b")]) == 2
+    # the best-found maximum likelihood starts from the modelled answer and keeps the reference's
+    assert main(["bench", "realism", "--quick", "--variants", "best,reference", "--out", str(tmp_path / "d")]) == 2
+    assert "best needs modelled and reference" in capsys.readouterr().err
     assert main(["bench", "realism", "--photons", "100,-3", "--out", str(tmp_path / "c")]) == 2
 
 
@@ -298,7 +301,16 @@ def test_targets_name_the_visible_reference_and_the_header_counts_it():
     header = realism.target_header(list(recs.values()))
     n_met = sum(r["met"] is True for r in recs.values())
     assert header == (f"targets ({n_met} met, 2 not met, 0 not measured; 0 of the not met are missed by the "
-                      "reference itself, 2 more by the reference on the visible components):")
+                      "reference itself, 2 more by the reference on the visible components, 0 more by the "
+                      "best-found maximum likelihood):")
+    # a miss the best-found maximum likelihood shares, where neither reference row does, is counted last
+    best = {**base, "variant": "best", "lifetime_rmse_over_reference": 1.15, "lifetime_rmse_over_reference_se": 0.02,
+            "lifetime_bias_vs_reference_rel": 0.0, "lifetime_bias_vs_reference_se_rel": 0.001}
+    recs_b = realism.target_records([{**base, "variant": "modelled"}, ref, best])
+    assert realism.target_header(recs_b).endswith(
+        "0 of the not met are missed by the reference itself, 0 more by the reference on the visible components, "
+        "1 more by the best-found maximum likelihood):")
+    assert next(r for r in recs_b if r["text"].endswith("lifetime RMSE"))["best_met"] is False
     # without the yardstick rows nothing is added
     alone = {r["text"].split(": ", 1)[1]: r for r in realism.target_records([{**base, "variant": "modelled"}])}
     assert alone["lifetime RMSE"]["detail"] == "1.16 +- 0.02 x reference, 3.0 se from the limit (<= 1.1)"
@@ -342,3 +354,59 @@ def test_figure_series_lays_out_each_variants_values_by_effect_and_level():
     # a variant without a row at a column, or whose row failed, has NaN there
     assert np.isnan(ser["variants"]["visible"][0]).all()
     assert np.isnan(realism.figure_series(rows, "lifetime_rmse_over_reference")["variants"]["modelled"][1]).all()
+
+
+def test_decomposition_start_takes_what_the_decomposition_found():
+    """The start of the best-found maximum likelihood: the truth's component set, each true
+    component with the decomposition's values where it found it (an inter-reflection: its
+    nearest one within ``match_ps``), the truth's elsewhere, out of the window, or where the
+    decomposition's amplitude is not positive."""
+    nan = np.nan
+    truth = {"direct_delay_ps": np.array([50.0, 50.0, 50.0]), "direct_amplitude": np.array([10.0, 10.0, 10.0]),
+             "sss_delay_ps": np.array([54.0, 54.0, nan]), "sss_amplitude": np.array([2.0, 2.0, nan]),
+             "sss_alpha_per_ps": np.array([0.02, 0.02, nan]),
+             "ir_delay_ps": np.array([[120.0, 200.0], [120.0, nan], [120.0, nan]]),
+             "ir_amplitude": np.array([[1.0, 0.5], [1.0, nan], [1.0, nan]])}
+    est = {"direct_delay_ps": np.array([51.0, -900.0, nan]), "direct_amplitude": np.array([9.0, 9.0, nan]),
+           "sss_delay_ps": np.array([55.0, 56.0, 60.0]), "sss_amplitude": np.array([2.5, -1.0, 3.0]),
+           "sss_alpha_per_ps": np.array([0.03, 0.03, 0.03]),
+           "ir_delay_ps": np.array([[118.0, 205.0, 300.0], [140.0, nan, nan], [121.0, 122.0, nan]]),
+           "ir_amplitude": np.array([[1.1, 0.6, 0.2], [0.9, nan, nan], [0.0, 0.8, nan]])}
+    s = realism.decomposition_start(truth, est, delay_range_ps=(0.0, 500.0), match_ps=8.0)
+    # pixel 0: everything found; the second echo 5 ps off, within 8 ps
+    assert s["direct_delay_ps"][0] == 51.0 and s["direct_amplitude"][0] == 9.0
+    assert (s["sss_delay_ps"][0], s["sss_amplitude"][0], s["sss_alpha_per_ps"][0]) == (55.0, 2.5, 0.03)
+    np.testing.assert_array_equal(s["ir_delay_ps"][0], [118.0, 205.0])
+    np.testing.assert_array_equal(s["ir_amplitude"][0], [1.1, 0.6])
+    # pixel 1: the direct out of the window, the sss's amplitude negative, the echo 20 ps off: the truth
+    assert s["direct_delay_ps"][1] == 50.0 and s["sss_amplitude"][1] == 2.0 and s["sss_alpha_per_ps"][1] == 0.02
+    assert s["ir_delay_ps"][1, 0] == 120.0 and np.isnan(s["ir_delay_ps"][1, 1])
+    # pixel 2: no direct found; no true sss (none added); the nearest echo of positive amplitude
+    assert s["direct_delay_ps"][2] == 50.0 and np.isnan(s["sss_alpha_per_ps"][2])
+    assert s["ir_delay_ps"][2, 0] == 122.0 and s["ir_amplitude"][2, 0] == 0.8
+    # the truth is not modified
+    assert truth["direct_delay_ps"][0] == 50.0 and truth["ir_delay_ps"][0, 0] == 120.0
+
+
+@pytest.mark.timeout(120)
+def test_quick_with_the_best_found_maximum_likelihood(tmp_path, capsys):
+    """``best`` beside ``modelled`` and ``reference``: its rows, the fraction of pixels where
+    the decomposition's start won, every judged line naming it, and the header counting it."""
+    out = tmp_path / "best"
+    assert main(["bench", "realism", "--quick", "--effects", "truncated", "--variants", "best,modelled,reference",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    with open(out / "realism.csv") as fh:
+        rows = {(float(r["photons_per_pixel"]), r["variant"]): r for r in csv.DictReader(fh)}
+    for p in (300.0, 10000.0):
+        best = rows[(p, "best")]
+        assert best["status"] == "ok"
+        assert 0.0 <= float(best["best_start_decomposition"]) <= 1.0
+        # never a worse likelihood than the reference, so its fidelity is its own figure
+        assert np.isfinite(float(best["mean_fidelity"]))
+    judged = [x for x in text.splitlines() if x.startswith(("  [met] modelled", "  [NOT met] modelled"))]
+    assert judged and all("; the best-found maximum likelihood: " in x for x in judged)
+    assert "more by the best-found maximum likelihood" in text
+    assert "the start from the modelled answer won in truncated 300" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["variants"] == ["modelled", "reference", "best"]

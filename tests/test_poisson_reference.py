@@ -7,7 +7,7 @@ import pytest
 from core.irf_models import tailed_response
 from core.model import empty_params
 from decomposition.metrics import fidelity
-from decomposition.poisson_reference import (PoissonReferenceOptions, poisson_deviance, poisson_reference_bound,
+from decomposition.poisson_reference import (PoissonReferenceOptions, best_of, poisson_deviance, poisson_reference_bound,
                                              poisson_reference_fit)
 from decomposition.synthetic import make_profiles
 from decomposition.synthetic_effects import render_with_response, response_sigma_ps
@@ -153,3 +153,38 @@ def test_the_sss_onset_stays_at_or_after_the_direct():
     kept = gap_free > 0.5
     same = np.isclose(held.params["sss_alpha_per_ps"][kept], free.params["sss_alpha_per_ps"][kept], rtol=1e-3)
     assert kept.sum() >= 150 and same.mean() >= 0.9
+
+
+def test_best_of_keeps_each_pixels_lowest_deviance():
+    """Two fits of the same truncated-direct counts (300 photons, the direct 1-8 ps before the
+    first bin), one from the truth and one from the direct 4 ps later: ``best_of`` takes every
+    field of each pixel from the fit of lower deviance and says which; the two starts end in
+    different optima in some pixels (else the test would not test the choice)."""
+    d = make_profiles(60, L, seed=2, kinds="d+s", response=IRF, photons_per_pixel=300.0,
+                      direct_before_window_ps=(1.0, 8.0))
+    a = poisson_reference_fit(d.noisy, d.params, IRF)
+    start = {k: v.copy() for k, v in d.params.items()}
+    start["direct_delay_ps"] = start["direct_delay_ps"] + 4.0
+    start["sss_delay_ps"] = np.maximum(start["sss_delay_ps"], start["direct_delay_ps"])
+    b = poisson_reference_fit(d.noisy, start, IRF)
+    best = best_of([a, b])
+    dev_a, dev_b = a.info["deviance"], b.info["deviance"]
+    win_b = dev_b < dev_a - 1e-6 * np.maximum(dev_a, 1.0)          # a tie (the same optimum) keeps the first
+    assert np.array_equal(best.info["start"], win_b.astype(int))
+    assert np.array_equal(best.info["deviance"], np.where(win_b, dev_b, dev_a))
+    assert np.all(best.info["deviance"] <= np.minimum(dev_a, dev_b) + 1e-6 * np.maximum(dev_a, 1.0))
+    assert np.any(np.abs(dev_a - dev_b) > 0.1) and 0 < win_b.sum() < win_b.size
+    for key in ("direct_delay_ps", "sss_alpha_per_ps", "direct_amplitude_stderr"):
+        np.testing.assert_array_equal(best.params[key], np.where(win_b, b.params[key], a.params[key]))
+    np.testing.assert_array_equal(best.direct, np.where(win_b[:, None], b.direct, a.direct))
+    np.testing.assert_array_equal(best.interreflections, np.where(win_b[:, None, None], b.interreflections,
+                                                                  a.interreflections))
+    # one fit: itself; none, or fits of different sets: refused
+    np.testing.assert_array_equal(best_of([a]).params["direct_delay_ps"], a.params["direct_delay_ps"])
+    with pytest.raises(ValueError, match="at least one"):
+        best_of([])
+    other = poisson_reference_fit(d.noisy[:10], {k: v[:10] for k, v in d.params.items()}, IRF)
+    with pytest.raises(ValueError, match="differ"):
+        best_of([a, other])
+    with pytest.raises(ValueError, match="tie_tolerance"):
+        best_of([a, b], tie_tolerance=-1.0)
