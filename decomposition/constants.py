@@ -135,6 +135,17 @@ EARLY_DIRECT_STARTS_SIGMA = (0.0, 1.0, 2.0)
 #: unchanged to 0.01 ps).
 EARLY_DIRECT_NEAR_SIGMA = 0.5
 
+#: The response path: an sss whose onset lies more than this many response widths
+#: (Gaussian-equivalent) after its direct is refitted with the onset started at the direct, the
+#: lower deviance kept (:func:`decomposition.response_grow.grow_response`, step 0c).  A late onset
+#: is a local optimum of the fit at few counts: the direct moves later to fill the gap.
+#: ``bench realism`` (2,000 px, seeds 0 / 1), direct-delay bias at 100 photons without -> with
+#: the step: tailed +0.078 -> +0.038 / +0.037 -> +0.007 ps, afterpulse +0.051 -> +0.023 /
+#: +0.078 -> +0.056; at 2 widths instead of 1 only half of that (tailed +0.049, afterpulse
+#: +0.038 on seed 0): the late onsets lie 1-2 widths out as well.  Nothing moves at 10,000
+#: photons, where the step costs a third more time (see docs/instrument-response.md).
+ONSET_RESTART_SIGMA = 1.0
+
 #: Largest component peak the pick accepts, in units of the pixel's largest sample: a
 #: coefficient far above the data is a degenerate (near-zero-norm) coordinate, not light.
 AMP_MAX = 20.0

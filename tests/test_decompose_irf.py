@@ -355,6 +355,40 @@ def test_a_direct_before_the_window_is_restarted_at_its_edge():
     assert np.all(r.flags & OFF_WINDOW)
 
 
+def test_a_late_sss_onset_is_restarted_at_the_direct(monkeypatch):
+    """Six pixels of ``bench realism``'s tailed rows at 100 photons whose fit stopped with the
+    sss onset 3-9 response widths after the direct and the direct 1-3 ps late, 1-11 deviance
+    units above the Poisson reference's: refitted with the onset started at the direct, each
+    takes that fit -- its deviance lower, the onset on the direct, the direct within 1.5 ps of
+    the truth.  With the step off (ONSET_RESTART_SIGMA infinite) the onsets stay late."""
+    from decomposition import response_grow
+    from decomposition.noise import poisson_deviance
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import effect_setup
+
+    setup = effect_setup("tailed", T)
+    d = make_profiles(2000, 256, seed=0, kinds=setup["kinds"], time_bin_ps=T, photons_per_pixel=100.0,
+                      **setup["options"])
+    rows = [299, 404, 645, 838, 1461, 1589]
+    y = np.asarray(d.noisy[rows], np.float64)
+
+    def run():
+        r = decompose(y, T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s", noise="poisson")
+        mu = r.direct + r.sss + r.interreflections.sum(axis=1)
+        return r, poisson_deviance(y, np.maximum(mu, 1e-3))
+
+    r, dev = run()
+    sigma = r.params["direct_sigma_ps"]
+    assert r.info["response_onset_restarted"] == len(rows)
+    assert np.all(r.params["sss_delay_ps"] - r.params["direct_delay_ps"] <= 0.5 * sigma)
+    assert np.all(np.abs(r.params["direct_delay_ps"] - d.params["direct_delay_ps"][rows]) < 1.5)
+    monkeypatch.setattr(response_grow, "ONSET_RESTART_SIGMA", np.inf)
+    late, dev_late = run()
+    assert late.info["response_onset_restarted"] == 0
+    assert np.all(late.params["sss_delay_ps"] - late.params["direct_delay_ps"] > 3.0 * sigma)
+    assert np.all(dev < dev_late)
+
+
 def test_count_fit_on_degenerate_pixels():
     """The likelihood fit of counts on pixels that leave it little to fit: one count, none, a
     pixel 100,000 times brighter than its neighbours, pure background, light only in the
