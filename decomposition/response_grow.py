@@ -21,7 +21,8 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
 0b. **A direct before the window** ("d" asked; its delay before the first sample, so only its
    falling edge is seen): refitted with the direct started at the window's edge and at
    EARLY_DIRECT_STARTS_SIGMA response widths before it, the pixel keeping the lowest deviance
-   (its own fit included).  From the edge alone the fit can slide the direct out with its
+   (its own fit included; a refit whose direct slid out to where no sample sees it, far
+   before its sss, is not taken: :func:`_unseen_direct`).  From the edge alone the fit can slide the direct out with its
    amplitude growing to match what it leaves, and stop there: on ``bench realism``'s
    truncated rows at 10,000 photons the worst fits lay 13-17 ps early with a deviance 2-36
    above the reference's.
@@ -511,8 +512,9 @@ def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     """A direct before the window (its delay before the first sample) refitted from the
     window's edge and from EARLY_DIRECT_STARTS_SIGMA response widths before it, the rest as
     they are (a start within EARLY_DIRECT_NEAR_SIGMA widths of the fitted direct is skipped);
-    each pixel keeps the lowest deviance, its own fit included (see the module docstring,
-    step 0b) -> (slots, pixels moved)."""
+    each pixel keeps the lowest deviance, its own fit included, among the refits that keep
+    every atom and whose direct some sample still sees (:func:`_unseen_direct`) (see the
+    module docstring, step 0b) -> (slots, pixels moved)."""
     fam, delay = cur.fam, cur.delay
     rows = np.flatnonzero((fam[:, 0] == FAM_GAUSS) & (delay[:, 0] < ctx.t[0]))
     if rows.size == 0:
@@ -531,8 +533,9 @@ def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
         trial = ctx.refit(rows[i], sub.fam[i], d, sub.lalp[i], {k: v[i] for k, v in sub.params.items()},
                           sub.background[i])
         spent[i] += trial.iterations
-        dev = np.where(np.all(trial.fam == sub.fam[i], axis=1),
-                       deviance(ctx, rows[i], trial.params, trial.background), np.inf)
+        # every atom kept, and the direct not slid out to where no sample sees it
+        kept = np.all(trial.fam == sub.fam[i], axis=1) & ~_unseen_direct(ctx, trial, np.arange(i.size))
+        dev = np.where(kept, deviance(ctx, rows[i], trial.params, trial.background), np.inf)
         win = dev < d_best[i]
         best = _put(best, i, trial, win)
         d_best[i] = np.where(win, dev, d_best[i])

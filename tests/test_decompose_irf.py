@@ -355,6 +355,25 @@ def test_a_direct_before_the_window_is_restarted_at_its_edge():
     assert np.all(r.flags & OFF_WINDOW)
 
 
+def test_a_restarted_direct_does_not_slide_out_of_sight():
+    """A pixel of ``bench realism``'s truncated rows at 1,000 photons (seed 1; the direct 4.3
+    ps before the first bin): its restart from 2 response widths before the window slid the
+    direct to 157 ps before it, 156 ps before its sss, with a fifth of its amplitude -- where
+    no sample sees it and nothing in the data places it, at a deviance within 0.01 of the
+    reference's.  Such a refit is not taken: the direct stays within 6 ps of the truth."""
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.realism import EFFECTS, effect_setup
+
+    setup = effect_setup("truncated", T)
+    d = make_profiles(2000, 256, seed=1 + 1000 * EFFECTS.index("truncated"), kinds=setup["kinds"], time_bin_ps=T,
+                      photons_per_pixel=1000.0, **setup["options"])
+    rows = [503]
+    r = decompose(d.noisy[rows], T, t0_ps=d.t0_ps, irf=setup["recorded_response"], components="d,r,s",
+                  noise="poisson")
+    assert abs(r.params["direct_delay_ps"][0] - d.params["direct_delay_ps"][rows][0]) < 6.0
+    assert r.params["sss_delay_ps"][0] - r.params["direct_delay_ps"][0] < 10.0
+
+
 def test_a_late_sss_onset_is_restarted_at_the_direct(monkeypatch):
     """Six pixels of ``bench realism``'s tailed rows at 100 photons whose fit stopped with the
     sss onset 3-9 response widths after the direct and the direct 1-3 ps late, 1-11 deviance
