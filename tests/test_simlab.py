@@ -107,21 +107,30 @@ def test_default_scene_follows_the_seed():
 
 
 def _read_addresses(proc, deadline_s=20.0):
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    info, buf, end = {}, b"", time.monotonic() + deadline_s
-    while "ready" not in info:
-        left = end - time.monotonic()
-        assert left > 0, f"sim-lab printed no 'ready' line in {deadline_s} s; got {buf!r}"
-        if not sel.select(left):
-            continue
-        chunk = os.read(proc.stdout.fileno(), 4096)
-        assert chunk, f"sim-lab exited early: {buf!r} / {proc.stderr.read()!r}"
-        buf += chunk
-        for line in buf.decode().splitlines():
-            key, _, value = line.partition(" ")
-            info[key] = value
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        info, buf, end = {}, b"", time.monotonic() + deadline_s
+        while "ready" not in info:
+            left = end - time.monotonic()
+            assert left > 0, f"sim-lab printed no 'ready' line in {deadline_s} s; got {buf!r}"
+            if not sel.select(left):
+                continue
+            chunk = os.read(proc.stdout.fileno(), 4096)
+            assert chunk, f"sim-lab exited early: {buf!r} / {proc.stderr.read()!r}"
+            buf += chunk
+            for line in buf.decode().splitlines():
+                key, _, value = line.partition(" ")
+                info[key] = value
     return info
+
+
+def _stop(proc):
+    """Kill ``proc`` if it still runs, and close its pipes."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(5)
+    proc.stdout.close()
+    proc.stderr.close()
 
 
 def _start(*extra):
@@ -147,9 +156,7 @@ def test_sim_lab_command_serves_until_sigint():
         assert proc.wait(timeout=10) == 0
         assert b"stopped" in proc.stderr.read()
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
+        _stop(proc)
     with pytest.raises(OSError):
         socket.create_connection((host, int(port)), timeout=1.0)
 
@@ -165,9 +172,7 @@ def test_sim_lab_camera_only_and_dark():
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
+        _stop(proc)
 
 
 def test_sim_lab_reports_a_taken_port():
