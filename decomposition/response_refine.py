@@ -80,9 +80,11 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
     minv = np.linalg.inv(m)
-    with np.errstate(invalid="ignore"):     # a trial of non-finite cost is rejected by the caller
+    with np.errstate(invalid="ignore", over="ignore"):
         amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
-    amp = np.where(active, amp, 0.0)
+    # a pixel whose every active column is zero (its atoms all outside the window) has a
+    # singular matrix whatever the ridge: nothing of the data is theirs
+    amp = np.where(active & np.isfinite(amp), amp, 0.0)
     resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
     return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
 
@@ -216,11 +218,13 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
         lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
         lhs += np.eye(2 * K)[None] * (~fr)[:, :, None]
         step = np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0]
+        finite = np.isfinite(step).all(axis=1)          # refused below, as in _fit_counts
+        step = np.where(finite[:, None], step, 0.0)
         nd = state["delay"][idx] + np.where(fr[:, :K], step[:, :K], 0.0)
         nl = state["lalp"][idx] + np.where(fr[:, K:], step[:, K:], 0.0)
         nd, nl = _project(f, nd, nl, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
         trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl, None if fit_bg is None else fit_bg[idx])
-        ok = np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
+        ok = finite & np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
         gain = c["cost"] - trial["cost"]
         iters[idx] += 1
         acc = idx[ok]
@@ -307,6 +311,10 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         lhs = jtj + (lam[idx][:, None] * np.where(fr, dg, 1.0))[:, :, None] * np.eye(n_par)[None]
         lhs += np.eye(n_par)[None] * (~fr)[:, :, None]
         step = np.where(fr, np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0], 0.0)
+        # a step that is not finite (an atom whose column vanished and whose amplitude grew
+        # without bound) is refused like one that raises the deviance
+        finite = np.isfinite(step).all(axis=1)
+        step = np.where(finite[:, None], step, 0.0)
         f = fam[idx]
         nd, nl = _project(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
@@ -321,7 +329,7 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         t_dev = c.deviance(t_mu)
         # no step turns an atom's light negative (the counts' model is a sum of light)
         was = np.all((a_cur[:, :K] > 0) | ~active[idx], axis=1)
-        ok = (np.isfinite(t_dev) & (t_dev < state["cost"][idx])
+        ok = (finite & np.isfinite(t_dev) & (t_dev < state["cost"][idx])
               & (~was | np.all((na[:, :K] > 0) | ~active[idx], axis=1)))
         gain = state["cost"][idx] - t_dev
         iters[idx] += 1

@@ -560,3 +560,39 @@ def test_light_before_the_direct_is_a_poor_fit():
     assert not light_before_direct(samples, params, held)[0]
     early = {"direct_delay_ps": np.array([22.0]), "direct_sigma_ps": np.array([4.0])}
     assert not light_before_direct(samples, early, nothing)[0]       # no count before its edge
+
+
+@pytest.mark.parametrize("counts", [True, False])
+def test_slot_fit_from_atoms_outside_the_window(counts):
+    """``fit_slots`` from starts whose atoms lie far outside the window (a direct 400 ps
+    before it, both atoms 1,000 ps before it, an sss or both far after it): a pixel whose every
+    atom has no sample in the window has a singular amplitude system, and its steps were not
+    finite -- that raised ('delay_ps must be finite').  Now: no exception or warning, finite
+    costs never above the start's, an atom with no sample in the window explains nothing
+    (amplitude 0), and the first pixel's sss takes the direct's light."""
+    import warnings
+
+    from decomposition.constants import FAM_GAUSS, FAM_SSS
+    from decomposition.response_refine import CountData, fit_slots
+
+    irf = gaussian_response(4.0, time_step_ps=T)
+    t = T + T * np.arange(128)
+    mu = 200.0 * render_shifted(irf, t, np.array([60.0]))[0] + 1.0
+    y = np.random.default_rng(1).poisson(np.broadcast_to(mu, (4, t.size))).astype(np.float64)
+    fam = np.array([[FAM_GAUSS, FAM_SSS]] * 4, np.int8)
+    delay = np.array([[t[0] - 400, 60.0], [t[0] - 1000, t[0] - 900], [60.0, t[-1] + 500], [t[-1] + 300, t[-1] + 300]])
+    lalp = np.log(np.full((4, 2), 0.02))
+    span = t.size * T
+    kw = dict(n_iter=30, lm_tol=1e-2, delay_bounds_ps=(t[0] - span, t[-1] + span),
+              lalp_bounds=(math.log(1e-3), math.log(1.0)), sss_after_direct=True, first_is_direct=True)
+    cd = CountData(y, np.ones(4), np.zeros(4), np.ones(y.shape, bool), None) if counts else None
+    start = fit_slots(irf, t, y, np.ones(y.shape), fam, delay, lalp, n_iter=0, **{k: v for k, v in kw.items()
+                                                                                    if k != "n_iter"}, counts=cd)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = fit_slots(irf, t, y, np.ones(y.shape), fam, delay, lalp, counts=cd, **kw)
+    assert np.all(np.isfinite(r.cost)) and np.all(r.cost <= start.cost + 1e-9)
+    assert np.all(np.isfinite(r.delay)) and np.all(np.isfinite(r.amp))
+    assert r.amp[0, 0] == 0.0 and r.amp[3].tolist() == [0.0, 0.0]       # no sample sees them
+    assert r.amp[0, 1] > 0 and abs(r.delay[0, 1] - 60.0) < 5.0            # the sss took the light
+    assert r.amp[2, 0] > 0 and abs(r.delay[2, 0] - 60.0) < 1.0            # the direct stays on it
