@@ -135,7 +135,7 @@ EARLY_DIRECT_STARTS_SIGMA = (0.0, 1.0, 2.0)
 #: unchanged to 0.01 ps).
 EARLY_DIRECT_NEAR_SIGMA = 0.5
 
-#: The response path: an sss whose onset lies more than this many response widths
+#: The response path, count data: an sss whose onset lies more than this many response widths
 #: (Gaussian-equivalent) after its direct is refitted with the onset started at the direct, the
 #: lower deviance kept (:func:`decomposition.response_grow.grow_response`, step 0c).  A late onset
 #: is a local optimum of the fit at few counts: the direct moves later to fill the gap.
