@@ -14,12 +14,8 @@ None of the clients is modified or wrapped.
 from __future__ import annotations
 
 import asyncio
-import os
 import pathlib
-import selectors
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -34,6 +30,8 @@ from drivers.remoteex import RemoteExCamera
 from drivers.sim import SimulatedLab
 from drivers.sim.scene import VirtualScene
 from drivers.smc100 import SMC100Mirror
+
+from _simlab_process import start_sim_lab, stop_sim_lab
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -95,26 +93,6 @@ def test_pyvisa_py_finds_and_drives_the_simulated_sync(monkeypatch):
         assert (lab.state.sync_delay_ps, lab.state.sync_output_enabled) == (250.0, True)
 
 
-def _start_sim_lab(*args):
-    """``streaklab sim-lab`` in a subprocess; returns (process, {name: address})."""
-    proc = subprocess.Popen([sys.executable, "-m", "streaklab", "sim-lab", *args], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    info, deadline = {}, time.monotonic() + 30
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    buf = b""
-    while "ready" not in info:
-        left = deadline - time.monotonic()
-        assert left > 0, f"sim-lab printed no 'ready' line; got {buf!r}"
-        if not sel.select(left):
-            continue
-        chunk = os.read(proc.stdout.fileno(), 4096)
-        assert chunk, f"sim-lab exited early: {buf!r}"
-        buf += chunk
-        info = dict(line.partition(" ")[::2] for line in buf.decode().splitlines())
-    return proc, info
-
-
 @pytest.mark.slow   # the daemon's own start-up waits 5 s after its RS
 def test_yaqd_newport_daemon_on_sim_lab_homes_an_already_homed_controller_and_scans(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))       # the daemon's state file goes here
@@ -144,7 +122,7 @@ def test_yaqd_newport_daemon_on_sim_lab_homes_an_already_homed_controller_and_sc
             await asyncio.sleep(0.05)
             daemon._serial.port.close()
 
-    proc, info = _start_sim_lab("--lines", "4", "--x", "16", "--t", "64", "--seed", "2")
+    proc, info = start_sim_lab("--lines", "4", "--x", "16", "--t", "64", "--seed", "2")
     try:
         with SMC100Mirror(info["mirror-stable"]) as mirror:   # leave the controller homed, off zero
             mirror.home(timeout_s=5)
@@ -158,9 +136,7 @@ def test_yaqd_newport_daemon_on_sim_lab_homes_an_already_homed_controller_and_sc
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=10) == 0
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
+        stop_sim_lab(proc)
 
 
 def test_pyvisa_py_serial_session_with_xonxoff_drives_the_mirror_as_sim_lab_help_says(capsys):

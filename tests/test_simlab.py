@@ -1,11 +1,9 @@
 """SimulatedLab and the ``streaklab sim-lab`` command."""
 import os
-import selectors
 import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,8 @@ from drivers.scpi_sync import ScpiLaserSync
 from drivers.sim import SimulatedLab
 from drivers.sim.scene import VirtualScene
 from drivers.smc100 import SMC100Mirror
+
+from _simlab_process import start_sim_lab, stop_sim_lab
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -106,42 +106,9 @@ def test_default_scene_follows_the_seed():
     np.testing.assert_array_equal(a, b)
 
 
-def _read_addresses(proc, deadline_s=20.0):
-    with selectors.DefaultSelector() as sel:
-        sel.register(proc.stdout, selectors.EVENT_READ)
-        info, buf, end = {}, b"", time.monotonic() + deadline_s
-        while "ready" not in info:
-            left = end - time.monotonic()
-            assert left > 0, f"sim-lab printed no 'ready' line in {deadline_s} s; got {buf!r}"
-            if not sel.select(left):
-                continue
-            chunk = os.read(proc.stdout.fileno(), 4096)
-            assert chunk, f"sim-lab exited early: {buf!r} / {proc.stderr.read()!r}"
-            buf += chunk
-            for line in buf.decode().splitlines():
-                key, _, value = line.partition(" ")
-                info[key] = value
-    return info
-
-
-def _stop(proc):
-    """Kill ``proc`` if it still runs, and close its pipes."""
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait(5)
-    proc.stdout.close()
-    proc.stderr.close()
-
-
-def _start(*extra):
-    return subprocess.Popen([sys.executable, "-m", "streaklab", "sim-lab", "--lines", "4", "--x", "16", "--t", "64",
-                             *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-
-
 def test_sim_lab_command_serves_until_sigint():
-    proc = _start("--seed", "4")
+    proc, info = start_sim_lab("--lines", "4", "--x", "16", "--t", "64", "--seed", "4")
     try:
-        info = _read_addresses(proc)
         host, port = info["camera"].rsplit(":", 1)
         assert host == "127.0.0.1" and int(info["camera-data-port"]) == int(port) + 1
         assert info["laser-output"] == "on"
@@ -156,15 +123,14 @@ def test_sim_lab_command_serves_until_sigint():
         assert proc.wait(timeout=10) == 0
         assert b"stopped" in proc.stderr.read()
     finally:
-        _stop(proc)
+        stop_sim_lab(proc)
     with pytest.raises(OSError):
         socket.create_connection((host, int(port)), timeout=1.0)
 
 
 def test_sim_lab_camera_only_and_dark():
-    proc = _start("--no-mirror", "--dark")
+    proc, info = start_sim_lab("--lines", "4", "--x", "16", "--t", "64", "--no-mirror", "--dark")
     try:
-        info = _read_addresses(proc)
         assert "mirror" not in info and info["laser-output"] == "off"
         host, port = info["camera"].rsplit(":", 1)
         with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
@@ -172,7 +138,7 @@ def test_sim_lab_camera_only_and_dark():
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
     finally:
-        _stop(proc)
+        stop_sim_lab(proc)
 
 
 def test_sim_lab_reports_a_taken_port():
