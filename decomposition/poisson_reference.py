@@ -54,7 +54,7 @@ from .noise import poisson_deviance
 from .synthetic_effects import bin_averaged_response, response_sigma_ps
 
 __all__ = ["PoissonReferenceOptions", "PoissonReferenceFit", "poisson_reference_fit", "poisson_reference_bound",
-           "best_of", "poisson_deviance"]
+           "best_of", "delay_window_ps", "poisson_deviance"]
 
 # Expected counts are floored at this fraction of a pixel's largest count (at least 1).
 _MU_FLOOR = 1e-8
@@ -361,6 +361,14 @@ def _axis(counts_shape, time_bin_ps, t0_ps):
     return time_axis_ps(counts_shape[-1], time_bin_ps, t0_ps)
 
 
+def delay_window_ps(response: InstrumentResponse, t_ps, options: PoissonReferenceOptions | None = None) -> tuple:
+    """(lo, hi) ps: the delays the reference fits, the window of axis ``t_ps`` widened on each
+    side by ``options.delay_margin_widths`` response widths."""
+    options = options or PoissonReferenceOptions()
+    margin = float(options.delay_margin_widths) * response_sigma_ps(response)
+    return float(t_ps[0]) - margin, float(t_ps[-1]) + margin
+
+
 def poisson_reference_fit(counts, truth_params: dict, response: InstrumentResponse, *, background=None,
                           time_bin_ps: float = 2.0, t0_ps: float | None = None, bin_integrated: bool = True,
                           options: PoissonReferenceOptions | None = None) -> PoissonReferenceFit:
@@ -407,8 +415,8 @@ def poisson_reference_fit(counts, truth_params: dict, response: InstrumentRespon
     mu = np.zeros((n, L))
     info = {"iterations": np.zeros(n, np.int64), "converged": np.zeros(n, bool), "deviance": np.zeros(n),
             "deviance_start": np.zeros(n)}
-    margin = float(options.delay_margin_widths) * response_sigma_ps(response)
-    bounds = (float(t[0]) - margin, float(t[-1]) + margin)
+    bounds = delay_window_ps(response, t, options)
+    margin = float(t[0]) - bounds[0]
     start = theta[:, lay.delays]
     if np.any(free[:, lay.delays] & ((start < bounds[0]) | (start > bounds[1]))):
         raise ValueError(f"truth_params: a delay lies outside the window widened by {margin:.3g} ps "

@@ -536,7 +536,7 @@ def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
                           sub.background[i])
         spent[i] += trial.iterations
         # every atom kept, and the direct not slid out to where no sample sees it
-        kept = np.all(trial.fam == sub.fam[i], axis=1) & ~_unseen_direct(ctx, trial, np.arange(i.size))
+        kept = _all_kept(sub.fam[i], trial.fam) & ~_unseen_direct(ctx, trial, np.arange(i.size))
         dev = np.where(kept, deviance(ctx, rows[i], trial.params, trial.background), np.inf)
         win = dev < d_best[i]
         best = _put(best, i, trial, win)
@@ -563,7 +563,7 @@ def _restart_onset_at_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     d = sub.delay.copy()
     d[:, SSS_SLOT] = d[:, 0]
     trial = ctx.refit(rows, sub.fam, d, sub.lalp, sub.params, sub.background)
-    kept = np.all(trial.fam == sub.fam, axis=1) & (trial.delay[:, 0] >= ctx.t[0])
+    kept = _all_kept(sub.fam, trial.fam) & (trial.delay[:, 0] >= ctx.t[0])
     dev = np.where(kept, deviance(ctx, rows, trial.params, trial.background), np.inf)
     win = dev < deviance(ctx, rows, sub.params, sub.background)
     out = _put(cur, rows, trial, win)

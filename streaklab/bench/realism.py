@@ -368,8 +368,8 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
     """One variant's estimate: (params, components).  ``best`` reads the ``reference`` and
     ``modelled`` entries of ``fits`` (variant -> (params, components))."""
     from decomposition import decompose
-    from decomposition.poisson_reference import PoissonReferenceOptions, best_of, poisson_reference_fit
-    from decomposition.synthetic_effects import response_sigma_ps
+    from core.model import time_axis_ps
+    from decomposition.poisson_reference import best_of, delay_window_ps, poisson_reference_fit
 
     background = data.background if setup["background"] else None
     if variant in ("reference", "visible"):
@@ -381,9 +381,7 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
         fits = fits or {}
         if "reference" not in fits or "modelled" not in fits:
             raise ValueError("the best variant needs the reference and modelled variants (run before it)")
-        n_bins = np.shape(data.noisy)[-1]
-        margin = PoissonReferenceOptions().delay_margin_widths * response_sigma_ps(setup["response"])
-        window = (data.t0_ps - margin, data.t0_ps + (n_bins - 1) * time_bin_ps + margin)
+        window = delay_window_ps(setup["response"], time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps))
         mod = fits["modelled"][0]
         start = decomposition_start(data.params, mod, delay_range_ps=window, match_ps=BEST_MATCH_WIDTHS * SIGMA_PS)
         if background is not None:
