@@ -460,35 +460,9 @@ def best_of(fits, *, tie_tolerance: float = 1e-6) -> PoissonReferenceFit:
         Every field taken per pixel from the winning fit; ``info`` gains ``start`` (S, int):
         the index in ``fits`` of the fit kept.
     """
-    if not (np.isfinite(tie_tolerance) and tie_tolerance >= 0):
-        raise ValueError(f"tie_tolerance must be finite and >= 0, got {tie_tolerance}")
-    fits = list(fits)
-    if not fits:
-        raise ValueError("best_of needs at least one fit")
-    devs = [np.asarray(f.info["deviance"], np.float64) for f in fits]
-    if (any(f.params.keys() != fits[0].params.keys() for f in fits) or any(d.shape != devs[0].shape for d in devs)
-            or any(f.interreflections.shape != fits[0].interreflections.shape for f in fits)):
-        raise ValueError("best_of: the fits differ in their component set or shape")
-    win = np.zeros(devs[0].shape, np.int64)
-    kept = np.where(np.isfinite(devs[0]), devs[0], np.inf)
-    for i, d in enumerate(devs[1:], start=1):
-        better = np.isfinite(d) & (d < kept - tie_tolerance * np.maximum(np.where(np.isfinite(kept), kept, 1.0), 1.0))
-        win = np.where(better, i, win)
-        kept = np.where(better, d, kept)
-    lead = win.shape
+    from .best_found import lowest_cost
 
-    def pick(arrays):
-        a = np.stack([np.asarray(x) for x in arrays])
-        idx = win.reshape((1,) + lead + (1,) * (a.ndim - 1 - len(lead)))
-        return np.take_along_axis(a, idx, axis=0)[0]
-
-    params = {k: pick([f.params[k] for f in fits]) for k in fits[0].params}
-    info = {k: pick([f.info[k] for f in fits]) for k in fits[0].info}
-    info["start"] = win
-    return PoissonReferenceFit(params=params, background=pick([f.background for f in fits]),
-                               background_stderr=pick([f.background_stderr for f in fits]),
-                               direct=pick([f.direct for f in fits]), sss=pick([f.sss for f in fits]),
-                               interreflections=pick([f.interreflections for f in fits]), info=info)
+    return lowest_cost(fits, cost="deviance", tie_tolerance=tie_tolerance)
 
 
 def _components(theta, free, model: _Model, n, L):

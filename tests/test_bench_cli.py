@@ -62,7 +62,7 @@ def test_accuracy_quick_writes_csv_png_and_summary(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
-    methods = ("convscd", "gradbm", "oracle", "detectable", "own-model")
+    methods = ("convscd", "gradbm", "oracle", "detectable", "own-model", "best-found")
     keys = {(r["method"], r["noise"], float(r["nsr"])) for r in rows}
     assert keys == {(m, n, x) for m in methods for n in ("white", "pink", "photon") for x in (0.001, 0.055, 0.2)}
     for r in rows:
@@ -141,13 +141,27 @@ def test_accuracy_gap_targets_name_the_detectable_ceilings_verdict(tmp_path, cap
     assert line.startswith(("  [met]", "  [NOT met]")) and "; the detectable ceiling: worst gap " in line
     summary = json.loads((out / "summary.json").read_text())
     rec = next(r for r in summary["oracle_targets"] if "white noise, NSR 0.055, 2 ps bins" in r["target"])
-    assert rec["ceiling_met"] is (not line.endswith(", not met")) and line.endswith("met")
-    # the ceiling's worst gap is the one regime_rows gave it (regimes.csv), and its verdict follows
+    parts = {p.split(":")[0]: p for p in line.split("; ")}
+    ceiling_part = parts["the detectable ceiling"]
+    assert rec["ceiling_met"] is (not ceiling_part.endswith(", not met")) and ceiling_part.endswith("met")
+    # the ceilings' worst gaps are the ones regime_rows gave them (regimes.csv), and their verdicts follow
     with open(out / "regimes.csv") as fh:
         rows = [r for r in csv.DictReader(fh) if int(r["n"]) >= 20 and float(r["nsr"]) == 0.055]
     worst = min(float(r["gap[detectable]"]) for r in rows)
     assert f"detectable ceiling: worst gap {worst:+.3f}" in line
     assert rec["ceiling_met"] is (worst >= -0.03)
+    # the best-found fit the same way
+    best = min(float(r["gap[best-found]"]) for r in rows)
+    assert parts["the best-found fit"].startswith(f"the best-found fit: worst gap {best:+.3f}")
+    assert rec["best_met"] is (best >= -0.03) and parts["the best-found fit"].endswith("met")
+    # and convscd's own gap to it, as the point's line prints it
+    against = next(x for x in text.splitlines() if "convscd against the best-found fit" in x and "NSR" not in x)
+    worst_own = against.split("worst ")[1].split()[0]
+    assert parts["convscd against the best-found fit"].startswith(
+        f"convscd against the best-found fit: worst gap {worst_own}")
+    assert rec["within_limit_of_best"] is (float(worst_own) >= -0.03)
+    assert parts["convscd against the best-found fit"].endswith(
+        "within the limit" if rec["within_limit_of_best"] else "beyond the limit")
     header = next(x for x in text.splitlines() if x.startswith("accuracy targets against the oracle ("))
     beyond = rec["met"] is False and rec["ceiling_met"] is False
     assert ("1 of the not met are missed" in header) is beyond
@@ -173,7 +187,8 @@ def test_accuracy_legacy_scenes_two_bin_widths(tmp_path, capsys):
                  "--methods", "convscd", "--scenes", "legacy", "--time-bin-ps", "2,4", "--out", str(out)]) == 0
     with open(out / "accuracy.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert {(r["method"], float(r["time_bin_ps"])) for r in rows} == {(m, t) for m in ("convscd", "oracle", "detectable")
+    assert {(r["method"], float(r["time_bin_ps"])) for r in rows} == {(m, t) for m in ("convscd", "oracle", "detectable",
+                                                                                            "best-found")
                                                                        for t in (2.0, 4.0)}
     assert all(r["scenes"] == "legacy" and r["render"] == "point" for r in rows)
     summary = json.loads((out / "summary.json").read_text())
@@ -197,7 +212,7 @@ def test_accuracy_search_prototype_in_the_same_tables(tmp_path, capsys):
     text = capsys.readouterr().out
     with open(out / "accuracy.csv") as fh:
         rows = {r["method"]: r for r in csv.DictReader(fh)}
-    assert set(rows) == {"convscd", "search", "oracle", "detectable", "own-model"}
+    assert set(rows) == {"convscd", "search", "oracle", "detectable", "own-model", "best-found"}
     # The search starts from the ConvSCD result, so its time includes ConvSCD's.
     assert float(rows["search"]["seconds_per_pixel"]) > float(rows["convscd"]["seconds_per_pixel"])
     assert -1.0 <= float(rows["search"]["mean_fidelity"]) <= 1.0

@@ -356,38 +356,6 @@ def test_figure_series_lays_out_each_variants_values_by_effect_and_level():
     assert np.isnan(realism.figure_series(rows, "lifetime_rmse_over_reference")["variants"]["modelled"][1]).all()
 
 
-def test_decomposition_start_takes_what_the_decomposition_found():
-    """The start of the best-found maximum likelihood: the truth's component set, each true
-    component with the decomposition's values where it found it (an inter-reflection: its
-    nearest one within ``match_ps``), the truth's elsewhere, out of the window, or where the
-    decomposition's amplitude is not positive."""
-    nan = np.nan
-    truth = {"direct_delay_ps": np.array([50.0, 50.0, 50.0]), "direct_amplitude": np.array([10.0, 10.0, 10.0]),
-             "sss_delay_ps": np.array([54.0, 54.0, nan]), "sss_amplitude": np.array([2.0, 2.0, nan]),
-             "sss_alpha_per_ps": np.array([0.02, 0.02, nan]),
-             "ir_delay_ps": np.array([[120.0, 200.0], [120.0, nan], [120.0, nan]]),
-             "ir_amplitude": np.array([[1.0, 0.5], [1.0, nan], [1.0, nan]])}
-    est = {"direct_delay_ps": np.array([51.0, -900.0, nan]), "direct_amplitude": np.array([9.0, 9.0, nan]),
-           "sss_delay_ps": np.array([55.0, 56.0, 60.0]), "sss_amplitude": np.array([2.5, -1.0, 3.0]),
-           "sss_alpha_per_ps": np.array([0.03, 0.03, 0.03]),
-           "ir_delay_ps": np.array([[118.0, 205.0, 300.0], [140.0, nan, nan], [121.0, 122.0, nan]]),
-           "ir_amplitude": np.array([[1.1, 0.6, 0.2], [0.9, nan, nan], [0.0, 0.8, nan]])}
-    s = realism.decomposition_start(truth, est, delay_range_ps=(0.0, 500.0), match_ps=8.0)
-    # pixel 0: everything found; the second echo 5 ps off, within 8 ps
-    assert s["direct_delay_ps"][0] == 51.0 and s["direct_amplitude"][0] == 9.0
-    assert (s["sss_delay_ps"][0], s["sss_amplitude"][0], s["sss_alpha_per_ps"][0]) == (55.0, 2.5, 0.03)
-    np.testing.assert_array_equal(s["ir_delay_ps"][0], [118.0, 205.0])
-    np.testing.assert_array_equal(s["ir_amplitude"][0], [1.1, 0.6])
-    # pixel 1: the direct out of the window, the sss's amplitude negative, the echo 20 ps off: the truth
-    assert s["direct_delay_ps"][1] == 50.0 and s["sss_amplitude"][1] == 2.0 and s["sss_alpha_per_ps"][1] == 0.02
-    assert s["ir_delay_ps"][1, 0] == 120.0 and np.isnan(s["ir_delay_ps"][1, 1])
-    # pixel 2: no direct found; no true sss (none added); the nearest echo of positive amplitude
-    assert s["direct_delay_ps"][2] == 50.0 and np.isnan(s["sss_alpha_per_ps"][2])
-    assert s["ir_delay_ps"][2, 0] == 122.0 and s["ir_amplitude"][2, 0] == 0.8
-    # the truth is not modified
-    assert truth["direct_delay_ps"][0] == 50.0 and truth["ir_delay_ps"][0, 0] == 120.0
-
-
 @pytest.mark.timeout(120)
 def test_quick_with_the_best_found_maximum_likelihood(tmp_path, capsys):
     """``best`` beside ``modelled`` and ``reference``: its rows, the fraction of pixels where

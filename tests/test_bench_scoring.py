@@ -255,3 +255,43 @@ def test_target_line_marks_each_status():
     assert target_line({**rec, "met": True}) == "  [met] convscd: x: worst gap -0.010"
     assert target_line({**rec, "met": False}) == "  [NOT met] convscd: x: worst gap -0.010"
     assert target_line({**rec, "met": None}) == "  [not measured] convscd: x: worst gap -0.010"
+
+
+def test_each_gap_target_reads_the_best_found_fit_and_the_methods_gap_to_it():
+    """The best-found column read like the ceiling, then the method's own worst gap against it
+    from the point's ``regimes_best_found`` rows; the header counts both."""
+    from streaklab.bench.accuracy import target_header
+
+    def row(regime, b, n, gaps, se=0.01):
+        out = {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS}
+        for m, g in gaps.items():
+            out[f"gap[{m}]"], out[f"gap_se[{m}]"] = g, se
+        return out
+    p = {"time_bin_ps": 4.0, "noise": "white", "nsr": 0.055, "n": 600, "delay_failures[convscd]": 0,
+         "unflagged_failures[convscd]": 0,
+         "regimes": [row("all", "all", 600, {"convscd": -0.034, "detectable": -0.015, "best-found": -0.02}),
+                     row("inter-reflections", ">= 2", 200, {"convscd": -0.079, "detectable": -0.044,
+                                                            "best-found": -0.048})],
+         # against the best-found fit (its own reference): the method's gaps
+         "regimes_best_found": [row("all", "all", 600, {"convscd": -0.014}),
+                                row("inter-reflections", ">= 2", 200, {"convscd": -0.031}),
+                                row("sigma (bins)", "< 1", 12, {"convscd": -0.2})]}
+    r = next(r for r in target_records([p]) if "NSR 0.055, 4" in r["text"])
+    assert r["met"] is False and r["ceiling_met"] is False and r["best_met"] is False
+    assert r["within_limit_of_best"] is False
+    assert r["detail"].endswith(
+        "; the best-found fit: worst gap -0.048 +- 0.010 (inter-reflections >= 2, 1.8 se from the limit), not met"
+        "; convscd against the best-found fit: worst gap -0.031 +- 0.010 (inter-reflections >= 2, 0.1 se from the "
+        "limit), beyond the limit")
+    p["regimes_best_found"][1]["gap[convscd]"] = -0.029
+    r = next(r for r in target_records([p]) if "NSR 0.055, 4" in r["text"])
+    assert r["within_limit_of_best"] is True and r["detail"].endswith("within the limit")
+    header = target_header([r, {"met": True, "ceiling_met": True, "best_met": True}], "detectable")
+    assert header.endswith("; 1 of the not met are missed by the best-found fit as well, and in 1 convscd is "
+                           "within the limit of the best-found fit in every row):")
+    # without the column the reading is left out, and the header says nothing of it
+    for x in p["regimes"]:
+        del x["gap[best-found]"]
+    r = next(r for r in target_records([p]) if "NSR 0.055, 4" in r["text"])
+    assert r["best_met"] is None and r["within_limit_of_best"] is None and "best-found" not in r["detail"]
+    assert "best-found" not in target_header([r], "detectable")

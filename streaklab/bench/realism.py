@@ -21,7 +21,7 @@ effect, integer Poisson counts, bin-integrated) are decomposed by the variants
                 is below 25 is left out), the yardstick of a method that finds every component
                 the counts show and no other
     best        :func:`decomposition.poisson_reference.best_of` the reference and the same fit
-                started from the ``modelled`` answer (:func:`decomposition_start`: its values
+                started from the ``modelled`` answer (:func:`decomposition.best_found.answer_start`: its values
                 for the components of the true set it found, the truth's for the others),
                 the lower deviance kept per pixel: the maximum likelihood as far as either
                 start finds it.  Started at the truth, the reference stays in the optimum
@@ -314,61 +314,12 @@ def hides_nothing(data) -> bool:
     return all(np.array_equal(seen[k], np.asarray(v, np.float64), equal_nan=True) for k, v in data.params.items())
 
 
-def decomposition_start(truth: dict, est: dict, *, delay_range_ps: tuple, match_ps: float) -> dict:
-    """A start for the reference on the true component set from a decomposition's answer.
-
-    Each true component takes the decomposition's values where it found that component: the
-    direct's delay and amplitude, the sss's onset, amplitude and alpha, and for each true
-    inter-reflection the decomposition's nearest one within ``match_ps`` of its delay; the
-    truth's values elsewhere, and wherever the decomposition's delay lies outside
-    ``delay_range_ps`` (the reference's window) or its amplitude is not positive.
-
-    Parameters
-    ----------
-    truth, est : dict of ndarray
-        True and estimated parameters (keys of :mod:`core.model`; shapes (N,) and (N, R)).
-    delay_range_ps : (float, float)
-    match_ps : float
-
-    Returns
-    -------
-    dict of ndarray, the truth's keys and shapes.
-    """
-    lo, hi = delay_range_ps
-    start = {k: np.array(v, np.float64, copy=True) for k, v in truth.items()}
-
-    def est_of(key, shape):
-        return np.asarray(est.get(key, np.full(shape, np.nan)), np.float64)
-
-    def usable(delay, amp):
-        return np.isfinite(delay) & (delay >= lo) & (delay <= hi) & (amp > 0)
-
-    t_d = start["direct_delay_ps"]
-    e_d, e_a = est_of("direct_delay_ps", t_d.shape), est_of("direct_amplitude", t_d.shape)
-    take = np.isfinite(t_d) & usable(e_d, e_a)
-    start["direct_delay_ps"][take], start["direct_amplitude"][take] = e_d[take], e_a[take]
-    t_s = start["sss_alpha_per_ps"]
-    e_sd, e_sa, e_al = (est_of(k, t_s.shape) for k in ("sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps"))
-    take = np.isfinite(t_s) & usable(e_sd, e_sa) & np.isfinite(e_al) & (e_al > 0)
-    for key, v in (("sss_delay_ps", e_sd), ("sss_amplitude", e_sa), ("sss_alpha_per_ps", e_al)):
-        start[key][take] = v[take]
-    t_r = start["ir_delay_ps"]
-    e_r, e_ra = est_of("ir_delay_ps", (t_r.shape[0], 0)), est_of("ir_amplitude", (t_r.shape[0], 0))
-    if t_r.shape[1] and e_r.shape[1]:
-        ok = usable(e_r, e_ra)
-        dist = np.where(ok[:, None, :], np.abs(e_r[:, None, :] - t_r[:, :, None]), np.inf)     # (N, Rt, Re)
-        k = np.argmin(dist, axis=2)
-        near = np.isfinite(t_r) & (np.take_along_axis(dist, k[..., None], axis=2)[..., 0] <= match_ps)
-        start["ir_delay_ps"] = np.where(near, np.take_along_axis(e_r, k, axis=1), t_r)
-        start["ir_amplitude"] = np.where(near, np.take_along_axis(e_ra, k, axis=1), start["ir_amplitude"])
-    return start
-
-
 def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict | None = None):
     """One variant's estimate: (params, components).  ``best`` reads the ``reference`` and
     ``modelled`` entries of ``fits`` (variant -> (params, components))."""
     from decomposition import decompose
     from core.model import time_axis_ps
+    from decomposition.best_found import answer_start
     from decomposition.poisson_reference import best_of, delay_window_ps, poisson_reference_fit
 
     background = data.background if setup["background"] else None
@@ -383,7 +334,7 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
             raise ValueError("the best variant needs the reference and modelled variants (run before it)")
         window = delay_window_ps(setup["response"], time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps))
         mod = fits["modelled"][0]
-        start = decomposition_start(data.params, mod, delay_range_ps=window, match_ps=BEST_MATCH_WIDTHS * SIGMA_PS)
+        start = answer_start(data.params, mod, delay_range_ps=window, match_ps=BEST_MATCH_WIDTHS * SIGMA_PS)
         if background is not None:
             est_bg = np.asarray(mod.get("background", np.full(np.shape(data.noisy)[:-1], np.nan)), np.float64)
             background = np.where(np.isfinite(est_bg) & (est_bg >= 0), est_bg, background)
