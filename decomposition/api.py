@@ -248,7 +248,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
         counts the pixels.
     rescue : bool
-        A second pass for the pixels flagged POOR_FIT at the end (float data whose
+        A second pass for the pixels flagged POOR_FIT at the end, or whose data term
+        lies beyond what their noise allows (``RESCUE_MISFIT_Z`` standard deviations of a
+        chi-square above its expectation; float data whose
         noise does not follow the signal): decomposed again without the detection's
         restart (:data:`decomposition.rescue.RESCUE_OPTIONS`), the second answer
         taken, with its own flags, where its penalised misfit is lower by
@@ -523,11 +525,13 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
 
 
 def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call):
-    """The second pass of :mod:`decomposition.rescue` on the POOR_FIT pixels: ``call`` holds the
+    """The second pass of :mod:`decomposition.rescue` on the POOR_FIT pixels and those whose data
+    term lies beyond their noise: ``call`` holds the
     keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
     -> (fit, params, flags), the taken pixels' rows replaced (flat, P-shaped)."""
+    from .constants import RESCUE_MISFIT_Z
     from .quality import Fit
-    from .rescue import RESCUE_OPTIONS, penalised_misfit, rescue_rows, take_rescued
+    from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
 
     live = samples.live
     flat = None if flat_noise is None else np.zeros(samples.values.shape[0], bool)
@@ -535,6 +539,11 @@ def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectr
         flat[live] = flat_noise
     poor = np.zeros(samples.values.shape[0], bool)
     poor[live] = (flags[live] & POOR_FIT) != 0
+    if live.size and samples.noise_model != "poisson":
+        # and the misfits POOR_FIT forgives: a data term beyond what the noise allows
+        fit_live = samples.fit[live]
+        chi2 = data_term(fit.residual[live], fit_live, noise_eff[live] * samples.scale[live], spectrum)
+        poor[live] |= misfit_beyond_noise(chi2, fit_live.sum(axis=1), RESCUE_MISFIT_Z)
     rows = rescue_rows(poor, flat, samples.noise_model == "poisson")
     if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
         rows = rows[:0]                   # off, or the first pass was already started so

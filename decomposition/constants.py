@@ -440,3 +440,9 @@ SIGNAL_NOISE_POOL_Z = 3.0
 # in quiet parts: paper scenes, 600 px, pink NSR 0.001 at 2 / 4 ps 0.983 / 0.962 -> 0.979 /
 # 0.958 uncapped, 0.983 / 0.963 capped at 4; photon NSR 0.055 at 2 ps 0.886 -> 0.894 / 0.893.
 SIGNIFICANCE_WEIGHT_CAP = 4.0
+# The second pass (decomposition.rescue) also takes the pixels whose data term, in the noise the
+# first pass weighed them with (whitened by the call's spectrum where its noise is correlated),
+# lies more than this many standard deviations of a chi-square of n_fit degrees of freedom above
+# its expectation, n_fit + z sqrt(2 n_fit) (1.19 n_fit for 512 samples): a misfit the POOR_FIT
+# bar (3 noise sigmas of residual RMS, a data term 9 times its expectation) forgives.
+RESCUE_MISFIT_Z = 3.0
