@@ -62,6 +62,7 @@ import numpy as np
 from streaklab.cli import CommandError
 
 from .arguments import choices, output_folder, positive_floats
+from .scoring import GAP_BEST
 from .tables import write_csv
 
 LEVEL = 0.90
@@ -95,7 +96,7 @@ OWN_MODEL = "own-model"
 #: narrower than a bin) no method that must find its own start is told to stop there.  The gap
 #: between the detectable ceiling and this one is what that flatness costs; the gap between
 #: ConvSCD and this one what ConvSCD's search costs.  Fitted where ConvSCD runs.
-BEST_FOUND = "best-found"
+BEST_FOUND = GAP_BEST
 #: an inter-reflection of ConvSCD's answer is matched to a true one within this many PSF widths
 BEST_MATCH_WIDTHS = 2.0
 
@@ -437,7 +438,8 @@ def _plot_regimes(path: Path, points, method: str) -> None:
     """``regimes.png``: the gap of ``method`` to the oracle in every regime row (rows) at every
     point (columns), coloured, each cell with its gap and standard error; outlined where the
     row fails its target, hatched where the detectable ceiling's own gap fails it too (the
-    components the noise hides cost more than the limit), faded where it is not judged (fewer
+    components the noise hides cost more than the limit), hatched the other way where the
+    best-found fit's does (cross-hatched where both), faded where it is not judged (fewer
     than MIN_REGIME_PIXELS pixels, or no target at that point)."""
     import matplotlib
 
@@ -449,6 +451,7 @@ def _plot_regimes(path: Path, points, method: str) -> None:
     from .scoring import GAP_CEILING, MIN_REGIME_PIXELS, gap_matrix
 
     g = gap_matrix(points, method, ceiling=GAP_CEILING)
+    best_failed = gap_matrix(points, method, ceiling=GAP_BEST)["ceiling_failed"]
     R, C = g["gap"].shape
     fig, ax = plt.subplots(figsize=(max(6.5, 2.6 + 0.78 * C), 1.8 + 0.34 * R))
     norm = TwoSlopeNorm(vmin=-0.15, vcenter=0.0, vmax=0.05)
@@ -469,11 +472,13 @@ def _plot_regimes(path: Path, points, method: str) -> None:
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=1.6, ec="black"))
             if g["ceiling_failed"][i, j]:
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=0, hatch="////", ec="0.35"))
+            if best_failed[i, j]:
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=0, hatch="\\\\\\\\", ec="0.35"))
     ax.set_xticks(range(C), g["columns"], rotation=60, ha="right", fontsize=7)
     ax.set_yticks(range(R), g["rows"], fontsize=7)
-    ax.set_title(f"{method} mean fidelity minus the oracle's, by regime\n(outlined: target not met; hatched: "
-                 f"the {GAP_CEILING} ceiling misses it too; faded: not judged, < {MIN_REGIME_PIXELS} px or no "
-                 f"target)", fontsize=8)
+    ax.set_title(f"{method} mean fidelity minus the oracle's, by regime\n(outlined: target not met; faded: not judged, "
+                 f"< {MIN_REGIME_PIXELS} px or no target;\nhatched /: the {GAP_CEILING} ceiling misses it too, "
+                 f"\\: the {BEST_FOUND} fit does)", fontsize=8)
     fig.colorbar(im, ax=ax, fraction=0.025, pad=0.01, label="gap to the oracle")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
