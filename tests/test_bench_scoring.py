@@ -109,25 +109,28 @@ def test_check_targets_met_not_met_and_not_measured():
     assert status is False
 
 
+def _row(regime, b, n, gaps, se=0.01):
+    """A regime row of regime_rows' layout with the given gap per column."""
+    out = {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS}
+    for m, g in gaps.items():
+        out[f"gap[{m}]"], out[f"gap_se[{m}]"] = g, se
+    return out
+
+
 def test_each_gap_target_names_the_detectable_ceilings_own_verdict():
-    def row(regime, b, n, gaps, se=0.01):
-        out = {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS}
-        for m, g in gaps.items():
-            out[f"gap[{m}]"], out[f"gap_se[{m}]"] = g, se
-        return out
     # white NSR 0.055: the method misses (-0.06 where the weak echoes are) and so does the ceiling
     # (-0.042 there); white NSR 0.001: the method misses in the sub-bin row, the ceiling meets;
     # the ceiling's worst row is its own (not the method's), and a few-pixel row is not judged
     a = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.055, "n": 600, "delay_failures[convscd]": 0,
          "unflagged_failures[convscd]": 0,
-         "regimes": [row("all", "all", 600, {"convscd": -0.02, "detectable": -0.014}),
-                     row("weakest ir/direct", "< 0.05", 198, {"convscd": -0.06, "detectable": -0.042}),
-                     row("sigma (bins)", "< 1", 5, {"convscd": -0.5, "detectable": -0.5})]}
+         "regimes": [_row("all", "all", 600, {"convscd": -0.02, "detectable": -0.014}),
+                     _row("weakest ir/direct", "< 0.05", 198, {"convscd": -0.06, "detectable": -0.042}),
+                     _row("sigma (bins)", "< 1", 5, {"convscd": -0.5, "detectable": -0.5})]}
     b = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.001, "n": 600, "delay_failures[convscd]": 0,
          "unflagged_failures[convscd]": 0,
-         "regimes": [row("all", "all", 600, {"convscd": -0.01, "detectable": 0.0}),
-                     row("sigma (bins)", "< 1", 76, {"convscd": -0.036, "detectable": 0.0}),
-                     row("sss onset (sigma)", "1-2", 202, {"convscd": -0.005, "detectable": -0.002})]}
+         "regimes": [_row("all", "all", 600, {"convscd": -0.01, "detectable": 0.0}),
+                     _row("sigma (bins)", "< 1", 76, {"convscd": -0.036, "detectable": 0.0}),
+                     _row("sss onset (sigma)", "1-2", 202, {"convscd": -0.005, "detectable": -0.002})]}
     assert worst_gap(a["regimes"], "detectable") == (-0.042, "weakest ir/direct", "< 0.05", 0.01)
     assert worst_gap(b["regimes"], "detectable")[:3] == (-0.002, "sss onset (sigma)", "1-2")
     assert worst_gap(a["regimes"], "gradbm") is None
@@ -140,7 +143,7 @@ def test_each_gap_target_names_the_detectable_ceilings_own_verdict():
                              "from the limit), not met; convscd in the rows the ceiling meets: worst gap -0.020 "
                              "+- 0.010 (overall, 1.0 se from the limit), met")
     assert r55["met_where_ceiling_meets"] is True
-    a["regimes"].append(row("sss onset (sigma)", "1-2", 200, {"convscd": -0.045, "detectable": -0.01}))
+    a["regimes"].append(_row("sss onset (sigma)", "1-2", 200, {"convscd": -0.045, "detectable": -0.01}))
     r = next(r for r in target_records([a, b]) if "NSR 0.055, 2" in r["text"])
     assert r["met_where_ceiling_meets"] is False and r["detail"].endswith(
         "in the rows the ceiling meets: worst gap -0.045 +- 0.010 (sss onset (sigma) 1-2, 1.5 se from the limit), not met")
@@ -218,15 +221,15 @@ def test_the_delay_target_reads_its_unflagged_failures_against_the_data():
 
 
 def test_gap_matrix_marks_the_rows_that_fail_their_target():
-    def row(regime, b, n, gap, se):
+    def _row(regime, b, n, gap, se):
         return {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS, "gap[convscd]": gap,
                 "gap_se[convscd]": se}
     white = {"time_bin_ps": 2.0, "noise": "white", "nsr": 0.055,
-             "regimes": [row("all", "all", 300, -0.02, 0.005), row("sigma (bins)", "< 1", 40, -0.04, 0.01),
-                         row("sigma (bins)", ">= 4", 5, -0.5, 0.2)]}
+             "regimes": [_row("all", "all", 300, -0.02, 0.005), _row("sigma (bins)", "< 1", 40, -0.04, 0.01),
+                         _row("sigma (bins)", ">= 4", 5, -0.5, 0.2)]}
     # no target is set for pink noise at NSR 0.11; this point also lacks the ">= 4" row
     pink = {"time_bin_ps": 4.0, "noise": "pink", "nsr": 0.11,
-            "regimes": [row("all", "all", 300, -0.09, 0.01), row("sigma (bins)", "< 1", 100, -0.2, 0.02)]}
+            "regimes": [_row("all", "all", 300, -0.09, 0.01), _row("sigma (bins)", "< 1", 100, -0.2, 0.02)]}
     g = gap_matrix([white, pink])
     assert g["rows"] == ["all", "sigma (bins) < 1", "sigma (bins) >= 4"]
     assert g["columns"] == ["2 ps white 0.055", "4 ps pink 0.11"]
@@ -262,20 +265,15 @@ def test_each_gap_target_reads_the_best_found_fit_and_the_methods_gap_to_it():
     from the point's ``regimes_best_found`` rows; the header counts both."""
     from streaklab.bench.accuracy import target_header
 
-    def row(regime, b, n, gaps, se=0.01):
-        out = {"regime": regime, "bin": b, "n": n, "few": n < MIN_REGIME_PIXELS}
-        for m, g in gaps.items():
-            out[f"gap[{m}]"], out[f"gap_se[{m}]"] = g, se
-        return out
     p = {"time_bin_ps": 4.0, "noise": "white", "nsr": 0.055, "n": 600, "delay_failures[convscd]": 0,
          "unflagged_failures[convscd]": 0,
-         "regimes": [row("all", "all", 600, {"convscd": -0.034, "detectable": -0.015, "best-found": -0.02}),
-                     row("inter-reflections", ">= 2", 200, {"convscd": -0.079, "detectable": -0.044,
+         "regimes": [_row("all", "all", 600, {"convscd": -0.034, "detectable": -0.015, "best-found": -0.02}),
+                     _row("inter-reflections", ">= 2", 200, {"convscd": -0.079, "detectable": -0.044,
                                                             "best-found": -0.048})],
          # against the best-found fit (its own reference): the method's gaps
-         "regimes_best_found": [row("all", "all", 600, {"convscd": -0.014}),
-                                row("inter-reflections", ">= 2", 200, {"convscd": -0.031}),
-                                row("sigma (bins)", "< 1", 12, {"convscd": -0.2})]}
+         "regimes_best_found": [_row("all", "all", 600, {"convscd": -0.014}),
+                                _row("inter-reflections", ">= 2", 200, {"convscd": -0.031}),
+                                _row("sigma (bins)", "< 1", 12, {"convscd": -0.2})]}
     r = next(r for r in target_records([p]) if "NSR 0.055, 4" in r["text"])
     assert r["met"] is False and r["ceiling_met"] is False and r["best_met"] is False
     assert r["within_limit_of_best"] is False
