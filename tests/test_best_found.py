@@ -102,3 +102,29 @@ def test_lowest_cost_refuses_what_it_cannot_compare():
         lowest_cost([a, {"info": {"rss": np.ones(2)}}], cost="rss")
     with pytest.raises(ValueError, match="no 'deviance'"):
         lowest_cost([a, a], cost="deviance")
+
+
+def test_the_best_found_ceiling_never_costs_more_than_the_detectable_one():
+    """bench accuracy's best-found column on paper scenes (4 ps bins, white NSR 0.055, 60 px):
+    per pixel its least-squares cost is the lower of the truth's start and ConvSCD's, and some
+    pixels take ConvSCD's start (the truth's is not always the best the cost allows)."""
+    from decomposition import decompose
+    from decomposition.oracle import oracle_fit, significant_truth
+    from decomposition.synthetic import make_profiles
+    from streaklab.bench.accuracy import best_found_fit
+
+    d = make_profiles(60, 256, nsr=0.055, noise="white", seed=3, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
+                      bin_integrated=True)
+    seen = significant_truth(d.params, d.components, np.std(d.noisy - d.clean, axis=-1))
+    det = oracle_fit(d.noisy, seen, time_bin_ps=4.0, bin_integrated=True)
+    answer = decompose(d.noisy, 4.0).params
+    best = best_found_fit(d, seen, det, answer, 4.0, True)
+    rss, rss_det = best.info["rss"], det.info["rss"]
+    assert np.all(rss <= rss_det * (1 + 1e-12))
+    took = best.info["start"] == 1
+    assert 0 < took.sum() < 60
+    assert np.all(rss[took] < rss_det[took])
+    np.testing.assert_array_equal(best.params["direct_delay_ps"][~took], det.params["direct_delay_ps"][~took])
+    # the component set is the detectable one: no component added or lost
+    for key in ("direct_delay_ps", "sss_delay_ps", "ir_delay_ps"):
+        np.testing.assert_array_equal(np.isfinite(best.params[key]), np.isfinite(seen[key]))
