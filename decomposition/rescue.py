@@ -34,7 +34,8 @@ pixels of 600, and not one whose second answer was better by fidelity, let alone
 Adding the misfits beyond the noise (the same scenes, seeds 0, 1 and 2, 54 points): mean
 fidelity +0.0004, 18 points up and 4 down (at most -0.0020, 4 ps pink NSR 0.11 on seed 2), all
 six white NSR 0.055 points up by 0.0010-0.0023, pixels below fidelity 0.5 773 -> 762; 1.6 % of
-the pixels tried; ``bench speed``'s cube within the machine's noise (two alternated pairs).
+the pixels tried; on ``bench speed``'s default cube about 3 % more time (1,600 / 1,634 px/s
+before, 1,553 / 1,574 / 1,551 after, alternated: 2 % of its pixels tried, one more call per chunk).
 The second pass is the whole path, search included: without its search (``search=False`` in
 the second pass) the gain over the 36 points fell from +0.0016 to +0.0002.  The call's ``info``
 arrays of the detection (``objective``, ``n_iter``) stay the first pass's.
