@@ -7,12 +7,12 @@ with) lies more than RESCUE_MISFIT_Z standard deviations of a chi-square above i
 (:func:`misfit_beyond_noise`): POOR_FIT's bar, a residual RMS of 3 noise sigmas, forgives a
 wide direct that took in an echo (4 ps white NSR 0.055: a data term 1.2-1.3 times its
 expectation, no flag, fidelity 0.06; ``tests/test_rescue.py``).  Which path finds it is a
-matter of where the detection started: the same profiles decomposed without the detection's Gauss-Southwell restart (``multistart=False``,
-:data:`RESCUE_OPTIONS`) end elsewhere, and where they misfit less the data say so.  So those
-pixels, where their noise does not follow the signal (float data left unweighted:
-there the misfit is the model's, not a noise law's) are decomposed once more with those
-options (:func:`rescue_rows`), and a pixel takes the second answer where its penalised
-objective,
+matter of where the detection started: the same profiles decomposed without the detection's
+Gauss-Southwell restart (``multistart=False``, :data:`RESCUE_OPTIONS`) end elsewhere, and where
+they misfit less the data say so.  So those pixels, where their noise does not follow the signal
+(float data left unweighted: there the misfit is the model's, not a noise law's), are decomposed
+once more with those options (:func:`rescue_rows`), and a pixel takes the second answer where
+its penalised objective,
 
     J = sum over the fitted samples of (residual / s)^2 + k ln n,
 
