@@ -533,21 +533,24 @@ def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectr
     from .quality import Fit
     from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
 
+    info["rescue_tried"], info["rescued"] = 0, 0
+    if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
+        return fit, params, flags         # off, or the first pass was already started so
     live = samples.live
     flat = None if flat_noise is None else np.zeros(samples.values.shape[0], bool)
     if flat is not None:
         flat[live] = flat_noise
     poor = np.zeros(samples.values.shape[0], bool)
     poor[live] = (flags[live] & POOR_FIT) != 0
-    if live.size and samples.noise_model != "poisson":
-        # and the misfits POOR_FIT forgives: a data term beyond what the noise allows
-        fit_live = samples.fit[live]
-        chi2 = data_term(fit.residual[live], fit_live, noise_eff[live] * samples.scale[live], spectrum)
-        poor[live] |= misfit_beyond_noise(chi2, fit_live.sum(axis=1), RESCUE_MISFIT_Z)
+    if samples.noise_model != "poisson":
+        # and the misfits POOR_FIT forgives: a data term beyond what the noise allows (read only
+        # where rescue_rows may take the pixel: its noise does not follow the signal)
+        cand = live if flat is None else live[flat[live]]
+        fit_c = samples.fit[cand]
+        chi2 = data_term(fit.residual[cand], fit_c, noise_eff[cand] * samples.scale[cand], spectrum)
+        poor[cand] |= misfit_beyond_noise(chi2, fit_c.sum(axis=1), RESCUE_MISFIT_Z)
     rows = rescue_rows(poor, flat, samples.noise_model == "poisson")
-    if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
-        rows = rows[:0]                   # off, or the first pass was already started so
-    info["rescue_tried"], info["rescued"] = int(rows.size), 0
+    info["rescue_tried"] = int(rows.size)
     if rows.size == 0:
         return fit, params, flags
     L = samples.n_bins
