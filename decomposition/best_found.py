@@ -19,7 +19,11 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["answer_start", "lowest_cost"]
+__all__ = ["MATCH_WIDTHS", "answer_start", "lowest_cost"]
+
+#: An answer's inter-reflection is matched to a true one within this many PSF widths of it (the
+#: ``match_ps`` both benches give :func:`answer_start`, in the widths of their scenes).
+MATCH_WIDTHS = 2.0
 
 
 def answer_start(truth: dict, est: dict, *, delay_range_ps: tuple, match_ps, widths: bool = False) -> dict:

@@ -97,8 +97,6 @@ OWN_MODEL = "own-model"
 #: between the detectable ceiling and this one is what that flatness costs; the gap between
 #: ConvSCD and this one what ConvSCD's search costs.  Fitted where ConvSCD runs.
 BEST_FOUND = GAP_BEST
-#: an inter-reflection of ConvSCD's answer is matched to a true one within this many PSF widths
-BEST_MATCH_WIDTHS = 2.0
 
 
 def ceilings(bin_integrated: bool, best_found: bool = False) -> tuple:
@@ -181,12 +179,12 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
     parameters) mapped onto it, the lower least-squares cost kept per pixel (a tie: the
     detectable ceiling's)."""
     from core.model import time_axis_ps
-    from decomposition.best_found import answer_start, lowest_cost
+    from decomposition.best_found import MATCH_WIDTHS, answer_start, lowest_cost
     from decomposition.oracle import oracle_fit
 
     t = time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps)
     start = answer_start(seen, answer, delay_range_ps=(float(t[0]), float(t[-1])),
-                         match_ps=BEST_MATCH_WIDTHS * np.asarray(seen["direct_sigma_ps"], np.float64), widths=True)
+                         match_ps=MATCH_WIDTHS * np.asarray(seen["direct_sigma_ps"], np.float64), widths=True)
     other = oracle_fit(data.noisy, start, time_bin_ps=time_bin_ps, t0_ps=data.t0_ps, bin_integrated=bin_integrated)
     return lowest_cost([detectable, other], cost="rss")
 

@@ -89,9 +89,6 @@ ECHO_EFFECTS = ("echo", "echo5sigma")
 ECHO_SIGMA = 5.0
 ECHO_DIRECT_BEFORE_PS = 3.0
 VARIANTS = ("ignored", "modelled", "reference", "visible", "best")
-#: ``best`` matches a true inter-reflection to the decomposition's nearest one within this many
-#: PSF widths
-BEST_MATCH_WIDTHS = 2.0
 PHOTONS = (100.0, 300.0, 1000.0, 10000.0)
 #: PSF core width of every scene, ps (the responses' Gaussian core)
 SIGMA_PS = 4.0
@@ -319,7 +316,7 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
     ``modelled`` entries of ``fits`` (variant -> (params, components))."""
     from decomposition import decompose
     from core.model import time_axis_ps
-    from decomposition.best_found import answer_start
+    from decomposition.best_found import MATCH_WIDTHS, answer_start
     from decomposition.poisson_reference import best_of, delay_window_ps, poisson_reference_fit
 
     background = data.background if setup["background"] else None
@@ -334,7 +331,7 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
             raise ValueError("the best variant needs the reference and modelled variants (run before it)")
         window = delay_window_ps(setup["response"], time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps))
         mod = fits["modelled"][0]
-        start = answer_start(data.params, mod, delay_range_ps=window, match_ps=BEST_MATCH_WIDTHS * SIGMA_PS)
+        start = answer_start(data.params, mod, delay_range_ps=window, match_ps=MATCH_WIDTHS * SIGMA_PS)
         if background is not None:
             est_bg = np.asarray(mod.get("background", np.full(np.shape(data.noisy)[:-1], np.nan)), np.float64)
             background = np.where(np.isfinite(est_bg) & (est_bg >= 0), est_bg, background)
