@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA,
+from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
                         SIGNIFICANCE_WEIGHT_CAP)
 from .atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
@@ -144,16 +144,18 @@ def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray
     return active & (centre_out | (fraction_in < 1.0 - mass_out))
 
 
-def _resolved(st: dict, h: np.ndarray) -> np.ndarray:
+def _resolved(st: dict, h: np.ndarray, peaked_only: bool = False) -> np.ndarray:
     """(P, K) bool: active atoms whose delay (a Gaussian's centre, an sss onset) lies more than
-    RESOLVED_SIGMA widths from that of every larger atom (by in-window peak ``h``) of the pixel.
+    RESOLVED_SIGMA widths from that of every larger atom (by in-window peak ``h``) of the pixel;
+    with ``peaked_only``, of every larger Gaussian (an sss onset then hides nothing).
     A faint atom under a larger one is the model's correction of its shape, not a component of
     its own, so only resolved atoms may pass on significance alone."""
     act = st["fam"] != FAM_NONE
     sig = np.exp(st["lsig"])
     gap = np.abs(st["delay"][:, :, None] - st["delay"][:, None, :])
     width = np.maximum(sig[:, :, None], sig[:, None, :])
-    larger = act[:, None, :] & (h[:, None, :] > h[:, :, None])
+    hides = act & (st["fam"] == FAM_GAUSS) if peaked_only else act
+    larger = hides[:, None, :] & (h[:, None, :] > h[:, :, None])
     near = larger & ~(gap > RESOLVED_SIGMA * width)
     return act & ~near.any(axis=2)
 
@@ -164,7 +166,8 @@ def _drop(st, mask):
 
 
 def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=None,
-              significance_chi2: float = 0.0, weights=None) -> dict:
+              significance_chi2: float = 0.0, weights=None,
+              sss_factor: float | None = SSS_RESOLVED_CHI2_FACTOR) -> dict:
     """Drop the atoms that are neither large nor significant inside the window (in place).
 
     An atom is kept when its in-window peak is at least ``rel_threshold`` x the pixel's
@@ -177,10 +180,11 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     (its delay more than RESOLVED_SIGMA widths from theirs, :mod:`decomposition.constants`).  Without ``noise`` or with
     ``significance_chi2 = 0`` the relative rule alone.  Atoms with no sample in the window are
     always dropped.  ``weights`` (P, L): the energy weighs each sample so (where the noise
-    follows the signal, s^2 / weight is the noise variance there).
+    follows the signal, s^2 / weight is the noise variance there).  ``sss_factor``: see
+    :func:`keep_atoms`.
     """
     h, e = window_measures(st, t_ps, weights)
-    keep = keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
+    keep = keep_atoms(st, h, e, rel_threshold, noise, significance_chi2, sss_factor)
     _drop(st, (st["fam"] != FAM_NONE) & ~keep)
     # atoms entirely outside the window render as zero everywhere inside it
     _drop(st, (st["fam"] != FAM_NONE) & ~(h > 0))
@@ -188,17 +192,24 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
 
 
 def keep_atoms(st: dict, h: np.ndarray, e: np.ndarray, rel_threshold: float, noise=None,
-               significance_chi2: float = 0.0) -> np.ndarray:
+               significance_chi2: float = 0.0, sss_factor: float | None = SSS_RESOLVED_CHI2_FACTOR) -> np.ndarray:
     """(P, K) bool: the atoms of ``st`` that :func:`threshold`'s rule keeps, from their in-window
     peak heights ``h`` and energies ``e`` (P, K) (:func:`window_measures`, or the same measures
     of a measured response's atoms) and the pixels' ``noise`` (P,); the one home of the rule
-    for every kind of atom.  Widths for the resolution test are ``st["lsig"]``."""
+    for every kind of atom.  Widths for the resolution test are ``st["lsig"]``.
+
+    ``sss_factor``: an atom that only a larger sss onset hides (resolved from every larger
+    Gaussian) passes at ``sss_factor`` times the significance bar (default
+    :data:`~decomposition.constants.SSS_RESOLVED_CHI2_FACTOR`); None: every larger atom hides
+    alike (the detection's pruning before its polish)."""
     top = h.max(axis=1, keepdims=True)
     keep = h >= rel_threshold * top
     if noise is not None and significance_chi2 > 0:
         s2 = np.asarray(noise, np.float64).reshape(-1, 1) ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
             keep |= (s2 > 0) & (e >= significance_chi2 * s2) & _resolved(st, h)
+            if sss_factor is not None:
+                keep |= (s2 > 0) & (e >= sss_factor * significance_chi2 * s2) & _resolved(st, h, peaked_only=True)
     return keep
 
 

@@ -68,6 +68,7 @@ __all__ = [
     "OFF_WINDOW_MASS",
     "OFF_WINDOW_EDGE_SIGMA",
     "RESOLVED_SIGMA",
+    "SSS_RESOLVED_CHI2_FACTOR",
     "WHITE_LAG_RATIO",
 ]
 
@@ -378,6 +379,14 @@ OFF_WINDOW_EDGE_SIGMA = 2.0
 #: inter-reflection gap of the search stage): a faint atom closer than that is the model's
 #: correction of the larger one's shape (seen on noiseless data), not a component
 RESOLVED_SIGMA = 3.0
+#: a faint atom within RESOLVED_SIGMA widths of a larger sss onset, but resolved from every
+#: larger peaked atom, is kept on its significance when its energy is at least this many times
+#: the significance bar (``significance_chi2`` noise variances): an sss rises over several
+#: widths, and an echo on its rise (1-3 % of the direct, e.g. 2,100 noise variances at NSR
+#: 0.001) is a component, while a faint atom there can also be the sss's shape correction
+#: (52 noise variances on a scene whose model is exact: tests/test_grow.py's late-peaking sss).
+#: Before the detection's polish every larger atom hides a faint one alike (``None``).
+SSS_RESOLVED_CHI2_FACTOR = 4.0
 #: the in-window significance test weighs an atom's energy with the noise across this many
 #: samples (at most a quarter of the window) where that is above the sample-to-sample noise
 #: (decomposition.noise.lagged_noise_sigma): correlated noise makes component-sized bumps that

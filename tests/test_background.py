@@ -281,6 +281,33 @@ def test_threshold_keeps_a_significant_faint_atom():
         assert (out["fam"][0, 1] == FAM_GAUSS) == keep
 
 
+def test_a_faint_atom_near_a_larger_sss_onset_passes_at_the_sss_factor_times_the_bar():
+    """A faint Gaussian 2 widths after a larger sss's onset, 10 widths after the direct: the sss
+    hides it unless its energy reaches SSS_RESOLVED_CHI2_FACTOR x the bar; a larger Gaussian as
+    close hides it whatever its energy; with ``sss_factor=None`` every larger atom hides alike."""
+    from decomposition.components import window_measures
+    from decomposition.constants import SSS_RESOLVED_CHI2_FACTOR
+
+    t = T * np.arange(256)
+    st = _state([FAM_GAUSS, FAM_SSS, FAM_GAUSS], [50.0, 74.0, 80.0], [1.0, 0.3, 0.01])
+    h, e = window_measures(st, t)
+    assert h[0, 1] > h[0, 2] and h[0, 2] < 0.05 * h[0].max()      # the sss is the larger, the echo faint
+    bar = 25.0
+    for multiple, keep in ((1.01 * SSS_RESOLVED_CHI2_FACTOR, True), (0.99 * SSS_RESOLVED_CHI2_FACTOR, False),
+                           (2.0, False)):
+        s = np.array([np.sqrt(e[0, 2] / (multiple * bar))])          # the echo's energy: multiple x the bar
+        out = threshold({k: v.copy() for k, v in st.items()}, t, 0.05, s, bar)
+        assert (out["fam"][0, 2] == FAM_GAUSS) == keep
+        assert out["fam"][0, 1] == FAM_SSS and out["fam"][0, 0] == FAM_GAUSS
+        old = threshold({k: v.copy() for k, v in st.items()}, t, 0.05, s, bar, sss_factor=None)
+        assert old["fam"][0, 2] != FAM_GAUSS
+    # a larger Gaussian as close (the direct 2 widths before it) hides it at any energy
+    g = _state([FAM_GAUSS, FAM_GAUSS], [74.0, 80.0], [1.0, 0.01])
+    hg, eg = window_measures(g, t)
+    out = threshold({k: v.copy() for k, v in g.items()}, t, 0.05, np.array([np.sqrt(eg[0, 1] / 1e4)]), bar)
+    assert out["fam"][0, 1] != FAM_GAUSS
+
+
 def _echo_scene(n, rng, direct_delay_ps):
     """A direct truncated at the window start and an echo at 1 % of the direct's peak, 5 noise
     sigmas above the noise."""
