@@ -144,20 +144,20 @@ def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray
     return active & (centre_out | (fraction_in < 1.0 - mass_out))
 
 
-def _resolved(st: dict, h: np.ndarray, peaked_only: bool = False) -> np.ndarray:
-    """(P, K) bool: active atoms whose delay (a Gaussian's centre, an sss onset) lies more than
-    RESOLVED_SIGMA widths from that of every larger atom (by in-window peak ``h``) of the pixel;
-    with ``peaked_only``, of every larger Gaussian (an sss onset then hides nothing).
-    A faint atom under a larger one is the model's correction of its shape, not a component of
-    its own, so only resolved atoms may pass on significance alone."""
+def _resolved(st: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (P, K) bool arrays: the active atoms whose delay (a Gaussian's centre, an sss onset)
+    lies more than RESOLVED_SIGMA widths from that of every larger atom (by in-window peak
+    ``h``) of the pixel, and those for which this holds against every larger Gaussian (an sss
+    onset then hides nothing).  A faint atom under a larger one is the model's correction of
+    its shape, not a component of its own, so only resolved atoms may pass on significance
+    alone."""
     act = st["fam"] != FAM_NONE
     sig = np.exp(st["lsig"])
     gap = np.abs(st["delay"][:, :, None] - st["delay"][:, None, :])
     width = np.maximum(sig[:, :, None], sig[:, None, :])
-    hides = act & (st["fam"] == FAM_GAUSS) if peaked_only else act
-    larger = hides[:, None, :] & (h[:, None, :] > h[:, :, None])
-    near = larger & ~(gap > RESOLVED_SIGMA * width)
-    return act & ~near.any(axis=2)
+    near = act[:, None, :] & (h[:, None, :] > h[:, :, None]) & ~(gap > RESOLVED_SIGMA * width)
+    by_gaussian = near & (st["fam"] == FAM_GAUSS)[:, None, :]
+    return act & ~near.any(axis=2), act & ~by_gaussian.any(axis=2)
 
 
 def _drop(st, mask):
@@ -207,9 +207,10 @@ def keep_atoms(st: dict, h: np.ndarray, e: np.ndarray, rel_threshold: float, noi
     if noise is not None and significance_chi2 > 0:
         s2 = np.asarray(noise, np.float64).reshape(-1, 1) ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
-            keep |= (s2 > 0) & (e >= significance_chi2 * s2) & _resolved(st, h)
+            resolved, from_gaussians = _resolved(st, h)
+            keep |= (s2 > 0) & (e >= significance_chi2 * s2) & resolved
             if sss_factor is not None:
-                keep |= (s2 > 0) & (e >= sss_factor * significance_chi2 * s2) & _resolved(st, h, peaked_only=True)
+                keep |= (s2 > 0) & (e >= sss_factor * significance_chi2 * s2) & from_gaussians
     return keep
 
 

@@ -443,27 +443,17 @@ def _split(t, st):
 def weak_leading_gaussian(t_ps, st) -> np.ndarray:
     """(n,) bool: slot states whose earliest Gaussian is weak and just before a much larger
     onset -- the geometry :func:`decomposition.quality.weak_direct` flags AMBIGUOUS in the
-    output, read here on a slot state (``t_ps`` (L,) the sample times).  Such a Gaussian is often
-    not the direct but a patch on its leading edge (4 ps bins, PSFs narrower than a bin: a
-    Gaussian one bin before the true direct, at 10-15 % of its height, the direct labelled an
-    inter-reflection)."""
-    from .constants import FAM_GAUSS, FAM_SSS
+    output, read on a slot state labelled and rendered as the output is (``t_ps`` (L,) the
+    sample times).  Such a Gaussian is often not the direct but a patch on its leading edge
+    (4 ps bins, PSFs narrower than a bin: a Gaussian one bin before the true direct, at 10-15 %
+    of its height, the direct labelled an inter-reflection)."""
+    from .components import classify, render_params
     from .quality import weak_direct
 
-    g = st["fam"] == FAM_GAUSS
-    rows = np.arange(g.shape[0])
-    k0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
-    has = g[rows, k0]
-    later = g.copy()
-    later[rows, k0] = False
-    s_at = st["fam"] == FAM_SSS
-    direct, sss, others = _split(t_ps, st)
-    params = {"direct_delay_ps": np.where(has, st["delay"][rows, k0], np.nan),
-              "direct_sigma_ps": np.where(has, np.exp(st["lsig"][rows, k0]), np.nan),
-              "sss_delay_ps": np.where(s_at.any(axis=1), np.where(s_at, st["delay"], -np.inf).max(axis=1), np.nan),
-              "ir_delay_ps": np.where(later, st["delay"], np.nan)}
-    rendered = {"direct": direct, "sss": sss, "interreflections": others[:, None, :]}
-    return has & weak_direct(params, rendered, t_ps)
+    n, K = st["fam"].shape
+    params, _ = classify(st, np.ones(n), max(K - 1, 0))      # every later Gaussian an inter-reflection
+    T = float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 1.0
+    return weak_direct(params, render_params(params, t_ps.size, T, float(t_ps[0])), t_ps)
 
 
 def _split_distance(a, b):
