@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
-from .jit import SQRT_PI_2, erfcx, njit
+from .jit import SQRT_PI_2, njit, sss_erfc_part
 from .masks import SampleMask, check_mask
 from .onsets import onset_link
 
@@ -39,7 +39,6 @@ _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _SQRT_2 = math.sqrt(2.0)
 _TINY = 1e-290                        # tail values below this are exact zeros (no subnormals)
 _RESTART = 8                          # bins between fresh evaluations of the stepped factors
-_ERFC_FROM = 5.0                      # u from which an sss value is g erfcx(u), below it f erfc(u)
 
 
 @njit
@@ -157,10 +156,11 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, 
     s2 = sig * sig
     i = lo
     i_tail = _tail_start(t0, T, L, lo, delay, sig, alp)
-    # h = sqrt(pi/2) sigma g(x) erfcx(u), u = (alpha sigma^2 - x) / (sigma sqrt 2), where u is
-    # large (the stable form of jit.sss_value); elsewhere the equal sqrt(pi/2) sigma f(x) erfc(u)
-    # with f(x) = g(x) exp(u^2) = exp(alpha^2 sigma^2 / 2 - alpha x) < exp(u^2) stepped by
-    # exp(-alpha T) per bin: one erfc per bin
+    # h = sqrt(pi/2) sigma f(x) erfc(u), u = (alpha sigma^2 - x) / (sigma sqrt 2), in the stable
+    # form of jit.sss_erfc_part: g(x) erfcx(u) where u >= 0, 2 f(x) - g(x) erfcx(-u) elsewhere,
+    # with g stepped as above and f(x) = g(x) exp(u^2) = exp(alpha^2 sigma^2 / 2 - alpha x) <= 1
+    # (u < 0) stepped by exp(-alpha T) per bin: one polynomial of erfcx's table per bin, and no
+    # other transcendental function
     rho = math.exp(-alp * T)
     scale = SQRT_PI_2 * sig
     g = 0.0
@@ -175,13 +175,10 @@ def _eval_slot(t0, T, L, fam, amp, delay, lsig, lalp, J, row, deriv_end, model, 
             e = math.exp(-xs * b - 0.5 * b * b)
             f_on = False
         u = (alp * s2 - x) / (sig * _SQRT_2)
-        if u >= _ERFC_FROM:
-            h = scale * (g * erfcx(u))
-        else:
-            if not f_on:
-                f = math.exp(0.5 * alp * alp * s2 - alp * x)      # <= exp(u^2) < exp(25)
-                f_on = True
-            h = scale * (f * math.erfc(u))
+        if u < 0.0 and not f_on:
+            f = math.exp(0.5 * alp * alp * s2 - alp * x)      # = g exp(u^2) <= 1 where u < 0
+            f_on = True
+        h = scale * sss_erfc_part(u, g, f)
         J[row, i] = h
         if add:
             model[i] += amp * h
@@ -532,6 +529,25 @@ def _objective(L, K, p, fit, cens, w, model, fam, amp, pen, mu, eps, r, jw):
 
 
 @njit
+def _objective_plain(L, K, p, wf, model, fam, amp, pen, mu, eps, r):
+    """:func:`_objective` of a pixel without censored samples (and with finite values where its
+    samples do not count), ``wf`` its weights with 0 on the samples that do not count (then also
+    its Jacobian row weights, which stay as they are): the same sums without a branch per
+    sample, about 8 % of the LM's time less."""
+    ss = 0.0
+    for i in range(L):
+        d = p[i] - model[i]
+        ri = wf[i] * d
+        r[i] = ri
+        ss += ri * d
+    pensum = 0.0
+    for k in range(K):
+        if fam[k] != FAM_NONE:
+            pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
+    return 0.5 * ss + mu * pensum
+
+
+@njit
 def _links(K, fam, delay, lsig, tie_sigma, sss_after_direct):
     """(tied, linked, direct slot, sss slot) of one pixel: one width for all atoms, and the
     onset-tie rule (:func:`onset_link`) where ``sss_after_direct``."""
@@ -810,6 +826,7 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
     J = np.empty((nmax, L))
     Jt = np.empty((nmax, L))
     tmodel = np.empty(L)
+    cmodel = np.empty(L)                # the current state's model (swapped with tmodel on accept)
     r = np.empty(L)
     jw = np.empty(L)
     lo = np.zeros(KA, np.int64)
@@ -877,13 +894,19 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
             iters[pi] = 0
             continue
         nw = 0.0
+        plain = True        # no censored sample, nothing unfitted non-finite: the branch-free objective
         for i in range(L):
             if fit[pi, i] or cens[pi, i]:
                 nw += 1.0
+            if cens[pi, i] or not (fit[pi, i] or math.isfinite(p[pi, i])):
+                plain = False
         nw = max(nw, 1.0)
+        if plain:
+            for i in range(L):
+                jw[i] = wp[i] if fit[pi, i] else 0.0
         n = 4 * K
-        _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, md)
-        cur = _objective(L, K, p[pi], fit[pi], cens[pi], wp, md, f, am, pe, mu[pi], eps[pi], r, jw)
+        _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, cmodel)
+        cur = _objective(L, K, p[pi], fit[pi], cens[pi], wp, cmodel, f, am, pe, mu[pi], eps[pi], r, jw)
         if math.isnan(obj[pi]):
             obj[pi] = cur
         level = obj[pi]                  # what a step must beat
@@ -921,7 +944,10 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 if near:
                     td[s_k] = max(td[s_k], td[d_k])
             _render(t0, T, L, K, f, tf, td, ts, tl, Jt, tlo, thi, tmodel, False)
-            tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wp, tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
+            if plain:
+                tobj = _objective_plain(L, K, p[pi], jw, tmodel, f, tf, pe, mu[pi], eps[pi], r)
+            else:
+                tobj = _objective(L, K, p[pi], fit[pi], cens[pi], wp, tmodel, f, tf, pe, mu[pi], eps[pi], r, jw)
             if tobj < level:
                 old = level
                 level = tobj
@@ -933,9 +959,8 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                     la[k] = tl[k]
                     lo[k] = tlo[k]
                     hi[k] = thi[k]
-                for i in range(L):
-                    md[i] = tmodel[i]
                 J, Jt = Jt, J
+                cmodel, tmodel = tmodel, cmodel
                 if old - tobj <= tol * old / nw:
                     break                # converged: this state's normal equations are not needed
                 _fill_derivatives(t0, T, L, K, f, am, de, ls, la, J, lo, hi)
@@ -947,6 +972,8 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
                 lam *= 4.0
                 if lam > 1e8:
                     break
+        for i in range(L):
+            md[i] = cmodel[i]
         obj[pi] = cur
         iters[pi] = it
 

@@ -26,7 +26,7 @@ this module uses the structure of the kernels instead of FFTs:
   Gaussian norms: the same FIR or window sums of k^2.
 
 Here d_lo = max(-H, -ceil(8 sigma / T)).  q is computed from exact kernel values on its
-support (the forward model's stable forms: g erfcx(u) where u >= 5, the equal f erfc(u) with f
+support (the forward model's stable forms: g erfcx(u) where u >= 0, the equal 2 f - g erfcx(-u) with f
 stepped from sample to sample elsewhere, :func:`_sss_samples`), so the
 recursion reproduces the sampled kernel up to rounding (1e-14 of the largest value in the
 tests, alpha from 1e-4 to 5 /ps, sigma from a fraction of a bin to 10 ps).
@@ -45,7 +45,7 @@ import math
 import numpy as np
 
 from .constants import CORR_SUPPORT_SIGMA
-from .jit import SQRT_PI_2, erfcx, njit
+from .jit import SQRT_PI_2, erfcx, njit, sss_erfc_part
 
 _SQRT_2 = math.sqrt(2.0)
 
@@ -275,9 +275,10 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2
 @njit
 def _sss_samples(d_lo, kn, T, sig, alp, rho, gauss, out):
     """out[t] = sss kernel h((d_lo + t) T) for t < kn (the values of :func:`decomposition.jit.sss_value`),
-    given the unit Gaussian ``gauss`` at the same times: g erfcx(u) where u >= 5, else the equal
-    f erfc(u), f = exp(alpha^2 sigma^2 / 2 - alpha x) <= exp(u^2) stepped by ``rho`` = exp(-alpha T)
-    (one erfc per sample instead of three transcendentals)."""
+    given the unit Gaussian ``gauss`` at the same times, in the form of
+    :func:`decomposition.jit.sss_erfc_part`: g erfcx(u) where u >= 0, 2 f - g erfcx(-u) elsewhere,
+    f = exp(alpha^2 sigma^2 / 2 - alpha x) <= 1 stepped by ``rho`` = exp(-alpha T) (one polynomial
+    of erfcx's table per sample instead of three transcendentals)."""
     scale = SQRT_PI_2 * sig
     s2 = sig * sig
     f = 0.0
@@ -285,15 +286,14 @@ def _sss_samples(d_lo, kn, T, sig, alp, rho, gauss, out):
     for t in range(kn):
         x = (d_lo + t) * T
         u = (alp * s2 - x) / (sig * _SQRT_2)
-        if u >= 5.0:
-            out[t] = scale * (gauss[t] * erfcx(u))
-            f_on = False
-        else:
+        if u < 0.0:
             if not f_on:
                 f = math.exp(0.5 * alp * alp * s2 - alp * x)
                 f_on = True
-            out[t] = scale * (f * math.erfc(u))
+            out[t] = scale * sss_erfc_part(u, gauss[t], f)
             f *= rho
+        else:
+            out[t] = scale * (gauss[t] * erfcx(u))
 
 
 @njit

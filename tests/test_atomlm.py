@@ -302,8 +302,9 @@ def test_bad_weights_are_refused(weights, message):
 
 
 def test_state_models_are_the_slot_sums_of_the_atoms():
-    """state_models renders each pixel as its active atoms added in slot order: the same
-    values, bit for bit, as summing atom_profiles rows; empty slots and empty pixels add nothing."""
+    """state_models renders each pixel as its active atoms added in slot order: the values of
+    summing atom_profiles rows (to the last bits of the peak: the kernels fuse each product and
+    sum, jit.FASTMATH), and slots.render bit for bit; empty slots and empty pixels add nothing."""
     st = _state([[(cs.FAM_GAUSS, 0.8, 101.3, 4.2, None), (cs.FAM_SSS, 0.05, 104.0, 4.2, 0.03),
                   (cs.FAM_GAUSS, 0.2, 300.0, 4.2, None)],
                  [(cs.FAM_SSS, 0.3, -10.0, 2.0, 0.011)],
@@ -319,8 +320,9 @@ def test_state_models_are_the_slot_sums_of_the_atoms():
             if st["fam"][p, k] != cs.FAM_NONE:
                 want[p] += atomlm.atom_profiles(T0, T, L, st["fam"][p, k:k + 1], st["delay"][p, k:k + 1],
                                                 st["lsig"][p, k:k + 1], st["lalp"][p, k:k + 1])[0] * st["amp"][p, k]
-    np.testing.assert_array_equal(got, want)
-    np.testing.assert_array_equal(render(time_axis_ps(L, T), st), want)
+    np.testing.assert_allclose(got, want, rtol=0, atol=4 * np.finfo(float).eps * np.abs(want).max())
+    assert np.array_equal(got == 0, want == 0)              # nothing added where no atom reaches
+    np.testing.assert_array_equal(render(time_axis_ps(L, T), st), got)
     assert want[0].max() > 0.5 and want[1].max() > 0 and not want[2].any()
 
 
@@ -463,3 +465,31 @@ def test_weighted_squares_are_those_of_the_atom_rows():
     assert got[1] > 0 and got[2] == 0 and got[4] == 0
     with pytest.raises(ValueError, match="weights have shape"):
         atomlm.atom_weighted_squares(T0, T, L, fam, delay, lsig, lalp, w[:, :-1], pix)
+
+
+def test_an_unfitted_sample_changes_nothing_whatever_it_holds():
+    """A pixel whose samples all count or are left out takes the LM's branch-free objective; one
+    whose left-out sample is not finite (or that has a censored sample) the per-sample test.
+    Both read the same objective: the same atoms, objective and model from the same start, and
+    a NaN where a sample does not count never reaches the answer."""
+    atoms = [(cs.FAM_GAUSS, 0.9, 101.3, 4.2, None), (cs.FAM_SSS, 0.3, 104.0, 4.2, 0.03)]
+    rng = np.random.default_rng(5)
+    clean = _profile(atoms)
+    p = np.tile(clean + 0.002 * rng.standard_normal(L), (3, 1))
+    fit = np.ones((3, L), bool)
+    fit[:, 40] = False
+    p[1, 40] = np.nan                          # not finite where it does not count
+    p[2, 40] = 1e6                             # and huge
+    cens = np.zeros((3, L), bool)
+    start = _state([[(cs.FAM_GAUSS, 0.7, 103.0, 5.0, None), (cs.FAM_SSS, 0.2, 106.0, 5.0, 0.02)]] * 3)
+    st, obj, it, model = atomlm.lm_refine(T0, T, p, SampleMask(fit, cens), start, np.zeros(3), np.full(3, 1e-5),
+                                          _bounds(), 30)
+    assert np.all(it > 3) and np.all(np.isfinite(obj)) and np.all(np.isfinite(model))
+    for key in ("amp", "delay", "lsig", "lalp"):
+        np.testing.assert_allclose(st[key][1:], np.broadcast_to(st[key][0], st[key][1:].shape), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(obj[1:], obj[0], rtol=1e-12)
+    np.testing.assert_allclose(model[1:], np.broadcast_to(model[0], (2, L)), rtol=0, atol=1e-13)
+    # the fit found the atoms, and its objective is the data term of the samples that count
+    assert abs(st["delay"][0, 0] - 101.3) < 0.5
+    r = np.where(fit[0], p[0] - model[0], 0.0)
+    assert obj[0] == pytest.approx(0.5 * np.sum(r * r), rel=1e-10)

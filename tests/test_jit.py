@@ -17,6 +17,36 @@ def test_erfcx_matches_scipy_across_the_series_switch_and_far_tail():
     assert np.all(np.isfinite(got)) and np.all(got > 0)
 
 
+def test_erfcx_table_holds_its_accuracy_on_every_interval_and_at_their_edges():
+    """The table's polynomials (one per half unit of u below 10) against scipy on a dense grid,
+    at every interval's ends from both sides, and at the hand-over to the series at u = 10."""
+    edges = np.arange(0.0, 10.0 + 1e-9, jit._ERFCX_STEP)
+    u = np.concatenate([np.linspace(0.0, 10.0, 200001), edges, np.nextafter(edges, -1.0)[1:],
+                        np.nextafter(edges, 20.0), [np.nextafter(10.0, 0.0), 10.0]])
+    got = np.array([jit.erfcx(v) for v in u])
+    np.testing.assert_allclose(got, special.erfcx(u), rtol=1e-14, atol=0)
+    assert jit.erfcx(0.0) == pytest.approx(1.0, rel=1e-15)
+    assert np.isnan(jit.erfcx(np.nan))
+    # negative arguments keep exp(u^2) erfc(u)
+    neg = np.linspace(-5.0, -1e-3, 101)
+    np.testing.assert_allclose([jit.erfcx(v) for v in neg], special.erfcx(neg), rtol=1e-13)
+
+
+@pytest.mark.parametrize("sigma_ps, alpha_per_ps", [(0.5, 1e-4), (3.0, 0.02), (10.0, 0.05), (2.0, 5.0)])
+def test_sss_erfc_part_is_f_erfc_on_both_sides_of_u_0(sigma_ps, alpha_per_ps):
+    """g erfcx(u) (u >= 0) and 2 f - g erfcx(-u) (u < 0) are f erfc(u), f = g exp(u^2), to
+    rounding, from far before the onset to where erfc(u) is 2 -- the values the compiled atoms
+    and the pick's kernels take per sample."""
+    x = np.linspace(-8.0 * sigma_ps, alpha_per_ps * sigma_ps ** 2 + 6.0 * sigma_ps, 2001)
+    u = (alpha_per_ps * sigma_ps ** 2 - x) / (sigma_ps * np.sqrt(2.0))
+    g = np.exp(-0.5 * (x / sigma_ps) ** 2)
+    f = np.exp(0.5 * (alpha_per_ps * sigma_ps) ** 2 - alpha_per_ps * x)
+    got = np.array([jit.sss_erfc_part(a, b, c) for a, b, c in zip(u, g, f)])
+    want = np.where(u >= 0, g * special.erfcx(np.maximum(u, 0.0)), f * special.erfc(u))
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+    assert (u < 0).any() and (u > 0).any()
+
+
 @pytest.mark.parametrize("sigma_ps, alpha_per_ps", [(0.5, 1e-6), (3.0, 0.02), (10.0, 0.05), (2.0, 50.0)])
 def test_sss_value_matches_the_forward_model(sigma_ps, alpha_per_ps):
     x = np.linspace(-8.0 * sigma_ps, 40.0 * sigma_ps, 501)
