@@ -74,13 +74,6 @@ def _erfcx_table():
 _ERFCX_TABLE = _erfcx_table()
 
 
-#: numba's fast-math flags of every kernel: sums may be reassociated (a reduction over samples
-#: then runs on several accumulators, or in SIMD lanes) and a product and a sum contracted into
-#: one fused multiply-add; nothing that assumes finite values or drops signed zeros (the kernels
-#: test for NaN and infinity).  The compiled LM's iterations on ``bench speed``'s states: 5.7 ->
-#: 5.2 microseconds (same iterations, same objectives to 1e-7).  The values then differ from a
-#: NumPy evaluation of the same formula in the last bits.
-FASTMATH = {"reassoc", "contract"}
 #: the file whose constants the kernels of a folder read, beside the kernel modules themselves
 CONSTANTS_FILE = "constants.py"
 #: folders holding kernels made by :func:`njit` (their caches carry :func:`kernel_digest`)
@@ -148,10 +141,10 @@ def njit(fn):
         _KERNEL_DIRS.add(os.path.dirname(os.path.abspath(source)))
     if _LOCATORS is not None:
         try:
-            return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=FASTMATH)(fn)
+            return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
         except RuntimeError:          # "cannot cache function ...: no locator available"
             pass
-    return numba.njit(cache=False, nogil=True, error_model="numpy", fastmath=FASTMATH)(fn)
+    return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
 @njit
