@@ -211,6 +211,29 @@ data's, not the stop's: on that test's scenes (direct and sss at one onset, SNR 
 direct's median amplitude error is 0.016 / 0.024 / 0.021 / 0.063 (seeds 3-6) at 1e-2 and
 0.023 / 0.024 / 0.021 / 0.063 at 0.05, the oracle's 0.004-0.006, and the data term equals the oracle's to 0.01 noise
 variances (the split at a shared onset is weakly determined; the oracle starts at it).
+
+Then: erfcx from a table of degree-12 polynomials, one per half unit of u below 10
+(:func:`decomposition.jit.erfcx`, relative error 4e-15; 6 against 17 ns for exp(u^2) erfc(u)),
+and the sss atom's samples as g erfcx(u) where u >= 0 and 2 f - g erfcx(-u) elsewhere
+(:func:`decomposition.jit.sss_erfc_part`; g and f stepped from bin to bin), so no library
+transcendental per sample in the atoms or the own-width pick; and the LM's trial objective,
+for pixels without a censored sample, without a branch per sample and with four sums side by
+side.  The LM calls of one decompose replayed (1,024 pixels of ``make_profiles(..., seed=3,
+ranges="paper", bin_integrated=True)``, 86,146 iterations): 6.34-6.41 -> 5.83-6.00 us per
+iteration, the same iterations and objectives; bench accuracy's 54 points (seeds 0-2) the same
+to four decimals.  ``bench speed`` (default cube, 2 threads), alternated with the code before on a
+slow day: white 1,392 / 1,442 / 1,427 -> 1,471 / 1,520 / 1,523 px/s (+5-7 %); ``--photons 100``
+1,929 / 1,911 -> 1,916 / 1,945 (no change).  Measured, not kept: numba's fast-math flags
+(``reassoc``, ``contract``) took the LM to 5.2 us per iteration, but reassociated sums follow
+the CPU's vector width and fused multiply-adds its instruction set, so a chunk recomputed on
+another node of a cluster would no longer write the same bytes; numba's ``arcp`` on top: no
+gain; four interleaved recursions for the sss tail (its one-pole product is not the bottleneck:
+an sss atom costs 0.5-1 us, mostly its exactly evaluated rise); a countdown instead of the
+modulo that restarts the stepped exponentials: no gain; Nielsen's damping update (gain ratio
+instead of /3 and x4): 4 % fewer iterations but more of them accepted (each accepted one builds
+the normal equations), slower.  The slow pixels of the search's polish alternate accepted and
+rejected steps (13 % stop at ``n_polish``; 4 % of the starts end more than 1 % above the
+objective 200 iterations reach).
 """
 from __future__ import annotations
 
