@@ -426,10 +426,43 @@ def poisson_deviance(counts, expected) -> np.ndarray:
     return np.sum(_deviance_terms(y, mu), axis=-1)
 
 
+@njit
+def _masked_deviance_rows(y, mu, fit, floor, out):
+    """out[p] = sum over the fitted samples of row p of 2 [y log(y / m) - (y - m)] (0 log 0 = 0),
+    m = max(mu, floor) with a NaN mu read as 0 and an infinite one as the largest finite value
+    of its sign (``np.nan_to_num``): :func:`_deviance_terms`, summed in one pass per row."""
+    P, L = y.shape
+    big = np.finfo(np.float64).max
+    for p in range(P):
+        s = 0.0
+        for i in range(L):
+            if not fit[p, i]:
+                continue
+            m = mu[p, i]
+            if m != m:
+                m = 0.0
+            elif m > big:
+                m = big
+            elif m < -big:
+                m = -big
+            m = max(m, floor)
+            v = y[p, i]
+            if v > 0.0:
+                s += 2.0 * (v * math.log(v / m) - (v - m))
+            else:
+                s += 2.0 * (0.0 - (v - m))
+        out[p] = s
+
+
 def _masked_deviance(counts, model_counts, fit, dispersion, floor_counts=POISSON_VARIANCE_FLOOR):
-    y = np.where(fit, np.asarray(counts, np.float64), 0.0)
-    mu = np.where(fit, np.maximum(np.nan_to_num(np.asarray(model_counts, np.float64)), floor_counts), 1.0)
-    dev = np.where(fit, _deviance_terms(y, mu), 0.0).sum(axis=-1)
+    y, mu = np.broadcast_arrays(np.asarray(counts, np.float64), np.asarray(model_counts, np.float64))
+    fit = np.broadcast_to(np.asarray(fit, np.bool_), y.shape)
+    shape = y.shape[:-1]
+    L = y.shape[-1] if y.ndim else 1
+    dev = np.empty(int(np.prod(shape)))
+    _masked_deviance_rows(np.ascontiguousarray(y.reshape(-1, L)), np.ascontiguousarray(mu.reshape(-1, L)),
+                          np.ascontiguousarray(fit.reshape(-1, L)), float(floor_counts), dev)
+    dev = dev.reshape(shape)
     if dispersion is not None:
         dev = dev / np.square(np.asarray(dispersion, np.float64))
     return dev

@@ -21,6 +21,35 @@ def test_count_deviance_is_the_poisson_deviance_on_the_fitted_samples():
     np.testing.assert_allclose(poisson_deviance(y[:, :3], mu[:, :3]), [want], rtol=1e-12)
 
 
+def test_count_deviance_reads_odd_models_and_any_shape_as_the_formula_does():
+    """A NaN model count is read as 0 (then floored), an infinite one as infinite; samples that
+    do not count add nothing whatever they hold; rows of any leading shape, summed per row:
+    against the per-sample formula written out here."""
+    rng = np.random.default_rng(3)
+    mu = rng.gamma(2.0, 4.0, (2, 3, 64))
+    y = rng.poisson(mu).astype(float)
+    fit = rng.random(mu.shape) > 0.1
+    mu[0, 0, 5] = np.nan
+    fit[0, 0, 5] = True
+    mu[1, 2, 9] = np.nan                     # not fitted: adds nothing
+    fit[1, 2, 9] = False
+    y[1, 2, 9] = np.nan
+    f = POISSON_VARIANCE_FLOOR
+    want = np.zeros((2, 3))
+    for idx in np.ndindex(2, 3):
+        for yi, mi, ok in zip(y[idx], mu[idx], fit[idx]):
+            if ok:
+                m = max(0.0 if math.isnan(mi) else mi, f)
+                want[idx] += 2.0 * ((yi * math.log(yi / m) if yi > 0 else 0.0) - (yi - m))
+    np.testing.assert_allclose(count_deviance(y, mu, fit), want, rtol=1e-12)
+    assert np.isfinite(want).all()
+    inf = mu.copy()
+    inf[0, 1, 3] = np.inf
+    fit_all = np.ones(mu.shape, bool)
+    got = count_deviance(np.nan_to_num(y), inf, fit_all)
+    assert np.isinf(got[0, 1]) and np.isfinite(np.delete(got.ravel(), 1)).all()
+
+
 def test_removal_deviance_is_the_energy_rule_at_large_counts():
     """Where the counts are large the deviance is the chi2 with variance mu: taking an atom c
     out of a model that fits raises it by sum c^2 / mu, the Gaussian path's energy rule."""
