@@ -650,27 +650,64 @@ def signal_variance(residual: np.ndarray, model: np.ndarray, fit: np.ndarray, la
     gain_stderr : ndarray (P,)
         Standard error of ``gain`` (inf where it cannot be estimated).
     """
-    ok = fit[:, lag:] & fit[:, :-lag]
-    r = np.where(fit, residual, 0.0)
-    y = np.where(ok, 0.5 * (r[:, lag:] - r[:, :-lag]) ** 2, 0.0)
-    m = np.maximum(model, 0.0)
-    x = np.where(ok, 0.5 * (m[:, lag:] + m[:, :-lag]), 0.0)
-    w = ok.astype(np.float64)
-    for second in (False, True):
-        if second:      # weights 1 / variance^2 of the first pass's law
-            g = np.maximum(gain, 0.0)
-            top = np.maximum(floor, 0.0) + g * x.max(axis=1)
-            least = np.maximum(floor_fraction * top, np.maximum(1e-12 * y.max(axis=1), 1e-150))
-            v = np.maximum(floor[:, None] + g[:, None] * x, least[:, None])
-            w = np.where(ok, 1.0 / (v * v), 0.0)
-        n, sx, sxx = w.sum(axis=1), (w * x).sum(axis=1), (w * x * x).sum(axis=1)
-        sy, sxy = (w * y).sum(axis=1), (w * x * y).sum(axis=1)
-        det = n * sxx - sx * sx
-        good = (det > 1e-12 * np.maximum(n * sxx, 1e-300)) & (n > 2)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gain = np.where(good, (n * sxy - sx * sy) / np.where(good, det, 1.0), 0.0)
-            floor = np.where(n > 0, (sy - gain * sx) / np.maximum(n, 1e-300), 0.0)
-            se = np.where(good, np.sqrt(n / np.where(good, det, 1.0)), np.inf)
-    # the weights are relative; var(y) = 2 variance^2 (half the square of a Gaussian difference
-    # of variance 2 v), so the information of y at variance v is 1 / (2 v^2)
-    return floor, np.maximum(gain, 0.0), se * np.sqrt(2.0)
+    residual = np.ascontiguousarray(residual, np.float64)
+    P = residual.shape[0]
+    floor, gain, se = np.empty(P), np.empty(P), np.empty(P)
+    _signal_variance_rows(residual, np.ascontiguousarray(model, np.float64), np.ascontiguousarray(fit, np.bool_),
+                          int(lag), float(floor_fraction), floor, gain, se)
+    return floor, gain, se
+
+
+@njit
+def _signal_variance_rows(residual, model, fit, lag, floor_fraction, floor_out, gain_out, se_out):
+    """:func:`signal_variance` row by row: both weighted least-squares passes over the lagged
+    pairs whose samples both count (y = (r[i+lag] - r[i])^2 / 2, x = the mean of max(model, 0)
+    at the two), without a full-size temporary."""
+    P, L = residual.shape
+    for p in range(P):
+        xmax = 0.0
+        ymax = 0.0
+        for i in range(L - lag):
+            if fit[p, i] and fit[p, i + lag]:
+                d = residual[p, i + lag] - residual[p, i]
+                ymax = max(ymax, 0.5 * d * d)
+                xmax = max(xmax, 0.5 * (max(model[p, i + lag], 0.0) + max(model[p, i], 0.0)))
+        gain = 0.0
+        floor = 0.0
+        se = math.inf
+        for second in (False, True):
+            g = max(gain, 0.0)
+            least = 0.0
+            if second:      # weights 1 / variance^2 of the first pass's law
+                top = max(floor, 0.0) + g * xmax
+                least = max(floor_fraction * top, max(1e-12 * ymax, 1e-150))
+            n = 0.0
+            sx = 0.0
+            sxx = 0.0
+            sy = 0.0
+            sxy = 0.0
+            for i in range(L - lag):
+                if not (fit[p, i] and fit[p, i + lag]):
+                    continue
+                d = residual[p, i + lag] - residual[p, i]
+                y = 0.5 * d * d
+                x = 0.5 * (max(model[p, i + lag], 0.0) + max(model[p, i], 0.0))
+                w = 1.0
+                if second:
+                    v = max(floor + g * x, least)
+                    w = 1.0 / (v * v)
+                n += w
+                sx += w * x
+                sxx += w * x * x
+                sy += w * y
+                sxy += w * x * y
+            det = n * sxx - sx * sx
+            good = det > 1e-12 * max(n * sxx, 1e-300) and n > 2
+            gain = (n * sxy - sx * sy) / det if good else 0.0
+            floor = (sy - gain * sx) / max(n, 1e-300) if n > 0 else 0.0
+            se = math.sqrt(n / det) if good else math.inf
+        # the weights are relative; var(y) = 2 variance^2 (half the square of a Gaussian
+        # difference of variance 2 v), so the information of y at variance v is 1 / (2 v^2)
+        floor_out[p] = floor
+        gain_out[p] = max(gain, 0.0)
+        se_out[p] = se * math.sqrt(2.0)
