@@ -508,6 +508,16 @@ def _fill_derivatives(t0, T, L, K, fam, amp, delay, lsig, lalp, J, lo, hi):
 
 
 @njit
+def _penalty(K, fam, amp, pen, eps):
+    """sum_k log(1 + pen_k |amp_k| / eps) over the pixel's active slots."""
+    pensum = 0.0
+    for k in range(K):
+        if fam[k] != FAM_NONE:
+            pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
+    return pensum
+
+
+@njit
 def _objective(L, K, p, fit, cens, w, model, fam, amp, pen, mu, eps, r, jw):
     """F of one pixel; fills the weighted residual ``r`` (w * (p - model)) and the Jacobian
     row weights ``jw`` (w on the samples that count, 0 elsewhere)."""
@@ -521,11 +531,7 @@ def _objective(L, K, p, fit, cens, w, model, fam, amp, pen, mu, eps, r, jw):
         else:
             r[i] = 0.0
             jw[i] = 0.0
-    pensum = 0.0
-    for k in range(K):
-        if fam[k] != FAM_NONE:
-            pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
-    return 0.5 * ss + mu * pensum
+    return 0.5 * ss + mu * _penalty(K, fam, amp, pen, eps)
 
 
 @njit
@@ -562,11 +568,7 @@ def _objective_plain(L, K, p, wf, model, fam, amp, pen, mu, eps, r):
         r[i] = ri
         s0 += ri * d
     ss = (s0 + s1) + (s2 + s3)
-    pensum = 0.0
-    for k in range(K):
-        if fam[k] != FAM_NONE:
-            pensum += math.log1p(pen[k] * abs(amp[k]) / eps)
-    return 0.5 * ss + mu * pensum
+    return 0.5 * ss + mu * _penalty(K, fam, amp, pen, eps)
 
 
 @njit
@@ -923,11 +925,9 @@ def _lm_pixels(t0, T, p, fit, cens, wts, fam, amp, delay, lsig, lalp, pen, mu, e
             if cens[pi, i] or not (fit[pi, i] or math.isfinite(p[pi, i])):
                 plain = False
         nw = max(nw, 1.0)
-        if plain:
-            for i in range(L):
-                jw[i] = wp[i] if fit[pi, i] else 0.0
         n = 4 * K
         _render(t0, T, L, K, f, am, de, ls, la, J, lo, hi, cmodel)
+        # (also sets jw, which the branch-free objective then reads as its weights)
         cur = _objective(L, K, p[pi], fit[pi], cens[pi], wp, cmodel, f, am, pe, mu[pi], eps[pi], r, jw)
         if math.isnan(obj[pi]):
             obj[pi] = cur

@@ -45,7 +45,7 @@ import math
 import numpy as np
 
 from .constants import CORR_SUPPORT_SIGMA
-from .jit import SQRT_PI_2, erfcx, njit, sss_erfc_part
+from .jit import SQRT_PI_2, njit, sss_erfc_part
 
 _SQRT_2 = math.sqrt(2.0)
 
@@ -286,14 +286,11 @@ def _sss_samples(d_lo, kn, T, sig, alp, rho, gauss, out):
     for t in range(kn):
         x = (d_lo + t) * T
         u = (alp * s2 - x) / (sig * _SQRT_2)
-        if u < 0.0:
-            if not f_on:
-                f = math.exp(0.5 * alp * alp * s2 - alp * x)
-                f_on = True
-            out[t] = scale * sss_erfc_part(u, gauss[t], f)
-            f *= rho
-        else:
-            out[t] = scale * (gauss[t] * erfcx(u))
+        if u < 0.0 and not f_on:
+            f = math.exp(0.5 * alp * alp * s2 - alp * x)
+            f_on = True
+        out[t] = scale * sss_erfc_part(u, gauss[t], f)
+        f *= rho
 
 
 @njit
