@@ -102,147 +102,15 @@ refinement keeps the paper's objective and sparsity model, finds the number of
 components automatically, costs a handful of FFT passes per pixel, and gives
 off-grid parameters.
 
-Performance.  Measured on the 2-core machine with 1024 synthetic pixels
-(``decomposition.synthetic.make_profiles(1024, 512, nsr=0.05,
-noise="white", seed=0)``, kinds a, b, c; ``decompose(profiles,
-time_bin_ps=2.0)`` with default options, one process, best of 3 after a
-warm-up call) and with ``streaklab bench speed --methods convscd``
-(64 x 672 x 512, NSR 0.05, all stages of ``streaklab decompose``):
-
-==========================================  =========  ==========  =========
-step                                        1024 px     fidelity    bench, 2
-                                            (px/s)                  workers
-==========================================  =========  ==========  =========
-block-wide numpy (previous release)         594        0.95189     1,051
-LM compiled per pixel (atomlm)              1,019      0.95189
-selection compiled (pick)                   1,082      0.95189     ~1,400*
-own-width correlations compiled (pickcorr)  ~1,900     0.95189     ~2,000*
-coarse pass: allowed families only          ~2,060     0.95189     2,621
-==========================================  =========  ==========  =========
-
-(* measured while other work shared the machine.)  With 2 threads instead of
-2 worker processes the bench gives 2,800 px/s: the compiled kernels release
-the GIL.  Where the time goes now (cProfile of the 1024 px run): the
-compiled LM about a third; the own-width correlations and the selection
-about 15 %; the coarse FFT pass about 8 %; the rest is block bookkeeping in
-``solve_block``, noise estimates (medians), spike detection and rendering
-the final components with :mod:`core.model`.  Why it helped: the
-numpy LM spent its time on (P, K, 4, L) float32 Jacobians, window placement
-and live-set bookkeeping, and the own-width pick on per-pixel kernel
-evaluation and FFTs; per pixel, compiled, each atom lives on its own
-support (a Gaussian on +-8 sigma, an sss tail by a one-pole recursion) and
-the normal equations sum only over overlapping supports.  The first call
-in a fresh install compiles the kernels (10-15 s, once; numba caches
-them next to the sources).  Tried without a measurable gain earlier: float32
-FFTs for picking, blocks larger than 256 pixels (since then, 512 did: see below).
-
-On the paper scenes (the default ``bench speed`` cube, with the search, grow and prune
-stages), one thread, 2,000 pixels of the bench cube (``make_cube(8, 672, 512, nsr=0.05,
-seed=0, ranges="paper", bin_integrated=True)``), best of 3, seconds per stage:
-
-==================  =======  ======  =========  ==========
-version             detect   search  the rest   total
-==================  =======  ======  =========  ==========
-before              1.20     1.15    0.39       2.74
-now                 0.85     0.51    0.22       1.58
-==================  =======  ======  =========  ==========
-
-(2,000 pixels at 1,000 photons: 2.35 -> 1.29 s; stages best of 3 runs each.)  ``streaklab
-bench speed --shape 32 672 512 --methods convscd --workers threads:2`` in the same minutes (load
-average 0.7-1.3 on the 2 cores): 1,103 -> 1,880 px/s all stages, ``--photons 1000``: 1,298 ->
-2,449 px/s.  What did it: the LM's normal equations
-summed segment by segment with four sums side by side, and over the sss tail past the other
-atoms in closed form (:func:`decomposition.atomlm._tail_sums`); atom values from one erfc per
-bin with stepped exponentials; the own-width pick correlating only what a pixel may take (no
-sss kernels once it has its sss atom: two thirds of the picks); NNLS, rendering, window
-measures, medians and the count gain compiled; identical search starts polished once.
-Results are equal to rounding (no pixel of 2,000 differs by more than 1e-6 relative; bench
-accuracy unchanged to 6 decimals).  The compiled LM is now about 55 % of the time (110,000
-iterations per 2,000 pixels at ~6.5 us).  Tried and dropped: polishing the search's starts
-in rounds and stopping the hopeless ones (the restarts cost what the dropped iterations saved,
-and fidelity fell), a short polish of every start with the leading one finished (winners
-change), fewer LM steps per pick or per polish (fidelity moves by up to 0.01 either way),
-fast-math reductions (slower, and not reproducible).
-
-Later, on ``streaklab bench speed --shape 16 672 512 --methods convscd --workers threads:2``
-(white NSR 0.05 / ``--photons 100``): 1,551 / 1,780 px/s before, then -- each step measured
-on its own -- one BLAS thread per command (an idle OpenBLAS pool had spun beside the two dask
-threads; +5 % white), trial steps rendered without their derivative columns (-2 / -3 % LM
-time, identical results), Gaussians cut at 6 widths and the sss tail's recursion from u = -4
-(LM time -13 / -9 %; fidelity the same to 4 decimals), a count refit skipped where it would
-repeat itself (identical results), and blocks of 512 pixels (+2-4 / +7-9 %): 1,676-1,713 /
-2,039-2,054 px/s; then the FFT correlation 64 rows at a time and the noise at the signal in one
-compiled pass (both identical results).  On the default 64 x 672 x 512 cube: white 1,700 ->
-1,915-1,917 px/s (target 2,000, not met), 100 photons 2,077 -> 2,489-2,536 (met).  The LM rejects 37-41 % of its trial steps in the search's polish; a first
-damping of 1e-2 instead of 1e-3 rejected fewer and ended lower (summed objective -4 %, photon
-LM time -6 %) but moved bench accuracy's means by -0.005..+0.009 and its targets by -1 / -2 on
-two seeds: not kept.  Memory: numpy's huge pages off (``NUMPY_MADVISE_HUGEPAGE=0``) steadied one
-thread's timing on 2,048 pixels but did not speed up the bench: not set.
-
-Then: medians by an in-place quickselect (numba's ``np.partition`` copied every row: 300 x 512
-masked medians 2.32 -> 1.90 ms) and the search's smoothing with its padding inside the FFT and
-its filter built in place (6.1 -> 4.2 ms), both exact: default cube 1,951 / 2,000 -> 1,996 /
-2,004 px/s alternated; three runs an hour later 1,968-1,975.  Measured, not kept: a looser LM
-stop (``lm_tol`` 0.03 / 0.1: +4.5 / +7.5 % px/s, split over detection and search alike, but
-where the direct / sss split is weakly determined the direct's amplitude error grows from
-0.016 to 0.020 / 0.029, median of 40 pixels in ``tests/test_decompose_irf.py``; position and
-lifetime errors on 1,200 paper pixels unchanged); glibc's malloc told to keep freed blocks up to
-32 MiB (``mallopt``: 25,000-36,000 page faults -> 12 in one thread, +2-3 % there, nothing in the
-threaded bench).
-
-Then: the Marquardt step by Cholesky factorisation (the damped Gram matrix is positive definite)
-instead of Gaussian elimination with pivoting: the LM calls of one decompose replayed (2,048
-pixels of the default cube) 0.94 -> 0.91-0.92 s, the same iterations and objectives within
-3e-13; ``--repeat 3`` median 1,984 -> 2,005 px/s (the two medians an hour apart), alternated
-pairs 1,920 (compiling) / 1,993 / 1,963 -> 2,002 / 1,989 / 1,978: within the machine's noise.  Where the LM's
-time goes (each part run twice per iteration in a replay, the increase read as its cost, of
-0.93 s): the normal equations about 0.44 s, the trial render 0.30, the accepted step's
-derivative columns 0.28, the damped solve 0.14 (before Cholesky), the trial objective 0.06.
-The search's polishes are two thirds of the LM's iterations; 19 % of them stop at ``n_polish``
-(30 iterations), a third of the search's LM time.  Threads: 2 threads of one process decompose
-2,041-2,132 px/s where two processes side by side do 2,207 (1,119 + 1,088) and one thread
-1,131-1,142: per stage, the time spent waiting (wall less thread CPU time) is 2 % of the stages'
-time and their CPU time rises 3 % (shared caches); the interpreter lock is not the lever.
-Measured again, not kept: ``lm_tol`` 0.05 everywhere (+3.8 % px/s, three alternated pairs;
-paper scenes 36 points +0.0002, seed 2 +0.0006, within their noise) saves only 6.5 % of the
-search's LM iterations, and on single pixels chosen by earlier tests it moved which start wins
-and a fast-sss-hump pixel's fidelity (0.985 -> 0.922).  The amplitude error quoted above is the
-data's, not the stop's: on that test's scenes (direct and sss at one onset, SNR 100) the
-direct's median amplitude error is 0.016 / 0.024 / 0.021 / 0.063 (seeds 3-6) at 1e-2 and
-0.023 / 0.024 / 0.021 / 0.063 at 0.05, the oracle's 0.004-0.006, and the data term equals the oracle's to 0.01 noise
-variances (the split at a shared onset is weakly determined; the oracle starts at it).
-
-Then: erfcx from a table of degree-12 polynomials, one per half unit of u below 10
-(:func:`decomposition.jit.erfcx`, relative error 4e-15; 6 against 17 ns for exp(u^2) erfc(u)),
-and the sss atom's samples as g erfcx(u) where u >= 0 and 2 f - g erfcx(-u) elsewhere
-(:func:`decomposition.jit.sss_erfc_part`; g and f stepped from bin to bin), so no library
-transcendental per sample in the atoms or the own-width pick; and the LM's trial objective,
-for pixels without a censored sample, without a branch per sample and with four sums side by
-side.  The LM calls of one decompose replayed (1,024 pixels of ``make_profiles(..., seed=3,
-ranges="paper", bin_integrated=True)``, 86,146 iterations): 6.34-6.41 -> 5.83-6.00 us per
-iteration, the same iterations and objectives; bench accuracy's 54 points (seeds 0-2) the same
-to four decimals.  ``bench speed`` (default cube, 2 threads), alternated with the code before on a
-slow day: white 1,392 / 1,442 / 1,427 -> 1,471 / 1,520 / 1,523 px/s (+5-7 %); ``--photons 100``
-1,929 / 1,911 -> 1,916 / 1,945 (no change); the count polish's Poisson deviance then compiled
-(:func:`decomposition.noise._masked_deviance_rows`, one pass per row instead of six full-size
-temporaries; the count polish 0.243 -> 0.194 s of 1.7 s on 2,048 pixels at 100 photons, count
-data's fidelities and flags identical on 3,200 pixels): ``--photons 100`` 1,967 / 1,887 ->
-2,030 / 2,052 px/s, alternated.  The signal-noise law's fit likewise in one kernel per row
-(:func:`decomposition.noise.signal_variance`: the stage 0.073 -> 0.042 s on 2,048 white pixels,
-the laws the same to 1e-13): white 1,412 / 1,453 / 1,433 -> 1,501 / 1,511 / 1,485 px/s with all
-of these, alternated.  Measured, not kept: an Anscombe transform in one compiled pass
-(4.6x faster in float64, but float32 counts were transformed in float32 and would change; no
-gain in the stages); numba's fast-math flags
-(``reassoc``, ``contract``) took the LM to 5.2 us per iteration, but reassociated sums follow
-the CPU's vector width and fused multiply-adds its instruction set, so a chunk recomputed on
-another node of a cluster would no longer write the same bytes; numba's ``arcp`` on top: no
-gain; four interleaved recursions for the sss tail (its one-pole product is not the bottleneck:
-an sss atom costs 0.5-1 us, mostly its exactly evaluated rise); a countdown instead of the
-modulo that restarts the stepped exponentials: no gain; Nielsen's damping update (gain ratio
-instead of /3 and x4): 4 % fewer iterations but more of them accepted (each accepted one builds
-the normal equations), slower.  The slow pixels of the search's polish alternate accepted and
-rejected steps (13 % stop at ``n_polish``; 4 % of the starts end more than 1 % above the
-objective 200 iterations reach).
+Performance.  The per-pixel loops (the LM, the own-width correlations, the selection) are
+compiled with numba and run one pixel at a time: each atom lives on its own support (a
+Gaussian on a few widths, an sss tail by a one-pole recursion), so the normal equations sum
+only over overlapping supports instead of building block-wide (P, K, 4, L) Jacobians.  The
+compiled kernels release the GIL, so threads of one process scale nearly as processes do.  The
+kernels are compiled without fast-math: reassociated sums and fused multiply-adds would follow
+the CPU, and a chunk recomputed on another node must write the same bytes.  The first call in
+a fresh install compiles the kernels (once; numba caches them next to the sources).  Measured
+profiles, speeds and what was tried and not kept: docs/history.md.
 """
 from __future__ import annotations
 

@@ -14,28 +14,16 @@ penalised objective (:func:`decomposition.search.penalised_objective`) and every
 Gaussians stays resolved (``RESOLVED_SIGMA`` widths apart, or no closer than before: a
 Gaussian that slid onto the direct splits a peak, it is not a component).
 
-Paper scenes, 300 px, mean fidelity (2 ps bins, white NSR 0.001 / 0.055 / 0.11; pink and photon
-NSR 0.055; 4 ps white 0.055): without 0.974 / 0.920 / 0.895, 0.884, 0.860, 0.896; with the
-data-term test alone 0.981 / 0.921 / 0.896, 0.885, 0.860, 0.896 (seed 7: +0.0 to +0.002); 4-6 %
-of pixels tried.  Weighed with the solver's noise instead, pink NSR 0.055 lost 0.004; without the
-resolution rule, photon noise lost 0.005 (Gaussians split the direct's peak, where photon noise
-is largest).  The data-term test alone misses a component of energy E sigma^2 unless E is about
-half the window's samples (256 for 512 bins): the weak first inter-reflections the solver
-missed carry 50-800 sigma^2 at chi2 1.03-1.2 times the expected.  With the bump test (seed 0 /
-seed 1, same six points, on the solver before the search's near-direct tests; the effect with
-them is in docs/decomposition.md) 0.981 -> 0.982 / 0.975 -> 0.976, 0.921 -> 0.926 / 0.929 -> 0.933,
-0.896 -> 0.899 / 0.907 -> 0.909, pink 0.885 -> 0.887 / 0.903 -> 0.901, photon 0.860 -> 0.864 /
-0.842 -> 0.850, 4 ps 0.896 -> 0.904 / 0.916 -> 0.918; against the uncalibrated z (the spread
-taken as 1) pink NSR 0.055 lost 0.006 (seed 0).
+Why both tests: the data-term test alone misses a component of energy E sigma^2 unless E is
+about half the window's samples, and the weak first inter-reflections the solver misses carry
+far less; the bump's z is read in the significance noise and against the smoothed residual's own
+spread, so that correlated noise does not pass for a component; the resolution rule keeps
+trial Gaussians from splitting the direct's peak, where photon noise is largest.
 
 An sss whose onset the fit moved late can take in a weak first inter-reflection instead,
 leaving no bump: :func:`swap_block` tries a Gaussian at the peak of every sss that peaks more
 than ``SWAP_MODE_GAP_SIGMA`` widths after the direct, with the sss onset moved next to the
-direct (mean fidelity at the six points above, seed 0 / 1, after the bump test and the
-residual significance noise: white 0.001 0.983 -> 0.988 / 0.976 -> 0.980, 0.055 0.936 -> 0.942
-/ 0.934 -> 0.943, 0.11 0.900 -> 0.916 / 0.912 -> 0.925, pink 0.887 -> 0.892 / 0.901 -> 0.907,
-photon 0.864 -> 0.873 / 0.850 -> 0.854, 4 ps 0.907 -> 0.916 / 0.922 -> 0.928; 36 % of the pixels
-tried, 58 % without the alpha sigma rule at the same fidelity to 0.001).
+direct.
 
 Count data (``noise="poisson"``) have a forward step of their own, :func:`grow_counts`, after the
 Poisson polish and the threshold: the pursuit, the search and the test above weigh every sample

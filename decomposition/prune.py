@@ -9,19 +9,13 @@ with the solver's compiled LM twice: from the other atoms as they are (the sss o
 into the gap) and with the sss onset moved to ``PRUNE_ONSET_SIGMA`` widths after the direct (an
 onset too late for the polish to bring back); the lowest penalised objective
 (:func:`decomposition.search.penalised_objective`, the search stage's) of the three is kept.  A
-true close inter-reflection stays: its data term pays for its three parameters.  Paper scenes,
-300 px, mean fidelity (2 ps bins, white NSR 0.001 / 0.055 / 0.11; pink and photon NSR 0.055;
-4 ps white 0.055): without 0.958 / 0.912 / 0.886, 0.878, 0.849, 0.883; the first start alone
-0.969 / 0.920 / 0.893, 0.880, 0.860, 0.896; both 0.974 / 0.920 / 0.895, 0.884, 0.860, 0.896
-(seed 7: +0.0 to +0.018 in each); 5-21 of 300 pixels pruned, 5-8 % of them tried.
+true close inter-reflection stays: its data term pays for its three parameters.
 
 A third trial takes the forward step (:func:`decomposition.grow.grow_block`) after the moved one
 -- where more than one Gaussian was close, all of them dropped first (a hump the detection
 filled with several) -- so that an echo the late onset hid, or one dropped with the hump, comes
-back: paper scenes, 600 px, seeds 0 and 1, 36 points, mean fidelity up at 31 (+0.0008 on
-average), none down by more than 0.0002; seed 2: all 18 up (docs/decomposition.md).
-A fourth reads a fast sss hump as the echo it took (:func:`hump_as_echo`): 22 of the 36 points
-up, none down by more than 0.0003; seed 2: 11 up, 3 down by at most 0.0001; 0.8 % of the solve.
+back.
+A fourth reads a fast sss hump as the echo it took (:func:`hump_as_echo`).
 """
 from __future__ import annotations
 

@@ -5,9 +5,8 @@ A pixel flagged POOR_FIT at the end of the Gaussian path misfits its data by mor
 it.  So does a pixel whose data term (:func:`data_term`, in the noise the first pass weighed it
 with) lies more than RESCUE_MISFIT_Z standard deviations of a chi-square above its expectation
 (:func:`misfit_beyond_noise`): POOR_FIT's bar, a residual RMS of 3 noise sigmas, forgives a
-wide direct that took in an echo (4 ps white NSR 0.055: a data term 1.2-1.3 times its
-expectation, no flag, fidelity 0.06; ``tests/test_rescue.py``).  Which path finds it is a
-matter of where the detection started: the same profiles decomposed without the detection's
+wide direct that took in an echo, unflagged (``tests/test_rescue.py`` holds one).
+Which path finds it is a matter of where the detection started: the same profiles decomposed without the detection's
 Gauss-Southwell restart (``multistart=False``, :data:`RESCUE_OPTIONS`) end elsewhere, and where
 they misfit less the data say so.  So those pixels, where their noise does not follow the signal
 (float data left unweighted: there the misfit is the model's, not a noise law's), are decomposed
@@ -24,21 +23,11 @@ n the number of fitted samples, is lower by at least ``ambiguity_chi2`` (a diffe
 search stage's own bar, :mod:`decomposition.search`).  The second answer comes with its own
 flags (it may still misfit).
 
-Paper scenes (``streaklab bench accuracy``'s, 600 px, seeds 0 and 1, 2 and 4 ps bins, white /
-pink / photon noise at NSR 0.001 / 0.055 / 0.11): mean fidelity +0.0016 over the 36 points, at
-4 ps white NSR 0.001 0.976 -> 0.981 and 0.979 -> 0.983 (seeds 0, 1); docs/decomposition.md has
-the rest.  Left out, as measured: pixels weighted by a signal variance law (photon noise on
-float data; the second pass on them as well moved those points by -0.001..+0.0006) and count
-data (``noise="poisson"``, the same scenes at 100 / 1,000 / 10,000 photons: 0-26 POOR_FIT
-pixels of 600, and not one whose second answer was better by fidelity, let alone by J).
-Adding the misfits beyond the noise (the same scenes, seeds 0, 1 and 2, 54 points): mean
-fidelity +0.0004, 18 points up and 4 down (at most -0.0020, 4 ps pink NSR 0.11 on seed 2), all
-six white NSR 0.055 points up by 0.0010-0.0023, pixels below fidelity 0.5 773 -> 762; 1.6 % of
-the pixels tried; on ``bench speed``'s default cube about 3 % more time (1,600 / 1,634 px/s
-before, 1,553 / 1,574 / 1,551 after, alternated: 2 % of its pixels tried, one more call per chunk).
-The second pass is the whole path, search included: without its search (``search=False`` in
-the second pass) the gain over the 36 points fell from +0.0016 to +0.0002.  The call's ``info``
-arrays of the detection (``objective``, ``n_iter``) stay the first pass's.
+Left out: pixels weighted by a signal variance law (photon noise on float data) and count data
+(``noise="poisson"``, whose misfit is read on the Poisson law): on the benchmark's scenes the
+second pass found nothing better there.  The second pass is the whole path, search included
+(the search is where its gain comes from).  The call's ``info`` arrays of the detection
+(``objective``, ``n_iter``) stay the first pass's.  Measurements: docs/history.md.
 """
 from __future__ import annotations
 

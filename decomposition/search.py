@@ -54,12 +54,8 @@ STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
 
 #: the starts of :func:`search_block` that also get the forward step of
 #: :func:`decomposition.grow.grow_block` (the ``rise`` start always gets it) where the best
-#: start still misfits.  Paper scenes, 600 px, seeds 0 and 1, 2 and 4 ps bins, white, pink and
-#: photon noise at NSR 0.001 / 0.055 / 0.11 (36 points): mean fidelity +0.0006 over the points,
-#: +0.001 to +0.003 at NSR 0.001 (24 up, 4 down), for about 1 % of the time.  On every pixel in
-#: doubt instead of the misfits only: +0.0022 (34 up, 2 down), but 8-10 % slower (``bench
-#: speed``, default cube); with ``peak bare`` as well +0.0002 more; grown only where the best
-#: start's data term exceeds 1.02 times its expectation: +0.0011.
+#: start still misfits (only there: on every pixel in doubt the step gained more but cost
+#: 8-10 % of the speed; measured: docs/history.md).
 MISFIT_GROWN_STARTS = ("edge", "peak", "wide")
 
 
@@ -371,14 +367,12 @@ def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=No
     scale (pink noise); divided by the samples' relative least-squares ``weights`` (n, L)
     (:attr:`Detection.weights`) where given.  There a component fitted to the noise lowers the data term by about
     (lagged / sample noise)^2 times what white noise would, and a parameter-count penalty read in
-    sample variances lets noise bumps through as inter-reflections.  Paper scenes, 600 px, pink
-    NSR 0.055 / 0.11 at 2 ps bins: 0.884 / 0.818 -> 0.910 / 0.844; white noise is unchanged.
+    sample variances lets noise bumps through as inter-reflections.
 
     With the call's noise ``spectrum`` (:attr:`Detection.noise_spectrum`, where its noise is
     correlated): a :class:`SpectralNoise` of that spectrum and ``s_eff``'s variances instead,
     whatever the rest -- the residual whitened by the noise's own spectrum rather than read in
-    one lagged level (paper scenes, 600 px, pink NSR 0.055 / 0.11: 2 ps 0.920 / 0.853 ->
-    0.931 / 0.886, 4 ps 0.900 / 0.851 -> 0.915 / 0.880)."""
+    one lagged level."""
     from .constants import WHITE_LAG_RATIO
 
     s_eff = np.asarray(s_eff, np.float64)
@@ -491,11 +485,7 @@ def _floor_hidden_misfit(chi2, s_eff, measured, noise_floor, limit):
 
     The floor (``noise_floor`` x the peak) gives nearly noiseless data a finite detection limit;
     it also hides a wrong split that misfits the data several times their noise but far less
-    than the floor's.  Paper scenes (600 px, seeds 0 and 1, 2 and 4 ps, white, pink and photon
-    noise at NSR 0.001, where the floor is about ten times the noise): mean fidelity up at 10 of
-    the 12 points (+0.0004 to +0.0043, the other two -0.0001), e.g. a weak sss under a wide
-    direct taken by a Gaussian whose true inter-reflection no start had; the points at NSR 0.055
-    and 0.11 within +-0.0005 (few pixels there sit on the floor).
+    than the floor's.
     """
     floored = (measured < noise_floor) & (s_eff <= noise_floor * (1.0 + 1e-9))
     seen = np.maximum(measured, FLOOR_HIDDEN_MIN_FRACTION * noise_floor)
@@ -517,14 +507,12 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     marks the noise as correlated (:func:`objective_variance`) the starts' objectives, and so the
     ambiguity test, read the data term in its variance instead of ``s_eff``'s; ``noise_spectrum``
     (:attr:`Detection.noise_spectrum`, the call's correlated noise): they whiten it by that
-    spectrum instead (:class:`SpectralNoise`), and so does the whole-window doubt test below
-    (paper scenes, 1,500 px, pink NSR 0.055 / 0.11: pixels in doubt about 99 % -> 64-67 %, 8-9 %
-    less time, fidelity -0.000 to -0.003); ``wide_start``: try the ``wide`` start (False
+    spectrum instead (:class:`SpectralNoise`), and so does the whole-window doubt test below;
+    ``wide_start``: try the ``wide`` start (False
     for count data, see below); ``weighted_doubt``: every pixel that ``weights`` weigh (noise
     that follows the signal) is in doubt (float data: there the tests below, read in the
-    weighted data term, miss wrong splits whose misfit lies where the noise is largest;
-    paper scenes, 600 px, photon and camera noise at NSR 0.11, 4 ps bins: 0.765 / 0.754 ->
-    0.788 / 0.780, for 15-30 % more time on such data); ``measured_noise`` (n,): the noise
+    weighted data term, miss wrong splits whose misfit lies where the noise is largest);
+    ``measured_noise`` (n,): the noise
     the data show before the floor (:attr:`Samples.noise`), read by the misfit test below where
     the floor, not the data, set ``s_eff``.
 
@@ -621,10 +609,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         doubt |= chi0 > opts.search_doubt_chi2 * nfit
         doubt |= _near_direct_chi2(t, r0, mask, base, s2) > SEARCH_NEAR_DIRECT_CHI2
     # an earliest Gaussian weak and just before a much larger onset (the output's AMBIGUOUS
-    # rule): paper scenes, 600 px, seeds 0-2, 2 and 4 ps bins, white / pink / photon at NSR
-    # 0.001 / 0.055 / 0.11 (54 points): 9 points up by 0.0002-0.0027 (4 ps white NSR 0.055 and
-    # 0.11 most), none down; pixels below fidelity 0.5 -6.  At the flag's fraction: with 0.3 or
-    # 0.5 of the larger light instead, 10 up but 3-5 down by up to 0.0011.
+    # rule; measured: docs/history.md)
     rest = np.nonzero(~doubt)[0]
     if rest.size:
         doubt[rest] |= weak_leading_gaussian(t, take(base, rest))
@@ -677,9 +662,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # default width lost to Gaussians); elsewhere the peak start itself, polished once
     k_d = np.argmin(np.where(g[idx], base["delay"][idx], np.inf), axis=1)
     w_det = np.clip(np.exp(base["lsig"][idx][np.arange(idx.size), k_d]), *dic.grid.sigma_range_ps)
-    # (not for count data: with a tailed response the Gaussian path's false echoes on d+s
-    # scenes at 100 and 300 photons rose from 2.3 % to 3.6 % of pixels with it, 4 x 240 px,
-    # while its fidelity on the paper scenes moved by -0.005..+0.004)
+    # (not for count data: with a tailed response it added false echoes on d+s scenes)
     wide = (w_det > SEARCH_WIDE_FACTOR * sg) & bool(wide_start)
     widths["wide"] = np.where(wide, w_det, sg)
     specs = specs + (("wide", t_peak, np.where(wide, t_peak + SEARCH_EDGE_GAP_SIGMA * w_det, t_peak + sg), True),)
@@ -763,11 +746,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # than ambiguity_split (1 - fidelity between the two).  Both objectives are read on the same
     # data, so the noise they share cancels in their difference: what is left is the evidence
     # for one over the other, read on Kass and Raftery's scale (J. Am. Stat. Assoc. 90, 773
-    # (1995): a difference in BIC above 10 is "very strong").  The window of earlier releases,
-    # 3 sqrt(2 n) (the spread of one chi-square over noise realisations, 67-96 for 256-512
-    # samples), flagged alternatives up to e^33-e^48 times less likely (a BIC difference D is a
-    # Bayes factor of about e^(D/2)): 18 % of the pixels of `bench accuracy`'s scenes, 7 % of
-    # them below fidelity 0.5 (see docs/decomposition.md).
+    # (1995): a difference in BIC above 10 is "very strong").
     j_best = js[best, np.arange(idx.size)]
     split_best = _split(t, chosen)
     amb = np.zeros(idx.size, bool)
