@@ -313,3 +313,23 @@ def test_commands_run_with_one_blas_thread_unless_the_user_says_otherwise(monkey
     probe = subprocess.run([sys.executable, "-c", "import sys, streaklab.cli; print('numpy' in sys.modules)"],
                            capture_output=True, text=True, timeout=60)
     assert probe.stdout.strip() == "False", probe.stderr
+
+
+def test_counts_are_worded_with_their_plurals():
+    from core.words import counted, plural
+
+    assert [counted(n, "pixel") for n in (0, 1, 2, 1024)] == ["0 pixels", "1 pixel", "2 pixels", "1,024 pixels"]
+    assert counted(np.int64(1), "pixel chunk") == "1 pixel chunk" and plural(3, "was", "were") == "were"
+
+
+def test_decompose_words_one_pixel_as_one(tmp_path, capsys):
+    from decomposition.synthetic import make_cube
+
+    cube = make_cube(1, 2, 128, nsr=0.01, seed=2, kinds="a").noisy
+    cube[0, 1, 5] = np.nan
+    np.save(tmp_path / "c.npy", cube)
+    assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--nan-policy", "omit",
+                 "--no-components", "--quiet", "--out", str(tmp_path / "r.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "decomposed 2 pixels of a 1 x 2 x 128 cube" in out
+    assert "note: 1 pixel had NaN/inf samples and was not decomposed (valid = False)" in out
