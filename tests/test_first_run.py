@@ -333,3 +333,43 @@ def test_decompose_words_one_pixel_as_one(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "decomposed 2 pixels of a 1 x 2 x 128 cube" in out
     assert "note: 1 pixel had NaN/inf samples and was not decomposed (valid = False)" in out
+
+
+
+def test_capturing_the_example_config_without_simulate_says_to_add_it(tmp_path, monkeypatch, capsys):
+    """The example's device addresses are placeholders: a capture that cannot reach them says to
+    add --simulate; a rig's own address gets no such hint."""
+    import contextlib
+
+    import drivers.remoteex
+    import drivers.smc100
+    from drivers.errors import DriverError
+
+    def refused(host, port, **kw):
+        raise DriverError(f"cannot connect to RemoteEx at {host}:{port}: [Errno 111] Connection refused")
+
+    def absent(port, **kw):
+        raise DriverError(f"cannot open {port}: no such device")
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["example-config", "--out", "scan.toml"]) == 0
+    text = (tmp_path / "scan.toml").read_text()
+    (tmp_path / "rig.toml").write_text(text.replace('"127.0.0.1:1001"', '"192.168.7.2:1001"'))
+    capsys.readouterr()
+
+    def capture(config):
+        assert main(["capture", "--config", config, "--out", "run.zarr", "--quiet"]) == 2, config
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and not (tmp_path / "run.zarr").exists(), err
+        return err
+
+    monkeypatch.setattr(drivers.remoteex, "RemoteExCamera", refused)
+    for config, hint in (("sim", True), ("scan.toml", True), ("rig.toml", False)):
+        err = capture(config)
+        assert "cannot open the camera at " in err and "Connection refused" in err, err
+        assert ("add --simulate to capture from a simulated lab" in err) == hint, (config, err)
+    # the camera answers (a sim-lab on the example's port); the example's mirror port does not
+    monkeypatch.setattr(drivers.remoteex, "RemoteExCamera", lambda host, port, **kw: contextlib.nullcontext())
+    monkeypatch.setattr(drivers.smc100, "SMC100Mirror", absent)
+    assert "add --simulate" in capture("sim")
+    assert "add --simulate" not in capture("scan.toml")       # a copy's /dev/ttyUSB0 may well be the rig's
