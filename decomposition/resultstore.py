@@ -60,6 +60,7 @@ __all__ = [
     "RESULT_KIND",
     "RESPONSE_GROUP",
     "OUT_OF_RANGE",
+    "OUT_OF_RANGE_HELP",
     "FORMAT_VERSION",
     "CORE_MAP_KEYS",
     "CORE_IR_KEYS",
@@ -77,6 +78,9 @@ RESULT_KIND = "decomposition"
 #: the pixel exceeds the float32 range of the component arrays; those values are stored as NaN (the
 #: float64 parameters are exact).
 OUT_OF_RANGE = 256
+#: one line for a user about :data:`OUT_OF_RANGE` (as :data:`decomposition.flags.FLAG_HELP` for the solver's)
+OUT_OF_RANGE_HELP = ("a rendered component or the residual exceeded the float32 range and is stored as NaN; "
+                     "the fitted parameters (float64) are exact: use them, or scale the input down")
 FORMAT_VERSION = 1
 #: the group that holds the instrument response of the fits (absent: the Gaussian PSF)
 RESPONSE_GROUP = "irf"
