@@ -92,8 +92,8 @@ FLAG_HELP = {
     Flag.TRUNCATED: "more inter-reflections were found than are kept; the later ones were dropped: raise "
                     "--max-interreflections to keep them",
     Flag.AMBIGUOUS: "the data do not determine how the light splits among the components (another split fits "
-                    "about as well, or a weak direct sits just before a much larger return): read this "
-                    "pixel's split as uncertain; less noise (longer exposure, more frames) narrows it",
+                    "about as well, or a weak direct sits just before a much larger return): treat the "
+                    "split as uncertain; less noise (longer exposure, more frames) narrows it",
     Flag.WIDE_PSF: "the fitted direct is wider than the grid's sigma_range_ps, typically an sss hump taken for "
                    "a broad direct: trust its direct/sss split less; if the response is that wide, use --irf",
     Flag.OFF_WINDOW: "a component runs off the edge of the time window; its parameters are extrapolated from "
