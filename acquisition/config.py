@@ -72,6 +72,7 @@ waits above).  Unknown sections and keys, wrong types and out-of-range values ra
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import json
 import math
@@ -393,6 +394,26 @@ def example_config_path(name: str = "sim") -> Path:
     if name not in EXAMPLE_CONFIGS:
         raise ConfigError(f"no example configuration {name!r}; available: {', '.join(EXAMPLE_CONFIGS)}")
     return Path(__file__).resolve().parent / "examples" / EXAMPLE_CONFIGS[name]
+
+
+def simulated_example_address(config: ScanConfig, device: str) -> bool:
+    """True when ``devices.<device>`` is the packaged simulated-lab example's placeholder address,
+    not a rig's: the config is the packaged example itself, or the address is the example's
+    loopback camera address (a copy written by ``streaklab example-config``).  A capture that
+    cannot reach such a device was meant for ``--simulate``."""
+    if config.source is not None:
+        try:
+            if Path(config.source).resolve() == example_config_path("sim"):
+                return True
+        except OSError:
+            pass
+    return device == "camera" and config["devices"].get("camera") == _example_devices().get("camera")
+
+
+@functools.lru_cache(maxsize=1)
+def _example_devices() -> dict:
+    with open(example_config_path("sim"), "rb") as f:
+        return dict(tomllib.load(f).get("devices", {}))
 
 
 def resolve_config_path(path) -> Path:

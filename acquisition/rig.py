@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.errors import DriverError
 
-from .config import ScanConfig, calibration_times_ps
+from .config import ScanConfig, calibration_times_ps, simulated_example_address
 from .session import CaptureError, CaptureSession, SessionResult
 
 __all__ = ["simulated_scene", "start_simulated_lab", "open_rig", "run_capture"]
@@ -118,21 +118,27 @@ def open_rig(config: ScanConfig, *, lab=None):
         cam_host, _, port = dev["camera"].rpartition(":")
         cam_port, mirror_port, backend = int(port), dev["mirror"], None
     with contextlib.ExitStack() as stack:
-        def enter(name, where, make):
+        def enter(name, where, make, device):
             try:
                 return stack.enter_context(make())
             except (DriverError, OSError) as exc:
-                raise CaptureError(f"cannot open the {name} at {where}: {exc}") from None
+                hint = ""
+                if lab is None and simulated_example_address(config, device):
+                    hint = ("; that is the example configuration's placeholder address, not a rig's: add "
+                            "--simulate to capture from a simulated lab started in this process, or set "
+                            "[devices] to your rig's addresses")
+                raise CaptureError(f"cannot open the {name} at {where}: {exc}{hint}") from None
 
         camera = enter("camera", f"{cam_host}:{cam_port}",
-                       lambda: RemoteExCamera(cam_host, cam_port, timeout_s=timeout_s, connect_timeout_s=timeout_s))
+                       lambda: RemoteExCamera(cam_host, cam_port, timeout_s=timeout_s, connect_timeout_s=timeout_s),
+                       "camera")
         mirror = enter("mirror", mirror_port,
                        lambda: SMC100Mirror(mirror_port, address=dev["mirror_address"], timeout_s=timeout_s,
-                                            xonxoff=dev["mirror_xonxoff"]))
+                                            xonxoff=dev["mirror_xonxoff"]), "mirror")
         sync_where = "the simulated USB backend" if backend is not None else \
             ", ".join(f"{k}={dev[k]!r}" for k in ("sync_vendor_id", "sync_product_id", "sync_serial") if k in dev) \
             or "USB (no id configured)"
-        sync = enter("laser sync", sync_where, lambda: _open_sync(config, backend=backend))
+        sync = enter("laser sync", sync_where, lambda: _open_sync(config, backend=backend), "sync")
         yield camera, mirror, sync
 
 

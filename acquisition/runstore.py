@@ -234,12 +234,27 @@ class RunCheck:
         Damage to the dark frames (or their flag).
     other : list of ChunkDamage
         Damage that a recapture does not mend (``target_angle_deg``, coordinates).
+    lines_done : int
+        Lines whose ``done`` flag is set (and readable), damaged or not.
+    n_lines : int
+        Lines of the scan.
+    dark_pending : bool
+        The run takes dark frames and they are not marked done (the capture stopped before them).
     """
 
     checksums: bool
     lines: dict
     dark: list
     other: list
+    lines_done: int = 0
+    n_lines: int = 0
+    dark_pending: bool = False
+
+    @property
+    def complete(self) -> bool:
+        """Every line (and the dark frames) was captured; damage aside."""
+        return self.lines_done + sum(1 for d in self.lines.values()
+                                     if any(x.array == "done" for x in d)) >= self.n_lines and not self.dark_pending
 
     @property
     def ok(self) -> bool:
@@ -265,14 +280,18 @@ def verify_run(run: RunStore) -> RunCheck:
         for d in scan_array(path, arr, [c + (0,) * (arr.ndim - 1) for c in ok_lines]):
             lines.setdefault(d.coords[0], []).append(d)
     dark = list(scan_array(path, run["dark_done"], must_exist=lambda c: False))
-    if not dark and run.dark_done():
-        dark = list(scan_array(path, run["dark"]))
+    dark_pending = False
+    if not dark:
+        if run.dark_done():
+            dark = list(scan_array(path, run["dark"]))
+        else:
+            dark_pending = run["dark"].shape[0] > 0
     other = []
     for name in sorted(run.group.array_keys()):
         if name not in LINE_ARRAYS + ("dark", "dark_done"):
             other.extend(scan_array(path, run[name]))
     return RunCheck(checksums=has_checksums(run["streaks"]), lines=dict(sorted(lines.items())), dark=dark,
-                    other=other)
+                    other=other, lines_done=int(done.sum()), n_lines=n, dark_pending=dark_pending)
 
 
 def describe_absent(run: RunStore, absent: list[ChunkDamage]) -> str:

@@ -36,6 +36,8 @@ Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultst
 
 The bit values are part of the result-store format: stores written by any version read the
 same.  :data:`FLAG_NAMES` (bit -> name) is derived from :class:`Flag`, never kept by hand.
+:data:`FLAG_HELP` gives each flag one line for a user: what it means and what to do about it
+(the report's summary prints it for every flag that occurs).
 """
 from __future__ import annotations
 
@@ -43,7 +45,7 @@ import enum
 
 import numpy as np
 
-__all__ = ["Flag", "FLAG_NAMES", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
+__all__ = ["Flag", "FLAG_NAMES", "FLAG_HELP", "FLAG_DTYPE", "flag_names", "mark", "EMPTY", "SATURATED", "POOR_FIT", "SPIKE",
            "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF", "OFF_WINDOW", "DATA_FLAGS"]
 
 #: dtype of a flags array
@@ -68,6 +70,35 @@ class Flag(enum.IntFlag):
 
 #: bit value -> flag name, in bit order
 FLAG_NAMES = {int(f): f.name for f in Flag}
+
+#: flag -> one line for a user: what the flag means for the pixel, then what can be done about it
+FLAG_HELP = {
+    Flag.EMPTY: "nothing above the noise (a dark or all-zero pixel), so no component: expected off the "
+                "object; elsewhere check the exposure, gain and alignment",
+    Flag.SATURATED: "samples reached the saturation level; the fit took them as at least that level: "
+                    "lower the exposure or the gain and capture again",
+    Flag.POOR_FIT: "the residual is above poor_fit (3) times the noise: the model misses light the data hold; "
+                   "a constant offset (--components ...,b), a response that is not a Gaussian (--irf, "
+                   "streaklab calibrate-irf) or pulses cut by the window's edge are the usual causes",
+    Flag.SPIKE: "single-sample spikes (a hot pixel or a cosmic ray) were left out of the fit: usually "
+                "harmless; a pixel flagged in every capture is a hot pixel",
+    Flag.NONFINITE: "NaN/inf samples: the pixel was not decomposed; fill the gap in the input (a line "
+                    "missing from a partial reconstruction: finish the capture with --resume)",
+    Flag.MAX_ITER: "the solver stopped at max_iter before it converged; the answer may be unfinished: "
+                   "raise it (--option max_iter=N)",
+    Flag.AT_BOUND: "a fitted width (sigma) or sss decay (alpha) ended at its allowed bound: widen the grid "
+                   "(--option sigma_range_ps=[LO,HI] or alpha_range_per_ps=[LO,HI]), or measure the "
+                   "response (--irf) if it is not a Gaussian",
+    Flag.TRUNCATED: "more inter-reflections were found than are kept; the later ones were dropped: raise "
+                    "--max-interreflections to keep them",
+    Flag.AMBIGUOUS: "the data do not determine how the light splits among the components (another split fits "
+                    "about as well, or a weak direct sits just before a much larger return): treat the "
+                    "split as uncertain; less noise (longer exposure, more frames) narrows it",
+    Flag.WIDE_PSF: "the fitted direct is wider than the grid's sigma_range_ps, typically an sss hump taken for "
+                   "a broad direct: trust its direct/sss split less; if the response is that wide, use --irf",
+    Flag.OFF_WINDOW: "a component runs off the edge of the time window; its parameters are extrapolated from "
+                     "the part inside: move the light into the window (sync.trigger_delay_ps) and capture again",
+}
 
 EMPTY = Flag.EMPTY
 SATURATED = Flag.SATURATED

@@ -60,6 +60,7 @@ __all__ = [
     "RESULT_KIND",
     "RESPONSE_GROUP",
     "OUT_OF_RANGE",
+    "OUT_OF_RANGE_HELP",
     "FORMAT_VERSION",
     "CORE_MAP_KEYS",
     "CORE_IR_KEYS",
@@ -77,6 +78,9 @@ RESULT_KIND = "decomposition"
 #: the pixel exceeds the float32 range of the component arrays; those values are stored as NaN (the
 #: float64 parameters are exact).
 OUT_OF_RANGE = 256
+#: one line for a user about :data:`OUT_OF_RANGE` (as :data:`decomposition.flags.FLAG_HELP` for the solver's)
+OUT_OF_RANGE_HELP = ("a rendered component or the residual exceeded the float32 range and is stored as NaN; "
+                     "the fitted parameters (float64) are exact: use them, or scale the input down")
 FORMAT_VERSION = 1
 #: the group that holds the instrument response of the fits (absent: the Gaussian PSF)
 RESPONSE_GROUP = "irf"
@@ -135,11 +139,20 @@ def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
 class ResultCheck:
     """What :meth:`ResultStore.verify` found: ``checksums`` (False for stores of earlier releases),
     ``chunks`` (pixel chunk (iy, ix) -> list of ChunkDamage, for chunks marked done or whose
-    ``done`` flags are damaged) and ``other`` (damaged coordinate arrays and response arrays)."""
+    ``done`` flags are damaged), ``other`` (damaged coordinate arrays and response arrays),
+    ``chunks_done`` (pixel chunks wholly marked done, damaged or not) and ``n_chunks``."""
 
     checksums: bool
     chunks: dict
     other: list
+    chunks_done: int = 0
+    n_chunks: int = 0
+
+    @property
+    def complete(self) -> bool:
+        """Every pixel chunk was computed (or its done flag is damaged, which counts as damage); damage aside."""
+        return self.chunks_done + sum(1 for d in self.chunks.values()
+                                      if any(x.array == "done" for x in d)) >= self.n_chunks
 
     @property
     def ok(self) -> bool:
@@ -251,7 +264,8 @@ class ResultStore:
         other = [d for name in ("t", "y", "x", "r") for d in scan_array(path, g[name])]
         if self.has_response:
             other.extend(scan_group(path, g[RESPONSE_GROUP]))
-        return ResultCheck(checksums=has_checksums(done_arr), chunks=dict(sorted(chunks.items())), other=other)
+        return ResultCheck(checksums=has_checksums(done_arr), chunks=dict(sorted(chunks.items())), other=other,
+                           chunks_done=len(done), n_chunks=gy * gx)
 
     def mark_chunks_not_done(self, chunks) -> None:
         """Clear ``done`` over the given pixel chunks (durably) so ``decompose --resume`` recomputes them."""

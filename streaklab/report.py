@@ -374,6 +374,15 @@ def _flag_table() -> dict:
     return dict(sorted(table.items()))
 
 
+def flag_help() -> dict:
+    """flag name -> one line on what it means and what to do (decomposition.flags.FLAG_HELP and the
+    store's OUT_OF_RANGE_HELP)."""
+    from decomposition.flags import FLAG_HELP
+    from decomposition.resultstore import OUT_OF_RANGE_HELP
+
+    return {**{flag.name: text for flag, text in FLAG_HELP.items()}, "OUT_OF_RANGE": OUT_OF_RANGE_HELP}
+
+
 def flag_text(bits: int) -> str:
     """Quality flags of a result store's pixel by name (the solver's decomposition.FLAG_NAMES and
     the store's own OUT_OF_RANGE), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
@@ -491,6 +500,8 @@ def summary_text(store) -> str:
     counts = {name: int(((flags & bit) != 0).sum()) for bit, name in _flag_table().items()}
     flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
     lines.append(f"flagged pixels: {int((flags != 0).sum())}" + (f" ({flagged})" if flagged else ""))
+    help_text = flag_help()
+    lines.extend(f"  {name}: {help_text[name]}" for name, n in counts.items() if n and name in help_text)
     return "\n".join(lines) + "\n"
 
 

@@ -313,3 +313,63 @@ def test_commands_run_with_one_blas_thread_unless_the_user_says_otherwise(monkey
     probe = subprocess.run([sys.executable, "-c", "import sys, streaklab.cli; print('numpy' in sys.modules)"],
                            capture_output=True, text=True, timeout=60)
     assert probe.stdout.strip() == "False", probe.stderr
+
+
+def test_counts_are_worded_with_their_plurals():
+    from core.words import counted, plural
+
+    assert [counted(n, "pixel") for n in (0, 1, 2, 1024)] == ["0 pixels", "1 pixel", "2 pixels", "1,024 pixels"]
+    assert counted(np.int64(1), "pixel chunk") == "1 pixel chunk" and plural(3, "was", "were") == "were"
+
+
+def test_decompose_words_one_pixel_as_one(tmp_path, capsys):
+    from decomposition.synthetic import make_cube
+
+    cube = make_cube(1, 2, 128, nsr=0.01, seed=2, kinds="a").noisy
+    cube[0, 1, 5] = np.nan
+    np.save(tmp_path / "c.npy", cube)
+    assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--nan-policy", "omit",
+                 "--no-components", "--quiet", "--out", str(tmp_path / "r.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "decomposed 2 pixels of a 1 x 2 x 128 cube" in out
+    assert "note: 1 pixel had NaN/inf samples and was not decomposed (valid = False)" in out
+
+
+
+def test_capturing_the_example_config_without_simulate_says_to_add_it(tmp_path, monkeypatch, capsys):
+    """The example's device addresses are placeholders: a capture that cannot reach them says to
+    add --simulate; a rig's own address gets no such hint."""
+    import contextlib
+
+    import drivers.remoteex
+    import drivers.smc100
+    from drivers.errors import DriverError
+
+    def refused(host, port, **kw):
+        raise DriverError(f"cannot connect to RemoteEx at {host}:{port}: [Errno 111] Connection refused")
+
+    def absent(port, **kw):
+        raise DriverError(f"cannot open {port}: no such device")
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["example-config", "--out", "scan.toml"]) == 0
+    text = (tmp_path / "scan.toml").read_text()
+    (tmp_path / "rig.toml").write_text(text.replace('"127.0.0.1:1001"', '"192.168.7.2:1001"'))
+    capsys.readouterr()
+
+    def capture(config):
+        assert main(["capture", "--config", config, "--out", "run.zarr", "--quiet"]) == 2, config
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and not (tmp_path / "run.zarr").exists(), err
+        return err
+
+    monkeypatch.setattr(drivers.remoteex, "RemoteExCamera", refused)
+    for config, hint in (("sim", True), ("scan.toml", True), ("rig.toml", False)):
+        err = capture(config)
+        assert "cannot open the camera at " in err and "Connection refused" in err, err
+        assert ("add --simulate to capture from a simulated lab" in err) == hint, (config, err)
+    # the camera answers (a sim-lab on the example's port); the example's mirror port does not
+    monkeypatch.setattr(drivers.remoteex, "RemoteExCamera", lambda host, port, **kw: contextlib.nullcontext())
+    monkeypatch.setattr(drivers.smc100, "SMC100Mirror", absent)
+    assert "add --simulate" in capture("sim")
+    assert "add --simulate" not in capture("scan.toml")       # a copy's /dev/ttyUSB0 may well be the rig's

@@ -210,3 +210,29 @@ def test_flag_text_names_solver_and_store_bits():
     assert flag_text(int(POOR_FIT) | int(SPIKE)) == "POOR_FIT, SPIKE"
     assert flag_text(int(POOR_FIT) | OUT_OF_RANGE) == "POOR_FIT, OUT_OF_RANGE"
     assert flag_text(1 << 15) == "bits 0x8000"
+
+
+def test_summary_explains_each_flag_that_occurs(result, tmp_path):
+    """After the counts, one line per flag present: what it means and what to do; none for the rest."""
+    import zarr
+
+    from decomposition.flags import AMBIGUOUS, FLAG_HELP, Flag, OFF_WINDOW
+    from decomposition.resultstore import OUT_OF_RANGE
+    from streaklab.report import flag_help, summary_text
+
+    assert set(flag_help()) == {f.name for f in Flag} | {"OUT_OF_RANGE"} and set(FLAG_HELP) == set(Flag)
+    assert all(len(text) > 40 and "\n" not in text for text in flag_help().values())
+    shutil.copytree(result / "res.zarr", tmp_path / "res.zarr")
+    flags = zarr.open_group(str(tmp_path / "res.zarr"), mode="r+")["flags"]
+    marked = np.zeros(flags.shape, np.uint16)
+    marked[0, :3] = int(AMBIGUOUS)
+    marked[1, 0] = int(AMBIGUOUS) | int(OFF_WINDOW)
+    marked[3, 5] = OUT_OF_RANGE
+    flags[...] = marked
+    text = summary_text(open_result_store(tmp_path / "res.zarr")).splitlines()
+    at = next(i for i, line in enumerate(text) if line.startswith("flagged pixels: "))
+    assert text[at] == "flagged pixels: 5 (OUT_OF_RANGE 1, AMBIGUOUS 4, OFF_WINDOW 1)"   # bit order
+    assert text[at + 1:] == [f"  OUT_OF_RANGE: {flag_help()['OUT_OF_RANGE']}",
+                             f"  AMBIGUOUS: {FLAG_HELP[Flag.AMBIGUOUS]}",
+                             f"  OFF_WINDOW: {FLAG_HELP[Flag.OFF_WINDOW]}"]
+    assert "uncertain" in text[at + 2] and "trigger_delay_ps" in text[at + 3]

@@ -88,7 +88,7 @@ def test_result_store_damage_is_found_and_recomputed(tmp_path, capsys):
     assert main(["verify", str(res), "--mark-for-resume"]) == 1
     text = capsys.readouterr().out
     assert "pixel chunk (1, 0) (y 1..1, x 0..2):\n  direct_delay_ps chunk (1, 0): missing" in text
-    assert "marked 1 pixel chunk(s) not done" in text
+    assert "marked 1 pixel chunk not done" in text
     assert open_result_store(res).done_chunks().tolist() == [[True], [False]]
     assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(res), "--resume", "--quiet"]) == 0
     again = open_result_store(res).params()
@@ -162,3 +162,71 @@ def test_a_result_store_of_the_previous_release_resumes(tmp_path, monkeypatch, c
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     assert main(["verify", str(res)]) == 0
     assert "written without checksums" in capsys.readouterr().out
+
+
+def test_verify_names_a_stopped_capture_incomplete_and_how_to_finish_it(tmp_path, capsys):
+    import threading
+
+    cfg = sim_config(n_lines=5)
+    out = tmp_path / "run.zarr"
+    stop = threading.Event()
+    result = run_capture(cfg, out, simulate=True, stop_event=stop,
+                         on_line=lambda session, line: stop.set() if session.lines_done() == 2 else None)
+    assert result.status != "complete" and result.lines_done == 2
+    assert main(["verify", str(out)]) == 0                     # nothing damaged: not an error
+    text = capsys.readouterr().out
+    assert "incomplete: 2 of 5 lines captured" in text
+    assert "no damage found in the captured lines" in text
+    assert f"finish the capture with:\n  streaklab capture --config SCAN.toml --out {out} --simulate --resume" in text
+    # damage in a stopped run: both, and the one command redoes the damaged line and the rest
+    (out / "streaks/c/1/0/0/0").unlink()
+    assert main(["verify", str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "incomplete: 2 of 5 lines captured" in text and "line 1:\n  streaks chunk (1, 0, 0, 0): missing" in text
+    assert "to recapture just those and finish the capture:" in text
+    # a complete run says neither
+    done = tmp_path / "done.zarr"
+    assert run_capture(cfg, done, simulate=True).status == "complete"
+    assert main(["verify", str(done)]) == 0
+    text = capsys.readouterr().out
+    assert "incomplete" not in text and text.endswith("no damage found\n")
+
+
+def test_verify_names_a_stopped_decomposition_incomplete_and_counts_in_words(tmp_path, capsys):
+    write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=5), time_bin_ps=TB, chunks=(1, 3))
+    res = tmp_path / "res.zarr"
+    decompose_to_store(tmp_path / "cube.zarr", res, progress=False)
+    assert main(["verify", str(res)]) == 0
+    assert f"{res}: result store, 2 x 3 pixels in 2 chunks of 1 x 3\nno damage found\n" in capsys.readouterr().out
+    zarr.open_group(str(res), mode="r+")["done"][1:2] = False      # as if stopped after the first chunk
+    assert main(["verify", str(res)]) == 0
+    text = capsys.readouterr().out
+    assert "incomplete: 1 of 2 pixel chunks decomposed" in text
+    assert (f"finish the decomposition with:\n  streaklab decompose {tmp_path / 'cube.zarr'} --out {res} --resume"
+            in text)
+    write_cube(tmp_path / "one.zarr", small_cube(1, 3, seed=5), time_bin_ps=TB, chunks=(1, 3))
+    decompose_to_store(tmp_path / "one.zarr", tmp_path / "one-res.zarr", progress=False)
+    assert main(["verify", str(tmp_path / "one-res.zarr")]) == 0
+    assert "result store, 1 x 3 pixels in 1 chunk of 1 x 3\n" in capsys.readouterr().out
+
+
+def test_verify_of_a_copied_cube_names_the_copy_in_its_command(tmp_path, monkeypatch, capsys):
+    import shlex
+    import shutil
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--shape", "2", "3", "64", "--seed", "4", "--chunks", "1", "3",
+                 "--out", "orig.zarr"]) == 0
+    shutil.copytree("orig.zarr", "copy.zarr")
+    flip_bit(tmp_path / "copy.zarr/cube/c/1/0/0")
+    assert main(["verify", "copy.zarr"]) == 1
+    text = capsys.readouterr().out
+    assert "orig.zarr" not in text
+    command = text.split("write it again with:\n  ", 1)[1].splitlines()[0]
+    argv = shlex.split(command)
+    assert argv[:2] == ["streaklab", "simulate"] and argv[-3:] == ["--out", "copy.zarr", "--overwrite"]
+    assert main(argv[1:]) == 0                                      # the command rebuilds the copy as it was
+    capsys.readouterr()
+    np.testing.assert_array_equal(zarr.open_group("copy.zarr", mode="r")["cube"][...],
+                                  zarr.open_group("orig.zarr", mode="r")["cube"][...])
+    assert main(["verify", "copy.zarr"]) == 0

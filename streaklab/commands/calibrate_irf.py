@@ -13,6 +13,7 @@ import tempfile
 from pathlib import Path
 
 from core.staging import describe_existing
+from core.words import counted
 from streaklab.cli import CommandError
 
 
@@ -59,7 +60,7 @@ def run(args) -> int:
         write_cube_response(cube, irf, overwrite=args.overwrite)
         where = f"{source}/irf"
     prov = irf.provenance
-    print(f"wrote the instrument response to {where}: {prov['pixels_used']} of {prov['pixels_total']} pixels, "
+    print(f"wrote the instrument response to {where}: {prov['pixels_used']:,} of {counted(prov['pixels_total'], 'pixel')}, "
           f"FWHM {irf.fwhm_ps():.3g} ps, {irf.n_samples} samples of {irf.time_step_ps:g} ps, "
           f"delays spread {prov['delay_spread_ps']:.3g} ps, alignment +-{prov['alignment_sd_ps']:.2g} ps; "
           f"the best Gaussian (sigma {prov['gaussian_fit']['sigma_ps']:.3g} ps) would leave "

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 
+from core.words import counted, plural
 from decomposition.pipeline import METHODS, decompose_to_store
 from streaklab.cli import CommandError
 
@@ -152,22 +153,24 @@ def run(args) -> int:
     if summary["chunks_done"] == 0:
         print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
         return 0
-    print(f"decomposed {summary['pixels']} pixels of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
+    print(f"decomposed {counted(summary['pixels'], 'pixel')} of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
           f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
     if summary.get("seconds_compile"):
         print(f"note: {summary['seconds_compile']:.1f} s of that compiled the solver's kernels, once; "
               f"later runs load them from the cache")
     if summary["invalid_pixels"]:
-        print(f"note: {summary['invalid_pixels']} pixels had NaN/inf samples and were not decomposed (valid = False)")
+        print(f"note: {counted(summary['invalid_pixels'], 'pixel')} had NaN/inf samples and "
+              f"{plural(summary['invalid_pixels'], 'was', 'were')} not decomposed (valid = False)")
     judged = summary["pixels"] - summary["invalid_pixels"]
     if judged > 0 and summary.get("poor_fit_pixels", 0) >= POOR_FIT_NOTE_FRACTION * judged:
         families = parse_components(args.components)
         with_b = ",".join(families + (() if "b" in families else ("b",)))
-        print(f"note: {summary['poor_fit_pixels']} of {judged} pixels are flagged POOR_FIT: the model misses light "
+        print(f"note: {summary['poor_fit_pixels']:,} of {counted(judged, 'pixel')} "
+              f"{plural(summary['poor_fit_pixels'], 'is', 'are')} flagged POOR_FIT: the model misses light "
               f"they hold. A constant offset under the data (--components {with_b} fits one), a response that is "
               f"not a Gaussian (--irf, streaklab calibrate-irf) or pulses cut by the window's edge are the usual causes")
     if summary["ir_truncated_pixels"]:
-        print(f"note: {summary['ir_truncated_pixels']} pixels had more than {args.max_interreflections} "
-              f"inter-reflections (flagged TRUNCATED); the later ones were dropped "
+        print(f"note: {counted(summary['ir_truncated_pixels'], 'pixel')} had more than "
+              f"{counted(args.max_interreflections, 'inter-reflection')} (flagged TRUNCATED); the later ones were dropped "
               f"(raise --max-interreflections to keep them)")
     return 0

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.words import counted
 from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "run_demo", "class_fidelity"]
@@ -112,7 +113,7 @@ def _capture_cube(out: Path, *, lines, nx, nt, seed, stream, quiet):
     config = _demo_config(parse_config, lines=lines, nx=nx, nt=nt, seed=seed)
     run_path, cube_path = out / "run.zarr", out / "cube.zarr"
     t0 = time.perf_counter()
-    _say(f"[1/5] capture: {config.n_lines} lines x {nx} pixels x {nt} rows from the simulated lab -> {run_path}",
+    _say(f"[1/5] capture: {counted(config.n_lines, 'line')} x {counted(nx, 'pixel')} x {counted(nt, 'row')} from the simulated lab -> {run_path}",
          stream)
     run_capture(config, run_path, simulate=True)
     _say(f"      {time.perf_counter() - t0:.1f} s", stream)
@@ -152,13 +153,14 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
 
 def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
     from decomposition.synthetic import make_cube
-    from streaklab.commands.simulate import write_simulation
+    from streaklab.commands.simulate import simulate_command, write_simulation
 
     cube_path = out / "cube.zarr"
     t0 = time.perf_counter()
     _say(f"[1/5] simulate: synthetic cube {lines} x {nx} x {nt}, white noise at NSR {nsr:g} -> {cube_path}", stream)
     data = make_cube(lines, nx, nt, nsr=nsr, noise="white", seed=seed)
-    write_simulation(cube_path, data, overwrite=True, command="streaklab demo --source simulate")
+    write_simulation(cube_path, data, overwrite=True,
+                     command=simulate_command((lines, nx, nt), nsr=nsr, noise="white", seed=seed))
     _say(f"[2/5] (no reconstruction needed: the cube is written directly; {time.perf_counter() - t0:.1f} s)", stream)
     truth = {k: np.asarray(v, np.float64) for k, v in data.components.items()}
     return cube_path, truth, f"synthetic cube (Fig. 3 kinds a/b/c, white noise NSR {nsr:g})"
@@ -199,7 +201,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     ny, nx_ = open_cube(cube_path).shape[:2]
     summary = decompose_to_store(cube_path, result_path, method=method, workers=workers, progress=progress,
                                  chunks=(min(ny, 4), min(nx_, 64)), stream=sys.stderr)
-    _say(f"      {summary['pixels']} pixels in {time.perf_counter() - t0:.1f} s "
+    _say(f"      {counted(summary['pixels'], 'pixel')} in {time.perf_counter() - t0:.1f} s "
          f"({summary['pixels_per_s']:,.0f} px/s)", stream)
     figs = out / "figs"
     _say(f"[4/5] report -> {figs}", stream)
@@ -209,7 +211,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     names = {"all": "all components", "direct": "direct", "sss": "subsurface scattering",
              "interreflections": "inter-reflections"}
     for k, v in fid.items():
-        _say(f"      {names[k]:<22} mean fidelity {v['mean']:.3f}  ({v['pixels']} pixels with it in the truth)", stream)
+        _say(f"      {names[k]:<22} mean fidelity {v['mean']:.3f}  ({counted(v['pixels'], 'pixel')} with it in the truth)", stream)
     (out / "fidelity.json").write_text(json.dumps({"source": what, "method": method, "fidelity": fid}, indent=2))
     total = time.perf_counter() - start
     _say(f"\ndone in {total:.1f} s. Outputs in {out}:", stream)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import shlex
 import sys
 
 import numpy as np
@@ -63,11 +64,51 @@ def _units(key: str) -> str:
     raise KeyError(key)
 
 
+def simulate_command(shape, *, nsr: float = 0.05, noise: str = "white", seed: int = 0, time_bin_ps: float = 2.0,
+                     t0_ps: float | None = None, kinds: str = "a,b,c", scenes: str = "legacy",
+                     bin_integrated: bool = False, chunks=None) -> str:
+    """The ``streaklab simulate`` command line that writes this cube again, every setting spelled
+    out and no ``--out``: a store records it (provenance ``command``) and ``verify`` adds the path
+    it was given, so a copied or moved store is rewritten where it is."""
+    argv = ["streaklab", "simulate", "--shape", *(str(int(n)) for n in shape), "--nsr", repr(float(nsr)),
+            "--noise", str(noise), "--seed", str(int(seed)), "--time-bin-ps", repr(float(time_bin_ps))]
+    if t0_ps is not None:
+        argv += ["--t0-ps", repr(float(t0_ps))]
+    argv += ["--kinds", str(kinds), "--scenes", str(scenes)]
+    if bin_integrated:
+        argv.append("--bin-integrated")
+    if chunks is not None:
+        argv += ["--chunks", *(str(int(c)) for c in chunks)]
+    return shlex.join(argv)
+
+
+def command_for(command: str, out) -> str | None:
+    """A recorded ``streaklab simulate`` command (:func:`simulate_command`, or an earlier
+    release's, which named its own ``--out``) writing to ``out`` instead, with ``--overwrite``;
+    None for any other command."""
+    try:
+        argv = shlex.split(command)
+    except ValueError:
+        return None
+    if argv[:2] != ["streaklab", "simulate"]:
+        return None
+    kept, skip = [], False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg == "--out":
+            skip = True
+        elif not (arg.startswith("--out=") or arg == "--overwrite"):
+            kept.append(arg)
+    return shlex.join(kept + ["--out", str(out), "--overwrite"])
+
+
 def write_simulation(path, data, *, chunks=None, overwrite: bool = False, command: str | None = None):
     """Write a :class:`decomposition.synthetic.SyntheticData` cube (leading shape (ny, nx)) and its truth.
 
     The store is written beside ``path`` and renamed into place when complete, so an error
-    never leaves half a store or destroys an existing one.  Returns the opened cube.
+    never leaves half a store or destroys an existing one.  ``command``: the command line that
+    writes it again (:func:`simulate_command`), kept in the provenance.  Returns the opened cube.
     """
     import zarr
 
@@ -147,7 +188,9 @@ def run(args) -> int:
                          bin_integrated=bool(args.bin_integrated))
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    command = "streaklab simulate " + " ".join(sys.argv[2:]) if sys.argv[1:2] == ["simulate"] else None
+    command = simulate_command(args.shape, nsr=args.nsr, noise=args.noise, seed=args.seed,
+                               time_bin_ps=args.time_bin_ps, t0_ps=args.t0_ps, kinds=args.kinds, scenes=args.scenes,
+                               bin_integrated=bool(args.bin_integrated), chunks=args.chunks)
     cube = write_simulation(args.out, data, chunks=args.chunks, overwrite=args.overwrite, command=command)
     n_ir = data.params["ir_delay_ps"].shape[-1]
     print(f"wrote {cube.path}: cube (y={ny}, x={nx}, t={nt}) with ground truth in group 'truth' "

@@ -2,14 +2,21 @@
 
 Works on run, cube and result stores.  Damage is reported by scan line (run store) or by pixel
 chunk (cube and result stores), with the commands that recapture or recompute just that part.
+A run or result store whose capture or decomposition stopped before the end is named incomplete
+(how much of it is done) with the command that finishes it: its undamaged part alone is not "sound".
 ``--mark-for-resume`` clears the ``done`` flags of the damaged lines or chunks (it never deletes
 data), so that ``capture --resume`` or ``decompose --resume`` redoes exactly those.  The exit
-status is 1 when damage is found, 0 when the store is sound.
+status is 1 when damage is found, 0 when the store is sound (complete or not).
+
+Every command printed names the store at the path verify was given, not the path it was first
+written at (a copied or moved store is redone where it is).
 """
 from __future__ import annotations
 
 import shlex
+from pathlib import Path
 
+from core.words import counted
 from streaklab.cli import CommandError
 
 
@@ -36,16 +43,36 @@ def _no_checksums(path) -> None:
          f"were taken as sound, and changed bytes cannot be detected in them")
 
 
+def _config_name(source) -> str:
+    """The --config argument that names a run's configuration: 'sim' for the packaged example."""
+    if not source:
+        return "SCAN.toml"
+    from acquisition.config import example_config_path
+
+    return "sim" if Path(source).resolve() == example_config_path("sim") else str(source)
+
+
 def _run(path, mark: bool) -> int:
     from acquisition.runstore import open_run
 
     run = open_run(path, mode="r+" if mark else "r")
     check = run.verify()
-    _say(f"{path}: run store, {run.n_lines} lines")
+    _say(f"{path}: run store, {counted(run.n_lines, 'line')}")
     if not check.checksums:
         _no_checksums(path)
+    config = _config_name(run.attrs.get("config_source"))
+    simulated = any(s.get("simulated") for s in run.attrs.get("sessions", []))
+    capture = shlex.join(["streaklab", "capture", "--config", str(config), "--out", str(path)]
+                         + (["--simulate"] if simulated else []) + ["--resume"])
+    if not check.complete:
+        dark = "; the dark frames are not taken yet" if check.dark_pending else ""
+        _say(f"incomplete: {check.lines_done:,} of {counted(check.n_lines, 'line')} captured{dark} "
+             f"(the capture stopped before the end)")
     if check.ok:
-        _say("no damage found")
+        _say("no damage found" + (" in the captured lines" if not check.complete else ""))
+        if not check.complete:
+            _say("finish the capture with:")
+            _say(f"  {capture}")
         return 0
     for line, damage in check.lines.items():
         _say(f"line {line}:")
@@ -56,10 +83,6 @@ def _run(path, mark: bool) -> int:
     if check.other:
         _say("other arrays (a recapture does not mend these; restore them from a copy):")
         _list(check.other)
-    config = run.attrs.get("config_source") or "SCAN.toml"
-    simulated = any(s.get("simulated") for s in run.attrs.get("sessions", []))
-    capture = shlex.join(["streaklab", "capture", "--config", str(config), "--out", str(path)]
-                         + (["--simulate"] if simulated else []) + ["--resume"])
     lines = list(check.lines)
     if lines or check.dark:
         what = ", ".join(map(str, lines)) if lines else ""
@@ -70,8 +93,11 @@ def _run(path, mark: bool) -> int:
             _say(f"marked {'lines ' + what if lines else ''}{' and ' if lines and check.dark else ''}"
                  f"{'the dark frames' if check.dark else ''} not done; recapture just those with:")
         else:
-            _say("to recapture just those:")
+            _say("to recapture just those" + ("" if check.complete else " and finish the capture") + ":")
             _say(f"  {shlex.join(['streaklab', 'verify', str(path), '--mark-for-resume'])}")
+        _say(f"  {capture}")
+    elif not check.complete:
+        _say("finish the capture with:")
         _say(f"  {capture}")
     return 1
 
@@ -105,7 +131,13 @@ def _cube(path, mark: bool) -> int:
         _say("import it again with:")
         _say(f"  {shlex.join(['streaklab', 'import', prov['imported_from'], '--out', str(path), '--overwrite'])}")
     elif prov.get("command"):
-        _say(f"write it again with:\n  {prov['command']} --overwrite")
+        from streaklab.commands.simulate import command_for
+
+        again = command_for(prov["command"], path)
+        if again is not None:
+            _say(f"write it again with:\n  {again}")
+        else:
+            _say(f"it was written by '{prov['command']}': run that again, or restore it from a copy")
     else:
         _say("restore it from a copy")
     return 1
@@ -117,11 +149,22 @@ def _result(path, mark: bool) -> int:
     store = open_result_store(path, mode="r+" if mark else "r")
     check = store.verify()
     gy, gx = store.grid
-    _say(f"{path}: result store, {gy} x {gx} pixel chunks of {store.chunks[0]} x {store.chunks[1]}")
+    ny, nx = store.shape[:2]
+    _say(f"{path}: result store, {ny} x {nx} pixels in {counted(gy * gx, 'chunk')} of "
+         f"{store.chunks[0]} x {store.chunks[1]}")
     if not check.checksums:
         _no_checksums(path)
+    source = (store.attrs.get("source") or {}).get("path", "CUBE")
+    resume = (f"{shlex.join(['streaklab', 'decompose', str(source), '--out', str(path), '--resume'])}"
+              f"  (with the settings of the original run: see the store's 'job' attribute)")
+    if not check.complete:
+        _say(f"incomplete: {check.chunks_done:,} of {counted(check.n_chunks, 'pixel chunk')} decomposed "
+             f"(the decomposition stopped before the end)")
     if check.ok:
-        _say("no damage found")
+        _say("no damage found" + (" in the decomposed chunks" if not check.complete else ""))
+        if not check.complete:
+            _say("finish the decomposition with:")
+            _say(f"  {resume}")
         return 0
     for (iy, ix), damage in check.chunks.items():
         ys, xs = store.chunk_slices(iy, ix)
@@ -131,15 +174,16 @@ def _result(path, mark: bool) -> int:
         _say("coordinate arrays (a recomputation does not mend these; restore them from a copy):")
         _list(check.other)
     if check.chunks:
-        source = (store.attrs.get("source") or {}).get("path", "CUBE")
-        resume = shlex.join(["streaklab", "decompose", str(source), "--out", str(path), "--resume"])
         if mark:
             store.mark_chunks_not_done(list(check.chunks))
-            _say(f"marked {len(check.chunks)} pixel chunk(s) not done; recompute just those with:")
+            _say(f"marked {counted(len(check.chunks), 'pixel chunk')} not done; recompute just those with:")
         else:
-            _say("to recompute just those:")
+            _say("to recompute just those" + ("" if check.complete else " and finish the decomposition") + ":")
             _say(f"  {shlex.join(['streaklab', 'verify', str(path), '--mark-for-resume'])}")
-        _say(f"  {resume}  (with the settings of the original run: see the store's 'job' attribute)")
+        _say(f"  {resume}")
+    elif not check.complete:
+        _say("finish the decomposition with:")
+        _say(f"  {resume}")
     return 1
 
 
