@@ -34,7 +34,7 @@ from core.errors import StreaklabError
 from core.limits import MAX_HANDSHAKE_BYTES
 
 __all__ = ["ClusterError", "TlsFiles", "PROBE_TIMEOUT_S", "CONNECT_TIMEOUT_S", "probe_scheduler",
-           "connect_scheduler", "start_local_cluster", "quiet_distributed"]
+           "connect_scheduler", "check_workers_see", "start_local_cluster", "quiet_distributed"]
 
 PROBE_TIMEOUT_S = 10.0      # a dask server sends its handshake as soon as a connection is accepted
 CONNECT_TIMEOUT_S = 15.0
@@ -134,6 +134,47 @@ def connect_scheduler(address: str, *, tls: TlsFiles | None = None, timeout_s: f
         return Client(address, security=security, timeout=f"{timeout_s}s")
     except (OSError, TimeoutError) as exc:
         raise ClusterError(f"cannot connect to the dask scheduler at {address}: {exc}") from None
+
+
+def _unseen(paths) -> list:
+    """Run on a worker: the ``paths`` (stores: a folder holding ``zarr.json``) it cannot see."""
+    import os
+
+    return [p for p in paths if not os.path.isfile(os.path.join(p, "zarr.json"))]
+
+
+def check_workers_see(client, paths, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Raise :class:`ClusterError` unless every worker of ``client`` sees every store in ``paths``.
+
+    Tasks carry paths, never open files: a worker on another machine (or one that would read a
+    relative path from its own folder) that cannot open the input would otherwise read zarr's
+    fill values.  Waits ``timeout_s`` for a first worker, and as long for each worker's answer.
+    """
+    import uuid
+
+    from distributed import TimeoutError as DaskTimeout
+
+    paths = [str(p) for p in paths]
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except (DaskTimeout, TimeoutError):
+        raise ClusterError(f"the dask scheduler at {client.scheduler.address} has no worker: none joined within "
+                           f"{timeout_s:g} s") from None
+    token = uuid.uuid4().hex
+    futures = {w: client.submit(_unseen, paths, workers=[w], allow_other_workers=False, pure=False,
+                                key=f"streaklab-sees-{token}-{i}")
+               for i, w in enumerate(sorted(client.scheduler_info()["workers"]))}
+    try:
+        for worker, fut in futures.items():
+            try:
+                unseen = fut.result(timeout=timeout_s)
+            except (DaskTimeout, TimeoutError):
+                raise ClusterError(f"the dask worker {worker} did not answer within {timeout_s:g} s") from None
+            if unseen:
+                raise ClusterError(f"the dask worker {worker} cannot see {unseen[0]}: every worker must open the "
+                                   f"input by the same absolute path (a shared file system)")
+    finally:
+        client.cancel(list(futures.values()))
 
 
 @contextlib.contextmanager

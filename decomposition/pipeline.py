@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import StreaklabError
-from core.integrity import CheckedReader, DataIntegrityError, read_checked
+from core.integrity import CheckedReader, DataIntegrityError, chunk_grid, read_checked, require_chunks
 
 __all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
 
@@ -89,7 +89,7 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
     import dask.array as da
 
-    from reconstruction.cubestore import CubeStoreError, open_cube
+    from reconstruction.cubestore import CubeStoreError, open_cube, written_chunks
 
     p = Path(path)
     if p.is_file() and p.suffix.lower() != ".npy":
@@ -125,14 +125,21 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
     if time_bin_ps is not None or t0_ps is not None:
         raise PipelineError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
+    # by its absolute path: the reader travels to dask's workers, which may run in other folders
+    p = p.resolve()
     try:
         cube = open_cube(str(p))
+        expected = written_chunks(cube)
     except CubeStoreError as exc:
         raise PipelineError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    # read through the checksum check: a damaged chunk is named, not a traceback from a worker
-    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, fancy=False, asarray=True)
+    # a chunk the cube should hold whose file is gone would read as NaN: stop before any work
+    require_chunks(str(p), cube.array, [c for c in np.ndindex(*chunk_grid(cube.array)) if expected(c)])
+    # read through the checksum and presence checks: a damaged chunk is named, not a traceback
+    # from a worker, and a worker that cannot see the cube stops the run instead of reading NaN
+    arr = da.from_array(CheckedReader(cube.array, str(p), expected=expected), chunks=cube.array.chunks,
+                        fancy=False, asarray=True)
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
@@ -386,6 +393,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
             client, cluster = _connect(scheduler, workers, tls)
+        if scheduler is not None and source["kind"] == "cube":  # its workers read the cube by path
+            _check_workers_see(client, source["path"])
         if existing is None:
             attrs = {"method": method, "components": list(components), "options": job["options"],
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
@@ -518,6 +527,15 @@ def _close_quietly(client, cluster) -> None:
                     thing.close()
                 except Exception:  # shutting down after an interrupt: nothing left to save
                     pass
+
+
+def _check_workers_see(client, path) -> None:
+    from decomposition.cluster import ClusterError, check_workers_see
+
+    try:
+        check_workers_see(client, [path])
+    except ClusterError as exc:
+        raise PipelineError(str(exc)) from None
 
 
 def _connect(scheduler, workers, tls=None):
