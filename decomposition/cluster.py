@@ -34,10 +34,11 @@ from core.errors import StreaklabError
 from core.limits import MAX_HANDSHAKE_BYTES
 
 __all__ = ["ClusterError", "TlsFiles", "PROBE_TIMEOUT_S", "CONNECT_TIMEOUT_S", "probe_scheduler",
-           "connect_scheduler", "check_workers_see", "start_local_cluster", "quiet_distributed"]
+           "connect_scheduler", "check_workers_see", "wait_for_running", "start_local_cluster", "quiet_distributed"]
 
 PROBE_TIMEOUT_S = 10.0      # a dask server sends its handshake as soon as a connection is accepted
 CONNECT_TIMEOUT_S = 15.0
+SETTLE_TIMEOUT_S = 60.0     # after an interrupt, the wait for chunks an existing cluster is still running
 
 
 class ClusterError(StreaklabError, RuntimeError):
@@ -175,6 +176,35 @@ def check_workers_see(client, paths, *, timeout_s: float = CONNECT_TIMEOUT_S) ->
                                    f"input by the same absolute path (a shared file system)")
     finally:
         client.cancel(list(futures.values()))
+
+
+def _running(keys, dask_worker=None) -> list:
+    """Run on a worker: which of ``keys`` occupy one of its threads (cancelled ones included)."""
+    keys = set(keys)
+    return [ts.key for ts in dask_worker.state.all_running_tasks if ts.key in keys]
+
+
+def wait_for_running(client, keys, *, timeout_s: float = SETTLE_TIMEOUT_S, poll_s: float = 0.2) -> int:
+    """Wait until no worker of ``client`` runs any task of ``keys``; -> how many still ran at
+    ``timeout_s`` (-1: the cluster did not answer).
+
+    A cancelled task that a worker has started runs to its end (a thread cannot be stopped) and
+    its chunk is written then: after an interrupt the run waits for those before it counts the
+    chunks on disk.  Each poll of the workers waits ``poll_s * 25`` s at most.
+    """
+    import time
+
+    keys = list(keys)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            found = client.run(_running, keys, on_error="ignore", callback_timeout=poll_s * 25)
+            left = sum(len(v) for v in found.values() if isinstance(v, list))
+        except Exception:  # noqa: BLE001 - a scheduler gone or not answering: nothing more to learn
+            return -1
+        if not left or time.monotonic() >= deadline:
+            return left
+        time.sleep(poll_s)
 
 
 @contextlib.contextmanager

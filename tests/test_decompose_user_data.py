@@ -114,3 +114,86 @@ def test_a_relative_input_reaches_a_worker_in_another_folder(cube, tmp_path, wor
                                                f"worker must open the input by the same absolute path"):
             check_workers_see(client, [str(tmp_path / "gone.zarr"), str(cube)], timeout_s=10)
         check_workers_see(client, [str(cube)], timeout_s=10)
+
+
+def test_a_partial_cube_counts_and_times_only_the_pixels_it_decomposed(tmp_path, capsys):
+    cube = _partial_cube(tmp_path / "part.zarr")          # 24 pixels, 8 on the two unfinished lines
+    assert main(["decompose", str(cube), "--out", str(tmp_path / "res.zarr"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "decomposed 16 pixels of a 6 x 4 x 96 cube" in out, out
+    assert "note: 8 pixels had NaN/inf samples and were not decomposed" in out
+    assert "note: 8 of them lie on scan lines the capture did not finish (line_valid False in the cube)" in out
+
+
+def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, capsys):
+    import decomposition.chunked as chunked
+
+    data = small_cube(4, 6, nt=96, seed=3)
+    data[0, 0, 7] = data[3, 5, 9] = data[3, 4, 9] = np.nan  # chunks (0, 0) and (1, 1) of (2, 3)
+    write_cube(tmp_path / "nan.zarr", data, time_bin_ps=TB, chunks=(2, 3))
+    real, seen = chunked.solve_block, []
+
+    def fail_after_first(block, **kw):
+        seen.append(1)
+        if len(seen) > 1:
+            raise RuntimeError("worker died")
+        return real(block, **kw)
+
+    out = tmp_path / "res.zarr"
+    monkeypatch.setattr(chunked, "solve_block", fail_after_first)
+    with pytest.raises(RuntimeError, match="worker died"):
+        main(["decompose", str(tmp_path / "nan.zarr"), "--out", str(out), "--threads", "1", "--quiet"])
+    monkeypatch.setattr(chunked, "solve_block", real)
+    first = open_result_store(out)
+    assert int(first.done_chunks().sum()) == 1
+    nan_before = int((first.done_mask() & ~first.group["valid"][...]).sum())
+    capsys.readouterr()
+    assert main(["decompose", str(tmp_path / "nan.zarr"), "--out", str(out), "--resume", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert f"decomposed {18 - (3 - nan_before)} pixels" in printed      # this run: 3 chunks, its NaN pixels skipped
+    assert "the notes count the whole store: the 3 chunks of this run and the 1 done before it" in printed
+    assert "note: 3 pixels had NaN/inf samples" in printed, printed     # the store: all three
+
+
+# every chunk's solve slowed down, so that the run is reliably still going when the signal arrives
+_SLOW = ("import sys, time; import decomposition.chunked as c; f = c.solve_block; "
+         "c.solve_block = lambda *a, **k: (time.sleep(0.3), f(*a, **k))[1]; "
+         "from streaklab.cli import main; sys.exit(main(sys.argv[1:]))")
+
+
+@pytest.mark.timeout(90)
+def test_sigterm_keeps_the_finished_chunks_counts_them_exactly_and_prints_the_resume_command(cube, tmp_path):
+    out = tmp_path / "res.zarr"
+    args = ["decompose", "cube.zarr", "--out", "res.zarr", "--threads", "2", "--chunks", "1", "3",
+            "--option", "sparsity=0.05"]
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW, *args], cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            try:
+                if open_result_store(out).done_chunks().sum() >= 2:
+                    break
+            except Exception:  # store not created yet
+                pass
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err
+    n_done = int(open_result_store(out).done_chunks().sum())
+    assert 2 <= n_done < 8
+    assert f"decompose: interrupted; {n_done}/8 chunks are on disk in {out}; rerun with --resume" in err, err
+    command = ("streaklab decompose cube.zarr --out res.zarr --threads 2 --chunks 1 3 --option sparsity=0.05 "
+               "--resume")
+    assert f"streaklab decompose: terminated; resume with:\n  {command}" in err, err
+    assert "Traceback" not in err
+    # the command printed continues the run
+    done = subprocess.run([sys.executable, "-m", "streaklab", *command.split()[1:]], cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert f"{n_done}/8 chunks already done" in done.stderr
+    assert open_result_store(out).done_mask().all()
