@@ -197,3 +197,47 @@ def test_sigterm_keeps_the_finished_chunks_counts_them_exactly_and_prints_the_re
     assert done.returncode == 0, done.stderr
     assert f"{n_done}/8 chunks already done" in done.stderr
     assert open_result_store(out).done_mask().all()
+
+
+@pytest.mark.timeout(120)
+def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube, tmp_path, monkeypatch):
+    import logging
+
+    from distributed import LocalCluster
+
+    (tmp_path / "site").mkdir()                           # the workers solve each chunk slowly
+    (tmp_path / "site" / "sitecustomize.py").write_text(
+        "import time\nimport decomposition.chunked as _c\n_f = _c.solve_block\n"
+        "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None, silence_logs=logging.CRITICAL + 1)
+    out = tmp_path / "res.zarr"
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "streaklab", "decompose", str(cube), "--out", str(out),
+                                 "--chunks", "1", "3", "--scheduler", cluster.scheduler_address], cwd=ROOT,
+                                env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                assert proc.poll() is None, proc.communicate()
+                try:
+                    if open_result_store(out).done_chunks().sum() >= 1:
+                        break
+                except Exception:  # store not created yet
+                    pass
+                time.sleep(0.02)
+            time.sleep(0.3)                               # the workers are inside their next chunks
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 130, err
+        n_done = int(open_result_store(out).done_chunks().sum())
+        assert f"decompose: interrupted; {n_done}/8 chunks are on disk in {out}; rerun with --resume" in err, err
+        time.sleep(2.0)                                   # longer than a chunk: nothing lands afterwards
+        assert int(open_result_store(out).done_chunks().sum()) == n_done < 8
+    finally:
+        cluster.close()
