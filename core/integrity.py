@@ -14,6 +14,7 @@ functions of every store kind.  Arrays written by earlier releases have no check
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -27,7 +28,7 @@ from .errors import StreaklabError
 __all__ = ["DataIntegrityError", "ChunkDamage", "create_array", "writable", "write_regions", "has_checksums",
            "chunk_file",
            "chunk_region", "chunk_grid", "consolidate", "check_chunk", "scan_array", "scan_group", "read_checked", "CheckedReader",
-           "missing_chunks", "open_member"]
+           "missing_chunks", "require_chunks", "open_member"]
 
 _WRITE_ALL = {"write_empty_chunks": True}
 
@@ -186,6 +187,32 @@ def missing_chunks(store_path, arr: zarr.Array, chunks: Iterable[tuple]) -> list
     return [tuple(c) for c in chunks if not chunk_file(store_path, arr, c).is_file()]
 
 
+def require_chunks(store_path, arr: zarr.Array, chunks: Iterable[tuple]) -> None:
+    """Raise :class:`DataIntegrityError` naming the first of ``chunks`` whose file is absent
+    (:func:`missing_chunks`: a stat each), and how many are."""
+    absent = missing_chunks(store_path, arr, chunks)
+    if absent:
+        more = f" ({len(absent)} chunks in all)" if len(absent) > 1 else ""
+        raise DataIntegrityError(f"{store_path}: array {arr.path!r}, chunk {_coords(absent[0])} is missing{more}: its "
+                                 f"file {chunk_file(store_path, arr, absent[0])} is gone; run 'streaklab verify "
+                                 f"{store_path}' to list every damaged chunk and how to redo just those")
+
+
+def _chunk_ranges(arr: zarr.Array, selection) -> list[range]:
+    """Per dimension, the chunk indices a basic selection touches."""
+    if not isinstance(selection, tuple):
+        selection = (selection,)
+    out = []
+    for sel, c, s in zip(selection + (slice(None),) * (arr.ndim - len(selection)), arr.chunks, arr.shape):
+        if isinstance(sel, slice):
+            start, stop, _ = sel.indices(s)
+            out.append(range(start // c, max(start, stop - 1) // c + 1))
+        else:
+            i = int(sel) % s // c if s else 0
+            out.append(range(i, i + 1))
+    return out
+
+
 def _chunks_of(arr: zarr.Array, selection) -> str:
     """The chunk(s) a basic selection touches, for messages."""
     if not isinstance(selection, tuple):
@@ -202,8 +229,15 @@ def _chunks_of(arr: zarr.Array, selection) -> str:
     return "(" + ", ".join(parts) + ")"
 
 
-def read_checked(arr: zarr.Array, selection, *, store) -> np.ndarray:
-    """``arr[selection]``; a damaged chunk raises :class:`DataIntegrityError` naming it."""
+def read_checked(arr: zarr.Array, selection, *, store, expected=None) -> np.ndarray:
+    """``arr[selection]``; a damaged chunk raises :class:`DataIntegrityError` naming it.
+
+    ``expected`` (callable: chunk coords -> bool), when given, says which chunks the store holds
+    by its own account: such a chunk whose file is absent (:func:`missing_chunks`) is damage
+    too, where zarr itself would read the fill value.  A basic selection only.
+    """
+    if expected is not None:
+        require_chunks(store, arr, [c for c in itertools.product(*_chunk_ranges(arr, selection)) if expected(c)])
     try:
         return arr[selection]
     except Exception as exc:  # noqa: BLE001
@@ -215,10 +249,13 @@ def read_checked(arr: zarr.Array, selection, *, store) -> np.ndarray:
 
 
 class CheckedReader:
-    """Array-like over a Zarr array for ``dask.array.from_array``: reads through :func:`read_checked`."""
+    """Array-like over a Zarr array for ``dask.array.from_array``: reads through :func:`read_checked`
+    (``expected``: which chunks must be on disk, see there; it travels to dask's workers with
+    the reader, so a worker that cannot see the store stops the run instead of reading fill
+    values)."""
 
-    def __init__(self, arr: zarr.Array, store: str):
-        self.arr, self.store = arr, str(store)
+    def __init__(self, arr: zarr.Array, store: str, expected=None):
+        self.arr, self.store, self.expected = arr, str(store), expected
         self.shape, self.dtype, self.ndim = arr.shape, arr.dtype, arr.ndim
         self.chunks = arr.chunks
 
@@ -226,7 +263,7 @@ class CheckedReader:
         return ("streaklab-checked", self.store, self.arr.path, self.shape, str(self.dtype))
 
     def __getitem__(self, selection):
-        return read_checked(self.arr, selection, store=self.store)
+        return read_checked(self.arr, selection, store=self.store, expected=self.expected)
 
 
 def open_member(group: zarr.Group, name: str, store, error=ValueError):

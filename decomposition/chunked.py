@@ -23,8 +23,10 @@ This module knows nothing of files.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import dask
+import dask.system
 import dask.array as da
 import dask.threaded
 import numpy as np
@@ -256,7 +258,10 @@ def run_tasks(tasks, *, client=None, num_workers: int | None = None, on_done=Non
     Returns
     -------
     list of the chunk summaries, in completion order.  An exception in any chunk (or
-    KeyboardInterrupt) propagates; chunks finished before it have been sunk.
+    KeyboardInterrupt) propagates; chunks finished before it have been sunk.  On the threaded
+    scheduler the chunks running then are finished (and sunk) first; on a cluster the pending
+    ones are cancelled (:func:`decomposition.cluster.wait_for_running` waits for those its
+    workers are still running).
     """
     done: list[dict] = []
 
@@ -270,8 +275,16 @@ def run_tasks(tasks, *, client=None, num_workers: int | None = None, on_done=Non
     if client is None:
         # the threaded scheduler itself, not its name: given the name, dask imports
         # dask.distributed to look for a running client (0.2 s on every run)
-        with _ChunkDone(record):
-            dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=num_workers)
+        pool = getattr(dask.threaded, "ContextAwareThreadPoolExecutor", ThreadPoolExecutor)(
+            int(num_workers or dask.system.CPU_COUNT))
+        try:
+            with _ChunkDone(record):
+                dask.compute(*tasks, scheduler=dask.threaded.get, pool=pool)
+        finally:
+            # after an error or Ctrl-C the chunks already running still finish and are sunk (a
+            # thread cannot be stopped): wait for them, so that a caller counting what is on disk
+            # afterwards counts everything; the chunks not started never start
+            pool.shutdown(wait=True, cancel_futures=True)
         return done
     from distributed import as_completed
 

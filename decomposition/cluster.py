@@ -34,10 +34,11 @@ from core.errors import StreaklabError
 from core.limits import MAX_HANDSHAKE_BYTES
 
 __all__ = ["ClusterError", "TlsFiles", "PROBE_TIMEOUT_S", "CONNECT_TIMEOUT_S", "probe_scheduler",
-           "connect_scheduler", "start_local_cluster", "quiet_distributed"]
+           "connect_scheduler", "check_workers_see", "wait_for_running", "start_local_cluster", "quiet_distributed"]
 
 PROBE_TIMEOUT_S = 10.0      # a dask server sends its handshake as soon as a connection is accepted
 CONNECT_TIMEOUT_S = 15.0
+SETTLE_TIMEOUT_S = 60.0     # after an interrupt, the wait for chunks an existing cluster is still running
 
 
 class ClusterError(StreaklabError, RuntimeError):
@@ -134,6 +135,76 @@ def connect_scheduler(address: str, *, tls: TlsFiles | None = None, timeout_s: f
         return Client(address, security=security, timeout=f"{timeout_s}s")
     except (OSError, TimeoutError) as exc:
         raise ClusterError(f"cannot connect to the dask scheduler at {address}: {exc}") from None
+
+
+def _unseen(paths) -> list:
+    """Run on a worker: the ``paths`` (stores: a folder holding ``zarr.json``) it cannot see."""
+    import os
+
+    return [p for p in paths if not os.path.isfile(os.path.join(p, "zarr.json"))]
+
+
+def check_workers_see(client, paths, *, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Raise :class:`ClusterError` unless every worker of ``client`` sees every store in ``paths``.
+
+    Tasks carry paths, never open files: a worker on another machine (or one that would read a
+    relative path from its own folder) that cannot open the input would otherwise read zarr's
+    fill values.  Waits ``timeout_s`` for a first worker, and as long for each worker's answer.
+    """
+    import uuid
+
+    from distributed import TimeoutError as DaskTimeout
+
+    paths = [str(p) for p in paths]
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+    except (DaskTimeout, TimeoutError):
+        raise ClusterError(f"the dask scheduler at {client.scheduler.address} has no worker: none joined within "
+                           f"{timeout_s:g} s") from None
+    token = uuid.uuid4().hex
+    futures = {w: client.submit(_unseen, paths, workers=[w], allow_other_workers=False, pure=False,
+                                key=f"streaklab-sees-{token}-{i}")
+               for i, w in enumerate(sorted(client.scheduler_info()["workers"]))}
+    try:
+        for worker, fut in futures.items():
+            try:
+                unseen = fut.result(timeout=timeout_s)
+            except (DaskTimeout, TimeoutError):
+                raise ClusterError(f"the dask worker {worker} did not answer within {timeout_s:g} s") from None
+            if unseen:
+                raise ClusterError(f"the dask worker {worker} cannot see {unseen[0]}: every worker must open the "
+                                   f"input by the same absolute path (a shared file system)")
+    finally:
+        client.cancel(list(futures.values()))
+
+
+def _running(keys, dask_worker=None) -> list:
+    """Run on a worker: which of ``keys`` occupy one of its threads (cancelled ones included)."""
+    keys = set(keys)
+    return [ts.key for ts in dask_worker.state.all_running_tasks if ts.key in keys]
+
+
+def wait_for_running(client, keys, *, timeout_s: float = SETTLE_TIMEOUT_S, poll_s: float = 0.2) -> int:
+    """Wait until no worker of ``client`` runs any task of ``keys``; -> how many still ran at
+    ``timeout_s`` (-1: the cluster did not answer).
+
+    A cancelled task that a worker has started runs to its end (a thread cannot be stopped) and
+    its chunk is written then: after an interrupt the run waits for those before it counts the
+    chunks on disk.  Each poll of the workers waits ``poll_s * 25`` s at most.
+    """
+    import time
+
+    keys = list(keys)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            found = client.run(_running, keys, on_error="ignore", callback_timeout=poll_s * 25)
+            left = sum(len(v) for v in found.values() if isinstance(v, list))
+        except Exception:  # noqa: BLE001 - a scheduler gone or not answering: nothing more to learn
+            return -1
+        if not left or time.monotonic() >= deadline:
+            return left
+        time.sleep(poll_s)
 
 
 @contextlib.contextmanager

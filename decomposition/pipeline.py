@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from core.errors import StreaklabError
-from core.integrity import CheckedReader, DataIntegrityError, read_checked
+from core.integrity import CheckedReader, DataIntegrityError, chunk_grid, read_checked, require_chunks
 
 __all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
 
@@ -89,7 +89,7 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
     """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
     import dask.array as da
 
-    from reconstruction.cubestore import CubeStoreError, open_cube
+    from reconstruction.cubestore import CubeStoreError, open_cube, written_chunks
 
     p = Path(path)
     if p.is_file() and p.suffix.lower() != ".npy":
@@ -125,14 +125,21 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
     if time_bin_ps is not None or t0_ps is not None:
         raise PipelineError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
+    # by its absolute path: the reader travels to dask's workers, which may run in other folders
+    p = p.resolve()
     try:
         cube = open_cube(str(p))
+        expected = written_chunks(cube)
     except CubeStoreError as exc:
         raise PipelineError(f"not a usable cube: {exc}") from None
     if cube.array.dtype.kind not in "fiu":
         raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
-    # read through the checksum check: a damaged chunk is named, not a traceback from a worker
-    arr = da.from_array(CheckedReader(cube.array, str(p)), chunks=cube.array.chunks, fancy=False, asarray=True)
+    # a chunk the cube should hold whose file is gone would read as NaN: stop before any work
+    require_chunks(str(p), cube.array, [c for c in np.ndindex(*chunk_grid(cube.array)) if expected(c)])
+    # read through the checksum and presence checks: a damaged chunk is named, not a traceback
+    # from a worker, and a worker that cannot see the cube stops the run instead of reading NaN
+    arr = da.from_array(CheckedReader(cube.array, str(p), expected=expected), chunks=cube.array.chunks,
+                        fancy=False, asarray=True)
     source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
               "attrs": _jsonable(cube.attrs)}
     y_units, y_coord = "pixel", None
@@ -258,10 +265,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     samples, time step and provenance, :meth:`ResultStore.response`), and its sha256 is part of
     the job a ``--resume`` must match.
 
-    Returns a summary dict: out, shape, chunks_done (this run), chunks_total, pixels (this run),
+    Returns a summary dict: out, shape, chunks_done (this run), chunks_before (done by the runs it
+    resumed), chunks_total, pixels (decomposed in this run: pixels skipped for NaN/inf samples
+    are not counted, nor in the rates), pixels_skipped (this run's), the counts of every finished
+    chunk of the store (see :func:`_store_counts`; this run's alone in ``this_run``),
     noise_law (``signal_noise_law`` and its source: "cube" where the cube's ``noise_law``
     attribute chose it, "option" or "default"),
-    invalid_pixels, ir_truncated_pixels, poor_fit_pixels, seconds (all stages), seconds_setup (opening, checks,
+    seconds (all stages), seconds_setup (opening, checks,
     store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
     the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
     seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
@@ -386,6 +396,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
             client, cluster = _connect(scheduler, workers, tls)
+        if scheduler is not None and source["kind"] == "cube":  # its workers read the cube by path
+            _check_workers_see(client, source["path"])
         if existing is None:
             attrs = {"method": method, "components": list(components), "options": job["options"],
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
@@ -436,24 +448,32 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         except (OSError, KeyboardInterrupt) as exc:  # a full or read-only disk, or Ctrl-C
             if bar is not None:
                 bar.close()
+            left = 0
             if client is not None:  # let the workers' running chunks end before counting what is on disk
-                _close_quietly(client, cluster)
+                if cluster is None:  # an existing cluster's workers finish the (cancelled) chunks they run
+                    left = _wait_for_running(client, tasks, stream if progress else None)
+                _close_quietly(client, cluster)   # a cluster of our own ends its running chunks with it
                 client = cluster = None
             done_now = int(store.done_chunks().sum())
             how, fix = (("interrupted", "") if isinstance(exc, KeyboardInterrupt)
                         else ("stopped", "fix the problem below and "))
-            print(f"decompose: {how}; {done_now}/{total} chunks are on disk in {out_path}; {fix}"
+            late = ("" if not left else f" (the cluster did not answer: chunks it was running may still land)"
+                    if left < 0 else f" ({left} more were still running on the cluster and may land later)")
+            print(f"decompose: {how}; {done_now}/{total} chunks are on disk in {out_path}{late}; {fix}"
                   f"rerun with --resume to finish", file=stream)
             raise
         if bar is not None:
             bar.close()
         t_end = time.perf_counter()
         seconds, seconds_compute = t_end - t_start, t_end - t_compute
+        decomposed = pending_pixels - stats["invalid"]      # skipped pixels are neither counted nor timed
         summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
-                   "pixels": pending_pixels, "invalid_pixels": stats["invalid"],
-                   "ir_truncated_pixels": stats["ir_truncated"], "poor_fit_pixels": stats["poor_fit"],
+                   "chunks_before": total - len(pending), "pixels": decomposed, "pixels_skipped": stats["invalid"],
+                   "this_run": {"invalid_pixels": stats["invalid"], "ir_truncated_pixels": stats["ir_truncated"],
+                                "poor_fit_pixels": stats["poor_fit"]},
+                   **_store_counts(store, source),
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
-                   "pixels_per_s": pending_pixels / seconds if seconds > 0 else float("nan"),
+                   "pixels_per_s": decomposed / seconds if seconds > 0 else float("nan"),
                    "seconds_compile": seconds_compile, "irf": irf_attrs,
                    "noise_law": {"signal_noise_law": options.get("signal_noise_law", "auto"), "source": law_source}}
         return summary
@@ -501,6 +521,51 @@ def resolve_pipeline_response(irf, input_path, input_kind: str, time_bin_ps: flo
         raise PipelineError(f"--irf {irf if not isinstance(irf, InstrumentResponse) else 'response'}: {exc}") from None
 
 
+def _store_counts(store, source) -> dict:
+    """Counts over every finished chunk of the store (this run's and those of runs it resumed):
+    decomposed_pixels, invalid_pixels (NaN/inf samples, not decomposed), unfinished_line_pixels
+    (of those, the pixels on lines the capture did not finish: the cube's ``line_valid``),
+    ir_truncated_pixels and poor_fit_pixels (flags TRUNCATED and POOR_FIT)."""
+    from decomposition import POOR_FIT, TRUNCATED
+
+    g = store.group
+    done = store.done_mask()
+    valid = np.asarray(read_checked(g["valid"], slice(None), store=store.path), bool) & done
+    flags = np.asarray(read_checked(g["flags"], slice(None), store=store.path)).astype(np.int64)
+    unfinished = 0
+    if source["kind"] == "cube":
+        from reconstruction.cubestore import open_cube
+
+        line_valid = _cube_rows(open_cube(source["path"]), "line_valid")
+        if line_valid is not None:
+            unfinished = int((done & ~valid & ~line_valid[:, None]).sum())
+    return {"decomposed_pixels": int(valid.sum()), "invalid_pixels": int((done & ~valid).sum()),
+            "unfinished_line_pixels": unfinished,
+            "ir_truncated_pixels": int((done & ((flags & int(TRUNCATED)) != 0)).sum()),
+            "poor_fit_pixels": int((valid & ((flags & int(POOR_FIT)) != 0)).sum())}
+
+
+def _cube_rows(cube, name):
+    """The cube's (y,) array ``name`` read through the checksum check, or None when it has none."""
+    from core.integrity import open_member
+    from reconstruction.cubestore import CubeStoreError
+
+    arr = open_member(cube.group, name, cube.path, CubeStoreError)
+    return None if arr is None else np.asarray(read_checked(arr, slice(None), store=cube.path), bool)
+
+
+def _wait_for_running(client, tasks, stream) -> int:
+    """After an interrupt: wait (Ctrl-C ignored, with a timeout) for the chunks an existing
+    cluster's workers are still running; -> how many still ran at the timeout (-1: no answer)."""
+    from decomposition.cluster import SETTLE_TIMEOUT_S, ignore_sigint, quiet_distributed, wait_for_running
+
+    if stream is not None:
+        print(f"decompose: waiting for the chunks the cluster is running to end (at most "
+              f"{SETTLE_TIMEOUT_S:g} s)", file=stream, flush=True)
+    with ignore_sigint(), quiet_distributed():
+        return wait_for_running(client, [t.key for t in tasks], timeout_s=SETTLE_TIMEOUT_S)
+
+
 def _region_pixels(store, iy, ix) -> int:
     ys, xs = store.chunk_slices(iy, ix)
     return (ys.stop - ys.start) * (xs.stop - xs.start)
@@ -518,6 +583,15 @@ def _close_quietly(client, cluster) -> None:
                     thing.close()
                 except Exception:  # shutting down after an interrupt: nothing left to save
                     pass
+
+
+def _check_workers_see(client, path) -> None:
+    from decomposition.cluster import ClusterError, check_workers_see
+
+    try:
+        check_workers_see(client, [path])
+    except ClusterError as exc:
+        raise PipelineError(str(exc)) from None
 
 
 def _connect(scheduler, workers, tls=None):

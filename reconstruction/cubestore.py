@@ -23,13 +23,14 @@ import numpy as np
 import zarr
 
 from core.errors import StreaklabError
-from core.integrity import consolidate, create_array, has_checksums, open_member, scan_group
+from core.integrity import (consolidate, create_array, has_checksums, open_member, read_checked, scan_array,
+                            scan_group)
 from core.irf import InstrumentResponse
 from core.irfstore import RESPONSE_KIND, read_response_group, write_response_group
 from core.staging import check_output_path, staged_output
 
 __all__ = ["CUBE_KIND", "IRF_GROUP", "NOISE_LAWS", "CubeStoreError", "Cube", "create_cube", "write_cube", "open_cube", "CubeCheck",
-           "verify_cube", "write_cube_response", "read_cube_response"]
+           "WrittenChunks", "written_chunks", "verify_cube", "write_cube_response", "read_cube_response"]
 
 CUBE_KIND = "cube"
 IRF_GROUP = "irf"
@@ -185,9 +186,37 @@ class CubeCheck:
         return not self.damaged
 
 
+@dataclass(frozen=True)
+class WrittenChunks:
+    """Which chunks of a cube's ``cube`` array the store holds by its own account: a callable
+    ``(iy, ix, it) -> bool`` for :func:`core.integrity.read_checked` and
+    :func:`core.integrity.scan_array`.  Every chunk is written (zarr's fill value included),
+    except that a chunk whose lines are all unfinished (``line_valid`` False: rows of NaN in a
+    partial cube) may be absent.  Picklable: it travels with the cube's reader to dask's workers.
+    """
+
+    unfinished_row_chunks: frozenset = frozenset()
+
+    def __call__(self, coords) -> bool:
+        return int(coords[0]) not in self.unfinished_row_chunks
+
+
+def written_chunks(cube: Cube) -> WrittenChunks:
+    """The :class:`WrittenChunks` of an opened cube (reads its ``line_valid``, when it has one)."""
+    valid = open_member(cube.group, "line_valid", cube.path, CubeStoreError)
+    if valid is None:
+        return WrittenChunks()
+    rows = np.asarray(read_checked(valid, slice(None), store=cube.path), dtype=bool)
+    by = int(cube.array.chunks[0])
+    return WrittenChunks(frozenset(iy for iy in range(-(-rows.size // by)) if not rows[iy * by:(iy + 1) * by].any()))
+
+
 def verify_cube(cube: Cube) -> CubeCheck:
-    """Read every chunk of every array of a cube store (sub-groups such as ``truth`` included)."""
-    return CubeCheck(checksums=has_checksums(cube.array), damaged=list(scan_group(cube.path, cube.group)))
+    """Read every chunk of every array of a cube store (sub-groups such as ``truth`` included);
+    a ``cube`` chunk of unfinished lines only may be absent (:func:`written_chunks`)."""
+    damaged = list(scan_array(cube.path, cube.array, must_exist=written_chunks(cube)))
+    damaged += scan_group(cube.path, cube.group, skip=(cube.array.path,))
+    return CubeCheck(checksums=has_checksums(cube.array), damaged=damaged)
 
 
 def _cube_path(cube) -> str:

@@ -526,6 +526,7 @@ def make_report(result_path, out_dir, *, time_ps: float | None = None, pixels=No
     from decomposition.resultstore import open_result_store
 
     store = open_result_store(result_path)
+    store.check_done_chunks_present()   # never draw a chunk marked done whose files are gone as if empty
     ny, nx, _ = store.shape
     if not store.done_mask().any():
         raise ValueError(f"{result_path} holds no finished chunk yet; nothing to report")

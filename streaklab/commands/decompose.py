@@ -132,7 +132,60 @@ def _tls_files(args):
     return TlsFiles(args.tls_ca_file, args.tls_cert, args.tls_key)
 
 
+def resume_command(args) -> str:
+    """The command line that continues this run: its own arguments (those not at their defaults),
+    without ``--overwrite``, with ``--resume``."""
+    import argparse
+    import shlex
+
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser)
+    cmd = ["streaklab", "decompose"]
+    for action in parser._actions:
+        value = getattr(args, action.dest, None)
+        if action.dest in ("resume", "overwrite") or value is None or value == action.default:
+            continue
+        if not action.option_strings:
+            cmd.append(str(value))
+        elif isinstance(action, argparse._StoreTrueAction):
+            cmd.append(action.option_strings[0])
+        elif isinstance(action, argparse._AppendAction):
+            for item in value:
+                cmd += [action.option_strings[0], str(item)]
+        elif isinstance(value, (list, tuple)):
+            cmd += [action.option_strings[0], *map(str, value)]
+        else:
+            cmd += [action.option_strings[0], str(value)]
+    return shlex.join(cmd + ["--resume"])
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM: stops the run the way Ctrl-C does (finished chunks kept, the count printed)."""
+
+
 def run(args) -> int:
+    import signal
+    import sys
+    import threading
+
+    def on_sigterm(signum, frame):
+        raise Terminated()
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        return _run(args)
+    except KeyboardInterrupt as exc:
+        print(f"streaklab decompose: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; "
+              f"resume with:\n  {resume_command(args)}", file=sys.stderr, flush=True)
+        return 143 if isinstance(exc, Terminated) else 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args) -> int:
     tls = _tls_files(args)
     summary = decompose_to_store(
         args.input, args.out, method=args.method, components=parse_components(args.components),
@@ -151,17 +204,24 @@ def run(args) -> int:
         print("photon noise: one camera's variance law for every pixel of a chunk (the cube's noise_law; "
               "--option signal_noise_law=auto to judge it from the pixels)")
     if summary["chunks_done"] == 0:
-        print(f"nothing to do: all {summary['chunks_total']} chunks of {summary['out']} were already done")
+        print(f"nothing to do: {'the' if summary['chunks_total'] == 1 else 'all'} {counted(summary['chunks_total'], 'chunk')} "
+              f"of {summary['out']} {plural(summary['chunks_total'], 'was', 'were')} already done")
         return 0
     print(f"decomposed {counted(summary['pixels'], 'pixel')} of a {ny} x {nx} x {nt} cube in {summary['seconds']:.1f} s "
           f"({summary['pixels_per_s']:,.0f} px/s) -> {summary['out']}")
     if summary.get("seconds_compile"):
         print(f"note: {summary['seconds_compile']:.1f} s of that compiled the solver's kernels, once; "
               f"later runs load them from the cache")
+    if summary.get("chunks_before"):
+        print(f"the notes count the whole store: the {counted(summary['chunks_done'], 'chunk')} of this run and the "
+              f"{counted(summary['chunks_before'], 'chunk')} done before it")
     if summary["invalid_pixels"]:
         print(f"note: {counted(summary['invalid_pixels'], 'pixel')} had NaN/inf samples and "
               f"{plural(summary['invalid_pixels'], 'was', 'were')} not decomposed (valid = False)")
-    judged = summary["pixels"] - summary["invalid_pixels"]
+    if summary.get("unfinished_line_pixels"):
+        print(f"note: {summary['unfinished_line_pixels']:,} of them lie on scan lines the capture did not finish "
+              f"(line_valid False in the cube): 'streaklab capture --resume', then reconstruct, to take them")
+    judged = summary.get("decomposed_pixels", summary["pixels"])
     if judged > 0 and summary.get("poor_fit_pixels", 0) >= POOR_FIT_NOTE_FRACTION * judged:
         families = parse_components(args.components)
         with_b = ",".join(families + (() if "b" in families else ("b",)))
