@@ -16,9 +16,10 @@ summary says which response the fits were drawn with (:func:`response_text`).
 
 Maps are drawn as xarray's ``DataArray.plot()`` draws a (y, x) array: cells centred on the
 store's coordinates, x increasing to the right and y upwards, axes in the coordinates' units.
-Colour limits are the 1st and 99th percentiles of each panel; a frame panel far below the
-strongest panel of its figure (an absent component, or rounding noise) is shown flat and titled
-"none at this time".  Profile titles give the pixel's coordinates in the maps' units and its
+Colour limits are the 1st and 99th percentiles of each panel's nonzero values (taking in 0 where
+it has zeros), so a component present in a few pixels, or one, is drawn at full scale; a frame
+panel whose every value is zero, or at rounding level (:data:`EMPTY_PANEL_FRACTION`) below the
+strongest panel of its figure, is shown flat and titled "none at this time".  Profile titles give the pixel's coordinates in the maps' units and its
 quality flags by name.
 """
 from __future__ import annotations
@@ -228,7 +229,13 @@ def cell_edges(centres) -> np.ndarray:
 
 
 def colour_limits(data, *, symmetric=False, floor=None):
-    """(vmin, vmax) for an image: the 1st and 99th percentiles of its finite values.
+    """(vmin, vmax) for an image: the 1st and 99th percentiles of its finite nonzero values, the
+    range widened to take in 0 where the image has exact zeros.
+
+    Percentiles over the nonzero values keep a hot pixel from washing out a full image, yet show
+    a sparse one: a component present in a handful of pixels (or in one) sets its own limits and
+    is drawn, instead of vanishing under percentiles taken mostly over its zeros.  The limits
+    never pass the image's own extremes.
 
     ``floor`` (> 0) is the smallest range worth showing, set from the scale of the data the image
     is compared with (a frame: the strongest panel of its figure): an image whose values all lie
@@ -238,7 +245,13 @@ def colour_limits(data, *, symmetric=False, floor=None):
     """
     a = np.asarray(data, np.float64)
     a = a[np.isfinite(a)]
-    lo, hi = (float(v) for v in np.percentile(a, [1, 99])) if a.size else (0.0, 0.0)
+    nz = a[a != 0]
+    if nz.size:
+        lo, hi = (float(v) for v in np.percentile(nz, [1, 99]))
+        if nz.size < a.size:             # exact zeros: the range takes in 0
+            lo, hi = min(lo, 0.0), max(hi, 0.0)
+    else:
+        lo, hi = 0.0, 0.0
     if floor is None or not np.isfinite(floor) or floor <= 0:
         scale = max(abs(lo), abs(hi))
         floor = 1e-6 * scale if scale > 0 else 1.0
@@ -284,8 +297,10 @@ def _save(fig, path) -> Path:
     return Path(path)
 
 
-# Below this fraction of the strongest panel of a frame figure, a panel counts as empty.
-EMPTY_PANEL_FRACTION = 1e-3
+#: A frame panel whose largest value is below this fraction of the strongest panel of its figure
+#: counts as empty ("none at this time"): zero to within float32 rounding of the signal, so that a
+#: component present in a single pixel, however faint beside the rest, is never called absent.
+EMPTY_PANEL_FRACTION = 1e-6
 
 
 def frames_figure(store, time_ps: float):
@@ -306,14 +321,16 @@ def frames_figure(store, time_ps: float):
         panels.append(("residual", comps["residual"]))
     done = store.done_mask()
     panels = [(name, np.where(done, np.asarray(img, np.float64), np.nan)) for name, img in panels]
-    # One scale for the figure: the strongest panel's; a panel far below it is shown as empty.
+    # One scale for the figure: the strongest panel's; a panel whose every value is at rounding
+    # level below it is shown as empty.
     scale = max((_robust_max(img) for _, img in panels), default=0.0)
     floor = EMPTY_PANEL_FRACTION * scale if scale > 0 else None
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False)
     units = _units(store)
     for ax, (name, img) in zip(axes[0], panels):
         resid = name == "residual"
-        empty = floor is not None and _robust_max(img) < floor
+        peak = float(np.nanmax(np.abs(img))) if np.isfinite(img).any() else 0.0
+        empty = peak == 0 or (floor is not None and peak < floor)
         _image(ax, fig, img, store, f"{name} (none at this time)" if empty else name, f"signal ({units})",
                cmap="coolwarm" if resid else "magma", symmetric=resid, floor=floor)
     how = "" if store.write_components else (
@@ -325,8 +342,9 @@ def frames_figure(store, time_ps: float):
 
 
 def _robust_max(img) -> float:
+    """The magnitude a panel is drawn to: the 99th percentile of its finite nonzero |values|."""
     a = np.abs(np.asarray(img, np.float64))
-    a = a[np.isfinite(a)]
+    a = a[np.isfinite(a) & (a != 0)]
     return float(np.percentile(a, 99)) if a.size else 0.0
 
 
