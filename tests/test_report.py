@@ -251,3 +251,85 @@ def test_an_inter_reflection_in_one_pixel_alone_is_shown_not_called_none(tmp_pat
     assert mesh.norm(200.0) == pytest.approx(1.0)      # drawn at the top of the colour map
     for name in ("subsurface scattering", "residual"):  # exactly zero: none
         assert "(none at this time)" in _panel(fig, name)[0].get_title()
+
+
+def test_coordinates_print_alike_along_an_axis(result, tmp_path):
+    """Mirror angles 4/3 deg apart print with one decimal each ("-0.7 deg" beside "6.0 deg"), whole
+    pixels with none; never "-0.0"."""
+    import zarr
+
+    from streaklab.report import coordinate_text, profiles_figure
+
+    path = _copy(result, tmp_path)
+    g = zarr.open_group(str(path), mode="r+")
+    angles = np.linspace(-10.0, 10.0, 16)
+    assert coordinate_text(angles, 7, "deg") == "-0.7 deg" and coordinate_text(angles, 12, "deg") == "6.0 deg"
+    assert coordinate_text(angles, 2, "deg") == "-7.3 deg"
+    assert coordinate_text(np.array([-0.01, 1.0, 2.0]), 0, "deg") == "0 deg"
+    assert coordinate_text(np.arange(64.0), 29, "pixel") == "29"
+    g["y"][...] = [-0.6667, 0.6667, 6.0, 7.3333]
+    g["y"].attrs["units"] = "deg"
+    fig = profiles_figure(open_result_store(path), [(0, 1), (2, 4)])
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    assert titles[0].startswith("y = -0.7 deg, x = 1 (") and titles[1].startswith("y = 6.0 deg, x = 4 (")
+
+
+def test_profiles_zoom_to_the_signal(tmp_path):
+    """A direct reflection (sigma 3 ps) at 42 ps in a 128-ps window: the time axis spans it with a
+    margin, not the whole window."""
+    from streaklab.report import profiles_figure
+
+    store = _constructed(tmp_path)
+    t = store.time_axis_ps()
+    fig = profiles_figure(store, [(0, 0), (5, 5)])
+    lo, hi = fig.axes[0].get_xlim()
+    assert lo <= t[20] - 4 * 3.0 and hi >= t[20] + 4 * 3.0        # the whole peak, with a margin
+    assert lo >= t[0] - TB and hi < t[20] + 0.5 * (t[-1] - t[20])  # not the empty rest of the window
+
+
+def _with_truth(tmp_path):
+    """A simulated cube with its truth, and a result store 'decomposed' from it holding the truth's
+    own parameters and components (written directly)."""
+    from decomposition.synthetic import make_cube
+    from streaklab.commands.simulate import write_simulation
+
+    data = make_cube(3, 4, 96, seed=1)
+    write_simulation(tmp_path / "sim.zarr", data)
+    store = create_result_store(tmp_path / "fromsim.zarr", shape=(3, 4, 96), chunks=(3, 4), n_ir=2, time_bin_ps=TB,
+                                t0_ps=data.t0_ps, attrs={"source": {"path": str(tmp_path / "sim.zarr"),
+                                                                    "kind": "cube", "shape": [3, 4, 96]}})
+    g = store.group
+    for k in ("direct_delay_ps", "sss_alpha_per_ps", "sss_amplitude", "direct_amplitude"):
+        g[k][...] = 0.9 * np.asarray(data.params[k])   # an estimate 10 % off the truth
+    g["direct"][...] = 0.9 * data.components["direct"]
+    g["sss"][...] = 0.9 * data.components["sss"]
+    g["ir"][...] = 0.9 * data.components["interreflections"]
+    g["residual"][...] = np.zeros((3, 4, 96), np.float32)
+    g["rms_residual"][...] = np.ones((3, 4))
+    g["valid"][...] = np.ones((3, 4), bool)
+    g["done"][...] = np.ones((3, 4), bool)
+    return open_result_store(store.path), data
+
+
+def test_a_synthetic_cubes_truth_is_shown_beside_the_estimate(tmp_path):
+    from streaklab.report import maps_figure, profiles_figure
+
+    store, data = _with_truth(tmp_path)
+    fig = maps_figure(store)
+    ax, mesh = _panel(fig, "true direct delay")
+    np.testing.assert_allclose(mesh.get_array().reshape(3, 4), data.params["direct_delay_ps"])
+    _, est = _panel(fig, "estimated direct delay")
+    assert est.get_clim() == mesh.get_clim()                          # one colour scale for both
+    _, err = _panel(fig, "direct delay error")
+    np.testing.assert_allclose(err.get_array().reshape(3, 4), -0.1 * data.params["direct_delay_ps"])
+    for name in ("true subsurface attenuation alpha", "true subsurface amplitude b"):
+        _panel(fig, name)
+    fig = profiles_figure(store, [(1, 2)])
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    np.testing.assert_allclose(lines["true direct"].get_ydata(), data.components["direct"][1, 2].astype(np.float32))
+    # without its truth (the source moved) the maps are the plain four
+    shutil.move(tmp_path / "sim.zarr", tmp_path / "gone.zarr")
+    store = open_result_store(store.path)
+    titles = [a.get_title() for a in maps_figure(store).axes if a.get_title()]
+    assert len(titles) == 4 and not any("true" in t for t in titles)
+    assert not any(ln.get_label().startswith("true") for ln in profiles_figure(store, [(1, 2)]).axes[0].get_lines())
