@@ -356,7 +356,7 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
                              "coordinates": "time_ps"})
     create_array(g, "done", shape=(n_lines,), chunks=(1,), dtype="bool", fill_value=False,
                  dimension_names=["line"],
-                 attributes={"long_name": "line acquired and on disk", "flag_values": [0, 1],
+                 attributes={"units": "1", "long_name": "line acquired and on disk", "flag_values": [0, 1],
                              "flag_meanings": "not_acquired acquired",
                              "comment": "readers trust only this flag: a line without it is treated as never "
                                         "acquired, whatever bytes its chunk holds"})
@@ -374,7 +374,7 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
                  attributes={"units": "counts", "long_name": "dark frames (sync output off)",
                              "coordinates": "time_ps"})
     create_array(g, "dark_done", shape=(), dtype="bool", fill_value=False, dimension_names=[],
-                 attributes={"long_name": "dark frames on disk", "flag_values": [0, 1],
+                 attributes={"units": "1", "long_name": "dark frames on disk", "flag_values": [0, 1],
                              "flag_meanings": "not_taken taken"})
     # coordinates, so that xarray gives labelled axes
     create_array(g, "line", shape=(n_lines,), dtype="int64", dimension_names=["line"],

@@ -66,6 +66,7 @@ __all__ = [
     "CORE_IR_KEYS",
     "COMPONENT_NAMES",
     "ResultStoreError",
+    "long_name_for",
     "ResultStore",
     "ChunkWriter",
     "create_result_store",
@@ -106,6 +107,15 @@ _LONG_NAMES = {
 
 class ResultStoreError(StreaklabError, ValueError):
     """The path is not a usable result store, or a write does not fit it (says exactly why)."""
+
+
+def long_name_for(key: str) -> str:
+    """The ``long_name`` of a parameter or quality array of a result store (also used for the
+    ``truth`` group of a simulated cube): e.g. "direct reflection delay"; ``<key>_stderr`` is
+    "standard error of the ..."; a solver's own parameter without one is named by its key."""
+    if key.endswith("_stderr"):
+        return f"standard error of the {long_name_for(key[: -len('_stderr')])}"
+    return _LONG_NAMES.get(key, key)
 
 
 def _units_for(key: str, signal_units: str) -> str:
@@ -501,7 +511,7 @@ def _write_skeleton(path, *, shape, chunks, n_ir, time_bin_ps, t0_ps, map_keys, 
     g.attrs.update(meta)
 
     def arr(name, shp, chk, dtype, dims, fill, units=None, zstd_level=0, **extra):
-        a = {"long_name": _LONG_NAMES.get(name, name)}
+        a = {"long_name": long_name_for(name)}
         if units is not None:
             a["units"] = units
         a.update(extra)

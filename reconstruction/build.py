@@ -212,12 +212,14 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         # unless a flat field has scaled each pixel (and each row) by its own factor
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg",
-                           noise_law="detector" if flat is None else None)
+                           noise_law="detector" if flat is None else None,
+                           long_name="mean counts per frame, dark-subtracted, in uniform time bins")
         g = cube.group
         create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
-                     attributes={"long_name": "run line filling this y"})[:] = order
+                     attributes={"units": "1", "long_name": "run line filling this y"})[:] = order
         create_array(g, "line_valid", shape=(n_lines,), dtype="bool", dimension_names=["y"],
-                     attributes={"long_name": "line acquired (False: unfinished, cube is NaN)", "flag_values": [0, 1],
+                     attributes={"units": "1", "long_name": "line acquired (False: unfinished, cube is NaN)",
+                                 "flag_values": [0, 1],
                                  "flag_meanings": "unfinished acquired"})[:] = done[order]
         create_array(g, "angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
                      attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]

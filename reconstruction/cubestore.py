@@ -73,7 +73,8 @@ class Cube:
 
 def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, units: str = "counts",
                 provenance: dict | None = None, y_coord=None, y_units: str = "pixel",
-                overwrite: bool = False, dtype="float32", noise_law: str | None = None) -> Cube:
+                overwrite: bool = False, dtype="float32", noise_law: str | None = None,
+                long_name: str = "signal per pixel and time bin") -> Cube:
     """Create an empty cube store (filled with NaN) ready for region writes.
 
     Parameters
@@ -92,6 +93,8 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
         every pixel is one detector's read-out in the same units (one read noise and one
         conversion gain for all; no per-pixel gain correction such as a flat field).  Absent
         by default: nothing is claimed.
+    long_name : str
+        What the values are, the ``long_name`` attribute of ``cube`` (not of the group).
     """
     ny, nx, nt = (int(s) for s in shape)
     if min(ny, nx, nt) <= 0:
@@ -119,7 +122,8 @@ def create_cube(path, shape, *, time_bin_ps: float, t0_ps: float, chunks=None, u
     g = zarr.open_group(str(path), mode="w")
     g.attrs.update(attrs)
     arr = create_array(g, "cube", shape=(ny, nx, nt), chunks=(min(by, ny), min(bx, nx), nt), dtype=dtype,
-                       dimension_names=["y", "x", "t"], fill_value=np.nan, attributes=attrs)
+                       dimension_names=["y", "x", "t"], fill_value=np.nan,
+                       attributes={**attrs, "long_name": str(long_name)})
     t = create_array(g, "t", shape=(nt,), dtype="float64", dimension_names=["t"],
                      attributes={"units": "ps", "long_name": "time of bin centre"})
     t[:] = float(t0_ps) + time_bin_ps * np.arange(nt)

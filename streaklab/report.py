@@ -5,7 +5,11 @@
 * ``maps.png``      maps of the direct delay (depth), sss attenuation alpha, sss amplitude and
   the fit's rms residual.
 * ``profiles.png``  time profiles of a few pixels: measured profile, each fitted component and the
-  residual (cf. Fig. 4(b)).
+  residual (cf. Fig. 4(b)), the time axis zoomed to the signal (:func:`signal_extent`).
+
+A store decomposed from a synthetic cube that carries its ``truth`` group (``streaklab simulate``,
+:func:`truth_of`) has the truth beside the estimate: true maps beside the estimated ones on one
+colour scale, and the true components in the profile panels.
 * ``summary.txt``   what was decomposed, how, and what was found.
 
 Component frames and profiles come from the stored component cubes; a store written with
@@ -16,10 +20,11 @@ summary says which response the fits were drawn with (:func:`response_text`).
 
 Maps are drawn as xarray's ``DataArray.plot()`` draws a (y, x) array: cells centred on the
 store's coordinates, x increasing to the right and y upwards, axes in the coordinates' units.
-Colour limits are the 1st and 99th percentiles of each panel; a frame panel far below the
-strongest panel of its figure (an absent component, or rounding noise) is shown flat and titled
-"none at this time".  Profile titles give the pixel's coordinates in the maps' units and its
-quality flags by name.
+Colour limits are the 1st and 99th percentiles of each panel's nonzero values (taking in 0 where
+it has zeros), so a component present in a few pixels, or one, is drawn at full scale; a frame
+panel whose every value is zero, or at rounding level (:data:`EMPTY_PANEL_FRACTION`) below the
+strongest panel of its figure, is shown flat and titled "none at this time".  Profile titles give the pixel's coordinates in the maps' units
+(:func:`coordinate_text`: one number of decimals per axis) and its quality flags by name.
 """
 from __future__ import annotations
 
@@ -30,6 +35,7 @@ import numpy as np
 
 __all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles", "frames_figure",
            "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "pixel_title",
+           "coordinate_text", "coordinate_decimals", "signal_extent", "truth_of",
            "rendered_components", "response_text", "RENDER_BLOCK_PIXELS"]
 
 # One-way depth per ps of round-trip delay: c / 2 in mm/ps.
@@ -228,7 +234,13 @@ def cell_edges(centres) -> np.ndarray:
 
 
 def colour_limits(data, *, symmetric=False, floor=None):
-    """(vmin, vmax) for an image: the 1st and 99th percentiles of its finite values.
+    """(vmin, vmax) for an image: the 1st and 99th percentiles of its finite nonzero values, the
+    range widened to take in 0 where the image has exact zeros.
+
+    Percentiles over the nonzero values keep a hot pixel from washing out a full image, yet show
+    a sparse one: a component present in a handful of pixels (or in one) sets its own limits and
+    is drawn, instead of vanishing under percentiles taken mostly over its zeros.  The limits
+    never pass the image's own extremes.
 
     ``floor`` (> 0) is the smallest range worth showing, set from the scale of the data the image
     is compared with (a frame: the strongest panel of its figure): an image whose values all lie
@@ -238,7 +250,13 @@ def colour_limits(data, *, symmetric=False, floor=None):
     """
     a = np.asarray(data, np.float64)
     a = a[np.isfinite(a)]
-    lo, hi = (float(v) for v in np.percentile(a, [1, 99])) if a.size else (0.0, 0.0)
+    nz = a[a != 0]
+    if nz.size:
+        lo, hi = (float(v) for v in np.percentile(nz, [1, 99]))
+        if nz.size < a.size:             # exact zeros: the range takes in 0
+            lo, hi = min(lo, 0.0), max(hi, 0.0)
+    else:
+        lo, hi = 0.0, 0.0
     if floor is None or not np.isfinite(floor) or floor <= 0:
         scale = max(abs(lo), abs(hi))
         floor = 1e-6 * scale if scale > 0 else 1.0
@@ -258,14 +276,15 @@ def _coord(store, name):
     return np.asarray(arr[...], np.float64), str(arr.attrs.get("units", "pixel"))
 
 
-def _image(ax, fig, data, store, title, label, cmap="viridis", symmetric=False, pad=0.05, floor=None):
+def _image(ax, fig, data, store, title, label, cmap="viridis", symmetric=False, pad=0.05, floor=None,
+           limits=None):
     """A (y, x) map drawn as xarray's ``.plot()`` draws it: cells centred on the coordinates, x
-    increasing to the right and y upwards."""
+    increasing to the right and y upwards; colour limits ``limits`` or :func:`colour_limits`."""
     plt = _plt()
     y, y_units = _coord(store, "y")
     x, x_units = _coord(store, "x")
     cm = plt.get_cmap(cmap).with_extremes(bad="0.85")
-    vmin, vmax = colour_limits(data, symmetric=symmetric, floor=floor)
+    vmin, vmax = limits if limits is not None else colour_limits(data, symmetric=symmetric, floor=floor)
     xb, yb = cell_edges(x), cell_edges(y)
     mesh = ax.pcolormesh(xb, yb, np.ma.masked_invalid(data), cmap=cm, vmin=vmin, vmax=vmax, shading="flat")
     ax.set_xlim(xb.min(), xb.max())
@@ -284,8 +303,10 @@ def _save(fig, path) -> Path:
     return Path(path)
 
 
-# Below this fraction of the strongest panel of a frame figure, a panel counts as empty.
-EMPTY_PANEL_FRACTION = 1e-3
+#: A frame panel whose largest value is below this fraction of the strongest panel of its figure
+#: counts as empty ("none at this time"): zero to within float32 rounding of the signal, so that a
+#: component present in a single pixel, however faint beside the rest, is never called absent.
+EMPTY_PANEL_FRACTION = 1e-6
 
 
 def frames_figure(store, time_ps: float):
@@ -306,14 +327,16 @@ def frames_figure(store, time_ps: float):
         panels.append(("residual", comps["residual"]))
     done = store.done_mask()
     panels = [(name, np.where(done, np.asarray(img, np.float64), np.nan)) for name, img in panels]
-    # One scale for the figure: the strongest panel's; a panel far below it is shown as empty.
+    # One scale for the figure: the strongest panel's; a panel whose every value is at rounding
+    # level below it is shown as empty.
     scale = max((_robust_max(img) for _, img in panels), default=0.0)
     floor = EMPTY_PANEL_FRACTION * scale if scale > 0 else None
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.4), squeeze=False)
     units = _units(store)
     for ax, (name, img) in zip(axes[0], panels):
         resid = name == "residual"
-        empty = floor is not None and _robust_max(img) < floor
+        peak = float(np.nanmax(np.abs(img))) if np.isfinite(img).any() else 0.0
+        empty = peak == 0 or (floor is not None and peak < floor)
         _image(ax, fig, img, store, f"{name} (none at this time)" if empty else name, f"signal ({units})",
                cmap="coolwarm" if resid else "magma", symmetric=resid, floor=floor)
     how = "" if store.write_components else (
@@ -325,8 +348,9 @@ def frames_figure(store, time_ps: float):
 
 
 def _robust_max(img) -> float:
+    """The magnitude a panel is drawn to: the 99th percentile of its finite nonzero |values|."""
     a = np.abs(np.asarray(img, np.float64))
-    a = a[np.isfinite(a)]
+    a = a[np.isfinite(a) & (a != 0)]
     return float(np.percentile(a, 99)) if a.size else 0.0
 
 
@@ -335,11 +359,15 @@ def plot_frames(store, time_ps: float, path) -> Path:
 
 
 def maps_figure(store):
-    """The parameter-maps figure (matplotlib Figure)."""
+    """The parameter-maps figure (matplotlib Figure).
+
+    A store decomposed from a synthetic cube with its ``truth`` (:func:`truth_of`) shows each
+    estimated map beside the true one on the same colour scale, and the direct delay's error
+    (estimate - truth) beside the rms residual."""
     plt = _plt()
     g = store.group
     done = store.done_mask()
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+    truth = truth_of(store)
     units = _units(store)
     specs = [
         ("direct_delay_ps", "direct delay (depth)", "delay (ps); 1 ps = 0.15 mm depth", "viridis"),
@@ -347,14 +375,37 @@ def maps_figure(store):
         ("sss_amplitude", "subsurface amplitude b", f"b ({units})", "magma"),
         ("rms_residual", "fit rms residual", f"rms residual ({units})", "gray_r"),
     ]
-    for ax, (key, title, label, cmap) in zip(axes.ravel(), specs):
+    if truth is None:
+        fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+        cells = [(ax, spec, None) for ax, spec in zip(axes.ravel(), specs)]
+    else:
+        fig, axes = plt.subplots(4, 2, figsize=(10, 14))
+        cells = [(axes[i, 0], spec, None) for i, spec in enumerate(specs)]
+        cells += [(axes[i, 1], spec, "truth") for i, spec in enumerate(specs[:3])]
+    for ax, (key, title, label, cmap), which in cells:
         data = np.where(done, np.asarray(g[key][...], np.float64), np.nan)
-        cb = _image(ax, fig, data, store, title, label, cmap, pad=0.2 if key == "direct_delay_ps" else 0.05)
+        limits = None
+        if truth is not None and key in truth:
+            true = np.where(done, np.asarray(truth[key][...], np.float64), np.nan)
+            limits = colour_limits(np.concatenate([data.ravel(), true.ravel()]))  # one scale for both
+            if which == "truth":
+                data, title = true, f"true {title}"
+            else:
+                title = f"estimated {title}"
+        cb = _image(ax, fig, data, store, title, label, cmap, pad=0.2 if key == "direct_delay_ps" else 0.05,
+                    limits=limits)
         if key == "direct_delay_ps":
             sec = cb.ax.secondary_yaxis("left", functions=(lambda d: d * _MM_PER_PS_DEPTH,
                                                             lambda z: z / _MM_PER_PS_DEPTH))
             sec.set_ylabel("depth c·t/2 (mm)")
-    fig.suptitle(f"parameter maps ({store.attrs.get('method', '?')}); grey = absent or not computed")
+    if truth is not None:
+        err = np.where(done, np.asarray(g["direct_delay_ps"][...], np.float64)
+                       - np.asarray(truth["direct_delay_ps"][...], np.float64), np.nan)
+        _image(axes[3, 1], fig, err, store, "direct delay error (estimate - truth)", "error (ps)", "coolwarm",
+               symmetric=True)
+    fig.suptitle(f"parameter maps ({store.attrs.get('method', '?')})"
+                 + (" beside the simulated truth" if truth is not None else "")
+                 + "; grey = absent or not computed")
     fig.tight_layout()
     return fig
 
@@ -397,8 +448,29 @@ def flag_text(bits: int) -> str:
     return ", ".join(names) if names else "none"
 
 
-def _at(value, units) -> str:
-    return f"{value:.4g}" if units == "pixel" else f"{value:.4g} {units}"
+def coordinate_decimals(values) -> int:
+    """Decimals that print every coordinate of an axis alike and tell neighbours apart: the fewest
+    (0 to 6) that keep each finite value within 5 % of the axis's smallest step of its rounded
+    value (0 for whole pixels or line indices, 1 for mirror angles 4/3 deg apart)."""
+    v = np.unique(np.asarray(values, np.float64)[np.isfinite(np.asarray(values, np.float64))])
+    if v.size == 0:
+        return 0
+    step = float(np.min(np.diff(v))) if v.size > 1 else (abs(float(v[0])) or 1.0)
+    for d in range(7):
+        if np.max(np.abs(np.round(v, d) - v)) <= 0.05 * step:
+            return d
+    return 6
+
+
+def coordinate_text(values, i: int, units: str) -> str:
+    """Coordinate ``i`` of the axis ``values`` (in ``units``) as every figure prints it: with the
+    axis's :func:`coordinate_decimals`, and its units unless they are pixels ("-0.7 deg", "6.0 deg",
+    "x = 29")."""
+    d = coordinate_decimals(values)
+    text = f"{float(values[i]) + 0.0:.{d}f}"
+    if text.lstrip("-").strip("0.") == "":     # no "-0.0"
+        text = text.lstrip("-")
+    return text if units == "pixel" else f"{text} {units}"
 
 
 def pixel_title(store, y: int, x: int) -> str:
@@ -406,16 +478,78 @@ def pixel_title(store, y: int, x: int) -> str:
     yc, y_units = _coord(store, "y")
     xc, x_units = _coord(store, "x")
     note = "" if store.group["valid"][y, x] else "; not decomposed: non-finite input"
-    return (f"y = {_at(yc[y], y_units)}, x = {_at(xc[x], x_units)} (--pixels {y},{x}); "
+    return (f"y = {coordinate_text(yc, y, y_units)}, x = {coordinate_text(xc, x, x_units)} (--pixels {y},{x}); "
             f"flags: {flag_text(store.group['flags'][y, x])}{note}")
 
 
+#: a profile figure's time axis spans where some component of its pixels exceeds this fraction of
+#: its largest value, widened by :data:`PROFILE_MARGIN` of that span on either side (at least 5 bins)
+PROFILE_SIGNAL_FRACTION = 0.01
+PROFILE_MARGIN = 0.25
+
+
+def truth_of(store):
+    """The ground truth of the synthetic cube the store was decomposed from: the source cube's
+    ``truth`` group (``streaklab simulate``) as a zarr group, when the source is still there and
+    its truth covers the store's pixels and time bins; else None."""
+    src = store.attrs.get("source", {})
+    path = src.get("path")
+    if src.get("kind") != "cube" or not path or not os.path.exists(path):
+        return None
+    try:
+        from reconstruction.cubestore import open_cube
+
+        g = open_cube(path).group
+        truth = g["truth"] if "truth" in g else None
+        if truth is None or "direct" not in truth or "t" not in truth:
+            return None
+        ny, nx, nt = store.shape
+        if tuple(truth["direct"].shape) != (ny, nx, nt) or not np.allclose(truth["t"][...], store.time_axis_ps()):
+            return None
+        return truth
+    except Exception:  # an unreadable or replaced source: no truth shown
+        return None
+
+
+def _truth_profiles(truth, y, x) -> dict:
+    """The true components of one pixel: name -> (t,) profile (inter-reflections per slot)."""
+    out = {"direct": np.asarray(truth["direct"][y, x], np.float64),
+           "subsurface": np.asarray(truth["sss"][y, x], np.float64)}
+    if "ir" in truth:
+        for r, prof in enumerate(np.asarray(truth["ir"][y, x], np.float64)):
+            out[f"inter-reflection r{r + 2}"] = prof
+    return out
+
+
+def signal_extent(t, profiles, *, fraction=PROFILE_SIGNAL_FRACTION, margin=PROFILE_MARGIN):
+    """(t_lo, t_hi) for a profile plot: where any of ``profiles`` (each (t,)) exceeds ``fraction``
+    of the largest |value| among them, widened by ``margin`` of that span (at least 5 bins) on
+    either side and kept inside the time window; the whole window when nothing is nonzero."""
+    t = np.asarray(t, np.float64)
+    step = float(t[1] - t[0]) if t.size > 1 else 1.0
+    whole = (float(t[0]) - 0.5 * step, float(t[-1]) + 0.5 * step)
+    a = np.abs(np.array([np.nan_to_num(np.asarray(p, np.float64)) for p in profiles])) if profiles else None
+    if a is None or a.size == 0 or not (a.max() > 0):
+        return whole
+    on = np.flatnonzero((a > fraction * a.max()).any(axis=0))
+    lo, hi = float(t[on[0]]), float(t[on[-1]])
+    pad = max(margin * (hi - lo), 5 * step)
+    return max(whole[0], lo - pad), min(whole[1], hi + pad)
+
+
 def profiles_figure(store, pixels):
-    """The time-profiles figure (matplotlib Figure) of ``pixels`` [(y index, x index), ...]."""
+    """The time-profiles figure (matplotlib Figure) of ``pixels`` [(y index, x index), ...].
+
+    The time axis spans the signal (:func:`signal_extent` of every fitted and true component
+    shown); a store decomposed from a synthetic cube that carries its ``truth`` shows the true
+    components beside the fitted ones (thin dashed, same colours).  Legends sit beside the
+    panels, never over a curve."""
     plt = _plt()
     t = store.time_axis_ps()
     units = _units(store)
-    fig, axes = plt.subplots(len(pixels), 1, figsize=(8, 2.6 * len(pixels)), squeeze=False, sharex=True)
+    truth = truth_of(store)
+    fig, axes = plt.subplots(len(pixels), 1, figsize=(10.5, 2.6 * len(pixels)), squeeze=False, sharex=True)
+    drawn = []
     for ax, (y, x) in zip(axes[:, 0], pixels):
         ys, xs = slice(y, y + 1), slice(x, x + 1)
         c = _components_at(store, ys, xs)
@@ -424,19 +558,30 @@ def profiles_figure(store, pixels):
             ax.plot(t, meas[0, 0], color="0.55", lw=0, marker=".", ms=3, label="measured")
         ax.plot(t, c["direct"][0, 0], color="tab:blue", lw=1.4, label="direct")
         ax.plot(t, c["sss"][0, 0], color="tab:orange", lw=1.4, label="subsurface")
+        drawn += [c["direct"][0, 0], c["sss"][0, 0]]
+        colours = {"direct": "tab:blue", "subsurface": "tab:orange"}
         for r in range(store.n_ir):
             prof = np.asarray(c["ir"][0, 0, r])
+            colours[f"inter-reflection r{r + 2}"] = f"C{2 + r}"
             if np.isfinite(prof).any() and np.nanmax(np.abs(prof)) > 0:
                 ax.plot(t, prof, lw=1.2, color=f"C{2 + r}", label=f"inter-reflection r{r + 2}")
+                drawn.append(prof)
         fit = c["direct"][0, 0] + c["sss"][0, 0] + np.asarray(c["ir"][0, 0]).sum(axis=0)
         ax.plot(t, fit, color="k", lw=0.8, ls=":", label="sum of components")
         resid = c["residual"][0, 0] if c["residual"] is not None else (None if meas is None else meas[0, 0] - fit)
         if resid is not None:
             ax.plot(t, resid, color="tab:red", lw=0.8, ls="--", label="residual")
+        if truth is not None:
+            for r, (name, prof) in enumerate(_truth_profiles(truth, y, x).items()):
+                if np.isfinite(prof).any() and np.nanmax(np.abs(prof)) > 0:
+                    ax.plot(t, prof, lw=1.0, ls=(0, (4, 2)), color=colours.get(name, f"C{r}"), alpha=0.8,
+                            label=f"true {name}")
+                    drawn.append(prof)
         ax.set_ylabel(f"signal ({units})")
         ax.set_title(pixel_title(store, y, x), fontsize=10)
-        ax.legend(fontsize=7, ncol=3, loc="upper right")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
         ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlim(*signal_extent(t, drawn))
     axes[-1, 0].set_xlabel("time (ps)")
     fig.tight_layout()
     return fig

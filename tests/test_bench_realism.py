@@ -378,3 +378,38 @@ def test_quick_with_the_best_found_maximum_likelihood(tmp_path, capsys):
     assert "the start from the modelled answer won in truncated 300" in text
     summary = json.loads((out / "summary.json").read_text())
     assert summary["variants"] == ["modelled", "reference", "best"]
+
+
+def _overlapping_labels(fig):
+    """Pairs of texts (annotations) of one axes whose drawn boxes overlap."""
+    renderer = fig.canvas.get_renderer()
+    pairs = []
+    for ax in fig.axes:
+        texts = [t for t in ax.texts if t.get_text()]
+        boxes = [t.get_window_extent(renderer) for t in texts]
+        for i in range(len(texts)):
+            for k in range(i + 1, len(texts)):
+                if boxes[i].overlaps(boxes[k]):
+                    pairs.append((texts[i].get_text(), texts[k].get_text()))
+    return pairs
+
+
+def test_off_scale_values_of_neighbouring_variants_get_labels_that_do_not_overlap():
+    """Every variant far beyond the bias panels' range at one column: an open triangle each at the
+    edge and a label each, none over another (they ran together as "0.2040.2529")."""
+    import matplotlib.pyplot as plt
+
+    rows = []
+    columns = [(f"effect{i}", photons, 1.0 if i % 2 else -1.0) for i in range(6) for photons in (1e3, 1e4)]
+    for effect, photons, sign in columns:      # 12 columns: the figure is 7.6 in wide, 0.55 in a column
+        for k, variant in enumerate(realism.VARIANTS):
+            rows.append({"effect": effect, "photons_per_pixel": photons, "variant": variant, "status": "ok",
+                         "lifetime_rmse_over_reference": 3.0 + 0.1 * k, "lifetime_rmse_over_reference_se": 0.1,
+                         "lifetime_bias_rel": sign * (0.204 + 0.0489 * k), "lifetime_bias_se_rel": 0.01,
+                         "direct_delay_bias_sigma": sign * (0.9 + 0.1 * k)})
+    fig = realism.figure(rows)
+    fig.canvas.draw()
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert "0.204" in texts and "0.253" in texts and len(texts) == 3 * len(columns) * len(realism.VARIANTS)
+    assert _overlapping_labels(fig) == []
+    plt.close(fig)

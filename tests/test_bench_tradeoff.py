@@ -2,6 +2,7 @@
 import argparse
 import csv
 
+import numpy as np
 import pytest
 
 from _timing import first_call_costs_a_second
@@ -51,3 +52,59 @@ def test_quick_tradeoff_writes_csv_and_png(tmp_path, capsys, monkeypatch):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     out = capsys.readouterr().out
     assert "\ntargets:\n" in out and "isolated direct" in out
+
+
+def _points_under_legends(fig):
+    """(legend entry count, point) for every plotted point whose drawn position lies inside a legend."""
+    renderer = fig.canvas.get_renderer()
+    hidden = []
+    for leg_ax in fig.axes:
+        leg = leg_ax.get_legend()
+        if leg is None:
+            continue
+        box = leg.get_window_extent(renderer)
+        for ax in fig.axes:
+            for line in ax.get_lines():
+                xy = line.get_xydata()
+                if not len(xy) or line.get_marker() in (None, "None", "", " "):
+                    continue
+                for px, py in ax.transData.transform(xy):
+                    if box.contains(px, py):
+                        hidden.append((line.get_label(), (px, py)))
+    return hidden
+
+
+def test_the_legends_hide_no_point():
+    """Fidelity and error against time for the ConvSCD settings and GradBM's single point: the
+    legends sit outside the panels, so every point -- GradBM's among them -- is drawn clear of them."""
+    import matplotlib.pyplot as plt
+
+    rows = []
+    curves = ("ConvSCD on grid", "ConvSCD on grid + refine", "ConvSCD off-grid", "ConvSCD default",
+              "ConvSCD default + refine")
+    for nsr in (0.01, 0.05):
+        base = {"scene": "fig3", "noise": "white", "nsr": nsr, "oracle_mean_fidelity": 0.97,
+                "direct_delay_crb_median_ps": 0.3}
+        for c, curve in enumerate(curves):   # the curves fill the panels, from fast and rough to slow and good
+            for grid, ms in ((5, 0.3), (10, 0.8), (20, 2.0), (40, 5.0)):
+                rows.append(dict(base, method=curve, setting=f"{curve} {grid}", grid=grid,
+                                 time_per_pixel_s=ms * (1 + 0.2 * c) / 1e3,
+                                 mean_fidelity=0.6 + 0.3 * np.log(ms * 4) / np.log(20) + 0.01 * c,
+                                 direct_delay_median_abs_error_ps=0.08 + 0.4 / ms - 0.01 * c,
+                                 default=curve == "ConvSCD default" and grid == 10))
+        # GradBM: slow and about as good, at the top right, where a legend placed 'best' lands
+        rows.append(dict(base, method="GradBM", setting="gradbm", grid=0, time_per_pixel_s=4e-3,
+                         mean_fidelity=0.9, direct_delay_median_abs_error_ps=0.2, default=False))
+    fig = tradeoff.figure(rows, [0.01, 0.05])
+    fig.canvas.draw()
+    assert any(line.get_label() == "GradBM" for ax in fig.axes for line in ax.get_lines())
+    assert _points_under_legends(fig) == []
+    renderer = fig.canvas.get_renderer()
+    legends = [ax.get_legend().get_window_extent(renderer) for ax in fig.axes if ax.get_legend()]
+    assert len(legends) == 2
+    for box in legends:                       # beside the panels, never over one
+        assert not any(box.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+        assert box.x1 <= fig.bbox.width and box.y0 >= 0
+    title = fig.texts[0].get_window_extent(renderer)   # the figure's title is not cut off either
+    assert title.x0 >= 0 and title.x1 <= fig.bbox.width
+    plt.close(fig)

@@ -149,3 +149,22 @@ def test_a_display_without_a_usable_window_falls_back_to_headless_output(tmp_pat
                  "--png", str(png)]) == 0
     assert "no window" in capsys.readouterr().err
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_live_figures_title_lies_inside_the_png(tmp_path):
+    """The title is set before the layout is made, so it is drawn inside the figure, not cut off."""
+    from types import SimpleNamespace
+
+    from streaklab.commands.live import _Figure
+
+    png = tmp_path / "live.png"
+    fig = _Figure(window=False, png=str(png))
+    img = np.arange(40 * 64, dtype=np.uint16).reshape(40, 64)
+    fig.show(SimpleNamespace(image=img, profile=img.sum(axis=0).astype(float), row_times_ps=None, index=3,
+                             sequence=17))
+    title = fig.ax_img.title
+    assert title.get_text() == "live frame 3 (camera #17)"
+    box = title.get_window_extent(fig.fig.canvas.get_renderer())
+    assert 0 <= box.y0 and box.y1 <= fig.fig.bbox.height and 0 <= box.x0 and box.x1 <= fig.fig.bbox.width
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    fig.close()

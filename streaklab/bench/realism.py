@@ -552,10 +552,17 @@ def figure_series(rows: list[dict], key: str, se_key: str | None = None) -> dict
     return out
 
 
-def _plot(path, rows: list[dict]) -> None:
-    """``realism.png``: per effect and photon level (columns), each variant's lifetime RMSE over the
-    reference's, lifetime bias and direct-delay bias, with their standard errors where the rows
-    hold them and the band each target allows shaded."""
+#: vertical distance (points) between the value labels of off-scale points stacked at one edge of
+#: one column, so that the labels of neighbouring variants never run into each other
+OFF_SCALE_LABEL_STEP_PT = 8
+
+
+def figure(rows: list[dict]):
+    """``realism.png`` as a matplotlib Figure: per effect and photon level (columns), each variant's
+    lifetime RMSE over the reference's, lifetime bias and direct-delay bias, with their standard
+    errors where the rows hold them and the band each target allows shaded.  A value beyond a
+    panel's range is an open triangle at its edge with the value beside it; the labels of several
+    such values at one edge of one column are stacked, one line each."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -567,6 +574,7 @@ def _plot(path, rows: list[dict]) -> None:
              "best": ("C1", "D")}
     for ax, (key, se_key, label, band, ideal, view) in zip(axes, FIGURE_PANELS):
         ser = figure_series(rows, key, se_key)
+        stacked = {}                     # (column, edge) -> labels already written there
         x = np.arange(len(ser["columns"]))
         names = list(ser["variants"])
         for k, name in enumerate(names):
@@ -579,8 +587,11 @@ def _plot(path, rows: list[dict]) -> None:
             for j in np.flatnonzero(np.isfinite(val) & ~inside):
                 edge, mk = (view[1], "^") if val[j] > view[1] else (view[0], "v")
                 ax.plot(x[j] + off, edge, mk, mfc="none", color=color, ms=6, clip_on=False)
+                n = stacked.get((j, mk), 0)
+                stacked[(j, mk)] = n + 1
+                dy = 6 + n * OFF_SCALE_LABEL_STEP_PT
                 ax.annotate(f"{val[j]:.3g}", (x[j] + off, edge), fontsize=6, color=color, ha="center",
-                            va="top" if mk == "^" else "bottom", xytext=(0, -6 if mk == "^" else 6),
+                            va="top" if mk == "^" else "bottom", xytext=(0, -dy if mk == "^" else dy),
                             textcoords="offset points")
         ax.axhspan(band[0], band[1], color="0.85", zorder=0)
         ax.axhline(ideal, color="0.5", lw=0.7)
@@ -592,6 +603,13 @@ def _plot(path, rows: list[dict]) -> None:
     axes[0].set_title("photon counts with real-detector effects, beside the Poisson reference\n"
                       "(shaded: what each target allows)", fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def _plot(path, rows: list[dict]) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = figure(rows)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 

@@ -191,7 +191,11 @@ def _measure(data, comps, params, seconds, crb, oracle_fid):
     }
 
 
-def _plot(path, rows, nsrs, scenes="paper"):
+def figure(rows, nsrs, scenes="paper"):
+    """``tradeoff.png`` as a matplotlib Figure: per NSR (columns) the mean fidelity and the direct
+    delay's median error against run time per pixel, one curve per method.  The legends sit to the
+    right of the last column, outside every panel, so that no point (GradBM's single one included)
+    is hidden under them."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,7 +213,7 @@ def _plot(path, rows, nsrs, scenes="paper"):
     for r in fig3:
         if r["method"] not in curves:
             curves.append(r["method"])
-    fig, axes = plt.subplots(2, len(nsrs), figsize=(4.8 * len(nsrs), 7.8), squeeze=False)
+    fig, axes = plt.subplots(2, len(nsrs), figsize=(4.8 * len(nsrs) + 2.4, 7.8), squeeze=False)  # + legends
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for j, nsr in enumerate(nsrs):
         ax_f, ax_d = axes[0, j], axes[1, j]
@@ -267,14 +271,22 @@ def _plot(path, rows, nsrs, scenes="paper"):
     axes[1, 0].set_ylabel("direct delay, median |error| (ps)")
     for ax in axes[0]:
         ax.axhline(0.9, color="0.6", ls="--", lw=0.8)
-    axes[1, -1].legend(fontsize=7, loc="best")
+    outside = dict(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    axes[1, -1].legend(**outside)
     axes[0, -1].plot([], [], "*", markerfacecolor="none", markeredgecolor="k", markersize=12,
                      label="default setting")
-    axes[0, -1].legend(fontsize=7, loc="best")
+    axes[0, -1].legend(**outside)
     what = "the paper's parameter space" if scenes == "paper" else f"the {scenes} generator"
-    fig.suptitle(f"Decomposition error against run time (Fig. 3(a)-(c) scenes from {what}, {title_noise}; "
+    fig.suptitle(f"Decomposition error against run time\n(Fig. 3(a)-(c) scenes from {what}, {title_noise}; "
                  "numbers: kernel grid N x N)")
     fig.tight_layout()
+    return fig
+
+
+def _plot(path, rows, nsrs, scenes="paper"):
+    import matplotlib.pyplot as plt
+
+    fig = figure(rows, nsrs, scenes)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -74,6 +74,8 @@ class _Figure:
     def show(self, frame) -> None:
         img = frame.image.T                                   # rows = time (vertical), columns = slit
         t = frame.row_times_ps if frame.row_times_ps is not None else range(frame.profile.size)
+        # the title first: the layout below leaves room for it (set after, its top was cut off)
+        self.ax_img.set_title(f"live frame {frame.index} (camera #{frame.sequence})")
         if self.im is None:
             self.im = self.ax_img.imshow(img, aspect="auto", origin="upper", cmap="magma")
             self.ax_img.set_xlabel("slit pixel x")
@@ -89,7 +91,6 @@ class _Figure:
         self.im.set_clim(float(img.min()), float(max(img.max(), img.min() + 1)))
         self.ax_prof.relim()
         self.ax_prof.autoscale_view()
-        self.ax_img.set_title(f"live frame {frame.index} (camera #{frame.sequence})")
         if self.png:
             tmp = f"{self.png}.tmp.png"
             self.fig.savefig(tmp, dpi=80)

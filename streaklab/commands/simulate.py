@@ -113,6 +113,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     import zarr
 
     from core.integrity import create_array
+    from decomposition.resultstore import long_name_for
     from reconstruction.cubestore import open_cube, write_cube
     from core.staging import staged_output
     from core.provenance import __version__
@@ -154,7 +155,8 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
             dims = ["y", "x", "r"] if value.ndim == 3 else ["y", "x"]
             ch = (by, bx) + ((max(n_ir, 1),) if value.ndim == 3 else ())
             a = create_array(g, key, shape=value.shape, chunks=ch, dtype="float64", dimension_names=dims,
-                             fill_value=np.nan, attributes={"units": _units(key), "absent": "NaN"})
+                             fill_value=np.nan, attributes={"units": _units(key), "long_name": f"true {long_name_for(key)}",
+                                                             "absent": "NaN"})
             if value.size:
                 a[...] = value
         comps = {"direct": (data.components["direct"], ["y", "x", "t"], "direct reflection"),
