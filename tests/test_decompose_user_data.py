@@ -151,7 +151,7 @@ def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, cap
     assert main(["decompose", str(tmp_path / "nan.zarr"), "--out", str(out), "--resume", "--quiet"]) == 0
     printed = capsys.readouterr().out
     assert f"decomposed {18 - (3 - nan_before)} pixels" in printed      # this run: 3 chunks, its NaN pixels skipped
-    assert "the notes count the whole store: the 3 chunks of this run and the 1 done before it" in printed
+    assert "the notes count the whole store: the 3 chunks of this run and the 1 chunk done before it" in printed
     assert "note: 3 pixels had NaN/inf samples" in printed, printed     # the store: all three
 
 

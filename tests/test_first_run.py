@@ -144,12 +144,12 @@ def test_the_packaged_example_config_is_reachable_from_any_folder(tmp_path, monk
 
 
 def _readme_session():
-    """The commands of the README's "A session, end to end" block, as argument lists."""
+    """The commands of the README's "A capture session, end to end" block, as argument lists."""
     import shlex
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = text.split("## A session, end to end", 1)[1].split("```", 2)[1]
+    block = text.split("## A capture session, end to end", 1)[1].split("```", 2)[1]
     commands = []
     for line in block.splitlines():
         line = line.split("#", 1)[0].strip()
@@ -164,7 +164,7 @@ def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monke
     from decomposition.resultstore import open_result_store
 
     session = _readme_session()
-    assert [argv[0] for argv in session] == ["capture", "reconstruct", "decompose", "report"]
+    assert [argv[0] for argv in session] == ["capture", "reconstruct", "decompose", "report", "verify"]
     monkeypatch.chdir(tmp_path)
     for argv in session:
         assert main(argv) == 0, (argv, capsys.readouterr().err)
@@ -331,7 +331,7 @@ def test_decompose_words_one_pixel_as_one(tmp_path, capsys):
     assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--nan-policy", "omit",
                  "--no-components", "--quiet", "--out", str(tmp_path / "r.zarr")]) == 0
     out = capsys.readouterr().out
-    assert "decomposed 2 pixels of a 1 x 2 x 128 cube" in out
+    assert "decomposed 1 pixel of a 1 x 2 x 128 cube" in out
     assert "note: 1 pixel had NaN/inf samples and was not decomposed (valid = False)" in out
 
 
