@@ -21,13 +21,18 @@ before retry k, at most ``limits.MAX_BACKOFF_WAIT_S`` each and
 :class:`CaptureFailed`, every finished line intact and resumable.  A device that
 answers a configured setting with an error rejects it: that is not retried, the
 session stops at once with :class:`SettingRejected` naming the config key.  A stop request
-(Ctrl-C, see :func:`capture`) ends the session after the current line.
+(Ctrl-C, see :func:`capture`) ends the session after the current line; a
+KeyboardInterrupt (a second Ctrl-C) gives up the current line at once.  Either way the
+session's entry in the store's ``sessions`` attribute gets its end time and status
+(``interrupted``, ``aborted``); the finished lines stay on disk and resumable.
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import logging
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -105,6 +110,26 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
+@contextlib.contextmanager
+def _ctrl_c_held():
+    """Hold Ctrl-C (SIGINT) while the block runs and hand it on afterwards.
+
+    A store's attributes are rewritten as a whole; held, a further Ctrl-C cannot cut that
+    write in half.  Only the main thread can handle signals: elsewhere nothing is held.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        if held and callable(previous):
+            previous(signal.SIGINT, None)
+
+
 class CaptureSession:
     """One capture session over three connected drivers.
 
@@ -147,6 +172,7 @@ class CaptureSession:
         self.devices: dict = {}
         self.acquired: list[int] = []
         self.retries_used = 0
+        self._entry: int | None = None          # index of this session's entry in ``sessions``
         s = config["session"]
         self.retries = int(s["retries"])
         self.backoff_s = float(s["retry_backoff_s"])
@@ -426,6 +452,8 @@ class CaptureSession:
 
         Raises
         ------
+        KeyboardInterrupt
+            Passed on after the session's entry is closed with status ``aborted``.
         CaptureFailed
             A device kept failing; the finished lines are on disk.
         CaptureError
@@ -436,7 +464,9 @@ class CaptureSession:
             self.open_store()
             entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
                      "lines_done_at_start": self.lines_done(), **self.session_info}
-            self.store.add_session(entry)
+            with _ctrl_c_held():
+                self.store.add_session(entry)
+                self._entry = len(self.store.group.attrs.get("sessions", [])) - 1
             if self.on_start is not None:
                 self.on_start(self)
             status = "interrupted"
@@ -456,6 +486,9 @@ class CaptureSession:
         except CaptureFailed as exc:
             self._end_entry("failed", error=str(exc))
             raise
+        except KeyboardInterrupt:               # the current line is given up; the finished ones are on disk
+            self._end_entry("aborted")
+            raise
         except OSError as exc:  # creating the run store: read-only, full, a file where a folder should be
             reason = "a file stands where a folder should be" if exc.errno == errno.ENOTDIR else \
                 "no space left on the device" if exc.errno == errno.ENOSPC else exc.strerror or str(exc)
@@ -464,15 +497,18 @@ class CaptureSession:
             self.make_safe()
 
     def _end_entry(self, status: str, error: str | None = None) -> None:
-        if self.store is None:
+        """Close this session's entry in ``sessions``: end time, status, lines and retries (once)."""
+        if self.store is None or self._entry is None:
             return
         try:
-            sessions = list(self.store.group.attrs.get("sessions", []))
-            if sessions:
-                sessions[-1] = {**sessions[-1], "ended_utc": _utc_now(), "status": status,
-                                "lines_acquired": len(self.acquired), "retries_used": self.retries_used,
-                                **({"error": error} if error else {})}
-                self.store.set_sessions(sessions)
+            with _ctrl_c_held():
+                sessions = list(self.store.group.attrs.get("sessions", []))
+                if self._entry < len(sessions):
+                    sessions[self._entry] = {**sessions[self._entry], "ended_utc": _utc_now(), "status": status,
+                                             "lines_acquired": len(self.acquired),
+                                             "retries_used": self.retries_used, **({"error": error} if error else {})}
+                    self.store.set_sessions(sessions)
+                self._entry = None
         except Exception as exc:  # bookkeeping must never mask the session's outcome
             log.warning("could not record the session's end in %s: %s", self.out, exc)
 

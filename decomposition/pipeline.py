@@ -331,7 +331,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
 
         try:
-            prepare_output_path(out_path, overwrite=True, protect=[source["path"]])
+            prepare_output_path(out_path, protect=[source["path"]], resume=True)
             existing = open_result_store(out_path, mode="r+")
             existing.check_done_chunks_present()
         except (ResultStoreError, DataIntegrityError) as exc:

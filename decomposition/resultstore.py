@@ -129,15 +129,16 @@ def _units_for(key: str, signal_units: str) -> str:
     return "1"
 
 
-def prepare_output_path(path, *, overwrite: bool = False, protect=()) -> None:
+def prepare_output_path(path, *, overwrite: bool = False, protect=(), resume: bool = False) -> None:
     """Check that a new result store may be written at ``path`` (nothing is removed here).
 
     The rule is :func:`core.staging.check_output_path`: an absent or empty path is
     fine; anything else needs ``overwrite`` and may then only be a result store (or no store at
     all); a path in ``protect`` (the input), inside it or containing it is always refused.
+    With ``resume`` the store at ``path`` is to be continued, not replaced.
     """
     try:
-        check_output_path(path, overwrite=overwrite, inputs=protect, kind=RESULT_KIND)
+        check_output_path(path, overwrite=overwrite or resume, inputs=protect, kind=RESULT_KIND, keep=resume)
     except OutputPathError as exc:
         raise ResultStoreError(str(exc)) from None
     except OutputExistsError:

@@ -246,7 +246,7 @@ def write_cube_response(cube, irf: InstrumentResponse, *, overwrite: bool = Fals
     if target.exists() and not overwrite:
         raise CubeStoreError(f"{path} already holds an instrument response (its '{IRF_GROUP}' group); "
                              f"pass overwrite=True (--overwrite) to replace it")
-    with staged_output(target, overwrite=overwrite, kind=RESPONSE_KIND) as tmp:
+    with staged_output(target, overwrite=overwrite, kind=RESPONSE_KIND, within=path) as tmp:
         write_response_group(zarr.open_group(str(tmp), mode="w"), irf)
     consolidate(path)                   # the cube's consolidated metadata lists the new group
 

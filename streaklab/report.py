@@ -668,8 +668,10 @@ def make_report(result_path, out_dir, *, time_ps: float | None = None, pixels=No
     -------
     dict: ``files`` (list of Paths), ``summary`` (str), ``time_ps``, ``pixels``.
     """
+    from core.staging import check_output_location
     from decomposition.resultstore import open_result_store
 
+    check_output_location(out_dir, inputs=(result_path,), folder=True)   # never into a store
     store = open_result_store(result_path)
     store.check_done_chunks_present()   # never draw a chunk marked done whose files are gone as if empty
     ny, nx, _ = store.shape

@@ -298,3 +298,42 @@ def test_resume_never_deletes_a_folder_streaklab_did_not_mark(tmp_path):
     result = run_capture(cfg, tmp_path / "old.zarr", simulate=True, resume=True)
     assert result.status == "complete" and open_run(tmp_path / "old.zarr").done_mask().all()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # no staging left
+
+
+@pytest.mark.timeout(60)
+def test_an_aborted_capture_records_its_end_and_resumes_to_the_same_bytes(tmp_path, capsys, monkeypatch):
+    """Ctrl-C twice inside a line (stop, then abort): the session's entry still gets its end and status."""
+    import os
+    import signal
+
+    from acquisition.session import CaptureSession
+    from streaklab.cli import main
+    from test_capture_resume import assert_same_data, write_config
+
+    cfg = write_config(tmp_path / "scan.toml", n_lines=5)
+    assert run_capture(cfg, tmp_path / "reference.zarr", simulate=True).status == "complete"
+    acquire = CaptureSession._acquire_frames
+
+    def ctrl_c_twice_in_line_2(self, n, what, key, also=()):
+        if what == "line 2":
+            os.kill(os.getpid(), signal.SIGINT)       # stop after the current line
+            os.kill(os.getpid(), signal.SIGINT)       # abort it
+        return acquire(self, n, what, key, also)
+
+    monkeypatch.setattr(CaptureSession, "_acquire_frames", ctrl_c_twice_in_line_2)
+    out = tmp_path / "run.zarr"
+    cmd = ["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(out), "--simulate", "--quiet"]
+    assert main(cmd) == 130
+    assert "aborted; finished lines are safely in" in capsys.readouterr().err
+    run = open_run(out)
+    assert run.done_mask().tolist() == [True, True, False, False, False]
+    (session,) = run.attrs["sessions"]
+    assert session["status"] == "aborted" and session["ended_utc"] >= session["started_utc"]
+    assert session["lines_acquired"] == 2
+
+    monkeypatch.setattr(CaptureSession, "_acquire_frames", acquire)
+    assert main(cmd + ["--resume"]) == 0
+    run = open_run(out)
+    assert [s["status"] for s in run.attrs["sessions"]] == ["aborted", "complete"]
+    assert run.attrs["sessions"][1]["lines_done_at_start"] == 2
+    assert_same_data(tmp_path / "reference.zarr", out)

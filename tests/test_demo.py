@@ -29,8 +29,6 @@ def test_demo_captures_reconstructs_decomposes_and_prints_fidelities(tmp_path, c
     out = tmp_path / "demo"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    (out / "result.zarr").mkdir()  # a product of an earlier demo run: replaced
-    (out / "result.zarr" / "stale").write_text("old")
     assert main(["demo", "--out", str(out), "--lines", "3", "--nx", "16", "--nt", "128", "--quiet"]) == 0
     printed = capsys.readouterr().out
     for step in ("[1/5] capture", "[2/5] reconstruct", "[3/5] decompose", "[4/5] report", "[5/5] fidelity"):
@@ -45,8 +43,49 @@ def test_demo_captures_reconstructs_decomposes_and_prints_fidelities(tmp_path, c
     assert fid["direct"]["pixels"] == 48 and fid["all"]["pixels"] == 48
     assert fid["direct"]["mean"] > 0.5  # the simulated scene's wall is recovered
     store = open_result_store(out / "result.zarr")
-    assert store.done_mask().all() and not (out / "result.zarr" / "stale").exists()
+    assert store.done_mask().all()
     assert (out / "notes.txt").read_text() == "mine"
+
+
+def _tree(path):
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.timeout(120)
+def test_demo_replaces_only_what_an_earlier_demo_wrote_there(tmp_path, capsys):
+    import shutil
+
+    from test_reconstruct import make_run
+
+    out = tmp_path / "demo"
+    tiny = ["--source", "simulate", "--lines", "2", "--nx", "4", "--nt", "128", "--quiet"]
+    out.mkdir()
+    run = make_run(out / "run.zarr")                 # a capture of one's own, where the demo puts its run
+    mine = _tree(out / "run.zarr")
+    assert main(["demo", "--out", str(out), *tiny]) == 2
+    err = capsys.readouterr().err
+    assert f"refusing to replace {out / 'run.zarr'} (a run store): an earlier 'streaklab demo' did not write it" in err
+    assert not (out / "cube.zarr").exists()
+    assert main(["demo", "--out", run.path, *tiny]) == 2          # nor into a store, nor inside one
+    assert "refusing to write files into" in capsys.readouterr().err
+    assert main(["demo", "--out", f"{run.path}/demo", *tiny]) == 2
+    assert "lies inside the Zarr store" in capsys.readouterr().err
+    assert _tree(out / "run.zarr") == mine and sorted(p.name for p in out.iterdir()) == ["run.zarr"]
+
+    # its own outputs are replaced on a rerun (make demo, twice in a row); nothing else is touched
+    shutil.move(out / "run.zarr", tmp_path / "mine.zarr")
+    (out / "notes.txt").write_text("mine")
+    assert main(["demo", "--out", str(out), *tiny]) == 0
+    assert main(["demo", "--out", str(out), *tiny]) == 0
+    assert (out / "notes.txt").read_text() == "mine" and open_result_store(out / "result.zarr").done_mask().all()
+    # a file put into one of its products is not the demo's to delete
+    (out / "result.zarr" / "look.png").write_bytes(b"png")
+    (out / "figs" / "mine.png").write_bytes(b"png")
+    assert main(["demo", "--out", str(out), *tiny]) == 2
+    assert "look.png" in capsys.readouterr().err and (out / "result.zarr" / "look.png").exists()
+    (out / "result.zarr" / "look.png").unlink()
+    assert main(["demo", "--out", str(out), *tiny]) == 2
+    assert "(mine.png)" in capsys.readouterr().err and (out / "figs" / "mine.png").read_bytes() == b"png"
 
 
 @pytest.mark.timeout(120)

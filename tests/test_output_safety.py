@@ -115,3 +115,82 @@ def test_capture_resume_refuses_a_run_store_with_a_link_inside(tmp_path):
     open_run(run.path)                                     # reading is fine
     with pytest.raises(RunStoreError, match="streaks/c/9 is a symbolic link inside the store"):
         open_run(run.path, mode="r+")
+
+
+def _tree(path):
+    """Every file below ``path`` with its bytes: a store is untouched exactly when this is unchanged."""
+    from pathlib import Path
+
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(Path(path).rglob("*")) if p.is_file()}
+
+
+def test_no_command_writes_inside_a_zarr_store(tmp_path, capsys):
+    from decomposition.pipeline import decompose_to_store
+    from streaklab.bench.arguments import output_folder
+
+    run = make_run(tmp_path / "run.zarr")
+    write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=1), time_bin_ps=TB, chunks=(1, 3))
+    decompose_to_store(tmp_path / "cube.zarr", tmp_path / "res.zarr", progress=False)
+    (tmp_path / "scan.toml").write_text("[scan]\nangles_deg = [0.0, 1.0]\n[calibration]\ntime_poly_ps = [0.0, 2.0]\n")
+    assert main(["export", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / "c.h5")]) == 0
+    capsys.readouterr()
+    stores = {name: _tree(tmp_path / name) for name in ("run.zarr", "cube.zarr", "res.zarr")}
+    run_, cube, res = run.path, str(tmp_path / "cube.zarr"), str(tmp_path / "res.zarr")
+    commands = [
+        ["capture", "--config", str(tmp_path / "scan.toml"), "--out", f"{run_}/inner.zarr", "--simulate"],
+        ["reconstruct", run_, "--out", f"{cube}/new.zarr"],
+        ["decompose", cube, "--out", f"{run_}/res.zarr", "--quiet"],
+        ["report", res, "--out", f"{cube}/figs"],
+        ["report", res, "--out", cube],                          # a folder of figures that is a store
+        ["demo", "--out", f"{run_}/demo"],
+        ["demo", "--out", run_],
+        ["simulate", "--out", f"{res}/sim.zarr", "--shape", "1", "2", "64"],
+        ["calibrate-irf", cube, "--out", f"{run_}/irf.zarr"],
+        ["export", cube, "--out", f"{res}/c.h5"],
+        ["import", str(tmp_path / "c.h5"), "--out", f"{run_}/c.zarr"],
+        ["example-config", "--out", f"{cube}/scan.toml"],
+        ["live", "--config", str(tmp_path / "scan.toml"), "--simulate", "--png", f"{cube}/live.png", "--no-window"],
+    ]
+    for argv in commands:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "refusing to write" in err, (argv, err)
+        assert "lies inside the Zarr store" in err or "it is a streaklab" in err, (argv, err)
+    with pytest.raises(OutputPathError, match=r"lies inside the Zarr store .*cube.zarr, a streaklab 'cube' store"):
+        output_folder(f"{cube}/bench")                            # the benchmarks' --out
+    for name, files in stores.items():
+        assert _tree(tmp_path / name) == files, name
+    # a store's own part may still be written where the store means it to be: the cube's response group
+    check_output_path(f"{cube}/irf", kind="instrument_response", within=cube)
+    with pytest.raises(OutputPathError, match="lies inside the Zarr store"):
+        check_output_path(f"{cube}/irf", kind="instrument_response", within=res)
+
+
+def test_overwrite_never_deletes_files_that_are_not_the_stores(tmp_path, capsys):
+    from core.staging import foreign_files
+
+    run = make_run(tmp_path / "run.zarr")
+    assert main(["reconstruct", run.path, "--out", str(tmp_path / "cube.zarr")]) == 0
+    assert foreign_files(tmp_path / "cube.zarr") == [] and foreign_files(run.path) == []
+    (tmp_path / "cube.zarr/frames.png").write_bytes(b"figure")
+    (tmp_path / "cube.zarr/cube/notes.txt").write_text("mine")
+    assert [p.name for p in foreign_files(tmp_path / "cube.zarr")] == ["notes.txt", "frames.png"]
+    before = _tree(tmp_path / "cube.zarr")
+    assert main(["reconstruct", run.path, "--out", str(tmp_path / "cube.zarr"), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "refusing to replace" in err and "not the store's own (cube/notes.txt, frames.png)" in err
+    assert _tree(tmp_path / "cube.zarr") == before
+    with pytest.raises(OutputPathError, match="frames.png"):            # whatever kind, or none, is asked for
+        check_output_path(tmp_path / "cube.zarr", overwrite=True)
+    (tmp_path / "cube.zarr/frames.png").unlink()
+    (tmp_path / "cube.zarr/cube/notes.txt").unlink()
+    assert main(["reconstruct", run.path, "--out", str(tmp_path / "cube.zarr"), "--overwrite"]) == 0
+    # resuming writes into the store and deletes nothing: a file of one's own there is no reason to refuse
+    write_cube(tmp_path / "c.zarr", small_cube(2, 3, seed=1), time_bin_ps=TB, chunks=(1, 3))
+    res = str(tmp_path / "res.zarr")
+    assert main(["decompose", str(tmp_path / "c.zarr"), "--out", res, "--quiet"]) == 0
+    (tmp_path / "res.zarr/notes.txt").write_text("mine")
+    assert main(["decompose", str(tmp_path / "c.zarr"), "--out", res, "--quiet", "--resume"]) == 0
+    assert main(["decompose", str(tmp_path / "c.zarr"), "--out", res, "--quiet", "--overwrite"]) == 2
+    assert "not the store's own (notes.txt)" in capsys.readouterr().err
+    assert (tmp_path / "res.zarr/notes.txt").read_text() == "mine"

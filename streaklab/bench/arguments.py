@@ -32,9 +32,13 @@ def positive_floats(text: str, what: str) -> list[float]:
 
 
 def output_folder(path) -> Path:
-    """``--out``: the folder (made with its parents); CommandError if a file is in its place."""
+    """``--out``: the folder (made with its parents); CommandError if a file is in its place,
+    OutputPathError if it is or lies inside a Zarr store (:func:`core.staging.check_output_location`)."""
+    from core.staging import check_output_location
+
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise CommandError(f"--out {out} exists and is not a folder")
+    check_output_location(out, folder=True)
     out.mkdir(parents=True, exist_ok=True)
     return out

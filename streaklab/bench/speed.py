@@ -45,6 +45,8 @@ import numpy as np
 
 from streaklab.cli import CommandError
 
+from .arguments import output_folder
+
 PAPER_SHAPE = (600, 672, 512)
 DEFAULT_SHAPE = (64, 672, 512)
 TARGET_PX_PER_S = 2000        # default ConvSCD on 2 cores, all stages
@@ -295,11 +297,7 @@ def run(args) -> int:
         raise CommandError(f"--photons must be a positive number, got {args.photons:g}")
     if args.scenes not in SCENE_PRESETS:
         raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CommandError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    out = out.resolve()
+    out = output_folder(args.out).resolve()
     chunks = (min(args.chunks[0], ny), min(args.chunks[1], nx))
     pixels = ny * nx
     with tempfile.TemporaryDirectory(dir=out, prefix="work-") as tmp:

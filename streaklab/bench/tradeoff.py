@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .arguments import output_folder
 from .tables import write_csv
 
 NSRS = (0.01, 0.055, 0.11)
@@ -335,8 +336,7 @@ def run(args) -> int:
     if scenes not in SCENE_PRESETS:
         raise CommandError(f"--scenes: unknown preset {args.scenes!r}; choose from {', '.join(SCENE_PRESETS)}")
     binned = (args.render or ("bin" if scenes == "paper" else "point")) == "bin"
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
 
     from .scoring import format_regime_table, regime_rows
 

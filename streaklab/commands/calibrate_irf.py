@@ -12,7 +12,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from core.staging import describe_existing
+from core.staging import check_output_location, describe_existing
 from core.words import counted
 from streaklab.cli import CommandError
 
@@ -43,6 +43,8 @@ def run(args) -> int:
     opts = ResponseEstimateOptions(pre_peak_ps=args.pre_ps, post_peak_ps=args.post_ps, min_snr=args.min_snr,
                                    saturation_level=args.saturation_level, min_pixels=args.min_pixels)
     source = Path(args.source)
+    if args.out is not None:
+        check_output_location(args.out, inputs=(source,))          # before the fit, not after it
     if describe_existing(source) == "run":
         if args.out is None:
             raise CommandError(f"{source} is a run store: give --out for the response "

@@ -34,12 +34,14 @@ def run(args) -> int:
     from acquisition.progress import Progress
     from acquisition.rig import run_capture
     from acquisition.session import CaptureFailed
+    from core.staging import check_output_location
 
     logging.basicConfig(level=logging.WARNING, format="streaklab capture: %(message)s")
     config = load_config(args.config)
     out = args.out or config["output"].get("path")
     if not out:
         raise CommandError("no output: pass --out or set output.path in the config")
+    check_output_location(out)              # before any device is opened: never inside another store
 
     stop = threading.Event()
     progress = None

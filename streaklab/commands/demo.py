@@ -9,12 +9,19 @@
    (:func:`decomposition.metrics.fidelity`).
 
 ``--source simulate`` replaces steps 1-2 by a synthetic cube (``streaklab simulate``).  Every
-output goes under ``--out`` (default ``demo-output``); the demo's own products there are
-replaced on a rerun, nothing else is touched.
+output goes under ``--out`` (default ``demo-output``), a folder that may be neither a Zarr
+store nor inside one.  The demo records what it wrote there in ``.streaklab-demo.json``
+(each store by its kind and creation time, ``fidelity.json`` by its sha256, ``figs`` by its
+file names); a rerun replaces exactly those products.  A product name taken by anything else
+(a run captured there by hand, a store copied in, a file the record does not list) is refused
+before anything is written, and so is a recorded store that now holds files not its own;
+nothing else in the folder is touched.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import shutil
 import sys
 import time
@@ -22,12 +29,95 @@ from pathlib import Path
 
 import numpy as np
 
+from core.staging import OutputPathError, check_output_location, describe_existing, foreign_files
 from core.words import counted
 from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "run_demo", "class_fidelity"]
 
 _PRODUCTS = ("run.zarr", "cube.zarr", "result.zarr", "figs", "fidelity.json")
+#: the record of the products a demo wrote into its --out folder (see the module docstring)
+RECORD = ".streaklab-demo.json"
+_FIGURES = ("frames.png", "maps.png", "profiles.png", "summary.txt")
+
+
+def _identity(p: Path) -> dict:
+    """What a product is, to tell on a rerun that it is still the one this demo wrote."""
+    if p.is_file():
+        return {"sha256": hashlib.sha256(p.read_bytes()).hexdigest()}
+    kind = describe_existing(p)
+    if kind in ("directory", None):
+        return {"files": sorted(f.name for f in p.iterdir())}
+    try:
+        attrs = json.loads((p / "zarr.json").read_text()).get("attributes", {}) or {}
+    except (OSError, ValueError, AttributeError):
+        attrs = {}
+    created = attrs.get("created_utc") or (attrs.get("provenance") or {}).get("created_utc")
+    return {"kind": kind, "created_utc": created}
+
+
+def _read_record(out: Path) -> dict:
+    try:
+        record = json.loads((out / RECORD).read_text())
+    except (OSError, ValueError):
+        return {}
+    products = record.get("products") if isinstance(record, dict) else None
+    return products if isinstance(products, dict) else {}
+
+
+def _write_record(out: Path) -> None:
+    """Record every product now in ``out`` (called after each step and at the end, however it ends)."""
+    products = {name: _identity(out / name) for name in _PRODUCTS if (out / name).exists()}
+    tmp = out / f"{RECORD}.tmp"
+    tmp.write_text(json.dumps({"producer": "streaklab demo", "products": products}, indent=2))
+    os.replace(tmp, out / RECORD)
+
+
+def check_demo_output(out) -> list[Path]:
+    """Check that the demo may write into ``out``; returns the earlier demo products to replace.
+
+    Raises
+    ------
+    OutputPathError
+        ``out`` is or lies inside a Zarr store, or a product name in it holds something an
+        earlier demo into ``out`` did not write (or a recorded store now holds files that are
+        not its own), named with the path.
+    """
+    out = Path(out)
+    check_output_location(out, folder=True)
+    if out.exists() and not out.is_dir():
+        raise OutputPathError(f"refusing to write into {out}: it is {describe_existing(out)}, not a folder")
+    record = _read_record(out) if out.is_dir() else {}
+    replace = []
+    for name in _PRODUCTS:
+        p = out / name
+        if not p.exists() and not p.is_symlink():
+            continue
+        known = record.get(name)
+        ours = isinstance(known, dict) and not p.is_symlink()
+        if ours and "files" in known and p.is_dir():    # the figures folder: report figures it listed
+            extra = sorted({f.name for f in p.iterdir()} - (set(known["files"]) & set(_FIGURES)))
+            if extra:
+                raise OutputPathError(f"refusing to replace {p}: it holds files an earlier 'streaklab demo' did not "
+                                      f"write ({', '.join(extra[:5])}{' and more' if len(extra) > 5 else ''}); "
+                                      f"move them out first")
+        elif ours:
+            ours = _identity(p) == known
+        if not ours:
+            what = "a symbolic link" if p.is_symlink() else f"a {describe_existing(p)}"
+            if what in ("a run", "a cube", "a decomposition", "a zarr"):
+                what = f"{what} store"
+            raise OutputPathError(f"refusing to replace {p} ({what}): an earlier 'streaklab demo' did not write it "
+                                  f"({'it is not in' if known is None else 'it changed since it was recorded in'} "
+                                  f"{out / RECORD}); move it away, or choose another --out")
+        if p.is_dir() and "kind" in known:
+            foreign = foreign_files(p)
+            if foreign:
+                raise OutputPathError(f"refusing to replace {p}: it holds files that are not the store's own "
+                                      f"({', '.join(str(f.relative_to(p)) for f in foreign[:5])}"
+                                      f"{' and more' if len(foreign) > 5 else ''}); move them out first")
+        replace.append(p)
+    return replace
 
 
 def add_arguments(parser) -> None:
@@ -169,30 +259,40 @@ def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
 def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, method="convscd", workers=None,
              nsr=0.05, seed=0, progress=True, stream=None) -> dict:
     """Run the demo; returns a dict with the output paths, timings and the fidelities."""
+    stream = sys.stdout if stream is None else stream
+    if min(lines, nx) < 1 or nt < 16:
+        raise CommandError(f"demo size must be at least 1 line x 1 pixel x 16 bins; got {lines} x {nx} x {nt}")
+    if source not in ("capture", "simulate"):
+        raise CommandError(f"unknown source {source!r}")
+    out = Path(out).resolve()
+    earlier = check_demo_output(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for p in earlier:  # the demo's own products from an earlier run
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    _write_record(out)
+    try:
+        return _run_steps(out, source=source, lines=lines, nx=nx, nt=nt, method=method, workers=workers, nsr=nsr,
+                          seed=seed, progress=progress, stream=stream)
+    finally:  # whatever was written, also by an interrupted run, is the demo's to replace next time
+        _write_record(out)
+
+
+def _run_steps(out: Path, *, source, lines, nx, nt, method, workers, nsr, seed, progress, stream) -> dict:
     from decomposition.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
     from decomposition.pipeline import decompose_to_store
     from streaklab.report import make_report
 
-    stream = sys.stdout if stream is None else stream
-    if min(lines, nx) < 1 or nt < 16:
-        raise CommandError(f"demo size must be at least 1 line x 1 pixel x 16 bins; got {lines} x {nx} x {nt}")
-    out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    for name in _PRODUCTS:  # the demo's own products from an earlier run
-        p = out / name
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
     start = time.perf_counter()
     if source == "capture":
         cube_path, truth, what = _capture_cube(out, lines=lines, nx=nx, nt=nt, seed=seed, stream=stream,
                                                quiet=not progress)
-    elif source == "simulate":
-        cube_path, truth, what = _simulated_cube(out, lines=lines, nx=nx, nt=nt, nsr=nsr, seed=seed, stream=stream)
     else:
-        raise CommandError(f"unknown source {source!r}")
+        cube_path, truth, what = _simulated_cube(out, lines=lines, nx=nx, nt=nt, nsr=nsr, seed=seed, stream=stream)
+    _write_record(out)
     result_path = out / "result.zarr"
     t0 = time.perf_counter()
     _say(f"[3/5] decompose ({method}, {'%d worker processes' % workers if workers else 'threads'}) -> {result_path}",
@@ -201,6 +301,7 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
     ny, nx_ = open_cube(cube_path).shape[:2]
     summary = decompose_to_store(cube_path, result_path, method=method, workers=workers, progress=progress,
                                  chunks=(min(ny, 4), min(nx_, 64)), stream=sys.stderr)
+    _write_record(out)
     _say(f"      {counted(summary['pixels'], 'pixel')} in {time.perf_counter() - t0:.1f} s "
          f"({summary['pixels_per_s']:,.0f} px/s)", stream)
     figs = out / "figs"

@@ -23,6 +23,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from acquisition.config import ConfigError, example_config_path
+    from core.staging import check_output_location
 
     try:
         text = example_config_path(args.name).read_text()
@@ -36,6 +37,7 @@ def run(args) -> int:
         raise CommandError(f"{out} is a folder; give a file name such as {out / 'scan.toml'}")
     if out.exists() and not args.overwrite:
         raise CommandError(f"{out} already exists; pass --overwrite to replace it")
+    check_output_location(out)
     try:
         out.write_text(text)
     except OSError as exc:

@@ -135,6 +135,7 @@ def run(args) -> int:
 
     from acquisition.config import ConfigError, calibration_times_ps, load_config
     from acquisition.live import LiveOptions, LiveView
+    from core.staging import check_output_location
     from drivers.errors import DriverError
 
     try:
@@ -148,6 +149,8 @@ def run(args) -> int:
     for path in (args.png, args.npz):
         if path and not Path(path).resolve().parent.is_dir():
             raise CommandError(f"{path}: its directory does not exist")
+        if path:
+            check_output_location(path)
 
     poly = config["calibration"].get("time_poly_ps")
     fallback = (lambda n: calibration_times_ps(poly, n) + config["sync"]["trigger_delay_ps"]) if poly else None
