@@ -29,15 +29,19 @@ from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER
                     SATURATED, OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
-from .options import options_from_mapping, parse_components, parse_nan_policy
+from .options import METHODS, options_from_mapping, parse_components, parse_nan_policy
 from .prepare import prepare_samples, time_axis
-from .quality import assess_fit
+from .quality import Fit, assess_fit
 from .refit import clear_unlit, component_errors, refine_components
 from .candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
 from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
 from .slots import shape_bounds
+from .constants import RESCUE_MISFIT_Z
+from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
+from .response_input import resolve_response, response_record, spike_neighbour_ratio
+from .response_path import decompose_with_response
 
 __all__ = [
     "decompose",
@@ -56,8 +60,6 @@ __all__ = [
     "OFF_WINDOW",
     "FLAG_NAMES",
 ]
-
-METHODS = ("convscd", "gradbm")
 
 
 @dataclass
@@ -484,9 +486,6 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
     """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
-    from .response_input import resolve_response, response_record, spike_neighbour_ratio
-    from .response_path import decompose_with_response
-
     if method != "convscd":
         raise ValueError(f"irf= works with method='convscd' only, got method={method!r}")
     if not opts.off_grid:
@@ -529,10 +528,6 @@ def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectr
     term lies beyond their noise: ``call`` holds the
     keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
     -> (fit, params, flags), the taken pixels' rows replaced (flat, P-shaped)."""
-    from .constants import RESCUE_MISFIT_Z
-    from .quality import Fit
-    from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
-
     info["rescue_tried"], info["rescued"] = 0, 0
     if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
         return fit, params, flags         # off, or the first pass was already started so

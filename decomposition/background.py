@@ -28,7 +28,7 @@ import numpy as np
 from core.model import BACKGROUND_KEY, render_components
 from .constants import (BACKGROUND_CLIP_SIGMA, BACKGROUND_COUNT_WINDOW_BINS, BACKGROUND_ITERATIONS,
                         BACKGROUND_START_QUANTILE)
-from .noise import noise_sigma
+from .noise import count_deviance, noise_sigma
 
 __all__ = ["estimate_background", "background_test", "background_threshold", "background_significant", "offset_alone",
            "light_test"]
@@ -228,8 +228,6 @@ def light_test(values, model, fit, *, counts: bool, noise=None, dispersion=None)
         Photon counts: Poisson deviances (:func:`decomposition.noise.count_deviance`, over the
         squared ``dispersion`` (P,)); else sums of squares over ``noise`` (P,)^2.
     """
-    from .noise import count_deviance
-
     v = np.asarray(values, np.float64)
     ok = np.asarray(fit, bool)
     flat = np.broadcast_to(offset_alone(v, ok)[:, None], v.shape)

@@ -14,6 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .constants import (SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO,
+                        SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z, SIGNAL_NOISE_Z,
+                        SIGNIFICANCE_LAG_BINS, WHITE_LAG_RATIO)
+from .detect import solver_inputs
+from .label import final_atoms
+from .noise import count_variance, lagged_noise_sigma, periodogram, residual_spectrum, signal_variance
+from .polish import refit_amplitudes
+from .slots import drop_zero, parameter_bounds, put, refine_atoms, render
+
 __all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights",
            "correlated_noise_spectrum"]
 
@@ -25,10 +34,6 @@ def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, we
     noise of the labels' in-window test; ``opts`` a resolved :class:`SolverOptions`;
     ``weights`` (n, L) the samples' relative least-squares weights (default: all alike).
     """
-    from .label import final_atoms
-    from .polish import refit_amplitudes
-    from .slots import drop_zero, parameter_bounds, refine_atoms
-
     refit_amplitudes(p, mask, st, dic)
     st, _, _ = refine_atoms(t_ps, p, mask, st, np.zeros(p.shape[0]), opts.eps_rel * np.asarray(noise),
                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
@@ -45,9 +50,6 @@ def each_block(samples, det, opts, step, pixels: bool = False, weights: bool = F
     argument), for what else it reads of them; with ``weights`` the block's rows of
     ``det.weights`` (None where the detection has none) as the keyword ``weights``, and
     ``det.noise_spectrum`` as the keyword ``spectrum``."""
-    from .detect import solver_inputs
-    from .slots import put
-
     live = samples.live
     state = {k: v.copy() for k, v in det.state.items()}
     hit = np.zeros(live.size, bool)
@@ -90,11 +92,6 @@ def residual_significance_noise(samples, det, dic, opts) -> np.ndarray:
         The lagged noise to use, normalised units (``samples.lagged_noise`` for count data and
         for pixels that are not live).
     """
-    from .constants import SIGNIFICANCE_LAG_BINS, WHITE_LAG_RATIO
-    from .detect import solver_inputs
-    from .noise import lagged_noise_sigma
-    from .slots import render
-
     out = np.array(samples.lagged_noise, np.float64, copy=True)
     if samples.noise_model == "poisson":
         return out
@@ -131,11 +128,6 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
     stationary; on the paper's scenes photon noise is never judged correlated anyway, its
     lagged noise, a median over mostly dark samples, reading near zero).
     """
-    from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, WHITE_LAG_RATIO
-    from .detect import solver_inputs
-    from .noise import periodogram, residual_spectrum
-    from .slots import render
-
     live = samples.live
     if samples.noise_model == "poisson" or live.size < SIGNAL_NOISE_POOL_MIN:
         return None
@@ -200,10 +192,6 @@ def signal_weights(samples, det, dic, opts, info=None):
     the search's data term becomes the sum of residual^2 / variance, 1 per sample for a fit at
     the noise.  Other pixels get 1.
     """
-    from .constants import SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN
-    from .detect import solver_inputs
-    from .slots import render
-
     live = samples.live
     L = samples.n_bins
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
@@ -251,8 +239,6 @@ def _pooled_law_holds(z, lag_ratio) -> bool:
     median over the pixels of their gain's significance ``z`` at least SIGNAL_NOISE_POOL_Z and the
     median of their ``lag_ratio`` below SIGNAL_NOISE_LAG_RATIO (see the constants: read noise
     can hide each pixel's gain, not the call's)."""
-    from .constants import SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z
-
     zs, ratios = z[np.isfinite(z)], lag_ratio[np.isfinite(lag_ratio)]
     if zs.size < SIGNAL_NOISE_POOL_MIN or ratios.size < SIGNAL_NOISE_POOL_MIN:
         return False
@@ -264,8 +250,6 @@ def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=No
     ``floors``, ``gains`` (n_live,) each pixel's law in the data's units, ``read`` the pixels
     whose law could be read; the detected models rendered again block by block; ``out``
     (n_live, L), if given, is overwritten with the weights."""
-    from .slots import render
-
     # (a pixel's fitted floor may be slightly negative under pure shot noise; a variance is not)
     floor = max(float(np.median(floors[read])), 0.0) if read.any() else 0.0
     gain = float(np.median(gains[read])) if read.any() else 0.0
@@ -290,8 +274,6 @@ def _kept_floor(floor, peak_var):
     """A variance law's floor (n,) kept at least SIGNAL_NOISE_FLOOR_FRACTION of the variance at
     the model's peak (``peak_var`` (n,), the gain times the peak): no sample weighs without bound
     where no light arrives."""
-    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
-
     return np.maximum(floor, SIGNAL_NOISE_FLOOR_FRACTION * (np.maximum(floor, 0.0) + peak_var))
 
 
@@ -317,9 +299,6 @@ class _FittedLaw:
 def _fitted_law(p, mask, model) -> _FittedLaw:
     """The variance law of normalised profiles ``p`` (n, L) read off their residual from
     ``model`` (>= 0); see :func:`signal_weights`."""
-    from .constants import SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO, SIGNAL_NOISE_Z
-    from .noise import signal_variance
-
     floor, gain, se = signal_variance(p - model, model, mask.fit, floor_fraction=SIGNAL_NOISE_FLOOR_FRACTION)
     peak_var = gain * model.max(axis=1)
     follows = (gain > SIGNAL_NOISE_Z * se) & (peak_var > SIGNAL_NOISE_PEAK_RATIO * np.maximum(floor, 0.0))
@@ -343,9 +322,6 @@ def _fitted_law(p, mask, model) -> _FittedLaw:
 def _count_law(samples, px, p, mask, model):
     """(n, L) Poisson variance of count pixels ``px`` at ``model`` (>= 0), in the units of their
     normalised profiles (:func:`decomposition.noise.count_variance`)."""
-    from .constants import SIGNAL_NOISE_FLOOR_FRACTION
-    from .noise import count_variance
-
     scale = np.maximum(samples.scale[px], 1e-300)
     disp = None if samples.dispersion is None else samples.dispersion[px]
     return count_variance(model * scale[:, None], disp, SIGNAL_NOISE_FLOOR_FRACTION) / scale[:, None] ** 2

@@ -28,6 +28,7 @@ from .options import SolverOptions
 from .pickcorr import PickWorkspace
 from .prepare import Samples
 from .slots import new_state, put
+from .gradbm import gradbm
 
 __all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
 
@@ -168,8 +169,6 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
 
 def detect_gradbm(samples: Samples, n_ir: int, components, options: dict) -> dict:
     """The GradBM baseline on every live pixel -> parameters (P-shaped, NaN where absent)."""
-    from .gradbm import gradbm  # imported lazily: the baseline is optional for the ConvSCD path
-
     live, scale = samples.live, samples.scale
     params = empty_params((samples.values.shape[0],), n_ir=n_ir)
     if live.size == 0:

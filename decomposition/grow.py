@@ -55,6 +55,11 @@ from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACT
                         GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
                         SWAP_MODE_GAP_SIGMA)
 
+from .countpolish import polish_count_state
+from .noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median
+from .objective import _smooth, objective_variance, penalised_objective
+from .slots import eval_atoms, parameter_bounds, put, render, take
+
 __all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]
 
@@ -92,8 +97,6 @@ def near_centres(t_ps, centres_ps, half_width_ps):
 def masked_spread(values, used):
     """(n,) robust standard deviation about zero of each row of ``values`` (n, L) over the
     samples ``used`` (n, L): MAD_TO_SIGMA x the median of |value| (0 where none is used)."""
-    from .noise import MAD_TO_SIGMA, masked_median
-
     med = masked_median(np.abs(values), used)
     return MAD_TO_SIGMA * np.where(np.isfinite(med), med, 0.0)
 
@@ -124,8 +127,6 @@ def residual_peak(t_ps, residual, used, centres_ps, width_ps, spread: bool = Fal
         same scale (:func:`masked_spread`): 1 for white noise in noise sigmas, more where the
         noise is correlated at the atom's scale.
     """
-    from .search import _smooth
-
     T = float(t_ps[1] - t_ps[0])
     w = np.maximum(np.asarray(width_ps, np.float64) / T, 0.5)
     smooth = _smooth(residual, w)
@@ -159,8 +160,6 @@ def with_gaussian(st, delay_ps, lsig, amp=1.0):
     """A forward step's trial: a copy of the slot state ``st`` (n, K) with a Gaussian of log
     width ``lsig`` (n,) at ``delay_ps`` (n,), amplitude ``amp`` (scalar or (n,)), penalty scale
     1, in each row's first free slot (every row must have one) -> (state, slot (n,))."""
-    from .slots import take
-
     n = st["fam"].shape[0]
     alt = take(st, np.arange(n))
     r = np.arange(n)
@@ -180,9 +179,6 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     before) -> the rows of ``idx`` taken.  ``weights`` (n, L): the samples' relative
     least-squares weights (default: all alike); ``spectrum``: the call's correlated noise
     (:attr:`Detection.noise_spectrum`), by which the objectives whiten their residuals."""
-    from .search import objective_variance, penalised_objective
-    from .slots import put, take
-
     pb, mb = p[idx], mask[idx]
     log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
     wb = None if weights is None else weights[idx]
@@ -212,8 +208,6 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     (count data keep the unweighted data term as their trigger: weighted, the misfit of a
     response tail the Gaussian model lacks set it off, and a false echo was kept in 42 % of
     ``tests/test_echo.py``'s tailed d+s pixels at 100 photons, 2.5 % unweighted)."""
-    from .slots import render, take
-
     n, L = p.shape
     T = dic.time_bin_ps
     t = dic.t0_ps + T * np.arange(L)
@@ -266,8 +260,6 @@ def late_fast_sss(t_ps, st, d0_ps, sigma_ps):
     bool): the hump peaks more than ``SWAP_MODE_GAP_SIGMA`` widths after the direct and decays
     fast enough against the PSF to pass for a Gaussian (alpha sigma >= ``SWAP_MIN_ALPHA_SIGMA``).
     A pixel without an sss reads its first slot: the caller leaves such pixels out."""
-    from .slots import eval_atoms
-
     n = st["fam"].shape[0]
     r = np.arange(n)
     ss = np.argmax(st["fam"] == FAM_SSS, axis=1)
@@ -292,8 +284,6 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
     where the penalised objective is lower and every pair of Gaussians stays resolved (the rule
     of :func:`grow_block`).
     """
-    from .slots import take
-
     n, L = p.shape
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     out = {k: v.copy() for k, v in st.items()}
@@ -346,10 +336,6 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
     scale, noise : ndarray (n,)   counts per normalised unit; the solver's noise
     dispersion, background : ndarray (n,) or None
     """
-    from .countpolish import polish_count_state
-    from .noise import anscombe_residual, atom_gain, count_deviance
-    from .slots import eval_atoms, parameter_bounds, put, render, take
-
     n, L = p.shape
     T = dic.time_bin_ps
     t = dic.t0_ps + T * np.arange(L)

@@ -39,7 +39,7 @@ import numba
 import numpy as np
 from numba.core import event as _numba_event
 
-__all__ = ["njit", "erfcx", "sss_erfc_part", "sss_value", "compile_notice", "warm_up", "kernel_digest"]
+__all__ = ["njit", "erfcx", "sss_erfc_part", "sss_value", "compile_notice", "quiet_notice", "kernel_digest"]
 
 COMPILE_NOTICE = "compiling the solver's kernels once (about 10-15 s on first use; later runs load them from the cache)"
 
@@ -273,48 +273,10 @@ def compile_notice(stream=None, *, label: str = "decompose"):
             stream.flush()
 
 
-def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convscd", components=("d", "r", "s"),
-            options: dict | None = None, stream=None, label: str = "decompose", quiet: bool = False):
-    """Load (or compile, with :func:`compile_notice`, and cache) every kernel a decomposition with
-    these settings uses, by decomposing a few synthetic profiles of every scene kind.
-
-    Run before timing anything, and before starting worker processes (they then load the cached
-    kernels instead of each compiling them).  Costs a fraction of a second once the cache is warm.
-    Returns the number of seconds spent compiling (0.0 when everything came from the cache).
-    """
-    import numpy as np
-
-    from .api import decompose
-    from .synthetic import make_profiles
-
-    n_bins = int(max(64, min(int(n_bins), 512)))
-    comps = set(components)
-    full = "+".join((["d"] if "d" in comps else []) + (["s"] if "s" in comps else [])
-                    + (["r2", "r3"] if "r" in comps else []))
-    kinds = tuple(dict.fromkeys(([full] if full else []) + (["d"] if "d" in comps else [])
-                                + (["d+s"] if {"d", "s"} <= comps else []) + (["d+s+r2"] if comps >= {"d", "s", "r"} else [])))
-    # low and high noise, and a pixel with a spike (its fit excludes a sample, which takes the
-    # weighted code paths): each takes paths, and argument layouts, that the others do not
-    def scenes(tb, nb):
-        return np.concatenate([make_profiles(2 * len(kinds), nb, nsr=nsr, noise="white", seed=0, kinds=kinds,
-                                             time_bin_ps=tb).noisy for nsr in (0.05, 0.2)])
-
-    try:
-        noisy = scenes(float(time_bin_ps), n_bins)
-    except ValueError:  # a window too short for the scenes: the kernels are the same on the default axis
-        time_bin_ps, n_bins = 2.0, 256
-        noisy = scenes(time_bin_ps, n_bins)
-    spiked = noisy[:1].copy()
-    spiked[0, n_bins // 5] += 20.0 * np.abs(spiked).max()
-    noisy = np.concatenate([noisy, spiked])
-    opts = dict(options or {})
-    with (_quiet_notice() if quiet else compile_notice(stream, label=label)) as watch:
-        decompose(noisy, time_bin_ps=float(time_bin_ps), method=method, components=tuple(components), **opts)
-    return 0.0 if watch.started is None else time.monotonic() - watch.started
-
-
 @contextmanager
-def _quiet_notice():
+def quiet_notice():
+    """:func:`compile_notice` without the notice: yields a watch whose ``.started`` tells whether
+    numba compiled anything within the block."""
     watch = _CompileWatch(lambda: None)
     with _numba_event.install_listener("numba:compile", watch):
         yield watch

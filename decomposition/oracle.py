@@ -98,7 +98,7 @@ def oracle_fit(profiles, truth_params: dict, *, time_bin_ps: float = 2.0, t0_ps:
     -------
     OracleFit
         Its ``direct`` / ``sss`` / ``interreflections`` can be given to
-        :func:`decomposition.metrics.fidelity` like a decomposition result.
+        :func:`decomposition.fidelity.fidelity` like a decomposition result.
     """
     options = options or OracleOptions()
     y = np.asarray(profiles, dtype=np.float64)

@@ -24,10 +24,9 @@ import numpy as np
 
 from core.errors import StreaklabError
 from core.integrity import CheckedReader, DataIntegrityError, read_checked
+from decomposition.options import METHODS
 
-__all__ = ["METHODS", "PipelineError", "decompose_to_store", "ChunkProgress"]
-
-METHODS = ("convscd", "gradbm")
+__all__ = ["PipelineError", "decompose_to_store", "ChunkProgress"]
 
 
 class PipelineError(StreaklabError, ValueError):
@@ -365,7 +364,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
     # and cache them, saying so): workers then find them in the cache instead of each compiling.
     # The response path has no compiled kernel.
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     seconds_compile = 0.0
     if response is None:

@@ -52,6 +52,7 @@ from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 
 from .noise import poisson_deviance
 from .synthetic_effects import bin_averaged_response, response_sigma_ps
+from .best_found import lowest_cost
 
 __all__ = ["PoissonReferenceOptions", "PoissonReferenceFit", "poisson_reference_fit", "poisson_reference_bound",
            "best_of", "delay_window_ps", "poisson_deviance"]
@@ -397,7 +398,7 @@ def poisson_reference_fit(counts, truth_params: dict, response: InstrumentRespon
     -------
     PoissonReferenceFit
         Its ``direct`` / ``sss`` / ``interreflections`` can be given to
-        :func:`decomposition.metrics.fidelity` like a decomposition result.
+        :func:`decomposition.fidelity.fidelity` like a decomposition result.
     """
     options = options or PoissonReferenceOptions()
     if not isinstance(response, InstrumentResponse):
@@ -460,8 +461,6 @@ def best_of(fits, *, tie_tolerance: float = 1e-6) -> PoissonReferenceFit:
         Every field taken per pixel from the winning fit; ``info`` gains ``start`` (S, int):
         the index in ``fits`` of the fit kept.
     """
-    from .best_found import lowest_cost
-
     return lowest_cost(fits, cost="deviance", tie_tolerance=tie_tolerance)
 
 

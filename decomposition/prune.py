@@ -28,7 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from .candidates import each_block, polish_candidate
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA
+from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS
+from .grow import grow_block, late_fast_sss, with_gaussian
+from .objective import objective_variance, penalised_objective
+from .slots import put, take
 
 __all__ = ["close_gaussian", "prune_block", "prune_components"]
 
@@ -57,9 +60,6 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     in-window test, default ``s_eff``; ``weights`` and ``spectrum`` as in
     :func:`decomposition.grow.grow_block`; ``bump_test``: that step's, False for count data)
     -> (state, pruned (n,) bool)."""
-    from .search import objective_variance, penalised_objective
-    from .slots import put, take
-
     n, L = p.shape
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
     out = {k: v.copy() for k, v in st.items()}
@@ -92,8 +92,6 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
                                 None if wb is None else wb[rows])
 
     def grown(state, rows):
-        from .grow import grow_block
-
         return grow_block(pb[rows], mb[rows], state, noise[rows], dic, opts, s_sig[idx][rows], bump_test,
                           weights=None if wb is None else wb[rows], spectrum=spectrum)[0]
 
@@ -149,10 +147,6 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
     neither it nor the trials above (fidelity 0.12 -> 0.99).
     """
-    from .constants import SEARCH_DEFAULT_ALPHA_PER_PS
-    from .grow import late_fast_sss, with_gaussian
-    from .slots import take
-
     _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps)
     rows = np.nonzero((cur["fam"] == FAM_SSS).any(axis=1) & passes)[0]
     trial = take(moved, rows)

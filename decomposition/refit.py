@@ -25,6 +25,9 @@ from .constants import POISSON_REFITS
 from .noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
 from .slots import select_rows
+from .background import background_significant, background_test, background_threshold, light_test, offset_alone
+from .fisher import standard_errors
+from .refine import refine
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
@@ -63,9 +66,6 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     refitted without it.  ``info`` then also holds ``background_chi2`` (the statistic) and
     ``background_stderr`` (units of the profiles; NaN where the offset was left out).
     """
-    from .background import background_significant, background_threshold
-    from .refine import refine
-
     axis = samples.axis
     n_fits = POISSON_REFITS if samples.noise_model == "poisson" else 1
     P = samples.values.shape[0]
@@ -125,8 +125,6 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float):
     dict), cleared (P,) bool, stderr (P,): the standard error of a cleared pixel's mean,
     units of the profiles, NaN elsewhere).  ``params`` must hold ``background``; only live
     pixels are judged."""
-    from .background import light_test, offset_alone
-
     live = samples.live
     cleared = np.zeros(samples.values.shape[0], bool)
     stderr = np.full(samples.values.shape[0], np.nan)
@@ -163,8 +161,6 @@ def background_stats(samples: Samples, params: dict, irf=None):
     Gaussian, weights the fit mask and the pixel's noise estimate; count data, weights
     1 / Poisson variance of the model (which includes the offset), noise scale the dispersion.
     ``irf``: the components are the response's atoms (the response path)."""
-    from .background import background_test
-
     axis = samples.axis
     if samples.noise_model == "poisson":
         weights = poisson_weights(_model(samples, params, irf), samples.fit, samples.dispersion)
@@ -178,8 +174,6 @@ def background_stats(samples: Samples, params: dict, irf=None):
 
 def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool) -> dict:
     """``<key>_stderr`` arrays for ``params`` (in the input's leading shape)."""
-    from .fisher import standard_errors
-
     axis = samples.axis
     shape = samples.lead + (samples.n_bins,)
     n_pix = samples.values.shape[0]

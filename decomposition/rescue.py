@@ -45,6 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from .components import free_parameters
+from .noise import whitened_chi2
 
 __all__ = ["RESCUE_OPTIONS", "rescue_rows", "misfit_beyond_noise", "data_term", "penalised_misfit", "take_rescued"]
 
@@ -80,8 +81,6 @@ def data_term(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray,
     (n, L) and ``noise`` (n,) in the same units.  With the call's correlated-noise ``spectrum``
     (:attr:`Detection.noise_spectrum`) the residual whitened by it, as the search reads it
     (:func:`decomposition.noise.whitened_chi2`)."""
-    from .noise import whitened_chi2
-
     s = np.maximum(np.asarray(noise, np.float64), 1e-300)
     r = np.where(fit, residual, 0.0)
     if spectrum is None:

@@ -91,6 +91,8 @@ from .noise import anscombe_residual, atom_gain, count_deviance, removal_devianc
 from .response_atoms import slot_atoms
 from .response_refine import Slots, refit_slots
 from .slots import select_rows
+from .components import render_params
+from .fidelity import fidelity
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
 
@@ -407,9 +409,6 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     whose direct explains nothing and that no trial replaced.  -> (slots, restored (n,) bool,
     ambiguous (n,) bool).
     """
-    from .components import render_params
-    from .metrics import fidelity
-
     n = cur.fam.shape[0]
     restored, ambiguous = np.zeros(n, bool), np.zeros(n, bool)
     fam = cur.fam

@@ -42,12 +42,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
-from .constants import (MAD_TO_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_LEVEL,
-                        SEARCH_IR_GAP_SIGMA, SEARCH_PEAK_LEVEL)
-from .noise import SpectralNoise
+from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
+                        SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA, SEARCH_EDGE_LEVEL,
+                        SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
+                        SEARCH_WIDE_FACTOR)
+from .objective import _n_free, _per_sample, _residual_chi2, _smooth, objective_variance, penalised_objective
 from .refine import refine
+from . import components as comp
+from .candidates import polish_candidate
+from .components import classify, free_parameters, render_params
+from .detect import solver_inputs
+from .grow import grow_block
+from .quality import direct_samples, weak_direct
+from .slots import new_state, put, render, take
 
-__all__ = ["SearchOptions", "penalised_objective", "objective_variance", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
+__all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
            "search_components", "weak_leading_gaussian"]
 
 STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
@@ -170,20 +179,6 @@ def relabel(params: dict, n_ir: int | None = None) -> dict:
     return out
 
 
-def _smooth(y, width_bins):
-    """Gaussian smoothing along the last axis with a per-pixel width (bins), via FFT (zero-padded
-    to twice the length: no wrap-around); the filter is built and applied in place."""
-    n = y.shape[-1]
-    f = np.fft.rfftfreq(2 * n)
-    h = np.pi * f[None, :] * np.asarray(width_bins, np.float64)[:, None]
-    h *= h
-    h *= -2.0
-    np.exp(h, out=h)                          # exp(-2 (pi f w)^2)
-    spec = np.fft.rfft(np.asarray(y, np.float64), n=2 * n, axis=-1)
-    spec *= h
-    return np.fft.irfft(spec, n=2 * n, axis=-1)[:, :n]
-
-
 def _first_peak(ys, level):
     """Index of each profile's earliest significant local maximum (at least ``level`` x its
     peak), or of its maximum where it has none.  ys: (n, L) -> (n,) int."""
@@ -257,7 +252,6 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
         starts[name] = _assemble(d_delay, sigma, s_delay, alpha, np.where(later, gd, np.nan),
                                  np.where(later, ga, np.nan), n_ir)
 
-    from .components import free_parameters
 
     s2 = np.maximum(_noise_sigma(y), 1e-12 * np.abs(y).max(axis=1)) ** 2
     best, best_j, j_solver, which = None, None, None, np.zeros(n, np.int64)
@@ -302,9 +296,6 @@ class SearchStage:
 def _stage_state(n, K, direct_ps, lsig, sss_ps, lalp, later_ps):
     """Slot state (n, K) of a start: a direct Gaussian (NaN = none) in slot 0, an sss (NaN =
     none) in slot 1, the Gaussians ``later_ps`` (n, G) after them, all with width exp(lsig)."""
-    from .constants import FAM_GAUSS, FAM_SSS
-    from .slots import new_state
-
     st = new_state(n, K)
     st["lsig"][:] = lsig[:, None]
     st["lalp"][:] = lalp[:, None]
@@ -331,86 +322,12 @@ def _same_start(built, direct_ps, sss_ps, later_ps):
     return same
 
 
-def _per_sample(s2):
-    """A noise variance of one value per pixel (n,) or per sample (n, L), as (n, 1) or (n, L)."""
-    s2 = np.asarray(s2, np.float64)
-    return s2[:, None] if s2.ndim == 1 else s2
-
-
-def _residual_chi2(r, s2):
-    """(n,) the data term of residuals ``r`` (n, L) in the noise ``s2`` of
-    :func:`objective_variance`: sum of r^2 / s2 (``s2`` (n,) or (n, L)), or the residual
-    whitened by the call's spectrum (a :class:`SpectralNoise`)."""
-    if isinstance(s2, SpectralNoise):
-        from .noise import whitened_chi2
-
-        return whitened_chi2(r, s2.spectrum, s2.variance)
-    return np.einsum("pl,pl->p", r, r / _per_sample(s2))
-
-
-def _data_chi2(t, p, mask, st, s2):
-    """The data term (:func:`_residual_chi2`) of each pixel of a slot state."""
-    from .slots import render
-
-    return _residual_chi2(mask.residual(p, render(t, st)), s2)
-
-
-def penalised_objective(t, p, mask, st, s2, log_n, opts):
-    """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
-    (``s2`` (n,) the noise variance, or (n, L) that of every sample, ``log_n`` (n,) the log of the fitted samples, k the free
-    parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
-    return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
-
-
-def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=None):
-    """The noise variance a penalised objective divides its data term by: (n,), or (n, L) with
-    ``weights``.  The solver's ``s_eff`` (n,) squared, or the significance noise's
-    (``significance_sigma`` (n,), :meth:`Samples.significance_sigma` after
-    :func:`decomposition.candidates.residual_significance_noise`; None: not used) where that
-    exceeds WHITE_LAG_RATIO x ``s_eff``, i.e. where the noise is correlated at the components'
-    scale (pink noise); divided by the samples' relative least-squares ``weights`` (n, L)
-    (:attr:`Detection.weights`) where given.  There a component fitted to the noise lowers the data term by about
-    (lagged / sample noise)^2 times what white noise would, and a parameter-count penalty read in
-    sample variances lets noise bumps through as inter-reflections.  Paper scenes, 600 px, pink
-    NSR 0.055 / 0.11 at 2 ps bins: 0.884 / 0.818 -> 0.910 / 0.844; white noise is unchanged.
-
-    With the call's noise ``spectrum`` (:attr:`Detection.noise_spectrum`, where its noise is
-    correlated): a :class:`SpectralNoise` of that spectrum and ``s_eff``'s variances instead,
-    whatever the rest -- the residual whitened by the noise's own spectrum rather than read in
-    one lagged level (paper scenes, 600 px, pink NSR 0.055 / 0.11: 2 ps 0.920 / 0.853 ->
-    0.931 / 0.886, 4 ps 0.900 / 0.851 -> 0.915 / 0.880)."""
-    from .constants import WHITE_LAG_RATIO
-
-    s_eff = np.asarray(s_eff, np.float64)
-    if spectrum is not None:
-        return SpectralNoise(np.asarray(spectrum, np.float64), s_eff ** 2)
-    if significance_sigma is None:
-        var = s_eff ** 2
-    else:
-        sig = np.asarray(significance_sigma, np.float64)
-        var = np.where(sig > WHITE_LAG_RATIO * s_eff, sig, s_eff) ** 2
-    return var if weights is None else var[:, None] / np.maximum(weights, 1e-300)
-
-
-def _n_free(st, shared_sigma):
-    """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
-    one width per pixel (``shared_sigma``) or per atom."""
-    from .constants import FAM_NONE, FAM_SSS
-
-    act = st["fam"] != FAM_NONE
-    n_act = act.sum(axis=1)
-    return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)
-
-
 def _near_direct_chi2(t, residual, mask, st, s2):
     """(n,) the data term per sample, over the used samples within POOR_FIT_DIRECT_SIGMA widths
     (plus one bin) of each pixel's earliest Gaussian, in units of the noise variance ``s2``
     (n,); 0 for a pixel without a Gaussian.  ``residual`` (n, L): of the state ``st`` under the
     masks (:meth:`SampleMask.residual`).  A direct of the wrong width misfits there while
     the whole window's data term, over hundreds of quiet samples, stays near its expectation."""
-    from .constants import FAM_GAUSS
-    from .quality import direct_samples
-
     g = st["fam"] == FAM_GAUSS
     rows = np.arange(g.shape[0])
     k0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
@@ -425,9 +342,6 @@ def _near_direct_chi2(t, residual, mask, st, s2):
 def _split(t, st):
     """Rendered split of a slot state: earliest Gaussian (direct), sss, later Gaussians
     (summed), each (n, L)."""
-    from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-    from .slots import render
-
     g = st["fam"] == FAM_GAUSS
     d0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
     first = np.zeros_like(g)
@@ -447,9 +361,6 @@ def weak_leading_gaussian(t_ps, st) -> np.ndarray:
     sample times).  Such a Gaussian is often not the direct but a patch on its leading edge
     (4 ps bins, PSFs narrower than a bin: a Gaussian one bin before the true direct, at 10-15 %
     of its height, the direct labelled an inter-reflection)."""
-    from .components import classify, render_params
-    from .quality import weak_direct
-
     n, K = st["fam"].shape
     params, _ = classify(st, np.ones(n), max(K - 1, 0))      # every later Gaussian an inter-reflection
     T = float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 1.0
@@ -557,12 +468,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
     -> (state, start (n,) int, doubt (n,) bool, ambiguous (n,) bool).
     """
-    from . import components as comp
-    from .constants import FAM_GAUSS, FAM_SSS
-    from .candidates import polish_candidate
-    from .grow import grow_block
-    from .slots import new_state, put, render, take
-
     n, L = p.shape
     K = st["fam"].shape[1]
     T = dic.time_bin_ps
@@ -586,9 +491,6 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
                           else objective_variance(np.maximum(s_eff, 1e-300), spectrum=noise_spectrum))
 
     # Pixels in doubt (see the docstring).
-    from .constants import (NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA,
-                            SEARCH_EDGE_LEVEL, SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL,
-                            SEARCH_RISE_MIN_BINS, SEARCH_WIDE_FACTOR)
 
     g = base["fam"] == FAM_GAUSS
     s_at = base["fam"] == FAM_SSS
@@ -788,9 +690,6 @@ def search_components(samples, det, dic, opts, components, objective_lagged_nois
     detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`
     (``objective_lagged_noise`` (P,): the lagged noise of its ``objective_sigma``, in place of
     ``samples.lagged_noise``)."""
-    from .detect import solver_inputs
-    from .slots import put
-
     live = samples.live
     state = {k: v.copy() for k, v in det.state.items()}
     n = live.size

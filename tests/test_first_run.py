@@ -222,9 +222,9 @@ def _seed_cache_without_one_kernel(cache_dir, *, left_out: str) -> int:
     import numba
     from numba.core import caching
 
-    from decomposition import jit, noise
+    from decomposition import noise, warmup
 
-    jit.warm_up(quiet=True)                    # this process's cache is complete (usually it already is)
+    warmup.warm_up(quiet=True)                    # this process's cache is complete (usually it already is)
     pkg = Path(noise.__file__).resolve().parent
     try:
         sub = caching._CacheLocator.get_suitable_cache_subpath(str(pkg / "noise.py"))
@@ -285,7 +285,7 @@ def test_accuracy_timings_leave_out_the_first_calls_one_time_cost(monkeypatch):
 
 
 def test_warm_up_suits_any_time_axis_and_reports_no_compile_once_cached():
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     # a window far too short for its synthetic scenes (0.1 ps bins): the default axis is used instead
     assert warm_up(time_bin_ps=0.1, n_bins=4096, quiet=True) >= 0.0

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from decomposition.gradbm import gradbm
-from decomposition.metrics import fidelity
+from decomposition.fidelity import fidelity
 from core.model import render_components, render_profile
 from decomposition.synthetic import make_profiles
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from decomposition.metrics import fidelity
+from decomposition.fidelity import fidelity
 from decomposition.oracle import OracleOptions, oracle_fit, significant_truth
 from decomposition.synthetic import make_profiles
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core.model import empty_params, render_components, render_profile
-from decomposition.metrics import fidelity
+from decomposition.fidelity import fidelity
 
 from _states import polished, solver_setup
 
@@ -141,7 +141,7 @@ def test_prune_clears_an_sss_hump_filled_with_several_gaussians(nsr, px):
     # and 0.31 unflagged).  Dropping every Gaussian within PRUNE_GAP_SIGMA widths of the direct,
     # the onset moved back and the forward step once recovers the scene, its echoes included.
     from decomposition import decompose
-    from decomposition.metrics import fidelity
+    from decomposition.fidelity import fidelity
     from decomposition.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=nsr, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",

@@ -59,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from decomposition.options import METHODS
 from streaklab.cli import CommandError
 
 from .arguments import choices, output_folder, positive_floats
@@ -73,7 +74,6 @@ NOISES = ("white", "pink", "photon")
 #: (one photon scale for every pixel; decomposition.synthetic_noise), where the NSR of the
 #: point is that of all its pixels together.
 EXTRA_NOISES = ("camera",)
-METHODS = ("convscd", "gradbm")
 # Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
 EXTRA_METHODS = ("search",)
@@ -191,10 +191,10 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
 
 def _score(data, est_components, est_params, flags, noise: str):
     """Per-pixel fidelity, direct-delay failures, flags, fidelity with the inter-reflections
-    paired to the least error (:func:`decomposition.metrics.fidelity`, ``ir_pairing="matched"``)
+    paired to the least error (:func:`decomposition.fidelity.fidelity`, ``ir_pairing="matched"``)
     and, under white noise, the penalised misfit J in the true noise
     (:func:`streaklab.bench.scoring.white_noise_j`; None under other noise) of one estimate."""
-    from decomposition.metrics import fidelity
+    from decomposition.fidelity import fidelity
 
     from .scoring import direct_delay_failures, white_noise_j
 
@@ -247,7 +247,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
 
     margin = SolverOptions().ambiguity_chi2        # the search's own bar for "very strong" evidence
 
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     bins = [float(time_bin_ps)] if np.isscalar(time_bin_ps) else [float(t) for t in time_bin_ps]
     every = list(methods) + list(ceilings(bin_integrated, "convscd" in methods))

@@ -252,7 +252,7 @@ def median_z_stderr(n: int) -> float:
 
 def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
     """Figures of one estimate against the truth of ``data`` (see the module docstring)."""
-    from decomposition.metrics import fidelity
+    from decomposition.fidelity import fidelity
 
     truth = data.params
     d_err, tau_rel = pixel_errors(truth, est_params)
@@ -655,7 +655,7 @@ def run(args) -> int:
         raise CommandError(f"--pixels must be positive, got {pixels}")
     out = output_folder(args.out)
     if any(v != "reference" for v in variants):
-        from decomposition.jit import warm_up
+        from decomposition.warmup import warm_up
 
         warm_up(time_bin_ps=tb, n_bins=n_bins, label="bench realism")
 

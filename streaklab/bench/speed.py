@@ -314,7 +314,7 @@ def run(args) -> int:
                                          scenes=args.scenes, photons=args.photons)
         except ValueError as exc:
             raise CommandError(f"{exc} (or --scenes legacy)") from None
-        from decomposition.jit import warm_up
+        from decomposition.warmup import warm_up
 
         for method in methods:  # compile once here, if needed, not inside the first timed run
             warm_up(time_bin_ps=2.0, n_bins=nt, method=method, label="bench speed")

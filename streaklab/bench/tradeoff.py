@@ -11,7 +11,7 @@ or ``legacy``, point-sampled) at NSR 0.01,
 
 * run time per pixel (wall clock of the whole decompose() call, refinement
   included, standard errors off),
-* mean decomposition fidelity (:func:`decomposition.metrics.fidelity`),
+* mean decomposition fidelity (:func:`decomposition.fidelity.fidelity`),
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
   mistaken for another component; the median shows the accuracy of the typical pixel),
@@ -113,7 +113,7 @@ def _default_refines():
 def _warm_up(settings, n_bins, time_bin_ps):
     """Run every setting once, untimed, on a few profiles: compiling (or loading) the kernels and
     the first call's one-time work are no part of any point's time."""
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     for _, method, _, _, opts, with_refine, _ in settings:
         warm_up(time_bin_ps=time_bin_ps, n_bins=n_bins, method=method, label="bench tradeoff",
@@ -160,7 +160,7 @@ def _crb(data):
 
 def _oracle(data):
     """Per-pixel fidelity of the oracle on ``data`` (the true set fitted from the truth)."""
-    from decomposition.metrics import fidelity
+    from decomposition.fidelity import fidelity
     from decomposition.oracle import oracle_fit
 
     fit = oracle_fit(data.noisy, data.params, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps,
@@ -169,7 +169,8 @@ def _oracle(data):
 
 
 def _measure(data, comps, params, seconds, crb, oracle_fid):
-    from decomposition.metrics import fidelity, parameter_error
+    from decomposition.fidelity import fidelity
+    from decomposition.metrics import parameter_error
 
     n = data.noisy.shape[0]
     fid = fidelity(data.components, comps)

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import json
 
-from decomposition.pipeline import METHODS, decompose_to_store
+from decomposition.options import METHODS
+from decomposition.pipeline import decompose_to_store
 from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "parse_components"]
