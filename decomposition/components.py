@@ -36,7 +36,7 @@ import numpy as np
 
 from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
                         SIGNIFICANCE_WEIGHT_CAP)
-from .atomlm import atom_weighted_squares, atom_window_sums, state_models
+from .kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
@@ -317,7 +317,7 @@ def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, i
     instead of the Gaussian PSF when given.
 
     The Gaussian-PSF components are the solver's own compiled atoms
-    (:func:`decomposition.atomlm.state_models`: the kernels of :mod:`core.model` within 1e-12
+    (:func:`decomposition.kernels.atomlm.state_models`: the kernels of :mod:`core.model` within 1e-12
     relative where they are evaluated, Gaussians cut at GAUSS_SUPPORT_SIGMA widths where they
     are below exp(-18) of their peak, the sss tail continued where erfc differs from 2 by
     less than 1e-8 relative); an absent component (NaN delay, amplitude or width) renders as zeros.

@@ -87,7 +87,7 @@ FAM_SSS = 2
 #: time for the same fidelity to four decimals.)
 GAUSS_SUPPORT_SIGMA = 6.0
 
-#: Gaussian support of the own-width correlations of the pick (:mod:`decomposition.pickcorr`),
+#: Gaussian support of the own-width correlations of the pick (:mod:`decomposition.kernels.pickcorr`),
 #: in sigma: beyond +-8 sigma a unit Gaussian is below exp(-32) ~ 1e-14, under float64
 #: rounding of the sums, so the correlations are the dense sums' (their tests hold them to
 #: 1e-10); the pick compares correlations of atoms against each other, and is not where the

@@ -55,8 +55,8 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    spectra of the coarse dictionary (only the families some pixel may take);
    once it has one, with the Gaussian and the sss kernels at the pixel's own
    sigma, by compiled direct correlations that use the sss kernel's one-pole
-   structure (:mod:`decomposition.pickcorr`).  The selection is compiled too
-   (:mod:`decomposition.pick`).  For a zero coordinate with column norm n and
+   structure (:mod:`decomposition.kernels.pickcorr`).  The selection is compiled too
+   (:mod:`decomposition.kernels.pick`).  For a zero coordinate with column norm n and
    correlation c the one-dimensional problem is
    (n/2)(z - u)^2 + mu log(1 + z/eps), u = c/n, whose minimiser on z >= 0 is
    the larger root of z^2 + (eps - u) z + (mu/n - u eps) = 0 if it beats z = 0.
@@ -77,7 +77,7 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    refined jointly and continuously by a few Levenberg-Marquardt steps
    (analytic Jacobians of both kernels; near sss onsets parametrised as
    direct delay + gap with an active set for gap >= 0), a step accepted for
-   a pixel only if F decreases (:mod:`decomposition.atomlm`, compiled, one
+   a pixel only if F decreases (:mod:`decomposition.kernels.atomlm`, compiled, one
    pixel at a time, each atom evaluated on its own support).  Refining
    before the next pick matters: a coarse atom that is slightly off leaves a derivative-shaped residual that
    would otherwise be "explained" by spurious extra atoms.
@@ -152,7 +152,7 @@ bench speed --shape 32 672 512 --methods convscd --workers threads:2`` in the sa
 average 0.7-1.3 on the 2 cores): 1,103 -> 1,880 px/s all stages, ``--photons 1000``: 1,298 ->
 2,449 px/s.  What did it: the LM's normal equations
 summed segment by segment with four sums side by side, and over the sss tail past the other
-atoms in closed form (:func:`decomposition.atomlm._tail_sums`); atom values from one erfc per
+atoms in closed form (:func:`decomposition.kernels.atomlm._tail_sums`); atom values from one erfc per
 bin with stepped exponentials; the own-width pick correlating only what a pixel may take (no
 sss kernels once it has its sss atom: two thirds of the picks); NNLS, rendering, window
 measures, medians and the count gain compiled; identical search starts polished once.
@@ -213,9 +213,9 @@ direct's median amplitude error is 0.016 / 0.024 / 0.021 / 0.063 (seeds 3-6) at 
 variances (the split at a shared onset is weakly determined; the oracle starts at it).
 
 Then: erfcx from a table of degree-12 polynomials, one per half unit of u below 10
-(:func:`decomposition.jit.erfcx`, relative error 4e-15; 6 against 17 ns for exp(u^2) erfc(u)),
+(:func:`decomposition.kernels.jit.erfcx`, relative error 4e-15; 6 against 17 ns for exp(u^2) erfc(u)),
 and the sss atom's samples as g erfcx(u) where u >= 0 and 2 f - g erfcx(-u) elsewhere
-(:func:`decomposition.jit.sss_erfc_part`; g and f stepped from bin to bin), so no library
+(:func:`decomposition.kernels.jit.sss_erfc_part`; g and f stepped from bin to bin), so no library
 transcendental per sample in the atoms or the own-width pick; and the LM's trial objective,
 for pixels without a censored sample, without a branch per sample and with four sums side by
 side.  The LM calls of one decompose replayed (1,024 pixels of ``make_profiles(..., seed=3,
@@ -252,7 +252,7 @@ from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, RESTART_FACTOR
 from .dictionary import Dictionary, get_dictionary  # noqa: F401
 from .masks import SampleMask, check_mask
 from .options import GridSpec  # noqa: F401
-from .pickcorr import PickWorkspace
+from .kernels.pickcorr import PickWorkspace
 from .polish import polish_block, refit_amplitudes, snap_to_grid  # noqa: F401
 from .score import score_coarse, score_pixel
 from .slots import (drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401

@@ -25,7 +25,7 @@ from .masks import SampleMask
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from .noise import signal_noise_sigma
 from .options import SolverOptions
-from .pickcorr import PickWorkspace
+from .kernels.pickcorr import PickWorkspace
 from .prepare import Samples
 from .slots import new_state, put
 from .gradbm import gradbm

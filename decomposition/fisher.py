@@ -32,7 +32,7 @@ import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .constants import SSS_SLOT
-from .kernels import kernel_derivatives
+from .kernels.derivatives import kernel_derivatives
 from .refine import apply_weights, slot_arrays
 from .varpro import CHUNK_PIXELS, design_rows
 

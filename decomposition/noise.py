@@ -40,7 +40,7 @@ import numpy as np
 
 from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
                         SIGNAL_REGION_FRACTION)
-from .jit import njit
+from .kernels.jit import njit
 
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40

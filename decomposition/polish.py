@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .atomlm import nnls_amplitudes
+from .kernels.atomlm import nnls_amplitudes
 from .constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
 from .masks import SampleMask, check_mask
@@ -79,7 +79,7 @@ def snap_to_grid(st, dic: Dictionary):
 
 def refit_amplitudes(p, mask: SampleMask, st, dic: Dictionary):
     """Non-negative least-squares amplitudes for fixed atom shapes (in place; compiled per pixel:
-    :func:`decomposition.atomlm.nnls_amplitudes`, 20 sweeps of exact coordinate descent on the
+    :func:`decomposition.kernels.atomlm.nnls_amplitudes`, 20 sweeps of exact coordinate descent on the
     convex problem over the fitted samples, from the current amplitudes); atoms left at zero
     are dropped."""
     check_mask(mask, p.shape)

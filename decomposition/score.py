@@ -2,10 +2,10 @@
 
 For a zero coordinate with column norm n and correlation c the one-dimensional problem is
 (n/2)(z - u)^2 + mu log(1 + z/eps), u = c/n; its exact minimiser and the objective decrease
-are evaluated by the compiled selection (:func:`decomposition.pick.select`).  Correlations
+are evaluated by the compiled selection (:func:`decomposition.kernels.pick.select`).  Correlations
 come from the coarse dictionary by FFT for a pixel's first atom (:func:`score_coarse`), and
 at the pixel's own PSF width from compiled direct correlations afterwards
-(:func:`score_pixel`, :mod:`decomposition.pickcorr`).
+(:func:`score_pixel`, :mod:`decomposition.kernels.pickcorr`).
 """
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import numpy as np
 
 from .constants import DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_SSS
 from .dictionary import Dictionary
-from .pick import select as _select
-from .pickcorr import PickWorkspace, pixel_correlations
+from .kernels.pick import select as _select
+from .kernels.pickcorr import PickWorkspace, pixel_correlations
 
 __all__ = ["score_coarse", "score_pixel"]
 
@@ -59,7 +59,7 @@ def score_pixel(r, fit, weighted, dic: Dictionary, sig, mu, eps, allow_g, allow_
     Atoms: the Gaussian and the sss kernel at each coarse alpha, all with the
     pixel's sigma, at every integer-bin shift; correlations and exact
     window-truncated norms come from compiled per-pixel FIR passes and one-pole
-    recursions (:func:`decomposition.pickcorr.pixel_correlations`), written into
+    recursions (:func:`decomposition.kernels.pickcorr.pixel_correlations`), written into
     ``workspace`` when one is given (the caller's: it is overwritten by the next call).
     """
     n = r.shape[0]

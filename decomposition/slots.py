@@ -5,7 +5,7 @@ A block's atoms live in "slot" arrays of shape (P, K): ``fam`` (int8, :mod:`deco
 (log sigma_ps), ``lalp`` (log alpha_per_ps) and ``pen`` (the penalty's amplitude scale).
 Here: creating, slicing and merging states, rendering them, the objective, the parameter
 bounds, the sss-onset link and the compiled Levenberg-Marquardt refinement
-(:func:`decomposition.atomlm.lm_refine`) behind :func:`refine_atoms`.
+(:func:`decomposition.kernels.atomlm.lm_refine`) behind :func:`refine_atoms`.
 
 Which samples count: a :class:`~decomposition.masks.SampleMask` (fitted, censored).
 """
@@ -15,10 +15,10 @@ import math
 
 import numpy as np
 
-from .atomlm import atom_profiles, lm_refine, state_models
+from .kernels.atomlm import atom_profiles, lm_refine, state_models
 from .constants import FAM_NONE, NEAR_SIGMA
 from .masks import SampleMask
-from .onsets import onset_links
+from .kernels.onsets import onset_links
 
 __all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
@@ -35,7 +35,7 @@ def eval_atoms(t, fam, delay, lsig, lalp):
 
 
 def render(t, st):
-    """Model (P, L) of the slot state ``st`` (compiled: :func:`decomposition.atomlm.state_models`)."""
+    """Model (P, L) of the slot state ``st`` (compiled: :func:`decomposition.kernels.atomlm.state_models`)."""
     return state_models(*axis_of(t), t.size, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"])
 
 
@@ -68,7 +68,7 @@ def linked_onsets(st, near_sigma=None):
     """Pixels whose sss onset is tied to the direct (earliest Gaussian) delay.
 
     Returns (linked (P,), direct slot (P,), sss slot (P,)); the rule is
-    :func:`decomposition.onsets.onset_link` (the one the compiled refinement applies), with
+    :func:`decomposition.kernels.onsets.onset_link` (the one the compiled refinement applies), with
     ``near_sigma`` PSF widths (default :data:`~decomposition.constants.NEAR_SIGMA`).
     """
     return onset_links(st["fam"], st["delay"], st["lsig"], NEAR_SIGMA if near_sigma is None else near_sigma)
@@ -81,7 +81,7 @@ def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_s
     ``obj`` is F at the current state (P,), the level a step must beat (None: computed
     exactly); returns (state, F, iterations run by the slowest pixel) and, with
     ``return_model``, the model (P, L) of the returned state.  The loop itself is
-    :func:`decomposition.atomlm.lm_refine` (compiled, one pixel at a time): a pixel stops when
+    :func:`decomposition.kernels.atomlm.lm_refine` (compiled, one pixel at a time): a pixel stops when
     an accepted step lowers F by less than ``tol`` times F per fitted sample (a change far
     below what one sample's misfit can resolve; it shrinks as the fit improves, so noiseless
     data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels

@@ -44,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 
 from .constants import SSS_SLOT
-from .kernels import kernel_derivatives
+from .kernels.derivatives import kernel_derivatives
 
 __all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .api import decompose
-from .jit import compile_notice, quiet_notice
+from .kernels.jit import compile_notice, quiet_notice
 
 __all__ = ["warm_up"]
 
@@ -50,7 +50,7 @@ def _profiles(kinds, n_pixels: int, n_bins: int, time_bin_ps: float, rng) -> np.
 
 def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convscd", components=("d", "r", "s"),
             options: dict | None = None, stream=None, label: str = "decompose", quiet: bool = False):
-    """Load (or compile, with :func:`~decomposition.kernels.jit.compile_notice`, and cache) every
+    """Load (or compile, with :func:`~decomposition.kernels.derivatives.jit.compile_notice`, and cache) every
     kernel a decomposition with these settings uses, by decomposing a few small profiles of
     every kind of scene they ask for.
 

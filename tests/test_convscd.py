@@ -10,7 +10,7 @@ from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.masks import SampleMask
 from decomposition.noise import masked_median, noise_sigma
 from decomposition.slots import parameter_bounds
-from decomposition.pick import closed_form
+from decomposition.kernels.pick import closed_form
 from decomposition.synthetic import make_profiles
 
 T = 2.0

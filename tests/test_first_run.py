@@ -177,7 +177,7 @@ def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monke
 def test_compile_notice_speaks_only_when_numba_compiles():
     import io
 
-    from decomposition import jit
+    from decomposition.kernels import jit
 
     ns = {"jit": jit}
     exec("@jit.njit\ndef thrice(x):\n    return 3.0 * x\n", ns)  # no source file: compiled, not cached

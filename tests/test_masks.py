@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from decomposition import atomlm
+from decomposition.kernels import atomlm
 from decomposition import convscd as cs
 from decomposition import decompose
 from decomposition.masks import SampleMask

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from core.model import empty_params, gaussian_kernel, render_profile, sss_kernel
-from decomposition.kernels import kernel_derivatives
+from decomposition.kernels.derivatives import kernel_derivatives
 from decomposition.refine import refine
 
 T = 2.0

@@ -8,7 +8,7 @@ and decay rates refined continuously, each step accepted only where the pixel's 
 
 decreases (see :mod:`decomposition.convscd` for the objective, the sample masks and the
 constraints).  This module is that loop, one pixel at a time in compiled code
-(:mod:`decomposition.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
+(:mod:`decomposition.kernels.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
 within +-8 sigma of its delay, an sss kernel from 8 sigma before its onset; its exponential
 tail by a one-pole recursion), and the normal equations sum only over the overlap of two
 atoms' supports -- over the sss tail past every other atom, where each column is h times a
@@ -28,9 +28,9 @@ import math
 
 import numpy as np
 
-from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
+from ..constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIGMA, NEAR_SIGMA, TAIL_SIGMA
 from .jit import SQRT_PI_2, njit, sss_erfc_part
-from .masks import SampleMask, check_mask
+from ..masks import SampleMask, check_mask
 from .onsets import onset_link
 
 __all__ = ["lm_refine", "atom_profiles", "atom_window_sums", "atom_weighted_squares", "state_models", "nnls_amplitudes"]

@@ -5,7 +5,7 @@ onset close before the direct (the earliest Gaussian) is tied to it: refined as 
 + gap with gap >= 0, and never moved before it.  "Close" is less than ``near_sigma`` PSF
 widths (:data:`~decomposition.constants.NEAR_SIGMA` unless a caller says otherwise: the polish
 retries every onset, ``near_sigma = inf``).  :func:`onset_link` is the rule for one pixel,
-compiled, called by the LM loop of :mod:`decomposition.atomlm`; :func:`onset_links` applies
+compiled, called by the LM loop of :mod:`decomposition.kernels.atomlm`; :func:`onset_links` applies
 it to a block's slot arrays for the numpy steps (:func:`decomposition.slots.linked_onsets`).
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_SSS, NEAR_SIGMA
+from ..constants import FAM_GAUSS, FAM_SSS, NEAR_SIGMA
 from .jit import njit
 
 __all__ = ["onset_link", "onset_links"]

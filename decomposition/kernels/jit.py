@@ -13,11 +13,13 @@ again.  ``nogil=True`` lets the threaded scheduler run them in parallel.
 A compiled kernel holds the values of the module-level constants it reads (``constants.py``,
 other kernel modules), but numba keys its disk cache on the kernel's own source file alone: a
 changed constant, or a changed kernel in another file, would be served from a stale cache --
-silently wrong numbers after an upgrade that left ``__pycache__`` behind.  The kernels of this
-package are therefore cached under a stamp that also covers :func:`kernel_digest` of their
-folder (every module there that defines a kernel, and ``constants.py``): any change to those
-files compiles every kernel of the folder afresh.  Where numba's cache machinery cannot be
-extended so, the kernels are compiled once per process instead of cached.
+silently wrong numbers after an upgrade that left ``__pycache__`` behind.  The kernels are
+therefore cached under a stamp that also covers :func:`kernel_digest` of their package tree
+(every module of the top-level package that uses ``njit``, in any of its folders, and its
+``constants.py`` files): any change to those files compiles every kernel of the package afresh.
+One folder alone would not do: the kernels of this folder read ``decomposition/constants.py``,
+one level up.  Where numba's cache machinery cannot be extended so, the kernels are compiled
+once per process instead of cached.
 
 The forms are those of :mod:`core.model` (see its docstring): the sss kernel is
 evaluated as g(x) erfcx(u) for u >= 0 and exp(-alpha (x - alpha sigma^2 / 2)) erfc(u) for
@@ -86,24 +88,35 @@ def _erfcx_table():
 _ERFCX_TABLE = _erfcx_table()
 
 
-#: the file whose constants the kernels of a folder read, beside the kernel modules themselves
+#: the files whose constants the kernels of a package read, beside the kernel modules themselves
 CONSTANTS_FILE = "constants.py"
 #: folders holding kernels made by :func:`njit` (their caches carry :func:`kernel_digest`)
 _KERNEL_DIRS: set = set()
 
 
+def _package_root(folder) -> Path:
+    """The folder of the top-level package that holds ``folder`` (``folder`` itself when its
+    parent is no package)."""
+    root = Path(folder).resolve()
+    while (root.parent / "__init__.py").is_file():
+        root = root.parent
+    return root
+
+
 @functools.lru_cache(maxsize=None)
 def kernel_digest(folder) -> str:
     """SHA-256 (hex) of what the compiled kernels of ``folder`` are built from: the bytes of
-    its ``constants.py`` and of every module there that uses ``njit``, with their names.
+    every ``constants.py`` and of every module that uses ``njit`` in the package tree that
+    holds ``folder`` (:func:`_package_root`), with their paths in it.
 
     Computed once per process and folder (source files do not change under a running
     process; numba reads each kernel's own file once as well)."""
     h = hashlib.sha256()
-    for path in sorted(Path(folder).glob("*.py")):
+    root = _package_root(folder)
+    for path in sorted(root.rglob("*.py")):
         data = path.read_bytes()
         if path.name == CONSTANTS_FILE or b"njit" in data:
-            h.update(path.name.encode() + b"\0" + hashlib.sha256(data).digest())
+            h.update(path.relative_to(root).as_posix().encode() + b"\0" + hashlib.sha256(data).digest())
     return h.hexdigest()
 
 

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from .constants import AMP_MAX
+from ..constants import AMP_MAX
 from .jit import njit
 
 __all__ = ["closed_form", "select", "TOP_K"]

@@ -1,7 +1,7 @@
 """Kernel values with their analytic parameter derivatives, batched (for refinement and Fisher information).
 
 The value forms are those of the forward model (:func:`core.model.sss_kernel`, the
-reference; :func:`decomposition.jit.sss_value` is its compiled twin): the same stable
+reference; :func:`decomposition.kernels.jit.sss_value` is its compiled twin): the same stable
 branches in u, so nothing overflows for any alpha sigma.  This evaluation carries the
 derivatives along, sharing g and the tail exponential between value and derivatives, and
 skips the special functions where erfc(u) is exactly 2 in float64; its values agree with the

@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
-from .constants import CORR_SUPPORT_SIGMA
+from ..constants import CORR_SUPPORT_SIGMA
 from .jit import SQRT_PI_2, njit, sss_erfc_part
 
 _SQRT_2 = math.sqrt(2.0)
@@ -274,9 +274,9 @@ def _block(r, w1, weighted, sig, alphas, T, pre, H, need_g, need_s, j_sss, c, n2
 
 @njit
 def _sss_samples(d_lo, kn, T, sig, alp, rho, gauss, out):
-    """out[t] = sss kernel h((d_lo + t) T) for t < kn (the values of :func:`decomposition.jit.sss_value`),
+    """out[t] = sss kernel h((d_lo + t) T) for t < kn (the values of :func:`decomposition.kernels.jit.sss_value`),
     given the unit Gaussian ``gauss`` at the same times, in the form of
-    :func:`decomposition.jit.sss_erfc_part`: g erfcx(u) where u >= 0, 2 f - g erfcx(-u) elsewhere,
+    :func:`decomposition.kernels.jit.sss_erfc_part`: g erfcx(u) where u >= 0, 2 f - g erfcx(-u) elsewhere,
     f = exp(alpha^2 sigma^2 / 2 - alpha x) <= 1 stepped by ``rho`` = exp(-alpha T) (one polynomial
     of erfcx's table per sample instead of three transcendentals)."""
     scale = SQRT_PI_2 * sig
