@@ -5,7 +5,7 @@ input and output in a module of its own:
 
 1. prepare the samples (:mod:`decomposition.prepare`): validation, scaling, masks, noise;
 2. detect the components by sparse coding (:mod:`decomposition.detect`;
-   :mod:`decomposition.convscd` is the solver, :mod:`decomposition.gradbm` the baseline);
+   :mod:`decomposition.methods.convscd` is the solver, :mod:`decomposition.methods.gradbm` the baseline);
    then, for the pixels whose answer is in doubt, structured alternative starts kept by a
    penalised objective (:mod:`decomposition.search`);
 3. refine them off the grid, optionally (:mod:`decomposition.refit`);
@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import convscd as cs
+from .methods import convscd as cs
 from .countpolish import polish_counts
 from .detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT,  # noqa: F401
@@ -37,7 +37,7 @@ from .candidates import correlated_noise_spectrum, residual_significance_noise, 
 from .grow import grow_components, grow_counts, swap_components
 from .prune import prune_components
 from .search import STAGE_STARTS, search_components
-from .slots import shape_bounds
+from .model.slots import shape_bounds
 from .constants import RESCUE_MISFIT_Z
 from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
 from .response_input import resolve_response, response_record, spike_neighbour_ratio
@@ -147,7 +147,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     significance_chi2 : float
         An atom below the relative threshold is still kept when it is significant against
         the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
-        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`).
+        (default 25, the energy of a 5-sigma sample; :func:`decomposition.model.components.threshold`).
         0 turns the significance rule for atoms off (the relative threshold alone).
     background_chi2 : float, optional
         A fitted background ("b") is kept when its likelihood-ratio statistic is at least
@@ -206,7 +206,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     refine : bool
         After the sparse step, refine every found component's continuous
         parameters by weighted least squares on the forward model
-        (:func:`decomposition.refine.refine`: variable projection,
+        (:func:`decomposition.model.refine.refine`: variable projection,
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
@@ -304,14 +304,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
         as the parameters, NaN where absent or not identifiable) to
         ``params``, from the Fisher information at the solution with the noise
-        estimated from the residual (:func:`decomposition.fisher.standard_errors`).
+        estimated from the residual (:func:`decomposition.model.fisher.standard_errors`).
         Count data: from the Poisson Fisher information (weights 1 / model
         count, the noise scale known).
         Default: the same as ``refine``.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
         :class:`decomposition.options.SolverOptions` above; for ``method="gradbm"`` also
-        the baseline's own options (:data:`decomposition.gradbm.GRADBM_DEFAULTS`).
+        the baseline's own options (:data:`decomposition.methods.gradbm.GRADBM_DEFAULTS`).
     irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
         A measured instrument response to use instead of the Gaussian PSF
         (:func:`decomposition.response_input.resolve_response`: a path is read with

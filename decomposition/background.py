@@ -16,8 +16,8 @@ Three rules live here and nowhere else, for every path that fits a background:
   reports a component on a background.
 
 The joint fit of the offset with the amplitudes is the refinement's
-(:func:`decomposition.refine.refine` with ``fit_background``; a constant column of the linear
-solve, :mod:`decomposition.varpro`).
+(:func:`decomposition.model.refine.refine` with ``fit_background``; a constant column of the linear
+solve, :mod:`decomposition.model.varpro`).
 """
 from __future__ import annotations
 

@@ -20,8 +20,8 @@ from .constants import (SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIG
 from .detect import solver_inputs
 from .label import final_atoms
 from .noise import count_variance, lagged_noise_sigma, periodogram, residual_spectrum, signal_variance
-from .polish import refit_amplitudes
-from .slots import drop_zero, parameter_bounds, put, refine_atoms, render
+from .methods.polish import refit_amplitudes
+from .model.slots import drop_zero, parameter_bounds, put, refine_atoms, render
 
 __all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights",
            "correlated_noise_spectrum"]

@@ -272,7 +272,7 @@ PEARSON_MIN_COUNTS = 5.0
 #: a hair inside.
 BOUND_TOL = 1e-9
 
-#: Slot layout of the refinement and the Fisher information (:mod:`decomposition.refine`):
+#: Slot layout of the refinement and the Fisher information (:mod:`decomposition.model.refine`):
 #: slot 0 the direct reflection, this one the sss component, 2.. the inter-reflections.
 SSS_SLOT = 1
 
@@ -441,7 +441,7 @@ SIGNAL_NOISE_POOL_MIN = 16
 # pixels pass their own tests; shot noise alone 6.7-8.0 and 1.02-1.05; white and pink noise at NSR
 # 0.001-0.11, 0.0-1.8 and 1.18-2.29 (2 and 4 ps bins).
 SIGNAL_NOISE_POOL_Z = 3.0
-# The in-window significance test of an atom under weights (decomposition.components.
+# The in-window significance test of an atom under weights (decomposition.model.components.
 # window_measures): a sample's weight counts at most this much, i.e. the noise where the atom
 # lies at most half the pixel's.  Under shot noise a weak inter-reflection after the direct lies
 # where the noise is several times lower than at the peak and becomes significant; uncapped,

@@ -4,7 +4,7 @@ Photon counts have a variance equal to their expected value, so the least-square
 matches their statistics weighs each sample by 1 / its model count.  Detection and search fit
 the atoms unweighted; for count data (``noise="poisson"``) this stage polishes every live
 pixel's atoms once more with the solver's compiled Levenberg-Marquardt on the data term alone
-(as the detection's own polish, :func:`decomposition.polish.polish_block`), with the weights
+(as the detection's own polish, :func:`decomposition.methods.polish.polish_block`), with the weights
 
     w_i = 1 / max(model_i, POISSON_VARIANCE_FLOOR)          (counts; times dispersion^-2)
 
@@ -28,7 +28,7 @@ from .detect import Detection, solver_inputs
 from .noise import count_deviance, poisson_weights
 from .options import SolverOptions
 from .prepare import Samples
-from .slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
+from .model.slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
 
 __all__ = ["count_weights", "polish_count_state", "polish_counts"]
 
@@ -71,7 +71,7 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
     st : dict                     slot state (n, K), normalised units (not modified)
     scale, noise : ndarray (n,)   counts per normalised unit; the solver's noise
     dispersion, background : ndarray (n,) or None
-    bounds : dict                 :func:`decomposition.slots.parameter_bounds`
+    bounds : dict                 :func:`decomposition.model.slots.parameter_bounds`
     """
     best = {k: v.copy() for k, v in st.items()}
     mu = np.zeros(p.shape[0])

@@ -1,8 +1,8 @@
 """Stage 2 of :func:`decomposition.decompose`: detect the components by sparse coding.
 
 For every block of live pixels: the multi-start greedy ConvSCD solve
-(:func:`decomposition.convscd.solve_multistart`), the 5 % threshold and merging, and the
-polish of the kept atoms on the data term (:func:`decomposition.convscd.polish_block`).
+(:func:`decomposition.methods.convscd.solve_multistart`), the 5 % threshold and merging, and the
+polish of the kept atoms on the data term (:func:`decomposition.methods.convscd.polish_block`).
 Where the noise at the signal turns out larger than the whole-profile estimate (photon
 noise), those pixels are solved again with the sparsity weight of that noise: the weight must
 follow the noise at the components, not in the quiet tail.  On float data this second pass
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import components as comp
-from . import convscd as cs
+from .model import components as comp
+from .methods import convscd as cs
 from .constants import RESTART_FACTOR, RESTART_POOL_FRACTION
 from .masks import SampleMask
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
@@ -27,8 +27,8 @@ from .noise import signal_noise_sigma
 from .options import SolverOptions
 from .kernels.pickcorr import PickWorkspace
 from .prepare import Samples
-from .slots import new_state, put
-from .gradbm import gradbm
+from .model.slots import new_state, put
+from .methods.gradbm import gradbm
 
 __all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
 

@@ -28,7 +28,7 @@ OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian (or a
                   shifted response) centred within OFF_WINDOW_EDGE_SIGMA widths of
                   the window's edge or beyond it, or more than
                   OFF_WINDOW_MASS of a component's area outside the window
-                  (:func:`decomposition.components.off_window`); its parameters
+                  (:func:`decomposition.model.components.off_window`); its parameters
                   are extrapolated, only its in-window part was judged
 =========== ===== ==============================================================
 

@@ -58,7 +58,7 @@ from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACT
 from .countpolish import polish_count_state
 from .noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median
 from .objective import _smooth, objective_variance, penalised_objective
-from .slots import eval_atoms, parameter_bounds, put, render, take
+from .model.slots import eval_atoms, parameter_bounds, put, render, take
 
 __all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]

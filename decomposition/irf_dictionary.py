@@ -1,6 +1,6 @@
 """A convolutional dictionary built from a measured instrument response (not yet used by the solver).
 
-The Gaussian dictionary of :mod:`decomposition.convscd` has one kernel per PSF width (and
+The Gaussian dictionary of :mod:`decomposition.methods.convscd` has one kernel per PSF width (and
 per width and alpha for sss), placed at every whole-bin shift.  A measured response has no
 width parameter; instead its kernels are the response at a few sub-bin *phases*, so that the
 detection step already sees delays at a fraction of a bin:

@@ -5,7 +5,7 @@ setting), applies the 5 % threshold and merging once more (refinement can bring 
 together), flags atoms whose refined width or decay ended at a bound, and names the atoms
 (earliest Gaussian: direct; later ones: r2, r3, ... in delay order; the sss atom, its onset
 not before the direct with ``sss_after_direct``) with
-:func:`decomposition.components.classify`.  With ``shared_sigma`` every atom of a pixel
+:func:`decomposition.model.components.classify`.  With ``shared_sigma`` every atom of a pixel
 leaves with the same width.
 """
 from __future__ import annotations
@@ -15,15 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import components as comp
-from . import convscd as cs
+from .model import components as comp
+from .methods import convscd as cs
 from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
 from .detect import Detection, solver_inputs
 from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, WIDE_PSF, mark
 from core.model import empty_params
 from .options import SolverOptions
 from .prepare import Samples
-from .slots import parameter_bounds, tie_widths
+from .model.slots import parameter_bounds, tie_widths
 
 __all__ = ["Labels", "final_state", "label_components", "at_bound", "params_at_bound"]
 
@@ -68,7 +68,7 @@ def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOpti
                 weights=None) -> dict:
     """The atoms a pixel keeps, as every output reports them (in place): the in-window threshold
     (relative, or significant against the pixel's ``noise`` (n,), normalised units;
-    :func:`decomposition.components.threshold`), Gaussians merged (refinement can bring two
+    :func:`decomposition.model.components.threshold`), Gaussians merged (refinement can bring two
     together), one width per pixel with ``shared_sigma`` (a merge leaves the merged atom wider),
     no sss onset before the direct with ``sss_after_direct``.  The search stage scores its
     starts through the same rule."""

@@ -8,7 +8,7 @@ compiled kernels (:mod:`decomposition.kernels.atomlm`); nothing on the way is a 
 mistaken for a least-squares weight.  Real weights (1 / variance) are a different thing and
 are taken only where they are weights, as an argument of their own: the compiled LM's
 ``weights`` (:func:`decomposition.kernels.atomlm.lm_refine`, the count polish),
-:func:`decomposition.refine.refine` and :func:`decomposition.fisher.standard_errors`.
+:func:`decomposition.model.refine.refine` and :func:`decomposition.model.fisher.standard_errors`.
 """
 from __future__ import annotations
 
@@ -93,12 +93,12 @@ def check_mask(mask, shape=None) -> SampleMask:
 
     Numeric arrays are refused: a weight of 0.5 must not silently become "excluded" (real
     weights are the separate ``weights`` argument of :func:`decomposition.kernels.atomlm.lm_refine`, or
-    go to :func:`decomposition.refine.refine`).
+    go to :func:`decomposition.model.refine.refine`).
     """
     if not isinstance(mask, SampleMask):
         what = f"an array of {mask.dtype}" if isinstance(mask, np.ndarray) else type(mask).__name__
         raise TypeError(f"expected a SampleMask (fit and censored masks), got {what}; the solver takes no "
-                        f"per-sample weights (real weights, 1/variance, go to decomposition.refine.refine)")
+                        f"per-sample weights (real weights, 1/variance, go to decomposition.model.refine.refine)")
     if shape is not None and mask.shape != tuple(shape):
         raise ValueError(f"the sample mask has shape {mask.shape}, the profiles {tuple(shape)}")
     return mask

@@ -1,6 +1,6 @@
 """Accuracy of a decomposition against ground truth.
 
-Decomposition fidelity (:func:`decomposition.fidelity.fidelity`, the measure of the paper's
+Decomposition fidelity (:func:`decomposition.model.fidelity.fidelity`, the measure of the paper's
 Fig. 3(d)) lives with the solver, which reads its split distance in it; this module averages
 it over pixels.  Per-parameter helpers compare parameter dicts (keys of :mod:`core.model`) on the
 pixels where both sides hold the component.
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fidelity import fidelity
+from .model.fidelity import fidelity
 
 __all__ = [
     "mean_fidelity",

@@ -14,7 +14,7 @@ import numpy as np
 
 from .constants import FAM_NONE, FAM_SSS, WHITE_LAG_RATIO
 from .noise import SpectralNoise, whitened_chi2
-from .slots import render
+from .model.slots import render
 
 __all__ = ["objective_variance", "penalised_objective"]
 

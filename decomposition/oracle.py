@@ -2,7 +2,7 @@
 
 For synthetic profiles with known ground truth, the oracle fits the *true* component set of
 each pixel by nonlinear least squares started *at the true parameters*
-(:func:`decomposition.refine.refine`, one PSF width per pixel, sss onset kept at or after
+(:func:`decomposition.model.refine.refine`, one PSF width per pixel, sss onset kept at or after
 the direct, inter-reflections kept in order), with the forward model the data were rendered
 with (point-sampled or bin-integrated).  It never has to decide which components are there
 nor find a start, so its fidelity is a ceiling for any method on the same data: the gap
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import render_components
-from .refine import refine
+from .model.refine import refine
 
 __all__ = ["OracleOptions", "OracleFit", "oracle_fit", "significant_truth"]
 
@@ -98,7 +98,7 @@ def oracle_fit(profiles, truth_params: dict, *, time_bin_ps: float = 2.0, t0_ps:
     -------
     OracleFit
         Its ``direct`` / ``sss`` / ``interreflections`` can be given to
-        :func:`decomposition.fidelity.fidelity` like a decomposition result.
+        :func:`decomposition.model.fidelity.fidelity` like a decomposition result.
     """
     options = options or OracleOptions()
     y = np.asarray(profiles, dtype=np.float64)

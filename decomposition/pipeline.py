@@ -191,7 +191,7 @@ def _check_sizes(input_path, nt, chunks, n_ir, write_components) -> None:
 
 def _check_option_types(options: dict) -> None:
     """Solver options against their fields (:mod:`decomposition.options`: name, type, range), in one line."""
-    from decomposition.gradbm import GRADBM_DEFAULTS
+    from decomposition.methods.gradbm import GRADBM_DEFAULTS
     from decomposition.options import OptionError, options_from_mapping
 
     try:

@@ -398,7 +398,7 @@ def poisson_reference_fit(counts, truth_params: dict, response: InstrumentRespon
     -------
     PoissonReferenceFit
         Its ``direct`` / ``sss`` / ``interreflections`` can be given to
-        :func:`decomposition.fidelity.fidelity` like a decomposition result.
+        :func:`decomposition.model.fidelity.fidelity` like a decomposition result.
     """
     options = options or PoissonReferenceOptions()
     if not isinstance(response, InstrumentResponse):

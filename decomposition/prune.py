@@ -31,7 +31,7 @@ from .candidates import each_block, polish_candidate
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS
 from .grow import grow_block, late_fast_sss, with_gaussian
 from .objective import objective_variance, penalised_objective
-from .slots import put, take
+from .model.slots import put, take
 
 __all__ = ["close_gaussian", "prune_block", "prune_components"]
 

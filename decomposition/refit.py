@@ -1,9 +1,9 @@
 """Stage 3 of :func:`decomposition.decompose` (optional): off-grid refinement and standard errors.
 
 :func:`refine_components` moves every found component's continuous parameters to the
-weighted least-squares optimum of the forward model (:func:`decomposition.refine.refine`,
+weighted least-squares optimum of the forward model (:func:`decomposition.model.refine.refine`,
 never worse per pixel, component set kept); :func:`component_errors` adds per-pixel standard
-errors from the Fisher information at the solution (:func:`decomposition.fisher.standard_errors`).
+errors from the Fisher information at the solution (:func:`decomposition.model.fisher.standard_errors`).
 Excluded samples (saturated, spikes, non-finite) have weight 0 in both.
 
 Count data (``noise="poisson"``): the weights are 1 / variance of the Poisson law at the
@@ -24,10 +24,10 @@ from core.model import BACKGROUND_KEY, render_profile
 from .constants import POISSON_REFITS
 from .noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
-from .slots import select_rows
+from .model.slots import select_rows
 from .background import background_significant, background_test, background_threshold, light_test, offset_alone
-from .fisher import standard_errors
-from .refine import refine
+from .model.fisher import standard_errors
+from .model.refine import refine
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
@@ -54,8 +54,8 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
 
     ``bounds`` ({"lsig", "lalp"}: log sigma_ps and log alpha_per_ps, as the solver's
-    :func:`decomposition.slots.shape_bounds`): the refinement's bounds on every width and the sss
-    attenuation (default :func:`decomposition.refine.refine`'s, a tenth of a bin to the window
+    :func:`decomposition.model.slots.shape_bounds`): the refinement's bounds on every width and the sss
+    attenuation (default :func:`decomposition.model.refine.refine`'s, a tenth of a bin to the window
     and 1e-7-1e3 per ps).
 
     With a ``background`` in ``params`` (the ``b`` family) the offset of every live pixel is

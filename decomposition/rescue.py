@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .components import free_parameters
+from .model.components import free_parameters
 from .noise import whitened_chi2
 
 __all__ = ["RESCUE_OPTIONS", "rescue_rows", "misfit_beyond_noise", "data_term", "penalised_misfit", "take_rescued"]
@@ -90,7 +90,7 @@ def data_term(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray,
 
 def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict,
                      spectrum: np.ndarray | None = None) -> np.ndarray:
-    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.components.free_parameters`
+    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.model.components.free_parameters`
     and n_fit the number of ``fit`` samples."""
     n_fit = np.maximum(fit.sum(axis=1), 1)
     return data_term(residual, fit, noise, spectrum) + free_parameters(params) * np.log(n_fit)

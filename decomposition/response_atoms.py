@@ -70,7 +70,7 @@ def slot_window_fraction(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndar
     T sum_i phi(t_i) of the unit-peak atom over its whole area: 1 / peak for a shifted copy
     (the response has unit area), 1 / (alpha peak) for the sss atom (the response convolved with
     exp(-alpha u), whose area is 1 / alpha), ``peak`` = ``irf.peak_per_ps``; the measure of
-    :func:`decomposition.components.window_fraction` for the response's atoms.
+    :func:`decomposition.model.components.window_fraction` for the response's atoms.
 
     Parameters
     ----------

@@ -90,9 +90,9 @@ from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .response_atoms import slot_atoms
 from .response_refine import Slots, refit_slots
-from .slots import select_rows
-from .components import render_params
-from .fidelity import fidelity
+from .model.slots import select_rows
+from .model.components import render_params
+from .model.fidelity import fidelity
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
 

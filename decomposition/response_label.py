@@ -3,7 +3,7 @@
 :func:`label_response` turns detected slots into named components: the relative threshold
 (peak height inside the window, from the response's own atoms), shifted atoms closer than
 ``merge_tol_bins`` reduced to the larger one, the sss onset moved to the direct's delay when it
-lies before it (``sss_after_direct``), then :func:`decomposition.components.classify`: the
+lies before it (``sss_after_direct``), then :func:`decomposition.model.components.classify`: the
 earliest shifted atom is the direct reflection, later ones r2, r3, ... in delay order, the
 sss atom s.  Every present component's ``*_sigma_ps`` is the response's Gaussian-equivalent
 sigma (:func:`core.irf_components.gaussian_equivalent_sigma_ps`).
@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from . import components as comp
+from .model import components as comp
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from core.model import empty_params
 from .response_atoms import slot_atoms
@@ -29,7 +29,7 @@ def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, *,
                    merge_tol_ps: float, sss_after_direct: bool, noise=None, significance_chi2: float = 0.0):
     """Slots (n, K) -> (params (n-shaped, amplitudes times ``scale``), truncated (n,) bool).
 
-    The threshold is the Gaussian path's rule (:func:`decomposition.components.keep_atoms`: the
+    The threshold is the Gaussian path's rule (:func:`decomposition.model.components.keep_atoms`: the
     relative rule on in-window peaks, or significant against ``noise`` (n,), normalised units),
     on the response's own atoms."""
     st = {k: v.copy() for k, v in st.items()}

@@ -33,7 +33,7 @@ import numpy as np
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .background import background_significant, background_threshold
-from .components import runs_off_window
+from .model.components import runs_off_window
 from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, SSS_SLOT
 from .flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from .label import at_bound

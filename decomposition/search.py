@@ -26,7 +26,7 @@ each with the decomposition's Gaussians that lie more than ``ir_gap_sigma`` PSF 
 the new direct as inter-reflections, and (``edge bare``, ``peak bare``) the first and the last
 of them without any (a refine never changes a start's component set, so a spurious Gaussian
 of the decomposition can only be dropped by a start without it).  Every start is refined by
-:func:`decomposition.refine.refine` (one PSF width per pixel, sss onset at or after the
+:func:`decomposition.model.refine.refine` (one PSF width per pixel, sss onset at or after the
 direct, inter-reflections in order), scored by a penalised objective
 
     J = RSS / s^2 + penalty * k * ln(L),
@@ -47,14 +47,14 @@ from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACT
                         SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
                         SEARCH_WIDE_FACTOR)
 from .objective import _n_free, _per_sample, _residual_chi2, _smooth, objective_variance, penalised_objective
-from .refine import refine
-from . import components as comp
+from .model.refine import refine
+from .model import components as comp
 from .candidates import polish_candidate
-from .components import classify, free_parameters, render_params
+from .model.components import classify, free_parameters, render_params
 from .detect import solver_inputs
 from .grow import grow_block
 from .quality import direct_samples, weak_direct
-from .slots import new_state, put, render, take
+from .model.slots import new_state, put, render, take
 
 __all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
            "search_components", "weak_leading_gaussian"]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from decomposition import EMPTY, NONFINITE, POOR_FIT, SATURATED, decompose
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from core.model import empty_params, render_components, render_profile
 from decomposition.synthetic import make_profiles
 

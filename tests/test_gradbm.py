@@ -4,8 +4,8 @@ import warnings
 import numpy as np
 import pytest
 
-from decomposition.gradbm import gradbm
-from decomposition.fidelity import fidelity
+from decomposition.methods.gradbm import gradbm
+from decomposition.model.fidelity import fidelity
 from core.model import render_components, render_profile
 from decomposition.synthetic import make_profiles
 

@@ -5,7 +5,7 @@ import numpy as np
 from core.model import empty_params, render_profile
 from decomposition.constants import FAM_GAUSS, FAM_SSS, SWAP_MODE_GAP_SIGMA
 from decomposition.masks import SampleMask
-from decomposition.slots import eval_atoms, new_state
+from decomposition.model.slots import eval_atoms, new_state
 
 from _states import polished, solver_setup
 
@@ -130,7 +130,7 @@ def test_bump_test_grows_a_weak_first_inter_reflection_the_data_term_hides():
     z ~ 11) before one of 50 %: the data term is only 1.0-1.35x its expected value, below the
     1.5x rule, so the data-term test alone never tries the pixel; the bump test finds it."""
     from decomposition.grow import grow_block
-    from decomposition.slots import render
+    from decomposition.model.slots import render
 
     n = 20
     dic, opts = solver_setup(L_BINS, T_PS)
@@ -280,7 +280,7 @@ def test_decompose_finds_a_weak_first_inter_reflection_above_the_detectable_rule
 
 def _detected(y, noise="gaussian"):
     from decomposition.detect import detect_components
-    from decomposition.dictionary import get_dictionary
+    from decomposition.methods.dictionary import get_dictionary
     from decomposition.options import GridSpec, SolverOptions
     from decomposition.prepare import prepare_samples, time_axis
 

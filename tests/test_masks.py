@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 
 from decomposition.kernels import atomlm
-from decomposition import convscd as cs
+from decomposition.methods import convscd as cs
 from decomposition import decompose
 from decomposition.masks import SampleMask
-from decomposition.slots import new_state, parameter_bounds
+from decomposition.model.slots import new_state, parameter_bounds
 
 
 def test_masks_are_masks_and_never_both():
@@ -43,7 +43,7 @@ def test_real_weights_work_as_weights_in_the_refinement():
     """The stage that takes weights treats 0.5 as a weight: halving every weight changes nothing,
     down-weighting one sample moves the fit less than excluding it."""
     from core.model import empty_params, render_profile
-    from decomposition.refine import refine
+    from decomposition.model.refine import refine
 
     L, T = 128, 2.0
     truth = empty_params((1,), 0)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.metrics import delay_error_ps, delay_rmse_ps, detection_counts, mean_fidelity, parameter_error
 from core.model import render_components
 from decomposition.synthetic import make_profiles

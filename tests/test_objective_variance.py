@@ -5,7 +5,7 @@ import numpy as np
 
 from decomposition import decompose
 from decomposition.constants import WHITE_LAG_RATIO
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.objective import objective_variance
 from decomposition.synthetic import make_profiles
 

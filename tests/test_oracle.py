@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.oracle import OracleOptions, oracle_fit, significant_truth
 from decomposition.synthetic import make_profiles
 

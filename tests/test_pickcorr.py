@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from decomposition import convscd as cs
-from decomposition.dictionary import coarse_values
+from decomposition.methods import convscd as cs
+from decomposition.methods.dictionary import coarse_values
 from decomposition.kernels.pick import select
-from decomposition.score import score_pixel
+from decomposition.methods.score import score_pixel
 from decomposition import decompose
 from decomposition.api import SPIKE
 from decomposition.metrics import mean_fidelity

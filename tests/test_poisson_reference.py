@@ -6,7 +6,7 @@ import pytest
 
 from core.irf_models import tailed_response
 from core.model import empty_params
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.poisson_reference import (PoissonReferenceOptions, best_of, poisson_deviance, poisson_reference_bound,
                                              poisson_reference_fit)
 from decomposition.synthetic import make_profiles

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core.model import empty_params, render_components, render_profile
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 
 from _states import polished, solver_setup
 
@@ -28,7 +28,7 @@ def _state(truth, n, K=4, spurious=True):
     """A slot state at the truth, plus (``spurious``) a Gaussian 1.5 widths after the direct and
     the sss onset 8 ps late: the wrong split the backward step is for."""
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.slots import new_state
+    from decomposition.model.slots import new_state
 
     st = new_state(n, K)
     st["fam"][:, 0] = FAM_GAUSS
@@ -141,7 +141,7 @@ def test_prune_clears_an_sss_hump_filled_with_several_gaussians(nsr, px):
     # and 0.31 unflagged).  Dropping every Gaussian within PRUNE_GAP_SIGMA widths of the direct,
     # the onset moved back and the forward step once recovers the scene, its echoes included.
     from decomposition import decompose
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=nsr, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",

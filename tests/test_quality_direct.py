@@ -87,7 +87,7 @@ def _weak_direct_params(direct_amplitude, sss_onset_ps, n=1):
 
 
 def test_weak_direct_just_before_a_larger_onset_is_ambiguous():
-    from decomposition.components import render_params
+    from decomposition.model.components import render_params
     from decomposition.flags import AMBIGUOUS
     from decomposition.quality import weak_direct
 

@@ -7,8 +7,8 @@ import pytest
 from core.model import empty_params
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
-from decomposition.fidelity import fidelity
-from decomposition.components import free_parameters
+from decomposition.model.fidelity import fidelity
+from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
 from decomposition.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
                                   take_rescued)

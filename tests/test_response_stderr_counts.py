@@ -106,7 +106,7 @@ def test_offset_enters_the_gaussian_paths_errors_too():
     (``cramer_rao_bound(..., offset=True)``) and describe the scatter of the estimates; the
     bound with it known is 14 % smaller for alpha (reported before: 14 % below the scatter)."""
     from core.model import render_profile
-    from decomposition.fisher import cramer_rao_bound
+    from decomposition.model.fisher import cramer_rao_bound
 
     p = _truth(1.0)
     y = render_profile(p, L, T_PS, T_PS)[0] + 0.05 + 0.01 * np.random.default_rng(5).standard_normal((300, L))

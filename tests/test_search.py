@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from core.model import empty_params, render_components, render_profile
 from decomposition.search import STARTS, SearchOptions, relabel, structured_search
 
@@ -154,7 +154,7 @@ def test_search_options_are_validated_in_the_solver_options():
 def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
     from core.model import render_components
     from decomposition import AMBIGUOUS, decompose
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
 
     # Degenerate: a weak direct (sigma 6 ps) with an sss starting 2 ps (a third of a sigma)
     # after it, as on a translucent object; at NSR 0.03 a direct-heavy and an sss-heavy split
@@ -191,9 +191,9 @@ def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
 
 
 def test_tie_widths_and_sss_onset_clipping_on_slot_states():
-    from decomposition.components import clip_sss_onset
+    from decomposition.model.components import clip_sss_onset
     from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-    from decomposition.slots import new_state, tie_widths
+    from decomposition.model.slots import new_state, tie_widths
 
     st = new_state(3, 3)
     st["fam"][:] = [[FAM_GAUSS, FAM_SSS, FAM_GAUSS], [FAM_SSS, FAM_NONE, FAM_NONE], [FAM_GAUSS, FAM_GAUSS, FAM_NONE]]
@@ -248,7 +248,7 @@ def test_near_direct_chi2_weighs_only_the_samples_around_the_earliest_gaussian()
     from decomposition.constants import FAM_GAUSS
     from decomposition.masks import SampleMask
     from decomposition.search import _near_direct_chi2
-    from decomposition.slots import new_state, render
+    from decomposition.model.slots import new_state, render
 
     L, T = 200, 2.0
     t = T * np.arange(1, L + 1)
@@ -273,7 +273,7 @@ def test_a_correct_fit_under_photon_noise_is_not_in_doubt_at_its_direct():
     from decomposition.constants import FAM_GAUSS, SEARCH_NEAR_DIRECT_CHI2
     from decomposition.masks import SampleMask
     from decomposition.search import _near_direct_chi2
-    from decomposition.slots import new_state, render
+    from decomposition.model.slots import new_state, render
 
     n, L, T = 400, 256, 2.0
     t = T * np.arange(1, L + 1)
@@ -326,7 +326,7 @@ def test_the_wide_start_keeps_the_small_sss_of_a_wide_direct():
     # two or three Gaussians in place of the sss (fidelity -0.16 and 0.07), from the detected
     # width it finds the scene
     from decomposition import decompose
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
@@ -349,7 +349,7 @@ def test_where_every_start_misfits_the_starts_get_the_forward_step():
     # start finds both echoes.
     from decomposition import decompose
     from decomposition.flags import POOR_FIT
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.search import MISFIT_GROWN_STARTS
     from decomposition.synthetic import make_profiles
 
@@ -379,7 +379,7 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
     # the data's noise but far less than the floor's, so no start was grown.
     import decomposition.search as search
     from decomposition import decompose
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
@@ -414,7 +414,7 @@ def test_floor_hidden_misfit_reads_the_data_term_in_the_measured_noise():
 def test_weak_leading_gaussian_is_the_outputs_weak_direct_rule_on_a_slot_state():
     from decomposition.constants import FAM_GAUSS, FAM_SSS, WEAK_DIRECT_FRACTION
     from decomposition.search import weak_leading_gaussian
-    from decomposition.slots import new_state
+    from decomposition.model.slots import new_state
 
     T = 4.0
     t = T * np.arange(1, 129)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from decomposition import decompose
-from decomposition.fidelity import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.noise import residual_spectrum, whitened_chi2
 from decomposition.noise import SpectralNoise
 from decomposition.objective import objective_variance

@@ -6,7 +6,7 @@ and decay rates refined continuously, each step accepted only where the pixel's 
 
     F = 1/2 ||residual||^2 + mu sum_k log(1 + pen_k |amp_k| / eps)
 
-decreases (see :mod:`decomposition.convscd` for the objective, the sample masks and the
+decreases (see :mod:`decomposition.methods.convscd` for the objective, the sample masks and the
 constraints).  This module is that loop, one pixel at a time in compiled code
 (:mod:`decomposition.kernels.jit`): a pixel's atoms are evaluated on their own support only (a Gaussian
 within +-8 sigma of its delay, an sss kernel from 8 sigma before its onset; its exponential

@@ -6,7 +6,7 @@ onset close before the direct (the earliest Gaussian) is tied to it: refined as 
 widths (:data:`~decomposition.constants.NEAR_SIGMA` unless a caller says otherwise: the polish
 retries every onset, ``near_sigma = inf``).  :func:`onset_link` is the rule for one pixel,
 compiled, called by the LM loop of :mod:`decomposition.kernels.atomlm`; :func:`onset_links` applies
-it to a block's slot arrays for the numpy steps (:func:`decomposition.slots.linked_onsets`).
+it to a block's slot arrays for the numpy steps (:func:`decomposition.model.slots.linked_onsets`).
 """
 from __future__ import annotations
 

@@ -191,10 +191,10 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
 
 def _score(data, est_components, est_params, flags, noise: str):
     """Per-pixel fidelity, direct-delay failures, flags, fidelity with the inter-reflections
-    paired to the least error (:func:`decomposition.fidelity.fidelity`, ``ir_pairing="matched"``)
+    paired to the least error (:func:`decomposition.model.fidelity.fidelity`, ``ir_pairing="matched"``)
     and, under white noise, the penalised misfit J in the true noise
     (:func:`streaklab.bench.scoring.white_noise_j`; None under other noise) of one estimate."""
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
 
     from .scoring import direct_delay_failures, white_noise_j
 

@@ -252,7 +252,7 @@ def median_z_stderr(n: int) -> float:
 
 def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
     """Figures of one estimate against the truth of ``data`` (see the module docstring)."""
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
 
     truth = data.params
     d_err, tau_rel = pixel_errors(truth, est_params)

@@ -179,8 +179,8 @@ def white_noise_j(noisy, clean, components, params) -> np.ndarray:
     (:func:`decomposition.rescue.penalised_misfit`), read here in the true noise.
 
     ``components``: the answer's profiles (a result, an oracle fit or a dict, as
-    :func:`decomposition.fidelity.fidelity` takes them); ``params`` its parameter dict."""
-    from decomposition.fidelity import component_profiles
+    :func:`decomposition.model.fidelity.fidelity` takes them); ``params`` its parameter dict."""
+    from decomposition.model.fidelity import component_profiles
     from decomposition.rescue import penalised_misfit
 
     y = np.asarray(noisy, np.float64)

@@ -192,7 +192,7 @@ def run_case(case: Case, time_bin_ps: float = 2.0, max_iter: int = 8, **options)
     seconds, flags (per pixel), result.
     """
     from decomposition import decompose
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from core.model import render_components
 
     opts = dict(case.options)

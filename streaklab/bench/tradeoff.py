@@ -3,7 +3,7 @@
 For every method and setting -- ConvSCD on kernel grids of several densities up
 to the paper's 500 x 500 (parameters snapped to the grid, as in the paper, and
 continuous), each with and without the off-grid refinement of
-:mod:`decomposition.refine`, and the GradBM baseline -- the benchmark decomposes
+:mod:`decomposition.model.refine`, and the GradBM baseline -- the benchmark decomposes
 the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds (``--scenes``: the
 ``paper`` preset of :data:`decomposition.synthetic.SCENE_PRESETS` by default, bin-integrated;
 or ``legacy``, point-sampled) at NSR 0.01,
@@ -11,7 +11,7 @@ or ``legacy``, point-sampled) at NSR 0.01,
 
 * run time per pixel (wall clock of the whole decompose() call, refinement
   included, standard errors off),
-* mean decomposition fidelity (:func:`decomposition.fidelity.fidelity`),
+* mean decomposition fidelity (:func:`decomposition.model.fidelity.fidelity`),
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
   mistaken for another component; the median shows the accuracy of the typical pixel),
@@ -101,7 +101,7 @@ def _settings(grids, quick):
 
 
 def _default_refines():
-    """Whether ``decompose``'s default runs the off-grid refinement of decomposition.refine."""
+    """Whether ``decompose``'s default runs the off-grid refinement of decomposition.model.refine."""
     import inspect
 
     from decomposition import decompose
@@ -149,7 +149,7 @@ def _median(x):
 
 
 def _crb(data):
-    from decomposition.fisher import cramer_rao_bound
+    from decomposition.model.fisher import cramer_rao_bound
 
     n_bins = data.clean.shape[-1]
     noise = np.linalg.norm(data.noisy - data.clean, axis=-1) / math.sqrt(n_bins)
@@ -160,7 +160,7 @@ def _crb(data):
 
 def _oracle(data):
     """Per-pixel fidelity of the oracle on ``data`` (the true set fitted from the truth)."""
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.oracle import oracle_fit
 
     fit = oracle_fit(data.noisy, data.params, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps,
@@ -169,7 +169,7 @@ def _oracle(data):
 
 
 def _measure(data, comps, params, seconds, crb, oracle_fid):
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
     from decomposition.metrics import parameter_error
 
     n = data.noisy.shape[0]

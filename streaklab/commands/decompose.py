@@ -92,7 +92,7 @@ def parse_solver_options(items, method: str = "convscd", check_values: bool = Fa
     ``decompose_to_store``, before any work, or here with ``check_values`` (for callers that
     spend time before they decompose: the benchmarks).
     """
-    from decomposition.gradbm import GRADBM_DEFAULTS
+    from decomposition.methods.gradbm import GRADBM_DEFAULTS
     from decomposition.options import OptionError, option_names, options_from_mapping
 
     out = {}

@@ -6,7 +6,7 @@
 3. decompose: every pixel, chunk by chunk, into a result store;
 4. report: figures and a summary;
 5. compare with the simulated ground truth: mean decomposition fidelity per component class
-   (:func:`decomposition.fidelity.fidelity`).
+   (:func:`decomposition.model.fidelity.fidelity`).
 
 ``--source simulate`` replaces steps 1-2 by a synthetic cube (``streaklab simulate``).  Every
 output goes under ``--out`` (default ``demo-output``); the demo's own products there are
@@ -60,9 +60,9 @@ def class_fidelity(truth: dict, estimate: dict) -> dict:
     -------
     dict: class -> {"mean": float, "pixels": int} for ``all``, ``direct``, ``sss`` and
     ``interreflections``; a class's mean is over the pixels whose truth holds it, and is
-    1 - ||est_k - truth_k|| / ||truth_k|| (:func:`decomposition.fidelity.fidelity` on that class).
+    1 - ||est_k - truth_k|| / ||truth_k|| (:func:`decomposition.model.fidelity.fidelity` on that class).
     """
-    from decomposition.fidelity import fidelity
+    from decomposition.model.fidelity import fidelity
 
     out = {}
     f = fidelity(truth, estimate)

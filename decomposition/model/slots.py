@@ -15,10 +15,10 @@ import math
 
 import numpy as np
 
-from .kernels.atomlm import atom_profiles, lm_refine, state_models
-from .constants import FAM_NONE, NEAR_SIGMA
-from .masks import SampleMask
-from .kernels.onsets import onset_links
+from ..kernels.atomlm import atom_profiles, lm_refine, state_models
+from ..constants import FAM_NONE, NEAR_SIGMA
+from ..masks import SampleMask
+from ..kernels.onsets import onset_links
 
 __all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
@@ -109,7 +109,7 @@ def new_state(P, K):
 
 
 def parameter_bounds(dic, bound_factor: float):
-    """Bounds of delay (ps), log sigma and log alpha of a :class:`~decomposition.dictionary.Dictionary`'s
+    """Bounds of delay (ps), log sigma and log alpha of a :class:`~decomposition.methods.dictionary.Dictionary`'s
     atoms: the window widened by ``pre`` bins, the grid ranges widened by ``bound_factor``."""
     T = dic.time_bin_ps
     return {"delay": (dic.t0_ps - dic.pre * T, dic.t0_ps + (dic.n_bins - 1 + dic.pre) * T),

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels.atomlm import nnls_amplitudes
-from .constants import FAM_NONE, FAM_SSS
+from ..kernels.atomlm import nnls_amplitudes
+from ..constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
-from .masks import SampleMask, check_mask
-from .slots import drop_zero, linked_onsets, parameter_bounds, put, refine_atoms, take, tie_widths
+from ..masks import SampleMask, check_mask
+from ..model.slots import drop_zero, linked_onsets, parameter_bounds, put, refine_atoms, take, tie_widths
 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
 

@@ -13,10 +13,10 @@ import math
 
 import numpy as np
 
-from .constants import DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_SSS
+from ..constants import DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_SSS
 from .dictionary import Dictionary
-from .kernels.pick import select as _select
-from .kernels.pickcorr import PickWorkspace, pixel_correlations
+from ..kernels.pick import select as _select
+from ..kernels.pickcorr import PickWorkspace, pixel_correlations
 
 __all__ = ["score_coarse", "score_pixel"]
 

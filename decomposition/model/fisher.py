@@ -8,7 +8,7 @@ deviation sigma_n per sample, the Fisher information of the parameters is
 and any unbiased estimator has cov(theta_hat) >= F^-1 (the Cramér-Rao bound).
 theta holds, for every present component, its delay (ps), amplitude, sigma (ps)
 and, for sss, alpha (1/ps), in those natural units; J uses the analytic kernel
-derivatives of :func:`decomposition.refine.kernel_derivatives` (the same model
+derivatives of :func:`decomposition.model.refine.kernel_derivatives` (the same model
 the refinement fits).
 
 Worked case, used by the tests: an isolated Gaussian a g(t - t_d; s) whose
@@ -31,8 +31,8 @@ from __future__ import annotations
 import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from .constants import SSS_SLOT
-from .kernels.derivatives import kernel_derivatives
+from ..constants import SSS_SLOT
+from ..kernels.derivatives import kernel_derivatives
 from .refine import apply_weights, slot_arrays
 from .varpro import CHUNK_PIXELS, design_rows
 
@@ -336,7 +336,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     Unless ``noise_sigma`` gives it, the noise level of each pixel is estimated from its
     residual, sigma_n^2 = ||y - mu(theta)||^2 / (L - P_free), with P_free the number of
     fitted parameters of the pixel; this is accurate when ``params`` is the
-    least-squares fit (e.g. the output of :func:`decomposition.refine.refine`).
+    least-squares fit (e.g. the output of :func:`decomposition.model.refine.refine`).
 
     Count data: with ``weights`` 1 / variance of the Poisson law at the model
     (:func:`decomposition.noise.poisson_weights`) and ``noise_sigma=1`` this is the Poisson
@@ -354,7 +354,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
     time_bin_ps, t0_ps, bin_integrated
         Time axis and sampling.
     weights : array_like, shape (..., L), optional
-        Relative sample weights of the fit (as in :func:`decomposition.refine.refine`);
+        Relative sample weights of the fit (as in :func:`decomposition.model.refine.refine`);
         samples of weight 0 (saturated, excluded) do not count, and the noise
         estimate is that of a unit-weight sample.
     shared_sigma : bool

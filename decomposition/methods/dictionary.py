@@ -15,9 +15,9 @@ import threading
 import numpy as np
 from scipy import fft as sfft
 
-from .constants import DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_SSS
+from ..constants import DICT_PRE_SIGMA, DICT_SUPPORT_SIGMA, FAM_GAUSS, FAM_SSS
 from core.model import sss_kernel
-from .options import GridSpec
+from ..options import GridSpec
 
 __all__ = ["Dictionary", "DictionaryCache", "DICTIONARY_CACHE", "get_dictionary", "coarse_values"]
 

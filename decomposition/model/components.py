@@ -1,6 +1,6 @@
 """From solver atoms to named components: threshold, merge, classify, render.
 
-The solver (``decomposition.convscd``) returns, per pixel, up to K atoms in
+The solver (``decomposition.methods.convscd``) returns, per pixel, up to K atoms in
 "slot" arrays of shape (P, K): family (Gaussian or sss), amplitude, delay,
 log sigma, log alpha.  This module turns them into the parameter dict of
 ``core.model`` (direct d, inter-reflections r2, r3, ..., sss s):
@@ -34,9 +34,9 @@ import math
 
 import numpy as np
 
-from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
+from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
                         SIGNIFICANCE_WEIGHT_CAP)
-from .kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
+from ..kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 

@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.model import IR_KEYS, empty_params, sss_kernel, time_axis_ps
-from .options import component_letters
+from ..options import component_letters
 
 __all__ = ["GRADBM_DEFAULTS", "gradbm"]
 

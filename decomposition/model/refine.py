@@ -19,18 +19,18 @@ keep every present amplitude positive; otherwise the input is returned as is.
 
 A constant offset per pixel (``params["background"]``, the ``b`` family) is either held
 fixed (subtracted from the profile; the default) or, with ``fit_background``, fitted jointly
-with the amplitudes as one more linear parameter (:mod:`decomposition.varpro`).
+with the amplitudes as one more linear parameter (:mod:`decomposition.model.varpro`).
 
 Kernels and derivatives: :mod:`decomposition.kernels.derivatives`; the batched variable-projection
-LM: :mod:`decomposition.varpro`.
+LM: :mod:`decomposition.model.varpro`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .constants import SSS_SLOT
-from .kernels.derivatives import kernel_derivatives  # noqa: F401  (public here since the first release)
+from ..constants import SSS_SLOT
+from ..kernels.derivatives import kernel_derivatives  # noqa: F401  (public here since the first release)
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .varpro import Layout, refine_block
 

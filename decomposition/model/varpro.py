@@ -37,14 +37,14 @@ P_u Phi times P_u, so the amplitudes, the residual and Kaufman's Jacobian of the
 are those of the projected rows, and the offset follows from the residual
 (:func:`background_level`).  Pixels without the flag are untouched.
 
-See :mod:`decomposition.refine` for the public function and its options.
+See :mod:`decomposition.model.refine` for the public function and its options.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .constants import SSS_SLOT
-from .kernels.derivatives import kernel_derivatives
+from ..constants import SSS_SLOT
+from ..kernels.derivatives import kernel_derivatives
 
 __all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
 

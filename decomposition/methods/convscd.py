@@ -81,7 +81,7 @@ Algorithm: batched greedy convolutional coordinate descent with local refinement
    pixel at a time, each atom evaluated on its own support).  Refining
    before the next pick matters: a coarse atom that is slightly off leaves a derivative-shaped residual that
    would otherwise be "explained" by spurious extra atoms.
-3. After the 5 % threshold and merging (``decomposition.components``), the
+3. After the 5 % threshold and merging (``decomposition.model.components``), the
    kept atoms are refined on the data term alone (the usual debiasing after
    sparse selection: the log-sum penalty shrinks amplitudes along the d/s
    degeneracy), with a restart of sss onsets stuck at the direct delay or far
@@ -248,14 +248,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, RESTART_FACTOR
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, RESTART_FACTOR
 from .dictionary import Dictionary, get_dictionary  # noqa: F401
-from .masks import SampleMask, check_mask
-from .options import GridSpec  # noqa: F401
-from .kernels.pickcorr import PickWorkspace
+from ..masks import SampleMask, check_mask
+from ..options import GridSpec  # noqa: F401
+from ..kernels.pickcorr import PickWorkspace
 from .polish import polish_block, refit_amplitudes, snap_to_grid  # noqa: F401
 from .score import score_coarse, score_pixel
-from .slots import (drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
+from ..model.slots import (drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
                     put, refine_atoms, take)
 
 __all__ = [
