@@ -3,7 +3,7 @@
 A sample is *fitted* (its residual counts), *censored* from below (saturated: the true value
 is at least the recorded one, so only a model below it is a misfit, contributing
 max(p - model, 0)^2), or neither (excluded: non-finite, a spike).  The two boolean arrays of
-a :class:`SampleMask` travel from the input check (:mod:`decomposition.prepare`) down to the
+a :class:`SampleMask` travel from the input check (:mod:`decomposition.stages.prepare`) down to the
 compiled kernels (:mod:`decomposition.kernels.atomlm`); nothing on the way is a number that could be
 mistaken for a least-squares weight.  Real weights (1 / variance) are a different thing and
 are taken only where they are weights, as an argument of their own: the compiled LM's

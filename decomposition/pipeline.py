@@ -311,7 +311,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
     irf_attrs = {"kind": "gaussian"}
     if response is not None:
-        from decomposition.response_input import response_record
+        from decomposition.response.resolve import response_record
 
         irf_attrs = dict(_jsonable(response_record(response)), kind="response", source=irf_source)
     solver_options = dict(options, irf=response) if response is not None else options
@@ -468,12 +468,12 @@ def resolve_pipeline_response(irf, input_path, input_kind: str, time_bin_ps: flo
 
     ``irf``: "auto" (the cube's stored ``irf`` group if any, else None: the Gaussian),
     "gaussian" (None), a path, or an :class:`core.irf.InstrumentResponse`.  The response is
-    checked against the input's time axis here (:func:`decomposition.response_input.resolve_response`:
+    checked against the input's time axis here (:func:`decomposition.response.resolve.resolve_response`:
     resampled onto the bins when its step differs, refused when longer than the window), so
     a bad response stops the run before anything is written.
     """
     from core.irf import InstrumentResponse, ResponseError
-    from decomposition.response_input import resolve_response
+    from decomposition.response.resolve import resolve_response
 
     if irf is None or (isinstance(irf, str) and irf.lower() == "gaussian"):
         return None, "gaussian"

@@ -4,7 +4,7 @@ import pytest
 
 from core.model import empty_params, render_components, render_profile
 from decomposition import decompose
-from decomposition.background import (background_significant, background_test, background_threshold,
+from decomposition.stages.background import (background_significant, background_test, background_threshold,
                                       estimate_background)
 from decomposition.model.components import off_window, threshold, window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_SSS
@@ -387,7 +387,7 @@ def test_pink_noise_bumps_are_mostly_not_significant_components():
 # --------------------------------------------------------------------------- light above the offset
 
 def test_light_test_is_the_data_term_of_the_offset_alone_less_the_model():
-    from decomposition.background import light_test
+    from decomposition.stages.background import light_test
     from decomposition.noise import count_deviance
 
     rng = np.random.default_rng(12)
@@ -447,7 +447,7 @@ def test_pure_offset_float_data_are_empty_and_a_signal_on_it_is_kept():
 
 def test_refined_widths_stay_within_the_solver_bounds_and_are_flagged_there():
     from decomposition.flags import AT_BOUND
-    from decomposition.label import params_at_bound
+    from decomposition.stages.label import params_at_bound
     from decomposition.options import GridSpec
     from decomposition.model.slots import shape_bounds
 

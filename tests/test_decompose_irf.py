@@ -17,7 +17,7 @@ from core.irfstore import save_response
 from core.model import render_components, render_profile
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
-from decomposition.response_input import TRIM_REL
+from decomposition.response.resolve import TRIM_REL
 
 T = 2.0
 L = 512
@@ -380,7 +380,7 @@ def test_a_late_sss_onset_is_restarted_at_the_direct(monkeypatch):
     units above the Poisson reference's: refitted with the onset started at the direct, each
     takes that fit -- its deviance lower, the onset on the direct, the direct within 1.5 ps of
     the truth.  With the step off (ONSET_RESTART_SIGMA infinite) the onsets stay late."""
-    from decomposition import response_grow
+    from decomposition.response import grow as response_grow
     from decomposition.noise import poisson_deviance
     from decomposition.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
@@ -453,7 +453,7 @@ def test_count_data_of_a_block():
     chi2 units over the fitted samples."""
     from decomposition.constants import POISSON_FIT_FLOOR
     from decomposition.noise import poisson_deviance
-    from decomposition.response_refine import CountData
+    from decomposition.response.refine import CountData
 
     phi = np.array([[[1.0, 0.5, 0.0, 0.0], [0.0, 0.2, 0.4, 0.0]]])
     ev = {"amp": np.array([[2.0, 1.0]]), "phi": phi}
@@ -483,8 +483,8 @@ def test_a_direct_no_sample_sees_is_not_reported():
 
     from core.irf_components import gaussian_equivalent_sigma_ps
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.response_grow import _unseen_direct
-    from decomposition.response_refine import Slots
+    from decomposition.response.grow import _unseen_direct
+    from decomposition.response.refine import Slots
     from decomposition.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
@@ -523,10 +523,10 @@ def test_light_before_the_direct_is_a_poor_fit():
     holds that light, or none there, leaves the pixel alone."""
     from core.model import render_profile
     from decomposition.flags import AMBIGUOUS
-    from decomposition.quality import direct_lead_ps, light_before_direct
+    from decomposition.stages.quality import direct_lead_ps, light_before_direct
     from decomposition.synthetic import make_profiles
     from decomposition.options import GridSpec
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
@@ -573,7 +573,7 @@ def test_slot_fit_from_atoms_outside_the_window(counts):
     import warnings
 
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.response_refine import CountData, fit_slots
+    from decomposition.response.refine import CountData, fit_slots
 
     irf = gaussian_response(4.0, time_step_ps=T)
     t = T + T * np.arange(128)

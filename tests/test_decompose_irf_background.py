@@ -13,7 +13,7 @@ from core.irf import render_shifted
 from core.irf_models import gaussian_response, tailed_response
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE
-from decomposition.response_refine import fit_slots
+from decomposition.response.refine import fit_slots
 from decomposition.synthetic import make_profiles
 
 T = 2.0

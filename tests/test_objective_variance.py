@@ -6,7 +6,7 @@ import numpy as np
 from decomposition import decompose
 from decomposition.constants import WHITE_LAG_RATIO
 from decomposition.model.fidelity import fidelity
-from decomposition.objective import objective_variance
+from decomposition.stages.objective import objective_variance
 from decomposition.synthetic import make_profiles
 
 
@@ -21,9 +21,9 @@ def _mean_fidelity(d):
 
 
 def test_pink_noise_bumps_no_longer_pass_for_inter_reflections(monkeypatch):
-    import decomposition.grow as grow
-    import decomposition.prune as prune
-    import decomposition.search as search
+    import decomposition.stages.grow as grow
+    import decomposition.stages.prune as prune
+    import decomposition.stages.search as search
 
     d = make_profiles(200, 512, nsr=0.11, noise="pink", seed=1, time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)
@@ -47,7 +47,7 @@ def test_pink_noise_bumps_no_longer_pass_for_inter_reflections(monkeypatch):
 
 def test_the_search_reads_its_objective_in_the_same_noise(monkeypatch):
     import decomposition.api as api
-    import decomposition.search as search
+    import decomposition.stages.search as search
     from streaklab.bench.scoring import direct_delay_failures
 
     d = make_profiles(200, 512, nsr=0.11, noise="pink", seed=1, time_bin_ps=2.0, ranges="paper",

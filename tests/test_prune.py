@@ -53,7 +53,7 @@ def _state(truth, n, K=4, spurious=True):
 
 def test_prune_drops_the_gaussian_that_fills_a_late_sss_onset():
     from decomposition.masks import SampleMask
-    from decomposition.prune import close_gaussian, prune_block
+    from decomposition.stages.prune import close_gaussian, prune_block
 
     n, L, T = 6, 512, 2.0
     truth = _truth(n)
@@ -90,7 +90,7 @@ def test_prune_reaches_a_gaussian_four_to_six_widths_after_the_direct():
 
 def test_prune_keeps_a_true_close_inter_reflection():
     from decomposition.masks import SampleMask
-    from decomposition.prune import prune_block
+    from decomposition.stages.prune import prune_block
 
     n, L, T = 6, 512, 2.0
     truth = _truth(n, close_ir_amplitude=0.3, gap_sigma=3.0)      # a real one 3 widths late
@@ -112,7 +112,7 @@ def test_prune_keeps_a_true_close_inter_reflection():
 
 def test_decompose_prunes_on_paper_scenes_and_fidelity_does_not_drop():
     from decomposition import decompose
-    from decomposition.prune import close_gaussian  # noqa: F401
+    from decomposition.stages.prune import close_gaussian  # noqa: F401
     from decomposition.synthetic import make_profiles
 
     data = make_profiles(300, 512, nsr=0.001, seed=0, ranges="paper", bin_integrated=True)
@@ -162,7 +162,7 @@ def test_prune_reads_a_fast_sss_hump_as_the_echo_it_took(monkeypatch):
     # later, echoes 6 and 22 widths later (0.33 and 0.5 of it).  The detection fitted the first
     # echo as an sss decaying at 0.17 /ps, filled the true sss's hump with two Gaussians, and
     # took every slot, so the swap (which needs a free one) never tried it; fidelity 0.12.
-    import decomposition.prune as prune
+    import decomposition.stages.prune as prune
     from decomposition import decompose
     from decomposition.synthetic import make_profiles
 

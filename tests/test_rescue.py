@@ -1,4 +1,4 @@
-"""The second pass for pixels that still misfit (decomposition/rescue.py, ``rescue=True``)."""
+"""The second pass for pixels that still misfit (decomposition/stages/rescue.py, ``rescue=True``)."""
 import math
 
 import numpy as np
@@ -10,7 +10,7 @@ from decomposition.flags import POOR_FIT
 from decomposition.model.fidelity import fidelity
 from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
-from decomposition.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
+from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
                                   take_rescued)
 from decomposition.synthetic import make_profiles
 

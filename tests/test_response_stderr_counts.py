@@ -8,7 +8,7 @@ from core.model import empty_params
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.poisson_reference import poisson_reference_bound
-from decomposition.response_fisher import slot_standard_errors
+from decomposition.response.fisher import slot_standard_errors
 
 T_PS, L = 2.0, 256
 DIRECT_PS, ONSET_PS, ALPHA = 80.0, 86.0, 0.02

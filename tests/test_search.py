@@ -4,7 +4,7 @@ import pytest
 
 from decomposition.model.fidelity import fidelity
 from core.model import empty_params, render_components, render_profile
-from decomposition.search import STARTS, SearchOptions, relabel, structured_search
+from decomposition.stages.search import STARTS, SearchOptions, relabel, structured_search
 
 
 def test_relabel_puts_the_earliest_gaussian_first_and_no_sss_before_it():
@@ -88,7 +88,7 @@ def _absorbed_direct_pixels():
 
 def test_decompose_search_finds_the_direct_that_the_greedy_start_gives_to_the_sss():
     from decomposition import decompose
-    from decomposition.search import STAGE_STARTS
+    from decomposition.stages.search import STAGE_STARTS
 
     truth, y, L, T = _absorbed_direct_pixels()
     comps = render_components(truth, L, T)
@@ -247,7 +247,7 @@ def test_search_finds_a_direct_on_the_rise_of_a_larger_sss_hump():
 def test_near_direct_chi2_weighs_only_the_samples_around_the_earliest_gaussian():
     from decomposition.constants import FAM_GAUSS
     from decomposition.masks import SampleMask
-    from decomposition.search import _near_direct_chi2
+    from decomposition.stages.search import _near_direct_chi2
     from decomposition.model.slots import new_state, render
 
     L, T = 200, 2.0
@@ -272,7 +272,7 @@ def test_a_correct_fit_under_photon_noise_is_not_in_doubt_at_its_direct():
     1.5 noise variances more than 40 % of these pixels were in doubt), and a wrong-width direct above it."""
     from decomposition.constants import FAM_GAUSS, SEARCH_NEAR_DIRECT_CHI2
     from decomposition.masks import SampleMask
-    from decomposition.search import _near_direct_chi2
+    from decomposition.stages.search import _near_direct_chi2
     from decomposition.model.slots import new_state, render
 
     n, L, T = 400, 256, 2.0
@@ -350,7 +350,7 @@ def test_where_every_start_misfits_the_starts_get_the_forward_step():
     from decomposition import decompose
     from decomposition.flags import POOR_FIT
     from decomposition.model.fidelity import fidelity
-    from decomposition.search import MISFIT_GROWN_STARTS
+    from decomposition.stages.search import MISFIT_GROWN_STARTS
     from decomposition.synthetic import make_profiles
 
     assert "edge" in MISFIT_GROWN_STARTS
@@ -377,7 +377,7 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
     # widths later and weak inter-reflections.  The detection put Gaussians in the sss hump;
     # every start lacked the true first inter-reflection, and the best one misfit 5-17 times
     # the data's noise but far less than the floor's, so no start was grown.
-    import decomposition.search as search
+    import decomposition.stages.search as search
     from decomposition import decompose
     from decomposition.model.fidelity import fidelity
     from decomposition.synthetic import make_profiles
@@ -396,7 +396,7 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
 
 
 def test_floor_hidden_misfit_reads_the_data_term_in_the_measured_noise():
-    from decomposition.search import FLOOR_HIDDEN_MIN_FRACTION, _floor_hidden_misfit
+    from decomposition.stages.search import FLOOR_HIDDEN_MIN_FRACTION, _floor_hidden_misfit
 
     floor = 1e-3
     s_eff = np.array([floor, floor, 2e-3, floor, floor])
@@ -413,7 +413,7 @@ def test_floor_hidden_misfit_reads_the_data_term_in_the_measured_noise():
 
 def test_weak_leading_gaussian_is_the_outputs_weak_direct_rule_on_a_slot_state():
     from decomposition.constants import FAM_GAUSS, FAM_SSS, WEAK_DIRECT_FRACTION
-    from decomposition.search import weak_leading_gaussian
+    from decomposition.stages.search import weak_leading_gaussian
     from decomposition.model.slots import new_state
 
     T = 4.0

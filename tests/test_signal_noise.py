@@ -79,10 +79,10 @@ def test_photon_noise_gets_weights_and_white_noise_does_not():
 def _weights_of(d, law, time_bin_ps=2.0):
     """(samples, det, dic, weights, info) of the detection of ``d`` under ``signal_noise_law=law``."""
     from decomposition.methods import convscd as cs
-    from decomposition.candidates import signal_weights
-    from decomposition.detect import detect_components
+    from decomposition.stages.candidates import signal_weights
+    from decomposition.stages.detect import detect_components
     from decomposition.options import options_from_mapping, parse_components
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
 
     axis = time_axis(time_bin_ps, None)
     grid, opts, _ = options_from_mapping({"signal_noise_law": law}, strict=False)
@@ -137,7 +137,7 @@ def _detector_scene(n, time_bin_ps, photons_per_unit, read_noise, seed=0):
 
 
 def test_one_detector_law_is_read_from_the_pixels_of_a_call(monkeypatch):
-    import decomposition.candidates as k  # the stage whose rules read these constants
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
     from decomposition.model.fidelity import fidelity
 
     d, noisy = _detector_scene(240, 4.0, 300.0, 0.01)
@@ -178,7 +178,7 @@ def test_a_misfit_at_a_low_noise_is_not_taken_for_photon_noise(monkeypatch):
     # peak, larger than the noise; it grows with the lag of the differences, so most of it is
     # no variance law (measured: 49 pixels of 300 with a significant gain at 2 ps bins, 5 of
     # them pass the lag test)
-    import decomposition.candidates as k  # the stage whose rules read these constants
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
 
     wh = make_profiles(120, 512, nsr=0.001, noise="white", seed=2, time_bin_ps=2.0, ranges="paper",
                        bin_integrated=True)
@@ -201,7 +201,7 @@ def test_weighting_photon_noise_lifts_the_fidelity_on_wide_directs():
 
 
 def test_the_photon_verdict_is_pooled_over_the_pixels_of_a_call(monkeypatch):
-    import decomposition.candidates as k  # the stage whose rules read these constants
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
     from decomposition.model.fidelity import fidelity
 
     d = _photon_scene(160, 4.0, 6)
@@ -293,7 +293,7 @@ def test_the_significance_of_an_atom_counts_its_samples_by_their_weights_capped(
 
 
 def test_under_noise_that_follows_the_signal_every_pixel_is_searched(monkeypatch):
-    import decomposition.search as search
+    import decomposition.stages.search as search
     from decomposition.model.fidelity import fidelity
 
     d = make_profiles(200, 512, nsr=0.11, noise="photon", seed=1, time_bin_ps=4.0, ranges="paper",
@@ -330,9 +330,9 @@ def test_the_one_law_scales_with_the_data(k):
 def _detect(data, time_bin_ps):
     """The detection stage of decompose on ``data`` -> (samples, detection)."""
     from decomposition.methods import convscd as cs
-    from decomposition.detect import detect_components
+    from decomposition.stages.detect import detect_components
     from decomposition.options import options_from_mapping
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
 
     grid, opts, _ = options_from_mapping({}, strict=False)
     opts = opts.resolved(("d", "s", "r"))

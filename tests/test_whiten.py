@@ -7,7 +7,7 @@ from decomposition import decompose
 from decomposition.model.fidelity import fidelity
 from decomposition.noise import residual_spectrum, whitened_chi2
 from decomposition.noise import SpectralNoise
-from decomposition.objective import objective_variance
+from decomposition.stages.objective import objective_variance
 from decomposition.synthetic import make_profiles
 
 L = 256

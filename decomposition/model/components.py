@@ -353,8 +353,8 @@ def free_parameters(params: dict) -> np.ndarray:
     """(n,) free parameters of each pixel's components in ``params`` (n-shaped, NaN absent): a
     delay and an amplitude per component, the sss attenuation, and one width shared by all (none
     for a pixel without a component) -- the k of the penalised objectives chi2 + k ln n that
-    compare answers given as parameters (:func:`decomposition.search.structured_search`,
-    :mod:`decomposition.rescue`)."""
+    compare answers given as parameters (:func:`decomposition.stages.search.structured_search`,
+    :mod:`decomposition.stages.rescue`)."""
     d = np.isfinite(np.asarray(params["direct_delay_ps"], np.float64))
     s = np.isfinite(np.asarray(params["sss_delay_ps"], np.float64))
     r = np.isfinite(np.asarray(params["ir_delay_ps"], np.float64)).reshape(d.size, -1).sum(axis=1)

@@ -74,7 +74,7 @@ NOISES = ("white", "pink", "photon")
 #: (one photon scale for every pixel; decomposition.synthetic_noise), where the NSR of the
 #: point is that of all its pixels together.
 EXTRA_NOISES = ("camera",)
-# Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.search
+# Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.stages.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
 EXTRA_METHODS = ("search",)
 #: the "any flag" row of the flag table: every bit of the 16-bit flags
@@ -123,7 +123,7 @@ def add_arguments(parser) -> None:
                              "the shot noise of one camera, one photon scale for every pixel)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="methods, comma-separated (default convscd,gradbm; also search: ConvSCD followed "
-                             "by the stand-alone structured_search of decomposition.search, six refines on every "
+                             "by the stand-alone structured_search of decomposition.stages.search, six refines on every "
                              "pixel); the oracle always runs")
     parser.add_argument("--kinds", default="a,b,c", help="scene kinds (default a,b,c: Fig. 3(a)-(c))")
     parser.add_argument("--scenes", default="paper",
@@ -238,7 +238,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition.api import FLAG_NAMES
     from core.model import render_components
     from decomposition.oracle import oracle_fit, significant_truth
-    from decomposition.search import structured_search
+    from decomposition.stages.search import structured_search
     from decomposition.synthetic import make_profiles
 
     from decomposition.options import SolverOptions

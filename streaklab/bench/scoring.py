@@ -176,12 +176,12 @@ def white_noise_j(noisy, clean, components, params) -> np.ndarray:
     the chi2 in each pixel's own noise (the standard deviation of ``noisy - clean`` over its
     samples, which the bench knows) over all n samples, k its free parameters: the objective
     the solver's second pass and search compare answers by
-    (:func:`decomposition.rescue.penalised_misfit`), read here in the true noise.
+    (:func:`decomposition.stages.rescue.penalised_misfit`), read here in the true noise.
 
     ``components``: the answer's profiles (a result, an oracle fit or a dict, as
     :func:`decomposition.model.fidelity.fidelity` takes them); ``params`` its parameter dict."""
     from decomposition.model.fidelity import component_profiles
-    from decomposition.rescue import penalised_misfit
+    from decomposition.stages.rescue import penalised_misfit
 
     y = np.asarray(noisy, np.float64)
     c = component_profiles(components)

@@ -11,7 +11,7 @@ model (:func:`sample_weights`), and the refit is repeated POISSON_REFITS times, 
 previous model's weights (iteratively reweighted least squares, whose fixed point is the
 Poisson maximum-likelihood fit), a pixel keeping a refit only where it lowers the Poisson
 deviance.  ``decompose`` reaches that fit without this stage, in the
-compiled polish of :mod:`decomposition.countpolish`; this refit runs for count data only with
+compiled polish of :mod:`decomposition.stages.countpolish`; this refit runs for count data only with
 ``refine=True`` (and for the GradBM baseline).  The standard errors use weights 1 / model count with the
 noise scale measured on the fit (:func:`decomposition.noise.fit_dispersion`, 1 for pure
 counts): the Poisson Fisher information.
@@ -21,13 +21,13 @@ from __future__ import annotations
 import numpy as np
 
 from core.model import BACKGROUND_KEY, render_profile
-from .constants import POISSON_REFITS
-from .noise import count_deviance, fit_dispersion, poisson_weights
+from ..constants import POISSON_REFITS
+from ..noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
-from .model.slots import select_rows
+from ..model.slots import select_rows
 from .background import background_significant, background_test, background_threshold, light_test, offset_alone
-from .model.fisher import standard_errors
-from .model.refine import refine
+from ..model.fisher import standard_errors
+from ..model.refine import refine
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
@@ -60,8 +60,8 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
 
     With a ``background`` in ``params`` (the ``b`` family) the offset of every live pixel is
     fitted jointly with the amplitudes; then, where it is not significant
-    (:func:`decomposition.background.background_significant` at the threshold of
-    :func:`decomposition.background.background_threshold` for ``background_chi2``, the
+    (:func:`decomposition.stages.background.background_significant` at the threshold of
+    :func:`decomposition.stages.background.background_threshold` for ``background_chi2``, the
     likelihood-ratio statistic of :func:`background_stats`), it is set to 0 and the pixel
     refitted without it.  ``info`` then also holds ``background_chi2`` (the statistic) and
     ``background_stderr`` (units of the profiles; NaN where the offset was left out).
@@ -86,7 +86,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     def fits(params, fit_bg):
         # count data: a refit is kept for a pixel only where it lowers the Poisson deviance, the
         # fit's own objective (the weights of a model that lacks a component can pull an atom
-        # onto the counts of a missed tail; see decomposition.countpolish)
+        # onto the counts of a missed tail; see decomposition.stages.countpolish)
         dev_best = deviance(params) if counts else None
         for _ in range(n_fits):
             new, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
@@ -120,7 +120,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
 
 def clear_unlit(samples: Samples, params: dict, significance_chi2: float):
     """Pixels whose components are not significant together against their offset alone
-    (:func:`decomposition.background.light_test` below ``significance_chi2``) lose them: every
+    (:func:`decomposition.stages.background.light_test` below ``significance_chi2``) lose them: every
     component NaN, the offset the mean of the fitted samples.  -> (params (P-shaped, a new
     dict), cleared (P,) bool, stderr (P,): the standard error of a cleared pixel's mean,
     units of the profiles, NaN elsewhere).  ``params`` must hold ``background``; only live
@@ -157,7 +157,7 @@ def clear_unlit(samples: Samples, params: dict, significance_chi2: float):
 
 def background_stats(samples: Samples, params: dict, irf=None):
     """Likelihood-ratio statistic and standard error (units of the profiles) of each pixel's
-    fitted offset (:func:`decomposition.background.background_test`) under the noise model:
+    fitted offset (:func:`decomposition.stages.background.background_test`) under the noise model:
     Gaussian, weights the fit mask and the pixel's noise estimate; count data, weights
     1 / Poisson variance of the model (which includes the offset), noise scale the dispersion.
     ``irf``: the components are the response's atoms (the response path)."""

@@ -1,7 +1,7 @@
 """Candidate component sets after the detection: polish one, and run a step block by block.
 
-The search stage's starts (:mod:`decomposition.search`) and the steps after it
-(:mod:`decomposition.grow`, :mod:`decomposition.prune`) each
+The search stage's starts (:mod:`decomposition.stages.search`) and the steps after it
+(:mod:`decomposition.stages.grow`, :mod:`decomposition.stages.prune`) each
 build an alternative slot state for some pixels, polish it with the solver's compiled LM and
 keep it where the search's penalised objective is lower.  :func:`polish_candidate` is that
 polish, exactly as the search stage scores its starts (amplitudes by NNLS, the LM on the data
@@ -14,14 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .constants import (SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO,
+from ..constants import (SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO,
                         SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z, SIGNAL_NOISE_Z,
                         SIGNIFICANCE_LAG_BINS, WHITE_LAG_RATIO)
 from .detect import solver_inputs
 from .label import final_atoms
-from .noise import count_variance, lagged_noise_sigma, periodogram, residual_spectrum, signal_variance
-from .methods.polish import refit_amplitudes
-from .model.slots import drop_zero, parameter_bounds, put, refine_atoms, render
+from ..noise import count_variance, lagged_noise_sigma, periodogram, residual_spectrum, signal_variance
+from ..methods.polish import refit_amplitudes
+from ..model.slots import drop_zero, parameter_bounds, put, refine_atoms, render
 
 __all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights",
            "correlated_noise_spectrum"]
@@ -45,7 +45,7 @@ def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, we
 def each_block(samples, det, opts, step, pixels: bool = False, weights: bool = False):
     """Run ``step(p, mask, state, noise, significance_sigma) -> (state, hit)`` on the detected
     atoms of the live pixels, block by block (normalised profiles and masks of
-    :func:`decomposition.detect.solver_inputs`) -> (state of all live pixels, hit (n_live,) bool).
+    :func:`decomposition.stages.detect.solver_inputs`) -> (state of all live pixels, hit (n_live,) bool).
     With ``pixels`` the step also gets the block's pixel indices into ``samples`` (its sixth
     argument), for what else it reads of them; with ``weights`` the block's rows of
     ``det.weights`` (None where the detection has none) as the keyword ``weights``, and

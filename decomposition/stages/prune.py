@@ -8,14 +8,14 @@ less than ``PRUNE_GAP_SIGMA`` widths after its direct, drops that Gaussian and p
 with the solver's compiled LM twice: from the other atoms as they are (the sss onset moves back
 into the gap) and with the sss onset moved to ``PRUNE_ONSET_SIGMA`` widths after the direct (an
 onset too late for the polish to bring back); the lowest penalised objective
-(:func:`decomposition.search.penalised_objective`, the search stage's) of the three is kept.  A
+(:func:`decomposition.stages.search.penalised_objective`, the search stage's) of the three is kept.  A
 true close inter-reflection stays: its data term pays for its three parameters.  Paper scenes,
 300 px, mean fidelity (2 ps bins, white NSR 0.001 / 0.055 / 0.11; pink and photon NSR 0.055;
 4 ps white 0.055): without 0.958 / 0.912 / 0.886, 0.878, 0.849, 0.883; the first start alone
 0.969 / 0.920 / 0.893, 0.880, 0.860, 0.896; both 0.974 / 0.920 / 0.895, 0.884, 0.860, 0.896
 (seed 7: +0.0 to +0.018 in each); 5-21 of 300 pixels pruned, 5-8 % of them tried.
 
-A third trial takes the forward step (:func:`decomposition.grow.grow_block`) after the moved one
+A third trial takes the forward step (:func:`decomposition.stages.grow.grow_block`) after the moved one
 -- where more than one Gaussian was close, all of them dropped first (a hump the detection
 filled with several) -- so that an echo the late onset hid, or one dropped with the hump, comes
 back: paper scenes, 600 px, seeds 0 and 1, 36 points, mean fidelity up at 31 (+0.0008 on
@@ -28,10 +28,10 @@ from __future__ import annotations
 import numpy as np
 
 from .candidates import each_block, polish_candidate
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS
 from .grow import grow_block, late_fast_sss, with_gaussian
 from .objective import objective_variance, penalised_objective
-from .model.slots import put, take
+from ..model.slots import put, take
 
 __all__ = ["close_gaussian", "prune_block", "prune_components"]
 
@@ -58,7 +58,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     """The backward step on one block (normalised profiles ``p`` (n, L), their masks, slot state
     ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,) the noise of the labels'
     in-window test, default ``s_eff``; ``weights`` and ``spectrum`` as in
-    :func:`decomposition.grow.grow_block`; ``bump_test``: that step's, False for count data)
+    :func:`decomposition.stages.grow.grow_block`; ``bump_test``: that step's, False for count data)
     -> (state, pruned (n,) bool)."""
     n, L = p.shape
     t = dic.t0_ps + dic.time_bin_ps * np.arange(L)
@@ -137,12 +137,12 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
     """The fourth trial of :func:`prune_block`: where the sss of ``cur`` (n, K) peaks more than
     ``SWAP_MODE_GAP_SIGMA`` widths after the direct (``d0_ps`` (n,), the pixel's width
     ``sigma_ps`` (n,)) and decays fast enough to pass for a Gaussian (the rule of
-    :func:`decomposition.grow.swap_block`), ``moved`` (the close Gaussian dropped, the onset one
+    :func:`decomposition.stages.grow.swap_block`), ``moved`` (the close Gaussian dropped, the onset one
     width after the direct) with every Gaussian between the direct and that peak dropped, a
     Gaussian of the pixel's width at the peak, and the sss at the search's default
     attenuation -> (rows (m,), their trial (m, K)).
 
-    The sss swap of :func:`decomposition.grow.swap_block` needs a free slot and keeps the
+    The sss swap of :func:`decomposition.stages.grow.swap_block` needs a free slot and keeps the
     Gaussians the detection put in the hump; a fast sss that took an echo 6 widths after the
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
     neither it nor the trials above (fidelity 0.12 -> 0.99).

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import FAM_NONE, FAM_SSS, SSS_SLOT
-from .response_atoms import slot_atoms
+from ..constants import FAM_NONE, FAM_SSS, SSS_SLOT
+from .atoms import slot_atoms
 
 __all__ = ["slot_standard_errors"]
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import FAM_NONE, FAM_SSS, WHITE_LAG_RATIO
-from .noise import SpectralNoise, whitened_chi2
-from .model.slots import render
+from ..constants import FAM_NONE, FAM_SSS, WHITE_LAG_RATIO
+from ..noise import SpectralNoise, whitened_chi2
+from ..model.slots import render
 
 __all__ = ["objective_variance", "penalised_objective"]
 
@@ -64,7 +64,7 @@ def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=No
     """The noise variance a penalised objective divides its data term by: (n,), or (n, L) with
     ``weights``.  The solver's ``s_eff`` (n,) squared, or the significance noise's
     (``significance_sigma`` (n,), :meth:`Samples.significance_sigma` after
-    :func:`decomposition.candidates.residual_significance_noise`; None: not used) where that
+    :func:`decomposition.stages.candidates.residual_significance_noise`; None: not used) where that
     exceeds WHITE_LAG_RATIO x ``s_eff``, i.e. where the noise is correlated at the components'
     scale (pink noise); divided by the samples' relative least-squares ``weights`` (n, L)
     (:attr:`Detection.weights`) where given.  There a component fitted to the noise lowers the data term by about

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.irf import InstrumentResponse, render_shifted, render_sss
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 
 __all__ = ["slot_atoms", "slot_window_fraction"]
 

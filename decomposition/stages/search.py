@@ -42,19 +42,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
-from .constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
+from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
                         SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA, SEARCH_EDGE_LEVEL,
                         SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
                         SEARCH_WIDE_FACTOR)
 from .objective import _n_free, _per_sample, _residual_chi2, _smooth, objective_variance, penalised_objective
-from .model.refine import refine
-from .model import components as comp
+from ..model.refine import refine
+from ..model import components as comp
 from .candidates import polish_candidate
-from .model.components import classify, free_parameters, render_params
+from ..model.components import classify, free_parameters, render_params
 from .detect import solver_inputs
 from .grow import grow_block
 from .quality import direct_samples, weak_direct
-from .model.slots import new_state, put, render, take
+from ..model.slots import new_state, put, render, take
 
 __all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "SearchStage", "search_block",
            "search_components", "weak_leading_gaussian"]
@@ -62,7 +62,7 @@ __all__ = ["SearchOptions", "relabel", "structured_search", "STAGE_STARTS", "Sea
 STARTS = ("solver", "edge", "edge2", "peak", "edge bare", "peak bare")
 
 #: the starts of :func:`search_block` that also get the forward step of
-#: :func:`decomposition.grow.grow_block` (the ``rise`` start always gets it) where the best
+#: :func:`decomposition.stages.grow.grow_block` (the ``rise`` start always gets it) where the best
 #: start still misfits.  Paper scenes, 600 px, seeds 0 and 1, 2 and 4 ps bins, white, pink and
 #: photon noise at NSR 0.001 / 0.055 / 0.11 (36 points): mean fidelity +0.0006 over the points,
 #: +0.001 to +0.003 at NSR 0.001 (24 up, 4 down), for about 1 % of the time.  On every pixel in
@@ -356,7 +356,7 @@ def _split(t, st):
 
 def weak_leading_gaussian(t_ps, st) -> np.ndarray:
     """(n,) bool: slot states whose earliest Gaussian is weak and just before a much larger
-    onset -- the geometry :func:`decomposition.quality.weak_direct` flags AMBIGUOUS in the
+    onset -- the geometry :func:`decomposition.stages.quality.weak_direct` flags AMBIGUOUS in the
     output, read on a slot state labelled and rendered as the output is (``t_ps`` (L,) the
     sample times).  Such a Gaussian is often not the direct but a patch on its leading edge
     (4 ps bins, PSFs narrower than a bin: a Gaussian one bin before the true direct, at 10-15 %
@@ -420,11 +420,11 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     detected slot state ``st`` (n, K) and noise ``s_eff`` (n,); ``significance_sigma`` (n,), the
     noise of the in-window significance test (:meth:`Samples.significance_sigma`), default
     ``s_eff``; ``bump_test``: the forward step on the rise start tries significant residual
-    bumps too (:func:`decomposition.grow.grow_block`; False for count data); ``weights``
+    bumps too (:func:`decomposition.stages.grow.grow_block`; False for count data); ``weights``
     (n, L): relative least-squares weights of the samples (:attr:`Detection.weights`): every
     data term below is then the sum of residual^2 / (s_eff^2 / weight), and every polish weighs
     the samples so); ``objective_sigma`` (n,): the noise at the components' scale
-    (:func:`decomposition.candidates.residual_significance_noise` of the detected fit); where it
+    (:func:`decomposition.stages.candidates.residual_significance_noise` of the detected fit); where it
     marks the noise as correlated (:func:`objective_variance`) the starts' objectives, and so the
     ambiguity test, read the data term in its variance instead of ``s_eff``'s; ``noise_spectrum``
     (:attr:`Detection.noise_spectrum`, the call's correlated noise): they whiten it by that
@@ -453,12 +453,12 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     ``SEARCH_IR_GAP_SIGMA`` widths after the new direct; ``peak bare``: without them; ``rise``:
     the peak start at the grid's narrowest width, at least ``SEARCH_RISE_MIN_BINS`` bins (the sss one such width after the direct,
     later Gaussians more than SEARCH_IR_GAP_SIGMA such widths after it), followed by the
-    forward step of :func:`decomposition.grow.grow_block` where ``opts.grow``; ``wide``: the
+    forward step of :func:`decomposition.stages.grow.grow_block` where ``opts.grow``; ``wide``: the
     peak start at the detected direct's width where that exceeds ``SEARCH_WIDE_FACTOR`` times
     the default (the sss ``SEARCH_EDGE_GAP_SIGMA`` such widths after the direct, later
     Gaussians more than SEARCH_IR_GAP_SIGMA such widths after it), elsewhere the peak start; amplitudes by NNLS, then the solver's
     polish: shared width, sss onset at or after the direct, data term only; thresholded,
-    merged and relabelled as :mod:`decomposition.label` will), scored by
+    merged and relabelled as :mod:`decomposition.stages.label` will), scored by
     ``chi2 + search_penalty * k * ln(n_fit)``; the lowest is kept (ties keep the solver's).
     Where even the lowest leaves a data term above ``search_doubt_chi2`` times its expected
     value, the starts of :data:`MISFIT_GROWN_STARTS` get the forward step too, and are scored
@@ -607,7 +607,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
             put(c, new, refined(_stage_state(new.size, K, d_ps[new], ls[new], s_ps[new], la[new], later[new]), new))
         cand.append(c)
     if allow_later and opts.grow:
-        # the forward step of decomposition.grow on the rise start: an inter-reflection the
+        # the forward step of decomposition.stages.grow on the rise start: an inter-reflection the
         # wide direct had absorbed is no detected Gaussian, and without it the narrow split
         # loses to the wide one it would beat
         i_rise = 1 + [spec[0] for spec in specs].index("rise")

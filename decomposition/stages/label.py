@@ -15,15 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import components as comp
-from .methods import convscd as cs
-from .constants import BOUND_TOL, FAM_NONE, FAM_SSS
+from ..model import components as comp
+from ..methods import convscd as cs
+from ..constants import BOUND_TOL, FAM_NONE, FAM_SSS
 from .detect import Detection, solver_inputs
-from .flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, WIDE_PSF, mark
+from ..flags import AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, WIDE_PSF, mark
 from core.model import empty_params
-from .options import SolverOptions
+from ..options import SolverOptions
 from .prepare import Samples
-from .model.slots import parameter_bounds, tie_widths
+from ..model.slots import parameter_bounds, tie_widths
 
 __all__ = ["Labels", "final_state", "label_components", "at_bound", "params_at_bound"]
 

@@ -14,12 +14,12 @@ import numpy as np
 
 from statistics import NormalDist
 
-from .constants import DICT_SUPPORT_SIGMA, SIGNIFICANCE_LAG_BINS, SPIKE_FALSE_ALARM
-from .masks import SampleMask
-from .flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
+from ..constants import DICT_SUPPORT_SIGMA, SIGNIFICANCE_LAG_BINS, SPIKE_FALSE_ALARM
+from ..masks import SampleMask
+from ..flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
 from .background import estimate_background
-from .noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, lagged_noise_sigma, noise_sigma
-from .options import GridSpec, parse_nan_policy, parse_noise_model
+from ..noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, lagged_noise_sigma, noise_sigma
+from ..options import GridSpec, parse_nan_policy, parse_noise_model
 
 __all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes", "find_count_spikes",
            "min_neighbour_ratio", "resolve_noise_model"]
@@ -73,7 +73,7 @@ class Samples:
     dispersion : ndarray (P,) or None      count data: noise std in the Anscombe domain (>= 1)
     background : ndarray (P,) or None      the background family: the first estimate of each
                                         pixel's constant offset, units of ``values``
-                                        (:func:`decomposition.background.estimate_background`),
+                                        (:func:`decomposition.stages.background.estimate_background`),
                                         already subtracted from ``profiles``; None without it
     """
 
@@ -176,14 +176,14 @@ def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str
         "poisson" for count data (:func:`resolve_noise_model`).
     background : bool
         The background family: estimate each pixel's constant offset
-        (:func:`decomposition.background.estimate_background`, on the finite unsaturated
+        (:func:`decomposition.stages.background.estimate_background`, on the finite unsaturated
         samples) and subtract it from the normalised ``profiles`` the solver sees
         (``values`` keep it; counting statistics use the raw counts).
     spike_neighbour_ratio : float, optional
         The smallest ratio of a real component's larger neighbour sample to the sample itself,
         in (0, 1] (:func:`min_neighbour_ratio`); default that of a centred Gaussian of the
         grid's narrowest sigma.  With a measured response the response's own
-        (:func:`decomposition.response_input.spike_neighbour_ratio`).
+        (:func:`decomposition.response.resolve.spike_neighbour_ratio`).
     """
     nan_policy = parse_nan_policy(nan_policy)
     arr = _as_profiles(profiles)

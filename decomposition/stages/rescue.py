@@ -21,7 +21,7 @@ residual whitened by its spectrum instead, as the search reads it), k the number
 parameters (a delay and an amplitude per component, the sss attenuation, one shared width) and
 n the number of fitted samples, is lower by at least ``ambiguity_chi2`` (a difference of 10 in this BIC is
 "very strong" evidence on Kass and Raftery's scale, J. Am. Stat. Assoc. 90, 773 (1995): the
-search stage's own bar, :mod:`decomposition.search`).  The second answer comes with its own
+search stage's own bar, :mod:`decomposition.stages.search`).  The second answer comes with its own
 flags (it may still misfit).
 
 Paper scenes (``streaklab bench accuracy``'s, 600 px, seeds 0 and 1, 2 and 4 ps bins, white /
@@ -44,8 +44,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model.components import free_parameters
-from .noise import whitened_chi2
+from ..model.components import free_parameters
+from ..noise import whitened_chi2
 
 __all__ = ["RESCUE_OPTIONS", "rescue_rows", "misfit_beyond_noise", "data_term", "penalised_misfit", "take_rescued"]
 

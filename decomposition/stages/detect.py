@@ -18,24 +18,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import components as comp
-from .methods import convscd as cs
-from .constants import RESTART_FACTOR, RESTART_POOL_FRACTION
-from .masks import SampleMask
+from ..model import components as comp
+from ..methods import convscd as cs
+from ..constants import RESTART_FACTOR, RESTART_POOL_FRACTION
+from ..masks import SampleMask
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
-from .noise import signal_noise_sigma
-from .options import SolverOptions
-from .kernels.pickcorr import PickWorkspace
+from ..noise import signal_noise_sigma
+from ..options import SolverOptions
+from ..kernels.pickcorr import PickWorkspace
 from .prepare import Samples
-from .model.slots import new_state, put
-from .methods.gradbm import gradbm
+from ..model.slots import new_state, put
+from ..methods.gradbm import gradbm
 
 __all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
 
 
 @dataclass(frozen=True)
 class Detection:
-    """Atoms found for the live pixels of a :class:`~decomposition.prepare.Samples`.
+    """Atoms found for the live pixels of a :class:`~decomposition.stages.prepare.Samples`.
 
     Attributes
     ----------
@@ -50,13 +50,13 @@ class Detection:
     weights : ndarray (n, L) or None         relative least-squares weights (noise_eff^2 /
                                              variance) of the stages after the detection, where
                                              the noise follows the signal
-                                             (:func:`decomposition.candidates.signal_weights`);
+                                             (:func:`decomposition.stages.candidates.signal_weights`);
                                              None: every sample weighs the same
     noise_spectrum : ndarray (L // 2 + 1,) or None
                                              the power spectrum of the call's noise per unit of
                                              a pixel's noise variance where that noise is
                                              correlated (pink), read off the detected residuals
-                                             (:func:`decomposition.candidates.correlated_noise_spectrum`):
+                                             (:func:`decomposition.stages.candidates.correlated_noise_spectrum`):
                                              the penalised objectives of the stages after the
                                              detection whiten their residuals by it; None: they
                                              do not

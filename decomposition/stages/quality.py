@@ -17,7 +17,7 @@ before the direct reflection, so a direct placed after light is not the direct (
 photons per pixel, a weak direct put on a noise peak 20-30 ps late under an sss).  EMPTY: a
 finite pixel with no component at all.
 
-AMBIGUOUS (also set by the search, :mod:`decomposition.search`): the direct is weak and just
+AMBIGUOUS (also set by the search, :mod:`decomposition.stages.search`): the direct is weak and just
 before a much larger onset -- its rendered peak below WEAK_DIRECT_FRACTION of the peak of the
 other light (sss and inter-reflections) over the direct's delay + (WEAK_DIRECT_ONSET_SIGMA + 2)
 widths + 1 bin, an sss onset or an inter-reflection within WEAK_DIRECT_ONSET_SIGMA widths plus
@@ -38,11 +38,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import components as comp
-from .constants import (BRIGHT_ECHO_RATIO, POOR_FIT_DIRECT_SIGMA, PRE_DIRECT_LEVEL, PRE_DIRECT_SIGMA, RESOLVED_SIGMA,
+from ..model import components as comp
+from ..constants import (BRIGHT_ECHO_RATIO, POOR_FIT_DIRECT_SIGMA, PRE_DIRECT_LEVEL, PRE_DIRECT_SIGMA, RESOLVED_SIGMA,
                         WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA)
-from .flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
-from .noise import anscombe_residual, signal_noise_sigma
+from ..flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
+from ..noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples
 
 __all__ = ["Fit", "assess_fit", "direct_samples", "direct_misfit", "weak_direct", "bright_echo",
@@ -69,7 +69,7 @@ def assess_fit(samples: Samples, params: dict, noise_eff: np.ndarray, poor_fit: 
 
     ``flat_noise`` (n_live,) bool over ``samples.live``, optional: the pixels whose noise has
     been judged not to follow the signal (float data that
-    :func:`decomposition.candidates.signal_weights` left unweighted).  Their misfit is read
+    :func:`decomposition.stages.candidates.signal_weights` left unweighted).  Their misfit is read
     against the whole-profile noise ``samples.noise_eff`` alone, not against ``noise_eff`` (which
     the detection's second noise pass may have raised) or the noise at the signal: both are read
     off the residual, and where the model is wrong on the scale of a bin they are the misfit

@@ -10,7 +10,7 @@ residual itself so that correlated noise does not pass for a component) squared 
 GROW_TRIAL_FRACTION x ``significance_chi2`` -- or whose data term exceeds ``search_doubt_chi2``
 times its expected value, puts a Gaussian at that residual bump, polishes all atoms
 with the solver's compiled LM, and keeps the grown answer where it lowers the search's
-penalised objective (:func:`decomposition.search.penalised_objective`) and every pair of
+penalised objective (:func:`decomposition.stages.search.penalised_objective`) and every pair of
 Gaussians stays resolved (``RESOLVED_SIGMA`` widths apart, or no closer than before: a
 Gaussian that slid onto the direct splits a peak, it is not a component).
 
@@ -42,7 +42,7 @@ Poisson polish and the threshold: the pursuit, the search and the test above wei
 with the Poisson noise at the direct's peak, in which a faint echo where the counts are few is
 invisible.  Its trial position (:func:`residual_peak`) and its test before the refit
 (:func:`worth_refitting`) are those of the response path's echo step
-(:mod:`decomposition.response_grow`): one rule for both.
+(:mod:`decomposition.response.grow`): one rule for both.
 """
 from __future__ import annotations
 
@@ -51,14 +51,14 @@ import math
 import numpy as np
 
 from .candidates import each_block, polish_candidate
-from .constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_EXCLUDE_SIGMA,
+from ..constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_EXCLUDE_SIGMA,
                         GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
                         SWAP_MODE_GAP_SIGMA)
 
 from .countpolish import polish_count_state
-from .noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median
+from ..noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median
 from .objective import _smooth, objective_variance, penalised_objective
-from .model.slots import eval_atoms, parameter_bounds, put, render, take
+from ..model.slots import eval_atoms, parameter_bounds, put, render, take
 
 __all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]
@@ -174,7 +174,7 @@ def with_gaussian(st, delay_ps, lsig, amp=1.0):
 
 def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None, spectrum=None):
     """Polish the trials ``alt`` of rows ``idx`` (whose state is ``cur``) and put those into
-    ``out`` whose penalised objective (over :func:`decomposition.search.objective_variance`) is
+    ``out`` whose penalised objective (over :func:`decomposition.stages.search.objective_variance`) is
     lower and whose Gaussians stay resolved (RESOLVED_SIGMA widths apart, or no closer than
     before) -> the rows of ``idx`` taken.  ``weights`` (n, L): the samples' relative
     least-squares weights (default: all alike); ``spectrum``: the call's correlated noise
@@ -394,7 +394,7 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
 def grow_counts(samples, det, dic, opts):
     """The forward step of count data on the Gaussian path (``grow=True``, ``noise="poisson"``,
     after the Poisson polish and the threshold): the rule of the response path's echo trial
-    (:mod:`decomposition.response_grow`) with a Gaussian of the pixel's width.
+    (:mod:`decomposition.response.grow`) with a Gaussian of the pixel's width.
 
     The pursuit and the search weigh every sample with the Poisson noise at the direct's peak;
     a faint Gaussian where the counts are few (a 1 % echo 5 sigma above its own noise is 1 sigma
@@ -404,7 +404,7 @@ def grow_counts(samples, det, dic, opts):
     (:func:`residual_peak`) after its earliest Gaussian and more than GROW_EXCLUDE_SIGMA widths
     from its Gaussians; :func:`worth_refitting` tests it with the rest held
     (:func:`decomposition.noise.atom_gain`); it is polished with the rest (Poisson weights,
-    :func:`decomposition.countpolish.polish_count_state`) and kept where no atom was lost, the
+    :func:`decomposition.stages.countpolish.polish_count_state`) and kept where no atom was lost, the
     Gaussians stay resolved and the Poisson deviance drops by ``significance_chi2``.
     -> (state, grown (n_live,) bool).
     """

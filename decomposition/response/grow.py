@@ -1,6 +1,6 @@
 """Forward steps of the response path: the components its pursuit's single noise level misses.
 
-The pursuit (:mod:`decomposition.response_detect`) weighs every sample with one noise; for
+The pursuit (:mod:`decomposition.response.detect`) weighs every sample with one noise; for
 count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A component
 where the counts are few never pays its penalty there: at ~100 photons per pixel an sss tail,
 and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own Poisson
@@ -15,9 +15,9 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    that keeps a direct is taken where that direct is significant in it; where the fit without
    it lies within ``ambiguity_sigma`` sqrt(2 n) with a split more than ``ambiguity_split``
    away, or where a direct that explains nothing stays, the pixel is AMBIGUOUS (the search
-   stage's rule, :mod:`decomposition.search`); a direct that explains nothing where no sample
+   stage's rule, :mod:`decomposition.stages.search`); a direct that explains nothing where no sample
    sees it, far before its sss, is not reported (:func:`_unseen_direct`).  A pixel left with
-   an sss and no direct is AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response_path`).
+   an sss and no direct is AMBIGUOUS unless ``sss_alone`` (:mod:`decomposition.response.path`).
 0b. **A direct before the window** ("d" asked; its delay before the first sample, so only its
    falling edge is seen): refitted with the direct started at the window's edge and at
    EARLY_DIRECT_STARTS_SIGMA response widths before it, the pixel keeping the lowest deviance
@@ -54,12 +54,12 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
      Pearson residual makes one stray count a 7-sigma event), for Gaussian data
      the residual over the significance noise -- smoothed over the response's width and more
      than GROW_EXCLUDE_SIGMA widths from the pixel's shifted atoms
-     (:func:`decomposition.grow.residual_peak`, the Gaussian path's rule); refitted only where
-     :func:`decomposition.grow.worth_refitting` says so, and kept only where the refit lost no
+     (:func:`decomposition.stages.grow.residual_peak`, the Gaussian path's rule); refitted only where
+     :func:`decomposition.stages.grow.worth_refitting` says so, and kept only where the refit lost no
      atom and the shifted atoms stay resolved (RESOLVED_SIGMA widths apart, or no closer than
      before: an atom that slid onto the direct splits its peak).
 
-   Each trial is refitted with the rest (:func:`decomposition.response_refine.refit_slots`,
+   Each trial is refitted with the rest (:func:`decomposition.response.refine.refit_slots`,
    the Poisson likelihood for counts), and a pixel takes the trial of lowest deviance where it lowers
    its deviance (:func:`deviance`: the Poisson deviance for counts, RSS / s^2 with the
    significance noise otherwise) by at least ``significance_chi2`` -- the likelihood-ratio
@@ -83,16 +83,16 @@ from scipy.ndimage import convolve1d
 
 from core.irf import render_shifted, render_sss
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, render_profile
-from .constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS,
+from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS,
                         GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
                         RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
-from .grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
-from .noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
-from .response_atoms import slot_atoms
-from .response_refine import Slots, refit_slots
-from .model.slots import select_rows
-from .model.components import render_params
-from .model.fidelity import fidelity
+from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
+from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
+from .atoms import slot_atoms
+from .refine import Slots, refit_slots
+from ..model.slots import select_rows
+from ..model.components import render_params
+from ..model.fidelity import fidelity
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
 
@@ -102,7 +102,7 @@ class GrowContext:
 
     Parameters
     ----------
-    samples : decomposition.prepare.Samples
+    samples : decomposition.stages.prepare.Samples
     irf : InstrumentResponse           on the samples' step
     held : ndarray (n,)                the offset already subtracted from the profiles, units
     fit_bg : bool                      the offset is fitted jointly (the ``b`` family)
@@ -339,7 +339,7 @@ def _held_gain(ctx: GrowContext, rows, mu, phi):
 def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
     """The echo trial of the pixels ``rows`` (their model ``mu`` (m, L)) -> (slots, deviance,
     tried (m,) bool).  Pixels
-    whose trial :func:`decomposition.grow.worth_refitting` turns down (its atom at the trial
+    whose trial :func:`decomposition.stages.grow.worth_refitting` turns down (its atom at the trial
     position with the rest held, :func:`_held_gain`) are not refitted (deviance inf)."""
     sub = _sub(cur, rows)
     m, K = sub.fam.shape

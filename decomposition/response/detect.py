@@ -1,10 +1,10 @@
 """Detection with a measured response: greedy sparse coding over a ResponseDictionary.
 
-The response-path counterpart of :mod:`decomposition.detect`.  For every block of live pixels,
+The response-path counterpart of :mod:`decomposition.stages.detect`.  For every block of live pixels,
 atoms are added one at a time (orthogonal greedy pursuit with continuous relocation):
 
 1. correlate every pixel's residual with every atom of the
-   :class:`~decomposition.irf_dictionary.ResponseDictionary` (the response at sub-bin phases,
+   :class:`~decomposition.response.dictionary.ResponseDictionary` (the response at sub-bin phases,
    and for sss at a few alphas), by FFT on the whole block;
 2. the best atom of each pixel is the one of largest decrease of the residual sum of
    squares, c^2 / ||atom||^2, among the positive ones (light is non-negative), the families
@@ -15,7 +15,7 @@ atoms are added one at a time (orthogonal greedy pursuit with continuous relocat
    (s the pixel's noise); a pixel whose best atom does not pay stops;
 4. all the kept atoms of the pixels that grew are refined together: delays and alpha by
    variable projection, amplitudes by linear least squares
-   (:func:`decomposition.response_refine.fit_slots`, ``n_lm`` iterations).
+   (:func:`decomposition.response.refine.fit_slots`, ``n_lm`` iterations).
 
 Atoms whose amplitude ends non-positive are dropped at the end and the amplitudes re-solved.
 Where the pursuit ends without an sss but with several shifted atoms, a second pursuit with
@@ -27,11 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS
-from .irf_dictionary import FAM_SHIFTED, ResponseDictionary
-from .options import SolverOptions
-from .prepare import Samples
-from .response_refine import fit_slots
+from ..constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS
+from .dictionary import FAM_SHIFTED, ResponseDictionary
+from ..options import SolverOptions
+from ..stages.prepare import Samples
+from .refine import fit_slots
 
 __all__ = ["ResponseDetection", "detect_response", "response_dictionary", "RESPONSE_PHASES"]
 

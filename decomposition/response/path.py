@@ -3,22 +3,22 @@
 Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, quality
 (shared) -- with the response's atoms in place of the Gaussian PSF:
 
-* detect: greedy sparse coding over the response's dictionary (:mod:`decomposition.response_detect`);
-* label: threshold, merge, physics labels (:mod:`decomposition.response_label`);
+* detect: greedy sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
+* label: threshold, merge, physics labels (:mod:`decomposition.response.label`);
 * refine: every pixel's delays and sss alpha by variable projection, amplitudes by linear
-  least squares (:mod:`decomposition.response_refine`), with the order kept (no
+  least squares (:mod:`decomposition.response.refine`), with the order kept (no
   inter-reflection before the direct, no sss onset before it with ``sss_after_direct``);
   count data (``noise="poisson"``) fitted to their Poisson deviance instead, by Fisher
   scoring over delays, alphas and amplitudes together (the Poisson maximum-likelihood fit,
-  :func:`decomposition.response_refine.fit_slots` with ``CountData``);
-* forward steps (:mod:`decomposition.response_grow`): a direct where a fast sss took its
+  :func:`decomposition.response.refine.fit_slots` with ``CountData``);
+* forward steps (:mod:`decomposition.response.grow`): a direct where a fast sss took its
   light (AMBIGUOUS where the data do not determine it), an sss for count data's pixels left
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
 * standard errors (``stderr``): the Fisher information of the response's atoms and a kept
   offset, for count data with the Poisson weights of the fitted model
-  (:mod:`decomposition.response_fisher`).
+  (:mod:`decomposition.response.fisher`).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
 (``n_lm`` iterations per added atom) and there is no grid to snap to.
@@ -32,21 +32,21 @@ import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
-from .background import background_significant, background_threshold
-from .model.components import runs_off_window
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, SSS_SLOT
-from .flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
-from .label import at_bound
-from .noise import fit_dispersion, poisson_weights
-from .options import GridSpec, SolverOptions
-from .prepare import Samples
-from .refit import background_stats
-from .response_atoms import slot_window_fraction
-from .response_detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .response_fisher import slot_standard_errors
-from .response_label import label_response, param_slots
-from .response_grow import GrowContext, grow_response
-from .response_refine import refit_slots
+from ..stages.background import background_significant, background_threshold
+from ..model.components import runs_off_window
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, SSS_SLOT
+from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
+from ..stages.label import at_bound
+from ..noise import fit_dispersion, poisson_weights
+from ..options import GridSpec, SolverOptions
+from ..stages.prepare import Samples
+from ..stages.refit import background_stats
+from .atoms import slot_window_fraction
+from .detect import RESPONSE_PHASES, detect_response, response_dictionary
+from .fisher import slot_standard_errors
+from .label import label_response, param_slots
+from .grow import GrowContext, grow_response
+from .refine import refit_slots
 
 __all__ = ["ResponseOutcome", "decompose_with_response"]
 
@@ -63,7 +63,7 @@ class ResponseOutcome:
 
 def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components) -> ResponseOutcome:
     """Detect, label and refine the components of every live pixel with the response ``irf``
-    (on the samples' time step, see :func:`decomposition.response_input.resolve_response`)."""
+    (on the samples' time step, see :func:`decomposition.response.resolve.resolve_response`)."""
     P, L, R = samples.values.shape[0], samples.n_bins, opts.max_reflections
     ax = samples.axis
     t = ax.t0_ps + ax.time_bin_ps * np.arange(L)

@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import POISSON_REFITS
+from ..constants import POISSON_REFITS
 from .detect import Detection, solver_inputs
-from .noise import count_deviance, poisson_weights
-from .options import SolverOptions
+from ..noise import count_deviance, poisson_weights
+from ..options import SolverOptions
 from .prepare import Samples
-from .model.slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
+from ..model.slots import drop_zero, parameter_bounds, put, refine_atoms, render, take
 
 __all__ = ["count_weights", "polish_count_state", "polish_counts"]
 

@@ -115,7 +115,7 @@ def spike_neighbour_ratio(irf: InstrumentResponse, time_bin_ps: float, min_rel: 
     """r_min of the spike test for components shaped like ``irf``: the smallest ratio of the
     larger neighbour to a sample, max(c(u - T), c(u + T)) / c(u), over every sample u of a
     shifted copy of the response (SPIKE_PHASES sub-bin shifts) that reaches ``min_rel`` of its
-    peak -- a smaller sample is no spike candidate (:func:`decomposition.prepare.find_spikes`
+    peak -- a smaller sample is no spike candidate (:func:`decomposition.stages.prepare.find_spikes`
     leaves spikes under ``min_rel`` of the pixel's peak alone).  The counterpart of the Gaussian
     path's exp(-T^2 / (2 sigma_min^2)); in [0, 1], 0 for a response with no neighbour above zero
     (a single sample: no spike can be told from it).

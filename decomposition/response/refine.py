@@ -1,6 +1,6 @@
 """Continuous refinement of response atoms: variable projection on blocks of pixels.
 
-For a pixel with K slots (:mod:`decomposition.response_atoms`) the model is
+For a pixel with K slots (:mod:`decomposition.response.atoms`) the model is
 m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
 amplitudes enter linearly and are never iterated: for any theta they are the weighted
 least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
@@ -26,10 +26,10 @@ import numpy as np
 
 from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY, render_profile
-from .constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
-from .noise import count_deviance, poisson_weights
-from .response_atoms import slot_atoms
-from .response_label import slots_to_params
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
+from ..noise import count_deviance, poisson_weights
+from .atoms import slot_atoms
+from .label import slots_to_params
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
 
