@@ -10,7 +10,7 @@ from decomposition.model.components import off_window, threshold, window_fractio
 from decomposition.constants import FAM_GAUSS, FAM_SSS
 from decomposition.flags import FLAG_NAMES, OFF_WINDOW, POOR_FIT
 from decomposition.options import parse_components
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 from decomposition.model.refine import refine
 from decomposition.model.slots import new_state
 
@@ -366,7 +366,7 @@ def test_pink_noise_bumps_are_mostly_not_significant_components():
     the significance route turns the noise's slow bumps into 3.3 extra components per pixel;
     with the noise across SIGNIFICANCE_LAG_BINS samples, 0.77 (the relative rule alone: 0).
     The energy test assumes white noise; this keeps its error on correlated noise bounded."""
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     rng = np.random.default_rng(12)
     n, L = 60, 512

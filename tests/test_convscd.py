@@ -11,7 +11,7 @@ from decomposition.masks import SampleMask
 from decomposition.noise import masked_median, noise_sigma
 from decomposition.model.slots import parameter_bounds
 from decomposition.kernels.pick import closed_form
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 T = 2.0
 

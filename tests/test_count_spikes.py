@@ -10,7 +10,7 @@ from decomposition.flags import EMPTY, SPIKE
 from decomposition.noise import anscombe, count_dispersion, is_count_data
 from decomposition.options import GridSpec, OptionError, SolverOptions
 from decomposition.stages.prepare import _count_threshold, prepare_samples, resolve_noise_model, time_axis
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 N_PIXELS = 3000
 L = 512

@@ -322,7 +322,7 @@ def test_npy_input_without_components(tmp_path):
 
 def test_the_background_family_is_stored_in_signal_units(tmp_path):
     # components d,s,b: the fitted offset is a map of the store, in the cube's units
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(12, 256, seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper", photons_per_pixel=1000.0,
                       background=0.05)
@@ -338,7 +338,7 @@ def test_the_background_family_is_stored_in_signal_units(tmp_path):
 
 
 def test_a_cube_of_mostly_poor_fits_gets_a_note_naming_the_usual_causes(tmp_path, capsys):
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(16, 256, nsr=0.01, noise="white", seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper",
                       background=0.05, bin_integrated=True)

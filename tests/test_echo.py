@@ -14,7 +14,7 @@ import pytest
 from core.irf_models import gaussian_response, tailed_response
 from core.model import empty_params, render_profile
 from decomposition import decompose
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 from streaklab.bench.realism import effect_setup, echo_found, five_sigma_photons
 
 T = 2.0

@@ -249,7 +249,7 @@ def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_pat
     import sys
     from pathlib import Path
 
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
 
     root = Path(__file__).resolve().parents[1]
     np.save(tmp_path / "c.npy", make_cube(1, 8, 96, nsr=0.05, seed=1).noisy)

@@ -166,7 +166,7 @@ def test_bump_spread_is_one_for_white_noise_and_larger_for_pink():
     noise sigmas the matched-filter scale makes it 1, for pink noise (the same sample sigma,
     most power at low frequencies) component-sized bumps are larger than that."""
     from decomposition.stages.grow import residual_peak
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     n = 200
     t = T_PS * (1 + np.arange(L_BINS))
@@ -201,7 +201,7 @@ def test_near_centres_matches_the_distance_rule():
 def _paper_pixels_sss_took_the_first():
     """Paper-scene pixels (white NSR 0.055, seed 1) whose first inter-reflection the detected
     sss takes in (its onset moved 5-13 ps late), with no residual bump left for the bump test."""
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, L_BINS, nsr=0.055, noise="white", seed=1, kinds=["a", "b", "c"], time_bin_ps=T_PS,
                       ranges="paper", bin_integrated=True)
@@ -311,7 +311,7 @@ def test_significance_noise_from_the_residual_is_the_white_noise_sigma():
 
 def test_significance_noise_keeps_the_profile_value_for_pink_noise_and_counts():
     from decomposition.stages.candidates import residual_significance_noise
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     n = 30
     clean = render_profile(_weak_first(n, 0.3, sss_amplitude=0.3), L_BINS, T_PS)

@@ -66,7 +66,7 @@ def test_real_weights_work_as_weights_in_the_refinement():
 
 
 def test_saturated_samples_are_censored_end_to_end():
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     y = make_profiles(6, 256, nsr=0.01, noise="white", seed=2).noisy
     level = 0.8 * np.abs(y).max(axis=1, keepdims=True)

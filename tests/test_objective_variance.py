@@ -7,7 +7,7 @@ from decomposition import decompose
 from decomposition.constants import WHITE_LAG_RATIO
 from decomposition.model.fidelity import fidelity
 from decomposition.stages.objective import objective_variance
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 
 def test_the_significance_noise_takes_over_only_where_the_noise_is_correlated():

@@ -10,10 +10,10 @@ from decomposition.kernels.pick import select
 from decomposition.methods.score import score_pixel
 from decomposition import decompose
 from decomposition.api import SPIKE
-from decomposition.metrics import mean_fidelity
+from decomposition.evaluation.metrics import mean_fidelity
 from core.model import sss_kernel
 from decomposition.kernels.pickcorr import PickWorkspace, pixel_correlations
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 SIGMAS = np.array([0.3, 1.0, 2.0, 4.5, 10.0])             # 0.3 ps: below one bin at T = 2 ps
 ALPHAS = np.array([1e-4, 0.01, 0.0224, 0.05, 5.0])

@@ -7,7 +7,7 @@ import pytest
 from core.model import empty_params, render_profile
 from decomposition import decompose
 from decomposition.model.fisher import cramer_rao_bound, standard_errors
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 L, T = 512, 2.0
 # median of |N(0, 1)|: median |error| / stderr of a calibrated standard error

@@ -75,7 +75,7 @@ def test_prune_reaches_a_gaussian_four_to_six_widths_after_the_direct():
     # (fidelity 0.42 and 0.18), at 6 it drops that Gaussian and the onset moves back
     from decomposition import decompose
     from decomposition.constants import PRUNE_GAP_SIGMA
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=0, ranges="paper", bin_integrated=True)
     px = [12, 91]
@@ -113,7 +113,7 @@ def test_prune_keeps_a_true_close_inter_reflection():
 def test_decompose_prunes_on_paper_scenes_and_fidelity_does_not_drop():
     from decomposition import decompose
     from decomposition.stages.prune import close_gaussian  # noqa: F401
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     data = make_profiles(300, 512, nsr=0.001, seed=0, ranges="paper", bin_integrated=True)
     on = decompose(data.noisy, 2.0)
@@ -142,7 +142,7 @@ def test_prune_clears_an_sss_hump_filled_with_several_gaussians(nsr, px):
     # the onset moved back and the forward step once recovers the scene, its echoes included.
     from decomposition import decompose
     from decomposition.model.fidelity import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=nsr, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)
@@ -164,7 +164,7 @@ def test_prune_reads_a_fast_sss_hump_as_the_echo_it_took(monkeypatch):
     # took every slot, so the swap (which needs a free one) never tried it; fidelity 0.12.
     import decomposition.stages.prune as prune
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.055, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)

@@ -235,7 +235,7 @@ def test_shared_sigma_fits_one_width_per_pixel():
 # ---- integration with decompose(): refine=True / stderr=True ------------------------------------
 
 def _synthetic(n, nsr, seed, kinds=("a", "b", "c"), n_bins=256):
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     return make_profiles(n, n_bins, nsr=nsr, noise="white", seed=seed, kinds=kinds, time_bin_ps=T)
 

@@ -12,7 +12,7 @@ from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
 from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
                                   take_rescued)
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 
 def test_free_parameters_count_each_component_and_one_shared_width():

@@ -7,7 +7,7 @@ from core.irf_models import gaussian_response
 from core.model import empty_params
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-from decomposition.poisson_reference import poisson_reference_bound
+from decomposition.evaluation.poisson_reference import poisson_reference_bound
 from decomposition.response.fisher import slot_standard_errors
 
 T_PS, L = 2.0, 256

@@ -111,7 +111,7 @@ def test_decompose_search_finds_the_direct_that_the_greedy_start_gives_to_the_ss
 
 def test_every_output_is_labelled_by_physics_and_has_one_width_per_pixel():
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     for search in (True, False):
         data = make_profiles(90, 512, nsr=0.055, seed=3, ranges="paper", bin_integrated=True)
@@ -130,7 +130,7 @@ def test_every_output_is_labelled_by_physics_and_has_one_width_per_pixel():
 
 def test_shared_sigma_holds_exactly_on_make_profiles_data():
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     data = make_profiles(512, 256, nsr=0.05, seed=0)
     p = decompose(data.noisy, 2.0).params
@@ -308,7 +308,7 @@ def test_search_finds_a_narrow_direct_the_detection_made_wide(nsr, pixels):
     # flagged POOR_FIT and AMBIGUOUS, while the mean fidelity at 4 ps rises: see
     # SEARCH_RISE_MIN_BINS)
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=nsr, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -327,7 +327,7 @@ def test_the_wide_start_keeps_the_small_sss_of_a_wide_direct():
     # width it finds the scene
     from decomposition import decompose
     from decomposition.model.fidelity import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -351,7 +351,7 @@ def test_where_every_start_misfits_the_starts_get_the_forward_step():
     from decomposition.flags import POOR_FIT
     from decomposition.model.fidelity import fidelity
     from decomposition.stages.search import MISFIT_GROWN_STARTS
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     assert "edge" in MISFIT_GROWN_STARTS
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
@@ -380,7 +380,7 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
     import decomposition.stages.search as search
     from decomposition import decompose
     from decomposition.model.fidelity import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -445,7 +445,7 @@ def test_a_weak_gaussian_on_the_directs_leading_edge_puts_the_pixel_in_doubt():
     labelled an inter-reflection (fidelity -0.59, flagged AMBIGUOUS only).  No other doubt
     test takes it; the weak leading Gaussian does, and the rise start finds the split."""
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.11, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)

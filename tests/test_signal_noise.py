@@ -7,7 +7,7 @@ from decomposition import decompose
 from decomposition.constants import SIGNAL_NOISE_FLOOR_FRACTION
 from decomposition.noise import signal_variance
 from decomposition.options import OptionError
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 L = 400
 

@@ -8,7 +8,7 @@ from decomposition.model.fidelity import fidelity
 from decomposition.noise import residual_spectrum, whitened_chi2
 from decomposition.noise import SpectralNoise
 from decomposition.stages.objective import objective_variance
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 L = 256
 

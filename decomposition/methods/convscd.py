@@ -103,7 +103,7 @@ components automatically, costs a handful of FFT passes per pixel, and gives
 off-grid parameters.
 
 Performance.  Measured on the 2-core machine with 1024 synthetic pixels
-(``decomposition.synthetic.make_profiles(1024, 512, nsr=0.05,
+(``decomposition.evaluation.synthetic.make_profiles(1024, 512, nsr=0.05,
 noise="white", seed=0)``, kinds a, b, c; ``decompose(profiles,
 time_bin_ps=2.0)`` with default options, one process, best of 3 after a
 warm-up call) and with ``streaklab bench speed --methods convscd``

@@ -6,14 +6,14 @@ log-spaced grid from 0.001 to 0.2 (plus 0.005 and 0.055, the paper's two referen
 or the values of ``--nsr``), the same synthetic scenes of the Fig. 3(a)-(c) kinds (d+s,
 d+s+r2, d+s+r2+r3, in equal shares) are decomposed by ConvSCD and by GradBM through
 :func:`decomposition.decompose`, and fitted by the oracle
-(:func:`decomposition.oracle.oracle_fit`: least squares of the true component set started at
+(:func:`decomposition.evaluation.oracle.oracle_fit`: least squares of the true component set started at
 the true parameters, a ceiling for any method) and by the same oracle on the significant
-components only (``detectable``, :func:`decomposition.oracle.significant_truth`: the ceiling of
+components only (``detectable``, :func:`decomposition.evaluation.oracle.significant_truth`: the ceiling of
 a method that finds every component the noise leaves visible and no other).  On bin-integrated
 scenes also by the ``own-model`` ceiling: the oracle with the components rendered point-sampled,
 as ``decompose`` renders them; the oracle's lead over it is what that rendering costs, its lead
 over a method what the method's search and model selection cost.  Scenes come from a preset of
-:data:`decomposition.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
+:data:`decomposition.evaluation.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
 rendered bin-integrated; ``legacy`` for the original generator, point-sampled).
 ``--option KEY=VALUE`` (repeatable) decomposes the ConvSCD rows with that solver option, as
 ``streaklab decompose --option`` takes it (``rescue=false``: without the second pass for a
@@ -71,7 +71,7 @@ TARGET_NSR = 0.055
 TARGET_FLOOR_NSR = 0.005
 NOISES = ("white", "pink", "photon")
 #: Noise types --noise accepts besides the default three: "camera", the shot noise of one camera
-#: (one photon scale for every pixel; decomposition.synthetic_noise), where the NSR of the
+#: (one photon scale for every pixel; decomposition.evaluation.synthetic_noise), where the NSR of the
 #: point is that of all its pixels together.
 EXTRA_NOISES = ("camera",)
 # Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.stages.search
@@ -80,7 +80,7 @@ EXTRA_METHODS = ("search",)
 #: the "any flag" row of the flag table: every bit of the 16-bit flags
 ANY_FLAG = 0xFFFF
 ORACLE = "oracle"
-#: the oracle on the significant component set (decomposition.oracle.significant_truth)
+#: the oracle on the significant component set (decomposition.evaluation.oracle.significant_truth)
 DETECTABLE = "detectable"
 CEILINGS = (ORACLE, DETECTABLE)
 #: the oracle in the solver's own model: the true component set, started at the truth, rendered
@@ -89,8 +89,8 @@ CEILINGS = (ORACLE, DETECTABLE)
 #: model's rendering costs, the gap between a method and it what the method's search costs
 OWN_MODEL = "own-model"
 #: the detectable ceiling's component set fitted once more from ConvSCD's answer mapped onto it
-#: (:func:`decomposition.best_found.answer_start`, its width included), and per pixel the fit of
-#: lower least-squares cost kept (:func:`decomposition.best_found.lowest_cost`): the best fit of
+#: (:func:`decomposition.evaluation.best_found.answer_start`, its width included), and per pixel the fit of
+#: lower least-squares cost kept (:func:`decomposition.evaluation.best_found.lowest_cost`): the best fit of
 #: that set the two starts find.  Started at the truth, the detectable ceiling stays in the
 #: optimum nearest it; where the cost is flat (a direct and an sss onset trading light, a direct
 #: narrower than a bin) no method that must find its own start is told to stop there.  The gap
@@ -179,8 +179,8 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
     parameters) mapped onto it, the lower least-squares cost kept per pixel (a tie: the
     detectable ceiling's)."""
     from core.model import time_axis_ps
-    from decomposition.best_found import MATCH_WIDTHS, answer_start, lowest_cost
-    from decomposition.oracle import oracle_fit
+    from decomposition.evaluation.best_found import MATCH_WIDTHS, answer_start, lowest_cost
+    from decomposition.evaluation.oracle import oracle_fit
 
     t = time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps)
     start = answer_start(seen, answer, delay_range_ps=(float(t[0]), float(t[-1])),
@@ -216,7 +216,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     methods : sequence of str
         Solver methods (``convscd``, ``gradbm``); the oracle is always added.
     scenes : str
-        Scene preset (:data:`decomposition.synthetic.SCENE_PRESETS`).
+        Scene preset (:data:`decomposition.evaluation.synthetic.SCENE_PRESETS`).
     bin_integrated : bool
         Render the scenes bin-integrated (the oracle fits them with the same rendering).
     options : dict, optional
@@ -237,9 +237,9 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition import decompose
     from decomposition.api import FLAG_NAMES
     from core.model import render_components
-    from decomposition.oracle import oracle_fit, significant_truth
+    from decomposition.evaluation.oracle import oracle_fit, significant_truth
     from decomposition.stages.search import structured_search
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     from decomposition.options import SolverOptions
 
@@ -534,7 +534,7 @@ def _print_levels(summary, nsrs, prefix=""):
 
 
 def run(args) -> int:
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     from .scoring import GAP_CEILING, format_regime_table, target_entry, target_line, target_records
 

@@ -2,7 +2,7 @@
 precision and recall, direct-delay failures, and the accuracy targets.
 
 Regimes (:data:`REGIMES`) are bins of the per-pixel variables of
-:func:`decomposition.synthetic.regime_variables`: the sss peak over the direct's, the sss
+:func:`decomposition.evaluation.synthetic.regime_variables`: the sss peak over the direct's, the sss
 onset after the direct in PSF widths, the PSF sigma in bins, the number of
 inter-reflections and the weakest inter-reflection's peak over the direct's.  Each variable partitions the pixels (pixels where it is undefined, e.g.
 without an sss, form an ``n/a`` row), so every variable's rows add up to the total.
@@ -78,7 +78,7 @@ def regime_rows(regimes: dict, fidelities: dict, *, reference: str = "oracle",
     Parameters
     ----------
     regimes : dict of ndarray, (N,)
-        Regime variables per pixel (:func:`decomposition.synthetic.regime_variables`).
+        Regime variables per pixel (:func:`decomposition.evaluation.synthetic.regime_variables`).
     fidelities : dict of str -> ndarray, (N,)
         Per-pixel fidelity of each method (and of ``reference``) on the same pixels.
     reference : str

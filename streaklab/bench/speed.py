@@ -103,11 +103,11 @@ def _parse_workers(text):
 def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy", photons=None):
     """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds.
 
-    ``scenes`` names a preset of :data:`decomposition.synthetic.SCENE_PRESETS`; ``paper``
+    ``scenes`` names a preset of :data:`decomposition.evaluation.synthetic.SCENE_PRESETS`; ``paper``
     scenes are rendered bin-integrated, ``legacy`` ones point-sampled.  With ``photons`` the
     samples are Poisson counts of the clean profiles scaled to that many expected photons per
     pixel (``nsr`` is then unused)."""
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
     from reconstruction.cubestore import create_cube
 
     ny, nx, nt = shape
@@ -289,7 +289,7 @@ def run(args) -> int:
             options = parse_solver_options(args.option, method, check_values=True)
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     if args.photons is not None and not (np.isfinite(args.photons) and args.photons > 0):
         raise CommandError(f"--photons must be a positive number, got {args.photons:g}")

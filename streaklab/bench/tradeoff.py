@@ -5,7 +5,7 @@ to the paper's 500 x 500 (parameters snapped to the grid, as in the paper, and
 continuous), each with and without the off-grid refinement of
 :mod:`decomposition.model.refine`, and the GradBM baseline -- the benchmark decomposes
 the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds (``--scenes``: the
-``paper`` preset of :data:`decomposition.synthetic.SCENE_PRESETS` by default, bin-integrated;
+``paper`` preset of :data:`decomposition.evaluation.synthetic.SCENE_PRESETS` by default, bin-integrated;
 or ``legacy``, point-sampled) at NSR 0.01,
 0.055 and 0.11 under white, pink and photon noise, and records
 
@@ -15,7 +15,7 @@ or ``legacy``, point-sampled) at NSR 0.01,
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
   mistaken for another component; the median shows the accuracy of the typical pixel),
-* the oracle's mean fidelity on the same data (:func:`decomposition.oracle.oracle_fit`: the true
+* the oracle's mean fidelity on the same data (:func:`decomposition.evaluation.oracle.oracle_fit`: the true
   component set fitted by least squares from the true parameters, what the data allow) and
   each setting's gap to it; for the default setting and GradBM also per regime (sss/direct
   peak ratio, onset in sigma, sigma in bins, number of inter-reflections;
@@ -161,7 +161,7 @@ def _crb(data):
 def _oracle(data):
     """Per-pixel fidelity of the oracle on ``data`` (the true set fitted from the truth)."""
     from decomposition.model.fidelity import fidelity
-    from decomposition.oracle import oracle_fit
+    from decomposition.evaluation.oracle import oracle_fit
 
     fit = oracle_fit(data.noisy, data.params, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps,
                      bin_integrated=data.bin_integrated)
@@ -170,7 +170,7 @@ def _oracle(data):
 
 def _measure(data, comps, params, seconds, crb, oracle_fid):
     from decomposition.model.fidelity import fidelity
-    from decomposition.metrics import parameter_error
+    from decomposition.evaluation.metrics import parameter_error
 
     n = data.noisy.shape[0]
     fid = fidelity(data.components, comps)
@@ -299,7 +299,7 @@ def _parse_list(text, cast, name):
 def run(args) -> int:
     from streaklab.cli import CommandError
 
-    from decomposition.synthetic import NOISE_TYPES, make_profiles
+    from decomposition.evaluation.synthetic import NOISE_TYPES, make_profiles
 
     quick = bool(args.quick)
     n_pixels = args.n_pixels if args.n_pixels is not None else (12 if quick else 240)
@@ -318,7 +318,7 @@ def run(args) -> int:
     bad = [n for n in noises if n not in NOISE_TYPES]
     if bad:
         raise CommandError(f"unknown noise type(s) {bad}; choose from {list(NOISE_TYPES)}")
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     scenes = str(args.scenes).strip().lower()
     if scenes not in SCENE_PRESETS:

@@ -151,7 +151,7 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
 
 
 def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
     from streaklab.commands.simulate import write_simulation
 
     cube_path = out / "cube.zarr"

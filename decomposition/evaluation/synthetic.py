@@ -1,7 +1,7 @@
 """Synthetic transient time profiles with known ground truth (the paper's Fig. 3).
 
-Scenes (kinds, parameter ranges, presets, regimes) are drawn by :mod:`decomposition.scenes`, noise
-by :mod:`decomposition.synthetic_noise`; this module renders them into profiles and cubes and
+Scenes (kinds, parameter ranges, presets, regimes) are drawn by :mod:`decomposition.evaluation.scenes`, noise
+by :mod:`decomposition.evaluation.synthetic_noise`; this module renders them into profiles and cubes and
 keeps all of their public names.
 
 A synthetic pixel holds any subset of the component classes
@@ -35,8 +35,8 @@ Rendering: point samples of the model at the bin centres (the solver's own model
 form (:func:`render_bin_integrated`), as a detector bin records it.
 
 Noise: one of the paper's three fundamental types ("photon", "detector" (pink), "white"; see
-:mod:`decomposition.synthetic_noise`), rescaled per pixel to the exact requested NSR.
-Effects beyond the paper's model, on request (:mod:`decomposition.synthetic_effects`): a
+:mod:`decomposition.evaluation.synthetic_noise`), rescaled per pixel to the exact requested NSR.
+Effects beyond the paper's model, on request (:mod:`decomposition.evaluation.synthetic_effects`): a
 non-Gaussian instrument response (``response=``), a constant background (``background=``),
 true photon counts at a chosen level (``photons_per_pixel=``, integer Poisson counts instead
 of the NSR noise), a weak late echo (``echo_ratio=``) and a direct reflection before the
@@ -266,7 +266,7 @@ def make_profiles(n_pixels: int, n_bins: int, *, nsr: float = 0.0, noise: str = 
         (counts are bin integrals), else False.
     response : core.irf.InstrumentResponse, optional
         Render every component with this instrument response instead of the Gaussian PSF
-        (see :mod:`decomposition.synthetic_effects`).  The scene is then laid out with one
+        (see :mod:`decomposition.evaluation.synthetic_effects`).  The scene is then laid out with one
         width for every pixel, the response's FWHM / 2.355, which is what the
         ``*_sigma_ps`` keys of the truth hold.
     background : float

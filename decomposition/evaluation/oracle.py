@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import render_components
-from .model.refine import refine
+from ..model.refine import refine
 
 __all__ = ["OracleOptions", "OracleFit", "oracle_fit", "significant_truth"]
 
@@ -119,7 +119,7 @@ def significant_truth(truth_params: dict, components: dict, noise_sigma, *, sign
         True parameters (shapes S and S + (R,), NaN = absent).
     components : dict of ndarray
         The true components as rendered in the data: ``direct`` and ``sss`` S + (L,),
-        ``interreflections`` S + (R, L) (:attr:`decomposition.synthetic.SyntheticData.components`).
+        ``interreflections`` S + (R, L) (:attr:`decomposition.evaluation.synthetic.SyntheticData.components`).
     noise_sigma : array_like, S or S + (L,)
         Standard deviation of each pixel's noise, in the profiles' units; or of each sample's
         (photon counts: the square root of the expected counts), where the energy is then

@@ -1,6 +1,6 @@
 """Instrument and scene effects of synthetic profiles beyond the paper's model.
 
-:func:`decomposition.synthetic.make_profiles` renders the paper's model (Gaussian PSF, no
+:func:`decomposition.evaluation.synthetic.make_profiles` renders the paper's model (Gaussian PSF, no
 background, noise at an exact NSR) by default.  On request it adds what real streak-camera
 and photon-counting data hold (the options of :class:`SyntheticEffects`):
 
@@ -29,7 +29,7 @@ sinc(omega T / 2)), so :func:`bin_averaged_response` returns the box-filtered re
 the same two renderers give bin-averaged atoms of both kinds (the box commutes with the sss
 exponential).  Atoms keep the peak normalisation of the unfiltered response, so an
 amplitude is the peak height of the point-sampled component, as in
-:func:`decomposition.synthetic.render_bin_integrated`.
+:func:`decomposition.evaluation.synthetic.render_bin_integrated`.
 """
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def _range(name, value):
 
 @dataclass(frozen=True)
 class SyntheticEffects:
-    """Validated effect options of :func:`decomposition.synthetic.make_profiles`.
+    """Validated effect options of :func:`decomposition.evaluation.synthetic.make_profiles`.
 
     The defaults add nothing: profiles are then exactly those of the paper's model.
 

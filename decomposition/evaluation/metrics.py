@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model.fidelity import fidelity
+from ..model.fidelity import fidelity
 
 __all__ = [
     "mean_fidelity",

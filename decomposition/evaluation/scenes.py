@@ -4,7 +4,7 @@ Scene kinds (the paper's Fig. 3 and any other subset, :func:`parse_kind`), the p
 ranges (:class:`SceneRanges`, with the named presets of :data:`SCENE_PRESETS`: ``legacy``, the
 default, and ``paper``, the paper's parameter space), the draw of one parameter set per pixel
 (:func:`draw_params`) and each pixel's regime (:func:`regime_variables`).  Rendering and noise
-are :mod:`decomposition.synthetic` and :mod:`decomposition.synthetic_noise`.
+are :mod:`decomposition.evaluation.synthetic` and :mod:`decomposition.evaluation.synthetic_noise`.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The best-found fit of the true component set: the truth's start and an answer's, the lower cost kept.
 
 A fit of the true component set started at the true parameters (the oracle,
-:mod:`decomposition.oracle`; the Poisson reference, :mod:`decomposition.poisson_reference`)
+:mod:`decomposition.evaluation.oracle`; the Poisson reference, :mod:`decomposition.evaluation.poisson_reference`)
 stays in the optimum nearest the truth.  Where the data leave a valley of nearly equal cost
 (a direct and an sss onset trading light, a direct narrower than a bin) or a second, lower
 optimum, that fit is closer to the truth than any method that must find its own start can be

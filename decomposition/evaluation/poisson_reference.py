@@ -1,10 +1,10 @@
 """The Poisson reference: maximum likelihood of photon counts with the true response and set.
 
-For synthetic photon counts with known ground truth (:func:`decomposition.synthetic.make_profiles`
+For synthetic photon counts with known ground truth (:func:`decomposition.evaluation.synthetic.make_profiles`
 with ``photons_per_pixel=``), the reference fits each pixel's *true* component set (direct,
 sss, inter-reflections, and a constant background where one is given) with the *true*
 instrument response, started *at the true parameters*, by maximising the Poisson likelihood
-of the counts -- what the least-squares oracle (:mod:`decomposition.oracle`) is for Gaussian
+of the counts -- what the least-squares oracle (:mod:`decomposition.evaluation.oracle`) is for Gaussian
 noise.  It never decides which components are there nor searches for a start, so its errors
 are what the counts allow: a method's bias and RMSE are measured beside it.
 
@@ -14,7 +14,7 @@ Model of pixel p (expected counts per bin, bin i at t_i)::
 
 with A the response's shifted copy and S the response convolved with exp(-alpha t) u(t)
 (:func:`core.irf.render_shifted`, :func:`core.irf.render_sss`, peak-normalised), bin-averaged
-by default (:func:`decomposition.synthetic_effects.bin_averaged_response`).  The fit minimises
+by default (:func:`decomposition.evaluation.synthetic_effects.bin_averaged_response`).  The fit minimises
 the Poisson deviance
 
     D = 2 sum_i [y_i log(y_i / mu_i) - (y_i - mu_i)]      (y log y = 0 at y = 0)
@@ -50,7 +50,7 @@ import numpy as np
 from core.irf import InstrumentResponse, render_shifted, render_sss
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 
-from .noise import poisson_deviance
+from ..noise import poisson_deviance
 from .synthetic_effects import bin_averaged_response, response_sigma_ps
 from .best_found import lowest_cost
 
@@ -87,7 +87,7 @@ class PoissonReferenceOptions:
         with its amplitude growing to match the edge it leaves).  A step leaving it is refused.
     sss_after_direct : bool
         The sss onset stays at or after the direct (the paper's model: light enters where the
-        direct is reflected; every scene of :mod:`decomposition.synthetic` holds it): a step
+        direct is reflected; every scene of :mod:`decomposition.evaluation.synthetic` holds it): a step
         that would put it before is projected onto the direct's delay, as the solver's
         refinement does.  False lets the onset go anywhere the deviance takes it.
     """
