@@ -32,7 +32,7 @@ OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian (or a
                   are extrapolated, only its in-window part was judged
 =========== ===== ==============================================================
 
-Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).
+Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.store.resultstore`).
 
 The bit values are part of the result-store format: stores written by any version read the
 same.  :data:`FLAG_NAMES` (bit -> name) is derived from :class:`Flag`, never kept by hand.

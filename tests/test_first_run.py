@@ -161,7 +161,7 @@ def _readme_session():
 
 
 def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monkeypatch, capsys):
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
 
     session = _readme_session()
     assert [argv[0] for argv in session] == ["capture", "reconstruct", "decompose", "report"]

@@ -101,7 +101,7 @@ class Dictionary:
         at every shift -> (P, A, S) (or (P, A', S)); ``squared``: with the squared atoms.
 
         ``workers``: FFT threads.  One by default: pixel blocks are parallelised by processes
-        or threads (:mod:`decomposition.chunked`); threads inside each would oversubscribe
+        or threads (:mod:`decomposition.store.chunked`); threads inside each would oversubscribe
         the cores.  Rows go through the FFTs :data:`CORRELATE_ROWS` at a time, so that the
         (rows, A, n_fft) spectra stay in cache (512 rows, 4 atoms: 13.8 -> 9.4 ms; the same
         numbers)."""

@@ -3,7 +3,7 @@
 A seeded synthetic cube (default 64 x 672 x 512 (y, x, t), Fig. 3 kinds a/b/c, white noise at
 NSR 0.05; ``--scenes paper`` (default, the paper's parameter space, bin-integrated) or
 ``legacy``) is written as a cube store, then decomposed by each method with 1 and 2 workers
-through :func:`decomposition.pipeline.decompose_to_store` -- the code path of the
+through :func:`decomposition.store.pipeline.decompose_to_store` -- the code path of the
 command, all stages included: opening the cube, the solver check, starting the local cluster,
 reading, solving and writing every chunk into a result store.  ``--workers N`` means what it
 means for the command (a local cluster of N single-threaded worker processes); ``threads:N``
@@ -160,7 +160,7 @@ def fft_floor(cube_path, *, threads: int) -> dict:
 
 _CHILD = """
 import json, resource, sys
-from decomposition.pipeline import decompose_to_store
+from decomposition.store.pipeline import decompose_to_store
 cfg = json.loads(sys.argv[1])
 s = decompose_to_store(cfg["cube"], cfg["out"], method=cfg["method"], workers=cfg["workers"],
                        threads=cfg["threads"], chunks=cfg["chunks"], options=cfg["options"], overwrite=True,

@@ -167,9 +167,9 @@ def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
 def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, method="convscd", workers=None,
              nsr=0.05, seed=0, progress=True, stream=None) -> dict:
     """Run the demo; returns a dict with the output paths, timings and the fidelities."""
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
-    from decomposition.pipeline import decompose_to_store
+    from decomposition.store.pipeline import decompose_to_store
     from streaklab.report import make_report
 
     stream = sys.stdout if stream is None else stream

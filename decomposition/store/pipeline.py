@@ -210,7 +210,7 @@ def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options, pulse=
     parameters (and their per-pixel dimensionality) the store must hold.  An all-zero profile
     skips the fit, and with it most options: ``pulse=True`` solves a pulse too (once the kernels
     are loaded: it runs the compiled fit)."""
-    from decomposition.chunked import _solver
+    from decomposition.store.chunked import _solver
 
     _check_option_types(options)
     profiles = np.zeros((1, nt))
@@ -264,11 +264,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
     the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
     seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
-    ``tls`` (a :class:`decomposition.cluster.TlsFiles`) holds the credentials of a ``tls://``
+    ``tls`` (a :class:`decomposition.store.cluster.TlsFiles`) holds the credentials of a ``tls://``
     scheduler.
     """
-    from decomposition.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
-    from decomposition.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
+    from decomposition.store.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
+    from decomposition.store.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
                                            prepare_output_path)
     from core.provenance import __version__
     from decomposition.options import parse_nan_policy
@@ -508,7 +508,7 @@ def _region_pixels(store, iy, ix) -> int:
 def _close_quietly(client, cluster) -> None:
     """Close an interrupted run's client and cluster, silencing distributed's shutdown chatter
     (a second Ctrl-C meanwhile is ignored)."""
-    from decomposition.cluster import ignore_sigint, quiet_distributed
+    from decomposition.store.cluster import ignore_sigint, quiet_distributed
 
     with ignore_sigint(), quiet_distributed():
         for thing in (client, cluster):
@@ -520,8 +520,8 @@ def _close_quietly(client, cluster) -> None:
 
 
 def _connect(scheduler, workers, tls=None):
-    """-> (Client, LocalCluster or None); see :mod:`decomposition.cluster`."""
-    from decomposition.cluster import ClusterError, connect_scheduler, start_local_cluster
+    """-> (Client, LocalCluster or None); see :mod:`decomposition.store.cluster`."""
+    from decomposition.store.cluster import ClusterError, connect_scheduler, start_local_cluster
 
     try:
         if scheduler is not None:

@@ -29,7 +29,7 @@ import dask.array as da
 import dask.threaded
 import numpy as np
 from dask.callbacks import Callback
-from .flags import FLAG_DTYPE
+from ..flags import FLAG_DTYPE
 
 __all__ = [
     "solve_block",
