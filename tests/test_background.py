@@ -5,7 +5,7 @@ import pytest
 from core.model import empty_params, render_components, render_profile
 from decomposition import decompose
 from decomposition.stages.background import (background_significant, background_test, background_threshold,
-                                      estimate_background)
+                                             estimate_background)
 from decomposition.model.components import off_window, threshold, window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_SSS
 from decomposition.flags import FLAG_NAMES, OFF_WINDOW, POOR_FIT

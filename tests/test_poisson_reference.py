@@ -8,7 +8,7 @@ from core.irf_models import tailed_response
 from core.model import empty_params
 from decomposition.model.fidelity import fidelity
 from decomposition.evaluation.poisson_reference import (PoissonReferenceOptions, best_of, poisson_deviance, poisson_reference_bound,
-                                             poisson_reference_fit)
+                                                        poisson_reference_fit)
 from decomposition.evaluation.synthetic import make_profiles
 from decomposition.evaluation.synthetic_effects import render_with_response, response_sigma_ps
 

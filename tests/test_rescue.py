@@ -11,7 +11,7 @@ from decomposition.model.fidelity import fidelity
 from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
 from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
-                                  take_rescued)
+                                         take_rescued)
 from decomposition.evaluation.synthetic import make_profiles
 
 

@@ -256,7 +256,7 @@ from ..kernels.pickcorr import PickWorkspace
 from .polish import polish_block, refit_amplitudes, snap_to_grid  # noqa: F401
 from .score import score_coarse, score_pixel
 from ..model.slots import (drop_zero, linked_onsets, new_state, objective, parameter_bounds,  # noqa: F401
-                    put, refine_atoms, take)
+                           put, refine_atoms, take)
 
 __all__ = [
     "GridSpec",

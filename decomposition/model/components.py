@@ -35,7 +35,7 @@ import math
 import numpy as np
 
 from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
-                        SIGNIFICANCE_WEIGHT_CAP)
+                         SIGNIFICANCE_WEIGHT_CAP)
 from ..kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components

@@ -84,8 +84,8 @@ from scipy.ndimage import convolve1d
 from core.irf import render_shifted, render_sss
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, render_profile
 from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS,
-                        GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
-                        RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
+                         GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
+                         RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .atoms import slot_atoms

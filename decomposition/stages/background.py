@@ -27,7 +27,7 @@ import numpy as np
 
 from core.model import BACKGROUND_KEY, render_components
 from ..constants import (BACKGROUND_CLIP_SIGMA, BACKGROUND_COUNT_WINDOW_BINS, BACKGROUND_ITERATIONS,
-                        BACKGROUND_START_QUANTILE)
+                         BACKGROUND_START_QUANTILE)
 from ..noise import count_deviance, noise_sigma
 
 __all__ = ["estimate_background", "background_test", "background_threshold", "background_significant", "offset_alone",

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..constants import (SIGNAL_NOISE_FLOOR_FRACTION, SIGNAL_NOISE_LAG_RATIO, SIGNAL_NOISE_PEAK_RATIO,
-                        SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z, SIGNAL_NOISE_Z,
-                        SIGNIFICANCE_LAG_BINS, WHITE_LAG_RATIO)
+                         SIGNAL_NOISE_POOL_FRACTION, SIGNAL_NOISE_POOL_MIN, SIGNAL_NOISE_POOL_Z, SIGNAL_NOISE_Z,
+                         SIGNIFICANCE_LAG_BINS, WHITE_LAG_RATIO)
 from .detect import solver_inputs
 from .label import final_atoms
 from ..noise import count_variance, lagged_noise_sigma, periodogram, residual_spectrum, signal_variance

@@ -52,8 +52,8 @@ import numpy as np
 
 from .candidates import each_block, polish_candidate
 from ..constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FACTOR, GROW_EXCLUDE_SIGMA,
-                        GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
-                        SWAP_MODE_GAP_SIGMA)
+                         GROW_TRIAL_FRACTION, PRUNE_ONSET_SIGMA, RESOLVED_SIGMA, SWAP_MIN_ALPHA_SIGMA,
+                         SWAP_MODE_GAP_SIGMA)
 
 from .countpolish import polish_count_state
 from ..noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..model import components as comp
 from ..constants import (BRIGHT_ECHO_RATIO, POOR_FIT_DIRECT_SIGMA, PRE_DIRECT_LEVEL, PRE_DIRECT_SIGMA, RESOLVED_SIGMA,
-                        WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA)
+                         WEAK_DIRECT_FRACTION, WEAK_DIRECT_ONSET_SIGMA)
 from ..flags import AMBIGUOUS, EMPTY, FLAG_DTYPE, POOR_FIT, mark
 from ..noise import anscombe_residual, signal_noise_sigma
 from .prepare import Samples

@@ -43,9 +43,9 @@ import numpy as np
 
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
-                        SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA, SEARCH_EDGE_LEVEL,
-                        SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
-                        SEARCH_WIDE_FACTOR)
+                         SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA, SEARCH_EDGE_LEVEL,
+                         SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
+                         SEARCH_WIDE_FACTOR)
 from .objective import _n_free, _per_sample, _residual_chi2, _smooth, objective_variance, penalised_objective
 from ..model.refine import refine
 from ..model import components as comp

@@ -269,7 +269,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     """
     from decomposition.store.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.store.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
-                                           prepare_output_path)
+                                                 prepare_output_path)
     from core.provenance import __version__
     from decomposition.options import parse_nan_policy
 
