@@ -1,4 +1,32 @@
-"""Decomposition of transient time profiles into direct, inter-reflection and sss components."""
+"""Decomposition of transient time profiles into direct, inter-reflection and sss components.
+
+The package, bottom up (``tests/test_layers.py`` holds the table of who may import whom):
+
+``constants``, ``flags``, ``masks``, ``options``
+    numbers, flag bits, sample masks and the options every layer shares
+``kernels/``
+    the compiled (numba) kernels
+``noise``
+    noise estimates and deviances
+``model/``
+    the parametric model the stages share: slot states, components, refines, fidelity
+``methods/``
+    ConvSCD and the GradBM baseline
+``stages/``
+    the stages :func:`decompose` runs
+``response/``
+    the measured-response path (``decompose(irf=...)``)
+``api``
+    :func:`decompose` and :class:`DecompositionResult`; ``warmup`` loads the kernels before timing
+``store/``
+    the chunked store pipeline above the solver: cube store in, result store out
+``evaluation/``
+    synthetic scenes, reference fits and accuracy metrics for benchmarks and tests (the solver
+    never imports it)
+
+:func:`decompose` and :class:`DecompositionResult` load the solver on first use, so importing a
+lower subpackage alone (the kernels, the evaluation code) does not load the stages.
+"""
 from core.model import (  # noqa: F401
     gaussian_kernel,
     render_components,
@@ -22,4 +50,17 @@ from .flags import (  # noqa: F401
     Flag,
     flag_names,
 )
-from .api import DecompositionResult, decompose  # noqa: F401
+
+_API = ("DecompositionResult", "decompose")
+
+
+def __getattr__(name):
+    if name in _API:
+        from . import api  # the solver, loaded on first use (see the module docstring)
+
+        return getattr(api, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))

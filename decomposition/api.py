@@ -3,15 +3,15 @@
 ``decompose()`` is the method as a flat sequence of stages, each a function with a typed
 input and output in a module of its own:
 
-1. prepare the samples (:mod:`decomposition.prepare`): validation, scaling, masks, noise;
-2. detect the components by sparse coding (:mod:`decomposition.detect`;
-   :mod:`decomposition.convscd` is the solver, :mod:`decomposition.gradbm` the baseline);
+1. prepare the samples (:mod:`decomposition.stages.prepare`): validation, scaling, masks, noise;
+2. detect the components by sparse coding (:mod:`decomposition.stages.detect`;
+   :mod:`decomposition.methods.convscd` is the solver, :mod:`decomposition.methods.gradbm` the baseline);
    then, for the pixels whose answer is in doubt, structured alternative starts kept by a
-   penalised objective (:mod:`decomposition.search`);
-3. refine them off the grid, optionally (:mod:`decomposition.refit`);
-   for count data, the atoms polished with Poisson weights (:mod:`decomposition.countpolish`);
-4. label them direct / inter-reflections / sss (:mod:`decomposition.label`);
-5. render the fit and flag its quality (:mod:`decomposition.quality`, :mod:`decomposition.flags`).
+   penalised objective (:mod:`decomposition.stages.search`);
+3. refine them off the grid, optionally (:mod:`decomposition.stages.refit`);
+   for count data, the atoms polished with Poisson weights (:mod:`decomposition.stages.countpolish`);
+4. label them direct / inter-reflections / sss (:mod:`decomposition.stages.label`);
+5. render the fit and flag its quality (:mod:`decomposition.stages.quality`, :mod:`decomposition.flags`).
 
 Options are validated once, into the frozen dataclasses of :mod:`decomposition.options`.
 """
@@ -22,22 +22,26 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import convscd as cs
-from .countpolish import polish_counts
-from .detect import detect_components, detect_gradbm
+from .methods import convscd as cs
+from .stages.countpolish import polish_counts
+from .stages.detect import detect_components, detect_gradbm
 from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT,  # noqa: F401
                     SATURATED, OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
-from .label import final_state, label_components, params_at_bound
+from .stages.label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
-from .options import options_from_mapping, parse_components, parse_nan_policy
-from .prepare import prepare_samples, time_axis
-from .quality import assess_fit
-from .refit import clear_unlit, component_errors, refine_components
-from .candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
-from .grow import grow_components, grow_counts, swap_components
-from .prune import prune_components
-from .search import STAGE_STARTS, search_components
-from .slots import shape_bounds
+from .options import METHODS, options_from_mapping, parse_components, parse_nan_policy
+from .stages.prepare import prepare_samples, time_axis
+from .stages.quality import Fit, assess_fit
+from .stages.refit import clear_unlit, component_errors, refine_components
+from .stages.candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
+from .stages.grow import grow_components, grow_counts, swap_components
+from .stages.prune import prune_components
+from .stages.search import STAGE_STARTS, search_components
+from .model.slots import shape_bounds
+from .constants import RESCUE_MISFIT_Z
+from .stages.rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
+from .response.resolve import resolve_response, response_record, spike_neighbour_ratio
+from .response.path import decompose_with_response
 
 __all__ = [
     "decompose",
@@ -56,8 +60,6 @@ __all__ = [
     "OFF_WINDOW",
     "FLAG_NAMES",
 ]
-
-METHODS = ("convscd", "gradbm")
 
 
 @dataclass
@@ -109,7 +111,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         into the dictionary nor searched; without "r" at most one Gaussian per pixel.
         "b", a constant offset per pixel (``params["background"]``, units of the
         profiles): estimated robustly from the samples at the noise level and subtracted
-        before the sparse coding (:func:`decomposition.background.estimate_background`),
+        before the sparse coding (:func:`decomposition.stages.background.estimate_background`),
         then fitted jointly with the amplitudes in the refinement, which always runs with
         it; kept where significant (its likelihood-ratio statistic at least
         ``background_chi2``), else reported as exactly 0.0 and the pixel refitted
@@ -145,13 +147,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     significance_chi2 : float
         An atom below the relative threshold is still kept when it is significant against
         the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
-        (default 25, the energy of a 5-sigma sample; :func:`decomposition.components.threshold`).
+        (default 25, the energy of a 5-sigma sample; :func:`decomposition.model.components.threshold`).
         0 turns the significance rule for atoms off (the relative threshold alone).
     background_chi2 : float, optional
         A fitted background ("b") is kept when its likelihood-ratio statistic is at least
         this (>= 0; 0 keeps every fitted offset).  Default: ln(n) for a pixel of n fitted
         samples, the Bayesian information criterion for one parameter (5.5 for 256 bins;
-        :func:`decomposition.background.background_threshold`).
+        :func:`decomposition.stages.background.background_threshold`).
     merge_tol_bins : float
         Gaussians of one pixel closer than this (in bins) are merged.
     bound_factor : float
@@ -169,7 +171,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         too narrow for the narrowest kernel, are excluded and flagged (0 = off).
         Count data (``noise="poisson"``) are tested against their counting
         statistics instead, at a fixed false-alarm rate per profile
-        (:func:`decomposition.prepare.find_count_spikes`); there ``spike_sigma``
+        (:func:`decomposition.stages.prepare.find_count_spikes`); there ``spike_sigma``
         only switches the test on (> 0) or off.
     noise : {"gaussian", "poisson", "auto"}
         Noise model of the samples.  "gaussian": noise estimated from the data
@@ -204,19 +206,19 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     refine : bool
         After the sparse step, refine every found component's continuous
         parameters by weighted least squares on the forward model
-        (:func:`decomposition.refine.refine`: variable projection,
+        (:func:`decomposition.model.refine.refine`: variable projection,
         never worse per pixel, component set kept).  Off by default:
         ``streaklab bench tradeoff`` measures no fidelity gain over the
         solver's own off-grid polish; it does help ``off_grid=False`` output.
         Count data (``noise="poisson"``) are always polished with weights
         1 / Poisson variance of the model, reweighted POISSON_REFITS times, by
-        the solver's compiled LM (:mod:`decomposition.countpolish`): the Poisson
+        the solver's compiled LM (:mod:`decomposition.stages.countpolish`): the Poisson
         maximum-likelihood fit, without a NumPy refit (``refine=True`` adds one).
         Widths and the sss attenuation stay within the solver's bounds (the grid's ranges
         widened by ``bound_factor``); AT_BOUND where one ends at a bound.  With the
         background family the refinement always runs, and a pixel whose components are not
         significant together against its offset alone (``significance_chi2``) is reported
-        EMPTY with the mean as its offset (:func:`decomposition.refit.clear_unlit`).
+        EMPTY with the mean as its offset (:func:`decomposition.stages.refit.clear_unlit`).
     search : bool
         Structured alternative starts for the pixels whose first answer is in
         doubt (an sss onset before the earliest Gaussian or far after it, an sss
@@ -224,37 +226,37 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         the detected width, a fit above the noise): a direct and an sss on the
         leading edge, the earliest significant peak as the direct with and
         without the later Gaussians; each polished, the lowest penalised
-        objective kept (:mod:`decomposition.search`).
+        objective kept (:mod:`decomposition.stages.search`).
         ``info["search_wins"]`` counts which start each searched pixel kept.
     grow : bool
         Forward step after the search: where a pixel has a free slot and its
         largest residual bump away from its Gaussians is significant (or its data
         term exceeds search_doubt_chi2 times its expected value), a Gaussian there,
         polished with the rest, kept where the search's penalised objective is lower
-        and the Gaussians stay resolved (:mod:`decomposition.grow`);
+        and the Gaussians stay resolved (:mod:`decomposition.stages.grow`);
         ``info["grown"]`` counts the pixels.  Then the sss swap: where the sss peaks
         more than SWAP_MODE_GAP_SIGMA widths after the direct, a Gaussian at its peak
         and its onset moved next to the direct, kept by the same rule
         (``info["swapped"]``).  Count data (``noise="poisson"``) also get
         a trial Gaussian at a faint echo after the threshold, kept where the Poisson
-        deviance drops by ``significance_chi2`` (:func:`decomposition.grow.grow_counts`;
+        deviance drops by ``significance_chi2`` (:func:`decomposition.stages.grow.grow_counts`;
         ``info["grown_counts"]``); with ``irf=`` the response path's echo steps
-        (:mod:`decomposition.response_grow`).  Both need ``significance_chi2 > 0``.
+        (:mod:`decomposition.response.grow`).  Both need ``significance_chi2 > 0``.
     prune : bool
         Backward step after the search: where a pixel has an sss and a Gaussian
         less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
         onset and a Gaussian filling the gap), that Gaussian is dropped, the
         rest polished, and the pruned answer kept where the search's penalised
-        objective is lower (:mod:`decomposition.prune`); ``info["pruned"]``
+        objective is lower (:mod:`decomposition.stages.prune`); ``info["pruned"]``
         counts the pixels.
     rescue : bool
         A second pass for the pixels flagged POOR_FIT at the end, or whose data term
         lies beyond what their noise allows (``RESCUE_MISFIT_Z`` standard deviations of a
         chi-square above its expectation; float data whose
         noise does not follow the signal): decomposed again without the detection's
-        restart (:data:`decomposition.rescue.RESCUE_OPTIONS`), the second answer
+        restart (:data:`decomposition.stages.rescue.RESCUE_OPTIONS`), the second answer
         taken, with its own flags, where its penalised misfit is lower by
-        ``ambiguity_chi2`` (:mod:`decomposition.rescue`); ``info["rescue_tried"]``
+        ``ambiguity_chi2`` (:mod:`decomposition.stages.rescue`); ``info["rescue_tried"]``
         and ``info["rescued"]`` count the pixels.
     signal_noise : bool
         Noise that follows the signal (photon / shot noise on float data, the
@@ -262,7 +264,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         floor + gain * model is fitted to its residual, and where the gain is
         significant the search, the forward step, the swap and the backward step
         score and polish with weights 1 / that variance instead of one noise level
-        for every sample (:func:`decomposition.candidates.signal_weights`).
+        for every sample (:func:`decomposition.stages.candidates.signal_weights`).
         Count data (``noise="poisson"``) are weighted so everywhere, by their
         Poisson law at the detected model.
         ``info["signal_weighted"]`` counts the pixels weighted.  Correlated (pink) noise,
@@ -270,7 +272,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         sample-to-sample noise, the median above WHITE_LAG_RATIO), is another matter: the
         search, the forward and backward steps then score every trial with its residual
         whitened by the call's noise spectrum, read off the detected residuals
-        (:func:`decomposition.candidates.correlated_noise_spectrum`);
+        (:func:`decomposition.stages.candidates.correlated_noise_spectrum`);
         ``info["correlated_noise"]`` says whether it was.
     whiten : bool
         Where the call's noise is judged correlated (above), whiten the penalised objectives'
@@ -302,22 +304,22 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
         as the parameters, NaN where absent or not identifiable) to
         ``params``, from the Fisher information at the solution with the noise
-        estimated from the residual (:func:`decomposition.fisher.standard_errors`).
+        estimated from the residual (:func:`decomposition.model.fisher.standard_errors`).
         Count data: from the Poisson Fisher information (weights 1 / model
         count, the noise scale known).
         Default: the same as ``refine``.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
         :class:`decomposition.options.SolverOptions` above; for ``method="gradbm"`` also
-        the baseline's own options (:data:`decomposition.gradbm.GRADBM_DEFAULTS`).
+        the baseline's own options (:data:`decomposition.methods.gradbm.GRADBM_DEFAULTS`).
     irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
         A measured instrument response to use instead of the Gaussian PSF
-        (:func:`decomposition.response_input.resolve_response`: a path is read with
+        (:func:`decomposition.response.resolve.resolve_response`: a path is read with
         :func:`core.irfstore.load_response`; a response sampled at another step is resampled
         onto ``time_bin_ps``; one whose samples span more than the window is refused).  Direct
         and inter-reflections are then shifted copies of the response (amplitude = peak height,
         delay = the response's reference instant, its peak), sss the response convolved with
-        the decaying exponential; the stages are those of :mod:`decomposition.response_path`
+        the decaying exponential; the stages are those of :mod:`decomposition.response.path`
         (greedy sparse coding over the response's dictionary at sub-bin phases, then
         variable-projection refinement of delays and alpha with linear amplitudes, always on;
         ``method="convscd"`` only).  The response has no width: every present component's
@@ -483,10 +485,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 
 
 def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
-    """:func:`decompose` with an instrument response (:mod:`decomposition.response_path`)."""
-    from .response_input import resolve_response, response_record, spike_neighbour_ratio
-    from .response_path import decompose_with_response
-
+    """:func:`decompose` with an instrument response (:mod:`decomposition.response.path`)."""
     if method != "convscd":
         raise ValueError(f"irf= works with method='convscd' only, got method={method!r}")
     if not opts.off_grid:
@@ -525,14 +524,10 @@ def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_lev
 
 
 def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call):
-    """The second pass of :mod:`decomposition.rescue` on the POOR_FIT pixels and those whose data
+    """The second pass of :mod:`decomposition.stages.rescue` on the POOR_FIT pixels and those whose data
     term lies beyond their noise: ``call`` holds the
     keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
     -> (fit, params, flags), the taken pixels' rows replaced (flat, P-shaped)."""
-    from .constants import RESCUE_MISFIT_Z
-    from .quality import Fit
-    from .rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
-
     info["rescue_tried"], info["rescued"] = 0, 0
     if not opts.rescue or all(getattr(opts, k) == v for k, v in RESCUE_OPTIONS.items()):
         return fit, params, flags         # off, or the first pass was already started so

@@ -87,7 +87,7 @@ FAM_SSS = 2
 #: time for the same fidelity to four decimals.)
 GAUSS_SUPPORT_SIGMA = 6.0
 
-#: Gaussian support of the own-width correlations of the pick (:mod:`decomposition.pickcorr`),
+#: Gaussian support of the own-width correlations of the pick (:mod:`decomposition.kernels.pickcorr`),
 #: in sigma: beyond +-8 sigma a unit Gaussian is below exp(-32) ~ 1e-14, under float64
 #: rounding of the sums, so the correlations are the dense sums' (their tests hold them to
 #: 1e-10); the pick compares correlations of atoms against each other, and is not where the
@@ -125,7 +125,7 @@ ONSET_TIE_SIGMA = 0.05
 
 #: The response path: a direct fitted before the window is refitted from the window's first
 #: sample less these many response widths (Gaussian-equivalent), the lowest deviance kept
-#: (:func:`decomposition.response_grow.grow_response`, step 0b).  ``bench realism``'s truncated
+#: (:func:`decomposition.response.grow.grow_response`, step 0b).  ``bench realism``'s truncated
 #: rows (the direct 1-8 ps before the window, 4 ps widths), direct-delay RMSE over the Poisson
 #: reference's at 100 / 1,000 / 10,000 photons: 1.11 / 0.97 / 1.38 without, 1.03 / 0.92 / 0.89
 #: with these three starts (from 1 width alone: 1.07 / 1.03 at 100 / 1,000 photons, on the same
@@ -138,7 +138,7 @@ EARLY_DIRECT_NEAR_SIGMA = 0.5
 
 #: The response path, count data: an sss whose onset lies more than this many response widths
 #: (Gaussian-equivalent) after its direct is refitted with the onset started at the direct, the
-#: lower deviance kept (:func:`decomposition.response_grow.grow_response`, step 0c).  A late onset
+#: lower deviance kept (:func:`decomposition.response.grow.grow_response`, step 0c).  A late onset
 #: is a local optimum of the fit at few counts: the direct moves later to fill the gap.
 #: ``bench realism`` (2,000 px, seeds 0 / 1), direct-delay bias at 100 photons without -> with
 #: the step: tailed +0.078 -> +0.038 / +0.037 -> +0.007 ps, afterpulse +0.051 -> +0.023 /
@@ -151,11 +151,11 @@ ONSET_RESTART_SIGMA = 1.0
 #: coefficient far above the data is a degenerate (near-zero-norm) coordinate, not light.
 AMP_MAX = 20.0
 
-#: POOR_FIT's second test (:mod:`decomposition.quality`) weighs the residual over the direct's
+#: POOR_FIT's second test (:mod:`decomposition.stages.quality`) weighs the residual over the direct's
 #: delay +- this many fitted widths (plus one bin) (dimensionless).
 POOR_FIT_DIRECT_SIGMA = 3.0
 
-#: The search's near-direct doubt test (:func:`decomposition.search.search_block`): a pixel is
+#: The search's near-direct doubt test (:func:`decomposition.stages.search.search_block`): a pixel is
 #: in doubt when its data term per sample over the direct's samples (as POOR_FIT_DIRECT_SIGMA)
 #: exceeds this many noise variances (dimensionless).  The noise there is the pixel's one
 #: estimate, and photon noise is largest at the direct's peak: at 1.5 the demo's simulated
@@ -167,7 +167,7 @@ POOR_FIT_DIRECT_SIGMA = 3.0
 #: and had unflagged direct-delay failures again.
 SEARCH_NEAR_DIRECT_CHI2 = 3.0
 
-#: POOR_FIT for light before the direct (photon counts, :func:`decomposition.quality.light_before_direct`):
+#: POOR_FIT for light before the direct (photon counts, :func:`decomposition.stages.quality.light_before_direct`):
 #: the direct's leading edge is where its response rises from PRE_DIRECT_LEVEL of its peak
 #: (dimensionless), and the counts before it must exceed the model's by PRE_DIRECT_SIGMA on the
 #: Poisson law (sigma, one-sided).  bench realism at 100 photons (2,000 px per effect): it
@@ -183,7 +183,7 @@ PRE_DIRECT_SIGMA = 5.0
 #: pixel, a direct 53 widths before its sss; the same at 5 or 10 widths.
 UNSEEN_DIRECT_LEAD_SIGMA = 8.0
 
-#: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.quality.weak_direct`):
+#: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.stages.quality.weak_direct`):
 #: the direct's peak below this fraction of the other light's (dimensionless), an sss onset or
 #: inter-reflection within WEAK_DIRECT_ONSET_SIGMA direct widths (plus one bin) after it.  Paper scenes, 300 px,
 #: seeds 0 and 1, 2 and 4 ps bins, white NSR 0.001 / 0.055 / 0.11 and photon 0.055 (9,600 px):
@@ -192,7 +192,7 @@ UNSEEN_DIRECT_LEAD_SIGMA = 8.0
 WEAK_DIRECT_FRACTION = 0.15
 WEAK_DIRECT_ONSET_SIGMA = 4.0
 #: AMBIGUOUS for an inter-reflection brighter than the direct by more than this ratio of their
-#: peak heights (:func:`decomposition.quality.bright_echo`; dimensionless).  Paper scenes (their
+#: peak heights (:func:`decomposition.stages.quality.bright_echo`; dimensionless).  Paper scenes (their
 #: inter-reflections 0.01-1x the direct), 600 px, seed 0, 2 and 4 ps bins, white / pink / photon
 #: at NSR 0.001 / 0.055 / 0.11 (10,800 px): such an echo in 97 / 32 / 21 pixels at a ratio of
 #: 1 / 1.5 / 2, of them 40 / 25 / 18 with fidelity < 0.5 and 29 / 0 / 0 above 0.9.
@@ -242,7 +242,7 @@ SPIKE_FALSE_ALARM = 1e-6
 #: tail from pulling the fit (weight at most 50).
 POISSON_VARIANCE_FLOOR = 0.02
 
-#: Count data, the response path's refinement (:class:`decomposition.response_refine.CountData`):
+#: Count data, the response path's refinement (:class:`decomposition.response.refine.CountData`):
 #: the floor (counts) of the variance in its weights and of the model in its objective, the
 #: Poisson deviance; one floor for both, so that each step is Fisher scoring of the objective it
 #: is judged by and the fixed point is the maximum likelihood of that objective.  With the
@@ -272,11 +272,11 @@ PEARSON_MIN_COUNTS = 5.0
 #: a hair inside.
 BOUND_TOL = 1e-9
 
-#: Slot layout of the refinement and the Fisher information (:mod:`decomposition.refine`):
+#: Slot layout of the refinement and the Fisher information (:mod:`decomposition.model.refine`):
 #: slot 0 the direct reflection, this one the sss component, 2.. the inter-reflections.
 SSS_SLOT = 1
 
-# --- the search stage (:mod:`decomposition.search`) -------------------------------------------
+# --- the search stage (:mod:`decomposition.stages.search`) -------------------------------------------
 
 #: the leading edge of a profile: its first sample at this fraction of the smoothed peak
 SEARCH_EDGE_LEVEL = 0.1
@@ -309,7 +309,7 @@ SEARCH_WIDE_FACTOR = 1.5
 #: 0.975 / 0.917 / 0.849, photon 0.962 / 0.834 / 0.689 -> 0.970 / 0.838 / 0.692; seed 1 (600
 #: px) -0.001..+0.007; direct-delay failures at NSR <= 0.055 unchanged (5 of 600, all flagged).
 SEARCH_RISE_MIN_BINS = 0.5
-#: the backward step (:mod:`decomposition.prune`) tries to drop a Gaussian closer than this many
+#: the backward step (:mod:`decomposition.stages.prune`) tries to drop a Gaussian closer than this many
 #: PSF widths after the direct, where the pixel has an sss (3, 4, 6 and 8 measured alike on the
 #: paper's scenes at 2 ps bins under white noise, whose inter-reflections lie 6-14 widths apart;
 #: 3 pruned fewer at NSR 0.11).  6 since the pink and photon rows: 300 px, seed 0, 4 -> 6 moved
@@ -320,10 +320,10 @@ PRUNE_GAP_SIGMA = 6.0
 #: its second start without that Gaussian moves the sss onset to this many widths after the
 #: direct (0.5 and 1 measured alike)
 PRUNE_ONSET_SIGMA = 1.0
-#: the forward step (:mod:`decomposition.grow`) places its Gaussian at the largest residual
+#: the forward step (:mod:`decomposition.stages.grow`) places its Gaussian at the largest residual
 #: more than this many widths from every Gaussian of the pixel (2 and 3 measured alike)
 GROW_EXCLUDE_SIGMA = 2.0
-#: the forward step's sss swap (decomposition.grow.swap_block) is tried where the sss peaks
+#: the forward step's sss swap (decomposition.stages.grow.swap_block) is tried where the sss peaks
 #: more than this many PSF widths after the direct: the pixels whose sss may have taken in a
 #: Gaussian (paper scenes, 300 px, white / pink NSR 0.055: 30 of the 36 pixels whose fidelity
 #: the swap raised by more than 0.02 when tried everywhere, 58 % of the pixels tried; mean
@@ -334,7 +334,7 @@ SWAP_MODE_GAP_SIGMA = 3.0
 #: the paper's pixels 0.012-1.5); 1,037 -> 637 of 1,756 candidates tried over the six points,
 #: mean fidelity unchanged to 0.001 (seeds 0 and 1)
 SWAP_MIN_ALPHA_SIGMA = 0.09
-#: the response path's echo trial (:mod:`decomposition.response_grow`) is refitted only where
+#: the response path's echo trial (:mod:`decomposition.response.grow`) is refitted only where
 #: the matched-filter estimate of its chi2 at the trial position is at least this fraction of
 #: ``significance_chi2`` (the deviance of the refit decides; the estimate only saves the refits
 #: of pixels with nothing to find)
@@ -352,7 +352,7 @@ RISE_10_50_SIGMA = math.sqrt(2 * math.log(10)) - math.sqrt(2 * math.log(2))
 #: of the detected width
 NARROW_FRACTION = 0.7
 
-# --- the background family and the window (:mod:`decomposition.background`, label) ---------
+# --- the background family and the window (:mod:`decomposition.stages.background`, label) ---------
 
 #: the first background estimate starts at this quantile of a profile's samples: below the
 #: median (components only add light), above the far noise tail (-0.67 sigma of pure noise)
@@ -399,7 +399,7 @@ SSS_RESOLVED_CHI2_FACTOR = 4.0
 SIGNIFICANCE_LAG_BINS = 64
 #: after the search the lagged noise is measured on the fit's residual, and replaces the
 #: profile's where it is at most this many times the sample-to-sample noise (white at the
-#: component scale; decomposition.candidates.residual_significance_noise).  Paper scenes, 300
+#: component scale; decomposition.stages.candidates.residual_significance_noise).  Paper scenes, 300
 #: px, NSR 0.055, 2 ps: the ratio is 0.83-1.23 under white noise (1st-99th percentile), 0.82-1.28
 #: at 4 ps, 1.44-2.60 under pink noise.  Mean fidelity, seed 0 / 1 (after the forward step's
 #: bump test): white NSR 0.001 0.982 -> 0.983 / 0.976 -> 0.976, 0.055 0.926 -> 0.936 / 0.933 ->
@@ -408,7 +408,7 @@ SIGNIFICANCE_LAG_BINS = 64
 #: pink 0.887 -> 0.838 (seed 0)
 WHITE_LAG_RATIO = 1.35
 
-# Noise that follows the signal (decomposition.candidates.signal_weights): a pixel's fitted
+# Noise that follows the signal (decomposition.stages.candidates.signal_weights): a pixel's fitted
 # variance law floor + gain * model is used where the gain exceeds this many standard errors ...
 SIGNAL_NOISE_Z = 5.0
 # ... and the variance at the model's peak exceeds the floor by this factor (2x in all) ...
@@ -441,7 +441,7 @@ SIGNAL_NOISE_POOL_MIN = 16
 # pixels pass their own tests; shot noise alone 6.7-8.0 and 1.02-1.05; white and pink noise at NSR
 # 0.001-0.11, 0.0-1.8 and 1.18-2.29 (2 and 4 ps bins).
 SIGNAL_NOISE_POOL_Z = 3.0
-# The in-window significance test of an atom under weights (decomposition.components.
+# The in-window significance test of an atom under weights (decomposition.model.components.
 # window_measures): a sample's weight counts at most this much, i.e. the noise where the atom
 # lies at most half the pixel's.  Under shot noise a weak inter-reflection after the direct lies
 # where the noise is several times lower than at the peak and becomes significant; uncapped,
@@ -449,7 +449,7 @@ SIGNAL_NOISE_POOL_Z = 3.0
 # in quiet parts: paper scenes, 600 px, pink NSR 0.001 at 2 / 4 ps 0.983 / 0.962 -> 0.979 /
 # 0.958 uncapped, 0.983 / 0.963 capped at 4; photon NSR 0.055 at 2 ps 0.886 -> 0.894 / 0.893.
 SIGNIFICANCE_WEIGHT_CAP = 4.0
-# The second pass (decomposition.rescue) also takes the pixels whose data term, in the noise the
+# The second pass (decomposition.stages.rescue) also takes the pixels whose data term, in the noise the
 # first pass weighed them with (whitened by the call's spectrum where its noise is correlated),
 # lies more than this many standard deviations of a chi-square of n_fit degrees of freedom above
 # its expectation, n_fit + z sqrt(2 n_fit) (1.19 n_fit for 512 samples): a misfit the POOR_FIT

@@ -13,26 +13,26 @@ MAX_ITER     32   the solver hit ``max_iter`` before it converged
 AT_BOUND     64   a refined sigma or alpha ended at its allowed bound
 TRUNCATED   128   more inter-reflections found than ``max_reflections``
 AMBIGUOUS   512   the data do not determine the split: two starts of the search
-                  (:mod:`decomposition.search`) with materially different splits
+                  (:mod:`decomposition.stages.search`) with materially different splits
                   reach objectives within the noise of each other; or the direct
                   is weak (< 15 % of the peak) just before a much larger sss or
-                  inter-reflection onset (:func:`decomposition.quality.weak_direct`);
+                  inter-reflection onset (:func:`decomposition.stages.quality.weak_direct`);
                   or an inter-reflection is more than 1.5x as high as the direct
-                  (:func:`decomposition.quality.bright_echo`);
+                  (:func:`decomposition.stages.quality.bright_echo`);
                   or, with a measured response, the pixel has an sss and no
                   direct, or a direct not significant in its own fit
-                  (:mod:`decomposition.response_grow`)
+                  (:mod:`decomposition.response.grow`)
 WIDE_PSF   1024   the fitted PSF width is above the kernel grid's ``sigma_range_ps``
                   (an sss hump taken for a broad direct, typically)
 OFF_WINDOW 2048   a kept component runs off the window's edge: a Gaussian (or a
                   shifted response) centred within OFF_WINDOW_EDGE_SIGMA widths of
                   the window's edge or beyond it, or more than
                   OFF_WINDOW_MASS of a component's area outside the window
-                  (:func:`decomposition.components.off_window`); its parameters
+                  (:func:`decomposition.model.components.off_window`); its parameters
                   are extrapolated, only its in-window part was judged
 =========== ===== ==============================================================
 
-Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.resultstore`).
+Bit 256 is the result store's own ``OUT_OF_RANGE`` (:mod:`decomposition.store.resultstore`).
 
 The bit values are part of the result-store format: stores written by any version read the
 same.  :data:`FLAG_NAMES` (bit -> name) is derived from :class:`Flag`, never kept by hand.

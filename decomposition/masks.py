@@ -3,12 +3,12 @@
 A sample is *fitted* (its residual counts), *censored* from below (saturated: the true value
 is at least the recorded one, so only a model below it is a misfit, contributing
 max(p - model, 0)^2), or neither (excluded: non-finite, a spike).  The two boolean arrays of
-a :class:`SampleMask` travel from the input check (:mod:`decomposition.prepare`) down to the
-compiled kernels (:mod:`decomposition.atomlm`); nothing on the way is a number that could be
+a :class:`SampleMask` travel from the input check (:mod:`decomposition.stages.prepare`) down to the
+compiled kernels (:mod:`decomposition.kernels.atomlm`); nothing on the way is a number that could be
 mistaken for a least-squares weight.  Real weights (1 / variance) are a different thing and
 are taken only where they are weights, as an argument of their own: the compiled LM's
-``weights`` (:func:`decomposition.atomlm.lm_refine`, the count polish),
-:func:`decomposition.refine.refine` and :func:`decomposition.fisher.standard_errors`.
+``weights`` (:func:`decomposition.kernels.atomlm.lm_refine`, the count polish),
+:func:`decomposition.model.refine.refine` and :func:`decomposition.model.fisher.standard_errors`.
 """
 from __future__ import annotations
 
@@ -92,13 +92,13 @@ def check_mask(mask, shape=None) -> SampleMask:
     """``mask`` itself if it is a :class:`SampleMask` (of ``shape``); a clear error otherwise.
 
     Numeric arrays are refused: a weight of 0.5 must not silently become "excluded" (real
-    weights are the separate ``weights`` argument of :func:`decomposition.atomlm.lm_refine`, or
-    go to :func:`decomposition.refine.refine`).
+    weights are the separate ``weights`` argument of :func:`decomposition.kernels.atomlm.lm_refine`, or
+    go to :func:`decomposition.model.refine.refine`).
     """
     if not isinstance(mask, SampleMask):
         what = f"an array of {mask.dtype}" if isinstance(mask, np.ndarray) else type(mask).__name__
         raise TypeError(f"expected a SampleMask (fit and censored masks), got {what}; the solver takes no "
-                        f"per-sample weights (real weights, 1/variance, go to decomposition.refine.refine)")
+                        f"per-sample weights (real weights, 1/variance, go to decomposition.model.refine.refine)")
     if shape is not None and mask.shape != tuple(shape):
         raise ValueError(f"the sample mask has shape {mask.shape}, the profiles {tuple(shape)}")
     return mask

@@ -16,7 +16,7 @@ Both are the only home of this rule in the package.
 Photon noise on float data (the Gaussian noise model) also has a law, variance = floor +
 gain * signal, but of unknown scale: :func:`signal_variance` fits it to a fitted profile's
 residual (the stages after the detection weigh their samples with it where it is
-significant; :func:`decomposition.candidates.signal_weights`).
+significant; :func:`decomposition.stages.candidates.signal_weights`).
 
 Count data (``noise="poisson"``, photon counting) have a known noise law instead: the
 variance of a sample is its expected count.  :func:`is_count_data` is the rule that
@@ -40,7 +40,7 @@ import numpy as np
 
 from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
                         SIGNAL_REGION_FRACTION)
-from .jit import njit
+from .kernels.jit import njit
 
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
@@ -174,9 +174,9 @@ def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None) -> np.ndarr
 @dataclass(frozen=True)
 class SpectralNoise:
     """Correlated noise: the call's ``spectrum`` (L // 2 + 1,) per unit variance
-    (:func:`residual_spectrum`; :attr:`decomposition.detect.Detection.noise_spectrum`) and each
+    (:func:`residual_spectrum`; :attr:`decomposition.stages.detect.Detection.noise_spectrum`) and each
     pixel's ``variance`` (n,).  A data term in it is the residual whitened by the spectrum
-    (:func:`whitened_chi2`, :func:`decomposition.search.penalised_objective`)."""
+    (:func:`whitened_chi2`, :func:`decomposition.stages.search.penalised_objective`)."""
 
     spectrum: np.ndarray
     variance: np.ndarray

@@ -7,8 +7,8 @@ keywords of ``decompose()``, the CLI's ``--option KEY=VALUE``), refusing unknown
 an error that names the option.  ``dataclasses.asdict`` of the two feeds
 ``DecompositionResult.info`` and the result store's attributes.
 
-Also here, the two vocabularies every layer shares: the component families
-(:func:`parse_components`) and the NaN policy (:data:`NAN_POLICIES`, :func:`parse_nan_policy`).
+Also here, the vocabularies every layer shares: the methods (:data:`METHODS`), the component
+families (:func:`parse_components`) and the NaN policy (:data:`NAN_POLICIES`, :func:`parse_nan_policy`).
 """
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 __all__ = [
+    "METHODS",
     "GridSpec",
     "SolverOptions",
     "OptionError",
@@ -33,6 +34,9 @@ __all__ = [
     "SIGNAL_NOISE_LAWS",
     "parse_noise_model",
 ]
+
+#: the solvers ``decompose(method=...)`` runs: ConvSCD, and the GradBM baseline
+METHODS = ("convscd", "gradbm")
 
 
 class OptionError(ValueError):

@@ -15,7 +15,7 @@ colour scale, and the true components in the profile panels.
 Component frames and profiles come from the stored component cubes; a store written with
 ``--no-components`` has them rendered from its parameters with the forward model instead, with
 the instrument response the store was decomposed with when it holds one (its ``irf`` group,
-:meth:`decomposition.resultstore.ResultStore.response`), else with the Gaussian PSF.  The
+:meth:`decomposition.store.resultstore.ResultStore.response`), else with the Gaussian PSF.  The
 summary says which response the fits were drawn with (:func:`response_text`).
 
 Maps are drawn as xarray's ``DataArray.plot()`` draws a (y, x) array: cells centred on the
@@ -116,7 +116,7 @@ def rendered_components(store, ys, xs, it=None, *, irf="stored"):
         One time index (default: every bin).
     irf : "stored", InstrumentResponse or None
         The response to render with: "stored" (default) the store's own
-        (:meth:`~decomposition.resultstore.ResultStore.response`; the Gaussian PSF when it holds
+        (:meth:`~decomposition.store.resultstore.ResultStore.response`; the Gaussian PSF when it holds
         none), None the Gaussian PSF with each component's ``*_sigma_ps``.
 
     Returns
@@ -418,7 +418,7 @@ def _flag_table() -> dict:
     """bit -> name of every flag a result store's ``flags`` may hold: the solver's
     (decomposition.FLAG_NAMES) and the store's own OUT_OF_RANGE."""
     from decomposition import FLAG_NAMES
-    from decomposition.resultstore import OUT_OF_RANGE
+    from decomposition.store.resultstore import OUT_OF_RANGE
 
     table = {int(bit): str(name) for bit, name in FLAG_NAMES.items()}
     table[OUT_OF_RANGE] = "OUT_OF_RANGE"
@@ -669,7 +669,7 @@ def make_report(result_path, out_dir, *, time_ps: float | None = None, pixels=No
     dict: ``files`` (list of Paths), ``summary`` (str), ``time_ps``, ``pixels``.
     """
     from core.staging import check_output_location
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
 
     check_output_location(out_dir, inputs=(result_path,), folder=True)   # never into a store
     store = open_result_store(result_path)

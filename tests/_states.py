@@ -6,7 +6,7 @@ def solver_setup(n_bins, time_bin_ps=2.0, components="drs"):
     """(dictionary, resolved SolverOptions) of the default solver for ``n_bins`` bins, on the
     time axis of :func:`core.model.render_profile` (:func:`core.model.time_axis_ps`)."""
     from core.model import time_axis_ps
-    from decomposition.dictionary import get_dictionary
+    from decomposition.methods.dictionary import get_dictionary
     from decomposition.options import GridSpec, SolverOptions
 
     opts = SolverOptions().resolved(components)
@@ -17,8 +17,8 @@ def solver_setup(n_bins, time_bin_ps=2.0, components="drs"):
 def polished(y, st, dic, opts, noise=1e-3):
     """The state's amplitudes solved (NNLS) and all its atoms polished by the solver's LM."""
     from decomposition.masks import SampleMask
-    from decomposition.polish import refit_amplitudes
-    from decomposition.slots import parameter_bounds, refine_atoms
+    from decomposition.methods.polish import refit_amplitudes
+    from decomposition.model.slots import parameter_bounds, refine_atoms
 
     n, L = y.shape
     mask = SampleMask.all_fitted(y.shape)

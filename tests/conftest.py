@@ -3,7 +3,7 @@ import signal
 
 import pytest
 
-from decomposition.dictionary import get_dictionary
+from decomposition.methods.dictionary import get_dictionary
 from decomposition.options import GridSpec
 
 

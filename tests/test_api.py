@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from decomposition import EMPTY, NONFINITE, POOR_FIT, SATURATED, decompose
-from decomposition.metrics import fidelity
+from decomposition.model.fidelity import fidelity
 from core.model import empty_params, render_components, render_profile
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 T = 2.0
 
@@ -111,7 +111,7 @@ def test_no_inter_reflection_is_grown_where_none_is_asked():
     # the forward step and the sss swap add Gaussians after the direct; without "r" the labels
     # dropped each one again and flagged the pixel TRUNCATED (178 of 600 such count pixels)
     from decomposition.flags import TRUNCATED
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(120, 256, seed=7, kinds=["d+s"], time_bin_ps=T, ranges="paper", photons_per_pixel=1000.0,
                       background=0.05)

@@ -1,13 +1,13 @@
-"""Compiled Levenberg-Marquardt refinement of a pixel's atoms (decomposition.atomlm)."""
+"""Compiled Levenberg-Marquardt refinement of a pixel's atoms (decomposition.kernels.atomlm)."""
 import numpy as np
 import pytest
 
-from decomposition import atomlm
-from decomposition import convscd as cs
+from decomposition.kernels import atomlm
+from decomposition.methods import convscd as cs
 from decomposition.constants import GAUSS_SUPPORT_SIGMA
 from decomposition.masks import SampleMask
-from decomposition.onsets import onset_links
-from decomposition.slots import new_state, parameter_bounds, render
+from decomposition.kernels.onsets import onset_links
+from decomposition.model.slots import new_state, parameter_bounds, render
 from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 
 T = 2.0

@@ -4,15 +4,15 @@ import pytest
 
 from core.model import empty_params, render_components, render_profile
 from decomposition import decompose
-from decomposition.background import (background_significant, background_test, background_threshold,
-                                      estimate_background)
-from decomposition.components import off_window, threshold, window_fraction
+from decomposition.stages.background import (background_significant, background_test, background_threshold,
+                                             estimate_background)
+from decomposition.model.components import off_window, threshold, window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_SSS
 from decomposition.flags import FLAG_NAMES, OFF_WINDOW, POOR_FIT
 from decomposition.options import parse_components
-from decomposition.synthetic import make_profiles
-from decomposition.refine import refine
-from decomposition.slots import new_state
+from decomposition.evaluation.synthetic import make_profiles
+from decomposition.model.refine import refine
+from decomposition.model.slots import new_state
 
 T = 2.0
 
@@ -233,7 +233,7 @@ def test_window_fraction_and_off_window_known_answers():
 
 def test_a_peak_within_two_widths_of_the_window_edge_runs_off_it():
     # its rise (at the start) or fall (at the end) is cut: the delay is read off one side
-    from decomposition.components import runs_off_window
+    from decomposition.model.components import runs_off_window
     from decomposition.constants import OFF_WINDOW_EDGE_SIGMA
 
     t = 0.0 + T * np.arange(256)
@@ -285,7 +285,7 @@ def test_a_faint_atom_near_a_larger_sss_onset_passes_at_the_sss_factor_times_the
     """A faint Gaussian 2 widths after a larger sss's onset, 10 widths after the direct: the sss
     hides it unless its energy reaches SSS_RESOLVED_CHI2_FACTOR x the bar; a larger Gaussian as
     close hides it whatever its energy; with ``sss_factor=None`` every larger atom hides alike."""
-    from decomposition.components import window_measures
+    from decomposition.model.components import window_measures
     from decomposition.constants import SSS_RESOLVED_CHI2_FACTOR
 
     t = T * np.arange(256)
@@ -366,7 +366,7 @@ def test_pink_noise_bumps_are_mostly_not_significant_components():
     the significance route turns the noise's slow bumps into 3.3 extra components per pixel;
     with the noise across SIGNIFICANCE_LAG_BINS samples, 0.77 (the relative rule alone: 0).
     The energy test assumes white noise; this keeps its error on correlated noise bounded."""
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     rng = np.random.default_rng(12)
     n, L = 60, 512
@@ -387,7 +387,7 @@ def test_pink_noise_bumps_are_mostly_not_significant_components():
 # --------------------------------------------------------------------------- light above the offset
 
 def test_light_test_is_the_data_term_of_the_offset_alone_less_the_model():
-    from decomposition.background import light_test
+    from decomposition.stages.background import light_test
     from decomposition.noise import count_deviance
 
     rng = np.random.default_rng(12)
@@ -447,9 +447,9 @@ def test_pure_offset_float_data_are_empty_and_a_signal_on_it_is_kept():
 
 def test_refined_widths_stay_within_the_solver_bounds_and_are_flagged_there():
     from decomposition.flags import AT_BOUND
-    from decomposition.label import params_at_bound
+    from decomposition.stages.label import params_at_bound
     from decomposition.options import GridSpec
-    from decomposition.slots import shape_bounds
+    from decomposition.model.slots import shape_bounds
 
     bounds = shape_bounds(GridSpec(), 4.0)
     lo_s, hi_s = np.exp(bounds["lsig"])

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 from streaklab.bench import realism
 from streaklab.cli import main
 
@@ -170,8 +170,8 @@ def test_modelled_takes_the_response_as_the_bins_record_it():
     takes it.  On the echo-target scenes (the direct 3 ps before the first bin, ~4,060
     photons) the continuous response, whose atoms are point samples, puts the direct
     +0.12 ps late (one standard error; median |e|/se 0.97); the recorded one leaves no bias."""
-    from decomposition.synthetic import make_profiles
-    from decomposition.synthetic_effects import bin_averaged_response
+    from decomposition.evaluation.synthetic import make_profiles
+    from decomposition.evaluation.synthetic_effects import bin_averaged_response
 
     setup = realism.effect_setup("echo5sigma", 2.0)
     box = bin_averaged_response(setup["response"], 2.0)

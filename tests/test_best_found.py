@@ -1,10 +1,10 @@
-"""The best-found fit of the true component set (decomposition.best_found): the start mapped from
+"""The best-found fit of the true component set (decomposition.evaluation.best_found): the start mapped from
 an answer, and the per-pixel choice of the lower cost."""
 import numpy as np
 import pytest
 
-from decomposition.best_found import answer_start, lowest_cost
-from decomposition.oracle import OracleFit
+from decomposition.evaluation.best_found import answer_start, lowest_cost
+from decomposition.evaluation.oracle import OracleFit
 
 
 def test_answer_start_takes_what_the_decomposition_found():
@@ -109,8 +109,8 @@ def test_the_best_found_ceiling_never_costs_more_than_the_detectable_one():
     per pixel its least-squares cost is the lower of the truth's start and ConvSCD's, and some
     pixels take ConvSCD's start (the truth's is not always the best the cost allows)."""
     from decomposition import decompose
-    from decomposition.oracle import oracle_fit, significant_truth
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.oracle import oracle_fit, significant_truth
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.accuracy import best_found_fit
 
     d = make_profiles(60, 256, nsr=0.055, noise="white", seed=3, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",

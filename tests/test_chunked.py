@@ -6,7 +6,7 @@ import pytest
 
 from core import model
 from decomposition import decompose
-from decomposition.chunked import chunk_tasks, fit_ir_slots, rechunk_pixels, run_tasks, solve_block
+from decomposition.store.chunked import chunk_tasks, fit_ir_slots, rechunk_pixels, run_tasks, solve_block
 
 from _cubes import TB, small_cube as _cube
 
@@ -175,7 +175,7 @@ def test_a_local_run_leaves_dask_distributed_unimported(tmp_path):
 
     np.save(tmp_path / "c.npy", _cube(2, 3, seed=1))
     code = ("import sys, numpy as np\n"
-            "from decomposition.pipeline import decompose_to_store\n"
+            "from decomposition.store.pipeline import decompose_to_store\n"
             f"s = decompose_to_store({str(tmp_path / 'c.npy')!r}, {str(tmp_path / 'r.zarr')!r}, "
             f"time_bin_ps={TB}, progress=False)\n"
             "print(s['chunks_done'], 'distributed' in sys.modules)\n")

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from _cubes import TB, small_cube
-from decomposition.cluster import ClusterError, probe_scheduler, start_local_cluster
-from decomposition.resultstore import open_result_store
+from decomposition.store.cluster import ClusterError, probe_scheduler, start_local_cluster
+from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
 
@@ -29,7 +29,7 @@ def _plus_one(x):
 def test_the_local_cluster_serves_the_run_and_refuses_strangers(tmp_path):
     from distributed import Client, Security
 
-    from decomposition.cluster import TlsFiles, connect_scheduler
+    from decomposition.store.cluster import TlsFiles, connect_scheduler
 
     client, cluster = start_local_cluster(2)
     try:
@@ -72,7 +72,7 @@ def cube(tmp_path):
 
 
 def test_a_scheduler_address_that_is_not_dask_is_refused_in_one_line(cube, tmp_path, capsys, monkeypatch):
-    import decomposition.cluster as cl
+    import decomposition.store.cluster as cl
 
     monkeypatch.setattr(cl, "PROBE_TIMEOUT_S", 1.0)
     out = tmp_path / "res.zarr"
@@ -117,7 +117,7 @@ def test_a_scheduler_address_that_is_not_dask_is_refused_in_one_line(cube, tmp_p
 
 # Every process of the run (the command and its worker processes) slows each chunk's solve down
 # through this sitecustomize, so that the run is reliably still going when Ctrl-C arrives.
-_SLOW_SITE = ("import time\nimport decomposition.chunked as _c\n_f = _c.solve_block\n"
+_SLOW_SITE = ("import time\nimport decomposition.store.chunked as _c\n_f = _c.solve_block\n"
               "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
 
 
@@ -161,7 +161,7 @@ def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_pat
     assert f"decompose: interrupted; {n_done}/8 chunks are on disk in {out}; rerun with --resume" in err, err
 
 
-_FAILING_SITE = ("import decomposition.chunked as _c\n"
+_FAILING_SITE = ("import decomposition.store.chunked as _c\n"
                  "def _fail(*a, **k):\n    raise RuntimeError('injected solver failure')\n"
                  "_c.solve_block = _fail\n")
 

@@ -4,14 +4,14 @@ import warnings
 import numpy as np
 import pytest
 
-from decomposition import convscd as cs
+from decomposition.methods import convscd as cs
 from decomposition import decompose
 from core.model import gaussian_kernel, sss_kernel, time_axis_ps
 from decomposition.masks import SampleMask
 from decomposition.noise import masked_median, noise_sigma
-from decomposition.slots import parameter_bounds
-from decomposition.pick import closed_form
-from decomposition.synthetic import make_profiles
+from decomposition.model.slots import parameter_bounds
+from decomposition.kernels.pick import closed_form
+from decomposition.evaluation.synthetic import make_profiles
 
 T = 2.0
 
@@ -160,7 +160,7 @@ def test_family_selection_shrinks_the_search():
 def test_refinement_keeps_parameters_within_bounds(default_dictionary):
     """Unrestricted greedy start and polish on photon-noise data: every refined delay,
     width and attenuation stays inside its bounds (no runaway step), nothing overflows."""
-    from decomposition import components as comp
+    from decomposition.model import components as comp
 
     data = make_profiles(30, 256, nsr=0.05, noise="photon", seed=1)
     p = data.noisy / np.abs(data.noisy).max(axis=1, keepdims=True)
@@ -182,7 +182,7 @@ def test_refinement_keeps_parameters_within_bounds(default_dictionary):
 
 
 def test_dictionary_cache_is_explicit_and_bounded():
-    from decomposition.dictionary import DictionaryCache, get_dictionary
+    from decomposition.methods.dictionary import DictionaryCache, get_dictionary
 
     cache = DictionaryCache(maxsize=2)
     g = cs.GridSpec(coarse_sigma=2, coarse_alpha=1, coarse_sss_sigma=1)
@@ -200,7 +200,7 @@ def test_dictionary_cache_is_explicit_and_bounded():
 def test_dictionary_cache_serves_concurrent_threads():
     import threading
 
-    from decomposition.dictionary import DictionaryCache, get_dictionary
+    from decomposition.methods.dictionary import DictionaryCache, get_dictionary
 
     cache = DictionaryCache(maxsize=1)                 # every other call evicts: the racy path
     grids = [cs.GridSpec(coarse_sigma=1 + i % 2, coarse_alpha=1, coarse_sss_sigma=1) for i in range(2)]

@@ -13,8 +13,8 @@ import zarr
 
 from _cubes import TB, small_cube as _cube
 from decomposition import decompose
-from decomposition.resultstore import open_result_store
-from decomposition.pipeline import PipelineError, decompose_to_store
+from decomposition.store.resultstore import open_result_store
+from decomposition.store.pipeline import PipelineError, decompose_to_store
 from reconstruction.cubestore import create_cube, write_cube
 from streaklab.cli import main
 
@@ -144,7 +144,7 @@ def test_local_cluster_of_processes_gives_the_same_store(cube_path, reference, t
 
 
 def test_crash_then_resume_gives_the_uninterrupted_store(cube_path, reference, tmp_path, monkeypatch, capsys):
-    import decomposition.chunked as chunked
+    import decomposition.store.chunked as chunked
 
     real, calls = chunked.solve_block, []
 
@@ -171,7 +171,7 @@ def test_crash_then_resume_gives_the_uninterrupted_store(cube_path, reference, t
 
 # The subprocess runs the real command with each chunk's solve slowed down, so that it is reliably
 # still running when it is killed; everything else is the production code path.
-_SLOW = ("import sys, time; import decomposition.chunked as c; f = c.solve_block; "
+_SLOW = ("import sys, time; import decomposition.store.chunked as c; f = c.solve_block; "
          "c.solve_block = lambda *a, **k: (time.sleep(0.1), f(*a, **k))[1]; "
          "from streaklab.cli import main; sys.exit(main(sys.argv[1:]))")
 
@@ -322,7 +322,7 @@ def test_npy_input_without_components(tmp_path):
 
 def test_the_background_family_is_stored_in_signal_units(tmp_path):
     # components d,s,b: the fitted offset is a map of the store, in the cube's units
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(12, 256, seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper", photons_per_pixel=1000.0,
                       background=0.05)
@@ -338,7 +338,7 @@ def test_the_background_family_is_stored_in_signal_units(tmp_path):
 
 
 def test_a_cube_of_mostly_poor_fits_gets_a_note_naming_the_usual_causes(tmp_path, capsys):
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(16, 256, nsr=0.01, noise="white", seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper",
                       background=0.05, bin_integrated=True)
@@ -356,7 +356,7 @@ def _slow_solver_in_this_worker():
     """Run inside a dask worker: slow its chunk solve down so that it can be killed mid-run."""
     import time as _time
 
-    import decomposition.chunked as c
+    import decomposition.store.chunked as c
 
     real = c.solve_block
     c.solve_block = lambda *a, **k: (_time.sleep(0.3), real(*a, **k))[1]

@@ -17,7 +17,7 @@ from core.irfstore import save_response
 from core.model import render_components, render_profile
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
-from decomposition.response_input import TRIM_REL
+from decomposition.response.resolve import TRIM_REL
 
 T = 2.0
 L = 512
@@ -215,7 +215,7 @@ def test_count_data_sss_missed_by_the_pursuit_is_added():
     them their sss, and the direct delay's standard error (which was too small there, the
     sss's light pulling the delay) is calibrated (median |e| / se 0.674 for normal errors), as
     is the lifetime's (the Fisher information of the Poisson fit)."""
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=T)
     d = make_profiles(300, 256, seed=2, kinds="d+s", response=irf, photons_per_pixel=100.0)
@@ -243,7 +243,7 @@ def test_count_data_direct_taken_by_a_fast_sss_is_restored_or_flagged():
     photons: 91 % with a direct before, 95 % with the direct restored (10 restored, within 9 ps
     of the truth, each OFF_WINDOW), 96 % since the likelihood fit (8 restored)."""
     from decomposition.flags import AMBIGUOUS
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("truncated", T)
@@ -280,7 +280,7 @@ def test_count_refit_never_leaves_a_lower_poisson_deviance():
     counts now takes a step only where it lowers the Poisson deviance, the fit's own objective:
     the direct stays within 1 ps and the forward step then adds the sss."""
     from streaklab.bench.realism import EFFECTS, effect_setup
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     setup = effect_setup("echo", T)
     d = make_profiles(2000, 256, seed=1000 * EFFECTS.index("echo"), kinds=setup["kinds"], time_bin_ps=T,
@@ -304,7 +304,7 @@ def test_count_refinement_reaches_the_poisson_maximum_likelihood():
 
     from decomposition.constants import POISSON_FIT_FLOOR
     from decomposition.noise import poisson_deviance
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import EFFECTS, effect_setup
 
     setup = effect_setup("afterpulse", T)
@@ -341,7 +341,7 @@ def test_a_direct_before_the_window_is_restarted_at_its_edge():
     reference's: refitted from the window's edge and 1 and 2 response widths before it, each
     keeps its best start and lands within 0.5 ps of the truth (still OFF_WINDOW)."""
     from decomposition.flags import OFF_WINDOW
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import EFFECTS, effect_setup
 
     setup = effect_setup("truncated", T)
@@ -361,7 +361,7 @@ def test_a_restarted_direct_does_not_slide_out_of_sight():
     direct to 157 ps before it, 156 ps before its sss, with a fifth of its amplitude -- where
     no sample sees it and nothing in the data places it, at a deviance within 0.01 of the
     reference's.  Such a refit is not taken: the direct stays within 6 ps of the truth."""
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import EFFECTS, effect_setup
 
     setup = effect_setup("truncated", T)
@@ -380,9 +380,9 @@ def test_a_late_sss_onset_is_restarted_at_the_direct(monkeypatch):
     units above the Poisson reference's: refitted with the onset started at the direct, each
     takes that fit -- its deviance lower, the onset on the direct, the direct within 1.5 ps of
     the truth.  With the step off (ONSET_RESTART_SIGMA infinite) the onsets stay late."""
-    from decomposition import response_grow
+    from decomposition.response import grow as response_grow
     from decomposition.noise import poisson_deviance
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
@@ -417,7 +417,7 @@ def test_count_fit_on_degenerate_pixels():
     import warnings
 
     from decomposition.flags import EMPTY
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
@@ -453,7 +453,7 @@ def test_count_data_of_a_block():
     chi2 units over the fitted samples."""
     from decomposition.constants import POISSON_FIT_FLOOR
     from decomposition.noise import poisson_deviance
-    from decomposition.response_refine import CountData
+    from decomposition.response.refine import CountData
 
     phi = np.array([[[1.0, 0.5, 0.0, 0.0], [0.0, 0.2, 0.4, 0.0]]])
     ev = {"amp": np.array([[2.0, 1.0]]), "phi": phi}
@@ -483,9 +483,9 @@ def test_a_direct_no_sample_sees_is_not_reported():
 
     from core.irf_components import gaussian_equivalent_sigma_ps
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.response_grow import _unseen_direct
-    from decomposition.response_refine import Slots
-    from decomposition.synthetic import make_profiles
+    from decomposition.response.grow import _unseen_direct
+    from decomposition.response.refine import Slots
+    from decomposition.evaluation.synthetic import make_profiles
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
@@ -523,10 +523,10 @@ def test_light_before_the_direct_is_a_poor_fit():
     holds that light, or none there, leaves the pixel alone."""
     from core.model import render_profile
     from decomposition.flags import AMBIGUOUS
-    from decomposition.quality import direct_lead_ps, light_before_direct
-    from decomposition.synthetic import make_profiles
+    from decomposition.stages.quality import direct_lead_ps, light_before_direct
+    from decomposition.evaluation.synthetic import make_profiles
     from decomposition.options import GridSpec
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
     from streaklab.bench.realism import effect_setup
 
     setup = effect_setup("tailed", T)
@@ -573,7 +573,7 @@ def test_slot_fit_from_atoms_outside_the_window(counts):
     import warnings
 
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.response_refine import CountData, fit_slots
+    from decomposition.response.refine import CountData, fit_slots
 
     irf = gaussian_response(4.0, time_step_ps=T)
     t = T + T * np.arange(128)

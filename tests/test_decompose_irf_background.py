@@ -1,7 +1,7 @@
 """The background family 'b' on the response path: decompose(irf=..., components="...,b").
 
 Known answers: scenes of a tailed response (20 % of the area in a 30 ps tail) with and without
-a constant offset (decomposition.synthetic.make_profiles, same seed: same components), white
+a constant offset (decomposition.evaluation.synthetic.make_profiles, same seed: same components), white
 noise and Poisson counts.  The offset must be recovered, the delays and lifetimes must not
 move against the scene without it, an offset the scene does not have must be exactly 0.0,
 and a pixel that is not decomposed has NaN.
@@ -13,8 +13,8 @@ from core.irf import render_shifted
 from core.irf_models import gaussian_response, tailed_response
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE
-from decomposition.response_refine import fit_slots
-from decomposition.synthetic import make_profiles
+from decomposition.response.refine import fit_slots
+from decomposition.evaluation.synthetic import make_profiles
 
 T = 2.0
 L = 256

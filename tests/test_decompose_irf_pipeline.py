@@ -8,8 +8,8 @@ from _cubes import response_profiles
 from core.irf_models import tailed_response
 from core.irfstore import save_response
 from decomposition import decompose
-from decomposition.pipeline import PipelineError, decompose_to_store
-from decomposition.resultstore import open_result_store
+from decomposition.store.pipeline import PipelineError, decompose_to_store
+from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import write_cube, write_cube_response
 from streaklab.cli import main
 

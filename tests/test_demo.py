@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from decomposition.resultstore import open_result_store
+from decomposition.store.resultstore import open_result_store
 from streaklab.cli import CommandError, main
 from streaklab.commands.demo import class_fidelity
 
@@ -155,7 +155,7 @@ def test_bench_speed_hands_solver_options_to_every_run_and_judges_no_target_then
     assert "target, convscd" not in printed and "the target is judged on the defaults" in printed
     # the options reached the solver: the result store records them
     assert speed.run(parser.parse_args(common + ["--option", "n_polish=10", "--keep"])) == 0
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
     attrs = open_result_store(tmp_path / "result-convscd-threads2.zarr").attrs
     assert attrs["options"]["n_polish"] == 10
 

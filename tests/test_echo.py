@@ -14,7 +14,7 @@ import pytest
 from core.irf_models import gaussian_response, tailed_response
 from core.model import empty_params, render_profile
 from decomposition import decompose
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 from streaklab.bench.realism import effect_setup, echo_found, five_sigma_photons
 
 T = 2.0
@@ -126,7 +126,7 @@ def test_a_faint_echo_on_the_rise_of_a_larger_sss_is_kept():
     after every polish, and the 224 ps echo took its label (fidelity 0.15, no flag).  Only a
     larger Gaussian hides a faint one at the plain bar now; an sss at SSS_RESOLVED_CHI2_FACTOR
     times it."""
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=2, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)

@@ -7,8 +7,8 @@ from acquisition.runstore import RunStoreError
 from acquisition.session import CaptureError, CaptureFailed
 from core.errors import OutputExistsError, StreaklabError
 from core.staging import check_output_path
-from decomposition.pipeline import PipelineError
-from decomposition.resultstore import ResultStoreError
+from decomposition.store.pipeline import PipelineError
+from decomposition.store.resultstore import ResultStoreError
 from drivers.errors import DriverError
 from reconstruction.build import ReconstructionError
 from reconstruction.calibrate import CalibrationError

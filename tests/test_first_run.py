@@ -161,7 +161,7 @@ def _readme_session():
 
 
 def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monkeypatch, capsys):
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
 
     session = _readme_session()
     assert [argv[0] for argv in session] == ["capture", "reconstruct", "decompose", "report", "verify"]
@@ -177,7 +177,7 @@ def test_the_readme_session_runs_as_written_from_an_empty_folder(tmp_path, monke
 def test_compile_notice_speaks_only_when_numba_compiles():
     import io
 
-    from decomposition import jit
+    from decomposition.kernels import jit
 
     ns = {"jit": jit}
     exec("@jit.njit\ndef thrice(x):\n    return 3.0 * x\n", ns)  # no source file: compiled, not cached
@@ -222,9 +222,9 @@ def _seed_cache_without_one_kernel(cache_dir, *, left_out: str) -> int:
     import numba
     from numba.core import caching
 
-    from decomposition import jit, noise
+    from decomposition import noise, warmup
 
-    jit.warm_up(quiet=True)                    # this process's cache is complete (usually it already is)
+    warmup.warm_up(quiet=True)                    # this process's cache is complete (usually it already is)
     pkg = Path(noise.__file__).resolve().parent
     try:
         sub = caching._CacheLocator.get_suitable_cache_subpath(str(pkg / "noise.py"))
@@ -249,7 +249,7 @@ def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_pat
     import sys
     from pathlib import Path
 
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
 
     root = Path(__file__).resolve().parents[1]
     np.save(tmp_path / "c.npy", make_cube(1, 8, 96, nsr=0.05, seed=1).noisy)
@@ -285,7 +285,7 @@ def test_accuracy_timings_leave_out_the_first_calls_one_time_cost(monkeypatch):
 
 
 def test_warm_up_suits_any_time_axis_and_reports_no_compile_once_cached():
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     # a window far too short for its synthetic scenes (0.1 ps bins): the default axis is used instead
     assert warm_up(time_bin_ps=0.1, n_bins=4096, quiet=True) >= 0.0

@@ -4,9 +4,9 @@ import warnings
 import numpy as np
 import pytest
 
-from decomposition.fisher import cramer_rao_bound, fisher_information, parameter_names, standard_errors
+from decomposition.model.fisher import cramer_rao_bound, fisher_information, parameter_names, standard_errors
 from core.model import empty_params, render_profile, time_axis_ps
-from decomposition.refine import refine
+from decomposition.model.refine import refine
 
 T = 2.0
 

@@ -27,7 +27,7 @@ def test_mark_keeps_the_dtype_and_names_read_back():
 
 
 def test_no_solver_bit_collides_with_the_result_store_bit():
-    from decomposition.resultstore import OUT_OF_RANGE
+    from decomposition.store.resultstore import OUT_OF_RANGE
 
     assert all(int(f) & OUT_OF_RANGE == 0 for f in fl.Flag)
     assert max(int(f) for f in fl.Flag) <= np.iinfo(fl.FLAG_DTYPE).max

@@ -8,7 +8,7 @@ import pytest
 from _cubes import TB, small_cube
 from acquisition.config import parse_config
 from acquisition.runstore import RunStore, create_run, open_run
-from decomposition.resultstore import ResultStore, open_result_store
+from decomposition.store.resultstore import ResultStore, open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
 
@@ -41,7 +41,7 @@ def test_outputs_that_cannot_be_written_are_one_line(tmp_path, cube, capsys, mon
     assert _lines(capsys)[-1] == (f"streaklab capture: error: cannot write the run store "
                                   f"{tmp_path / 'afile' / 'run.zarr'}: a file stands where a folder should be")
 
-    import decomposition.resultstore as rs
+    import decomposition.store.resultstore as rs
 
     def read_only(path, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(Path(path).parent / ".r.zarr.partial-0123abcd"))

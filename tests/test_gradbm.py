@@ -4,10 +4,10 @@ import warnings
 import numpy as np
 import pytest
 
-from decomposition.gradbm import gradbm
-from decomposition.metrics import fidelity
+from decomposition.methods.gradbm import gradbm
+from decomposition.model.fidelity import fidelity
 from core.model import render_components, render_profile
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 L = 192
 

@@ -5,7 +5,7 @@ import numpy as np
 from core.model import empty_params, render_profile
 from decomposition.constants import FAM_GAUSS, FAM_SSS, SWAP_MODE_GAP_SIGMA
 from decomposition.masks import SampleMask
-from decomposition.slots import eval_atoms, new_state
+from decomposition.model.slots import eval_atoms, new_state
 
 from _states import polished, solver_setup
 
@@ -45,7 +45,7 @@ def _state(truth, n, irs, K=5):
 
 
 def test_grow_adds_the_missing_inter_reflection():
-    from decomposition.grow import grow_block
+    from decomposition.stages.grow import grow_block
 
     n, L, T = 5, 512, 2.0
     truth = _truth(n)
@@ -60,7 +60,7 @@ def test_grow_adds_the_missing_inter_reflection():
 
 
 def test_grow_leaves_a_fit_at_the_noise_alone():
-    from decomposition.grow import grow_block
+    from decomposition.stages.grow import grow_block
 
     n, L, T = 5, 512, 2.0
     truth = _truth(n)
@@ -74,7 +74,7 @@ def test_grow_leaves_a_fit_at_the_noise_alone():
 
 
 def test_min_gaussian_gap_is_in_widths():
-    from decomposition.grow import min_gaussian_gap_sigma
+    from decomposition.stages.grow import min_gaussian_gap_sigma
 
     st = new_state(3, 4)
     st["fam"][:, :3] = [[FAM_GAUSS, FAM_SSS, FAM_GAUSS], [FAM_GAUSS, FAM_GAUSS, FAM_GAUSS], [FAM_GAUSS, 0, 0]]
@@ -129,8 +129,8 @@ def test_bump_test_grows_a_weak_first_inter_reflection_the_data_term_hides():
     """A first inter-reflection of 6 % of the direct (energy 128 noise sigma^2, matched-filter
     z ~ 11) before one of 50 %: the data term is only 1.0-1.35x its expected value, below the
     1.5x rule, so the data-term test alone never tries the pixel; the bump test finds it."""
-    from decomposition.grow import grow_block
-    from decomposition.slots import render
+    from decomposition.stages.grow import grow_block
+    from decomposition.model.slots import render
 
     n = 20
     dic, opts = solver_setup(L_BINS, T_PS)
@@ -149,7 +149,7 @@ def test_bump_test_grows_a_weak_first_inter_reflection_the_data_term_hides():
 
 
 def test_bump_test_adds_nothing_where_there_is_no_first_inter_reflection():
-    from decomposition.grow import grow_block
+    from decomposition.stages.grow import grow_block
 
     n = 20
     dic, opts = solver_setup(L_BINS, T_PS)
@@ -165,8 +165,8 @@ def test_bump_spread_is_one_for_white_noise_and_larger_for_pink():
     """The bump's z is read against the spread of the smoothed residual: for white noise in
     noise sigmas the matched-filter scale makes it 1, for pink noise (the same sample sigma,
     most power at low frequencies) component-sized bumps are larger than that."""
-    from decomposition.grow import residual_peak
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.stages.grow import residual_peak
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     n = 200
     t = T_PS * (1 + np.arange(L_BINS))
@@ -182,7 +182,7 @@ def test_bump_spread_is_one_for_white_noise_and_larger_for_pink():
 
 
 def test_near_centres_matches_the_distance_rule():
-    from decomposition.grow import near_centres
+    from decomposition.stages.grow import near_centres
 
     rng = np.random.default_rng(0)
     t = T_PS * (1 + np.arange(L_BINS))
@@ -201,7 +201,7 @@ def test_near_centres_matches_the_distance_rule():
 def _paper_pixels_sss_took_the_first():
     """Paper-scene pixels (white NSR 0.055, seed 1) whose first inter-reflection the detected
     sss takes in (its onset moved 5-13 ps late), with no residual bump left for the bump test."""
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, L_BINS, nsr=0.055, noise="white", seed=1, kinds=["a", "b", "c"], time_bin_ps=T_PS,
                       ranges="paper", bin_integrated=True)
@@ -231,7 +231,7 @@ def test_sss_swap_finds_the_first_inter_reflection_the_sss_took_in():
 def test_sss_swap_keeps_a_late_peaking_sss_without_a_gaussian_under_it():
     """An sss peaking 4.5 widths after the direct, inter-reflections at 150 and 230 ps: the swap
     is tried (the sss peaks late) and the objective keeps the answer as it is."""
-    from decomposition.grow import swap_block
+    from decomposition.stages.grow import swap_block
 
     n = 20
     dic, opts = solver_setup(L_BINS, T_PS)
@@ -279,10 +279,10 @@ def test_decompose_finds_a_weak_first_inter_reflection_above_the_detectable_rule
 
 
 def _detected(y, noise="gaussian"):
-    from decomposition.detect import detect_components
-    from decomposition.dictionary import get_dictionary
+    from decomposition.stages.detect import detect_components
+    from decomposition.methods.dictionary import get_dictionary
     from decomposition.options import GridSpec, SolverOptions
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
 
     axis = time_axis(T_PS)
     grid = GridSpec()
@@ -295,7 +295,7 @@ def _detected(y, noise="gaussian"):
 def test_significance_noise_from_the_residual_is_the_white_noise_sigma():
     """Under white noise the profile's lagged noise holds the components' slopes (here 1.57x
     the noise sigma, median); across the same lag on the residual it is the noise sigma."""
-    from decomposition.candidates import residual_significance_noise
+    from decomposition.stages.candidates import residual_significance_noise
 
     n = 30
     y = render_profile(_weak_first(n, 0.3, sss_amplitude=0.3), L_BINS, T_PS)
@@ -310,8 +310,8 @@ def test_significance_noise_from_the_residual_is_the_white_noise_sigma():
 
 
 def test_significance_noise_keeps_the_profile_value_for_pink_noise_and_counts():
-    from decomposition.candidates import residual_significance_noise
-    from decomposition.synthetic_noise import noise_realisation
+    from decomposition.stages.candidates import residual_significance_noise
+    from decomposition.evaluation.synthetic_noise import noise_realisation
 
     n = 30
     clean = render_profile(_weak_first(n, 0.3, sss_amplitude=0.3), L_BINS, T_PS)

@@ -5,7 +5,7 @@ import pytest
 from core.irf import render_shifted, render_sss
 from core.irf_models import gaussian_response, tailed_response
 from core.model import gaussian_kernel
-from decomposition.irf_dictionary import FAM_SHIFTED, FAM_SSS, ResponseDictionary
+from decomposition.response.dictionary import FAM_SHIFTED, FAM_SSS, ResponseDictionary
 
 T, L, T0 = 2.0, 160, 2.0
 AXIS = T0 + T * np.arange(L)

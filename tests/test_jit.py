@@ -1,11 +1,11 @@
-"""Compiled scalar kernels (decomposition.jit) against scipy and core.model, and their disk cache."""
+"""Compiled scalar kernels (decomposition.kernels.jit) against scipy and core.model, and their disk cache."""
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import special
 
-from decomposition import jit
+from decomposition.kernels import jit
 from core.model import sss_kernel
 
 
@@ -64,15 +64,15 @@ def test_a_kernel_without_a_cache_location_still_compiles():
     assert ns["twice"](1.5) == 3.0
 
 
-def _run_kernel(root, repo):
+def _run_kernel(root, repo, code=None):
     import os
     import subprocess
     import sys
 
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), str(repo)]))
     env.pop("NUMBA_CACHE_DIR", None)
-    code = ("import kpkg.kern as k\n"
-            "print(k.level(), sum(k.level.stats.cache_hits.values()), sum(k.level.stats.cache_misses.values()))")
+    code = code or ("import kpkg.kern as k\n"
+                    "print(k.level(), sum(k.level.stats.cache_hits.values()), sum(k.level.stats.cache_misses.values()))")
     out = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     value, hits, misses = out.stdout.split()
@@ -83,12 +83,12 @@ def test_a_changed_constant_compiles_the_kernels_that_read_it_afresh(tmp_path):
     """numba keys its disk cache on a kernel's own file; a constant it reads from constants.py
     is frozen into the cached code.  The kernels' stamp covers the folder's constants and
     kernel modules, so a changed constant is never served from a stale cache."""
-    repo = Path(jit.__file__).resolve().parents[1]
+    repo = Path(jit.__file__).resolve().parents[2]
     pkg = tmp_path / "kpkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "constants.py").write_text("LEVEL = 1.0\n")
-    (pkg / "kern.py").write_text("from decomposition.jit import njit\nfrom .constants import LEVEL\n\n\n"
+    (pkg / "kern.py").write_text("from decomposition.kernels.jit import njit\nfrom .constants import LEVEL\n\n\n"
                                  "@njit\ndef level():\n    return LEVEL\n")
     assert _run_kernel(tmp_path, repo) == (1.0, 0, 1)          # compiled, written to the cache
     assert _run_kernel(tmp_path, repo) == (1.0, 1, 0)          # loaded from the cache
@@ -103,8 +103,28 @@ def test_a_changed_constant_compiles_the_kernels_that_read_it_afresh(tmp_path):
     assert _run_kernel(tmp_path, repo) == (2.0, 1, 0)
 
 
+def test_a_changed_constant_of_the_package_compiles_a_subfolders_kernels_afresh(tmp_path):
+    """Kernels in a subfolder (``decomposition/kernels/``) read the constants of the package
+    above it (``decomposition/constants.py``): the stamp covers the whole package tree."""
+    repo = Path(jit.__file__).resolve().parents[2]
+    pkg = tmp_path / "kpkg"
+    (pkg / "kern").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "constants.py").write_text("LEVEL = 1.0\n")
+    (pkg / "kern" / "__init__.py").write_text("")
+    (pkg / "kern" / "level.py").write_text("from decomposition.kernels.jit import njit\nfrom ..constants import LEVEL\n\n\n"
+                                           "@njit\ndef level():\n    return LEVEL\n")
+    code = ("import kpkg.kern.level as k\n"
+            "print(k.level(), sum(k.level.stats.cache_hits.values()), sum(k.level.stats.cache_misses.values()))")
+    assert _run_kernel(tmp_path, repo, code) == (1.0, 0, 1)
+    assert _run_kernel(tmp_path, repo, code) == (1.0, 1, 0)
+    assert jit.kernel_digest(str(pkg / "kern")) == jit.kernel_digest(str(pkg))
+    (pkg / "constants.py").write_text("LEVEL = 2.0\n")
+    assert _run_kernel(tmp_path, repo, code) == (2.0, 0, 1)          # the stale entry is not used
+
+
 def test_the_solvers_kernels_are_cached_under_the_folders_digest():
-    from decomposition import atomlm
+    from decomposition.kernels import atomlm
 
     assert atomlm._gauss_support._cache is not None
     locator = atomlm._gauss_support._cache._impl.locator
@@ -120,7 +140,7 @@ def test_without_a_stamped_cache_kernels_are_compiled_not_cached(tmp_path, monke
 
     monkeypatch.setattr(jit, "_LOCATORS", None)
     src = tmp_path / "kmod.py"
-    src.write_text("from decomposition.jit import njit\nLEVEL = 3.0\n\n\n@njit\ndef level():\n    return LEVEL\n")
+    src.write_text("from decomposition.kernels.jit import njit\nLEVEL = 3.0\n\n\n@njit\ndef level():\n    return LEVEL\n")
     spec = importlib.util.spec_from_file_location("kmod_uncached", src)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

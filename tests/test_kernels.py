@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from decomposition import jit
-from decomposition.kernels import kernel_derivatives
+from decomposition.kernels import jit
+from decomposition.kernels.derivatives import kernel_derivatives
 from core.model import gaussian_kernel, sss_kernel
 
 

@@ -16,8 +16,31 @@ pipeline reads the cube store that reconstruction writes.  Nothing points back, 
 itself is acyclic; the scan fails on any import the table does not allow (function-level
 imports and literal ``importlib.import_module`` calls included) and on any cycle among the
 packages.
+
+Inside ``decomposition`` a second table (``DECOMPOSITION``: unit -> the units it may import) orders
+its subpackages and top-level modules the same way, bottom up::
+
+    constants, flags, masks, options    what every layer shares
+    kernels      the compiled kernels
+    noise        noise estimates and deviances (its own compiled kernels use kernels.jit)
+    model        slot states, components, refines, fidelity
+    methods      ConvSCD and the GradBM baseline
+    stages       the stages decompose() runs
+    response     the measured-response path (reuses the stages' rules)
+    api          decompose() itself; __init__ re-exports it, warmup runs it once before timing
+    store        the chunked store pipeline above the solver: the only unit that reads cube
+                 stores (reconstruction)
+    evaluation   synthetic scenes, reference fits, metrics: no unit of the solver imports it
+
+The module graph of ``decomposition`` (function-level imports included) must be acyclic, and
+imports of ``decomposition`` modules inside functions are kept to the lazy loads of ``store``
+and the package's ``__init__``: elsewhere a function-level import that only hides a cycle
+would hide a wrong dependency direction.
 """
 import ast
+import os
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -32,6 +55,32 @@ ALLOWED = {
     "decomposition": {"reconstruction", "drivers", "core"},
     "streaklab": {"acquisition", "reconstruction", "decomposition", "drivers", "core"},
 }
+
+#: decomposition's units (a subpackage, or a top-level module; "__init__" the package itself)
+#: -> the units they may import
+_SHARED = {"constants", "flags", "masks", "options"}
+DECOMPOSITION = {
+    "constants": set(),
+    "flags": set(),
+    "masks": set(),
+    "options": set(),
+    "kernels": {"constants", "masks"},
+    "noise": {"constants", "kernels"},
+    "model": {"constants", "masks", "kernels"},
+    "methods": _SHARED | {"kernels", "model"},
+    "stages": _SHARED | {"kernels", "noise", "model", "methods"},
+    "response": _SHARED | {"noise", "model", "stages"},
+    "api": _SHARED | {"model", "methods", "stages", "response"},
+    "__init__": {"flags", "api"},
+    "warmup": {"api", "kernels"},
+    "store": _SHARED | {"__init__", "api", "methods", "response", "warmup"},
+    "evaluation": {"constants", "noise", "model"},
+}
+#: the project packages (besides core) a unit of decomposition may import
+DECOMPOSITION_OUTSIDE = {"store": {"reconstruction"}}
+#: units whose functions may import decomposition modules (lazy loads: the API on first use,
+#: the pipeline's parts when a run needs them)
+LAZY_UNITS = {"__init__", "store"}
 
 
 def project_packages() -> list[str]:
@@ -117,6 +166,45 @@ def find_cycle(graph) -> list[str] | None:
     return None
 
 
+def module_imports(root: Path, package: str):
+    """{module: [(line, imported module or package, inside a function)]} for every module of
+    ``package`` under ``root``; ``from pkg import name`` counts as an import of ``pkg.name`` where
+    that is a module of the package."""
+    files = {}
+    for path in sorted((root / package).rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        is_package = path.name == "__init__.py"
+        files[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    out = {}
+    for module, (path, is_package) in files.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        in_function = {id(n) for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+                       for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        found = []
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = imported_modules(ast.unparse(node), module, is_package=is_package)[0][1]
+                names = [f"{base}.{a.name}" if f"{base}.{a.name}" in files else base for a in node.names]
+            else:
+                continue
+            found += [(node.lineno, name, id(node) in in_function) for name in names]
+        out[module] = found
+    return out
+
+
+def unit_of(module: str) -> str:
+    """The unit of a decomposition module: its subpackage, or itself at the top level."""
+    parts = module.split(".")
+    return "__init__" if len(parts) == 1 else parts[1]
+
+
+def module_graph(imports, package: str):
+    """module -> the modules of ``package`` it imports (function-level imports included)."""
+    return {m: {name for _, name, _ in found if name in imports and name != m} for m, found in imports.items()}
+
+
 # ---------------------------------------------------------------------------------------------
 # the project
 # ---------------------------------------------------------------------------------------------
@@ -150,6 +238,69 @@ def test_the_scan_sees_the_known_edges():
     assert "reconstruction" in edges["decomposition"]  # the pipeline opens cube stores (function level)
     assert "decomposition" in edges["streaklab"]
     assert edges["core"] == {}
+
+
+def test_every_decomposition_module_has_a_unit():
+    units = {unit_of(m) for m in module_imports(ROOT, "decomposition")}
+    assert units == set(DECOMPOSITION), "add the unit to DECOMPOSITION (and the module docstring)"
+
+
+def test_the_decomposition_table_is_acyclic():
+    assert find_cycle(DECOMPOSITION) is None
+
+
+def test_no_decomposition_import_outside_its_table():
+    bad = []
+    for module, found in module_imports(ROOT, "decomposition").items():
+        unit = unit_of(module)
+        for line, name, _ in found:
+            top = name.split(".")[0]
+            if top == "decomposition":
+                target = unit_of(name)
+                if target != unit and target not in DECOMPOSITION[unit]:
+                    bad.append(f"{module}:{line} imports {name} ({unit} -> {target})")
+            elif top in ALLOWED and top != "core" and top not in DECOMPOSITION_OUTSIDE.get(unit, set()):
+                bad.append(f"{module}:{line} imports {name} ({unit} -> {top})")
+    assert bad == []
+
+
+def test_no_cycle_among_decomposition_modules():
+    """Function-level imports count: one that closes a cycle hides a wrong dependency direction."""
+    assert find_cycle(module_graph(module_imports(ROOT, "decomposition"), "decomposition")) is None
+
+
+def test_function_level_imports_of_decomposition_are_lazy_loads_only():
+    found = [(module, line, name) for module, imports in module_imports(ROOT, "decomposition").items()
+             for line, name, inside in imports if inside and name.split(".")[0] == "decomposition"]
+    assert found  # the scan sees them (the store's lazy loads)
+    assert [f for f in found if unit_of(f[0]) not in LAZY_UNITS] == []
+
+
+def test_the_scan_sees_the_known_decomposition_edges():
+    imports = module_imports(ROOT, "decomposition")
+    graph = module_graph(imports, "decomposition")
+    assert "decomposition.stages.grow" in graph["decomposition.stages.search"]
+    assert "decomposition.methods.convscd" in graph["decomposition.stages.detect"]  # from ..methods import convscd
+    assert "decomposition.kernels.jit" in graph["decomposition.noise"]
+    assert any(name.startswith("reconstruction") and inside
+               for _, name, inside in imports["decomposition.store.pipeline"])
+
+
+def test_the_kernels_load_and_run_without_the_solver_above_them():
+    """The compiled kernels import nothing above them: a process that imports every kernel module
+    and runs a kernel holds no stage, API or evaluation module."""
+    code = ("import sys\n"
+            "import decomposition.kernels.atomlm, decomposition.kernels.derivatives, decomposition.kernels.onsets\n"
+            "import decomposition.kernels.pick, decomposition.kernels.pickcorr\n"
+            "from decomposition.kernels import jit\n"
+            "assert abs(jit.erfcx(0.5) - 0.6156903441929259) < 1e-14\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('decomposition'))))\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    loaded = set(out.stdout.split())
+    assert "decomposition.kernels.atomlm" in loaded
+    assert {unit_of(m) for m in loaded} <= {"__init__", "kernels", "constants", "flags", "masks"}, loaded
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,3 +344,21 @@ def test_checker_finds_a_cycle():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
     bad = dict(ALLOWED, core={"decomposition"})
     assert find_cycle(bad) is not None
+
+
+def test_checker_finds_a_cycle_closed_inside_a_function(tmp_path):
+    root = _tree(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/grow.py": "from .search import objective\n",
+        "pkg/search.py": "def block():\n    from .grow import grow_block\n",
+        "pkg/stages/__init__.py": "",
+        "pkg/stages/label.py": "from .. import grow as g\n",
+    })
+    imports = module_imports(root, "pkg")
+    assert (2, "pkg.grow", True) in imports["pkg.search"]
+    assert (1, "pkg.grow", False) in imports["pkg.stages.label"]  # from .. import module
+    graph = module_graph(imports, "pkg")
+    assert find_cycle(graph) in (["pkg.grow", "pkg.search", "pkg.grow"], ["pkg.search", "pkg.grow", "pkg.search"])
+    (root / "pkg/search.py").write_text("def block():\n    return 0\n")
+    assert find_cycle(module_graph(module_imports(root, "pkg"), "pkg")) is None
+

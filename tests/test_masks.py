@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from decomposition import atomlm
-from decomposition import convscd as cs
+from decomposition.kernels import atomlm
+from decomposition.methods import convscd as cs
 from decomposition import decompose
 from decomposition.masks import SampleMask
-from decomposition.slots import new_state, parameter_bounds
+from decomposition.model.slots import new_state, parameter_bounds
 
 
 def test_masks_are_masks_and_never_both():
@@ -43,7 +43,7 @@ def test_real_weights_work_as_weights_in_the_refinement():
     """The stage that takes weights treats 0.5 as a weight: halving every weight changes nothing,
     down-weighting one sample moves the fit less than excluding it."""
     from core.model import empty_params, render_profile
-    from decomposition.refine import refine
+    from decomposition.model.refine import refine
 
     L, T = 128, 2.0
     truth = empty_params((1,), 0)
@@ -66,7 +66,7 @@ def test_real_weights_work_as_weights_in_the_refinement():
 
 
 def test_saturated_samples_are_censored_end_to_end():
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     y = make_profiles(6, 256, nsr=0.01, noise="white", seed=2).noisy
     level = 0.8 * np.abs(y).max(axis=1, keepdims=True)

@@ -2,11 +2,10 @@
 import numpy as np
 import pytest
 
-from decomposition.metrics import (
-    delay_error_ps, delay_rmse_ps, detection_counts, fidelity, mean_fidelity, parameter_error,
-)
+from decomposition.model.fidelity import fidelity
+from decomposition.evaluation.metrics import delay_error_ps, delay_rmse_ps, detection_counts, mean_fidelity, parameter_error
 from core.model import render_components
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 
 def _comps(d, s, ir):

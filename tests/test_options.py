@@ -6,7 +6,7 @@ import pytest
 from decomposition import decompose
 from decomposition.options import (GridSpec, OptionError, SolverOptions, component_letters, option_names,
                                    options_from_mapping, parse_components, parse_nan_policy)
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 
 def test_info_records_every_option_with_its_resolved_value():

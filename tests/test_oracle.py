@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from decomposition.metrics import fidelity
-from decomposition.oracle import OracleOptions, oracle_fit, significant_truth
-from decomposition.synthetic import make_profiles
+from decomposition.model.fidelity import fidelity
+from decomposition.evaluation.oracle import OracleOptions, oracle_fit, significant_truth
+from decomposition.evaluation.synthetic import make_profiles
 
 
 @pytest.mark.parametrize("T, bin_integrated", [(2.0, True), (4.0, False)])

@@ -87,7 +87,7 @@ def test_check_output_path_rule(tmp_path):
 
 
 def test_resume_refuses_a_store_with_a_link_inside(tmp_path, capsys):
-    from decomposition.pipeline import decompose_to_store
+    from decomposition.store.pipeline import decompose_to_store
 
     write_cube(tmp_path / "cube.zarr", small_cube(2, 3, seed=1), time_bin_ps=TB, chunks=(1, 3))
     res = tmp_path / "res.zarr"

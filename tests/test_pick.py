@@ -1,7 +1,7 @@
-"""Gauss-Southwell selection (decomposition.pick) against a direct reference."""
+"""Gauss-Southwell selection (decomposition.kernels.pick) against a direct reference."""
 import numpy as np
 
-from decomposition.pick import TOP_K, closed_form, select
+from decomposition.kernels.pick import TOP_K, closed_form, select
 
 
 def _reference(c, n2, mu, eps, allow, by_size, eligible):

@@ -1,19 +1,19 @@
-"""Compiled own-width correlations (decomposition.pickcorr) against dense sums, and the solver using them."""
+"""Compiled own-width correlations (decomposition.kernels.pickcorr) against dense sums, and the solver using them."""
 import math
 
 import numpy as np
 import pytest
 
-from decomposition import convscd as cs
-from decomposition.dictionary import coarse_values
-from decomposition.pick import select
-from decomposition.score import score_pixel
+from decomposition.methods import convscd as cs
+from decomposition.methods.dictionary import coarse_values
+from decomposition.kernels.pick import select
+from decomposition.methods.score import score_pixel
 from decomposition import decompose
 from decomposition.api import SPIKE
-from decomposition.metrics import mean_fidelity
+from decomposition.evaluation.metrics import mean_fidelity
 from core.model import sss_kernel
-from decomposition.pickcorr import PickWorkspace, pixel_correlations
-from decomposition.synthetic import make_profiles
+from decomposition.kernels.pickcorr import PickWorkspace, pixel_correlations
+from decomposition.evaluation.synthetic import make_profiles
 
 SIGMAS = np.array([0.3, 1.0, 2.0, 4.5, 10.0])             # 0.3 ps: below one bin at T = 2 ps
 ALPHAS = np.array([1e-4, 0.01, 0.0224, 0.05, 5.0])

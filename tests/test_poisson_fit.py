@@ -6,8 +6,8 @@ import pytest
 
 from core.model import empty_params, render_profile
 from decomposition import decompose
-from decomposition.fisher import cramer_rao_bound, standard_errors
-from decomposition.synthetic import make_profiles
+from decomposition.model.fisher import cramer_rao_bound, standard_errors
+from decomposition.evaluation.synthetic import make_profiles
 
 L, T = 512, 2.0
 # median of |N(0, 1)|: median |error| / stderr of a calibrated standard error
@@ -132,11 +132,11 @@ def test_standard_errors_follow_a_gain():
 
 def test_count_polish_reaches_the_poisson_weighted_optimum():
     """The compiled Poisson-weighted polish of count data lands on the fit of the reweighted
-    variable-projection refine (decomposition.refine.refine with weights 1 / model count,
+    variable-projection refine (decomposition.model.refine.refine with weights 1 / model count,
     iterated to its fixed point), two independent solvers of the same estimator, to a small
     fraction of the parameters' standard errors."""
     from decomposition.noise import poisson_weights
-    from decomposition.refine import refine
+    from decomposition.model.refine import refine
 
     truth, x = _flim(200, 1000, np.random.default_rng(11))
     res = decompose(x, T, components="s", noise="poisson", stderr=True)

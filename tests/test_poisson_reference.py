@@ -6,11 +6,11 @@ import pytest
 
 from core.irf_models import tailed_response
 from core.model import empty_params
-from decomposition.metrics import fidelity
-from decomposition.poisson_reference import (PoissonReferenceOptions, best_of, poisson_deviance, poisson_reference_bound,
-                                             poisson_reference_fit)
-from decomposition.synthetic import make_profiles
-from decomposition.synthetic_effects import render_with_response, response_sigma_ps
+from decomposition.model.fidelity import fidelity
+from decomposition.evaluation.poisson_reference import (PoissonReferenceOptions, best_of, poisson_deviance, poisson_reference_bound,
+                                                        poisson_reference_fit)
+from decomposition.evaluation.synthetic import make_profiles
+from decomposition.evaluation.synthetic_effects import render_with_response, response_sigma_ps
 
 L, T = 128, 2.0
 IRF = tailed_response(3.0, 0.2, 20.0, time_step_ps=T)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core.model import empty_params, render_components, render_profile
-from decomposition.metrics import fidelity
+from decomposition.model.fidelity import fidelity
 
 from _states import polished, solver_setup
 
@@ -28,7 +28,7 @@ def _state(truth, n, K=4, spurious=True):
     """A slot state at the truth, plus (``spurious``) a Gaussian 1.5 widths after the direct and
     the sss onset 8 ps late: the wrong split the backward step is for."""
     from decomposition.constants import FAM_GAUSS, FAM_SSS
-    from decomposition.slots import new_state
+    from decomposition.model.slots import new_state
 
     st = new_state(n, K)
     st["fam"][:, 0] = FAM_GAUSS
@@ -53,7 +53,7 @@ def _state(truth, n, K=4, spurious=True):
 
 def test_prune_drops_the_gaussian_that_fills_a_late_sss_onset():
     from decomposition.masks import SampleMask
-    from decomposition.prune import close_gaussian, prune_block
+    from decomposition.stages.prune import close_gaussian, prune_block
 
     n, L, T = 6, 512, 2.0
     truth = _truth(n)
@@ -75,7 +75,7 @@ def test_prune_reaches_a_gaussian_four_to_six_widths_after_the_direct():
     # (fidelity 0.42 and 0.18), at 6 it drops that Gaussian and the onset moves back
     from decomposition import decompose
     from decomposition.constants import PRUNE_GAP_SIGMA
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=0, ranges="paper", bin_integrated=True)
     px = [12, 91]
@@ -90,7 +90,7 @@ def test_prune_reaches_a_gaussian_four_to_six_widths_after_the_direct():
 
 def test_prune_keeps_a_true_close_inter_reflection():
     from decomposition.masks import SampleMask
-    from decomposition.prune import prune_block
+    from decomposition.stages.prune import prune_block
 
     n, L, T = 6, 512, 2.0
     truth = _truth(n, close_ir_amplitude=0.3, gap_sigma=3.0)      # a real one 3 widths late
@@ -112,8 +112,8 @@ def test_prune_keeps_a_true_close_inter_reflection():
 
 def test_decompose_prunes_on_paper_scenes_and_fidelity_does_not_drop():
     from decomposition import decompose
-    from decomposition.prune import close_gaussian  # noqa: F401
-    from decomposition.synthetic import make_profiles
+    from decomposition.stages.prune import close_gaussian  # noqa: F401
+    from decomposition.evaluation.synthetic import make_profiles
 
     data = make_profiles(300, 512, nsr=0.001, seed=0, ranges="paper", bin_integrated=True)
     on = decompose(data.noisy, 2.0)
@@ -141,8 +141,8 @@ def test_prune_clears_an_sss_hump_filled_with_several_gaussians(nsr, px):
     # and 0.31 unflagged).  Dropping every Gaussian within PRUNE_GAP_SIGMA widths of the direct,
     # the onset moved back and the forward step once recovers the scene, its echoes included.
     from decomposition import decompose
-    from decomposition.metrics import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.model.fidelity import fidelity
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=nsr, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)
@@ -162,9 +162,9 @@ def test_prune_reads_a_fast_sss_hump_as_the_echo_it_took(monkeypatch):
     # later, echoes 6 and 22 widths later (0.33 and 0.5 of it).  The detection fitted the first
     # echo as an sss decaying at 0.17 /ps, filled the true sss's hump with two Gaussians, and
     # took every slot, so the swap (which needs a free one) never tried it; fidelity 0.12.
-    import decomposition.prune as prune
+    import decomposition.stages.prune as prune
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.055, noise="white", seed=1, kinds="a,b,c", time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)

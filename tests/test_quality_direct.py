@@ -1,12 +1,12 @@
-"""POOR_FIT's second test: the residual over the direct's own samples (decomposition.quality)."""
+"""POOR_FIT's second test: the residual over the direct's own samples (decomposition.stages.quality)."""
 import numpy as np
 
 from core.model import render_profile
 from decomposition.flags import POOR_FIT
 from decomposition.noise import signal_noise_sigma
 from decomposition.options import GridSpec
-from decomposition.prepare import prepare_samples, time_axis
-from decomposition.quality import assess_fit, direct_misfit
+from decomposition.stages.prepare import prepare_samples, time_axis
+from decomposition.stages.quality import assess_fit, direct_misfit
 
 T = 4.0          # ps per bin: a direct narrower than one bin
 L = 512
@@ -87,9 +87,9 @@ def _weak_direct_params(direct_amplitude, sss_onset_ps, n=1):
 
 
 def test_weak_direct_just_before_a_larger_onset_is_ambiguous():
-    from decomposition.components import render_params
+    from decomposition.model.components import render_params
     from decomposition.flags import AMBIGUOUS
-    from decomposition.quality import weak_direct
+    from decomposition.stages.quality import weak_direct
 
     t = T + T * np.arange(L)
     cases = [(0.05, 403.0, True),     # weak, sss onset 2.5 widths after: in doubt
@@ -180,7 +180,7 @@ def test_narrow_chain_direct_is_found_or_flagged_in_decompose():
 def test_an_echo_brighter_than_the_direct_is_ambiguous():
     from decomposition.constants import BRIGHT_ECHO_RATIO
     from decomposition.flags import AMBIGUOUS
-    from decomposition.quality import bright_echo
+    from decomposition.stages.quality import bright_echo
 
     p = _params((400.0, 1.0, 1.2), (403.0, 0.5, 0.025), 5)
     ratio = BRIGHT_ECHO_RATIO
@@ -204,7 +204,7 @@ def test_an_echo_brighter_than_the_direct_is_ambiguous():
 def test_gaussians_closer_than_resolved_sigma_are_ambiguous():
     from decomposition.constants import RESOLVED_SIGMA
     from decomposition.flags import AMBIGUOUS
-    from decomposition.quality import unresolved_gaussians
+    from decomposition.stages.quality import unresolved_gaussians
 
     sigma = 6.0
     p = _params((400.0, 1.0, sigma), (405.0, 0.1, 0.03), 5)

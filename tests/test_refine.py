@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from core.model import empty_params, gaussian_kernel, render_profile, sss_kernel
-from decomposition.kernels import kernel_derivatives
-from decomposition.refine import refine
+from decomposition.kernels.derivatives import kernel_derivatives
+from decomposition.model.refine import refine
 
 T = 2.0
 
@@ -235,7 +235,7 @@ def test_shared_sigma_fits_one_width_per_pixel():
 # ---- integration with decompose(): refine=True / stderr=True ------------------------------------
 
 def _synthetic(n, nsr, seed, kinds=("a", "b", "c"), n_bins=256):
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     return make_profiles(n, n_bins, nsr=nsr, noise="white", seed=seed, kinds=kinds, time_bin_ps=T)
 
@@ -277,7 +277,7 @@ def test_refine_takes_on_grid_output_off_the_grid():
 @pytest.mark.timeout(60)
 def test_decompose_standard_errors_match_the_crb_for_isolated_direct_components():
     from decomposition import decompose
-    from decomposition.fisher import cramer_rao_bound
+    from decomposition.model.fisher import cramer_rao_bound
 
     d = _synthetic(60, 0.05, 23, kinds="d")
     res = decompose(d.noisy, T, refine=True)
@@ -319,7 +319,7 @@ def test_decompose_refine_with_saturated_uint16_input():
 
 
 def test_stderr_with_the_onset_constraint_active():
-    from decomposition.fisher import standard_errors
+    from decomposition.model.fisher import standard_errors
 
     p = empty_params((1,), 0)
     p.update(direct_delay_ps=np.array([80.0]), direct_amplitude=np.array([1.0]), direct_sigma_ps=np.array([3.0]),

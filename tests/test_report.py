@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from core import model
-from decomposition.pipeline import decompose_to_store
-from decomposition.resultstore import create_result_store, open_result_store
+from decomposition.store.pipeline import decompose_to_store
+from decomposition.store.resultstore import create_result_store, open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
 from streaklab.report import choose_pixels, choose_time_ps, measured_profiles
@@ -203,7 +203,7 @@ def test_profile_titles_give_the_maps_coordinates_and_flag_names(result, tmp_pat
 def test_flag_text_names_solver_and_store_bits():
     """The solver's bits and the store's own OUT_OF_RANGE by name; unknown bits in hex."""
     from decomposition.flags import POOR_FIT, SPIKE
-    from decomposition.resultstore import OUT_OF_RANGE
+    from decomposition.store.resultstore import OUT_OF_RANGE
     from streaklab.report import flag_text
 
     assert flag_text(0) == "none"

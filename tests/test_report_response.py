@@ -9,8 +9,8 @@ import zarr
 
 from _cubes import response_profiles
 from core.irf_models import tailed_response
-from decomposition.pipeline import decompose_to_store
-from decomposition.resultstore import RESPONSE_GROUP, ResultStoreError, open_result_store
+from decomposition.store.pipeline import decompose_to_store
+from decomposition.store.resultstore import RESPONSE_GROUP, ResultStoreError, open_result_store
 from reconstruction.cubestore import write_cube
 from streaklab.report import make_report, profiles_figure, rendered_components, summary_text
 

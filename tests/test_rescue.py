@@ -1,4 +1,4 @@
-"""The second pass for pixels that still misfit (decomposition/rescue.py, ``rescue=True``)."""
+"""The second pass for pixels that still misfit (decomposition/stages/rescue.py, ``rescue=True``)."""
 import math
 
 import numpy as np
@@ -7,12 +7,12 @@ import pytest
 from core.model import empty_params
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
-from decomposition.metrics import fidelity
-from decomposition.components import free_parameters
+from decomposition.model.fidelity import fidelity
+from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
-from decomposition.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
-                                  take_rescued)
-from decomposition.synthetic import make_profiles
+from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
+                                         take_rescued)
+from decomposition.evaluation.synthetic import make_profiles
 
 
 def test_free_parameters_count_each_component_and_one_shared_width():

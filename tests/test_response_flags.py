@@ -1,5 +1,5 @@
 """Quality flags of the response path (decompose(irf=...)) set by the Gaussian path's rules:
-OFF_WINDOW (decomposition.components.runs_off_window on the response's atoms) and SPIKE (the
+OFF_WINDOW (decomposition.model.components.runs_off_window on the response's atoms) and SPIKE (the
 shared spike test, with the response as its narrowest kernel)."""
 import math
 
@@ -9,11 +9,11 @@ import pytest
 from core.irf import render_shifted
 from core.irf_models import gaussian_response, tailed_response
 from decomposition import decompose
-from decomposition.components import window_fraction
+from decomposition.model.components import window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.flags import OFF_WINDOW, SPIKE
-from decomposition.response_atoms import slot_window_fraction
-from decomposition.response_input import resolve_response, spike_neighbour_ratio
+from decomposition.response.atoms import slot_window_fraction
+from decomposition.response.resolve import resolve_response, spike_neighbour_ratio
 
 T = 2.0
 L = 256

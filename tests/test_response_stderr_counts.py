@@ -7,8 +7,8 @@ from core.irf_models import gaussian_response
 from core.model import empty_params
 from decomposition import decompose
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-from decomposition.poisson_reference import poisson_reference_bound
-from decomposition.response_fisher import slot_standard_errors
+from decomposition.evaluation.poisson_reference import poisson_reference_bound
+from decomposition.response.fisher import slot_standard_errors
 
 T_PS, L = 2.0, 256
 DIRECT_PS, ONSET_PS, ALPHA = 80.0, 86.0, 0.02
@@ -106,7 +106,7 @@ def test_offset_enters_the_gaussian_paths_errors_too():
     (``cramer_rao_bound(..., offset=True)``) and describe the scatter of the estimates; the
     bound with it known is 14 % smaller for alpha (reported before: 14 % below the scatter)."""
     from core.model import render_profile
-    from decomposition.fisher import cramer_rao_bound
+    from decomposition.model.fisher import cramer_rao_bound
 
     p = _truth(1.0)
     y = render_profile(p, L, T_PS, T_PS)[0] + 0.05 + 0.01 * np.random.default_rng(5).standard_normal((300, L))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import zarr
 
-from decomposition.resultstore import (
+from decomposition.store.resultstore import (
     CORE_IR_KEYS,
     CORE_MAP_KEYS,
     ChunkWriter,
@@ -73,7 +73,7 @@ def test_chunk_writer_opens_its_store_once_and_pickles_as_its_path(tmp_path, mon
     import pickle
     import threading
 
-    import decomposition.resultstore as rs
+    import decomposition.store.resultstore as rs
 
     store = _store(tmp_path)
     opened = []
@@ -207,7 +207,7 @@ def test_every_chunk_file_is_fsynced_before_done_and_done_after(tmp_path, monkey
 
 
 def test_values_beyond_float32_are_flagged_never_inf(tmp_path):
-    from decomposition.resultstore import OUT_OF_RANGE
+    from decomposition.store.resultstore import OUT_OF_RANGE
 
     store = _store(tmp_path)
     res = _chunk_result(store, 0, 0, seed=2)

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from decomposition.metrics import fidelity
+from decomposition.model.fidelity import fidelity
 from core.model import empty_params, render_components, render_profile
-from decomposition.search import STARTS, SearchOptions, relabel, structured_search
+from decomposition.stages.search import STARTS, SearchOptions, relabel, structured_search
 
 
 def test_relabel_puts_the_earliest_gaussian_first_and_no_sss_before_it():
@@ -88,7 +88,7 @@ def _absorbed_direct_pixels():
 
 def test_decompose_search_finds_the_direct_that_the_greedy_start_gives_to_the_sss():
     from decomposition import decompose
-    from decomposition.search import STAGE_STARTS
+    from decomposition.stages.search import STAGE_STARTS
 
     truth, y, L, T = _absorbed_direct_pixels()
     comps = render_components(truth, L, T)
@@ -111,7 +111,7 @@ def test_decompose_search_finds_the_direct_that_the_greedy_start_gives_to_the_ss
 
 def test_every_output_is_labelled_by_physics_and_has_one_width_per_pixel():
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     for search in (True, False):
         data = make_profiles(90, 512, nsr=0.055, seed=3, ranges="paper", bin_integrated=True)
@@ -130,7 +130,7 @@ def test_every_output_is_labelled_by_physics_and_has_one_width_per_pixel():
 
 def test_shared_sigma_holds_exactly_on_make_profiles_data():
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     data = make_profiles(512, 256, nsr=0.05, seed=0)
     p = decompose(data.noisy, 2.0).params
@@ -154,7 +154,7 @@ def test_search_options_are_validated_in_the_solver_options():
 def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
     from core.model import render_components
     from decomposition import AMBIGUOUS, decompose
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     # Degenerate: a weak direct (sigma 6 ps) with an sss starting 2 ps (a third of a sigma)
     # after it, as on a translucent object; at NSR 0.03 a direct-heavy and an sss-heavy split
@@ -191,9 +191,9 @@ def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():
 
 
 def test_tie_widths_and_sss_onset_clipping_on_slot_states():
-    from decomposition.components import clip_sss_onset
+    from decomposition.model.components import clip_sss_onset
     from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-    from decomposition.slots import new_state, tie_widths
+    from decomposition.model.slots import new_state, tie_widths
 
     st = new_state(3, 3)
     st["fam"][:] = [[FAM_GAUSS, FAM_SSS, FAM_GAUSS], [FAM_SSS, FAM_NONE, FAM_NONE], [FAM_GAUSS, FAM_GAUSS, FAM_NONE]]
@@ -247,8 +247,8 @@ def test_search_finds_a_direct_on_the_rise_of_a_larger_sss_hump():
 def test_near_direct_chi2_weighs_only_the_samples_around_the_earliest_gaussian():
     from decomposition.constants import FAM_GAUSS
     from decomposition.masks import SampleMask
-    from decomposition.search import _near_direct_chi2
-    from decomposition.slots import new_state, render
+    from decomposition.stages.search import _near_direct_chi2
+    from decomposition.model.slots import new_state, render
 
     L, T = 200, 2.0
     t = T * np.arange(1, L + 1)
@@ -272,8 +272,8 @@ def test_a_correct_fit_under_photon_noise_is_not_in_doubt_at_its_direct():
     1.5 noise variances more than 40 % of these pixels were in doubt), and a wrong-width direct above it."""
     from decomposition.constants import FAM_GAUSS, SEARCH_NEAR_DIRECT_CHI2
     from decomposition.masks import SampleMask
-    from decomposition.search import _near_direct_chi2
-    from decomposition.slots import new_state, render
+    from decomposition.stages.search import _near_direct_chi2
+    from decomposition.model.slots import new_state, render
 
     n, L, T = 400, 256, 2.0
     t = T * np.arange(1, L + 1)
@@ -308,7 +308,7 @@ def test_search_finds_a_narrow_direct_the_detection_made_wide(nsr, pixels):
     # flagged POOR_FIT and AMBIGUOUS, while the mean fidelity at 4 ps rises: see
     # SEARCH_RISE_MIN_BINS)
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=nsr, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -326,8 +326,8 @@ def test_the_wide_start_keeps_the_small_sss_of_a_wide_direct():
     # two or three Gaussians in place of the sss (fidelity -0.16 and 0.07), from the detected
     # width it finds the scene
     from decomposition import decompose
-    from decomposition.metrics import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.model.fidelity import fidelity
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(300, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -349,9 +349,9 @@ def test_where_every_start_misfits_the_starts_get_the_forward_step():
     # start finds both echoes.
     from decomposition import decompose
     from decomposition.flags import POOR_FIT
-    from decomposition.metrics import fidelity
-    from decomposition.search import MISFIT_GROWN_STARTS
-    from decomposition.synthetic import make_profiles
+    from decomposition.model.fidelity import fidelity
+    from decomposition.stages.search import MISFIT_GROWN_STARTS
+    from decomposition.evaluation.synthetic import make_profiles
 
     assert "edge" in MISFIT_GROWN_STARTS
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
@@ -377,10 +377,10 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
     # widths later and weak inter-reflections.  The detection put Gaussians in the sss hump;
     # every start lacked the true first inter-reflection, and the best one misfit 5-17 times
     # the data's noise but far less than the floor's, so no start was grown.
-    import decomposition.search as search
+    import decomposition.stages.search as search
     from decomposition import decompose
-    from decomposition.metrics import fidelity
-    from decomposition.synthetic import make_profiles
+    from decomposition.model.fidelity import fidelity
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.001, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -396,7 +396,7 @@ def test_a_misfit_the_noise_floor_hides_still_gets_the_forward_step(monkeypatch)
 
 
 def test_floor_hidden_misfit_reads_the_data_term_in_the_measured_noise():
-    from decomposition.search import FLOOR_HIDDEN_MIN_FRACTION, _floor_hidden_misfit
+    from decomposition.stages.search import FLOOR_HIDDEN_MIN_FRACTION, _floor_hidden_misfit
 
     floor = 1e-3
     s_eff = np.array([floor, floor, 2e-3, floor, floor])
@@ -413,8 +413,8 @@ def test_floor_hidden_misfit_reads_the_data_term_in_the_measured_noise():
 
 def test_weak_leading_gaussian_is_the_outputs_weak_direct_rule_on_a_slot_state():
     from decomposition.constants import FAM_GAUSS, FAM_SSS, WEAK_DIRECT_FRACTION
-    from decomposition.search import weak_leading_gaussian
-    from decomposition.slots import new_state
+    from decomposition.stages.search import weak_leading_gaussian
+    from decomposition.model.slots import new_state
 
     T = 4.0
     t = T * np.arange(1, 129)
@@ -445,7 +445,7 @@ def test_a_weak_gaussian_on_the_directs_leading_edge_puts_the_pixel_in_doubt():
     labelled an inter-reflection (fidelity -0.59, flagged AMBIGUOUS only).  No other doubt
     test takes it; the weak leading Gaussian does, and the rise start finds the split."""
     from decomposition import decompose
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(600, 512, nsr=0.11, noise="white", seed=0, kinds="a,b,c", time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)

@@ -7,7 +7,7 @@ from decomposition import decompose
 from decomposition.constants import SIGNAL_NOISE_FLOOR_FRACTION
 from decomposition.noise import signal_variance
 from decomposition.options import OptionError
-from decomposition.synthetic import make_profiles
+from decomposition.evaluation.synthetic import make_profiles
 
 L = 400
 
@@ -78,11 +78,11 @@ def test_photon_noise_gets_weights_and_white_noise_does_not():
 
 def _weights_of(d, law, time_bin_ps=2.0):
     """(samples, det, dic, weights, info) of the detection of ``d`` under ``signal_noise_law=law``."""
-    from decomposition import convscd as cs
-    from decomposition.candidates import signal_weights
-    from decomposition.detect import detect_components
+    from decomposition.methods import convscd as cs
+    from decomposition.stages.candidates import signal_weights
+    from decomposition.stages.detect import detect_components
     from decomposition.options import options_from_mapping, parse_components
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
 
     axis = time_axis(time_bin_ps, None)
     grid, opts, _ = options_from_mapping({"signal_noise_law": law}, strict=False)
@@ -97,7 +97,7 @@ def _weights_of(d, law, time_bin_ps=2.0):
 
 @pytest.mark.parametrize("law", ["pixel", "auto"])
 def test_the_weights_follow_the_variance_law_of_the_detected_fit(law):
-    from decomposition.slots import render
+    from decomposition.model.slots import render
 
     samples, det, dic, w, info = _weights_of(_photon_scene(40, 2.0, 5), law)
     assert w.shape == (samples.live.size, 512)
@@ -137,8 +137,8 @@ def _detector_scene(n, time_bin_ps, photons_per_unit, read_noise, seed=0):
 
 
 def test_one_detector_law_is_read_from_the_pixels_of_a_call(monkeypatch):
-    import decomposition.constants as k
-    from decomposition.metrics import fidelity
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
+    from decomposition.model.fidelity import fidelity
 
     d, noisy = _detector_scene(240, 4.0, 300.0, 0.01)
     auto = decompose(noisy, time_bin_ps=4.0)
@@ -178,7 +178,7 @@ def test_a_misfit_at_a_low_noise_is_not_taken_for_photon_noise(monkeypatch):
     # peak, larger than the noise; it grows with the lag of the differences, so most of it is
     # no variance law (measured: 49 pixels of 300 with a significant gain at 2 ps bins, 5 of
     # them pass the lag test)
-    import decomposition.constants as k
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
 
     wh = make_profiles(120, 512, nsr=0.001, noise="white", seed=2, time_bin_ps=2.0, ranges="paper",
                        bin_integrated=True)
@@ -190,7 +190,7 @@ def test_a_misfit_at_a_low_noise_is_not_taken_for_photon_noise(monkeypatch):
 
 
 def test_weighting_photon_noise_lifts_the_fidelity_on_wide_directs():
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     d = _photon_scene(120, 4.0, 0)
     on = fidelity(d.components, decompose(d.noisy, time_bin_ps=4.0))
@@ -201,8 +201,8 @@ def test_weighting_photon_noise_lifts_the_fidelity_on_wide_directs():
 
 
 def test_the_photon_verdict_is_pooled_over_the_pixels_of_a_call(monkeypatch):
-    import decomposition.constants as k
-    from decomposition.metrics import fidelity
+    import decomposition.stages.candidates as k  # the stage whose rules read these constants
+    from decomposition.model.fidelity import fidelity
 
     d = _photon_scene(160, 4.0, 6)
     pooled = decompose(d.noisy, time_bin_ps=4.0)
@@ -251,7 +251,7 @@ def test_count_variance_is_the_model_count_with_its_floors():
 
 
 def test_count_data_are_weighted_by_their_poisson_law_and_gain_from_it():
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     d = make_profiles(150, 512, photons_per_pixel=1000, seed=1, time_bin_ps=2.0, ranges="paper",
                       bin_integrated=True)
@@ -264,9 +264,9 @@ def test_count_data_are_weighted_by_their_poisson_law_and_gain_from_it():
 
 
 def test_the_significance_of_an_atom_counts_its_samples_by_their_weights_capped():
-    from decomposition.components import threshold, window_measures
+    from decomposition.model.components import threshold, window_measures
     from decomposition.constants import FAM_GAUSS, SIGNIFICANCE_WEIGHT_CAP
-    from decomposition.slots import new_state, render
+    from decomposition.model.slots import new_state, render
 
     t = np.arange(200) * 2.0
     st = new_state(3, 2)
@@ -293,8 +293,8 @@ def test_the_significance_of_an_atom_counts_its_samples_by_their_weights_capped(
 
 
 def test_under_noise_that_follows_the_signal_every_pixel_is_searched(monkeypatch):
-    import decomposition.search as search
-    from decomposition.metrics import fidelity
+    import decomposition.stages.search as search
+    from decomposition.model.fidelity import fidelity
 
     d = make_profiles(200, 512, nsr=0.11, noise="photon", seed=1, time_bin_ps=4.0, ranges="paper",
                       bin_integrated=True)
@@ -329,10 +329,10 @@ def test_the_one_law_scales_with_the_data(k):
 
 def _detect(data, time_bin_ps):
     """The detection stage of decompose on ``data`` -> (samples, detection)."""
-    from decomposition import convscd as cs
-    from decomposition.detect import detect_components
+    from decomposition.methods import convscd as cs
+    from decomposition.stages.detect import detect_components
     from decomposition.options import options_from_mapping
-    from decomposition.prepare import prepare_samples, time_axis
+    from decomposition.stages.prepare import prepare_samples, time_axis
 
     grid, opts, _ = options_from_mapping({}, strict=False)
     opts = opts.resolved(("d", "s", "r"))

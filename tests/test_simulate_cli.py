@@ -4,7 +4,7 @@ import pytest
 import zarr
 
 from core.model import PARAM_KEYS, render_components
-from decomposition.synthetic import make_cube
+from decomposition.evaluation.synthetic import make_cube
 from reconstruction.cubestore import open_cube
 from streaklab.cli import main
 

@@ -62,7 +62,7 @@ def test_option_variants_run_clean(noise):
     """Every documented switch, on noisy data, under warnings-as-errors and FP exceptions."""
     import warnings
 
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     data = make_profiles(20, 256, nsr=0.05, noise=noise, seed=1)
     variants = [dict(multistart=False), dict(shared_sigma=False), dict(sss_after_direct=False),

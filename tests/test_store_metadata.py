@@ -6,7 +6,7 @@ import pytest
 
 from _cubes import TB, small_cube
 from decomposition.api import FLAG_NAMES
-from decomposition.resultstore import OUT_OF_RANGE
+from decomposition.store.resultstore import OUT_OF_RANGE
 from reconstruction.build import reconstruct
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main

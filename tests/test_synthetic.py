@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core.model import render_components, render_profile, time_axis_ps
-from decomposition.synthetic import (
+from decomposition.evaluation.synthetic import (
     SCENE_PRESETS, SceneRanges, add_noise, draw_params, make_cube, make_profiles, noise_realisation, parse_kind,
     regime_variables, render_bin_integrated, scene_ranges,
 )

@@ -5,10 +5,10 @@ import pytest
 
 from core.irf_models import afterpulse_response, gaussian_response, model_value, tailed_response
 from core.model import render_components, time_axis_ps
-from decomposition.scenes import draw_params
-from decomposition.synthetic import make_cube, make_profiles, render_bin_integrated
-from decomposition.synthetic_effects import SyntheticEffects, bin_averaged_response, response_sigma_ps
-from decomposition.synthetic_noise import add_noise
+from decomposition.evaluation.scenes import draw_params
+from decomposition.evaluation.synthetic import make_cube, make_profiles, render_bin_integrated
+from decomposition.evaluation.synthetic_effects import SyntheticEffects, bin_averaged_response, response_sigma_ps
+from decomposition.evaluation.synthetic_noise import add_noise
 
 L, T = 256, 2.0
 

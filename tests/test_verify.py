@@ -8,11 +8,11 @@ from _cubes import TB, small_cube
 from acquisition.rig import run_capture
 from acquisition.runstore import open_run
 from acquisition.session import CaptureError
-from decomposition.resultstore import open_result_store
+from decomposition.store.resultstore import open_result_store
 from reconstruction.build import ReconstructionError, reconstruct
 from reconstruction.cubestore import write_cube
 from streaklab.cli import main
-from decomposition.pipeline import decompose_to_store
+from decomposition.store.pipeline import decompose_to_store
 from test_capture import sim_config
 from test_reconstruct import make_run
 
@@ -137,7 +137,7 @@ def test_a_result_store_of_the_previous_release_resumes(tmp_path, monkeypatch, c
     """Built the old way: no checksums, uint8 flags, fill-only chunks not written."""
     import shutil
 
-    import decomposition.resultstore as rs
+    import decomposition.store.resultstore as rs
 
     def old_array(g, name, zstd_level=0, **kw):      # zarr's own codecs: no checksum
         kw = {**kw, "dtype": "uint8"} if name == "flags" else kw

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from decomposition import decompose
-from decomposition.metrics import fidelity
+from decomposition.model.fidelity import fidelity
 from decomposition.noise import residual_spectrum, whitened_chi2
 from decomposition.noise import SpectralNoise
-from decomposition.search import objective_variance
-from decomposition.synthetic import make_profiles
+from decomposition.stages.objective import objective_variance
+from decomposition.evaluation.synthetic import make_profiles
 
 L = 256
 

@@ -6,14 +6,14 @@ log-spaced grid from 0.001 to 0.2 (plus 0.005 and 0.055, the paper's two referen
 or the values of ``--nsr``), the same synthetic scenes of the Fig. 3(a)-(c) kinds (d+s,
 d+s+r2, d+s+r2+r3, in equal shares) are decomposed by ConvSCD and by GradBM through
 :func:`decomposition.decompose`, and fitted by the oracle
-(:func:`decomposition.oracle.oracle_fit`: least squares of the true component set started at
+(:func:`decomposition.evaluation.oracle.oracle_fit`: least squares of the true component set started at
 the true parameters, a ceiling for any method) and by the same oracle on the significant
-components only (``detectable``, :func:`decomposition.oracle.significant_truth`: the ceiling of
+components only (``detectable``, :func:`decomposition.evaluation.oracle.significant_truth`: the ceiling of
 a method that finds every component the noise leaves visible and no other).  On bin-integrated
 scenes also by the ``own-model`` ceiling: the oracle with the components rendered point-sampled,
 as ``decompose`` renders them; the oracle's lead over it is what that rendering costs, its lead
 over a method what the method's search and model selection cost.  Scenes come from a preset of
-:data:`decomposition.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
+:data:`decomposition.evaluation.synthetic.SCENE_PRESETS` (default ``paper``, the paper's parameter space,
 rendered bin-integrated; ``legacy`` for the original generator, point-sampled).
 ``--option KEY=VALUE`` (repeatable) decomposes the ConvSCD rows with that solver option, as
 ``streaklab decompose --option`` takes it (``rescue=false``: without the second pass for a
@@ -59,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from decomposition.options import METHODS
 from streaklab.cli import CommandError
 
 from .arguments import choices, output_folder, positive_floats
@@ -70,17 +71,16 @@ TARGET_NSR = 0.055
 TARGET_FLOOR_NSR = 0.005
 NOISES = ("white", "pink", "photon")
 #: Noise types --noise accepts besides the default three: "camera", the shot noise of one camera
-#: (one photon scale for every pixel; decomposition.synthetic_noise), where the NSR of the
+#: (one photon scale for every pixel; decomposition.evaluation.synthetic_noise), where the NSR of the
 #: point is that of all its pixels together.
 EXTRA_NOISES = ("camera",)
-METHODS = ("convscd", "gradbm")
-# Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.search
+# Opt-in: ConvSCD followed by the stand-alone structured_search of decomposition.stages.search
 # (a prototype, not part of decompose); its time includes the ConvSCD run.
 EXTRA_METHODS = ("search",)
 #: the "any flag" row of the flag table: every bit of the 16-bit flags
 ANY_FLAG = 0xFFFF
 ORACLE = "oracle"
-#: the oracle on the significant component set (decomposition.oracle.significant_truth)
+#: the oracle on the significant component set (decomposition.evaluation.oracle.significant_truth)
 DETECTABLE = "detectable"
 CEILINGS = (ORACLE, DETECTABLE)
 #: the oracle in the solver's own model: the true component set, started at the truth, rendered
@@ -89,8 +89,8 @@ CEILINGS = (ORACLE, DETECTABLE)
 #: model's rendering costs, the gap between a method and it what the method's search costs
 OWN_MODEL = "own-model"
 #: the detectable ceiling's component set fitted once more from ConvSCD's answer mapped onto it
-#: (:func:`decomposition.best_found.answer_start`, its width included), and per pixel the fit of
-#: lower least-squares cost kept (:func:`decomposition.best_found.lowest_cost`): the best fit of
+#: (:func:`decomposition.evaluation.best_found.answer_start`, its width included), and per pixel the fit of
+#: lower least-squares cost kept (:func:`decomposition.evaluation.best_found.lowest_cost`): the best fit of
 #: that set the two starts find.  Started at the truth, the detectable ceiling stays in the
 #: optimum nearest it; where the cost is flat (a direct and an sss onset trading light, a direct
 #: narrower than a bin) no method that must find its own start is told to stop there.  The gap
@@ -123,7 +123,7 @@ def add_arguments(parser) -> None:
                              "the shot noise of one camera, one photon scale for every pixel)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="methods, comma-separated (default convscd,gradbm; also search: ConvSCD followed "
-                             "by the stand-alone structured_search of decomposition.search, six refines on every "
+                             "by the stand-alone structured_search of decomposition.stages.search, six refines on every "
                              "pixel); the oracle always runs")
     parser.add_argument("--kinds", default="a,b,c", help="scene kinds (default a,b,c: Fig. 3(a)-(c))")
     parser.add_argument("--scenes", default="paper",
@@ -179,8 +179,8 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
     parameters) mapped onto it, the lower least-squares cost kept per pixel (a tie: the
     detectable ceiling's)."""
     from core.model import time_axis_ps
-    from decomposition.best_found import MATCH_WIDTHS, answer_start, lowest_cost
-    from decomposition.oracle import oracle_fit
+    from decomposition.evaluation.best_found import MATCH_WIDTHS, answer_start, lowest_cost
+    from decomposition.evaluation.oracle import oracle_fit
 
     t = time_axis_ps(np.shape(data.noisy)[-1], time_bin_ps, data.t0_ps)
     start = answer_start(seen, answer, delay_range_ps=(float(t[0]), float(t[-1])),
@@ -191,10 +191,10 @@ def best_found_fit(data, seen: dict, detectable, answer: dict, time_bin_ps: floa
 
 def _score(data, est_components, est_params, flags, noise: str):
     """Per-pixel fidelity, direct-delay failures, flags, fidelity with the inter-reflections
-    paired to the least error (:func:`decomposition.metrics.fidelity`, ``ir_pairing="matched"``)
+    paired to the least error (:func:`decomposition.model.fidelity.fidelity`, ``ir_pairing="matched"``)
     and, under white noise, the penalised misfit J in the true noise
     (:func:`streaklab.bench.scoring.white_noise_j`; None under other noise) of one estimate."""
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     from .scoring import direct_delay_failures, white_noise_j
 
@@ -216,7 +216,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     methods : sequence of str
         Solver methods (``convscd``, ``gradbm``); the oracle is always added.
     scenes : str
-        Scene preset (:data:`decomposition.synthetic.SCENE_PRESETS`).
+        Scene preset (:data:`decomposition.evaluation.synthetic.SCENE_PRESETS`).
     bin_integrated : bool
         Render the scenes bin-integrated (the oracle fits them with the same rendering).
     options : dict, optional
@@ -237,9 +237,9 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
     from decomposition import decompose
     from decomposition.api import FLAG_NAMES
     from core.model import render_components
-    from decomposition.oracle import oracle_fit, significant_truth
-    from decomposition.search import structured_search
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.oracle import oracle_fit, significant_truth
+    from decomposition.stages.search import structured_search
+    from decomposition.evaluation.synthetic import make_profiles
 
     from decomposition.options import SolverOptions
 
@@ -247,7 +247,7 @@ def measure(*, pixels: int, n_bins: int, time_bin_ps, nsrs, noises, methods, kin
 
     margin = SolverOptions().ambiguity_chi2        # the search's own bar for "very strong" evidence
 
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     bins = [float(time_bin_ps)] if np.isscalar(time_bin_ps) else [float(t) for t in time_bin_ps]
     every = list(methods) + list(ceilings(bin_integrated, "convscd" in methods))
@@ -534,7 +534,7 @@ def _print_levels(summary, nsrs, prefix=""):
 
 
 def run(args) -> int:
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     from .scoring import GAP_CEILING, format_regime_table, target_entry, target_line, target_records
 

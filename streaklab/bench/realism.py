@@ -5,23 +5,23 @@ constant background, a weak 1 % late echo, a direct reflection truncated at the 
 start) and each photon level (expected signal photons per pixel, default 100, 300, 1,000 and
 10,000), and for the echo target (``echo5sigma``: a 1 % echo 5 sigma above the noise at its
 peak, the direct truncated at the window's start, at the one photon level where that holds,
-:func:`five_sigma_photons`), the same synthetic scenes (:func:`decomposition.synthetic.make_profiles` with the
+:func:`five_sigma_photons`), the same synthetic scenes (:func:`decomposition.evaluation.synthetic.make_profiles` with the
 effect, integer Poisson counts, bin-integrated) are decomposed by the variants
 
     ignored     ``decompose(counts, time_bin_ps, stderr=True)``: the defaults, the effect ignored
     modelled    ``decompose(counts, time_bin_ps, irf=<true response as the bins record it>,
                 components="d,r,s,b" (",b" only where the effect is a background),
                 noise="poisson", stderr=True)``: the response averaged over a bin
-                (:func:`decomposition.synthetic_effects.bin_averaged_response`), as the scenes
+                (:func:`decomposition.evaluation.synthetic_effects.bin_averaged_response`), as the scenes
                 are rendered and as a calibration capture on the same detector measures it
-    reference   :func:`decomposition.poisson_reference.poisson_reference_fit`: Poisson maximum
+    reference   :func:`decomposition.evaluation.poisson_reference.poisson_reference_fit`: Poisson maximum
                 likelihood with the true response and component set, started at the truth
     visible     the same on the components the counts leave visible (:func:`visible_truth`: an
                 sss or inter-reflection whose chi2 over its samples in their Poisson variance
                 is below 25 is left out), the yardstick of a method that finds every component
                 the counts show and no other
-    best        :func:`decomposition.poisson_reference.best_of` the reference and the same fit
-                started from the ``modelled`` answer (:func:`decomposition.best_found.answer_start`: its values
+    best        :func:`decomposition.evaluation.poisson_reference.best_of` the reference and the same fit
+                started from the ``modelled`` answer (:func:`decomposition.evaluation.best_found.answer_start`: its values
                 for the components of the true set it found, the truth's for the others),
                 the lower deviance kept per pixel: the maximum likelihood as far as either
                 start finds it.  Started at the truth, the reference stays in the optimum
@@ -114,7 +114,7 @@ def effect_setup(effect: str, time_bin_ps: float) -> dict:
     bin.
     """
     from core.irf_models import afterpulse_response, gaussian_response, tailed_response
-    from decomposition.synthetic_effects import bin_averaged_response
+    from decomposition.evaluation.synthetic_effects import bin_averaged_response
 
     tb = float(time_bin_ps)
     if effect == "tailed":
@@ -152,7 +152,7 @@ def five_sigma_photons(setup: dict, pixels: int, n_bins: int, time_bin_ps: float
     rendered bin-integrated without noise); the median over the pixels is returned (with a
     fixed truncation the pixels differ only by the bin phase of their echo).
     """
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     d = make_profiles(pixels, n_bins, seed=seed, kinds=setup["kinds"], time_bin_ps=time_bin_ps,
                       bin_integrated=True, **setup["options"])
@@ -252,7 +252,7 @@ def median_z_stderr(n: int) -> float:
 
 def score(data, est_params: dict, est_components, *, with_echo: bool) -> dict:
     """Figures of one estimate against the truth of ``data`` (see the module docstring)."""
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     truth = data.params
     d_err, tau_rel = pixel_errors(truth, est_params)
@@ -298,8 +298,8 @@ def visible_truth(data) -> dict:
     """The true parameters without the components the counts hide: an sss or inter-reflection
     stays where the sum over its samples of its expected counts squared over the expected
     counts there (Poisson: the variance is the mean) reaches the solver's significance_chi2
-    (25; :func:`decomposition.oracle.significant_truth` with per-sample noise)."""
-    from decomposition.oracle import significant_truth
+    (25; :func:`decomposition.evaluation.oracle.significant_truth` with per-sample noise)."""
+    from decomposition.evaluation.oracle import significant_truth
 
     return significant_truth(data.params, data.components, np.sqrt(np.maximum(np.asarray(data.clean, np.float64), 0.0)))
 
@@ -316,8 +316,8 @@ def run_variant(variant: str, data, setup: dict, time_bin_ps: float, fits: dict 
     ``modelled`` entries of ``fits`` (variant -> (params, components))."""
     from decomposition import decompose
     from core.model import time_axis_ps
-    from decomposition.best_found import MATCH_WIDTHS, answer_start
-    from decomposition.poisson_reference import best_of, delay_window_ps, poisson_reference_fit
+    from decomposition.evaluation.best_found import MATCH_WIDTHS, answer_start
+    from decomposition.evaluation.poisson_reference import best_of, delay_window_ps, poisson_reference_fit
 
     background = data.background if setup["background"] else None
     if variant in ("reference", "visible"):
@@ -356,7 +356,7 @@ def measure(*, effects, photons, variants, pixels: int, n_bins: int, time_bin_ps
 
     A variant that raises TypeError or ValueError gets ``status = "error: ..."`` and no figures.
     """
-    from decomposition.synthetic import make_profiles
+    from decomposition.evaluation.synthetic import make_profiles
 
     rows = []
     for effect in effects:
@@ -673,7 +673,7 @@ def run(args) -> int:
         raise CommandError(f"--pixels must be positive, got {pixels}")
     out = output_folder(args.out)
     if any(v != "reference" for v in variants):
-        from decomposition.jit import warm_up
+        from decomposition.warmup import warm_up
 
         warm_up(time_bin_ps=tb, n_bins=n_bins, label="bench realism")
 

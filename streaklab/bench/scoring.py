@@ -2,7 +2,7 @@
 precision and recall, direct-delay failures, and the accuracy targets.
 
 Regimes (:data:`REGIMES`) are bins of the per-pixel variables of
-:func:`decomposition.synthetic.regime_variables`: the sss peak over the direct's, the sss
+:func:`decomposition.evaluation.synthetic.regime_variables`: the sss peak over the direct's, the sss
 onset after the direct in PSF widths, the PSF sigma in bins, the number of
 inter-reflections and the weakest inter-reflection's peak over the direct's.  Each variable partitions the pixels (pixels where it is undefined, e.g.
 without an sss, form an ``n/a`` row), so every variable's rows add up to the total.
@@ -78,7 +78,7 @@ def regime_rows(regimes: dict, fidelities: dict, *, reference: str = "oracle",
     Parameters
     ----------
     regimes : dict of ndarray, (N,)
-        Regime variables per pixel (:func:`decomposition.synthetic.regime_variables`).
+        Regime variables per pixel (:func:`decomposition.evaluation.synthetic.regime_variables`).
     fidelities : dict of str -> ndarray, (N,)
         Per-pixel fidelity of each method (and of ``reference``) on the same pixels.
     reference : str
@@ -176,12 +176,12 @@ def white_noise_j(noisy, clean, components, params) -> np.ndarray:
     the chi2 in each pixel's own noise (the standard deviation of ``noisy - clean`` over its
     samples, which the bench knows) over all n samples, k its free parameters: the objective
     the solver's second pass and search compare answers by
-    (:func:`decomposition.rescue.penalised_misfit`), read here in the true noise.
+    (:func:`decomposition.stages.rescue.penalised_misfit`), read here in the true noise.
 
     ``components``: the answer's profiles (a result, an oracle fit or a dict, as
-    :func:`decomposition.metrics.fidelity` takes them); ``params`` its parameter dict."""
-    from decomposition.metrics import component_profiles
-    from decomposition.rescue import penalised_misfit
+    :func:`decomposition.model.fidelity.fidelity` takes them); ``params`` its parameter dict."""
+    from decomposition.model.fidelity import component_profiles
+    from decomposition.stages.rescue import penalised_misfit
 
     y = np.asarray(noisy, np.float64)
     c = component_profiles(components)

@@ -3,7 +3,7 @@
 A seeded synthetic cube (default 64 x 672 x 512 (y, x, t), Fig. 3 kinds a/b/c, white noise at
 NSR 0.05; ``--scenes paper`` (default, the paper's parameter space, bin-integrated) or
 ``legacy``) is written as a cube store, then decomposed by each method with 1 and 2 workers
-through :func:`decomposition.pipeline.decompose_to_store` -- the code path of the
+through :func:`decomposition.store.pipeline.decompose_to_store` -- the code path of the
 command, all stages included: opening the cube, the solver check, starting the local cluster,
 reading, solving and writing every chunk into a result store.  ``--workers N`` means what it
 means for the command (a local cluster of N single-threaded worker processes); ``threads:N``
@@ -105,11 +105,11 @@ def _parse_workers(text):
 def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy", photons=None):
     """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds.
 
-    ``scenes`` names a preset of :data:`decomposition.synthetic.SCENE_PRESETS`; ``paper``
+    ``scenes`` names a preset of :data:`decomposition.evaluation.synthetic.SCENE_PRESETS`; ``paper``
     scenes are rendered bin-integrated, ``legacy`` ones point-sampled.  With ``photons`` the
     samples are Poisson counts of the clean profiles scaled to that many expected photons per
     pixel (``nsr`` is then unused)."""
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
     from reconstruction.cubestore import create_cube
 
     ny, nx, nt = shape
@@ -162,7 +162,7 @@ def fft_floor(cube_path, *, threads: int) -> dict:
 
 _CHILD = """
 import json, resource, sys
-from decomposition.pipeline import decompose_to_store
+from decomposition.store.pipeline import decompose_to_store
 cfg = json.loads(sys.argv[1])
 s = decompose_to_store(cfg["cube"], cfg["out"], method=cfg["method"], workers=cfg["workers"],
                        threads=cfg["threads"], chunks=cfg["chunks"], options=cfg["options"], overwrite=True,
@@ -291,7 +291,7 @@ def run(args) -> int:
             options = parse_solver_options(args.option, method, check_values=True)
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     if args.photons is not None and not (np.isfinite(args.photons) and args.photons > 0):
         raise CommandError(f"--photons must be a positive number, got {args.photons:g}")
@@ -312,7 +312,7 @@ def run(args) -> int:
                                          scenes=args.scenes, photons=args.photons)
         except ValueError as exc:
             raise CommandError(f"{exc} (or --scenes legacy)") from None
-        from decomposition.jit import warm_up
+        from decomposition.warmup import warm_up
 
         for method in methods:  # compile once here, if needed, not inside the first timed run
             warm_up(time_bin_ps=2.0, n_bins=nt, method=method, label="bench speed")

@@ -192,7 +192,7 @@ def run_case(case: Case, time_bin_ps: float = 2.0, max_iter: int = 8, **options)
     seconds, flags (per pixel), result.
     """
     from decomposition import decompose
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
     from core.model import render_components
 
     opts = dict(case.options)
@@ -246,7 +246,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     cases = build_cases(args.bins, args.time_bin_ps, args.seed, quick=args.quick)
     warm_up(time_bin_ps=args.time_bin_ps, n_bins=args.bins, label="bench stability")  # not in the first case's ms

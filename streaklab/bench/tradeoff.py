@@ -3,19 +3,19 @@
 For every method and setting -- ConvSCD on kernel grids of several densities up
 to the paper's 500 x 500 (parameters snapped to the grid, as in the paper, and
 continuous), each with and without the off-grid refinement of
-:mod:`decomposition.refine`, and the GradBM baseline -- the benchmark decomposes
+:mod:`decomposition.model.refine`, and the GradBM baseline -- the benchmark decomposes
 the same seeded synthetic scenes of the paper's Fig. 3(a)-(c) kinds (``--scenes``: the
-``paper`` preset of :data:`decomposition.synthetic.SCENE_PRESETS` by default, bin-integrated;
+``paper`` preset of :data:`decomposition.evaluation.synthetic.SCENE_PRESETS` by default, bin-integrated;
 or ``legacy``, point-sampled) at NSR 0.01,
 0.055 and 0.11 under white, pink and photon noise, and records
 
 * run time per pixel (wall clock of the whole decompose() call, refinement
   included, standard errors off),
-* mean decomposition fidelity (:func:`decomposition.metrics.fidelity`),
+* mean decomposition fidelity (:func:`decomposition.model.fidelity.fidelity`),
 * RMS error of the direct component's delay (ps) and amplitude, and the median absolute
   delay error (the RMS is dominated by the few pixels whose direct reflection was missed or
   mistaken for another component; the median shows the accuracy of the typical pixel),
-* the oracle's mean fidelity on the same data (:func:`decomposition.oracle.oracle_fit`: the true
+* the oracle's mean fidelity on the same data (:func:`decomposition.evaluation.oracle.oracle_fit`: the true
   component set fitted by least squares from the true parameters, what the data allow) and
   each setting's gap to it; for the default setting and GradBM also per regime (sss/direct
   peak ratio, onset in sigma, sigma in bins, number of inter-reflections;
@@ -102,7 +102,7 @@ def _settings(grids, quick):
 
 
 def _default_refines():
-    """Whether ``decompose``'s default runs the off-grid refinement of decomposition.refine."""
+    """Whether ``decompose``'s default runs the off-grid refinement of decomposition.model.refine."""
     import inspect
 
     from decomposition import decompose
@@ -114,7 +114,7 @@ def _default_refines():
 def _warm_up(settings, n_bins, time_bin_ps):
     """Run every setting once, untimed, on a few profiles: compiling (or loading) the kernels and
     the first call's one-time work are no part of any point's time."""
-    from decomposition.jit import warm_up
+    from decomposition.warmup import warm_up
 
     for _, method, _, _, opts, with_refine, _ in settings:
         warm_up(time_bin_ps=time_bin_ps, n_bins=n_bins, method=method, label="bench tradeoff",
@@ -150,7 +150,7 @@ def _median(x):
 
 
 def _crb(data):
-    from decomposition.fisher import cramer_rao_bound
+    from decomposition.model.fisher import cramer_rao_bound
 
     n_bins = data.clean.shape[-1]
     noise = np.linalg.norm(data.noisy - data.clean, axis=-1) / math.sqrt(n_bins)
@@ -161,8 +161,8 @@ def _crb(data):
 
 def _oracle(data):
     """Per-pixel fidelity of the oracle on ``data`` (the true set fitted from the truth)."""
-    from decomposition.metrics import fidelity
-    from decomposition.oracle import oracle_fit
+    from decomposition.model.fidelity import fidelity
+    from decomposition.evaluation.oracle import oracle_fit
 
     fit = oracle_fit(data.noisy, data.params, time_bin_ps=data.time_bin_ps, t0_ps=data.t0_ps,
                      bin_integrated=data.bin_integrated)
@@ -170,7 +170,8 @@ def _oracle(data):
 
 
 def _measure(data, comps, params, seconds, crb, oracle_fid):
-    from decomposition.metrics import fidelity, parameter_error
+    from decomposition.model.fidelity import fidelity
+    from decomposition.evaluation.metrics import parameter_error
 
     n = data.noisy.shape[0]
     fid = fidelity(data.components, comps)
@@ -311,7 +312,7 @@ def _parse_list(text, cast, name):
 def run(args) -> int:
     from streaklab.cli import CommandError
 
-    from decomposition.synthetic import NOISE_TYPES, make_profiles
+    from decomposition.evaluation.synthetic import NOISE_TYPES, make_profiles
 
     quick = bool(args.quick)
     n_pixels = args.n_pixels if args.n_pixels is not None else (12 if quick else 240)
@@ -330,7 +331,7 @@ def run(args) -> int:
     bad = [n for n in noises if n not in NOISE_TYPES]
     if bad:
         raise CommandError(f"unknown noise type(s) {bad}; choose from {list(NOISE_TYPES)}")
-    from decomposition.synthetic import SCENE_PRESETS
+    from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     scenes = str(args.scenes).strip().lower()
     if scenes not in SCENE_PRESETS:

@@ -11,14 +11,15 @@ marked done.  Interrupted runs (Ctrl-C, a crash, a killed process) keep every fi
 
 Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``--time-bin-ps`` for small inputs.
 This module only parses the arguments and prints; the pipeline itself is
-:func:`decomposition.pipeline.decompose_to_store`.
+:func:`decomposition.store.pipeline.decompose_to_store`.
 """
 from __future__ import annotations
 
 import json
 
 from core.words import counted, plural
-from decomposition.pipeline import METHODS, decompose_to_store
+from decomposition.options import METHODS
+from decomposition.store.pipeline import decompose_to_store
 from streaklab.cli import CommandError
 
 __all__ = ["add_arguments", "run", "parse_components"]
@@ -92,7 +93,7 @@ def parse_solver_options(items, method: str = "convscd", check_values: bool = Fa
     ``decompose_to_store``, before any work, or here with ``check_values`` (for callers that
     spend time before they decompose: the benchmarks).
     """
-    from decomposition.gradbm import GRADBM_DEFAULTS
+    from decomposition.methods.gradbm import GRADBM_DEFAULTS
     from decomposition.options import OptionError, option_names, options_from_mapping
 
     out = {}
@@ -127,7 +128,7 @@ def _tls_files(args):
     if args.tls_ca_file is None or args.tls_cert is None:
         raise CommandError("--scheduler tls://... needs both --tls-ca-file and --tls-cert (and --tls-key unless "
                            "the certificate file holds the key)")
-    from decomposition.cluster import TlsFiles
+    from decomposition.store.cluster import TlsFiles
 
     return TlsFiles(args.tls_ca_file, args.tls_cert, args.tls_key)
 

@@ -6,7 +6,7 @@
 3. decompose: every pixel, chunk by chunk, into a result store;
 4. report: figures and a summary;
 5. compare with the simulated ground truth: mean decomposition fidelity per component class
-   (:func:`decomposition.metrics.fidelity`).
+   (:func:`decomposition.model.fidelity.fidelity`).
 
 ``--source simulate`` replaces steps 1-2 by a synthetic cube (``streaklab simulate``).  Every
 output goes under ``--out`` (default ``demo-output``), a folder that may be neither a Zarr
@@ -151,9 +151,9 @@ def class_fidelity(truth: dict, estimate: dict) -> dict:
     -------
     dict: class -> {"mean": float, "pixels": int} for ``all``, ``direct``, ``sss`` and
     ``interreflections``; a class's mean is over the pixels whose truth holds it, and is
-    1 - ||est_k - truth_k|| / ||truth_k|| (:func:`decomposition.metrics.fidelity` on that class).
+    1 - ||est_k - truth_k|| / ||truth_k|| (:func:`decomposition.model.fidelity.fidelity` on that class).
     """
-    from decomposition.metrics import fidelity
+    from decomposition.model.fidelity import fidelity
 
     out = {}
     f = fidelity(truth, estimate)
@@ -242,7 +242,7 @@ def _demo_config(parse_config, *, lines, nx, nt, seed):
 
 
 def _simulated_cube(out: Path, *, lines, nx, nt, nsr, seed, stream):
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
     from streaklab.commands.simulate import simulate_command, write_simulation
 
     cube_path = out / "cube.zarr"
@@ -281,9 +281,9 @@ def run_demo(out="demo-output", *, source="capture", lines=16, nx=64, nt=256, me
 
 
 def _run_steps(out: Path, *, source, lines, nx, nt, method, workers, nsr, seed, progress, stream) -> dict:
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
     from reconstruction.cubestore import open_cube
-    from decomposition.pipeline import decompose_to_store
+    from decomposition.store.pipeline import decompose_to_store
     from streaklab.report import make_report
 
     start = time.perf_counter()

@@ -104,7 +104,7 @@ def command_for(command: str, out) -> str | None:
 
 
 def write_simulation(path, data, *, chunks=None, overwrite: bool = False, command: str | None = None):
-    """Write a :class:`decomposition.synthetic.SyntheticData` cube (leading shape (ny, nx)) and its truth.
+    """Write a :class:`decomposition.evaluation.synthetic.SyntheticData` cube (leading shape (ny, nx)) and its truth.
 
     The store is written beside ``path`` and renamed into place when complete, so an error
     never leaves half a store or destroys an existing one.  ``command``: the command line that
@@ -173,7 +173,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
 
 
 def run(args) -> int:
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
 
     ny, nx, nt = args.shape
     if min(ny, nx) <= 0 or nt < 2:

@@ -144,7 +144,7 @@ def _cube(path, mark: bool) -> int:
 
 
 def _result(path, mark: bool) -> int:
-    from decomposition.resultstore import open_result_store
+    from decomposition.store.resultstore import open_result_store
 
     store = open_result_store(path, mode="r+" if mark else "r")
     check = store.verify()
@@ -190,7 +190,7 @@ def _result(path, mark: bool) -> int:
 def run(args) -> int:
     from acquisition.runstore import RUN_KIND
     from core.staging import describe_existing
-    from decomposition.resultstore import RESULT_KIND
+    from decomposition.store.resultstore import RESULT_KIND
     from reconstruction.cubestore import CUBE_KIND
 
     kind = describe_existing(args.store)

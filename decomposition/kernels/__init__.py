@@ -1,0 +1,9 @@
+"""The solver's compiled kernels (numba, ``nopython`` mode): scalar loops over one pixel at a time.
+
+``jit`` holds the shared ``njit`` (disk cache stamped with the package's kernel sources and
+constants) and the sss kernel's erfcx; ``atomlm`` refines a pixel's atoms (Levenberg-Marquardt),
+``pick`` / ``pickcorr`` pick the next atom from correlations at the pixel's own PSF width,
+``onsets`` links sss onsets to their directs, and ``derivatives`` evaluates the kernels and their
+parameter derivatives on blocks of pixels for the variable-projection refine and the Fisher
+information.  Nothing here imports the stages, the API or the evaluation code.
+"""

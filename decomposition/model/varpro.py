@@ -1,0 +1,423 @@
+"""Variable projection with Levenberg-Marquardt damping, batched over pixels (the engine of refinement).
+
+Method: variable projection with Levenberg-Marquardt damping
+-------------------------------------------------------------
+A profile is linear in the amplitudes and nonlinear in the rest,
+
+    y ~ Phi(theta) c,    Phi = [g(t - t_d; s_d), h(t - t_s; s_s, alpha), g(t - t_r; s_r), ...]
+
+so for given nonlinear parameters theta the amplitudes c are solved exactly by
+linear least squares, and LM only walks in theta = (delays, log sigmas,
+log alpha).  This is variable projection (Golub & Pereyra 1973) with
+Kaufman's (1975) approximation of the Jacobian of the projected residual,
+
+    J_j = -P_perp(theta) (c_k d phi_k / d theta_j),   P_perp = I - Phi (Phi^T Phi)^-1 Phi^T,
+
+which is better conditioned than LM over all parameters and cannot be led
+astray by a bad amplitude start.  Widths and attenuation are refined in log
+space, so sigma > 0 and alpha > 0 hold by construction; simple bounds are
+enforced by projection.
+
+Everything is batched over a block of pixels: slot arrays of shape
+(pixels, K) with K = 2 + R (direct, sss, inter-reflections r2..), absent slots
+masked (zero basis column, identity row in the normal equations).  Each LM
+iteration works on the block's still-active pixels at once; the L-length work
+(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y]) is
+done in cache-sized chunks of pixels, which is several times faster than
+whole-block temporaries.  The only Python loops are over LM iterations, blocks
+and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
+Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
+step lowers its RSS by less than ``ftol`` relative, or when no step helps.
+
+Background: a constant offset per pixel (the ``b`` family) is one more linear parameter
+with no nonlinear one.  It is eliminated exactly by projecting every stacked row (basis,
+derivatives and data, each weighted) onto the complement of the weighted constant
+u = sqrt(w): with P_u = I - u u^T / (u^T u), the projector of [Phi, u] is that of
+P_u Phi times P_u, so the amplitudes, the residual and Kaufman's Jacobian of the joint fit
+are those of the projected rows, and the offset follows from the residual
+(:func:`background_level`).  Pixels without the flag are untouched.
+
+See :mod:`decomposition.model.refine` for the public function and its options.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..constants import SSS_SLOT
+from ..kernels.derivatives import kernel_derivatives
+
+__all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
+
+
+def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
+    """Stacked design rows M (n, Q, L) for one batched Gram product.
+
+    Rows: [0, K) basis phi_k; if ``jac``, [K, 2K) d phi_k / d delay_k,
+    [2K, 3K) d phi_k / d log sigma_k, 3K the sss d h / d log alpha; the last
+    row is the data y.  Absent slots are zero rows.  With ``sw`` (n, L), the
+    square roots of the sample weights, the model rows are weighted (``y``
+    must already be).
+    """
+    n, k = delay.shape
+    L = t.size
+    q = (3 * k + 2) if jac else (k + 1)
+    m = np.zeros((n, q, L))
+    m[:, -1] = y
+    gmask = present.copy()
+    gmask[:, SSS_SLOT] = False
+    rows = np.arange(k)
+    if gmask.any():
+        pix, slot = np.nonzero(gmask)
+        s = sigma[pix, slot][:, None]
+        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb, derivatives=jac)
+        m[pix, rows[slot]] = vals[0]
+        if jac:
+            m[pix, k + rows[slot]] = vals[1]
+            m[pix, 2 * k + rows[slot]] = vals[2] * s
+    pix = np.flatnonzero(present[:, SSS_SLOT])
+    if pix.size:
+        s = sigma[pix, SSS_SLOT][:, None]
+        a = alpha[pix][:, None]
+        vals = kernel_derivatives(t - delay[pix, SSS_SLOT][:, None], s, a, time_bin_ps=tb, derivatives=jac)
+        m[pix, SSS_SLOT] = vals[0]
+        if jac:
+            m[pix, k + SSS_SLOT] = vals[1]
+            m[pix, 2 * k + SSS_SLOT] = vals[2] * s
+            m[pix, 3 * k] = vals[3] * a
+    if sw is not None:
+        m[:, :-1] *= sw[:, None, :]
+    return m
+
+
+def _project_constant(m, bg, sw):
+    """Project the rows of the pixels ``bg`` (n,) bool of ``m`` (n, Q, L) onto the complement
+    of the weighted constant sqrt(w) (``sw`` (n, L); all ones without weights), in place."""
+    if bg is None or not bg.any():
+        return m
+    u = np.ones((int(bg.sum()), m.shape[-1])) if sw is None else sw[bg]
+    uu = np.einsum("nl,nl->n", u, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = u / np.sqrt(np.where(uu > 0, uu, 1.0))[:, None]
+    sub = m[bg]
+    sub -= np.einsum("nql,nl->nq", sub, u)[..., None] * u[:, None, :]
+    m[bg] = sub
+    return m
+
+
+def background_level(t, y, delay, sigma, alpha, present, c, tb, sw=None):
+    """Least-squares offset (n,) given the amplitudes ``c`` (n, K) at the nonlinear parameters:
+    b = u . (y - Phi c) / (u . u) with u = sqrt(w) (``y`` weighted like the rows, as in
+    :func:`design_rows`); 0 for a pixel without weighted samples."""
+    m = design_rows(t, y, delay, sigma, alpha, present, tb, False, sw)
+    k = present.shape[1]
+    r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])
+    u = np.ones_like(r) if sw is None else sw
+    uu = np.einsum("nl,nl->n", u, u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(uu > 0, np.einsum("nl,nl->n", u, r) / np.where(uu > 0, uu, 1.0), 0.0)
+
+
+def _regularise(gram, present):
+    """Absent slots get an identity row; a tiny ridge keeps collinear components solvable.
+
+    The ridge moves a well-separated amplitude by ~1e-13 relative.
+    """
+    k = gram.shape[-1]
+    diag = np.einsum("nkk->nk", gram)
+    scale = np.max(np.where(present, diag, 0.0), axis=-1, keepdims=True)
+    ridge = np.where(present, 1e-13 * scale + 1e-300, 1.0)
+    gram = gram.copy()
+    gram[:, np.arange(k), np.arange(k)] = np.where(present, diag, 0.0) + ridge
+    return gram
+
+
+class Layout:
+    """Nonlinear parameters theta (n, P) and how they map onto the derivative rows.
+
+    Derivative rows (Q = 2K + 1): d/d delay_k, d/d log sigma_k (k < K), d/d log alpha.
+    Independent widths: theta = [delay_0..K-1, log sigma_0..K-1, log alpha], P = Q.
+    Shared width (``shared_sigma``, one PSF per pixel as in eq. (2) of the paper):
+    theta = [delay_0..K-1, log sigma, log alpha], P = K + 2, and the sigma
+    parameter moves every present component's width together.
+    """
+
+    def __init__(self, k, shared_sigma=False):
+        self.k = k
+        self.q = 2 * k + 1
+        self.shared = bool(shared_sigma)
+        self.dslot = np.concatenate([np.arange(k), np.arange(k), [SSS_SLOT]])
+        if self.shared:
+            self.p = k + 2
+            assign = np.zeros((self.p, self.q))
+            assign[np.arange(k), np.arange(k)] = 1.0
+            assign[k, k:2 * k] = 1.0
+            assign[k + 1, 2 * k] = 1.0
+        else:
+            self.p = self.q
+            assign = np.eye(self.q)
+        self.assign = assign
+        self._sub = {}             # truncated(): layouts of the first k_eff slots, built on demand
+
+    def free_rows(self, present):
+        return np.concatenate([present, present, present[:, SSS_SLOT:SSS_SLOT + 1]], axis=1)
+
+    def free(self, present):
+        return (self.free_rows(present).astype(np.float64) @ self.assign.T) > 0
+
+    def pack(self, delay, sigma, alpha, present):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logs = np.log(sigma)
+            loga = np.log(alpha)[:, None]
+        if not self.shared:
+            return np.concatenate([delay, logs, loga], axis=1)
+        # Start the shared width from the direct component's, else the mean over present ones.
+        npres = present.sum(axis=1)
+        mean = np.where(present, logs, 0.0).sum(axis=1) / np.maximum(npres, 1)
+        shared = np.where(present[:, 0], logs[:, 0], mean)[:, None]
+        return np.concatenate([delay, shared, loga], axis=1)
+
+    def unpack(self, theta):
+        k = self.k
+        if self.shared:
+            sigma = np.repeat(np.exp(theta[:, k:k + 1]), k, axis=1)
+        else:
+            sigma = np.exp(theta[:, k:2 * k])
+        return theta[:, :k], sigma, np.exp(theta[:, -1])
+
+    def truncated(self, k_eff):
+        """Layout of the first ``k_eff`` slots and the indices of its parameters in this one."""
+        key = (k_eff, self.shared)
+        cache = self._sub
+        if key not in cache:
+            k = self.k
+            if self.shared:
+                cols = np.concatenate([np.arange(k_eff), [k, k + 1]])
+            else:
+                cols = np.concatenate([np.arange(k_eff), k + np.arange(k_eff), [2 * k]])
+            cache[key] = (self if k_eff == k else Layout(k_eff, self.shared), cols)
+        return cache[key]
+
+    def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
+        n_sig = 1 if self.shared else self.k
+        lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
+        hi = np.concatenate([np.full(self.k, delay_lim[1]), np.full(n_sig, logsigma_lim[1]), [logalpha_lim[1]]])
+        return lo, hi
+
+
+# Pixels per chunk of the L-length work: keeps the temporaries of the kernel
+# evaluation within the CPU caches (a whole block at once is several times slower).
+CHUNK_PIXELS = 48
+
+
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
+    """:func:`_evaluate_chunk` over cache-sized chunks of pixels.
+
+    Pixels are taken in order of their last present slot, and each chunk is
+    evaluated with the inter-reflection slots that none of its pixels uses cut
+    off (most pixels have fewer inter-reflections than R), so the Gram products
+    only carry rows that can be non-zero.  Results come back in pixel order, in
+    the full layout (zeros for the cut slots, which are not free there).
+    """
+    n = y.shape[0]
+    last = np.max(np.where(present, np.arange(lay.k), 1), axis=1)  # >= 1: direct and sss always kept
+    order = np.argsort(last, kind="stable")
+    c_out = np.zeros((n, lay.k))
+    rss_out = np.empty(n)
+    a_out = np.zeros((n, lay.p, lay.p)) if jac else None
+    g_out = np.zeros((n, lay.p)) if jac else None
+    for i in range(0, n, CHUNK_PIXELS):
+        sel = order[i:i + CHUNK_PIXELS]
+        k_eff = int(last[sel].max()) + 1
+        sub_lay, cols = lay.truncated(k_eff)
+        c, rss, a, g = _evaluate_chunk(sub_lay, t, y[sel], theta[np.ix_(sel, cols)], present[sel, :k_eff],
+                                       free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel],
+                                       None if bg is None else bg[sel])
+        c_out[sel, :k_eff] = c
+        rss_out[sel] = rss
+        if jac:
+            a_out[sel[:, None, None], cols[None, :, None], cols[None, None, :]] = a
+            g_out[np.ix_(sel, cols)] = g
+    return c_out, rss_out, a_out, g_out
+
+
+def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
+    """Amplitudes, residual sum of squares and (if jac) the LM normal equations at theta.
+
+    With V = W dPhi (rows; W carries the amplitudes c and the parameter
+    mapping of the layout), G = Phi Phi^T and B = Phi V^T, Kaufman's projected
+    Jacobian J = Phi^T G^-1 B - V^T gives J^T J = V V^T - B^T G^-1 B and
+    J^T r = -V r (because Phi r = 0), so one batched Gram product of the
+    stacked rows [Phi; dPhi; y] is all the L-length work.  Pixels ``bg`` (n,) bool also
+    fit a constant offset (rows projected, :func:`_project_constant`).
+    """
+    k, q = lay.k, lay.q
+    delay, sigma, alpha = lay.unpack(theta)
+    m = _project_constant(design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw), bg, sw)
+    mm = m @ m.swapaxes(-1, -2)
+    gram = _regularise(mm[:, :k, :k], present)
+    c = np.linalg.solve(gram, mm[:, :k, -1][..., None])[..., 0]
+    c = np.where(present, c, 0.0)
+    r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])      # the data row (projected where bg)
+    rss = np.einsum("nl,nl->n", r, r)
+    if not jac:
+        return c, rss, None, None
+    w_rows = c[:, lay.dslot] * lay.free_rows(present)
+    w = lay.assign[None, :, :] * w_rows[:, None, :] * free[:, :, None]  # (n, P, Q)
+    b = mm[:, :k, k:k + q] @ w.swapaxes(-1, -2)  # (n, K, P)
+    vv = w @ mm[:, k:k + q, k:k + q] @ w.swapaxes(-1, -2)
+    vr = np.einsum("npq,nq->np", w, np.einsum("nql,nl->nq", m[:, k:k + q], r))
+    x = np.linalg.solve(gram, b)
+    a = vv - b.swapaxes(-1, -2) @ x
+    return c, rss, a, -vr
+
+
+def _amp_violations(c, present):
+    return np.sum(present & ~(c > 0), axis=-1)
+
+
+def _onset_after_direct(theta, present):
+    """Project sss onsets onto delay >= direct delay where a pixel has both (theta[:, 0] / [:, 1])."""
+    both = present[:, 0] & present[:, SSS_SLOT]
+    theta[:, SSS_SLOT] = np.where(both, np.maximum(theta[:, SSS_SLOT], theta[:, 0]), theta[:, SSS_SLOT])
+    return theta
+
+
+def _keep_order(theta, present):
+    """Keep the labels valid: the direct delay first, inter-reflections in order of delay.
+
+    Each present inter-reflection delay is raised to at least the latest present
+    Gaussian delay before it (direct, then r2, r3, ...), a feasible point of the
+    ordering constraints closest to the step along each coordinate in turn.
+    """
+    k = present.shape[1]
+    prev = np.where(present[:, 0], theta[:, 0], -np.inf)
+    for slot in range(2, k):
+        d = np.where(present[:, slot], np.maximum(theta[:, slot], prev), theta[:, slot])
+        theta[:, slot] = d
+        prev = np.where(present[:, slot], d, prev)
+    return theta
+
+
+def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
+                  keep_order=True):
+    """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
+    docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
+    constant offset, and ``background`` (n,), their input offsets (normalised units; the
+    never-worse reference uses them); the returned ``background`` is the fitted offset there
+    (the input where the refined values were not kept) and 0 elsewhere."""
+    n = y.shape[0]
+    present = slots["present"]
+    bg = slots.get("fit_background")
+    if bg is not None:
+        bg = np.asarray(bg, bool)
+        if not bg.any():
+            bg = None
+    free = lay.free(present)
+    lo, hi = bounds
+    theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
+    theta = np.where(free, theta, 0.0)
+    theta = np.clip(theta, lo, hi)
+    if sss_after_direct:
+        theta = _onset_after_direct(theta, present)
+    if keep_order:
+        theta = _keep_order(theta, present)
+
+    # RSS of the input exactly as given (input amplitudes), the never-worse reference.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s0 = np.where(present, slots["sigma"], 1.0)
+        a0 = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
+    d0 = np.where(present, slots["delay"], 0.0)
+    amp_in = np.where(present, slots["amplitude"], 0.0)
+    rss_input = np.empty(n)
+    for i in range(0, n, CHUNK_PIXELS):
+        ch = slice(i, i + CHUNK_PIXELS)
+        phi0 = design_rows(t, y[ch], d0[ch], s0[ch], a0[ch], present[ch], tb, False,
+                       None if sw is None else sw[ch])[:, :lay.k]
+        r0 = y[ch] - np.einsum("nk,nkl->nl", amp_in[ch], phi0)
+        if bg is not None:
+            u0 = np.ones_like(r0) if sw is None else sw[ch]
+            r0 = r0 - np.where(bg[ch], np.nan_to_num(slots["background"][ch]), 0.0)[:, None] * u0
+        rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
+
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg)
+    viol = _amp_violations(c, present)
+    lam = np.full(n, lam0)
+    nu = np.full(n, 2.0)
+    iters = np.zeros(n, dtype=np.int64)
+    converged = np.zeros(n, dtype=bool)
+    active = free.any(axis=1) & np.isfinite(rss)
+    converged[~active] = True
+    ynorm2 = np.einsum("nl,nl->n", y, y)
+
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        fr = free[idx]
+        ai, gi = a[idx], g[idx]
+        diag = np.einsum("npp->np", ai)
+        dscale = np.maximum(diag, 1e-12 * np.max(diag, axis=-1, keepdims=True) + 1e-300)
+        lhs = ai * fr[:, :, None] * fr[:, None, :]
+        pidx = np.arange(lay.p)
+        lhs[:, pidx, pidx] = np.where(fr, diag + lam[idx, None] * dscale, 1.0)
+        rhs = np.where(fr, -gi, 0.0)
+        step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
+        trial = np.clip(theta[idx] + step, lo, hi)
+        if sss_after_direct:
+            trial = _onset_after_direct(trial, present[idx])
+        if keep_order:
+            trial = _keep_order(trial, present[idx])
+        trial = np.where(fr, trial, 0.0)
+        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
+                                         None if sw is None else sw[idx], None if bg is None else bg[idx])
+        viol_t = _amp_violations(c_t, present[idx])
+        ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
+        accept = ok & (rss_t < rss[idx])
+        iters[idx] += 1
+        gain = (rss[idx] - rss_t) / np.maximum(rss[idx], 1e-300)
+        # Gain ratio against the damped Gauss-Newton model drives the damping (Nielsen 1999).
+        pred = -np.einsum("np,np->n", step, gi) + lam[idx] * np.einsum("np,np,np->n", step, dscale, step)
+        rho = (rss[idx] - rss_t) / np.maximum(pred, 1e-300)
+
+        acc = idx[accept]
+        theta[acc], c[acc], rss[acc], a[acc], g[acc] = trial[accept], c_t[accept], rss_t[accept], a_t[accept], g_t[accept]
+        viol[acc] = viol_t[accept]
+        lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[accept], 0.0, 1.0) - 1.0) ** 3)
+        lam[acc] = np.maximum(lam[acc], 1e-12)
+        nu[acc] = 2.0
+        rej = idx[~accept]
+        lam[rej] *= nu[rej]
+        nu[rej] *= 2.0
+
+        # Converged: an accepted step that no longer lowers the RSS noticeably,
+        # a fit that is exact to rounding, or damping so large that no step helps.
+        done = np.zeros(idx.size, bool)
+        done |= accept & (gain < ftol)
+        done |= rss[idx] <= 1e-26 * ynorm2[idx]
+        stalled = ~accept & (lam[idx] > 1e12)
+        converged[idx[done | stalled]] = True
+        active[idx[done | stalled]] = False
+
+    delay, sigma, alpha = lay.unpack(theta)
+    kept = (rss < rss_input) & (viol == 0) & np.isfinite(rss)
+    out = {
+        "delay": np.where(kept[:, None], delay, slots["delay"]),
+        "sigma": np.where(kept[:, None], sigma, slots["sigma"]),
+        "alpha": np.where(kept & present[:, SSS_SLOT], alpha, slots["alpha"]),
+        "amplitude": np.where(kept[:, None], c, slots["amplitude"]),
+        "background": np.zeros(n),
+    }
+    if bg is not None:
+        b_fit = background_level(t, y, delay, sigma, alpha, present, c, tb, sw)
+        b_in = np.nan_to_num(slots["background"])
+        out["background"] = np.where(bg, np.where(kept, b_fit, b_in), 0.0)
+    info = {
+        "iterations": iters,
+        "converged": converged,
+        "refined": kept,
+        "rss_input": rss_input,
+        "rss": np.where(kept, rss, rss_input),
+    }
+    return out, info
+
+

@@ -1,0 +1,92 @@
+"""Atoms of a measured response for blocks of slot arrays, with their derivatives.
+
+The response path of :func:`decomposition.decompose` keeps each pixel's components in slot
+arrays of shape (P, K): ``fam`` (FAM_NONE, FAM_GAUSS for a shifted copy of the response --
+direct or inter-reflection --, FAM_SSS), ``delay`` (ps), ``lalp`` (log alpha, alpha in 1/ps;
+sss slots only).  :func:`slot_atoms` renders every active slot at once with
+:func:`core.irf.render_shifted` / :func:`core.irf.render_sss` (unit peak), and optionally the
+derivatives with respect to the delay and to log alpha; :func:`slot_window_fraction` the
+fraction of each atom's area inside the window (the OFF_WINDOW rule's measure).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from core.irf import InstrumentResponse, render_shifted, render_sss
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+
+__all__ = ["slot_atoms", "slot_window_fraction"]
+
+
+def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
+               lalp: np.ndarray, *, derivatives: bool = False):
+    """Unit-peak atoms of every slot, zeros for empty ones.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse
+    t_ps : ndarray (L,)          time axis, ps
+    fam : ndarray (P, K) int8    slot families
+    delay : ndarray (P, K)       delays, ps (read where the slot is active)
+    lalp : ndarray (P, K)        log alpha (read in sss slots)
+    derivatives : bool
+        Also return d atom / d delay (per ps) and d atom / d log alpha (dimensionless;
+        zero outside sss slots).
+
+    Returns
+    -------
+    phi : ndarray (P, K, L)
+    d_delay, d_lalp : ndarray (P, K, L) (only with ``derivatives=True``)
+    """
+    P, K = fam.shape
+    L = t_ps.size
+    phi = np.zeros((P, K, L))
+    dd = np.zeros((P, K, L)) if derivatives else None
+    dl = np.zeros((P, K, L)) if derivatives else None
+    sh = fam == FAM_GAUSS
+    if sh.any():
+        if derivatives:
+            a, da = render_shifted(irf, t_ps, delay[sh], derivative=True)
+            phi[sh], dd[sh] = a, da
+        else:
+            phi[sh] = render_shifted(irf, t_ps, delay[sh])
+    ss = fam == FAM_SSS
+    if ss.any():
+        alpha = np.exp(lalp[ss])
+        if derivatives:
+            a, da, dal = render_sss(irf, t_ps, delay[ss], alpha, derivatives=True)
+            phi[ss], dd[ss], dl[ss] = a, da, dal * alpha[:, None]
+        else:
+            phi[ss] = render_sss(irf, t_ps, delay[ss], alpha)
+    if derivatives:
+        return phi, dd, dl
+    return phi
+
+
+def slot_window_fraction(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
+                         lalp: np.ndarray) -> np.ndarray:
+    """Fraction of every active slot's area inside the window, (P, K) in [0, 1] (1 for empty slots).
+
+    T sum_i phi(t_i) of the unit-peak atom over its whole area: 1 / peak for a shifted copy
+    (the response has unit area), 1 / (alpha peak) for the sss atom (the response convolved with
+    exp(-alpha u), whose area is 1 / alpha), ``peak`` = ``irf.peak_per_ps``; the measure of
+    :func:`decomposition.model.components.window_fraction` for the response's atoms.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse
+    t_ps : ndarray (L,)          the window's (uniform) sample times, ps
+    fam, delay, lalp : ndarray (P, K)
+        Slot arrays (see :func:`slot_atoms`).
+    """
+    out = np.ones(fam.shape)
+    act = fam != FAM_NONE
+    if not act.any() or t_ps.size < 2:
+        return out
+    T = float(t_ps[1] - t_ps[0])
+    phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(delay), np.nan_to_num(lalp))
+    area = np.full(fam.shape, 1.0 / irf.peak_per_ps)
+    sss = fam == FAM_SSS
+    area[sss] /= np.exp(lalp[sss])
+    out[act] = np.clip(T * phi[act].sum(axis=-1) / area[act], 0.0, 1.0)
+    return out

@@ -1,0 +1,422 @@
+"""Continuous refinement of response atoms: variable projection on blocks of pixels.
+
+For a pixel with K slots (:mod:`decomposition.response.atoms`) the model is
+m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
+amplitudes enter linearly and are never iterated: for any theta they are the weighted
+least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
+columns phi_k, a K x K solve per pixel; with ``fit_background`` a constant column -- the
+background family's offset -- is one more column of that solve, fitted jointly with the
+amplitudes and projected out of the delays' Jacobian like them).  theta is moved by Levenberg-Marquardt on the
+projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
+the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), every
+pixel of a block at once; a step is kept per pixel only when it lowers the weighted residual
+sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
+by Fisher scoring over the delays, log alphas and amplitudes together (:func:`_fit_counts`),
+no step turning a positive amplitude non-positive.  Constraints by projection after each
+step: delays within ``delay_bounds_ps``, log alpha within ``lalp_bounds``, the sss onset not
+before the pixel's earliest shifted atom (``sss_after_direct``), and (``first_is_direct``) no
+shifted atom before slot 0.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from core.irf import InstrumentResponse
+from core.model import BACKGROUND_KEY, render_profile
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
+from ..noise import count_deviance, poisson_weights
+from .atoms import slot_atoms
+from .label import slots_to_params
+
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
+
+_RIDGE = 1e-12
+_LAMBDA0 = 1e-3
+_LAMBDA_MAX = 1e10
+
+
+@dataclass(frozen=True)
+class SlotFit:
+    """Result of :func:`fit_slots` for P pixels of K slots: ``delay``, ``lalp``, ``amp``
+    (P, K); ``background`` (P,) the fitted constant offset (units of ``y``; 0 where it is not
+    fitted); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
+    residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
+
+    delay: np.ndarray
+    lalp: np.ndarray
+    amp: np.ndarray
+    background: np.ndarray
+    cost: np.ndarray
+    resid: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+
+def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.ndarray):
+    """Weighted least-squares amplitudes of the columns ``phi``.
+
+    Parameters
+    ----------
+    phi : ndarray (P, K, L)     unit-peak atoms (zero rows for empty slots)
+    y : ndarray (P, L)          profiles
+    sw : ndarray (P, L)         square-root sample weights (0 excludes a sample)
+    active : ndarray (P, K) bool
+
+    Returns
+    -------
+    amp : ndarray (P, K)         0 in empty slots
+    resid : ndarray (P, L)       weighted residual sw * (y - sum_k amp_k phi_k)
+    cost : ndarray (P,)          its sum of squares
+    pw : ndarray (P, K, L)       the weighted columns sw * phi
+    minv : ndarray (P, K, K)     inverse of the (regularised) normal matrix
+    """
+    pw = phi * sw[:, None, :]
+    yw = y * sw
+    m = np.matmul(pw, pw.transpose(0, 2, 1))
+    diag = np.einsum("pkk->pk", m)
+    ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
+    m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
+    minv = np.linalg.inv(m)
+    with np.errstate(invalid="ignore", over="ignore"):
+        amp = np.matmul(minv, np.matmul(pw, yw[:, :, None]))[..., 0]
+    # a pixel whose every active column is zero (its atoms all outside the window) has a
+    # singular matrix whatever the ridge: nothing of the data is theirs
+    amp = np.where(active & np.isfinite(amp), amp, 0.0)
+    resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
+    return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
+
+
+def _project(fam, delay, lalp, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct):
+    delay = np.clip(delay, *delay_bounds_ps)
+    lalp = np.clip(lalp, *lalp_bounds)
+    sh = fam == FAM_GAUSS
+    if first_is_direct:
+        d0 = np.where(sh[:, :1], delay[:, :1], -np.inf)
+        rest = sh.copy()
+        rest[:, 0] = False
+        delay = np.where(rest, np.maximum(delay, d0), delay)
+    if sss_after_direct:
+        first = np.where(sh, delay, np.inf).min(axis=1, keepdims=True)
+        delay = np.where((fam == FAM_SSS) & np.isfinite(first), np.maximum(delay, first), delay)
+    return delay, lalp
+
+
+def _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg=None):
+    phi, dd, dl = slot_atoms(irf, t, fam, delay, lalp, derivatives=True)
+    active = fam != FAM_NONE
+    if fit_bg is not None:      # the constant column (last), no nonlinear parameter
+        phi = np.concatenate([phi, np.broadcast_to(fit_bg[:, None, None].astype(np.float64),
+                                                   (phi.shape[0], 1, phi.shape[2]))], axis=1)
+        active = np.concatenate([active, fit_bg[:, None]], axis=1)
+    amp, resid, cost, pw, minv = solve_amplitudes(phi, y, sw, active)
+    return {"phi": phi, "dd": dd, "dl": dl, "amp": amp, "resid": resid, "cost": cost, "pw": pw, "minv": minv}
+
+
+class CountData(NamedTuple):
+    """Count profiles behind a block's normalised profiles ``y = (counts - held) / scale``:
+    ``counts`` (P, L), ``scale`` (P,) counts per unit of ``y``, ``held`` (P,) the offset already
+    subtracted (counts), ``fit`` (P, L) bool the samples that count, ``disp`` (P,) or None the
+    counts' noise scale (1: the Poisson law)."""
+
+    counts: np.ndarray
+    scale: np.ndarray
+    held: np.ndarray
+    fit: np.ndarray
+    disp: np.ndarray | None
+
+    def rows(self, idx) -> "CountData":
+        return CountData(self.counts[idx], self.scale[idx], self.held[idx], self.fit[idx],
+                         None if self.disp is None else self.disp[idx])
+
+    def model_counts(self, ev: dict) -> np.ndarray:
+        """(P, L) expected counts of an evaluation (its amplitudes on its columns)."""
+        return np.einsum("pk,pkl->pl", ev["amp"], ev["phi"]) * self.scale[:, None] + self.held[:, None]
+
+    def weights(self, mu: np.ndarray) -> np.ndarray:
+        """(P, L) square-root weights of the normalised profiles under expected counts ``mu``:
+        scale / Poisson standard deviation (the variance floored at POISSON_FIT_FLOOR), 0 off
+        the fitted samples."""
+        return np.sqrt(poisson_weights(mu, self.fit, self.disp, floor_counts=POISSON_FIT_FLOOR)) * self.scale[:, None]
+
+    def deviance(self, mu: np.ndarray) -> np.ndarray:
+        """(P,) Poisson deviance of the counts under ``mu`` (chi2 units), read at the weights'
+        floor: the objective whose Fisher scoring the weights are."""
+        return count_deviance(self.counts, mu, self.fit, self.disp, floor_counts=POISSON_FIT_FLOOR)
+
+
+def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.ndarray, fam: np.ndarray,
+              delay: np.ndarray, lalp: np.ndarray, *, n_iter: int, lm_tol: float,
+              delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool = True,
+              first_is_direct: bool = False, fit_background=None, counts: CountData | None = None) -> SlotFit:
+    """Refine the delays (and sss log alpha) of every active slot of a block of pixels.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse          on the axis' step
+    t_ps : ndarray (L,)               time axis, ps
+    y : ndarray (P, L)                profiles (any scale; 0 where the weight is 0)
+    sw : ndarray (P, L)               square-root sample weights
+    fam, delay, lalp : ndarray (P, K) starting slots (delays ps, log alpha of 1/ps)
+    n_iter : int                      Levenberg-Marquardt iterations at most (0: amplitudes only)
+    lm_tol : float
+        A pixel stops when an accepted step gains less than ``lm_tol`` x its residual sum of
+        squares per fitted sample.
+    delay_bounds_ps, lalp_bounds : (float, float)
+    sss_after_direct, first_is_direct : bool
+        Constraints (see the module docstring).
+    fit_background : ndarray (P,) bool, optional
+        Pixels that also fit a constant offset (a column of ones in the amplitudes' solve);
+        elsewhere the model has none.
+    counts : CountData, optional
+        Count data: the objective is the Poisson deviance (``cost`` is it, chi2 units), fitted
+        by Fisher scoring over delays, log alpha and amplitudes together (:func:`_fit_counts`);
+        ``sw`` gives only the first weights, those of the starting amplitudes.
+
+    Returns
+    -------
+    SlotFit
+    """
+    t = np.asarray(t_ps, np.float64)
+    fam = np.asarray(fam)
+    P, K = fam.shape
+    delay, lalp = _project(fam, np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0),
+                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+    fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), (P,))
+    cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
+    if counts is not None:
+        return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
+                           bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct))
+    amp, cost = cur["amp"], cur["cost"]
+    iters = np.zeros(P, np.int64)
+    conv = np.zeros(P, bool)
+    lam = np.full(P, _LAMBDA0)
+    n_used = np.maximum((sw > 0).sum(axis=1), 1)
+    free = np.concatenate([fam != FAM_NONE, fam == FAM_SSS], axis=1)               # (P, 2K)
+    conv |= ~free.any(axis=1)
+    state = {"delay": delay.copy(), "lalp": lalp.copy(), "amp": amp.copy(), "cost": cost.copy()}
+    cache = cur
+    for _ in range(int(n_iter)):
+        idx = np.flatnonzero(~conv)
+        if idx.size == 0:
+            break
+        c = {k: v[idx] for k, v in cache.items()}
+        f = fam[idx]
+        a = c["amp"][:, :K]
+        g = np.concatenate([a[:, :, None] * c["dd"], a[:, :, None] * c["dl"]], axis=1) * sw[idx][:, None, :]
+        fr = free[idx]
+        g = np.where(fr[:, :, None], g, 0.0)
+        # projected columns: g - pw^T minv (pw g^T)
+        proj = np.matmul(c["pw"], g.transpose(0, 2, 1))                            # (n, K, 2K)
+        gp = g - np.matmul(np.matmul(proj.transpose(0, 2, 1), c["minv"]), c["pw"])
+        jtj = np.matmul(gp, gp.transpose(0, 2, 1))
+        jtr = np.matmul(g, c["resid"][:, :, None])[..., 0]
+        dg = np.einsum("pjj->pj", jtj)
+        scale_d = np.where(fr, dg + 1e-300, 1.0)
+        lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
+        lhs += np.eye(2 * K)[None] * (~fr)[:, :, None]
+        step = np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0]
+        finite = np.isfinite(step).all(axis=1)          # refused below, as in _fit_counts
+        step = np.where(finite[:, None], step, 0.0)
+        nd = state["delay"][idx] + np.where(fr[:, :K], step[:, :K], 0.0)
+        nl = state["lalp"][idx] + np.where(fr[:, K:], step[:, K:], 0.0)
+        nd, nl = _project(f, nd, nl, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+        trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl, None if fit_bg is None else fit_bg[idx])
+        ok = finite & np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
+        gain = c["cost"] - trial["cost"]
+        iters[idx] += 1
+        acc = idx[ok]
+        state["delay"][acc], state["lalp"][acc] = nd[ok], nl[ok]
+        state["amp"][acc], state["cost"][acc] = trial["amp"][ok], trial["cost"][ok]
+        lam[acc] /= 3.0
+        lam[idx[~ok]] *= 4.0
+        small = ok & (gain < lm_tol * trial["cost"] / n_used[idx])
+        conv[idx[small]] = True
+        conv[idx[~ok & (lam[idx] > _LAMBDA_MAX)]] = True
+        for k in cache:                    # the accepted pixels' evaluation for the next step
+            cache[k][acc] = trial[k][ok]
+    return SlotFit(delay=np.where(fam != FAM_NONE, state["delay"], np.nan),
+                   lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
+                   amp=np.where(fam != FAM_NONE, state["amp"][:, :K], 0.0),
+                   background=state["amp"][:, K] if fit_bg is not None else np.zeros(P),
+                   cost=state["cost"], resid=cache["resid"],
+                   iterations=iters, converged=conv)
+
+
+def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
+                bounds) -> SlotFit:
+    """:func:`fit_slots` for count data: Levenberg-Marquardt on the Poisson deviance by Fisher
+    scoring over every parameter at once -- the delays, the sss log alpha and the amplitudes
+    (and the offset's correction) -- from the amplitudes of the first weights' solve ``cur``.
+
+    Each step solves ``(J^T W J + lambda diag(J^T W J)) delta = J^T W (counts - mu)`` with J the
+    expected counts' derivatives and W = 1 / their Poisson variance at the current model
+    (floored at POISSON_FIT_FLOOR, times the dispersion squared), and is kept per pixel only
+    where it lowers the deviance and leaves every positive amplitude positive; the offset (the
+    one held plus the fitted correction) is projected onto >= 0 counts.  The weights are
+    the objective's own at every step, and the gradient is the deviance's (nothing where the
+    model is below the floor, which the deviance reads as the floor), so the fixed point is the
+    maximum likelihood.  Amplitudes solved by weighted least squares at each step's delays
+    (variable projection, as :func:`fit_slots` does for Gaussian data) are not the deviance's
+    best there unless the weights have converged too, and such a fit stalled short of the
+    optimum along the valley of an sss onset and its alpha."""
+    delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct = bounds
+    P, K = fam.shape
+    phi, dd, dl, amp = cur["phi"], cur["dd"], cur["dl"], cur["amp"]                # amp (P, Kc)
+    Kc = amp.shape[1]
+    active = fam != FAM_NONE
+    amp_free = np.concatenate([active, np.broadcast_to(fit_bg[:, None], (P, Kc - K))], axis=1) \
+        if Kc > K else active
+    free = np.concatenate([active, fam == FAM_SSS, amp_free], axis=1)             # (P, 2K + Kc)
+    n_par = free.shape[1]
+
+    def jacobian(phi, dd, dl, amp, scale):
+        a = amp[:, :K, None]
+        return np.concatenate([a * dd, a * dl, phi], axis=1) * scale[:, None, None]
+
+    if Kc > K:
+        # an offset of counts is light or dark counts: never below 0 (else it would lower the
+        # model under the floor where the counts are 0 and buy deviance it does not explain)
+        amp = amp.copy()
+        amp[:, K] = np.maximum(amp[:, K], -counts.held / counts.scale)
+    mu = counts.model_counts({"amp": amp, "phi": phi})
+    dev = counts.deviance(mu)
+    state = {"delay": delay.copy(), "lalp": lalp.copy(), "amp": amp.copy(), "cost": dev.copy()}
+    cache = {"phi": phi, "dd": dd, "dl": dl, "mu": mu}
+    iters = np.zeros(P, np.int64)
+    lam = np.full(P, _LAMBDA0)
+    conv = ~free.any(axis=1)
+    n_used = np.maximum(counts.fit.sum(axis=1), 1)
+    for _ in range(int(n_iter)):
+        idx = np.flatnonzero(~conv)
+        if idx.size == 0:
+            break
+        c = counts.rows(idx)
+        fr = free[idx]
+        a_cur = state["amp"][idx]
+        jac = np.where(fr[:, :, None], jacobian(cache["phi"][idx], cache["dd"][idx], cache["dl"][idx], a_cur,
+                                                     c.scale), 0.0)
+        w = np.square(c.weights(cache["mu"][idx]) / c.scale[:, None])                  # 1 / variance
+        jw = jac * w[:, None, :]
+        jtj = np.matmul(jw, jac.transpose(0, 2, 1))
+        # the deviance's gradient: nothing where the model is below the floor (read as the floor)
+        mu_i = cache["mu"][idx]
+        jtr = np.einsum("pil,pl->pi", jw, np.where(c.fit & (mu_i >= POISSON_FIT_FLOOR), c.counts - mu_i, 0.0))
+        dg = np.einsum("pjj->pj", jtj)
+        # Marquardt's scaling, floored at 1e-12 of the largest (an atom that has left the
+        # window has no column to scale by)
+        dg = np.maximum(dg, 1e-12 * dg.max(axis=1, keepdims=True)) + 1e-300
+        lhs = jtj + (lam[idx][:, None] * np.where(fr, dg, 1.0))[:, :, None] * np.eye(n_par)[None]
+        lhs += np.eye(n_par)[None] * (~fr)[:, :, None]
+        step = np.where(fr, np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0], 0.0)
+        # a step that is not finite (an atom whose column vanished and whose amplitude grew
+        # without bound) is refused like one that raises the deviance
+        finite = np.isfinite(step).all(axis=1)
+        step = np.where(finite[:, None], step, 0.0)
+        f = fam[idx]
+        nd, nl = _project(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
+                          delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+        na = np.where(amp_free[idx], a_cur + step[:, 2 * K:], 0.0)
+        if Kc > K:
+            na[:, K] = np.maximum(na[:, K], -c.held / c.scale)
+        t_phi, t_dd, t_dl = slot_atoms(irf, t, f, nd, nl, derivatives=True)
+        if Kc > K:
+            t_phi = np.concatenate([t_phi, np.broadcast_to(fit_bg[idx, None, None].astype(np.float64),
+                                                           (idx.size, 1, t_phi.shape[2]))], axis=1)
+        t_mu = c.model_counts({"amp": na, "phi": t_phi})
+        t_dev = c.deviance(t_mu)
+        # no step turns an atom's light negative (the counts' model is a sum of light)
+        was = np.all((a_cur[:, :K] > 0) | ~active[idx], axis=1)
+        ok = (finite & np.isfinite(t_dev) & (t_dev < state["cost"][idx])
+              & (~was | np.all((na[:, :K] > 0) | ~active[idx], axis=1)))
+        gain = state["cost"][idx] - t_dev
+        iters[idx] += 1
+        acc = idx[ok]
+        state["delay"][acc], state["lalp"][acc], state["amp"][acc], state["cost"][acc] = nd[ok], nl[ok], na[ok], t_dev[ok]
+        cache["phi"][acc], cache["dd"][acc], cache["dl"][acc], cache["mu"][acc] = t_phi[ok], t_dd[ok], t_dl[ok], t_mu[ok]
+        lam[acc] /= 3.0
+        lam[idx[~ok]] *= 4.0
+        conv[idx[ok & (gain < lm_tol * t_dev / n_used[idx])]] = True
+        conv[idx[~ok & (lam[idx] > _LAMBDA_MAX)]] = True
+    sw = counts.weights(cache["mu"])
+    y_model = (cache["mu"] - counts.held[:, None]) / counts.scale[:, None]
+    resid = sw * np.where(counts.fit, y - y_model, 0.0)
+    return SlotFit(delay=np.where(active, state["delay"], np.nan),
+                   lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
+                   amp=np.where(active, state["amp"][:, :K], 0.0),
+                   background=state["amp"][:, K] if Kc > K else np.zeros(P),
+                   cost=state["cost"], resid=resid, iterations=iters, converged=conv)
+
+
+class Slots(NamedTuple):
+    """The response path's answer for n live pixels: slot arrays ``fam``, ``delay`` (ps),
+    ``lalp``, ``amp`` (normalised units) (n, K) in the refinement layout (slot 0 direct, 1 sss,
+    2.. inter-reflections), ``params`` (n-shaped, units of the samples, no ``background``
+    key), ``background`` (n,) units, ``iterations`` (n,) LM iterations spent."""
+
+    fam: np.ndarray
+    delay: np.ndarray
+    lalp: np.ndarray
+    amp: np.ndarray
+    params: dict
+    background: np.ndarray
+    iterations: np.ndarray
+
+
+def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
+                sigma_eq, R) -> Slots:
+    """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
+    (n,) counts / units already subtracted), with a jointly fitted constant offset where
+    ``fit_bg``.  Count data (``disp`` given) are fitted to their Poisson deviance
+    (:func:`fit_slots` with :class:`CountData`), the first weights those of the starting model
+    ``params`` (n-shaped, units, the ``background`` key read); every step lowers the deviance,
+    so the answer is never worse than the start with its amplitudes solved at its own delays.
+
+    Returns :class:`Slots`: fam, delay, lalp, amp (n, K), params (n-shaped, units, no
+    ``background`` key), background (n,) units (``held`` plus the fitted correction),
+    iterations (n,).
+    """
+    L = y.shape[1]
+    counts = disp is not None
+    n = y.shape[0]
+    iterations = np.zeros(n, np.int64)
+    amp = np.zeros(fam.shape)
+    background = held.astype(np.float64).copy()
+    sw = fit_mask.astype(np.float64)
+    bg_cols = np.ones(n, bool) if fit_bg else None
+    fit_kw = dict(lm_tol=opts.lm_tol, delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
+                  sss_after_direct=opts.sss_after_direct, first_is_direct=True)
+    params = dict(params)
+    params[BACKGROUND_KEY] = background
+
+    cd = None
+    if counts:
+        cd = CountData(y * scale[:, None] + held[:, None], scale, held, fit_mask, disp)
+        sw = cd.weights(np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf)))
+
+    def solve(fam, delay, lalp, sw, n_iter):
+        f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=n_iter, fit_background=bg_cols, counts=cd, **fit_kw)
+        delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
+        bad = (fam != FAM_NONE) & ~(amp > 0)
+        if bad.any():
+            fam = fam.copy()
+            fam[bad] = FAM_NONE
+            r = np.flatnonzero(bad.any(axis=1))
+            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
+                          fit_background=None if bg_cols is None else bg_cols[r],
+                          counts=None if cd is None else cd.rows(r), **fit_kw)
+            amp[r], b_fit = g.amp, b_fit.copy()
+            b_fit[r] = g.background
+        background = held + b_fit * scale
+        p = slots_to_params(fam, delay, lalp, amp, scale, sigma_eq, R)
+        p[BACKGROUND_KEY] = background
+        return [fam, delay, lalp, amp, background, p], f.iterations
+
+    cur, iterations = solve(fam, delay, lalp, sw, opts.n_polish)
+    fam, delay, lalp, amp, background, params = cur
+    params = {k: v for k, v in params.items() if k != BACKGROUND_KEY}
+    return Slots(fam, delay, lalp, amp, params, background, iterations)
+
+

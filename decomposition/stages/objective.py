@@ -1,0 +1,94 @@
+"""The penalised objective the search, grow and prune stages compare fits by.
+
+Each of those stages scores a pixel's alternative slot states by the same measure,
+
+    J = chi2 + search_penalty * k * ln(n),
+
+chi2 the data term of the residual in the noise of :func:`objective_variance` (per pixel, per
+sample, or whitened by the call's noise spectrum), k the free parameters of the pixel's atoms
+and n its fitted samples.  One home for that measure keeps the three stages comparing alike.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..constants import FAM_NONE, FAM_SSS, WHITE_LAG_RATIO
+from ..noise import SpectralNoise, whitened_chi2
+from ..model.slots import render
+
+__all__ = ["objective_variance", "penalised_objective"]
+
+
+def _smooth(y, width_bins):
+    """Gaussian smoothing along the last axis with a per-pixel width (bins), via FFT (zero-padded
+    to twice the length: no wrap-around); the filter is built and applied in place."""
+    n = y.shape[-1]
+    f = np.fft.rfftfreq(2 * n)
+    h = np.pi * f[None, :] * np.asarray(width_bins, np.float64)[:, None]
+    h *= h
+    h *= -2.0
+    np.exp(h, out=h)                          # exp(-2 (pi f w)^2)
+    spec = np.fft.rfft(np.asarray(y, np.float64), n=2 * n, axis=-1)
+    spec *= h
+    return np.fft.irfft(spec, n=2 * n, axis=-1)[:, :n]
+
+
+def _per_sample(s2):
+    """A noise variance of one value per pixel (n,) or per sample (n, L), as (n, 1) or (n, L)."""
+    s2 = np.asarray(s2, np.float64)
+    return s2[:, None] if s2.ndim == 1 else s2
+
+
+def _residual_chi2(r, s2):
+    """(n,) the data term of residuals ``r`` (n, L) in the noise ``s2`` of
+    :func:`objective_variance`: sum of r^2 / s2 (``s2`` (n,) or (n, L)), or the residual
+    whitened by the call's spectrum (a :class:`SpectralNoise`)."""
+    if isinstance(s2, SpectralNoise):
+        return whitened_chi2(r, s2.spectrum, s2.variance)
+    return np.einsum("pl,pl->p", r, r / _per_sample(s2))
+
+
+def _data_chi2(t, p, mask, st, s2):
+    """The data term (:func:`_residual_chi2`) of each pixel of a slot state."""
+    return _residual_chi2(mask.residual(p, render(t, st)), s2)
+
+
+def penalised_objective(t, p, mask, st, s2, log_n, opts):
+    """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
+    (``s2`` (n,) the noise variance, or (n, L) that of every sample, ``log_n`` (n,) the log of the fitted samples, k the free
+    parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
+    return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
+
+
+def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=None):
+    """The noise variance a penalised objective divides its data term by: (n,), or (n, L) with
+    ``weights``.  The solver's ``s_eff`` (n,) squared, or the significance noise's
+    (``significance_sigma`` (n,), :meth:`Samples.significance_sigma` after
+    :func:`decomposition.stages.candidates.residual_significance_noise`; None: not used) where that
+    exceeds WHITE_LAG_RATIO x ``s_eff``, i.e. where the noise is correlated at the components'
+    scale (pink noise); divided by the samples' relative least-squares ``weights`` (n, L)
+    (:attr:`Detection.weights`) where given.  There a component fitted to the noise lowers the data term by about
+    (lagged / sample noise)^2 times what white noise would, and a parameter-count penalty read in
+    sample variances lets noise bumps through as inter-reflections.
+
+    With the call's noise ``spectrum`` (:attr:`Detection.noise_spectrum`, where its noise is
+    correlated): a :class:`SpectralNoise` of that spectrum and ``s_eff``'s variances instead,
+    whatever the rest -- the residual whitened by the noise's own spectrum rather than read in
+    one lagged level."""
+    s_eff = np.asarray(s_eff, np.float64)
+    if spectrum is not None:
+        return SpectralNoise(np.asarray(spectrum, np.float64), s_eff ** 2)
+    if significance_sigma is None:
+        var = s_eff ** 2
+    else:
+        sig = np.asarray(significance_sigma, np.float64)
+        var = np.where(sig > WHITE_LAG_RATIO * s_eff, sig, s_eff) ** 2
+    return var if weights is None else var[:, None] / np.maximum(weights, 1e-300)
+
+
+def _n_free(st, shared_sigma):
+    """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
+    one width per pixel (``shared_sigma``) or per atom."""
+    act = st["fam"] != FAM_NONE
+    n_act = act.sum(axis=1)
+    return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)

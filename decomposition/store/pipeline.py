@@ -1,0 +1,605 @@
+"""The chunked pipeline: decompose every pixel of a cube into a result store, chunk by chunk.
+
+The cube is read with dask in pixel chunks (all of t in each), every chunk is decomposed as one
+batch and written into its own region of the result store as soon as it is finished, then
+marked done.  Interrupted runs (Ctrl-C, a crash, a killed process) keep every finished chunk;
+``resume=True`` computes only the rest and gives the same store as an uninterrupted run.
+
+Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``time_bin_ps`` for small inputs.
+:func:`decompose_to_store` is used by ``streaklab decompose``, ``demo`` and ``bench speed``;
+bad input raises :class:`PipelineError` before any work starts.  Its messages name the
+command-line flags, the way most users meet them.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import StreaklabError
+from core.integrity import CheckedReader, DataIntegrityError, chunk_grid, read_checked, require_chunks
+from decomposition.options import METHODS
+
+__all__ = ["PipelineError", "decompose_to_store", "ChunkProgress"]
+
+
+class PipelineError(StreaklabError, ValueError):
+    """The input or the settings of a chunked decomposition are unusable (says exactly why)."""
+
+
+class ChunkProgress:
+    """Progress over chunks on a stream: done/total, pixel rate, time left.
+
+    On a terminal the line is redrawn in place; otherwise a line is printed at most every
+    ``interval_s`` seconds and at the end.
+    """
+
+    def __init__(self, total_chunks: int, total_pixels: int, *, already_chunks: int = 0, stream=None,
+                 interval_s: float = 2.0, label: str = "decompose"):
+        self.total_chunks, self.total_pixels = int(total_chunks), int(total_pixels)
+        self.chunks = int(already_chunks)
+        self.pixels = 0
+        self.stream = sys.stderr if stream is None else stream
+        self.interval_s = interval_s
+        self.label = label
+        self.start = time.monotonic()
+        self._last = -math.inf
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def update(self, summary: dict) -> None:
+        self.chunks += 1
+        self.pixels += int(summary.get("pixels", 0))
+        now = time.monotonic()
+        if self._tty or now - self._last >= self.interval_s or self.chunks == self.total_chunks:
+            self._last = now
+            self.stream.write(("\r" if self._tty else "") + self.line() + ("" if self._tty else "\n"))
+            self.stream.flush()
+
+    def line(self) -> str:
+        elapsed = max(time.monotonic() - self.start, 1e-9)
+        rate = self.pixels / elapsed
+        left_px = max(self.total_pixels - self.pixels, 0)
+        eta = _fmt_s(left_px / rate) if rate > 0 else "?"
+        pct = 100.0 * self.chunks / max(self.total_chunks, 1)
+        return (f"{self.label}: {self.chunks}/{self.total_chunks} chunks ({pct:.0f}%), "
+                f"{rate:,.0f} px/s, {eta} left")
+
+    def close(self) -> None:
+        if self._tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _fmt_s(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+# ---------------------------------------------------------------------------------------------
+# input
+# ---------------------------------------------------------------------------------------------
+def _open_input(path, *, time_bin_ps, t0_ps, chunks):
+    """-> (dask array (y, x, t), source-description dict, time_bin_ps, t0_ps, default chunks, units, y coord)."""
+    import dask.array as da
+
+    from reconstruction.cubestore import CubeStoreError, open_cube, written_chunks
+
+    p = Path(path)
+    if p.is_file() and p.suffix.lower() != ".npy":
+        kind = _file_kind(p)
+        if kind == "hdf5":
+            raise PipelineError(f"{path} is an HDF5 (NeXus) file; decompose reads cube stores: convert it first "
+                                f"with 'streaklab import {path} --out {p.with_suffix('.zarr').name}'")
+        if kind != "npy":
+            raise PipelineError(f"{path} is neither a cube store (a .zarr folder) nor a .npy array")
+    if p.suffix == ".npy" or p.is_file():
+        if time_bin_ps is None:
+            raise PipelineError(f"{path}: a .npy input needs --time-bin-ps (its time axis is not stored)")
+        try:
+            data = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise PipelineError(f"{path}: cannot read as a .npy array: {exc}") from None
+        if data.ndim == 2:
+            data = data[None]
+        if data.ndim != 3:
+            raise PipelineError(f"{path}: expected an array (y, x, t) or (n, t); got shape {data.shape}")
+        if data.dtype.kind not in "fiu":
+            raise PipelineError(f"{path}: expected real numbers; got dtype {data.dtype}")
+        if min(data.shape) == 0:
+            raise PipelineError(f"{path}: empty array of shape {data.shape}")
+        tb = float(time_bin_ps)
+        if not np.isfinite(tb) or tb <= 0:
+            raise PipelineError(f"--time-bin-ps must be positive, got {time_bin_ps}")
+        t0 = tb if t0_ps is None else float(t0_ps)
+        default_chunks = (min(data.shape[0], 16), min(data.shape[1], 64))
+        ch = chunks or default_chunks
+        arr = da.from_array(data, chunks=(ch[0], ch[1], -1))
+        source = {"path": str(p.resolve()), "kind": "npy", "shape": list(data.shape), "attrs": {}}
+        return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
+    if time_bin_ps is not None or t0_ps is not None:
+        raise PipelineError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
+    # by its absolute path: the reader travels to dask's workers, which may run in other folders
+    p = p.resolve()
+    try:
+        cube = open_cube(str(p))
+        expected = written_chunks(cube)
+    except CubeStoreError as exc:
+        raise PipelineError(f"not a usable cube: {exc}") from None
+    if cube.array.dtype.kind not in "fiu":
+        raise PipelineError(f"{path}/cube holds {cube.array.dtype} values, not real numbers")
+    # a chunk the cube should hold whose file is gone would read as NaN: stop before any work
+    require_chunks(str(p), cube.array, [c for c in np.ndindex(*chunk_grid(cube.array)) if expected(c)])
+    # read through the checksum and presence checks: a damaged chunk is named, not a traceback
+    # from a worker, and a worker that cannot see the cube stops the run instead of reading NaN
+    arr = da.from_array(CheckedReader(cube.array, str(p), expected=expected), chunks=cube.array.chunks,
+                        fancy=False, asarray=True)
+    source = {"path": str(p.resolve()), "kind": "cube", "shape": list(cube.shape),
+              "attrs": _jsonable(cube.attrs)}
+    y_units, y_coord = "pixel", None
+    if "y" in cube.group:
+        y_coord = np.asarray(read_checked(cube.group["y"], slice(None), store=str(p)), np.float64)
+        y_units = str(cube.group["y"].attrs.get("units", "pixel"))
+    default_chunks = tuple(int(c) for c in cube.array.chunks[:2])
+    return (arr, source, cube.time_bin_ps, cube.t0_ps, default_chunks, str(cube.attrs.get("units", "counts")),
+            y_coord, y_units)
+
+
+def _file_kind(p: Path) -> str:
+    """'npy', 'hdf5' or 'other', from the file's first bytes."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        return "other"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head == b"\x89HDF\r\n\x1a\n":
+        return "hdf5"
+    return "other"
+
+
+def _flag_table() -> dict:
+    """The solver's flag table (bit -> name): the one place the flag names are defined."""
+    from decomposition.api import FLAG_NAMES
+
+    return {int(bit): str(name) for bit, name in dict(FLAG_NAMES).items()}
+
+
+def _jsonable(obj):
+    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def chunk_bytes(by: int, bx: int, nt: int, n_ir: int, write_components: bool = True) -> int:
+    """Estimated peak memory of solving one (by, bx) pixel chunk of ``nt`` bins: the block (float64),
+    the solver's batched temporaries (about four profiles per pixel), the rendered components
+    (float32) and the dictionaries of candidate pulses (about 1000 atoms of nt bins)."""
+    per_pixel = nt * (8 + 4 * 8 + (4 * (3 + n_ir) if write_components else 0))
+    return by * bx * per_pixel + 1000 * nt * 8
+
+
+def _check_sizes(input_path, nt, chunks, n_ir, write_components) -> None:
+    """The input's time bins and one chunk's working memory against the documented limits."""
+    from core import limits as L
+
+    try:
+        L.check_count("t", int(nt), L.MAX_TIME_BINS, "time bins")
+        L.check_memory("--chunks", chunk_bytes(chunks[0], chunks[1], nt, n_ir, write_components),
+                       L.MAX_CHUNK_BYTES, what=f"to solve a {chunks[0]} x {chunks[1]} pixel chunk of {nt} bins "
+                                               f"(limits.MAX_CHUNK_BYTES)")
+    except L.LimitError as exc:
+        raise PipelineError(f"{input_path}: {exc}") from None
+
+
+def _check_option_types(options: dict) -> None:
+    """Solver options against their fields (:mod:`decomposition.options`: name, type, range), in one line."""
+    from decomposition.methods.gradbm import GRADBM_DEFAULTS
+    from decomposition.options import OptionError, options_from_mapping
+
+    try:
+        options_from_mapping({k: v for k, v in options.items() if k not in GRADBM_DEFAULTS}, strict=False)
+    except OptionError as exc:
+        raise PipelineError(f"--{exc}") from None   # "--option NAME: what is wrong"
+
+
+def _one_line(exc) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+def _probe_params(*, nt, time_bin_ps, t0_ps, method, components, options, pulse=False):
+    """Run the solver on one all-zero profile: checks the options before any work and names the
+    parameters (and their per-pixel dimensionality) the store must hold.  An all-zero profile
+    skips the fit, and with it most options: ``pulse=True`` solves a pulse too (once the kernels
+    are loaded: it runs the compiled fit)."""
+    from decomposition.store.chunked import _solver
+
+    _check_option_types(options)
+    profiles = np.zeros((1, nt))
+    if pulse:
+        bins = np.arange(nt, dtype=np.float64)
+        profiles = np.stack([profiles[0], np.exp(-0.5 * ((bins - nt / 3) / 2.0) ** 2)])
+    try:
+        res = _solver()(profiles, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                        components=tuple(components), **options)
+    except (TypeError, ValueError, ArithmeticError) as exc:
+        raise PipelineError(f"the solver refuses these settings: {_one_line(exc)}") from None
+    map_keys, ir_keys = [], []
+    for k, v in res.params.items():
+        nd = np.ndim(v)
+        if nd == 1:
+            map_keys.append(k)
+        elif nd == 2:
+            ir_keys.append(k)
+        else:
+            raise PipelineError(f"solver parameter {k!r} has an unexpected shape {np.shape(v)} for one pixel")
+    info = {k: v for k, v in dict(getattr(res, "info", {}) or {}).items()
+            if isinstance(v, (str, int, float, bool, tuple, list, type(None)))}  # settings, not per-pixel arrays
+    return map_keys, ir_keys, info
+
+
+# ---------------------------------------------------------------------------------------------
+# the pipeline
+# ---------------------------------------------------------------------------------------------
+def decompose_to_store(input_path, out_path, *, method: str = "convscd", components=("d", "s", "r"),
+                       options: dict | None = None, chunks=None, workers: int | None = None,
+                       scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
+                       write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
+                       overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
+                       progress: bool = True, stream=None, tls=None, irf="auto") -> dict:
+    """Decompose a cube (or .npy array) chunk by chunk into a result store.
+
+    ``irf`` chooses the instrument response (see :func:`resolve_pipeline_response`): "auto"
+    (default) the response stored in the cube's ``irf`` group when it has one, else the
+    Gaussian PSF; "gaussian" the Gaussian PSF whatever the cube holds; a path to a stored
+    response (:func:`core.irfstore.load_response`) or an :class:`core.irf.InstrumentResponse`.
+    The response used is recorded in the store's attributes (``irf``: its description,
+    Gaussian-equivalent sigma, sha256 of its samples and provenance, plus ``irf_source``;
+    ``{"kind": "gaussian"}`` without one), kept itself in the store's ``irf`` group (its
+    samples, time step and provenance, :meth:`ResultStore.response`), and its sha256 is part of
+    the job a ``--resume`` must match.
+
+    Returns a summary dict: out, shape, chunks_done (this run), chunks_before (done by the runs it
+    resumed), chunks_total, pixels (decomposed in this run: pixels skipped for NaN/inf samples
+    are not counted, nor in the rates), pixels_skipped (this run's), the counts of every finished
+    chunk of the store (see :func:`_store_counts`; this run's alone in ``this_run``),
+    noise_law (``signal_noise_law`` and its source: "cube" where the cube's ``noise_law``
+    attribute chose it, "option" or "default"),
+    seconds (all stages), seconds_setup (opening, checks,
+    store creation, cluster start, and loading the compiled kernels), seconds_compile (the part of
+    the setup that compiled kernels missing from numba's cache: 0.0 once they are cached),
+    seconds_compute (reading, solving, writing the chunks) and pixels_per_s (all stages).  Raises :class:`PipelineError` for bad input, before any work starts.
+    ``tls`` (a :class:`decomposition.store.cluster.TlsFiles`) holds the credentials of a ``tls://``
+    scheduler.
+    """
+    from decomposition.store.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
+    from decomposition.store.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
+                                                 prepare_output_path)
+    from core.provenance import __version__
+    from decomposition.options import parse_nan_policy
+
+    stream = sys.stderr if stream is None else stream
+    t_start = time.perf_counter()
+    options = dict(options or {})
+    components = tuple(components)
+    if method not in METHODS:
+        raise PipelineError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    if n_ir < 0:
+        raise PipelineError(f"--max-interreflections must be >= 0, got {n_ir}")
+    try:   # one vocabulary (decomposition.options.NAN_POLICIES); the CLI's older words are aliases
+        nan_policy = parse_nan_policy(nan_policy)
+    except ValueError as exc:
+        raise PipelineError(f"--nan-policy: {exc}") from None
+    if resume and overwrite:
+        raise PipelineError("--resume and --overwrite contradict each other; choose one")
+    if chunks is not None and (len(chunks) != 2 or min(chunks) <= 0):
+        raise PipelineError(f"--chunks takes two positive sizes, got {chunks}")
+    if workers is not None and workers <= 0:
+        raise PipelineError(f"--workers must be positive, got {workers}")
+    if threads is not None and (threads <= 0 or workers is not None or scheduler is not None):
+        raise PipelineError("--threads takes a positive count and applies only to the local threaded scheduler "
+                           "(not with --workers or --scheduler)")
+    if "max_reflections" in options and int(options["max_reflections"]) != int(n_ir):
+        raise PipelineError(f"--option max_reflections={options['max_reflections']} contradicts "
+                           f"--max-interreflections {n_ir}; give only --max-interreflections")
+    options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
+    out_path = str(Path(out_path).resolve())
+
+    arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
+        input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
+    ny, nx, nt = arr.shape
+    law_source = "option" if "signal_noise_law" in options else "default"
+    if method == "convscd" and "signal_noise_law" not in options and source["attrs"].get("noise_law") == "detector":
+        # the cube says one detector's read-out lies behind every pixel: its noise has one law
+        options["signal_noise_law"] = "detector"
+        law_source = "cube"
+    response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
+    irf_attrs = {"kind": "gaussian"}
+    if response is not None:
+        from decomposition.response.resolve import response_record
+
+        irf_attrs = dict(_jsonable(response_record(response)), kind="response", source=irf_source)
+    solver_options = dict(options, irf=response) if response is not None else options
+
+    existing = None
+    if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+
+        try:
+            prepare_output_path(out_path, protect=[source["path"]], resume=True)
+            existing = open_result_store(out_path, mode="r+")
+            existing.check_done_chunks_present()
+        except (ResultStoreError, DataIntegrityError) as exc:
+            raise PipelineError(f"cannot resume: {exc}") from None
+        if chunks is None:
+            chunks = tuple(existing.chunks)
+    chunks = tuple(int(c) for c in (chunks or default_chunks))
+    chunks = (min(chunks[0], ny), min(chunks[1], nx))
+    _check_sizes(input_path, nt, chunks, n_ir, write_components)  # before the probe and warm-up allocate
+
+    job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
+           "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
+           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0,
+           # a cube rewritten at the same path (new provenance) is another input
+           "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
+    if response is not None:             # absent for the Gaussian: older stores resume as before
+        job["irf_sha256"] = irf_attrs["samples_sha256"]
+    if existing is not None:
+        before = dict(existing.attrs.get("job", {}))
+        if "nan_policy" in before:      # stores written with the older words read the same
+            try:
+                before["nan_policy"] = parse_nan_policy(before["nan_policy"])
+            except ValueError:
+                pass
+        diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
+        if diff:
+            details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
+                                if k == "source_attrs_sha256" else f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}"
+                                for k in diff)
+            raise PipelineError(f"cannot resume {out_path}: it was started with different settings ({details}); "
+                               f"use the original settings, or --overwrite to start again")
+    else:
+
+        try:  # refuse an occupied path (or one overlapping the input) before spending time on checks
+            prepare_output_path(out_path, overwrite=overwrite, protect=[source["path"]])
+        except (FileExistsError, ResultStoreError) as exc:
+            raise PipelineError(str(exc)) from None
+
+    map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method,
+                                            components=components, options=solver_options)
+    # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
+    # and cache them, saying so): workers then find them in the cache instead of each compiling.
+    # The response path has no compiled kernel.
+    from decomposition.warmup import warm_up
+
+    seconds_compile = 0.0
+    if response is None:
+        try:
+            seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                      options=options, stream=stream, quiet=not progress)
+        except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+            seconds_compile = 0.0
+    _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=solver_options,
+                  pulse=True)   # the options the fit uses, before any output exists
+    if nan_policy == "raise":
+        bad = count_nonfinite_pixels(arr)
+        if bad:
+            raise PipelineError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "
+                               f"use --nan-policy mark to decompose the rest and mark those invalid")
+
+    client = cluster = None
+    try:
+        if scheduler is not None or workers is not None:  # connect before anything is written
+            client, cluster = _connect(scheduler, workers, tls)
+        if scheduler is not None and source["kind"] == "cube":  # its workers read the cube by path
+            _check_workers_see(client, source["path"])
+        if existing is None:
+            attrs = {"method": method, "components": list(components), "options": job["options"],
+                     "solver_info": _jsonable(info), "nan_policy": nan_policy,
+                     "software_version": __version__, "source": source, "job": job, "irf": irf_attrs,
+                     "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+            try:
+                store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
+                                            t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
+                                            write_components=write_components, signal_units=units, y_coord=y_coord,
+                                            y_units=y_units, attrs=attrs, overwrite=overwrite,
+                                            protect=[source["path"]], flag_names=_flag_table(), irf=response)
+            except (ResultStoreError, FileExistsError) as exc:
+                raise PipelineError(str(exc)) from None
+        else:
+            store = existing
+            store.remove_partials()
+        pending = store.pending_chunks()
+        gy, gx = store.grid
+        total = gy * gx
+        param_shapes = {k: () for k in map_keys}
+        param_shapes.update({k: (int(n_ir),) for k in ir_keys})
+        tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
+                            pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
+                            n_ir=int(n_ir), with_components=write_components, options=solver_options)
+        pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
+        if progress and resume and existing is not None:
+            print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
+                  file=stream)
+        bar = (ChunkProgress(total, pending_pixels, already_chunks=total - len(pending), stream=stream)
+               if progress else None)
+        stats = {"invalid": 0, "ir_truncated": 0, "poor_fit": 0}
+
+        def on_done(summary):
+            stats["invalid"] += summary["invalid"]
+            stats["ir_truncated"] += summary["ir_truncated"]
+            stats["poor_fit"] += summary.get("poor_fit", 0)
+            if bar is not None:
+                bar.update(summary)
+
+        t_compute = time.perf_counter()
+        try:
+            run_tasks(tasks, client=client, num_workers=threads, on_done=on_done)
+        except DataIntegrityError as exc:           # a damaged chunk of the input
+            if bar is not None:
+                bar.close()
+            raise DataIntegrityError(f"{exc} (the chunks finished before it are in {out_path}; --resume "
+                                     f"continues once the input is mended)") from None
+        except (OSError, KeyboardInterrupt) as exc:  # a full or read-only disk, or Ctrl-C
+            if bar is not None:
+                bar.close()
+            left = 0
+            if client is not None:  # let the workers' running chunks end before counting what is on disk
+                if cluster is None:  # an existing cluster's workers finish the (cancelled) chunks they run
+                    left = _wait_for_running(client, tasks, stream if progress else None)
+                _close_quietly(client, cluster)   # a cluster of our own ends its running chunks with it
+                client = cluster = None
+            done_now = int(store.done_chunks().sum())
+            how, fix = (("interrupted", "") if isinstance(exc, KeyboardInterrupt)
+                        else ("stopped", "fix the problem below and "))
+            late = ("" if not left else f" (the cluster did not answer: chunks it was running may still land)"
+                    if left < 0 else f" ({left} more were still running on the cluster and may land later)")
+            print(f"decompose: {how}; {done_now}/{total} chunks are on disk in {out_path}{late}; {fix}"
+                  f"rerun with --resume to finish", file=stream)
+            raise
+        if bar is not None:
+            bar.close()
+        t_end = time.perf_counter()
+        seconds, seconds_compute = t_end - t_start, t_end - t_compute
+        decomposed = pending_pixels - stats["invalid"]      # skipped pixels are neither counted nor timed
+        summary = {"out": out_path, "shape": [ny, nx, nt], "chunks_done": len(pending), "chunks_total": total,
+                   "chunks_before": total - len(pending), "pixels": decomposed, "pixels_skipped": stats["invalid"],
+                   "this_run": {"invalid_pixels": stats["invalid"], "ir_truncated_pixels": stats["ir_truncated"],
+                                "poor_fit_pixels": stats["poor_fit"]},
+                   **_store_counts(store, source),
+                   "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
+                   "pixels_per_s": decomposed / seconds if seconds > 0 else float("nan"),
+                   "seconds_compile": seconds_compile, "irf": irf_attrs,
+                   "noise_law": {"signal_noise_law": options.get("signal_noise_law", "auto"), "source": law_source}}
+        return summary
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def resolve_pipeline_response(irf, input_path, input_kind: str, time_bin_ps: float, n_bins: int):
+    """The response a chunked decomposition uses -> (InstrumentResponse or None, where it came from).
+
+    ``irf``: "auto" (the cube's stored ``irf`` group if any, else None: the Gaussian),
+    "gaussian" (None), a path, or an :class:`core.irf.InstrumentResponse`.  The response is
+    checked against the input's time axis here (:func:`decomposition.response.resolve.resolve_response`:
+    resampled onto the bins when its step differs, refused when longer than the window), so
+    a bad response stops the run before anything is written.
+    """
+    from core.irf import InstrumentResponse, ResponseError
+    from decomposition.response.resolve import resolve_response
+
+    if irf is None or (isinstance(irf, str) and irf.lower() == "gaussian"):
+        return None, "gaussian"
+    if isinstance(irf, str) and irf.lower() == "auto":
+        if input_kind != "cube":
+            return None, "gaussian"
+        from reconstruction.cubestore import CubeStoreError, read_cube_response
+
+        try:
+            found = read_cube_response(str(input_path))
+        except (ResponseError, CubeStoreError) as exc:
+            raise PipelineError(f"{input_path}: its stored instrument response is unusable: {exc} "
+                                f"(--irf gaussian ignores it)") from None
+        if found is None:
+            return None, "gaussian"
+        raw, where = found, f"{Path(input_path).resolve()}/irf (stored in the cube)"
+    elif isinstance(irf, InstrumentResponse):
+        raw, where = irf, "given"
+    else:
+        raw, where = str(irf), str(Path(str(irf)).resolve())
+    try:
+        return resolve_response(raw, time_bin_ps, n_bins), where
+    except ResponseError as exc:
+        raise PipelineError(f"--irf {irf if not isinstance(irf, InstrumentResponse) else 'response'}: {exc}") from None
+
+
+def _store_counts(store, source) -> dict:
+    """Counts over every finished chunk of the store (this run's and those of runs it resumed):
+    decomposed_pixels, invalid_pixels (NaN/inf samples, not decomposed), unfinished_line_pixels
+    (of those, the pixels on lines the capture did not finish: the cube's ``line_valid``),
+    ir_truncated_pixels and poor_fit_pixels (flags TRUNCATED and POOR_FIT)."""
+    from decomposition import POOR_FIT, TRUNCATED
+
+    g = store.group
+    done = store.done_mask()
+    valid = np.asarray(read_checked(g["valid"], slice(None), store=store.path), bool) & done
+    flags = np.asarray(read_checked(g["flags"], slice(None), store=store.path)).astype(np.int64)
+    unfinished = 0
+    if source["kind"] == "cube":
+        from reconstruction.cubestore import open_cube
+
+        line_valid = _cube_rows(open_cube(source["path"]), "line_valid")
+        if line_valid is not None:
+            unfinished = int((done & ~valid & ~line_valid[:, None]).sum())
+    return {"decomposed_pixels": int(valid.sum()), "invalid_pixels": int((done & ~valid).sum()),
+            "unfinished_line_pixels": unfinished,
+            "ir_truncated_pixels": int((done & ((flags & int(TRUNCATED)) != 0)).sum()),
+            "poor_fit_pixels": int((valid & ((flags & int(POOR_FIT)) != 0)).sum())}
+
+
+def _cube_rows(cube, name):
+    """The cube's (y,) array ``name`` read through the checksum check, or None when it has none."""
+    from core.integrity import open_member
+    from reconstruction.cubestore import CubeStoreError
+
+    arr = open_member(cube.group, name, cube.path, CubeStoreError)
+    return None if arr is None else np.asarray(read_checked(arr, slice(None), store=cube.path), bool)
+
+
+def _wait_for_running(client, tasks, stream) -> int:
+    """After an interrupt: wait (Ctrl-C ignored, with a timeout) for the chunks an existing
+    cluster's workers are still running; -> how many still ran at the timeout (-1: no answer)."""
+    from decomposition.cluster import SETTLE_TIMEOUT_S, ignore_sigint, quiet_distributed, wait_for_running
+
+    if stream is not None:
+        print(f"decompose: waiting for the chunks the cluster is running to end (at most "
+              f"{SETTLE_TIMEOUT_S:g} s)", file=stream, flush=True)
+    with ignore_sigint(), quiet_distributed():
+        return wait_for_running(client, [t.key for t in tasks], timeout_s=SETTLE_TIMEOUT_S)
+
+
+def _region_pixels(store, iy, ix) -> int:
+    ys, xs = store.chunk_slices(iy, ix)
+    return (ys.stop - ys.start) * (xs.stop - xs.start)
+
+
+def _close_quietly(client, cluster) -> None:
+    """Close an interrupted run's client and cluster, silencing distributed's shutdown chatter
+    (a second Ctrl-C meanwhile is ignored)."""
+    from decomposition.store.cluster import ignore_sigint, quiet_distributed
+
+    with ignore_sigint(), quiet_distributed():
+        for thing in (client, cluster):
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:  # shutting down after an interrupt: nothing left to save
+                    pass
+
+
+def _check_workers_see(client, path) -> None:
+    from decomposition.cluster import ClusterError, check_workers_see
+
+    try:
+        check_workers_see(client, [path])
+    except ClusterError as exc:
+        raise PipelineError(str(exc)) from None
+
+
+def _connect(scheduler, workers, tls=None):
+    """-> (Client, LocalCluster or None); see :mod:`decomposition.store.cluster`."""
+    from decomposition.store.cluster import ClusterError, connect_scheduler, start_local_cluster
+
+    try:
+        if scheduler is not None:
+            return connect_scheduler(scheduler, tls=tls), None
+        return start_local_cluster(int(workers))
+    except ClusterError as exc:
+        raise PipelineError(str(exc)) from None
