@@ -429,7 +429,7 @@ def flag_help() -> dict:
     """flag name -> one line on what it means and what to do (decomposition.flags.FLAG_HELP and the
     store's OUT_OF_RANGE_HELP)."""
     from decomposition.flags import FLAG_HELP
-    from decomposition.resultstore import OUT_OF_RANGE_HELP
+    from decomposition.store.resultstore import OUT_OF_RANGE_HELP
 
     return {**{flag.name: text for flag, text in FLAG_HELP.items()}, "OUT_OF_RANGE": OUT_OF_RANGE_HELP}
 

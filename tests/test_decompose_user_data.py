@@ -13,7 +13,7 @@ import pytest
 
 from _cubes import TB, small_cube
 from core.integrity import create_array
-from decomposition.resultstore import open_result_store
+from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import create_cube, open_cube, verify_cube, write_cube
 from streaklab.cli import main
 
@@ -100,7 +100,7 @@ def worker_elsewhere(tmp_path, monkeypatch):
 def test_a_relative_input_reaches_a_worker_in_another_folder(cube, tmp_path, worker_elsewhere, capsys):
     from distributed import Client
 
-    from decomposition.cluster import ClusterError, check_workers_see
+    from decomposition.store.cluster import ClusterError, check_workers_see
 
     address = worker_elsewhere.scheduler_address
     assert main(["decompose", "cube.zarr", "--out", "r.zarr", "--quiet", "--scheduler", address]) == 0
@@ -126,7 +126,7 @@ def test_a_partial_cube_counts_and_times_only_the_pixels_it_decomposed(tmp_path,
 
 
 def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, capsys):
-    import decomposition.chunked as chunked
+    import decomposition.store.chunked as chunked
 
     data = small_cube(4, 6, nt=96, seed=3)
     data[0, 0, 7] = data[3, 5, 9] = data[3, 4, 9] = np.nan  # chunks (0, 0) and (1, 1) of (2, 3)
@@ -156,7 +156,7 @@ def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, cap
 
 
 # every chunk's solve slowed down, so that the run is reliably still going when the signal arrives
-_SLOW = ("import sys, time; import decomposition.chunked as c; f = c.solve_block; "
+_SLOW = ("import sys, time; import decomposition.store.chunked as c; f = c.solve_block; "
          "c.solve_block = lambda *a, **k: (time.sleep(0.3), f(*a, **k))[1]; "
          "from streaklab.cli import main; sys.exit(main(sys.argv[1:]))")
 
@@ -207,7 +207,7 @@ def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube
 
     (tmp_path / "site").mkdir()                           # the workers solve each chunk slowly
     (tmp_path / "site" / "sitecustomize.py").write_text(
-        "import time\nimport decomposition.chunked as _c\n_f = _c.solve_block\n"
+        "import time\nimport decomposition.store.chunked as _c\n_f = _c.solve_block\n"
         "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",

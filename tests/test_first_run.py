@@ -323,7 +323,7 @@ def test_counts_are_worded_with_their_plurals():
 
 
 def test_decompose_words_one_pixel_as_one(tmp_path, capsys):
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
 
     cube = make_cube(1, 2, 128, nsr=0.01, seed=2, kinds="a").noisy
     cube[0, 1, 5] = np.nan

@@ -125,7 +125,7 @@ def _tree(path):
 
 
 def test_no_command_writes_inside_a_zarr_store(tmp_path, capsys):
-    from decomposition.pipeline import decompose_to_store
+    from decomposition.store.pipeline import decompose_to_store
     from streaklab.bench.arguments import output_folder
 
     run = make_run(tmp_path / "run.zarr")

@@ -217,7 +217,7 @@ def test_summary_explains_each_flag_that_occurs(result, tmp_path):
     import zarr
 
     from decomposition.flags import AMBIGUOUS, FLAG_HELP, Flag, OFF_WINDOW
-    from decomposition.resultstore import OUT_OF_RANGE
+    from decomposition.store.resultstore import OUT_OF_RANGE
     from streaklab.report import flag_help, summary_text
 
     assert set(flag_help()) == {f.name for f in Flag} | {"OUT_OF_RANGE"} and set(FLAG_HELP) == set(Flag)
@@ -316,7 +316,7 @@ def test_profiles_zoom_to_the_signal(tmp_path):
 def _with_truth(tmp_path):
     """A simulated cube with its truth, and a result store 'decomposed' from it holding the truth's
     own parameters and components (written directly)."""
-    from decomposition.synthetic import make_cube
+    from decomposition.evaluation.synthetic import make_cube
     from streaklab.commands.simulate import write_simulation
 
     data = make_cube(3, 4, 96, seed=1)

@@ -67,8 +67,8 @@ def test_every_array_of_every_store_kind_has_units_and_a_long_name(tmp_path):
     from acquisition.runstore import create_run
     from core.irf_models import gaussian_response
     from core.irfstore import save_response
-    from decomposition.resultstore import CORE_IR_KEYS, CORE_MAP_KEYS, create_result_store
-    from decomposition.synthetic import make_cube
+    from decomposition.store.resultstore import CORE_IR_KEYS, CORE_MAP_KEYS, create_result_store
+    from decomposition.evaluation.synthetic import make_cube
     from reconstruction.cubestore import write_cube_response
     from streaklab.commands.simulate import write_simulation
 

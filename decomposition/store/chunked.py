@@ -260,7 +260,7 @@ def run_tasks(tasks, *, client=None, num_workers: int | None = None, on_done=Non
     list of the chunk summaries, in completion order.  An exception in any chunk (or
     KeyboardInterrupt) propagates; chunks finished before it have been sunk.  On the threaded
     scheduler the chunks running then are finished (and sunk) first; on a cluster the pending
-    ones are cancelled (:func:`decomposition.cluster.wait_for_running` waits for those its
+    ones are cancelled (:func:`decomposition.store.cluster.wait_for_running` waits for those its
     workers are still running).
     """
     done: list[dict] = []

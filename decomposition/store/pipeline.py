@@ -556,7 +556,7 @@ def _cube_rows(cube, name):
 def _wait_for_running(client, tasks, stream) -> int:
     """After an interrupt: wait (Ctrl-C ignored, with a timeout) for the chunks an existing
     cluster's workers are still running; -> how many still ran at the timeout (-1: no answer)."""
-    from decomposition.cluster import SETTLE_TIMEOUT_S, ignore_sigint, quiet_distributed, wait_for_running
+    from decomposition.store.cluster import SETTLE_TIMEOUT_S, ignore_sigint, quiet_distributed, wait_for_running
 
     if stream is not None:
         print(f"decompose: waiting for the chunks the cluster is running to end (at most "
@@ -585,7 +585,7 @@ def _close_quietly(client, cluster) -> None:
 
 
 def _check_workers_see(client, path) -> None:
-    from decomposition.cluster import ClusterError, check_workers_see
+    from decomposition.store.cluster import ClusterError, check_workers_see
 
     try:
         check_workers_see(client, [path])

@@ -113,7 +113,7 @@ def write_simulation(path, data, *, chunks=None, overwrite: bool = False, comman
     import zarr
 
     from core.integrity import create_array
-    from decomposition.resultstore import long_name_for
+    from decomposition.store.resultstore import long_name_for
     from reconstruction.cubestore import open_cube, write_cube
     from core.staging import staged_output
     from core.provenance import __version__
