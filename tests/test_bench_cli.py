@@ -255,3 +255,50 @@ def test_accuracy_hands_solver_options_to_convscd_only(tmp_path, capsys, monkeyp
     assert summary["options"] == {"rescue": False, "n_polish": 10}
     assert {m for m, _ in seen} == {"convscd", "gradbm"}
     assert all(o == ({"rescue": False, "n_polish": 10} if m == "convscd" else {}) for m, o in seen)
+
+
+def test_speed_irf_option_names_a_response_or_refuses(tmp_path, capsys):
+    from core.irfstore import save_response
+    from drivers.sim.scene import simulated_response
+    from streaklab.bench.speed import bench_response
+    from streaklab.cli import CommandError
+
+    assert bench_response("gaussian") is None and bench_response("Gaussian") is None
+    tailed = bench_response("tailed")
+    assert tailed.provenance["name"] == "tailed"
+    assert np.array_equal(tailed.samples, simulated_response("tailed").samples)
+    path = save_response(tmp_path / "ap.npz", simulated_response("afterpulse"))
+    stored = bench_response(str(path))
+    assert np.array_equal(stored.samples, simulated_response("afterpulse").samples)
+    with pytest.raises(CommandError, match="neither a response name .*tailed"):
+        bench_response("nosuch")
+    (tmp_path / "junk.npz").write_bytes(b"not a response")
+    with pytest.raises(CommandError, match="junk.npz"):
+        bench_response(str(tmp_path / "junk.npz"))
+    # only convscd takes a response: gradbm is refused before anything is written
+    assert main(["bench", "speed", "--irf", "tailed", "--methods", "convscd,gradbm",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "only convscd takes an instrument response" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "speed.json").exists()
+
+
+@pytest.mark.timeout(120)
+def test_speed_with_a_response_times_it_and_the_gaussian_on_the_same_cube(tmp_path, capsys):
+    import zarr
+
+    out = tmp_path / "speed"
+    assert main(["bench", "speed", "--shape", "1", "4", "320", "--chunks", "1", "4", "--workers", "threads:1",
+                 "--irf", "tailed", "--keep", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    report = json.loads((out / "speed.json").read_text())
+    assert [(r["irf_name"], r["method"]) for r in report["runs"]] == [("tailed", "convscd"), ("gaussian", "convscd")]
+    (ratio,) = report["ratios"]
+    by = {r["irf_name"]: r["pixels_per_s"] for r in report["runs"]}
+    assert ratio["pixels_per_s_response"] == by["tailed"] and ratio["pixels_per_s_gaussian"] == by["gaussian"]
+    assert ratio["response_over_gaussian"] == pytest.approx(by["tailed"] / by["gaussian"])
+    assert "the response path at" in text and "[tailed]" in text and "[gaussian]" in text
+    # the cube was rendered through the response, and each result records the response it used
+    assert zarr.open_group(str(out / "cube.zarr"), mode="r").attrs["provenance"]["response"]["name"] == "tailed"
+    kinds = {name: zarr.open_group(str(out / name), mode="r").attrs["irf"]["kind"]
+             for name in ("result-convscd-threads1-tailed.zarr", "result-convscd-threads1.zarr")}
+    assert kinds == {"result-convscd-threads1-tailed.zarr": "response", "result-convscd-threads1.zarr": "gaussian"}

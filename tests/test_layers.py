@@ -69,7 +69,7 @@ DECOMPOSITION = {
     "model": {"constants", "masks", "kernels"},
     "methods": _SHARED | {"kernels", "model"},
     "stages": _SHARED | {"kernels", "noise", "model", "methods"},
-    "response": _SHARED | {"noise", "model", "stages"},
+    "response": _SHARED | {"kernels", "noise", "model", "stages"},
     "api": _SHARED | {"model", "methods", "stages", "response"},
     "__init__": {"flags", "api"},
     "warmup": {"api", "kernels"},

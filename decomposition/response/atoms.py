@@ -3,8 +3,10 @@
 The response path of :func:`decomposition.decompose` keeps each pixel's components in slot
 arrays of shape (P, K): ``fam`` (FAM_NONE, FAM_GAUSS for a shifted copy of the response --
 direct or inter-reflection --, FAM_SSS), ``delay`` (ps), ``lalp`` (log alpha, alpha in 1/ps;
-sss slots only).  :func:`slot_atoms` renders every active slot at once with
-:func:`core.irf.render_shifted` / :func:`core.irf.render_sss` (unit peak), and optionally the
+sss slots only).  :func:`slot_atoms` renders every active slot at once with the compiled
+:func:`decomposition.kernels.response.shifted_atoms` / :func:`~decomposition.kernels.response.sss_atoms`
+(unit peak; :func:`core.irf.render_shifted` / :func:`core.irf.render_sss` to within their
+stated table error), and optionally the
 derivatives with respect to the delay and to log alpha; :func:`slot_window_fraction` the
 fraction of each atom's area inside the window (the OFF_WINDOW rule's measure).
 """
@@ -12,8 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.irf import InstrumentResponse, render_shifted, render_sss
+from core.irf import InstrumentResponse
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..kernels.response import response_table, shifted_atoms, sss_atoms
 
 __all__ = ["slot_atoms", "slot_window_fraction"]
 
@@ -43,21 +46,22 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     phi = np.zeros((P, K, L))
     dd = np.zeros((P, K, L)) if derivatives else None
     dl = np.zeros((P, K, L)) if derivatives else None
+    tab = response_table(irf)
     sh = fam == FAM_GAUSS
     if sh.any():
         if derivatives:
-            a, da = render_shifted(irf, t_ps, delay[sh], derivative=True)
+            a, da = shifted_atoms(tab, t_ps, delay[sh], derivative=True)
             phi[sh], dd[sh] = a, da
         else:
-            phi[sh] = render_shifted(irf, t_ps, delay[sh])
+            phi[sh] = shifted_atoms(tab, t_ps, delay[sh])
     ss = fam == FAM_SSS
     if ss.any():
         alpha = np.exp(lalp[ss])
         if derivatives:
-            a, da, dal = render_sss(irf, t_ps, delay[ss], alpha, derivatives=True)
+            a, da, dal = sss_atoms(tab, t_ps, delay[ss], alpha, derivatives=True)
             phi[ss], dd[ss], dl[ss] = a, da, dal * alpha[:, None]
         else:
-            phi[ss] = render_sss(irf, t_ps, delay[ss], alpha)
+            phi[ss] = sss_atoms(tab, t_ps, delay[ss], alpha)
     if derivatives:
         return phi, dd, dl
     return phi

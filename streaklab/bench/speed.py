@@ -26,6 +26,14 @@ relative to the floor, peak memory, and the time the paper-size 600 x 672 x 512 
 decompose --option`` takes it (``rescue=false`` times the first pass alone); the options are
 printed and kept in ``speed.json``, and the target is judged only on runs with the defaults.
 
+``--irf NAME|PATH`` times the response path: ``gaussian`` (default, the Gaussian PSF), a model
+response of the simulated camera by name (``tailed``, ``afterpulse``; see
+:func:`drivers.sim.scene.simulated_response`) or a stored response (a ``.npz`` file, a response
+store or a cube store's ``irf`` group, :func:`core.irfstore.load_response`).  With a response the
+cube is rendered through it, and every configuration is decomposed twice in each round, with
+that response and with ``gaussian`` on the same cube, and the ratio of their pixels per second
+is printed (``ratios`` in ``speed.json``).  Only ``convscd`` takes a response.
+
 One run moves with the machine (on the shared 2-core machine the same code read 1,816-1,981
 px/s within an hour): ``--repeat N`` times every configuration N times, in rounds that run each
 configuration once, prints each run and the median and range per configuration, and judges
@@ -61,7 +69,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--photons", type=float, default=None, metavar="N",
                         help="photon counts instead of white noise: Poisson counts of N expected photons per "
                              "pixel (whole numbers, so decompose takes its Poisson noise model)")
-    parser.add_argument("--methods", default="convscd,gradbm", help="comma-separated (default convscd,gradbm)")
+    parser.add_argument("--methods", default=None,
+                        help="comma-separated (default convscd,gradbm; convscd with --irf other than gaussian)")
+    parser.add_argument("--irf", default="gaussian", metavar="NAME|PATH",
+                        help="instrument response: gaussian (default), a simulated model response by name "
+                             "(tailed, afterpulse) or a stored response (.npz or store); with a response the "
+                             "cube is rendered through it and each run is timed with it and with gaussian")
     parser.add_argument("--workers", default="1,2",
                         help="comma-separated worker counts (local cluster processes), or threads:N for the "
                              "threaded scheduler (default 1,2)")
@@ -102,13 +115,37 @@ def _parse_workers(text):
     return out
 
 
-def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy", photons=None):
+def bench_response(text):
+    """``--irf``: None for ``gaussian``, else the named simulated response or the stored one at
+    that path (:class:`core.irf.InstrumentResponse`); CommandError naming the problem."""
+    from drivers.sim.scene import SIMULATED_RESPONSES, simulated_response
+
+    name = str(text).strip()
+    if name.lower() == "gaussian":
+        return None
+    if name.lower() in SIMULATED_RESPONSES:
+        return simulated_response(name.lower())
+    from core.errors import StreaklabError
+    from core.irfstore import load_response
+
+    if not os.path.exists(name):
+        raise CommandError(f"--irf {name!r}: neither a response name ({', '.join(SIMULATED_RESPONSES)}) "
+                           f"nor an existing response file or store")
+    try:
+        return load_response(name)
+    except (StreaklabError, ValueError, OSError) as exc:
+        raise CommandError(f"--irf {name}: {exc}") from None
+
+
+def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, scenes="legacy", photons=None,
+                         response=None):
     """Write a seeded synthetic cube store block by block (memory bounded by a block); -> seconds.
 
     ``scenes`` names a preset of :data:`decomposition.evaluation.synthetic.SCENE_PRESETS`; ``paper``
     scenes are rendered bin-integrated, ``legacy`` ones point-sampled.  With ``photons`` the
     samples are Poisson counts of the clean profiles scaled to that many expected photons per
-    pixel (``nsr`` is then unused)."""
+    pixel (``nsr`` is then unused).  ``response`` (an :class:`core.irf.InstrumentResponse`):
+    every component rendered through it instead of the Gaussian PSF."""
     from decomposition.evaluation.synthetic import make_cube
     from reconstruction.cubestore import create_cube
 
@@ -117,12 +154,13 @@ def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, sc
     cube = create_cube(path, shape, time_bin_ps=2.0, t0_ps=2.0, chunks=chunks, units="arbitrary",
                        provenance={"producer": "streaklab bench speed", "nsr": nsr,
                                    "noise": "white" if photons is None else f"photon counts, {photons:g} per pixel",
-                                   "seed": seed, "scenes": scenes},
+                                   "seed": seed, "scenes": scenes,
+                                   "response": "gaussian" if response is None else dict(response.provenance)},
                        overwrite=True)
     for i, y0 in enumerate(range(0, ny, rows_per_block)):
         rows = min(rows_per_block, ny - y0)
         data = make_cube(rows, nx, nt, nsr=nsr if photons is None else 0.0, noise="white", seed=seed * 100003 + i,
-                         ranges=scenes, bin_integrated=scenes == "paper")
+                         ranges=scenes, bin_integrated=scenes == "paper", response=response)
         if photons is None:
             cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
         else:
@@ -166,21 +204,23 @@ from decomposition.store.pipeline import decompose_to_store
 cfg = json.loads(sys.argv[1])
 s = decompose_to_store(cfg["cube"], cfg["out"], method=cfg["method"], workers=cfg["workers"],
                        threads=cfg["threads"], chunks=cfg["chunks"], options=cfg["options"], overwrite=True,
-                       progress=False)
+                       progress=False, irf=cfg["irf"])
 s["maxrss_self_kib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 s["maxrss_children_kib"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
 print("RESULT " + json.dumps(s))
 """
 
 
-def run_config(cube_path, out_path, *, method, kind, n, chunks, options=None, timeout_s=3600) -> dict:
+def run_config(cube_path, out_path, *, method, kind, n, chunks, options=None, irf="gaussian",
+               timeout_s=3600) -> dict:
     """Decompose in a child process, sampling the memory of its process tree; -> summary dict.
-    ``options``: solver options of ``decompose_to_store`` (default: none)."""
+    ``options``: solver options of ``decompose_to_store`` (default: none); ``irf``: its ``irf``
+    argument ("gaussian" or the path of a stored response)."""
     import psutil
 
     cfg = {"cube": str(Path(cube_path).resolve()), "out": str(Path(out_path).resolve()), "method": method, "chunks": list(chunks),
            "workers": n if kind == "processes" else None, "threads": n if kind == "threads" else None,
-           "options": dict(options or {})}
+           "options": dict(options or {}), "irf": str(irf)}
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     # the child runs in the caller's folder with absolute paths: relative --out paths mean the same there
@@ -230,17 +270,23 @@ def _label(kind, n) -> str:
     return f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
 
 
-def _timed_run(cube_path, out_path, *, method, kind, n, chunks, pixels, floor, options=None) -> dict:
-    """One timed decomposition of the cube, printed as one line; -> its summary dict."""
+def _timed_run(cube_path, out_path, *, method, kind, n, chunks, pixels, floor, options=None, irf=None,
+               paired=False) -> dict:
+    """One timed decomposition of the cube, printed as one line; -> its summary dict.
+    ``irf``: None (the Gaussian) or (label, path of the stored response); ``paired``: the bench
+    times a response and the Gaussian (each line names its own)."""
     load_before = os.getloadavg()[0]
-    s = run_config(cube_path, out_path, method=method, kind=kind, n=n, chunks=chunks, options=options)
+    s = run_config(cube_path, out_path, method=method, kind=kind, n=n, chunks=chunks, options=options,
+                   irf="gaussian" if irf is None else irf[1])
+    s["irf_name"] = "gaussian" if irf is None else irf[0]
+    s["paired"] = bool(paired)
     s["load_average_1min_before"] = load_before
     compute_pps = pixels / s["seconds_compute"]
     s["compute_pixels_per_s"] = compute_pps
     paper_s = s["seconds_setup"] + PAPER_SHAPE[0] * PAPER_SHAPE[1] / compute_pps
     s["paper_cube_s"] = paper_s
     s["floor_ratio"] = floor["pixels_per_s"] / s["pixels_per_s"]
-    print(f"{method:8s} {_label(kind, n):20s} {s['pixels_per_s']:>9,.0f} px/s all stages "
+    print(f"{method:8s} {_irf_tag(s)}{_label(kind, n):20s} {s['pixels_per_s']:>9,.0f} px/s all stages "
           f"({s['seconds']:.1f} s = {s['seconds_setup']:.1f} s setup + "
           f"{s['seconds_compute']:.1f} s over the chunks "
           f"at {compute_pps:,.0f} px/s), "
@@ -250,19 +296,41 @@ def _timed_run(cube_path, out_path, *, method, kind, n, chunks, pixels, floor, o
     return s
 
 
+def _irf_tag(s) -> str:
+    """``[name] `` of a run's (or summary's) response where the bench compares two, else ''."""
+    return f"[{s.get('irf_name', s.get('irf'))}] " if s.get("paired") else ""
+
+
 def _summaries(rows) -> list[dict]:
-    """Per (method, scheduler, workers), in the order first run: the runs' count and the median,
-    minimum and maximum of their pixels per second (all stages) and the median paper-size time."""
+    """Per (method, response, scheduler, workers), in the order first run: the runs' count and the
+    median, minimum and maximum of their pixels per second (all stages) and the median paper-size
+    time."""
     groups: dict = {}
     for s in rows:
-        groups.setdefault((s["method"], s["scheduler"], s["workers"]), []).append(s)
+        groups.setdefault((s["method"], s.get("irf_name", "gaussian"), s["scheduler"], s["workers"]), []).append(s)
     out = []
-    for (method, kind, n), runs in groups.items():
+    for (method, irf_name, kind, n), runs in groups.items():
         pps = np.array([r["pixels_per_s"] for r in runs])
-        out.append({"method": method, "scheduler": kind, "workers": n, "runs": len(runs),
+        out.append({"method": method, "irf": irf_name, "paired": runs[0].get("paired", False),
+                    "scheduler": kind, "workers": n, "runs": len(runs),
                     "pixels_per_s_median": float(np.median(pps)), "pixels_per_s_min": float(pps.min()),
                     "pixels_per_s_max": float(pps.max()),
                     "paper_cube_s_median": float(np.median([r["paper_cube_s"] for r in runs]))})
+    return out
+
+
+def response_ratios(summaries) -> list[dict]:
+    """Per (method, scheduler, workers) timed with a response and with the Gaussian: the medians'
+    pixels per second of each and the response's over the Gaussian's (1.0: as fast)."""
+    by = {(m["method"], m["irf"], m["scheduler"], m["workers"]): m for m in summaries}
+    out = []
+    for (method, irf_name, kind, n), m in by.items():
+        g = by.get((method, "gaussian", kind, n))
+        if irf_name == "gaussian" or g is None:
+            continue
+        out.append({"method": method, "irf": irf_name, "scheduler": kind, "workers": n,
+                    "pixels_per_s_response": m["pixels_per_s_median"], "pixels_per_s_gaussian": g["pixels_per_s_median"],
+                    "response_over_gaussian": m["pixels_per_s_median"] / g["pixels_per_s_median"]})
     return out
 
 
@@ -278,10 +346,14 @@ def run(args) -> int:
     ny, nx, nt = args.shape
     if min(ny, nx) <= 0 or nt < 16:
         raise CommandError(f"--shape needs positive NY NX and NT >= 16, got {args.shape}")
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    response = bench_response(args.irf)
+    methods_text = args.methods if args.methods is not None else ("convscd,gradbm" if response is None else "convscd")
+    methods = [m.strip() for m in methods_text.split(",") if m.strip()]
     bad = [m for m in methods if m not in ("convscd", "gradbm")]
     if bad or not methods:
-        raise CommandError(f"--methods takes convscd and/or gradbm; got {args.methods!r}")
+        raise CommandError(f"--methods takes convscd and/or gradbm; got {methods_text!r}")
+    if response is not None and "gradbm" in methods:
+        raise CommandError(f"--irf {args.irf}: only convscd takes an instrument response; use --methods convscd")
     workers = _parse_workers(args.workers)
     options = {}
     if args.option:
@@ -305,17 +377,27 @@ def run(args) -> int:
         cube_path = work / "cube.zarr"
         noise_text = (f"white noise, NSR {args.nsr:g}" if args.photons is None
                       else f"photon counts, {args.photons:g} per pixel")
-        print(f"writing a synthetic {ny} x {nx} x {nt} cube ({noise_text}, seed {args.seed}, "
+        irf_text = "" if response is None else f", rendered with the response {args.irf}"
+        print(f"writing a synthetic {ny} x {nx} x {nt} cube ({noise_text}{irf_text}, seed {args.seed}, "
               f"chunks {chunks[0]} x {chunks[1]}) ...", flush=True)
         try:
             gen_s = write_synthetic_cube(cube_path, (ny, nx, nt), nsr=args.nsr, seed=args.seed, chunks=chunks,
-                                         scenes=args.scenes, photons=args.photons)
+                                         scenes=args.scenes, photons=args.photons, response=response)
         except ValueError as exc:
             raise CommandError(f"{exc} (or --scenes legacy)") from None
+        irfs = [None]
+        if response is not None:
+            from core.irfstore import save_response
+
+            irf_label = Path(args.irf).name if os.path.exists(args.irf) else args.irf.lower()
+            irfs = [(irf_label, str(save_response(work / "irf.npz", response, overwrite=True))), None]
         from decomposition.warmup import warm_up
 
         for method in methods:  # compile once here, if needed, not inside the first timed run
             warm_up(time_bin_ps=2.0, n_bins=nt, method=method, label="bench speed")
+            if response is not None:
+                warm_up(time_bin_ps=2.0, n_bins=nt, method=method, label="bench speed",
+                        options={"irf": response})
         floor = fft_floor(cube_path, threads=max(n for _, n in workers))
         print(f"floor: one FFT-correlation pass, {floor['threads']} threads: {floor['pixels_per_s']:,.0f} px/s "
               f"({floor['seconds']:.2f} s)", flush=True)
@@ -325,20 +407,23 @@ def run(args) -> int:
                 print(f"round {rnd + 1} of {args.repeat}", flush=True)
             for method in methods:
                 for kind, n in workers:
-                    s = _timed_run(cube_path, work / f"result-{method}-{kind}{n}.zarr", method=method, kind=kind,
-                                   n=n, chunks=chunks, pixels=pixels, floor=floor, options=options)
-                    s["round"] = rnd
-                    rows.append(s)
+                    for irf in irfs:        # with a response: it and the Gaussian, alternated
+                        tag = "" if irf is None else f"-{irf[0]}"
+                        s = _timed_run(cube_path, work / f"result-{method}-{kind}{n}{tag}.zarr", method=method,
+                                       kind=kind, n=n, chunks=chunks, pixels=pixels, floor=floor, options=options,
+                                       irf=irf, paired=response is not None)
+                        s["round"] = rnd
+                        rows.append(s)
     if nt != PAPER_SHAPE[2]:
         print(f"note: the paper-size projection assumes {nt} bins per profile, as measured, not {PAPER_SHAPE[2]}")
     summaries = _summaries(rows)
     for m in summaries:
         if args.repeat > 1:
-            print(f"{m['method']:8s} {_label(m['scheduler'], m['workers']):20s} over {m['runs']} runs: "
+            print(f"{m['method']:8s} {_irf_tag(m)}{_label(m['scheduler'], m['workers']):20s} over {m['runs']} runs: "
                   f"median {m['pixels_per_s_median']:,.0f} px/s all stages "
                   f"(range {m['pixels_per_s_min']:,.0f}-{m['pixels_per_s_max']:,.0f})", flush=True)
     for m in summaries:
-        if m["method"] == "convscd" and m["workers"] == 2 and not options:
+        if m["method"] == "convscd" and m["workers"] == 2 and not options and m["irf"] == "gaussian":
             how = _label(m["scheduler"], m["workers"])
             ok = m["pixels_per_s_median"] >= TARGET_PX_PER_S and m["paper_cube_s_median"] <= TARGET_PAPER_S
             where = "" if (ny, nx, nt) == DEFAULT_SHAPE else " (the target is defined on the default --shape)"
@@ -346,12 +431,19 @@ def run(args) -> int:
             print(f"target, convscd with {how}: [{'met' if ok else 'NOT met'}] "
                   f"{m['pixels_per_s_median']:,.0f} px/s all stages{over} (target >= {TARGET_PX_PER_S:,}), "
                   f"paper-size cube {m['paper_cube_s_median'] / 60:.1f} min (target < {TARGET_PAPER_S / 60:.1f}){where}")
+    ratios = response_ratios(summaries)
+    for r in ratios:
+        print(f"{r['method']:8s} {_label(r['scheduler'], r['workers'])}: {r['irf']} {r['pixels_per_s_response']:,.0f} "
+              f"px/s, gaussian {r['pixels_per_s_gaussian']:,.0f} px/s on the same cube: the response path at "
+              f"{r['response_over_gaussian']:.2f}x the Gaussian's pixels per second", flush=True)
     if options:
         print(f"options {options}: the target is judged on the defaults, not here")
     report = {"shape": [ny, nx, nt], "nsr": args.nsr, "photons": args.photons, "seed": args.seed, "chunks": list(chunks),
               "options": options,
               "cpu_count": os.cpu_count(), "cube_write_s": gen_s, "floor": floor, "runs": rows,
               "repeat": args.repeat, "summaries": summaries,
+              "irf": args.irf if response is None else {"name": args.irf, "provenance": response.provenance},
+              "ratios": ratios,
               "paper_shape": list(PAPER_SHAPE)}
     (out / "speed.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out / 'speed.json'}")

@@ -1,0 +1,108 @@
+"""Compiled response atoms (decomposition.kernels.response) against the exact interpolant of
+core.irf, and their derivatives against finite differences of themselves."""
+import numpy as np
+import pytest
+
+from core.irf import ResponseError, render_shifted, render_sss
+from core.irf_models import gaussian_response
+from decomposition.response.resolve import resolve_response
+from decomposition.kernels.response import response_table, shifted_atoms, sss_atoms
+from drivers.sim.scene import simulated_response
+
+T = 2.0
+T_AXIS = T + T * np.arange(400)
+
+
+def _responses():
+    return {"tailed": resolve_response(simulated_response("tailed"), T, 400),
+            "afterpulse": resolve_response(simulated_response("afterpulse"), T, 400),
+            "gauss1": gaussian_response(2.0, time_step_ps=T),        # sigma one bin
+            "gauss3": gaussian_response(6.0, time_step_ps=T)}
+
+
+RESPONSES = _responses()
+# on and between bins, the peak before the axis, partly after it, and wholly after it
+DELAYS = np.array([2.0, 3.0, 3.37, 101.25, 250.9, 431.0, -7.3, -30.0, 790.6, 799.0, 803.1, 1500.0])
+ALPHAS = np.array([1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0])
+
+
+@pytest.mark.parametrize("name", sorted(RESPONSES))
+def test_shifted_atoms_match_the_exact_interpolant(name):
+    irf = RESPONSES[name]
+    tab = response_table(irf)
+    exact, d_exact = render_shifted(irf, T_AXIS, DELAYS, derivative=True)
+    got, d_got = shifted_atoms(tab, T_AXIS, DELAYS, derivative=True)
+    assert got.shape == exact.shape == (DELAYS.size, T_AXIS.size)
+    assert np.abs(got - exact).max() < 1e-7                       # unit-peak atoms
+    assert np.abs(d_got - d_exact).max() < 5e-6 * np.abs(d_exact).max()
+    assert np.all(np.abs(got[exact == 0.0]) < 1e-12)                        # outside the padded window: zeros
+    assert np.all(got[DELAYS == 1500.0] == 0.0)                      # wholly after the axis
+    # on a non-uniform axis (every other sample) the same values
+    assert np.array_equal(shifted_atoms(tab, T_AXIS[::2], DELAYS), got[:, ::2])
+
+
+@pytest.mark.parametrize("name", sorted(RESPONSES))
+def test_sss_atoms_match_the_exact_interpolant(name):
+    irf = RESPONSES[name]
+    tab = response_table(irf)
+    d, a = np.meshgrid(DELAYS, ALPHAS)
+    exact, dd_exact, da_exact = render_sss(irf, T_AXIS, d, a, derivatives=True)
+    got, dd_got, da_got = sss_atoms(tab, T_AXIS, d, a, derivatives=True)
+    # each alpha's errors relative to its largest atom (the rows hold atoms wholly inside)
+    top = np.abs(exact).max(axis=(1, 2))[:, None, None]
+    assert np.abs(got - exact).max(axis=(1, 2)).max() < 1e-7 * top.max()
+    assert (np.abs(got - exact) / top).max() < 1e-7
+    assert (np.abs(dd_got - dd_exact) / np.abs(dd_exact).max(axis=(1, 2))[:, None, None]).max() < 5e-6
+    assert (np.abs(da_got - da_exact) / np.abs(da_exact).max(axis=(1, 2))[:, None, None]).max() < 1e-6
+    assert np.all(np.abs(got[exact == 0.0]) < 1e-12) and np.all(got[:, DELAYS == 1500.0] == 0.0)
+
+
+def test_sss_extremes_of_alpha_sigma():
+    """alpha sigma from 1e-4 (the blurred step) to 6 (the atom ~ the response / alpha)."""
+    irf = RESPONSES["gauss3"]                          # sigma 6 ps
+    tab = response_table(irf)
+    for alpha in (1e-4 / 6.0, 1.0):
+        exact = render_sss(irf, T_AXIS, 200.3, alpha)
+        got = sss_atoms(tab, T_AXIS, 200.3, alpha)
+        assert np.abs(got - exact).max() < 1e-7 * np.abs(exact).max()
+
+
+@pytest.mark.parametrize("name", ["tailed", "gauss1"])
+def test_derivatives_are_those_of_the_rendered_atoms(name):
+    irf = RESPONSES[name]
+    tab = response_table(irf)
+    d = np.array([3.37, 101.25, -7.3, 790.6])
+    h = 1e-4
+    a, da = shifted_atoms(tab, T_AXIS, d, derivative=True)
+    fd = (shifted_atoms(tab, T_AXIS, d + h) - shifted_atoms(tab, T_AXIS, d - h)) / (2 * h)
+    assert np.abs(da - fd).max() < 1e-6 * np.abs(da).max()
+    for alpha in (1e-4, 0.03, 1.0):
+        al = np.full(d.shape, alpha)
+        s, sd, sa = sss_atoms(tab, T_AXIS, d, al, derivatives=True)
+        fd_d = (sss_atoms(tab, T_AXIS, d + h, al) - sss_atoms(tab, T_AXIS, d - h, al)) / (2 * h)
+        ha = 1e-6 * alpha
+        fd_a = (sss_atoms(tab, T_AXIS, d, al + ha) - sss_atoms(tab, T_AXIS, d, al - ha)) / (2 * ha)
+        assert np.abs(sd - fd_d).max() < 5e-6 * np.abs(sd).max()
+        assert np.abs(sa - fd_a).max() < 1e-5 * np.abs(sa).max()
+
+
+def test_sss_onset_derivative_lies_in_the_span_of_the_atoms():
+    """d/dd of an sss atom is alpha s - c with c the shifted atom at the same delay, to rounding:
+    a direct at the sss onset leaves the onset's column nothing outside the two atoms."""
+    tab = response_table(RESPONSES["gauss3"])
+    for delay in (173.47453292, 101.0):
+        c = shifted_atoms(tab, T_AXIS, delay)
+        s, sd, _ = sss_atoms(tab, T_AXIS, delay, 0.0319, derivatives=True)
+        assert np.abs(sd - (0.0319 * s - c)).max() < 1e-15
+
+
+def test_bad_input_is_refused_and_tables_are_kept():
+    irf = RESPONSES["tailed"]
+    tab = response_table(irf)
+    assert response_table(irf) is tab and tab.substeps in (4, 8, 16, 32, 64)
+    with pytest.raises(ResponseError, match="alpha_per_ps"):
+        sss_atoms(tab, T_AXIS, 10.0, -0.1)
+    with pytest.raises(ResponseError, match="delay_ps must be finite"):
+        shifted_atoms(tab, T_AXIS, np.nan)
+    with pytest.raises(ResponseError, match="InstrumentResponse"):
+        response_table("tailed")
