@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from _cubes import TB, small_cube
+from _runs import wait_for_done_chunks
 from decomposition.store.cluster import ClusterError, probe_scheduler, start_local_cluster
 from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import write_cube
@@ -139,15 +140,7 @@ def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_pat
                              "--out", str(out), "--workers", "2", "--chunks", "1", "3"], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            assert proc.poll() is None, proc.communicate()
-            try:
-                if open_result_store(out).done_chunks().sum() >= 2:
-                    break
-            except Exception:  # store not created yet
-                pass
-            time.sleep(0.02)
+        wait_for_done_chunks(out, 2, proc, timeout_s=90)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:

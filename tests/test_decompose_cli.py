@@ -4,7 +4,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +11,7 @@ import pytest
 import zarr
 
 from _cubes import TB, small_cube as _cube
+from _runs import wait_for_done_chunks
 from decomposition import decompose
 from decomposition.store.resultstore import open_result_store
 from decomposition.store.pipeline import PipelineError, decompose_to_store
@@ -182,26 +182,13 @@ def _start_slow(cube_path, out):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_done_chunks(out, n, proc, timeout_s=30):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
-        try:
-            if open_result_store(out).done_chunks().sum() >= n:
-                return
-        except Exception:  # store not created yet
-            pass
-        time.sleep(0.02)
-    raise AssertionError("the run made no progress")
-
-
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_killed_process_resumes_to_the_uninterrupted_store(cube_path, reference_1x3, tmp_path, sig, capsys):
     full, part = reference_1x3, tmp_path / "part.zarr"
     proc = _start_slow(cube_path, part)  # 15 chunks
     try:
-        _wait_for_done_chunks(part, 2, proc)
+        wait_for_done_chunks(part, 2, proc)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=30)
     finally:
@@ -377,14 +364,7 @@ def test_a_worker_killed_mid_run_loses_and_duplicates_nothing(cube_path, referen
         runner = threading.Thread(target=lambda: result.update(decompose_to_store(
             cube_path, out, scheduler=cluster.scheduler_address, progress=False)))
         runner.start()
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            try:
-                if open_result_store(out).done_chunks().sum() >= 2:
-                    break
-            except Exception:
-                pass
-            time.sleep(0.02)
+        wait_for_done_chunks(out, 2)
         done_at_kill = int(open_result_store(out).done_chunks().sum())
         os.kill(next(iter(pids.values())), signal.SIGKILL)  # one worker dies mid-run
         runner.join(90)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from _cubes import TB, small_cube
+from _runs import wait_for_done_chunks
 from core.integrity import create_array
 from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import create_cube, open_cube, verify_cube, write_cube
@@ -169,15 +170,7 @@ def test_sigterm_keeps_the_finished_chunks_counts_them_exactly_and_prints_the_re
     proc = subprocess.Popen([sys.executable, "-c", _SLOW, *args], cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(ROOT)),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            assert proc.poll() is None, proc.communicate()
-            try:
-                if open_result_store(out).done_chunks().sum() >= 2:
-                    break
-            except Exception:  # store not created yet
-                pass
-            time.sleep(0.02)
+        wait_for_done_chunks(out, 2, proc)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=30)
     finally:
@@ -219,15 +212,7 @@ def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube
                                 env=dict(os.environ, PYTHONPATH=str(ROOT)), stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         try:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                assert proc.poll() is None, proc.communicate()
-                try:
-                    if open_result_store(out).done_chunks().sum() >= 1:
-                        break
-                except Exception:  # store not created yet
-                    pass
-                time.sleep(0.02)
+            wait_for_done_chunks(out, 1, proc)
             time.sleep(0.3)                               # the workers are inside their next chunks
             proc.send_signal(signal.SIGINT)
             _, err = proc.communicate(timeout=60)
