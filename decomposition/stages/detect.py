@@ -1,4 +1,4 @@
-"""Stage 2 of :func:`decomposition.decompose`: detect the components by sparse coding.
+"""The ``detect`` stage of :func:`decomposition.decompose`: detect the components by sparse coding.
 
 For every block of live pixels: the multi-start greedy ConvSCD solve
 (:func:`decomposition.methods.convscd.solve_multistart`), the 5 % threshold and merging, and the

@@ -155,7 +155,7 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
 
 
 def prune_components(samples, det, dic, opts):
-    """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
+    """The ``prune`` stage of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
     float_data = samples.noise_model != "poisson"      # the forward step's bump test
     return each_block(samples, det, opts,

@@ -1,4 +1,4 @@
-"""Stage 5 of :func:`decomposition.decompose`: the rendered fit and its quality flags.
+"""The ``quality`` stage of :func:`decomposition.decompose`: the rendered fit and its quality flags.
 
 POOR_FIT: the residual RMS over the fitted samples (censored samples count only where the
 model lies above them) exceeds ``poor_fit`` x the noise -- the larger of the solver's

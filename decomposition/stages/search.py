@@ -667,7 +667,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
 
 def search_components(samples, det, dic, opts, components, objective_lagged_noise=None) -> SearchStage:
-    """Stage 2b of :func:`decomposition.decompose`: structured alternative starts for the
+    """The ``search`` stage of :func:`decomposition.decompose`: structured alternative starts for the
     detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`
     (``objective_lagged_noise`` (P,): the lagged noise of its ``objective_sigma``, in place of
     ``samples.lagged_noise``)."""
