@@ -35,6 +35,9 @@ s the pixel's noise estimated from first differences, k the number of free param
 the number of bins (the Bayesian information criterion for ``penalty = 1``), and the lowest J
 is kept.  All work is on blocks of pixels: one refine call per kind of start.
 """
+
+# One module over 600 lines on purpose: the search stage and the stand-alone structured_search share
+# the start builders and the scoring of the starts; apart they would import each other.
 from __future__ import annotations
 
 from dataclasses import dataclass
