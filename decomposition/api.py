@@ -1,23 +1,17 @@
 """Public entry point: ``decompose(profiles, time_bin_ps, method=...)``.
 
-``decompose()`` is the method as a flat sequence of stages, each a function with a typed
-input and output in a module of its own:
-
-1. prepare the samples (:mod:`decomposition.stages.prepare`): validation, scaling, masks, noise;
-2. detect the components by sparse coding (:mod:`decomposition.stages.detect`;
-   :mod:`decomposition.methods.convscd` is the solver, :mod:`decomposition.methods.gradbm` the baseline);
-   then, for the pixels whose answer is in doubt, structured alternative starts kept by a
-   penalised objective (:mod:`decomposition.stages.search`);
-3. refine them off the grid, optionally (:mod:`decomposition.stages.refit`);
-   for count data, the atoms polished with Poisson weights (:mod:`decomposition.stages.countpolish`);
-4. label them direct / inter-reflections / sss (:mod:`decomposition.stages.label`);
-5. render the fit and flag its quality (:mod:`decomposition.stages.quality`, :mod:`decomposition.flags`).
-
-Options are validated once, into the frozen dataclasses of :mod:`decomposition.options`.
+:func:`decompose` checks its options once, into the frozen dataclasses of
+:mod:`decomposition.options`, then runs a declared list of named stages in order:
+:data:`STAGES` with the Gaussian PSF, :data:`RESPONSE_STAGES` with a measured instrument
+response (``irf=``).  Each stage is a small function here that calls one stage module of
+:mod:`decomposition.stages` (or :mod:`decomposition.response`) and records what it did; the
+list is the one place the order is written, and docs/decomposition.md lists the same names in
+the same order (tests/test_docs.py checks it).
 """
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -29,7 +23,7 @@ from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER
                     SATURATED, OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .stages.label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
-from .options import METHODS, options_from_mapping, parse_components, parse_nan_policy
+from .options import METHODS, GridSpec, SolverOptions, options_from_mapping, parse_components, parse_nan_policy
 from .stages.prepare import prepare_samples, time_axis
 from .stages.quality import Fit, assess_fit
 from .stages.refit import clear_unlit, component_errors, refine_components
@@ -46,6 +40,9 @@ from .response.path import decompose_with_response
 __all__ = [
     "decompose",
     "DecompositionResult",
+    "Stage",
+    "STAGES",
+    "RESPONSE_STAGES",
     "parse_components",
     "EMPTY",
     "SATURATED",
@@ -91,253 +88,365 @@ class DecompositionResult:
         return flag_names(self.flags[index])
 
 
+@dataclass(frozen=True)
+class Stage:
+    """One named step of :func:`decompose`: ``run(call)`` reads and updates the :class:`_Call`."""
+
+    name: str
+    run: Callable[["_Call"], None]
+    purpose: str
+
+
+@dataclass
+class _Call:
+    """What one call of :func:`decompose` carries from stage to stage (flat pixel arrays, P rows)."""
+
+    profiles: object
+    axis: object
+    method: str
+    fams: frozenset
+    nan_policy: str
+    saturation_level: float | None
+    grid: GridSpec
+    opts: SolverOptions
+    method_options: dict
+    irf: object
+    keywords: dict              # this call's keywords, for the second pass of the rescue stage
+    background: bool = False
+    samples: object = None      # stages.prepare.Samples
+    info: dict = field(default_factory=dict)
+    flags: np.ndarray | None = None
+    noise_eff: np.ndarray | None = None
+    flat_noise: np.ndarray | None = None   # the live pixels whose noise was judged not to follow the signal
+    dic: object = None          # methods.dictionary: the coarse kernels (ConvSCD)
+    det: object = None          # stages.detect.Detection (ConvSCD)
+    osig: np.ndarray | None = None         # noise at the components' scale, for the search's objective
+    final: object = None        # slot state after the count-data echo step, else None
+    params: dict | None = None
+    bg_stderr: np.ndarray | None = None
+    fit: Fit | None = None
+    response: object = None     # the resolved instrument response (irf=)
+    result: "DecompositionResult | None" = None
+
+    @property
+    def convscd(self) -> bool:
+        return self.method == "convscd"
+
+
+# --------------------------------------------------------------------------- the Gaussian path
+
+def _prepare(c: _Call) -> None:
+    c.samples = prepare_samples(c.profiles, c.axis, c.grid, nan_policy=c.nan_policy,
+                                saturation_level=c.saturation_level, spike_sigma=c.opts.spike_sigma,
+                                noise_floor=c.opts.noise_floor, rel_threshold=c.opts.rel_threshold,
+                                noise=c.opts.noise, background=c.background)
+    c.info = {"method": c.method, "time_bin_ps": c.axis.time_bin_ps, "t0_ps": c.axis.t0_ps,
+              "components": "".join(sorted(c.fams)), "nan_policy": c.nan_policy,
+              "saturation_level": c.samples.saturation_level}
+    c.flags = c.samples.flags.copy()
+    c.noise_eff = c.samples.noise_eff
+
+
+def _detect(c: _Call) -> None:
+    samples, opts = c.samples, c.opts
+    if not c.convscd:
+        c.info.update(c.method_options)
+        c.params = detect_gradbm(samples, opts.max_reflections, c.fams, c.method_options)
+        return
+    c.dic = cs.get_dictionary(samples.n_bins, c.axis.time_bin_ps, c.axis.t0_ps, c.grid, "d" in c.fams,
+                              "s" in c.fams)
+    c.info.update(asdict(c.grid), **asdict(opts), n_atoms=int(c.dic.fam.size),
+                  coordinates_searched=int(c.dic.n_coordinates))
+    c.det = detect_components(samples, c.dic, opts, c.fams)
+
+
+def _signal_noise(c: _Call) -> None:
+    if not (c.convscd and c.opts.signal_noise):
+        return
+    c.det = dataclasses.replace(c.det, weights=signal_weights(c.samples, c.det, c.dic, c.opts, c.info))
+    weighted = (np.zeros(c.samples.live.size, bool) if c.det.weights is None
+                else (c.det.weights != 1).any(axis=1))
+    c.info["signal_weighted"] = int(weighted.sum())
+    if c.samples.noise_model != "poisson":
+        c.flat_noise = ~weighted
+
+
+def _correlated_noise(c: _Call) -> None:
+    # the noise at the components' scale, from the detected fit's residual: the search's
+    # objective reads its data term in it where the noise is correlated (pink); where most
+    # pixels' is, the data terms of every stage after this are whitened by the call's spectrum
+    opts = c.opts
+    if not c.convscd or c.samples.noise_model == "poisson" or not (opts.search or opts.grow or opts.prune):
+        return
+    c.osig = residual_significance_noise(c.samples, c.det, c.dic, opts)
+    if opts.whiten:
+        c.det = dataclasses.replace(c.det, noise_spectrum=correlated_noise_spectrum(c.samples, c.det, c.dic, opts,
+                                                                                    c.osig))
+        c.info["correlated_noise"] = c.det.noise_spectrum is not None
+
+
+def _search(c: _Call) -> None:
+    if not (c.convscd and c.opts.search):
+        return
+    found = search_components(c.samples, c.det, c.dic, c.opts, c.fams, c.osig)
+    c.det = dataclasses.replace(c.det, state=found.state)
+    mark(c.flags, c.samples.live[found.ambiguous], AMBIGUOUS)
+    wins = np.bincount(found.start[found.doubt], minlength=len(STAGE_STARTS))
+    c.info.update(search_doubt=int(found.doubt.sum()),
+                  search_wins={name: int(n) for name, n in zip(STAGE_STARTS, wins)},
+                  ambiguous=int(found.ambiguous.sum()))
+
+
+def _residual_noise(c: _Call) -> None:
+    # the steps after the search judge significance with the noise seen in the residual
+    if c.convscd:
+        c.samples = dataclasses.replace(c.samples,
+                                        lagged_noise=residual_significance_noise(c.samples, c.det, c.dic, c.opts))
+
+
+def _grow(c: _Call) -> None:
+    # (the forward step and the swap add inter-reflections: not where none are asked,
+    # where an added Gaussian was dropped again by the labels, flagged TRUNCATED)
+    if not (c.convscd and c.opts.grow and "r" in c.fams):
+        return
+    state, grown = grow_components(c.samples, c.det, c.dic, c.opts)
+    c.det = dataclasses.replace(c.det, state=state)
+    c.info["grown"] = int(grown.sum())
+    state, swapped = swap_components(c.samples, c.det, c.dic, c.opts)
+    c.det = dataclasses.replace(c.det, state=state)
+    c.info["swapped"] = int(swapped.sum())
+
+
+def _prune(c: _Call) -> None:
+    if not (c.convscd and c.opts.prune):
+        return
+    state, pruned = prune_components(c.samples, c.det, c.dic, c.opts)
+    c.det = dataclasses.replace(c.det, state=state)
+    c.info["pruned"] = int(pruned.sum())
+
+
+def _count_polish(c: _Call) -> None:
+    if c.convscd and c.samples.noise_model == "poisson":
+        c.det = dataclasses.replace(c.det, state=polish_counts(c.samples, c.det, c.dic, c.opts))
+
+
+def _count_grow(c: _Call) -> None:
+    # after the threshold: the echo is kept by its own deviance test, weighed with the
+    # counts where it lies, not by the threshold's noise at the direct's peak
+    if not (c.convscd and c.samples.noise_model == "poisson" and c.opts.grow and "r" in c.fams):
+        return
+    thresholded = dataclasses.replace(c.det, state=final_state(c.samples, c.det, c.dic, c.opts))
+    c.final, grown = grow_counts(c.samples, thresholded, c.dic, c.opts)
+    c.info["grown_counts"] = int(grown.sum())
+
+
+def _label(c: _Call) -> None:
+    if not c.convscd:
+        return
+    samples, det = c.samples, c.det
+    labels = label_components(samples, det, c.dic, c.opts, state=c.final)
+    c.params, c.noise_eff = labels.params, det.noise_eff
+    c.flags |= labels.flags
+    c.info.update(objective=det.objective.reshape(samples.lead + (c.opts.max_iter + 1,)),
+                  n_iter=det.n_iter.reshape(samples.lead), lm_iterations=det.lm_iterations,
+                  restarted=det.restarted)
+
+
+def _physics(c: _Call) -> dict:
+    return {"shared_sigma": c.opts.shared_sigma and c.convscd, "sss_after_direct": c.opts.sss_after_direct and c.convscd}
+
+
+def _refit(c: _Call) -> None:
+    samples, opts, params, flags = c.samples, c.opts, c.params, c.flags
+    if c.background:
+        # the first estimate, refitted jointly with the amplitudes below (NaN: not decomposed)
+        params[BACKGROUND_KEY] = np.full(samples.values.shape[0], np.nan)
+        params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
+    if not ((opts.refine or c.background or (samples.noise_model == "poisson" and not c.convscd))
+            and samples.live.size):
+        return
+    # within the solver's bounds on the widths and the attenuation, and flagged where it ends
+    # at one: left free, a component fitted to one noisy sample on a pure background went
+    # to a width of 0.2 ps and 10^5 times the counts, unflagged
+    bounds = shape_bounds(c.grid, opts.bound_factor)
+    params, rinfo = refine_components(samples, params, **_physics(c), background_chi2=opts.background_chi2,
+                                      bounds=bounds)
+    c.bg_stderr = rinfo.pop("background_stderr", None)
+    if c.background:
+        # nothing above the offset: the components are noise fitted on a pure background
+        # (the relative threshold always keeps the largest); the pixel is reported empty
+        params, cleared, mean_stderr = clear_unlit(samples, params, opts.significance_chi2)
+        flags[cleared] &= DATA_FLAGS
+        c.info["cleared_unlit"] = int(cleared.sum())
+        if c.bg_stderr is not None:
+            shape = np.shape(c.bg_stderr)
+            c.bg_stderr = np.where(cleared.reshape(shape), mean_stderr.reshape(shape), c.bg_stderr)
+    mark(flags, samples.live[params_at_bound({k: v[samples.live] for k, v in params.items()}, bounds)], AT_BOUND)
+    c.info.update(rinfo)
+    c.params = params
+
+
+def _quality(c: _Call) -> None:
+    c.fit = assess_fit(c.samples, c.params, c.noise_eff, c.opts.poor_fit, flat_noise=c.flat_noise)
+    c.flags |= c.fit.flags
+
+
+def _rescue_stage(c: _Call) -> None:
+    if c.convscd:
+        c.fit, c.params, c.flags = _rescue(c.profiles, c.samples, c.fit, c.params, c.flags, c.noise_eff,
+                                           c.flat_noise, c.det.noise_spectrum, c.opts, c.info, c.keywords)
+
+
+def _finish(c: _Call) -> None:
+    samples, opts, fit = c.samples, c.opts, c.fit
+    lead, L, R = samples.lead, samples.n_bins, opts.max_reflections
+    params = _reshape_params(c.params, lead, R)
+    c.info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    c.info["noise_model"] = samples.noise_model
+    c.info.update(refine=opts.refine, stderr=opts.stderr)
+    if opts.stderr:
+        params.update(component_errors(samples, params, **_physics(c)))
+        if c.background:
+            params[BACKGROUND_KEY + "_stderr"] = (c.bg_stderr if c.bg_stderr is not None
+                                                  else np.full(lead, np.nan))
+    c.result = DecompositionResult(
+        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
+        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
+        residual=fit.residual.reshape(lead + (L,)), flags=c.flags.reshape(lead), info=c.info)
+
+
+#: The stages of :func:`decompose` with the Gaussian PSF, run in this order (docs/decomposition.md
+#: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
+#: call (its option off, another method or noise model) returns at once; the GradBM baseline
+#: (``method="gradbm"``) runs prepare, detect, refit, quality and finish.
+STAGES = (
+    Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
+    Stage("detect", _detect, "the method's first answer: sparse coding over the coarse dictionary"),
+    Stage("signal_noise", _signal_noise, "weights for noise that follows the signal (signal_noise=True)"),
+    Stage("correlated_noise", _correlated_noise, "noise at the components' scale; whitening where it is pink"),
+    Stage("search", _search, "structured alternative starts for the pixels in doubt (search=True)"),
+    Stage("residual_noise", _residual_noise, "the residual's noise, for the significance tests after the search"),
+    Stage("grow", _grow, "add a Gaussian at a significant residual bump; swap a late sss's peak (grow=True)"),
+    Stage("prune", _prune, "drop a Gaussian on the direct's sss onset where the data allow (prune=True)"),
+    Stage("count_polish", _count_polish, "count data: the atoms polished with Poisson weights"),
+    Stage("count_grow", _count_grow, "count data: an echo after the threshold, kept by its deviance (grow=True)"),
+    Stage("label", _label, "snap (on-grid), threshold, merge and name the atoms; their flags"),
+    Stage("refit", _refit, "off-grid refinement with the background; clear unlit pixels; AT_BOUND"),
+    Stage("quality", _quality, "render the fit and flag its quality"),
+    Stage("rescue", _rescue_stage, "decompose the misfit pixels once more, differently started (rescue=True)"),
+    Stage("finish", _finish, "shape the outputs; standard errors (stderr=True)"),
+)
+
+
+# --------------------------------------------------------------------------- the measured-response path
+
+def _prepare_response(c: _Call) -> None:
+    if c.method != "convscd":
+        raise ValueError(f"irf= works with method='convscd' only, got method={c.method!r}")
+    if not c.opts.off_grid:
+        raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
+    opts, axis = c.opts, c.axis
+    n_bins = np.shape(c.profiles)[-1] if np.ndim(c.profiles) else 0
+    c.response = resolve_response(c.irf, axis.time_bin_ps, n_bins)
+    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
+    ratio = spike_neighbour_ratio(c.response, axis.time_bin_ps, opts.rel_threshold)
+    c.samples = prepare_samples(c.profiles, axis, c.grid, nan_policy=c.nan_policy,
+                                saturation_level=c.saturation_level,
+                                spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
+                                rel_threshold=opts.rel_threshold, noise=opts.noise, background=c.background,
+                                spike_neighbour_ratio=ratio if ratio > 0 else None)
+    c.info = {"method": c.method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
+              "components": "".join(sorted(c.fams)), "nan_policy": c.nan_policy,
+              "saturation_level": c.samples.saturation_level, "irf": response_record(c.response),
+              "spike_neighbour_ratio": ratio}
+    c.info.update(asdict(c.grid), **asdict(opts))
+    c.flags = c.samples.flags.copy()
+
+
+def _respond(c: _Call) -> None:
+    out = decompose_with_response(c.samples, c.response, c.grid, c.opts, c.fams)
+    c.flags |= out.flags
+    c.info.update(out.info)
+    c.params = out.params
+
+
+def _quality_response(c: _Call) -> None:
+    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if c.background else ())
+    c.fit = assess_fit(c.samples, {k: c.params[k] for k in core_keys}, c.samples.noise_eff, c.opts.poor_fit,
+                       irf=c.response)
+    c.flags |= c.fit.flags
+
+
+def _finish_response(c: _Call) -> None:
+    samples, fit, params = c.samples, c.fit, c.params
+    lead, L, R = samples.lead, samples.n_bins, c.opts.max_reflections
+    for k in list(params):
+        params[k] = params[k].reshape(lead + np.shape(params[k])[1:])
+    c.info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
+    c.info["noise_model"] = samples.noise_model
+    c.result = DecompositionResult(
+        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
+        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
+        residual=fit.residual.reshape(lead + (L,)), flags=c.flags.reshape(lead), info=c.info)
+
+
+#: The stages of :func:`decompose` with a measured instrument response (``irf=``), in order.
+#: Detection, labels, refinement, forward steps and errors run inside ``respond``
+#: (:func:`decomposition.response.path.decompose_with_response`, its own sequence over the
+#: response's atoms); prepare and quality are the Gaussian path's with the response's shape.
+RESPONSE_STAGES = (
+    Stage("prepare", _prepare_response, "resolve the response; prepare the samples, spikes judged by its shape"),
+    Stage("respond", _respond, "detect, label, refine and grow over the response's atoms (response.path)"),
+    Stage("quality", _quality_response, "render the fit with the response and flag its quality"),
+    Stage("finish", _finish_response, "shape the outputs"),
+)
+
+
 def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0_ps: float | None = None,
               components=("d", "r", "s"), nan_policy: str = "raise", saturation_level: float | None = None,
               irf=None, **options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
 
+    Runs the stages of :data:`STAGES` in order (:data:`RESPONSE_STAGES` with ``irf``); the
+    method, each stage and the flags are described in docs/decomposition.md.
+
     Parameters
     ----------
     profiles : array_like (..., L), any real dtype (uint16 camera data included)
-        Time profiles; the last axis is time.
+        Time profiles in any units (counts for count data); the last axis is time.
     time_bin_ps : float
         Bin width T in ps (> 0).
     method : {"convscd", "gradbm"}
+        The solver: ConvSCD, or the GradBM baseline (:mod:`decomposition.methods.gradbm`).
     t0_ps : float, optional
-        Time of the first bin (default ``time_bin_ps``: the paper's t = T..LT).
+        Time of the first bin in ps (default ``time_bin_ps``: the paper's t = T..LT).
     components : str or sequence
-        Families to look for: "d" direct, "r" inter-reflections, "s" sss,
-        "b" background (e.g. "d,s" or "d,r,s,b").  Families left out are neither built
-        into the dictionary nor searched; without "r" at most one Gaussian per pixel.
-        "b", a constant offset per pixel (``params["background"]``, units of the
-        profiles): estimated robustly from the samples at the noise level and subtracted
-        before the sparse coding (:func:`decomposition.stages.background.estimate_background`),
-        then fitted jointly with the amplitudes in the refinement, which always runs with
-        it; kept where significant (its likelihood-ratio statistic at least
-        ``background_chi2``), else reported as exactly 0.0 and the pixel refitted
-        without it.  NaN where the pixel is not decomposed; without "b" there is no
-        ``background`` key and nothing changes.  ConvSCD only.
-    sigma_range_ps, n_sigma, alpha_range_per_ps, n_alpha
-        Reference kernel grid.  The paper's setting (sigma 1-10 ps, alpha
-        0.01-0.05 /ps, 500 samples each) is the default; it is searched
-        coarse-to-fine, never densely.
-    coarse_sigma, coarse_sss_sigma, coarse_alpha : int
-        Grid values correlated in the detection step (Gaussian sigmas; sss
-        sigmas x alphas).  Small values are fast; refinement does the rest.
-    off_grid : bool
-        Keep continuous refined parameters (True) or snap them to the
-        reference grid with integer-bin delays (False, the paper's setting).
-    max_components : int
-        Atoms per pixel in the sparse-coding step.
-    max_reflections : int
-        R, the number of inter-reflection slots in the output.
-    max_iter : int, optional
-        Outer (pick + refine) iterations per pixel; default ``max_components + 2``.
-    n_lm, n_polish : int
-        Levenberg-Marquardt iterations after each pick / in the final polish.
-    lm_tol : float
-        A pixel's refinement stops when a step gains less than lm_tol x its
-        objective per sample.
-    sparsity, eps_rel, noise_floor : float
-        Sparsity weight mu = sparsity * s^2 and eps = eps_rel * s, with s the
-        per-pixel noise estimate floored at ``noise_floor`` x the pixel's peak.
-    rel_threshold : float
-        The paper's 5% threshold: an atom whose peak height inside the window is at least
-        this fraction of the pixel's largest in-window peak is kept.
-    significance_chi2 : float
-        An atom below the relative threshold is still kept when it is significant against
-        the noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this
-        (default 25, the energy of a 5-sigma sample; :func:`decomposition.model.components.threshold`).
-        0 turns the significance rule for atoms off (the relative threshold alone).
-    background_chi2 : float, optional
-        A fitted background ("b") is kept when its likelihood-ratio statistic is at least
-        this (>= 0; 0 keeps every fitted offset).  Default: ln(n) for a pixel of n fitted
-        samples, the Bayesian information criterion for one parameter (5.5 for 256 bins;
-        :func:`decomposition.stages.background.background_threshold`).
-    merge_tol_bins : float
-        Gaussians of one pixel closer than this (in bins) are merged.
-    bound_factor : float
-        Refined sigma/alpha stay within the grid ranges widened by this factor.
-    poor_fit : float
-        POOR_FIT flag when residual RMS > poor_fit x noise estimate.
+        Families to look for: "d" direct, "r" inter-reflections, "s" sss, "b" a constant
+        background per pixel (e.g. "d,s" or "d,r,s,b"; :func:`decomposition.options.component_letters`).
+        Families left out are neither built into the dictionary nor searched; without "r" at
+        most one Gaussian per pixel; "b" with ``method="convscd"`` only.
     nan_policy : {"raise", "omit"}
-        NaN/inf samples raise ValueError, or ("omit") flag the pixel NONFINITE
-        and leave it undecomposed (NaN parameters).
+        NaN/inf samples raise ValueError, or ("omit") flag the pixel NONFINITE and leave it
+        undecomposed (NaN parameters).
     saturation_level : float, optional
-        Samples >= this are saturated (flagged, excluded from the fit).  Default:
-        the dtype maximum for integer input, none for float input.
-    spike_sigma : float
-        Single-sample spikes this many noise sigmas above both neighbours, and
-        too narrow for the narrowest kernel, are excluded and flagged (0 = off).
-        Count data (``noise="poisson"``) are tested against their counting
-        statistics instead, at a fixed false-alarm rate per profile
-        (:func:`decomposition.stages.prepare.find_count_spikes`); there ``spike_sigma``
-        only switches the test on (> 0) or off.
-    noise : {"gaussian", "poisson", "auto"}
-        Noise model of the samples.  "gaussian": noise estimated from the data
-        (the paper's setting).  "poisson": the samples are photon counts, whose
-        variance is their expected value (spike test in Poisson terms, the
-        solver's noise the Poisson noise at the signal).  "auto": "poisson" for
-        count data -- an integer dtype, or floats that are all non-negative whole
-        numbers (:func:`decomposition.noise.is_count_data`) -- else "gaussian".
-        ``info["noise_model"]`` says which was used.
-    shared_sigma : bool
-        One PSF width per pixel shared by all its components (eq. (2) has a
-        single camera PSF c(t)); False lets every atom have its own width.
-    sss_after_direct : bool
-        Keep the sss onset at or after the direct reflection (light enters the
-        surface where it is directly reflected).  Removes the near-degeneracy
-        of a direct peak and an sss rising edge at the same onset.
-    multistart : bool
-        Where the primary (Gaussian-first) start leaves a fit above the noise,
-        also run the unrestricted largest-decrease start and keep the lower
-        objective (see ``convscd.solve_multistart``); False: primary start only.
-    sss_alone : bool
-        Also consider, per pixel, an sss component with no direct reflection
-        (scenes where some pixels see only light scattered out of a
-        translucent volume).  About 40 % slower; off by default because the
-        paper's model gives every pixel a direct (``components="s"`` handles
-        scenes with sss only).
-    block_size : int
-        Pixels per solver block (default 512: ``bench speed``'s cube with its 1,024-pixel
-        chunks, 2 threads, three alternations, against 256: white +2-4 %, 100 photons
-        +7-9 % pixels/s; 128 was slower than 256).  Results agree to rounding: a block
-        size moves 6 of 2,048 white-noise pixels and none at 100 photons.
-    refine : bool
-        After the sparse step, refine every found component's continuous
-        parameters by weighted least squares on the forward model
-        (:func:`decomposition.model.refine.refine`: variable projection,
-        never worse per pixel, component set kept).  Off by default:
-        ``streaklab bench tradeoff`` measures no fidelity gain over the
-        solver's own off-grid polish; it does help ``off_grid=False`` output.
-        Count data (``noise="poisson"``) are always polished with weights
-        1 / Poisson variance of the model, reweighted POISSON_REFITS times, by
-        the solver's compiled LM (:mod:`decomposition.stages.countpolish`): the Poisson
-        maximum-likelihood fit, without a NumPy refit (``refine=True`` adds one).
-        Widths and the sss attenuation stay within the solver's bounds (the grid's ranges
-        widened by ``bound_factor``); AT_BOUND where one ends at a bound.  With the
-        background family the refinement always runs, and a pixel whose components are not
-        significant together against its offset alone (``significance_chi2``) is reported
-        EMPTY with the mean as its offset (:func:`decomposition.stages.refit.clear_unlit`).
-    search : bool
-        Structured alternative starts for the pixels whose first answer is in
-        doubt (an sss onset before the earliest Gaussian or far after it, an sss
-        without a Gaussian, Gaussians without an sss, a leading edge steeper than
-        the detected width, a fit above the noise): a direct and an sss on the
-        leading edge, the earliest significant peak as the direct with and
-        without the later Gaussians; each polished, the lowest penalised
-        objective kept (:mod:`decomposition.stages.search`).
-        ``info["search_wins"]`` counts which start each searched pixel kept.
-    grow : bool
-        Forward step after the search: where a pixel has a free slot and its
-        largest residual bump away from its Gaussians is significant (or its data
-        term exceeds search_doubt_chi2 times its expected value), a Gaussian there,
-        polished with the rest, kept where the search's penalised objective is lower
-        and the Gaussians stay resolved (:mod:`decomposition.stages.grow`);
-        ``info["grown"]`` counts the pixels.  Then the sss swap: where the sss peaks
-        more than SWAP_MODE_GAP_SIGMA widths after the direct, a Gaussian at its peak
-        and its onset moved next to the direct, kept by the same rule
-        (``info["swapped"]``).  Count data (``noise="poisson"``) also get
-        a trial Gaussian at a faint echo after the threshold, kept where the Poisson
-        deviance drops by ``significance_chi2`` (:func:`decomposition.stages.grow.grow_counts`;
-        ``info["grown_counts"]``); with ``irf=`` the response path's echo steps
-        (:mod:`decomposition.response.grow`).  Both need ``significance_chi2 > 0``.
-    prune : bool
-        Backward step after the search: where a pixel has an sss and a Gaussian
-        less than PRUNE_GAP_SIGMA widths after its direct (often a late sss
-        onset and a Gaussian filling the gap), that Gaussian is dropped, the
-        rest polished, and the pruned answer kept where the search's penalised
-        objective is lower (:mod:`decomposition.stages.prune`); ``info["pruned"]``
-        counts the pixels.
-    rescue : bool
-        A second pass for the pixels flagged POOR_FIT at the end, or whose data term
-        lies beyond what their noise allows (``RESCUE_MISFIT_Z`` standard deviations of a
-        chi-square above its expectation; float data whose
-        noise does not follow the signal): decomposed again without the detection's
-        restart (:data:`decomposition.stages.rescue.RESCUE_OPTIONS`), the second answer
-        taken, with its own flags, where its penalised misfit is lower by
-        ``ambiguity_chi2`` (:mod:`decomposition.stages.rescue`); ``info["rescue_tried"]``
-        and ``info["rescued"]`` count the pixels.
-    signal_noise : bool
-        Noise that follows the signal (photon / shot noise on float data, the
-        Gaussian noise model): after the detection, each pixel's variance law
-        floor + gain * model is fitted to its residual, and where the gain is
-        significant the search, the forward step, the swap and the backward step
-        score and polish with weights 1 / that variance instead of one noise level
-        for every sample (:func:`decomposition.stages.candidates.signal_weights`).
-        Count data (``noise="poisson"``) are weighted so everywhere, by their
-        Poisson law at the detected model.
-        ``info["signal_weighted"]`` counts the pixels weighted.  Correlated (pink) noise,
-        judged over the call's pixels (their noise at the components' scale over their
-        sample-to-sample noise, the median above WHITE_LAG_RATIO), is another matter: the
-        search, the forward and backward steps then score every trial with its residual
-        whitened by the call's noise spectrum, read off the detected residuals
-        (:func:`decomposition.stages.candidates.correlated_noise_spectrum`);
-        ``info["correlated_noise"]`` says whether it was.
-    whiten : bool
-        Where the call's noise is judged correlated (above), whiten the penalised objectives'
-        residuals by its spectrum (default True); False: read them in the lagged noise level
-        of each pixel, as before.
-    signal_noise_law : {"auto", "pixel", "detector"}
-        The variance law of float data whose noise follows the signal.  "auto" (default):
-        where most of a call's pixels show such noise, every pixel is weighted by one law in
-        the data's units, the medians of the pixels' read-noise floors and conversion gains
-        (one detector behind every pixel); elsewhere only the pixels that show it, each by
-        its own law.  "pixel": each pixel by its own law (where most pixels show such noise,
-        every pixel with a positive gain).  "detector": the one law for every pixel whatever
-        the pixels show.  The one law, where used, is recorded in
-        ``info["signal_noise_law_fit"]`` (``floor`` and ``gain`` in the data's units).  Count
-        data are weighted by their Poisson law either way.
-    search_penalty, search_doubt_chi2 : float
-        Weight of the parameter-count term of the search's objective (1 = BIC);
-        a data term above this many times its expected value puts a pixel in doubt.
-    ambiguity_chi2, ambiguity_split : float
-        AMBIGUOUS flag of the search: another start whose objective (chi2 + k ln n, a BIC)
-        is within ``ambiguity_chi2`` (default 10: below it the evidence for the best is
-        less than "very strong") of the best's and whose split differs from the best's by
-        more than ``ambiguity_split`` (1 - fidelity between them).
-    ambiguity_sigma : float
-        With a measured response (``irf``): a restored direct is taken where the fit without
-        it lies within this many chi-square standard deviations (sqrt(2 n)) of the fit with
-        it, and marks the pixel AMBIGUOUS where their splits differ by ``ambiguity_split``.
-    stderr : bool, optional
-        Add per-pixel standard errors ``<key>_stderr`` (same shapes and units
-        as the parameters, NaN where absent or not identifiable) to
-        ``params``, from the Fisher information at the solution with the noise
-        estimated from the residual (:func:`decomposition.model.fisher.standard_errors`).
-        Count data: from the Poisson Fisher information (weights 1 / model
-        count, the noise scale known).
-        Default: the same as ``refine``.
+        Samples >= this (units of the profiles) are saturated: flagged, left out of the
+        picking, censored in the fit.  Default: the dtype maximum for integer input, none for
+        float input.
+    irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
+        A measured instrument response used instead of the Gaussian PSF
+        (:func:`decomposition.response.resolve.resolve_response`; docs/instrument-response.md).
     **options
         The fields of :class:`decomposition.options.GridSpec` and
-        :class:`decomposition.options.SolverOptions` above; for ``method="gradbm"`` also
-        the baseline's own options (:data:`decomposition.methods.gradbm.GRADBM_DEFAULTS`).
-    irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
-        A measured instrument response to use instead of the Gaussian PSF
-        (:func:`decomposition.response.resolve.resolve_response`: a path is read with
-        :func:`core.irfstore.load_response`; a response sampled at another step is resampled
-        onto ``time_bin_ps``; one whose samples span more than the window is refused).  Direct
-        and inter-reflections are then shifted copies of the response (amplitude = peak height,
-        delay = the response's reference instant, its peak), sss the response convolved with
-        the decaying exponential; the stages are those of :mod:`decomposition.response.path`
-        (greedy sparse coding over the response's dictionary at sub-bin phases, then
-        variable-projection refinement of delays and alpha with linear amplitudes, always on;
-        ``method="convscd"`` only).  The response has no width: every present component's
-        ``*_sigma_ps`` is its Gaussian-equivalent sigma (FWHM / 2.3548), and
-        ``*_sigma_ps_stderr`` is NaN.  The Gaussian options (``sigma_range_ps``, ``n_sigma``,
-        ``coarse_sigma``, ``coarse_sss_sigma``, ``shared_sigma``, ``multistart``, ``search``,
-        ``refine``) play no part (``sss_alone``: a pixel left with an sss and no direct is
-        not flagged AMBIGUOUS); ``off_grid=False`` is refused.
-        ``info["irf"]`` records the response (``describe()``, checksum, provenance).  Flags
-        are the Gaussian path's where they apply, by the same rules (spikes judged against the
-        response's shape; no WIDE_PSF: docs/instrument-response.md).  Cost:
-        the response path is plain NumPy (no compiled kernel); see
-        docs/instrument-response.md for its measured speed next to the Gaussian path's.
-        Default None: the Gaussian PSF of the paper.
+        :class:`decomposition.options.SolverOptions`, each documented there; for
+        ``method="gradbm"`` also the baseline's own options
+        (:data:`decomposition.methods.gradbm.GRADBM_DEFAULTS`).
 
     Returns
     -------
     DecompositionResult
+        Arrays shaped like ``profiles`` (``(..., L)``; ``(..., R, L)`` for the
+        inter-reflections, ``(...,)`` for the flags); ``info`` holds the method, every option
+        and the stages' counts.
     """
     axis = time_axis(time_bin_ps, t0_ps)
     if method not in METHODS:
@@ -351,176 +460,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     if background and method != "convscd":
         raise ValueError(f"components: the background family ('b') is fitted by method 'convscd' only, "
                          f"not {method!r}")
-    opts = opts.resolved(fams)
-    R = opts.max_reflections
-    if irf is not None:
-        return _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts,
-                                   background)
-
-    samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
-                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background)
-    info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
-            "components": "".join(sorted(fams)), "nan_policy": nan_policy,
-            "saturation_level": samples.saturation_level}
-    flags = samples.flags.copy()
-    noise_eff = samples.noise_eff
-    flat_noise = None          # the live pixels whose noise was judged not to follow the signal
-    if method == "gradbm":
-        info.update(method_options)
-        params = detect_gradbm(samples, R, fams, method_options)
-    else:
-        dic = cs.get_dictionary(samples.n_bins, axis.time_bin_ps, axis.t0_ps, grid, "d" in fams, "s" in fams)
-        info.update(asdict(grid), **asdict(opts), n_atoms=int(dic.fam.size),
-                    coordinates_searched=int(dic.n_coordinates))
-        det = detect_components(samples, dic, opts, fams)
-        if opts.signal_noise:
-            det = dataclasses.replace(det, weights=signal_weights(samples, det, dic, opts, info))
-            weighted = (np.zeros(samples.live.size, bool) if det.weights is None
-                        else (det.weights != 1).any(axis=1))
-            info["signal_weighted"] = int(weighted.sum())
-            if samples.noise_model != "poisson":
-                flat_noise = ~weighted
-        # the noise at the components' scale, from the detected fit's residual: the search's
-        # objective reads its data term in it where the noise is correlated (pink); where most
-        # pixels' is, the data terms of every stage after this are whitened by the call's spectrum
-        osig = None
-        if samples.noise_model != "poisson" and (opts.search or opts.grow or opts.prune):
-            osig = residual_significance_noise(samples, det, dic, opts)
-            if opts.whiten:
-                det = dataclasses.replace(det, noise_spectrum=correlated_noise_spectrum(samples, det, dic, opts, osig))
-                info["correlated_noise"] = det.noise_spectrum is not None
-        if opts.search:
-            found = search_components(samples, det, dic, opts, fams, osig)
-            det = dataclasses.replace(det, state=found.state)
-            mark(flags, samples.live[found.ambiguous], AMBIGUOUS)
-            wins = np.bincount(found.start[found.doubt], minlength=len(STAGE_STARTS))
-            info.update(search_doubt=int(found.doubt.sum()),
-                        search_wins={name: int(c) for name, c in zip(STAGE_STARTS, wins)},
-                        ambiguous=int(found.ambiguous.sum()))
-        # the steps after the search judge significance with the noise seen in the residual
-        samples = dataclasses.replace(samples, lagged_noise=residual_significance_noise(samples, det, dic, opts))
-        if opts.grow and "r" in fams:
-            # (the forward step and the swap add inter-reflections: not where none are asked,
-            # where an added Gaussian was dropped again by the labels, flagged TRUNCATED)
-            state, grown = grow_components(samples, det, dic, opts)
-            det = dataclasses.replace(det, state=state)
-            info["grown"] = int(grown.sum())
-            state, swapped = swap_components(samples, det, dic, opts)
-            det = dataclasses.replace(det, state=state)
-            info["swapped"] = int(swapped.sum())
-        if opts.prune:
-            state, pruned = prune_components(samples, det, dic, opts)
-            det = dataclasses.replace(det, state=state)
-            info["pruned"] = int(pruned.sum())
-        if samples.noise_model == "poisson":
-            det = dataclasses.replace(det, state=polish_counts(samples, det, dic, opts))
-        final = None
-        if samples.noise_model == "poisson" and opts.grow and "r" in fams:
-            # after the threshold: the echo is kept by its own deviance test, weighed with the
-            # counts where it lies, not by the threshold's noise at the direct's peak
-            final, grown = grow_counts(samples, dataclasses.replace(det, state=final_state(samples, det, dic, opts)),
-                                       dic, opts)
-            info["grown_counts"] = int(grown.sum())
-        labels = label_components(samples, det, dic, opts, state=final)
-        params, noise_eff = labels.params, det.noise_eff
-        flags |= labels.flags
-        info.update(objective=det.objective.reshape(samples.lead + (opts.max_iter + 1,)),
-                    n_iter=det.n_iter.reshape(samples.lead), lm_iterations=det.lm_iterations,
-                    restarted=det.restarted)
-
-    physics = {"shared_sigma": opts.shared_sigma and method == "convscd",
-               "sss_after_direct": opts.sss_after_direct and method == "convscd"}
-    if background:
-        # the first estimate, refitted jointly with the amplitudes below (NaN: not decomposed)
-        params[BACKGROUND_KEY] = np.full(samples.values.shape[0], np.nan)
-        params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
-    bg_stderr = None
-    if (opts.refine or background or (samples.noise_model == "poisson" and method == "gradbm")) and samples.live.size:
-        # within the solver's bounds on the widths and the attenuation, and flagged where it ends
-        # at one: left free, a component fitted to one noisy sample on a pure background went
-        # to a width of 0.2 ps and 10^5 times the counts, unflagged
-        bounds = shape_bounds(grid, opts.bound_factor)
-        params, rinfo = refine_components(samples, params, **physics, background_chi2=opts.background_chi2,
-                                          bounds=bounds)
-        bg_stderr = rinfo.pop("background_stderr", None)
-        if background:
-            # nothing above the offset: the components are noise fitted on a pure background
-            # (the relative threshold always keeps the largest); the pixel is reported empty
-            params, cleared, mean_stderr = clear_unlit(samples, params, opts.significance_chi2)
-            flags[cleared] &= DATA_FLAGS
-            info["cleared_unlit"] = int(cleared.sum())
-            if bg_stderr is not None:
-                bg_stderr = np.where(cleared.reshape(np.shape(bg_stderr)), mean_stderr.reshape(np.shape(bg_stderr)),
-                                     bg_stderr)
-        mark(flags, samples.live[params_at_bound({k: v[samples.live] for k, v in params.items()}, bounds)], AT_BOUND)
-        info.update(rinfo)
-    fit = assess_fit(samples, params, noise_eff, opts.poor_fit, flat_noise=flat_noise)
-    flags |= fit.flags
-    if method == "convscd":
-        fit, params, flags = _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, det.noise_spectrum,
-                                     opts, info,
-                                     dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps,
-                                          components=components, nan_policy=nan_policy,
-                                          saturation_level=saturation_level, **options))
-    lead, L = samples.lead, samples.n_bins
-    params = _reshape_params(params, lead, R)
-    info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
-    info["noise_model"] = samples.noise_model
-    info.update(refine=opts.refine, stderr=opts.stderr)
-    if opts.stderr:
-        params.update(component_errors(samples, params, **physics))
-        if background:
-            params[BACKGROUND_KEY + "_stderr"] = (bg_stderr if bg_stderr is not None
-                                                  else np.full(lead, np.nan))
-    return DecompositionResult(
-        direct=fit.direct.reshape(lead + (L,)),
-        sss=fit.sss.reshape(lead + (L,)),
-        interreflections=fit.interreflections.reshape(lead + (R, L)),
-        params=params,
-        residual=fit.residual.reshape(lead + (L,)),
-        flags=flags.reshape(lead),
-        info=info,
-    )
-
-
-def _decompose_response(profiles, axis, method, fams, nan_policy, saturation_level, irf, grid, opts, background):
-    """:func:`decompose` with an instrument response (:mod:`decomposition.response.path`)."""
-    if method != "convscd":
-        raise ValueError(f"irf= works with method='convscd' only, got method={method!r}")
-    if not opts.off_grid:
-        raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
-    n_bins = np.shape(profiles)[-1] if np.ndim(profiles) else 0
-    response = resolve_response(irf, axis.time_bin_ps, n_bins)
-    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
-    ratio = spike_neighbour_ratio(response, axis.time_bin_ps, opts.rel_threshold)
-    samples = prepare_samples(profiles, axis, grid, nan_policy=nan_policy, saturation_level=saturation_level,
-                              spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background=background,
-                              spike_neighbour_ratio=ratio if ratio > 0 else None)
-    R = opts.max_reflections
-    info = {"method": method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
-            "components": "".join(sorted(fams)), "nan_policy": nan_policy,
-            "saturation_level": samples.saturation_level, "irf": response_record(response),
-            "spike_neighbour_ratio": ratio}
-    info.update(asdict(grid), **asdict(opts))
-    flags = samples.flags.copy()
-    out = decompose_with_response(samples, response, grid, opts, fams)
-    flags |= out.flags
-    info.update(out.info)
-    params = out.params
-    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if background else ())
-    fit = assess_fit(samples, {k: params[k] for k in core_keys}, samples.noise_eff, opts.poor_fit, irf=response)
-    flags |= fit.flags
-    lead, L = samples.lead, samples.n_bins
-    for k in list(params):
-        params[k] = params[k].reshape(lead + np.shape(params[k])[1:])
-    info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
-    info["noise_model"] = samples.noise_model
-    return DecompositionResult(
-        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
-        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
-        residual=fit.residual.reshape(lead + (L,)), flags=flags.reshape(lead), info=info)
+    keywords = dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps, components=components,
+                    nan_policy=nan_policy, saturation_level=saturation_level, **options)
+    call = _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
+                 saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams),
+                 method_options=method_options, irf=irf, keywords=keywords, background=background)
+    for stage in (STAGES if irf is None else RESPONSE_STAGES):
+        stage.run(call)
+    return call.result
 
 
 def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call):

@@ -123,28 +123,17 @@ NEAR_SIGMA = 3.0
 #: bound instead of being projected onto it).
 ONSET_TIE_SIGMA = 0.05
 
-#: The response path: a direct fitted before the window is refitted from the window's first
-#: sample less these many response widths (Gaussian-equivalent), the lowest deviance kept
-#: (:func:`decomposition.response.grow.grow_response`, step 0b).  ``bench realism``'s truncated
-#: rows (the direct 1-8 ps before the window, 4 ps widths), direct-delay RMSE over the Poisson
-#: reference's at 100 / 1,000 / 10,000 photons: 1.11 / 0.97 / 1.38 without, 1.03 / 0.92 / 0.89
-#: with these three starts (from 1 width alone: 1.07 / 1.03 at 100 / 1,000 photons, on the same
-#: pixels where both report a direct).
+#: The response path: a direct fitted before the window is refitted from the window's first sample
+#: less these many response widths (Gaussian-equivalent), the lowest deviance kept
+#: (:func:`decomposition.response.grow.grow_response`, step 0b).
 EARLY_DIRECT_STARTS_SIGMA = (0.0, 1.0, 2.0)
-#: ... a start within this many widths of the fitted direct is not refitted (the same answer;
-#: truncated rows 6.5 -> 5.9 ms per pixel at 100 photons, 6.1 -> 5.6 at 10,000, delay RMSE
-#: unchanged to 0.01 ps).
+#: ... a start within this many widths of the fitted direct is not refitted (the same answer).
 EARLY_DIRECT_NEAR_SIGMA = 0.5
 
 #: The response path, count data: an sss whose onset lies more than this many response widths
 #: (Gaussian-equivalent) after its direct is refitted with the onset started at the direct, the
 #: lower deviance kept (:func:`decomposition.response.grow.grow_response`, step 0c).  A late onset
 #: is a local optimum of the fit at few counts: the direct moves later to fill the gap.
-#: ``bench realism`` (2,000 px, seeds 0 / 1), direct-delay bias at 100 photons without -> with
-#: the step: tailed +0.078 -> +0.038 / +0.037 -> +0.007 ps, afterpulse +0.051 -> +0.023 /
-#: +0.078 -> +0.056; at 2 widths instead of 1 only half of that (tailed +0.049, afterpulse
-#: +0.038 on seed 0): the late onsets lie 1-2 widths out as well.  Nothing moves at 10,000
-#: photons, where the step costs a third more time (see docs/instrument-response.md).
 ONSET_RESTART_SIGMA = 1.0
 
 #: Largest component peak the pick accepts, in units of the pixel's largest sample: a
@@ -155,47 +144,33 @@ AMP_MAX = 20.0
 #: delay +- this many fitted widths (plus one bin) (dimensionless).
 POOR_FIT_DIRECT_SIGMA = 3.0
 
-#: The search's near-direct doubt test (:func:`decomposition.stages.search.search_block`): a pixel is
-#: in doubt when its data term per sample over the direct's samples (as POOR_FIT_DIRECT_SIGMA)
-#: exceeds this many noise variances (dimensionless).  The noise there is the pixel's one
-#: estimate, and photon noise is largest at the direct's peak: at 1.5 the demo's simulated
-#: capture (photon and read noise) had 100 more pixels searched, whose starts lost fidelity
-#: (all components 0.901 -> 0.877, direct 0.875 -> 0.861, AMBIGUOUS 197 -> 296); at 3 it reads
-#: 0.895 / 0.872 / 216, and the paper scenes (300 px, seeds 0 and 1, 2 ps white 0.001 / 0.055 /
-#: 0.11, pink and photon 0.055, 4 ps white 0.055) move by -0.003..+0.003, the 4 ps direct-delay
-#: failures unchanged (5 of 600, none unflagged).  At 4 and 6 photon noise lost 0.003 / 0.006
-#: and had unflagged direct-delay failures again.
+#: The search's near-direct doubt test (:func:`decomposition.stages.search.search_block`): a pixel
+#: is in doubt when its data term per sample over the direct's samples (as POOR_FIT_DIRECT_SIGMA)
+#: exceeds this many noise variances (dimensionless).  The noise there is the pixel's one estimate,
+#: and photon noise is largest at the direct's peak.
 SEARCH_NEAR_DIRECT_CHI2 = 3.0
 
-#: POOR_FIT for light before the direct (photon counts, :func:`decomposition.stages.quality.light_before_direct`):
-#: the direct's leading edge is where its response rises from PRE_DIRECT_LEVEL of its peak
-#: (dimensionless), and the counts before it must exceed the model's by PRE_DIRECT_SIGMA on the
-#: Poisson law (sigma, one-sided).  bench realism at 100 photons (2,000 px per effect): it
-#: marks 3 / 1 / 0 / 0 / 7 pixels (tailed / afterpulse / background / echo / truncated), every
-#: one a direct more than 8 ps off, and leaves no such failure unflagged but the truncated ones.
+#: POOR_FIT for light before the direct (photon counts,
+#: :func:`decomposition.stages.quality.light_before_direct`): the direct's leading edge is where its
+#: response rises from PRE_DIRECT_LEVEL of its peak (dimensionless), and the counts before it must
+#: exceed the model's by PRE_DIRECT_SIGMA on the Poisson law (sigma, one-sided).
 PRE_DIRECT_LEVEL = 1e-3
 PRE_DIRECT_SIGMA = 5.0
 
-#: The response path reports no direct where its direct explains nothing, lies where no sample
-#: sees it and more than this many Gaussian-equivalent widths before the light it would lead
-#: (the sss onset, else the first sample): nothing in the data places it (dimensionless;
-#: ``response_grow._unseen_direct``).  bench realism at 100 and 1,000 photons (12,500 px): one
-#: pixel, a direct 53 widths before its sss; the same at 5 or 10 widths.
+#: The response path reports no direct where its direct explains nothing, lies where no sample sees
+#: it and more than this many Gaussian-equivalent widths before the light it would lead (the sss
+#: onset, else the first sample): nothing in the data places it (dimensionless;
+#: ``response_grow._unseen_direct``).
 UNSEEN_DIRECT_LEAD_SIGMA = 8.0
 
-#: AMBIGUOUS for a weak direct just before a much larger onset (:func:`decomposition.stages.quality.weak_direct`):
-#: the direct's peak below this fraction of the other light's (dimensionless), an sss onset or
-#: inter-reflection within WEAK_DIRECT_ONSET_SIGMA direct widths (plus one bin) after it.  Paper scenes, 300 px,
-#: seeds 0 and 1, 2 and 4 ps bins, white NSR 0.001 / 0.055 / 0.11 and photon 0.055 (9,600 px):
-#: 13 pixels flagged, 11 of them with fidelity < 0.5 or the direct off by > 2 sigma (fraction
-#: 0.10: 9 (8), 0.2: 18 (14), 0.25: 28 (15); within 3 widths: 10 (8) at 0.15).
+#: AMBIGUOUS for a weak direct just before a much larger onset
+#: (:func:`decomposition.stages.quality.weak_direct`): the direct's peak below this fraction of the
+#: other light's (dimensionless), an sss onset or inter-reflection within WEAK_DIRECT_ONSET_SIGMA
+#: direct widths (plus one bin) after it.
 WEAK_DIRECT_FRACTION = 0.15
 WEAK_DIRECT_ONSET_SIGMA = 4.0
-#: AMBIGUOUS for an inter-reflection brighter than the direct by more than this ratio of their
-#: peak heights (:func:`decomposition.stages.quality.bright_echo`; dimensionless).  Paper scenes (their
-#: inter-reflections 0.01-1x the direct), 600 px, seed 0, 2 and 4 ps bins, white / pink / photon
-#: at NSR 0.001 / 0.055 / 0.11 (10,800 px): such an echo in 97 / 32 / 21 pixels at a ratio of
-#: 1 / 1.5 / 2, of them 40 / 25 / 18 with fidelity < 0.5 and 29 / 0 / 0 above 0.9.
+#: AMBIGUOUS for an inter-reflection brighter than the direct by more than this ratio of their peak
+#: heights (:func:`decomposition.stages.quality.bright_echo`; dimensionless).
 BRIGHT_ECHO_RATIO = 1.5
 
 #: Restart threshold (dimensionless ratio).  Used twice, for the same reason: a fit whose
@@ -243,16 +218,13 @@ SPIKE_FALSE_ALARM = 1e-6
 POISSON_VARIANCE_FLOOR = 0.02
 
 #: Count data, the response path's refinement (:class:`decomposition.response.refine.CountData`):
-#: the floor (counts) of the variance in its weights and of the model in its objective, the
-#: Poisson deviance; one floor for both, so that each step is Fisher scoring of the objective it
-#: is judged by and the fixed point is the maximum likelihood of that objective.  With the
-#: weights at POISSON_VARIANCE_FLOOR and the deviance read at 1e-6 the steps disagreed with the
-#: objective where a count sits on a model below 0.02: they stalled 1-4 deviance units above the
-#: optimum, lifetimes short.  The floor trades efficiency where the model is complete against
-#: robustness to light it lacks (an echo the counts hide pulls an sss tail).  ``bench realism``'s
-#: scenes, 100 photons, 2,000 px, lifetime RMSE over the Poisson reference's (afterpulse /
-#: truncated / echo): floor 0.02: 1.11 / 1.11 / 1.15; 5e-3: 1.03 / 1.04 / 1.10; 1e-3: 1.01 /
-#: 1.01 / 1.11 (tailed 1.02, background 1.05).  The significance tests keep
+#: the floor (counts) of the variance in its weights and of the model in its objective, the Poisson
+#: deviance; one floor for both, so that each step is Fisher scoring of the objective it is judged
+#: by and the fixed point is the maximum likelihood of that objective.  With the weights at
+#: POISSON_VARIANCE_FLOOR and the deviance read at 1e-6 the steps disagreed with the objective where
+#: a count sits on a model below 0.02: they stalled 1-4 deviance units above the optimum, lifetimes
+#: short.  The floor trades efficiency where the model is complete against robustness to light it
+#: lacks (an echo the counts hide pulls an sss tail). The significance tests keep
 #: POISSON_VARIANCE_FLOOR.
 POISSON_FIT_FLOOR = 1e-3
 
@@ -285,37 +257,20 @@ SEARCH_PEAK_LEVEL = 0.2
 #: a detected Gaussian more than this many PSF widths after a start's direct is kept as its
 #: inter-reflection; closer ones are dropped (the start's direct replaces them)
 SEARCH_IR_GAP_SIGMA = 3.0
-#: the ``edge`` start's sss onset, this many (start) PSF widths after its direct.  An onset at
-#: the direct (0) lost the sss-hump pixels: from there the polish slides both atoms onto the
-#: hump (a wide shared width, the direct tens of ps late).  Paper scenes, 300 px, mean fidelity
-#: (2 ps bins, white NSR 0.001 / 0.055 / 0.11; pink and photon NSR 0.055; 4 ps white 0.055):
-#: gap 0: 0.932 / 0.870 / 0.854, 0.845, 0.801, 0.848 (direct off by > 2 sigma: 6 / 11 / 12
-#: pixels); 1.5: 0.958 / 0.912 / 0.886, 0.878, 0.849, 0.883 (0 / 0 / 3); 2: 0.961 / 0.909 /
-#: 0.888, 0.882, 0.843, 0.884; 2.5: 0.951 / 0.906 / 0.891; 4: 0.951 / 0.906 / 0.882.
+#: the ``edge`` start's sss onset, this many (start) PSF widths after its direct.  An onset at the
+#: direct (0) lost the sss-hump pixels: from there the polish slides both atoms onto the hump (a
+#: wide shared width, the direct tens of ps late).
 SEARCH_EDGE_GAP_SIGMA = 1.5
-#: the search's ``wide`` start: the peak start at the detected direct's own width, where that
-#: is more than this many times the default start width (SEARCH_DEFAULT_SIGMA_PS).  A wide
-#: direct (8-10 ps) with a small sss lost it to two or three Gaussians from every start at the
-#: default width.  Paper scenes, 300 px, seed 0, mean fidelity (2 / 4 ps bins, white NSR 0.001 /
-#: 0.055 / 0.11): without 0.994 / 0.950 / 0.919, 0.970 / 0.925 / 0.898; with 0.995 / 0.950 /
-#: 0.920, 0.977 / 0.928 / 0.899 (4 ps, width 8-10 ps: 0.952 -> 0.983 at NSR 0.001).  Tried at
-#: every width it won the same pixels and cost 4 % of the bench's speed; from 1.5 x up, 2-3 %.
+#: the search's ``wide`` start: the peak start at the detected direct's own width, where that is
+#: more than this many times the default start width (SEARCH_DEFAULT_SIGMA_PS).  A wide direct (8-10
+#: ps) with a small sss lost it to two or three Gaussians from every start at the default width.
 SEARCH_WIDE_FACTOR = 1.5
-#: the search's ``rise`` start: the grid's narrowest width, but at least this many bins.  A
-#: direct narrower than half a bin falls on one point sample, so a start there polishes a
-#: width the data hardly see.  Paper scenes at 4 ps bins (where it moves the start from 1 to
-#: 2 ps; at 2 ps bins nothing changes), 300 px, seed 0, mean fidelity at NSR 0.001 / 0.055 /
-#: 0.11: white 0.977 / 0.928 / 0.899 -> 0.978 / 0.929 / 0.895, pink 0.975 / 0.906 / 0.845 ->
-#: 0.975 / 0.917 / 0.849, photon 0.962 / 0.834 / 0.689 -> 0.970 / 0.838 / 0.692; seed 1 (600
-#: px) -0.001..+0.007; direct-delay failures at NSR <= 0.055 unchanged (5 of 600, all flagged).
+#: the search's ``rise`` start: the grid's narrowest width, but at least this many bins.  A direct
+#: narrower than half a bin falls on one point sample, so a start there polishes a width the data
+#: hardly see.
 SEARCH_RISE_MIN_BINS = 0.5
-#: the backward step (:mod:`decomposition.stages.prune`) tries to drop a Gaussian closer than this many
-#: PSF widths after the direct, where the pixel has an sss (3, 4, 6 and 8 measured alike on the
-#: paper's scenes at 2 ps bins under white noise, whose inter-reflections lie 6-14 widths apart;
-#: 3 pruned fewer at NSR 0.11).  6 since the pink and photon rows: 300 px, seed 0, 4 -> 6 moved
-#: 2 ps pink NSR 0.055 / 0.11 0.930 / 0.868 -> 0.931 / 0.873, photon 0.887 / 0.829 -> 0.889 /
-#: 0.832, 4 ps photon 0.838 / 0.692 -> 0.841 / 0.693, nothing lower; seed 1 (600 px) +0.000 to
-#: +0.003; no slower (the step is ~1 % of the time)
+#: the backward step (:mod:`decomposition.stages.prune`) tries to drop a Gaussian closer than this
+#: many PSF widths after the direct, where the pixel has an sss.
 PRUNE_GAP_SIGMA = 6.0
 #: its second start without that Gaussian moves the sss onset to this many widths after the
 #: direct (0.5 and 1 measured alike)
@@ -325,14 +280,10 @@ PRUNE_ONSET_SIGMA = 1.0
 GROW_EXCLUDE_SIGMA = 2.0
 #: the forward step's sss swap (decomposition.stages.grow.swap_block) is tried where the sss peaks
 #: more than this many PSF widths after the direct: the pixels whose sss may have taken in a
-#: Gaussian (paper scenes, 300 px, white / pink NSR 0.055: 30 of the 36 pixels whose fidelity
-#: the swap raised by more than 0.02 when tried everywhere, 58 % of the pixels tried; mean
-#: fidelity white 0.9430 / 0.9461 (seed 0 / 1) tried everywhere, 0.9425 / 0.9432 at 3)
+#: Gaussian.
 SWAP_MODE_GAP_SIGMA = 3.0
 #: ... and where the sss decays fast enough against the PSF for its hump to pass for a Gaussian:
-#: alpha * sigma at least this (the pixels the swap raised by more than 0.02 had 0.093-0.66,
-#: the paper's pixels 0.012-1.5); 1,037 -> 637 of 1,756 candidates tried over the six points,
-#: mean fidelity unchanged to 0.001 (seeds 0 and 1)
+#: alpha * sigma at least this.
 SWAP_MIN_ALPHA_SIGMA = 0.09
 #: the response path's echo trial (:mod:`decomposition.response.grow`) is refitted only where
 #: the matched-filter estimate of its chi2 at the trial position is at least this fraction of
@@ -387,25 +338,16 @@ RESOLVED_SIGMA = 3.0
 #: (52 noise variances on a scene whose model is exact: tests/test_grow.py's late-peaking sss).
 #: Before the detection's polish every larger atom hides a faint one alike (``None``).
 SSS_RESOLVED_CHI2_FACTOR = 4.0
-#: the in-window significance test weighs an atom's energy with the noise across this many
-#: samples (at most a quarter of the window) where that is above the sample-to-sample noise
+#: the in-window significance test weighs an atom's energy with the noise across this many samples
+#: (at most a quarter of the window) where that is above the sample-to-sample noise
 #: (decomposition.noise.lagged_noise_sigma): correlated noise makes component-sized bumps that
-#: second differences do not see.  Paper scenes, 300 px, 2 ps bins, NSR 0.055, mean fidelity
-#: pink / white: significance against the second-difference noise 0.641 / 0.870; lag 4:
-#: 0.702 / 0.870; 16: 0.800 / 0.870; 32: 0.824 / 0.870; 64: 0.845 / 0.870; the relative rule
-#: alone (significance_chi2 = 0) 0.837 on the pink scenes.  On the profile the lagged estimate
-#: also holds the components' slopes (under white noise at NSR 0.055 1.45x the true sigma,
-#: median), which WHITE_LAG_RATIO corrects after the search.
+#: second differences do not see. On the profile the lagged estimate also holds the components'
+#: slopes (under white noise at NSR 0.055 1.45x the true sigma, median), which WHITE_LAG_RATIO
+#: corrects after the search.
 SIGNIFICANCE_LAG_BINS = 64
-#: after the search the lagged noise is measured on the fit's residual, and replaces the
-#: profile's where it is at most this many times the sample-to-sample noise (white at the
-#: component scale; decomposition.stages.candidates.residual_significance_noise).  Paper scenes, 300
-#: px, NSR 0.055, 2 ps: the ratio is 0.83-1.23 under white noise (1st-99th percentile), 0.82-1.28
-#: at 4 ps, 1.44-2.60 under pink noise.  Mean fidelity, seed 0 / 1 (after the forward step's
-#: bump test): white NSR 0.001 0.982 -> 0.983 / 0.976 -> 0.976, 0.055 0.926 -> 0.936 / 0.933 ->
-#: 0.934, 0.11 0.899 -> 0.900 / 0.909 -> 0.912, 4 ps 0.055 0.904 -> 0.907 / 0.918 -> 0.922; pink
-#: and photon 0.055 unchanged (to 1e-4); measured on the residual everywhere (no ratio test),
-#: pink 0.887 -> 0.838 (seed 0)
+#: after the search the lagged noise is measured on the fit's residual, and replaces the profile's
+#: where it is at most this many times the sample-to-sample noise (white at the component scale;
+#: decomposition.stages.candidates.residual_significance_noise).
 WHITE_LAG_RATIO = 1.35
 
 # Noise that follows the signal (decomposition.stages.candidates.signal_weights): a pixel's fitted
@@ -415,39 +357,27 @@ SIGNAL_NOISE_Z = 5.0
 SIGNAL_NOISE_PEAK_RATIO = 1.0
 # ... with the floor kept at least this fraction of the peak's variance ...
 SIGNAL_NOISE_FLOOR_FRACTION = 0.01
-# ... and only where the gain read at a lag of 2 samples is below this multiple of the gain at
-# 1: independent noise gives the same law at both lags, a misfit of a component (structure wider
-# than a sample, at a noise too low to hide it) about 4x.  Paper scenes, 300 px (seed 2), pixels
-# whose gain is significant -> those that also pass this test: white noise at 2 ps bins, NSR
-# 0.001 / 0.055: 49 -> 5, 6 -> 0; at 4 ps, NSR 0.001: 60 -> 24 (misfits of sub-bin PSFs are a
-# sample wide); photon noise NSR 0.055 at 2 / 4 ps: 261 -> 234, 209 -> 187.
+# ... and only where the gain read at a lag of 2 samples is below this multiple of the gain at 1:
+# independent noise gives the same law at both lags, a misfit of a component (structure wider than a
+# sample, at a noise too low to hide it) about 4x.
 SIGNAL_NOISE_LAG_RATIO = 1.5
-# The verdict pooled over the pixels of one call: a detector's noise law is the detector's, not
-# a pixel's.  Where at least this fraction of the live pixels (and at least
-# SIGNAL_NOISE_POOL_MIN of them) pass the tests above, every pixel whose fitted gain is positive
-# is weighted by its own law, also where its gain alone is not significant (a few samples under a
-# narrow direct at 4 ps bins) or its lag test read a misfit as structure (the misfit the search
-# is there to repair).  Paper scenes, 512 px, 4 ps bins: the fraction passing is 0-11 % under
-# white and pink noise at NSR 0.001-0.11 and 65-80 % under photon noise at NSR 0.055-0.11.
-# Weights for every photon pixel were the largest lever left there: 600 px at 4 ps photon NSR
-# 0.055, 395 of 600 pixels weighted 0.814, the fitted law on all 0.843, the true law on all 0.874.
+# The verdict pooled over the pixels of one call: a detector's noise law is the detector's, not a
+# pixel's.  Where at least this fraction of the live pixels (and at least SIGNAL_NOISE_POOL_MIN of
+# them) pass the tests above, every pixel whose fitted gain is positive is weighted by its own law,
+# also where its gain alone is not significant (a few samples under a narrow direct at 4 ps bins) or
+# its lag test read a misfit as structure (the misfit the search is there to repair).
 SIGNAL_NOISE_POOL_FRACTION = 0.5
 SIGNAL_NOISE_POOL_MIN = 16
 # ... or where the call's own statistics say so: the median over its pixels of their gain's
-# significance at least this and the median of their gain read at a lag of two samples over the
-# gain below SIGNAL_NOISE_LAG_RATIO.  Read noise can hide each pixel's gain, not the call's:
-# paper scenes, 400 px, shot noise with read noise (Poisson at 300 photons per unit plus 0.01, at
-# 3,000 plus 0.003) 3.8-5.1 median significance, 1.05-1.07 median lag ratio, where 16-40 % of the
-# pixels pass their own tests; shot noise alone 6.7-8.0 and 1.02-1.05; white and pink noise at NSR
-# 0.001-0.11, 0.0-1.8 and 1.18-2.29 (2 and 4 ps bins).
+# significance at least this and the median of their gain read at a lag of two samples over the gain
+# below SIGNAL_NOISE_LAG_RATIO.  Read noise can hide each pixel's gain, not the call's.
 SIGNAL_NOISE_POOL_Z = 3.0
 # The in-window significance test of an atom under weights (decomposition.model.components.
-# window_measures): a sample's weight counts at most this much, i.e. the noise where the atom
-# lies at most half the pixel's.  Under shot noise a weak inter-reflection after the direct lies
-# where the noise is several times lower than at the peak and becomes significant; uncapped,
-# weights fitted to a misfit instead (sub-bin PSFs at NSR 0.001, pink noise) kept spurious atoms
-# in quiet parts: paper scenes, 600 px, pink NSR 0.001 at 2 / 4 ps 0.983 / 0.962 -> 0.979 /
-# 0.958 uncapped, 0.983 / 0.963 capped at 4; photon NSR 0.055 at 2 ps 0.886 -> 0.894 / 0.893.
+# window_measures): a sample's weight counts at most this much, i.e. the noise where the atom lies
+# at most half the pixel's.  Under shot noise a weak inter-reflection after the direct lies where
+# the noise is several times lower than at the peak and becomes significant; uncapped, weights
+# fitted to a misfit instead (sub-bin PSFs at NSR 0.001, pink noise) kept spurious atoms in quiet
+# parts.
 SIGNIFICANCE_WEIGHT_CAP = 4.0
 # The second pass (decomposition.stages.rescue) also takes the pixels whose data term, in the noise the
 # first pass weighed them with (whitened by the call's spectrum where its noise is correlated),

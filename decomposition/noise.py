@@ -31,6 +31,10 @@ for pure Poisson counts, more with read noise or a gain above one count per unit
 remove, and
 :func:`anscombe_residual` the residual in noise sigmas where the counts are.
 """
+
+# One module over 600 lines on purpose: it is the one home of every noise estimate of the package
+# (whole profile, at the signal, lagged, count data, the variance laws of noise that follows the
+# signal), so that a rule about the noise is written once.
 from __future__ import annotations
 
 import math

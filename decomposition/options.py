@@ -13,8 +13,10 @@ families (:func:`parse_components`) and the NaN policy (:data:`NAN_POLICIES`, :f
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import numbers
+import textwrap
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -91,6 +93,39 @@ def _set(obj, name, value):
 
 # --------------------------------------------------------------------------- the options
 
+def _field_docs(cls) -> dict:
+    """``{field: text}`` from the ``#:`` comments above each field of ``cls`` in its source."""
+    try:
+        lines = inspect.getsource(cls).splitlines()
+    except (OSError, TypeError):
+        return {}
+    docs, pending = {}, []
+    for line in lines:
+        text = line.strip()
+        if text.startswith("#:"):
+            pending.append(text[2:].strip())
+        elif pending and ":" in text:
+            docs[text.split(":", 1)[0].strip()] = " ".join(pending)
+            pending = []
+        else:
+            pending = []
+    return docs
+
+
+def _documented(cls):
+    """Append an *Attributes* section, one entry per field from its ``#:`` comment, to the class
+    docstring, so that ``help()`` and ``pydoc`` show what every option means."""
+    docs = _field_docs(cls)
+    entries = []
+    for f in fields(cls):
+        wrapped = textwrap.fill(docs.get(f.name, ""), 92, initial_indent="        ", subsequent_indent="        ")
+        entries.append(f"    {f.name} : default {f.default!r}\n{wrapped}")
+    cls.__doc__ = (cls.__doc__ or "").rstrip() + "\n\n    Attributes\n    ----------\n" + "\n".join(entries) + "\n"
+    cls.field_docs = docs
+    return cls
+
+
+@_documented
 @dataclass(frozen=True)
 class GridSpec:
     """Kernel-parameter grids.
@@ -100,15 +135,23 @@ class GridSpec:
     values actually correlated against (a subsample of the reference range,
     log-spaced: Gaussian sigmas, sss sigmas x alphas); refined values live
     anywhere within ``bound_factor`` of the ranges (``off_grid=True``) or on the
-    reference grid (``off_grid=False``).
+    reference grid (``off_grid=False``).  The reference grid is searched coarse-to-fine,
+    never densely.
     """
 
+    #: Range (lo, hi) of the reference PSF-width grid, ps (the paper's 1-10 ps).
     sigma_range_ps: tuple = (1.0, 10.0)
+    #: Samples of the reference PSF-width grid (equi-spaced over ``sigma_range_ps``).
     n_sigma: int = 500
+    #: Range (lo, hi) of the reference sss-attenuation grid, 1/ps (the paper's 0.01-0.05 /ps).
     alpha_range_per_ps: tuple = (0.01, 0.05)
+    #: Samples of the reference sss-attenuation grid (equi-spaced over ``alpha_range_per_ps``).
     n_alpha: int = 500
+    #: Gaussian sigmas correlated in the detection step; small values are fast, refinement does the rest.
     coarse_sigma: int = 4
+    #: sss alphas correlated in the detection step (times ``coarse_sss_sigma`` sss kernels).
     coarse_alpha: int = 3
+    #: sss sigmas correlated in the detection step (times ``coarse_alpha`` sss kernels).
     coarse_sss_sigma: int = 3
 
     def __post_init__(self):
@@ -130,51 +173,149 @@ class GridSpec:
         return np.linspace(*self.alpha_range_per_ps, self.n_alpha)
 
 
+@_documented
 @dataclass(frozen=True)
 class SolverOptions:
     """Everything but the grid that the ConvSCD path of ``decompose()`` reads.
 
-    See :func:`decomposition.decompose` for the meaning of each field.  ``max_iter=None``
-    means ``max_components + 2``; ``stderr=None`` means the same as ``refine``
-    (:meth:`resolved` fills both in).
+    ``max_iter=None`` means ``max_components + 2``; ``stderr=None`` means the same as
+    ``refine`` (:meth:`resolved` fills both in).  docs/decomposition.md describes the stages
+    these options steer.
     """
 
+    #: Keep continuous refined parameters (True) or snap them to the reference grid with
+    #: integer-bin delays (False, the paper's setting).
     off_grid: bool = True
+    #: Atoms per pixel in the sparse-coding step.
     max_components: int = 6
+    #: R, the number of inter-reflection slots in the output (0 without the "r" family).
     max_reflections: int = 3
+    #: Outer (pick + refine) iterations per pixel; None: ``max_components + 2``.
     max_iter: int | None = None
+    #: Levenberg-Marquardt iterations after each pick.
     n_lm: int = 4
+    #: Levenberg-Marquardt iterations of the final polish.
     n_polish: int = 30
+    #: A pixel's refinement stops when a step gains less than lm_tol x its objective per sample.
     lm_tol: float = 1e-2
+    #: Sparsity weight mu = sparsity * s^2, with s the pixel's noise estimate (floored at
+    #: ``noise_floor`` x the pixel's peak).
     sparsity: float = 3.0
+    #: eps = eps_rel * s, the log-sum penalty's scale, with s the pixel's noise estimate.
     eps_rel: float = 0.01
+    #: Floor of the per-pixel noise estimate, as a fraction of the pixel's peak.
     noise_floor: float = 1e-3
+    #: The paper's 5 % threshold: an atom whose peak height inside the window is at least this
+    #: fraction of the pixel's largest in-window peak is kept.
     rel_threshold: float = 0.05
+    #: An atom below the relative threshold is still kept when it is significant against the
+    #: noise where it lies: its in-window energy sum(c_i^2) / s^2 at least this (25, the energy
+    #: of a 5-sigma sample; :func:`decomposition.model.components.threshold`).  0 turns the
+    #: significance rule off (the relative threshold alone).  The forward steps need it > 0.
     significance_chi2: float = 25.0
+    #: A fitted background ("b") is kept when its likelihood-ratio statistic is at least this
+    #: (>= 0; 0 keeps every fitted offset).  None: ln(n) for a pixel of n fitted samples, the
+    #: Bayesian information criterion for one parameter (5.5 for 256 bins;
+    #: :func:`decomposition.stages.background.background_threshold`).
     background_chi2: float | None = None
+    #: Gaussians of one pixel closer than this (in bins) are merged.
     merge_tol_bins: float = 1.0
+    #: Refined sigma and alpha stay within the grid ranges widened by this factor; AT_BOUND
+    #: where one ends at a bound.
     bound_factor: float = 4.0
+    #: POOR_FIT flag when the residual RMS exceeds this many times the noise estimate.
     poor_fit: float = 3.0
+    #: Single-sample spikes this many noise sigmas above both neighbours, and too narrow for the
+    #: narrowest kernel, are excluded and flagged SPIKE (0 = off).  Count data
+    #: (``noise="poisson"``) are tested against their counting statistics instead, at a fixed
+    #: false-alarm rate per profile (:func:`decomposition.stages.prepare.find_count_spikes`);
+    #: there this only switches the test on (> 0) or off.
     spike_sigma: float = 8.0
+    #: Where the primary (Gaussian-first) start leaves a fit above the noise, also run the
+    #: unrestricted largest-decrease start and keep the lower objective
+    #: (``convscd.solve_multistart``); False: the primary start only.
     multistart: bool = True
+    #: One PSF width per pixel shared by all its components (eq. (2) has a single camera PSF
+    #: c(t)); False lets every atom have its own width.
     shared_sigma: bool = True
+    #: Keep the sss onset at or after the direct reflection (light enters the surface where it
+    #: is directly reflected); removes the near-degeneracy of a direct peak and an sss rising
+    #: edge at the same onset.
     sss_after_direct: bool = True
+    #: Also consider, per pixel, an sss with no direct reflection (pixels that see only light
+    #: scattered out of a translucent volume).  Off by default: slower, and the paper's model
+    #: gives every pixel a direct (``components="s"`` handles scenes with sss only).
     sss_alone: bool = False
+    #: Pixels per solver block.
     block_size: int = 512
+    #: After the sparse step, refine every found component's continuous parameters by weighted
+    #: least squares on the forward model (:func:`decomposition.model.refine.refine`: variable
+    #: projection, never worse per pixel, component set kept).  Off by default: it gains no
+    #: fidelity over the solver's own off-grid polish (``streaklab bench tradeoff``); it does
+    #: help ``off_grid=False`` output.  Count data are always polished with Poisson weights by
+    #: the solver's compiled LM (:mod:`decomposition.stages.countpolish`; this adds a NumPy
+    #: refit).  With the background family the refinement always runs, and a pixel whose
+    #: components are not significant together against its offset alone is reported EMPTY
+    #: (:func:`decomposition.stages.refit.clear_unlit`).
     refine: bool = False
+    #: Add per-pixel standard errors ``<key>_stderr`` (shapes and units of the parameters, NaN
+    #: where absent or not identifiable) from the Fisher information at the solution
+    #: (:func:`decomposition.model.fisher.standard_errors`; count data: the Poisson Fisher
+    #: information).  None: the same as ``refine``.
     stderr: bool | None = None
+    #: Noise model of the samples: "gaussian" (estimated from the data, the paper's setting),
+    #: "poisson" (photon counts, variance = expected value), "auto" ("poisson" for count data,
+    #: :func:`decomposition.noise.is_count_data`, else "gaussian"); ``info["noise_model"]``
+    #: says which was used.
     noise: str = "auto"
+    #: Structured alternative starts for the pixels whose first answer is in doubt, each
+    #: polished, the lowest penalised objective kept (:mod:`decomposition.stages.search`);
+    #: ``info["search_wins"]`` counts which start each searched pixel kept.
     search: bool = True
+    #: Forward step after the search: a Gaussian at a significant resolved residual bump, and
+    #: at the peak of an sss that peaks late, kept where the penalised objective is lower
+    #: (:mod:`decomposition.stages.grow`; ``info["grown"]``, ``info["swapped"]``); count data
+    #: also get an echo after the threshold kept by its Poisson deviance
+    #: (``info["grown_counts"]``); with ``irf=`` the response path's forward steps.
     grow: bool = True
+    #: Backward step after the search: a Gaussian just after the direct on a pixel with an sss
+    #: dropped where the penalised objective is lower (:mod:`decomposition.stages.prune`;
+    #: ``info["pruned"]``).
     prune: bool = True
+    #: A second pass for the pixels flagged POOR_FIT at the end, or whose data term lies beyond
+    #: what their noise allows, decomposed again differently started and taken where the
+    #: penalised misfit is lower by ``ambiguity_chi2`` (:mod:`decomposition.stages.rescue`;
+    #: ``info["rescue_tried"]``, ``info["rescued"]``).
     rescue: bool = True
+    #: Weigh the samples of pixels whose noise follows the signal (photon noise on float data)
+    #: by 1 / their fitted variance law floor + gain * model in the stages after the detection
+    #: (:func:`decomposition.stages.candidates.signal_weights`; ``info["signal_weighted"]``).
+    #: Count data are weighted by their Poisson law either way.
     signal_noise: bool = True
+    #: The variance law of float data whose noise follows the signal: "auto", one law for every
+    #: pixel (the medians of the pixels' floors and gains) where most pixels show such noise,
+    #: else each such pixel's own; "pixel", each pixel's own; "detector", the one law whatever
+    #: the pixels show (recorded in ``info["signal_noise_law_fit"]``).
     signal_noise_law: str = "auto"
+    #: Where the call's noise is judged correlated (pink), score the penalised objectives with
+    #: residuals whitened by the call's noise spectrum
+    #: (:func:`decomposition.stages.candidates.correlated_noise_spectrum`;
+    #: ``info["correlated_noise"]``); False: in each pixel's lagged noise level.
     whiten: bool = True
+    #: Weight of the parameter-count term of the search's objective (1 = BIC).
     search_penalty: float = 1.0
+    #: A data term above this many times its expected value puts a pixel in doubt (search) or
+    #: lets the forward step try it.
     search_doubt_chi2: float = 1.5
+    #: AMBIGUOUS when another start's objective (chi2 + k ln n, a BIC) is within this of the
+    #: best's (10: the evidence for the best below "very strong") and its split differs by more
+    #: than ``ambiguity_split``; also the rescue's margin.
     ambiguity_chi2: float = 10.0
+    #: With a measured response (``irf``): a restored direct is taken where the fit without it
+    #: lies within this many chi-square standard deviations (sqrt(2 n)) of the fit with it.
     ambiguity_sigma: float = 3.0
+    #: Splits that differ by more than this (1 - fidelity between them) count as different for
+    #: the AMBIGUOUS flag.
     ambiguity_split: float = 0.3
 
     def __post_init__(self):

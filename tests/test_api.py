@@ -249,3 +249,36 @@ def test_sss_alone_pixels():
         assert fidelity(data.components, res).min() >= 0.98, kw
         assert np.isnan(res.params["direct_delay_ps"]).all()
         np.testing.assert_allclose(res.params["sss_delay_ps"], data.params["sss_delay_ps"], atol=T)
+
+
+def _function_body_lines(path, name):
+    """Lines of a top-level function's body after its docstring (last line - first statement + 1)."""
+    import ast
+    tree = ast.parse(open(path, encoding="utf-8").read())
+    fn = next(node for node in tree.body if isinstance(node, ast.FunctionDef) and node.name == name)
+    body = fn.body
+    if isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+            and isinstance(body[0].value.value, str):
+        body = body[1:]
+    return fn.end_lineno - body[0].lineno + 1, len(ast.get_docstring(fn).splitlines())
+
+
+def test_decompose_is_a_short_dispatcher_with_a_short_docstring():
+    import decomposition.api as api
+    body, doc = _function_body_lines(api.__file__, "decompose")
+    assert body <= 60, f"decompose() body has {body} lines (at most 60)"
+    assert doc <= 60, f"decompose() docstring has {doc} lines (at most 60): options belong on their fields"
+
+
+def test_decompose_runs_the_declared_stages_in_order(monkeypatch):
+    import decomposition.api as api
+    ran = []
+    traced_stages = tuple(api.Stage(s.name, (lambda call, s=s: (ran.append(s.name), s.run(call))), s.purpose)
+                          for s in api.STAGES)
+    monkeypatch.setattr(api, "STAGES", traced_stages)
+    data = make_profiles(4, 128, nsr=0.01, seed=3).noisy
+    res = decompose(data, T, rescue=False)
+    assert ran == [s.name for s in traced_stages]
+    assert res.params["direct_delay_ps"].shape == (4,)
+    assert len({s.name for s in api.STAGES}) == len(api.STAGES)
+    assert all(s.purpose and "\n" not in s.purpose for s in api.STAGES + api.RESPONSE_STAGES)

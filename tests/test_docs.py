@@ -110,3 +110,36 @@ def test_the_check_names_a_wrong_subcommand_benchmark_and_option():
         "streaklab bench speed has no option --pixels",
         "streaklab verify --mark-for-resume --force run.zarr: streaklab verify has no option --force",
     ]
+
+
+DECOMPOSITION_DOC = ROOT / "docs" / "decomposition.md"
+_STAGE_ROW = re.compile(r"^\| `([a-z_]+)` \|")
+
+
+def documented_stages(text: str) -> list[list[str]]:
+    """The stage names of each table of the *Stages* section of docs/decomposition.md, in order."""
+    section = text.split("\n## Stages\n", 1)[1].split("\n## ", 1)[0]
+    tables, current = [], None
+    for line in section.splitlines():
+        if line.startswith("| stage |"):
+            current = []
+            tables.append(current)
+        elif current is not None and line.startswith("|"):
+            match = _STAGE_ROW.match(line)
+            if match:
+                current.append(match.group(1))
+        else:
+            current = None
+    return tables
+
+
+def test_the_documented_stage_lists_are_the_code_s():
+    from decomposition.api import RESPONSE_STAGES, STAGES
+    tables = documented_stages(DECOMPOSITION_DOC.read_text(encoding="utf-8"))
+    assert tables == [[s.name for s in STAGES], [s.name for s in RESPONSE_STAGES]]
+
+
+def test_the_stage_check_sees_a_swapped_or_missing_stage():
+    text = ("intro\n\n## Stages\n\n| stage | what |\n|---|---|\n| `prepare` | p |\n| `refit` | r |\n| `label` | l |\n\n"
+            "| stage | what |\n|---|---|\n| `prepare` | p |\n\n## Next\n| `other` | x |\n")
+    assert documented_stages(text) == [["prepare", "refit", "label"], ["prepare"]]

@@ -65,3 +65,16 @@ def test_one_nan_policy_vocabulary():
     assert parse_nan_policy("omit") == parse_nan_policy("mark") == "omit"
     with pytest.raises(ValueError, match="nan_policy"):
         parse_nan_policy("ignore")
+
+
+def test_every_option_is_documented_on_its_field_and_shown_by_help():
+    import pydoc
+    from dataclasses import fields as dc_fields
+    from decomposition.options import GridSpec, SolverOptions
+    for cls in (GridSpec, SolverOptions):
+        undocumented = [f.name for f in dc_fields(cls) if len(cls.field_docs.get(f.name, "")) < 20]
+        assert undocumented == [], f"{cls.__name__}: fields without a #: comment: {undocumented}"
+        shown = pydoc.render_doc(cls, renderer=pydoc.plaintext)
+        for f in dc_fields(cls):
+            assert f"{f.name} : default {f.default!r}" in shown
+    assert "in-window energy sum(c_i^2) / s^2" in SolverOptions.__doc__

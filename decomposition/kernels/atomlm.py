@@ -22,6 +22,10 @@ Options as in the solver: ``tie_sigma`` keeps one width for pixels whose atoms s
 within 3 PSF widths before the earliest Gaussian as direct delay + gap, gap >= 0 by an active
 set, and keeps onsets at or after that Gaussian.
 """
+
+# One module over 600 lines on purpose: the LM loop, the atom values and derivatives it evaluates,
+# the models, the NNLS amplitudes and the window sums are compiled functions that call one another;
+# numba compiles and caches them together, and the one-pixel loop reads as one piece.
 from __future__ import annotations
 
 import math

@@ -29,15 +29,11 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
 0c. **An sss onset far after its direct** (count data, "d" and "s" asked; after step 1): an sss whose
    onset lies more than ONSET_RESTART_SIGMA response widths after a direct inside the window
    is refitted with the onset started at the direct, and takes that refit where it keeps
-   every atom and the direct inside the window and lowers the deviance.  At few counts the fit can stop with the onset 3-9 widths late and the
-   direct moved later to fill the gap: on ``bench realism``'s tailed rows at 100 photons such
-   pixels lay 1-11 deviance units above the reference's (22 of 2,000), their direct +1.2 ps
-   late on average, half of the rows' direct-delay bias.  A direct before the window is left
-   to step 0b: there the onset started at it let the direct slide out, its amplitude grown
-   tenfold or more, for deviance gains under 4 (``bench realism``'s truncated rows, direct-delay
-   RMSE 0.94 -> 1.39 x the reference's at 300 photons).  Gaussian data are not refitted: on
-   d + s scenes with the tailed response in white noise (NSR 0.02, 0.055, 0.11; 2,000 pixels
-   each) no pixel took the refit, at 3-12 % more time.
+   every atom and the direct inside the window and lowers the deviance.  At few counts the fit
+   can stop with the onset 3-9 widths late and the direct moved later to fill the gap.  A
+   direct before the window is left to step 0b: there the onset started at it let the direct
+   slide out, its amplitude grown tenfold or more, for small deviance gains.  Gaussian data are
+   not refitted: no pixel took the refit there (docs/history.md).
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
@@ -74,6 +70,10 @@ significance rule keeps).  ``info``: ``response_direct_restored``, ``response_ea
 ``response_onset_restarted``, ``response_sss_added``,
 ``response_echo_added``, ``response_sss_swapped``.
 """
+
+# One module over 600 lines on purpose: the response path's forward steps share one context
+# (GrowContext) and its refit helpers, and each step is a function here in the order grow_response
+# runs them.
 from __future__ import annotations
 
 import math

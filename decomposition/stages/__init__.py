@@ -1,9 +1,10 @@
-"""The stages :func:`decomposition.decompose` runs, in order, on blocks of pixels.
+"""The stage modules :func:`decomposition.decompose` calls, on blocks of pixels.
 
-``prepare`` (checks, noise, spikes, background), ``detect`` (the method's first answer),
-``candidates`` (shared helpers of the stages that try alternatives), ``search`` (structured
-starts), ``grow`` / ``prune`` (add or drop an atom where the objective says so; ``objective``
-is the measure they compare fits by), ``countpolish`` (count data), ``refit`` (final
-refine, errors, background), ``label`` (physical labels and flags), ``quality`` (fit quality
-flags), ``rescue`` (a second pass for misfit pixels) and ``background``.
+The order they run in is declared once, in :data:`decomposition.api.STAGES` (each stage a name,
+the function in ``api.py`` that calls its module here, and a one-line purpose); docs/decomposition.md
+lists the same names in the same order.  Besides the modules those stages call (``prepare``,
+``detect``, ``search``, ``grow``, ``prune``, ``countpolish``, ``label``, ``refit``, ``quality``,
+``rescue``), ``candidates`` holds the helpers the stages after the detection share (signal and
+correlated noise, polishing a candidate set), ``objective`` the penalised objective they compare
+fits by, and ``background`` the per-pixel offset's estimate and test.
 """

@@ -1,4 +1,4 @@
-"""Stage 2c of :func:`decomposition.decompose` for count data: the atoms polished with Poisson weights.
+"""The ``count_polish`` stage of :func:`decomposition.decompose` for count data: the atoms polished with Poisson weights.
 
 Photon counts have a variance equal to their expected value, so the least-squares fit that
 matches their statistics weighs each sample by 1 / its model count.  Detection and search fit

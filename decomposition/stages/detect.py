@@ -1,4 +1,4 @@
-"""Stage 2 of :func:`decomposition.decompose`: detect the components by sparse coding.
+"""The ``detect`` stage of :func:`decomposition.decompose`: detect the components by sparse coding.
 
 For every block of live pixels: the multi-start greedy ConvSCD solve
 (:func:`decomposition.methods.convscd.solve_multistart`), the 5 % threshold and merging, and the
@@ -101,8 +101,7 @@ def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: 
     st, si = cs.solve_multistart(p, mask.uncensored(), noise, dic, sss_alone=opts.sss_alone,
                                  restart=opts.multistart, **solve_opts)
     # (every larger atom hides a faint one here: kept near an sss onset before the polish, the
-    # greedy's faint atoms led it astray -- paper scenes, 4 ps pink NSR 0.055: two pixels at
-    # fidelity 0.99 ended at -0.5, a 10 ps direct 13 ps late)
+    # greedy's faint atoms led it astray; docs/history.md)
     comp.threshold(st, t, opts.rel_threshold, significance_sigma, opts.significance_chi2, sss_factor=None)
     comp.merge_gaussians(st, dic.time_bin_ps, opts.merge_tol_bins)
     st, model, nl = cs.polish_block(p, mask, st, noise, dic, sparsity=opts.sparsity, eps_rel=opts.eps_rel,

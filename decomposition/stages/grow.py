@@ -233,7 +233,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
 
 
 def grow_components(samples, det, dic, opts):
-    """Stage 2c of :func:`decomposition.decompose` (``grow=True``): :func:`grow_block` on the
+    """The ``grow`` stage of :func:`decomposition.decompose` (``grow=True``): :func:`grow_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, grown (n_live,))."""
     bump = samples.noise_model != "poisson"
     return each_block(samples, det, opts,
@@ -298,7 +298,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
 
 
 def swap_components(samples, det, dic, opts):
-    """Stage 2c' of :func:`decomposition.decompose` (``grow=True``, after
+    """The ``grow`` stage of :func:`decomposition.decompose`, second step (``grow=True``, after
     :func:`grow_components`): :func:`swap_block` on the live pixels, block by block
     -> (state, swapped (n_live,))."""
     # count data swap unweighted: their Poisson weights make a response tail the Gaussian model

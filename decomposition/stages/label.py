@@ -1,4 +1,4 @@
-"""Stage 4 of :func:`decomposition.decompose`: from atoms to named components.
+"""The ``label`` stage of :func:`decomposition.decompose`: from atoms to named components.
 
 Optionally snaps the atoms to the reference grid (``off_grid=False``, the paper's discrete
 setting), applies the 5 % threshold and merging once more (refinement can bring two atoms

@@ -1,4 +1,4 @@
-"""Stage 1 of :func:`decomposition.decompose`: prepare the samples.
+"""The ``prepare`` stage of :func:`decomposition.decompose`: prepare the samples.
 
 Input check, per-pixel normalisation to unit peak, the masks of the samples that are fitted
 and of those that are censored (saturated), the noise model (Gaussian, or Poisson for photon

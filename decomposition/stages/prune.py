@@ -139,7 +139,7 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
     The sss swap of :func:`decomposition.stages.grow.swap_block` needs a free slot and keeps the
     Gaussians the detection put in the hump; a fast sss that took an echo 6 widths after the
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
-    neither it nor the trials above (fidelity 0.12 -> 0.99).
+    neither it nor the trials above.
     """
     _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps)
     rows = np.nonzero((cur["fam"] == FAM_SSS).any(axis=1) & passes)[0]
@@ -155,7 +155,7 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
 
 
 def prune_components(samples, det, dic, opts):
-    """Stage 2d of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
+    """The ``prune`` stage of :func:`decomposition.decompose` (``prune=True``): :func:`prune_block` on the
     detected (and searched) atoms of the live pixels, block by block -> (state, pruned (n_live,))."""
     float_data = samples.noise_model != "poisson"      # the forward step's bump test
     return each_block(samples, det, opts,

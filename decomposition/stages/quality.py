@@ -1,4 +1,4 @@
-"""Stage 5 of :func:`decomposition.decompose`: the rendered fit and its quality flags.
+"""The ``quality`` stage of :func:`decomposition.decompose`: the rendered fit and its quality flags.
 
 POOR_FIT: the residual RMS over the fitted samples (censored samples count only where the
 model lies above them) exceeds ``poor_fit`` x the noise -- the larger of the solver's
@@ -202,10 +202,7 @@ def unresolved_gaussians(params: dict) -> np.ndarray:
 
     Two equal Gaussians less than two widths apart add up to a single hump; the solver's own
     rules keep its Gaussians RESOLVED_SIGMA widths apart where it adds one, but a polish can
-    draw two together.  Paper scenes (inter-reflections at least 4 widths apart), 600 px, seeds
-    0 and 1, 36 points (21,600 px, 538 below fidelity 0.5): 95 pixels with such a pair, 58 of
-    them below fidelity 0.5 (53 not flagged before, 22 of those below 0.5); at 2 widths 41 and
-    21, at 2.5 widths 68 and 40.
+    draw two together.
     """
     d = np.asarray(params["direct_delay_ps"], np.float64)
     ir = np.asarray(params["ir_delay_ps"], np.float64)

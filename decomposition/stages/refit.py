@@ -1,4 +1,4 @@
-"""Stage 3 of :func:`decomposition.decompose` (optional): off-grid refinement and standard errors.
+"""The ``refit`` and ``finish`` stages of :func:`decomposition.decompose`: off-grid refinement and standard errors.
 
 :func:`refine_components` moves every found component's continuous parameters to the
 weighted least-squares optimum of the forward model (:func:`decomposition.model.refine.refine`,

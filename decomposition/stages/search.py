@@ -35,6 +35,9 @@ s the pixel's noise estimated from first differences, k the number of free param
 the number of bins (the Bayesian information criterion for ``penalty = 1``), and the lowest J
 is kept.  All work is on blocks of pixels: one refine call per kind of start.
 """
+
+# One module over 600 lines on purpose: the search stage and the stand-alone structured_search share
+# the start builders and the scoring of the starts; apart they would import each other.
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -667,7 +670,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
 
 def search_components(samples, det, dic, opts, components, objective_lagged_noise=None) -> SearchStage:
-    """Stage 2b of :func:`decomposition.decompose`: structured alternative starts for the
+    """The ``search`` stage of :func:`decomposition.decompose`: structured alternative starts for the
     detected pixels in doubt, block by block (``opts.block_size``); see :func:`search_block`
     (``objective_lagged_noise`` (P,): the lagged noise of its ``objective_sigma``, in place of
     ``samples.lagged_noise``)."""

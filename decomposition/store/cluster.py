@@ -239,8 +239,8 @@ def start_local_cluster(n_workers: int):
             from None
     # dask.distributed's nannies set MALLOC_TRIM_THRESHOLD_ in their workers by default; an explicit
     # threshold turns off glibc's adaptive mmap threshold, so every large temporary array of the
-    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (measured:
-    # 22 vs 43 px/s, system time up tenfold).  Keep the rest of the nanny environment (one BLAS
+    # solver is mapped and unmapped afresh and its page faults halve ConvSCD's speed (system
+    # time up tenfold; docs/history.md).  Keep the rest of the nanny environment (one BLAS
     # thread per worker process).
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}) or {})
     env.pop("MALLOC_TRIM_THRESHOLD_", None)
