@@ -67,7 +67,7 @@ def data_term(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray,
 
 def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict,
                      spectrum: np.ndarray | None = None) -> np.ndarray:
-    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.model.components.free_parameters`
+    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.stages.selection.free_parameters`
     and n_fit the number of ``fit`` samples."""
     return penalised(data_term(residual, fit, noise, spectrum), free_parameters(families(params), "shared"),
                      log_samples(fit.sum(axis=1)))
