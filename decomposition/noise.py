@@ -157,20 +157,35 @@ def _mad_sigma(d2: np.ndarray, ok: np.ndarray | None) -> np.ndarray:
     return _d2_sigma(med)
 
 
-def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None) -> np.ndarray:
-    """Noise standard deviation of each profile, from all its usable second differences.
+def noise_sigma(profiles: np.ndarray, fit: np.ndarray | None = None, order: int = 2) -> np.ndarray:
+    """Noise standard deviation of each profile, from all its usable differences of ``order``.
 
     Parameters
     ----------
     profiles : ndarray (P, L)
     fit : ndarray (P, L) bool, optional
-        Samples that are fitted; second differences touching another sample are ignored.
+        Samples that are fitted; differences touching another sample are ignored.
+    order : {2, 1}
+        2 (the solver's estimate): the MAD of the second differences, over sqrt(6); a smooth
+        kernel's curvature barely moves them.  1: the MAD of the first differences about their
+        median (which takes out a constant slope), over sqrt(2): the estimate of
+        :func:`decomposition.stages.search.structured_search`.  Both give sigma for white noise.
 
     Returns
     -------
-    ndarray (P,), in the units of ``profiles``; 0 where no second difference is usable.
+    ndarray (P,), in the units of ``profiles``; 0 where no difference is usable.
     """
     p = profiles
+    if order == 1:
+        d = np.diff(p, axis=-1)
+        if fit is None:
+            return MAD_TO_SIGMA * np.median(np.abs(d - np.median(d, axis=-1, keepdims=True)), axis=-1) / np.sqrt(2.0)
+        ok = fit[:, 1:] & fit[:, :-1]
+        centre = masked_median(d, ok)
+        sigma = MAD_TO_SIGMA * masked_median(np.abs(d - centre[:, None]), ok) / np.sqrt(2.0)
+        return np.where(np.isfinite(sigma), sigma, 0.0)
+    if order != 2:
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
     d2 = np.abs(p[:, 2:] - 2.0 * p[:, 1:-1] + p[:, :-2])
     return _mad_sigma(d2, None if fit is None else _usable(fit))
 

@@ -8,8 +8,8 @@ from core.model import empty_params
 from decomposition import decompose
 from decomposition.flags import POOR_FIT
 from decomposition.model.fidelity import fidelity
-from decomposition.model.components import free_parameters
 from decomposition.constants import RESCUE_MISFIT_Z
+from decomposition.stages.selection import families, free_parameters
 from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
                                          take_rescued)
 from decomposition.evaluation.synthetic import make_profiles
@@ -21,9 +21,9 @@ def test_free_parameters_count_each_component_and_one_shared_width():
     p["sss_delay_ps"][[1, 2, 3]] = 12.0
     p["ir_delay_ps"][2, :2] = [40.0, 60.0]
     # nothing; d; d + s; d + s + 2 r; s alone
-    assert free_parameters(p).tolist() == [2 + 1, 2 + 3 + 1, 2 + 3 + 4 + 1, 3 + 1]
+    assert free_parameters(families(p), "shared").tolist() == [2 + 1, 2 + 3 + 1, 2 + 3 + 4 + 1, 3 + 1]
     p["direct_delay_ps"][0] = np.nan
-    assert free_parameters(p)[0] == 0
+    assert free_parameters(families(p), "shared")[0] == 0
 
 
 def test_penalised_misfit_is_chi2_over_the_fitted_samples_plus_k_ln_n():
@@ -35,7 +35,7 @@ def test_penalised_misfit_is_chi2_over_the_fitted_samples_plus_k_ln_n():
     p["direct_delay_ps"][:] = 5.0
     p["ir_delay_ps"][1, 0] = 30.0
     noise = np.array([2.0, 1.0, 4.0])
-    want = [np.sum((res[i][fit[i]] / noise[i]) ** 2) + free_parameters(p)[i] * math.log(fit[i].sum()) for i in range(3)]
+    want = [np.sum((res[i][fit[i]] / noise[i]) ** 2) + free_parameters(families(p), "shared")[i] * math.log(fit[i].sum()) for i in range(3)]
     np.testing.assert_allclose(penalised_misfit(res, fit, noise, p), want, rtol=1e-12)
 
 
@@ -49,7 +49,7 @@ def test_with_a_noise_spectrum_the_data_term_is_the_whitened_one():
     p = empty_params((3,), n_ir=1)
     p["direct_delay_ps"][:] = 5.0
     noise = np.array([2.0, 1.0, 4.0])
-    k_ln_n = free_parameters(p) * np.log(fit.sum(axis=1))
+    k_ln_n = free_parameters(families(p), "shared") * np.log(fit.sum(axis=1))
     n_freq = periodogram(res).shape[1]
     # the spectrum of white noise (power L per unit variance at every frequency) reads as the
     # plain chi2 of the fitted samples; a pink one as the whitened residual

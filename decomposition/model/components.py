@@ -43,7 +43,7 @@ from core.model import BACKGROUND_KEY, empty_params, render_components
 __all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "runs_off_window", "threshold",
            "keep_atoms",
            "merge_gaussians",
-           "clip_sss_onset", "classify", "render_params", "free_parameters"]
+           "clip_sss_onset", "classify", "render_params"]
 
 
 def _in_window(st: dict, t_ps: np.ndarray):
@@ -348,14 +348,3 @@ def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, i
         out["background"] = np.broadcast_to(np.where(np.isfinite(b), b, 0.0)[:, None], (P, L)).copy()
     return out
 
-
-def free_parameters(params: dict) -> np.ndarray:
-    """(n,) free parameters of each pixel's components in ``params`` (n-shaped, NaN absent): a
-    delay and an amplitude per component, the sss attenuation, and one width shared by all (none
-    for a pixel without a component) -- the k of the penalised objectives chi2 + k ln n that
-    compare answers given as parameters (:func:`decomposition.stages.search.structured_search`,
-    :mod:`decomposition.stages.rescue`)."""
-    d = np.isfinite(np.asarray(params["direct_delay_ps"], np.float64))
-    s = np.isfinite(np.asarray(params["sss_delay_ps"], np.float64))
-    r = np.isfinite(np.asarray(params["ir_delay_ps"], np.float64)).reshape(d.size, -1).sum(axis=1)
-    return 2 * d + 3 * s + 2 * r + (d | s | (r > 0))

@@ -87,6 +87,7 @@ from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM
                          GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
                          RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
+from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .atoms import slot_atoms
 from .refine import Slots, refit_slots
@@ -267,11 +268,6 @@ def _pick_rows(win, a: Slots, b: Slots) -> Slots:
     return Slots(*(select_rows(win, x, y) for x, y in zip(a, b)))
 
 
-def _n_free(fam) -> np.ndarray:
-    """(m,) free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss."""
-    return 2 * (fam != FAM_NONE).sum(axis=1) + (fam == FAM_SSS).sum(axis=1)
-
-
 def _gap_sigma(fam, delay, sigma_eq_ps) -> np.ndarray:
     st = {"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(sigma_eq_ps))}
     return min_gaussian_gap_sigma(st)
@@ -450,7 +446,7 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     # a direct significant where it lies (taken out alone, the others held, the deviance rises
     # by significance_chi2: the rule every kept atom meets)
     # and a fit no worse than the one it replaces beyond the noise (ambiguity_sigma sqrt(2 n))
-    tol = opts.ambiguity_sigma * np.sqrt(2.0 * n_fit)
+    tol = ambiguity_tolerance("noise", opts, n_fit)
     take = np.zeros(cand.size, bool)
     if tried.any():
         r = np.flatnonzero(tried)
@@ -465,14 +461,14 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     phantom = cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]
     ambiguous[phantom] = True
     out = _without_direct(out, phantom[_unseen_direct(ctx, out, phantom)])
-    near = take & (d_best - d_cur <= tol)
-    if near.any():
-        r = np.flatnonzero(near)
-        ax, L = ctx.samples.axis, ctx.values.shape[1]
+    ax, L = ctx.samples.axis, ctx.values.shape[1]
+
+    def split_distance(r):
         split_new = render_params({k: v[r] for k, v in best.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
         split_old = render_params({k: v[r] for k, v in sub.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
-        with np.errstate(invalid="ignore"):
-            ambiguous[cand[r]] = 1.0 - fidelity(split_new, split_old) > opts.ambiguity_split
+        return 1.0 - fidelity(split_new, split_old)
+
+    ambiguous[cand] |= is_ambiguous(d_best - d_cur, tol, split_distance, opts.ambiguity_split, where=take)
     return out._replace(iterations=its), restored, ambiguous
 
 
@@ -496,10 +492,10 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     f[np.arange(m), slot] = FAM_GAUSS
     d[np.arange(m), slot] = peak_ps
     trial = ctx.refit(rows, f, d, la, sub.params, sub.background)
-    log_n = np.log(np.maximum(ctx.fit[rows].sum(axis=1), 1))
-    pen = ctx.opts.search_penalty * log_n
-    j_cur = deviance(ctx, rows, sub.params, sub.background) + pen * _n_free(sub.fam)
-    j_new = deviance(ctx, rows, trial.params, trial.background) + pen * _n_free(trial.fam)
+    log_n, weight = log_samples(ctx.fit[rows].sum(axis=1)), ctx.opts.search_penalty
+    j_cur = penalised(deviance(ctx, rows, sub.params, sub.background), free_parameters(sub.fam, "fixed"), log_n, weight)
+    j_new = penalised(deviance(ctx, rows, trial.params, trial.background), free_parameters(trial.fam, "fixed"), log_n,
+                      weight)
     before = _gap_sigma(sub.fam, sub.delay, ctx.sigma_eq_ps)
     resolved = _gap_sigma(trial.fam, trial.delay, ctx.sigma_eq_ps) >= np.minimum(RESOLVED_SIGMA, before)
     take = (j_new < j_cur) & resolved & (trial.fam[np.arange(m), slot] == FAM_GAUSS)

@@ -29,6 +29,7 @@ from core.model import BACKGROUND_KEY, render_components
 from ..constants import (BACKGROUND_CLIP_SIGMA, BACKGROUND_COUNT_WINDOW_BINS, BACKGROUND_ITERATIONS,
                          BACKGROUND_START_QUANTILE)
 from ..noise import count_deviance, noise_sigma
+from .selection import log_samples
 
 __all__ = ["estimate_background", "background_test", "background_threshold", "background_significant", "offset_alone",
            "light_test"]
@@ -191,7 +192,7 @@ def background_threshold(fit, background_chi2: float | None = None) -> np.ndarra
     n = np.asarray(fit, bool).sum(axis=-1)
     if background_chi2 is not None:
         return np.full(n.shape, float(background_chi2))
-    return np.log(np.maximum(n, 1)).astype(np.float64)
+    return log_samples(n).astype(np.float64)
 
 
 def background_significant(delta_chi2, threshold) -> np.ndarray:

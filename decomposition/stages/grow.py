@@ -45,7 +45,8 @@ from ..constants import (BOUND_TOL, FAM_GAUSS, FAM_NONE, FAM_SSS, GROW_BROAD_FAC
 
 from .countpolish import polish_count_state
 from ..noise import MAD_TO_SIGMA, anscombe_residual, atom_gain, count_deviance, masked_median
-from .objective import _smooth, objective_variance, penalised_objective
+from .objective import _smooth, objective_variance
+from .selection import log_samples, penalised_objective
 from ..model.slots import eval_atoms, parameter_bounds, put, render, take
 
 __all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
@@ -168,7 +169,7 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     least-squares weights (default: all alike); ``spectrum``: the call's correlated noise
     (:attr:`Detection.noise_spectrum`), by which the objectives whiten their residuals."""
     pb, mb = p[idx], mask[idx]
-    log_n = np.log(np.maximum(mb.used.sum(axis=1), 1))
+    log_n = log_samples(mb.used.sum(axis=1))
     wb = None if weights is None else weights[idx]
     alt = polish_candidate(t, pb, mb, alt, np.maximum(s_eff[idx], 1e-300), dic, opts, s_sig[idx], wb)
     s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx], wb, spectrum)

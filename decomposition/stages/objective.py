@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constants import FAM_NONE, FAM_SSS, WHITE_LAG_RATIO
-from ..noise import SpectralNoise, whitened_chi2
-from ..model.slots import render
+from ..constants import WHITE_LAG_RATIO
+from ..noise import SpectralNoise
 
-__all__ = ["objective_variance", "penalised_objective"]
+__all__ = ["objective_variance"]
 
 
 def _smooth(y, width_bins):
@@ -37,27 +36,6 @@ def _per_sample(s2):
     """A noise variance of one value per pixel (n,) or per sample (n, L), as (n, 1) or (n, L)."""
     s2 = np.asarray(s2, np.float64)
     return s2[:, None] if s2.ndim == 1 else s2
-
-
-def _residual_chi2(r, s2):
-    """(n,) the data term of residuals ``r`` (n, L) in the noise ``s2`` of
-    :func:`objective_variance`: sum of r^2 / s2 (``s2`` (n,) or (n, L)), or the residual
-    whitened by the call's spectrum (a :class:`SpectralNoise`)."""
-    if isinstance(s2, SpectralNoise):
-        return whitened_chi2(r, s2.spectrum, s2.variance)
-    return np.einsum("pl,pl->p", r, r / _per_sample(s2))
-
-
-def _data_chi2(t, p, mask, st, s2):
-    """The data term (:func:`_residual_chi2`) of each pixel of a slot state."""
-    return _residual_chi2(mask.residual(p, render(t, st)), s2)
-
-
-def penalised_objective(t, p, mask, st, s2, log_n, opts):
-    """The search's objective of a slot state, per pixel: chi2 + search_penalty * k * ln(n)
-    (``s2`` (n,) the noise variance, or (n, L) that of every sample, ``log_n`` (n,) the log of the fitted samples, k the free
-    parameters of :func:`_n_free`; ``opts`` a :class:`SolverOptions`)."""
-    return _data_chi2(t, p, mask, st, s2) + opts.search_penalty * _n_free(st, opts.shared_sigma) * log_n
 
 
 def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=None):
@@ -85,10 +63,3 @@ def objective_variance(s_eff, significance_sigma=None, weights=None, spectrum=No
         var = np.where(sig > WHITE_LAG_RATIO * s_eff, sig, s_eff) ** 2
     return var if weights is None else var[:, None] / np.maximum(weights, 1e-300)
 
-
-def _n_free(st, shared_sigma):
-    """Free parameters of each pixel's atoms: delay and amplitude each, alpha for the sss,
-    one width per pixel (``shared_sigma``) or per atom."""
-    act = st["fam"] != FAM_NONE
-    n_act = act.sum(axis=1)
-    return 2 * n_act + (st["fam"] == FAM_SSS).sum(axis=1) + (np.minimum(n_act, 1) if shared_sigma else n_act)

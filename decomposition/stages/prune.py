@@ -24,7 +24,8 @@ import numpy as np
 from .candidates import each_block, polish_candidate
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, PRUNE_GAP_SIGMA, PRUNE_ONSET_SIGMA, SEARCH_DEFAULT_ALPHA_PER_PS
 from .grow import grow_block, late_fast_sss, with_gaussian
-from .objective import objective_variance, penalised_objective
+from .objective import objective_variance
+from .selection import log_samples, penalised_objective
 from ..model.slots import put, take
 
 __all__ = ["close_gaussian", "prune_block", "prune_components"]
@@ -63,7 +64,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     if idx.size == 0:
         return out, pruned
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    log_n = np.log(np.maximum(mask.used.sum(axis=1)[idx], 1))
+    log_n = log_samples(mask.used.sum(axis=1)[idx])
     wb = None if weights is None else weights[idx]
     noise = np.maximum(s_eff[idx], 1e-300)
     pb, mb = p[idx], mask[idx]

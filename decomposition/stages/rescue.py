@@ -33,8 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.components import free_parameters
-from ..noise import whitened_chi2
+from ..noise import SpectralNoise
+from .selection import data_term as _chi2, families, free_parameters, log_samples, misfit_beyond_noise, penalised
 
 __all__ = ["RESCUE_OPTIONS", "rescue_rows", "misfit_beyond_noise", "data_term", "penalised_misfit", "take_rescued"]
 
@@ -55,34 +55,22 @@ def rescue_rows(poor: np.ndarray, flat_noise: np.ndarray | None, poisson: bool) 
     return np.flatnonzero(keep)
 
 
-def misfit_beyond_noise(chi2: np.ndarray, n_fit: np.ndarray, z: float) -> np.ndarray:
-    """(n,) bool: a data term ``chi2`` above its expectation for a fit at the noise, ``n_fit``
-    samples, by more than ``z`` standard deviations of a chi-square of ``n_fit`` degrees of
-    freedom: chi2 > n_fit + z sqrt(2 n_fit)."""
-    n = np.asarray(n_fit, np.float64)
-    with np.errstate(invalid="ignore"):
-        return np.asarray(chi2) > n + float(z) * np.sqrt(2.0 * n)
-
-
 def data_term(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray,
               spectrum: np.ndarray | None = None) -> np.ndarray:
     """(n,) the sum over the ``fit`` (n, L) samples of (``residual`` / ``noise``)^2, ``residual``
     (n, L) and ``noise`` (n,) in the same units.  With the call's correlated-noise ``spectrum``
     (:attr:`Detection.noise_spectrum`) the residual whitened by it, as the search reads it
     (:func:`decomposition.noise.whitened_chi2`)."""
-    s = np.maximum(np.asarray(noise, np.float64), 1e-300)
-    r = np.where(fit, residual, 0.0)
-    if spectrum is None:
-        return np.einsum("pl,pl->p", r / s[:, None], r / s[:, None])
-    return whitened_chi2(r, spectrum, s ** 2)
+    var = np.maximum(np.asarray(noise, np.float64), 1e-300) ** 2
+    return _chi2(np.where(fit, residual, 0.0), var if spectrum is None else SpectralNoise(spectrum, var))
 
 
 def penalised_misfit(residual: np.ndarray, fit: np.ndarray, noise: np.ndarray, params: dict,
                      spectrum: np.ndarray | None = None) -> np.ndarray:
-    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.model.components.free_parameters`
+    """(n,) J = :func:`data_term` + k ln n_fit, k :func:`decomposition.stages.selection.free_parameters`
     and n_fit the number of ``fit`` samples."""
-    n_fit = np.maximum(fit.sum(axis=1), 1)
-    return data_term(residual, fit, noise, spectrum) + free_parameters(params) * np.log(n_fit)
+    return penalised(data_term(residual, fit, noise, spectrum), free_parameters(families(params), "shared"),
+                     log_samples(fit.sum(axis=1)))
 
 
 def take_rescued(j_first: np.ndarray, j_second: np.ndarray, margin: float) -> np.ndarray:

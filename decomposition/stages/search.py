@@ -45,15 +45,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.model import IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
-from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, MAD_TO_SIGMA, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
+from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, NARROW_FRACTION, NEAR_SIGMA, RISE_10_50_SIGMA,
                          SEARCH_DEFAULT_ALPHA_PER_PS, SEARCH_DEFAULT_SIGMA_PS, SEARCH_EDGE_GAP_SIGMA, SEARCH_EDGE_LEVEL,
                          SEARCH_IR_GAP_SIGMA, SEARCH_NEAR_DIRECT_CHI2, SEARCH_PEAK_LEVEL, SEARCH_RISE_MIN_BINS,
                          SEARCH_WIDE_FACTOR)
-from .objective import _n_free, _per_sample, _residual_chi2, _smooth, objective_variance, penalised_objective
+from ..noise import noise_sigma
+from .objective import _smooth, objective_variance
+from .selection import (ambiguity_tolerance, data_term, families, free_parameters, log_samples, penalised,
+                        is_ambiguous, penalised_objective, penalty)
 from ..model.refine import refine
 from ..model import components as comp
 from .candidates import polish_candidate
-from ..model.components import classify, free_parameters, render_params
+from ..model.components import classify, render_params
 from .detect import solver_inputs
 from .grow import grow_block
 from .quality import direct_samples, weak_direct
@@ -187,12 +190,6 @@ def _first_peak(ys, level):
     return np.where(is_peak.any(axis=1), np.argmax(is_peak, axis=1), np.argmax(ys, axis=1))
 
 
-def _noise_sigma(y):
-    """Per-pixel white-noise level from the median absolute first difference."""
-    d = np.diff(y, axis=-1)
-    return MAD_TO_SIGMA * np.median(np.abs(d - np.median(d, axis=-1, keepdims=True)), axis=-1) / np.sqrt(2.0)
-
-
 def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                       options: SearchOptions | None = None):
     """Try structured alternative starts for each pixel and keep the lowest penalised objective.
@@ -252,14 +249,14 @@ def structured_search(profiles, params: dict, *, time_bin_ps: float = 2.0, t0_ps
                                  np.where(later, ga, np.nan), n_ir)
 
 
-    s2 = np.maximum(_noise_sigma(y), 1e-12 * np.abs(y).max(axis=1)) ** 2
+    s2 = np.maximum(noise_sigma(y, order=1), 1e-12 * np.abs(y).max(axis=1)) ** 2
     best, best_j, j_solver, which = None, None, None, np.zeros(n, np.int64)
     for k, name in enumerate(STARTS):
         start = starts[name]
         fit, _ = refine(y, start, time_bin_ps=T, t0_ps=t0_ps, max_iter=int(opt.max_iter), shared_sigma=True,
                         sss_after_direct=True, keep_order=True)
         rss = np.sum((y - render_profile(fit, n_bins, T, t0_ps)) ** 2, axis=1)
-        j = rss / s2 + opt.penalty * free_parameters(fit) * np.log(n_bins)
+        j = penalised(rss / s2, free_parameters(families(fit), "shared"), log_samples(n_bins), opt.penalty)
         if best is None:
             best, best_j, j_solver = {key: v.copy() for key, v in fit.items()}, j, j.copy()
             continue
@@ -335,7 +332,7 @@ def _near_direct_chi2(t, residual, mask, st, s2):
     T = t[1] - t[0] if t.size > 1 else 1.0
     near = direct_samples(t, T, d0, np.exp(st["lsig"][rows, k0]), mask.used)
     r = np.where(near, residual, 0.0)
-    return np.einsum("pl,pl->p", r, r / _per_sample(s2)) / np.maximum(near.sum(axis=1), 1)
+    return data_term(r, s2) / np.maximum(near.sum(axis=1), 1)
 
 
 def _split(t, st):
@@ -472,7 +469,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         return out, start, np.zeros(n, bool), ambiguous
     s2 = objective_variance(np.maximum(s_eff, 1e-300), None, weights)
     nfit = np.maximum(mask.used.sum(axis=1), 1)
-    log_l = np.log(nfit)
+    log_l = log_samples(nfit)
 
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
@@ -480,8 +477,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     r0 = mask.residual(p, render(t, base))
     # read in the call's correlated noise where it has one, as the objectives below (pink: in
     # sample variances nearly every pixel's data term is above its expectation, and in doubt)
-    chi0 = _residual_chi2(r0, s2 if noise_spectrum is None
-                          else objective_variance(np.maximum(s_eff, 1e-300), spectrum=noise_spectrum))
+    chi0 = data_term(r0, s2 if noise_spectrum is None
+                       else objective_variance(np.maximum(s_eff, 1e-300), spectrum=noise_spectrum))
 
     # Pixels in doubt (see the docstring).
 
@@ -612,7 +609,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
         # later Gaussians are the detection's, and an inter-reflection the detection missed
         # (absorbed by a wide direct or by an sss hump) is none of them; without it the right
         # split loses to a wrong one that spreads over the missing echo
-        chi = js - np.stack([opts.search_penalty * _n_free(c, opts.shared_sigma) * log_l[idx] for c in cand])
+        widths = "shared" if opts.shared_sigma else "per_atom"
+        chi = js - np.stack([penalty(free_parameters(c["fam"], widths), log_l[idx], opts.search_penalty) for c in cand])
         chi_best = chi[np.argmin(js, axis=0), np.arange(idx.size)]
         misfit = chi_best > opts.search_doubt_chi2 * nfit[idx]
         if measured_noise is not None:
@@ -657,12 +655,11 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     j_best = js[best, np.arange(idx.size)]
     split_best = _split(t, chosen)
     amb = np.zeros(idx.size, bool)
+    tol = ambiguity_tolerance("evidence", opts)
     for k, c in enumerate(cand):
-        near = (js[k] - j_best <= opts.ambiguity_chi2) & (best != k)
-        if near.any():
-            r = np.nonzero(near)[0]
-            d = _split_distance(_split(t, take(c, r)), [x[r] for x in split_best])
-            amb[r] |= d > opts.ambiguity_split
+        amb |= is_ambiguous(js[k] - j_best, tol,
+                            lambda r, c=c: _split_distance(_split(t, take(c, r)), [x[r] for x in split_best]),
+                            opts.ambiguity_split, where=best != k)
     if not opts.sss_alone:
         amb |= ~(chosen["fam"] == FAM_GAUSS).any(axis=1) & (chosen["fam"] == FAM_SSS).any(axis=1)
     ambiguous[idx] = amb
