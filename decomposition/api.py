@@ -33,7 +33,8 @@ from .stages.prune import prune_components
 from .stages.search import STAGE_STARTS, search_components
 from .model.slots import shape_bounds
 from .constants import RESCUE_MISFIT_Z
-from .stages.rescue import RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows, take_rescued
+from .stages.rescue import RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows, take_rescued
+from .stages.selection import misfit_beyond_noise
 from .response.resolve import resolve_response, response_record, spike_neighbour_ratio
 from .response.path import decompose_with_response
 

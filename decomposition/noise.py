@@ -195,7 +195,7 @@ class SpectralNoise:
     """Correlated noise: the call's ``spectrum`` (L // 2 + 1,) per unit variance
     (:func:`residual_spectrum`; :attr:`decomposition.stages.detect.Detection.noise_spectrum`) and each
     pixel's ``variance`` (n,).  A data term in it is the residual whitened by the spectrum
-    (:func:`whitened_chi2`, :func:`decomposition.stages.search.penalised_objective`)."""
+    (:func:`whitened_chi2`, :func:`decomposition.stages.selection.penalised_objective`)."""
 
     spectrum: np.ndarray
     variance: np.ndarray

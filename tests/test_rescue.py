@@ -10,7 +10,8 @@ from decomposition.flags import POOR_FIT
 from decomposition.model.fidelity import fidelity
 from decomposition.constants import RESCUE_MISFIT_Z
 from decomposition.stages.selection import families, free_parameters
-from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, misfit_beyond_noise, penalised_misfit, rescue_rows,
+from decomposition.stages.selection import misfit_beyond_noise
+from decomposition.stages.rescue import (RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows,
                                          take_rescued)
 from decomposition.evaluation.synthetic import make_profiles
 

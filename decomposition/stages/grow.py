@@ -10,7 +10,7 @@ residual itself so that correlated noise does not pass for a component) squared 
 GROW_TRIAL_FRACTION x ``significance_chi2`` -- or whose data term exceeds ``search_doubt_chi2``
 times its expected value, puts a Gaussian at that residual bump, polishes all atoms
 with the solver's compiled LM, and keeps the grown answer where it lowers the search's
-penalised objective (:func:`decomposition.stages.search.penalised_objective`) and every pair of
+penalised objective (:func:`decomposition.stages.selection.penalised_objective`) and every pair of
 Gaussians stays resolved (``RESOLVED_SIGMA`` widths apart, or no closer than before: a
 Gaussian that slid onto the direct splits a peak, it is not a component).
 

@@ -1,12 +1,9 @@
-"""The penalised objective the search, grow and prune stages compare fits by.
+"""The noise a penalised objective reads its data term in, and the smoothing its tests share.
 
-Each of those stages scores a pixel's alternative slot states by the same measure,
-
-    J = chi2 + search_penalty * k * ln(n),
-
-chi2 the data term of the residual in the noise of :func:`objective_variance` (per pixel, per
-sample, or whitened by the call's noise spectrum), k the free parameters of the pixel's atoms
-and n its fitted samples.  One home for that measure keeps the three stages comparing alike.
+The search, grow and prune stages score a pixel's alternative slot states by
+J = chi2 + search_penalty * k * ln(n) (:mod:`decomposition.stages.selection`, the one home of
+that measure); :func:`objective_variance` says which noise variance chi2 divides by: per
+pixel, per sample, or the call's noise spectrum (pink noise).
 """
 from __future__ import annotations
 

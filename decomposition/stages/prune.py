@@ -8,7 +8,7 @@ less than ``PRUNE_GAP_SIGMA`` widths after its direct, drops that Gaussian and p
 with the solver's compiled LM twice: from the other atoms as they are (the sss onset moves back
 into the gap) and with the sss onset moved to ``PRUNE_ONSET_SIGMA`` widths after the direct (an
 onset too late for the polish to bring back); the lowest penalised objective
-(:func:`decomposition.stages.objective.penalised_objective`, the search stage's) of the three is kept.  A
+(:func:`decomposition.stages.selection.penalised_objective`, the search stage's) of the three is kept.  A
 true close inter-reflection stays: its data term pays for its three parameters.
 
 A third trial takes the forward step (:func:`decomposition.stages.grow.grow_block`) after the moved one

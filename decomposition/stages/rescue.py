@@ -4,7 +4,7 @@ A pixel flagged POOR_FIT at the end of the Gaussian path misfits its data by mor
 ``poor_fit`` times its noise: a better split exists, and the path that led here did not find
 it.  So does a pixel whose data term (:func:`data_term`, in the noise the first pass weighed it
 with) lies more than RESCUE_MISFIT_Z standard deviations of a chi-square above its expectation
-(:func:`misfit_beyond_noise`): POOR_FIT's bar, a residual RMS of 3 noise sigmas, forgives a
+(:func:`decomposition.stages.selection.misfit_beyond_noise`): POOR_FIT's bar, a residual RMS of 3 noise sigmas, forgives a
 wide direct that took in an echo, unflagged (``tests/test_rescue.py`` holds one).
 Which path finds it is a matter of where the detection started: the same profiles decomposed without the detection's
 Gauss-Southwell restart (``multistart=False``, :data:`RESCUE_OPTIONS`) end elsewhere, and where
@@ -34,9 +34,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..noise import SpectralNoise
-from .selection import data_term as _chi2, families, free_parameters, log_samples, misfit_beyond_noise, penalised
+from .selection import data_term as _chi2, families, free_parameters, log_samples, penalised
 
-__all__ = ["RESCUE_OPTIONS", "rescue_rows", "misfit_beyond_noise", "data_term", "penalised_misfit", "take_rescued"]
+__all__ = ["RESCUE_OPTIONS", "rescue_rows", "data_term", "penalised_misfit", "take_rescued"]
 
 #: the options of the second pass (besides ``rescue=False``: one second pass only)
 RESCUE_OPTIONS = {"multistart": False}
