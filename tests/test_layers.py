@@ -31,6 +31,7 @@ its subpackages and top-level modules the same way, bottom up::
     store        the chunked store pipeline above the solver: the only unit that reads cube
                  stores (reconstruction)
     evaluation   synthetic scenes, reference fits, metrics: no unit of the solver imports it
+    phasor       phasor coordinates of binned decays: NumPy alone, no unit of the solver
 
 The module graph of ``decomposition`` (function-level imports included) must be acyclic, and
 imports of ``decomposition`` modules inside functions are kept to the lazy loads of ``store``
@@ -75,6 +76,7 @@ DECOMPOSITION = {
     "warmup": {"api", "kernels"},
     "store": _SHARED | {"__init__", "api", "methods", "response", "warmup"},
     "evaluation": {"constants", "noise", "model"},
+    "phasor": set(),
 }
 #: the project packages (besides core) a unit of decomposition may import
 DECOMPOSITION_OUTSIDE = {"store": {"reconstruction"}}
