@@ -242,6 +242,35 @@ def test_the_scan_sees_the_known_edges():
     assert edges["core"] == {}
 
 
+#: third-party packages only the napari plugin (streaklab/napari/) may import: the core install
+#: needs none of them
+PLUGIN_ONLY = {"napari", "phasorpy", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6", "magicgui"}
+
+
+def plugin_only_imports(root: Path, packages) -> list[str]:
+    """"path:line imports name" for every import of a PLUGIN_ONLY package outside streaklab/napari."""
+    bad = []
+    for pkg in packages:
+        for path in sorted((root / pkg).rglob("*.py")):
+            rel = path.relative_to(root)
+            if rel.parts[:2] == ("streaklab", "napari"):
+                continue
+            is_package = path.name == "__init__.py"
+            parts = rel.with_suffix("").parts
+            module = ".".join(parts[:-1] if is_package else parts)
+            for line, name in imported_modules(path.read_text(encoding="utf-8"), module, is_package=is_package):
+                if name and name.split(".")[0] in PLUGIN_ONLY:
+                    bad.append(f"{rel}:{line} imports {name}")
+    return bad
+
+
+def test_only_the_napari_plugin_imports_napari_qt_or_phasorpy(tmp_path):
+    assert plugin_only_imports(ROOT, project_packages()) == []
+    root = _tree(tmp_path, {"decomposition/__init__.py": "", "decomposition/p.py": "def f():\n    import phasorpy.phasor\n",
+                            "streaklab/napari/w.py": "import napari\nfrom qtpy import QtWidgets\n"})
+    assert plugin_only_imports(root, ["decomposition", "streaklab"]) == ["decomposition/p.py:2 imports phasorpy.phasor"]
+
+
 def test_every_decomposition_module_has_a_unit():
     units = {unit_of(m) for m in module_imports(ROOT, "decomposition")}
     assert units == set(DECOMPOSITION), "add the unit to DECOMPOSITION (and the module docstring)"
