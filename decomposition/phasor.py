@@ -178,7 +178,7 @@ def phasor(profiles, time_bin_ps: float, *, harmonic: int = 1, axis: int = -1, o
 
     with np.errstate(divide="ignore", invalid="ignore"):
         z = (sums[:, 1] + 1j * sums[:, 2]) / sums[:, 0]
-    z[sums[:, 0] == 0] = np.nan
+    z[sums[:, 0] == 0] = complex(np.nan, np.nan)  # both coordinates, not nan + 0j
     omega = 2.0 * np.pi * h / (n_bins * dt)
     if bin_correction:
         half = omega * dt / 2.0

@@ -175,12 +175,13 @@ def test_window_frequency_and_semicircle_ticks():
 # ---------------------------------------------------------------------------------------------
 # empty pixels and bad input
 # ---------------------------------------------------------------------------------------------
-def test_an_empty_pixel_is_nan_without_a_warning():
+@pytest.mark.parametrize("bin_correction", [True, False])
+def test_an_empty_pixel_is_nan_without_a_warning(bin_correction):
     x = np.zeros((2, 3, 32), dtype=np.uint16)
     x[0, 0] = np.round(binned_exponential(20.0, 2.0, 32))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        g, s = phasor(x, 2.0)
+        g, s = phasor(x, 2.0, bin_correction=bin_correction)
         tau_phase, tau_mod = phasor_lifetime(g, s, window_frequency_per_ps(32, 2.0))
     assert np.isfinite(g[0, 0]) and np.isfinite(s[0, 0])
     assert np.isnan(g).sum() == 5 and np.isnan(s).sum() == 5
