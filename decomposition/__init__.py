@@ -23,6 +23,8 @@ The package, bottom up (``tests/test_layers.py`` holds the table of who may impo
 ``evaluation/``
     synthetic scenes, reference fits and accuracy metrics for benchmarks and tests (the solver
     never imports it)
+``phasor``
+    phasor coordinates (g, s) of binned decays for a phasor plot (NumPy alone; nothing imports it)
 
 :func:`decompose` and :class:`DecompositionResult` load the solver on first use, so importing a
 lower subpackage alone (the kernels, the evaluation code) does not load the stages.

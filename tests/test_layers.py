@@ -31,6 +31,7 @@ its subpackages and top-level modules the same way, bottom up::
     store        the chunked store pipeline above the solver: the only unit that reads cube
                  stores (reconstruction)
     evaluation   synthetic scenes, reference fits, metrics: no unit of the solver imports it
+    phasor       phasor coordinates of binned decays: NumPy alone, no unit of the solver
 
 The module graph of ``decomposition`` (function-level imports included) must be acyclic, and
 imports of ``decomposition`` modules inside functions are kept to the lazy loads of ``store``
@@ -75,6 +76,7 @@ DECOMPOSITION = {
     "warmup": {"api", "kernels"},
     "store": _SHARED | {"__init__", "api", "methods", "response", "warmup"},
     "evaluation": {"constants", "noise", "model"},
+    "phasor": set(),
 }
 #: the project packages (besides core) a unit of decomposition may import
 DECOMPOSITION_OUTSIDE = {"store": {"reconstruction"}}
@@ -238,6 +240,35 @@ def test_the_scan_sees_the_known_edges():
     assert "reconstruction" in edges["decomposition"]  # the pipeline opens cube stores (function level)
     assert "decomposition" in edges["streaklab"]
     assert edges["core"] == {}
+
+
+#: third-party packages only the napari plugin (streaklab/napari/) may import: the core install
+#: needs none of them
+PLUGIN_ONLY = {"napari", "phasorpy", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6", "magicgui"}
+
+
+def plugin_only_imports(root: Path, packages) -> list[str]:
+    """"path:line imports name" for every import of a PLUGIN_ONLY package outside streaklab/napari."""
+    bad = []
+    for pkg in packages:
+        for path in sorted((root / pkg).rglob("*.py")):
+            rel = path.relative_to(root)
+            if rel.parts[:2] == ("streaklab", "napari"):
+                continue
+            is_package = path.name == "__init__.py"
+            parts = rel.with_suffix("").parts
+            module = ".".join(parts[:-1] if is_package else parts)
+            for line, name in imported_modules(path.read_text(encoding="utf-8"), module, is_package=is_package):
+                if name and name.split(".")[0] in PLUGIN_ONLY:
+                    bad.append(f"{rel}:{line} imports {name}")
+    return bad
+
+
+def test_only_the_napari_plugin_imports_napari_qt_or_phasorpy(tmp_path):
+    assert plugin_only_imports(ROOT, project_packages()) == []
+    root = _tree(tmp_path, {"decomposition/__init__.py": "", "decomposition/p.py": "def f():\n    import phasorpy.phasor\n",
+                            "streaklab/napari/w.py": "import napari\nfrom qtpy import QtWidgets\n"})
+    assert plugin_only_imports(root, ["decomposition", "streaklab"]) == ["decomposition/p.py:2 imports phasorpy.phasor"]
 
 
 def test_every_decomposition_module_has_a_unit():
