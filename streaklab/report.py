@@ -201,7 +201,8 @@ def measured_profiles(store, ys, xs, it=None):
 
     Read from the source named in the store's attributes (only the region, and only bin ``it``
     if given: a frame of a big cube never loads the cube); if the source has moved, rebuilt from
-    the stored components plus the residual when those were written."""
+    the stored components plus the background (where the store has one) plus the residual when
+    those were written."""
     tsel = slice(None) if it is None else int(it)
     src = store.attrs.get("source", {})
     path = src.get("path")
@@ -219,8 +220,19 @@ def measured_profiles(store, ys, xs, it=None):
     if store.write_components:
         c = _components_at(store, ys, xs, it)
         ir = np.asarray(c["ir"]).sum(axis=-2 if it is None else -1)  # over the slots r
-        return np.asarray(c["direct"], np.float64) + c["sss"] + ir + c["residual"]
+        total = np.asarray(c["direct"], np.float64) + c["sss"] + ir + c["residual"]
+        b = _background(store, ys, xs)
+        return total + (b if it is not None else b[..., None])
     return None
+
+
+def _background(store, ys, xs) -> np.ndarray:
+    """The constant offset of a region's pixels (signal units), 0 where none was found (NaN) or
+    the store has no ``background``: the part of the fit that is no rendered component."""
+    if "background" not in store.param_keys:
+        return np.zeros(np.shape(store.group["valid"][ys, xs]))
+    b = np.asarray(store.group["background"][ys, xs], np.float64)
+    return np.where(np.isfinite(b), b, 0.0)
 
 
 def cell_edges(centres) -> np.ndarray:
@@ -565,10 +577,7 @@ def pixel_profiles(store, y: int, x: int) -> dict:
     direct = np.asarray(c["direct"][0, 0], np.float64)
     sss = np.asarray(c["sss"][0, 0], np.float64)
     ir = np.asarray(c["ir"][0, 0], np.float64).reshape(store.n_ir, t.size)
-    background = np.zeros(t.size)
-    if "background" in store.param_keys:
-        b = float(store.group["background"][y, x])
-        background[:] = b if np.isfinite(b) else 0.0
+    background = np.full(t.size, float(_background(store, ys, xs)[0, 0]))
     fit = direct + sss + ir.sum(axis=0) + background
     measured = None if meas is None else np.asarray(meas[0, 0], np.float64)
     if c["residual"] is not None:

@@ -305,3 +305,21 @@ def test_the_core_packages_and_the_cli_import_and_run_without_the_plugins_depend
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_a_stored_background_is_part_of_the_fit_and_of_the_measured_profile_rebuilt_without_the_cube(tmp_path):
+    from decomposition.store.resultstore import CORE_MAP_KEYS
+
+    store = create_result_store(tmp_path / "res.zarr", shape=(1, 2, 8), chunks=(1, 2), n_ir=1, time_bin_ps=2.0,
+                                t0_ps=2.0, param_keys=CORE_MAP_KEYS + ("background",))
+    chunk = _chunk(store, 0, 0, 1.0)                  # direct 1, sss 0, ir 0, residual 0 ...
+    chunk["params"]["background"] = np.array([[2.0, np.nan]])
+    chunk["residual"][:] = 0.5
+    store.write_chunk(0, 0, chunk)
+    with_b, without = pixel_view(store.path, 0, 0), pixel_view(store.path, 0, 1)
+    np.testing.assert_array_equal(with_b["background"], 2.0)
+    np.testing.assert_array_equal(with_b["fit"], 3.0)
+    np.testing.assert_array_equal(with_b["measured"], 3.5)          # no source cube: fit + residual
+    np.testing.assert_array_equal(without["background"], 0.0)       # NaN: no background found
+    np.testing.assert_array_equal(without["fit"], 1.0)
+    np.testing.assert_array_equal(without["measured"], 1.5)
