@@ -23,9 +23,9 @@ def add_store(viewer, path) -> list:
 
 def add_maps(viewer, path, names) -> list:
     """Add maps ``names`` of the result store at ``path`` (:func:`.layers.map_layer`) as layers."""
-    from .layers import _open_result
+    from .layers import open_result
 
-    store = _open_result(str(path))
+    store = open_result(str(path))
     done = store.done_mask()
     return _add(viewer, [map_layer(store, name, done=done) for name in names])
 

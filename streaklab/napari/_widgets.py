@@ -13,7 +13,7 @@ from qtpy.QtWidgets import (QAbstractItemView, QComboBox, QLabel, QListWidget, Q
                             QWidget)
 
 from ._viewer import add_maps, any_live, pixel_at, refresh_layers, result_paths
-from .layers import _open_result, map_names, pixel_view
+from .layers import open_result, map_names, pixel_view
 
 __all__ = ["PixelInspector", "MapsWidget", "REFRESH_MS"]
 
@@ -147,7 +147,7 @@ class MapsWidget(QWidget):
     def _list_maps(self, path):
         self.names.clear()
         if path:
-            self.names.addItems(map_names(_open_result(path)))
+            self.names.addItems(map_names(open_result(path)))
 
     def add_selected(self) -> list:
         """Add the selected maps as layers; returns them."""

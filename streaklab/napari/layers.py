@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["STORE_KINDS", "store_kind", "store_layers", "map_names", "map_layer", "pixel_view",
+__all__ = ["STORE_KINDS", "store_kind", "store_layers", "open_result", "map_names", "map_layer", "pixel_view",
            "refresh_layer", "is_live", "SIGNAL_MAPS"]
 
 #: the kinds of store the reader opens (group attribute ``streaklab_kind``)
@@ -193,14 +193,15 @@ def _cube_layers(path: str) -> list[tuple]:
     return [(data, _kwargs(axes, f"{Path(cube.path).name}: cube", meta), "image")]
 
 
-def _open_result(path: str):
+def open_result(path: str):
+    """The result store at ``path``, opened read-only (:func:`~decomposition.store.resultstore.open_result_store`)."""
     from decomposition.store.resultstore import open_result_store
 
     return open_result_store(path)
 
 
 def _result_layers(path: str) -> list[tuple]:
-    store = _open_result(path)
+    store = open_result(path)
     done = store.done_mask()
     layers = []
     if store.write_components:
@@ -264,7 +265,7 @@ def map_layer(store, name: str, *, done: np.ndarray | None = None) -> tuple:
 
     ``store`` is an opened :class:`~decomposition.store.resultstore.ResultStore` or its path.
     Raises ValueError naming the maps there are when ``name`` is none of :func:`map_names`."""
-    store = _open_result(store) if isinstance(store, (str, Path)) else store
+    store = open_result(store) if isinstance(store, (str, Path)) else store
     if name not in map_names(store):
         raise ValueError(f"{store.path} has no map {name!r}; its maps are {', '.join(map_names(store))}")
     done = store.done_mask() if done is None else done
@@ -321,7 +322,7 @@ def refresh_layer(metadata: dict) -> tuple | None:
         if np.array_equal(done, metadata["done"]) or name != "streaks":
             return None
         return _run_streaks(run, done)
-    store = _open_result(path)
+    store = open_result(path)
     done = store.done_mask()
     if np.array_equal(done, metadata["done"]):
         return None
@@ -351,7 +352,7 @@ def pixel_view(store, y: int, x: int) -> dict:
     """
     from streaklab.report import flag_names, pixel_profiles, pixel_title
 
-    store = _open_result(store) if isinstance(store, (str, Path)) else store
+    store = open_result(store) if isinstance(store, (str, Path)) else store
     ny, nx, nt = store.shape
     y, x = int(y), int(x)
     if not (0 <= y < ny and 0 <= x < nx):
