@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["make_report", "choose_time_ps", "choose_pixels", "summary_text", "measured_profiles", "frames_figure",
-           "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "pixel_title",
+           "maps_figure", "profiles_figure", "colour_limits", "cell_edges", "flag_text", "flag_names",
+           "pixel_title", "pixel_profiles",
            "coordinate_text", "coordinate_decimals", "signal_extent", "truth_of",
            "rendered_components", "response_text", "RENDER_BLOCK_PIXELS"]
 
@@ -200,7 +201,8 @@ def measured_profiles(store, ys, xs, it=None):
 
     Read from the source named in the store's attributes (only the region, and only bin ``it``
     if given: a frame of a big cube never loads the cube); if the source has moved, rebuilt from
-    the stored components plus the residual when those were written."""
+    the stored components plus the background (where the store has one) plus the residual when
+    those were written."""
     tsel = slice(None) if it is None else int(it)
     src = store.attrs.get("source", {})
     path = src.get("path")
@@ -218,8 +220,19 @@ def measured_profiles(store, ys, xs, it=None):
     if store.write_components:
         c = _components_at(store, ys, xs, it)
         ir = np.asarray(c["ir"]).sum(axis=-2 if it is None else -1)  # over the slots r
-        return np.asarray(c["direct"], np.float64) + c["sss"] + ir + c["residual"]
+        total = np.asarray(c["direct"], np.float64) + c["sss"] + ir + c["residual"]
+        b = _background(store, ys, xs)
+        return total + (b if it is not None else b[..., None])
     return None
+
+
+def _background(store, ys, xs) -> np.ndarray:
+    """The constant offset of a region's pixels (signal units), 0 where none was found (NaN) or
+    the store has no ``background``: the part of the fit that is no rendered component."""
+    if "background" not in store.param_keys:
+        return np.zeros(np.shape(store.group["valid"][ys, xs]))
+    b = np.asarray(store.group["background"][ys, xs], np.float64)
+    return np.where(np.isfinite(b), b, 0.0)
 
 
 def cell_edges(centres) -> np.ndarray:
@@ -434,9 +447,10 @@ def flag_help() -> dict:
     return {**{flag.name: text for flag, text in FLAG_HELP.items()}, "OUT_OF_RANGE": OUT_OF_RANGE_HELP}
 
 
-def flag_text(bits: int) -> str:
-    """Quality flags of a result store's pixel by name (the solver's decomposition.FLAG_NAMES and
-    the store's own OUT_OF_RANGE), e.g. "POOR_FIT, SPIKE"; "none" for 0."""
+def flag_names(bits: int) -> list[str]:
+    """Quality flags of a result store's pixel by name, lowest bit first (the solver's
+    decomposition.FLAG_NAMES and the store's own OUT_OF_RANGE); bits no table names as one entry
+    "bits 0x..."; [] for 0."""
     bits = int(bits)
     table = _flag_table()
     names = [name for bit, name in sorted(table.items()) if bits & bit]
@@ -445,7 +459,13 @@ def flag_text(bits: int) -> str:
         known |= bit
     if bits & ~known:
         names.append(f"bits {bits & ~known:#x}")
-    return ", ".join(names) if names else "none"
+    return names
+
+
+def flag_text(bits: int) -> str:
+    """Quality flags of a result store's pixel by name (:func:`flag_names`), e.g. "POOR_FIT, SPIKE";
+    "none" for 0."""
+    return ", ".join(flag_names(bits)) or "none"
 
 
 def coordinate_decimals(values) -> int:
@@ -537,6 +557,37 @@ def signal_extent(t, profiles, *, fraction=PROFILE_SIGNAL_FRACTION, margin=PROFI
     return max(whole[0], lo - pad), min(whole[1], hi + pad)
 
 
+def pixel_profiles(store, y: int, x: int) -> dict:
+    """One pixel's time profiles as the profile figures draw them.
+
+    Returns
+    -------
+    dict of float64 arrays: ``t`` (nt,) bin centres in ps; ``measured`` (nt,) the decomposed input
+    (None when neither the source nor the stored components give it, :func:`measured_profiles`);
+    ``direct``, ``sss`` (nt,) and ``ir`` (R, nt) the fitted components (stored, or rendered from the
+    parameters, :func:`_components_at`); ``background`` (nt,) the constant offset where the store
+    has one (zeros otherwise); ``fit`` (nt,) their sum; ``residual`` (nt,) the stored residual, or
+    measured - fit when the components were not stored (None without a measured profile).
+    Signal units of the store.
+    """
+    ys, xs = slice(y, y + 1), slice(x, x + 1)
+    c = _components_at(store, ys, xs)
+    meas = measured_profiles(store, ys, xs)
+    t = store.time_axis_ps()
+    direct = np.asarray(c["direct"][0, 0], np.float64)
+    sss = np.asarray(c["sss"][0, 0], np.float64)
+    ir = np.asarray(c["ir"][0, 0], np.float64).reshape(store.n_ir, t.size)
+    background = np.full(t.size, float(_background(store, ys, xs)[0, 0]))
+    fit = direct + sss + ir.sum(axis=0) + background
+    measured = None if meas is None else np.asarray(meas[0, 0], np.float64)
+    if c["residual"] is not None:
+        residual = np.asarray(c["residual"][0, 0], np.float64)
+    else:
+        residual = None if measured is None else measured - fit
+    return {"t": t, "measured": measured, "direct": direct, "sss": sss, "ir": ir, "background": background,
+            "fit": fit, "residual": residual}
+
+
 def profiles_figure(store, pixels):
     """The time-profiles figure (matplotlib Figure) of ``pixels`` [(y index, x index), ...].
 
@@ -551,26 +602,22 @@ def profiles_figure(store, pixels):
     fig, axes = plt.subplots(len(pixels), 1, figsize=(10.5, 2.6 * len(pixels)), squeeze=False, sharex=True)
     drawn = []
     for ax, (y, x) in zip(axes[:, 0], pixels):
-        ys, xs = slice(y, y + 1), slice(x, x + 1)
-        c = _components_at(store, ys, xs)
-        meas = measured_profiles(store, ys, xs)
-        if meas is not None:
-            ax.plot(t, meas[0, 0], color="0.55", lw=0, marker=".", ms=3, label="measured")
-        ax.plot(t, c["direct"][0, 0], color="tab:blue", lw=1.4, label="direct")
-        ax.plot(t, c["sss"][0, 0], color="tab:orange", lw=1.4, label="subsurface")
-        drawn += [c["direct"][0, 0], c["sss"][0, 0]]
+        p = pixel_profiles(store, y, x)
+        if p["measured"] is not None:
+            ax.plot(t, p["measured"], color="0.55", lw=0, marker=".", ms=3, label="measured")
+        ax.plot(t, p["direct"], color="tab:blue", lw=1.4, label="direct")
+        ax.plot(t, p["sss"], color="tab:orange", lw=1.4, label="subsurface")
+        drawn += [p["direct"], p["sss"]]
         colours = {"direct": "tab:blue", "subsurface": "tab:orange"}
         for r in range(store.n_ir):
-            prof = np.asarray(c["ir"][0, 0, r])
+            prof = p["ir"][r]
             colours[f"inter-reflection r{r + 2}"] = f"C{2 + r}"
             if np.isfinite(prof).any() and np.nanmax(np.abs(prof)) > 0:
                 ax.plot(t, prof, lw=1.2, color=f"C{2 + r}", label=f"inter-reflection r{r + 2}")
                 drawn.append(prof)
-        fit = c["direct"][0, 0] + c["sss"][0, 0] + np.asarray(c["ir"][0, 0]).sum(axis=0)
-        ax.plot(t, fit, color="k", lw=0.8, ls=":", label="sum of components")
-        resid = c["residual"][0, 0] if c["residual"] is not None else (None if meas is None else meas[0, 0] - fit)
-        if resid is not None:
-            ax.plot(t, resid, color="tab:red", lw=0.8, ls="--", label="residual")
+        ax.plot(t, p["fit"], color="k", lw=0.8, ls=":", label="sum of components")
+        if p["residual"] is not None:
+            ax.plot(t, p["residual"], color="tab:red", lw=0.8, ls="--", label="residual")
         if truth is not None:
             for r, (name, prof) in enumerate(_truth_profiles(truth, y, x).items()):
                 if np.isfinite(prof).any() and np.nanmax(np.abs(prof)) > 0:

@@ -146,8 +146,9 @@ class PhasorWidget(QWidget):
 
     Parameters
     ----------
-    viewer : napari.Viewer or napari.components.ViewerModel
-        The viewer whose layers it reads and writes.
+    napari_viewer : napari.Viewer or napari.components.ViewerModel
+        The viewer whose layers it reads and writes (napari passes it by this name when the
+        widget is opened from the Plugins menu).
 
     Attributes
     ----------
@@ -157,9 +158,9 @@ class PhasorWidget(QWidget):
         The pixels of the last plot selection.
     """
 
-    def __init__(self, viewer, parent=None):
+    def __init__(self, napari_viewer, parent=None):
         super().__init__(parent)
-        self.viewer = viewer
+        self.viewer = napari_viewer
         self.g = self.s = self.selection = None
         self.highlighted = (np.empty(0), np.empty(0))
         self._image = None
