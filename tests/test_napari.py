@@ -60,7 +60,7 @@ def test_the_manifest_passes_npe2_validate_with_its_imports():
     pm = PluginManifest.from_file(MANIFEST)
     (reader,) = pm.contributions.readers
     assert reader.accepts_directories and reader.filename_patterns == ["*.zarr"]
-    assert {w.display_name for w in pm.contributions.widgets} == {"Pixel inspector", "Result maps"}
+    assert {w.display_name for w in pm.contributions.widgets} == {"Pixel inspector", "Result maps", "Phasor plot"}
 
 
 def test_the_reader_declines_everything_but_streaklab_run_cube_and_result_stores(tmp_path, demo):

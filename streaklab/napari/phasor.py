@@ -207,7 +207,7 @@ class PhasorWidget(QWidget):
         self.compute_button.clicked.connect(lambda: self.compute())
         self.highlight_button.clicked.connect(lambda: self.highlight_layer())
         self.mode.currentIndexChanged.connect(lambda _: self._arm_selector())
-        for event in (viewer.layers.events.inserted, viewer.layers.events.removed):
+        for event in (napari_viewer.layers.events.inserted, napari_viewer.layers.events.removed):
             event.connect(lambda _=None: self._refresh_layers())
         self.canvas.mpl_connect("button_press_event", self._on_press)
         self.canvas.mpl_connect("button_release_event", self._on_release)
