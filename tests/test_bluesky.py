@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.rig import run_capture
 from acquisition.runstore import open_run
 from acquisition.session import CaptureError, CaptureSession
 
@@ -44,9 +43,12 @@ def assert_same_arrays_but_timestamps(a, b):
 
 @pytest.fixture
 def lab_run(tmp_path):
-    """(config path, reference store by ``streaklab capture``'s session, new store path)."""
-    cfg = write_config(tmp_path / "scan.toml", n_lines=N_LINES)
-    assert run_capture(cfg, tmp_path / "reference.zarr", simulate=True).status == "complete"
+    """(config path, reference store written by ``streaklab capture --simulate``, new store path)."""
+    from streaklab.cli import main
+
+    write_config(tmp_path / "scan.toml", n_lines=N_LINES)
+    assert main(["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(tmp_path / "reference.zarr"),
+                 "--simulate", "--quiet"]) == 0
     return tmp_path / "scan.toml", tmp_path / "reference.zarr", tmp_path / "bluesky.zarr"
 
 
