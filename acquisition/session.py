@@ -414,6 +414,11 @@ class CaptureSession:
             raise CaptureError(f"{refused} (the camera has {shape[1]} streak rows)")
 
     def take_line(self, line: int) -> None:
+        """Acquire scan line ``line`` into the store: move, settle, frames, sync check, durable write.
+
+        A device fault restarts the line from the mirror move (see :meth:`_attempt`); the
+        one home of the line logic, for :meth:`run` and for ``streaklab.bluesky``.
+        """
         angle = float(self.config.angles_deg[line])
         settle_s = self.config["scan"]["settle_timeout_s"]
         n = self.config["camera"]["frames_per_line"]
@@ -460,19 +465,11 @@ class CaptureSession:
             The session could not start (store, config mismatch, calibration).
         """
         try:
-            ids = self.check_devices()
-            self.open_store()
-            entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
-                     "lines_done_at_start": self.lines_done(), **self.session_info}
-            with _ctrl_c_held():
-                self.store.add_session(entry)
-                self._entry = len(self.store.group.attrs.get("sessions", [])) - 1
-            if self.on_start is not None:
-                self.on_start(self)
+            ids = self.begin()
             status = "interrupted"
-            todo = [int(i) for i in np.flatnonzero(~self.store.done_mask())]
+            todo = self.lines_todo()
             if todo and not self.stop_event.is_set():
-                self._attempt("laser-sync output on", lambda: self.sync.set_output(True))
+                self.output_on()
                 for line in todo:
                     if self.stop_event.is_set():
                         break
@@ -481,13 +478,13 @@ class CaptureSession:
                         self.on_line(self, line)
             if self.store.done_mask().all():
                 status = "complete"
-            self._end_entry(status)
+            self.end(status)
             return SessionResult(status, self.lines_done(), self.n_lines, list(self.acquired), dict(ids))
         except CaptureFailed as exc:
-            self._end_entry("failed", error=str(exc))
+            self.end("failed", error=str(exc))
             raise
         except KeyboardInterrupt:               # the current line is given up; the finished ones are on disk
-            self._end_entry("aborted")
+            self.end("aborted")
             raise
         except OSError as exc:  # creating the run store: read-only, full, a file where a folder should be
             reason = "a file stands where a folder should be" if exc.errno == errno.ENOTDIR else \
@@ -496,7 +493,36 @@ class CaptureSession:
         finally:
             self.make_safe()
 
-    def _end_entry(self, status: str, error: str | None = None) -> None:
+    def begin(self) -> dict:
+        """Check and configure the devices, open (or create) the store, open this session's entry.
+
+        The steps before the first line, shared by :meth:`run` and by other drivers of the
+        line loop (``streaklab.bluesky``); returns the device identities.
+        """
+        ids = self.check_devices()
+        self.open_store()
+        entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
+                 "lines_done_at_start": self.lines_done(), **self.session_info}
+        with _ctrl_c_held():
+            self.store.add_session(entry)
+            self._entry = len(self.store.group.attrs.get("sessions", [])) - 1
+        if self.on_start is not None:
+            self.on_start(self)
+        return ids
+
+    def lines_todo(self) -> list[int]:
+        """Indices of the lines not yet on disk, in scan order."""
+        return [int(i) for i in np.flatnonzero(~self.store.done_mask())]
+
+    def line_done(self, line: int) -> bool:
+        """True once ``line`` is on disk (its ``done`` flag is set)."""
+        return bool(self.store.done_mask()[line])
+
+    def output_on(self) -> None:
+        """Laser-sync output on, before the first line (retried like every device step)."""
+        self._attempt("laser-sync output on", lambda: self.sync.set_output(True))
+
+    def end(self, status: str, error: str | None = None) -> None:
         """Close this session's entry in ``sessions``: end time, status, lines and retries (once)."""
         if self.store is None or self._entry is None:
             return
