@@ -22,9 +22,13 @@ from ophyd_async.core import (AsyncStatus, DeviceConnector, NotConnectedError, S
                               soft_signal_r_and_setter, soft_signal_rw)
 from ophyd_async.core import StandardReadableFormat as Format
 
-from drivers.errors import DeviceError
+from drivers.errors import DeviceError, DeviceTimeout
 
 __all__ = ["DriverThread", "StreakCameraDetector", "ScanMirrorMotor", "LaserSyncDevice"]
+
+
+#: the longest a synchronous caller waits for one call on the driver thread (s)
+RUN_TIMEOUT_S = 300.0
 
 
 class DriverThread:
@@ -41,9 +45,16 @@ class DriverThread:
         """
         return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
 
-    def run(self, fn, *args):
-        """Run ``fn(*args)`` on the worker thread from synchronous code; wait for its result."""
-        return self._executor.submit(fn, *args).result()
+    def run(self, fn, *args, timeout_s: float = RUN_TIMEOUT_S):
+        """Run ``fn(*args)`` on the worker thread from synchronous code; wait for its result,
+        at most ``timeout_s`` (every driver call has its own, shorter timeout: this bound only
+        guards a cleanup step that would otherwise wait for ever)."""
+        future = self._executor.submit(fn, *args)
+        try:
+            return future.result(timeout=timeout_s)
+        except concurrent.futures.TimeoutError:
+            raise DeviceTimeout(f"{getattr(fn, '__qualname__', fn)} did not finish within {timeout_s:g} s "
+                                f"on the driver thread") from None
 
     def shutdown(self) -> None:
         """Let the running call finish, then stop the thread."""
