@@ -26,8 +26,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import fft as sp_fft
 
 from ..constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..kernels.responsepick import pick_atoms
 from .dictionary import FAM_SHIFTED, ResponseDictionary
 from ..options import SolverOptions
 from ..stages.prepare import Samples
@@ -61,26 +63,24 @@ def response_dictionary(irf, samples: Samples, alphas_per_ps, components) -> Res
 
 
 def _pick(dic: ResponseDictionary, resid, fam, delay, n_shift_max, allow_sss, tol_ps):
-    """Best atom per row: (gain, amplitude, kernel, shift index)."""
-    c = dic.correlate(resid)                                                     # (n, A, S)
-    norm2 = dic.norm2
-    ok = (norm2 > 0)[None] & (c > 0)
-    amp = c / np.where(norm2 > 0, norm2, 1.0)[None]
-    ok &= amp <= AMP_MAX
-    n_sh = (fam == FAM_GAUSS).sum(axis=1)
-    has_s = (fam == FAM_SSS).any(axis=1)
-    shifted = (dic.fam == FAM_SHIFTED)[None, :, None]
-    ok &= ~(shifted & (n_sh >= n_shift_max)[:, None, None])
-    ok &= ~(~shifted & (has_s | (not allow_sss))[:, None, None])
-    grid = dic.delay_ps(np.arange(dic.fam.size)[:, None], dic.shifts[None, :])     # (A, S)
-    for k in range(fam.shape[1]):
-        near = np.abs(grid[None] - np.where(fam[:, k] == FAM_GAUSS, delay[:, k], np.inf)[:, None, None]) < tol_ps
-        ok &= ~(shifted & near)
-    gain = np.where(ok, c * amp, -np.inf)
-    flat = np.argmax(gain.reshape(gain.shape[0], -1), axis=1)
-    a_idx, s_idx = np.unravel_index(flat, gain.shape[1:])
-    rows = np.arange(gain.shape[0])
-    return gain[rows, a_idx, s_idx], amp[rows, a_idx, s_idx], a_idx, s_idx
+    """Best atom per row: (gain, amplitude, kernel, shift index); gain -inf where none is allowed.
+
+    Only the kernels of the families some row may still take are correlated (by FFT, as
+    :meth:`ResponseDictionary.correlate`); the choice among them is compiled
+    (:func:`decomposition.kernels.responsepick.pick_atoms`)."""
+    shifted = dic.fam == FAM_SHIFTED
+    want_sh = bool(((fam == FAM_GAUSS).sum(axis=1) < n_shift_max).any())
+    want_ss = bool(allow_sss and not (fam == FAM_SSS).any(axis=1).all())
+    kern = np.flatnonzero(np.where(shifted, want_sh, want_ss))
+    n = resid.shape[0]
+    if kern.size == 0:
+        return np.full(n, -np.inf), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64)
+    X = sp_fft.rfft(np.asarray(resid, np.float64), n=dic.n_fft, axis=-1)
+    c = np.take(sp_fft.irfft(X[:, None, :] * dic.spec_conj[kern][None], n=dic.n_fft, axis=-1), dic.gather, axis=-1)
+    grid = dic.delay_ps(kern[:, None], dic.shifts[None, :])                       # (A', S)
+    gain, amp, a_sub, s_idx = pick_atoms(c, dic.norm2[kern], shifted[kern], grid, fam, delay, n_shift_max,
+                                         allow_sss, tol_ps, AMP_MAX)
+    return gain, amp, kern[a_sub], s_idx
 
 
 def _pursuit(dic, irf, t, y, sw, mu, eps, K, n_shift_max, allow_sss, tol_ps, n_lm, fit_kw, order):
