@@ -21,13 +21,14 @@ from .jit import njit
 __all__ = ["pick_atoms"]
 
 
-def pick_atoms(c, norm2, shifted, grid_ps, fam, delay, n_shift_max: int, allow_sss: bool, tol_ps: float,
+def pick_atoms(c, gather, norm2, shifted, grid_ps, fam, delay, n_shift_max: int, allow_sss: bool, tol_ps: float,
                amp_max: float):
     """Best allowed atom per pixel.
 
     Parameters
     ----------
-    c : ndarray (P, A, S)        correlations of the residuals with kernel a at shift s
+    c : ndarray (P, A, N)        circular correlations of the residuals with kernel a
+    gather : ndarray (S,) int    the entry of ``c``'s last axis that holds shift s
     norm2 : ndarray (A, S)       squared norms of the atoms inside the window
     shifted : ndarray (A,) bool  kernels of the shifted family (else sss)
     grid_ps : ndarray (A, S)     the atoms' delays, ps
@@ -49,7 +50,7 @@ def pick_atoms(c, norm2, shifted, grid_ps, fam, delay, n_shift_max: int, allow_s
     amp = np.empty(P)
     a_idx = np.zeros(P, np.int64)
     s_idx = np.zeros(P, np.int64)
-    _pick_pixels(c, np.ascontiguousarray(norm2, np.float64), np.ascontiguousarray(shifted, np.bool_),
+    _pick_pixels(c, np.ascontiguousarray(gather, np.int64), np.ascontiguousarray(norm2, np.float64), np.ascontiguousarray(shifted, np.bool_),
                  np.ascontiguousarray(grid_ps, np.float64), np.ascontiguousarray(fam, np.int8),
                  np.ascontiguousarray(delay, np.float64), int(n_shift_max), bool(allow_sss), float(tol_ps),
                  float(amp_max), gain, amp, a_idx, s_idx)
@@ -57,8 +58,9 @@ def pick_atoms(c, norm2, shifted, grid_ps, fam, delay, n_shift_max: int, allow_s
 
 
 @njit
-def _pick_pixels(c, norm2, shifted, grid, fam, delay, n_shift_max, allow_sss, tol, amp_max, gain, amp, a_idx, s_idx):
-    P, A, S = c.shape
+def _pick_pixels(c, gather, norm2, shifted, grid, fam, delay, n_shift_max, allow_sss, tol, amp_max, gain, amp, a_idx, s_idx):
+    P, A = c.shape[0], c.shape[1]
+    S = gather.size
     K = fam.shape[1]
     for p in range(P):
         n_sh = 0
@@ -80,7 +82,7 @@ def _pick_pixels(c, norm2, shifted, grid, fam, delay, n_shift_max, allow_sss, to
                 continue
             for s in range(S):
                 n2 = norm2[a, s]
-                cv = c[p, a, s]
+                cv = c[p, a, gather[s]]
                 if not (n2 > 0.0 and cv > 0.0):
                     continue
                 am = cv / n2

@@ -65,22 +65,32 @@ def response_dictionary(irf, samples: Samples, alphas_per_ps, components) -> Res
 def _pick(dic: ResponseDictionary, resid, fam, delay, n_shift_max, allow_sss, tol_ps):
     """Best atom per row: (gain, amplitude, kernel, shift index); gain -inf where none is allowed.
 
-    Only the kernels of the families some row may still take are correlated (by FFT, as
-    :meth:`ResponseDictionary.correlate`); the choice among them is compiled
-    (:func:`decomposition.kernels.responsepick.pick_atoms`)."""
-    shifted = dic.fam == FAM_SHIFTED
-    want_sh = bool(((fam == FAM_GAUSS).sum(axis=1) < n_shift_max).any())
-    want_ss = bool(allow_sss and not (fam == FAM_SSS).any(axis=1).all())
-    kern = np.flatnonzero(np.where(shifted, want_sh, want_ss))
+    Each row is correlated (by FFT, as :meth:`ResponseDictionary.correlate`) only with the
+    kernels of the families it may still take, and the best of them chosen in a compiled pass
+    (:func:`decomposition.kernels.responsepick.pick_atoms`); the shifted family first, so that
+    of equal gains the earlier kernel wins, as with the argmax over all kernels."""
     n = resid.shape[0]
-    if kern.size == 0:
-        return np.full(n, -np.inf), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.int64)
-    X = sp_fft.rfft(np.asarray(resid, np.float64), n=dic.n_fft, axis=-1)
-    c = np.take(sp_fft.irfft(X[:, None, :] * dic.spec_conj[kern][None], n=dic.n_fft, axis=-1), dic.gather, axis=-1)
-    grid = dic.delay_ps(kern[:, None], dic.shifts[None, :])                       # (A', S)
-    gain, amp, a_sub, s_idx = pick_atoms(c, dic.norm2[kern], shifted[kern], grid, fam, delay, n_shift_max,
-                                         allow_sss, tol_ps, AMP_MAX)
-    return gain, amp, kern[a_sub], s_idx
+    gain, amp = np.full(n, -np.inf), np.zeros(n)
+    a_idx, s_idx = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    shifted = dic.fam == FAM_SHIFTED
+    want = {True: (fam == FAM_GAUSS).sum(axis=1) < n_shift_max,
+            False: (~(fam == FAM_SSS).any(axis=1)) & bool(allow_sss)}
+    X = None
+    for is_sh in (True, False):
+        rows = np.flatnonzero(want[is_sh])
+        kern = np.flatnonzero(shifted == is_sh)
+        if rows.size == 0 or kern.size == 0:
+            continue
+        if X is None:
+            X = sp_fft.rfft(np.asarray(resid, np.float64), n=dic.n_fft, axis=-1)
+        c = sp_fft.irfft(X[rows][:, None, :] * dic.spec_conj[kern][None], n=dic.n_fft, axis=-1)
+        grid = dic.delay_ps(kern[:, None], dic.shifts[None, :])                       # (A', S)
+        g, a, ai, si = pick_atoms(c, dic.gather, dic.norm2[kern], shifted[kern], grid, fam[rows], delay[rows],
+                                  n_shift_max, allow_sss, tol_ps, AMP_MAX)
+        better = g > gain[rows]
+        r = rows[better]
+        gain[r], amp[r], a_idx[r], s_idx[r] = g[better], a[better], kern[ai[better]], si[better]
+    return gain, amp, a_idx, s_idx
 
 
 def _pursuit(dic, irf, t, y, sw, mu, eps, K, n_shift_max, allow_sss, tol_ps, n_lm, fit_kw, order):
