@@ -5,9 +5,10 @@ atoms are added one at a time (orthogonal greedy pursuit with continuous relocat
 
 1. correlate every pixel's residual with every atom of the
    :class:`~decomposition.response.dictionary.ResponseDictionary` (the response at sub-bin phases,
-   and for sss at a few alphas), by FFT on the whole block;
-2. the best atom of each pixel is the one of largest decrease of the residual sum of
-   squares, c^2 / ||atom||^2, among the positive ones (light is non-negative), the families
+   and for sss at a few alphas) of the families it may still take, by FFT on the block;
+2. the best atom of each pixel (chosen in a compiled pass,
+   :func:`decomposition.kernels.responsepick.pick_atoms`) is the one of largest decrease of
+   the residual sum of squares, c^2 / ||atom||^2, among the positive ones (light is non-negative), the families
    still open (at most one sss; one shifted copy, or 1 + R with inter-reflections), and not
    within ``merge_tol_bins`` of a shifted atom the pixel already has;
 3. it is kept only where the decrease pays for it under the paper's log-sum penalty:

@@ -8,9 +8,10 @@ columns phi_k, a K x K solve per pixel; with ``fit_background`` a constant colum
 background family's offset -- is one more column of that solve, fitted jointly with the
 amplitudes and projected out of the delays' Jacobian like them).  theta is moved by Levenberg-Marquardt on the
 projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
-the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), every
-pixel of a block at once; a step is kept per pixel only when it lowers the weighted residual
-sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
+the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), one
+pixel at a time in a compiled loop (:func:`decomposition.kernels.responselm.response_lm`: its
+atoms, projected Jacobian and small solves without block-sized temporaries); a step is kept
+per pixel only when it lowers the weighted residual sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
 by Fisher scoring over the delays, log alphas and amplitudes together (:func:`_fit_counts`),
 no step turning a positive amplitude non-positive.  Constraints by projection after each
 step: delays within ``delay_bounds_ps``, log alpha within ``lalp_bounds``, the sss onset not
