@@ -40,6 +40,8 @@ __all__ = ["ResponseDetection", "detect_response", "response_dictionary", "RESPO
 
 #: sub-bin phases of the detection dictionary (delays found to a quarter bin before refinement)
 RESPONSE_PHASES = 4
+#: rows correlated at once by the pick (their spectra, rows x kernels x n_fft, stay cache-sized)
+_PICK_ROWS = 32
 
 
 @dataclass(frozen=True)
@@ -84,13 +86,16 @@ def _pick(dic: ResponseDictionary, resid, fam, delay, n_shift_max, allow_sss, to
             continue
         if X is None:
             X = sp_fft.rfft(np.asarray(resid, np.float64), n=dic.n_fft, axis=-1)
-        c = sp_fft.irfft(X[rows][:, None, :] * dic.spec_conj[kern][None], n=dic.n_fft, axis=-1)
+        spec = dic.spec_conj[kern][None]
         grid = dic.delay_ps(kern[:, None], dic.shifts[None, :])                       # (A', S)
-        g, a, ai, si = pick_atoms(c, dic.gather, dic.norm2[kern], shifted[kern], grid, fam[rows], delay[rows],
-                                  n_shift_max, allow_sss, tol_ps, AMP_MAX)
-        better = g > gain[rows]
-        r = rows[better]
-        gain[r], amp[r], a_idx[r], s_idx[r] = g[better], a[better], kern[ai[better]], si[better]
+        for lo in range(0, rows.size, _PICK_ROWS):      # rows in groups: cache-sized spectra
+            rr = rows[lo:lo + _PICK_ROWS]
+            c = sp_fft.irfft(X[rr][:, None, :] * spec, n=dic.n_fft, axis=-1)
+            g, a, ai, si = pick_atoms(c, dic.gather, dic.norm2[kern], shifted[kern], grid, fam[rr], delay[rr],
+                                      n_shift_max, allow_sss, tol_ps, AMP_MAX)
+            better = g > gain[rr]
+            r = rr[better]
+            gain[r], amp[r], a_idx[r], s_idx[r] = g[better], a[better], kern[ai[better]], si[better]
     return gain, amp, a_idx, s_idx
 
 
