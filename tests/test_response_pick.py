@@ -82,3 +82,35 @@ def test_compiled_pick_chooses_the_block_forms_atom(setup, n_shift_max, allow_ss
     near = (np.abs(d[:, None] - np.where(fam[fin] == FAM_GAUSS, delay[fin], np.inf)) < tol).any(axis=1)
     assert not (sh & near).any()
     assert np.all(got[1][fin] <= AMP_MAX)
+
+
+def test_pick_atoms_reads_through_gather_and_keeps_the_first_of_equal_gains():
+    """Hand-made correlations: the shift s is read at c[..., gather[s]]; of two equal gains the
+    earlier kernel (then shift) wins; a closed family, a non-positive correlation, an empty atom,
+    an amplitude above amp_max and a shifted atom near a shifted slot are never chosen."""
+    from decomposition.kernels.responsepick import pick_atoms
+
+    gather = np.array([3, 0, 1])                       # shifts 0, 1, 2 at entries 3, 0, 1
+    c = np.zeros((4, 2, 4))
+    c[:, 0, 0] = 2.0                                   # kernel 0 (shifted), shift 1: gain 4
+    c[:, 1, 3] = 2.0                                   # kernel 1 (sss), shift 0: gain 4 too
+    c[:, 0, 2] = 9.0                                   # entry 2 is no shift: never read
+    norm2 = np.ones((2, 3))
+    shifted = np.array([True, False])
+    grid = np.array([[0.0, 10.0, 20.0], [0.0, 10.0, 20.0]])
+    fam = np.zeros((4, 2), np.int8)
+    delay = np.zeros((4, 2))
+    fam[1, 0], delay[1, 0] = FAM_GAUSS, 11.0          # row 1: a shifted slot near shift 1
+    fam[2, 1] = FAM_SSS                                # row 2: has its sss
+    gain, amp, a, s = pick_atoms(c, gather, norm2, shifted, grid, fam, delay, 2, True, 2.0, 20.0)
+    assert list(a) == [0, 1, 0, 0] and list(s) == [1, 0, 1, 1]
+    assert np.allclose(gain, 4.0) and np.allclose(amp, 2.0)
+    # nothing allowed: closed families, or only negative / empty / too large atoms
+    g0, *_ = pick_atoms(c, gather, norm2, shifted, grid, fam, delay, 0, False, 2.0, 20.0)
+    assert np.all(g0 == -np.inf)
+    g1, *_ = pick_atoms(-c, gather, norm2, shifted, grid, fam, delay, 2, True, 2.0, 20.0)
+    assert np.all(g1 == -np.inf)
+    g2, *_ = pick_atoms(c, gather, np.zeros((2, 3)), shifted, grid, fam, delay, 2, True, 2.0, 20.0)
+    assert np.all(g2 == -np.inf)
+    g3, *_ = pick_atoms(c, gather, norm2, shifted, grid, fam, delay, 2, True, 2.0, 1.5)
+    assert np.all(g3 == -np.inf)
