@@ -196,31 +196,40 @@ def sss_atoms(table: ResponseTable, t_ps, delay_ps, alpha_per_ps, *, derivatives
 
 @njit
 def _shifted_kernel(value, slope, start, h, n_steps, t, delay, scale, want_d, out, dout):
-    n_atoms = delay.size
+    for a in range(delay.size):
+        if want_d:
+            shifted_row(value, slope, start, h, n_steps, t, delay[a], scale, True, out[a], dout[a])
+        else:
+            shifted_row(value, slope, start, h, n_steps, t, delay[a], scale, False, out[a], out[a])
+
+
+@njit
+def shifted_row(value, slope, start, h, n_steps, t, delay, scale, want_d, out, dout):
+    """One shifted atom into ``out`` (L,) (and its delay derivative into ``dout`` (L,) with
+    ``want_d``): the body of :func:`shifted_atoms` for one delay, for compiled callers."""
     L = t.size
     inv_h = 1.0 / h
-    for a in range(n_atoms):
-        base = start + delay[a]
-        for i in range(L):
-            x = (t[i] - base) * inv_h
-            if x >= 0.0 and x < n_steps:
-                j = int(x)
-                u = x - j
-                c0 = value[j]
-                c1 = value[j + 1]
-                m0 = h * slope[j]
-                m1 = h * slope[j + 1]
-                u2 = u * u
-                u3 = u2 * u
-                out[a, i] = scale * ((2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0
-                                     + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1)
-                if want_d:
-                    dout[a, i] = -scale * inv_h * ((6.0 * u2 - 6.0 * u) * (c0 - c1) + (3.0 * u2 - 4.0 * u + 1.0) * m0
-                                                   + (3.0 * u2 - 2.0 * u) * m1)
-            else:
-                out[a, i] = 0.0
-                if want_d:
-                    dout[a, i] = 0.0
+    base = start + delay
+    for i in range(L):
+        x = (t[i] - base) * inv_h
+        if x >= 0.0 and x < n_steps:
+            j = int(x)
+            u = x - j
+            c0 = value[j]
+            c1 = value[j + 1]
+            m0 = h * slope[j]
+            m1 = h * slope[j + 1]
+            u2 = u * u
+            u3 = u2 * u
+            out[i] = scale * ((2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0
+                              + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1)
+            if want_d:
+                dout[i] = -scale * inv_h * ((6.0 * u2 - 6.0 * u) * (c0 - c1) + (3.0 * u2 - 4.0 * u + 1.0) * m0
+                                            + (3.0 * u2 - 2.0 * u) * m1)
+        else:
+            out[i] = 0.0
+            if want_d:
+                dout[i] = 0.0
 
 
 @njit
@@ -242,95 +251,105 @@ def _moments(beta, e, out):
 
 @njit
 def _sss_kernel(value, slope, start, h, n_steps, t, delay, alpha, scale, want_d, out, dd, da):
-    n_atoms = delay.size
-    L = t.size
-    inv_h = 1.0 / h
     s = np.empty(n_steps + 1)
     r = np.empty(n_steps + 1)
     E = np.empty(5)
-    for a in range(n_atoms):
-        al = alpha[a]
-        base = start + delay[a]
-        x_max = -1.0
+    for a in range(delay.size):
+        if want_d:
+            sss_row(value, slope, start, h, n_steps, t, delay[a], alpha[a], scale, True, out[a], dd[a], da[a], s, r, E)
+        else:
+            sss_row(value, slope, start, h, n_steps, t, delay[a], alpha[a], scale, False, out[a], out[a], out[a],
+                    s, r, E)
+
+
+@njit
+def sss_row(value, slope, start, h, n_steps, t, delay, al, scale, want_d, out, dd, da, s, r, E):
+    """One sss atom into ``out`` (L,) (and its delay and alpha derivatives into ``dd``, ``da``
+    (L,) with ``want_d``): the body of :func:`sss_atoms` for one onset and alpha, for compiled
+    callers; ``s``, ``r`` (n_steps + 1,) and ``E`` (5,) are scratch."""
+    L = t.size
+    inv_h = 1.0 / h
+    base = start + delay
+    x_max = -1.0
+    for i in range(L):
+        x = (t[i] - base) * inv_h
+        if x > x_max:
+            x_max = x
+    if x_max < 0.0:
         for i in range(L):
-            x = (t[i] - base) * inv_h
-            if x > x_max:
-                x_max = x
-        if x_max < 0.0:
-            for i in range(L):
-                out[a, i] = 0.0
-                if want_d:
-                    dd[a, i] = 0.0
-                    da[a, i] = 0.0
-            continue
-        j_top = n_steps if x_max >= n_steps else int(x_max) + 1
-        beta = al * h
-        e = math.exp(-beta)
-        _moments(beta, e, E)
-        # exact integrals of exp(-beta (1 - tau)) against the Hermite basis (sigma = 1 - tau)
-        w0 = h * (3.0 * E[2] - 2.0 * E[3])
-        w1 = h * h * (E[2] - E[3])
-        w2 = h * (E[0] - 3.0 * E[2] + 2.0 * E[3])
-        w3 = h * h * (-E[1] + 2.0 * E[2] - E[3])
-        # their alpha derivatives (dE_n / dbeta = -E_{n+1}, dbeta / dalpha = h)
-        v0 = -h * h * (3.0 * E[3] - 2.0 * E[4])
-        v1 = -h * h * h * (E[3] - E[4])
-        v2 = -h * h * (E[1] - 3.0 * E[3] + 2.0 * E[4])
-        v3 = -h * h * h * (-E[2] + 2.0 * E[3] - E[4])
-        s[0] = 0.0
-        r[0] = 0.0
-        he = h * e
-        for j in range(j_top):
-            c0 = value[j]
-            c1 = value[j + 1]
-            m0 = slope[j]
-            m1 = slope[j + 1]
-            sj = s[j]
-            s[j + 1] = e * sj + (w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1)
-            r[j + 1] = e * r[j] - he * sj + (v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1)
-        s_b = s[n_steps] if j_top == n_steps else 0.0
-        r_b = r[n_steps] if j_top == n_steps else 0.0
-        for i in range(L):
-            x = (t[i] - base) * inv_h
-            if x < 0.0:
-                out[a, i] = 0.0
-                if want_d:
-                    dd[a, i] = 0.0
-                    da[a, i] = 0.0
-            elif x >= n_steps:
-                past = (x - n_steps) * h
-                tail = math.exp(-al * past)
-                out[a, i] = scale * s_b * tail
-                if want_d:
-                    dd[a, i] = scale * al * s_b * tail
-                    da[a, i] = scale * tail * (r_b - past * s_b)
-            else:
-                j = int(x)
-                u = x - j
-                u2 = u * u
-                u3 = u2 * u
-                h00 = 2.0 * u3 - 3.0 * u2 + 1.0
-                h10 = u3 - 2.0 * u2 + u
-                h01 = 3.0 * u2 - 2.0 * u3
-                h11 = u3 - u2
-                s0 = s[j]
-                s1 = s[j + 1]
-                p0 = h * (value[j] - al * s0)          # h s'(node): the exact slope s' = c - alpha s
-                p1 = h * (value[j + 1] - al * s1)
-                out[a, i] = scale * (h00 * s0 + h10 * p0 + h01 * s1 + h11 * p1)
-                if want_d:
-                    # d/dd s(t - d) = alpha s - c, with c the shifted atom's own value here (the
-                    # same expression as _shifted_kernel): where a shifted atom shares the onset,
-                    # this column lies in the span of the two atoms, as it does exactly
-                    c0 = value[j]
-                    c1 = value[j + 1]
-                    m0 = h * slope[j]
-                    m1 = h * slope[j + 1]
-                    c = (2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0 \
-                        + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1
-                    dd[a, i] = al * out[a, i] - scale * c
-                    r0 = r[j]
-                    r1 = r[j + 1]
-                    q0 = h * (-s0 - al * r0)           # h r'(node): d/dalpha of h s'(node)
-                    q1 = h * (-s1 - al * r1)
-                    da[a, i] = scale * (h00 * r0 + h10 * q0 + h01 * r1 + h11 * q1)
+            out[i] = 0.0
+            if want_d:
+                dd[i] = 0.0
+                da[i] = 0.0
+        return
+    j_top = n_steps if x_max >= n_steps else int(x_max) + 1
+    beta = al * h
+    e = math.exp(-beta)
+    _moments(beta, e, E)
+    # exact integrals of exp(-beta (1 - tau)) against the Hermite basis (sigma = 1 - tau)
+    w0 = h * (3.0 * E[2] - 2.0 * E[3])
+    w1 = h * h * (E[2] - E[3])
+    w2 = h * (E[0] - 3.0 * E[2] + 2.0 * E[3])
+    w3 = h * h * (-E[1] + 2.0 * E[2] - E[3])
+    # their alpha derivatives (dE_n / dbeta = -E_{n+1}, dbeta / dalpha = h)
+    v0 = -h * h * (3.0 * E[3] - 2.0 * E[4])
+    v1 = -h * h * h * (E[3] - E[4])
+    v2 = -h * h * (E[1] - 3.0 * E[3] + 2.0 * E[4])
+    v3 = -h * h * h * (-E[2] + 2.0 * E[3] - E[4])
+    s[0] = 0.0
+    r[0] = 0.0
+    he = h * e
+    for j in range(j_top):
+        c0 = value[j]
+        c1 = value[j + 1]
+        m0 = slope[j]
+        m1 = slope[j + 1]
+        sj = s[j]
+        s[j + 1] = e * sj + (w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1)
+        r[j + 1] = e * r[j] - he * sj + (v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1)
+    s_b = s[n_steps] if j_top == n_steps else 0.0
+    r_b = r[n_steps] if j_top == n_steps else 0.0
+    for i in range(L):
+        x = (t[i] - base) * inv_h
+        if x < 0.0:
+            out[i] = 0.0
+            if want_d:
+                dd[i] = 0.0
+                da[i] = 0.0
+        elif x >= n_steps:
+            past = (x - n_steps) * h
+            tail = math.exp(-al * past)
+            out[i] = scale * s_b * tail
+            if want_d:
+                dd[i] = scale * al * s_b * tail
+                da[i] = scale * tail * (r_b - past * s_b)
+        else:
+            j = int(x)
+            u = x - j
+            u2 = u * u
+            u3 = u2 * u
+            h00 = 2.0 * u3 - 3.0 * u2 + 1.0
+            h10 = u3 - 2.0 * u2 + u
+            h01 = 3.0 * u2 - 2.0 * u3
+            h11 = u3 - u2
+            s0 = s[j]
+            s1 = s[j + 1]
+            p0 = h * (value[j] - al * s0)          # h s'(node): the exact slope s' = c - alpha s
+            p1 = h * (value[j + 1] - al * s1)
+            out[i] = scale * (h00 * s0 + h10 * p0 + h01 * s1 + h11 * p1)
+            if want_d:
+                # d/dd s(t - d) = alpha s - c, with c the shifted atom's own value here (the
+                # same expression as _shifted_kernel): where a shifted atom shares the onset,
+                # this column lies in the span of the two atoms, as it does exactly
+                c0 = value[j]
+                c1 = value[j + 1]
+                m0 = h * slope[j]
+                m1 = h * slope[j + 1]
+                c = (2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0 \
+                    + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1
+                dd[i] = al * out[i] - scale * c
+                r0 = r[j]
+                r1 = r[j + 1]
+                q0 = h * (-s0 - al * r0)           # h r'(node): d/dalpha of h s'(node)
+                q1 = h * (-s1 - al * r1)
+                da[i] = scale * (h00 * r0 + h10 * q0 + h01 * r1 + h11 * q1)

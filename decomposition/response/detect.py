@@ -5,9 +5,10 @@ atoms are added one at a time (orthogonal greedy pursuit with continuous relocat
 
 1. correlate every pixel's residual with every atom of the
    :class:`~decomposition.response.dictionary.ResponseDictionary` (the response at sub-bin phases,
-   and for sss at a few alphas), by FFT on the whole block;
-2. the best atom of each pixel is the one of largest decrease of the residual sum of
-   squares, c^2 / ||atom||^2, among the positive ones (light is non-negative), the families
+   and for sss at a few alphas) of the families it may still take, by FFT on the block;
+2. the best atom of each pixel (chosen in a compiled pass,
+   :func:`decomposition.kernels.responsepick.pick_atoms`) is the one of largest decrease of
+   the residual sum of squares, c^2 / ||atom||^2, among the positive ones (light is non-negative), the families
    still open (at most one sss; one shifted copy, or 1 + R with inter-reflections), and not
    within ``merge_tol_bins`` of a shifted atom the pixel already has;
 3. it is kept only where the decrease pays for it under the paper's log-sum penalty:
@@ -26,8 +27,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import fft as sp_fft
 
 from ..constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..kernels.responsepick import pick_atoms
 from .dictionary import FAM_SHIFTED, ResponseDictionary
 from ..options import SolverOptions
 from ..stages.prepare import Samples
@@ -37,6 +40,8 @@ __all__ = ["ResponseDetection", "detect_response", "response_dictionary", "RESPO
 
 #: sub-bin phases of the detection dictionary (delays found to a quarter bin before refinement)
 RESPONSE_PHASES = 4
+#: rows correlated at once by the pick (their spectra, rows x kernels x n_fft, stay cache-sized)
+_PICK_ROWS = 32
 
 
 @dataclass(frozen=True)
@@ -61,26 +66,37 @@ def response_dictionary(irf, samples: Samples, alphas_per_ps, components) -> Res
 
 
 def _pick(dic: ResponseDictionary, resid, fam, delay, n_shift_max, allow_sss, tol_ps):
-    """Best atom per row: (gain, amplitude, kernel, shift index)."""
-    c = dic.correlate(resid)                                                     # (n, A, S)
-    norm2 = dic.norm2
-    ok = (norm2 > 0)[None] & (c > 0)
-    amp = c / np.where(norm2 > 0, norm2, 1.0)[None]
-    ok &= amp <= AMP_MAX
-    n_sh = (fam == FAM_GAUSS).sum(axis=1)
-    has_s = (fam == FAM_SSS).any(axis=1)
-    shifted = (dic.fam == FAM_SHIFTED)[None, :, None]
-    ok &= ~(shifted & (n_sh >= n_shift_max)[:, None, None])
-    ok &= ~(~shifted & (has_s | (not allow_sss))[:, None, None])
-    grid = dic.delay_ps(np.arange(dic.fam.size)[:, None], dic.shifts[None, :])     # (A, S)
-    for k in range(fam.shape[1]):
-        near = np.abs(grid[None] - np.where(fam[:, k] == FAM_GAUSS, delay[:, k], np.inf)[:, None, None]) < tol_ps
-        ok &= ~(shifted & near)
-    gain = np.where(ok, c * amp, -np.inf)
-    flat = np.argmax(gain.reshape(gain.shape[0], -1), axis=1)
-    a_idx, s_idx = np.unravel_index(flat, gain.shape[1:])
-    rows = np.arange(gain.shape[0])
-    return gain[rows, a_idx, s_idx], amp[rows, a_idx, s_idx], a_idx, s_idx
+    """Best atom per row: (gain, amplitude, kernel, shift index); gain -inf where none is allowed.
+
+    Each row is correlated (by FFT, as :meth:`ResponseDictionary.correlate`) only with the
+    kernels of the families it may still take, and the best of them chosen in a compiled pass
+    (:func:`decomposition.kernels.responsepick.pick_atoms`); the shifted family first, so that
+    of equal gains the earlier kernel wins, as with the argmax over all kernels."""
+    n = resid.shape[0]
+    gain, amp = np.full(n, -np.inf), np.zeros(n)
+    a_idx, s_idx = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    shifted = dic.fam == FAM_SHIFTED
+    want = {True: (fam == FAM_GAUSS).sum(axis=1) < n_shift_max,
+            False: (~(fam == FAM_SSS).any(axis=1)) & bool(allow_sss)}
+    X = None
+    for is_sh in (True, False):
+        rows = np.flatnonzero(want[is_sh])
+        kern = np.flatnonzero(shifted == is_sh)
+        if rows.size == 0 or kern.size == 0:
+            continue
+        if X is None:
+            X = sp_fft.rfft(np.asarray(resid, np.float64), n=dic.n_fft, axis=-1)
+        spec = dic.spec_conj[kern][None]
+        grid = dic.delay_ps(kern[:, None], dic.shifts[None, :])                       # (A', S)
+        for lo in range(0, rows.size, _PICK_ROWS):      # rows in groups: cache-sized spectra
+            rr = rows[lo:lo + _PICK_ROWS]
+            c = sp_fft.irfft(X[rr][:, None, :] * spec, n=dic.n_fft, axis=-1)
+            g, a, ai, si = pick_atoms(c, dic.gather, dic.norm2[kern], shifted[kern], grid, fam[rr], delay[rr],
+                                      n_shift_max, allow_sss, tol_ps, AMP_MAX)
+            better = g > gain[rr]
+            r = rr[better]
+            gain[r], amp[r], a_idx[r], s_idx[r] = g[better], a[better], kern[ai[better]], si[better]
+    return gain, amp, a_idx, s_idx
 
 
 def _pursuit(dic, irf, t, y, sw, mu, eps, K, n_shift_max, allow_sss, tol_ps, n_lm, fit_kw, order):

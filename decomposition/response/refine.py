@@ -8,9 +8,10 @@ columns phi_k, a K x K solve per pixel; with ``fit_background`` a constant colum
 background family's offset -- is one more column of that solve, fitted jointly with the
 amplitudes and projected out of the delays' Jacobian like them).  theta is moved by Levenberg-Marquardt on the
 projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
-the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), every
-pixel of a block at once; a step is kept per pixel only when it lowers the weighted residual
-sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
+the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), one
+pixel at a time in a compiled loop (:func:`decomposition.kernels.responselm.response_lm`: its
+atoms, projected Jacobian and small solves without block-sized temporaries); a step is kept
+per pixel only when it lowers the weighted residual sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
 by Fisher scoring over the delays, log alphas and amplitudes together (:func:`_fit_counts`),
 no step turning a positive amplitude non-positive.  Constraints by projection after each
 step: delays within ``delay_bounds_ps``, log alpha within ``lalp_bounds``, the sss onset not
@@ -27,16 +28,13 @@ import numpy as np
 from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY, render_profile
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
+from ..kernels.response import response_table
+from ..kernels.responselm import LAMBDA0, LAMBDA_MAX, RIDGE, response_lm
 from ..noise import count_deviance, poisson_weights
 from .atoms import slot_atoms
 from .label import slots_to_params
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
-
-_RIDGE = 1e-12
-_LAMBDA0 = 1e-3
-_LAMBDA_MAX = 1e10
-
 
 @dataclass(frozen=True)
 class SlotFit:
@@ -77,7 +75,7 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     yw = y * sw
     m = np.matmul(pw, pw.transpose(0, 2, 1))
     diag = np.einsum("pkk->pk", m)
-    ridge = _RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
+    ridge = RIDGE * np.maximum(diag.max(axis=1, keepdims=True), 1e-300)
     m += np.eye(phi.shape[1])[None] * np.where(active, ridge, 1.0)[:, :, None]
     minv = np.linalg.inv(m)
     with np.errstate(invalid="ignore", over="ignore"):
@@ -185,64 +183,19 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     delay, lalp = _project(fam, np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0),
                            delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
     fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), (P,))
-    cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
     if counts is not None:
+        cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
         return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
                            bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct))
-    amp, cost = cur["amp"], cur["cost"]
-    iters = np.zeros(P, np.int64)
-    conv = np.zeros(P, bool)
-    lam = np.full(P, _LAMBDA0)
-    n_used = np.maximum((sw > 0).sum(axis=1), 1)
-    free = np.concatenate([fam != FAM_NONE, fam == FAM_SSS], axis=1)               # (P, 2K)
-    conv |= ~free.any(axis=1)
-    state = {"delay": delay.copy(), "lalp": lalp.copy(), "amp": amp.copy(), "cost": cost.copy()}
-    cache = cur
-    for _ in range(int(n_iter)):
-        idx = np.flatnonzero(~conv)
-        if idx.size == 0:
-            break
-        c = {k: v[idx] for k, v in cache.items()}
-        f = fam[idx]
-        a = c["amp"][:, :K]
-        g = np.concatenate([a[:, :, None] * c["dd"], a[:, :, None] * c["dl"]], axis=1) * sw[idx][:, None, :]
-        fr = free[idx]
-        g = np.where(fr[:, :, None], g, 0.0)
-        # projected columns: g - pw^T minv (pw g^T)
-        proj = np.matmul(c["pw"], g.transpose(0, 2, 1))                            # (n, K, 2K)
-        gp = g - np.matmul(np.matmul(proj.transpose(0, 2, 1), c["minv"]), c["pw"])
-        jtj = np.matmul(gp, gp.transpose(0, 2, 1))
-        jtr = np.matmul(g, c["resid"][:, :, None])[..., 0]
-        dg = np.einsum("pjj->pj", jtj)
-        scale_d = np.where(fr, dg + 1e-300, 1.0)
-        lhs = jtj + (lam[idx][:, None] * scale_d)[:, :, None] * np.eye(2 * K)[None]
-        lhs += np.eye(2 * K)[None] * (~fr)[:, :, None]
-        step = np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0]
-        finite = np.isfinite(step).all(axis=1)          # refused below, as in _fit_counts
-        step = np.where(finite[:, None], step, 0.0)
-        nd = state["delay"][idx] + np.where(fr[:, :K], step[:, :K], 0.0)
-        nl = state["lalp"][idx] + np.where(fr[:, K:], step[:, K:], 0.0)
-        nd, nl = _project(f, nd, nl, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
-        trial = _evaluate(irf, t, y[idx], sw[idx], f, nd, nl, None if fit_bg is None else fit_bg[idx])
-        ok = finite & np.isfinite(trial["cost"]) & (trial["cost"] < c["cost"])
-        gain = c["cost"] - trial["cost"]
-        iters[idx] += 1
-        acc = idx[ok]
-        state["delay"][acc], state["lalp"][acc] = nd[ok], nl[ok]
-        state["amp"][acc], state["cost"][acc] = trial["amp"][ok], trial["cost"][ok]
-        lam[acc] /= 3.0
-        lam[idx[~ok]] *= 4.0
-        small = ok & (gain < lm_tol * trial["cost"] / n_used[idx])
-        conv[idx[small]] = True
-        conv[idx[~ok & (lam[idx] > _LAMBDA_MAX)]] = True
-        for k in cache:                    # the accepted pixels' evaluation for the next step
-            cache[k][acc] = trial[k][ok]
-    return SlotFit(delay=np.where(fam != FAM_NONE, state["delay"], np.nan),
-                   lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
-                   amp=np.where(fam != FAM_NONE, state["amp"][:, :K], 0.0),
-                   background=state["amp"][:, K] if fit_bg is not None else np.zeros(P),
-                   cost=state["cost"], resid=cache["resid"],
-                   iterations=iters, converged=conv)
+    delay, lalp, amp, cost, resid, iters, conv = response_lm(
+        response_table(irf), t, y, sw, fam, delay, lalp, fit_bg, n_iter=n_iter, lm_tol=lm_tol,
+        delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds, sss_after_direct=sss_after_direct,
+        first_is_direct=first_is_direct)
+    return SlotFit(delay=np.where(fam != FAM_NONE, delay, np.nan),
+                   lalp=np.where(fam == FAM_SSS, lalp, np.nan),
+                   amp=np.where(fam != FAM_NONE, amp[:, :K], 0.0),
+                   background=amp[:, K] if fit_bg is not None else np.zeros(P),
+                   cost=cost, resid=resid, iterations=iters, converged=conv)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
@@ -286,7 +239,7 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
     state = {"delay": delay.copy(), "lalp": lalp.copy(), "amp": amp.copy(), "cost": dev.copy()}
     cache = {"phi": phi, "dd": dd, "dl": dl, "mu": mu}
     iters = np.zeros(P, np.int64)
-    lam = np.full(P, _LAMBDA0)
+    lam = np.full(P, LAMBDA0)
     conv = ~free.any(axis=1)
     n_used = np.maximum(counts.fit.sum(axis=1), 1)
     for _ in range(int(n_iter)):
@@ -339,7 +292,7 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         lam[acc] /= 3.0
         lam[idx[~ok]] *= 4.0
         conv[idx[ok & (gain < lm_tol * t_dev / n_used[idx])]] = True
-        conv[idx[~ok & (lam[idx] > _LAMBDA_MAX)]] = True
+        conv[idx[~ok & (lam[idx] > LAMBDA_MAX)]] = True
     sw = counts.weights(cache["mu"])
     y_model = (cache["mu"] - counts.held[:, None]) / counts.scale[:, None]
     resid = sw * np.where(counts.fit, y - y_model, 0.0)
