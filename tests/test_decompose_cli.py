@@ -358,7 +358,7 @@ def test_a_worker_killed_mid_run_loses_and_duplicates_nothing(cube_path, referen
 
     out = tmp_path / "res.zarr"
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+                      dashboard_address="127.0.0.1:0") as cluster, Client(cluster) as client:
         pids = client.run(_slow_solver_in_this_worker)
         result = {}
         runner = threading.Thread(target=lambda: result.update(decompose_to_store(

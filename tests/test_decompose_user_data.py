@@ -89,7 +89,7 @@ def worker_elsewhere(tmp_path, monkeypatch):
     (tmp_path / "elsewhere").mkdir()
     monkeypatch.chdir(tmp_path / "elsewhere")
     cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, silence_logs=logging.CRITICAL + 1)
+                           dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL + 1)
     monkeypatch.chdir(tmp_path)
     try:
         yield cluster
@@ -204,7 +204,7 @@ def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube
         "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                           dashboard_address=None, silence_logs=logging.CRITICAL + 1)
+                           dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL + 1)
     out = tmp_path / "res.zarr"
     try:
         proc = subprocess.Popen([sys.executable, "-m", "streaklab", "decompose", str(cube), "--out", str(out),
