@@ -98,7 +98,8 @@ def row_times(run, n_rows: int, time_source: str | None = None) -> tuple[np.ndar
 
 def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, flat_path=None,
                 allow_partial: bool = False, overwrite: bool = False, progress=None,
-                time_source: str | None = None):
+                time_source: str | None = None, align: bool | None = None, sweep_path=None,
+                fiducial_min_snr: float = 5.0):
     """Reconstruct the calibrated cube of a run store.
 
     Parameters
@@ -118,6 +119,15 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         Where the row times come from (see :func:`row_times`); default: the run's
         ``calibration.time_source``, else ``auto``.  The cube's provenance records which
         was used (``time_calibration_source``) and how far the two differ.
+    align : bool, optional
+        Align every frame on the run's fiducial pulse before the frames are averaged
+        (:mod:`reconstruction.align`); default: when the run store's ``fiducial`` attribute
+        exists.  The corrections go into the cube's ``fiducial_correction_ps`` (y, frame), ps.
+    sweep_path : path of a sweep calibration (``streaklab calibrate-sweep``), optional
+        Its row times replace the camera table and the polynomial; it must have been made for
+        the run's time range and row count.  The cube keeps a copy in its ``sweep`` group.
+    fiducial_min_snr : float
+        Peak-to-noise ratio the fiducial must reach in every frame.
 
     Returns
     -------
@@ -136,13 +146,34 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     out = Path(out_path)
     if out.resolve() == Path(run.path).resolve():
         raise ReconstructionError(f"--out {out_path} is the run store itself; choose another path")
-    inputs = [run.path] + ([flat_path] if flat_path is not None else [])
+    inputs = [run.path] + [p for p in (flat_path, sweep_path) if p is not None]
     check_output_path(out, overwrite=overwrite, inputs=inputs, kind=CUBE_KIND)
 
     cfg = run.config
     nx, n_rows = run.image_shape
     n_lines = run.n_lines
-    sweep_ps, time_info = row_times(run, n_rows, time_source)
+    sweep_cal = None
+    if sweep_path is not None:
+        from .sweep import check_sweep, load_sweep
+        sweep_cal = load_sweep(sweep_path)
+        check_sweep(sweep_cal, time_range=cfg["camera"]["time_range"], n_rows=n_rows, where=str(run.path))
+        sweep_ps = sweep_cal.row_times_ps
+        time_info = {"time_calibration_source": "sweep calibration",
+                     "time_calibration_requested": "sweep",
+                     "sweep_calibration": str(Path(sweep_path).resolve()),
+                     "sweep_calibration_residual_rms_ps": sweep_cal.residual_rms_ps}
+    else:
+        sweep_ps, time_info = row_times(run, n_rows, time_source)
+    fid_attr = run.attrs.get("fiducial")
+    if align is None:
+        align = fid_attr is not None
+    fiducial = None
+    if align:
+        from .align import parse_fiducial
+        if fid_attr is None:
+            raise ReconstructionError(f"{run.path}: --align, but the run records no fiducial "
+                                      f"(no 'fiducial' attribute); reconstruct with --no-align")
+        fiducial = parse_fiducial(fid_attr, n_rows, nx, where=str(run.path))
     row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
     time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
     t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
@@ -153,7 +184,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     by = min(n_lines, 16) if chunks is None else min(int(chunks[0]), n_lines)
     try:
         # one block of lines in memory: raw frames (uint16), their float64 mean, the resampled block
-        L.check_memory("--chunks", by * nx * (run.frames_per_line * n_rows * 2 + n_rows * 8 + n_bins * (8 + 4)),
+        per_frame = run.frames_per_line * n_rows * (2 + (8 * 4 if align else 0))   # raw, and the aligned copies
+        L.check_memory("--chunks", by * nx * (per_frame + n_rows * 8 + n_bins * (8 + 4)),
                        L.MAX_CHUNK_BYTES, what=f"to reconstruct {by} lines at a time")
         L.check_disk("cube", n_lines * nx * n_bins * 4, L.MAX_CUBE_BYTES, out.parent,
                      what=f"for a {n_lines} x {nx} x {n_bins} float32 cube (limits.MAX_CUBE_BYTES)")
@@ -204,6 +236,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "time_range": cfg["camera"]["time_range"],
         "exposure_s": float(cfg["camera"]["exposure_s"]),
         "resampling": "linear interpolation from calibrated row times",
+        "aligned_on_fiducial": bool(align),
+        "fiducial": None if fiducial is None else dict(fid_attr),
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
     }
 
@@ -221,6 +255,15 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                      attributes={"units": "1", "long_name": "line acquired (False: unfinished, cube is NaN)",
                                  "flag_values": [0, 1],
                                  "flag_meanings": "unfinished acquired"})[:] = done[order]
+        corr_arr = None
+        if align:
+            corr_arr = create_array(g, "fiducial_correction_ps", shape=(n_lines, run.frames_per_line),
+                                    dtype="float64", fill_value=np.nan, dimension_names=["y", "frame"],
+                                    attributes={"units": "ps", "long_name": "time each frame was moved by to put "
+                                                "its fiducial at the reference (NaN: unfinished line)"})
+        if sweep_cal is not None:
+            from .sweep import SWEEP_GROUP, write_sweep_group
+            write_sweep_group(g.create_group(SWEEP_GROUP), sweep_cal)
         create_array(g, "angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["y"],
                      attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
         by = cube.array.chunks[0]
@@ -232,7 +275,22 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             if ok.any():
                 raw = np.stack([read_checked(streaks, int(i), store=run.path)
                                 for i in ys[ok]])                             # (b, frame, x, rows) uint16
-                corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
+                if fiducial is None:
+                    corrected = correct_frames(raw, dark, flat)               # (b, x, rows)
+                else:
+                    from .align import align_frames
+                    frames = raw - dark                                       # (b, frame, x, rows) float64
+                    if flat is not None:
+                        frames /= flat
+                    try:
+                        frames, corr = align_frames(frames, row_times_ps, fiducial, min_snr=fiducial_min_snr,
+                                                    line_ids=ys[ok])
+                    except StreaklabError as exc:
+                        raise ReconstructionError(f"{run.path}: {exc}") from None
+                    corrected = frames.mean(axis=1)
+                    corr_block = np.full((ys.size, run.frames_per_line), np.nan)
+                    corr_block[ok] = corr
+                    corr_arr[y0:y0 + ys.size] = corr_block
                 block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
                                              t0_ps=t0_ps, n_bins=n_bins)
             cube.array[y0:y0 + ys.size] = block

@@ -146,6 +146,8 @@ def test_no_command_writes_inside_a_zarr_store(tmp_path, capsys):
         ["demo", "--out", run_],
         ["simulate", "--out", f"{res}/sim.zarr", "--shape", "1", "2", "64"],
         ["calibrate-irf", cube, "--out", f"{run_}/irf.zarr"],
+        ["calibrate-sweep", run_, "--etalon-ps", "20", "--out", f"{cube}/sweep.zarr"],
+        ["calibrate-shading", run_, "--out", f"{cube}/flat.npy"],
         ["export", cube, "--out", f"{res}/c.h5"],
         ["import", str(tmp_path / "c.h5"), "--out", f"{run_}/c.zarr"],
         ["example-config", "--out", f"{cube}/scan.toml"],

@@ -1,0 +1,240 @@
+"""Aligning streak frames on a fiducial pulse before they are averaged.
+
+The camera's trigger jitters from frame to frame and drifts over minutes, so the same
+light lands on different rows in different frames.  A capture with a fiducial records a
+reference pulse at a fixed time in a fixed band of rows (``row_start`` to ``row_stop``,
+the run store's ``fiducial`` attribute).  For every frame :func:`fiducial_times_ps` finds
+that pulse (background-subtracted centroid in the band, sub-row, mapped to time through
+the row times), :func:`align_frames` computes the correction ``reference - measured``
+(ps) and :func:`shift_frames` moves each frame by it: the frame's row edges are moved in
+time and its counts rebinned onto the unshifted edges from their cumulative sum, which
+preserves the counts of the frame.  Everything works on whole blocks of frames at once.
+
+A frame whose band holds no pulse (peak below ``min_snr`` times the band's noise, or a
+centroid at the band's edge) is an error naming the line and frame; a frame is never
+silently left unshifted.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.errors import StreaklabError
+
+__all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
+           "shift_frames", "align_frames"]
+
+
+class AlignmentError(StreaklabError, ValueError):
+    """The fiducial cannot be found or used (says in which line and frame)."""
+
+
+@dataclass(frozen=True)
+class Fiducial:
+    """Where a capture's fiducial pulse is.
+
+    Attributes
+    ----------
+    row_start, row_stop : int
+        Band of streak rows holding the pulse, ``row_start <= row < row_stop``.
+    nominal_ps : float or None
+        Time of the pulse after the laser pulse (the run's row times plus the trigger delay),
+        ps: every frame is moved so that its fiducial lies there.  None: onto the median of
+        the measured times.
+    x_start, x_stop : int or None
+        Slit pixels that see the pulse (default: all).
+    """
+
+    row_start: int
+    row_stop: int
+    nominal_ps: float | None = None
+    x_start: int | None = None
+    x_stop: int | None = None
+
+
+def parse_fiducial(attr, n_rows: int, n_x: int, *, where: str = "the run") -> Fiducial:
+    """Check a run store's ``fiducial`` attribute and return it as a :class:`Fiducial`.
+
+    Parameters
+    ----------
+    attr : dict
+        ``{"row_start": int, "row_stop": int, "nominal_ps": float (optional),
+        "x_start": int, "x_stop": int (optional)}``.
+    n_rows, n_x : int
+        Rows and slit pixels of the run's images.
+    """
+    if not isinstance(attr, dict):
+        raise AlignmentError(f"{where}: fiducial attribute must be a mapping with row_start and row_stop, got {attr!r}")
+    for key in ("row_start", "row_stop"):
+        if key not in attr:
+            raise AlignmentError(f"{where}: fiducial attribute lacks {key!r}")
+
+    def _int(key, default):
+        v = attr.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise AlignmentError(f"{where}: fiducial.{key} must be an integer, got {v!r}")
+        return int(v)
+
+    r0, r1 = _int("row_start", None), _int("row_stop", None)
+    x0, x1 = _int("x_start", 0), _int("x_stop", n_x)
+    if not 0 <= r0 < r1 <= n_rows or r1 - r0 < 5:
+        raise AlignmentError(f"{where}: fiducial rows {r0}..{r1} must be a band of at least 5 of the {n_rows} rows")
+    if not 0 <= x0 < x1 <= n_x:
+        raise AlignmentError(f"{where}: fiducial pixels {x0}..{x1} must lie within the {n_x} slit pixels")
+    nominal = attr.get("nominal_ps")
+    if nominal is not None:
+        if isinstance(nominal, bool) or not isinstance(nominal, (int, float)) or not math.isfinite(nominal):
+            raise AlignmentError(f"{where}: fiducial.nominal_ps must be a finite number of ps, got {nominal!r}")
+        nominal = float(nominal)
+    return Fiducial(r0, r1, nominal, x0, x1)
+
+
+def row_edges_ps(row_times_ps: np.ndarray) -> np.ndarray:
+    """Time of the boundaries between rows: midpoints, the outer two extrapolated.
+
+    Parameters
+    ----------
+    row_times_ps : ndarray, shape (n_rows,), strictly increasing, ps
+
+    Returns
+    -------
+    ndarray, shape (n_rows + 1,), ps.
+    """
+    t = np.asarray(row_times_ps, dtype=np.float64)
+    mid = 0.5 * (t[1:] + t[:-1])
+    return np.concatenate([[t[0] - (mid[0] - t[0])], mid, [t[-1] + (t[-1] - mid[-1])]])
+
+
+def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fiducial, *,
+                      min_snr: float = 5.0, line_ids=None) -> np.ndarray:
+    """Time of the fiducial pulse in every frame.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n_lines, n_frames, x, n_rows)
+        Dark-subtracted frames.
+    row_times_ps : ndarray, shape (n_rows,)
+        Time of each row, ps (increasing).
+    fiducial : Fiducial
+    min_snr : float
+        The band's peak (above its background, the median of its outer sixths) must reach this
+        many times the noise of those rows (their scaled median absolute deviation, at least the
+        square root of the background count).
+    line_ids : sequence of int, optional
+        Run line of each entry of ``frames`` (for the error message; default 0, 1, ...).
+
+    Returns
+    -------
+    ndarray, shape (n_lines, n_frames), ps: the background-subtracted centroid of the band.
+    """
+    f = np.asarray(frames, dtype=np.float64)
+    if f.ndim != 4:
+        raise AlignmentError(f"frames must be 4-D (line, frame, x, row), got shape {f.shape}")
+    band = f[:, :, fiducial.x_start:fiducial.x_stop, fiducial.row_start:fiducial.row_stop].sum(axis=2)
+    n = band.shape[-1]
+    k = max(2, n // 6)
+    edges = np.concatenate([band[..., :k], band[..., -k:]], axis=-1)
+    bg = np.median(edges, axis=-1, keepdims=True)
+    noise = 1.4826 * np.median(np.abs(edges - bg), axis=-1)
+    prof = band - bg
+    peak = prof.max(axis=-1)
+    rows = np.arange(fiducial.row_start, fiducial.row_stop, dtype=np.float64)
+    weight = prof.sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centroid = (prof * rows).sum(axis=-1) / weight
+        snr = peak / np.maximum(noise, np.sqrt(np.abs(bg[..., 0]) + 1.0))
+    margin = 1.0
+    bad = ~(np.isfinite(snr) & (snr >= min_snr) & (weight > 0) & np.isfinite(centroid)
+            & (centroid > fiducial.row_start + margin) & (centroid < fiducial.row_stop - 1 - margin))
+    if bad.any():
+        li, fi = np.argwhere(bad)[0]
+        line = int(li) if line_ids is None else int(np.asarray(line_ids)[li])
+        where = (f"peak {snr[li, fi]:.3g} times the noise, below {min_snr:g}" if not (snr[li, fi] >= min_snr)
+                 else f"centroid at row {centroid[li, fi]:.4g}, at the band's edge")
+        raise AlignmentError(f"line {line} frame {int(fi)}: no usable fiducial pulse in rows "
+                             f"{fiducial.row_start}..{fiducial.row_stop} ({where}; {int(bad.sum())} such frames in all)")
+    t = np.asarray(row_times_ps, dtype=np.float64)
+    return np.interp(centroid, np.arange(t.size, dtype=np.float64), t)
+
+
+def shift_frames(frames: np.ndarray, row_times_ps: np.ndarray, shift_ps: np.ndarray) -> np.ndarray:
+    """Move each frame later in time by ``shift_ps``, keeping its counts (flux-preserving rebinning).
+
+    The light a frame recorded in row ``r`` arrived, after the shift, between the row's edges
+    plus ``shift_ps``.  The frame's cumulative counts, known exactly at the row edges, are
+    interpolated in time by cubic Hermite segments (slopes: the mean density of the two rows
+    at an edge; past the ends the end row's density continues), read at the unshifted edges
+    and differenced, so the counts are kept and a shift of whole rows is exact.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (..., x, n_rows)
+    row_times_ps : ndarray, shape (n_rows,), increasing, ps
+    shift_ps : ndarray, shape (...)
+        One shift per frame (the leading shape of ``frames``), ps.
+
+    Returns
+    -------
+    ndarray, shape of ``frames``, float64.
+    """
+    f = np.asarray(frames, dtype=np.float64)
+    s = np.asarray(shift_ps, dtype=np.float64)
+    if s.shape != f.shape[:-2]:
+        raise AlignmentError(f"one shift per frame needed: shifts {s.shape}, frames {f.shape[:-2]}")
+    e = row_edges_ps(row_times_ps)                                   # (n+1,)
+    width = np.diff(e)                                               # (n,)
+    f3 = f.reshape((-1,) + f.shape[-2:])                             # (F, x, n)
+    cum = np.concatenate([np.zeros(f3.shape[:-1] + (1,)), np.cumsum(f3, axis=-1)], axis=-1)   # (F, x, n+1)
+    dens = f3 / width                                                # counts per ps of each row
+    slope = np.concatenate([dens[..., :1], 0.5 * (dens[..., 1:] + dens[..., :-1]), dens[..., -1:]], axis=-1)
+    q = e[None, :] - s.reshape(-1, 1)                                # (F, n+1): unshifted edges in frame time
+    j = np.clip(np.searchsorted(e, q, side="right") - 1, 0, e.size - 2)
+    h = width[j]
+    u = (q - e[j]) / h                                               # outside [0, 1]: past the ends
+    inside = ((u >= 0) & (u <= 1))[:, None, :]
+    uc = np.clip(u, 0.0, 1.0)[:, None, :]
+    hh = h[:, None, :]
+
+    def at(a, idx):
+        return np.take_along_axis(a, np.broadcast_to(idx[:, None, :], a.shape[:2] + idx.shape[-1:]), axis=-1)
+
+    c0, c1, m0, m1 = at(cum, j), at(cum, j + 1), at(slope, j), at(slope, j + 1)
+    # cubic Hermite interpolation of the cumulative counts: exact at every edge, smooth between
+    u2, u3 = uc * uc, uc * uc * uc
+    c = ((2 * u3 - 3 * u2 + 1) * c0 + (u3 - 2 * u2 + uc) * hh * m0 + (-2 * u3 + 3 * u2) * c1
+         + (u3 - u2) * hh * m1)
+    # past the ends: the end row's density continues
+    past = np.where(u[:, None, :] < 0, c0 + m0 * (u[:, None, :] * hh), c1 + m1 * ((u[:, None, :] - 1) * hh))
+    c = np.where(inside, c, past)
+    return np.diff(c, axis=-1).reshape(f.shape)
+
+
+def align_frames(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fiducial, *, min_snr: float = 5.0,
+                 line_ids=None) -> tuple[np.ndarray, np.ndarray]:
+    """Shift every frame so that its fiducial lies at the reference time.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n_lines, n_frames, x, n_rows)
+        Dark-subtracted frames.
+    row_times_ps : ndarray, shape (n_rows,)
+        Time of each row on the run's axis (after the laser pulse), ps, strictly monotonic.
+    fiducial : Fiducial
+        The reference time is ``fiducial.nominal_ps``, else the median measured time.
+    min_snr, line_ids : see :func:`fiducial_times_ps`.
+
+    Returns
+    -------
+    aligned : ndarray, shape of ``frames``, float64
+    correction_ps : ndarray, shape (n_lines, n_frames)
+        Time each frame was moved by (reference minus measured fiducial time), ps.
+    """
+    measured = fiducial_times_ps(frames, row_times_ps, fiducial, min_snr=min_snr, line_ids=line_ids)
+    ref = fiducial.nominal_ps if fiducial.nominal_ps is not None else float(np.median(measured))
+    correction = ref - measured
+    t = np.asarray(row_times_ps, dtype=np.float64)
+    if t[-1] < t[0]:                                  # a sweep read out from the last row: rebin reversed
+        return shift_frames(np.asarray(frames)[..., ::-1], t[::-1], correction)[..., ::-1], correction
+    return shift_frames(frames, t, correction), correction
