@@ -62,6 +62,14 @@ A configuration has these sections (every key is listed with its default; see
                                    # (a flat mirror: one direct return per pixel, for calibrate-irf)
     response = "gaussian"          # optional: the simulated camera's instrument response,
                                    # "gaussian", "tailed" (diffusion tail) or "afterpulse"
+    jitter_ps = 0.0                # optional: trigger jitter, ps RMS per frame
+    drift_ps_per_min = 0.0         # optional: trigger drift, ps per simulated minute
+    sweep_nonlinearity = 0.0       # optional: the sweep's quadratic bow, fraction of the window (|n| < 0.25)
+    shading = 0.0                  # optional: sensitivity ramp 1 +- shading along the time axis (0 <= s < 1)
+    clock_speed = 1.0              # optional: simulated seconds per wall-clock second (the drift's clock)
+    fiducial = false               # optional: a fiducial pulse in every frame (drivers.sim.timebase);
+                                   # a capture records its nominal position in the run store's
+                                   # ``simulation_fiducial`` attribute
 
 Sizes and waits are bounded by the documented limits of :mod:`core.limits` (at most
 100 000 scan lines, every ``*_timeout_s`` and ``exposure_s`` at most 86 400 s, the retry
@@ -86,7 +94,7 @@ from core import limits as L
 from core.errors import StreaklabError
 
 __all__ = ["ConfigError", "ScanConfig", "load_config", "parse_config", "calibration_times_ps",
-           "check_calibration", "check_row_times", "HASHED_SECTIONS", "TIME_SOURCES"]
+           "check_calibration", "check_row_times", "HASHED_SECTIONS", "TIME_SOURCES", "SIMULATION_TIMEBASE_KEYS"]
 
 
 class ConfigError(StreaklabError, ValueError):
@@ -237,6 +245,23 @@ def _poly(key, v):
     return coeffs
 
 
+def _sweep_nonlinearity(key, v):
+    from drivers.sim.timebase import MAX_SWEEP_NONLINEARITY as m
+
+    v = _num(key, v, what=f"a fraction of the window in (-{m:g}, {m:g})")
+    if not abs(v) < m:
+        _fail(key, f"must be a fraction of the window in (-{m:g}, {m:g}) (the sweep must keep increasing), "
+                   f"got {v!r}")
+    return v
+
+
+def _shading(key, v):
+    v = _num(key, v, lo=0.0, what="a number in [0, 1)")
+    if v >= 1.0:
+        _fail(key, f"must be a number in [0, 1), got {v!r}")
+    return v
+
+
 _SPEC = {
     "devices": {
         "camera": (_host_port, "127.0.0.1:1001"),
@@ -295,8 +320,22 @@ _SPEC = {
         # Optional and without a filled-in default, so the hash of configs that do not name them is unchanged.
         "scene": (lambda k, v: _choice(k, v, "SIMULATED_SCENES"), _MISSING),
         "response": (lambda k, v: _choice(k, v, "SIMULATED_RESPONSES"), _MISSING),
+        # The simulated camera's time base (drivers.sim.timebase); all off when not named.
+        "jitter_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e6, what="a jitter RMS in ps in [0, 1e6]"), _MISSING),
+        "drift_ps_per_min": (lambda k, v: _num(k, v, lo=-1e6, hi=1e6, what="a drift in ps per minute in "
+                                                                         "[-1e6, 1e6]"), _MISSING),
+        "sweep_nonlinearity": (_sweep_nonlinearity, _MISSING),
+        "shading": (_shading, _MISSING),
+        "clock_speed": (lambda k, v: _num(k, v, lo=0.0, lo_open=True, hi=1e6,
+                                          what="a positive clock speed (simulated s per wall s), at most 1e6"),
+                        _MISSING),
+        "fiducial": (_bool, _MISSING),
     },
 }
+
+# Keys of [simulation] that configure the simulated camera's time base (drivers.sim.timebase.TimeBase).
+SIMULATION_TIMEBASE_KEYS = ("jitter_ps", "drift_ps_per_min", "sweep_nonlinearity", "shading", "clock_speed",
+                            "fiducial")
 
 
 @dataclass(frozen=True)

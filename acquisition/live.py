@@ -6,7 +6,8 @@ with its time profile to a callback at a bounded rate, and always stops the
 live acquisition on the camera (``AcqStop``, monitoring off) when it ends —
 after the requested number of frames, on an error, or on Ctrl-C.  Optionally the
 streak unit is put in ``Focus`` mode (sweep off) for the duration and put back
-afterwards.
+afterwards (the driver sets the MCP gain to 0 before Focus mode); the MCP gain is set to 0
+when the live acquisition ends.
 """
 from __future__ import annotations
 
@@ -174,6 +175,12 @@ class LiveView:
             self.camera.stop_live()
         except DriverError as exc:
             log.warning("live: stopping the live acquisition failed: %s", exc)
+        off = getattr(self.camera, "gain_off", None)
+        if off is not None:
+            try:
+                off()                                 # the gain interlock: 0 once the acquisition ends
+            except DriverError as exc:
+                log.warning("live: could not set the MCP gain to 0: %s", exc)
         if self._mode_before is not None:
             try:
                 self.camera.set_streak_mode(self._mode_before)

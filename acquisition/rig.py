@@ -17,10 +17,10 @@ import numpy as np
 
 from drivers.errors import DriverError
 
-from .config import ScanConfig, calibration_times_ps, simulated_example_address
+from .config import SIMULATION_TIMEBASE_KEYS, ScanConfig, calibration_times_ps, simulated_example_address
 from .session import CaptureError, CaptureSession, SessionResult
 
-__all__ = ["simulated_scene", "start_simulated_lab", "open_rig", "run_capture"]
+__all__ = ["simulated_scene", "simulated_timebase", "start_simulated_lab", "open_rig", "run_capture"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,14 @@ def simulated_scene(config: ScanConfig):
                         time_range=base.time_range, response=response)
 
 
+def simulated_timebase(config: ScanConfig):
+    """The simulated camera's time base from ``[simulation]`` (every effect off where not named)."""
+    from drivers.sim.timebase import TimeBase
+
+    sim = config["simulation"]
+    return TimeBase(**{k: sim[k] for k in SIMULATION_TIMEBASE_KEYS if k in sim})
+
+
 def start_simulated_lab(config: ScanConfig):
     """Start (enter) a SimulatedLab matching the config; the caller closes it."""
     from drivers.sim import SimulatedLab
@@ -57,7 +65,7 @@ def start_simulated_lab(config: ScanConfig):
     tr = config["camera"]["time_range"]
     # A time such as "1 ns" is a single-sweep unit's time range; a number a synchroscan unit's.
     lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True,
-                       camera_options={"single_sweep": isinstance(tr, str)})
+                       camera_options={"single_sweep": isinstance(tr, str)}, timebase=simulated_timebase(config))
     lab.start()
     # The simulated sweep is what the scene says; warn if the config's calibration describes another.
     from drivers.sim.scene import TIME_RANGE_SCALE, time_range_scale
@@ -162,7 +170,23 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
         if lab is None and simulate:
             lab = start_simulated_lab(config)
             stack.callback(lab.close)
+        if lab is not None and config["simulation"].get("fiducial"):
+            on_start = _recording_fiducial(lab, on_start)
         with open_rig(config, lab=lab) as (camera, mirror, sync):
             session = CaptureSession(config, out, camera, mirror, sync, resume=resume, stop_event=stop_event,
                                      on_line=on_line, on_start=on_start, session_info=info)
             return session.run()
+
+
+def _recording_fiducial(lab, on_start):
+    """``on_start`` that first records where the simulated fiducial pulse lies in the run store.
+
+    The store's ``simulation_fiducial`` attribute: ``pixels`` [first, last] slit pixels,
+    ``window_time_ps`` (on the camera's reported row-time axis, zero delay), ``row`` (fractional
+    row), ``sigma_ps``, ``amplitude`` (see :meth:`drivers.sim.timebase.TimeBase.fiducial_nominal`).
+    """
+    def start(session):
+        session.store.group.attrs["simulation_fiducial"] = lab.fiducial_nominal()
+        if on_start is not None:
+            on_start(session)
+    return start

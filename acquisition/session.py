@@ -11,7 +11,11 @@ protocols, so the same code runs on the real rig and on ``drivers.sim``::
     lines    sync output on; for every line not yet done: move the mirror, wait until it
              settles, take ``frames_per_line`` frames, check the sync's error queue, write
              the frames durably, mark the line done
-    finally  sync output off (the drivers' context managers do the rest)
+    finally  sync output off and the camera's MCP gain 0 (the drivers' context managers do the rest)
+
+The gain interlock: the camera's MCP gain is set to 0 when the session ends (complete,
+stopped, failed, Ctrl-C) and after every device fault (the operating gain is set again
+before the next frames); the streak unit is put in Operate mode before the gain is raised.
 
 A device fault (:class:`~drivers.errors.DeviceTimeout`, ``ConnectionLost``,
 ``DeviceError``, ``ProtocolError``) during a step is retried ``session.retries``
@@ -173,6 +177,8 @@ class CaptureSession:
         self.acquired: list[int] = []
         self.retries_used = 0
         self._entry: int | None = None          # index of this session's entry in ``sessions``
+        self.operating_gain: int | None = None  # the MCP gain the frames are taken at (None: not controlled)
+        self._gain_is_off = False               # the gain interlock set it to 0 since it was last set
         s = config["session"]
         self.retries = int(s["retries"])
         self.backoff_s = float(s["retry_backoff_s"])
@@ -229,6 +235,7 @@ class CaptureSession:
             self.camera.stop()
         except DriverError as exc:
             log.info("camera stop after a fault failed too: %s", exc)
+        self.gain_off("after a fault")
         try:
             state = self.mirror.state()
             if state in ("not_referenced", "disabled"):
@@ -265,14 +272,34 @@ class CaptureSession:
                       sync_setting(lambda: self.sync.set_trigger_delay(sync["trigger_delay_ps"],
                                                                        channel=sync["channel"])))
         cam = cfg["camera"]
-        for key in ("time_range", "exposure_s", "gain"):
+        for key in ("time_range", "exposure_s"):
             if cam.get(key) is not None:
                 self._setting(f"camera.{key}", cam[key], "camera",
                               lambda key=key: self.camera.configure(**{key: cam[key]}))
         set_mode = getattr(self.camera, "set_streak_mode", None)
         if set_mode is not None:
-            # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on.
+            # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on,
+            # and before the gain is raised (the MCP gain stays 0 in Focus mode).
             self._attempt("camera streak mode", lambda: self._operate(set_mode))
+        if cam.get("gain") is not None:
+            self._setting("camera.gain", cam["gain"], "camera", lambda: self.camera.configure(gain=cam["gain"]))
+        self.operating_gain = cam.get("gain")
+        read_gain = getattr(self.camera, "gain", None)
+        if self.operating_gain is None and callable(read_gain):
+            def read():
+                try:
+                    return read_gain()
+                except DeviceError as exc:
+                    if exc.code != 2:        # 2: no MCP gain control on this unit: nothing to guard
+                        raise
+                    return None
+
+            gain = self._attempt("camera gain read-back", read)
+            if gain == 0:
+                raise CaptureError("camera.gain: not set, and the camera's MCP gain is 0 (the gain interlock "
+                                   "sets it to 0 after every acquisition); set camera.gain in the config")
+            self.operating_gain = gain
+        self._gain_is_off = False
         self._attempt("mirror homing", lambda: self.mirror.home(timeout_s=max(30.0, cfg["scan"]["settle_timeout_s"])))
         self.devices = ids
         return ids
@@ -294,6 +321,9 @@ class CaptureSession:
         memory before the second is taken.
         """
         timeout_s = self.config["camera"]["acquire_timeout_s"]
+        if self._gain_is_off and self.operating_gain is not None:
+            self.camera.configure(gain=int(self.operating_gain))     # back from the interlock after a fault
+            self._gain_is_off = False
         frames = []
         for i in range(n):
             img = self.camera.acquire(timeout_s=timeout_s)
@@ -539,8 +569,26 @@ class CaptureSession:
             log.warning("could not record the session's end in %s: %s", self.out, exc)
 
     def make_safe(self) -> None:
-        """Laser-sync output off (best effort; the drivers' context managers also do it)."""
+        """Laser-sync output off and MCP gain 0 (best effort; the drivers' context managers also do it).
+
+        Runs when the session ends however it ends: complete, stopped, failed, Ctrl-C.
+        """
         try:
             self.sync.set_output(False)
         except DriverError as exc:
             log.warning("could not switch the laser-sync output off: %s", exc)
+        self.gain_off("at the end of the acquisition")
+
+    def gain_off(self, when: str) -> None:
+        """The gain interlock: MCP gain 0 (best effort, logged when it fails).
+
+        Cameras without the call (test doubles, units without MCP gain control) are left alone.
+        """
+        off = getattr(self.camera, "gain_off", None)
+        if off is None:
+            return
+        try:
+            off()
+            self._gain_is_off = True
+        except DriverError as exc:
+            log.warning("could not set the camera's MCP gain to 0 %s: %s", when, exc)

@@ -216,11 +216,34 @@ class RemoteExCamera(RemoteExLink):
         self._settings["gain"] = v = self._dev_int("MCP Gain")
         return v
 
+    def gain_off(self) -> bool:
+        """MCP gain to 0 (the gain interlock); False when the streak unit has no MCP gain control.
+
+        The streak unit's MCP is protected by setting its gain to 0 whenever no swept
+        acquisition needs it: in Focus mode, after an acquisition ends, on shutdown and
+        after a fault (see docs/streak-camera.md, "Gain interlocks").
+        """
+        try:
+            self.command("DevParamSet", self.streak_device, "MCP Gain", 0)
+        except DeviceError as exc:
+            if exc.code != 2:           # 2: no such parameter: this unit has no MCP gain control
+                raise
+            return False
+        self._settings["gain"] = 0
+        return True
+
     def set_streak_mode(self, mode: str) -> None:
-        """Streak unit mode: ``Operate`` (sweeping) or ``Focus`` (no sweep, for alignment)."""
+        """Streak unit mode: ``Operate`` (sweeping) or ``Focus`` (no sweep, for alignment).
+
+        ``Focus`` sets the MCP gain to 0 first (:meth:`gain_off`): without the sweep all the
+        light lands on one line of the phosphor.  ``Operate`` leaves the gain as it is.
+        """
         if mode not in ("Operate", "Focus"):
             raise ValueError(f"streak mode must be 'Operate' or 'Focus', got {mode!r}")
-        self.command("DevParamSet", self.streak_device, "Mode", mode)
+        with self._lock:
+            if mode == "Focus":
+                self.gain_off()
+            self.command("DevParamSet", self.streak_device, "Mode", mode)
 
     def streak_mode(self) -> str:
         """Streak unit mode read back (``Operate`` or ``Focus``)."""
@@ -485,12 +508,15 @@ class RemoteExCamera(RemoteExLink):
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        """Stop any acquisition and set the MCP gain to 0 (the shutdown interlock), then disconnect."""
         try:
             self.stop()
+            self.gain_off()
         except DriverError:
             if exc_type is None:
                 self.close()
                 raise
-            log.exception("RemoteEx: could not stop the acquisition while leaving after an error")
+            log.exception("RemoteEx: could not stop the acquisition and set the gain to 0 while leaving "
+                          "after an error")
         finally:
             self.close()

@@ -292,6 +292,7 @@ def test_exit_stops_acquisition_even_when_the_body_raised():
     cam, srv, _data = scripted_camera([
         (b"AcqStart(Acquire)\r", b"0,AcqStart\r"),
         (b"AcqStop()\r", b"0,AcqStop\r"),
+        (b"DevParamSet(Streak,MCP Gain,0)\r", b"0,DevParamSet\r"),
     ])
     with pytest.raises(RuntimeError, match="body failed"):
         with cam:

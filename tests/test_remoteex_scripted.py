@@ -190,6 +190,7 @@ def test_live_mode_takes_the_newest_announced_image_from_the_ring_buffer():
 
 def test_streak_mode_focus_and_operate():
     cam, cmd, data = scripted_camera([
+        (b"DevParamSet(Streak,MCP Gain,0)\r", b"0,DevParamSet\r"),         # the focus-mode gain interlock
         (b"DevParamSet(Streak,Mode,Focus)\r", b"0,DevParamSet\r"),
         (b"DevParamGet(Streak,Mode)\r", b"0,DevParamGet,Focus\r"),
     ])

@@ -480,13 +480,15 @@ def test_list_valued_device_parameters_accept_their_entries(lab):
 def test_focus_mode_puts_the_time_integrated_slit_image_on_the_middle_rows(lab):
     sim, cam, state = lab
     cam.set_streak_mode("Focus")
+    assert sim.gain == 0                                  # the driver's focus-mode gain interlock
     img = cam.acquire().data.astype(float)
-    expected = SCENE.expected_focus_counts(3)
+    expected = SCENE.expected_focus_counts(3, gain=0)
     assert np.abs(img - expected).mean() < 5.0
     row = int(np.argmax(img.sum(axis=0)))
     assert abs(row - (SCENE.n_t - 1) / 2) <= 1
     assert cam.scaling_table_ps() is None                # no sweep: no time scaling
     cam.set_streak_mode("Operate")
+    cam.configure(gain=SCENE.reference_gain)
     assert np.abs(cam.acquire().data - SCENE.expected_counts(3)).mean() < 5.0
 
 

@@ -152,3 +152,27 @@ def test_sim_lab_reports_a_taken_port():
         blocker.close()
     assert proc.returncode == 2
     assert b"cannot start the simulators" in proc.stderr
+
+
+def test_sim_lab_time_base_options_reach_the_camera_and_the_fiducial_is_where_printed():
+    proc, info = start_sim_lab("--lines", "4", "--x", "16", "--t", "128", "--no-mirror", "--fiducial",
+                               "--shading", "0.1", "--clock-speed", "60")
+    try:
+        words = info["fiducial"].split()                      # "pixels 0..1 row R t T ps"
+        assert words[:2] == ["pixels", "0..1"] and words[2] == "row" and words[4] == "t"
+        row = float(words[3])
+        host, port = info["camera"].rsplit(":", 1)
+        with RemoteExCamera(host, int(port), timeout_s=2.0) as cam:
+            img = cam.acquire().data.astype(float)
+        early = img[:2, : int(row) + 6].mean(axis=0)           # the fiducial's pixels, early in the window
+        assert abs(int(np.argmax(early)) - row) <= 1 and early.max() > img[2:, : int(row) + 6].max() + 100
+    finally:
+        stop_sim_lab(proc)
+
+
+def test_sim_lab_refuses_a_bad_time_base_option_in_one_line():
+    proc = subprocess.run([sys.executable, "-m", "streaklab", "sim-lab", "--no-mirror", "--shading", "1.5"],
+                          cwd=ROOT, capture_output=True, timeout=30)
+    assert proc.returncode == 2
+    (line,) = proc.stderr.decode().strip().splitlines()
+    assert "--shading: shading must be in [0, 1), got 1.5" in line

@@ -53,6 +53,7 @@ from .remoteex_commands import RemoteExCommands, Reply
 from .remoteex_images import frame_seed
 from .scene import VirtualScene
 from .state import LabState
+from .timebase import SimClock, TimeBase
 
 __all__ = ["RemoteExSimulator", "bind_port_pair", "frame_seed"]
 
@@ -138,6 +139,11 @@ class RemoteExSimulator(RemoteExCommands):
         Whether images carry table scaling (``ImgDataGet(...,ScalingTable,Vertical)``).
     send_timeout_s : float
         Longest wait to hand bytes to a client that does not read them (it is then dropped).
+    timebase : TimeBase, optional
+        Trigger jitter, drift, sweep nonlinearity, shading and fiducial pulse
+        (:mod:`drivers.sim.timebase`); all off by default.
+    wall_clock : callable() -> float, optional
+        Wall clock of the simulator's clock (:class:`~drivers.sim.timebase.SimClock`), for tests.
     """
 
     FAULT_KINDS = COMMON_KINDS | {"notify", "short_data", "stray_data", "wrong_name"}
@@ -145,7 +151,12 @@ class RemoteExSimulator(RemoteExCommands):
     def __init__(self, state: LabState | None = None, scene: VirtualScene | None = None, *, seed: int = 0,
                  host: str = "127.0.0.1", port: int = 0, frame_time_s: float = 0.002,
                  app_type: str = "HPD-TA", app_version: str = "9.5 (simulated)", single_sweep: bool = False,
-                 scaling_table: bool = True, send_timeout_s: float = 10.0):
+                 scaling_table: bool = True, send_timeout_s: float = 10.0, timebase: TimeBase | None = None,
+                 wall_clock=None):
+        self.timebase = timebase if timebase is not None else TimeBase()
+        if not isinstance(self.timebase, TimeBase):
+            raise ValueError(f"timebase must be a TimeBase, got {type(self.timebase).__name__}")
+        self.clock = SimClock(self.timebase.clock_speed, wall_clock)
         self.state = state if state is not None else LabState()
         self.scene = scene if scene is not None else VirtualScene.default(seed=seed)
         self.seed = int(seed)

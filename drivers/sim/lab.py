@@ -17,9 +17,12 @@ import dataclasses
 import importlib
 import logging
 
+import numpy as np
+
 from .camera import RemoteExSimulator
 from .scene import VirtualScene, simulated_response
 from .state import LabState
+from .timebase import TimeBase
 
 __all__ = ["SimulatedLab"]
 
@@ -49,6 +52,11 @@ class SimulatedLab:
         Extra keyword arguments for ``MirrorSimulator`` and ``UsbtmcBackend``.
     camera_options : dict, optional
         Extra keyword arguments for ``RemoteExSimulator`` (``single_sweep``, ``scaling_table``).
+    timebase : TimeBase, optional
+        The camera's time-base effects (:mod:`drivers.sim.timebase`: jitter, drift, sweep
+        nonlinearity, shading, fiducial, clock speed); all off by default.
+    wall_clock : callable() -> float, optional
+        Wall clock under the simulator's clock (``time.monotonic`` by default; tests pass their own).
 
     Attributes
     ----------
@@ -62,7 +70,8 @@ class SimulatedLab:
     def __init__(self, seed: int = 0, scene: VirtualScene | None = None, *, camera_port: int = 0,
                  frame_time_s: float = 0.002, mirror: bool | None = True, sync: bool | None = True,
                  mirror_options: dict | None = None, sync_options: dict | None = None,
-                 camera_options: dict | None = None, response=None):
+                 camera_options: dict | None = None, response=None, timebase: TimeBase | None = None,
+                 wall_clock=None):
         self.seed = int(seed)
         if scene is not None and response is not None:
             raise ValueError("give the response to the scene (VirtualScene(response=...)) or to SimulatedLab, not both")
@@ -74,7 +83,8 @@ class SimulatedLab:
         self.scene = scene
         self.state = LabState()
         self.camera = RemoteExSimulator(self.state, self.scene, seed=self.seed, port=camera_port,
-                                        frame_time_s=frame_time_s, **dict(camera_options or {}))
+                                        frame_time_s=frame_time_s, timebase=timebase, wall_clock=wall_clock,
+                                        **dict(camera_options or {}))
         self._want_mirror, self._want_sync = mirror, sync
         self.unavailable: dict[str, str] = {}   # simulators left out because their module is missing
         self._mirror_options = dict(mirror_options or {})
@@ -170,6 +180,40 @@ class SimulatedLab:
             raise RuntimeError(f"the laser-sync simulator is not running in this SimulatedLab "
                                f"{self.unavailable.get('usbtmc', '')}".rstrip())
         return self.sync
+
+    # ---------------------------------------------------------- ground truth
+    @property
+    def timebase(self) -> TimeBase:
+        """The camera's time-base effects."""
+        return self.camera.timebase
+
+    def sim_time_s(self) -> float:
+        """The simulator's clock: simulated seconds since the lab was made."""
+        return self.camera.clock.now_s()
+
+    def nominal_row_times_ps(self) -> np.ndarray:
+        """Row times the camera reports (its scaling table, ps, zero delay), shape (n_t,)."""
+        return self.scene.row_times_ps(0.0, self.camera.time_range)
+
+    def true_row_times_ps(self) -> np.ndarray:
+        """Row times the frames are rendered at (the sweep nonlinearity applied), shape (n_t,)."""
+        return self.timebase.true_row_times_ps(self.nominal_row_times_ps())
+
+    def shading_curve(self) -> np.ndarray:
+        """Multiplicative sensitivity of each row, shape (n_t,)."""
+        return self.timebase.sensitivity(self.scene.n_t)
+
+    def frame_shifts_ps(self) -> np.ndarray:
+        """Shift (jitter + drift, ps) applied to each exposure rendered with effects on, in order."""
+        return np.array([f["shift_ps"] for f in self.camera.frame_shifts], dtype=np.float64)
+
+    def fiducial_nominal(self) -> dict:
+        """Where the fiducial pulse lies at the current time range (see :meth:`TimeBase.fiducial_nominal`)."""
+        return self.timebase.fiducial_nominal(self.nominal_row_times_ps())
+
+    def gain_log(self) -> list[tuple[float, int, str]]:
+        """``(simulated time s, MCP gain, streak mode)`` at the start and at every change."""
+        return list(self.camera.gain_log)
 
     def describe(self) -> dict:
         """Addresses of the running simulators, for printing or logging."""

@@ -70,8 +70,13 @@ class RemoteExCommands(RemoteExImages):
     """Device state and command handlers (mixed into :class:`~drivers.sim.camera.RemoteExSimulator`).
 
     The owner sets ``scene``, ``state``, ``seed``, ``frame_time_s``, ``app_type``,
-    ``app_version``, ``single_sweep`` and ``scaling_table`` and calls
+    ``app_version``, ``single_sweep``, ``scaling_table``, ``timebase`` and ``clock`` and calls
     :meth:`_init_device` once.
+
+    Ground truth for tests: :attr:`gain_log` holds ``(simulated time s, MCP gain, streak
+    mode)`` at the start and whenever the gain or the mode changes; :attr:`frame_shifts` one
+    dict per exposure rendered with time-base effects (``sim_time_s``, ``jitter_ps``,
+    ``drift_ps``, ``shift_ps``, see :mod:`drivers.sim.timebase`).
     """
 
     def _init_device(self) -> None:
@@ -96,6 +101,15 @@ class RemoteExCommands(RemoteExImages):
         self._live_due = 0.0
         self._epoch = time.monotonic()
         self.outbox: list[bytes] = []          # unsolicited messages for the client (code 4)
+        self.frame_shifts: list[dict] = []     # time-base shift of every exposure rendered with effects on
+        self.gain_log: list[tuple[float, int, str]] = []
+        self._log_gain()
+
+    def _log_gain(self) -> None:
+        """Record ``(simulated time s, MCP gain, streak mode)`` in :attr:`gain_log` if either changed."""
+        entry = (self.clock.now_s(), self.gain, str(self._streak["mode"].value))
+        if not self.gain_log or self.gain_log[-1][1:] != entry[1:]:
+            self.gain_log.append(entry)
 
     # ------------------------------------------------------------ settings
     @property
@@ -401,6 +415,8 @@ class RemoteExCommands(RemoteExImages):
             except ValueError:
                 raise Reply(10) from None
         param.set(raw)
+        if param.name in ("MCP Gain", "Mode"):
+            self._log_gain()
         return [], None
 
     def _cmd_devparaminfo(self, args):

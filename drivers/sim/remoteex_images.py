@@ -14,6 +14,7 @@ import numpy as np
 from drivers.remoteex_wire import format_exposure, scaling_table_unit_ps
 
 from .remoteex_params import Reply, need as _need
+from .timebase import FIDUCIAL_PIXELS
 
 __all__ = ["RemoteExImages", "frame_seed"]
 
@@ -130,9 +131,12 @@ class RemoteExImages:
         rng = np.random.default_rng(frame_seed(self.seed, angle, delay_ps, light, self._view_index))
         line = self.scene.line_index(angle)
         total = None
+        effects = self.timebase.active and not focus          # no sweep in focus mode: no time-base effects
         for _ in range(n):
+            mean = self._timebase_mean(line, delay_ps, exposure_s, tr) if effects and light else None
             frame = self.scene.render_frame(line, rng, delay_ps=delay_ps, exposure_s=exposure_s, gain=self.gain,
-                                            time_range=tr, light=light, focus=focus, dark=mode != "PC")
+                                            time_range=tr, light=light, focus=focus, dark=mode != "PC",
+                                            signal_mean=mean)
             total = frame.astype(np.float64) if total is None else total + frame
         self.frames_rendered += 1
         frame = np.clip(total, 0, np.iinfo(np.uint16).max).astype(np.uint16)
@@ -140,6 +144,26 @@ class RemoteExImages:
                 "mode": mode, "exposures": n, "focus": focus, "time_range": tr,
                 "exposure": format_exposure(exposure_s)}
         return np.ascontiguousarray(frame.T), meta     # (n_t, n_x): image rows are the sweep direction
+
+    def _timebase_mean(self, line: int, delay_ps: float, exposure_s: float, tr) -> np.ndarray:
+        """Mean photo-counts (n_x, n_t) of one exposure under the time base's effects; records its shift.
+
+        See :mod:`drivers.sim.timebase` for the curves.  Each exposure draws its own jitter.
+        """
+        tb = self.timebase
+        nominal = self.scene.row_times_ps(0.0, tr)
+        true = tb.true_row_times_ps(nominal)
+        sim_time_s = self.clock.now_s()
+        jitter = tb.jitter_draw_ps(self.seed, len(self.frame_shifts))
+        drift = tb.drift_ps(sim_time_s)
+        shift = jitter + drift
+        self.frame_shifts.append({"sim_time_s": sim_time_s, "jitter_ps": jitter, "drift_ps": drift,
+                                  "shift_ps": shift})
+        clean = self.scene.clean_line_at(line, true + float(delay_ps) - shift)       # (n_x, n_t)
+        if tb.fiducial:
+            clean = clean.copy()
+            clean[:FIDUCIAL_PIXELS] += tb.fiducial_profile(nominal, true, shift)[None, :]
+        return self.scene.signal_scale(exposure_s, self.gain) * clean * tb.sensitivity(nominal.size)[None, :]
 
     @property
     def last_frame_info(self) -> dict:

@@ -244,14 +244,24 @@ class VirtualScene:
         hit = self._cache.get(key)
         if hit is not None:
             return hit
-        times = self.row_times_ps(delay_ps, time_range)                      # (n_t,)
+        out = self.clean_line_at(line, self.row_times_ps(delay_ps, time_range))
+        if len(self._cache) >= 64:
+            self._cache.clear()
+        self._cache[key] = out
+        return out
+
+    def clean_line_at(self, line: int, times_ps: np.ndarray) -> np.ndarray:
+        """Noise-free profile of one scan line seen at the given scene times (one per row, ps).
+
+        Returns
+        -------
+        ndarray, shape (n_x, times_ps.size), float64, in profile-amplitude units (background included).
+        """
+        times = np.asarray(times_ps, dtype=np.float64)
         p = self.line_params(line)
         out = self._render_with_response(p, times) if self.response is not None else self._render_gaussian(p, times)
         if self.background > 0:
             out = out + self.background
-        if len(self._cache) >= 64:
-            self._cache.clear()
-        self._cache[key] = out
         return out
 
     def _render_gaussian(self, p: dict, times: np.ndarray) -> np.ndarray:
@@ -319,10 +329,13 @@ class VirtualScene:
     def render_frame(self, line: int, rng: np.random.Generator, *, delay_ps: float = 0.0,
                      exposure_s: float | None = None, gain: int | None = None,
                      time_range: int | str | None = None, light: bool = True, focus: bool = False,
-                     dark: bool = True) -> np.ndarray:
+                     dark: bool = True, signal_mean: np.ndarray | None = None) -> np.ndarray:
         """One noisy frame (``focus``: sweep off, see :meth:`expected_focus_counts`).
 
         ``dark=False`` leaves out the dark level and the read noise (photon counting).
+        ``signal_mean`` (n_x, n_t), mean photo-counts above the dark level, replaces the scene's
+        own (the simulated camera's time-base effects, :mod:`drivers.sim.timebase`); the noise
+        is drawn the same way.
 
         Returns
         -------
@@ -330,7 +343,9 @@ class VirtualScene:
         """
         counts = np.full((self.n_x, self.n_t), self.dark_level if dark else 0.0, dtype=np.float64)
         if light:
-            if focus:
+            if signal_mean is not None:
+                mean = signal_mean
+            elif focus:
                 mean = self.expected_focus_counts(line, exposure_s=exposure_s, gain=gain) - self.dark_level
             else:
                 mean = self.signal_scale(exposure_s, gain) * self.clean_line(line, delay_ps, time_range)

@@ -195,12 +195,13 @@ def run(args) -> int:
         from drivers.remoteex import RemoteExCamera
 
         if args.simulate:
-            from acquisition.rig import simulated_scene
+            from acquisition.rig import simulated_scene, simulated_timebase
             from drivers.sim import SimulatedLab
 
             lab = SimulatedLab(seed=config["simulation"]["seed"], scene=simulated_scene(config), mirror=False,
                                sync=args.laser_on,
-                               camera_options={"single_sweep": isinstance(cam_cfg["time_range"], str)})
+                               camera_options={"single_sweep": isinstance(cam_cfg["time_range"], str)},
+                               timebase=simulated_timebase(config))
             lab.start()
             if not args.laser_on:
                 lab.state.sync_output_enabled = True      # no sync unit to switch: the laser simply runs

@@ -55,6 +55,8 @@ connecting other programs (addresses are the lines printed before 'ready'):
 def add_arguments(parser) -> None:
     import argparse
 
+    from drivers.sim.timebase import FIDUCIAL_FRACTION, FIDUCIAL_PIXELS, FIDUCIAL_SIGMA_PS
+
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = CONNECTING
     parser.add_argument("--seed", type=int, default=0, help="noise and scene seed (default 0)")
@@ -69,11 +71,29 @@ def add_arguments(parser) -> None:
                         help="a single-sweep streak unit (Time Range such as '1 ns') instead of synchroscan (1..4)")
     parser.add_argument("--no-scaling-table", action="store_true",
                         help="images carry no table scaling (ImgDataGet(...,ScalingTable,...) is refused)")
+    tb = parser.add_argument_group(
+        "time base (all off by default; see drivers/sim/timebase.py)",
+        "Row r (u = r/(n_t-1), window span W ps) sees scene time t_nom(r) + n*W*4u(1-u) + delay - s_k, "
+        "where t_nom is the scaling table the camera reports and s_k = jitter + drift the shift of "
+        "frame k (seeded by --seed); the signal is multiplied by 1 + shading*(2u-1).")
+    tb.add_argument("--jitter-ps", type=float, default=0.0, help="trigger jitter, ps RMS per frame (Gaussian)")
+    tb.add_argument("--drift-ps-per-min", type=float, default=0.0,
+                    help="trigger drift, ps per simulated minute (the simulator's clock, see --clock-speed)")
+    tb.add_argument("--sweep-nonlinearity", type=float, default=0.0,
+                    help="quadratic bow of the true row times: n*W at the middle row, 0 at the ends (|n| < 0.25)")
+    tb.add_argument("--shading", type=float, default=0.0,
+                    help="sensitivity ramp 1 + shading*(2u-1) along the time axis (0 <= shading < 1)")
+    tb.add_argument("--clock-speed", type=float, default=1.0,
+                    help="simulated seconds per wall-clock second (default 1; 60: a minute of drift per second)")
+    tb.add_argument("--fiducial", action="store_true",
+                    help=f"a fiducial pulse in every frame on slit pixels 0..{FIDUCIAL_PIXELS - 1} at "
+                         f"{FIDUCIAL_FRACTION:g} of the window (sigma {FIDUCIAL_SIGMA_PS:g} ps), shifted like the scene")
 
 
 def run(args) -> int:
     from drivers.sim.lab import SimulatedLab
     from drivers.sim.scene import VirtualScene
+    from drivers.sim.timebase import TimeBase
 
     if not 0 <= args.camera_port <= 65534:
         raise CommandError(f"--camera-port must be 0 (any) or 1..65534, got {args.camera_port}")
@@ -81,9 +101,16 @@ def run(args) -> int:
         scene = VirtualScene.default(n_lines=args.lines, n_x=args.n_x, n_t=args.n_t, seed=args.seed)
     except ValueError as exc:
         raise CommandError(f"scene: {exc}") from None
+    try:
+        timebase = TimeBase(jitter_ps=args.jitter_ps, drift_ps_per_min=args.drift_ps_per_min,
+                            sweep_nonlinearity=args.sweep_nonlinearity, shading=args.shading,
+                            clock_speed=args.clock_speed, fiducial=args.fiducial)
+    except ValueError as exc:
+        raise CommandError(f"--{str(exc).split(' ', 1)[0].replace('_', '-')}: {exc}") from None
     lab = SimulatedLab(seed=args.seed, scene=scene, camera_port=args.camera_port,
                        mirror=not args.no_mirror, sync=False,
-                       camera_options={"single_sweep": args.single_sweep, "scaling_table": not args.no_scaling_table})
+                       camera_options={"single_sweep": args.single_sweep, "scaling_table": not args.no_scaling_table},
+                       timebase=timebase)
     try:
         lab.start()
     except (OSError, RuntimeError) as exc:
@@ -105,6 +132,10 @@ def run(args) -> int:
             print(f"mirror {info['mirror']}")
             print(f"mirror-stable {info['mirror_stable']}")
         print(f"laser-output {'off' if args.dark else 'on'}")
+        if timebase.fiducial:
+            where = lab.fiducial_nominal()
+            print(f"fiducial pixels {where['pixels'][0]}..{where['pixels'][1]} row {where['row']:.3f} "
+                  f"t {where['window_time_ps']:.3f} ps")
         print("ready", flush=True)
         print("streaklab sim-lab: serving; Ctrl-C to stop", file=sys.stderr, flush=True)
         while not stop.wait(0.2):
