@@ -69,7 +69,7 @@ A configuration has these sections (every key is listed with its default; see
     clock_speed = 1.0              # optional: simulated seconds per wall-clock second (the drift's clock)
     fiducial = false               # optional: a fiducial pulse in every frame (drivers.sim.timebase);
                                    # a capture records its nominal position in the run store's
-                                   # ``simulation_fiducial`` attribute
+                                   # ``fiducial`` attribute
 
 Sizes and waits are bounded by the documented limits of :mod:`core.limits` (at most
 100 000 scan lines, every ``*_timeout_s`` and ``exposure_s`` at most 86 400 s, the retry

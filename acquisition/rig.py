@@ -181,12 +181,12 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
 def _recording_fiducial(lab, on_start):
     """``on_start`` that first records where the simulated fiducial pulse lies in the run store.
 
-    The store's ``simulation_fiducial`` attribute: ``pixels`` [first, last] slit pixels,
-    ``window_time_ps`` (on the camera's reported row-time axis, zero delay), ``row`` (fractional
-    row), ``sigma_ps``, ``amplitude`` (see :meth:`drivers.sim.timebase.TimeBase.fiducial_nominal`).
+    The store's ``fiducial`` attribute, which ``streaklab reconstruct`` aligns every frame on:
+    the band of rows and slit pixels to search and the pulse's nominal time (see
+    :meth:`drivers.sim.timebase.TimeBase.fiducial_nominal`).
     """
     def start(session):
-        session.store.group.attrs["simulation_fiducial"] = lab.fiducial_nominal()
+        session.store.group.attrs["fiducial"] = lab.fiducial_nominal()
         if on_start is not None:
             on_start(session)
     return start

@@ -130,8 +130,8 @@ def test_simulation_time_base_keys_are_parsed_and_start_the_lab_with_them(tmp_pa
     finally:
         lab.close()
     run = open_run(tmp_path / "run.zarr")
-    where = run.attrs["simulation_fiducial"]
-    assert where == lab.fiducial_nominal() and where["pixels"] == [0, FIDUCIAL_PIXELS - 1]
+    where = run.attrs["fiducial"]
+    assert where == lab.fiducial_nominal() and (where["x_start"], where["x_stop"]) == (0, FIDUCIAL_PIXELS)
     assert n_frames == cfg.n_lines                  # one shift per lit frame (the dark frames have no light)
     # the fiducial is in the captured lines where recorded
     lines = run["streaks"][:, 0].astype(np.float64)                   # (line, x, t)
@@ -145,7 +145,7 @@ def test_a_plain_config_keeps_its_hash_and_records_no_fiducial(tmp_path):
     assert sim_config(simulation={"fiducial": False}).hash != cfg.hash      # named keys are part of the data
     with start_lab(cfg) as lab:
         run_capture(cfg, tmp_path / "run.zarr", lab=lab)
-    assert "simulation_fiducial" not in open_run(tmp_path / "run.zarr").attrs
+    assert "fiducial" not in open_run(tmp_path / "run.zarr").attrs
 
 
 @pytest.mark.parametrize("key, value, message", [

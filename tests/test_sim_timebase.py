@@ -137,7 +137,7 @@ def test_jitter_per_frame_has_the_given_rms_and_moves_the_frames():
     frames, sim = camera_frames(TARGET, 12, timebase=TimeBase(jitter_ps=6.0, fiducial=True))
     nominal = TARGET.row_times_ps(0.0, 2)
     seen = peak_times_ps(np.array([f[:FIDUCIAL_PIXELS].mean(axis=0) for f in frames]) - TARGET.dark_level, nominal)
-    where = TimeBase().fiducial_nominal(nominal)["window_time_ps"]
+    where = TimeBase().fiducial_nominal(nominal)["nominal_ps"]
     np.testing.assert_allclose(seen - where, [f["shift_ps"] for f in sim.frame_shifts], atol=1.0)
 
 
@@ -175,11 +175,11 @@ def test_the_fiducial_pulse_is_where_documented():
     frames, sim = camera_frames(TARGET, 1, timebase=tb)
     nominal = TARGET.row_times_ps(0.0, 2)
     where = tb.fiducial_nominal(nominal)
-    assert where["pixels"] == [0, FIDUCIAL_PIXELS - 1]
-    assert where["window_time_ps"] == pytest.approx(nominal[0] + FIDUCIAL_FRACTION * (nominal[-1] - nominal[0]))
+    assert (where["x_start"], where["x_stop"]) == (0, FIDUCIAL_PIXELS)
+    assert where["nominal_ps"] == pytest.approx(nominal[0] + FIDUCIAL_FRACTION * (nominal[-1] - nominal[0]))
     signal = frames[0] - TARGET.dark_level
     seen = peak_times_ps(signal[:FIDUCIAL_PIXELS], nominal)
-    np.testing.assert_allclose(seen, where["window_time_ps"], atol=0.5)
+    np.testing.assert_allclose(seen, where["nominal_ps"], atol=0.5)
     rows = np.arange(TARGET.n_t)
     assert abs(np.interp(seen[0], nominal, rows) - where["row"]) < 0.3
     # only on its pixels: the others see no light that early

@@ -29,8 +29,8 @@ nominal window: last minus first nominal row time at the current time range, zer
   ``0 .. FIDUCIAL_PIXELS - 1`` at window time ``FIDUCIAL_FRACTION * span_ps`` after the first
   nominal row time, whatever the delay setting, plus the frame's shift ``s_k``; like the scene
   it is seen at the true row times and shaded.  Its nominal position is
-  :meth:`TimeBase.fiducial_nominal` (recorded in a run store's ``simulation_fiducial``
-  attribute by a simulated capture).
+  :meth:`TimeBase.fiducial_nominal` (recorded in a run store's ``fiducial``
+  attribute by a simulated capture, where ``streaklab reconstruct`` aligns every frame on it).
 
 Focus mode has no sweep: none of these effects apply there.
 """
@@ -50,6 +50,8 @@ FIDUCIAL_PIXELS = 2
 FIDUCIAL_FRACTION = 0.06
 FIDUCIAL_SIGMA_PS = 4.0
 FIDUCIAL_AMPLITUDE = 1.0
+# The rows searched for it reach from the first to this multiple of its row.
+FIDUCIAL_BAND_FACTOR = 3.5
 # A bow of a quarter of the window would make the sweep stand still at the first row.
 MAX_SWEEP_NONLINEARITY = 0.25
 # Stream of the jitter draws, apart from the frames' noise streams.
@@ -147,18 +149,25 @@ class TimeBase:
         Returns
         -------
         dict
-            ``pixels`` [first, last] slit pixels, ``window_time_ps`` (on the nominal row-time axis,
-            the scaling table's), ``row`` (fractional nominal row), ``sigma_ps``, ``amplitude``.
+            The run store's ``fiducial`` attribute, as :func:`reconstruction.align.parse_fiducial`
+            reads it: ``row_start``, ``row_stop`` (the band of rows searched: from the first row
+            to :data:`FIDUCIAL_BAND_FACTOR` times the pulse's row, so the pulse may move by
+            ``-FIDUCIAL_FRACTION`` to ``(FIDUCIAL_BAND_FACTOR - 1) * FIDUCIAL_FRACTION`` of the
+            window before it leaves the band; the scene's light must lie later), ``x_start``,
+            ``x_stop`` (the slit pixels), ``nominal_ps`` (its time on the nominal row-time axis,
+            the scaling table's); and, for reference, ``row`` (fractional nominal row),
+            ``sigma_ps``, ``amplitude``.
         """
         nominal_ps = np.asarray(nominal_ps, dtype=np.float64)
         t = float(nominal_ps[0] + FIDUCIAL_FRACTION * (nominal_ps[-1] - nominal_ps[0]))
         row = float(np.interp(t, nominal_ps, np.arange(nominal_ps.size, dtype=np.float64)))
-        return {"pixels": [0, FIDUCIAL_PIXELS - 1], "window_time_ps": t, "row": row,
-                "sigma_ps": FIDUCIAL_SIGMA_PS, "amplitude": FIDUCIAL_AMPLITUDE}
+        stop = int(min(nominal_ps.size, math.ceil(FIDUCIAL_BAND_FACTOR * row)))
+        return {"row_start": 0, "row_stop": stop, "x_start": 0, "x_stop": FIDUCIAL_PIXELS, "nominal_ps": t,
+                "row": row, "sigma_ps": FIDUCIAL_SIGMA_PS, "amplitude": FIDUCIAL_AMPLITUDE}
 
     def fiducial_profile(self, nominal_ps: np.ndarray, true_ps: np.ndarray, shift_ps: float) -> np.ndarray:
         """The fiducial pulse at the true row times for a frame shifted by ``shift_ps``: (n_t,)."""
-        t = self.fiducial_nominal(nominal_ps)["window_time_ps"] + float(shift_ps)
+        t = self.fiducial_nominal(nominal_ps)["nominal_ps"] + float(shift_ps)
         return FIDUCIAL_AMPLITUDE * np.exp(-0.5 * ((np.asarray(true_ps) - t) / FIDUCIAL_SIGMA_PS) ** 2)
 
 
