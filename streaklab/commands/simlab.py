@@ -134,8 +134,8 @@ def run(args) -> int:
         print(f"laser-output {'off' if args.dark else 'on'}")
         if timebase.fiducial:
             where = lab.fiducial_nominal()
-            print(f"fiducial pixels {where['pixels'][0]}..{where['pixels'][1]} row {where['row']:.3f} "
-                  f"t {where['window_time_ps']:.3f} ps")
+            print(f"fiducial pixels {where['x_start']}..{where['x_stop'] - 1} row {where['row']:.3f} "
+                  f"t {where['nominal_ps']:.3f} ps")
         print("ready", flush=True)
         print("streaklab sim-lab: serving; Ctrl-C to stop", file=sys.stderr, flush=True)
         while not stop.wait(0.2):
