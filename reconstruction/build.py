@@ -20,6 +20,7 @@ an error never leaves a half-written cube or destroys an existing one.
 from __future__ import annotations
 
 import datetime as _dt
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,8 @@ from core.staging import check_output_path, staged_output
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
-__all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS"]
+__all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS", "LineCalibration",
+           "line_calibration", "scan_order"]
 
 
 class ReconstructionError(StreaklabError, ValueError):
@@ -142,13 +144,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     cfg = run.config
     nx, n_rows = run.image_shape
     n_lines = run.n_lines
-    sweep_ps, time_info = row_times(run, n_rows, time_source)
-    row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
-    time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
-    t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
-    if n_bins < 2:
-        raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
-                                  f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+    row_times_ps, time_bin_ps, t0_ps, n_bins, time_info = _time_grid(run, time_source)
 
     by = min(n_lines, 16) if chunks is None else min(int(chunks[0]), n_lines)
     try:
@@ -173,14 +169,13 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     absent = run.absent_chunks()
     if absent:
         raise ReconstructionError(describe_absent(run, absent))
-    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
     flat, flat_sha = (None, None)
     if flat_path is not None:
         flat, flat_sha = load_flat(flat_path, (nx, n_rows))
+    calib = line_calibration(run, flat=flat, time_source=time_source)
 
-    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
     reached = np.asarray(read_checked(run["angle_deg"], slice(None), store=run.path), dtype=np.float64)
-    order = np.argsort(target, kind="stable")                       # y -> run line
+    order, target = scan_order(run)
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     provenance = {
         "producer": "streaklab reconstruct",
@@ -212,7 +207,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         # unless a flat field has scaled each pixel (and each row) by its own factor
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg",
-                           noise_law="detector" if flat is None else None,
+                           noise_law=calib.noise_law,
                            long_name="mean counts per frame, dark-subtracted, in uniform time bins")
         g = cube.group
         create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
@@ -232,11 +227,73 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             if ok.any():
                 raw = np.stack([read_checked(streaks, int(i), store=run.path)
                                 for i in ys[ok]])                             # (b, frame, x, rows) uint16
-                corrected = correct_frames(raw, dark, flat)                   # (b, x, rows)
-                block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
-                                             t0_ps=t0_ps, n_bins=n_bins)
+                block[ok] = calib.rows(raw)
             cube.array[y0:y0 + ys.size] = block
             if progress is not None:
                 progress(min(y0 + by, n_lines), n_lines)
     return open_cube(out.resolve())
+
+
+def _time_grid(run, time_source=None):
+    """-> (row_times_ps (n_rows,), time_bin_ps, t0_ps, n_bins, time_info): the cube's time axis."""
+    cfg = run.config
+    sweep_ps, time_info = row_times(run, run.image_shape[1], time_source)
+    row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
+    time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
+    t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
+    if n_bins < 2:
+        raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
+                                  f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+    return row_times_ps, time_bin_ps, t0_ps, n_bins, time_info
+
+
+@dataclass(frozen=True)
+class LineCalibration:
+    """How a run's scan lines become rows of its cube: dark subtraction, flat field, time axis.
+
+    Attributes
+    ----------
+    row_times_ps : ndarray (n_rows,)   calibrated row times (trigger delay included), ps
+    time_bin_ps, t0_ps : float         the cube's uniform time axis (bin i at t0_ps + i * time_bin_ps)
+    n_bins : int                       time bins of the cube
+    dark : ndarray (x, n_rows)         mean dark image, counts
+    flat : ndarray (x, n_rows) or None flat field (mean 1)
+    time_info : dict                   where the row times came from (the cube's provenance)
+    """
+
+    row_times_ps: np.ndarray
+    time_bin_ps: float
+    t0_ps: float
+    n_bins: int
+    dark: np.ndarray
+    flat: np.ndarray | None
+    time_info: dict
+
+    @property
+    def noise_law(self) -> str | None:
+        """The cube's ``noise_law``: "detector" (one camera's read-out) unless a flat field rescaled pixels."""
+        return "detector" if self.flat is None else None
+
+    def rows(self, raw) -> np.ndarray:
+        """Raw frames of lines, (b, frame, x, n_rows) uint16 -> their cube rows, (b, x, n_bins) float32
+        (mean counts per frame, dark subtracted, flat corrected, on the uniform time axis)."""
+        corrected = correct_frames(raw, self.dark, self.flat)                 # (b, x, rows)
+        return resample_uniform(corrected, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
+                                n_bins=self.n_bins).astype(np.float32)
+
+
+def line_calibration(run, *, flat=None, time_source: str | None = None) -> LineCalibration:
+    """The :class:`LineCalibration` :func:`reconstruct` applies to ``run`` (an opened run store whose
+    dark frames are recorded); ``flat`` an already loaded flat field (x, n_rows) or None."""
+    nx, n_rows = run.image_shape
+    row_times_ps, time_bin_ps, t0_ps, n_bins, time_info = _time_grid(run, time_source)
+    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
+    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, dark, flat, time_info)
+
+
+def scan_order(run) -> tuple[np.ndarray, np.ndarray]:
+    """-> (order, target_angle_deg): ``order[y]`` is the run line that fills cube row y (lines sorted by
+    target mirror angle, stable), ``target_angle_deg`` (line,) the angles the config asked for, deg."""
+    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
+    return np.argsort(target, kind="stable"), target
 
