@@ -1,0 +1,175 @@
+"""Decomposition during capture: each scan line decomposed as it lands (``streaklab capture --live R.zarr``).
+
+The capture session reports every line it has written (its ``on_line`` callback); the line's
+index goes onto a queue, and a worker thread takes it from there: it reads the line's frames
+back from the run store, turns them into the line's row of the cube exactly as
+``streaklab reconstruct`` would (:class:`reconstruction.build.LineCalibration`: dark subtracted,
+frames averaged, resampled onto the uniform time axis, float32), and decomposes that row as one
+chunk of a result store (:class:`decomposition.store.pipeline.StreamedDecomposition`). The
+capture never waits for it: lines queue while the solver is busy and are caught up later; at the
+end of the capture the queue is drained.
+
+The result store is laid out as ``streaklab decompose`` lays out the result of the reconstructed
+cube with ``--chunks 1 NX`` (one chunk per cube row, NX the slit pixels) and the same settings: the
+cube's ``noise_law`` ("detector": one camera behind every pixel), its time axis, its y coordinate
+(target mirror angle, lines sorted by it). Its arrays then equal that offline result's byte for
+byte (attributes such as the source and the creation time differ).
+
+Resume: with ``capture --resume --live R.zarr`` the store is reopened (its settings must match),
+and every line already on disk in the run whose chunk is not done in R.zarr is queued before the
+new ones. Chunks are written with ``done`` last, so an interrupted worker leaves only whole
+chunks; a resumed live result equals an uninterrupted one.
+
+Every ``png_every`` decomposed lines (and at the end) the maps of the direct delay and the sss
+attenuation (:func:`streaklab.report.plot_maps`) are written to ``png`` when one is given; napari's
+reader of result stores (:mod:`streaklab.napari`) refreshes as the chunks land.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["LiveDecomposition", "live_source"]
+
+_STOP = None
+
+
+def live_source(run, calib, shape) -> dict:
+    """The ``source`` attribute of a live result store: the run store, and the attributes of the cube
+    it would reconstruct that decide the decomposition (``noise_law``)."""
+    return {"path": str(Path(run.path).resolve()), "kind": "run (decomposed live, line by line)",
+            "shape": [int(v) for v in shape],
+            "attrs": {"noise_law": calib.noise_law,
+                      "time_calibration_source": calib.time_info["time_calibration_source"]}}
+
+
+class LiveDecomposition:
+    """Decompose a capture's lines in a worker thread as they land.
+
+    Parameters
+    ----------
+    out : path of the result store (created, or reopened with ``resume``).
+    resume : continue an existing store (its done chunks are kept).
+    png : path of the maps figure refreshed while lines are decomposed (None: no figure).
+    png_every : decomposed lines between two refreshes of the figure.
+    """
+
+    def __init__(self, out, *, resume: bool = False, png=None, png_every: int = 4):
+        self.out = str(Path(out).resolve())
+        self.resume = bool(resume)
+        self.png = None if png is None else str(png)
+        self.png_every = max(1, int(png_every))
+        self.lines_done = 0            # lines whose chunk is done in the store (earlier runs included)
+        self.n_lines = None
+        self.error: BaseException | None = None
+        self._queue: queue.Queue = queue.Queue()
+        self._abandon = threading.Event()
+        self._ready = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._since_png = 0
+
+    # -------------------------------------------------------------- capture side
+    def start(self, run_path) -> None:
+        """Start the worker on the run store at ``run_path`` (its dark frames recorded)."""
+        self._thread = threading.Thread(target=self._work, args=(str(run_path),), name="live-decompose",
+                                        daemon=True)
+        self._thread.start()
+
+    def line_landed(self, line: int) -> None:
+        """Queue run line ``line`` (on disk in the run store) for decomposition; returns at once."""
+        self._queue.put(int(line))
+
+    def status(self) -> str:
+        """``"decomposed D/N lines"`` (or the error that stopped the worker)."""
+        if self.error is not None:
+            return "live decomposition stopped"
+        total = "?" if self.n_lines is None else self.n_lines
+        return f"decomposed {self.lines_done}/{total} lines"
+
+    def finish(self, *, abandon: bool = False, timeout_s: float | None = None) -> bool:
+        """Wait for the queue to drain (``abandon``: only for the line in hand) -> True when the worker ended."""
+        if self._thread is None:
+            return True
+        if abandon:
+            self._abandon.set()
+        self._queue.put(_STOP)
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # -------------------------------------------------------------- worker side
+    def _work(self, run_path: str) -> None:
+        try:
+            self._run(run_path)
+        except BaseException as exc:  # reported by the caller at the end; the capture goes on
+            self.error = exc
+        finally:
+            self._ready.set()
+
+    def _run(self, run_path: str) -> None:
+        from acquisition.runstore import open_run
+        from core.integrity import read_checked
+        from decomposition.store.pipeline import StreamedDecomposition
+        from reconstruction.build import line_calibration, scan_order
+
+        run = open_run(run_path, mode="r")
+        calib = line_calibration(run)
+        order, target = scan_order(run)
+        y_of_line = np.empty_like(order)
+        y_of_line[order] = np.arange(order.size)
+        nx = run.image_shape[0]
+        shape = (run.n_lines, nx, calib.n_bins)
+        self.n_lines = run.n_lines
+        live = StreamedDecomposition.open(self.out, shape=shape, chunks=(1, nx), time_bin_ps=calib.time_bin_ps,
+                                          t0_ps=calib.t0_ps, source=live_source(run, calib, shape), units="counts",
+                                          y_coord=target[order], y_units="deg", resume=self.resume)
+        pending = {iy for iy, _ in live.pending}
+        self.lines_done = run.n_lines - len(pending)
+        # lines on disk before this session (resume), not yet decomposed: first, in scan order
+        backlog = [int(i) for i in np.flatnonzero(run.done_mask()) if int(y_of_line[i]) in pending]
+        self._ready.set()
+        streaks = run["streaks"]
+
+        def lines():
+            yield from backlog
+            while True:
+                line = self._queue.get()
+                if line is _STOP:
+                    return
+                yield line
+
+        for line in lines():
+            if self._abandon.is_set():
+                break
+            y = int(y_of_line[line])
+            if y not in pending:
+                continue
+            raw = np.asarray(read_checked(streaks, line, store=run.path))[None]   # (1, frame, x, rows)
+            live.solve(y, 0, calib.rows(raw))
+            pending.discard(y)
+            self.lines_done += 1
+            self._since_png += 1
+            if self._since_png >= self.png_every:
+                self._draw(live.store)
+        if self._since_png:
+            self._draw(live.store)
+
+    def _draw(self, store) -> None:
+        self._since_png = 0
+        if self.png is None:
+            return
+        from streaklab.report import plot_maps
+
+        try:
+            tmp = f"{self.png}.tmp.png"       # replaced whole: a viewer never reads half a file
+            plot_maps(store, tmp)
+            os.replace(tmp, self.png)
+        except Exception as exc:  # a figure never stops the decomposition
+            print(f"streaklab capture: live figure {self.png} not written: {exc}", file=sys.stderr)
