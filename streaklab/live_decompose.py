@@ -1,7 +1,9 @@
 """Decomposition during capture: each scan line decomposed as it lands (``streaklab capture --live R.zarr``).
 
 The capture session reports every line it has written (its ``on_line`` callback); the line's
-index goes onto a queue, and a worker thread takes it from there: it reads the line's frames
+index goes onto a queue, and a worker process takes it from there (a process of its own, at the
+lowest scheduling priority, so that neither the interpreter lock nor the cores it computes on
+are taken from the capture): it reads the line's frames
 back from the run store, turns them into the line's row of the cube exactly as
 ``streaklab reconstruct`` would (:class:`reconstruction.build.LineCalibration`: dark subtracted,
 frames averaged, resampled onto the uniform time axis, float32), and decomposes that row as one
@@ -26,10 +28,12 @@ reader of result stores (:mod:`streaklab.napari`) refreshes as the chunks land.
 """
 from __future__ import annotations
 
+import multiprocessing
 import os
 import queue
+import signal
 import sys
-import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +53,7 @@ def live_source(run, calib, shape) -> dict:
 
 
 class LiveDecomposition:
-    """Decompose a capture's lines in a worker thread as they land.
+    """Decompose a capture's lines in a worker process as they land.
 
     Parameters
     ----------
@@ -66,87 +70,126 @@ class LiveDecomposition:
         self.png_every = max(1, int(png_every))
         self.lines_done = 0            # lines whose chunk is done in the store (earlier runs included)
         self.n_lines = None
-        self.error: BaseException | None = None
-        self._queue: queue.Queue = queue.Queue()
-        self._abandon = threading.Event()
-        self._ready = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._since_png = 0
+        self.error: str | None = None
+        self._ctx = multiprocessing.get_context("spawn")   # no fork of a process holding device threads
+        self._inbox = self._ctx.Queue()
+        self._outbox = self._ctx.Queue()
+        self._abandon = self._ctx.Event()
+        self._proc = None
 
     # -------------------------------------------------------------- capture side
     def start(self, run_path) -> None:
         """Start the worker on the run store at ``run_path`` (its dark frames recorded)."""
-        self._thread = threading.Thread(target=self._work, args=(str(run_path),), name="live-decompose",
-                                        daemon=True)
-        self._thread.start()
+        self._proc = self._ctx.Process(target=_worker_main, name="streaklab-live-decompose", daemon=True,
+                                       args=(str(run_path), self.out, self.resume, self.png, self.png_every,
+                                             self._inbox, self._outbox, self._abandon, os.getpid()))
+        self._proc.start()
 
     def line_landed(self, line: int) -> None:
         """Queue run line ``line`` (on disk in the run store) for decomposition; returns at once."""
-        self._queue.put(int(line))
+        self._inbox.put(int(line))
+
+    def _poll(self) -> None:
+        while True:
+            try:
+                kind, *values = self._outbox.get_nowait()
+            except queue.Empty:
+                return
+            if kind == "lines":
+                self.lines_done, self.n_lines = values
+            elif kind == "error":
+                self.error = values[0]
 
     def status(self) -> str:
-        """``"decomposed D/N lines"`` (or the error that stopped the worker)."""
+        """``"decomposed D/N lines"`` (or that the worker stopped on an error)."""
+        self._poll()
         if self.error is not None:
             return "live decomposition stopped"
         total = "?" if self.n_lines is None else self.n_lines
         return f"decomposed {self.lines_done}/{total} lines"
 
-    def finish(self, *, abandon: bool = False, timeout_s: float | None = None) -> bool:
-        """Wait for the queue to drain (``abandon``: only for the line in hand) -> True when the worker ended."""
-        if self._thread is None:
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def finish(self, *, abandon: bool = False, report=None, interval_s: float = 2.0) -> bool:
+        """Wait for the worker to decompose what is queued (``abandon``: only the line in hand), calling
+        ``report(status)`` every ``interval_s`` seconds -> True when the worker ended."""
+        if self._proc is None:
             return True
         if abandon:
             self._abandon.set()
-        self._queue.put(_STOP)
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
+        self._inbox.put(_STOP)
+        last = time.monotonic()
+        while self._proc.is_alive():
+            self._proc.join(0.1)
+            self._poll()
+            if report is not None and time.monotonic() - last >= interval_s:
+                last = time.monotonic()
+                report(self.status())
+        self._poll()
+        if self.error is None and self._proc.exitcode not in (0, None):
+            self.error = f"the worker process ended with exit code {self._proc.exitcode}"
+        return True
 
-    def alive(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
 
-    # -------------------------------------------------------------- worker side
-    def _work(self, run_path: str) -> None:
-        try:
-            self._run(run_path)
-        except BaseException as exc:  # reported by the caller at the end; the capture goes on
-            self.error = exc
-        finally:
-            self._ready.set()
+def _worker_main(run_path, out, resume, png, png_every, inbox, outbox, abandon, parent_pid) -> None:
+    """The worker process: Ctrl-C is the capture's to handle (it tells the worker when to stop)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(19)
+    except OSError:
+        pass
+    try:
+        _Worker(run_path, out, resume, png, png_every, inbox, outbox, abandon, parent_pid).run()
+    except BaseException as exc:  # reported by the capture at the end; the capture goes on
+        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
 
-    def _run(self, run_path: str) -> None:
+
+class _Worker:
+    def __init__(self, run_path, out, resume, png, png_every, inbox, outbox, abandon, parent_pid):
+        self.run_path, self.out, self.resume = run_path, out, resume
+        self.png, self.png_every = png, png_every
+        self.inbox, self.outbox, self.abandon, self.parent_pid = inbox, outbox, abandon, parent_pid
+        self._since_png = 0
+
+    def _lines(self, backlog):
+        """The backlog, then the queued lines until the capture says stop (or is gone)."""
+        yield from backlog
+        while True:
+            try:
+                line = self.inbox.get(timeout=1.0)
+            except queue.Empty:
+                if os.getppid() != self.parent_pid:     # the capture was killed: its resume finishes the job
+                    return
+                continue
+            if line is _STOP:
+                return
+            yield line
+
+    def run(self) -> None:
         from acquisition.runstore import open_run
         from core.integrity import read_checked
         from decomposition.store.pipeline import StreamedDecomposition
         from reconstruction.build import line_calibration, scan_order
 
-        run = open_run(run_path, mode="r")
+        run = open_run(self.run_path, mode="r")
         calib = line_calibration(run)
         order, target = scan_order(run)
         y_of_line = np.empty_like(order)
         y_of_line[order] = np.arange(order.size)
         nx = run.image_shape[0]
         shape = (run.n_lines, nx, calib.n_bins)
-        self.n_lines = run.n_lines
         live = StreamedDecomposition.open(self.out, shape=shape, chunks=(1, nx), time_bin_ps=calib.time_bin_ps,
                                           t0_ps=calib.t0_ps, source=live_source(run, calib, shape), units="counts",
                                           y_coord=target[order], y_units="deg", resume=self.resume)
         pending = {iy for iy, _ in live.pending}
-        self.lines_done = run.n_lines - len(pending)
+        done = run.n_lines - len(pending)
+        self.outbox.put(("lines", done, run.n_lines))
         # lines on disk before this session (resume), not yet decomposed: first, in scan order
         backlog = [int(i) for i in np.flatnonzero(run.done_mask()) if int(y_of_line[i]) in pending]
-        self._ready.set()
         streaks = run["streaks"]
-
-        def lines():
-            yield from backlog
-            while True:
-                line = self._queue.get()
-                if line is _STOP:
-                    return
-                yield line
-
-        for line in lines():
-            if self._abandon.is_set():
+        for line in self._lines(backlog):
+            if self.abandon.is_set():
                 break
             y = int(y_of_line[line])
             if y not in pending:
@@ -154,7 +197,8 @@ class LiveDecomposition:
             raw = np.asarray(read_checked(streaks, line, store=run.path))[None]   # (1, frame, x, rows)
             live.solve(y, 0, calib.rows(raw))
             pending.discard(y)
-            self.lines_done += 1
+            done += 1
+            self.outbox.put(("lines", done, run.n_lines))
             self._since_png += 1
             if self._since_png >= self.png_every:
                 self._draw(live.store)

@@ -154,19 +154,22 @@ def _end_live(live, args, *, abandon: bool = False) -> bool:
     and say where it stands -> False when it failed."""
     if live is None:
         return True
+    def report(status):
+        print(f"streaklab capture: {status}", file=sys.stderr, flush=True)
+
     try:
         if not abandon and live.alive():
             if not args.quiet:
                 print(f"streaklab capture: capture done; {live.status()}; finishing the queued lines "
                       f"(Ctrl-C stops after the current one)", file=sys.stderr, flush=True)
-            live.finish()
+            live.finish(report=None if args.quiet else report)
         else:
             live.finish(abandon=True)
     except KeyboardInterrupt:
         live.finish(abandon=True)
     if live.error is not None:
-        print(f"streaklab capture: error: live decomposition into {live.out} stopped: "
-              f"{type(live.error).__name__}: {live.error}", file=sys.stderr)
+        print(f"streaklab capture: error: live decomposition into {live.out} stopped: {live.error}; "
+              f"the capture is unaffected", file=sys.stderr)
         return False
     print(f"streaklab capture: live result {live.out}: {live.status()}", file=sys.stderr)
     return True
