@@ -37,7 +37,7 @@ def _capture(tmp_path, *extra):
 
 
 @pytest.mark.timeout(120)
-def test_live_result_equals_the_offline_decomposition_and_shows_progress(tmp_path, capsys):
+def test_live_result_equals_the_offline_decomposition_shows_progress_and_resumes(tmp_path, capsys):
     from decomposition.store.resultstore import open_result_store
 
     write_config(tmp_path / "scan.toml", n_lines=N_LINES)
@@ -50,7 +50,17 @@ def test_live_result_equals_the_offline_decomposition_and_shows_progress(tmp_pat
     store = open_result_store(live)
     assert store.done_mask().all() and tuple(store.chunks) == (1, N_X)
     assert store.attrs["options"]["signal_noise_law"] == "detector"      # the cube's noise law
-    _assert_same_arrays(live, _offline(tmp_path, tmp_path / "run.zarr"))
+    offline = _offline(tmp_path, tmp_path / "run.zarr")
+    _assert_same_arrays(live, offline)
+
+    # as if killed before two lines were decomposed: a resume decomposes just those again
+    store = open_result_store(live, mode="r+")
+    store.mark_chunks_not_done([(1, 0), (3, 0)])
+    assert _capture(tmp_path, "--resume", "--live", str(live)) == 0
+    err = capsys.readouterr().err
+    assert f"resuming {tmp_path / 'run.zarr'}: {N_LINES} of {N_LINES} lines already on disk" in err
+    assert f"live result {live}: decomposed {N_LINES}/{N_LINES} lines" in err
+    _assert_same_arrays(live, offline)
 
 
 @pytest.mark.timeout(120)
@@ -78,22 +88,6 @@ def test_an_interrupted_live_capture_resumes_to_the_same_result(tmp_path, monkey
     monkeypatch.setattr(rig, "run_capture", real)
     assert _capture(tmp_path, "--resume", "--live", str(live), "--quiet") == 0
     assert f"decomposed {N_LINES}/{N_LINES} lines" in capsys.readouterr().err
-    _assert_same_arrays(live, _offline(tmp_path, tmp_path / "run.zarr"))
-
-
-@pytest.mark.timeout(120)
-def test_live_resume_of_a_finished_capture_decomposes_only_the_missing_lines(tmp_path, capsys):
-    from decomposition.store.resultstore import open_result_store
-
-    write_config(tmp_path / "scan.toml", n_lines=N_LINES)
-    live = tmp_path / "live.zarr"
-    assert _capture(tmp_path, "--live", str(live), "--quiet") == 0
-    store = open_result_store(live, mode="r+")
-    kept = np.asarray(store.group["direct_delay_ps"][...]).tobytes()
-    store.mark_chunks_not_done([(1, 0), (3, 0)])                   # as if killed before those lines
-    assert _capture(tmp_path, "--resume", "--live", str(live), "--quiet") == 0
-    assert open_result_store(live).done_mask().all()
-    assert np.asarray(open_result_store(live).group["direct_delay_ps"][...]).tobytes() == kept
     _assert_same_arrays(live, _offline(tmp_path, tmp_path / "run.zarr"))
 
 
