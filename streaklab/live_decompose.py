@@ -28,6 +28,7 @@ reader of result stores (:mod:`streaklab.napari`) refreshes as the chunks land.
 """
 from __future__ import annotations
 
+import importlib
 import multiprocessing
 import os
 import queue
@@ -78,12 +79,18 @@ class LiveDecomposition:
         self._proc = None
 
     # -------------------------------------------------------------- capture side
-    def start(self, run_path) -> None:
-        """Start the worker on the run store at ``run_path`` (its dark frames recorded)."""
+    def launch(self) -> None:
+        """Start the worker process: it loads the solver while the devices are being set up."""
         self._proc = self._ctx.Process(target=_worker_main, name="streaklab-live-decompose", daemon=True,
-                                       args=(str(run_path), self.out, self.resume, self.png, self.png_every,
+                                       args=(self.out, self.resume, self.png, self.png_every,
                                              self._inbox, self._outbox, self._abandon, os.getpid()))
         self._proc.start()
+
+    def start(self, run_path) -> None:
+        """Point the worker at the run store at ``run_path`` (its dark frames recorded)."""
+        if self._proc is None:
+            self.launch()
+        self._inbox.put(str(run_path))
 
     def line_landed(self, line: int) -> None:
         """Queue run line ``line`` (on disk in the run store) for decomposition; returns at once."""
@@ -107,6 +114,13 @@ class LiveDecomposition:
             return "live decomposition stopped"
         total = "?" if self.n_lines is None else self.n_lines
         return f"decomposed {self.lines_done}/{total} lines"
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Stop the worker after the line in hand, without a word (a capture that failed to start)."""
+        if self._proc is not None and self._proc.is_alive():
+            self._abandon.set()
+            self._inbox.put(_STOP)
+            self._proc.join(timeout_s)
 
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
@@ -132,15 +146,22 @@ class LiveDecomposition:
         return True
 
 
-def _worker_main(run_path, out, resume, png, png_every, inbox, outbox, abandon, parent_pid) -> None:
-    """The worker process: Ctrl-C is the capture's to handle (it tells the worker when to stop)."""
+def _worker_main(out, resume, png, png_every, inbox, outbox, abandon, parent_pid) -> None:
+    """The worker process: loads the solver, then waits for the run store's path (or the word to
+    stop, from a capture that ended before its first line).  Ctrl-C is the capture's to handle
+    (it tells the worker when to stop)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(19)
     except OSError:
         pass
     try:
-        _Worker(run_path, out, resume, png, png_every, inbox, outbox, abandon, parent_pid).run()
+        importlib.import_module("decomposition.store.pipeline")    # the solver loads while the devices are set up
+
+        worker = _Worker(None, out, resume, png, png_every, inbox, outbox, abandon, parent_pid)
+        worker.run_path = next(worker._lines([]), None)
+        if worker.run_path is not None:
+            worker.run()
     except BaseException as exc:  # reported by the capture at the end; the capture goes on
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
 
@@ -154,13 +175,16 @@ class _Worker:
 
     def _lines(self, backlog):
         """The backlog, then the queued lines until the capture says stop (or is gone)."""
-        yield from backlog
+        for line in backlog:
+            if os.getppid() != self.parent_pid:
+                return
+            yield line
         while True:
+            if os.getppid() != self.parent_pid:         # the capture was killed: its resume finishes the job
+                return
             try:
                 line = self.inbox.get(timeout=1.0)
             except queue.Empty:
-                if os.getppid() != self.parent_pid:     # the capture was killed: its resume finishes the job
-                    return
                 continue
             if line is _STOP:
                 return

@@ -53,6 +53,8 @@ def run(args) -> int:
         raise CommandError("no output: pass --out or set output.path in the config")
     check_output_location(out)              # before any device is opened: never inside another store
     live = _live(args, out)
+    if live is not None:
+        live.launch()
 
     stop = threading.Event()
     progress = None
@@ -99,6 +101,8 @@ def run(args) -> int:
     except CaptureFailed as exc:
         print(f"streaklab capture: error: {exc}", file=sys.stderr)
         if not exc.store_created and not args.resume:
+            if live is not None:
+                live.close()
             print(f"streaklab capture: nothing was written to {out}; fix the device and run again:\n"
                   f"  {_resume_hint(args, out, resume=False)}", file=sys.stderr)
         else:
@@ -111,6 +115,10 @@ def run(args) -> int:
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
               f"  {_resume_hint(args, out)}", file=sys.stderr)
         return 130
+    except BaseException:       # the session could not start (store, configuration): nothing to decompose
+        if live is not None:
+            live.close()
+        raise
     finally:
         if progress is not None:
             progress.close()
