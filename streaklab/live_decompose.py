@@ -151,10 +151,7 @@ def _worker_main(out, resume, png, png_every, inbox, outbox, abandon, parent_pid
     stop, from a capture that ended before its first line).  Ctrl-C is the capture's to handle
     (it tells the worker when to stop)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        os.nice(19)
-    except OSError:
-        pass
+    _lowest_priority()
     try:
         importlib.import_module("decomposition.store.pipeline")    # the solver loads while the devices are set up
 
@@ -164,6 +161,20 @@ def _worker_main(out, resume, png, png_every, inbox, outbox, abandon, parent_pid
             worker.run()
     except BaseException as exc:  # reported by the capture at the end; the capture goes on
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _lowest_priority() -> None:
+    """Run only on cores the capture (and everything else) leaves idle: Linux's SCHED_IDLE where it
+    exists, else the lowest nice level."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.nice(19)
+    except OSError:
+        pass
 
 
 class _Worker:
