@@ -85,6 +85,7 @@ class LiveDecomposition:
                                        args=(self.out, self.resume, self.png, self.png_every,
                                              self._inbox, self._outbox, self._abandon, os.getpid()))
         self._proc.start()
+        _lowest_priority(self._proc.pid)     # at once: its interpreter's start-up is not the capture's either
 
     def start(self, run_path) -> None:
         """Point the worker at the run store at ``run_path`` (its dark frames recorded)."""
@@ -163,17 +164,17 @@ def _worker_main(out, resume, png, png_every, inbox, outbox, abandon, parent_pid
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
 
 
-def _lowest_priority() -> None:
-    """Run only on cores the capture (and everything else) leaves idle: Linux's SCHED_IDLE where it
-    exists, else the lowest nice level."""
+def _lowest_priority(pid: int = 0) -> None:
+    """Let process ``pid`` (0: this one) run only on cores the capture (and everything else) leaves
+    idle: Linux's SCHED_IDLE where it exists, else the lowest nice level."""
     try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
         return
     except (AttributeError, OSError):
         pass
     try:
-        os.nice(19)
-    except OSError:
+        os.setpriority(os.PRIO_PROCESS, pid, 19)
+    except (AttributeError, OSError):
         pass
 
 
