@@ -36,6 +36,7 @@ class Progress:
         self.clock = clock
         self.t0 = clock()
         self.label = label
+        self.extra = ""
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
 
     def text(self) -> str:
@@ -45,10 +46,12 @@ class Progress:
         left = (self.total - self.done) / rate if rate > 0 else None
         pct = 100.0 * self.done / self.total if self.total else 100.0
         return (f"{self.label}: {self.done}/{self.total} lines ({pct:.0f}%), "
-                f"{rate:.2f} lines/s, {format_duration(left)} left")
+                f"{rate:.2f} lines/s, {format_duration(left)} left" + (f"; {self.extra}" if self.extra else ""))
 
-    def update(self, done: int) -> None:
+    def update(self, done: int, extra: str = "") -> None:
+        """Show ``done`` lines on disk; ``extra`` (e.g. what a consumer of the lines has done) is appended."""
         self.done = int(done)
+        self.extra = str(extra)
         if self._tty:
             self.stream.write("\r\x1b[K" + self.text())
         else:

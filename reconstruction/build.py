@@ -20,6 +20,7 @@ an error never leaves a half-written cube or destroys an existing one.
 from __future__ import annotations
 
 import datetime as _dt
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,8 @@ from core.staging import check_output_path, staged_output
 from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
-__all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS"]
+__all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS", "LineCalibration",
+           "line_calibration", "scan_order"]
 
 
 class ReconstructionError(StreaklabError, ValueError):
@@ -152,34 +154,11 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     cfg = run.config
     nx, n_rows = run.image_shape
     n_lines = run.n_lines
-    sweep_cal = None
-    if sweep_path is not None:
-        from .sweep import check_sweep, load_sweep
-        sweep_cal = load_sweep(sweep_path)
-        check_sweep(sweep_cal, time_range=cfg["camera"]["time_range"], n_rows=n_rows, where=str(run.path))
-        sweep_ps = sweep_cal.row_times_ps
-        time_info = {"time_calibration_source": "sweep calibration",
-                     "time_calibration_requested": "sweep",
-                     "sweep_calibration": str(Path(sweep_path).resolve()),
-                     "sweep_calibration_residual_rms_ps": sweep_cal.residual_rms_ps}
-    else:
-        sweep_ps, time_info = row_times(run, n_rows, time_source)
+    row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, sweep_cal = _time_grid(run, time_source, sweep_path)
     fid_attr = run.attrs.get("fiducial")
     if align is None:
         align = fid_attr is not None
-    fiducial = None
-    if align:
-        from .align import parse_fiducial
-        if fid_attr is None:
-            raise ReconstructionError(f"{run.path}: --align, but the run records no fiducial "
-                                      f"(no 'fiducial' attribute); reconstruct with --no-align")
-        fiducial = parse_fiducial(fid_attr, n_rows, nx, where=str(run.path))
-    row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
-    time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
-    t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
-    if n_bins < 2:
-        raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
-                                  f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+    fiducial = _fiducial(run, align, n_rows, nx)
 
     by = min(n_lines, 16) if chunks is None else min(int(chunks[0]), n_lines)
     try:
@@ -205,14 +184,14 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     absent = run.absent_chunks()
     if absent:
         raise ReconstructionError(describe_absent(run, absent))
-    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
     flat, flat_sha = (None, None)
     if flat_path is not None:
         flat, flat_sha = load_flat(flat_path, (nx, n_rows))
+    calib = line_calibration(run, flat=flat, time_source=time_source, sweep_path=sweep_path, align=align,
+                             fiducial_min_snr=fiducial_min_snr)
 
-    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
     reached = np.asarray(read_checked(run["angle_deg"], slice(None), store=run.path), dtype=np.float64)
-    order = np.argsort(target, kind="stable")                       # y -> run line
+    order, target = scan_order(run)
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     provenance = {
         "producer": "streaklab reconstruct",
@@ -246,7 +225,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         # unless a flat field has scaled each pixel (and each row) by its own factor
         cube = create_cube(tmp, (n_lines, nx, n_bins), time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks,
                            units="counts", provenance=provenance, y_coord=target[order], y_units="deg",
-                           noise_law="detector" if flat is None else None,
+                           noise_law=calib.noise_law,
                            long_name="mean counts per frame, dark-subtracted, in uniform time bins")
         g = cube.group
         create_array(g, "line_index", shape=(n_lines,), dtype="int64", dimension_names=["y"],
@@ -275,26 +254,132 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
             if ok.any():
                 raw = np.stack([read_checked(streaks, int(i), store=run.path)
                                 for i in ys[ok]])                             # (b, frame, x, rows) uint16
-                if fiducial is None:
-                    corrected = correct_frames(raw, dark, flat)               # (b, x, rows)
-                else:
-                    from .align import align_frames
-                    frames = raw - dark                                       # (b, frame, x, rows) float64
-                    if flat is not None:
-                        frames /= flat
-                    try:
-                        frames, corr = align_frames(frames, row_times_ps, fiducial, min_snr=fiducial_min_snr,
-                                                    line_ids=ys[ok])
-                    except StreaklabError as exc:
-                        raise ReconstructionError(f"{run.path}: {exc}") from None
-                    corrected = frames.mean(axis=1)
+                try:
+                    rows, corr = calib.correct(raw, line_ids=ys[ok])
+                except StreaklabError as exc:                     # the fiducial not found in a frame
+                    raise ReconstructionError(f"{run.path}: {exc}") from None
+                block[ok] = rows
+                if corr is not None:
                     corr_block = np.full((ys.size, run.frames_per_line), np.nan)
                     corr_block[ok] = corr
                     corr_arr[y0:y0 + ys.size] = corr_block
-                block[ok] = resample_uniform(corrected, row_times_ps, time_bin_ps=time_bin_ps,
-                                             t0_ps=t0_ps, n_bins=n_bins)
             cube.array[y0:y0 + ys.size] = block
             if progress is not None:
                 progress(min(y0 + by, n_lines), n_lines)
     return open_cube(out.resolve())
+
+
+def _time_grid(run, time_source=None, sweep_path=None):
+    """-> (row_times_ps (n_rows,), time_bin_ps, t0_ps, n_bins, time_info, sweep calibration or None):
+    the cube's time axis, from the sweep calibration at ``sweep_path`` where given (checked against
+    the run's time range and rows), else from :func:`row_times`."""
+    cfg = run.config
+    n_rows = run.image_shape[1]
+    sweep_cal = None
+    if sweep_path is not None:
+        from .sweep import check_sweep, load_sweep
+        sweep_cal = load_sweep(sweep_path)
+        check_sweep(sweep_cal, time_range=cfg["camera"]["time_range"], n_rows=n_rows, where=str(run.path))
+        sweep_ps = sweep_cal.row_times_ps
+        time_info = {"time_calibration_source": "sweep calibration",
+                     "time_calibration_requested": "sweep",
+                     "sweep_calibration": str(Path(sweep_path).resolve()),
+                     "sweep_calibration_residual_rms_ps": sweep_cal.residual_rms_ps}
+    else:
+        sweep_ps, time_info = row_times(run, n_rows, time_source)
+    row_times_ps = sweep_ps + float(cfg["sync"]["trigger_delay_ps"])
+    time_bin_ps = float(cfg["calibration"]["time_bin_ps"])
+    t0_ps, n_bins = uniform_grid(row_times_ps, time_bin_ps, cfg["calibration"].get("t0_ps"))
+    if n_bins < 2:
+        raise ReconstructionError(f"{run.path}: time_bin_ps = {time_bin_ps} ps leaves fewer than 2 bins in the "
+                                  f"calibrated window of {np.ptp(row_times_ps):.6g} ps")
+    return row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, sweep_cal
+
+
+def _fiducial(run, align, n_rows: int, nx: int):
+    """The run's fiducial (:class:`reconstruction.align.Fiducial`) where frames are to be aligned
+    on it (``align``), else None; ``align`` without a recorded fiducial is an error."""
+    if not align:
+        return None
+    from .align import parse_fiducial
+    fid_attr = run.attrs.get("fiducial")
+    if fid_attr is None:
+        raise ReconstructionError(f"{run.path}: --align, but the run records no fiducial "
+                                  f"(no 'fiducial' attribute); reconstruct with --no-align")
+    return parse_fiducial(fid_attr, n_rows, nx, where=str(run.path))
+
+
+@dataclass(frozen=True)
+class LineCalibration:
+    """How a run's scan lines become rows of its cube: dark subtraction, flat field, time axis.
+
+    Attributes
+    ----------
+    row_times_ps : ndarray (n_rows,)   calibrated row times (trigger delay included), ps
+    time_bin_ps, t0_ps : float         the cube's uniform time axis (bin i at t0_ps + i * time_bin_ps)
+    n_bins : int                       time bins of the cube
+    dark : ndarray (x, n_rows)         mean dark image, counts
+    flat : ndarray (x, n_rows) or None flat field (mean 1)
+    time_info : dict                   where the row times came from (the cube's provenance)
+    fiducial : Fiducial or None        align every frame on the run's fiducial before the mean
+    fiducial_min_snr : float           peak-to-noise ratio the fiducial must reach in every frame
+    """
+
+    row_times_ps: np.ndarray
+    time_bin_ps: float
+    t0_ps: float
+    n_bins: int
+    dark: np.ndarray
+    flat: np.ndarray | None
+    time_info: dict
+    fiducial: object = None
+    fiducial_min_snr: float = 5.0
+
+    @property
+    def noise_law(self) -> str | None:
+        """The cube's ``noise_law``: "detector" (one camera's read-out) unless a flat field rescaled pixels."""
+        return "detector" if self.flat is None else None
+
+    def rows(self, raw, line_ids=None) -> np.ndarray:
+        """Raw frames of lines, (b, frame, x, n_rows) uint16 -> their cube rows, (b, x, n_bins) float32
+        (mean counts per frame, dark subtracted, flat corrected, aligned on the fiducial where the
+        run has one, on the uniform time axis); ``line_ids`` (b,) name the lines in errors."""
+        return self.correct(raw, line_ids)[0]
+
+    def correct(self, raw, line_ids=None):
+        """-> (rows (b, x, n_bins) float32 as :meth:`rows`, corrections (b, frame) ps or None): each
+        frame's shift onto the fiducial's reference time, where frames are aligned."""
+        if self.fiducial is None:
+            corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
+        else:
+            from .align import align_frames
+            frames = raw - self.dark                                           # (b, frame, x, rows) float64
+            if self.flat is not None:
+                frames /= self.flat
+            frames, corr = align_frames(frames, self.row_times_ps, self.fiducial,
+                                        min_snr=self.fiducial_min_snr, line_ids=line_ids)
+            corrected = frames.mean(axis=1)
+        rows = resample_uniform(corrected, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
+                                n_bins=self.n_bins).astype(np.float32)
+        return rows, corr
+
+
+def line_calibration(run, *, flat=None, time_source: str | None = None, sweep_path=None, align: bool | None = None,
+                     fiducial_min_snr: float = 5.0) -> LineCalibration:
+    """The :class:`LineCalibration` :func:`reconstruct` applies to ``run`` (an opened run store whose
+    dark frames are recorded); ``flat`` an already loaded flat field (x, n_rows) or None;
+    ``sweep_path``, ``align`` and ``fiducial_min_snr`` as :func:`reconstruct` takes them."""
+    nx, n_rows = run.image_shape
+    row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, _ = _time_grid(run, time_source, sweep_path)
+    fiducial = _fiducial(run, run.attrs.get("fiducial") is not None if align is None else align, n_rows, nx)
+    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
+    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, dark, flat, time_info, fiducial,
+                           fiducial_min_snr)
+
+
+def scan_order(run) -> tuple[np.ndarray, np.ndarray]:
+    """-> (order, target_angle_deg): ``order[y]`` is the run line that fills cube row y (lines sorted by
+    target mirror angle, stable), ``target_angle_deg`` (line,) the angles the config asked for, deg."""
+    target = np.asarray(read_checked(run["target_angle_deg"], slice(None), store=run.path), dtype=np.float64)
+    return np.argsort(target, kind="stable"), target
 

@@ -30,7 +30,7 @@ from core.errors import StreaklabError
 from core.integrity import CheckedReader, DataIntegrityError, chunk_grid, read_checked, require_chunks
 from decomposition.options import METHODS
 
-__all__ = ["PipelineError", "decompose_to_store", "ChunkProgress"]
+__all__ = ["PipelineError", "decompose_to_store", "ChunkProgress", "StreamedDecomposition"]
 
 
 class PipelineError(StreaklabError, ValueError):
@@ -317,11 +317,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
         input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
     ny, nx, nt = arr.shape
-    law_source = "option" if "signal_noise_law" in options else "default"
-    if method == "convscd" and "signal_noise_law" not in options and source["attrs"].get("noise_law") == "detector":
-        # the cube says one detector's read-out lies behind every pixel: its noise has one law
-        options["signal_noise_law"] = "detector"
-        law_source = "cube"
+    law_source = _apply_noise_law(method, options, source["attrs"])
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
     irf_attrs = {"kind": "gaussian"}
     if response is not None:
@@ -345,27 +341,12 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     chunks = (min(chunks[0], ny), min(chunks[1], nx))
     _check_sizes(input_path, nt, chunks, n_ir, write_components)  # before the probe and warm-up allocate
 
-    job = {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
-           "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
-           "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": tb, "t0_ps": t0,
-           # a cube rewritten at the same path (new provenance) is another input
-           "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
+    job = _job(method=method, components=components, options=options, n_ir=n_ir, chunks=chunks,
+               write_components=write_components, nan_policy=nan_policy, source=source, time_bin_ps=tb, t0_ps=t0)
     if response is not None:             # absent for the Gaussian: older stores resume as before
         job["irf_sha256"] = irf_attrs["samples_sha256"]
     if existing is not None:
-        before = dict(existing.attrs.get("job", {}))
-        if "nan_policy" in before:      # stores written with the older words read the same
-            try:
-                before["nan_policy"] = parse_nan_policy(before["nan_policy"])
-            except ValueError:
-                pass
-        diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
-        if diff:
-            details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
-                                if k == "source_attrs_sha256" else f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}"
-                                for k in diff)
-            raise PipelineError(f"cannot resume {out_path}: it was started with different settings ({details}); "
-                               f"use the original settings, or --overwrite to start again")
+        _check_same_job(existing, job, out_path)
     else:
 
         try:  # refuse an occupied path (or one overlapping the input) before spending time on checks
@@ -485,6 +466,146 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _apply_noise_law(method: str, options: dict, source_attrs: dict) -> str:
+    """Set ``signal_noise_law`` in ``options`` (in place) from the input's ``noise_law`` attribute where
+    no option chose it; -> where the law came from: "option", "cube" or "default"."""
+    if "signal_noise_law" in options:
+        return "option"
+    if method == "convscd" and source_attrs.get("noise_law") == "detector":
+        # the cube says one detector's read-out lies behind every pixel: its noise has one law
+        options["signal_noise_law"] = "detector"
+        return "cube"
+    return "default"
+
+
+def _job(*, method, components, options, n_ir, chunks, write_components, nan_policy, source, time_bin_ps,
+         t0_ps) -> dict:
+    """The settings a ``--resume`` must match (the store's ``job`` attribute)."""
+    return {"method": method, "components": list(components), "options": _jsonable(options), "n_ir": int(n_ir),
+            "chunks": list(chunks), "write_components": bool(write_components), "nan_policy": nan_policy,
+            "source_path": source["path"], "source_shape": source["shape"], "time_bin_ps": time_bin_ps,
+            "t0_ps": t0_ps,
+            # a cube rewritten at the same path (new provenance) is another input
+            "source_attrs_sha256": hashlib.sha256(json.dumps(source["attrs"], sort_keys=True).encode()).hexdigest()}
+
+
+def _check_same_job(existing, job: dict, out_path) -> None:
+    """Refuse to resume a store started with other settings (names every difference)."""
+    from decomposition.options import parse_nan_policy
+
+    before = dict(existing.attrs.get("job", {}))
+    if "nan_policy" in before:      # stores written with the older words read the same
+        try:
+            before["nan_policy"] = parse_nan_policy(before["nan_policy"])
+        except ValueError:
+            pass
+    diff = sorted(k for k in set(job) | set(before) if job.get(k) != before.get(k))
+    if diff:
+        details = "; ".join(f"{k}: the input's attributes (provenance) changed: it was rewritten"
+                            if k == "source_attrs_sha256" else f"{k}: stored {before.get(k)!r}, now {job.get(k)!r}"
+                            for k in diff)
+        raise PipelineError(f"cannot resume {out_path}: it was started with different settings ({details}); "
+                           f"use the original settings, or --overwrite to start again")
+
+
+class StreamedDecomposition:
+    """A result store filled from blocks a caller hands in as they become available (a capture
+    decomposing its scan lines as they land), chunk by chunk, with the rules and the store of
+    :func:`decompose_to_store`: the same options (the noise law from the input's ``noise_law``),
+    the same solver call per chunk, the same writes, the same resume.  A store written this way
+    holds the same arrays as ``decompose_to_store`` of the finished cube with the same chunks
+    and settings.
+
+    Open one with :meth:`open`; then :meth:`solve` ``(iy, ix, block)`` for every chunk of
+    :attr:`pending` (in any order, from one thread at a time).
+    """
+
+    def __init__(self, store, sink, param_shapes, solve_kwargs):
+        self.store, self._sink = store, sink
+        self._param_shapes, self._solve_kwargs = param_shapes, solve_kwargs
+
+    @classmethod
+    def open(cls, out_path, *, shape, chunks, time_bin_ps: float, t0_ps: float, source: dict,
+             units: str = "counts", y_coord=None, y_units: str = "pixel", method: str = "convscd",
+             components=("d", "s", "r"), options: dict | None = None, n_ir: int = 3,
+             write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
+             progress: bool = False, stream=None) -> "StreamedDecomposition":
+        """Create the store at ``out_path`` (or, with ``resume``, reopen it: its settings must match).
+
+        ``shape`` (ny, nx, nt) and ``chunks`` (by, bx) as the finished cube's; ``source`` a dict
+        with path, kind, shape and attrs (``attrs["noise_law"]`` as a cube's).  Raises
+        :class:`PipelineError` for bad settings or an occupied ``out_path``.
+        """
+        from decomposition.options import parse_nan_policy
+        from decomposition.store.resultstore import (ChunkWriter, ResultStoreError, create_result_store,
+                                                     open_result_store, prepare_output_path)
+        from core.provenance import __version__
+
+        options = dict(options or {})
+        components = tuple(components)
+        if method not in METHODS:
+            raise PipelineError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        try:
+            nan_policy = parse_nan_policy(nan_policy)
+        except ValueError as exc:
+            raise PipelineError(f"--nan-policy: {exc}") from None
+        options["max_reflections"] = int(n_ir)
+        _apply_noise_law(method, options, source["attrs"])
+        ny, nx, nt = (int(v) for v in shape)
+        chunks = (min(int(chunks[0]), ny), min(int(chunks[1]), nx))
+        _check_sizes(source["path"], nt, chunks, n_ir, write_components)
+        out_path = str(Path(out_path).resolve())
+        job = _job(method=method, components=components, options=options, n_ir=n_ir, chunks=chunks,
+                   write_components=write_components, nan_policy=nan_policy, source=source,
+                   time_bin_ps=float(time_bin_ps), t0_ps=float(t0_ps))
+        map_keys, ir_keys, info = _probe_params(nt=nt, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                                                components=components, options=options)
+        try:
+            if resume and os.path.exists(out_path) and any(Path(out_path).iterdir()):
+                prepare_output_path(out_path, protect=[source["path"]], resume=True)
+                store = open_result_store(out_path, mode="r+")
+                store.check_done_chunks_present()
+                _check_same_job(store, job, out_path)
+                store.remove_partials()
+            else:
+                attrs = {"method": method, "components": list(components), "options": job["options"],
+                         "solver_info": _jsonable(info), "nan_policy": nan_policy, "software_version": __version__,
+                         "source": source, "job": job, "irf": {"kind": "gaussian"},
+                         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+                store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir,
+                                            time_bin_ps=time_bin_ps, t0_ps=t0_ps, param_keys=map_keys,
+                                            ir_param_keys=ir_keys, write_components=write_components,
+                                            signal_units=units, y_coord=y_coord, y_units=y_units, attrs=attrs,
+                                            protect=[source["path"]], flag_names=_flag_table())
+        except (ResultStoreError, DataIntegrityError, FileExistsError) as exc:
+            raise PipelineError(f"{out_path}: {exc}") from None
+        from decomposition.warmup import warm_up
+
+        try:
+            warm_up(time_bin_ps=time_bin_ps, n_bins=nt, method=method, components=components, options=options,
+                    stream=sys.stderr if stream is None else stream, quiet=not progress)
+        except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the first chunk compiles
+            pass
+        param_shapes = {k: () for k in map_keys}
+        param_shapes.update({k: (int(n_ir),) for k in ir_keys})
+        solve_kwargs = {"time_bin_ps": time_bin_ps, "t0_ps": t0_ps, "method": method, "components": components,
+                        "n_ir": int(n_ir), "with_components": write_components, "options": options}
+        return cls(store, ChunkWriter(out_path), param_shapes, solve_kwargs)
+
+    @property
+    def pending(self) -> list[tuple[int, int]]:
+        """Chunks (iy, ix) not yet done."""
+        return self.store.pending_chunks()
+
+    def solve(self, iy: int, ix: int, block) -> dict:
+        """Decompose ``block`` (by, bx, nt), the input of chunk (iy, ix), and write it into the store
+        (marked done last) -> the chunk's summary (iy, ix, pixels, invalid, ir_truncated, poor_fit, seconds)."""
+        from decomposition.store.chunked import _solve_and_sink
+
+        return _solve_and_sink(np.asarray(block), int(iy), int(ix), self._sink, self._param_shapes,
+                               self._solve_kwargs)
 
 
 def resolve_pipeline_response(irf, input_path, input_kind: str, time_bin_ps: float, n_bins: int):

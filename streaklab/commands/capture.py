@@ -1,4 +1,5 @@
-"""``streaklab capture --config SCAN.toml --out RUN.zarr [--simulate] [--resume]``: run a capture session."""
+"""``streaklab capture --config SCAN.toml --out RUN.zarr [--simulate] [--resume] [--live RESULT.zarr]``: run a
+capture session; with ``--live`` each line is also decomposed as it lands (:mod:`streaklab.live_decompose`)."""
 from __future__ import annotations
 
 import logging
@@ -20,12 +21,21 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run: keep its finished lines, take the rest")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
+    parser.add_argument("--live", metavar="RESULT.zarr",
+                        help="decompose each line as it lands into this result store (resumable; equal to "
+                             "'streaklab decompose' of the reconstructed cube with --chunks 1 NX)")
+    parser.add_argument("--live-png", metavar="PATH",
+                        help="with --live: maps of the direct delay and sss, refreshed as lines are decomposed")
+    parser.add_argument("--live-png-every", type=int, default=4, metavar="N",
+                        help="with --live-png: decomposed lines between two refreshes (default 4)")
 
 
 def _resume_hint(args, out, *, resume: bool = True) -> str:
     cmd = ["streaklab", "capture", "--config", args.config, "--out", str(out)]
     if args.simulate:
         cmd.append("--simulate")
+    if getattr(args, "live", None):
+        cmd += ["--live", str(args.live)] + (["--live-png", str(args.live_png)] if args.live_png else [])
     return shlex.join(cmd + (["--resume"] if resume else []))
 
 
@@ -42,6 +52,9 @@ def run(args) -> int:
     if not out:
         raise CommandError("no output: pass --out or set output.path in the config")
     check_output_location(out)              # before any device is opened: never inside another store
+    live = _live(args, out)
+    if live is not None:
+        live.launch()
 
     stop = threading.Event()
     progress = None
@@ -63,11 +76,15 @@ def run(args) -> int:
                 print(f"streaklab capture: resuming {out}: {done} of {session.n_lines} lines already on disk",
                       file=sys.stderr)
             progress = Progress(session.n_lines, session.lines_done())
-            progress.update(session.lines_done())
+            progress.update(session.lines_done(), live.status() if live is not None else "")
+        if live is not None:
+            live.start(session.out)
 
     def on_line(session, line):
+        if live is not None:
+            live.line_landed(line)
         if progress is not None:
-            progress.update(session.lines_done())
+            progress.update(session.lines_done(), live.status() if live is not None else "")
 
     def on_sigterm(signum, frame):
         if not stop.is_set():
@@ -84,25 +101,83 @@ def run(args) -> int:
     except CaptureFailed as exc:
         print(f"streaklab capture: error: {exc}", file=sys.stderr)
         if not exc.store_created and not args.resume:
+            if live is not None:
+                live.close()
             print(f"streaklab capture: nothing was written to {out}; fix the device and run again:\n"
                   f"  {_resume_hint(args, out, resume=False)}", file=sys.stderr)
         else:
+            _end_live(live, args, abandon=True)
             print(f"streaklab capture: {exc.lines_done} of {exc.n_lines} lines are safely in {out}; "
                   f"{exc.remedy} and resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        _end_live(live, args, abandon=True)
         print(f"\nstreaklab capture: aborted; finished lines are safely in {out}; resume with:\n"
               f"  {_resume_hint(args, out)}", file=sys.stderr)
         return 130
+    except BaseException:       # the session could not start (store, configuration): nothing to decompose
+        if live is not None:
+            live.close()
+        raise
     finally:
         if progress is not None:
             progress.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    live_ok = _end_live(live, args)
     if result.status == "complete":
         print(f"streaklab capture: {result.n_lines} lines in {out} "
               f"({len(result.acquired)} taken in this session)", file=sys.stderr)
-        return 0
+        return 0 if live_ok else 1
     print(f"streaklab capture: stopped; {result.lines_done} of {result.n_lines} lines are safely in {out}; "
           f"resume with:\n  {_resume_hint(args, out)}", file=sys.stderr)
     return 130
+
+
+def _live(args, out):
+    """The live decomposition of ``--live`` (its paths checked before any device is opened), or None."""
+    if not args.live:
+        if args.live_png:
+            raise CommandError("--live-png needs --live RESULT.zarr")
+        return None
+    from core.errors import StreaklabError
+    from core.staging import check_output_location
+    from decomposition.store.resultstore import prepare_output_path
+    from streaklab.live_decompose import LiveDecomposition
+
+    if args.live_png_every <= 0:
+        raise CommandError(f"--live-png-every must be positive, got {args.live_png_every}")
+    try:
+        check_output_location(args.live, inputs=[out])
+        prepare_output_path(args.live, protect=[out], resume=args.resume)
+        if args.live_png:
+            check_output_location(args.live_png, inputs=[out, args.live])
+    except StreaklabError as exc:
+        raise CommandError(f"--live: {exc}") from None
+    return LiveDecomposition(args.live, resume=args.resume, png=args.live_png, png_every=args.live_png_every)
+
+
+def _end_live(live, args, *, abandon: bool = False) -> bool:
+    """Drain the live decomposition's queue (a Ctrl-C meanwhile, or ``abandon``: only the line in hand)
+    and say where it stands -> False when it failed."""
+    if live is None:
+        return True
+    def report(status):
+        print(f"streaklab capture: {status}", file=sys.stderr, flush=True)
+
+    try:
+        if not abandon and live.alive():
+            if not args.quiet:
+                print(f"streaklab capture: capture done; {live.status()}; finishing the queued lines "
+                      f"(Ctrl-C stops after the current one)", file=sys.stderr, flush=True)
+            live.finish(report=None if args.quiet else report)
+        else:
+            live.finish(abandon=True)
+    except KeyboardInterrupt:
+        live.finish(abandon=True)
+    if live.error is not None:
+        print(f"streaklab capture: error: live decomposition into {live.out} stopped: {live.error}; "
+              f"the capture is unaffected", file=sys.stderr)
+        return False
+    print(f"streaklab capture: live result {live.out}: {live.status()}", file=sys.stderr)
+    return True
