@@ -16,8 +16,11 @@ steady capture, which takes the same exposures).
 
 Each cube is decomposed (ConvSCD) and its direct delays compared with the scene's truth
 (``direct_delay_ps``, on the cube's time axis) over the lit pixels outside the fiducial's slit
-pixels where the direct reflection is found in all three cubes.  Target: the aligned RMSE at
-most ``1.1`` times the steady one; the unaligned ratio is printed beside it.
+pixels where the direct reflection is found in every cube.  Target: the aligned RMSE at most
+:data:`TARGET_RATIO` times the steady one; the unaligned ratio is printed beside it.  Where the
+aligned reconstruction fails (the fiducial pulse leaves its band of rows: the drift and jitter
+must stay within about -6 % .. +15 % of the window, see :mod:`drivers.sim.timebase`), the
+benchmark says so, with the reason, and the target is not met.
 
 Outputs in ``--out`` (default ``bench-output/timebase``): ``timebase.csv`` (one row per case),
 ``summary.json`` (options, rows, ratios, verdict) and the run, cube and result stores.
@@ -40,6 +43,8 @@ __all__ = ["TARGET_RATIO", "add_arguments", "run", "direct_delay_errors"]
 #: the aligned direct-delay RMSE may be at most this multiple of the steady one
 TARGET_RATIO = 1.1
 CASES = ("steady", "aligned", "unaligned")
+#: an error beyond this is a wrong peak taken for the direct (counted apart, still in the RMSE)
+GROSS_ERROR_PS = 50.0
 #: the default streak time range (synchroscan setting)
 TIME_RANGE = 2
 
@@ -125,7 +130,7 @@ def _capture(config, path, step_s: float):
 
 
 def direct_delay_errors(truth_ps, estimates_ps: dict, mask) -> tuple[np.ndarray, dict]:
-    """Direct-delay RMSE (ps) of each estimate over the pixels where every estimate is finite.
+    """Direct-delay errors of each estimate over the pixels where every estimate is finite.
 
     Parameters
     ----------
@@ -138,17 +143,32 @@ def direct_delay_errors(truth_ps, estimates_ps: dict, mask) -> tuple[np.ndarray,
 
     Returns
     -------
-    (common, rmse) : the pixels counted (bool (ny, nx)) and name -> RMSE (ps; NaN if none count).
+    (common, stats) : the pixels counted (bool (ny, nx)) and name -> {"rmse_ps", "median_abs_ps",
+    "gross" (pixels off by more than :data:`GROSS_ERROR_PS`)} (NaN where no pixel counts).
     """
     truth = np.asarray(truth_ps, np.float64)
     common = np.asarray(mask, bool).copy()
     for est in estimates_ps.values():
         common &= np.isfinite(np.asarray(est, np.float64))
-    rmse = {}
+    stats = {}
     for name, est in estimates_ps.items():
         err = np.asarray(est, np.float64)[common] - truth[common]
-        rmse[name] = float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")
-    return common, rmse
+        nan = float("nan")
+        stats[name] = {"rmse_ps": float(np.sqrt(np.mean(err ** 2))) if err.size else nan,
+                       "median_abs_ps": float(np.median(np.abs(err))) if err.size else nan,
+                       "gross": int(np.sum(np.abs(err) > GROSS_ERROR_PS))}
+    return common, stats
+
+
+def _finite_or_none(value):
+    """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _ratio(a: float, b: float) -> float:
@@ -204,14 +224,19 @@ def run(args) -> int:
     lit[:, :FIDUCIAL_PIXELS] = False
     for case, est in estimates.items():
         found[case] = float(np.isfinite(est[lit]).mean()) if lit.any() else float("nan")
-    common, rmse = direct_delay_errors(truth, estimates, lit)
+    common, stats = direct_delay_errors(truth, estimates, lit)
     for case in failures:
-        rmse[case], found[case] = float("nan"), float("nan")
+        stats[case] = {"rmse_ps": float("nan"), "median_abs_ps": float("nan"), "gross": -1}
+        found[case] = float("nan")
+    rmse = {c: stats[c]["rmse_ps"] for c in CASES}
+    mae = {c: stats[c]["median_abs_ps"] for c in CASES}
     ratio_aligned = _ratio(rmse["aligned"], rmse["steady"])
     ratio_unaligned = _ratio(rmse["unaligned"], rmse["steady"])
     met = bool(ratio_aligned <= TARGET_RATIO)
 
     rows = [{"case": c, "direct_delay_rmse_ps": rmse[c], "ratio_to_steady": _ratio(rmse[c], rmse["steady"]),
+             "direct_delay_median_abs_ps": mae[c], "median_abs_ratio_to_steady": _ratio(mae[c], mae["steady"]),
+             f"pixels_off_by_over_{GROSS_ERROR_PS:g}ps": stats[c]["gross"],
              "direct_found_fraction": found[c], "pixels_counted": int(common.sum()),
              "failure": failures.get(c, "")} for c in CASES]
     with open(out / "timebase.csv", "w", newline="") as fh:
@@ -229,7 +254,7 @@ def run(args) -> int:
                "target": {"ratio_aligned_at_most": TARGET_RATIO, "met": met,
                           "failure": failures.get("aligned", "")},
                "seconds_capture": seconds_capture, "seconds_reconstruct_decompose": seconds_decompose}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "summary.json").write_text(json.dumps(_finite_or_none(summary), indent=2, allow_nan=False) + "\n")
 
     print(f"{n_exposures} lit exposures over {span_min:.3g} simulated min; frame shifts: "
           f"{summary['shift_rms_ps']:.3g} ps RMS about their mean, {summary['shift_range_ps']:.3g} ps peak to peak")
@@ -239,8 +264,10 @@ def run(args) -> int:
         if r["failure"]:
             print(f"  {r['case']:9s} no cube: {r['failure']}")
             continue
-        print(f"  {r['case']:9s} RMSE {r['direct_delay_rmse_ps']:8.3f} ps  x{r['ratio_to_steady']:.3f} of steady  "
-              f"(direct found in {100 * r['direct_found_fraction']:.1f}% of lit pixels)")
+        print(f"  {r['case']:9s} RMSE {r['direct_delay_rmse_ps']:8.3f} ps  x{r['ratio_to_steady']:.3f} of steady;  "
+              f"median |error| {r['direct_delay_median_abs_ps']:7.3f} ps  x{r['median_abs_ratio_to_steady']:.3f};  "
+              f"{r[f'pixels_off_by_over_{GROSS_ERROR_PS:g}ps']} off by > {GROSS_ERROR_PS:g} ps;  "
+              f"direct found in {100 * r['direct_found_fraction']:.1f}% of lit pixels")
     why = " (the aligned reconstruction failed)" if "aligned" in failures else ""
     print(f"target: aligned RMSE <= {TARGET_RATIO:g} x steady: {ratio_aligned:.3f} -> {'MET' if met else 'NOT MET'}{why}; "
           f"without alignment: {ratio_unaligned:.3f}")
