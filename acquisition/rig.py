@@ -57,15 +57,21 @@ def simulated_timebase(config: ScanConfig):
     return TimeBase(**{k: sim[k] for k in SIMULATION_TIMEBASE_KEYS if k in sim})
 
 
-def start_simulated_lab(config: ScanConfig):
-    """Start (enter) a SimulatedLab matching the config; the caller closes it."""
+def start_simulated_lab(config: ScanConfig, *, wall_clock=None):
+    """Start (enter) a SimulatedLab matching the config; the caller closes it.
+
+    ``wall_clock`` (callable() -> float, seconds) drives the simulator's clock, the one the
+    time base's drift follows (``time.monotonic`` by default; a benchmark passes its own to
+    make the simulated time of every exposure exact).
+    """
     from drivers.sim import SimulatedLab
 
     scene = simulated_scene(config)
     tr = config["camera"]["time_range"]
     # A time such as "1 ns" is a single-sweep unit's time range; a number a synchroscan unit's.
     lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True,
-                       camera_options={"single_sweep": isinstance(tr, str)}, timebase=simulated_timebase(config))
+                       camera_options={"single_sweep": isinstance(tr, str)}, timebase=simulated_timebase(config),
+                       wall_clock=wall_clock)
     lab.start()
     # The simulated sweep is what the scene says; warn if the config's calibration describes another.
     from drivers.sim.scene import TIME_RANGE_SCALE, time_range_scale

@@ -20,6 +20,8 @@ BENCHMARKS = {
                  "saturation, spikes): outputs finite, iterations bounded, objective monotone, flags raised",
     "realism": "photon counts with a tailed response, afterpulse, background, weak echo or truncated direct: "
                "delay and lifetime bias and RMSE beside the Poisson reference, stderr calibration, echo found rate",
+    "timebase": "direct-delay RMSE of a simulated scan under trigger jitter and drift, aligned on the fiducial "
+                "and not, beside the steady scan's",
 }
 
 
