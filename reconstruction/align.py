@@ -127,7 +127,8 @@ def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fi
 
     Returns
     -------
-    ndarray, shape (n_lines, n_frames), ps: the background-subtracted centroid of the band.
+    ndarray, shape (n_lines, n_frames), ps: the background-subtracted centroid of the pulse (the
+    band's rows within two of its widths at half maximum of its peak).
     """
     f = np.asarray(frames, dtype=np.float64)
     if f.ndim != 4:
@@ -141,9 +142,15 @@ def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fi
     prof = band - bg
     peak = prof.max(axis=-1)
     rows = np.arange(fiducial.row_start, fiducial.row_stop, dtype=np.float64)
-    weight = prof.sum(axis=-1)
+    # the centroid of the pulse alone: rows within two of its widths at half maximum of its peak
+    # (at least 3), so the noise of a wide band does not pull it
+    top = rows[np.argmax(prof, axis=-1)]
+    half_width = np.maximum(3.0, 2.0 * (prof >= 0.5 * peak[..., None]).sum(axis=-1))
+    near = np.abs(rows - top[..., None]) <= half_width[..., None]
+    pulse = np.where(near, np.maximum(prof, 0.0), 0.0)
+    weight = pulse.sum(axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        centroid = (prof * rows).sum(axis=-1) / weight
+        centroid = (pulse * rows).sum(axis=-1) / weight
         snr = peak / np.maximum(noise, np.sqrt(np.abs(bg[..., 0]) + 1.0))
     margin = 1.0
     bad = ~(np.isfinite(snr) & (snr >= min_snr) & (weight > 0) & np.isfinite(centroid)
@@ -165,7 +172,7 @@ def shift_frames(frames: np.ndarray, row_times_ps: np.ndarray, shift_ps: np.ndar
     The light a frame recorded in row ``r`` arrived, after the shift, between the row's edges
     plus ``shift_ps``.  The frame's cumulative counts, known exactly at the row edges, are
     interpolated in time by cubic Hermite segments (slopes: the mean density of the two rows
-    at an edge; past the ends the end row's density continues), read at the unshifted edges
+    at an edge; past the ends no counts: the window saw nothing there), read at the unshifted edges
     and differenced, so the counts are kept and a shift of whole rows is exact.
 
     Parameters
@@ -205,8 +212,9 @@ def shift_frames(frames: np.ndarray, row_times_ps: np.ndarray, shift_ps: np.ndar
     u2, u3 = uc * uc, uc * uc * uc
     c = ((2 * u3 - 3 * u2 + 1) * c0 + (u3 - 2 * u2 + uc) * hh * m0 + (-2 * u3 + 3 * u2) * c1
          + (u3 - u2) * hh * m1)
-    # past the ends: the end row's density continues
-    past = np.where(u[:, None, :] < 0, c0 + m0 * (u[:, None, :] * hh), c1 + m1 * ((u[:, None, :] - 1) * hh))
+    # past the ends the window recorded nothing: no counts come from there (a continued end-row
+    # density would paint a plateau of the end row's noise, which a fit may read as a pulse)
+    past = np.where(u[:, None, :] < 0, c0, c1)
     c = np.where(inside, c, past)
     return np.diff(c, axis=-1).reshape(f.shape)
 

@@ -44,8 +44,8 @@ def test_aligned_direct_delays_beat_unaligned_ones(tmp_path, capsys):
 
 def test_a_fiducial_that_leaves_its_band_is_reported_not_met(tmp_path, capsys):
     out = tmp_path / "tb"
-    # 10 ps/min over 10 minutes moves the pulse ~100 ps: past the band's end at this window
-    assert main(["bench", "timebase", *TINY, "--out", str(out)]) == 0
+    # 100 ps/min over 10 minutes moves the pulse ~1,000 ps: out of the whole window
+    assert main(["bench", "timebase", *TINY, "--drift-ps-per-min", "100", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     rows, summary = _read(out)
     assert "no usable fiducial pulse" in rows["aligned"]["failure"]

@@ -162,7 +162,7 @@ class RemoteExImages:
         clean = self.scene.clean_line_at(line, true + float(delay_ps) - shift)       # (n_x, n_t)
         if tb.fiducial:
             clean = clean.copy()
-            clean[:FIDUCIAL_PIXELS] += tb.fiducial_profile(nominal, true, shift)[None, :]
+            clean[:FIDUCIAL_PIXELS] = tb.fiducial_profile(nominal, true, shift)[None, :]   # its own slit pixels
         return self.scene.signal_scale(exposure_s, self.gain) * clean * tb.sensitivity(nominal.size)[None, :]
 
     @property

@@ -25,8 +25,9 @@ nominal window: last minus first nominal row time at the current time range, zer
   sensitivity ``1 + h * (2 u - 1)`` (a linear ramp from ``1 - h`` at the first row to
   ``1 + h`` at the last; ``0 <= h < 1``);
 * **fiducial**: a Gaussian pulse (sigma :data:`FIDUCIAL_SIGMA_PS`, peak
-  :data:`FIDUCIAL_AMPLITUDE` in profile-amplitude units) on slit pixels
-  ``0 .. FIDUCIAL_PIXELS - 1`` at window time ``FIDUCIAL_FRACTION * span_ps`` after the first
+  :data:`FIDUCIAL_AMPLITUDE` in profile-amplitude units) alone on slit pixels
+  ``0 .. FIDUCIAL_PIXELS - 1`` (a reference fibre on the slit's edge: the scene's light does not
+  reach them) at window time ``FIDUCIAL_FRACTION * span_ps`` after the first
   nominal row time, whatever the delay setting, plus the frame's shift ``s_k``; like the scene
   it is seen at the true row times and shaded.  Its nominal position is
   :meth:`TimeBase.fiducial_nominal` (recorded in a run store's ``fiducial``
@@ -50,8 +51,6 @@ FIDUCIAL_PIXELS = 2
 FIDUCIAL_FRACTION = 0.06
 FIDUCIAL_SIGMA_PS = 4.0
 FIDUCIAL_AMPLITUDE = 1.0
-# The rows searched for it reach from the first to this multiple of its row.
-FIDUCIAL_BAND_FACTOR = 3.5
 # A bow of a quarter of the window would make the sweep stand still at the first row.
 MAX_SWEEP_NONLINEARITY = 0.25
 # Stream of the jitter draws, apart from the frames' noise streams.
@@ -150,19 +149,15 @@ class TimeBase:
         -------
         dict
             The run store's ``fiducial`` attribute, as :func:`reconstruction.align.parse_fiducial`
-            reads it: ``row_start``, ``row_stop`` (the band of rows searched: from the first row
-            to :data:`FIDUCIAL_BAND_FACTOR` times the pulse's row, so the pulse may move by
-            ``-FIDUCIAL_FRACTION`` to ``(FIDUCIAL_BAND_FACTOR - 1) * FIDUCIAL_FRACTION`` of the
-            window before it leaves the band; the scene's light must lie later), ``x_start``,
-            ``x_stop`` (the slit pixels), ``nominal_ps`` (its time on the nominal row-time axis,
-            the scaling table's); and, for reference, ``row`` (fractional nominal row),
-            ``sigma_ps``, ``amplitude``.
+            reads it: ``row_start``, ``row_stop`` (the band of rows searched: the whole window,
+            since the fiducial's slit pixels see nothing else), ``x_start``, ``x_stop`` (the slit
+            pixels), ``nominal_ps`` (its time on the nominal row-time axis, the scaling table's);
+            and, for reference, ``row`` (fractional nominal row), ``sigma_ps``, ``amplitude``.
         """
         nominal_ps = np.asarray(nominal_ps, dtype=np.float64)
         t = float(nominal_ps[0] + FIDUCIAL_FRACTION * (nominal_ps[-1] - nominal_ps[0]))
         row = float(np.interp(t, nominal_ps, np.arange(nominal_ps.size, dtype=np.float64)))
-        stop = int(min(nominal_ps.size, math.ceil(FIDUCIAL_BAND_FACTOR * row)))
-        return {"row_start": 0, "row_stop": stop, "x_start": 0, "x_stop": FIDUCIAL_PIXELS, "nominal_ps": t,
+        return {"row_start": 0, "row_stop": int(nominal_ps.size), "x_start": 0, "x_stop": FIDUCIAL_PIXELS, "nominal_ps": t,
                 "row": row, "sigma_ps": FIDUCIAL_SIGMA_PS, "amplitude": FIDUCIAL_AMPLITUDE}
 
     def fiducial_profile(self, nominal_ps: np.ndarray, true_ps: np.ndarray, shift_ps: float) -> np.ndarray:
