@@ -377,16 +377,14 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             components=components, options=solver_options)
     # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
     # and cache them, saying so): workers then find them in the cache instead of each compiling.
-    # The response path has no compiled kernel.
+    # With a response, its own path's kernels, warmed up with that response.
     from decomposition.warmup import warm_up
 
-    seconds_compile = 0.0
-    if response is None:
-        try:
-            seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
-                                      options=options, stream=stream, quiet=not progress)
-        except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
-            seconds_compile = 0.0
+    try:
+        seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                  options=solver_options, stream=stream, quiet=not progress)
+    except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+        seconds_compile = 0.0
     _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=solver_options,
                   pulse=True)   # the options the fit uses, before any output exists
     if nan_policy == "raise":
