@@ -91,10 +91,14 @@ def test_the_pipeline_warms_up_the_response_path_with_its_response(cubes, irf, t
     used = calls[0]["options"]["irf"]
     assert used.fwhm_ps() == pytest.approx(irf.fwhm_ps(), rel=1e-6)
     assert calls[0]["n_bins"] == L and calls[0]["time_bin_ps"] == T
-    # the solver's own options passed on (here its noise model)
-    decompose_to_store(str(tmp / "with_irf.zarr"), str(tmp_path / "p.zarr"), options={"noise": "gaussian"},
-                       progress=False)
-    assert calls[1]["options"]["noise"] == "gaussian" and calls[1]["options"]["irf"].fwhm_ps() == used.fwhm_ps()
+    # the kernels of the run's kind of data only: these are floats with Gaussian noise, their
+    # integer rounding photon counts
+    assert calls[0]["options"]["noise"] == "gaussian"
+    counts = tmp_path / "counts.zarr"
+    write_cube(counts, np.rint(np.maximum(data, 0.0)).astype(np.uint16), time_bin_ps=T, chunks=(1, 3))
+    write_cube_response(str(counts), irf)
+    decompose_to_store(str(counts), str(tmp_path / "c.zarr"), progress=False)
+    assert calls[1]["options"]["noise"] == "poisson" and calls[1]["options"]["irf"].fwhm_ps() == used.fwhm_ps()
 
 
 def test_warm_up_with_a_response_decomposes_its_profiles_as_floats_and_counts(irf, monkeypatch):
