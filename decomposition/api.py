@@ -24,7 +24,7 @@ from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER
 from .stages.label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import METHODS, GridSpec, SolverOptions, options_from_mapping, parse_components, parse_nan_policy
-from .stages.prepare import prepare_samples, time_axis
+from .stages.prepare import prepare_samples, resolve_noise_model, time_axis  # noqa: F401 (the pipeline's warm-up)
 from .stages.quality import Fit, assess_fit
 from .stages.refit import clear_unlit, component_errors, refine_components
 from .stages.candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights

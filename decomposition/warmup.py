@@ -4,7 +4,10 @@
 (:func:`core.model.render_profile`): every family the settings ask for, at two noise levels, and
 one pixel with a spike (its fit excludes a sample, which takes the weighted code paths).  Each
 takes paths, and argument layouts, that the others do not, so the kernels numba compiles for
-them are those a real run loads.  The profiles only need to take those paths; their values
+them are those a real run loads.  With an instrument response (``options["irf"]``) the profiles
+are rendered with that response and also decomposed as photon counts (with ``noise="poisson"``
+only as counts, with ``"gaussian"`` only as floats): the response path's table atoms, least
+squares and Poisson fits are compiled kernels of their own.  The profiles only need to take those paths; their values
 do not matter, and no benchmark scene is needed to build them.
 """
 from __future__ import annotations
@@ -13,6 +16,7 @@ import time
 
 import numpy as np
 
+from core.irf import InstrumentResponse
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .api import decompose
 from .kernels.jit import compile_notice, quiet_notice
@@ -23,10 +27,11 @@ __all__ = ["warm_up"]
 _DEFAULT_AXIS = (256, 2.0)
 
 
-def _profiles(kinds, n_pixels: int, n_bins: int, time_bin_ps: float, rng) -> np.ndarray:
+def _profiles(kinds, n_pixels: int, n_bins: int, time_bin_ps: float, rng, irf=None) -> np.ndarray:
     """(n_pixels * len(kinds), n_bins) noiseless profiles, ``n_pixels`` of each kind ("d", "d+s",
     "d+s+r2", ...: the families present, r2 / r3 the inter-reflections), with the direct in
-    the window's first quarter, a PSF of 2 % of the window (at least 1.5 bins) and the echoes
+    the window's first quarter, a PSF of 2 % of the window (at least 1.5 bins) -- or the
+    response ``irf`` (an :class:`core.irf.InstrumentResponse`) when given -- and the echoes
     spread over its middle."""
     window_ps = n_bins * time_bin_ps
     out = []
@@ -44,7 +49,7 @@ def _profiles(kinds, n_pixels: int, n_bins: int, time_bin_ps: float, rng) -> np.
         if n_ir:
             at = delay[:, None] + window_ps * (0.2 + 0.15 * np.arange(n_ir))[None, :]
             p.update(zip(IR_KEYS, (at, rng.uniform(0.1, 0.3, (n_pixels, n_ir)), np.repeat(sigma[:, None], n_ir, 1))))
-        out.append(render_profile(p, n_bins, time_bin_ps))
+        out.append(render_profile(p, n_bins, time_bin_ps, irf=irf))
     return np.concatenate(out)
 
 
@@ -56,26 +61,42 @@ def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convs
 
     Run before timing anything, and before starting worker processes (they then load the cached
     kernels instead of each compiling them).  Costs a fraction of a second once the cache is warm.
+    ``options`` are the decomposition's (``irf``: its response, which the profiles are then
+    rendered with, when an :class:`core.irf.InstrumentResponse`, and decomposed both as floats
+    and as counts, see the module docstring;
+    ``noise``: "poisson" decomposes counts only, "gaussian" floats only).  With a response the
+    profiles lie on the given axis itself (the window the response needs); without one on a
+    window of 64 to 512 bins.
     Returns the number of seconds spent compiling (0.0 when everything came from the cache).
     """
-    n_bins = int(max(64, min(int(n_bins), 512)))
+    opts = dict(options or {})
+    irf = opts.get("irf")
     time_bin_ps = float(time_bin_ps)
-    if n_bins * time_bin_ps < 64 * 2.0:   # a window too short for the scenes: the kernels are the same on the default axis
-        n_bins, time_bin_ps = _DEFAULT_AXIS
+    if irf is None:
+        n_bins = int(max(64, min(int(n_bins), 512)))
+        if n_bins * time_bin_ps < 64 * 2.0:   # a window too short for the scenes: the kernels are the same on the default axis
+            n_bins, time_bin_ps = _DEFAULT_AXIS
+    else:   # the run's own axis: the window its response needs
+        n_bins = int(n_bins)
     comps = set(components)
     full = "+".join((["d"] if "d" in comps else []) + (["s"] if "s" in comps else [])
                     + (["r2", "r3"] if "r" in comps else []))
     kinds = tuple(dict.fromkeys(([full] if full else []) + (["d"] if "d" in comps else [])
                                 + (["d+s"] if {"d", "s"} <= comps else []) + (["d+s+r2"] if comps >= {"d", "s", "r"} else [])))
     rng = np.random.default_rng(0)
-    clean = _profiles(kinds, 2, n_bins, time_bin_ps, rng)
+    clean = _profiles(kinds, 2, n_bins, time_bin_ps, rng, irf if isinstance(irf, InstrumentResponse) else None)
     # low and high noise, and a pixel with a spike
     noisy = np.concatenate([clean + nsr * clean.max(axis=1, keepdims=True) * rng.standard_normal(clean.shape)
                             for nsr in (0.05, 0.2)])
     spiked = noisy[:1].copy()
     spiked[0, n_bins // 5] += 20.0 * np.abs(spiked).max()
     noisy = np.concatenate([noisy, spiked])
-    opts = dict(options or {})
+    noise = str(opts.get("noise", "auto")).lower()
+    batches = [noisy] if noise != "poisson" else []
+    if noise == "poisson" or (irf is not None and noise == "auto"):
+        # photon counts (~200 at the peak): the response path's Poisson fits
+        batches.append(rng.poisson(np.maximum(200.0 * clean / clean.max(axis=1, keepdims=True), 0.0)).astype(np.float64))
     with (quiet_notice() if quiet else compile_notice(stream, label=label)) as watch:
-        decompose(noisy, time_bin_ps=time_bin_ps, method=method, components=tuple(components), **opts)
+        for data in batches:
+            decompose(data, time_bin_ps=time_bin_ps, method=method, components=tuple(components), **opts)
     return 0.0 if watch.started is None else time.monotonic() - watch.started

@@ -77,3 +77,49 @@ def test_bad_responses_stop_before_writing(cubes, irf, tmp_path):
     with pytest.raises(PipelineError, match="longer than the profiles' window"):
         decompose_to_store(str(short), str(tmp_path / "b.zarr"), irf=irf, progress=False)
     assert not (tmp_path / "a.zarr").exists() and not (tmp_path / "b.zarr").exists()
+
+
+def test_the_pipeline_warms_up_the_response_path_with_its_response(cubes, irf, tmp_path, monkeypatch):
+    """The kernels are loaded before the first chunk with the response the run uses."""
+    import decomposition.warmup as warmup
+
+    calls = []
+    monkeypatch.setattr(warmup, "warm_up", lambda **kw: calls.append(kw) or 0.0)
+    tmp, data, d = cubes
+    decompose_to_store(str(tmp / "with_irf.zarr"), str(tmp_path / "w.zarr"), progress=False)
+    assert len(calls) == 1
+    used = calls[0]["options"]["irf"]
+    assert used.fwhm_ps() == pytest.approx(irf.fwhm_ps(), rel=1e-6)
+    assert calls[0]["n_bins"] == L and calls[0]["time_bin_ps"] == T
+    # the kernels of the run's kind of data only: these are floats with Gaussian noise, their
+    # integer rounding photon counts
+    assert calls[0]["options"]["noise"] == "gaussian"
+    counts = tmp_path / "counts.zarr"
+    write_cube(counts, np.rint(np.maximum(data, 0.0)).astype(np.uint16), time_bin_ps=T, chunks=(1, 3))
+    write_cube_response(str(counts), irf)
+    decompose_to_store(str(counts), str(tmp_path / "c.zarr"), progress=False)
+    assert calls[1]["options"]["noise"] == "poisson" and calls[1]["options"]["irf"].fwhm_ps() == used.fwhm_ps()
+
+
+def test_warm_up_with_a_response_decomposes_its_profiles_as_floats_and_counts(irf, monkeypatch):
+    import decomposition.warmup as warmup
+    from decomposition.noise import is_count_data
+
+    assert warmup.warm_up(time_bin_ps=T, n_bins=L, options={"irf": irf}, quiet=True) >= 0.0   # the real run
+    calls, rendered = [], []
+    monkeypatch.setattr(warmup, "decompose", lambda y, **kw: calls.append((y, kw)))
+    real_render = warmup.render_profile
+    monkeypatch.setattr(warmup, "render_profile", lambda *a, **kw: rendered.append(kw["irf"]) or real_render(*a, **kw))
+    warmup.warm_up(time_bin_ps=T, n_bins=L, options={"irf": irf}, quiet=True)
+    assert [is_count_data(y) for y, _ in calls] == [False, True]
+    assert all(kw["irf"] is irf for _, kw in calls)
+    # every profile rendered with the response itself (on the run's step)
+    assert rendered and all(r is not None and r.fwhm_ps() == pytest.approx(irf.fwhm_ps(), rel=1e-6) for r in rendered)
+    counts = calls[1][0]
+    assert counts.max(axis=1).min() > 150 and counts.shape[1] == L
+    calls.clear()
+    warmup.warm_up(time_bin_ps=T, n_bins=L, options={"irf": irf, "noise": "gaussian"}, quiet=True)
+    assert [is_count_data(y) for y, _ in calls] == [False]
+    calls.clear()
+    warmup.warm_up(time_bin_ps=T, n_bins=L, options={"irf": irf, "noise": "poisson"}, quiet=True)
+    assert [is_count_data(y) for y, _ in calls] == [True]

@@ -106,3 +106,31 @@ def test_bad_input_is_refused_and_tables_are_kept():
         shifted_atoms(tab, T_AXIS, np.nan)
     with pytest.raises(ResponseError, match="InstrumentResponse"):
         response_table("tailed")
+
+
+def test_params_profile_matches_the_exact_rendering():
+    """The response path's trial models (table atoms) are core.model's exact rendering with the
+    response to within the table's error: every family, NaN (absent) entries, a background."""
+    from core.model import BACKGROUND_KEY, empty_params, render_components, render_profile
+    from decomposition.response.atoms import params_components, params_profile
+
+    irf = RESPONSES["tailed"]
+    p = empty_params((4,), n_ir=2)
+    p["direct_delay_ps"][:] = [40.0, 101.25, -7.3, np.nan]
+    p["direct_amplitude"][:] = [3.0, 1.0, 2.0, 5.0]
+    p["sss_delay_ps"][:] = [42.0, 103.0, np.nan, 300.5]
+    p["sss_amplitude"][:] = [0.5, 2.0, 1.0, 0.7]
+    p["sss_alpha_per_ps"][:] = [0.05, 1e-3, 0.1, 0.3]
+    p["ir_delay_ps"][:] = [[250.9, np.nan], [431.0, 790.6], [np.nan, np.nan], [600.0, 650.0]]
+    p["ir_amplitude"][:] = [[0.4, 1.0], [0.3, 0.2], [1.0, 1.0], [4.0, np.nan]]
+    p[BACKGROUND_KEY] = np.array([0.1, np.nan, 0.0, 2.0])
+    exact = render_components(p, T_AXIS.size, T, T, irf=irf)
+    got = params_components(irf, T_AXIS, p)
+    assert set(got) == set(exact)
+    for key in exact:
+        assert got[key].shape == exact[key].shape
+        assert np.abs(got[key] - exact[key]).max() < 5 * 1e-7       # amplitudes up to 5, unit-peak atoms
+    assert np.all(got["direct"][3] == 0.0) and np.all(got["interreflections"][2] == 0.0)
+    assert np.all(got["background"][1] == 0.0) and np.all(got["background"][3] == 2.0)
+    total = params_profile(irf, T_AXIS, p)
+    assert np.abs(total - render_profile(p, T_AXIS.size, T, T, irf=irf)).max() < 2e-6

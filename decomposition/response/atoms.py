@@ -15,10 +15,11 @@ from __future__ import annotations
 import numpy as np
 
 from core.irf import InstrumentResponse
+from core.model import BACKGROUND_KEY, params_shape
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from ..kernels.response import response_table, shifted_atoms, sss_atoms
 
-__all__ = ["slot_atoms", "slot_window_fraction"]
+__all__ = ["params_components", "params_profile", "slot_atoms", "slot_window_fraction"]
 
 
 def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
@@ -65,6 +66,77 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     if derivatives:
         return phi, dd, dl
     return phi
+
+
+def _family(tab, t_ps, delay, amplitude, alpha=None) -> np.ndarray:
+    """(..., L) ``amplitude`` times the unit-peak table atom of each entry; zeros where the
+    delay or amplitude (or alpha) is not finite (or alpha < 0): the rule of
+    :func:`core.irf_components.render_components_response`."""
+    delay = np.asarray(delay, np.float64)
+    amplitude = np.asarray(amplitude, np.float64)
+    shape = np.broadcast_shapes(delay.shape, amplitude.shape)
+    delay, amplitude = np.broadcast_to(delay, shape), np.broadcast_to(amplitude, shape)
+    present = np.isfinite(delay) & np.isfinite(amplitude)
+    if alpha is not None:
+        alpha = np.broadcast_to(np.asarray(alpha, np.float64), shape)
+        with np.errstate(invalid="ignore"):
+            present &= np.isfinite(alpha) & (alpha >= 0)
+    out = np.zeros(shape + (t_ps.size,))
+    if not present.any():
+        return out
+    if alpha is None:
+        atoms = shifted_atoms(tab, t_ps, delay[present])
+    else:
+        atoms = sss_atoms(tab, t_ps, delay[present], alpha[present])
+    out[present] = amplitude[present][:, None] * atoms
+    return out
+
+
+def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -> dict:
+    """The components of ``params`` rendered with the response's table atoms
+    (:mod:`decomposition.kernels.response`): :func:`core.irf_components.render_components_response`
+    (and the ``background`` of :func:`core.model.render_components` where ``params`` has the
+    key) to within the table's error, at most :data:`~decomposition.kernels.response.TABLE_REL_ERROR`
+    of each atom's peak times its amplitude.  For the response path's trial models, rendered
+    at every forward step; the components it reports are the exact ones.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse
+    t_ps : ndarray (L,)        time axis, ps
+    params : dict of ndarray   keys of :mod:`core.model` (shapes (...,) and (..., R)); NaN
+                               entries and missing families render as zeros
+
+    Returns
+    -------
+    dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L), and
+    ``background`` (..., L) (0 where NaN) where ``params`` has :data:`core.model.BACKGROUND_KEY`.
+    """
+    t = np.ascontiguousarray(t_ps, np.float64)
+    tab = response_table(irf)
+    shape = params_shape(params)
+    zeros = np.zeros(shape + (t.size,))
+    out = {"direct": (_family(tab, t, params["direct_delay_ps"], params["direct_amplitude"])
+                      if "direct_delay_ps" in params else zeros),
+           "sss": (_family(tab, t, params["sss_delay_ps"], params["sss_amplitude"], params["sss_alpha_per_ps"])
+                   if "sss_delay_ps" in params else zeros.copy()),
+           "interreflections": (_family(tab, t, params["ir_delay_ps"], params["ir_amplitude"])
+                                if "ir_delay_ps" in params else np.zeros(shape + (0, t.size)))}
+    if BACKGROUND_KEY in params:
+        b = np.asarray(params[BACKGROUND_KEY], np.float64)
+        out["background"] = np.broadcast_to(np.where(np.isfinite(b), b, 0.0)[..., None], shape + (t.size,)).copy()
+    return out
+
+
+def params_profile(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -> np.ndarray:
+    """(..., L) the model of ``params``: the sum of :func:`params_components` (background
+    included where ``params`` has one); :func:`core.model.render_profile` with ``irf`` to
+    within the table's error."""
+    c = params_components(irf, t_ps, params)
+    total = c["direct"] + c["sss"] + c["interreflections"].sum(axis=-2)
+    if "background" in c:
+        total += c["background"]
+    return total
 
 
 def slot_window_fraction(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,

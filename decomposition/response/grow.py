@@ -81,18 +81,17 @@ import math
 import numpy as np
 from scipy.ndimage import convolve1d
 
-from core.irf import render_shifted, render_sss
-from core.model import BACKGROUND_KEY, DIRECT_KEYS, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS
 from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM_GAUSS, FAM_NONE, FAM_SSS,
                          GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
                          RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
-from .atoms import slot_atoms
+from .atoms import params_components, params_profile, slot_atoms
+from ..kernels.response import response_table, shifted_atoms, sss_atoms
 from .refine import Slots, refit_slots
 from ..model.slots import select_rows
-from ..model.components import render_params
 from ..model.fidelity import fidelity
 
 __all__ = ["GrowContext", "deviance", "grow_response"]
@@ -124,12 +123,11 @@ class GrowContext:
         self.sigma = samples.significance_sigma(live, samples.noise_eff[live]) * samples.scale[live]
 
     def model(self, params, background) -> np.ndarray:
-        """(m, L) the model of m pixels' ``params`` plus ``background`` (m,), units of the samples."""
+        """(m, L) the model of m pixels' ``params`` plus ``background`` (m,), units of the samples
+        (the response's table atoms, :func:`decomposition.response.atoms.params_profile`)."""
         p = dict(params)
         p[BACKGROUND_KEY] = background
-        ax = self.samples.axis
-        with np.errstate(invalid="ignore"):
-            return np.nan_to_num(render_profile(p, self.values.shape[1], ax.time_bin_ps, ax.t0_ps, irf=self.irf))
+        return params_profile(self.irf, self.t, p)
 
     def refit(self, rows, fam, delay, lalp, params, background) -> Slots:
         """:func:`refit_slots` of the pixels ``rows`` from the slots given (``params`` and
@@ -291,7 +289,7 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, mu, alphas_per_ps):
     m = rows.size
     gain = np.zeros(m)
     for alpha in alphas_per_ps:
-        phi = render_sss(ctx.irf, ctx.t, sub.delay[:, 0], np.full(m, alpha))
+        phi = sss_atoms(response_table(ctx.irf), ctx.t, sub.delay[:, 0], np.full(m, alpha))
         gain = np.maximum(gain, _held_gain(ctx, rows, mu, phi)[0])
     i = np.flatnonzero(gain >= _gate(ctx))
     dev = np.full(m, np.inf)
@@ -349,7 +347,7 @@ def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
     dev = np.full(m, np.inf)
     if tried.any():
         i = np.flatnonzero(tried)
-        gain, amp = _held_gain(ctx, rows[i], mu[i], render_shifted(ctx.irf, ctx.t, at_ps[i]))
+        gain, amp = _held_gain(ctx, rows[i], mu[i], shifted_atoms(response_table(ctx.irf), ctx.t, at_ps[i]))
         # the wider atom: a Gaussian GROW_BROAD_FACTOR response widths wide (unit peak)
         wide = np.exp(-0.5 * np.square((ctx.t[None, :] - at_ps[i, None]) / (GROW_BROAD_FACTOR * ctx.sigma_eq_ps)))
         gain_wide, _ = _held_gain(ctx, rows[i], mu[i], wide)
@@ -461,11 +459,10 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     phantom = cand[~take & (sub.fam[:, 0] == FAM_GAUSS)]
     ambiguous[phantom] = True
     out = _without_direct(out, phantom[_unseen_direct(ctx, out, phantom)])
-    ax, L = ctx.samples.axis, ctx.values.shape[1]
 
     def split_distance(r):
-        split_new = render_params({k: v[r] for k, v in best.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
-        split_old = render_params({k: v[r] for k, v in sub.params.items()}, L, ax.time_bin_ps, ax.t0_ps, irf=ctx.irf)
+        split_new = params_components(ctx.irf, ctx.t, {k: v[r] for k, v in best.params.items()})
+        split_old = params_components(ctx.irf, ctx.t, {k: v[r] for k, v in sub.params.items()})
         return 1.0 - fidelity(split_new, split_old)
 
     ambiguous[cand] |= is_ambiguous(d_best - d_cur, tol, split_distance, opts.ambiguity_split, where=take)

@@ -26,12 +26,12 @@ from typing import NamedTuple
 import numpy as np
 
 from core.irf import InstrumentResponse
-from core.model import BACKGROUND_KEY, render_profile
+from core.model import BACKGROUND_KEY
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
 from ..kernels.response import response_table
 from ..kernels.responselm import LAMBDA0, LAMBDA_MAX, RIDGE, response_lm
 from ..noise import count_deviance, poisson_weights
-from .atoms import slot_atoms
+from .atoms import params_profile, slot_atoms
 from .label import slots_to_params
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
@@ -331,7 +331,6 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     ``background`` key), background (n,) units (``held`` plus the fitted correction),
     iterations (n,).
     """
-    L = y.shape[1]
     counts = disp is not None
     n = y.shape[0]
     iterations = np.zeros(n, np.int64)
@@ -347,7 +346,7 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     cd = None
     if counts:
         cd = CountData(y * scale[:, None] + held[:, None], scale, held, fit_mask, disp)
-        sw = cd.weights(np.nan_to_num(render_profile(params, L, ax.time_bin_ps, ax.t0_ps, irf=irf)))
+        sw = cd.weights(params_profile(irf, t, params))
 
     def solve(fam, delay, lalp, sw, n_iter):
         f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=n_iter, fit_background=bg_cols, counts=cd, **fit_kw)

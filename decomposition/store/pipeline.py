@@ -358,16 +358,22 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                                             components=components, options=solver_options)
     # Load the compiled kernels here, once, before any worker starts (on a fresh install: compile
     # and cache them, saying so): workers then find them in the cache instead of each compiling.
-    # The response path has no compiled kernel.
+    # With a response, its own path's kernels, warmed up with that response.
     from decomposition.warmup import warm_up
 
-    seconds_compile = 0.0
-    if response is None:
-        try:
-            seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
-                                      options=options, stream=stream, quiet=not progress)
-        except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
-            seconds_compile = 0.0
+    warm_options = solver_options
+    if response is not None:
+        # the response path's float and count kernels differ: those of the data's kind only
+        # (noise="auto"'s rule on the first row's first pixels)
+        from decomposition.api import resolve_noise_model
+
+        first = np.asarray(arr[0, :min(nx, 64)].compute())
+        warm_options = dict(solver_options, noise=resolve_noise_model(solver_options.get("noise", "auto"), first))
+    try:
+        seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
+                                  options=warm_options, stream=stream, quiet=not progress)
+    except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
+        seconds_compile = 0.0
     _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=solver_options,
                   pulse=True)   # the options the fit uses, before any output exists
     if nan_policy == "raise":
