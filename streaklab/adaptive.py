@@ -2,18 +2,26 @@
 
 A line's frames so far are calibrated as :func:`reconstruction.build.reconstruct` calibrates a
 finished line (dark subtraction, frame mean, uniform time axis) and decomposed with standard
-errors (:func:`decomposition.decompose` with ``stderr=True``).  The line's direct-delay error is
-the largest ``direct_delay_ps_stderr`` over its lit pixels (those with a direct component and a
-finite standard error, not flagged AMBIGUOUS: there two models fit alike, which no number of
-frames resolves; none: infinite).  The capture session
-(:class:`acquisition.session.CaptureSession`, ``line_good_enough``) stops the line once it is at
-most the target.
+errors (:func:`decomposition.decompose` with ``stderr=True``).  The line's lit pixels are those
+whose direct amplitude is at least ``LIT_FRACTION`` of the line's largest, with a finite
+direct-delay standard error; the line's direct-delay error is the ``ERROR_QUANTILE`` quantile of
+``direct_delay_ps_stderr`` over them (none lit: infinite).  A quantile, not the largest: a few
+pixels per line (direct and sss overlapping, a fit in a poor local optimum) carry errors of
+tenths of a ps to hundreds that do not shrink with more frames, and would make every target
+below them unreachable.  The capture session (:class:`acquisition.session.CaptureSession`,
+``line_good_enough``) stops the line once its error is at most the target.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+
+#: A pixel is lit when its direct amplitude is at least this fraction of the line's largest.
+LIT_FRACTION = 0.5
+#: The line's error is this quantile of the direct-delay standard errors of its lit pixels.
+ERROR_QUANTILE = 0.9
 
 
 def parse_target_error_ps(value, where: str = "--target-delay-error-ps") -> float:
@@ -41,18 +49,21 @@ def line_delay_error_ps(calib, frames) -> float:
 
     Returns
     -------
-    float : the largest ``direct_delay_ps_stderr`` over the lit pixels (direct delay and its
-    standard error finite, not flagged AMBIGUOUS); ``inf`` where no pixel is lit.
+    float : the ``ERROR_QUANTILE`` quantile of ``direct_delay_ps_stderr`` over the lit pixels
+    (direct amplitude at least ``LIT_FRACTION`` of the line's largest, delay error finite), ps;
+    ``inf`` where none is lit.
     """
     from decomposition import decompose
-    from decomposition.flags import Flag
 
     rows = calib.rows(np.asarray(frames)[None])[0]                           # (x, n_bins) float32
     res = decompose(rows, calib.time_bin_ps, t0_ps=calib.t0_ps, stderr=True, nan_policy="omit")
     se = np.asarray(res.params["direct_delay_ps_stderr"], dtype=np.float64)
-    lit = (np.isfinite(res.params["direct_delay_ps"]) & np.isfinite(se)
-           & ((np.asarray(res.flags) & int(Flag.AMBIGUOUS)) == 0))
-    return float(se[lit].max()) if lit.any() else math.inf
+    amp = np.asarray(res.params["direct_amplitude"], dtype=np.float64)
+    if not np.isfinite(amp).any():
+        return math.inf
+    with np.errstate(invalid="ignore"):
+        lit = np.isfinite(se) & (amp >= LIT_FRACTION * np.nanmax(amp))
+    return float(np.quantile(se[lit], ERROR_QUANTILE)) if lit.any() else math.inf
 
 
 class DelayErrorRule:
