@@ -113,3 +113,26 @@ def test_bad_target_values_are_refused_in_one_line_before_anything_is_written(tm
     err = capsys.readouterr().err.strip()
     assert err == f"streaklab capture: error: --target-delay-error-ps must be a positive number of ps, got '{value}'"
     assert not out.exists()
+
+
+@pytest.mark.timeout(60)
+def test_an_adaptive_run_resumes_and_a_fixed_run_can_resume_adaptive(tmp_path):
+    import threading
+
+    cfg = write_config(tmp_path / "scan.toml")
+    out = tmp_path / "run.zarr"
+    stop = threading.Event()
+    first = run_capture(cfg, out, simulate=True, stop_event=stop, on_line=lambda s, line: stop.set())
+    assert first.status == "interrupted" and first.acquired == [0]
+    assert open_run(out).frames_taken() is None                     # a fixed accumulation so far
+    rule = DelayErrorRule(0.03)
+    result = run_capture(cfg, out, simulate=True, resume=True, on_start=lambda s: rule.start(s.store),
+                         line_good_enough=rule)
+    assert result.status == "complete" and result.acquired == [1, 2, 3]
+    run = open_run(out)
+    taken, reached = run.frames_taken(), run.target_reached()
+    assert taken[0] == MAX_FRAMES and not reached[0]               # taken before, without the option
+    assert ((2 <= taken[1:]) & (taken[1:] <= MAX_FRAMES)).all()
+    assert sorted(rule.errors_ps) == [1, 2, 3]
+    assert reached[1:].tolist() == [rule.errors_ps[i] <= 0.03 for i in (1, 2, 3)]
+    assert np.isfinite(reconstruct(out, tmp_path / "cube.zarr").array[...]).all()
