@@ -136,3 +136,19 @@ def test_an_adaptive_run_resumes_and_a_fixed_run_can_resume_adaptive(tmp_path):
     assert sorted(rule.errors_ps) == [1, 2, 3]
     assert reached[1:].tolist() == [rule.errors_ps[i] <= 0.03 for i in (1, 2, 3)]
     assert np.isfinite(reconstruct(out, tmp_path / "cube.zarr").array[...]).all()
+
+
+@pytest.mark.timeout(120)
+def test_live_decomposition_of_an_adaptive_run_equals_the_offline_one(tmp_path, capsys):
+    from streaklab.cli import main
+    from tests.test_live_decompose import _assert_same_arrays
+
+    write_config(tmp_path / "scan.toml")
+    run, live = tmp_path / "run.zarr", tmp_path / "live.zarr"
+    assert main(["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(run), "--simulate", "--quiet",
+                 "--target-delay-error-ps", "0.03", "--live", str(live)]) == 0
+    assert (open_run(run).frames_taken() < MAX_FRAMES).any()
+    assert main(["reconstruct", str(run), "--out", str(tmp_path / "cube.zarr")]) == 0
+    assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / "offline.zarr"),
+                 "--chunks", "1", "16", "--quiet"]) == 0
+    _assert_same_arrays(live, tmp_path / "offline.zarr")
