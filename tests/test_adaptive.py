@@ -152,3 +152,21 @@ def test_live_decomposition_of_an_adaptive_run_equals_the_offline_one(tmp_path, 
     assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / "offline.zarr"),
                  "--chunks", "1", "16", "--quiet"]) == 0
     _assert_same_arrays(live, tmp_path / "offline.zarr")
+
+
+@pytest.mark.timeout(60)
+def test_bench_adaptive_reports_both_frame_counts_and_the_targets(tmp_path, capsys):
+    import csv
+
+    from streaklab.cli import main
+
+    assert main(["bench", "adaptive", "--lines", "3", "--max-frames", "4", "--n-x", "16",
+                 "--target-ps", "1e-9", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    rows = list(csv.DictReader(open(tmp_path / "adaptive.csv")))
+    assert [r["frames_taken"] for r in rows] == ["4", "4", "4"]       # unreachable: every line at the maximum
+    assert "adaptive: 12 frames (per line [4, 4, 4]); 0% of lines reached the target" in out
+    assert "fixed: no frame count up to 4 brings every line to the target" in out
+    assert "targets: >= 95% of lines reach it: NOT met; >= 30% fewer frames: NOT met" in out
+    assert main(["bench", "adaptive", "--max-frames", "1"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1

@@ -20,6 +20,8 @@ BENCHMARKS = {
                  "saturation, spikes): outputs finite, iterations bounded, objective monotone, flags raised",
     "realism": "photon counts with a tailed response, afterpulse, background, weak echo or truncated direct: "
                "delay and lifetime bias and RMSE beside the Poisson reference, stderr calibration, echo found rate",
+    "adaptive": "capture --target-delay-error-ps against the fixed accumulation whose worst line reaches the "
+                "same direct-delay error: frames taken, lines reaching the target",
 }
 
 
