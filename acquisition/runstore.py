@@ -141,7 +141,9 @@ class RunStore:
         """
         done = [int(i) for i in np.flatnonzero(self.done_mask())]
         out = []
-        for name in ("streaks", "angle_deg", "timestamp"):
+        # (target_reached is not judged: a False flag may be stored as no chunk, the fill value)
+        names = ("streaks", "angle_deg", "timestamp") + (("frames_taken",) if "frames_taken" in self.group else ())
+        for name in names:
             arr = self[name]
             for coords in missing_chunks(self.path, arr, [(i,) + (0,) * (arr.ndim - 1) for i in done]):
                 out.append(ChunkDamage(name, coords, "missing"))

@@ -170,3 +170,19 @@ def test_bench_adaptive_reports_both_frame_counts_and_the_targets(tmp_path, caps
     assert "targets: >= 95% of lines reach it: NOT met; >= 30% fewer frames: NOT met" in out
     assert main(["bench", "adaptive", "--max-frames", "1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.timeout(60)
+def test_a_missing_frames_taken_chunk_is_named_as_damage(tmp_path):
+    from reconstruction.build import ReconstructionError
+
+    cfg = write_config(tmp_path / "scan.toml", n_lines=2)
+    adaptive_capture(cfg, tmp_path / "run.zarr", 1e-9)
+    assert open_run(tmp_path / "run.zarr").absent_chunks() == []
+    chunk = [p for p in (tmp_path / "run.zarr" / "frames_taken").rglob("*") if p.is_file() and p.name == "1"]
+    assert len(chunk) == 1
+    chunk[0].unlink()
+    damage = open_run(tmp_path / "run.zarr").absent_chunks()
+    assert [(d.array, d.coords) for d in damage] == [("frames_taken", (1,))]
+    with pytest.raises(ReconstructionError, match="frames_taken"):
+        reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
