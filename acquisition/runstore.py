@@ -195,10 +195,10 @@ class RunStore:
                              dimension_names=["line"],
                              attributes={"units": "1", "long_name": "frames the line took (adaptive "
                                          "accumulation; the frame slots after them are unused)"})
-        reached = create_array(self.group, "target_reached", shape=(n,), chunks=(1,), dtype="bool",
-                               fill_value=False, dimension_names=["line"],
-                               attributes={"units": "1", "long_name": "adaptive accumulation reached its target",
-                                           "flag_values": [0, 1], "flag_meanings": "missed_or_fixed reached"})
+        create_array(self.group, "target_reached", shape=(n,), chunks=(1,), dtype="bool",
+                     fill_value=False, dimension_names=["line"],
+                     attributes={"units": "1", "long_name": "adaptive accumulation reached its target",
+                                 "flag_values": [0, 1], "flag_meanings": "missed_or_fixed reached"})
         if done.any():
             taken[:] = np.where(done, self.frames_per_line, 0)
         for name in ("frames_taken", "target_reached"):
