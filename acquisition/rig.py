@@ -158,7 +158,7 @@ def open_rig(config: ScanConfig, *, lab=None):
 
 def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool = False, lab=None,
                 stop_event: threading.Event | None = None, on_line=None, on_start=None,
-                session_info: dict | None = None) -> SessionResult:
+                session_info: dict | None = None, line_good_enough=None) -> SessionResult:
     """Run one capture session end to end (open rig, session, close rig).
 
     Parameters
@@ -169,7 +169,7 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
         Start a SimulatedLab for this session (ignored when ``lab`` is given).
     lab : SimulatedLab, optional
         An already running simulated lab to capture from (tests, fault injection).
-    stop_event, on_line, on_start, session_info : see :class:`CaptureSession`.
+    stop_event, on_line, on_start, session_info, line_good_enough : see :class:`CaptureSession`.
     """
     info = {"simulated": bool(simulate or lab is not None), **(session_info or {})}
     with contextlib.ExitStack() as stack:
@@ -180,7 +180,8 @@ def run_capture(config: ScanConfig, out, *, simulate: bool = False, resume: bool
             on_start = _recording_fiducial(lab, on_start)
         with open_rig(config, lab=lab) as (camera, mirror, sync):
             session = CaptureSession(config, out, camera, mirror, sync, resume=resume, stop_event=stop_event,
-                                     on_line=on_line, on_start=on_start, session_info=info)
+                                     on_line=on_line, on_start=on_start, session_info=info,
+                                     line_good_enough=line_good_enough)
             return session.run()
 
 

@@ -141,7 +141,9 @@ class RunStore:
         """
         done = [int(i) for i in np.flatnonzero(self.done_mask())]
         out = []
-        for name in ("streaks", "angle_deg", "timestamp"):
+        # (target_reached is not judged: a False flag may be stored as no chunk, the fill value)
+        names = ("streaks", "angle_deg", "timestamp") + (("frames_taken",) if "frames_taken" in self.group else ())
+        for name in names:
             arr = self[name]
             for coords in missing_chunks(self.path, arr, [(i,) + (0,) * (arr.ndim - 1) for i in done]):
                 out.append(ChunkDamage(name, coords, "missing"))
@@ -167,7 +169,47 @@ class RunStore:
     def _sync_chunk(self, name: str, coords: tuple[int, ...]) -> None:
         sync_chunk(self.path, name, coords)
 
-    def write_line(self, line: int, frames: np.ndarray, *, angle_deg: float, timestamp: float) -> None:
+    def frames_taken(self) -> np.ndarray | None:
+        """Frames each line took, shape (line,), int64 (0: line not acquired), where the run was
+        captured with adaptive accumulation; None for a fixed accumulation (every line took
+        ``frames_per_line``).  Only ``streaks[line, :frames_taken[line]]`` hold frames."""
+        if "frames_taken" not in self.group:
+            return None
+        return np.asarray(read_checked(self["frames_taken"], slice(None), store=self.path), dtype=np.int64)
+
+    def target_reached(self) -> np.ndarray | None:
+        """Per-line flag of an adaptive run, shape (line,), bool: the stopping target was met
+        (False: the line stopped at the maximum without it, or was not acquired); None otherwise."""
+        if "target_reached" not in self.group:
+            return None
+        return np.asarray(read_checked(self["target_reached"], slice(None), store=self.path), dtype=bool)
+
+    def add_adaptive_arrays(self) -> None:
+        """Create ``frames_taken`` and ``target_reached`` (line,) if absent (the first adaptive
+        session of a run; lines acquired before it took every frame)."""
+        if "frames_taken" in self.group:
+            return
+        n = self.n_lines
+        done = self.done_mask()
+        taken = create_array(self.group, "frames_taken", shape=(n,), chunks=(1,), dtype="int64", fill_value=0,
+                             dimension_names=["line"],
+                             attributes={"units": "1", "long_name": "frames the line took (adaptive "
+                                         "accumulation; the frame slots after them are unused)"})
+        create_array(self.group, "target_reached", shape=(n,), chunks=(1,), dtype="bool",
+                     fill_value=False, dimension_names=["line"],
+                     attributes={"units": "1", "long_name": "adaptive accumulation reached its target",
+                                 "flag_values": [0, 1], "flag_meanings": "missed_or_fixed reached"})
+        if done.any():
+            taken[:] = np.where(done, self.frames_per_line, 0)
+        for name in ("frames_taken", "target_reached"):
+            fsync_path(Path(self.path) / name / "zarr.json")
+        consolidate(self.path)
+        self._arrays.pop("frames_taken", None)
+        self._arrays.pop("target_reached", None)
+        sync_chunks(self.path, [("frames_taken", (i,)) for i in np.flatnonzero(done)])
+
+    def write_line(self, line: int, frames: np.ndarray, *, angle_deg: float, timestamp: float,
+                   frames_taken: int | None = None, target_reached: bool | None = None) -> None:
         """Store one scan line durably, then mark it done.
 
         Parameters
@@ -180,6 +222,10 @@ class RunStore:
             Mirror angle reached, degrees.
         timestamp : float
             Acquisition end time, seconds since 1970-01-01 UTC.
+        frames_taken, target_reached : int, bool, optional
+            Adaptive accumulation: the frames the line took (the first ``frames_taken`` of
+            ``frames``) and whether it met its target.  Where the store records them and these
+            are not given, the line took every frame and the flag is False.
         """
         frames = np.asarray(frames)
         expect = self["streaks"].shape[1:]
@@ -189,7 +235,16 @@ class RunStore:
         self["streaks"][line] = frames
         self["angle_deg"][line] = float(angle_deg)
         self["timestamp"][line] = float(timestamp)
-        sync_chunks(self.path, [("streaks", (line, 0, 0, 0)), ("angle_deg", (line,)), ("timestamp", (line,))])
+        written = [("streaks", (line, 0, 0, 0)), ("angle_deg", (line,)), ("timestamp", (line,))]
+        if frames_taken is not None and not 1 <= int(frames_taken) <= frames.shape[0]:
+            raise RunStoreError(f"line {line}: frames_taken {frames_taken} outside 1..{frames.shape[0]}")
+        if "frames_taken" in self.group:
+            self["frames_taken"][line] = frames.shape[0] if frames_taken is None else int(frames_taken)
+            self["target_reached"][line] = bool(target_reached)
+            written += [("frames_taken", (line,)), ("target_reached", (line,))]
+        elif frames_taken is not None:
+            raise RunStoreError(f"line {line}: frames_taken given, but the store has no frames_taken array")
+        sync_chunks(self.path, written)
         self["done"][line] = True
         self._sync_chunk("done", (line,))
 

@@ -156,13 +156,20 @@ class CaptureSession:
         Used for the retry back-off.
     session_info : dict, optional
         Extra fields for this session's entry in the store's ``sessions`` attribute.
+    line_good_enough : callable(line, frames) -> bool, optional
+        Adaptive accumulation: frames are taken one at a time and, from the second on, the
+        line's frames so far (frame, x, t) uint16 are passed to it; the line stops when it
+        answers True, or at ``camera.frames_per_line`` frames (the maximum).  The store then
+        records each line's ``frames_taken`` and ``target_reached``.  None: every line takes
+        ``camera.frames_per_line`` frames.
     """
 
     def __init__(self, config: ScanConfig, out, camera, mirror, sync, *, resume: bool = False,
                  stop_event: threading.Event | None = None,
                  on_line: Callable[["CaptureSession", int], None] | None = None,
                  on_start: Callable[["CaptureSession"], None] | None = None,
-                 sleep: Callable[[float], None] = time.sleep, session_info: dict | None = None):
+                 sleep: Callable[[float], None] = time.sleep, session_info: dict | None = None,
+                 line_good_enough: Callable[[int, np.ndarray], bool] | None = None):
         self.config = config
         self.out = Path(out)
         self.camera, self.mirror, self.sync = camera, mirror, sync
@@ -172,6 +179,7 @@ class CaptureSession:
         self.on_start = on_start
         self.sleep = sleep
         self.session_info = dict(session_info or {})
+        self.line_good_enough = line_good_enough
         self.store: RunStore | None = None
         self.devices: dict = {}
         self.acquired: list[int] = []
@@ -456,7 +464,10 @@ class CaptureSession:
         def acquire():
             self.mirror.move_to(angle)
             reached = float(self.mirror.wait_settled(timeout_s=settle_s))
-            frames = self._acquire_frames(n, f"line {line}", "camera.frames_per_line")
+            if self.line_good_enough is None:
+                frames, taken, good = self._acquire_frames(n, f"line {line}", "camera.frames_per_line"), None, None
+            else:
+                frames, taken, good = self._accumulate(line, n)
             if frames.shape[1:] != self.store.image_shape:
                 raise CaptureError(f"line {line}: the camera delivers {frames.shape[1:]} images, the run store "
                                    f"holds {self.store.image_shape}")
@@ -464,11 +475,12 @@ class CaptureSession:
             errors = self.sync.read_errors()
             if errors:
                 raise DeviceError(errors[0][0], errors[0][1], command=f"line {line}", device="laser sync")
-            return reached, frames
+            return reached, frames, taken, good
 
-        reached, frames = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
+        reached, frames, taken, good = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
         try:
-            self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time())
+            self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time(),
+                                  frames_taken=taken, target_reached=good)
         except OSError as exc:  # a full or read-only disk: the lines before this one are safe
             full = exc.errno == errno.ENOSPC
             raise CaptureFailed(f"line {line}: cannot write it to {self.out}: "
@@ -476,6 +488,24 @@ class CaptureSession:
                                 cause=exc, lines_done=self.lines_done(), n_lines=self.n_lines,
                                 remedy="free space on that disk" if full else "make the run store writable") from None
         self.acquired.append(line)
+
+    def _accumulate(self, line: int, n: int) -> tuple[np.ndarray, int, bool]:
+        """Adaptive accumulation of one line: frames one at a time until :attr:`line_good_enough`
+        says yes (asked from the second frame on, or after the only one when ``n`` is 1) or ``n``
+        frames are taken -> (frames (n, x, t) uint16, the unused slots zero; frames taken;
+        whether the target was reached)."""
+        frames: list[np.ndarray] = []
+        good = False
+        while len(frames) < n:
+            frames.append(self._acquire_frames(1, f"line {line}", "camera.frames_per_line")[0])
+            if len(frames) >= min(2, n):
+                good = bool(self.line_good_enough(line, np.stack(frames)))
+                if good:
+                    break
+        taken = len(frames)
+        out = np.zeros((n,) + frames[0].shape, np.uint16)
+        out[:taken] = frames
+        return out, taken, good
 
     # ------------------------------------------------------------------ run
     def run(self) -> SessionResult:
@@ -531,6 +561,9 @@ class CaptureSession:
         """
         ids = self.check_devices()
         self.open_store()
+        if self.line_good_enough is not None:
+            with _ctrl_c_held():
+                self.store.add_adaptive_arrays()
         entry = {"started_utc": _utc_now(), "resumed": self.resume, "devices": ids,
                  "lines_done_at_start": self.lines_done(), **self.session_info}
         with _ctrl_c_held():

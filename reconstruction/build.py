@@ -247,6 +247,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                      attributes={"units": "deg", "long_name": "mirror angle reached"})[:] = reached[order]
         by = cube.array.chunks[0]
         streaks = run["streaks"]
+        taken = run.frames_taken()             # adaptive accumulation: only these frames of each line
         for y0 in range(0, n_lines, by):
             ys = order[y0:y0 + by]
             block = np.full((ys.size, nx, n_bins), np.nan, dtype=np.float32)
@@ -255,7 +256,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                 raw = np.stack([read_checked(streaks, int(i), store=run.path)
                                 for i in ys[ok]])                             # (b, frame, x, rows) uint16
                 try:
-                    rows, corr = calib.correct(raw, line_ids=ys[ok])
+                    rows, corr = calib.correct(raw, line_ids=ys[ok], frames_taken=None if taken is None
+                                               else taken[ys[ok]])
                 except StreaklabError as exc:                     # the fiducial not found in a frame
                     raise ReconstructionError(f"{run.path}: {exc}") from None
                 block[ok] = rows
@@ -340,15 +342,35 @@ class LineCalibration:
         """The cube's ``noise_law``: "detector" (one camera's read-out) unless a flat field rescaled pixels."""
         return "detector" if self.flat is None else None
 
-    def rows(self, raw, line_ids=None) -> np.ndarray:
+    def rows(self, raw, line_ids=None, frames_taken=None) -> np.ndarray:
         """Raw frames of lines, (b, frame, x, n_rows) uint16 -> their cube rows, (b, x, n_bins) float32
         (mean counts per frame, dark subtracted, flat corrected, aligned on the fiducial where the
-        run has one, on the uniform time axis); ``line_ids`` (b,) name the lines in errors."""
-        return self.correct(raw, line_ids)[0]
+        run has one, on the uniform time axis); ``line_ids`` (b,) name the lines in errors;
+        ``frames_taken`` (b,) int, optional: only the first ``frames_taken[i]`` frames of line i
+        are used (adaptive accumulation; the run store's ``frames_taken``)."""
+        return self.correct(raw, line_ids, frames_taken)[0]
 
-    def correct(self, raw, line_ids=None):
+    def correct(self, raw, line_ids=None, frames_taken=None):
         """-> (rows (b, x, n_bins) float32 as :meth:`rows`, corrections (b, frame) ps or None): each
-        frame's shift onto the fiducial's reference time, where frames are aligned."""
+        frame's shift onto the fiducial's reference time, where frames are aligned (NaN for the
+        frames not taken)."""
+        if frames_taken is not None:
+            raw = np.asarray(raw)
+            taken = np.asarray(frames_taken, dtype=np.int64).reshape(-1)
+            if taken.shape != raw.shape[:1] or (taken < 1).any() or (taken > raw.shape[1]).any():
+                raise ReconstructionError(f"frames_taken {taken.tolist()} do not fit {raw.shape[0]} lines of "
+                                          f"{raw.shape[1]} frames")
+            if (taken < raw.shape[1]).any():      # lines of unequal length: one at a time
+                ids = [None] * taken.size if line_ids is None else list(np.asarray(line_ids).reshape(-1))
+                parts = [self.correct(raw[i:i + 1, :k], None if ids[i] is None else [ids[i]])
+                         for i, k in enumerate(taken)]
+                rows = np.concatenate([r for r, _ in parts])
+                if self.fiducial is None:
+                    return rows, None
+                corr = np.full(raw.shape[:2], np.nan)
+                for i, (_, c) in enumerate(parts):
+                    corr[i, :taken[i]] = c[0]
+                return rows, corr
         if self.fiducial is None:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:

@@ -231,7 +231,8 @@ class _Worker:
             if y not in pending:
                 continue
             raw = np.asarray(read_checked(streaks, line, store=run.path))[None]   # (1, frame, x, rows)
-            live.solve(y, 0, calib.rows(raw))
+            taken = run.frames_taken()                  # adaptive accumulation: the frames the line took
+            live.solve(y, 0, calib.rows(raw, frames_taken=None if taken is None else taken[[line]]))
             pending.discard(y)
             done += 1
             self.outbox.put(("lines", done, run.n_lines))

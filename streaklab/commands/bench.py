@@ -22,6 +22,8 @@ BENCHMARKS = {
                "delay and lifetime bias and RMSE beside the Poisson reference, stderr calibration, echo found rate",
     "timebase": "direct-delay RMSE of a simulated scan under trigger jitter and drift, aligned on the fiducial "
                 "and not, beside the steady scan's",
+    "adaptive": "capture --target-delay-error-ps against the fixed accumulation whose worst line reaches the "
+                "same direct-delay error: frames taken, lines reaching the target",
 }
 
 

@@ -28,12 +28,18 @@ def add_arguments(parser) -> None:
                         help="with --live: maps of the direct delay and sss, refreshed as lines are decomposed")
     parser.add_argument("--live-png-every", type=int, default=4, metavar="N",
                         help="with --live-png: decomposed lines between two refreshes (default 4)")
+    parser.add_argument("--target-delay-error-ps", metavar="E",
+                        help="adaptive accumulation: each line takes frames until the direct-delay standard "
+                             "error of its fit is at most E ps in its lit pixels, or camera.frames_per_line "
+                             "frames (the maximum); the run store records the frames each line took")
 
 
 def _resume_hint(args, out, *, resume: bool = True) -> str:
     cmd = ["streaklab", "capture", "--config", args.config, "--out", str(out)]
     if args.simulate:
         cmd.append("--simulate")
+    if getattr(args, "target_delay_error_ps", None) is not None:
+        cmd += ["--target-delay-error-ps", str(args.target_delay_error_ps)]
     if getattr(args, "live", None):
         cmd += ["--live", str(args.live)] + (["--live-png", str(args.live_png)] if args.live_png else [])
     return shlex.join(cmd + (["--resume"] if resume else []))
@@ -52,6 +58,10 @@ def run(args) -> int:
     if not out:
         raise CommandError("no output: pass --out or set output.path in the config")
     check_output_location(out)              # before any device is opened: never inside another store
+    rule = None
+    if args.target_delay_error_ps is not None:
+        from streaklab.adaptive import DelayErrorRule, parse_target_error_ps
+        rule = DelayErrorRule(parse_target_error_ps(args.target_delay_error_ps))
     live = _live(args, out)
     if live is not None:
         live.launch()
@@ -68,6 +78,8 @@ def run(args) -> int:
 
     def on_start(session):
         nonlocal progress
+        if rule is not None:
+            rule.start(session.store)
         if not args.quiet:
             for name, ident in session.devices.items():
                 print(f"streaklab capture: {name}: {ident}", file=sys.stderr)
@@ -97,7 +109,7 @@ def run(args) -> int:
                     signal.SIGTERM: signal.signal(signal.SIGTERM, on_sigterm)}
     try:
         result = run_capture(config, out, simulate=args.simulate, resume=args.resume, stop_event=stop,
-                             on_line=on_line, on_start=on_start)
+                             on_line=on_line, on_start=on_start, line_good_enough=rule)
     except CaptureFailed as exc:
         print(f"streaklab capture: error: {exc}", file=sys.stderr)
         if not exc.store_created and not args.resume:
@@ -125,6 +137,8 @@ def run(args) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     live_ok = _end_live(live, args)
+    if rule is not None:
+        _report_adaptive(out, rule)
     if result.status == "complete":
         print(f"streaklab capture: {result.n_lines} lines in {out} "
               f"({len(result.acquired)} taken in this session)", file=sys.stderr)
@@ -181,3 +195,19 @@ def _end_live(live, args, *, abandon: bool = False) -> bool:
         return False
     print(f"streaklab capture: live result {live.out}: {live.status()}", file=sys.stderr)
     return True
+
+
+def _report_adaptive(out, rule) -> None:
+    """One line: the frames the adaptive accumulation took, and how many lines missed the target."""
+    import numpy as np
+
+    from acquisition.runstore import open_run
+
+    run = open_run(out, mode="r")
+    done = run.done_mask()
+    taken, reached = run.frames_taken()[done], run.target_reached()[done]
+    missed = int((~reached).sum())
+    print(f"streaklab capture: adaptive accumulation (target {rule.target_ps:g} ps): {int(taken.sum())} frames "
+          f"in {done.sum()} lines (at most {run.frames_per_line} each); "
+          + (f"{missed} line(s) missed the target at the maximum: {np.flatnonzero(done)[~reached].tolist()}"
+             if missed else "every line reached the target"), file=sys.stderr)
