@@ -31,7 +31,10 @@ def gaussian_equivalent_sigma_ps(irf: InstrumentResponse) -> float:
     return float(irf.fwhm_ps() / _FWHM_PER_SIGMA)
 
 
-def _family(irf, t, delay, amplitude, alpha=None):
+def _family(shifted, sss, t, delay, amplitude, alpha=None):
+    """(..., L) ``amplitude`` times the unit-peak atom of each entry (``shifted(t, delays)`` or
+    ``sss(t, delays, alphas)``, (n, L)); zeros where the delay or amplitude (or alpha) is not
+    finite, or alpha < 0."""
     delay = np.asarray(delay, np.float64)
     amplitude = np.asarray(amplitude, np.float64)
     shape = np.broadcast_shapes(delay.shape, amplitude.shape)
@@ -39,19 +42,21 @@ def _family(irf, t, delay, amplitude, alpha=None):
     present = np.isfinite(delay) & np.isfinite(amplitude)
     if alpha is not None:
         alpha = np.broadcast_to(np.asarray(alpha, np.float64), shape)
-        present &= np.isfinite(alpha) & (alpha >= 0)
+        with np.errstate(invalid="ignore"):
+            present &= np.isfinite(alpha) & (alpha >= 0)
     out = np.zeros(shape + (t.size,))
     if not present.any():
         return out
     if alpha is None:
-        atoms = render_shifted(irf, t, delay[present])
+        atoms = shifted(t, delay[present])
     else:
-        atoms = render_sss(irf, t, delay[present], alpha[present])
+        atoms = sss(t, delay[present], alpha[present])
     out[present] = amplitude[present][:, None] * atoms
     return out
 
 
-def render_components_response(params: dict, t_ps: np.ndarray, irf: InstrumentResponse) -> dict:
+def render_components_response(params: dict, t_ps: np.ndarray, irf: InstrumentResponse, *,
+                               shifted=None, sss=None) -> dict:
     """Render each component class of ``params`` on the time axis ``t_ps`` (L,) with ``irf``.
 
     Parameters
@@ -62,20 +67,27 @@ def render_components_response(params: dict, t_ps: np.ndarray, irf: InstrumentRe
     t_ps : ndarray (L,)
         Time axis, ps.
     irf : InstrumentResponse
+    shifted, sss : callable, optional
+        Renderers of the unit-peak atoms, ``shifted(t_ps, delays_ps) -> (n, L)`` and
+        ``sss(t_ps, delays_ps, alphas_per_ps) -> (n, L)``; default the exact
+        :func:`core.irf.render_shifted` and :func:`core.irf.render_sss` of ``irf`` (a solver
+        may pass faster ones of its own, such as tabulated atoms).
 
     Returns
     -------
     dict with ``direct`` (..., L), ``sss`` (..., L), ``interreflections`` (..., R, L).
     """
+    shifted = shifted or (lambda t, d: render_shifted(irf, t, d))
+    sss = sss or (lambda t, d, a: render_sss(irf, t, d, a))
     t = np.asarray(t_ps, np.float64)
     shape = params_shape(params)
     zeros = np.zeros(shape + (t.size,))
-    direct = (_family(irf, t, params["direct_delay_ps"], params["direct_amplitude"])
+    direct = (_family(shifted, sss, t, params["direct_delay_ps"], params["direct_amplitude"])
               if "direct_delay_ps" in params else zeros)
-    sss = (_family(irf, t, params["sss_delay_ps"], params["sss_amplitude"], params["sss_alpha_per_ps"])
-           if "sss_delay_ps" in params else zeros.copy())
+    sss_part = (_family(shifted, sss, t, params["sss_delay_ps"], params["sss_amplitude"], params["sss_alpha_per_ps"])
+                if "sss_delay_ps" in params else zeros.copy())
     if "ir_delay_ps" in params:
-        ir = _family(irf, t, params["ir_delay_ps"], params["ir_amplitude"])
+        ir = _family(shifted, sss, t, params["ir_delay_ps"], params["ir_amplitude"])
     else:
         ir = np.zeros(shape + (0, t.size))
-    return {"direct": direct, "sss": sss, "interreflections": ir}
+    return {"direct": direct, "sss": sss_part, "interreflections": ir}

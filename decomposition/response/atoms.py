@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.irf import InstrumentResponse
+from core.irf_components import render_components_response
 from core.model import BACKGROUND_KEY, params_shape
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from ..kernels.response import response_table, shifted_atoms, sss_atoms
@@ -68,30 +69,6 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     return phi
 
 
-def _family(tab, t_ps, delay, amplitude, alpha=None) -> np.ndarray:
-    """(..., L) ``amplitude`` times the unit-peak table atom of each entry; zeros where the
-    delay or amplitude (or alpha) is not finite (or alpha < 0): the rule of
-    :func:`core.irf_components.render_components_response`."""
-    delay = np.asarray(delay, np.float64)
-    amplitude = np.asarray(amplitude, np.float64)
-    shape = np.broadcast_shapes(delay.shape, amplitude.shape)
-    delay, amplitude = np.broadcast_to(delay, shape), np.broadcast_to(amplitude, shape)
-    present = np.isfinite(delay) & np.isfinite(amplitude)
-    if alpha is not None:
-        alpha = np.broadcast_to(np.asarray(alpha, np.float64), shape)
-        with np.errstate(invalid="ignore"):
-            present &= np.isfinite(alpha) & (alpha >= 0)
-    out = np.zeros(shape + (t_ps.size,))
-    if not present.any():
-        return out
-    if alpha is None:
-        atoms = shifted_atoms(tab, t_ps, delay[present])
-    else:
-        atoms = sss_atoms(tab, t_ps, delay[present], alpha[present])
-    out[present] = amplitude[present][:, None] * atoms
-    return out
-
-
 def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -> dict:
     """The components of ``params`` rendered with the response's table atoms
     (:mod:`decomposition.kernels.response`): :func:`core.irf_components.render_components_response`
@@ -115,13 +92,8 @@ def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -
     t = np.ascontiguousarray(t_ps, np.float64)
     tab = response_table(irf)
     shape = params_shape(params)
-    zeros = np.zeros(shape + (t.size,))
-    out = {"direct": (_family(tab, t, params["direct_delay_ps"], params["direct_amplitude"])
-                      if "direct_delay_ps" in params else zeros),
-           "sss": (_family(tab, t, params["sss_delay_ps"], params["sss_amplitude"], params["sss_alpha_per_ps"])
-                   if "sss_delay_ps" in params else zeros.copy()),
-           "interreflections": (_family(tab, t, params["ir_delay_ps"], params["ir_amplitude"])
-                                if "ir_delay_ps" in params else np.zeros(shape + (0, t.size)))}
+    out = render_components_response(params, t, irf, shifted=lambda tt, d: shifted_atoms(tab, tt, d),
+                                     sss=lambda tt, d, a: sss_atoms(tab, tt, d, a))
     if BACKGROUND_KEY in params:
         b = np.asarray(params[BACKGROUND_KEY], np.float64)
         out["background"] = np.broadcast_to(np.where(np.isfinite(b), b, 0.0)[..., None], shape + (t.size,)).copy()
