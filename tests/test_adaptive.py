@@ -1,35 +1,24 @@
 """Adaptive accumulation (``streaklab capture --target-delay-error-ps E``) against the simulated lab."""
-import json
 
 import numpy as np
 import pytest
 
-from acquisition.config import load_config
-from acquisition.rig import run_capture, simulated_scene
+from acquisition.rig import run_capture
 from acquisition.runstore import open_run
 from reconstruction.build import line_calibration, reconstruct, scan_order
 from reconstruction.calibrate import correct_frames, resample_uniform
 from streaklab.adaptive import DelayErrorRule, line_delay_error_ps
+from test_capture_resume import write_config as resume_config
 
 MAX_FRAMES = 6
 
 
 def write_config(path, n_lines=4):
-    """A TOML scan of the simulated lab (its calibration the simulated sweep) -> ScanConfig."""
-    sections = {
-        "scan": {"start_deg": -6.0, "stop_deg": 6.0, "count": n_lines},
-        "camera": {"frames_per_line": MAX_FRAMES, "time_range": 2, "gain": 30, "acquire_timeout_s": 3.0},
-        "dark": {"frames": 2}, "devices": {"timeout_s": 0.25},
-        "session": {"retries": 2, "retry_backoff_s": 0.0},
-        "simulation": {"seed": 3, "n_x": 16, "n_t": 128},
-        "calibration": {"time_poly_ps": [0.0, 1.0]},
-    }
-    text = lambda: "".join(f"[{name}]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in sec.items())
-                           for name, sec in sections.items())
-    path.write_text(text())
-    sections["calibration"]["time_poly_ps"] = [float(c) for c in simulated_scene(load_config(path)).time_calibration]
-    path.write_text(text())
-    return load_config(path)
+    """The scan of tests/test_capture_resume.py with up to MAX_FRAMES frames per line."""
+    return resume_config(path, n_lines, scan={"start_deg": -6.0, "stop_deg": 6.0},
+                         camera={"frames_per_line": MAX_FRAMES, "acquire_timeout_s": 3.0},
+                         devices={"timeout_s": 0.25}, session={"retries": 2, "retry_backoff_s": 0.0},
+                         simulation={"seed": 3, "n_t": 128})
 
 
 def adaptive_capture(cfg, out, target_ps):

@@ -17,7 +17,9 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA_ARRAYS = ("streaks", "done", "angle_deg", "target_angle_deg", "dark", "dark_done")
 
 
-def write_config(path, n_lines=16):
+def write_config(path, n_lines=16, **overrides):
+    """A TOML scan of the simulated lab at ``path`` (its calibration the simulated sweep) ->
+    ScanConfig; ``overrides`` (section -> {key: value}) update the sections' keys."""
     sections = {
         "scan": {"start_deg": -8.0, "stop_deg": 8.0, "count": n_lines},
         "camera": {"frames_per_line": 2, "time_range": 2, "gain": 30},
@@ -26,6 +28,8 @@ def write_config(path, n_lines=16):
         "simulation": {"seed": 11, "n_x": 16, "n_t": 64},
         "calibration": {"time_poly_ps": [0.0, 1.0]},
     }
+    for name, values in overrides.items():
+        sections.setdefault(name, {}).update(values)
     text = lambda: "".join(f"[{name}]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in sec.items())
                            for name, sec in sections.items())
     path.write_text(text())
