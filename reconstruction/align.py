@@ -4,11 +4,12 @@ The camera's trigger jitters from frame to frame and drifts over minutes, so the
 light lands on different rows in different frames.  A capture with a fiducial records a
 reference pulse at a fixed time in a fixed band of rows (``row_start`` to ``row_stop``,
 the run store's ``fiducial`` attribute).  For every frame :func:`fiducial_times_ps` finds
-that pulse (background-subtracted centroid in the band, sub-row, mapped to time through
-the row times), :func:`align_frames` computes the correction ``reference - measured``
-(ps) and :func:`shift_frames` moves each frame by it: the frame's row edges are moved in
-time and its counts rebinned onto the unshifted edges from their cumulative sum, which
-preserves the counts of the frame.  Everything works on whole blocks of frames at once.
+that pulse (background-subtracted centroid of the pulse in the band, sub-row, mapped to
+time through the row times), :func:`fiducial_correction_ps` computes the correction
+``reference - measured`` (ps) and :func:`resample_aligned` reads each frame's rows at their
+times plus its correction and interpolates them onto the cube's uniform time grid in the
+same single step an unmoved frame takes (:func:`reconstruction.calibrate.resample_uniform`),
+so an aligned cube's noise is no more correlated between bins than an unaligned one's.
 
 A frame whose band holds no pulse (peak below ``min_snr`` times the band's noise, or a
 centroid at the band's edge) is an error naming the line and frame; a frame is never
@@ -24,7 +25,7 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
-           "shift_frames", "align_frames"]
+           "fiducial_correction_ps", "resample_aligned"]
 
 
 class AlignmentError(StreaklabError, ValueError):
@@ -166,83 +167,53 @@ def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fi
     return np.interp(centroid, np.arange(t.size, dtype=np.float64), t)
 
 
-def shift_frames(frames: np.ndarray, row_times_ps: np.ndarray, shift_ps: np.ndarray) -> np.ndarray:
-    """Move each frame later in time by ``shift_ps``, keeping its counts (flux-preserving rebinning).
-
-    The light a frame recorded in row ``r`` arrived, after the shift, between the row's edges
-    plus ``shift_ps``.  The frame's cumulative counts, known exactly at the row edges, are
-    interpolated in time by cubic Hermite segments (slopes: the mean density of the two rows
-    at an edge; past the ends no counts: the window saw nothing there), read at the unshifted edges
-    and differenced, so the counts are kept and a shift of whole rows is exact.
-
-    Parameters
-    ----------
-    frames : ndarray, shape (..., x, n_rows)
-    row_times_ps : ndarray, shape (n_rows,), increasing, ps
-    shift_ps : ndarray, shape (...)
-        One shift per frame (the leading shape of ``frames``), ps.
-
-    Returns
-    -------
-    ndarray, shape of ``frames``, float64.
-    """
-    f = np.asarray(frames, dtype=np.float64)
-    s = np.asarray(shift_ps, dtype=np.float64)
-    if s.shape != f.shape[:-2]:
-        raise AlignmentError(f"one shift per frame needed: shifts {s.shape}, frames {f.shape[:-2]}")
-    e = row_edges_ps(row_times_ps)                                   # (n+1,)
-    width = np.diff(e)                                               # (n,)
-    f3 = f.reshape((-1,) + f.shape[-2:])                             # (F, x, n)
-    cum = np.concatenate([np.zeros(f3.shape[:-1] + (1,)), np.cumsum(f3, axis=-1)], axis=-1)   # (F, x, n+1)
-    dens = f3 / width                                                # counts per ps of each row
-    slope = np.concatenate([dens[..., :1], 0.5 * (dens[..., 1:] + dens[..., :-1]), dens[..., -1:]], axis=-1)
-    q = e[None, :] - s.reshape(-1, 1)                                # (F, n+1): unshifted edges in frame time
-    j = np.clip(np.searchsorted(e, q, side="right") - 1, 0, e.size - 2)
-    h = width[j]
-    u = (q - e[j]) / h                                               # outside [0, 1]: past the ends
-    inside = ((u >= 0) & (u <= 1))[:, None, :]
-    uc = np.clip(u, 0.0, 1.0)[:, None, :]
-    hh = h[:, None, :]
-
-    def at(a, idx):
-        return np.take_along_axis(a, np.broadcast_to(idx[:, None, :], a.shape[:2] + idx.shape[-1:]), axis=-1)
-
-    c0, c1, m0, m1 = at(cum, j), at(cum, j + 1), at(slope, j), at(slope, j + 1)
-    # cubic Hermite interpolation of the cumulative counts: exact at every edge, smooth between
-    u2, u3 = uc * uc, uc * uc * uc
-    c = ((2 * u3 - 3 * u2 + 1) * c0 + (u3 - 2 * u2 + uc) * hh * m0 + (-2 * u3 + 3 * u2) * c1
-         + (u3 - u2) * hh * m1)
-    # past the ends the window recorded nothing: no counts come from there (a continued end-row
-    # density would paint a plateau of the end row's noise, which a fit may read as a pulse)
-    past = np.where(u[:, None, :] < 0, c0, c1)
-    c = np.where(inside, c, past)
-    return np.diff(c, axis=-1).reshape(f.shape)
+def fiducial_correction_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fiducial, *,
+                           min_snr: float = 5.0, line_ids=None) -> np.ndarray:
+    """(n_lines, n_frames) the time each frame must move by, ps: the reference time
+    (``fiducial.nominal_ps``, else the median measured one) minus its measured fiducial time
+    (:func:`fiducial_times_ps`, whose arguments these are)."""
+    measured = fiducial_times_ps(frames, row_times_ps, fiducial, min_snr=min_snr, line_ids=line_ids)
+    ref = fiducial.nominal_ps if fiducial.nominal_ps is not None else float(np.median(measured))
+    return ref - measured
 
 
-def align_frames(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fiducial, *, min_snr: float = 5.0,
-                 line_ids=None) -> tuple[np.ndarray, np.ndarray]:
-    """Shift every frame so that its fiducial lies at the reference time.
+def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps: np.ndarray, *,
+                     time_bin_ps: float, t0_ps: float, n_bins: int) -> np.ndarray:
+    """Each frame moved by its correction and sampled onto the uniform time grid in one step.
+
+    A frame's rows are read at their own times plus the frame's correction and linearly
+    interpolated onto ``t0_ps + i * time_bin_ps``, as :func:`reconstruction.calibrate.resample_uniform`
+    does for an unmoved frame; grid times the moved frame does not cover get 0 (the window saw
+    no light there).  One interpolation per sample, where a shift onto the rows followed by the
+    grid's resampling would be two: the noise of neighbouring bins is then no more correlated
+    than in an unaligned cube.
 
     Parameters
     ----------
     frames : ndarray, shape (n_lines, n_frames, x, n_rows)
-        Dark-subtracted frames.
-    row_times_ps : ndarray, shape (n_rows,)
-        Time of each row on the run's axis (after the laser pulse), ps, strictly monotonic.
-    fiducial : Fiducial
-        The reference time is ``fiducial.nominal_ps``, else the median measured time.
-    min_snr, line_ids : see :func:`fiducial_times_ps`.
+    row_times_ps : ndarray, shape (n_rows,), strictly monotonic, ps
+    correction_ps : ndarray, shape (n_lines, n_frames), ps
+    time_bin_ps, t0_ps : float    the grid, ps
+    n_bins : int
 
     Returns
     -------
-    aligned : ndarray, shape of ``frames``, float64
-    correction_ps : ndarray, shape (n_lines, n_frames)
-        Time each frame was moved by (reference minus measured fiducial time), ps.
+    ndarray, shape (n_lines, n_frames, x, n_bins), float64.
     """
-    measured = fiducial_times_ps(frames, row_times_ps, fiducial, min_snr=min_snr, line_ids=line_ids)
-    ref = fiducial.nominal_ps if fiducial.nominal_ps is not None else float(np.median(measured))
-    correction = ref - measured
+    f = np.asarray(frames, dtype=np.float64)
     t = np.asarray(row_times_ps, dtype=np.float64)
-    if t[-1] < t[0]:                                  # a sweep read out from the last row: rebin reversed
-        return shift_frames(np.asarray(frames)[..., ::-1], t[::-1], correction)[..., ::-1], correction
-    return shift_frames(frames, t, correction), correction
+    c = np.asarray(correction_ps, dtype=np.float64)
+    if c.shape != f.shape[:2]:
+        raise AlignmentError(f"one correction per frame needed: {c.shape}, frames {f.shape[:2]}")
+    if t[-1] < t[0]:
+        t, f = t[::-1], f[..., ::-1]
+    grid = float(t0_ps) + float(time_bin_ps) * np.arange(int(n_bins), dtype=np.float64)
+    out = np.zeros(f.shape[:3] + (grid.size,))
+    for (i, k), shift in np.ndenumerate(c):          # one set of indices per frame: its pixels share them
+        tt = t + shift
+        j = np.clip(np.searchsorted(tt, grid, side="right") - 1, 0, tt.size - 2)
+        w = (grid - tt[j]) / (tt[j + 1] - tt[j])
+        covered = (w >= 0.0) & (w <= 1.0)
+        lo, hi = f[i, k][:, j], f[i, k][:, j + 1]
+        out[i, k] = np.where(covered, lo + np.clip(w, 0.0, 1.0) * (hi - lo), 0.0)
+    return out

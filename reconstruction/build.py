@@ -374,13 +374,15 @@ class LineCalibration:
         if self.fiducial is None:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:
-            from .align import align_frames
+            from .align import fiducial_correction_ps, resample_aligned
             frames = raw - self.dark                                           # (b, frame, x, rows) float64
             if self.flat is not None:
                 frames /= self.flat
-            frames, corr = align_frames(frames, self.row_times_ps, self.fiducial,
-                                        min_snr=self.fiducial_min_snr, line_ids=line_ids)
-            corrected = frames.mean(axis=1)
+            corr = fiducial_correction_ps(frames, self.row_times_ps, self.fiducial,
+                                          min_snr=self.fiducial_min_snr, line_ids=line_ids)
+            rows = resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
+                                    t0_ps=self.t0_ps, n_bins=self.n_bins).mean(axis=1)
+            return rows.astype(np.float32), corr
         rows = resample_uniform(corrected, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
                                 n_bins=self.n_bins).astype(np.float32)
         return rows, corr
