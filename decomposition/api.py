@@ -24,7 +24,7 @@ from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER
 from .stages.label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
 from .options import METHODS, GridSpec, SolverOptions, options_from_mapping, parse_components, parse_nan_policy
-from .stages.prepare import prepare_samples, resolve_noise_model, time_axis  # noqa: F401 (the pipeline's warm-up)
+from .stages.prepare import prepare_samples, time_axis
 from .stages.quality import Fit, assess_fit
 from .stages.refit import clear_unlit, component_errors, refine_components
 from .stages.candidates import correlated_noise_spectrum, residual_significance_noise, signal_weights
@@ -298,22 +298,30 @@ def _rescue_stage(c: _Call) -> None:
                                            c.flat_noise, c.det.noise_spectrum, c.opts, c.info, c.keywords)
 
 
-def _finish(c: _Call) -> None:
-    samples, opts, fit = c.samples, c.opts, c.fit
-    lead, L, R = samples.lead, samples.n_bins, opts.max_reflections
-    params = _reshape_params(c.params, lead, R)
+def _assemble(c: _Call, params: dict) -> None:
+    """The call's :class:`DecompositionResult`: the rendered fit, ``params`` and flags in the
+    input's leading shape, with the noise the call estimated in ``info`` (both paths' last step)."""
+    samples, fit = c.samples, c.fit
+    lead, L, R = samples.lead, samples.n_bins, c.opts.max_reflections
     c.info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
     c.info["noise_model"] = samples.noise_model
+    c.result = DecompositionResult(
+        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
+        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
+        residual=fit.residual.reshape(lead + (L,)), flags=c.flags.reshape(lead), info=c.info)
+
+
+def _finish(c: _Call) -> None:
+    samples, opts = c.samples, c.opts
+    lead = samples.lead
+    params = _reshape_params(c.params, lead, opts.max_reflections)
     c.info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
         params.update(component_errors(samples, params, **_physics(c)))
         if c.background:
             params[BACKGROUND_KEY + "_stderr"] = (c.bg_stderr if c.bg_stderr is not None
                                                   else np.full(lead, np.nan))
-    c.result = DecompositionResult(
-        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
-        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
-        residual=fit.residual.reshape(lead + (L,)), flags=c.flags.reshape(lead), info=c.info)
+    _assemble(c, params)
 
 
 #: The stages of :func:`decompose` with the Gaussian PSF, run in this order (docs/decomposition.md
@@ -379,16 +387,8 @@ def _quality_response(c: _Call) -> None:
 
 
 def _finish_response(c: _Call) -> None:
-    samples, fit, params = c.samples, c.fit, c.params
-    lead, L, R = samples.lead, samples.n_bins, c.opts.max_reflections
-    for k in list(params):
-        params[k] = params[k].reshape(lead + np.shape(params[k])[1:])
-    c.info["noise_sigma"] = (samples.noise * samples.scale).reshape(lead)
-    c.info["noise_model"] = samples.noise_model
-    c.result = DecompositionResult(
-        direct=fit.direct.reshape(lead + (L,)), sss=fit.sss.reshape(lead + (L,)),
-        interreflections=fit.interreflections.reshape(lead + (R, L)), params=params,
-        residual=fit.residual.reshape(lead + (L,)), flags=c.flags.reshape(lead), info=c.info)
+    lead = c.samples.lead
+    _assemble(c, {k: v.reshape(lead + np.shape(v)[1:]) for k, v in c.params.items()})
 
 
 #: The stages of :func:`decompose` with a measured instrument response (``irf=``), in order.
