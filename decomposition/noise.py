@@ -45,12 +45,13 @@ import numpy as np
 from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
                         SIGNAL_REGION_FRACTION)
 from .kernels.jit import njit
+from .options import parse_noise_model
 
 #: bisection steps of :func:`atom_gain` (the amplitude to 2^-40 of its bracket)
 ATOM_GAIN_BISECTIONS = 40
 
 __all__ = ["masked_median", "noise_sigma", "lagged_noise_sigma", "SpectralNoise", "periodogram", "residual_spectrum",
-           "whitened_chi2", "signal_noise_sigma", "is_count_data", "anscombe",
+           "whitened_chi2", "signal_noise_sigma", "is_count_data", "resolve_noise_model", "anscombe",
            "count_dispersion", "count_signal_sigma", "poisson_weights", "fit_dispersion", "poisson_deviance",
            "count_deviance", "removal_deviance", "atom_gain", "anscombe_residual"]
 
@@ -347,6 +348,15 @@ def is_count_data(values: np.ndarray) -> bool:
         return False
     f = v[np.isfinite(v)]
     return bool(f.size) and bool(np.all(f >= 0)) and bool(np.any(f > 0)) and bool(np.all(f == np.floor(f)))
+
+
+def resolve_noise_model(noise: str, values) -> str:
+    """``"auto"`` -> "poisson" for count data (:func:`is_count_data`), else
+    "gaussian"; "gaussian" and "poisson" are kept."""
+    noise = parse_noise_model(noise)
+    if noise == "auto":
+        return "poisson" if is_count_data(values) else "gaussian"
+    return noise
 
 
 def anscombe(counts: np.ndarray) -> np.ndarray:

@@ -9,7 +9,8 @@ from decomposition.constants import SPIKE_FALSE_ALARM
 from decomposition.flags import EMPTY, SPIKE
 from decomposition.noise import anscombe, count_dispersion, is_count_data
 from decomposition.options import GridSpec, OptionError, SolverOptions
-from decomposition.stages.prepare import _count_threshold, prepare_samples, resolve_noise_model, time_axis
+from decomposition.noise import resolve_noise_model
+from decomposition.stages.prepare import _count_threshold, prepare_samples, time_axis
 from decomposition.evaluation.synthetic import make_profiles
 
 N_PIXELS = 3000

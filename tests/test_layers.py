@@ -22,7 +22,7 @@ its subpackages and top-level modules the same way, bottom up::
 
     constants, flags, masks, options    what every layer shares
     kernels      the compiled kernels
-    noise        noise estimates and deviances (its own compiled kernels use kernels.jit)
+    noise        noise estimates and deviances, the noise="auto" rule (its own compiled kernels use kernels.jit)
     model        slot states, components, refines, fidelity
     methods      ConvSCD and the GradBM baseline
     stages       the stages decompose() runs
@@ -66,7 +66,7 @@ DECOMPOSITION = {
     "masks": set(),
     "options": set(),
     "kernels": {"constants", "masks"},
-    "noise": {"constants", "kernels"},
+    "noise": {"constants", "kernels", "options"},
     "model": {"constants", "masks", "kernels"},
     "methods": _SHARED | {"kernels", "model"},
     "stages": _SHARED | {"kernels", "noise", "model", "methods"},
@@ -74,7 +74,7 @@ DECOMPOSITION = {
     "api": _SHARED | {"model", "methods", "stages", "response"},
     "__init__": {"flags", "api"},
     "warmup": {"api", "kernels"},
-    "store": _SHARED | {"__init__", "api", "methods", "response", "warmup"},
+    "store": _SHARED | {"__init__", "api", "methods", "noise", "response", "warmup"},
     "evaluation": {"constants", "noise", "model"},
     "phasor": set(),
 }

@@ -18,11 +18,12 @@ from ..constants import DICT_SUPPORT_SIGMA, SIGNIFICANCE_LAG_BINS, SPIKE_FALSE_A
 from ..masks import SampleMask
 from ..flags import EMPTY, FLAG_DTYPE, NONFINITE, SATURATED, SPIKE, mark
 from .background import estimate_background
-from ..noise import anscombe, count_dispersion, count_signal_sigma, is_count_data, lagged_noise_sigma, noise_sigma
-from ..options import GridSpec, parse_nan_policy, parse_noise_model
+from ..noise import (anscombe, count_dispersion, count_signal_sigma, lagged_noise_sigma, noise_sigma,
+                     resolve_noise_model)
+from ..options import GridSpec, parse_nan_policy
 
 __all__ = ["Samples", "TimeAxis", "prepare_samples", "time_axis", "find_spikes", "find_count_spikes",
-           "min_neighbour_ratio", "resolve_noise_model"]
+           "min_neighbour_ratio"]
 
 
 @dataclass(frozen=True)
@@ -135,15 +136,6 @@ def check_window(n_bins: int, axis: TimeAxis, grid: GridSpec) -> None:
         raise ValueError(
             f"profiles have L={n_bins} time bins; the kernels need at least {min_bins} "
             f"({DICT_SUPPORT_SIGMA:g} x sigma_max {grid.sigma_range_ps[1]:g} ps / time_bin_ps {T:g} ps + 1)")
-
-
-def resolve_noise_model(noise: str, values) -> str:
-    """``"auto"`` -> "poisson" for count data (:func:`decomposition.noise.is_count_data`), else
-    "gaussian"; "gaussian" and "poisson" are kept."""
-    noise = parse_noise_model(noise)
-    if noise == "auto":
-        return "poisson" if is_count_data(values) else "gaussian"
-    return noise
 
 
 def prepare_samples(profiles, axis: TimeAxis, grid: GridSpec, *, nan_policy: str = "raise",

@@ -365,7 +365,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     if response is not None:
         # the response path's float and count kernels differ: those of the data's kind only
         # (noise="auto"'s rule on the first row's first pixels)
-        from decomposition.api import resolve_noise_model
+        from decomposition.noise import resolve_noise_model
 
         first = np.asarray(arr[0, :min(nx, 64)].compute())
         warm_options = dict(solver_options, noise=resolve_noise_model(solver_options.get("noise", "auto"), first))
@@ -447,7 +447,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             done_now = int(store.done_chunks().sum())
             how, fix = (("interrupted", "") if isinstance(exc, KeyboardInterrupt)
                         else ("stopped", "fix the problem below and "))
-            late = ("" if not left else f" (the cluster did not answer: chunks it was running may still land)"
+            late = ("" if not left else " (the cluster did not answer: chunks it was running may still land)"
                     if left < 0 else f" ({left} more were still running on the cluster and may land later)")
             print(f"decompose: {how}; {done_now}/{total} chunks are on disk in {out_path}{late}; {fix}"
                   f"rerun with --resume to finish", file=stream)
