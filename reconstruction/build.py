@@ -36,7 +36,7 @@ from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, 
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
 __all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS", "LineCalibration",
-           "line_calibration", "scan_order"]
+           "line_calibration", "run_dark", "mean_line_images", "scan_order"]
 
 
 class ReconstructionError(StreaklabError, ValueError):
@@ -396,9 +396,24 @@ def line_calibration(run, *, flat=None, time_source: str | None = None, sweep_pa
     nx, n_rows = run.image_shape
     row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, _ = _time_grid(run, time_source, sweep_path)
     fiducial = _fiducial(run, run.attrs.get("fiducial") is not None if align is None else align, n_rows, nx)
-    dark = dark_image(read_checked(run["dark"], slice(None), store=run.path), (nx, n_rows))
-    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, dark, flat, time_info, fiducial,
+    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, run_dark(run), flat, time_info, fiducial,
                            fiducial_min_snr)
+
+
+def run_dark(run) -> np.ndarray:
+    """The run's mean dark image, (x, n_rows) float64 counts per frame."""
+    return dark_image(read_checked(run["dark"], slice(None), store=run.path), run.image_shape)
+
+
+def mean_line_images(run, lines):
+    """Yield ``(line, image)`` for each of ``lines``: the line's mean frame, dark subtracted,
+    (x, n_rows) float64 counts per frame, over the frames it took (``frames_taken`` of an adaptive
+    run), one line in memory at a time -- the raw rows a calibration capture is read from."""
+    dark = run_dark(run)
+    taken = run.frames_taken()
+    for i in lines:
+        raw = np.asarray(read_checked(run["streaks"], int(i), store=run.path))
+        yield int(i), correct_frames(raw if taken is None else raw[:int(taken[i])], dark)
 
 
 def scan_order(run) -> tuple[np.ndarray, np.ndarray]:

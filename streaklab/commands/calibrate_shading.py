@@ -24,8 +24,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from acquisition.runstore import open_run
-    from core.integrity import read_checked
-    from reconstruction.calibrate import dark_image
+    from reconstruction.build import mean_line_images
     from reconstruction.shading import shading_flat
 
     if not str(args.out).endswith(".npy"):
@@ -39,12 +38,7 @@ def run(args) -> int:
     lines = np.flatnonzero(run_store.done_mask())
     if lines.size == 0:
         raise CommandError(f"{args.source}: no line has been acquired yet")
-    dark = dark_image(read_checked(run_store["dark"], slice(None), store=run_store.path), (nx, n_rows))
-    total = np.zeros((nx, n_rows))
-    for i in lines:                                                    # one line in memory at a time
-        total += np.asarray(read_checked(run_store["streaks"], int(i), store=run_store.path)).mean(axis=0,
-                                                                                               dtype=np.float64)
-    image = total / lines.size - dark
+    image = sum(img for _, img in mean_line_images(run_store, lines)) / lines.size
     flat, rows = shading_flat(image * lines.size * run_store.frames_per_line, degree=args.degree)
     with staged_output(args.out, overwrite=args.overwrite, inputs=(args.source,), kind="file") as tmp:
         with open(tmp, "wb") as fh:

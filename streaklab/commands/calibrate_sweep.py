@@ -36,8 +36,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from acquisition.runstore import open_run
     from core.integrity import read_checked
-    from reconstruction.build import row_times
-    from reconstruction.calibrate import dark_image
+    from reconstruction.build import mean_line_images, row_times
     from reconstruction.sweep import fit_sweep, pair_rows, save_sweep
 
     if not (np.isfinite(args.etalon_ps) and args.etalon_ps > 0):
@@ -60,9 +59,7 @@ def run(args) -> int:
     elif "line_delay_ps" in run_store.group:
         delays = np.asarray(read_checked(run_store["line_delay_ps"], slice(None), store=run_store.path), np.float64)
     nominal, _ = row_times(run_store, n_rows)
-    dark = dark_image(read_checked(run_store["dark"], slice(None), store=run_store.path), (nx, n_rows))
-    profiles = np.stack([(np.asarray(read_checked(run_store["streaks"], int(i), store=run_store.path))
-                          .mean(axis=0, dtype=np.float64) - dark).sum(axis=0) for i in lines])  # (line, rows)
+    profiles = np.stack([img.sum(axis=0) for _, img in mean_line_images(run_store, lines)])  # (line, rows)
     sep_rows = args.etalon_ps / float(np.median(np.abs(np.diff(nominal))))
     pairs = pair_rows(profiles, sep_rows, min_snr=args.min_snr)
     time_range = run_store.config["camera"]["time_range"]
