@@ -242,33 +242,40 @@ def test_the_scan_sees_the_known_edges():
     assert edges["core"] == {}
 
 
-#: third-party packages only the napari plugin (streaklab/napari/) may import: the core install
-#: needs none of them
-PLUGIN_ONLY = {"napari", "phasorpy", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6", "magicgui"}
+#: the optional extras: the folder that alone may import them -> the third-party packages only
+#: that extra installs (the core install needs none of them)
+EXTRAS = {
+    ("streaklab", "napari"): {"napari", "npe2", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6", "magicgui", "pint",
+                              "phasorpy", "superqt", "vispy"},
+    ("streaklab", "bluesky"): {"bluesky", "ophyd_async", "event_model"},
+}
 
 
-def plugin_only_imports(root: Path, packages) -> list[str]:
-    """"path:line imports name" for every import of a PLUGIN_ONLY package outside streaklab/napari."""
+def extra_imports(root: Path, packages) -> list[str]:
+    """"path:line imports name" for every import of an extra's package outside the extra's folder."""
     bad = []
     for pkg in packages:
         for path in sorted((root / pkg).rglob("*.py")):
             rel = path.relative_to(root)
-            if rel.parts[:2] == ("streaklab", "napari"):
-                continue
             is_package = path.name == "__init__.py"
             parts = rel.with_suffix("").parts
             module = ".".join(parts[:-1] if is_package else parts)
             for line, name in imported_modules(path.read_text(encoding="utf-8"), module, is_package=is_package):
-                if name and name.split(".")[0] in PLUGIN_ONLY:
+                top = (name or "").split(".")[0]
+                if any(top in names and rel.parts[:len(home)] != home for home, names in EXTRAS.items()):
                     bad.append(f"{rel}:{line} imports {name}")
     return bad
 
 
-def test_only_the_napari_plugin_imports_napari_qt_or_phasorpy(tmp_path):
-    assert plugin_only_imports(ROOT, project_packages()) == []
+def test_only_each_extra_imports_its_packages(tmp_path):
+    assert extra_imports(ROOT, project_packages()) == []
     root = _tree(tmp_path, {"decomposition/__init__.py": "", "decomposition/p.py": "def f():\n    import phasorpy.phasor\n",
-                            "streaklab/napari/w.py": "import napari\nfrom qtpy import QtWidgets\n"})
-    assert plugin_only_imports(root, ["decomposition", "streaklab"]) == ["decomposition/p.py:2 imports phasorpy.phasor"]
+                            "streaklab/napari/w.py": "import napari\nfrom qtpy import QtWidgets\nimport bluesky\n",
+                            "streaklab/bluesky/d.py": "from ophyd_async.core import Device\nimport npe2\n",
+                            "streaklab/commands/x.py": "import event_model\n"})
+    assert extra_imports(root, ["decomposition", "streaklab"]) == [
+        "decomposition/p.py:2 imports phasorpy.phasor", "streaklab/bluesky/d.py:2 imports npe2",
+        "streaklab/commands/x.py:1 imports event_model", "streaklab/napari/w.py:3 imports bluesky"]
 
 
 def test_every_decomposition_module_has_a_unit():

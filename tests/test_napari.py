@@ -3,7 +3,6 @@
 Headless: layers go into napari's ``ViewerModel``; the one Qt widget test runs on Qt's offscreen
 platform.  The stores are a small ``streaklab demo`` (run, cube and result), made once per module.
 """
-import ast
 import os
 import subprocess
 import sys
@@ -23,12 +22,12 @@ from streaklab.napari._reader import get_reader, read_stores
 from streaklab.napari._viewer import add_maps, add_store, pixel_at, refresh_layers
 from streaklab.napari.layers import map_layer, map_names, pixel_view, store_kind
 from streaklab.report import flag_names
+from test_layers import EXTRAS
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "streaklab" / "napari" / "napari.yaml"
-#: what only the napari extra installs: no module outside streaklab/napari may import these
-PLUGIN_ONLY = ("napari", "npe2", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6", "magicgui", "pint",
-               "phasorpy", "superqt", "vispy")
+#: what only the napari extra installs (tests/test_layers.py: no module outside streaklab/napari imports them)
+PLUGIN_ONLY = tuple(sorted(EXTRAS[("streaklab", "napari")]))
 
 
 @pytest.fixture(scope="module")
@@ -266,22 +265,6 @@ def qapp():
     from qtpy.QtWidgets import QApplication
 
     return QApplication.instance() or QApplication([])
-
-
-def test_no_module_outside_the_plugin_imports_napari_qt_or_npe2():
-    from test_layers import imported_modules, project_packages
-
-    bad = []
-    for pkg in project_packages():
-        for path in sorted((ROOT / pkg).rglob("*.py")):
-            rel = path.relative_to(ROOT)
-            if rel.parts[:2] == ("streaklab", "napari"):
-                continue
-            module = ".".join(rel.with_suffix("").parts)
-            for line, name in imported_modules(path.read_text(), module, is_package=path.name == "__init__.py"):
-                if name and name.split(".")[0] in PLUGIN_ONLY:
-                    bad.append(f"{rel}:{line} imports {name}")
-    assert not bad, bad
 
 
 def test_the_core_packages_and_the_cli_import_and_run_without_the_plugins_dependencies():
