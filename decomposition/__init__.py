@@ -18,6 +18,8 @@ The package, bottom up (``tests/test_layers.py`` holds the table of who may impo
     the measured-response path (``decompose(irf=...)``)
 ``api``
     :func:`decompose` and :class:`DecompositionResult`; ``warmup`` loads the kernels before timing
+``image/``
+    :func:`decompose_image`: one image as one problem (shared parameters, spatial coupling)
 ``store/``
     the chunked store pipeline above the solver: cube store in, result store out
 ``evaluation/``
@@ -54,6 +56,7 @@ from .flags import (  # noqa: F401
 )
 
 _API = ("DecompositionResult", "decompose")
+_IMAGE = ("decompose_image",)
 
 
 def __getattr__(name):
@@ -61,8 +64,12 @@ def __getattr__(name):
         from . import api  # the solver, loaded on first use (see the module docstring)
 
         return getattr(api, name)
+    if name in _IMAGE:
+        from . import image
+
+        return getattr(image, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | set(_API) | set(_IMAGE))

@@ -28,6 +28,7 @@ its subpackages and top-level modules the same way, bottom up::
     stages       the stages decompose() runs
     response     the measured-response path (reuses the stages' rules)
     api          decompose() itself; __init__ re-exports it, warmup runs it once before timing
+    image        decompose_image(): what the pixels of one image share (shared, spatial)
     store        the chunked store pipeline above the solver: the only unit that reads cube
                  stores (reconstruction)
     evaluation   synthetic scenes, reference fits, metrics: no unit of the solver imports it
@@ -72,9 +73,10 @@ DECOMPOSITION = {
     "stages": _SHARED | {"kernels", "noise", "model", "methods"},
     "response": _SHARED | {"kernels", "noise", "model", "stages"},
     "api": _SHARED | {"model", "methods", "stages", "response"},
-    "__init__": {"flags", "api"},
+    "__init__": {"flags", "api", "image"},
     "warmup": {"api", "kernels"},
-    "store": _SHARED | {"__init__", "api", "methods", "noise", "response", "warmup"},
+    "image": _SHARED | {"api", "stages", "model", "noise", "kernels", "methods", "response"},
+    "store": _SHARED | {"__init__", "api", "image", "methods", "noise", "response", "warmup"},
     "evaluation": {"constants", "noise", "model"},
     "phasor": set(),
 }

@@ -1,0 +1,143 @@
+"""``decompose_image(cube, time_bin_ps, shared=..., spatial=...)``: one image, one problem.
+
+The image path checks its own options (:class:`ImageOptions`) and runs the declared list
+:data:`IMAGE_STAGES` in order, each a small function over an :class:`_ImageCall`; the per-pixel
+solver (:func:`decomposition.api.decompose`) is one of its stages.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..api import DecompositionResult, decompose
+from ..options import OptionError
+
+__all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES"]
+
+#: the parameters ``shared=`` may make global: the PSF width (or a response's time scale), the
+#: direct's onset, the sss decay rate
+SHARED_NAMES = ("psf", "delay", "alpha")
+
+
+def parse_shared(shared) -> tuple:
+    """``"psf,delay"`` / ``("psf", "delay")`` / None -> a sorted tuple of :data:`SHARED_NAMES`."""
+    if shared is None or shared == "" or shared == ():
+        return ()
+    items = shared.split(",") if isinstance(shared, str) else list(shared)
+    names = []
+    for item in items:
+        name = str(item).strip().lower()
+        if name not in SHARED_NAMES:
+            raise OptionError(f"shared: unknown parameter {item!r}; choose from {', '.join(SHARED_NAMES)}")
+        if name not in names:
+            names.append(name)
+    return tuple(sorted(names, key=SHARED_NAMES.index))
+
+
+@dataclass(frozen=True)
+class ImageOptions:
+    """What the image path adds to the per-pixel options."""
+
+    #: The parameters estimated once from all pixels and held fixed in every pixel's fit
+    #: (a subset of :data:`SHARED_NAMES`, e.g. ``("psf", "delay")``).
+    shared: tuple = ()
+    #: Couple neighbouring pixels over the image axes (y, x): their answers as starts, a joint
+    #: refinement with an edge-preserving prior, pooled detection of weak components.
+    spatial: bool = False
+
+    def __post_init__(self):
+        object.__setattr__(self, "shared", parse_shared(self.shared))
+        if not isinstance(self.spatial, (bool, np.bool_)):
+            raise OptionError(f"spatial: must be true or false, got {self.spatial!r}")
+        object.__setattr__(self, "spatial", bool(self.spatial))
+
+
+@dataclass(frozen=True)
+class ImageStage:
+    """One named step of :func:`decompose_image`."""
+
+    name: str
+    run: Callable[["_ImageCall"], None]
+    purpose: str
+
+
+@dataclass
+class _ImageCall:
+    cube: np.ndarray            # (Y, X, L)
+    time_bin_ps: float
+    method: str
+    options: ImageOptions
+    regions: np.ndarray | None  # (Y, X) integer labels, or None: the whole image one region
+    keywords: dict              # the per-pixel decompose() keywords (t0_ps, components, ...)
+    info: dict = field(default_factory=dict)
+    result: DecompositionResult | None = None
+
+
+def _check(c: _ImageCall) -> None:
+    if c.cube.ndim != 3:
+        raise ValueError(f"decompose_image: expected an image of profiles (y, x, t), got shape {c.cube.shape}")
+    if c.regions is not None:
+        if "alpha" not in c.options.shared:
+            raise OptionError("regions: give shared='alpha' too (the regions are where one sss decay rate holds)")
+        regions = np.asarray(c.regions)
+        if regions.shape != c.cube.shape[:2] or not np.issubdtype(regions.dtype, np.integer):
+            raise OptionError(f"regions: expected an integer label image of shape {c.cube.shape[:2]}, "
+                              f"got {regions.dtype} {regions.shape}")
+        c.regions = regions
+
+
+def _per_pixel(c: _ImageCall) -> None:
+    c.result = decompose(c.cube, c.time_bin_ps, c.method, **c.keywords)
+
+
+def _not_yet(name):
+    def run(c: _ImageCall) -> None:
+        if (name == "shared" and c.options.shared) or (name == "spatial" and c.options.spatial):
+            raise OptionError(f"{name}= is not available in this build")
+    return run
+
+
+#: The stages of :func:`decompose_image`, in order.
+IMAGE_STAGES = (
+    ImageStage("check", _check, "the image's shape, the regions"),
+    ImageStage("shared", _not_yet("shared"), "estimate the shared parameters from all pixels"),
+    ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
+    ImageStage("spatial", _not_yet("spatial"), "couple neighbouring pixels"),
+)
+
+
+def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, shared=(), regions=None,
+                    spatial: bool = False, **keywords) -> DecompositionResult:
+    """Decompose an image of time profiles as one problem.
+
+    Parameters
+    ----------
+    cube : array_like (Y, X, L)
+        Time profiles on an image; the last axis is time.
+    time_bin_ps : float
+        Bin width in ps.
+    method : {"convscd", "gradbm"}
+        The per-pixel solver.
+    shared : str or sequence, optional
+        Parameters estimated once from all pixels and held fixed in each pixel's fit
+        (:data:`SHARED_NAMES`; ``"psf,delay,alpha"``).
+    regions : ndarray (Y, X) of int, optional
+        With ``shared`` holding "alpha": one sss decay rate per label (default one for the image).
+    spatial : bool
+        Couple neighbouring pixels (:class:`ImageOptions`).
+    **keywords
+        Everything :func:`decomposition.decompose` takes.
+
+    Returns
+    -------
+    DecompositionResult
+        Arrays shaped ``(Y, X, ...)``; ``info["shared"]`` holds the shared estimates and their
+        standard errors.
+    """
+    call = _ImageCall(cube=np.asarray(cube), time_bin_ps=time_bin_ps, method=method,
+                      options=ImageOptions(shared=shared, spatial=spatial), regions=regions, keywords=keywords)
+    for stage in IMAGE_STAGES:
+        stage.run(call)
+    return call.result
