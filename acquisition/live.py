@@ -39,7 +39,10 @@ class LiveOptions:
     exposure_s : float
         Live exposure time, seconds.
     focus : bool
-        Streak unit in ``Focus`` mode (no sweep) while live.
+        Streak unit in ``Focus`` mode (no sweep, MCP gain 0) while live.
+    gain : int or None
+        MCP gain setting for a swept live view, set after the unit is put in ``Operate`` mode
+        (never raised in Focus mode); None leaves the gain as it is.
     pixel : int or None
         Slit pixel whose time profile is shown; None: the mean over the slit.
     frame_timeout_s : float
@@ -52,6 +55,7 @@ class LiveOptions:
     rate_hz: float = 4.0
     exposure_s: float = 0.01
     focus: bool = False
+    gain: int | None = None
     pixel: int | None = None
     frame_timeout_s: float = 5.0
     ring_buffers: int = 4
@@ -63,6 +67,8 @@ class LiveOptions:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if self.gain is not None and (isinstance(self.gain, bool) or not isinstance(self.gain, int) or self.gain < 0):
+            raise ValueError(f"gain must be an integer setting >= 0, got {self.gain!r}")
         if self.pixel is not None and (not isinstance(self.pixel, int) or self.pixel < 0):
             raise ValueError(f"pixel must be a slit pixel index >= 0, got {self.pixel!r}")
         if not 1 <= int(self.ring_buffers) <= 1000:
@@ -143,6 +149,13 @@ class LiveView:
         if opt.focus:
             self._mode_before = cam.streak_mode()
             cam.set_streak_mode("Focus")
+        else:
+            # swept: the sweep on before the gain is raised (a killed Focus view leaves it off)
+            operate = getattr(cam, "operate", None)
+            if operate is not None:
+                operate()
+            if opt.gain is not None:
+                cam.configure(gain=opt.gain)
         try:
             cam.set_exposure_s(opt.exposure_s, "Live")
             cam.start_live(ring_buffers=opt.ring_buffers)

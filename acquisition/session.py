@@ -284,11 +284,10 @@ class CaptureSession:
             if cam.get(key) is not None:
                 self._setting(f"camera.{key}", cam[key], "camera",
                               lambda key=key: self.camera.configure(**{key: cam[key]}))
-        set_mode = getattr(self.camera, "set_streak_mode", None)
-        if set_mode is not None:
-            # A live view in Focus mode that was killed leaves the sweep off: a scan needs it on,
-            # and before the gain is raised (the MCP gain stays 0 in Focus mode).
-            self._attempt("camera streak mode", lambda: self._operate(set_mode))
+        operate = getattr(self.camera, "operate", None)
+        if operate is not None:
+            # the sweep on before the gain is raised (RemoteExCamera.operate)
+            self._attempt("camera streak mode", operate)
         if cam.get("gain") is not None:
             self._setting("camera.gain", cam["gain"], "camera", lambda: self.camera.configure(gain=cam["gain"]))
         self.operating_gain = cam.get("gain")
@@ -311,15 +310,6 @@ class CaptureSession:
         self._attempt("mirror homing", lambda: self.mirror.home(timeout_s=max(30.0, cfg["scan"]["settle_timeout_s"])))
         self.devices = ids
         return ids
-
-    @staticmethod
-    def _operate(set_mode) -> None:
-        try:
-            set_mode("Operate")
-        except DeviceError as exc:
-            if exc.code != 2:            # 2: this streak unit has no Mode control; nothing to switch
-                raise
-            log.info("camera has no streak mode control (%s)", exc)
 
     def _acquire_frames(self, n: int, what: str, key: str, also=()) -> np.ndarray:
         """``n`` frames (frame, x, t) uint16; ``key`` is the config key that asks for ``n``.

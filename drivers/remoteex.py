@@ -245,6 +245,18 @@ class RemoteExCamera(RemoteExLink):
                 self.gain_off()
             self.command("DevParamSet", self.streak_device, "Mode", mode)
 
+    def operate(self) -> bool:
+        """Streak unit in ``Operate`` mode (sweeping), as a swept acquisition needs before its gain
+        is raised: a live view in Focus mode that was killed leaves the sweep off, and the MCP
+        gain stays 0 in Focus mode.  False when the unit has no Mode control (nothing to switch)."""
+        try:
+            self.set_streak_mode("Operate")
+        except DeviceError as exc:
+            if exc.code != 2:            # 2: no such parameter: this streak unit has no Mode control
+                raise
+            return False
+        return True
+
     def streak_mode(self) -> str:
         """Streak unit mode read back (``Operate`` or ``Focus``)."""
         values = self.command("DevParamGet", self.streak_device, "Mode")

@@ -168,3 +168,21 @@ def test_the_live_figures_title_lies_inside_the_png(tmp_path):
     assert 0 <= box.y0 and box.y1 <= fig.fig.bbox.height and 0 <= box.x0 and box.x1 <= fig.fig.bbox.width
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     fig.close()
+
+
+def test_a_swept_live_view_on_a_unit_left_in_focus_mode_switches_the_sweep_on_before_raising_the_gain(tmp_path):
+    # a Focus-mode live view that was killed leaves the sweep off; the next live view without
+    # --focus must not raise the MCP gain while the unit is still in Focus mode
+    scene = scene_for(write_config(tmp_path))
+    with RemoteExSimulator(LabState(sync_output_enabled=True), scene, seed=1) as sim:
+        from drivers.remoteex import RemoteExCamera
+
+        with RemoteExCamera(sim.host, sim.port, timeout_s=2.0) as cam:
+            cam.set_streak_mode("Focus")
+        cfg = write_config(tmp_path, camera=f"{sim.host}:{sim.port}")
+        assert main(["live", "--config", str(cfg), "--frames", "1", "--fps", "50", "--no-window"]) == 0
+        assert sim.gain_log and all(gain == 0 for _, gain, mode in sim.gain_log if mode == "Focus")
+        assert 30 in [gain for _, gain, mode in sim.gain_log if mode == "Operate"]
+        sent = list(sim.received)
+        assert sent.index("DevParamSet(Streak,Mode,Operate)") < sent.index("DevParamSet(Streak,MCP Gain,30)") \
+            < sent.index("AcqStart(Live)")

@@ -142,6 +142,7 @@ def run(args) -> int:
         config = load_config(args.config)
         cam_cfg = config["camera"]
         options = LiveOptions(frames=args.frames, rate_hz=args.fps, focus=args.focus, pixel=args.pixel,
+                              gain=cam_cfg.get("gain"),
                               exposure_s=args.exposure_s if args.exposure_s is not None else cam_cfg["exposure_s"],
                               frame_timeout_s=max(5.0, 3 * config["devices"]["timeout_s"]))
     except (ConfigError, ValueError) as exc:
@@ -215,7 +216,7 @@ def run(args) -> int:
                 stack.enter_context(_laser(config, lab))
             try:
                 with RemoteExCamera(host, port, timeout_s=timeout_s, connect_timeout_s=timeout_s) as cam:
-                    cam.configure(time_range=cam_cfg["time_range"], gain=cam_cfg.get("gain"))
+                    cam.configure(time_range=cam_cfg["time_range"])    # the gain: LiveView, by mode
                     shown = LiveView(cam, options, row_times_ps=fallback).run(show, stop)
             except DriverError as exc:
                 raise CommandError(f"camera at {host}:{port}: {type(exc).__name__}: {exc}") from None
