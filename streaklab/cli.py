@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = argparse.ArgumentParser(prog=f"streaklab {name}", description=COMMANDS[name][1])
     module.add_arguments(sub)
     args = sub.parse_args(argv[1:])
+    args.command_words = argv          # as typed: a command can print the line that continues it
     try:
         return int(module.run(args) or 0)
     except (CommandError, StreaklabError) as exc:

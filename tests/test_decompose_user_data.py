@@ -226,3 +226,15 @@ def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube
         assert int(open_result_store(out).done_chunks().sum()) == n_done < 8
     finally:
         cluster.close()
+
+
+def test_the_resume_command_repeats_the_words_typed_without_overwrite():
+    from argparse import Namespace
+
+    from streaklab.commands.decompose import resume_command
+
+    typed = ["decompose", "my cube.zarr", "--out", "r.zarr", "--overwr", "--option", "sparsity=0.05"]
+    assert resume_command(Namespace(command_words=typed)) == \
+        "streaklab decompose 'my cube.zarr' --out r.zarr --option sparsity=0.05 --resume"
+    again = ["decompose", "c.zarr", "--out", "r.zarr", "--resume"]
+    assert resume_command(Namespace(command_words=again)) == "streaklab decompose c.zarr --out r.zarr --resume"

@@ -134,30 +134,13 @@ def _tls_files(args):
 
 
 def resume_command(args) -> str:
-    """The command line that continues this run: its own arguments (those not at their defaults),
-    without ``--overwrite``, with ``--resume``."""
-    import argparse
+    """The command line that continues this run: the words it was started with
+    (``args.command_words``, recorded by the CLI), without ``--overwrite``, with ``--resume``."""
     import shlex
 
-    parser = argparse.ArgumentParser(add_help=False)
-    add_arguments(parser)
-    cmd = ["streaklab", "decompose"]
-    for action in parser._actions:
-        value = getattr(args, action.dest, None)
-        if action.dest in ("resume", "overwrite") or value is None or value == action.default:
-            continue
-        if not action.option_strings:
-            cmd.append(str(value))
-        elif isinstance(action, argparse._StoreTrueAction):
-            cmd.append(action.option_strings[0])
-        elif isinstance(action, argparse._AppendAction):
-            for item in value:
-                cmd += [action.option_strings[0], str(item)]
-        elif isinstance(value, (list, tuple)):
-            cmd += [action.option_strings[0], *map(str, value)]
-        else:
-            cmd += [action.option_strings[0], str(value)]
-    return shlex.join(cmd + ["--resume"])
+    words = [w for w in getattr(args, "command_words", ["decompose", str(args.input), "--out", str(args.out)])
+             if not (w.startswith("--ov") and "--overwrite".startswith(w))]   # argparse takes its prefixes too
+    return shlex.join(["streaklab", *words] + ([] if "--resume" in words else ["--resume"]))
 
 
 class Terminated(KeyboardInterrupt):
