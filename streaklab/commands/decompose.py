@@ -138,7 +138,8 @@ def resume_command(args) -> str:
     (``args.command_words``, recorded by the CLI), without ``--overwrite``, with ``--resume``."""
     import shlex
 
-    words = [w for w in getattr(args, "command_words", ["decompose", str(args.input), "--out", str(args.out)])
+    typed = getattr(args, "command_words", None) or ["decompose", str(args.input), "--out", str(args.out)]
+    words = [w for w in typed
              if not (w.startswith("--ov") and "--overwrite".startswith(w))]   # argparse takes its prefixes too
     return shlex.join(["streaklab", *words] + ([] if "--resume" in words else ["--resume"]))
 
