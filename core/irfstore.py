@@ -20,17 +20,15 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 import zarr
 
+from .calibfile import open_calibration, save_calibration
 from .integrity import create_array, read_checked
 from .irf import InstrumentResponse, ResponseError
 from .provenance import __version__
-from .staging import staged_output
 
 __all__ = ["RESPONSE_KIND", "ResponseStoreError", "write_response_group", "read_response_group",
            "save_response", "load_response", "samples_sha256"]
@@ -112,38 +110,15 @@ def save_response(path, irf: InstrumentResponse, *, overwrite: bool = False, inp
     is replaced only when it is a response (or a plain file); ``inputs`` (the stores the
     response was estimated from) are never written over (:func:`core.staging.check_output_path`).
     """
-    path = Path(path)
-    kind = "file" if path.suffix == ".npz" else RESPONSE_KIND
-    with staged_output(path, overwrite=overwrite, inputs=inputs, kind=kind) as tmp:
-        if path.suffix == ".npz":
-            with open(tmp, "wb") as fh:
-                np.savez(fh, response=irf.samples, irf_t=irf.time_axis_ps(),
-                         attributes=np.array(json.dumps(_attributes(irf))))
-        else:
-            write_response_group(zarr.open_group(str(tmp), mode="w"), irf)
-    return path
+    return save_calibration(path, kind=RESPONSE_KIND, arrays={"response": irf.samples, "irf_t": irf.time_axis_ps()},
+                            attributes=_attributes(irf), write_group=lambda g: write_response_group(g, irf),
+                            overwrite=overwrite, inputs=inputs)
 
 
 def load_response(path) -> InstrumentResponse:
     """Read a response from a ``.npz`` file, a response store, or the ``irf`` group of a cube store."""
-    path = Path(path)
-    if not os.path.exists(path):
-        raise ResponseStoreError(f"{path}: no such file or directory")
-    if path.suffix == ".npz" or path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                samples, attrs = z["response"], json.loads(str(z["attributes"]))
-        except (OSError, ValueError, KeyError) as exc:
-            raise ResponseStoreError(f"{path} is not an instrument-response .npz file: {exc}") from None
-        return _from_parts(samples, attrs, str(path))
-    try:
-        g = zarr.open_group(str(path), mode="r", use_consolidated=False)
-    except Exception as exc:  # zarr raises several types for "not a group"
-        raise ResponseStoreError(f"{path} is not a Zarr group: {exc}") from None
-    if g.attrs.get("streaklab_kind") != RESPONSE_KIND and "irf" in g and isinstance(g["irf"], zarr.Group):
-        return read_response_group(g["irf"], where=f"{path}/irf")
-    if g.attrs.get("streaklab_kind") != RESPONSE_KIND:
-        kind = g.attrs.get("streaklab_kind")
-        hint = f" (a streaklab {kind!r} store without an 'irf' group)" if kind else ""
-        raise ResponseStoreError(f"{path} holds no instrument response{hint}")
-    return read_response_group(g, where=str(path))
+    found = open_calibration(path, kind=RESPONSE_KIND, group_name="irf", array_names=("response",),
+                             error=ResponseStoreError, what="instrument response")
+    if found.group is None:
+        return _from_parts(found.arrays["response"], found.attributes, found.where)
+    return read_response_group(found.group, where=found.where)

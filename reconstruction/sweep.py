@@ -21,8 +21,6 @@ of another time range or row count is refused (:func:`check_sweep`).
 from __future__ import annotations
 
 import datetime as _dt
-import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,7 +30,7 @@ import zarr
 from core.errors import StreaklabError
 from core.integrity import create_array, read_checked
 from core.provenance import __version__
-from core.staging import staged_output
+from core.calibfile import open_calibration, save_calibration
 
 __all__ = ["SWEEP_KIND", "SWEEP_GROUP", "SweepError", "SweepCalibration", "pair_rows", "fit_sweep",
            "check_sweep", "write_sweep_group", "save_sweep", "load_sweep"]
@@ -256,35 +254,15 @@ def read_sweep_group(group: zarr.Group, *, where: str) -> SweepCalibration:
 def save_sweep(path, cal: SweepCalibration, *, overwrite: bool = False, inputs=()) -> Path:
     """Save as a standalone Zarr store, or a ``.npz`` file when ``path`` ends in ``.npz``
     (written beside it and renamed into place; inputs are never written over)."""
-    path = Path(path)
-    kind = "file" if path.suffix == ".npz" else SWEEP_KIND
-    with staged_output(path, overwrite=overwrite, inputs=inputs, kind=kind) as tmp:
-        if path.suffix == ".npz":
-            with open(tmp, "wb") as fh:
-                np.savez(fh, row_times_ps=cal.row_times_ps, attributes=np.array(json.dumps(_attributes(cal))))
-        else:
-            write_sweep_group(zarr.open_group(str(tmp), mode="w"), cal)
-    return path
+    return save_calibration(path, kind=SWEEP_KIND, arrays={"row_times_ps": cal.row_times_ps},
+                            attributes=_attributes(cal), write_group=lambda g: write_sweep_group(g, cal),
+                            overwrite=overwrite, inputs=inputs)
 
 
 def load_sweep(path) -> SweepCalibration:
     """Read a calibration from a ``.npz`` file, a sweep store, or the ``sweep`` group of a cube store."""
-    path = Path(path)
-    if not os.path.exists(path):
-        raise SweepError(f"sweep calibration {path}: no such file or directory")
-    if path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                t, attrs = z["row_times_ps"], json.loads(str(z["attributes"]))
-        except (OSError, ValueError, KeyError) as exc:
-            raise SweepError(f"{path} is not a sweep-calibration .npz file: {exc}") from None
-        return _from_parts(t, attrs, str(path))
-    try:
-        g = zarr.open_group(str(path), mode="r", use_consolidated=False)
-    except Exception as exc:  # zarr raises several types for "not a group"
-        raise SweepError(f"{path} is not a Zarr group: {exc}") from None
-    if g.attrs.get("streaklab_kind") != SWEEP_KIND and SWEEP_GROUP in g and isinstance(g[SWEEP_GROUP], zarr.Group):
-        return read_sweep_group(g[SWEEP_GROUP], where=f"{path}/{SWEEP_GROUP}")
-    if g.attrs.get("streaklab_kind") != SWEEP_KIND:
-        raise SweepError(f"{path} holds no sweep calibration")
-    return read_sweep_group(g, where=str(path))
+    found = open_calibration(path, kind=SWEEP_KIND, group_name=SWEEP_GROUP, array_names=("row_times_ps",),
+                             error=SweepError, what="sweep calibration")
+    if found.group is None:
+        return _from_parts(found.arrays["row_times_ps"], found.attributes, found.where)
+    return read_sweep_group(found.group, where=found.where)

@@ -72,10 +72,10 @@ def test_unusable_paths_are_named(tmp_path):
     with pytest.raises(ResponseStoreError, match="no such file"):
         load_response(tmp_path / "missing.zarr")
     cube = write_cube(tmp_path / "cube.zarr", np.zeros((1, 1, 8), np.float32), time_bin_ps=2.0)
-    with pytest.raises(ResponseStoreError, match="'cube' store without an 'irf' group"):
+    with pytest.raises(ResponseStoreError, match="'cube' store with no 'irf' group"):
         load_response(cube.path)
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(ResponseStoreError, match="not an instrument-response .npz"):
+    with pytest.raises(ResponseStoreError, match="not an instrument response .npz"):
         load_response(tmp_path / "junk.npz")
     g = zarr.open_group(str(tmp_path / "bad.zarr"), mode="w")
     g.attrs.update({"streaklab_kind": "instrument_response", "time_step_ps": 1.0, "t0_ps": 0.0})

@@ -78,7 +78,7 @@ def test_store_round_trip_and_time_range_check(tmp_path):
     with pytest.raises(SweepError, match="has 256 rows, the run's images 512"):
         check_sweep(back, time_range="1 ns", n_rows=512, where="run.zarr")
     (tmp_path / "junk.npz").write_bytes(b"not an npz")
-    with pytest.raises(SweepError, match="is not a sweep-calibration .npz file"):
+    with pytest.raises(SweepError, match="is not a sweep calibration .npz file"):
         load_sweep(tmp_path / "junk.npz")
 
 
