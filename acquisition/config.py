@@ -58,8 +58,11 @@ A configuration has these sections (every key is listed with its default; see
     seed = 0                       # seed of the simulated lab used by ``--simulate``
     n_x = 64                       # simulated camera: slit pixels
     n_t = 256                      # simulated camera: streak rows
-    scene = "default"              # optional: "default" (the table-top scene) or "calibration"
+    scene = "default"              # optional: "default" (the table-top scene), "calibration"
                                    # (a flat mirror: one direct return per pixel, for calibrate-irf)
+                                   # or "etalon" (a pulse pair per pixel whose arrival steps from
+                                   # line to line, for calibrate-sweep)
+    etalon_ps = 20.0               # optional: the "etalon" scene's pulse separation, ps
     response = "gaussian"          # optional: the simulated camera's instrument response,
                                    # "gaussian", "tailed" (diffusion tail) or "afterpulse"
     jitter_ps = 0.0                # optional: trigger jitter, ps RMS per frame
@@ -320,6 +323,7 @@ _SPEC = {
         # Optional and without a filled-in default, so the hash of configs that do not name them is unchanged.
         "scene": (lambda k, v: _choice(k, v, "SIMULATED_SCENES"), _MISSING),
         "response": (lambda k, v: _choice(k, v, "SIMULATED_RESPONSES"), _MISSING),
+        "etalon_ps": (lambda k, v: _num(k, v, lo=0.1, hi=1e5, what="a pulse separation in ps in [0.1, 1e5]"), _MISSING),
         # The simulated camera's time base (drivers.sim.timebase); all off when not named.
         "jitter_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e6, what="a jitter RMS in ps in [0, 1e6]"), _MISSING),
         "drift_ps_per_min": (lambda k, v: _num(k, v, lo=-1e6, hi=1e6, what="a drift in ps per minute in "

@@ -28,8 +28,9 @@ log = logging.getLogger(__name__)
 def simulated_scene(config: ScanConfig):
     """The virtual scene for ``--simulate``: one scene line per scan line, at the scan's angles.
 
-    Uses ``VirtualScene.default`` (or ``VirtualScene.calibration`` with
-    ``simulation.scene = "calibration"``) with ``simulation.n_x`` slit pixels,
+    Uses ``VirtualScene.default`` (``VirtualScene.calibration`` with
+    ``simulation.scene = "calibration"``, ``VirtualScene.etalon`` with ``"etalon"`` and
+    ``simulation.etalon_ps``) with ``simulation.n_x`` slit pixels,
     ``simulation.n_t`` streak rows, ``simulation.seed`` and the instrument response named by
     ``simulation.response``; its line angles are the config's, sorted.
     """
@@ -40,6 +41,9 @@ def simulated_scene(config: ScanConfig):
     if sim.get("scene", "default") == "calibration":
         base = VirtualScene.calibration(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"],
                                         response=response)
+    elif sim.get("scene") == "etalon":
+        base = VirtualScene.etalon(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"],
+                                   etalon_ps=sim.get("etalon_ps", 20.0), response=response)
     else:
         base = VirtualScene.default(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
     return VirtualScene(params=base.params, angle_deg=np.sort(config.angles_deg), n_t=base.n_t,

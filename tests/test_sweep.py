@@ -134,3 +134,32 @@ def test_calibration_from_another_time_range_is_refused(tmp_path, capsys):
     assert main(["calibrate-sweep", str(tmp_path / "etalon.zarr"), "--etalon-ps", "20", "--out",
                  str(tmp_path / "s2.npz"), "--delays-ps", "1", "2"]) == 2
     assert "--delays-ps gives 2 delays, the run has 30 lines" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(60)
+def test_an_etalon_captured_from_the_simulated_lab_calibrates_a_two_percent_bow_to_a_tenth_of_a_ps(tmp_path, capsys):
+    # end to end through the camera's wire protocol: the simulated camera's sweep is bowed by
+    # 2 % of its window (drivers.sim.timebase), the scene an etalon pair stepping over the rows
+    from acquisition.rig import run_capture, simulated_scene
+    from drivers.sim.scene import VirtualScene
+    from drivers.sim.timebase import TimeBase
+    from test_capture import sim_config
+
+    n_lines = 32
+    cfg = sim_config(n_lines=n_lines, n_x=8, n_t=256, camera={"frames_per_line": 4},
+                     simulation={"scene": "etalon", "etalon_ps": 20.0, "sweep_nonlinearity": 0.02})
+    assert run_capture(cfg, tmp_path / "etalon.zarr", simulate=True).status == "complete"
+    scene = simulated_scene(cfg)
+    nominal = scene.row_times_ps(0.0, cfg["camera"]["time_range"])
+    arrivals = VirtualScene.etalon_arrivals_ps(n_lines, float(np.polynomial.polynomial.polyval(
+        scene.n_t - 1, scene.time_calibration)), 20.0)
+    assert main(["calibrate-sweep", str(tmp_path / "etalon.zarr"), "--etalon-ps", "20",
+                 "--out", str(tmp_path / "sweep.zarr"), "--delays-ps", *map(str, -arrivals)]) == 0
+    true = TimeBase(sweep_nonlinearity=0.02).true_row_times_ps(nominal)
+
+    def worst_ps(times):
+        err = times - true
+        return float(np.max(np.abs(err - err.mean())))
+
+    assert worst_ps(nominal) > 5.0                                     # what the bow does uncalibrated
+    assert worst_ps(load_sweep(tmp_path / "sweep.zarr").row_times_ps) < 0.1

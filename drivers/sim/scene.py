@@ -50,7 +50,7 @@ __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN
 # Instrument responses of the simulated camera, by name; "gaussian" is each component's own sigma.
 SIMULATED_RESPONSES = ("gaussian", "tailed", "afterpulse")
 # Scenes of the simulated lab, by name (classmethods of VirtualScene).
-SIMULATED_SCENES = ("default", "calibration")
+SIMULATED_SCENES = ("default", "calibration", "etalon")
 
 
 def simulated_response(name: str) -> InstrumentResponse | None:
@@ -385,6 +385,40 @@ class VirtualScene:
         p["direct_sigma_ps"][:] = 6.0
         return cls(params=p, angle_deg=base.angle_deg, n_t=base.n_t, time_calibration=base.time_calibration,
                    response=response)
+
+    @classmethod
+    def etalon(cls, n_lines: int = 24, n_x: int = 8, n_t: int = 256, seed: int = 0, *, etalon_ps: float = 20.0,
+               response: InstrumentResponse | None = None) -> "VirtualScene":
+        """A sweep-calibration target: an etalon's pulse pair, ``etalon_ps`` apart, in every pixel.
+
+        The pair stands for the laser seen through an etalon while the trigger delay steps from
+        line to line: line ``l``'s first pulse arrives at :meth:`etalon_arrivals_ps` ``[l]``, from 8 %
+        to 85 % of the window less the separation, so the pairs cross every part of the sweep.
+        The second pulse carries 0.8 of the first's amplitude; both have a sigma of 2.5 ps (a
+        short pulse) and are the same across the slit.  ``streaklab calibrate-sweep`` takes
+        ``--delays-ps`` equal to minus these arrivals (a delay later by d moves the pair d earlier).
+        """
+        base = cls.default(n_lines=n_lines, n_x=n_x, n_t=n_t, seed=seed)
+        if not (np.isfinite(etalon_ps) and etalon_ps > 0):
+            raise ValueError(f"etalon_ps must be positive, got {etalon_ps!r}")
+        window_ps = float(np.polynomial.polynomial.polyval(base.n_t - 1, base.time_calibration))
+        if etalon_ps > 0.25 * window_ps:
+            raise ValueError(f"etalon_ps {etalon_ps:g} is over a quarter of the {window_ps:.0f} ps window")
+        arrival = cls.etalon_arrivals_ps(base.n_lines, window_ps, etalon_ps)
+        p = empty_params((base.n_lines, base.n_x), n_ir=1)
+        p["direct_delay_ps"][:] = arrival[:, None]
+        p["direct_amplitude"][:] = 1.0
+        p["direct_sigma_ps"][:] = 2.5
+        p["ir_delay_ps"][:, :, 0] = arrival[:, None] + etalon_ps
+        p["ir_amplitude"][:, :, 0] = 0.8
+        p["ir_sigma_ps"][:, :, 0] = 2.5
+        return cls(params=p, angle_deg=base.angle_deg, n_t=base.n_t, time_calibration=base.time_calibration,
+                   response=response)
+
+    @staticmethod
+    def etalon_arrivals_ps(n_lines: int, window_ps: float, etalon_ps: float) -> np.ndarray:
+        """The first pulse's arrival on each line of :meth:`etalon` (n_lines,), ps."""
+        return np.linspace(0.08 * window_ps, 0.85 * window_ps - etalon_ps, int(n_lines))
 
     @classmethod
     def default(cls, n_lines: int = 16, n_x: int = 64, n_t: int = 256, seed: int = 0) -> "VirtualScene":
