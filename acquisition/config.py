@@ -61,7 +61,8 @@ A configuration has these sections (every key is listed with its default; see
     scene = "default"              # optional: "default" (the table-top scene), "calibration"
                                    # (a flat mirror: one direct return per pixel, for calibrate-irf)
                                    # or "etalon" (a pulse pair per pixel whose arrival steps from
-                                   # line to line, for calibrate-sweep)
+                                   # line to line, for calibrate-sweep) or "uniform" (light of
+                                   # one level at every time, for calibrate-shading)
     etalon_ps = 20.0               # optional: the "etalon" scene's pulse separation, ps
     response = "gaussian"          # optional: the simulated camera's instrument response,
                                    # "gaussian", "tailed" (diffusion tail) or "afterpulse"

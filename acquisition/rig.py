@@ -30,7 +30,7 @@ def simulated_scene(config: ScanConfig):
 
     Uses ``VirtualScene.default`` (``VirtualScene.calibration`` with
     ``simulation.scene = "calibration"``, ``VirtualScene.etalon`` with ``"etalon"`` and
-    ``simulation.etalon_ps``) with ``simulation.n_x`` slit pixels,
+    ``simulation.etalon_ps``, ``VirtualScene.uniform`` with ``"uniform"``) with ``simulation.n_x`` slit pixels,
     ``simulation.n_t`` streak rows, ``simulation.seed`` and the instrument response named by
     ``simulation.response``; its line angles are the config's, sorted.
     """
@@ -44,6 +44,8 @@ def simulated_scene(config: ScanConfig):
     elif sim.get("scene") == "etalon":
         base = VirtualScene.etalon(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"],
                                    etalon_ps=sim.get("etalon_ps", 20.0), response=response)
+    elif sim.get("scene") == "uniform":
+        base = VirtualScene.uniform(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
     else:
         base = VirtualScene.default(n_lines=config.n_lines, n_x=sim["n_x"], n_t=sim["n_t"], seed=sim["seed"])
     return VirtualScene(params=base.params, angle_deg=np.sort(config.angles_deg), n_t=base.n_t,

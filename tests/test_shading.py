@@ -73,3 +73,21 @@ def test_calibrate_shading_then_reconstruct_with_the_flat(tmp_path, capsys):
     assert main(["calibrate-shading", str(tmp_path / "uniform.zarr"), "--out", str(tmp_path / "flat.txt")]) == 2
     assert "name it *.npy" in capsys.readouterr().err
     assert not (tmp_path / "flat.txt").exists()
+
+
+@pytest.mark.timeout(60)
+def test_a_uniform_light_capture_from_the_simulated_lab_gives_its_ten_percent_shading_to_half_a_percent(tmp_path, capsys):
+    # end to end through the camera's wire protocol: the simulated camera's sensitivity ramps
+    # 0.9 -> 1.1 along the time axis (drivers.sim.timebase), the scene is one level of light
+    from acquisition.rig import run_capture
+    from drivers.sim.timebase import TimeBase
+    from test_capture import sim_config
+
+    cfg = sim_config(n_lines=4, n_x=8, n_t=256, camera={"frames_per_line": 4},
+                     simulation={"scene": "uniform", "shading": 0.1})
+    assert run_capture(cfg, tmp_path / "uniform.zarr", simulate=True).status == "complete"
+    assert main(["calibrate-shading", str(tmp_path / "uniform.zarr"), "--out", str(tmp_path / "flat.npy")]) == 0
+    true = TimeBase(shading=0.1).sensitivity(256)
+    ratio = np.load(tmp_path / "flat.npy") / true[None, :]
+    assert np.abs(true / true.mean() - 1.0).max() > 0.09                 # what the shading does uncorrected
+    assert np.abs(ratio / ratio.mean() - 1.0).max() < 0.005

@@ -42,7 +42,7 @@ import numpy as np
 
 from core.irf import InstrumentResponse, render_shifted, render_sss
 from core.irf_models import afterpulse_response, tailed_response
-from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 
 __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN_DOUBLING_STEPS",
            "time_range_scale", "SIMULATED_RESPONSES", "SIMULATED_SCENES", "simulated_response"]
@@ -50,7 +50,7 @@ __all__ = ["VirtualScene", "TIME_RANGE_SCALE", "SINGLE_SWEEP_REFERENCE_S", "GAIN
 # Instrument responses of the simulated camera, by name; "gaussian" is each component's own sigma.
 SIMULATED_RESPONSES = ("gaussian", "tailed", "afterpulse")
 # Scenes of the simulated lab, by name (classmethods of VirtualScene).
-SIMULATED_SCENES = ("default", "calibration", "etalon")
+SIMULATED_SCENES = ("default", "calibration", "etalon", "uniform")
 
 
 def simulated_response(name: str) -> InstrumentResponse | None:
@@ -414,6 +414,18 @@ class VirtualScene:
         p["ir_sigma_ps"][:, :, 0] = 2.5
         return cls(params=p, angle_deg=base.angle_deg, n_t=base.n_t, time_calibration=base.time_calibration,
                    response=response)
+
+    @classmethod
+    def uniform(cls, n_lines: int = 8, n_x: int = 64, n_t: int = 256, seed: int = 0, *,
+                level: float = 1.0) -> "VirtualScene":
+        """A shading target: light of one level at every time and pixel (a lamp on the slit), so
+        that a capture shows the camera's sensitivity along the time axis and nothing else."""
+        base = cls.default(n_lines=n_lines, n_x=n_x, n_t=n_t, seed=seed)
+        if not (np.isfinite(level) and level > 0):
+            raise ValueError(f"level must be positive, got {level!r}")
+        p = empty_params((base.n_lines, base.n_x), n_ir=0)
+        p[BACKGROUND_KEY] = np.full((base.n_lines, base.n_x), float(level))
+        return cls(params=p, angle_deg=base.angle_deg, n_t=base.n_t, time_calibration=base.time_calibration)
 
     @staticmethod
     def etalon_arrivals_ps(n_lines: int, window_ps: float, etalon_ps: float) -> np.ndarray:
