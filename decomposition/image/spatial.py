@@ -274,14 +274,26 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
     if rows.size and options.neighbour_starts:
         idx = np.arange(c.live.size)
         live_i = np.where(c.live, idx, -1)
+        sig = _signature(c.params)
+        d = c.params["direct_delay_ps"]
         pix, src = [], []
         for dy, dx in NEIGHBOURS_8:
             nb = _shifted(live_i, c.shape, dy, dx, -1)[rows]
             ok = nb >= 0
-            ok[ok] &= families(_take(c.params, nb[ok])).any(axis=1) if ok.any() else ok[ok]
+            nb_ok = np.where(ok, nb, 0)
+            # a start is a different answer: another component set or another direct delay
+            # (refitted, one that agrees with the pixel's own would end where that did)
+            with np.errstate(invalid="ignore"):
+                other = (sig[nb_ok] != sig[rows]) | ~(np.abs(d[nb_ok] - d[rows]) <= options.doubt_delay_ps)
+            ok &= other & (sig[nb_ok] > 0)
             pix.append(rows[ok])
             src.append(nb[ok])
         pix, src = np.concatenate(pix), np.concatenate(src)
+        # one start per pixel for each answer (component set, delay to within doubt_delay_ps)
+        bucket = np.nan_to_num(np.floor(d[src] / options.doubt_delay_ps), nan=-1).astype(np.int64)
+        _, first = np.unique(np.stack([pix, sig[src], bucket]), axis=1, return_index=True)
+        first.sort()
+        pix, src = pix[first], src[first]
         if pix.size:
             own = _take(c.params, rows)
             weights = sample_weights(c.samples, c.params)
@@ -364,18 +376,27 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     if options.sweeps == 0 or rows.size == 0:
         return
     stderr = np.where(c.live, _stderr(c, c.params), np.nan)
-    base = _take(c.params, rows)           # every sweep refits the pixel's own answer with the new prior
+    base = _take(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
     noise2 = _noise2(c)[rows]
     pulled = np.zeros(rows.size, bool)
     for _ in range(options.sweeps):
         delay = np.where(c.live, c.params["direct_delay_ps"], np.nan)
         mean, precision = neighbour_prior(delay, stderr, c.shape, options)
-        prior = (mean[rows], precision[rows] * noise2)
-        pulled |= precision[rows] > 0
-        fits = _refine(c, rows, base, weights, prior)
+        pull = precision[rows] > 0
+        pulled |= pull
+        # a pixel without a prior this sweep is its own answer; one with a prior is refitted
+        # from where the last sweep left it
+        start = {k: np.where(pull.reshape((-1,) + (1,) * (v.ndim - 1)), c.params[k][rows], v)
+                 for k, v in base.items()}
         for k in c.params:
-            c.params[k][rows] = fits[k]
+            c.params[k][rows] = start[k]
+        if pull.any():
+            r = rows[pull]
+            fits = _refine(c, r, _take(start, pull), weights[pull],
+                           (mean[r], precision[r] * noise2[pull]))
+            for k in c.params:
+                c.params[k][r] = fits[k]
     c.info["spatial_pulled"] = int(pulled.sum())
 
 
