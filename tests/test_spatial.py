@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from core import model
-from decomposition.evaluation.synthetic import make_profiles, render_bin_integrated
-from decomposition.evaluation.synthetic_noise import add_noise
+
+from _cubes import smooth_scene as _scene
 from decomposition.image import decompose_image
 from decomposition.image.spatial import (SpatialOptions, halo_pixels, neighbour_prior, neighbour_starts,
                                          prepare_coupling)
@@ -13,28 +13,6 @@ from decomposition.model.refine import refine
 from decomposition.options import OptionError
 
 TB = 2.0
-
-
-def _scene(n=12, nt=128, nsr=0.11, seed=0, step_ps=12.0):
-    """An n x n image: the Fig. 3 kinds drawn per pixel, the direct delay a gentle ramp with a
-    step of ``step_ps`` between columns n/2 - 1 and n/2 (every component moved with it),
-    bin-integrated, white noise at ``nsr`` -> (cube, truth params, truth components, edge mask)."""
-    d = make_profiles(n * n, nt, seed=seed, time_bin_ps=TB)
-    p = {k: v.copy() for k, v in d.params.items()}
-    yy, xx = np.mgrid[0:n, 0:n]
-    shift = (60.0 + 0.6 * yy + 0.4 * xx + np.where(xx >= n // 2, step_ps, 0.0)).reshape(-1) - p["direct_delay_ps"]
-    for key in ("direct_delay_ps", "sss_delay_ps"):
-        p[key] = p[key] + shift
-    p["ir_delay_ps"] = p["ir_delay_ps"] + shift[:, None]
-    comps = render_bin_integrated(p, nt, TB, TB)
-    clean = comps["direct"] + comps["sss"] + comps["interreflections"].sum(axis=-2)
-    noisy = add_noise(clean, nsr, "white", rng=np.random.default_rng(seed + 100))
-
-    def img(a):
-        return a.reshape((n, n) + a.shape[1:])
-
-    edge = (xx == n // 2) | (xx == n // 2 - 1)
-    return img(noisy), {k: img(v) for k, v in p.items()}, {k: img(v) for k, v in comps.items()}, edge
 
 
 @pytest.mark.parametrize("nsr", [0.11, 0.22])
