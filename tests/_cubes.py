@@ -1,6 +1,9 @@
 """Small synthetic cubes shared by the chunked-decomposition tests."""
 import numpy as np
 
+from decomposition.evaluation.synthetic import make_profiles, render_bin_integrated
+from decomposition.evaluation.synthetic_noise import add_noise
+
 from core import model
 
 TB = 2.0
@@ -41,3 +44,25 @@ def response_profiles(irf, n_bins, *, seed, delay_range_ps, echo_after_ps, noise
     clean = (render_shifted(irf, t, d) + 0.4 * render_shifted(irf, t, d + echo_after_ps)
              + 0.03 * render_sss(irf, t, d, np.full(d.shape, 0.03)))
     return (1000.0 * clean + noise * rng.standard_normal(clean.shape)).astype(np.float32), d
+
+
+def smooth_scene(n=12, nt=128, nsr=0.11, seed=0, step_ps=12.0):
+    """An n x n image: the Fig. 3 kinds drawn per pixel, the direct delay a gentle ramp with a
+    step of ``step_ps`` between columns n/2 - 1 and n/2 (every component moved with it),
+    bin-integrated, white noise at ``nsr`` -> (cube, truth params, truth components, edge mask)."""
+    d = make_profiles(n * n, nt, seed=seed, time_bin_ps=TB)
+    p = {k: v.copy() for k, v in d.params.items()}
+    yy, xx = np.mgrid[0:n, 0:n]
+    shift = (60.0 + 0.6 * yy + 0.4 * xx + np.where(xx >= n // 2, step_ps, 0.0)).reshape(-1) - p["direct_delay_ps"]
+    for key in ("direct_delay_ps", "sss_delay_ps"):
+        p[key] = p[key] + shift
+    p["ir_delay_ps"] = p["ir_delay_ps"] + shift[:, None]
+    comps = render_bin_integrated(p, nt, TB, TB)
+    clean = comps["direct"] + comps["sss"] + comps["interreflections"].sum(axis=-2)
+    noisy = add_noise(clean, nsr, "white", rng=np.random.default_rng(seed + 100))
+
+    def img(a):
+        return a.reshape((n, n) + a.shape[1:])
+
+    edge = (xx == n // 2) | (xx == n // 2 - 1)
+    return img(noisy), {k: img(v) for k, v in p.items()}, {k: img(v) for k, v in comps.items()}, edge

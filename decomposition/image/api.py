@@ -13,6 +13,7 @@ import numpy as np
 
 from ..api import DecompositionResult, decompose
 from ..options import OptionError
+from . import spatial as sp
 
 __all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES"]
 
@@ -44,14 +45,19 @@ class ImageOptions:
     #: (a subset of :data:`SHARED_NAMES`, e.g. ``("psf", "delay")``).
     shared: tuple = ()
     #: Couple neighbouring pixels over the image axes (y, x): their answers as starts, a joint
-    #: refinement with an edge-preserving prior, pooled detection of weak components.
+    #: refinement with an edge-preserving prior (:mod:`decomposition.image.spatial`).  Given as
+    #: true / false, a :class:`~decomposition.image.spatial.SpatialOptions` or a mapping of its
+    #: fields; held as true / false, its options in ``spatial_options``.
     spatial: bool = False
+    #: The coupling's options (None without it).
+    spatial_options: sp.SpatialOptions | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "shared", parse_shared(self.shared))
-        if not isinstance(self.spatial, (bool, np.bool_)):
-            raise OptionError(f"spatial: must be true or false, got {self.spatial!r}")
-        object.__setattr__(self, "spatial", bool(self.spatial))
+        given = self.spatial_options if self.spatial_options is not None else self.spatial
+        options = sp.spatial_options(given)
+        object.__setattr__(self, "spatial", options is not None)
+        object.__setattr__(self, "spatial_options", options)
 
 
 @dataclass(frozen=True)
@@ -73,6 +79,7 @@ class _ImageCall:
     keywords: dict              # the per-pixel decompose() keywords (t0_ps, components, ...)
     info: dict = field(default_factory=dict)
     result: DecompositionResult | None = None
+    coupling: sp.Coupling | None = None     # the spatial stages' state
 
 
 def _check(c: _ImageCall) -> None:
@@ -99,12 +106,27 @@ def _not_yet(name):
     return run
 
 
+def _neighbour_starts(c: _ImageCall) -> None:
+    if not c.options.spatial:
+        return
+    c.coupling = sp.prepare_coupling(c.cube, c.result, c.time_bin_ps, c.method, c.keywords)
+    sp.neighbour_starts(c.coupling, c.options.spatial_options)
+
+
+def _joint_refinement(c: _ImageCall) -> None:
+    if not c.options.spatial:
+        return
+    sp.joint_refinement(c.coupling, c.options.spatial_options)
+    c.result = sp.coupled_result(c.coupling, c.result, c.options.spatial_options)
+
+
 #: The stages of :func:`decompose_image`, in order.
 IMAGE_STAGES = (
     ImageStage("check", _check, "the image's shape, the regions"),
     ImageStage("shared", _not_yet("shared"), "estimate the shared parameters from all pixels"),
     ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
-    ImageStage("spatial", _not_yet("spatial"), "couple neighbouring pixels"),
+    ImageStage("neighbour_starts", _neighbour_starts, "refit the pixels in doubt from their neighbours' answers"),
+    ImageStage("joint_refinement", _joint_refinement, "sweeps with an edge-preserving prior on the direct delays"),
 )
 
 
@@ -125,8 +147,9 @@ def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, 
         (:data:`SHARED_NAMES`; ``"psf,delay,alpha"``).
     regions : ndarray (Y, X) of int, optional
         With ``shared`` holding "alpha": one sss decay rate per label (default one for the image).
-    spatial : bool
-        Couple neighbouring pixels (:class:`ImageOptions`).
+    spatial : bool, SpatialOptions or mapping
+        Couple neighbouring pixels (:mod:`decomposition.image.spatial`): True for the defaults
+        of :class:`~decomposition.image.spatial.SpatialOptions`, or those options.
     **keywords
         Everything :func:`decomposition.decompose` takes.
 

@@ -142,7 +142,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
-           bin_integrated: bool = False, fit_background=False):
+           bin_integrated: bool = False, fit_background=False, delay_prior=None):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -194,6 +194,12 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         ``params["background"]`` where finite, else 0).  Elsewhere an offset in ``params``
         (finite ``params["background"]``) is held fixed: subtracted before the fit and
         returned unchanged.
+    delay_prior : (mean, weight) of array_like, each of shape (...,), optional
+        A Gaussian pseudo-observation of each pixel's direct delay: ``weight`` * (direct delay -
+        ``mean``)^2 is added to the weighted RSS the fit lowers (``mean`` in ps, ``weight`` in the
+        units of ``profiles`` squared per ps^2, i.e. the RSS-units precision of the prior;
+        0 or NaN: none).  A neighbourhood's estimate of the delay, weighed against the pixel's
+        own samples (:mod:`decomposition.image.spatial`).
 
     Returns
     -------
@@ -206,7 +212,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         ``iterations`` (int), ``converged`` (bool), ``refined`` (bool: refined
         values were kept), ``rss_input`` and ``rss`` (weighted residual sums
         of squares of the input and returned parameters, in the units of
-        ``profiles`` squared).
+        ``profiles`` squared; with ``delay_prior`` its term included).
     """
     y = np.asarray(profiles)
     if y.ndim < 1 or y.shape[-1] < 2:
@@ -258,6 +264,10 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     scale = np.max(np.abs(y), axis=-1)
     scale = np.where(scale > 0, scale, 1.0)
     yw = y if sw is None else y * sw
+    prior = None
+    if delay_prior is not None:
+        mean, weight = (np.broadcast_to(np.asarray(v, np.float64), lead).reshape(n) for v in delay_prior)
+        prior = (mean, weight / (scale * scale))
 
     res = {name: slots[name].copy() for name in ("delay", "amplitude", "sigma", "alpha")}
     b_out = b_in.copy()
@@ -268,6 +278,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         sc = scale[sl]
         sub = {name: slots[name][sl] for name in ("delay", "sigma", "alpha", "present")}
         sub["amplitude"] = slots["amplitude"][sl] / sc[:, None]
+        if prior is not None:
+            sub["delay_prior_mean"], sub["delay_prior_weight"] = prior[0][sl], prior[1][sl]
         if fit_bg[sl].any():
             sub["fit_background"] = fit_bg[sl]
             sub["background"] = b_in[sl] / sc

@@ -37,6 +37,13 @@ P_u Phi times P_u, so the amplitudes, the residual and Kaufman's Jacobian of the
 are those of the projected rows, and the offset follows from the residual
 (:func:`background_level`).  Pixels without the flag are untouched.
 
+Delay prior: ``slots`` may carry a Gaussian pseudo-observation of each pixel's direct delay,
+``delay_prior_mean`` and ``delay_prior_weight`` (n,) (weight 0: none).  Its residual
+sqrt(w) (delay_0 - mean) is one more row of the least-squares problem, so the objective the
+LM lowers (and the never-worse rule compares) is RSS + w (delay_0 - mean)^2, and the normal
+equations gain w on the direct delay's diagonal and w (delay_0 - mean) in the gradient
+(:func:`_with_prior`).
+
 See :mod:`decomposition.model.refine` for the public function and its options.
 """
 from __future__ import annotations
@@ -298,15 +305,43 @@ def _keep_order(theta, present):
     return theta
 
 
+def _delay_prior(slots, present):
+    """(mean, weight) (n,) of the direct-delay pseudo-observation in ``slots``, or None (weight
+    0 where the direct is absent or either value is not finite)."""
+    if "delay_prior_weight" not in slots:
+        return None
+    mean = np.asarray(slots["delay_prior_mean"], np.float64)
+    weight = np.asarray(slots["delay_prior_weight"], np.float64)
+    ok = present[:, 0] & np.isfinite(mean) & np.isfinite(weight) & (weight > 0)
+    if not ok.any():
+        return None
+    return np.where(ok, mean, 0.0), np.where(ok, weight, 0.0)
+
+
+def _with_prior(prior, theta, rss, a=None, g=None):
+    """Add the delay prior's row (:func:`_delay_prior`, rows of ``theta``) to the RSS and, where
+    given, to the normal equations ``a`` (n, P, P) and the gradient ``g`` (n, P) (in place)."""
+    if prior is None:
+        return rss
+    mean, weight = prior
+    dd = theta[:, 0] - mean
+    if a is not None:
+        a[:, 0, 0] += weight
+        g[:, 0] += weight * dd
+    return rss + weight * dd * dd
+
+
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
                   keep_order=True):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
     never-worse reference uses them); the returned ``background`` is the fitted offset there
-    (the input where the refined values were not kept) and 0 elsewhere."""
+    (the input where the refined values were not kept) and 0 elsewhere.  With a delay prior
+    (``delay_prior_mean``, ``delay_prior_weight``; module docstring) ``rss`` includes its term."""
     n = y.shape[0]
     present = slots["present"]
+    prior = _delay_prior(slots, present)
     bg = slots.get("fit_background")
     if bg is not None:
         bg = np.asarray(bg, bool)
@@ -338,8 +373,10 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             u0 = np.ones_like(r0) if sw is None else sw[ch]
             r0 = r0 - np.where(bg[ch], np.nan_to_num(slots["background"][ch]), 0.0)[:, None] * u0
         rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
+    rss_input = _with_prior(prior, d0, rss_input)
 
     c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg)
+    rss = _with_prior(prior, theta, rss, a, g)
     viol = _amp_violations(c, present)
     lam = np.full(n, lam0)
     nu = np.full(n, 2.0)
@@ -370,6 +407,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         trial = np.where(fr, trial, 0.0)
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx], None if bg is None else bg[idx])
+        rss_t = _with_prior(None if prior is None else (prior[0][idx], prior[1][idx]), trial, rss_t, a_t, g_t)
         viol_t = _amp_violations(c_t, present[idx])
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
         accept = ok & (rss_t < rss[idx])

@@ -18,6 +18,12 @@ result of a chunk always has ``n_ir`` slots, padded with NaN parameters and zero
 truncated to the ``n_ir`` earliest.  The chunk summary counts the pixels that had more
 inter-reflections than were kept (truncated here, or flagged TRUNCATED by the solver).
 
+Spatial coupling (``spatial=``, :mod:`decomposition.image.spatial`): a pixel's answer then depends
+on its neighbours' data within :func:`decomposition.image.spatial.halo_pixels` pixels, so each task
+reads its chunk with that halo around it (clipped at the image's borders), decomposes the haloed
+block as one image (:func:`decomposition.image.decompose_image`) and keeps the chunk's interior:
+the same answer as one call on the whole image.
+
 This module knows nothing of files.
 """
 from __future__ import annotations
@@ -49,6 +55,38 @@ def _solver():
     return decompose
 
 
+def _image_solver():
+    from decomposition.image import decompose_image  # imported at call time, as the solver
+
+    return decompose_image
+
+
+def _halo(spatial) -> int:
+    from decomposition.image.spatial import halo_pixels, spatial_options
+
+    options = spatial_options(spatial)
+    return 0 if options is None else halo_pixels(options)
+
+
+def _solve_image(full, interior, keep, *, time_bin_ps, t0_ps, method, components, spatial, options):
+    """The coupled decomposition of the haloed block ``full`` (Y, X, L) cropped to ``interior``
+    (two slices) and to the pixels ``keep`` (flat, bool) of it: arrays shaped as the per-pixel
+    solver's on the kept pixels."""
+    from decomposition.api import DecompositionResult
+
+    res = _image_solver()(full, time_bin_ps, method, spatial=spatial, t0_ps=t0_ps, nan_policy="omit",
+                          **({"components": tuple(components)} if components is not None else {}), **(options or {}))
+
+    def crop(a):
+        a = np.asarray(a)[interior]
+        return a.reshape((-1,) + a.shape[2:])[keep]
+
+    return DecompositionResult(direct=crop(res.direct), sss=crop(res.sss),
+                               interreflections=crop(res.interreflections),
+                               params={k: crop(v) for k, v in res.params.items()}, residual=crop(res.residual),
+                               flags=crop(res.flags), info=res.info)
+
+
 def _nonfinite_flag() -> int:
     from decomposition import NONFINITE  # the solver's own bit for "not decomposed: NaN/inf samples"
 
@@ -71,13 +109,19 @@ def fit_ir_slots(a, n_ir: int, axis: int, fill) -> np.ndarray:
 
 
 def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method: str = "convscd",
-                components=None, n_ir: int = 2, with_components: bool = True, options: dict | None = None) -> dict:
+                components=None, n_ir: int = 2, with_components: bool = True, options: dict | None = None,
+                spatial=None, interior=None) -> dict:
     """Decompose every pixel of one block.
 
     Parameters
     ----------
     block : ndarray, shape (by, bx, L)
         Time profiles, any real dtype; non-finite pixels are left out (see module docstring).
+        With ``interior``, the chunk with its halo around it.
+    spatial : bool, SpatialOptions or mapping, optional
+        Couple neighbouring pixels (:func:`decomposition.image.decompose_image`'s ``spatial``).
+    interior : (slice, slice), optional
+        The chunk within a haloed ``block``; the results cover it alone.
     time_bin_ps, t0_ps : float
         Time axis (bin i at t0_ps + i * time_bin_ps; t0_ps defaults to time_bin_ps).
     method, components, options
@@ -100,9 +144,11 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         ``stats``          dict: pixels, invalid, ir_truncated, poor_fit (pixels flagged POOR_FIT), seconds
     """
     start = time.perf_counter()
-    block = np.asarray(block)
+    block = full = np.asarray(block)
     if block.ndim != 3:
         raise ValueError(f"a block must be (by, bx, L); got shape {block.shape}")
+    if interior is not None:
+        block = full[tuple(interior)]
     by, bx, nt = block.shape
     n_ir = int(n_ir)
     finite = np.isfinite(block).all(axis=-1) if block.dtype.kind == "f" else np.ones((by, bx), bool)
@@ -115,10 +161,14 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     comps = {}
     truncated = poor = 0
     if n_ok:
-        prof = flat if n_ok == flat.shape[0] else flat[keep]
-        res = _solver()(prof, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
-                        **({"components": tuple(components)} if components is not None else {}),
-                        **(options or {}))
+        if spatial is not None and spatial is not False:
+            res = _solve_image(full, tuple(interior or (slice(None), slice(None))), keep, time_bin_ps=time_bin_ps,
+                               t0_ps=t0_ps, method=method, components=components, spatial=spatial, options=options)
+        else:
+            prof = flat if n_ok == flat.shape[0] else flat[keep]
+            res = _solver()(prof, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                            **({"components": tuple(components)} if components is not None else {}),
+                            **(options or {}))
         for k, v in res.params.items():
             v = np.asarray(v, dtype=np.float64)
             if v.ndim == 2:  # per inter-reflection slot
@@ -175,8 +225,8 @@ def _fill_missing_params(result: dict, param_shapes: dict) -> dict:
     return result
 
 
-def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs):
-    result = _fill_missing_params(solve_block(block, **solve_kwargs), param_shapes)
+def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs, interior=None):
+    result = _fill_missing_params(solve_block(block, interior=interior, **solve_kwargs), param_shapes)
     stats = result.pop("stats")
     sink(iy, ix, result)
     return {"iy": iy, "ix": ix, **stats}
@@ -213,7 +263,8 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
     pending : iterable of (iy, ix), optional
         Chunks to compute (default: all).
     **solve_kwargs
-        Keywords of :func:`solve_block`.
+        Keywords of :func:`solve_block`; with ``spatial``, each task reads its chunk with the
+        coupling's halo (module docstring).
 
     Returns
     -------
@@ -226,10 +277,19 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
     if pending is None:
         pending = [(iy, ix) for iy in range(gy) for ix in range(gx)]
     token = dask.base.tokenize(arr.name, sink, sorted(solve_kwargs.items(), key=str))
+    halo = _halo(solve_kwargs.get("spatial"))
+    ny, nx = arr.shape[:2]
+    y_edges, x_edges = np.cumsum((0,) + arr.chunks[0]), np.cumsum((0,) + arr.chunks[1])
     tasks = []
     for iy, ix in pending:
+        block, interior = blocks[iy, ix, 0], None
+        if halo:
+            y0, y1, x0, x1 = int(y_edges[iy]), int(y_edges[iy + 1]), int(x_edges[ix]), int(x_edges[ix + 1])
+            hy0, hx0 = max(0, y0 - halo), max(0, x0 - halo)
+            block = arr[hy0:min(ny, y1 + halo), hx0:min(nx, x1 + halo)]
+            interior = (slice(y0 - hy0, y1 - hy0), slice(x0 - hx0, x1 - hx0))
         tasks.append(dask.delayed(_solve_and_sink, pure=False)(
-            blocks[iy, ix, 0], iy, ix, sink, param_shapes, solve_kwargs,
+            block, iy, ix, sink, param_shapes, solve_kwargs, interior,
             dask_key_name=f"decompose-chunk-{token}-{iy}-{ix}"))
     return tasks
 

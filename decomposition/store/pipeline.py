@@ -16,6 +16,7 @@ command-line flags, the way most users meet them.
 # one).
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -255,8 +256,13 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
-                       progress: bool = True, stream=None, tls=None, irf="auto") -> dict:
+                       progress: bool = True, stream=None, tls=None, irf="auto", spatial=None) -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
+
+    ``spatial`` (True, a :class:`decomposition.image.spatial.SpatialOptions` or a mapping of its
+    fields) couples neighbouring pixels: each chunk is read with the coupling's halo and gives
+    the answer of one call on the whole image (:mod:`decomposition.store.chunked`).  Its options
+    are part of the job a ``--resume`` must match.
 
     ``irf`` chooses the instrument response (see :func:`resolve_pipeline_response`): "auto"
     (default) the response stored in the cube's ``irf`` group when it has one, else the
@@ -345,6 +351,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                write_components=write_components, nan_policy=nan_policy, source=source, time_bin_ps=tb, t0_ps=t0)
     if response is not None:             # absent for the Gaussian: older stores resume as before
         job["irf_sha256"] = irf_attrs["samples_sha256"]
+    spatial_opts = _spatial_options(spatial)
+    if spatial_opts is not None:         # absent without it: older stores resume as before
+        if response is not None:
+            raise PipelineError("--spatial works with the Gaussian PSF; give --irf gaussian, or leave --spatial out")
+        job["spatial"] = dataclasses.asdict(spatial_opts)
     if existing is not None:
         _check_same_job(existing, job, out_path)
     else:
@@ -411,7 +422,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         param_shapes.update({k: (int(n_ir),) for k in ir_keys})
         tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
                             pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
-                            n_ir=int(n_ir), with_components=write_components, options=solver_options)
+                            n_ir=int(n_ir), with_components=write_components, options=solver_options,
+                            **({"spatial": spatial_opts} if spatial_opts is not None else {}))
         pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
         if progress and resume and existing is not None:
             print(f"decompose: resuming {out_path}: {total - len(pending)}/{total} chunks already done",
@@ -484,6 +496,18 @@ def _apply_noise_law(method: str, options: dict, source_attrs: dict) -> str:
         options["signal_noise_law"] = "detector"
         return "cube"
     return "default"
+
+
+def _spatial_options(spatial):
+    """``spatial=`` -> its :class:`decomposition.image.spatial.SpatialOptions` (None: off); a bad
+    option is a :class:`PipelineError`."""
+    from decomposition.image.spatial import spatial_options
+    from decomposition.options import OptionError
+
+    try:
+        return spatial_options(spatial)
+    except OptionError as exc:
+        raise PipelineError(f"--spatial: {exc}") from None
 
 
 def _job(*, method, components, options, n_ir, chunks, write_components, nan_policy, source, time_bin_ps,

@@ -66,6 +66,9 @@ def add_arguments(parser) -> None:
                         help="solver option (repeatable); VALUE is read as JSON if it parses, else as a string")
     parser.add_argument("--time-bin-ps", type=float, default=None, help="time bin of a .npy input (ps)")
     parser.add_argument("--t0-ps", type=float, default=None, help="time of bin 0 of a .npy input (ps; default one bin)")
+    parser.add_argument("--spatial", action="store_true",
+                        help="couple neighbouring pixels (neighbours' answers as starts, an edge-preserving "
+                             "prior on the direct delays); chunks are read with a halo")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     parser.add_argument("--overwrite", action="store_true", help="replace whatever is at --out")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -177,7 +180,7 @@ def _run(args) -> int:
         options=parse_solver_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf, spatial=True if args.spatial else None)
     ny, nx, nt = summary["shape"]
     irf = summary.get("irf", {})
     if irf.get("kind") == "response":

@@ -1,0 +1,431 @@
+"""Spatial coupling of an image's pixels (``decompose_image(..., spatial=True)``).
+
+Neighbouring pixels of a scene mostly see the same surface: their direct delays differ by a
+smooth slope, except at the edges of objects.  After the per-pixel pass two steps use that,
+each over the image axes (y, x) of a flattened image of P pixels, on blocks of pixels (the only
+Python loops run over neighbour offsets and sweeps):
+
+1. **Neighbours' answers as starts** (:func:`neighbour_starts`).  A pixel is *in doubt* when it
+   is flagged AMBIGUOUS or POOR_FIT, or when its component set or its direct delay (within
+   ``doubt_delay_ps``) agrees with fewer than half of its 8 neighbours.  Each pixel in doubt is
+   refitted (:func:`decomposition.model.refine.refine`) from each neighbour's parameter set (its
+   components and their parameters), and keeps the fit of the lowest penalised objective J
+   (:func:`decomposition.stages.selection.penalised`, the one the per-pixel search compares
+   with) among its own and those.  The search's AMBIGUOUS is resolved (cleared, unless the
+   final fit's own quality test sets it again) where a neighbour's start was taken or where the
+   pixel's answer agrees with its neighbours'.
+2. **Joint refinement** (:func:`joint_refinement`): ``sweeps`` Jacobi sweeps in which every
+   pixel is refitted with a Gaussian pseudo-observation of its direct delay
+   (:func:`decomposition.model.refine.refine`'s ``delay_prior``) at a robust estimate from the
+   neighbours within ``radius`` pixels (:func:`neighbour_prior`).  The estimate is a Tukey
+   biweight mean around the neighbours' median, each neighbour weighed by
+   1 / (its standard error^2 + ``delay_scale_ps``^2), so that a neighbour across an edge
+   (many sigma from the median) has no weight.  The prior's precision is
+   1 / (``delay_scale_ps``^2 + the estimate's variance), times the biweight of the pixel's
+   own delay against the estimate in the pixel's own standard error: a pixel whose own data put
+   its delay many sigma from its neighbours' (its side of an edge, or a clean signal amid noisy
+   ones) is not pulled, and one whose data hardly fix it is pulled most.  Against the pixel's
+   own precision 1 / stderr^2 the prior moves a well-determined delay by a fraction
+   stderr^2 / (stderr^2 + 1 / precision) of the gap.
+
+The answer at a pixel depends only on the data within :func:`halo_pixels` pixels of it (one
+pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
+halo and keeps the interior (:mod:`decomposition.store.chunked`).
+
+Scope: the Gaussian PSF path (not ``irf=``).  The objective's data term is weighed as the
+per-pixel refit weighs it (the fit mask and the pixel's noise, or Poisson weights at the
+pixel's model for count data), not whitened by a correlated-noise spectrum.  The standard
+errors reported are those of the pixel's own data at the final fit (the prior not included).
+"""
+from __future__ import annotations
+
+import inspect
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile
+from ..api import DecompositionResult, decompose
+from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
+from ..model.refine import refine
+from ..model.slots import shape_bounds
+from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
+from ..stages.prepare import prepare_samples, time_axis
+from ..stages.quality import assess_fit
+from ..stages.refit import component_errors, sample_weights
+from ..stages.selection import data_term, families, free_parameters, log_samples, penalised
+
+__all__ = ["SpatialOptions", "spatial_options", "halo_pixels", "Coupling", "prepare_coupling",
+           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt"]
+
+#: the 8 neighbours' offsets (dy, dx)
+NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+
+
+@_documented
+@dataclass(frozen=True)
+class SpatialOptions:
+    """Options of the spatial coupling (``decompose_image(spatial=...)``)."""
+
+    #: Refit the pixels in doubt from each of their 8 neighbours' parameter sets.
+    neighbour_starts: bool = True
+    #: A direct delay agrees with a neighbour's within this many ps (the doubt test).
+    doubt_delay_ps: float = 4.0
+    #: Jacobi sweeps of the joint refinement with the neighbours' delay prior (0: none).
+    sweeps: int = 3
+    #: Neighbourhood radius of the prior, pixels (1: the 8 neighbours; a square of side 2r+1).
+    radius: int = 1
+    #: How far a direct delay may differ from its neighbours' on one smooth surface, ps: the
+    #: prior's own standard deviation (small: strong smoothing; large: little).
+    delay_scale_ps: float = 0.5
+    #: Tukey biweight cut-off, in standard deviations: a neighbour (or the pixel itself) farther
+    #: from the neighbourhood's estimate has no weight (an edge).
+    edge_sigma: float = 3.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
+        object.__setattr__(self, "doubt_delay_ps", _number("doubt_delay_ps", self.doubt_delay_ps, lo=0, lo_open=True))
+        object.__setattr__(self, "sweeps", _number("sweeps", self.sweeps, lo=0, integer=True))
+        object.__setattr__(self, "radius", _number("radius", self.radius, lo=1, integer=True))
+        object.__setattr__(self, "delay_scale_ps", _number("delay_scale_ps", self.delay_scale_ps, lo=0, lo_open=True))
+        object.__setattr__(self, "edge_sigma", _number("edge_sigma", self.edge_sigma, lo=0, lo_open=True))
+
+
+def spatial_options(spatial) -> SpatialOptions | None:
+    """``spatial=`` of :func:`decompose_image` -> its options, or None for no coupling: False /
+    None, True (the defaults), a :class:`SpatialOptions`, or a mapping of its field names."""
+    if spatial is None or spatial is False or (isinstance(spatial, np.bool_) and not spatial):
+        return None
+    if spatial is True or (isinstance(spatial, np.bool_) and spatial):
+        return SpatialOptions()
+    if isinstance(spatial, SpatialOptions):
+        return spatial
+    if isinstance(spatial, dict):
+        unknown = sorted(set(spatial) - set(SpatialOptions.__dataclass_fields__))
+        if unknown:
+            raise OptionError(f"spatial: unknown option(s) {', '.join(map(str, unknown))}; choose from "
+                              f"{', '.join(SpatialOptions.__dataclass_fields__)}")
+        return SpatialOptions(**spatial)
+    raise OptionError(f"spatial: must be true, false, a SpatialOptions or a mapping of its options, got {spatial!r}")
+
+
+def halo_pixels(options: SpatialOptions) -> int:
+    """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
+    neighbour starts read the 8 neighbours (1), each sweep the ``radius`` neighbourhood.  A chunk
+    read with this halo around it gives its interior exactly as the whole image does."""
+    return int(options.neighbour_starts) + options.sweeps * options.radius
+
+
+# --------------------------------------------------------------------------- the call's setup
+
+@dataclass
+class Coupling:
+    """What the two steps share: the prepared samples of the flattened image (P pixels), its
+    shape, the per-pixel options, the current parameters (P-shaped) and what was done."""
+
+    shape: tuple            # (Y, X)
+    samples: object         # stages.prepare.Samples, lead (P,)
+    opts: object            # SolverOptions, resolved
+    grid: object
+    physics: dict           # shared_sigma, sss_after_direct
+    widths: str             # how widths count in k (selection.free_parameters)
+    bounds: dict            # refinement's sigma and alpha bounds
+    params: dict            # P-shaped, component keys (and background)
+    flags: np.ndarray       # (P,)
+    live: np.ndarray        # (P,) bool: decomposed pixels
+    resolved: np.ndarray    # (P,) bool: the search's AMBIGUOUS resolved by the neighbours
+    info: dict
+
+
+def _decompose_default(name):
+    return inspect.signature(decompose).parameters[name].default
+
+
+def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps: float, method: str,
+                     keywords: dict) -> Coupling:
+    """The samples of ``cube`` (Y, X, L) prepared as :func:`decompose` prepared them for
+    ``result`` (its keywords), and ``result``'s parameters flattened to P = Y X pixels."""
+    kw = dict(keywords)
+    if kw.pop("irf", None) is not None:
+        raise OptionError("spatial: works with the Gaussian PSF, not with a measured response (irf=)")
+    t0 = kw.pop("t0_ps", _decompose_default("t0_ps"))
+    fams = parse_components(kw.pop("components", _decompose_default("components")))
+    nan_policy = kw.pop("nan_policy", _decompose_default("nan_policy"))
+    saturation = kw.pop("saturation_level", _decompose_default("saturation_level"))
+    grid, opts, _ = options_from_mapping(kw, strict=False)
+    opts = opts.resolved(fams)
+    Y, X, L = cube.shape
+    axis = time_axis(time_bin_ps, t0)
+    samples = prepare_samples(cube.reshape(Y * X, L), axis, grid, nan_policy=nan_policy, saturation_level=saturation,
+                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise, background="b" in fams)
+    convscd = method == "convscd"
+    physics = {"shared_sigma": opts.shared_sigma and convscd, "sss_after_direct": opts.sss_after_direct and convscd}
+    keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if BACKGROUND_KEY in result.params else ())
+    P = Y * X
+    params = {k: np.array(result.params[k], np.float64).reshape((P,) + np.shape(result.params[k])[2:]) for k in keys}
+    live = np.zeros(P, bool)
+    live[samples.live] = True
+    bounds = shape_bounds(grid, opts.bound_factor)
+    return Coupling(shape=(Y, X), samples=samples, opts=opts, grid=grid, physics=physics,
+                    widths="shared" if physics["shared_sigma"] else "per_atom", bounds=bounds, params=params,
+                    flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={})
+
+
+def _noise2(c: Coupling) -> np.ndarray:
+    """(P,) the variance the weighted residual's squares are read in (Poisson weights: 1)."""
+    s = c.samples
+    if s.noise_model == "poisson":
+        return np.ones(s.values.shape[0])
+    return np.maximum(s.noise_eff * s.scale, 1e-300) ** 2
+
+
+def _take(params: dict, rows) -> dict:
+    return {k: v[rows] for k, v in params.items()}
+
+
+def _model(c: Coupling, params: dict) -> np.ndarray:
+    axis = c.samples.axis
+    with np.errstate(invalid="ignore"):
+        m = render_profile(params, c.samples.n_bins, axis.time_bin_ps, axis.t0_ps)
+    return np.where(np.isfinite(m), m, 0.0)
+
+
+def _objective(c: Coupling, rows: np.ndarray, params: dict, weights: np.ndarray) -> np.ndarray:
+    """(n,) J of ``params`` (n-shaped) on the pixels ``rows``, the residual weighed by ``weights``
+    (n, L) in the pixels' noise (:mod:`decomposition.stages.selection`)."""
+    s = c.samples
+    r = (s.values[rows] - _model(c, params)) * np.sqrt(weights)
+    k = free_parameters(families(params), c.widths)
+    return penalised(data_term(r, _noise2(c)[rows]), k, log_samples(s.fit[rows].sum(axis=1)), c.opts.search_penalty)
+
+
+def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, prior=None) -> dict:
+    """The refit of ``start`` (n-shaped) on the pixels ``rows``, as the per-pixel refit stage
+    runs it (bounds, physics, the background fitted where the pixel has one)."""
+    s = c.samples
+    fit_bg = (np.isfinite(start[BACKGROUND_KEY]) & (start[BACKGROUND_KEY] != 0)) if BACKGROUND_KEY in start else False
+    out, _ = refine(s.values[rows], start, time_bin_ps=s.axis.time_bin_ps, t0_ps=s.axis.t0_ps, weights=weights,
+                    fit_background=fit_bg, sigma_bounds_ps=tuple(np.exp(c.bounds["lsig"])),
+                    alpha_bounds_per_ps=tuple(np.exp(c.bounds["lalp"])), delay_prior=prior, **c.physics)
+    return out
+
+
+# --------------------------------------------------------------------------- neighbourhoods
+
+def _shifted(a: np.ndarray, shape: tuple, dy: int, dx: int, fill) -> np.ndarray:
+    """(P, ...) ``a`` of an image ``shape`` (Y, X) read at (y + dy, x + dx): ``fill`` off the image."""
+    Y, X = shape
+    img = a.reshape((Y, X) + a.shape[1:])
+    out = np.full_like(img, fill)
+    ys, yd = slice(max(dy, 0), Y + min(dy, 0)), slice(max(-dy, 0), Y + min(-dy, 0))
+    xs, xd = slice(max(dx, 0), X + min(dx, 0)), slice(max(-dx, 0), X + min(-dx, 0))
+    out[yd, xd] = img[ys, xs]
+    return out.reshape(a.shape)
+
+
+def _offsets(radius: int):
+    r = int(radius)
+    return tuple((dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1) if (dy, dx) != (0, 0))
+
+
+def _signature(params: dict) -> np.ndarray:
+    """(P,) int: the component set (direct, sss, number of inter-reflections) as one code."""
+    fam = families(params) != 0
+    return fam[:, 0] + 2 * fam[:, 1] + 4 * fam[:, 2:].sum(axis=1)
+
+
+def _agreement(c: Coupling, params: dict, doubt_delay_ps: float):
+    """(P,) bool each: whether a pixel's component set, and its direct delay (within
+    ``doubt_delay_ps``), agree with at least half of its decomposed 8 neighbours (a pixel
+    without any neighbour agrees)."""
+    P = c.live.size
+    sig = np.where(c.live, _signature(params), -1)
+    d = np.where(c.live, params["direct_delay_ps"], np.nan)
+    n = np.zeros(P)
+    same_set = np.zeros(P)
+    same_delay = np.zeros(P)
+    for dy, dx in NEIGHBOURS_8:
+        ns = _shifted(sig, c.shape, dy, dx, -1)
+        nd = _shifted(d, c.shape, dy, dx, np.nan)
+        ok = ns >= 0
+        n += ok
+        same_set += ok & (ns == sig)
+        with np.errstate(invalid="ignore"):
+            same_delay += ok & ((np.abs(nd - d) <= doubt_delay_ps) | (np.isnan(nd) & np.isnan(d)))
+    return 2 * same_set >= n, 2 * same_delay >= n
+
+
+def in_doubt(c: Coupling, options: SpatialOptions) -> np.ndarray:
+    """(P,) bool: decomposed pixels flagged AMBIGUOUS or POOR_FIT, or whose component set or
+    direct delay disagrees with most of their 8 neighbours."""
+    agree_set, agree_delay = _agreement(c, c.params, options.doubt_delay_ps)
+    flagged = (c.flags & (AMBIGUOUS | POOR_FIT)) != 0
+    return c.live & (flagged | ~agree_set | ~agree_delay)
+
+
+def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
+    """Step 1 (module docstring): the pixels in doubt refitted from their neighbours' answers,
+    each keeping the lowest J among its own fit and those; ``c`` updated in place."""
+    doubt = in_doubt(c, options)
+    c.info["spatial_doubt"] = int(doubt.sum())
+    taken = np.zeros(c.live.size, bool)
+    rows = np.flatnonzero(doubt)
+    if rows.size and options.neighbour_starts:
+        idx = np.arange(c.live.size)
+        live_i = np.where(c.live, idx, -1)
+        sig = _signature(c.params)
+        d = c.params["direct_delay_ps"]
+        pix, src = [], []
+        for dy, dx in NEIGHBOURS_8:
+            nb = _shifted(live_i, c.shape, dy, dx, -1)[rows]
+            ok = nb >= 0
+            nb_ok = np.where(ok, nb, 0)
+            # a start is a different answer: another component set or another direct delay
+            # (refitted, one that agrees with the pixel's own would end where that did)
+            with np.errstate(invalid="ignore"):
+                other = (sig[nb_ok] != sig[rows]) | ~(np.abs(d[nb_ok] - d[rows]) <= options.doubt_delay_ps)
+            ok &= other & (sig[nb_ok] > 0)
+            pix.append(rows[ok])
+            src.append(nb[ok])
+        pix, src = np.concatenate(pix), np.concatenate(src)
+        # one start per pixel for each answer (component set, delay to within doubt_delay_ps)
+        bucket = np.nan_to_num(np.floor(d[src] / options.doubt_delay_ps), nan=-1).astype(np.int64)
+        _, first = np.unique(np.stack([pix, sig[src], bucket]), axis=1, return_index=True)
+        first.sort()
+        pix, src = pix[first], src[first]
+        if pix.size:
+            own = _take(c.params, rows)
+            weights = sample_weights(c.samples, c.params)
+            j_best = _objective(c, rows, own, weights[rows])
+            start = _take(c.params, src)
+            if BACKGROUND_KEY in start:         # the pixel's own offset, fitted again
+                start[BACKGROUND_KEY] = c.params[BACKGROUND_KEY][pix]
+            fits = _refine(c, pix, start, weights[pix])
+            j = _objective(c, pix, fits, weights[pix])
+            # the lowest J per pixel: order the candidates by (pixel, J), take each pixel's first
+            pos = np.searchsorted(rows, pix)
+            order = np.lexsort((j, pos))
+            first = order[np.r_[True, pos[order][1:] != pos[order][:-1]]]
+            better = j[first] < j_best[pos[first]]
+            win, from_row = pix[first][better], first[better]
+            for k in c.params:
+                c.params[k][win] = fits[k][from_row]
+            taken[win] = True
+    c.info["spatial_starts_taken"] = int(taken.sum())
+    agree_set, agree_delay = _agreement(c, c.params, options.doubt_delay_ps)
+    c.resolved = taken | (agree_set & agree_delay)
+
+
+def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions):
+    """The robust neighbourhood estimate of each pixel's direct delay and the prior's precision.
+
+    Parameters
+    ----------
+    delay, stderr : ndarray (P,)
+        The pixels' direct delays and their standard errors, ps (NaN: none).
+    shape : (Y, X)
+    options : SpatialOptions
+
+    Returns
+    -------
+    mean : ndarray (P,)       the estimate, ps (NaN where no neighbour has weight)
+    precision : ndarray (P,)  the prior's precision on the pixel's delay, 1/ps^2 (0: no prior)
+    """
+    offs = _offsets(options.radius)
+    tau2 = options.delay_scale_ps ** 2
+    c_edge = options.edge_sigma
+    nd = np.stack([_shifted(delay, shape, dy, dx, np.nan) for dy, dx in offs])    # (n_off, P)
+    ns = np.stack([_shifted(stderr, shape, dy, dx, np.nan) for dy, dx in offs])
+    ok = np.isfinite(nd) & np.isfinite(ns)
+    nd_ok = np.where(ok, nd, np.nan)
+    P = delay.size
+    mean = np.full(P, np.nan)
+    precision = np.zeros(P)
+    have = ok.any(axis=0)
+    if not have.any():
+        return mean, precision
+    with np.errstate(invalid="ignore", divide="ignore"):
+        median = np.nanmedian(nd_ok[:, have], axis=0)
+        var = np.where(ok[:, have], ns[:, have] ** 2 + tau2, np.inf)
+        u = (nd_ok[:, have] - median) / np.sqrt(var)
+        w = np.where(ok[:, have] & (np.abs(u) < c_edge), (1 - (u / c_edge) ** 2) ** 2 / var, 0.0)
+        wsum = w.sum(axis=0)
+        m = np.where(wsum > 0, (w * np.nan_to_num(nd_ok[:, have])).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
+        var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
+        own = delay[have]
+        z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
+        b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
+        prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
+    mean[have] = m
+    precision[have] = prec
+    return mean, precision
+
+
+def _stderr(c: Coupling, params: dict) -> np.ndarray:
+    """(P,) the direct delay's standard error from the pixel's own data at ``params``, ps."""
+    errs = component_errors(c.samples, params, **c.physics)
+    return np.asarray(errs["direct_delay_ps_stderr"], np.float64).reshape(-1)
+
+
+def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
+    """Step 2 (module docstring): ``sweeps`` Jacobi sweeps, every decomposed pixel with a direct
+    refitted with its neighbours' delay prior; ``c`` updated in place."""
+    rows = np.flatnonzero(c.live & np.isfinite(c.params["direct_delay_ps"]))
+    c.info["spatial_pulled"] = 0
+    if options.sweeps == 0 or rows.size == 0:
+        return
+    stderr = np.where(c.live, _stderr(c, c.params), np.nan)
+    base = _take(c.params, rows)           # each pixel's own answer
+    weights = sample_weights(c.samples, c.params)[rows]
+    noise2 = _noise2(c)[rows]
+    pulled = np.zeros(rows.size, bool)
+    for _ in range(options.sweeps):
+        delay = np.where(c.live, c.params["direct_delay_ps"], np.nan)
+        mean, precision = neighbour_prior(delay, stderr, c.shape, options)
+        pull = precision[rows] > 0
+        pulled |= pull
+        # a pixel without a prior this sweep is its own answer; one with a prior is refitted
+        # from where the last sweep left it
+        start = {k: np.where(pull.reshape((-1,) + (1,) * (v.ndim - 1)), c.params[k][rows], v)
+                 for k, v in base.items()}
+        for k in c.params:
+            c.params[k][rows] = start[k]
+        if pull.any():
+            r = rows[pull]
+            fits = _refine(c, r, _take(start, pull), weights[pull],
+                           (mean[r], precision[r] * noise2[pull]))
+            for k in c.params:
+                c.params[k][r] = fits[k]
+    c.info["spatial_pulled"] = int(pulled.sum())
+
+
+def coupled_result(c: Coupling, result: DecompositionResult, options: SpatialOptions) -> DecompositionResult:
+    """``result`` with ``c``'s parameters: the fit rendered again, its quality flags read again
+    (the search's AMBIGUOUS kept where the neighbours did not resolve it), standard errors
+    recomputed where ``result`` has them, ``info["spatial"]`` what the coupling did."""
+    s = c.samples
+    Y, X = c.shape
+    P, L = Y * X, s.n_bins
+    fit = assess_fit(s, c.params, s.noise_eff, c.opts.poor_fit)
+    quality = POOR_FIT | EMPTY | AMBIGUOUS
+    kept_ambiguous = c.flags & AMBIGUOUS & np.where(c.resolved, 0, AMBIGUOUS).astype(c.flags.dtype)
+    flags = np.where(c.live, (c.flags & ~quality) | fit.flags | kept_ambiguous, c.flags).astype(c.flags.dtype)
+    params = {k: np.array(v, copy=True) for k, v in result.params.items()}
+    for k, v in c.params.items():
+        params[k] = v.reshape((Y, X) + v.shape[1:])
+    if "direct_delay_ps_stderr" in params:
+        errs = component_errors(s, c.params, **c.physics)
+        for k, v in errs.items():
+            params[k] = np.asarray(v).reshape((Y, X) + np.shape(v)[1:])
+    R = fit.interreflections.shape[1]
+    info = dict(result.info)
+    info["spatial"] = dict(asdict(options), halo_pixels=halo_pixels(options), **c.info)
+    live = c.live[:, None]
+    return DecompositionResult(
+        direct=np.where(live, fit.direct, result.direct.reshape(P, L)).reshape(Y, X, L),
+        sss=np.where(live, fit.sss, result.sss.reshape(P, L)).reshape(Y, X, L),
+        interreflections=np.where(live[:, :, None], fit.interreflections,
+                                  result.interreflections.reshape(P, R, L)).reshape(Y, X, R, L),
+        params=params, residual=np.where(live, fit.residual, result.residual.reshape(P, L)).reshape(Y, X, L),
+        flags=flags.reshape(Y, X), info=info)

@@ -1,0 +1,125 @@
+"""Spatial coupling (decompose_image(spatial=...)): known answers on small synthetic images."""
+import numpy as np
+import pytest
+
+from core import model
+
+from _cubes import smooth_scene as _scene
+from decomposition.image import decompose_image
+from decomposition.image.spatial import (SpatialOptions, halo_pixels, neighbour_prior, neighbour_starts,
+                                         prepare_coupling)
+from decomposition.model.fidelity import fidelity
+from decomposition.model.refine import refine
+from decomposition.options import OptionError
+
+TB = 2.0
+
+
+@pytest.mark.parametrize("nsr", [0.11, 0.22])
+def test_spatial_beats_per_pixel_on_a_piecewise_smooth_scene_and_edges_are_no_worse(nsr):
+    cube, truth, comps, edge = _scene(nsr=nsr, seed=1)
+    alone = decompose_image(cube, TB)
+    coupled = decompose_image(cube, TB, spatial=True)
+    rmse = [np.sqrt(np.nanmean((r.params["direct_delay_ps"] - truth["direct_delay_ps"]) ** 2))
+            for r in (alone, coupled)]
+    fid = [fidelity(comps, r) for r in (alone, coupled)]
+    assert rmse[1] < 0.9 * rmse[0]
+    assert np.nanmean(fid[1]) > np.nanmean(fid[0]) + 0.005
+    assert np.nanmean(fid[1][edge]) >= np.nanmean(fid[0][edge])
+    info = coupled.info["spatial"]
+    assert info["halo_pixels"] == 4 and info["spatial_pulled"] > 0
+
+
+def test_a_clean_pixel_is_not_pulled_by_a_noisy_neighbourhood():
+    # one Gaussian per pixel at 60 ps; the centre pixel 1 ps later and nearly noise-free
+    n, nt = 5, 96
+    p = model.empty_params((n, n), 0)
+    p["direct_delay_ps"] = np.full((n, n), 60.0)
+    p["direct_delay_ps"][2, 2] = 61.0
+    p["direct_amplitude"] = np.ones((n, n))
+    p["direct_sigma_ps"] = np.full((n, n), 3.0)
+    clean = model.render_profile(p, nt, TB)
+    rng = np.random.default_rng(3)
+    cube = clean + 0.05 * rng.standard_normal(clean.shape)
+    cube[2, 2] = clean[2, 2] + 1e-4 * rng.standard_normal(nt)
+    alone = decompose_image(cube, TB, components="d", stderr=True)
+    coupled = decompose_image(cube, TB, components="d", stderr=True, spatial={"delay_scale_ps": 2.0, "edge_sigma": 10.0})
+    se = alone.params["direct_delay_ps_stderr"][2, 2]
+    assert abs(coupled.params["direct_delay_ps"][2, 2] - alone.params["direct_delay_ps"][2, 2]) < se
+    # while its noisy neighbours (their own stderr larger than the prior's) are pulled toward 60 ps
+    ring = np.ones((n, n), bool)
+    ring[2, 2] = False
+    assert coupled.info["spatial"]["spatial_pulled"] >= ring.sum()
+    moved = np.abs(coupled.params["direct_delay_ps"] - alone.params["direct_delay_ps"])[ring]
+    assert moved.max() > 0
+
+
+def test_the_delay_prior_of_refine_weighs_the_pixel_against_the_prior():
+    # a pixel whose own data put the delay at d0 with standard error s: a prior of precision
+    # 1/s^2 at d0 + 2 ps moves it half way (the linearised MAP); weight 0 leaves it alone
+    nt = 96
+    p = model.empty_params((1,), 0)
+    p["direct_delay_ps"][:] = 60.0
+    p["direct_amplitude"][:] = 1.0
+    p["direct_sigma_ps"][:] = 3.0
+    noise = 0.05
+    y = model.render_profile(p, nt, TB) + noise * np.random.default_rng(0).standard_normal((1, nt))
+    own, _ = refine(y, p, time_bin_ps=TB, shared_sigma=True)
+    from decomposition.model.fisher import standard_errors
+    se = float(standard_errors(y, own, time_bin_ps=TB, shared_sigma=True)["direct_delay_ps_stderr"][0])
+    d0 = float(own["direct_delay_ps"][0])
+    none, _ = refine(y, own, time_bin_ps=TB, shared_sigma=True, delay_prior=(d0 + 2.0, 0.0))
+    again, _ = refine(y, own, time_bin_ps=TB, shared_sigma=True)
+    assert none["direct_delay_ps"][0] == again["direct_delay_ps"][0] == pytest.approx(d0, abs=0.01 * se)
+    half, _ = refine(y, own, time_bin_ps=TB, shared_sigma=True, delay_prior=(d0 + 2 * se, noise ** 2 / se ** 2))
+    assert half["direct_delay_ps"][0] == pytest.approx(d0 + se, abs=0.05 * se)
+    firm, _ = refine(y, own, time_bin_ps=TB, shared_sigma=True, delay_prior=(d0 + 2.0, 1e6))
+    assert firm["direct_delay_ps"][0] == pytest.approx(d0 + 2.0, abs=1e-3)
+
+
+def test_the_neighbour_prior_ignores_neighbours_across_an_edge():
+    # a 3 x 3 neighbourhood: 5 neighbours at 10 ps, 3 across an edge at 30 ps
+    delay = np.array([[10.0, 10.0, 30.0], [10.0, 10.5, 30.0], [10.0, 10.0, 30.0]]).reshape(-1)
+    stderr = np.full(9, 0.5)
+    mean, precision = neighbour_prior(delay, stderr, (3, 3), SpatialOptions(delay_scale_ps=0.5))
+    assert mean[4] == pytest.approx(10.0) and precision[4] > 0
+    # the right column's own delay is 20 sigma from its (left) majority: no prior
+    assert precision[5] == 0
+
+
+def test_a_neighbours_answer_repairs_a_pixel_the_per_pixel_pass_got_wrong():
+    cube, truth, comps, edge = _scene(n=6, nsr=0.05, seed=2)
+    alone = decompose_image(cube, TB)
+    broken = alone.params["direct_delay_ps"].copy()
+    bad = (2, 1)
+    wrong = {k: np.array(v, copy=True) for k, v in alone.params.items()}
+    for k in wrong:      # the pixel gets a far-off answer (its left neighbour's, 25 ps later)
+        wrong[k][bad] = wrong[k][bad[0], bad[1] - 1]
+    for k in ("direct_delay_ps", "sss_delay_ps"):
+        wrong[k][bad] += 25.0
+    wrong["ir_delay_ps"][bad] += 25.0
+    from dataclasses import replace
+    c = prepare_coupling(cube, replace(alone, params=wrong), TB, "convscd", {})
+    neighbour_starts(c, SpatialOptions())
+    got = c.params["direct_delay_ps"].reshape(6, 6)[bad]
+    assert abs(got - broken[bad]) < 0.5 and c.info["spatial_starts_taken"] >= 1
+
+
+def test_halo_pixels_is_the_reach_of_the_coupling():
+    assert halo_pixels(SpatialOptions()) == 4
+    assert halo_pixels(SpatialOptions(sweeps=2, radius=2)) == 5
+    assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0)) == 0
+
+
+@pytest.mark.parametrize("spatial, words", [
+    ({"sweeps": -1}, "option sweeps: must be >= 0"),
+    ({"radius": 0.5}, "option radius: must be an integer"),
+    ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
+    ({"bogus": 1}, "spatial: unknown option(s) bogus"),
+    ("yes", "spatial: must be true, false"),
+])
+def test_bad_spatial_options_get_one_line_errors(spatial, words):
+    cube = np.zeros((2, 2, 64))
+    with pytest.raises(OptionError) as err:
+        decompose_image(cube, TB, spatial=spatial)
+    assert words in str(err.value) and "\n" not in str(err.value)

@@ -1,0 +1,93 @@
+"""Spatial coupling in chunks: each chunk read with the coupling's halo gives one whole-image call's
+answer, and an interrupted ``--spatial`` run resumes to the uninterrupted store."""
+import threading
+
+import numpy as np
+import pytest
+import zarr
+
+from _cubes import TB, smooth_scene
+from decomposition.image import decompose_image
+from decomposition.store.chunked import chunk_tasks, run_tasks
+from decomposition.store.pipeline import PipelineError, decompose_to_store
+from decomposition.store.resultstore import open_result_store
+from reconstruction.cubestore import write_cube
+from streaklab.cli import main
+
+SHAPES = {"direct_delay_ps": (), "direct_amplitude": (), "direct_sigma_ps": (), "sss_delay_ps": (),
+          "sss_amplitude": (), "sss_alpha_per_ps": (), "sss_sigma_ps": (), "ir_delay_ps": (2,),
+          "ir_amplitude": (2,), "ir_sigma_ps": (2,)}
+
+
+def _chunked(cube, chunks, **kwargs):
+    sunk, lock = {}, threading.Lock()
+
+    def sink(iy, ix, result):
+        with lock:
+            sunk[(iy, ix)] = result
+
+    run_tasks(chunk_tasks(cube, chunks=chunks, sink=sink, param_shapes=SHAPES, time_bin_ps=TB, n_ir=2,
+                          options={"max_reflections": 2}, **kwargs), num_workers=1)
+    gy, gx = max(k[0] for k in sunk) + 1, max(k[1] for k in sunk) + 1
+
+    def whole(get):
+        return np.concatenate([np.concatenate([get(sunk[(i, j)]) for j in range(gx)], axis=1) for i in range(gy)])
+
+    return {k: whole(lambda r: r["params"][k]) for k in SHAPES} | {"flags": whole(lambda r: r["flags"])}
+
+
+def test_chunks_with_the_halo_equal_one_call_on_the_whole_image():
+    cube = smooth_scene(n=10, nsr=0.11, seed=4)[0]
+    ref = decompose_image(cube, TB, spatial=True, max_reflections=2)
+    got = _chunked(cube, (4, 4), spatial=True)
+    for k in SHAPES:
+        v = np.asarray(ref.params[k], np.float64)
+        np.testing.assert_array_equal(np.isnan(got[k]), np.isnan(v), err_msg=k)
+        np.testing.assert_allclose(got[k], v, rtol=1e-6, atol=1e-9, err_msg=k)
+    np.testing.assert_array_equal(got["flags"], ref.flags)
+
+
+@pytest.fixture(scope="module")
+def spatial_store(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("spatial")
+    write_cube(tmp / "cube.zarr", smooth_scene(n=6, nsr=0.11, seed=5)[0].astype(np.float32), time_bin_ps=TB,
+               chunks=(3, 3))
+    assert main(["decompose", str(tmp / "cube.zarr"), "--out", str(tmp / "full.zarr"), "--spatial", "--quiet"]) == 0
+    return tmp
+
+
+def test_an_interrupted_spatial_run_resumes_to_the_same_store(spatial_store, tmp_path, monkeypatch):
+    import decomposition.store.chunked as chunked
+
+    real, calls = chunked.solve_block, []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("worker died")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(chunked, "solve_block", failing)
+    with pytest.raises(RuntimeError, match="worker died"):
+        decompose_to_store(spatial_store / "cube.zarr", tmp_path / "part.zarr", threads=1, progress=False, spatial=True)
+    monkeypatch.setattr(chunked, "solve_block", real)
+    assert 0 < int(open_result_store(tmp_path / "part.zarr").done_chunks().sum()) < 4
+    # the job holds the coupling: resuming without it is refused
+    with pytest.raises(PipelineError):
+        decompose_to_store(spatial_store / "cube.zarr", tmp_path / "part.zarr", resume=True, progress=False)
+    decompose_to_store(spatial_store / "cube.zarr", tmp_path / "part.zarr", resume=True, progress=False, spatial=True)
+    ga, gb = zarr.open_group(str(spatial_store / "full.zarr"), mode="r"), zarr.open_group(str(tmp_path / "part.zarr"), mode="r")
+    assert sorted(ga.array_keys()) == sorted(gb.array_keys())
+    for k in ga.array_keys():
+        x, y = ga[k][...], gb[k][...]
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), k
+    # and the store is the coupled answer, not the per-pixel one
+    cube = zarr.open_group(str(spatial_store / "cube.zarr"), mode="r")["cube"][...]
+    ref = decompose_image(cube, TB, spatial=True, max_reflections=3)
+    np.testing.assert_allclose(ga["direct_delay_ps"][...], ref.params["direct_delay_ps"], rtol=1e-6, atol=1e-9)
+
+
+def test_bad_spatial_settings_are_refused_before_any_work(spatial_store, tmp_path):
+    with pytest.raises(PipelineError, match="--spatial: spatial: unknown option"):
+        decompose_to_store(spatial_store / "cube.zarr", tmp_path / "x.zarr", progress=False, spatial={"nope": 1})
+    assert not (tmp_path / "x.zarr").exists()
