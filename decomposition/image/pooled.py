@@ -224,7 +224,9 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     sc = score[iy, ix]
     lo, hi = sc[np.arange(b.size), np.maximum(b - 1, 0)], sc[np.arange(b.size), np.minimum(b + 1, L - 1)]
     curv = lo - 2.0 * peak[iy, ix] + hi
-    frac = np.where(np.isfinite(lo) & np.isfinite(hi) & (curv < 0), 0.5 * (lo - hi) / np.where(curv < 0, curv, -1.0), 0.0)
+    with np.errstate(invalid="ignore"):
+        frac = np.where(np.isfinite(lo) & np.isfinite(hi) & (curv < 0),
+                        0.5 * (lo - hi) / np.where(curv < 0, curv, -1.0), 0.0)
     tau = t[b] + T * np.clip(frac, -0.5, 0.5)
     atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma) ** 2)                  # (n, L)
     v = var[iy, ix] if counts else var[iy, ix]
