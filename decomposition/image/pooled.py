@@ -1,9 +1,10 @@
 """What one pixel cannot see but its neighbours together can: pooled echoes and spatial spikes.
 
-Both tests read a pixel's spatial neighbours **aligned on the fitted direct delays**: the
+Both tests read a pixel's spatial neighbours **aligned** (:func:`aligned_neighbours`): the
 neighbour at offset o is shifted in time by the whole number of bins nearest to
 ``d(c + o) - d(c)``, so that light arriving at a fixed time after the direct (an echo from a
-hidden surface, a narrow true component) lines up with the centre's.
+hidden surface, a narrow true component) lines up with the centre's; d is the fitted direct
+delay for the pooled echoes, an onset read from the counts for the spike test.
 
 Pooled echoes (:func:`pooled_echoes`)
     The per-pixel residuals of a ``window`` x ``window`` neighbourhood (default 5 x 5) are
@@ -12,7 +13,8 @@ Pooled echoes (:func:`pooled_echoes`)
     direct's median: one instrument) scans the pooled residual after the direct, in the pooled
     noise: for white noise :func:`decomposition.noise.noise_sigma` of the pooled residual, for
     counts the pooled model (Poisson variance, at least ``POISSON_VARIANCE_FLOOR``).  Its peak,
-    at ``z`` sigma or more, is kept where the pool's penalised objective
+    at ``z`` sigma or more (:data:`ECHO_Z`, 4: an echo at 5 sigma crosses a 5-sigma threshold
+    only half the time), is kept where the pool's penalised objective
     (:func:`decomposition.stages.selection.penalised` of the pool's data term,
     :func:`decomposition.stages.selection.data_term`, with the echo's delay and amplitude as its
     two more free parameters) prefers it: the evidence is the pool's, since one pixel's own
