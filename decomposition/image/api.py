@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..api import DecompositionResult, decompose
+from ..noise import resolve_noise_model
 from ..options import OptionError
 from . import spatial as sp
+from .pooled import pooled_echoes, refit_spikes
 
 __all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES"]
 
@@ -106,6 +108,12 @@ def _not_yet(name):
     return run
 
 
+def _spatial_spikes(c: _ImageCall) -> None:
+    # before the coupling: the stages after it read the image with the spikes replaced
+    if c.options.spatial and resolve_noise_model(c.keywords.get("noise", "auto"), c.cube) == "poisson":
+        c.result, _, c.cube = refit_spikes(c.cube, c.result, c.time_bin_ps, c.method, c.keywords)
+
+
 def _neighbour_starts(c: _ImageCall) -> None:
     if not c.options.spatial:
         return
@@ -120,13 +128,25 @@ def _joint_refinement(c: _ImageCall) -> None:
     c.result = sp.coupled_result(c.coupling, c.result, c.options.spatial_options)
 
 
+def _pooled_echoes(c: _ImageCall) -> None:
+    if c.options.spatial:
+        counts = resolve_noise_model(c.keywords.get("noise", "auto"), c.cube) == "poisson"
+        c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=counts)
+
+
 #: The stages of :func:`decompose_image`, in order.
 IMAGE_STAGES = (
     ImageStage("check", _check, "the image's shape, the regions"),
     ImageStage("shared", _not_yet("shared"), "estimate the shared parameters from all pixels"),
     ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
+    ImageStage("spatial_spikes", _spatial_spikes,
+               "count data: single-sample spikes above the pixel's own neighbours in time and its spatial "
+               "neighbours' aligned samples, replaced by the neighbours' value and the pixel refitted (SPIKE)"),
     ImageStage("neighbour_starts", _neighbour_starts, "refit the pixels in doubt from their neighbours' answers"),
     ImageStage("joint_refinement", _joint_refinement, "sweeps with an edge-preserving prior on the direct delays"),
+    ImageStage("pooled_echoes", _pooled_echoes,
+               "weak echoes found in 5 x 5 sums of the residuals aligned on the direct, added to each pixel "
+               "with its own amplitude"),
 )
 
 

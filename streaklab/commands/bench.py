@@ -22,6 +22,9 @@ BENCHMARKS = {
                "delay and lifetime bias and RMSE beside the Poisson reference, stderr calibration, echo found rate",
     "timebase": "direct-delay RMSE of a simulated scan under trigger jitter and drift, aligned on the fiducial "
                 "and not, beside the steady scan's",
+    "spatial": "per-pixel, whole-image (neighbours coupled) and the per-pixel oracle side by side on images with "
+               "depth steps and material patches, near edges and away; pooled echoes, spikes told by the "
+               "neighbours, speed, the demo's scene",
     "adaptive": "capture --target-delay-error-ps against the fixed accumulation whose worst line reaches the "
                 "same direct-delay error: frames taken, lines reaching the target",
 }
