@@ -11,8 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..api import DecompositionResult, decompose
+from ..api import DecompositionResult
 from ..options import OptionError
+from .shared import SharedEstimate, decompose_held, image_estimate
 
 __all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES"]
 
@@ -46,9 +47,17 @@ class ImageOptions:
     #: Couple neighbouring pixels over the image axes (y, x): their answers as starts, a joint
     #: refinement with an edge-preserving prior, pooled detection of weak components.
     spatial: bool = False
+    #: With ``shared`` holding "psf": the width as a quadratic surface over (y, x) (a streak
+    #: camera's slit), each pixel held at its value on it, instead of one number.
+    psf_map: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "shared", parse_shared(self.shared))
+        if not isinstance(self.psf_map, (bool, np.bool_)):
+            raise OptionError(f"psf_map: must be true or false, got {self.psf_map!r}")
+        object.__setattr__(self, "psf_map", bool(self.psf_map))
+        if self.psf_map and "psf" not in self.shared:
+            raise OptionError("psf_map: give shared='psf' too (the map is the shared PSF's)")
         if not isinstance(self.spatial, (bool, np.bool_)):
             raise OptionError(f"spatial: must be true or false, got {self.spatial!r}")
         object.__setattr__(self, "spatial", bool(self.spatial))
@@ -73,6 +82,8 @@ class _ImageCall:
     keywords: dict              # the per-pixel decompose() keywords (t0_ps, components, ...)
     info: dict = field(default_factory=dict)
     result: DecompositionResult | None = None
+    estimate: SharedEstimate | None = None   # given (a chunk of a cube) or estimated by the shared stage
+    window: tuple | None = None              # ((y0, y1), (x0, x1)): where the cube lies in the estimate's image
 
 
 def _check(c: _ImageCall) -> None:
@@ -88,8 +99,22 @@ def _check(c: _ImageCall) -> None:
         c.regions = regions
 
 
+def _shared(c: _ImageCall) -> None:
+    if not c.options.shared:
+        return
+    if c.keywords.get("irf") is not None:
+        raise OptionError("shared= holds the Gaussian PSF's parameters; with a measured response (irf=) it is "
+                          "not available")
+    if c.estimate is None:
+        c.estimate = image_estimate(c.cube, c.regions, c.time_bin_ps, c.method, c.options.shared,
+                                    psf_map=c.options.psf_map, keywords=c.keywords)
+    c.info["shared"] = c.estimate.record()
+
+
 def _per_pixel(c: _ImageCall) -> None:
-    c.result = decompose(c.cube, c.time_bin_ps, c.method, **c.keywords)
+    hold, stderr = ({}, {}) if c.estimate is None else c.estimate.hold(c.regions, c.window)
+    c.result = decompose_held(c.cube, c.time_bin_ps, c.method, hold=hold, hold_stderr=stderr, **c.keywords)
+    c.result.info.update(c.info)
 
 
 def _not_yet(name):
@@ -102,14 +127,15 @@ def _not_yet(name):
 #: The stages of :func:`decompose_image`, in order.
 IMAGE_STAGES = (
     ImageStage("check", _check, "the image's shape, the regions"),
-    ImageStage("shared", _not_yet("shared"), "estimate the shared parameters from all pixels"),
+    ImageStage("shared", _shared, "estimate the shared parameters once from all pixels (image.shared)"),
     ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
     ImageStage("spatial", _not_yet("spatial"), "couple neighbouring pixels"),
 )
 
 
 def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, shared=(), regions=None,
-                    spatial: bool = False, **keywords) -> DecompositionResult:
+                    spatial: bool = False, psf_map: bool = False, estimate: SharedEstimate | None = None,
+                    window=None, **keywords) -> DecompositionResult:
     """Decompose an image of time profiles as one problem.
 
     Parameters
@@ -124,20 +150,29 @@ def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, 
         Parameters estimated once from all pixels and held fixed in each pixel's fit
         (:data:`SHARED_NAMES`; ``"psf,delay,alpha"``).
     regions : ndarray (Y, X) of int, optional
-        With ``shared`` holding "alpha": one sss decay rate per label (default one for the image).
+        With ``shared`` holding "alpha": one sss decay rate per label >= 0 (default one for the
+        image); pixels labelled < 0 keep their own.
     spatial : bool
         Couple neighbouring pixels (:class:`ImageOptions`).
+    psf_map : bool
+        The shared PSF as a smooth quadratic map over (y, x) (:class:`ImageOptions`).
+    estimate : SharedEstimate, optional
+        Shared values estimated before (a chunk of a larger image: the estimate of the whole
+        one, with ``window`` ((y0, y1), (x0, x1)) where the chunk lies and ``regions`` the
+        chunk's labels); default: estimated from ``cube``.
     **keywords
         Everything :func:`decomposition.decompose` takes.
 
     Returns
     -------
     DecompositionResult
-        Arrays shaped ``(Y, X, ...)``; ``info["shared"]`` holds the shared estimates and their
-        standard errors.
+        Arrays shaped ``(Y, X, ...)``; every held parameter equals its shared value (its
+        ``_stderr`` the shared one's); ``info["shared"]`` holds the shared estimates, their
+        standard errors and how many pixels each pooled (:meth:`SharedEstimate.record`).
     """
     call = _ImageCall(cube=np.asarray(cube), time_bin_ps=time_bin_ps, method=method,
-                      options=ImageOptions(shared=shared, spatial=spatial), regions=regions, keywords=keywords)
+                      options=ImageOptions(shared=shared, spatial=spatial, psf_map=psf_map), regions=regions,
+                      keywords=keywords, estimate=estimate, window=window)
     for stage in IMAGE_STAGES:
         stage.run(call)
     return call.result
