@@ -372,7 +372,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         info["rss"][sl] = inf["rss"] * sc * sc
     res["present"] = slots["present"]
     res["n_ir"] = slots["n_ir"]
-    out_params = params_from_slots(res, lead)
+    # held values exactly as given (the log-space round trip would move them by an ulp)
+    out_params = hold_params(params_from_slots(res, lead), hold, lead)
     if has_bg:
         b_nan = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(n) if BACKGROUND_KEY in params else np.full(n, np.nan)
         # an absent (NaN) offset stays absent unless it was fitted
