@@ -32,7 +32,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.model import render_profile
 from ..api import decompose
+from ..model.refine import refine
+from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
 
 __all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "image_estimate", "lit_score", "select_pixels", "pooled", "pooled_positive", "fit_surface",
@@ -284,6 +287,127 @@ def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple,
                            psf_map=psf_map, regions=regions is not None, keywords=keywords)
 
 
+#: iteratively reweighted refits of count data per evaluation of the pooled likelihood
+_COUNT_REFITS = 3
+
+
+def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, shared_sigma):
+    """The summed misfit (-2 log-likelihood up to a constant: Poisson deviance, or chi^2 in the
+    pixels' noise) of ``profiles`` (n, L) refitted from ``params`` with ``hold``; the component
+    set is kept."""
+    bg = "background" in params
+    n_bins = profiles.shape[-1]
+    fit = np.ones(profiles.shape, bool)
+    weights = None
+    cur = params
+    for _ in range(_COUNT_REFITS if counts else 1):
+        if counts:
+            model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
+            weights = poisson_weights(model, fit)
+        cur, _ = refine(profiles, cur, time_bin_ps=time_bin_ps, t0_ps=t0_ps, weights=weights, hold=hold,
+                        shared_sigma=shared_sigma, sss_after_direct=True, fit_background=bg)
+    model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
+    if counts:
+        return float(np.sum(count_deviance(profiles, model, fit)))
+    return float(np.sum((profiles - model) ** 2 / noise[:, None] ** 2))
+
+
+def _minimise_1d(f, lo, hi, rounds: int = 3, points: int = 7):
+    """Minimum of ``f`` over [lo, hi] by nested grids, then a parabola through the best three
+    points -> (argmin, curvature f'' there; nan where the parabola does not open upwards)."""
+    for _ in range(rounds):
+        xs = np.linspace(lo, hi, points)
+        fs = np.array([f(x) for x in xs])
+        i = int(np.clip(np.argmin(fs), 1, points - 2))
+        lo, hi = xs[i - 1], xs[i + 1]
+    x3, f3 = xs[i - 1:i + 2], fs[i - 1:i + 2]
+    h = x3[1] - x3[0]
+    curv = (f3[0] - 2 * f3[1] + f3[2]) / h ** 2
+    if not curv > 0:
+        return float(x3[np.argmin(f3)]), math.nan
+    x = x3[1] - h * (f3[2] - f3[0]) / (2 * (f3[0] - 2 * f3[1] + f3[2]))
+    return float(np.clip(x, x3[0], x3[2])), float(curv)
+
+
+def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps, fixed=None):
+    """The scalar shared PSF width and onset at the maximum of the pixels' pooled likelihood,
+    each pixel's other parameters refitted (component set of the first pass kept), started from
+    the pooled per-pixel estimates; their standard errors from its curvature (-2 log L rises by 1
+    one error away), inflated where the misfit per degree of freedom exceeds 1.  Per-pixel
+    estimates are biased where one pixel cannot separate a width from an onset or a decay
+    (a hundred photons); the pooled likelihood is not.  ``fixed``: per-pixel values held
+    throughout (the PSF map's widths, (n,) arrays)."""
+    counts = info["noise_model"] == "poisson"
+    noise = np.asarray(info["noise_sigma"], np.float64).reshape(-1)
+    t0 = info["t0_ps"]
+    keep = np.isfinite(np.where(np.isfinite(first["direct_delay_ps"]), first["direct_delay_ps"],
+                                first["sss_delay_ps"]))
+    if not counts:
+        keep &= np.isfinite(noise) & (noise > 0)
+    if keep.sum() < 2:
+        return est
+    prof = np.asarray(profiles, np.float64)[keep]
+    params = {k: np.asarray(v)[keep] for k, v in first.items() if not k.endswith("_stderr")}
+    base = {k: np.broadcast_to(np.asarray(v, np.float64), keep.shape)[keep] for k, v in (fixed or {}).items()}
+    shared_sigma = bool(keywords.get("shared_sigma", True))
+    kw = dict(counts=counts, noise=noise[keep], time_bin_ps=time_bin_ps, t0_ps=t0, shared_sigma=shared_sigma)
+    held = {}
+    def misfit(hold):       # the fixed values always held
+        return _pooled_misfit(prof, params, dict(base, **hold), **kw)
+
+    if "psf" in names:
+        held["sigma_ps"] = est["psf_sigma_ps"]
+    if "delay" in names:
+        held[est["delay_key"]] = est["delay_ps"]
+    dof = max(prof.size - sum(np.isfinite(v).sum() for k, v in params.items() if np.ndim(v) == 1), 1)
+    for _ in range(2):                       # coordinate-wise: the width, then the onset, twice
+        for key in list(held):
+            v0 = held[key]
+            if key == "sigma_ps":
+                x, curv = _minimise_1d(lambda x: misfit(dict(held, sigma_ps=math.exp(x))),
+                                       math.log(v0) - 1.0, math.log(v0) + 1.0)
+                held[key] = math.exp(x)
+                se = held[key] * math.sqrt(2.0 / curv) if curv > 0 else math.nan
+            else:
+                half = 3.0 * held.get("sigma_ps", v0 * 0 + max(est.get("delay_ps_stderr", 1.0) * 10, time_bin_ps))
+                x, curv = _minimise_1d(lambda x: misfit(dict(held, **{key: x})),
+                                       v0 - half, v0 + half)
+                held[key] = x
+                se = math.sqrt(2.0 / curv) if curv > 0 else math.nan
+            name = "psf_sigma_ps" if key == "sigma_ps" else "delay_ps"
+            est[name], est[name + "_stderr"] = held[key], se
+    inflate = max(1.0, math.sqrt(misfit(held) / dof))
+    if len(held) == 2 and all(math.isfinite(est[n + "_stderr"]) for n in ("psf_sigma_ps", "delay_ps")):
+        # the two are correlated: the marginal errors from the joint curvature (log width, onset)
+        keys = list(held)
+        x0 = np.array([math.log(held[k]) if k == "sigma_ps" else held[k] for k in keys])
+        h = np.array([est["psf_sigma_ps_stderr"] / est["psf_sigma_ps"] if k == "sigma_ps" else est["delay_ps_stderr"]
+                      for k in keys])
+
+        def f(x):
+            return misfit({k: (math.exp(v) if k == "sigma_ps" else v) for k, v in zip(keys, x)})
+
+        f0 = f(x0)
+        e = np.eye(2) * h
+        hess = np.empty((2, 2))
+        for i in range(2):
+            hess[i, i] = (f(x0 + e[i]) - 2 * f0 + f(x0 - e[i])) / h[i] ** 2
+        hess[0, 1] = hess[1, 0] = (f(x0 + e[0] + e[1]) - f(x0 + e[0] - e[1]) - f(x0 - e[0] + e[1])
+                                   + f(x0 - e[0] - e[1])) / (4 * h[0] * h[1])
+        if np.all(np.linalg.eigvalsh(hess) > 0):
+            var = np.diag(np.linalg.inv(hess / 2.0))
+            for k, v in zip(keys, var):
+                if k == "sigma_ps":
+                    est["psf_sigma_ps_stderr"] = est["psf_sigma_ps"] * math.sqrt(v)
+                else:
+                    est["delay_ps_stderr"] = math.sqrt(v)
+    for name in ("psf_sigma_ps", "delay_ps"):
+        if name + "_stderr" in est and name in est and ("sigma_ps" if name == "psf_sigma_ps" else
+                                                         est.get("delay_key")) in held:
+            est[name + "_stderr"] *= inflate
+    return est
+
+
 def _width(params):
     """Per-pixel PSF width and its error: the direct's, else the sss's."""
     d, s = params["direct_sigma_ps"], params["sss_sigma_ps"]
@@ -327,7 +451,8 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
     pixels = {"selected": int(profiles.shape[0])}
     est = {"names": tuple(names), "shape": tuple(int(s) for s in shape)}
     hold = None
-    first = decompose(profiles, time_bin_ps, method, **kw).params
+    first_result = decompose(profiles, time_bin_ps, method, **kw)
+    first, first_info = first_result.params, first_result.info
     if "psf" in names:
         width, width_se = _width(first)
         if psf_map:
@@ -345,15 +470,30 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
             est["psf_sigma_ps"], est["psf_sigma_ps_stderr"] = value, se
             hold = {"sigma_ps": value}
         pixels["psf"] = n
-    second = first if hold is None else decompose(profiles, time_bin_ps, method, hold=hold, **kw).params
     if "delay" in names:
         key = "direct_delay_ps" if "d" in fams else "sss_delay_ps"
-        value, se, n = pooled(second[key], second[key + "_stderr"])
+        value, se, n = pooled(first[key], first[key + "_stderr"])
         if n == 0:
             raise ValueError(f"shared='delay': none of the {profiles.shape[0]} lit pixels has a "
                              f"{key.split('_')[0]} onset that could be estimated")
         est.update(delay_key=key, delay_ps=value, delay_ps_stderr=se)
         pixels["delay"] = n
+    scalar = tuple(n for n in names if n == "delay" or (n == "psf" and not psf_map))
+    if scalar:
+        # the pixels decomposed again with the pooled starts held (a pixel whose free fit tied its
+        # sss onset to the direct gets its components apart), then the pooled likelihood
+        start = dict(hold or {})
+        if "delay" in names:
+            start[est["delay_key"]] = est["delay_ps"]
+        again = decompose(profiles, time_bin_ps, method, hold=start, **kw)
+        est = _profile_refine(profiles, again.params, again.info, scalar, est, keywords=keywords,
+                              time_bin_ps=time_bin_ps, fixed=hold if psf_map else None)
+        if "psf" in scalar:
+            hold = {"sigma_ps": est["psf_sigma_ps"]}
+    if "alpha" in names and "delay" in names:
+        hold = dict(hold or {}, **{est["delay_key"]: est["delay_ps"]})
+    second = first if hold is None or "alpha" not in names else \
+        decompose(profiles, time_bin_ps, method, hold=hold, **kw).params
     if "alpha" in names:
         alpha, alpha_se = {}, {}
         for label in np.unique(labels):
