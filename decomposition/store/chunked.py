@@ -71,7 +71,8 @@ def fit_ir_slots(a, n_ir: int, axis: int, fill) -> np.ndarray:
 
 
 def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method: str = "convscd",
-                components=None, n_ir: int = 2, with_components: bool = True, options: dict | None = None) -> dict:
+                components=None, n_ir: int = 2, with_components: bool = True, options: dict | None = None,
+                hold: dict | None = None, hold_stderr: dict | None = None) -> dict:
     """Decompose every pixel of one block.
 
     Parameters
@@ -84,6 +85,9 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         Passed to :func:`decomposition.decompose` (``options`` as keywords).
     n_ir : int
         Inter-reflection slots R kept per pixel.
+    hold, hold_stderr : dict, optional
+        Parameters every pixel holds and their errors ({key: (by, bx)}, from the whole cube's
+        :class:`decomposition.image.shared.SharedEstimate`; :func:`decomposition.image.shared.decompose_held`).
     with_components : bool
         Also return the rendered component profiles and the residual.
 
@@ -116,9 +120,17 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     truncated = poor = 0
     if n_ok:
         prof = flat if n_ok == flat.shape[0] else flat[keep]
-        res = _solver()(prof, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
-                        **({"components": tuple(components)} if components is not None else {}),
-                        **(options or {}))
+        kwargs = dict(time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                      **({"components": tuple(components)} if components is not None else {}), **(options or {}))
+        if hold:
+            from decomposition.image.shared import decompose_held
+
+            def rows(values):
+                return {k: np.asarray(v, np.float64).reshape(-1)[keep] for k, v in values.items()}
+
+            res = decompose_held(prof, hold=rows(hold), hold_stderr=rows(hold_stderr), **kwargs)
+        else:
+            res = _solver()(prof, **kwargs)
         for k, v in res.params.items():
             v = np.asarray(v, dtype=np.float64)
             if v.ndim == 2:  # per inter-reflection slot
@@ -175,8 +187,8 @@ def _fill_missing_params(result: dict, param_shapes: dict) -> dict:
     return result
 
 
-def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs):
-    result = _fill_missing_params(solve_block(block, **solve_kwargs), param_shapes)
+def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs, held=None):
+    result = _fill_missing_params(solve_block(block, **solve_kwargs, **(held or {})), param_shapes)
     stats = result.pop("stats")
     sink(iy, ix, result)
     return {"iy": iy, "ix": ix, **stats}
@@ -196,7 +208,8 @@ def rechunk_pixels(cube, chunks) -> "da.Array":
     return cube
 
 
-def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve_kwargs) -> list:
+def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, shared=None, regions=None,
+                **solve_kwargs) -> list:
     """One dask task per pending pixel chunk: read the block, solve it, ``sink(iy, ix, result)``.
 
     Parameters
@@ -212,6 +225,9 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
         finite pixel NaN parameters of the right names.
     pending : iterable of (iy, ix), optional
         Chunks to compute (default: all).
+    shared : decomposition.image.shared.SharedEstimate, optional
+        Parameters every pixel holds, estimated before from the whole cube; each task gets its
+        chunk's held values (with ``regions``, the cube's (y, x) labels, for a decay rate per region).
     **solve_kwargs
         Keywords of :func:`solve_block`.
 
@@ -226,10 +242,20 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
     if pending is None:
         pending = [(iy, ix) for iy in range(gy) for ix in range(gx)]
     token = dask.base.tokenize(arr.name, sink, sorted(solve_kwargs.items(), key=str))
+    if shared is not None:
+        token = dask.base.tokenize(token, shared.record(), None if regions is None else np.asarray(regions))
+    starts_y = np.cumsum((0,) + arr.chunks[0])
+    starts_x = np.cumsum((0,) + arr.chunks[1])
     tasks = []
     for iy, ix in pending:
+        held = None
+        if shared is not None:
+            window = ((int(starts_y[iy]), int(starts_y[iy + 1])), (int(starts_x[ix]), int(starts_x[ix + 1])))
+            labels = None if regions is None else np.asarray(regions)[slice(*window[0]), slice(*window[1])]
+            hold, err = shared.hold(labels, window)
+            held = {"hold": hold, "hold_stderr": err}
         tasks.append(dask.delayed(_solve_and_sink, pure=False)(
-            blocks[iy, ix, 0], iy, ix, sink, param_shapes, solve_kwargs,
+            blocks[iy, ix, 0], iy, ix, sink, param_shapes, solve_kwargs, held,
             dask_key_name=f"decompose-chunk-{token}-{iy}-{ix}"))
     return tasks
 
