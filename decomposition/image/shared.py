@@ -11,14 +11,20 @@ The estimate (:func:`estimate_shared`):
    (:func:`lit_score`); of the pixels with a positive score, in every region, the brighter
    half, thinned evenly in raster order to at most ``n_pixels`` (:func:`select_pixels`): a
    deterministic subsample spread over the image.
-2. *Per-pixel estimates.*  Those pixels are decomposed freely with standard errors; the
-   widths give the PSF.  Then, with the PSF held, again: the onsets and decay rates.
+2. *Per-pixel estimates.*  Those pixels are decomposed freely with standard errors: their
+   widths and onsets.
 3. *Pooled and robust* (:func:`pooled`): outliers beyond five scaled MADs of the median are
    dropped; the rest are averaged with weights 1 / (se^2 + tau^2), tau^2 the scatter beyond
    the per-pixel errors (so bright pixels' small errors do not decide alone); the standard
    error is the weighted mean's, inflated by the Birge ratio where the points scatter more
-   than their errors say.  With ``psf_map`` a quadratic surface in (y, x) is fitted the same
-   way (:func:`fit_surface`).
+   than their errors say; widths and rates in their logarithm (:func:`pooled_positive`).
+   With ``psf_map`` a quadratic surface in (y, x) is fitted the same way (:func:`fit_surface`).
+4. *Pooled likelihood* for a scalar width and onset: the pixels decomposed again with the
+   pooled starts held, their summed misfit (Poisson deviance or chi^2) is minimised over the
+   shared values, each pixel's other parameters refitted, the errors from its curvature
+   (:func:`_profile_refine`); per-pixel widths are biased where one pixel cannot tell a width
+   from an onset or a decay.
+5. The decay rates, pooled per region from a pass with the width and onset held.
 
 The result, a :class:`SharedEstimate`, is a record of plain numbers (``record()``, written to
 ``info["shared"]`` and a result store's ``shared`` attribute, read back with
@@ -369,7 +375,9 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
                 held[key] = math.exp(x)
                 se = held[key] * math.sqrt(2.0 / curv) if curv > 0 else math.nan
             else:
-                half = 3.0 * held.get("sigma_ps", v0 * 0 + max(est.get("delay_ps_stderr", 1.0) * 10, time_bin_ps))
+                # three widths either side (ten errors of the pooled start, at least a bin, with a map)
+                half = (3.0 * held["sigma_ps"] if "sigma_ps" in held
+                        else max(10.0 * est.get("delay_ps_stderr", 0.0), float(time_bin_ps)))
                 x, curv = _minimise_1d(lambda x: misfit(dict(held, **{key: x})),
                                        v0 - half, v0 + half)
                 held[key] = x
@@ -451,8 +459,7 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
     pixels = {"selected": int(profiles.shape[0])}
     est = {"names": tuple(names), "shape": tuple(int(s) for s in shape)}
     hold = None
-    first_result = decompose(profiles, time_bin_ps, method, **kw)
-    first, first_info = first_result.params, first_result.info
+    first = decompose(profiles, time_bin_ps, method, **kw).params
     if "psf" in names:
         width, width_se = _width(first)
         if psf_map:
