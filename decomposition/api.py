@@ -32,6 +32,7 @@ from .stages.grow import grow_components, grow_counts, swap_components
 from .stages.prune import prune_components
 from .stages.search import STAGE_STARTS, search_components
 from .model.slots import shape_bounds
+from .model.refine import check_hold
 from .constants import RESCUE_MISFIT_Z
 from .stages.rescue import RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows, take_rescued
 from .stages.selection import misfit_beyond_noise
@@ -127,6 +128,7 @@ class _Call:
     bg_stderr: np.ndarray | None = None
     fit: Fit | None = None
     response: object = None     # the resolved instrument response (irf=)
+    hold: dict | None = None    # parameters held at given values, {HOLD_KEYS: (P,)} (hold=)
     result: "DecompositionResult | None" = None
 
     @property
@@ -263,7 +265,7 @@ def _refit(c: _Call) -> None:
         # the first estimate, refitted jointly with the amplitudes below (NaN: not decomposed)
         params[BACKGROUND_KEY] = np.full(samples.values.shape[0], np.nan)
         params[BACKGROUND_KEY][samples.live] = samples.background[samples.live]
-    if not ((opts.refine or c.background or (samples.noise_model == "poisson" and not c.convscd))
+    if not ((opts.refine or c.background or c.hold or (samples.noise_model == "poisson" and not c.convscd))
             and samples.live.size):
         return
     # within the solver's bounds on the widths and the attenuation, and flagged where it ends
@@ -271,7 +273,7 @@ def _refit(c: _Call) -> None:
     # to a width of 0.2 ps and 10^5 times the counts, unflagged
     bounds = shape_bounds(c.grid, opts.bound_factor)
     params, rinfo = refine_components(samples, params, **_physics(c), background_chi2=opts.background_chi2,
-                                      bounds=bounds)
+                                      bounds=bounds, hold=c.hold)
     c.bg_stderr = rinfo.pop("background_stderr", None)
     if c.background:
         # nothing above the offset: the components are noise fitted on a pure background
@@ -295,7 +297,7 @@ def _quality(c: _Call) -> None:
 def _rescue_stage(c: _Call) -> None:
     if c.convscd:
         c.fit, c.params, c.flags = _rescue(c.profiles, c.samples, c.fit, c.params, c.flags, c.noise_eff,
-                                           c.flat_noise, c.det.noise_spectrum, c.opts, c.info, c.keywords)
+                                           c.flat_noise, c.det.noise_spectrum, c.opts, c.info, c.keywords, c.hold)
 
 
 def _assemble(c: _Call, params: dict) -> None:
@@ -317,7 +319,7 @@ def _finish(c: _Call) -> None:
     params = _reshape_params(c.params, lead, opts.max_reflections)
     c.info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
-        params.update(component_errors(samples, params, **_physics(c)))
+        params.update(component_errors(samples, params, **_physics(c), hold=c.hold))
         if c.background:
             params[BACKGROUND_KEY + "_stderr"] = (c.bg_stderr if c.bg_stderr is not None
                                                   else np.full(lead, np.nan))
@@ -405,7 +407,7 @@ RESPONSE_STAGES = (
 
 def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0_ps: float | None = None,
               components=("d", "r", "s"), nan_policy: str = "raise", saturation_level: float | None = None,
-              irf=None, **options) -> DecompositionResult:
+              irf=None, hold=None, **options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
 
     Runs the stages of :data:`STAGES` in order (:data:`RESPONSE_STAGES` with ``irf``); the
@@ -436,6 +438,14 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     irf : InstrumentResponse, (samples, time_step_ps) tuple, or path, optional
         A measured instrument response used instead of the Gaussian PSF
         (:func:`decomposition.response.resolve.resolve_response`; docs/instrument-response.md).
+    hold : dict, optional
+        Parameters held at given values in the final fit of every pixel
+        ({key of :data:`decomposition.model.refine.HOLD_KEYS`: a scalar or an array of the
+        profiles' leading shape, NaN: free there}): the width of every component, the direct's or
+        the sss onset, the sss decay rate.  The component set is found as without it; the refit
+        then puts the held values in and fits the rest around them (their standard errors NaN).
+        The whole-cube estimates of :func:`decomposition.image.decompose_image` come this way.
+        Not with ``irf``.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
         :class:`decomposition.options.SolverOptions`, each documented there; for
@@ -454,6 +464,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         raise ValueError(f"method must be 'convscd' or 'gradbm', got {method!r}")
     nan_policy = parse_nan_policy(nan_policy)
     fams = parse_components(components)
+    if hold and irf is not None:
+        raise ValueError("hold= holds Gaussian-path parameters; it does not work with a measured response (irf=)")
+    hold = check_hold(hold, np.shape(profiles)[:-1]) or None
     grid, opts, method_options = options_from_mapping(options, strict=False)
     if method == "convscd" and method_options:
         raise TypeError(f"unknown options for method 'convscd': {sorted(method_options)}")
@@ -465,13 +478,13 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                     nan_policy=nan_policy, saturation_level=saturation_level, **options)
     call = _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
                  saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams),
-                 method_options=method_options, irf=irf, keywords=keywords, background=background)
+                 method_options=method_options, irf=irf, keywords=keywords, background=background, hold=hold)
     for stage in (STAGES if irf is None else RESPONSE_STAGES):
         stage.run(call)
     return call.result
 
 
-def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call):
+def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call, hold=None):
     """The second pass of :mod:`decomposition.stages.rescue` on the POOR_FIT pixels and those whose data
     term lies beyond their noise: ``call`` holds the
     keywords of this call of :func:`decompose`, repeated with RESCUE_OPTIONS for those pixels.
@@ -497,7 +510,8 @@ def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectr
     if rows.size == 0:
         return fit, params, flags
     L = samples.n_bins
-    again = decompose(np.asarray(profiles).reshape(-1, L)[rows], **dict(call, **RESCUE_OPTIONS, rescue=False))
+    again = decompose(np.asarray(profiles).reshape(-1, L)[rows], **dict(call, **RESCUE_OPTIONS, rescue=False),
+                      hold=None if hold is None else {k: v[rows] for k, v in hold.items()})
     fit_mask = samples.fit[rows]
     noise = noise_eff[rows] * samples.scale[rows]
     first = {k: np.asarray(v)[rows] for k, v in params.items()}

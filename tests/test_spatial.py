@@ -6,7 +6,8 @@ from core import model
 
 from _cubes import smooth_scene as _scene
 from decomposition.image import decompose_image
-from decomposition.image.spatial import (SpatialOptions, halo_pixels, neighbour_prior, neighbour_starts,
+from decomposition.image import halo_pixels
+from decomposition.image.spatial import (SpatialOptions, coupling_reach, neighbour_prior, neighbour_starts,
                                          prepare_coupling)
 from decomposition.model.fidelity import fidelity
 from decomposition.model.refine import refine
@@ -27,7 +28,7 @@ def test_spatial_beats_per_pixel_on_a_piecewise_smooth_scene_and_edges_are_no_wo
     assert np.nanmean(fid[1]) > np.nanmean(fid[0]) + 0.005
     assert np.nanmean(fid[1][edge]) >= np.nanmean(fid[0][edge])
     info = coupled.info["spatial"]
-    assert info["halo_pixels"] == 4 and info["spatial_pulled"] > 0
+    assert info["coupling_reach"] == 4 and info["halo_pixels"] == 7 and info["spatial_pulled"] > 0
 
 
 def test_a_clean_pixel_is_not_pulled_by_a_noisy_neighbourhood():
@@ -105,10 +106,13 @@ def test_a_neighbours_answer_repairs_a_pixel_the_per_pixel_pass_got_wrong():
     assert abs(got - broken[bad]) < 0.5 and c.info["spatial_starts_taken"] >= 1
 
 
-def test_halo_pixels_is_the_reach_of_the_coupling():
-    assert halo_pixels(SpatialOptions()) == 4
-    assert halo_pixels(SpatialOptions(sweeps=2, radius=2)) == 5
-    assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0)) == 0
+def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_echoes():
+    assert coupling_reach(SpatialOptions()) == 4
+    assert coupling_reach(SpatialOptions(sweeps=2, radius=2)) == 5
+    assert coupling_reach(SpatialOptions(neighbour_starts=False, sweeps=0)) == 0
+    assert halo_pixels(SpatialOptions()) == 1 + 4 + 2          # spikes' 3 x 3, coupling, echoes' 5 x 5
+    assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0)) == 3
+    assert halo_pixels(False) == 0
 
 
 @pytest.mark.parametrize("spatial, words", [

@@ -47,6 +47,24 @@ def test_chunks_with_the_halo_equal_one_call_on_the_whole_image():
     np.testing.assert_array_equal(got["flags"], ref.flags)
 
 
+def test_shared_and_spatial_in_haloed_chunks_equal_one_call_on_the_whole_image():
+    # the cube's shared PSF estimated once, each haloed chunk decomposed as one image holding it
+    from decomposition.image.shared import image_estimate
+
+    cube = smooth_scene(n=10, nsr=0.11, seed=4)[0]
+    ref = decompose_image(cube, TB, spatial=True, shared="psf", max_reflections=2)
+    estimate = image_estimate(cube, None, TB, "convscd", ("psf",), keywords={"max_reflections": 2})
+    assert estimate.psf_sigma_ps == ref.info["shared"]["psf_sigma_ps"]
+    got = _chunked(cube, (4, 4), spatial=True, shared=estimate)
+    present = np.isfinite(got["direct_sigma_ps"])
+    assert present.any() and np.all(got["direct_sigma_ps"][present] == estimate.psf_sigma_ps)
+    for k in SHAPES:
+        v = np.asarray(ref.params[k], np.float64)
+        np.testing.assert_array_equal(np.isnan(got[k]), np.isnan(v), err_msg=k)
+        np.testing.assert_allclose(got[k], v, rtol=1e-6, atol=1e-9, err_msg=k)
+    np.testing.assert_array_equal(got["flags"], ref.flags)
+
+
 @pytest.fixture(scope="module")
 def spatial_store(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("spatial")

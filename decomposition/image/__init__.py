@@ -5,6 +5,6 @@ instrument and the parameters the user declares global are estimated once from a
 (``shared=``), and neighbouring pixels inform each other (``spatial=True``).  Per pixel it runs
 :func:`decomposition.decompose`; this package sits above it and never below.
 """
-from .api import ImageOptions, decompose_image  # noqa: F401
+from .api import ImageOptions, decompose_image, halo_pixels  # noqa: F401
 
-__all__ = ["decompose_image", "ImageOptions"]
+__all__ = ["decompose_image", "ImageOptions", "halo_pixels"]

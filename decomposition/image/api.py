@@ -11,13 +11,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..api import DecompositionResult, decompose
+from ..api import DecompositionResult
 from ..noise import resolve_noise_model
 from ..options import OptionError
 from . import spatial as sp
-from .pooled import pooled_echoes, refit_spikes
+from .pooled import ECHO_WINDOW, SPIKE_WINDOW, pooled_echoes, refit_spikes
+from .shared import SharedEstimate, apply_held_stderr, decompose_held, image_estimate
 
-__all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES"]
+__all__ = ["decompose_image", "ImageOptions", "IMAGE_STAGES", "SHARED_NAMES", "halo_pixels"]
 
 #: the parameters ``shared=`` may make global: the PSF width (or a response's time scale), the
 #: direct's onset, the sss decay rate
@@ -51,11 +52,19 @@ class ImageOptions:
     #: true / false, a :class:`~decomposition.image.spatial.SpatialOptions` or a mapping of its
     #: fields; held as true / false, its options in ``spatial_options``.
     spatial: bool = False
+    #: With ``shared`` holding "psf": the width as a quadratic surface over (y, x) (a streak
+    #: camera's slit), each pixel held at its value on it, instead of one number.
+    psf_map: bool = False
     #: The coupling's options (None without it).
     spatial_options: sp.SpatialOptions | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "shared", parse_shared(self.shared))
+        if not isinstance(self.psf_map, (bool, np.bool_)):
+            raise OptionError(f"psf_map: must be true or false, got {self.psf_map!r}")
+        object.__setattr__(self, "psf_map", bool(self.psf_map))
+        if self.psf_map and "psf" not in self.shared:
+            raise OptionError("psf_map: give shared='psf' too (the map is the shared PSF's)")
         given = self.spatial_options if self.spatial_options is not None else self.spatial
         options = sp.spatial_options(given)
         object.__setattr__(self, "spatial", options is not None)
@@ -81,6 +90,10 @@ class _ImageCall:
     keywords: dict              # the per-pixel decompose() keywords (t0_ps, components, ...)
     info: dict = field(default_factory=dict)
     result: DecompositionResult | None = None
+    estimate: SharedEstimate | None = None   # given (a chunk of a cube) or estimated by the shared stage
+    window: tuple | None = None              # ((y0, y1), (x0, x1)): where the cube lies in the estimate's image
+    hold: dict = field(default_factory=dict)         # {HOLD_KEYS: (Y, X)}: the held values, NaN free
+    hold_stderr: dict = field(default_factory=dict)  # their standard errors
     coupling: sp.Coupling | None = None     # the spatial stages' state
 
 
@@ -97,27 +110,38 @@ def _check(c: _ImageCall) -> None:
         c.regions = regions
 
 
+def _shared(c: _ImageCall) -> None:
+    if not c.options.shared:
+        return
+    if c.keywords.get("irf") is not None:
+        raise OptionError("shared= holds the Gaussian PSF's parameters; with a measured response (irf=) it is "
+                          "not available")
+    if c.estimate is None:
+        c.estimate = image_estimate(c.cube, c.regions, c.time_bin_ps, c.method, c.options.shared,
+                                    psf_map=c.options.psf_map, keywords=c.keywords)
+    c.info["shared"] = c.estimate.record()
+
+
 def _per_pixel(c: _ImageCall) -> None:
-    c.result = decompose(c.cube, c.time_bin_ps, c.method, **c.keywords)
-
-
-def _not_yet(name):
-    def run(c: _ImageCall) -> None:
-        if (name == "shared" and c.options.shared) or (name == "spatial" and c.options.spatial):
-            raise OptionError(f"{name}= is not available in this build")
-    return run
+    if c.estimate is not None:
+        hold, stderr = c.estimate.hold(c.regions, c.window)
+        lead = c.cube.shape[:2]
+        c.hold = {k: np.broadcast_to(np.asarray(v, np.float64), lead) for k, v in hold.items()}
+        c.hold_stderr = {k: np.broadcast_to(np.asarray(v, np.float64), lead) for k, v in stderr.items()}
+    c.result = decompose_held(c.cube, c.time_bin_ps, c.method, hold=c.hold, hold_stderr=c.hold_stderr, **c.keywords)
+    c.result.info.update(c.info)
 
 
 def _spatial_spikes(c: _ImageCall) -> None:
     # before the coupling: the stages after it read the image with the spikes replaced
     if c.options.spatial and resolve_noise_model(c.keywords.get("noise", "auto"), c.cube) == "poisson":
-        c.result, _, c.cube = refit_spikes(c.cube, c.result, c.time_bin_ps, c.method, c.keywords)
+        c.result, _, c.cube = refit_spikes(c.cube, c.result, c.time_bin_ps, c.method, c.keywords, hold=c.hold)
 
 
 def _neighbour_starts(c: _ImageCall) -> None:
     if not c.options.spatial:
         return
-    c.coupling = sp.prepare_coupling(c.cube, c.result, c.time_bin_ps, c.method, c.keywords)
+    c.coupling = sp.prepare_coupling(c.cube, c.result, c.time_bin_ps, c.method, c.keywords, hold=c.hold)
     sp.neighbour_starts(c.coupling, c.options.spatial_options)
 
 
@@ -125,7 +149,9 @@ def _joint_refinement(c: _ImageCall) -> None:
     if not c.options.spatial:
         return
     sp.joint_refinement(c.coupling, c.options.spatial_options)
-    c.result = sp.coupled_result(c.coupling, c.result, c.options.spatial_options)
+    c.result = apply_held_stderr(sp.coupled_result(c.coupling, c.result, c.options.spatial_options), c.hold,
+                                 c.hold_stderr)
+    c.result.info["spatial"]["halo_pixels"] = halo_pixels(c.options.spatial_options)
 
 
 def _pooled_echoes(c: _ImageCall) -> None:
@@ -134,10 +160,22 @@ def _pooled_echoes(c: _ImageCall) -> None:
         c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=counts)
 
 
+def halo_pixels(spatial) -> int:
+    """How far (pixels, along y and x) the answer at a pixel reaches into the image with
+    ``spatial`` (as :func:`decompose_image` takes it; 0 without it): the spike test's
+    neighbours, then the coupling's reach (:func:`~decomposition.image.spatial.coupling_reach`),
+    then the pooled echoes' neighbourhood, one after the other.  A chunk read with this halo
+    around it gives its interior exactly as the whole image does."""
+    options = sp.spatial_options(spatial)
+    if options is None:
+        return 0
+    return SPIKE_WINDOW // 2 + sp.coupling_reach(options) + ECHO_WINDOW // 2
+
+
 #: The stages of :func:`decompose_image`, in order.
 IMAGE_STAGES = (
     ImageStage("check", _check, "the image's shape, the regions"),
-    ImageStage("shared", _not_yet("shared"), "estimate the shared parameters from all pixels"),
+    ImageStage("shared", _shared, "estimate the shared parameters once from all pixels (image.shared)"),
     ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
     ImageStage("spatial_spikes", _spatial_spikes,
                "count data: single-sample spikes above the pixel's own neighbours in time and its spatial "
@@ -151,7 +189,8 @@ IMAGE_STAGES = (
 
 
 def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, shared=(), regions=None,
-                    spatial: bool = False, **keywords) -> DecompositionResult:
+                    spatial: bool = False, psf_map: bool = False, estimate: SharedEstimate | None = None,
+                    window=None, **keywords) -> DecompositionResult:
     """Decompose an image of time profiles as one problem.
 
     Parameters
@@ -166,21 +205,30 @@ def decompose_image(cube, time_bin_ps: float = 2.0, method: str = "convscd", *, 
         Parameters estimated once from all pixels and held fixed in each pixel's fit
         (:data:`SHARED_NAMES`; ``"psf,delay,alpha"``).
     regions : ndarray (Y, X) of int, optional
-        With ``shared`` holding "alpha": one sss decay rate per label (default one for the image).
+        With ``shared`` holding "alpha": one sss decay rate per label >= 0 (default one for the
+        image); pixels labelled < 0 keep their own.
     spatial : bool, SpatialOptions or mapping
         Couple neighbouring pixels (:mod:`decomposition.image.spatial`): True for the defaults
         of :class:`~decomposition.image.spatial.SpatialOptions`, or those options.
+    psf_map : bool
+        The shared PSF as a smooth quadratic map over (y, x) (:class:`ImageOptions`).
+    estimate : SharedEstimate, optional
+        Shared values estimated before (a chunk of a larger image: the estimate of the whole
+        one, with ``window`` ((y0, y1), (x0, x1)) where the chunk lies and ``regions`` the
+        chunk's labels); default: estimated from ``cube``.
     **keywords
         Everything :func:`decomposition.decompose` takes.
 
     Returns
     -------
     DecompositionResult
-        Arrays shaped ``(Y, X, ...)``; ``info["shared"]`` holds the shared estimates and their
-        standard errors.
+        Arrays shaped ``(Y, X, ...)``; every held parameter equals its shared value (its
+        ``_stderr`` the shared one's); ``info["shared"]`` holds the shared estimates, their
+        standard errors and how many pixels each pooled (:meth:`SharedEstimate.record`).
     """
     call = _ImageCall(cube=np.asarray(cube), time_bin_ps=time_bin_ps, method=method,
-                      options=ImageOptions(shared=shared, spatial=spatial), regions=regions, keywords=keywords)
+                      options=ImageOptions(shared=shared, spatial=spatial, psf_map=psf_map), regions=regions,
+                      keywords=keywords, estimate=estimate, window=window)
     for stage in IMAGE_STAGES:
         stage.run(call)
     return call.result

@@ -55,12 +55,16 @@ from ..noise import anscombe, noise_sigma
 from ..stages.prepare import _count_threshold
 from ..stages.selection import data_term, log_samples, penalised
 
-__all__ = ["pooled_echoes", "spatial_spikes", "spike_free_landmarks", "refit_spikes", "replace_pixels", "aligned_neighbours", "ECHO_Z", "ECHO_WINDOW", "ECHO_GUARD_SIGMA"]
+__all__ = ["pooled_echoes", "spatial_spikes", "spike_free_landmarks", "refit_spikes", "replace_pixels", "aligned_neighbours", "ECHO_Z", "ECHO_WINDOW", "SPIKE_WINDOW", "ECHO_GUARD_SIGMA"]
 
+#: the grid the pool's PSF width is read on, ps (one matched filter per width on it)
+SIGMA_STEP_PS = 0.05
 #: pooled matched-filter significance an echo needs (sigma)
 ECHO_Z = 4.0
 #: the neighbourhood pooled (pixels a side, odd)
 ECHO_WINDOW = 5
+#: the neighbourhood the spike test asks (pixels a side, odd)
+SPIKE_WINDOW = 3
 #: an echo is searched this many PSF widths away from the pixel's fitted components and the
 #: window's edges (their residuals carry the fit's own small misfits)
 ECHO_GUARD_SIGMA = 4.0
@@ -120,6 +124,16 @@ def aligned_neighbours(fields, direct_delay_ps: np.ndarray, time_bin_ps: float, 
                     moved = np.where(valid, moved, 0)
                 out.append(moved)
             yield (dy, dx), valid, out
+
+
+def _pool_median(a: np.ndarray, window: int) -> np.ndarray:
+    """(Y, X) the NaN-ignoring median of ``a`` (Y, X) over each pixel's ``window`` x ``window``
+    neighbourhood (NaN where it holds no value)."""
+    h = window // 2
+    stack = [_shift_image(a, dy, dx, np.nan) for dy in range(-h, h + 1) for dx in range(-h, h + 1)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # all-NaN neighbourhoods: NaN
+        return np.nanmedian(np.stack(stack), axis=0)
 
 
 def _gaussian_taps(sigma_ps: float, time_bin_ps: float) -> np.ndarray:
@@ -196,7 +210,10 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     snr = np.full((Y, X), np.nan)
     if not np.isfinite(sig).any():
         return result, found, snr
-    sigma = float(np.nanmedian(sig))
+    # one instrument: the PSF width is the pool's median fitted width (read in the pool alone,
+    # so that a pixel's answer depends on its neighbourhood only), on a 0.05 ps grid
+    sigma = _pool_median(sig, window)
+    sigma = np.where(np.isfinite(sigma), np.round(sigma / SIGMA_STEP_PS) * SIGMA_STEP_PS, np.nan)
 
     pooled = np.zeros((Y, X, L))
     pooled_var = np.zeros((Y, X, L))
@@ -206,7 +223,7 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     # a neighbour leaves about its own echo must not pass for an echo the pool shares
     near = np.zeros((Y, X, L), bool)
     for _, valid, (r_o, m_o, a_o, c_o) in aligned_neighbours(
-            (resid, np.maximum(model, 0.0), a_d, _near_components(params, t, sigma)), d, T, window):
+            (resid, np.maximum(model, 0.0), a_d, _near_components(params, t, sigma[..., None])), d, T, window):
         pooled += r_o
         pooled_var += m_o
         amp_sum += a_o
@@ -217,10 +234,16 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     else:
         s = noise_sigma(pooled.reshape(-1, L)).reshape(Y, X)
         var = np.broadcast_to(np.maximum(s, np.finfo(float).tiny)[..., None] ** 2, pooled.shape)
-    g = _gaussian_taps(sigma, T)
-    num = correlate1d(pooled / var, g, axis=-1, mode="constant")
-    den = correlate1d(1.0 / var, g * g, axis=-1, mode="constant")
-    score = np.where(_window_guard(params, t, sigma) & ~near & (n_pool[..., None] > 0), num / np.sqrt(den), -np.inf)
+    num, den = np.zeros((Y, X, L)), np.ones((Y, X, L))
+    for width in np.unique(sigma[np.isfinite(sigma)]):
+        at = sigma == width
+        g = _gaussian_taps(float(width), T)
+        num[at] = correlate1d(pooled[at] / var[at], g, axis=-1, mode="constant")
+        den[at] = correlate1d(1.0 / var[at], g * g, axis=-1, mode="constant")
+    with np.errstate(invalid="ignore"):
+        usable = _window_guard(params, t, sigma[..., None]) & ~near & (n_pool[..., None] > 0) \
+            & np.isfinite(sigma)[..., None]
+    score = np.where(usable, num / np.sqrt(den), -np.inf)
     best = np.argmax(score, axis=-1)
     peak = np.take_along_axis(score, best[..., None], axis=-1)[..., 0]
     searched = np.isfinite(peak)
@@ -240,7 +263,8 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
         frac = np.where(np.isfinite(lo) & np.isfinite(hi) & (curv < 0),
                         0.5 * (lo - hi) / np.where(curv < 0, curv, -1.0), 0.0)
     tau = t[b] + T * np.clip(frac, -0.5, 0.5)
-    atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma) ** 2)                  # (n, L)
+    sigma = sigma[iy, ix]
+    atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma[:, None]) ** 2)          # (n, L)
     v = var[iy, ix] if counts else var[iy, ix]
     amp_pool = (num[iy, ix, b] / den[iy, ix, b])
     r_pool = pooled[iy, ix]
@@ -266,7 +290,7 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     keep &= amp > 0
     if not keep.any():
         return _with_info(result, 0), found, snr
-    iy, ix, tau, amp = iy[keep], ix[keep], tau[keep], amp[keep]
+    iy, ix, tau, amp, sigma = iy[keep], ix[keep], tau[keep], amp[keep], sigma[keep]
     found[iy, ix] = True
     return _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0), found, snr
 
@@ -327,7 +351,7 @@ def spike_free_landmarks(counts, time_bin_ps: float) -> tuple[np.ndarray, np.nda
     return onset, clip.sum(axis=-1)
 
 
-def spatial_spikes(counts, time_bin_ps: float, *, window: int = 3,
+def spatial_spikes(counts, time_bin_ps: float, *, window: int = SPIKE_WINDOW,
                    min_neighbours: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Single-sample spikes of a count image, told from narrow true components by the neighbours.
 
@@ -419,7 +443,8 @@ def replace_pixels(result: DecompositionResult, where: np.ndarray, sub: Decompos
     return DecompositionResult(interreflections=irs, params=params, info=dict(result.info), **arrays)
 
 
-def refit_spikes(cube, result: DecompositionResult, time_bin_ps: float, method: str, keywords: dict):
+def refit_spikes(cube, result: DecompositionResult, time_bin_ps: float, method: str, keywords: dict, *,
+                 hold: dict | None = None):
     """The spatial spike test (:func:`spatial_spikes`) on a count image and its decomposition:
     each spike is replaced by what the neighbours predict there (rounded: the sample then carries
     no weight of its own), the pixel is decomposed again and flagged SPIKE.
@@ -444,7 +469,8 @@ def refit_spikes(cube, result: DecompositionResult, time_bin_ps: float, method: 
     cleaned = np.array(x, copy=True)
     cleaned[spikes] = np.rint(predicted[spikes]).astype(cleaned.dtype) if np.issubdtype(cleaned.dtype, np.integer) \
         else np.rint(predicted[spikes])
-    again = decompose(cleaned[rows], time_bin_ps, method, **keywords)
+    held = {k: np.broadcast_to(np.asarray(v, np.float64), rows.shape)[rows] for k, v in (hold or {}).items()}
+    again = decompose(cleaned[rows], time_bin_ps, method, **keywords, **({"hold": held} if held else {}))
     out = replace_pixels(result, rows, again)
     mark(out.flags, rows, SPIKE)
     out.info.update(info)

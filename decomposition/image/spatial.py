@@ -28,7 +28,7 @@ Python loops run over neighbour offsets and sweeps):
    own precision 1 / stderr^2 the prior moves a well-determined delay by a fraction
    stderr^2 / (stderr^2 + 1 / precision) of the gap.
 
-The answer at a pixel depends only on the data within :func:`halo_pixels` pixels of it (one
+The answer at a pixel depends only on the data within :func:`coupling_reach` pixels of it (one
 pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
 halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
@@ -40,7 +40,7 @@ errors reported are those of the pixel's own data at the final fit (the prior no
 from __future__ import annotations
 
 import inspect
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -55,7 +55,7 @@ from ..stages.quality import assess_fit
 from ..stages.refit import component_errors, sample_weights
 from ..stages.selection import data_term, families, free_parameters, log_samples, penalised
 
-__all__ = ["SpatialOptions", "spatial_options", "halo_pixels", "Coupling", "prepare_coupling",
+__all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling",
            "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt"]
 
 #: the 8 neighbours' offsets (dy, dx)
@@ -109,10 +109,10 @@ def spatial_options(spatial) -> SpatialOptions | None:
     raise OptionError(f"spatial: must be true, false, a SpatialOptions or a mapping of its options, got {spatial!r}")
 
 
-def halo_pixels(options: SpatialOptions) -> int:
+def coupling_reach(options: SpatialOptions) -> int:
     """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
-    neighbour starts read the 8 neighbours (1), each sweep the ``radius`` neighbourhood.  A chunk
-    read with this halo around it gives its interior exactly as the whole image does."""
+    neighbour starts read the 8 neighbours (1), each sweep the ``radius`` neighbourhood (the
+    image path's whole reach, its halo, is :func:`decomposition.image.api.halo_pixels`)."""
     return int(options.neighbour_starts) + options.sweeps * options.radius
 
 
@@ -135,6 +135,7 @@ class Coupling:
     live: np.ndarray        # (P,) bool: decomposed pixels
     resolved: np.ndarray    # (P,) bool: the search's AMBIGUOUS resolved by the neighbours
     info: dict
+    hold: dict = field(default_factory=dict)   # {HOLD_KEYS: (P,)}: parameters every fit keeps (shared=)
 
 
 def _decompose_default(name):
@@ -142,9 +143,10 @@ def _decompose_default(name):
 
 
 def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps: float, method: str,
-                     keywords: dict) -> Coupling:
+                     keywords: dict, *, hold: dict | None = None) -> Coupling:
     """The samples of ``cube`` (Y, X, L) prepared as :func:`decompose` prepared them for
-    ``result`` (its keywords), and ``result``'s parameters flattened to P = Y X pixels."""
+    ``result`` (its keywords), and ``result``'s parameters flattened to P = Y X pixels;
+    ``hold`` ({HOLD_KEYS: (Y, X)}) the parameters every refit keeps (the shared ones)."""
     kw = dict(keywords)
     if kw.pop("irf", None) is not None:
         raise OptionError("spatial: works with the Gaussian PSF, not with a measured response (irf=)")
@@ -169,7 +171,8 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
     bounds = shape_bounds(grid, opts.bound_factor)
     return Coupling(shape=(Y, X), samples=samples, opts=opts, grid=grid, physics=physics,
                     widths="shared" if physics["shared_sigma"] else "per_atom", bounds=bounds, params=params,
-                    flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={})
+                    flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={},
+                    hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()})
 
 
 def _noise2(c: Coupling) -> np.ndarray:
@@ -207,7 +210,8 @@ def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, pri
     fit_bg = (np.isfinite(start[BACKGROUND_KEY]) & (start[BACKGROUND_KEY] != 0)) if BACKGROUND_KEY in start else False
     out, _ = refine(s.values[rows], start, time_bin_ps=s.axis.time_bin_ps, t0_ps=s.axis.t0_ps, weights=weights,
                     fit_background=fit_bg, sigma_bounds_ps=tuple(np.exp(c.bounds["lsig"])),
-                    alpha_bounds_per_ps=tuple(np.exp(c.bounds["lalp"])), delay_prior=prior, **c.physics)
+                    alpha_bounds_per_ps=tuple(np.exp(c.bounds["lalp"])), delay_prior=prior,
+                    hold={k: v[rows] for k, v in c.hold.items()} or None, **c.physics)
     return out
 
 
@@ -364,7 +368,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
 
 def _stderr(c: Coupling, params: dict) -> np.ndarray:
     """(P,) the direct delay's standard error from the pixel's own data at ``params``, ps."""
-    errs = component_errors(c.samples, params, **c.physics)
+    errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
     return np.asarray(errs["direct_delay_ps_stderr"], np.float64).reshape(-1)
 
 
@@ -415,12 +419,12 @@ def coupled_result(c: Coupling, result: DecompositionResult, options: SpatialOpt
     for k, v in c.params.items():
         params[k] = v.reshape((Y, X) + v.shape[1:])
     if "direct_delay_ps_stderr" in params:
-        errs = component_errors(s, c.params, **c.physics)
+        errs = component_errors(s, c.params, **c.physics, hold=c.hold or None)
         for k, v in errs.items():
             params[k] = np.asarray(v).reshape((Y, X) + np.shape(v)[1:])
     R = fit.interreflections.shape[1]
     info = dict(result.info)
-    info["spatial"] = dict(asdict(options), halo_pixels=halo_pixels(options), **c.info)
+    info["spatial"] = dict(asdict(options), coupling_reach=coupling_reach(options), **c.info)
     live = c.live[:, None]
     return DecompositionResult(
         direct=np.where(live, fit.direct, result.direct.reshape(P, L)).reshape(Y, X, L),

@@ -33,7 +33,7 @@ import numpy as np
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from ..constants import SSS_SLOT
 from ..kernels.derivatives import kernel_derivatives
-from .refine import apply_weights, slot_arrays
+from .refine import apply_weights, check_hold, held_slots, slot_arrays
 from .varpro import CHUNK_PIXELS, design_rows
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
@@ -136,11 +136,12 @@ def _onset_at_direct(slots):
 
 
 def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
-                      tie_onset=False, offset=None):
+                      tie_onset=False, offset=None, fixed=None):
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information.
 
     ``offset`` (n,) bool: pixels with a fitted constant offset, one more row and column (last,
-    of ones: the offset divided by the same scale); without it the matrices are P x P."""
+    of ones: the offset divided by the same scale); without it the matrices are P x P.
+    ``fixed`` (n, 3K+1) bool: parameters held at known values (no column, not free)."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
     n, k = slots["present"].shape
@@ -168,6 +169,13 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
             rows[on, 0] += rows[on, 3 * SSS_SLOT]
             rows[on, 3 * SSS_SLOT] = 0.0
             fr[on, 3 * SSS_SLOT] = False
+        if fixed is not None:
+            fx = np.zeros(fr.shape, bool)
+            fx[:, :fixed.shape[1]] = fixed[ch]
+            if shared_sigma:       # the tied width sits in the first present slot's sigma row
+                fx[np.arange(fx.shape[0]), 3 * tied[ch] + 2] |= fixed[ch][:, _sigma_rows(k)].any(axis=1)
+            rows[fx] = 0.0
+            fr &= ~fx
         info[ch] = rows @ rows.swapaxes(-1, -2)
         free[ch] = fr
     slots["tied_slot"] = tied if shared_sigma else None
@@ -270,9 +278,10 @@ def _to_dict(std, slots, lead, suffix):
 
 
 def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False,
-           tie_onset=False, offset=None):
+           tie_onset=False, offset=None, fixed=None):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
-                                                            bin_integrated, sw, shared_sigma, tie_onset, offset)
+                                                            bin_integrated, sw, shared_sigma, tie_onset, offset,
+                                                            fixed)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
     std_unit = std_unit[:, :3 * slots["present"].shape[1] + 1]   # the offset's own is not reported
     if tie_onset:
@@ -330,7 +339,8 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
 
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                     weights=None, shared_sigma: bool = False, sss_after_direct: bool = False,
-                    bin_integrated: bool = False, noise_sigma=None, offset=None) -> dict[str, np.ndarray]:
+                    bin_integrated: bool = False, noise_sigma=None, offset=None,
+                    hold=None) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     Unless ``noise_sigma`` gives it, the noise level of each pixel is estimated from its
@@ -371,6 +381,10 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         ``profiles``: one more parameter, a column of ones, whose uncertainty enters the
         components' errors (an offset and a slow sss tail are partly the same light).  Its
         own error is not returned.
+    hold : dict, optional
+        Parameters the fit held at given values (``hold=`` of
+        :func:`decomposition.model.refine.refine`; only which pixels hold which matters):
+        they are no parameters of the information, and their own errors are NaN.
 
     Returns
     -------
@@ -416,13 +430,25 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
     if sss_after_direct:
         n_fitted = n_fitted - _onset_at_direct(slots)
+    fixed = None
+    hold = check_hold(hold, lead)
+    if hold:
+        k = present.shape[1]
+        d_held, s_held, a_held = held_slots(hold, n, k)
+        fixed = np.zeros((n, 3 * k + 1), bool)
+        fixed[:, 3 * np.arange(k)] = d_held & present
+        fixed[:, _sigma_rows(k)] = s_held[:, None] & present
+        fixed[:, 3 * k] = a_held & present[:, SSS_SLOT]
+        n_sigma = 1 if shared_sigma else present.sum(axis=-1)
+        n_fitted = n_fitted - fixed[:, 3 * np.arange(k)].sum(axis=1) - fixed[:, 3 * k] \
+            - np.where(s_held & present.any(axis=1), n_sigma, 0)
     dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
     if noise_sigma is not None:
         noise = np.where(dof > 0, _noise(noise_sigma, lead), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct, offset)
+                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct, offset, fixed)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

@@ -34,7 +34,14 @@ from ..kernels.derivatives import kernel_derivatives  # noqa: F401  (public here
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .varpro import Layout, refine_block
 
-__all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots", "apply_weights"]
+__all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots", "apply_weights", "HOLD_KEYS",
+           "check_hold", "hold_params", "held_slots"]
+
+#: The parameters a fit can hold at given values (``hold=`` of :func:`refine`, of
+#: :func:`decomposition.model.fisher.standard_errors` and of :func:`decomposition.decompose`):
+#: ``sigma_ps`` every component's width (the PSF), ``direct_delay_ps`` the direct's onset,
+#: ``sss_delay_ps`` the sss onset, ``sss_alpha_per_ps`` the sss decay rate.
+HOLD_KEYS = ("sigma_ps", "direct_delay_ps", "sss_delay_ps", "sss_alpha_per_ps")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -122,6 +129,72 @@ def params_from_slots(slots: dict, lead_shape: tuple) -> dict[str, np.ndarray]:
 
 
 
+def check_hold(hold, lead_shape: tuple) -> dict:
+    """``hold`` ({key of :data:`HOLD_KEYS`: values}) -> {key: float64 (n,)}, n = prod(lead_shape).
+
+    Each value is a scalar or an array broadcastable to ``lead_shape``; NaN leaves that pixel's
+    parameter free.  Widths and decay rates must be positive.  Raises ValueError naming the
+    problem (an unknown key, a shape that does not broadcast, an inf or non-positive value).
+    """
+    lead_shape = tuple(lead_shape)
+    n = int(np.prod(lead_shape, dtype=np.int64))
+    out = {}
+    for key, value in dict(hold or {}).items():
+        if key not in HOLD_KEYS:
+            raise ValueError(f"hold: unknown parameter {key!r}; choose from {', '.join(HOLD_KEYS)}")
+        try:
+            v = np.broadcast_to(np.asarray(value, dtype=np.float64), lead_shape).reshape(n)
+        except ValueError:
+            raise ValueError(f"hold[{key!r}]: shape {np.shape(value)} does not fit the pixels' {lead_shape}") from None
+        if np.isinf(v).any():
+            raise ValueError(f"hold[{key!r}]: values must be finite (NaN: free), got inf")
+        if key in ("sigma_ps", "sss_alpha_per_ps") and np.any(v[np.isfinite(v)] <= 0):
+            raise ValueError(f"hold[{key!r}]: values must be > 0")
+        out[key] = v
+    return out
+
+
+def held_slots(hold: dict, n: int, k: int):
+    """Per-slot masks and values of a checked ``hold`` (:func:`check_hold`, n pixels, K slots):
+    -> (delay (n, K) bool, sigma (n,) bool, alpha (n,) bool): each slot's delay, every width of
+    the pixel, the sss decay rate."""
+    delay = np.zeros((n, k), bool)
+    for slot, key in ((0, "direct_delay_ps"), (SSS_SLOT, "sss_delay_ps")):
+        if key in hold:
+            delay[:, slot] = np.isfinite(hold[key])
+    sigma = np.isfinite(hold["sigma_ps"]) if "sigma_ps" in hold else np.zeros(n, bool)
+    alpha = np.isfinite(hold["sss_alpha_per_ps"]) if "sss_alpha_per_ps" in hold else np.zeros(n, bool)
+    return delay, sigma, alpha
+
+
+def hold_params(params: dict, hold, lead_shape: tuple) -> dict:
+    """``params`` with the held values (:func:`check_hold`) put in where the component is present
+    (a new dict; absent components stay NaN)."""
+    lead_shape = tuple(lead_shape)
+    hold = check_hold(hold, lead_shape)
+    if not hold:
+        return params
+    n = int(np.prod(lead_shape, dtype=np.int64))
+    out = dict(params)
+
+    def put(key, value, extra=()):
+        if key not in out:
+            return
+        v = np.array(out[key], dtype=np.float64).reshape((n,) + extra)
+        val = value.reshape((n,) + (1,) * len(extra))
+        out[key] = np.where(np.isfinite(v) & np.isfinite(val), val, v).reshape(lead_shape + extra)
+
+    if "sigma_ps" in hold:
+        put("direct_sigma_ps", hold["sigma_ps"])
+        put("sss_sigma_ps", hold["sigma_ps"])
+        if "ir_sigma_ps" in out:
+            put("ir_sigma_ps", hold["sigma_ps"], np.shape(out["ir_sigma_ps"])[len(lead_shape):])
+    for key in ("direct_delay_ps", "sss_delay_ps", "sss_alpha_per_ps"):
+        if key in hold:
+            put(key, hold[key])
+    return out
+
+
 def apply_weights(y, weights):
     """Validate per-sample weights against profiles ``y`` (..., L).
 
@@ -142,7 +215,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
-           bin_integrated: bool = False, fit_background=False, delay_prior=None):
+           bin_integrated: bool = False, fit_background=False, delay_prior=None, hold=None):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -200,6 +273,12 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         units of ``profiles`` squared per ps^2, i.e. the RSS-units precision of the prior;
         0 or NaN: none).  A neighbourhood's estimate of the delay, weighed against the pixel's
         own samples (:mod:`decomposition.image.spatial`).
+    hold : dict, optional
+        Parameters held at given values ({key of :data:`HOLD_KEYS`: scalar or array
+        broadcastable to (...,)}, NaN: free for that pixel): put into the start and never moved
+        (the amplitudes and the other parameters are fitted around them), even outside the
+        bounds.  Used for parameters every pixel shares (one instrument, one onset, one decay
+        rate; :mod:`decomposition.image.shared`).
 
     Returns
     -------
@@ -241,6 +320,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     if not (0 < a_lo < a_hi and np.isfinite(a_hi)):
         raise ValueError(f"alpha_bounds_per_ps must satisfy 0 < low < high < inf, got {alpha_bounds_per_ps}")
 
+    hold = check_hold(hold, lead)
+    params = hold_params(params, hold, lead)
     slots = slot_arrays(params, lead)
     y = y.reshape(-1, n_bins)
     n = y.shape[0]
@@ -259,6 +340,10 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     lay = Layout(k, shared_sigma)
     span = n_bins * float(time_bin_ps)
     lo, hi = lay.bounds((t[0] - span, t[-1] + span), (np.log(s_lo), np.log(s_hi)), (np.log(a_lo), np.log(a_hi)))
+    held = None
+    if hold:
+        d_held, s_held, a_held = held_slots(hold, n, k)
+        held = lay.held(d_held, s_held, a_held)
 
     # Per-pixel normalisation: parameters are scale-free, amplitudes scale.
     scale = np.max(np.abs(y), axis=-1)
@@ -286,7 +371,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         with np.errstate(under="ignore"):
             out, inf = refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
                                      int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
-                                     bool(sss_after_direct), bool(keep_order))
+                                     bool(sss_after_direct), bool(keep_order),
+                                     None if held is None else held[sl])
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],
@@ -298,7 +384,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         info["rss"][sl] = inf["rss"] * sc * sc
     res["present"] = slots["present"]
     res["n_ir"] = slots["n_ir"]
-    out_params = params_from_slots(res, lead)
+    # held values exactly as given (the log-space round trip would move them by an ulp)
+    out_params = hold_params(params_from_slots(res, lead), hold, lead)
     if has_bg:
         b_nan = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(n) if BACKGROUND_KEY in params else np.full(n, np.nan)
         # an absent (NaN) offset stays absent unless it was fitted

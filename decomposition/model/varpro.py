@@ -191,6 +191,13 @@ class Layout:
             sigma = np.exp(theta[:, k:2 * k])
         return theta[:, :k], sigma, np.exp(theta[:, -1])
 
+    def held(self, delay, sigma, alpha):
+        """(n, P) bool: the parameters held, from ``delay`` (n, K) bool (each slot's delay),
+        ``sigma`` (n,) bool (every width of the pixel) and ``alpha`` (n,) bool."""
+        n_sig = 1 if self.shared else self.k
+        sig = np.repeat(np.asarray(sigma, bool)[:, None], n_sig, axis=1)
+        return np.concatenate([np.asarray(delay, bool), sig, np.asarray(alpha, bool)[:, None]], axis=1)
+
     def truncated(self, k_eff):
         """Layout of the first ``k_eff`` slots and the indices of its parameters in this one."""
         key = (k_eff, self.shared)
@@ -332,13 +339,16 @@ def _with_prior(prior, theta, rss, a=None, g=None):
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
-                  keep_order=True):
+                  keep_order=True, held=None):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
     never-worse reference uses them); the returned ``background`` is the fitted offset there
     (the input where the refined values were not kept) and 0 elsewhere.  With a delay prior
-    (``delay_prior_mean``, ``delay_prior_weight``; module docstring) ``rss`` includes its term."""
+    (``delay_prior_mean``, ``delay_prior_weight``; module docstring) ``rss`` includes its term.
+    ``held`` (n, P) bool
+    (P of ``lay``): parameters kept at their input value, outside the bounds too (no
+    derivative column, no step); the amplitudes are still solved."""
     n = y.shape[0]
     present = slots["present"]
     prior = _delay_prior(slots, present)
@@ -347,15 +357,18 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         bg = np.asarray(bg, bool)
         if not bg.any():
             bg = None
-    free = lay.free(present)
+    used = lay.free(present)
+    free = used if held is None else used & ~np.asarray(held, bool)
     lo, hi = bounds
     theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
-    theta = np.where(free, theta, 0.0)
-    theta = np.clip(theta, lo, hi)
+    theta = np.where(used, theta, 0.0)
+    given = theta
+    theta = np.where(free, np.clip(theta, lo, hi), theta)
     if sss_after_direct:
         theta = _onset_after_direct(theta, present)
     if keep_order:
         theta = _keep_order(theta, present)
+    theta = np.where(free, theta, given)
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -404,7 +417,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             trial = _onset_after_direct(trial, present[idx])
         if keep_order:
             trial = _keep_order(trial, present[idx])
-        trial = np.where(fr, trial, 0.0)
+        trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx], None if bg is None else bg[idx])
         rss_t = _with_prior(None if prior is None else (prior[0][idx], prior[1][idx]), trial, rss_t, a_t, g_t)

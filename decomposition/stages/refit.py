@@ -27,7 +27,7 @@ from .prepare import Samples
 from ..model.slots import select_rows
 from .background import background_significant, background_test, background_threshold, light_test, offset_alone
 from ..model.fisher import standard_errors
-from ..model.refine import refine
+from ..model.refine import hold_params, refine
 
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
@@ -50,7 +50,7 @@ def _model(samples: Samples, params: dict, irf=None) -> np.ndarray:
 
 
 def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
-                      background_chi2: float | None = None, bounds: dict | None = None):
+                      background_chi2: float | None = None, bounds: dict | None = None, hold: dict | None = None):
     """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
 
     ``bounds`` ({"lsig", "lalp"}: log sigma_ps and log alpha_per_ps, as the solver's
@@ -65,8 +65,14 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     likelihood-ratio statistic of :func:`background_stats`), it is set to 0 and the pixel
     refitted without it.  ``info`` then also holds ``background_chi2`` (the statistic) and
     ``background_stderr`` (units of the profiles; NaN where the offset was left out).
+
+    ``hold`` ({key of :data:`decomposition.model.refine.HOLD_KEYS`: (P,) values, NaN free}):
+    parameters put in at the start and held there (:func:`decomposition.model.refine.refine`);
+    the never-worse rule of the count data's refits compares with that held start.
     """
     axis = samples.axis
+    if hold:
+        params = hold_params(params, hold, (samples.values.shape[0],))
     n_fits = POISSON_REFITS if samples.noise_model == "poisson" else 1
     P = samples.values.shape[0]
     iterations = np.zeros(P, np.int64)
@@ -91,7 +97,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
         for _ in range(n_fits):
             new, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                                 weights=sample_weights(samples, params), shared_sigma=shared_sigma,
-                                sss_after_direct=sss_after_direct, fit_background=fit_bg, **limits)
+                                sss_after_direct=sss_after_direct, fit_background=fit_bg, hold=hold, **limits)
             nonlocal iterations, refined
             iterations += rinfo["iterations"].reshape(-1)
             refined |= rinfo["refined"].reshape(-1)
@@ -172,8 +178,11 @@ def background_stats(samples: Samples, params: dict, irf=None):
                            irf=irf)
 
 
-def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool) -> dict:
-    """``<key>_stderr`` arrays for ``params`` (in the input's leading shape)."""
+def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
+                     hold: dict | None = None) -> dict:
+    """``<key>_stderr`` arrays for ``params`` (in the input's leading shape); ``hold`` (P,)-shaped
+    values of the parameters the fit held (:func:`refine_components`): not parameters of the
+    information, their errors NaN."""
     axis = samples.axis
     shape = samples.lead + (samples.n_bins,)
     n_pix = samples.values.shape[0]
@@ -198,4 +207,5 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
         weights = samples.weights
     return standard_errors(values.reshape(shape), comp_params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                            weights=weights.reshape(shape), shared_sigma=shared_sigma,
-                           sss_after_direct=sss_after_direct, noise_sigma=noise, offset=offset)
+                           sss_after_direct=sss_after_direct, noise_sigma=noise, offset=offset,
+                           hold=None if not hold else {k: np.reshape(v, samples.lead) for k, v in hold.items()})

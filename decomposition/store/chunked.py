@@ -19,7 +19,7 @@ truncated to the ``n_ir`` earliest.  The chunk summary counts the pixels that ha
 inter-reflections than were kept (truncated here, or flagged TRUNCATED by the solver).
 
 Spatial coupling (``spatial=``, :mod:`decomposition.image.spatial`): a pixel's answer then depends
-on its neighbours' data within :func:`decomposition.image.spatial.halo_pixels` pixels, so each task
+on its neighbours' data within :func:`decomposition.image.halo_pixels` pixels, so each task
 reads its chunk with that halo around it (clipped at the image's borders), decomposes the haloed
 block as one image (:func:`decomposition.image.decompose_image`) and keeps the chunk's interior:
 the same answer as one call on the whole image.
@@ -62,20 +62,19 @@ def _image_solver():
 
 
 def _halo(spatial) -> int:
-    from decomposition.image.spatial import halo_pixels, spatial_options
+    from decomposition.image import halo_pixels
 
-    options = spatial_options(spatial)
-    return 0 if options is None else halo_pixels(options)
+    return halo_pixels(spatial)
 
 
-def _solve_image(full, interior, keep, *, time_bin_ps, t0_ps, method, components, spatial, options):
+def _solve_image(full, interior, keep, *, time_bin_ps, method, spatial, shared_image=None, **keywords):
     """The coupled decomposition of the haloed block ``full`` (Y, X, L) cropped to ``interior``
     (two slices) and to the pixels ``keep`` (flat, bool) of it: arrays shaped as the per-pixel
-    solver's on the kept pixels."""
+    solver's on the kept pixels (``shared_image``: :func:`solve_block`)."""
     from decomposition.api import DecompositionResult
 
-    res = _image_solver()(full, time_bin_ps, method, spatial=spatial, t0_ps=t0_ps, nan_policy="omit",
-                          **({"components": tuple(components)} if components is not None else {}), **(options or {}))
+    keywords = dict(keywords, nan_policy="omit")
+    res = _image_solver()(full, time_bin_ps, method, spatial=spatial, **(shared_image or {}), **keywords)
 
     def crop(a):
         a = np.asarray(a)[interior]
@@ -110,7 +109,8 @@ def fit_ir_slots(a, n_ir: int, axis: int, fill) -> np.ndarray:
 
 def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method: str = "convscd",
                 components=None, n_ir: int = 2, with_components: bool = True, options: dict | None = None,
-                spatial=None, interior=None) -> dict:
+                spatial=None, interior=None, hold: dict | None = None, hold_stderr: dict | None = None,
+                shared_image: dict | None = None) -> dict:
     """Decompose every pixel of one block.
 
     Parameters
@@ -128,6 +128,13 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
         Passed to :func:`decomposition.decompose` (``options`` as keywords).
     n_ir : int
         Inter-reflection slots R kept per pixel.
+    hold, hold_stderr : dict, optional
+        Parameters every pixel holds and their errors ({key: (by, bx)}, from the whole cube's
+        :class:`decomposition.image.shared.SharedEstimate`; :func:`decomposition.image.shared.decompose_held`).
+    shared_image : dict, optional
+        With ``spatial``: the keywords ``shared``, ``estimate``, ``window`` and ``regions`` of
+        :func:`decomposition.image.decompose_image` for the haloed block (the whole cube's
+        estimate, where the block lies in it).
     with_components : bool
         Also return the rendered component profiles and the residual.
 
@@ -161,14 +168,22 @@ def solve_block(block, *, time_bin_ps: float, t0_ps: float | None = None, method
     comps = {}
     truncated = poor = 0
     if n_ok:
+        kwargs = dict(time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
+                      **({"components": tuple(components)} if components is not None else {}), **(options or {}))
         if spatial is not None and spatial is not False:
-            res = _solve_image(full, tuple(interior or (slice(None), slice(None))), keep, time_bin_ps=time_bin_ps,
-                               t0_ps=t0_ps, method=method, components=components, spatial=spatial, options=options)
+            res = _solve_image(full, tuple(interior or (slice(None), slice(None))), keep, spatial=spatial,
+                               shared_image=shared_image, **kwargs)
         else:
             prof = flat if n_ok == flat.shape[0] else flat[keep]
-            res = _solver()(prof, time_bin_ps=time_bin_ps, t0_ps=t0_ps, method=method,
-                            **({"components": tuple(components)} if components is not None else {}),
-                            **(options or {}))
+            if hold:
+                from decomposition.image.shared import decompose_held
+
+                def rows(values):
+                    return {k: np.asarray(v, np.float64).reshape(-1)[keep] for k, v in values.items()}
+
+                res = decompose_held(prof, hold=rows(hold), hold_stderr=rows(hold_stderr), **kwargs)
+            else:
+                res = _solver()(prof, **kwargs)
         for k, v in res.params.items():
             v = np.asarray(v, dtype=np.float64)
             if v.ndim == 2:  # per inter-reflection slot
@@ -225,8 +240,8 @@ def _fill_missing_params(result: dict, param_shapes: dict) -> dict:
     return result
 
 
-def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs, interior=None):
-    result = _fill_missing_params(solve_block(block, interior=interior, **solve_kwargs), param_shapes)
+def _solve_and_sink(block, iy, ix, sink, param_shapes, solve_kwargs, interior=None, held=None):
+    result = _fill_missing_params(solve_block(block, interior=interior, **solve_kwargs, **(held or {})), param_shapes)
     stats = result.pop("stats")
     sink(iy, ix, result)
     return {"iy": iy, "ix": ix, **stats}
@@ -246,7 +261,8 @@ def rechunk_pixels(cube, chunks) -> "da.Array":
     return cube
 
 
-def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve_kwargs) -> list:
+def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, shared=None, regions=None,
+                **solve_kwargs) -> list:
     """One dask task per pending pixel chunk: read the block, solve it, ``sink(iy, ix, result)``.
 
     Parameters
@@ -262,6 +278,9 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
         finite pixel NaN parameters of the right names.
     pending : iterable of (iy, ix), optional
         Chunks to compute (default: all).
+    shared : decomposition.image.shared.SharedEstimate, optional
+        Parameters every pixel holds, estimated before from the whole cube; each task gets its
+        chunk's held values (with ``regions``, the cube's (y, x) labels, for a decay rate per region).
     **solve_kwargs
         Keywords of :func:`solve_block`; with ``spatial``, each task reads its chunk with the
         coupling's halo (module docstring).
@@ -277,19 +296,31 @@ def chunk_tasks(cube, *, chunks, sink, param_shapes: dict, pending=None, **solve
     if pending is None:
         pending = [(iy, ix) for iy in range(gy) for ix in range(gx)]
     token = dask.base.tokenize(arr.name, sink, sorted(solve_kwargs.items(), key=str))
+    if shared is not None:
+        token = dask.base.tokenize(token, shared.record(), None if regions is None else np.asarray(regions))
     halo = _halo(solve_kwargs.get("spatial"))
     ny, nx = arr.shape[:2]
     y_edges, x_edges = np.cumsum((0,) + arr.chunks[0]), np.cumsum((0,) + arr.chunks[1])
     tasks = []
     for iy, ix in pending:
-        block, interior = blocks[iy, ix, 0], None
+        y0, y1, x0, x1 = int(y_edges[iy]), int(y_edges[iy + 1]), int(x_edges[ix]), int(x_edges[ix + 1])
+        block, interior, window = blocks[iy, ix, 0], None, ((y0, y1), (x0, x1))
         if halo:
-            y0, y1, x0, x1 = int(y_edges[iy]), int(y_edges[iy + 1]), int(x_edges[ix]), int(x_edges[ix + 1])
-            hy0, hx0 = max(0, y0 - halo), max(0, x0 - halo)
-            block = arr[hy0:min(ny, y1 + halo), hx0:min(nx, x1 + halo)]
+            hy0, hy1, hx0, hx1 = max(0, y0 - halo), min(ny, y1 + halo), max(0, x0 - halo), min(nx, x1 + halo)
+            block = arr[hy0:hy1, hx0:hx1]
             interior = (slice(y0 - hy0, y1 - hy0), slice(x0 - hx0, x1 - hx0))
+            window = ((hy0, hy1), (hx0, hx1))
+        held = None
+        if shared is not None:
+            labels = None if regions is None else np.asarray(regions)[slice(*window[0]), slice(*window[1])]
+            if halo:      # the haloed block decomposed as one image, holding the cube's estimate
+                held = {"shared_image": {"shared": shared.names, "estimate": shared, "window": window,
+                                         "regions": labels}}
+            else:
+                hold, err = shared.hold(labels, window)
+                held = {"hold": hold, "hold_stderr": err}
         tasks.append(dask.delayed(_solve_and_sink, pure=False)(
-            block, iy, ix, sink, param_shapes, solve_kwargs, interior,
+            block, iy, ix, sink, param_shapes, solve_kwargs, interior, held,
             dask_key_name=f"decompose-chunk-{token}-{iy}-{ix}"))
     return tasks
 

@@ -256,13 +256,22 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                        scheduler: str | None = None, threads: int | None = None, n_ir: int = 3,
                        write_components: bool = True, nan_policy: str = "omit", resume: bool = False,
                        overwrite: bool = False, time_bin_ps: float | None = None, t0_ps: float | None = None,
-                       progress: bool = True, stream=None, tls=None, irf="auto", spatial=None) -> dict:
+                       progress: bool = True, stream=None, tls=None, irf="auto", spatial=None, shared=(),
+                       regions=None, psf_map: bool = False) -> dict:
     """Decompose a cube (or .npy array) chunk by chunk into a result store.
 
     ``spatial`` (True, a :class:`decomposition.image.spatial.SpatialOptions` or a mapping of its
     fields) couples neighbouring pixels: each chunk is read with the coupling's halo and gives
     the answer of one call on the whole image (:mod:`decomposition.store.chunked`).  Its options
     are part of the job a ``--resume`` must match.
+
+    ``shared`` ("psf,delay,alpha" or a subset), ``regions`` (a .npy path or a (y, x) integer
+    array of labels: one sss decay rate per label) and ``psf_map``: the parameters every pixel
+    shares (:func:`decomposition.image.decompose_image`), estimated ONCE before any chunk runs
+    from a deterministic subsample of the whole cube (:mod:`decomposition.image.shared`),
+    written to the store's ``shared`` attribute with their standard errors, and held in every
+    chunk.  A ``--resume`` reads them back from that attribute (the job records the names, the
+    map option and the sha256 of the labels), so a resumed run holds the identical values.
 
     ``irf`` chooses the instrument response (see :func:`resolve_pipeline_response`): "auto"
     (default) the response stored in the cube's ``irf`` group when it has one, else the
@@ -318,13 +327,19 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise PipelineError(f"--option max_reflections={options['max_reflections']} contradicts "
                            f"--max-interreflections {n_ir}; give only --max-interreflections")
     options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
+    names, regions = _shared_settings(shared, regions, psf_map)
     out_path = str(Path(out_path).resolve())
 
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
         input_path, time_bin_ps=time_bin_ps, t0_ps=t0_ps, chunks=chunks)
     ny, nx, nt = arr.shape
+    if regions is not None and regions.shape != (ny, nx):
+        raise PipelineError(f"--regions: the labels have shape {regions.shape}, the cube's image is {(ny, nx)}")
     law_source = _apply_noise_law(method, options, source["attrs"])
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
+    if names and response is not None:
+        raise PipelineError("--shared holds the Gaussian PSF's parameters; it does not work with a measured "
+                            "response (use --irf gaussian, or leave --shared out)")
     irf_attrs = {"kind": "gaussian"}
     if response is not None:
         from decomposition.response.resolve import response_record
@@ -356,6 +371,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         if response is not None:
             raise PipelineError("--spatial works with the Gaussian PSF; give --irf gaussian, or leave --spatial out")
         job["spatial"] = dataclasses.asdict(spatial_opts)
+    if names:                            # absent without --shared: older stores resume as before
+        job["shared"] = list(names)
+        job["psf_map"] = bool(psf_map)
+        job["regions_sha256"] = (None if regions is None
+                                 else hashlib.sha256(np.ascontiguousarray(regions, np.int64).tobytes()).hexdigest())
     if existing is not None:
         _check_same_job(existing, job, out_path)
     else:
@@ -393,6 +413,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             raise PipelineError(f"{input_path}: {bad} of {ny * nx} pixels have NaN or inf samples; "
                                f"use --nan-policy mark to decompose the rest and mark those invalid")
 
+    estimate = None
+    if names:
+        estimate = _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components,
+                                    solver_options, out_path)
     client = cluster = None
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
@@ -404,6 +428,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                      "solver_info": _jsonable(info), "nan_policy": nan_policy,
                      "software_version": __version__, "source": source, "job": job, "irf": irf_attrs,
                      "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+            if estimate is not None:
+                attrs["shared"] = _jsonable(estimate.record())
             try:
                 store = create_result_store(out_path, shape=(ny, nx, nt), chunks=chunks, n_ir=n_ir, time_bin_ps=tb,
                                             t0_ps=t0, param_keys=map_keys, ir_param_keys=ir_keys,
@@ -423,6 +449,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         tasks = chunk_tasks(arr, chunks=chunks, sink=ChunkWriter(out_path), param_shapes=param_shapes,
                             pending=pending, time_bin_ps=tb, t0_ps=t0, method=method, components=components,
                             n_ir=int(n_ir), with_components=write_components, options=solver_options,
+                            shared=estimate, regions=regions,
                             **({"spatial": spatial_opts} if spatial_opts is not None else {}))
         pending_pixels = int(sum(_region_pixels(store, iy, ix) for iy, ix in pending))
         if progress and resume and existing is not None:
@@ -477,13 +504,69 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                    "seconds": seconds, "seconds_compute": seconds_compute, "seconds_setup": seconds - seconds_compute,
                    "pixels_per_s": decomposed / seconds if seconds > 0 else float("nan"),
                    "seconds_compile": seconds_compile, "irf": irf_attrs,
-                   "noise_law": {"signal_noise_law": options.get("signal_noise_law", "auto"), "source": law_source}}
+                   "noise_law": {"signal_noise_law": options.get("signal_noise_law", "auto"), "source": law_source},
+                   "shared": None if estimate is None else estimate.record()}
         return summary
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _shared_settings(shared, regions, psf_map):
+    """--shared, --regions, --psf-map checked -> (names, labels (y, x) int64 or None)."""
+    from decomposition.image.api import parse_shared
+    from decomposition.options import OptionError
+
+    try:
+        names = parse_shared(shared)
+    except OptionError as exc:
+        raise PipelineError(f"--shared: {exc}") from None
+    if psf_map and "psf" not in names:
+        raise PipelineError("--psf-map: give --shared psf too (the map is the shared PSF's)")
+    if regions is None:
+        return names, None
+    if "alpha" not in names:
+        raise PipelineError("--regions: give --shared alpha too (the regions are where one sss decay rate holds)")
+    if isinstance(regions, (str, os.PathLike)):
+        try:
+            labels = np.load(regions, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise PipelineError(f"--regions {regions}: cannot read a .npy label image ({_one_line(exc)})") from None
+    else:
+        labels = np.asarray(regions)
+    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
+        raise PipelineError(f"--regions: expected a (y, x) integer label image, got {labels.dtype} {labels.shape}")
+    return names, labels.astype(np.int64)
+
+
+def _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components, solver_options, out_path):
+    """The shared parameters: read back from a resumed store's ``shared`` attribute, else
+    estimated once from the whole cube (lit scores chunk by chunk, then the selected pixels)."""
+    from decomposition.image.shared import SharedEstimate, image_estimate, lit_score
+
+    if existing is not None:
+        record = existing.attrs.get("shared")
+        if record is None:
+            raise PipelineError(f"cannot resume {out_path}: its shared parameters were never written; "
+                                f"use --overwrite to start again")
+        return SharedEstimate.from_record(record)
+    import dask.array as da
+
+    score = np.asarray(da.map_blocks(lambda b: lit_score(b), arr, drop_axis=2, dtype=np.float64).compute())
+    ny, nx = score.shape
+
+    def gather(idx):
+        yy, xx = np.unravel_index(idx, (ny, nx))
+        return np.asarray(arr.vindex[yy, xx].compute())
+
+    keywords = dict(solver_options, t0_ps=t0, components=tuple(components))
+    try:
+        return image_estimate(arr, regions, tb, method, names, psf_map=psf_map, keywords=keywords, score=score,
+                              gather=gather)
+    except ValueError as exc:
+        raise PipelineError(f"--shared: {_one_line(exc)}") from None
 
 
 def _apply_noise_law(method: str, options: dict, source_attrs: dict) -> str:

@@ -3,11 +3,16 @@
     streaklab decompose cube.zarr --out result.zarr [--method convscd|gradbm] [--components d,s,r[,b]]
                         [--workers N | --scheduler tcp://HOST:PORT] [--chunks BY BX]
                         [--resume] [--overwrite] [--no-components]
+                        [--shared psf,delay,alpha [--regions labels.npy] [--psf-map]]
 
 The cube is read with dask in pixel chunks (all of t in each), every chunk is decomposed as one
 batch and written into its own region of the result store as soon as it is finished, then
 marked done.  Interrupted runs (Ctrl-C, a crash, a killed process) keep every finished chunk;
 ``--resume`` computes only the rest and gives the same store as an uninterrupted run.
+
+``--shared`` makes parameters global, as FLIM global analysis does: estimated once from the
+whole cube before any chunk runs, written to the result store's ``shared`` attribute with their
+standard errors, and held in every pixel's fit (docs/decomposition.md, "Shared parameters").
 
 Also accepts a ``.npy`` array (y, x, t) or (n, t) with ``--time-bin-ps`` for small inputs.
 This module only parses the arguments and prints; the pipeline itself is
@@ -72,6 +77,17 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     parser.add_argument("--overwrite", action="store_true", help="replace whatever is at --out")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("--shared", default=None, metavar="psf,delay,alpha",
+                        help="parameters every pixel shares, estimated once from the whole cube (with standard "
+                             "errors, in the store's 'shared' attribute) and held in each pixel's fit: 'psf' the "
+                             "PSF width (one instrument), 'delay' the onset (a microscope), 'alpha' the sss decay "
+                             "rate; any comma-separated combination (Gaussian PSF only, not with --irf)")
+    parser.add_argument("--regions", default=None, metavar="LABELS.npy",
+                        help="with --shared alpha: a (y, x) integer label image, one decay rate per label >= 0 "
+                             "(negative labels keep their own)")
+    parser.add_argument("--psf-map", action="store_true",
+                        help="with --shared psf: the width as a smooth quadratic surface over (y, x) (a streak "
+                             "camera's slit) instead of one number")
     parser.add_argument("--irf", default="auto", metavar="PATH|gaussian|auto",
                         help="instrument response: a stored response (.npz, response store, or a cube's irf "
                              "group); 'gaussian' forces the Gaussian PSF; default 'auto': the response stored "
@@ -147,6 +163,21 @@ def resume_command(args) -> str:
     return shlex.join(["streaklab", *words] + ([] if "--resume" in words else ["--resume"]))
 
 
+def shared_line(record: dict) -> str:
+    """One line of the shared estimates (``SharedEstimate.record()``) with their errors."""
+    parts = []
+    if record.get("psf_sigma_ps") is not None:
+        parts.append(f"PSF sigma {record['psf_sigma_ps']:.4g} +- {record['psf_sigma_ps_stderr']:.2g} ps"
+                     + (" (map centre)" if record.get("psf_map") else ""))
+    if record.get("delay_ps") is not None:
+        parts.append(f"{record['delay_key'].split('_')[0]} onset {record['delay_ps']:.6g} +- "
+                     f"{record['delay_ps_stderr']:.2g} ps")
+    for label, value in record.get("sss_alpha_per_ps", {}).items():
+        where = f" (region {label})" if record.get("regions") else ""
+        parts.append(f"sss alpha{where} {value:.4g} +- {record['sss_alpha_per_ps_stderr'][label]:.2g} /ps")
+    return "shared: " + "; ".join(parts)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM: stops the run the way Ctrl-C does (finished chunks kept, the count printed)."""
 
@@ -180,8 +211,11 @@ def _run(args) -> int:
         options=parse_solver_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf, spatial=True if args.spatial else None)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf, spatial=True if args.spatial else None,
+        shared=args.shared, regions=args.regions, psf_map=args.psf_map)
     ny, nx, nt = summary["shape"]
+    if summary.get("shared"):
+        print(shared_line(summary["shared"]))
     irf = summary.get("irf", {})
     if irf.get("kind") == "response":
         print(f"instrument response: {irf['source']} (FWHM {irf['fwhm_ps']:.2f} ps, {irf['n_samples']} samples "

@@ -1,0 +1,546 @@
+"""Parameters every pixel of an image shares, estimated once from all of them.
+
+One instrument lies behind every pixel of a cube: one PSF width (or a width that varies
+slowly across a streak camera's slit), and in a microscope one onset.  A material has one
+sss decay rate.  A single pixel at a hundred photons cannot pin these down; pooled over the
+image they are known well, and each pixel's fit is better with them held.
+
+The estimate (:func:`estimate_shared`):
+
+1. *Which pixels.*  Each pixel's lit score is its profile's peak above its median
+   (:func:`lit_score`); of the pixels with a positive score, in every region, the brighter
+   half, thinned evenly in raster order to at most ``n_pixels`` (:func:`select_pixels`): a
+   deterministic subsample spread over the image.
+2. *Per-pixel estimates.*  Those pixels are decomposed freely with standard errors: their
+   widths and onsets.
+3. *Pooled and robust* (:func:`pooled`): outliers beyond five scaled MADs of the median are
+   dropped; the rest are averaged with weights 1 / (se^2 + tau^2), tau^2 the scatter beyond
+   the per-pixel errors (so bright pixels' small errors do not decide alone); the standard
+   error is the weighted mean's, inflated by the Birge ratio where the points scatter more
+   than their errors say; widths and rates in their logarithm (:func:`pooled_positive`).
+   With ``psf_map`` a quadratic surface in (y, x) is fitted the same way (:func:`fit_surface`).
+4. *Pooled likelihood* for a scalar width and onset: the pixels decomposed again with the
+   pooled starts held, their summed misfit (Poisson deviance or chi^2) is minimised over the
+   shared values, each pixel's other parameters refitted, the errors from its curvature
+   (:func:`_profile_refine`); per-pixel widths are biased where one pixel cannot tell a width
+   from an onset or a decay.
+5. The decay rates, pooled per region from a pass with the width and onset held.
+
+The result, a :class:`SharedEstimate`, is a record of plain numbers (``record()``, written to
+``info["shared"]`` and a result store's ``shared`` attribute, read back with
+:meth:`SharedEstimate.from_record`) and gives every pixel its held values (:meth:`hold`,
+the ``hold=`` of :func:`decomposition.decompose`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.model import render_profile
+from ..api import decompose
+from ..model.refine import refine
+from ..noise import count_deviance, poisson_weights
+from ..options import OptionError, parse_components
+
+__all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_stderr", "image_estimate", "lit_score", "select_pixels", "pooled", "pooled_positive", "fit_surface",
+           "SURFACE_TERMS", "N_SHARED_PIXELS"]
+
+#: pixels per region decomposed for the estimate (the brighter half, thinned evenly)
+N_SHARED_PIXELS = 256
+#: a per-pixel estimate this many scaled MADs from the median is an outlier
+_OUTLIER_MADS = 5.0
+#: the terms of the PSF map, in normalised coordinates u = (y - cy) / sy, v = (x - cx) / sx
+SURFACE_TERMS = ("1", "y", "x", "y^2", "y*x", "x^2")
+
+
+def lit_score(profiles) -> np.ndarray:
+    """(...,) each profile's peak above its median (units of the profiles); -inf where a sample
+    is not finite."""
+    p = np.asarray(profiles, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        score = p.max(axis=-1) - np.median(p, axis=-1)
+    return np.where(np.isfinite(p).all(axis=-1), score, -np.inf)
+
+
+def select_pixels(score, labels, n_pixels: int = N_SHARED_PIXELS) -> np.ndarray:
+    """Flat indices (sorted) of the pixels the estimate is made from.
+
+    ``score`` (Y, X) from :func:`lit_score`, ``labels`` (Y, X) int (negative: in no region).
+    In every region: of its pixels with a positive score the brighter half (at least one),
+    thinned evenly in raster order to at most ``n_pixels``.  Deterministic.
+    """
+    score = np.asarray(score, dtype=np.float64).reshape(-1)
+    labels = np.asarray(labels).reshape(-1)
+    chosen = []
+    for label in np.unique(labels[labels >= 0]):
+        idx = np.flatnonzero((labels == label) & (score > 0))
+        if idx.size == 0:
+            continue
+        order = idx[np.argsort(-score[idx], kind="stable")]
+        bright = np.sort(order[:max(1, (order.size + 1) // 2)])
+        if bright.size > n_pixels:
+            bright = bright[np.linspace(0, bright.size - 1, n_pixels).round().astype(np.int64)]
+        chosen.append(bright)
+    return np.unique(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
+
+
+def pooled(values, stderr):
+    """Robust pooled location of per-pixel estimates -> (estimate, standard error, pixels used).
+
+    Pixels with a finite value and a finite positive error count; those beyond five scaled
+    MADs of the median are dropped; the rest are averaged with weights 1 / (se^2 + tau^2),
+    tau^2 = max(0, MAD^2 - median se^2) the scatter the errors do not explain.  The standard
+    error is 1 / sqrt(sum w), times the Birge ratio sqrt(chi^2 / (n - 1)) where it exceeds 1.
+    (nan, nan, 0) where no pixel counts.
+    """
+    v = np.asarray(values, np.float64).reshape(-1)
+    se = np.asarray(stderr, np.float64).reshape(-1)
+    ok = np.isfinite(v) & np.isfinite(se) & (se > 0)
+    v, se = v[ok], se[ok]
+    if v.size == 0:
+        return math.nan, math.nan, 0
+    med = np.median(v)
+    mad = 1.4826 * np.median(np.abs(v - med))
+    keep = np.abs(v - med) <= _OUTLIER_MADS * mad if mad > 0 else np.ones(v.size, bool)
+    v, se = v[keep], se[keep]
+    tau2 = max(0.0, mad ** 2 - float(np.median(se ** 2)))
+    w = 1.0 / (se ** 2 + tau2)
+    est = float(np.sum(w * v) / np.sum(w))
+    err = 1.0 / math.sqrt(float(np.sum(w)))
+    if v.size > 1:
+        birge = math.sqrt(float(np.sum(w * (v - est) ** 2)) / (v.size - 1))
+        err *= max(1.0, birge)
+    return est, err, int(v.size)
+
+
+def pooled_positive(values, stderr):
+    """:func:`pooled` of a positive quantity (a width, a rate), in its logarithm: the error of a
+    width grows with the width, so weights 1 / se^2 of the values themselves would favour the
+    pixels whose estimate came out low.  -> (estimate, standard error, pixels used)."""
+    v = np.asarray(values, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = v > 0
+        est, err, n = pooled(np.log(np.where(ok, v, np.nan)), np.asarray(stderr, np.float64) / np.where(ok, v, np.nan))
+    return math.exp(est) if n else math.nan, math.exp(est) * err if n else math.nan, n
+
+
+def _design(yy, xx, center, scale):
+    u = (np.asarray(yy, np.float64) - center[0]) / scale[0]
+    v = (np.asarray(xx, np.float64) - center[1]) / scale[1]
+    return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+
+
+def fit_surface(yy, xx, values, stderr, shape):
+    """A quadratic surface in (y, x) fitted robustly to per-pixel estimates.
+
+    -> (coefficients (6,), covariance (6, 6), center (cy, cx), scale (sy, sx), pixels used),
+    the terms :data:`SURFACE_TERMS` in coordinates normalised by the image ``shape`` (Y, X).
+    Weighted least squares with 1 / (se^2 + tau^2) as in :func:`pooled`, twice more with the
+    points beyond five scaled MADs of the residuals dropped; the covariance is inflated by the
+    Birge ratio.  An axis of one pixel has no terms in it (their coefficients 0, error 0).
+    Raises ValueError where the points cannot determine the surface.
+    """
+    Y, X = shape
+    center = ((Y - 1) / 2.0, (X - 1) / 2.0)
+    scale = (max((Y - 1) / 2.0, 1.0), max((X - 1) / 2.0, 1.0))
+    v = np.asarray(values, np.float64)
+    se = np.asarray(stderr, np.float64)
+    ok = np.isfinite(v) & np.isfinite(se) & (se > 0)
+    yy, xx, v, se = np.asarray(yy)[ok], np.asarray(xx)[ok], v[ok], se[ok]
+    cols = np.array([True, Y > 1, X > 1, Y > 2, Y > 1 and X > 1, X > 2])
+    a = _design(yy, xx, center, scale)[:, cols]
+    if v.size < 2 * a.shape[1]:
+        raise ValueError(f"psf_map: {v.size} pixels with a width estimate cannot determine a "
+                         f"{a.shape[1]}-term surface (at least {2 * a.shape[1]} needed)")
+    keep = np.ones(v.size, bool)
+    for _ in range(3):
+        coef, *_ = np.linalg.lstsq(a[keep] / se[keep, None], v[keep] / se[keep], rcond=None)
+        r = v - a @ coef
+        mad = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep])))
+        tau2 = max(0.0, mad ** 2 - float(np.median(se[keep] ** 2)))
+        keep = np.abs(r) <= _OUTLIER_MADS * mad if mad > 0 else np.ones(v.size, bool)
+        w = 1.0 / (se ** 2 + tau2)
+        sw = np.sqrt(w[keep])
+        coef, *_ = np.linalg.lstsq(a[keep] * sw[:, None], v[keep] * sw, rcond=None)
+    aw = a[keep] * sw[:, None]
+    info = aw.T @ aw
+    if np.linalg.matrix_rank(info) < a.shape[1]:
+        raise ValueError("psf_map: the pixels with a width estimate do not spread over the image enough "
+                         "to determine a quadratic surface")
+    cov = np.linalg.inv(info)
+    n = int(keep.sum())
+    if n > a.shape[1]:
+        chi2 = float(np.sum(w[keep] * (v[keep] - a[keep] @ coef) ** 2))
+        cov = cov * max(1.0, chi2 / (n - a.shape[1]))
+    full = np.zeros(6)
+    full[cols] = coef
+    full_cov = np.zeros((6, 6))
+    full_cov[np.ix_(cols, cols)] = cov
+    return full, full_cov, center, scale, n
+
+
+@dataclass(frozen=True)
+class SharedEstimate:
+    """The shared parameters of one image, with their standard errors (plain numbers).
+
+    ``psf_sigma_ps`` (ps): the PSF width (with a map, its value at the image centre);
+    ``psf_map``: None or {"terms", "coefficients_ps", "covariance_ps2", "center_yx",
+    "scale_yx"} (:func:`fit_surface`); ``delay_key``: the onset held ("direct_delay_ps"
+    with the direct family, else "sss_delay_ps"), ``delay_ps`` its value;
+    ``sss_alpha_per_ps``: {region label: decay rate, 1/ps} (label 0 without regions).
+    Each value has its ``*_stderr``; ``pixels`` how many pixels each pooled.
+    """
+
+    names: tuple
+    shape: tuple
+    psf_sigma_ps: float | None = None
+    psf_sigma_ps_stderr: float | None = None
+    psf_map: dict | None = None
+    delay_key: str | None = None
+    delay_ps: float | None = None
+    delay_ps_stderr: float | None = None
+    sss_alpha_per_ps: dict = field(default_factory=dict)
+    sss_alpha_per_ps_stderr: dict = field(default_factory=dict)
+    regions: bool = False
+    pixels: dict = field(default_factory=dict)
+
+    def record(self) -> dict:
+        """A JSON-able dict (units in the names; region labels as strings) for ``info`` and a store."""
+        rec = {"names": list(self.names), "shape": [int(s) for s in self.shape], "pixels": dict(self.pixels)}
+        if "psf" in self.names:
+            rec.update(psf_sigma_ps=self.psf_sigma_ps, psf_sigma_ps_stderr=self.psf_sigma_ps_stderr,
+                       psf_map=self.psf_map)
+        if "delay" in self.names:
+            rec.update(delay_key=self.delay_key, delay_ps=self.delay_ps, delay_ps_stderr=self.delay_ps_stderr)
+        if "alpha" in self.names:
+            rec.update(regions=self.regions,
+                       sss_alpha_per_ps={str(k): v for k, v in self.sss_alpha_per_ps.items()},
+                       sss_alpha_per_ps_stderr={str(k): v for k, v in self.sss_alpha_per_ps_stderr.items()})
+        return rec
+
+    @classmethod
+    def from_record(cls, rec: dict) -> "SharedEstimate":
+        """The estimate :meth:`record` wrote (identical values: JSON keeps every float exactly)."""
+        alpha = {int(k): float(v) for k, v in rec.get("sss_alpha_per_ps", {}).items()}
+        alpha_se = {int(k): float(v) for k, v in rec.get("sss_alpha_per_ps_stderr", {}).items()}
+        return cls(names=tuple(rec["names"]), shape=tuple(rec["shape"]), psf_sigma_ps=rec.get("psf_sigma_ps"),
+                   psf_sigma_ps_stderr=rec.get("psf_sigma_ps_stderr"), psf_map=rec.get("psf_map"),
+                   delay_key=rec.get("delay_key"), delay_ps=rec.get("delay_ps"),
+                   delay_ps_stderr=rec.get("delay_ps_stderr"), sss_alpha_per_ps=alpha,
+                   sss_alpha_per_ps_stderr=alpha_se, regions=bool(rec.get("regions", False)),
+                   pixels=dict(rec.get("pixels", {})))
+
+    def _psf_at(self, yy, xx):
+        m = self.psf_map
+        a = _design(yy, xx, m["center_yx"], m["scale_yx"])
+        cov = np.asarray(m["covariance_ps2"])
+        return a @ np.asarray(m["coefficients_ps"]), np.sqrt(np.einsum("...i,ij,...j->...", a, cov, a))
+
+    def hold(self, regions=None, window=None) -> tuple[dict, dict]:
+        """Every pixel's held values and their standard errors -> (hold, stderr), each
+        {key of :data:`decomposition.model.refine.HOLD_KEYS`: (y, x) array}.
+
+        ``window`` ((y0, y1), (x0, x1)): only that part of the image (a chunk), default all of
+        it; ``regions`` the labels of those pixels (the window's shape), or None.  Pixels whose label has no decay rate
+        (negative labels) hold none (NaN).
+        """
+        Y, X = self.shape
+        (y0, y1), (x0, x1) = window if window is not None else ((0, Y), (0, X))
+        yy, xx = np.meshgrid(np.arange(y0, y1), np.arange(x0, x1), indexing="ij")
+        shape = yy.shape
+        hold, err = {}, {}
+        if "psf" in self.names:
+            if self.psf_map is not None:
+                hold["sigma_ps"], err["sigma_ps"] = self._psf_at(yy, xx)
+            else:
+                hold["sigma_ps"] = np.full(shape, self.psf_sigma_ps)
+                err["sigma_ps"] = np.full(shape, self.psf_sigma_ps_stderr)
+        if "delay" in self.names:
+            hold[self.delay_key] = np.full(shape, self.delay_ps)
+            err[self.delay_key] = np.full(shape, self.delay_ps_stderr)
+        if "alpha" in self.names:
+            labels = (np.zeros(shape, np.int64) if regions is None
+                      else np.asarray(regions).astype(np.int64))
+            value = np.full(shape, np.nan)
+            se = np.full(shape, np.nan)
+            for label, v in self.sss_alpha_per_ps.items():
+                value[labels == label] = v
+                se[labels == label] = self.sss_alpha_per_ps_stderr[label]
+            hold["sss_alpha_per_ps"], err["sss_alpha_per_ps"] = value, se
+        return hold, err
+
+
+def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple, *, psf_map: bool = False,
+                   keywords: dict, score=None, gather=None) -> SharedEstimate:
+    """The shared parameters of an image ``cube`` (Y, X, L): :func:`select_pixels` on
+    :func:`lit_score`, then :func:`estimate_shared`.  ``regions`` (Y, X) int labels or None.
+
+    ``score`` (Y, X), the lit scores where the caller computed them already (a chunked cube),
+    and ``gather(flat indices) -> (n, L)``, the selected profiles (default: read from ``cube``).
+    """
+    Y, X = (int(s) for s in cube.shape[:2])
+    labels = np.zeros((Y, X), np.int64) if regions is None else np.asarray(regions).astype(np.int64)
+    score = lit_score(cube) if score is None else score
+    idx = select_pixels(score, labels)
+    if gather is None:
+        profiles = np.asarray(cube).reshape(Y * X, -1)[idx]
+    else:
+        profiles = np.asarray(gather(idx))
+    yx = np.stack(np.unravel_index(idx, (Y, X)), axis=1)
+    return estimate_shared(profiles, yx, labels.reshape(-1)[idx], (Y, X), time_bin_ps, method, names,
+                           psf_map=psf_map, regions=regions is not None, keywords=keywords)
+
+
+#: iteratively reweighted refits of count data per evaluation of the pooled likelihood
+_COUNT_REFITS = 3
+
+
+def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, shared_sigma):
+    """The summed misfit (-2 log-likelihood up to a constant: Poisson deviance, or chi^2 in the
+    pixels' noise) of ``profiles`` (n, L) refitted from ``params`` with ``hold``; the component
+    set is kept."""
+    bg = "background" in params
+    n_bins = profiles.shape[-1]
+    fit = np.ones(profiles.shape, bool)
+    weights = None
+    cur = params
+    for _ in range(_COUNT_REFITS if counts else 1):
+        if counts:
+            model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
+            weights = poisson_weights(model, fit)
+        cur, _ = refine(profiles, cur, time_bin_ps=time_bin_ps, t0_ps=t0_ps, weights=weights, hold=hold,
+                        shared_sigma=shared_sigma, sss_after_direct=True, fit_background=bg)
+    model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
+    if counts:
+        return float(np.sum(count_deviance(profiles, model, fit)))
+    return float(np.sum((profiles - model) ** 2 / noise[:, None] ** 2))
+
+
+def _minimise_1d(f, lo, hi, rounds: int = 3, points: int = 7):
+    """Minimum of ``f`` over [lo, hi] by nested grids, then a parabola through the best three
+    points -> (argmin, curvature f'' there; nan where the parabola does not open upwards)."""
+    for _ in range(rounds):
+        xs = np.linspace(lo, hi, points)
+        fs = np.array([f(x) for x in xs])
+        i = int(np.clip(np.argmin(fs), 1, points - 2))
+        lo, hi = xs[i - 1], xs[i + 1]
+    x3, f3 = xs[i - 1:i + 2], fs[i - 1:i + 2]
+    h = x3[1] - x3[0]
+    curv = (f3[0] - 2 * f3[1] + f3[2]) / h ** 2
+    if not curv > 0:
+        return float(x3[np.argmin(f3)]), math.nan
+    x = x3[1] - h * (f3[2] - f3[0]) / (2 * (f3[0] - 2 * f3[1] + f3[2]))
+    return float(np.clip(x, x3[0], x3[2])), float(curv)
+
+
+def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps, fixed=None):
+    """The scalar shared PSF width and onset at the maximum of the pixels' pooled likelihood,
+    each pixel's other parameters refitted (component set of the first pass kept), started from
+    the pooled per-pixel estimates; their standard errors from its curvature (-2 log L rises by 1
+    one error away), inflated where the misfit per degree of freedom exceeds 1.  Per-pixel
+    estimates are biased where one pixel cannot separate a width from an onset or a decay
+    (a hundred photons); the pooled likelihood is not.  ``fixed``: per-pixel values held
+    throughout (the PSF map's widths, (n,) arrays)."""
+    counts = info["noise_model"] == "poisson"
+    noise = np.asarray(info["noise_sigma"], np.float64).reshape(-1)
+    t0 = info["t0_ps"]
+    keep = np.isfinite(np.where(np.isfinite(first["direct_delay_ps"]), first["direct_delay_ps"],
+                                first["sss_delay_ps"]))
+    if not counts:
+        keep &= np.isfinite(noise) & (noise > 0)
+    if keep.sum() < 2:
+        return est
+    prof = np.asarray(profiles, np.float64)[keep]
+    params = {k: np.asarray(v)[keep] for k, v in first.items() if not k.endswith("_stderr")}
+    base = {k: np.broadcast_to(np.asarray(v, np.float64), keep.shape)[keep] for k, v in (fixed or {}).items()}
+    shared_sigma = bool(keywords.get("shared_sigma", True))
+    kw = dict(counts=counts, noise=noise[keep], time_bin_ps=time_bin_ps, t0_ps=t0, shared_sigma=shared_sigma)
+    held = {}
+    def misfit(hold):       # the fixed values always held
+        return _pooled_misfit(prof, params, dict(base, **hold), **kw)
+
+    if "psf" in names:
+        held["sigma_ps"] = est["psf_sigma_ps"]
+    if "delay" in names:
+        held[est["delay_key"]] = est["delay_ps"]
+    dof = max(prof.size - sum(np.isfinite(v).sum() for k, v in params.items() if np.ndim(v) == 1), 1)
+    for _ in range(2):                       # coordinate-wise: the width, then the onset, twice
+        for key in list(held):
+            v0 = held[key]
+            if key == "sigma_ps":
+                x, curv = _minimise_1d(lambda x: misfit(dict(held, sigma_ps=math.exp(x))),
+                                       math.log(v0) - 1.0, math.log(v0) + 1.0)
+                held[key] = math.exp(x)
+                se = held[key] * math.sqrt(2.0 / curv) if curv > 0 else math.nan
+            else:
+                # three widths either side (ten errors of the pooled start, at least a bin, with a map)
+                half = (3.0 * held["sigma_ps"] if "sigma_ps" in held
+                        else max(10.0 * est.get("delay_ps_stderr", 0.0), float(time_bin_ps)))
+                x, curv = _minimise_1d(lambda x: misfit(dict(held, **{key: x})),
+                                       v0 - half, v0 + half)
+                held[key] = x
+                se = math.sqrt(2.0 / curv) if curv > 0 else math.nan
+            name = "psf_sigma_ps" if key == "sigma_ps" else "delay_ps"
+            est[name], est[name + "_stderr"] = held[key], se
+    inflate = max(1.0, math.sqrt(misfit(held) / dof))
+    if len(held) == 2 and all(math.isfinite(est[n + "_stderr"]) for n in ("psf_sigma_ps", "delay_ps")):
+        # the two are correlated: the marginal errors from the joint curvature (log width, onset)
+        keys = list(held)
+        x0 = np.array([math.log(held[k]) if k == "sigma_ps" else held[k] for k in keys])
+        h = np.array([est["psf_sigma_ps_stderr"] / est["psf_sigma_ps"] if k == "sigma_ps" else est["delay_ps_stderr"]
+                      for k in keys])
+
+        def f(x):
+            return misfit({k: (math.exp(v) if k == "sigma_ps" else v) for k, v in zip(keys, x)})
+
+        f0 = f(x0)
+        e = np.eye(2) * h
+        hess = np.empty((2, 2))
+        for i in range(2):
+            hess[i, i] = (f(x0 + e[i]) - 2 * f0 + f(x0 - e[i])) / h[i] ** 2
+        hess[0, 1] = hess[1, 0] = (f(x0 + e[0] + e[1]) - f(x0 + e[0] - e[1]) - f(x0 - e[0] + e[1])
+                                   + f(x0 - e[0] - e[1])) / (4 * h[0] * h[1])
+        if np.all(np.linalg.eigvalsh(hess) > 0):
+            var = np.diag(np.linalg.inv(hess / 2.0))
+            for k, v in zip(keys, var):
+                if k == "sigma_ps":
+                    est["psf_sigma_ps_stderr"] = est["psf_sigma_ps"] * math.sqrt(v)
+                else:
+                    est["delay_ps_stderr"] = math.sqrt(v)
+    for name in ("psf_sigma_ps", "delay_ps"):
+        if name + "_stderr" in est and name in est and ("sigma_ps" if name == "psf_sigma_ps" else
+                                                         est.get("delay_key")) in held:
+            est[name + "_stderr"] *= inflate
+    return est
+
+
+def _width(params):
+    """Per-pixel PSF width and its error: the direct's, else the sss's."""
+    d, s = params["direct_sigma_ps"], params["sss_sigma_ps"]
+    de = params.get("direct_sigma_ps_stderr", np.full(np.shape(d), np.nan))
+    se = params.get("sss_sigma_ps_stderr", np.full(np.shape(s), np.nan))
+    use_d = np.isfinite(d) & np.isfinite(de)
+    return np.where(use_d, d, s), np.where(use_d, de, se)
+
+
+def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str, names: tuple, *,
+                    psf_map: bool = False, regions: bool = False, keywords: dict) -> SharedEstimate:
+    """The shared parameters from the selected pixels (:func:`select_pixels`).
+
+    Parameters
+    ----------
+    profiles : ndarray (n, L)
+        The selected pixels' profiles.
+    yx : ndarray (n, 2) of int
+        Their (y, x) in the image of ``shape`` (Y, X).
+    labels : ndarray (n,) of int
+        Their regions (all 0 without regions).
+    time_bin_ps, method, keywords
+        As for :func:`decomposition.decompose` (the call's own keywords).
+    names : tuple
+        What to estimate, of ("psf", "delay", "alpha").
+    psf_map : bool
+        The PSF width as a quadratic surface over the image instead of one number.
+    regions : bool
+        The labels are the caller's regions (recorded; else one region, label 0).
+
+    Raises ValueError (naming the parameter) where no selected pixel gives an estimate.
+    """
+    profiles = np.asarray(profiles)
+    if profiles.shape[0] == 0:
+        raise ValueError(f"shared={','.join(names)}: no lit pixel to estimate it from (every profile is flat "
+                         f"or has NaN/inf samples)")
+    fams = parse_components(keywords.get("components", ("d", "r", "s")))
+    if "alpha" in names and "s" not in fams:
+        raise OptionError("shared='alpha': the components have no sss (add 's')")
+    kw = dict(keywords, stderr=True)
+    pixels = {"selected": int(profiles.shape[0])}
+    est = {"names": tuple(names), "shape": tuple(int(s) for s in shape)}
+    hold = None
+    first = decompose(profiles, time_bin_ps, method, **kw).params
+    if "psf" in names:
+        width, width_se = _width(first)
+        if psf_map:
+            coef, cov, center, scale, n = fit_surface(yx[:, 0], yx[:, 1], width, width_se, shape)
+            est["psf_map"] = {"terms": list(SURFACE_TERMS), "coefficients_ps": coef.tolist(),
+                              "covariance_ps2": cov.tolist(), "center_yx": list(center), "scale_yx": list(scale)}
+            est["psf_sigma_ps"], est["psf_sigma_ps_stderr"] = float(coef[0]), float(math.sqrt(cov[0, 0]))
+            a = _design(yx[:, 0], yx[:, 1], center, scale)
+            hold = {"sigma_ps": a @ coef}
+        else:
+            value, se, n = pooled_positive(width, width_se)
+            if n == 0:
+                raise ValueError(f"shared='psf': none of the {profiles.shape[0]} lit pixels has a component "
+                                 f"whose width could be estimated")
+            est["psf_sigma_ps"], est["psf_sigma_ps_stderr"] = value, se
+            hold = {"sigma_ps": value}
+        pixels["psf"] = n
+    if "delay" in names:
+        key = "direct_delay_ps" if "d" in fams else "sss_delay_ps"
+        value, se, n = pooled(first[key], first[key + "_stderr"])
+        if n == 0:
+            raise ValueError(f"shared='delay': none of the {profiles.shape[0]} lit pixels has a "
+                             f"{key.split('_')[0]} onset that could be estimated")
+        est.update(delay_key=key, delay_ps=value, delay_ps_stderr=se)
+        pixels["delay"] = n
+    scalar = tuple(n for n in names if n == "delay" or (n == "psf" and not psf_map))
+    if scalar:
+        # the pixels decomposed again with the pooled starts held (a pixel whose free fit tied its
+        # sss onset to the direct gets its components apart), then the pooled likelihood
+        start = dict(hold or {})
+        if "delay" in names:
+            start[est["delay_key"]] = est["delay_ps"]
+        again = decompose(profiles, time_bin_ps, method, hold=start, **kw)
+        est = _profile_refine(profiles, again.params, again.info, scalar, est, keywords=keywords,
+                              time_bin_ps=time_bin_ps, fixed=hold if psf_map else None)
+        if "psf" in scalar:
+            hold = {"sigma_ps": est["psf_sigma_ps"]}
+    if "alpha" in names and "delay" in names:
+        hold = dict(hold or {}, **{est["delay_key"]: est["delay_ps"]})
+    second = first if hold is None or "alpha" not in names else \
+        decompose(profiles, time_bin_ps, method, hold=hold, **kw).params
+    if "alpha" in names:
+        alpha, alpha_se = {}, {}
+        for label in np.unique(labels):
+            inside = labels == label
+            value, se, n = pooled_positive(second["sss_alpha_per_ps"][inside],
+                                           second["sss_alpha_per_ps_stderr"][inside])
+            if n == 0:
+                raise ValueError(f"shared='alpha': region {int(label)} has no lit pixel with an sss whose decay "
+                                 f"rate could be estimated (label pixels to leave free with a negative number)")
+            alpha[int(label)], alpha_se[int(label)] = value, se
+            pixels[f"alpha_{int(label)}"] = n
+        est.update(sss_alpha_per_ps=alpha, sss_alpha_per_ps_stderr=alpha_se)
+    return SharedEstimate(**est, regions=bool(regions), pixels=pixels)
+
+
+#: the parameter keys each held key stands for
+_HELD_PARAMS = {"sigma_ps": ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"),
+                "direct_delay_ps": ("direct_delay_ps",), "sss_delay_ps": ("sss_delay_ps",),
+                "sss_alpha_per_ps": ("sss_alpha_per_ps",)}
+
+
+def decompose_held(profiles, time_bin_ps: float, method: str, *, hold: dict, hold_stderr: dict, **keywords):
+    """:func:`decomposition.decompose` with ``hold`` (each key's values in the profiles' leading
+    shape); a held parameter's ``<key>_stderr`` (where the call gives errors) is the shared
+    estimate's, ``hold_stderr`` (:func:`apply_held_stderr`)."""
+    return apply_held_stderr(decompose(profiles, time_bin_ps, method, hold=hold, **keywords), hold, hold_stderr)
+
+
+def apply_held_stderr(result, hold: dict, hold_stderr: dict):
+    """``result`` with each held parameter's ``<key>_stderr`` set to the shared estimate's
+    (``hold_stderr``) where the component is present (in place; returned)."""
+    params = result.params
+    for key, keys in _HELD_PARAMS.items():
+        if key not in hold:
+            continue
+        for name in keys:
+            if name + "_stderr" not in params:
+                continue
+            value, se = np.asarray(params[name]), np.asarray(hold_stderr[key], np.float64)
+            se = se.reshape(se.shape + (1,) * (value.ndim - se.ndim))
+            held = np.isfinite(value) & np.isfinite(np.asarray(hold[key], np.float64).reshape(se.shape))
+            params[name + "_stderr"] = np.where(held, se, params[name + "_stderr"])
+    return result
