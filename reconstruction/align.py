@@ -4,8 +4,8 @@ The camera's trigger jitters from frame to frame and drifts over minutes, so the
 light lands on different rows in different frames.  A capture with a fiducial records a
 reference pulse at a fixed time in a fixed band of rows (``row_start`` to ``row_stop``,
 the run store's ``fiducial`` attribute).  For every frame :func:`fiducial_times_ps` finds
-that pulse (background-subtracted centroid of the pulse in the band, sub-row, mapped to
-time through the row times), :func:`fiducial_correction_ps` computes the correction
+that pulse (background-subtracted centroid in time of the pulse in the band, each row
+weighted by its duration), :func:`fiducial_correction_ps` computes the correction
 ``reference - measured`` (ps) and :func:`resample_aligned` reads each frame's rows at their
 times plus its correction and interpolates them onto the cube's uniform time grid in the
 same single step an unmoved frame takes (:func:`reconstruction.calibrate.resample_uniform`),
@@ -128,8 +128,10 @@ def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fi
 
     Returns
     -------
-    ndarray, shape (n_lines, n_frames), ps: the background-subtracted centroid of the pulse (the
-    band's rows within two of its widths at half maximum of its peak).
+    ndarray, shape (n_lines, n_frames), ps: the background-subtracted centroid in time of the pulse
+    (over the band's rows within two of its widths at half maximum of its peak, each row weighted
+    by its duration: the rows are samples of the time profile at the row times, so on a sweep whose
+    rows differ in length the centroid in row numbers would not be the pulse's centre in time).
     """
     f = np.asarray(frames, dtype=np.float64)
     if f.ndim != 4:
@@ -163,8 +165,14 @@ def fiducial_times_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fi
                  else f"centroid at row {centroid[li, fi]:.4g}, at the band's edge")
         raise AlignmentError(f"line {line} frame {int(fi)}: no usable fiducial pulse in rows "
                              f"{fiducial.row_start}..{fiducial.row_stop} ({where}; {int(bad.sum())} such frames in all)")
+    # the centroid in time: a row is a sample of the time profile at its row time (as
+    # reconstruction.calibrate.resample_uniform reads it), so each row weighs by its duration; the
+    # centroid in row numbers mapped through the row times is off wherever rows differ in length
     t = np.asarray(row_times_ps, dtype=np.float64)
-    return np.interp(centroid, np.arange(t.size, dtype=np.float64), t)
+    t_band = t[fiducial.row_start:fiducial.row_stop]
+    duration = np.abs(np.diff(row_edges_ps(t)))[fiducial.row_start:fiducial.row_stop]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (pulse * (duration * t_band)).sum(axis=-1) / (pulse * duration).sum(axis=-1)
 
 
 def fiducial_correction_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducial: Fiducial, *,

@@ -156,7 +156,9 @@ def test_bench_adaptive_reports_both_frame_counts_and_the_targets(tmp_path, caps
     assert [r["frames_taken"] for r in rows] == ["4", "4", "4"]       # unreachable: every line at the maximum
     assert "adaptive: 12 frames (per line [4, 4, 4]); 0% of lines reached the target" in out
     assert "fixed: no frame count up to 4 brings every line to the target" in out
-    assert "targets: >= 95% of lines reach it: NOT met; >= 30% fewer frames: NOT met" in out
+    assert "  [NOT met] at least 95% of lines reach the target: 0% (0 of 3)" in out
+    assert "  [not measured] at least 30% fewer frames than the fixed accumulation whose worst line reaches it: " \
+           "no fixed frame count reaches it" in out
     assert main(["bench", "adaptive", "--max-frames", "1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
 
@@ -175,3 +177,42 @@ def test_a_missing_frames_taken_chunk_is_named_as_damage(tmp_path):
     assert [(d.array, d.coords) for d in damage] == [("frames_taken", (1,))]
     with pytest.raises(ReconstructionError, match="frames_taken"):
         reconstruct(tmp_path / "run.zarr", tmp_path / "cube.zarr")
+
+
+class _RowsCalibration:
+    """A line calibration whose rows are given profiles (x, n_bins), 2 ps bins from 2 ps."""
+    time_bin_ps, t0_ps = 2.0, 2.0
+
+    def __init__(self, profiles):
+        self.profiles = profiles
+
+    def rows(self, raw):
+        return self.profiles[None].astype(np.float32)
+
+
+def test_the_line_error_is_the_largest_delay_error_of_its_lit_pixels():
+    # 20 pixels of one direct each; pixel 7 is the dimmest lit one (0.55 of the brightest), pixel 3
+    # is below half the brightest (not lit): the line's error is pixel 7's, the largest of the lit
+    rng = np.random.default_rng(5)
+    t = 2.0 + 2.0 * np.arange(128)
+    amp = np.full(20, 2000.0)
+    amp[7], amp[3] = 0.55 * 2000.0, 0.3 * 2000.0
+    profiles = amp[:, None] * np.exp(-0.5 * ((t - 100.0) / 6.0) ** 2) + rng.normal(0.0, 20.0, (20, t.size))
+    from decomposition import decompose
+    res = decompose(profiles.astype(np.float32), 2.0, t0_ps=2.0, stderr=True, nan_policy="omit")
+    se = np.asarray(res.params["direct_delay_ps_stderr"], np.float64)
+    assert not np.asarray(res.flags).any() and np.argmax(np.where(np.arange(20) == 3, 0, se)) == 7
+    err = line_delay_error_ps(_RowsCalibration(profiles), np.zeros((2, 20, 128), np.uint16))
+    assert err == se[7] and se[3] > err
+
+
+def test_lit_pixels_are_the_trusted_bright_ones():
+    from decomposition.flags import AMBIGUOUS, SPIKE
+    from streaklab.adaptive import lit_pixels
+    amp = np.array([10.0, 6.0, 4.0, 100.0, np.nan, 8.0, 9.0])
+    se = np.array([0.1, 0.2, 0.3, 0.05, 0.1, np.nan, 0.1])
+    flags = np.array([0, 0, 0, AMBIGUOUS, 0, 0, SPIKE])
+    # pixel 3 (the brightest, but AMBIGUOUS) neither counts nor sets the brightness scale; pixel 2
+    # is below half of the brightest trusted (10); 4 and 5 have no amplitude or error; a SPIKE is harmless
+    np.testing.assert_array_equal(lit_pixels(amp, se, flags), [True, True, False, False, False, False, True])
+    assert not lit_pixels(amp[4:6], se[4:6], flags[4:6]).any()

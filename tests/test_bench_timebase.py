@@ -37,7 +37,9 @@ def test_aligned_direct_delays_beat_unaligned_ones(tmp_path, capsys):
     assert int(rows["unaligned"]["pixels_off_by_over_50ps"]) == 0
     assert summary["ratio_aligned"] == pytest.approx(rmse["aligned"] / rmse["steady"])
     assert summary["target"]["met"] == (summary["ratio_aligned"] <= 1.1)
-    assert "target: aligned RMSE <= 1.1 x steady" in text and "without alignment" in text
+    assert ("  [met] aligned direct-delay RMSE at most 1.1 x the steady scan's: x" in text) == summary["target"]["met"]
+    assert ("  [NOT met] aligned direct-delay RMSE at most 1.1 x the steady scan's: x" in text) != summary["target"]["met"]
+    assert "without alignment x" in text
     for name in ("steady.result.zarr", "aligned.result.zarr", "unaligned.result.zarr"):
         assert (out / name).is_dir()
 
@@ -51,7 +53,7 @@ def test_a_fiducial_that_leaves_its_band_is_reported_not_met(tmp_path, capsys):
     assert "no usable fiducial pulse" in rows["aligned"]["failure"]
     assert summary["ratio_aligned"] is None and summary["target"]["met"] is False
     assert math.isfinite(float(rows["unaligned"]["direct_delay_rmse_ps"]))
-    assert "NOT MET (the aligned reconstruction failed)" in text
+    assert "  [NOT met] aligned direct-delay RMSE at most 1.1 x the steady scan's: the aligned reconstruction failed (" in text
 
 
 def test_bad_options_are_named(tmp_path, capsys):
