@@ -195,3 +195,14 @@ def test_no_lit_pixel_is_a_clear_error():
         decompose(np.ones((2, NT)), TB, hold={"sigma_ps": -1.0})
     with pytest.raises(ValueError, match="hold: unknown parameter"):
         decompose(np.ones((2, NT)), TB, hold={"width": 1.0})
+
+
+def test_the_shared_psf_of_a_count_image_is_not_pulled_by_refits_that_step_into_a_worse_deviance():
+    # reweighted refits (1 / model weights) stepped some pixels far off and the pooled deviance
+    # then favoured another width: 4.37 ps for this image; the data's effective width is
+    # sqrt(4^2 + 2^2 / 12) = 4.04 ps (sigma 4 ps, bins of 2 ps integrated)
+    from decomposition.evaluation.spatial_scenes import make_spatial_scene
+
+    scene = make_spatial_scene(16, 16, 256, seed=0, photons_per_pixel=1000.0)
+    got = decompose_image(scene.profiles, 2.0, shared="psf", t0_ps=scene.t0_ps, noise="poisson")
+    assert abs(got.info["shared"]["psf_sigma_ps"] - np.sqrt(16 + 4 / 12)) < 0.2

@@ -37,10 +37,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from core.model import render_profile
 from ..api import decompose
-from ..model.refine import refine
+from ..model.refine import hold_params, refine
+from ..model.slots import select_rows
 from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
 
@@ -304,35 +306,36 @@ def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, 
     bg = "background" in params
     n_bins = profiles.shape[-1]
     fit = np.ones(profiles.shape, bool)
-    weights = None
-    cur = params
-    for _ in range(_COUNT_REFITS if counts else 1):
+
+    def misfits(p):
+        model = np.nan_to_num(render_profile(p, n_bins, time_bin_ps, t0_ps))
         if counts:
-            model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
-            weights = poisson_weights(model, fit)
-        cur, _ = refine(profiles, cur, time_bin_ps=time_bin_ps, t0_ps=t0_ps, weights=weights, hold=hold,
+            return count_deviance(profiles, model, fit).reshape(profiles.shape[0], -1).sum(axis=1), model
+        return ((profiles - model) ** 2 / noise[:, None] ** 2).sum(axis=1), model
+
+    cur = hold_params(params, hold, (profiles.shape[0],))
+    best, model = misfits(cur)
+    for _ in range(_COUNT_REFITS if counts else 1):
+        weights = poisson_weights(model, fit) if counts else None
+        new, _ = refine(profiles, cur, time_bin_ps=time_bin_ps, t0_ps=t0_ps, weights=weights, hold=hold,
                         shared_sigma=shared_sigma, sss_after_direct=True, fit_background=bg)
-    model = np.nan_to_num(render_profile(cur, n_bins, time_bin_ps, t0_ps))
-    if counts:
-        return float(np.sum(count_deviance(profiles, model, fit)))
-    return float(np.sum((profiles - model) ** 2 / noise[:, None] ** 2))
+        # never worse, row by row, as the refit stage keeps its count refits: reweighted least
+        # squares with 1 / model weights can step a pixel into a far worse deviance
+        new_misfit, new_model = misfits(new)
+        better = new_misfit < best
+        cur = select_rows(better, new, cur)
+        best = np.where(better, new_misfit, best)
+        model = np.where(better[:, None], new_model, model)
+    return float(best.sum())
 
 
-def _minimise_1d(f, lo, hi, rounds: int = 3, points: int = 7):
-    """Minimum of ``f`` over [lo, hi] by nested grids, then a parabola through the best three
-    points -> (argmin, curvature f'' there; nan where the parabola does not open upwards)."""
-    for _ in range(rounds):
-        xs = np.linspace(lo, hi, points)
-        fs = np.array([f(x) for x in xs])
-        i = int(np.clip(np.argmin(fs), 1, points - 2))
-        lo, hi = xs[i - 1], xs[i + 1]
-    x3, f3 = xs[i - 1:i + 2], fs[i - 1:i + 2]
-    h = x3[1] - x3[0]
-    curv = (f3[0] - 2 * f3[1] + f3[2]) / h ** 2
-    if not curv > 0:
-        return float(x3[np.argmin(f3)]), math.nan
-    x = x3[1] - h * (f3[2] - f3[0]) / (2 * (f3[0] - 2 * f3[1] + f3[2]))
-    return float(np.clip(x, x3[0], x3[2])), float(curv)
+def _minimise_1d(f, lo, hi, step):
+    """Minimum of ``f`` over [lo, hi] (bounded Brent, to a quarter of ``step``) -> (argmin,
+    curvature f'' there from the points ``step`` either side; nan where it does not open upwards)."""
+    found = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": 0.25 * step})
+    x, f0 = float(found.x), float(found.fun)
+    curv = (f(x + step) - 2.0 * f0 + f(x - step)) / step ** 2
+    return x, (float(curv) if curv > 0 else math.nan)
 
 
 def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps, fixed=None):
@@ -366,12 +369,13 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     if "delay" in names:
         held[est["delay_key"]] = est["delay_ps"]
     dof = max(prof.size - sum(np.isfinite(v).sum() for k, v in params.items() if np.ndim(v) == 1), 1)
-    for _ in range(2):                       # coordinate-wise: the width, then the onset, twice
+    for _ in range(2 if len(held) > 1 else 1):    # coordinate-wise: the width, then the onset, twice
         for key in list(held):
             v0 = held[key]
             if key == "sigma_ps":
+                # within a factor 1.6 of the pooled start, to 1 % (its error is a fraction of that)
                 x, curv = _minimise_1d(lambda x: misfit(dict(held, sigma_ps=math.exp(x))),
-                                       math.log(v0) - 1.0, math.log(v0) + 1.0)
+                                       math.log(v0) - 0.5, math.log(v0) + 0.5, step=0.01)
                 held[key] = math.exp(x)
                 se = held[key] * math.sqrt(2.0 / curv) if curv > 0 else math.nan
             else:
@@ -379,7 +383,7 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
                 half = (3.0 * held["sigma_ps"] if "sigma_ps" in held
                         else max(10.0 * est.get("delay_ps_stderr", 0.0), float(time_bin_ps)))
                 x, curv = _minimise_1d(lambda x: misfit(dict(held, **{key: x})),
-                                       v0 - half, v0 + half)
+                                       v0 - half, v0 + half, step=0.05 * float(time_bin_ps))
                 held[key] = x
                 se = math.sqrt(2.0 / curv) if curv > 0 else math.nan
             name = "psf_sigma_ps" if key == "sigma_ps" else "delay_ps"
