@@ -272,13 +272,16 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
         for j in range(n):
             acc += minv[i, j] * work[0, j]
         amp[i] = acc if math.isfinite(acc) else 0.0
+    for l in range(L):
+        resid[l] = yw[l]
+    for i in range(n):           # (per sample in the order of i, over whole rows: vector loops)
+        a_i = amp[i]
+        pw_i = pw[i]
+        for l in range(L):
+            resid[l] -= a_i * pw_i[l]
     cost = 0.0
     for l in range(L):
-        acc = yw[l]
-        for i in range(n):
-            acc -= amp[i] * pw[i, l]
-        resid[l] = acc
-        cost += acc * acc
+        cost += resid[l] * resid[l]
     return cost
 
 
@@ -308,6 +311,7 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
     rhs = np.zeros((max(nc_max, n_par_max), 1))
     work = np.zeros((max(nc_max, n_par_max), max(nc_max, n_par_max) + 1))
     da = np.zeros(L)
+    proj = np.zeros(L)
     s = np.zeros(n_steps + 1)
     r = np.zeros(n_steps + 1)
     E = np.zeros(5)
@@ -377,12 +381,17 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                     for i in range(nc):
                         acc += q[i, j] * minv[i, k]
                     b[j, k] = acc
+            # (the sum over k per sample, in the order of k, over whole rows: vector loops)
             for j in range(npar):
                 for l in range(L):
-                    acc = 0.0
-                    for k in range(nc):
-                        acc += b[j, k] * pw[k, l]
-                    gp[j, l] = g[j, l] - acc
+                    proj[l] = 0.0
+                for k in range(nc):
+                    b_jk = b[j, k]
+                    pw_k = pw[k]
+                    for l in range(L):
+                        proj[l] += b_jk * pw_k[l]
+                for l in range(L):
+                    gp[j, l] = g[j, l] - proj[l]
             _cross(gp, npar, gp, npar, True, jtj)
             _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
             for j in range(npar):
