@@ -134,3 +134,36 @@ def test_params_profile_matches_the_exact_rendering():
     assert np.all(got["background"][1] == 0.0) and np.all(got["background"][3] == 2.0)
     total = params_profile(irf, T_AXIS, p)
     assert np.abs(total - render_profile(p, T_AXIS.size, T, T, irf=irf)).max() < 2e-6
+
+
+def test_sss_atoms_follow_the_one_pole_recursion_node_by_node():
+    """On the table's own nodes (sample times on nodes) the sss atom and its alpha derivative are
+    the one-pole recursion s_{j+1} = e s_j + g_j (r its alpha derivative) of the module
+    docstring, summed one node at a time here, to 1e-12 of the largest; without derivatives the
+    atom is the same bits as with them."""
+    irf = RESPONSES["tailed"]
+    tab = response_table(irf)
+    h, c, m = tab.step_ps, tab.value, tab.slope
+    t = tab.start_ps + h * np.arange(0, tab.n_steps + 1, 4, dtype=np.float64)   # every 4th node, delay 0
+    for alpha in (1e-3, 0.05, 0.7):
+        beta = alpha * h
+        x = np.linspace(0.0, 1.0, 20001)            # E_n by quadrature (Simpson), for the weights
+        wq = np.full(x.size, 2.0)
+        wq[1::2], wq[0], wq[-1] = 4.0, 1.0, 1.0
+        E = [float(np.sum(wq * np.exp(-beta * x) * x ** n) / (3 * (x.size - 1))) for n in range(5)]
+        w = h * np.array([3 * E[2] - 2 * E[3], h * (E[2] - E[3]), E[0] - 3 * E[2] + 2 * E[3], h * (-E[1] + 2 * E[2] - E[3])])
+        v = -h * h * np.array([3 * E[3] - 2 * E[4], h * (E[3] - E[4]), E[1] - 3 * E[3] + 2 * E[4],
+                               h * (-E[2] + 2 * E[3] - E[4])])
+        g = w[0] * c[:-1] + w[1] * m[:-1] + w[2] * c[1:] + w[3] * m[1:]
+        q = v[0] * c[:-1] + v[1] * m[:-1] + v[2] * c[1:] + v[3] * m[1:]
+        e = np.exp(-beta)
+        s, r = np.zeros(tab.n_steps + 1), np.zeros(tab.n_steps + 1)
+        for j in range(tab.n_steps):
+            s[j + 1] = e * s[j] + g[j]
+            r[j + 1] = e * r[j] - h * e * s[j] + q[j]
+        got, _, da = sss_atoms(tab, t, 0.0, alpha, derivatives=True)
+        want, want_da = s[::4] / tab.peak_per_ps, r[::4] / tab.peak_per_ps
+        # (the weights above by quadrature: 1e-10 of them; the recursion itself to rounding)
+        assert np.abs(got - want).max() < 1e-9 * np.abs(want).max()
+        assert np.abs(da - want_da).max() < 1e-9 * np.abs(want_da).max()
+        assert np.array_equal(sss_atoms(tab, t, 0.0, alpha), got)

@@ -194,3 +194,21 @@ def test_compiled_fit_keeps_the_constraints_and_amplitude_only_fits(irf):
     h = fit_slots(irf, T_PS, y, sw, fam0, delay, lalp, n_iter=4, **kw)
     assert h.converged.all() and not h.iterations.any()
     assert np.array_equal(h.resid, y * sw) and np.allclose(h.cost, ((y * sw) ** 2).sum(axis=1))
+
+
+def test_cross_products_are_the_sums_in_sample_order():
+    """The LM's dot products (four pairs per pass over the samples) are, bit for bit, each pair's
+    sum taken one sample at a time from 0 (as np.cumsum sums), for the symmetric and the full
+    form, on leading rows of larger buffers, the entries outside left alone."""
+    from decomposition.kernels.responselm import _cross
+
+    rng = np.random.default_rng(7)
+    x = rng.normal(size=(6, 37)) * 10.0 ** rng.integers(-3, 4, size=(6, 1))
+    y = rng.normal(size=(5, 37))
+    for nx, ny, sym in ((5, 5, True), (1, 1, True), (3, 4, False), (5, 1, False), (2, 3, False)):
+        out = np.full((6, 6), np.nan)
+        _cross(x, nx, x if sym else y, ny, sym, out)
+        other = x if sym else y
+        want = np.array([[np.cumsum(x[i] * other[j])[-1] for j in range(ny)] for i in range(nx)])
+        assert np.array_equal(out[:nx, :ny], want)
+        assert np.isnan(out[nx:]).all() and np.isnan(out[:, ny:]).all()

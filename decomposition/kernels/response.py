@@ -299,40 +299,58 @@ def sss_row(value, slope, start, h, n_steps, t, delay, al, scale, want_d, out, d
     s[0] = 0.0
     r[0] = 0.0
     he = h * e
-    # two nodes per step: s_{j+2} = e^2 s_j + (e g_j + g_{j+1}) (g_j the bracket above; r
-    # likewise), which halves the chain of dependent multiply-adds the loop waits on; the same
-    # recursion to rounding (1e-15 relative)
+    # the brackets g_j (and their alpha derivatives q_j) first, into s[j + 1] (r[j + 1]): a loop
+    # with no dependence between nodes, which the compiler runs on vector registers; the
+    # recursion below reads each before it writes its node
+    for j in range(j_top):
+        c0 = value[j]
+        c1 = value[j + 1]
+        m0 = slope[j]
+        m1 = slope[j + 1]
+        s[j + 1] = w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1
+    if want_d:
+        for j in range(j_top):
+            c0 = value[j]
+            c1 = value[j + 1]
+            m0 = slope[j]
+            m1 = slope[j + 1]
+            r[j + 1] = v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1
+    # two nodes per step: s_{j+2} = e^2 s_j + (e g_j + g_{j+1}) (r likewise), which halves the
+    # chain of dependent multiply-adds the loop waits on; the same recursion to rounding (1e-15
+    # relative)
     e2 = e * e
     he2 = 2.0 * he * e
     sj = 0.0
     rj = 0.0
     j = 0
-    while j + 2 <= j_top:
-        c0 = value[j]
-        c1 = value[j + 1]
-        c2 = value[j + 2]
-        m0 = slope[j]
-        m1 = slope[j + 1]
-        m2 = slope[j + 2]
-        g0 = w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1
-        q0 = v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1
-        g1 = w0 * c1 + w1 * m1 + w2 * c2 + w3 * m2
-        q1 = v0 * c1 + v1 * m1 + v2 * c2 + v3 * m2
-        s[j + 1] = e * sj + g0
-        r[j + 1] = e * rj - he * sj + q0
-        s2 = e2 * sj + (e * g0 + g1)
-        rj = e2 * rj - he2 * sj + (e * q0 - he * g0 + q1)
-        sj = s2
-        s[j + 2] = sj
-        r[j + 2] = rj
-        j += 2
-    if j < j_top:
-        c0 = value[j]
-        c1 = value[j + 1]
-        m0 = slope[j]
-        m1 = slope[j + 1]
-        s[j + 1] = e * sj + (w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1)
-        r[j + 1] = e * rj - he * sj + (v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1)
+    if want_d:
+        while j + 2 <= j_top:
+            g0 = s[j + 1]
+            g1 = s[j + 2]
+            q0 = r[j + 1]
+            q1 = r[j + 2]
+            s[j + 1] = e * sj + g0
+            r[j + 1] = e * rj - he * sj + q0
+            s2 = e2 * sj + (e * g0 + g1)
+            rj = e2 * rj - he2 * sj + (e * q0 - he * g0 + q1)
+            sj = s2
+            s[j + 2] = sj
+            r[j + 2] = rj
+            j += 2
+        if j < j_top:
+            g0 = s[j + 1]
+            s[j + 1] = e * sj + g0
+            r[j + 1] = e * rj - he * sj + r[j + 1]
+    else:
+        while j + 2 <= j_top:
+            g0 = s[j + 1]
+            g1 = s[j + 2]
+            s[j + 1] = e * sj + g0
+            sj = e2 * sj + (e * g0 + g1)
+            s[j + 2] = sj
+            j += 2
+        if j < j_top:
+            s[j + 1] = e * sj + s[j + 1]
     s_b = s[n_steps] if j_top == n_steps else 0.0
     r_b = r[n_steps] if j_top == n_steps else 0.0
     for i in range(L):

@@ -199,10 +199,54 @@ def _solve(a, b, n, x, work):
 
 
 @njit
-def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, amp, resid):
+def _cross(x, nx, y, ny, sym, out):
+    """out[i, j] = sum_l x[i, l] y[j, l] for i < nx, j < ny (with ``sym`` only j <= i, mirrored):
+    each sum from 0 in order of l, the same bits as one accumulator per pair, four pairs per
+    pass over l so that four independent sums overlap instead of each waiting on its last add."""
+    L = x.shape[1]
+    n_pairs = nx * (nx + 1) // 2 if sym else nx * ny
+    ii = np.empty(4, np.int64)
+    jj = np.empty(4, np.int64)
+    i = 0
+    j = 0
+    p = 0
+    while p < n_pairs:
+        m = 0
+        while m < 4 and p < n_pairs:
+            ii[m] = i
+            jj[m] = j
+            m += 1
+            p += 1
+            j += 1
+            if j > (i if sym else ny - 1):
+                i += 1
+                j = 0
+        for q in range(m, 4):            # the last group padded with its last pair
+            ii[q] = ii[m - 1]
+            jj[q] = jj[m - 1]
+        x0, x1, x2, x3 = x[ii[0]], x[ii[1]], x[ii[2]], x[ii[3]]
+        y0, y1, y2, y3 = y[jj[0]], y[jj[1]], y[jj[2]], y[jj[3]]
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        a3 = 0.0
+        for l in range(L):
+            a0 += x0[l] * y0[l]
+            a1 += x1[l] * y1[l]
+            a2 += x2[l] * y2[l]
+            a3 += x3[l] * y3[l]
+        acc = (a0, a1, a2, a3)
+        for q in range(m):
+            out[ii[q], jj[q]] = acc[q]
+            if sym:
+                out[jj[q], ii[q]] = acc[q]
+
+
+@njit
+def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid):
     """Weighted least-squares amplitudes of the columns ``phi[:n_cols]`` (and the constant
     column last where ``bg_col``): fills ``pw`` (the weighted columns), ``minv``, ``amp``,
-    ``resid``; returns the residual sum of squares."""
+    ``resid`` (``rhs`` (n, 1) scratch); returns the residual sum of squares."""
     L = yw.size
     n = n_cols + 1 if bg_col else n_cols
     for i in range(n_cols):
@@ -211,37 +255,33 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, amp, resid):
     if bg_col:
         for l in range(L):
             pw[n_cols, l] = swp[l]
+    _cross(pw, n, pw, n, True, m)
     big = 0.0
     for i in range(n):
-        for j in range(i + 1):
-            acc = 0.0
-            for l in range(L):
-                acc += pw[i, l] * pw[j, l]
-            m[i, j] = acc
-            m[j, i] = acc
         if m[i, i] > big:
             big = m[i, i]
     ridge = RIDGE * max(big, 1e-300)
     for i in range(n):
         m[i, i] += ridge
     _invert(m, n, minv, work)
+    _cross(pw, n, yw.reshape((1, L)), 1, False, rhs)
     for i in range(n):
-        acc = 0.0
-        for l in range(L):
-            acc += pw[i, l] * yw[l]
-        work[0, i] = acc
+        work[0, i] = rhs[i, 0]
     for i in range(n):
         acc = 0.0
         for j in range(n):
             acc += minv[i, j] * work[0, j]
         amp[i] = acc if math.isfinite(acc) else 0.0
+    for l in range(L):
+        resid[l] = yw[l]
+    for i in range(n):           # (per sample in the order of i, over whole rows: vector loops)
+        a_i = amp[i]
+        pw_i = pw[i]
+        for l in range(L):
+            resid[l] -= a_i * pw_i[l]
     cost = 0.0
     for l in range(L):
-        acc = yw[l]
-        for i in range(n):
-            acc -= amp[i] * pw[i, l]
-        resid[l] = acc
-        cost += acc * acc
+        cost += resid[l] * resid[l]
     return cost
 
 
@@ -268,8 +308,10 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
     t_amp = np.zeros(nc_max)
     t_res = np.zeros(L)
     m = np.zeros((nc_max, nc_max))
+    rhs = np.zeros((max(nc_max, n_par_max), 1))
     work = np.zeros((max(nc_max, n_par_max), max(nc_max, n_par_max) + 1))
     da = np.zeros(L)
+    proj = np.zeros(L)
     s = np.zeros(n_steps + 1)
     r = np.zeros(n_steps + 1)
     E = np.zeros(5)
@@ -317,7 +359,7 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
             nd[k] = delay[p, k]
             nl[k] = lalp[p, k]
         _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, phi, dd, dl, da, s, r, E)
-        cost = _amplitudes(phi, ns, bg_col, yw, swp, pw, m, minv, work, amp, res)
+        cost = _amplitudes(phi, ns, bg_col, yw, swp, pw, m, minv, work, rhs, amp, res)
         lam = LAMBDA0
         conv = npar == 0
         it = 0
@@ -332,35 +374,28 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                 for l in range(L):
                     g[j, l] = a_i * src[i, l] * swp[l]
             # projected columns gp = g - pw^T minv (pw g^T)
-            for i in range(nc):
-                for j in range(npar):
-                    acc = 0.0
-                    for l in range(L):
-                        acc += pw[i, l] * g[j, l]
-                    q[i, j] = acc
+            _cross(pw, nc, g, npar, False, q)
             for j in range(npar):
                 for k in range(nc):
                     acc = 0.0
                     for i in range(nc):
                         acc += q[i, j] * minv[i, k]
                     b[j, k] = acc
+            # (the sum over k per sample, in the order of k, over whole rows: vector loops)
             for j in range(npar):
                 for l in range(L):
-                    acc = 0.0
-                    for k in range(nc):
-                        acc += b[j, k] * pw[k, l]
-                    gp[j, l] = g[j, l] - acc
-            for j in range(npar):
-                for i in range(j + 1):
-                    acc = 0.0
+                    proj[l] = 0.0
+                for k in range(nc):
+                    b_jk = b[j, k]
+                    pw_k = pw[k]
                     for l in range(L):
-                        acc += gp[j, l] * gp[i, l]
-                    jtj[j, i] = acc
-                    jtj[i, j] = acc
-                acc = 0.0
+                        proj[l] += b_jk * pw_k[l]
                 for l in range(L):
-                    acc += g[j, l] * res[l]
-                jtr[j] = acc
+                    gp[j, l] = g[j, l] - proj[l]
+            _cross(gp, npar, gp, npar, True, jtj)
+            _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
+            for j in range(npar):
+                jtr[j] = rhs[j, 0]
             for j in range(npar):
                 for i in range(npar):
                     lhs[j, i] = jtj[j, i]
@@ -382,7 +417,7 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                         nd[k] += step[j]
             _project(f, nd, nl, K, d_lo, d_hi, l_lo, l_hi, sss_after, first_direct)
             _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, t_phi, t_dd, t_dl, da, s, r, E)
-            t_cost = _amplitudes(t_phi, ns, bg_col, yw, swp, t_pw, m, t_minv, work, t_amp, t_res)
+            t_cost = _amplitudes(t_phi, ns, bg_col, yw, swp, t_pw, m, t_minv, work, rhs, t_amp, t_res)
             ok = finite and math.isfinite(t_cost) and t_cost < cost
             gain = cost - t_cost
             it += 1
