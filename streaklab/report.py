@@ -642,6 +642,22 @@ def _pct(a, q):
     return np.percentile(a, q) if a.size else np.nan
 
 
+def shared_line(record: dict) -> str:
+    """One line of the shared estimates (``SharedEstimate.record()``, a result store's ``shared``
+    attribute) with their errors."""
+    parts = []
+    if record.get("psf_sigma_ps") is not None:
+        parts.append(f"PSF sigma {record['psf_sigma_ps']:.4g} +- {record['psf_sigma_ps_stderr']:.2g} ps"
+                     + (" (map centre)" if record.get("psf_map") else ""))
+    if record.get("delay_ps") is not None:
+        parts.append(f"{record['delay_key'].split('_')[0]} onset {record['delay_ps']:.6g} +- "
+                     f"{record['delay_ps_stderr']:.2g} ps")
+    for label, value in record.get("sss_alpha_per_ps", {}).items():
+        where = f" (region {label})" if record.get("regions") else ""
+        parts.append(f"sss alpha{where} {value:.4g} +- {record['sss_alpha_per_ps_stderr'][label]:.2g} /ps")
+    return "shared: " + "; ".join(parts)
+
+
 def summary_text(store) -> str:
     """A short plain-text summary of a result store."""
     g, a = store.group, store.attrs
@@ -660,6 +676,15 @@ def summary_text(store) -> str:
         f"non-finite input {int((done & ~np.asarray(g['valid'][...], bool)).sum())}",
         response_text(store),
     ]
+    if a.get("shared"):
+        lines.append(shared_line(a["shared"]) + " (held in every pixel)")
+    spatial = (a.get("job") or {}).get("spatial")
+    if spatial:
+        from decomposition.image import halo_pixels
+
+        lines.append(f"spatial coupling: neighbours' answers as starts, {spatial['sweeps']} sweeps with an "
+                     f"edge-preserving prior on the direct delays, pooled echoes and spikes (each chunk read with "
+                     f"a halo of {halo_pixels(spatial)} pixels)")
     if not done.all():
         lines.append("INCOMPLETE: rerun 'streaklab decompose ... --resume' to finish")
     nv = max(int(valid.sum()), 1)

@@ -60,6 +60,12 @@ def test_chunked_cli_run_equals_one_whole_cube_call(inputs, whole, tmp_path, cap
     for label in (0, 2):
         inside = (regions == label) & np.isfinite(alpha)
         np.testing.assert_array_equal(alpha[inside], rec["sss_alpha_per_ps"][str(label)])
+    # the report says what every pixel held
+    from streaklab.report import summary_text
+
+    text = summary_text(store)
+    assert f"shared: PSF sigma {rec['psf_sigma_ps']:.4g} +- " in text and "(held in every pixel)" in text
+    assert "region 2" in text and "spatial coupling" not in text
 
 
 def test_resume_after_an_interruption_holds_the_same_values(inputs, tmp_path, monkeypatch):

@@ -103,6 +103,11 @@ def test_an_interrupted_spatial_run_resumes_to_the_same_store(spatial_store, tmp
     cube = zarr.open_group(str(spatial_store / "cube.zarr"), mode="r")["cube"][...]
     ref = decompose_image(cube, TB, spatial=True, max_reflections=3)
     np.testing.assert_allclose(ga["direct_delay_ps"][...], ref.params["direct_delay_ps"], rtol=1e-6, atol=1e-9)
+    # the report says the store is coupled, and how far each chunk read around itself
+    from streaklab.report import summary_text
+
+    assert "spatial coupling:" in summary_text(open_result_store(tmp_path / "part.zarr")) and "halo of 7 pixels" in \
+        summary_text(open_result_store(tmp_path / "part.zarr"))
 
 
 def test_bad_spatial_settings_are_refused_before_any_work(spatial_store, tmp_path):

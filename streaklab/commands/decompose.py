@@ -163,21 +163,6 @@ def resume_command(args) -> str:
     return shlex.join(["streaklab", *words] + ([] if "--resume" in words else ["--resume"]))
 
 
-def shared_line(record: dict) -> str:
-    """One line of the shared estimates (``SharedEstimate.record()``) with their errors."""
-    parts = []
-    if record.get("psf_sigma_ps") is not None:
-        parts.append(f"PSF sigma {record['psf_sigma_ps']:.4g} +- {record['psf_sigma_ps_stderr']:.2g} ps"
-                     + (" (map centre)" if record.get("psf_map") else ""))
-    if record.get("delay_ps") is not None:
-        parts.append(f"{record['delay_key'].split('_')[0]} onset {record['delay_ps']:.6g} +- "
-                     f"{record['delay_ps_stderr']:.2g} ps")
-    for label, value in record.get("sss_alpha_per_ps", {}).items():
-        where = f" (region {label})" if record.get("regions") else ""
-        parts.append(f"sss alpha{where} {value:.4g} +- {record['sss_alpha_per_ps_stderr'][label]:.2g} /ps")
-    return "shared: " + "; ".join(parts)
-
-
 class Terminated(KeyboardInterrupt):
     """SIGTERM: stops the run the way Ctrl-C does (finished chunks kept, the count printed)."""
 
@@ -215,6 +200,8 @@ def _run(args) -> int:
         shared=args.shared, regions=args.regions, psf_map=args.psf_map)
     ny, nx, nt = summary["shape"]
     if summary.get("shared"):
+        from streaklab.report import shared_line
+
         print(shared_line(summary["shared"]))
     irf = summary.get("irf", {})
     if irf.get("kind") == "response":
