@@ -206,3 +206,23 @@ def test_the_shared_psf_of_a_count_image_is_not_pulled_by_refits_that_step_into_
     scene = make_spatial_scene(16, 16, 256, seed=0, photons_per_pixel=1000.0)
     got = decompose_image(scene.profiles, 2.0, shared="psf", t0_ps=scene.t0_ps, noise="poisson")
     assert abs(got.info["shared"]["psf_sigma_ps"] - np.sqrt(16 + 4 / 12)) < 0.2
+
+
+def test_the_pooled_likelihood_refits_an_even_thinning_of_the_selected_pixels(monkeypatch):
+    import decomposition.image.shared as shared
+
+    monkeypatch.setattr(shared, "N_LIKELIHOOD_PIXELS", 12)
+    seen = []
+    misfit = shared._pooled_misfit
+
+    def spy(profiles, *args, **kwargs):
+        seen.append(profiles.shape[0])
+        return misfit(profiles, *args, **kwargs)
+
+    monkeypatch.setattr(shared, "_pooled_misfit", spy)
+    d = _cube(seed=11, nsr=0.12)          # 64 pixels, the brighter half selected
+    rec = decompose_image(d.noisy, TB, components="d,s", shared="psf").info["shared"]
+    assert rec["pixels"]["selected"] > 12
+    assert rec["pixels"]["likelihood"] == 12 and seen and set(seen) == {12}
+    est, se = rec["psf_sigma_ps"], rec["psf_sigma_ps_stderr"]
+    assert abs(est - 3.0) < 4 * se and se < 0.2

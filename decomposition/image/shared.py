@@ -47,10 +47,12 @@ from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
 
 __all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_stderr", "image_estimate", "lit_score", "select_pixels", "pooled", "pooled_positive", "fit_surface",
-           "SURFACE_TERMS", "N_SHARED_PIXELS"]
+           "SURFACE_TERMS", "N_SHARED_PIXELS", "N_LIKELIHOOD_PIXELS"]
 
 #: pixels per region decomposed for the estimate (the brighter half, thinned evenly)
 N_SHARED_PIXELS = 256
+#: at most this many of them (thinned evenly) in the pooled likelihood of the scalar width and onset
+N_LIKELIHOOD_PIXELS = 128
 #: a per-pixel estimate this many scaled MADs from the median is an outlier
 _OUTLIER_MADS = 5.0
 #: the terms of the PSF map, in normalised coordinates u = (y - cy) / sy, v = (x - cx) / sx
@@ -345,7 +347,8 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     one error away), inflated where the misfit per degree of freedom exceeds 1.  Per-pixel
     estimates are biased where one pixel cannot separate a width from an onset or a decay
     (a hundred photons); the pooled likelihood is not.  ``fixed``: per-pixel values held
-    throughout (the PSF map's widths, (n,) arrays)."""
+    throughout (the PSF map's widths, (n,) arrays).  -> (``est`` updated, the pixels pooled: at
+    most :data:`N_LIKELIHOOD_PIXELS`, thinned evenly)."""
     counts = info["noise_model"] == "poisson"
     noise = np.asarray(info["noise_sigma"], np.float64).reshape(-1)
     t0 = info["t0_ps"]
@@ -354,7 +357,14 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     if not counts:
         keep &= np.isfinite(noise) & (noise > 0)
     if keep.sum() < 2:
-        return est
+        return est, 0
+    idx = np.flatnonzero(keep)
+    if idx.size > N_LIKELIHOOD_PIXELS:
+        # thinned evenly (the selection is in raster order): the likelihood's refits are the
+        # estimate's cost, and its error from this many pixels is already a small fraction of
+        # the PSF width's
+        keep = np.zeros_like(keep)
+        keep[idx[np.linspace(0, idx.size - 1, N_LIKELIHOOD_PIXELS).round().astype(np.int64)]] = True
     prof = np.asarray(profiles, np.float64)[keep]
     params = {k: np.asarray(v)[keep] for k, v in first.items() if not k.endswith("_stderr")}
     base = {k: np.broadcast_to(np.asarray(v, np.float64), keep.shape)[keep] for k, v in (fixed or {}).items()}
@@ -417,7 +427,7 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
         if name + "_stderr" in est and name in est and ("sigma_ps" if name == "psf_sigma_ps" else
                                                          est.get("delay_key")) in held:
             est[name + "_stderr"] *= inflate
-    return est
+    return est, int(keep.sum())
 
 
 def _width(params):
@@ -497,7 +507,7 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
         if "delay" in names:
             start[est["delay_key"]] = est["delay_ps"]
         again = decompose(profiles, time_bin_ps, method, hold=start, **kw)
-        est = _profile_refine(profiles, again.params, again.info, scalar, est, keywords=keywords,
+        est, pixels["likelihood"] = _profile_refine(profiles, again.params, again.info, scalar, est, keywords=keywords,
                               time_bin_ps=time_bin_ps, fixed=hold if psf_map else None)
         if "psf" in scalar:
             hold = {"sigma_ps": est["psf_sigma_ps"]}

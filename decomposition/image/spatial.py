@@ -26,7 +26,10 @@ Python loops run over neighbour offsets and sweeps):
    its delay many sigma from its neighbours' (its side of an edge, or a clean signal amid noisy
    ones) is not pulled, and one whose data hardly fix it is pulled most.  Against the pixel's
    own precision 1 / stderr^2 the prior moves a well-determined delay by a fraction
-   stderr^2 / (stderr^2 + 1 / precision) of the gap.
+   stderr^2 / (stderr^2 + 1 / precision) of the gap.  After the first sweep only the pixels
+   whose prior appeared, went, or moved (its mean by 1 % of its standard deviation, its
+   precision by 1 %) are refitted, and the sweeps stop early where none did
+   (``info["spatial_refits"]`` counts the refits).
 
 The answer at a pixel depends only on the data within :func:`coupling_reach` pixels of it (one
 pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
@@ -71,7 +74,8 @@ class SpatialOptions:
     neighbour_starts: bool = True
     #: A direct delay agrees with a neighbour's within this many ps (the doubt test).
     doubt_delay_ps: float = 4.0
-    #: Jacobi sweeps of the joint refinement with the neighbours' delay prior (0: none).
+    #: Jacobi sweeps of the joint refinement with the neighbours' delay prior (0: none; at most:
+    #: they stop where no pixel's prior moved).
     sweeps: int = 3
     #: Neighbourhood radius of the prior, pixels (1: the 8 neighbours; a square of side 2r+1).
     radius: int = 1
@@ -384,24 +388,50 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     weights = sample_weights(c.samples, c.params)[rows]
     noise2 = _noise2(c)[rows]
     pulled = np.zeros(rows.size, bool)
+    last = None             # the last sweep's prior (mean, precision) on rows; NaN: none
+    refits = 0
     for _ in range(options.sweeps):
         delay = np.where(c.live, c.params["direct_delay_ps"], np.nan)
         mean, precision = neighbour_prior(delay, stderr, c.shape, options)
-        pull = precision[rows] > 0
+        m, p = mean[rows], precision[rows]
+        pull = p > 0
         pulled |= pull
+        # a pixel refitted last sweep with (almost) this prior is where that refit left it: only
+        # the pixels whose prior appeared, went or moved are refitted (or go back to their own)
+        same = np.zeros(rows.size, bool) if last is None else _same_prior(m, p, *last)
+        last = (np.where(pull, m, np.nan), p)
+        redo = ~same
+        if not redo.any():
+            break
         # a pixel without a prior this sweep is its own answer; one with a prior is refitted
         # from where the last sweep left it
-        start = {k: np.where(pull.reshape((-1,) + (1,) * (v.ndim - 1)), c.params[k][rows], v)
-                 for k, v in base.items()}
+        back = redo & ~pull
         for k in c.params:
-            c.params[k][rows] = start[k]
-        if pull.any():
-            r = rows[pull]
-            fits = _refine(c, r, _take(start, pull), weights[pull],
-                           (mean[r], precision[r] * noise2[pull]))
+            c.params[k][rows[back]] = base[k][back]
+        fit = redo & pull
+        if fit.any():
+            r = rows[fit]
+            fits = _refine(c, r, _take(c.params, r), weights[fit], (mean[r], precision[r] * noise2[fit]))
+            refits += int(fit.sum())
             for k in c.params:
                 c.params[k][r] = fits[k]
     c.info["spatial_pulled"] = int(pulled.sum())
+    c.info["spatial_refits"] = refits
+
+
+#: a prior is the same as the last sweep's when its mean moved by less than this fraction of its
+#: standard deviation and its precision by less than this fraction of itself
+_SAME_PRIOR = 0.01
+
+
+def _same_prior(mean, precision, last_mean, last_precision) -> np.ndarray:
+    """(n,) bool: the prior (``mean``, ``precision``) is the last sweep's to within
+    :data:`_SAME_PRIOR` (both none counts as the same; a refit from there would end where it is)."""
+    none = ~(precision > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        close = ((np.abs(mean - last_mean) * np.sqrt(precision) <= _SAME_PRIOR)
+                 & (np.abs(precision - last_precision) <= _SAME_PRIOR * precision))
+    return np.where(none, ~(last_precision > 0), close)
 
 
 def coupled_result(c: Coupling, result: DecompositionResult, options: SpatialOptions) -> DecompositionResult:
