@@ -50,6 +50,7 @@ from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
 from ..model.refine import refine
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
+from ..stages.candidates import detector_variance
 from ..stages.prepare import prepare_samples, time_axis
 from ..stages.quality import assess_fit
 from ..stages.refit import component_errors, sample_weights
@@ -136,6 +137,7 @@ class Coupling:
     resolved: np.ndarray    # (P,) bool: the search's AMBIGUOUS resolved by the neighbours
     info: dict
     hold: dict = field(default_factory=dict)   # {HOLD_KEYS: (P,)}: parameters every fit keeps (shared=)
+    noise_law: dict | None = None   # {"floor", "gain"}: the detector's photon-noise law the search weighed by
 
 
 def _decompose_default(name):
@@ -172,7 +174,19 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
     return Coupling(shape=(Y, X), samples=samples, opts=opts, grid=grid, physics=physics,
                     widths="shared" if physics["shared_sigma"] else "per_atom", bounds=bounds, params=params,
                     flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={},
-                    hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()})
+                    hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()},
+                    noise_law=_searched_law(result.info, samples.noise_model))
+
+
+def _searched_law(info: dict, noise_model: str) -> dict | None:
+    """The detector's variance law (``floor`` + ``gain`` x signal, the data's units) by which the
+    per-pixel call weighed its float samples (``info["signal_noise_law_fit"]`` with a positive
+    gain, :func:`decomposition.stages.candidates.signal_weights`), or None (count data, or no
+    such law)."""
+    law = info.get("signal_noise_law_fit")
+    if noise_model == "poisson" or not isinstance(law, dict) or not float(law.get("gain", 0.0)) > 0:
+        return None
+    return {"floor": float(law["floor"]), "gain": float(law["gain"])}
 
 
 def _noise2(c: Coupling) -> np.ndarray:
@@ -181,6 +195,26 @@ def _noise2(c: Coupling) -> np.ndarray:
     if s.noise_model == "poisson":
         return np.ones(s.values.shape[0])
     return np.maximum(s.noise_eff * s.scale, 1e-300) ** 2
+
+
+def objective_weights(c: Coupling, params: dict) -> np.ndarray:
+    """(P, L) the weights the fits of a pixel are refitted and compared with (J's data term in
+    :func:`_objective`), read at the model of ``params`` and the same for every candidate of a
+    pixel: as the per-pixel search weighed its samples.  Count data: the Poisson weights; float
+    data whose noise follows the signal (the call's detector law, :attr:`Coupling.noise_law`):
+    the fit mask times noise^2 / the law's variance at the model, so that the data term is the
+    sum of residual^2 / variance (photon noise, largest at the peaks, is not read as structure
+    that a split direct or an extra inter-reflection would explain); else the fit mask."""
+    w = sample_weights(c.samples, params)
+    if c.noise_law is None:
+        return w
+    s = c.samples
+    scale = np.maximum(np.nan_to_num(s.scale), 1e-300)
+    model = np.maximum(_model(c, params), 0.0) / scale[:, None]
+    var = detector_variance(c.noise_law["floor"], c.noise_law["gain"], model, scale)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        law = np.nan_to_num(s.noise_eff[:, None] ** 2 / var, nan=0.0, posinf=0.0)
+    return np.where(w > 0, w * law, 0.0)
 
 
 def _take(params: dict, rows) -> dict:
@@ -300,7 +334,7 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
         pix, src = pix[first], src[first]
         if pix.size:
             own = _take(c.params, rows)
-            weights = sample_weights(c.samples, c.params)
+            weights = objective_weights(c, c.params)
             j_best = _objective(c, rows, own, weights[rows])
             start = _take(c.params, src)
             if BACKGROUND_KEY in start:         # the pixel's own offset, fitted again
