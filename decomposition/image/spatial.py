@@ -54,7 +54,7 @@ from ..stages.candidates import detector_variance
 from ..stages.prepare import prepare_samples, time_axis
 from ..stages.quality import assess_fit
 from ..stages.refit import component_errors, sample_weights
-from ..stages.selection import data_term, families, free_parameters, log_samples, penalised
+from ..stages.selection import ambiguity_tolerance, data_term, families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling",
            "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt"]
@@ -273,25 +273,48 @@ def _signature(params: dict) -> np.ndarray:
     return fam[:, 0] + 2 * fam[:, 1] + 4 * fam[:, 2:].sum(axis=1)
 
 
+def _neighbour_counts(c: Coupling, params: dict, pix: np.ndarray, sig: np.ndarray, d: np.ndarray,
+                      doubt_delay_ps: float):
+    """How many of the decomposed 8 neighbours of the pixels ``pix`` (n,) share an answer of
+    component set ``sig`` (n,, :func:`_signature`) and direct delay ``d`` (n,, ps; NaN: none),
+    the neighbours read in ``params`` -> (n,) each: the neighbours, those with the same set,
+    those with the same delay, those with both.
+
+    A neighbour shares the delay where the two lie within ``doubt_delay_ps`` (or neither has a
+    direct), or where ``d`` lies between that neighbour's delay and the opposite neighbour's
+    (to within ``doubt_delay_ps``): on a surface inclined to the scan, neighbours' delays
+    differ by the slope, and at an object's edge a pixel lies between the two surfaces."""
+    live_i = np.where(c.live, np.arange(c.live.size), -1)
+    nsig = np.where(c.live, _signature(params), -1)
+    nd_all = params["direct_delay_ps"]
+    n, same_set, same_delay, same = (np.zeros(pix.size, np.int64) for _ in range(4))
+    for dy, dx in NEIGHBOURS_8:
+        nb = _shifted(live_i, c.shape, dy, dx, -1)[pix]
+        ok = nb >= 0
+        nb = np.where(ok, nb, 0)
+        ns, nd = nsig[nb], nd_all[nb]
+        op = _shifted(live_i, c.shape, -dy, -dx, -1)[pix]
+        od = np.where(op >= 0, nd_all[np.where(op >= 0, op, 0)], np.nan)
+        with np.errstate(invalid="ignore"):
+            set_ok = ok & (ns == sig)
+            between = (d >= np.fmin(nd, od) - doubt_delay_ps) & (d <= np.fmax(nd, od) + doubt_delay_ps)
+            delay_ok = ok & (between | (np.isnan(nd) & np.isnan(d)))
+        n += ok
+        same_set += set_ok
+        same_delay += delay_ok
+        same += set_ok & delay_ok
+    return n, same_set, same_delay, same
+
+
 def _agreement(c: Coupling, params: dict, doubt_delay_ps: float):
     """(P,) bool each: whether a pixel's component set, and its direct delay (within
     ``doubt_delay_ps``), agree with at least half of its decomposed 8 neighbours (a pixel
     without any neighbour agrees)."""
-    P = c.live.size
-    sig = np.where(c.live, _signature(params), -1)
-    d = np.where(c.live, params["direct_delay_ps"], np.nan)
-    n = np.zeros(P)
-    same_set = np.zeros(P)
-    same_delay = np.zeros(P)
-    for dy, dx in NEIGHBOURS_8:
-        ns = _shifted(sig, c.shape, dy, dx, -1)
-        nd = _shifted(d, c.shape, dy, dx, np.nan)
-        ok = ns >= 0
-        n += ok
-        same_set += ok & (ns == sig)
-        with np.errstate(invalid="ignore"):
-            same_delay += ok & ((np.abs(nd - d) <= doubt_delay_ps) | (np.isnan(nd) & np.isnan(d)))
-    return 2 * same_set >= n, 2 * same_delay >= n
+    pix = np.arange(c.live.size)
+    n, same_set, same_delay, _ = _neighbour_counts(c, params, pix, _signature(params), params["direct_delay_ps"],
+                                                   doubt_delay_ps)
+    live = c.live
+    return ~live | (2 * same_set >= n), ~live | (2 * same_delay >= n)
 
 
 def in_doubt(c: Coupling, options: SpatialOptions) -> np.ndarray:
@@ -341,12 +364,30 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
                 start[BACKGROUND_KEY] = c.params[BACKGROUND_KEY][pix]
             fits = _refine(c, pix, start, weights[pix])
             j = _objective(c, pix, fits, weights[pix])
-            # the lowest J per pixel: order the candidates by (pixel, J), take each pixel's first
-            pos = np.searchsorted(rows, pix)
-            order = np.lexsort((j, pos))
-            first = order[np.r_[True, pos[order][1:] != pos[order][:-1]]]
-            better = j[first] < j_best[pos[first]]
-            win, from_row = pix[first][better], first[better]
+            # the candidates: each pixel's own fit (index -1) and its refits from the starts
+            cand_pos = np.concatenate([np.arange(rows.size), np.searchsorted(rows, pix)])
+            cand_j = np.concatenate([j_best, j])
+            cand_fit = np.concatenate([np.full(rows.size, -1), np.arange(pix.size)])
+            cand_sig = np.concatenate([_signature(own), _signature(fits)])
+            cand_d = np.concatenate([own["direct_delay_ps"], fits["direct_delay_ps"]])
+            *_, agree = _neighbour_counts(c, c.params, rows[cand_pos], cand_sig, cand_d, options.doubt_delay_ps)
+            # a start replaces the pixel's own fit where its J is lower: by more than the
+            # evidence tolerance, or by less and it agrees with as many neighbours as the own
+            # (within the tolerance the data do not choose, and the neighbours veto); among
+            # those, within the tolerance of the lowest J, the fit most neighbours share, then
+            # the lower J
+            tol = ambiguity_tolerance("evidence", c.opts)
+            is_own = cand_fit < 0
+            own_agree = agree[:rows.size][cand_pos]
+            ok = is_own | ((cand_j < j_best[cand_pos]) &
+                           ((cand_j < j_best[cand_pos] - tol) | (agree >= own_agree)))
+            j_min = np.full(rows.size, np.inf)
+            np.minimum.at(j_min, cand_pos[ok], cand_j[ok])
+            tie = ok & (cand_j <= j_min[cand_pos] + tol)
+            order = np.lexsort((cand_j, -agree, ~tie, ~ok, cand_pos))
+            first = order[np.r_[True, cand_pos[order][1:] != cand_pos[order][:-1]]]
+            first = first[cand_fit[first] >= 0]
+            win, from_row = rows[cand_pos[first]], cand_fit[first]
             for k in c.params:
                 c.params[k][win] = fits[k][from_row]
             taken[win] = True
