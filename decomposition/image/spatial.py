@@ -6,14 +6,22 @@ each over the image axes (y, x) of a flattened image of P pixels, on blocks of p
 Python loops run over neighbour offsets and sweeps):
 
 1. **Neighbours' answers as starts** (:func:`neighbour_starts`).  A pixel is *in doubt* when it
-   is flagged AMBIGUOUS or POOR_FIT, or when its component set or its direct delay (within
-   ``doubt_delay_ps``) agrees with fewer than half of its 8 neighbours.  Each pixel in doubt is
-   refitted (:func:`decomposition.model.refine.refine`) from each neighbour's parameter set (its
-   components and their parameters), and keeps the fit of the lowest penalised objective J
-   (:func:`decomposition.stages.selection.penalised`, the one the per-pixel search compares
-   with) among its own and those.  The search's AMBIGUOUS is resolved (cleared, unless the
-   final fit's own quality test sets it again) where a neighbour's start was taken or where the
-   pixel's answer agrees with its neighbours'.
+   is flagged AMBIGUOUS or POOR_FIT, or when its component set or its direct delay agrees with
+   fewer than half of its 8 neighbours (a neighbour shares the delay where the two lie within
+   ``doubt_delay_ps``, or where the pixel's lies between that neighbour's and the opposite
+   neighbour's: an inclined surface, an object's edge).  Each pixel in doubt is refitted
+   (:func:`decomposition.model.refine.refine`) from each neighbour's parameter set (its
+   components and their parameters), and the fits are compared on the penalised objective J
+   (:func:`decomposition.stages.selection.penalised`) with the data term read as the per-pixel
+   search read it (:func:`objective_weights`: where the noise follows the signal, in the
+   detector's variance law).  A refit replaces the pixel's own fit where its J is lower by more
+   than the evidence tolerance (``ambiguity_chi2``,
+   :func:`decomposition.stages.selection.ambiguity_tolerance`), or lower by less and shared by
+   as many neighbours as the own fit; among those, within the tolerance of the lowest J, the
+   fit most neighbours share is kept (the data do not choose there; the neighbours do).  The
+   search's AMBIGUOUS is resolved (cleared, unless the final fit's own quality test sets it
+   again) where a neighbour's start was taken or where the pixel's answer agrees with its
+   neighbours'.
 2. **Joint refinement** (:func:`joint_refinement`): ``sweeps`` Jacobi sweeps in which every
    pixel is refitted with a Gaussian pseudo-observation of its direct delay
    (:func:`decomposition.model.refine.refine`'s ``delay_prior``) at a robust estimate from the
@@ -32,9 +40,10 @@ The answer at a pixel depends only on the data within :func:`coupling_reach` pix
 pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
 halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
-Scope: the Gaussian PSF path (not ``irf=``).  The objective's data term is weighed as the
-per-pixel refit weighs it (the fit mask and the pixel's noise, or Poisson weights at the
-pixel's model for count data), not whitened by a correlated-noise spectrum.  The standard
+Scope: the Gaussian PSF path (not ``irf=``).  The neighbour starts' data term is weighed by
+:func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
+mask and the pixel's noise, or Poisson weights at the pixel's model for count data); neither is
+whitened by a correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
 from __future__ import annotations
@@ -57,7 +66,8 @@ from ..stages.refit import component_errors, sample_weights
 from ..stages.selection import ambiguity_tolerance, data_term, families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling",
-           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt"]
+           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt",
+           "objective_weights"]
 
 #: the 8 neighbours' offsets (dy, dx)
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
@@ -327,7 +337,8 @@ def in_doubt(c: Coupling, options: SpatialOptions) -> np.ndarray:
 
 def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
     """Step 1 (module docstring): the pixels in doubt refitted from their neighbours' answers,
-    each keeping the lowest J among its own fit and those; ``c`` updated in place."""
+    each keeping its own fit or the one of those that the rule of the module docstring picks (a
+    lower J, the neighbours deciding within the evidence tolerance); ``c`` updated in place."""
     doubt = in_doubt(c, options)
     c.info["spatial_doubt"] = int(doubt.sum())
     taken = np.zeros(c.live.size, bool)
