@@ -317,9 +317,9 @@ def _neighbour_counts(c: Coupling, params: dict, pix: np.ndarray, sig: np.ndarra
 
 
 def _agreement(c: Coupling, params: dict, doubt_delay_ps: float):
-    """(P,) bool each: whether a pixel's component set, and its direct delay (within
-    ``doubt_delay_ps``), agree with at least half of its decomposed 8 neighbours (a pixel
-    without any neighbour agrees)."""
+    """(P,) bool each: whether a pixel's component set, and its direct delay, agree with at
+    least half of its decomposed 8 neighbours (:func:`_neighbour_counts`; a pixel without any
+    neighbour agrees)."""
     pix = np.arange(c.live.size)
     n, same_set, same_delay, _ = _neighbour_counts(c, params, pix, _signature(params), params["direct_delay_ps"],
                                                    doubt_delay_ps)
