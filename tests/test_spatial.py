@@ -141,3 +141,106 @@ def test_the_sweeps_refit_only_pixels_whose_prior_moved_and_stop_when_none_did()
     err = np.sqrt(np.nanmean((many.params["direct_delay_ps"] - truth["direct_delay_ps"]) ** 2))
     alone = decompose_image(cube, TB)
     assert err < 0.9 * np.sqrt(np.nanmean((alone.params["direct_delay_ps"] - truth["direct_delay_ps"]) ** 2))
+
+
+def _direct_image(n, nt, delay_ps, amplitude, rng, noise_var):
+    """(n, n, nt) profiles of one Gaussian direct (sigma 4 ps) per pixel at ``delay_ps`` (n, n),
+    with Gaussian noise of variance ``noise_var(clean)``; -> (cube, params)."""
+    p = model.empty_params((n, n), 0)
+    p["direct_delay_ps"] = np.asarray(delay_ps, float)
+    p["direct_amplitude"] = np.full((n, n), float(amplitude))
+    p["direct_sigma_ps"] = np.full((n, n), 4.0)
+    clean = model.render_profile(p, nt, TB)
+    return clean + np.sqrt(noise_var(clean)) * rng.standard_normal(clean.shape), p
+
+
+def test_a_split_direct_under_photon_noise_gets_its_neighbours_single_direct_back():
+    # direct-only pixels whose noise follows the signal (variance 3 + 0.2 x signal, a detector's
+    # photon-noise law); the centre's answer is its direct split in two 4 ps apart, refined on its
+    # own data.  Read in one noise level the split explains the peak's photon noise; in the law
+    # the search weighed by, the neighbours' single direct is the better fit.
+    from dataclasses import replace
+
+    from decomposition import decompose
+    from decomposition.flags import AMBIGUOUS
+
+    n, nt = 5, 128
+    law = {"floor": 3.0, "gain": 0.2}
+    cube, _ = _direct_image(n, nt, np.full((n, n), 100.0), 500.0, np.random.default_rng(4),
+                            lambda m: law["floor"] + law["gain"] * m)
+    alone = decompose(cube, TB, components="dr")
+    params = {k: np.array(v, copy=True) for k, v in alone.params.items()}
+    split = model.empty_params((1,), params["ir_delay_ps"].shape[-1])
+    split.update(direct_delay_ps=np.array([98.0]), direct_amplitude=np.array([400.0]),
+                 direct_sigma_ps=np.array([4.0]))
+    split["ir_delay_ps"][0, 0], split["ir_amplitude"][0, 0], split["ir_sigma_ps"][0, 0] = 102.0, 100.0, 4.0
+    split, _ = refine(cube[2, 2][None], split, time_bin_ps=TB, shared_sigma=True)
+    for k in params:
+        if k in split:
+            params[k][2, 2] = split[k][0]
+    assert np.isfinite(params["ir_delay_ps"][2, 2]).any()
+    flags = np.array(alone.flags, copy=True)
+    flags[2, 2] |= AMBIGUOUS
+    result = replace(alone, params=params, flags=flags, info={**alone.info, "signal_noise_law_fit": law})
+    c = prepare_coupling(cube, result, TB, "convscd", {"components": "dr"})
+    neighbour_starts(c, SpatialOptions())
+    centre = 2 * n + 2
+    assert not np.isfinite(c.params["ir_delay_ps"][centre]).any()
+    assert c.params["direct_amplitude"][centre] == pytest.approx(500.0, rel=0.05)
+    assert c.params["direct_delay_ps"][centre] == pytest.approx(100.0, abs=0.5)
+    assert c.resolved[centre]
+
+
+def test_a_start_within_the_evidence_tolerance_does_not_replace_the_answer_the_neighbours_share():
+    # white noise, one direct per pixel; one neighbour of the centre answers with a split
+    # direct.  With no parameter penalty the split, refitted on the centre's data, lowers J a
+    # little; within the evidence tolerance (ambiguity_chi2) the data do not choose, and the
+    # centre keeps the single direct its other neighbours share.
+    from dataclasses import replace
+
+    from decomposition import decompose
+    from decomposition.flags import AMBIGUOUS
+
+    n, nt = 5, 128
+    kw = {"components": "dr", "search_penalty": 0.0, "ambiguity_chi2": 1e6}
+    cube, _ = _direct_image(n, nt, np.full((n, n), 100.0), 1.0, np.random.default_rng(5),
+                            lambda m: np.full(m.shape, 0.05 ** 2))
+    alone = decompose(cube, TB, components="dr")
+    params = {k: np.array(v, copy=True) for k, v in alone.params.items()}
+    params["direct_amplitude"][1, 2] *= 0.6
+    params["ir_delay_ps"][1, 2, 0] = params["direct_delay_ps"][1, 2] + 5.0
+    params["ir_amplitude"][1, 2, 0] = 0.4
+    params["ir_sigma_ps"][1, 2, 0] = params["direct_sigma_ps"][1, 2]
+    flags = np.array(alone.flags, copy=True)
+    flags[2, 2] |= AMBIGUOUS
+    c = prepare_coupling(cube, replace(alone, params=params, flags=flags), TB, "convscd", kw)
+    neighbour_starts(c, SpatialOptions())
+    centre = 2 * n + 2
+    assert not np.isfinite(c.params["ir_delay_ps"][centre]).any()
+    assert c.params["direct_delay_ps"][centre] == alone.params["direct_delay_ps"][2, 2]
+    assert c.resolved[centre]
+
+
+def test_pixels_of_an_inclined_surface_agree_with_their_neighbours():
+    # direct delays rising 5 ps a row (more than doubt_delay_ps between neighbours in y) and a
+    # step of 60 ps after row 2: every pixel's answer agrees with its neighbours (none in doubt
+    # but one the search flagged AMBIGUOUS), and that flag on a sound pixel is resolved
+    from dataclasses import replace
+
+    from decomposition import decompose
+    from decomposition.flags import AMBIGUOUS
+    from decomposition.image.spatial import in_doubt
+
+    n, nt = 6, 160
+    delay = 60.0 + 5.0 * np.arange(n)[:, None] + np.zeros((1, n)) + np.where(np.arange(n)[:, None] > 2, 60.0, 0.0)
+    cube, _ = _direct_image(n, nt, delay, 1.0, np.random.default_rng(6), lambda m: np.full(m.shape, 0.01 ** 2))
+    alone = decompose(cube, TB, components="d")
+    assert np.all(np.abs(alone.params["direct_delay_ps"] - delay) < 0.5)
+    flags = np.array(alone.flags, copy=True)
+    flags[1, 2] |= AMBIGUOUS
+    c = prepare_coupling(cube, replace(alone, flags=flags), TB, "convscd", {"components": "d"})
+    # (in the first and last rows a neighbour has no opposite one to bracket the pixel's delay)
+    doubt = in_doubt(c, SpatialOptions()).reshape(n, n)[1:-1]
+    assert np.argwhere(doubt).tolist() == [[0, 2]]       # the flagged pixel alone
+    neighbour_starts(c, SpatialOptions())
+    assert c.resolved.reshape(n, n)[1:-1].all()

@@ -6,14 +6,22 @@ each over the image axes (y, x) of a flattened image of P pixels, on blocks of p
 Python loops run over neighbour offsets and sweeps):
 
 1. **Neighbours' answers as starts** (:func:`neighbour_starts`).  A pixel is *in doubt* when it
-   is flagged AMBIGUOUS or POOR_FIT, or when its component set or its direct delay (within
-   ``doubt_delay_ps``) agrees with fewer than half of its 8 neighbours.  Each pixel in doubt is
-   refitted (:func:`decomposition.model.refine.refine`) from each neighbour's parameter set (its
-   components and their parameters), and keeps the fit of the lowest penalised objective J
-   (:func:`decomposition.stages.selection.penalised`, the one the per-pixel search compares
-   with) among its own and those.  The search's AMBIGUOUS is resolved (cleared, unless the
-   final fit's own quality test sets it again) where a neighbour's start was taken or where the
-   pixel's answer agrees with its neighbours'.
+   is flagged AMBIGUOUS or POOR_FIT, or when its component set or its direct delay agrees with
+   fewer than half of its 8 neighbours (a neighbour shares the delay where the two lie within
+   ``doubt_delay_ps``, or where the pixel's lies between that neighbour's and the opposite
+   neighbour's: an inclined surface, an object's edge).  Each pixel in doubt is refitted
+   (:func:`decomposition.model.refine.refine`) from each neighbour's parameter set (its
+   components and their parameters), and the fits are compared on the penalised objective J
+   (:func:`decomposition.stages.selection.penalised`) with the data term read as the per-pixel
+   search read it (:func:`objective_weights`: where the noise follows the signal, in the
+   detector's variance law).  A refit replaces the pixel's own fit where its J is lower by more
+   than the evidence tolerance (``ambiguity_chi2``,
+   :func:`decomposition.stages.selection.ambiguity_tolerance`), or lower by less and shared by
+   as many neighbours as the own fit; among those, within the tolerance of the lowest J, the
+   fit most neighbours share is kept (the data do not choose there; the neighbours do).  The
+   search's AMBIGUOUS is resolved (cleared, unless the final fit's own quality test sets it
+   again) where a neighbour's start was taken or where the pixel's answer agrees with its
+   neighbours'.
 2. **Joint refinement** (:func:`joint_refinement`): ``sweeps`` Jacobi sweeps in which every
    pixel is refitted with a Gaussian pseudo-observation of its direct delay
    (:func:`decomposition.model.refine.refine`'s ``delay_prior``) at a robust estimate from the
@@ -35,9 +43,10 @@ The answer at a pixel depends only on the data within :func:`coupling_reach` pix
 pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
 halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
-Scope: the Gaussian PSF path (not ``irf=``).  The objective's data term is weighed as the
-per-pixel refit weighs it (the fit mask and the pixel's noise, or Poisson weights at the
-pixel's model for count data), not whitened by a correlated-noise spectrum.  The standard
+Scope: the Gaussian PSF path (not ``irf=``).  The neighbour starts' data term is weighed by
+:func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
+mask and the pixel's noise, or Poisson weights at the pixel's model for count data); neither is
+whitened by a correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
 from __future__ import annotations
@@ -53,13 +62,15 @@ from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
 from ..model.refine import refine
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
+from ..stages.candidates import detector_variance
 from ..stages.prepare import prepare_samples, time_axis
 from ..stages.quality import assess_fit
 from ..stages.refit import component_errors, sample_weights
-from ..stages.selection import data_term, families, free_parameters, log_samples, penalised
+from ..stages.selection import ambiguity_tolerance, data_term, families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling",
-           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt"]
+           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt",
+           "objective_weights"]
 
 #: the 8 neighbours' offsets (dy, dx)
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
@@ -140,6 +151,7 @@ class Coupling:
     resolved: np.ndarray    # (P,) bool: the search's AMBIGUOUS resolved by the neighbours
     info: dict
     hold: dict = field(default_factory=dict)   # {HOLD_KEYS: (P,)}: parameters every fit keeps (shared=)
+    noise_law: dict | None = None   # {"floor", "gain"}: the detector's photon-noise law the search weighed by
 
 
 def _decompose_default(name):
@@ -176,7 +188,19 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
     return Coupling(shape=(Y, X), samples=samples, opts=opts, grid=grid, physics=physics,
                     widths="shared" if physics["shared_sigma"] else "per_atom", bounds=bounds, params=params,
                     flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={},
-                    hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()})
+                    hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()},
+                    noise_law=_searched_law(result.info, samples.noise_model))
+
+
+def _searched_law(info: dict, noise_model: str) -> dict | None:
+    """The detector's variance law (``floor`` + ``gain`` x signal, the data's units) by which the
+    per-pixel call weighed its float samples (``info["signal_noise_law_fit"]`` with a positive
+    gain, :func:`decomposition.stages.candidates.signal_weights`), or None (count data, or no
+    such law)."""
+    law = info.get("signal_noise_law_fit")
+    if noise_model == "poisson" or not isinstance(law, dict) or not float(law.get("gain", 0.0)) > 0:
+        return None
+    return {"floor": float(law["floor"]), "gain": float(law["gain"])}
 
 
 def _noise2(c: Coupling) -> np.ndarray:
@@ -185,6 +209,26 @@ def _noise2(c: Coupling) -> np.ndarray:
     if s.noise_model == "poisson":
         return np.ones(s.values.shape[0])
     return np.maximum(s.noise_eff * s.scale, 1e-300) ** 2
+
+
+def objective_weights(c: Coupling, params: dict) -> np.ndarray:
+    """(P, L) the weights the fits of a pixel are refitted and compared with (J's data term in
+    :func:`_objective`), read at the model of ``params`` and the same for every candidate of a
+    pixel: as the per-pixel search weighed its samples.  Count data: the Poisson weights; float
+    data whose noise follows the signal (the call's detector law, :attr:`Coupling.noise_law`):
+    the fit mask times noise^2 / the law's variance at the model, so that the data term is the
+    sum of residual^2 / variance (photon noise, largest at the peaks, is not read as structure
+    that a split direct or an extra inter-reflection would explain); else the fit mask."""
+    w = sample_weights(c.samples, params)
+    if c.noise_law is None:
+        return w
+    s = c.samples
+    scale = np.maximum(np.nan_to_num(s.scale), 1e-300)
+    model = np.maximum(_model(c, params), 0.0) / scale[:, None]
+    var = detector_variance(c.noise_law["floor"], c.noise_law["gain"], model, scale)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        law = np.nan_to_num(s.noise_eff[:, None] ** 2 / var, nan=0.0, posinf=0.0)
+    return np.where(w > 0, w * law, 0.0)
 
 
 def _take(params: dict, rows) -> dict:
@@ -243,25 +287,48 @@ def _signature(params: dict) -> np.ndarray:
     return fam[:, 0] + 2 * fam[:, 1] + 4 * fam[:, 2:].sum(axis=1)
 
 
-def _agreement(c: Coupling, params: dict, doubt_delay_ps: float):
-    """(P,) bool each: whether a pixel's component set, and its direct delay (within
-    ``doubt_delay_ps``), agree with at least half of its decomposed 8 neighbours (a pixel
-    without any neighbour agrees)."""
-    P = c.live.size
-    sig = np.where(c.live, _signature(params), -1)
-    d = np.where(c.live, params["direct_delay_ps"], np.nan)
-    n = np.zeros(P)
-    same_set = np.zeros(P)
-    same_delay = np.zeros(P)
+def _neighbour_counts(c: Coupling, params: dict, pix: np.ndarray, sig: np.ndarray, d: np.ndarray,
+                      doubt_delay_ps: float):
+    """How many of the decomposed 8 neighbours of the pixels ``pix`` (n,) share an answer of
+    component set ``sig`` (n,, :func:`_signature`) and direct delay ``d`` (n,, ps; NaN: none),
+    the neighbours read in ``params`` -> (n,) each: the neighbours, those with the same set,
+    those with the same delay, those with both.
+
+    A neighbour shares the delay where the two lie within ``doubt_delay_ps`` (or neither has a
+    direct), or where ``d`` lies between that neighbour's delay and the opposite neighbour's
+    (to within ``doubt_delay_ps``): on a surface inclined to the scan, neighbours' delays
+    differ by the slope, and at an object's edge a pixel lies between the two surfaces."""
+    live_i = np.where(c.live, np.arange(c.live.size), -1)
+    nsig = np.where(c.live, _signature(params), -1)
+    nd_all = params["direct_delay_ps"]
+    n, same_set, same_delay, same = (np.zeros(pix.size, np.int64) for _ in range(4))
     for dy, dx in NEIGHBOURS_8:
-        ns = _shifted(sig, c.shape, dy, dx, -1)
-        nd = _shifted(d, c.shape, dy, dx, np.nan)
-        ok = ns >= 0
-        n += ok
-        same_set += ok & (ns == sig)
+        nb = _shifted(live_i, c.shape, dy, dx, -1)[pix]
+        ok = nb >= 0
+        nb = np.where(ok, nb, 0)
+        ns, nd = nsig[nb], nd_all[nb]
+        op = _shifted(live_i, c.shape, -dy, -dx, -1)[pix]
+        od = np.where(op >= 0, nd_all[np.where(op >= 0, op, 0)], np.nan)
         with np.errstate(invalid="ignore"):
-            same_delay += ok & ((np.abs(nd - d) <= doubt_delay_ps) | (np.isnan(nd) & np.isnan(d)))
-    return 2 * same_set >= n, 2 * same_delay >= n
+            set_ok = ok & (ns == sig)
+            between = (d >= np.fmin(nd, od) - doubt_delay_ps) & (d <= np.fmax(nd, od) + doubt_delay_ps)
+            delay_ok = ok & (between | (np.isnan(nd) & np.isnan(d)))
+        n += ok
+        same_set += set_ok
+        same_delay += delay_ok
+        same += set_ok & delay_ok
+    return n, same_set, same_delay, same
+
+
+def _agreement(c: Coupling, params: dict, doubt_delay_ps: float):
+    """(P,) bool each: whether a pixel's component set, and its direct delay, agree with at
+    least half of its decomposed 8 neighbours (:func:`_neighbour_counts`; a pixel without any
+    neighbour agrees)."""
+    pix = np.arange(c.live.size)
+    n, same_set, same_delay, _ = _neighbour_counts(c, params, pix, _signature(params), params["direct_delay_ps"],
+                                                   doubt_delay_ps)
+    live = c.live
+    return ~live | (2 * same_set >= n), ~live | (2 * same_delay >= n)
 
 
 def in_doubt(c: Coupling, options: SpatialOptions) -> np.ndarray:
@@ -274,7 +341,8 @@ def in_doubt(c: Coupling, options: SpatialOptions) -> np.ndarray:
 
 def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
     """Step 1 (module docstring): the pixels in doubt refitted from their neighbours' answers,
-    each keeping the lowest J among its own fit and those; ``c`` updated in place."""
+    each keeping its own fit or the one of those that the rule of the module docstring picks (a
+    lower J, the neighbours deciding within the evidence tolerance); ``c`` updated in place."""
     doubt = in_doubt(c, options)
     c.info["spatial_doubt"] = int(doubt.sum())
     taken = np.zeros(c.live.size, bool)
@@ -304,19 +372,37 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
         pix, src = pix[first], src[first]
         if pix.size:
             own = _take(c.params, rows)
-            weights = sample_weights(c.samples, c.params)
+            weights = objective_weights(c, c.params)
             j_best = _objective(c, rows, own, weights[rows])
             start = _take(c.params, src)
             if BACKGROUND_KEY in start:         # the pixel's own offset, fitted again
                 start[BACKGROUND_KEY] = c.params[BACKGROUND_KEY][pix]
             fits = _refine(c, pix, start, weights[pix])
             j = _objective(c, pix, fits, weights[pix])
-            # the lowest J per pixel: order the candidates by (pixel, J), take each pixel's first
-            pos = np.searchsorted(rows, pix)
-            order = np.lexsort((j, pos))
-            first = order[np.r_[True, pos[order][1:] != pos[order][:-1]]]
-            better = j[first] < j_best[pos[first]]
-            win, from_row = pix[first][better], first[better]
+            # the candidates: each pixel's own fit (index -1) and its refits from the starts
+            cand_pos = np.concatenate([np.arange(rows.size), np.searchsorted(rows, pix)])
+            cand_j = np.concatenate([j_best, j])
+            cand_fit = np.concatenate([np.full(rows.size, -1), np.arange(pix.size)])
+            cand_sig = np.concatenate([_signature(own), _signature(fits)])
+            cand_d = np.concatenate([own["direct_delay_ps"], fits["direct_delay_ps"]])
+            *_, agree = _neighbour_counts(c, c.params, rows[cand_pos], cand_sig, cand_d, options.doubt_delay_ps)
+            # a start replaces the pixel's own fit where its J is lower: by more than the
+            # evidence tolerance, or by less and it agrees with as many neighbours as the own
+            # (within the tolerance the data do not choose, and the neighbours veto); among
+            # those, within the tolerance of the lowest J, the fit most neighbours share, then
+            # the lower J
+            tol = ambiguity_tolerance("evidence", c.opts)
+            is_own = cand_fit < 0
+            own_agree = agree[:rows.size][cand_pos]
+            ok = is_own | ((cand_j < j_best[cand_pos]) &
+                           ((cand_j < j_best[cand_pos] - tol) | (agree >= own_agree)))
+            j_min = np.full(rows.size, np.inf)
+            np.minimum.at(j_min, cand_pos[ok], cand_j[ok])
+            tie = ok & (cand_j <= j_min[cand_pos] + tol)
+            order = np.lexsort((cand_j, -agree, ~tie, ~ok, cand_pos))
+            first = order[np.r_[True, cand_pos[order][1:] != cand_pos[order][:-1]]]
+            first = first[cand_fit[first] >= 0]
+            win, from_row = rows[cand_pos[first]], cand_fit[first]
             for k in c.params:
                 c.params[k][win] = fits[k][from_row]
             taken[win] = True

@@ -24,7 +24,7 @@ from ..methods.polish import refit_amplitudes
 from ..model.slots import drop_zero, parameter_bounds, put, refine_atoms, render
 
 __all__ = ["polish_candidate", "each_block", "residual_significance_noise", "signal_weights",
-           "correlated_noise_spectrum"]
+           "detector_variance", "correlated_noise_spectrum"]
 
 
 def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, weights=None):
@@ -263,11 +263,20 @@ def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=No
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
-        s = np.maximum(samples.scale[live[rows]], 1e-300)
-        g = gain / s                                       # each pixel's share, normalised units
-        f = _kept_floor(floor / (s * s), g * model.max(axis=1))
-        out[rows] = det.noise_eff[live[rows]][:, None] ** 2 / (f[:, None] + g[:, None] * model)
+        out[rows] = det.noise_eff[live[rows]][:, None] ** 2 / detector_variance(floor, gain, model,
+                                                                                samples.scale[live[rows]])
     return out
+
+
+def detector_variance(floor: float, gain: float, model: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(n, L) the variance of one detector's law, ``floor`` + ``gain`` x signal (both in the
+    data's units, as :func:`signal_weights` records them), at the models ``model`` (n, L, >= 0)
+    of pixels normalised by ``scale`` (n,), in those normalised units; the floor kept at least
+    SIGNAL_NOISE_FLOOR_FRACTION of the variance at each model's peak (:func:`_kept_floor`)."""
+    s = np.maximum(scale, 1e-300)
+    g = gain / s                                       # each pixel's share, normalised units
+    f = _kept_floor(floor / (s * s), g * model.max(axis=1))
+    return f[:, None] + g[:, None] * model
 
 
 def _kept_floor(floor, peak_var):
