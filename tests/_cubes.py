@@ -66,3 +66,21 @@ def smooth_scene(n=12, nt=128, nsr=0.11, seed=0, step_ps=12.0):
 
     edge = (xx == n // 2) | (xx == n // 2 - 1)
     return img(noisy), {k: img(v) for k, v in p.items()}, {k: img(v) for k, v in comps.items()}, edge
+
+
+def worker_dies_at(monkeypatch, call: int):
+    """Make the chunked pipeline's solver raise RuntimeError("worker died") on its ``call``-th
+    chunk (1-based) and on none before it, as a worker killed mid-run; returns the function that
+    puts the real solver back."""
+    import decomposition.store.chunked as chunked
+
+    real, calls = chunked.solve_block, []
+
+    def dying(*args, **kwargs):
+        calls.append(1)
+        if len(calls) >= call:
+            raise RuntimeError("worker died")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(chunked, "solve_block", dying)
+    return lambda: monkeypatch.setattr(chunked, "solve_block", real)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zarr
 
-from _cubes import TB, small_cube as _cube
+from _cubes import TB, small_cube as _cube, worker_dies_at
 from _runs import wait_for_done_chunks
 from decomposition import decompose
 from decomposition.store.resultstore import open_result_store
@@ -144,20 +144,10 @@ def test_local_cluster_of_processes_gives_the_same_store(cube_path, reference, t
 
 
 def test_crash_then_resume_gives_the_uninterrupted_store(cube_path, reference, tmp_path, monkeypatch, capsys):
-    import decomposition.store.chunked as chunked
-
-    real, calls = chunked.solve_block, []
-
-    def failing(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise RuntimeError("worker died")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(chunked, "solve_block", failing)
+    revive = worker_dies_at(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="worker died"):
         decompose_to_store(cube_path, tmp_path / "part.zarr", threads=1, progress=False)
-    monkeypatch.setattr(chunked, "solve_block", real)
+    revive()
     part = open_result_store(tmp_path / "part.zarr")
     n_done = int(part.done_chunks().sum())
     assert 0 < n_done < 9

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _cubes import TB, small_cube
+from _cubes import TB, small_cube, worker_dies_at
 from _runs import wait_for_done_chunks
 from core.integrity import create_array
 from decomposition.store.resultstore import open_result_store
@@ -127,24 +127,15 @@ def test_a_partial_cube_counts_and_times_only_the_pixels_it_decomposed(tmp_path,
 
 
 def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, capsys):
-    import decomposition.store.chunked as chunked
 
     data = small_cube(4, 6, nt=96, seed=3)
     data[0, 0, 7] = data[3, 5, 9] = data[3, 4, 9] = np.nan  # chunks (0, 0) and (1, 1) of (2, 3)
     write_cube(tmp_path / "nan.zarr", data, time_bin_ps=TB, chunks=(2, 3))
-    real, seen = chunked.solve_block, []
-
-    def fail_after_first(block, **kw):
-        seen.append(1)
-        if len(seen) > 1:
-            raise RuntimeError("worker died")
-        return real(block, **kw)
-
     out = tmp_path / "res.zarr"
-    monkeypatch.setattr(chunked, "solve_block", fail_after_first)
+    revive = worker_dies_at(monkeypatch, 2)
     with pytest.raises(RuntimeError, match="worker died"):
         main(["decompose", str(tmp_path / "nan.zarr"), "--out", str(out), "--threads", "1", "--quiet"])
-    monkeypatch.setattr(chunked, "solve_block", real)
+    revive()
     first = open_result_store(out)
     assert int(first.done_chunks().sum()) == 1
     nan_before = int((first.done_mask() & ~first.group["valid"][...]).sum())

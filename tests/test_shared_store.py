@@ -10,6 +10,7 @@ from decomposition.evaluation.synthetic import SceneRanges, make_cube
 from decomposition.image import decompose_image
 from decomposition.store.resultstore import open_result_store
 from streaklab.cli import main
+from _cubes import worker_dies_at
 
 TB, NT = 2.0, 96
 NAMES = ("direct_delay_ps", "direct_amplitude", "direct_sigma_ps", "sss_delay_ps", "sss_amplitude",
@@ -72,20 +73,10 @@ def test_resume_after_an_interruption_holds_the_same_values(inputs, tmp_path, mo
     _, _, cube_path, labels = inputs
     assert main(_args(cube_path, tmp_path / "full.zarr", labels)) == 0
     import decomposition.image.shared as shared
-    import decomposition.store.chunked as chunked
-
-    real, calls = chunked.solve_block, []
-
-    def failing(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise RuntimeError("worker died")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(chunked, "solve_block", failing)
+    revive = worker_dies_at(monkeypatch, 2)
     with pytest.raises(RuntimeError, match="worker died"):
         main(_args(cube_path, tmp_path / "part.zarr", labels, "--threads", "1"))
-    monkeypatch.setattr(chunked, "solve_block", real)
+    revive()
     assert 0 < int(open_result_store(tmp_path / "part.zarr").done_chunks().sum()) < 4
 
     def no_estimate(*args, **kwargs):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zarr
 
-from _cubes import TB, smooth_scene
+from _cubes import TB, smooth_scene, worker_dies_at
 from decomposition.image import decompose_image
 from decomposition.store.chunked import chunk_tasks, run_tasks
 from decomposition.store.pipeline import PipelineError, decompose_to_store
@@ -75,20 +75,10 @@ def spatial_store(tmp_path_factory):
 
 
 def test_an_interrupted_spatial_run_resumes_to_the_same_store(spatial_store, tmp_path, monkeypatch):
-    import decomposition.store.chunked as chunked
-
-    real, calls = chunked.solve_block, []
-
-    def failing(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise RuntimeError("worker died")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(chunked, "solve_block", failing)
+    revive = worker_dies_at(monkeypatch, 3)
     with pytest.raises(RuntimeError, match="worker died"):
         decompose_to_store(spatial_store / "cube.zarr", tmp_path / "part.zarr", threads=1, progress=False, spatial=True)
-    monkeypatch.setattr(chunked, "solve_block", real)
+    revive()
     assert 0 < int(open_result_store(tmp_path / "part.zarr").done_chunks().sum()) < 4
     # the job holds the coupling: resuming without it is refused
     with pytest.raises(PipelineError):
