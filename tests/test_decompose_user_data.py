@@ -127,7 +127,6 @@ def test_a_partial_cube_counts_and_times_only_the_pixels_it_decomposed(tmp_path,
 
 
 def test_after_resume_the_notes_count_the_whole_store(tmp_path, monkeypatch, capsys):
-
     data = small_cube(4, 6, nt=96, seed=3)
     data[0, 0, 7] = data[3, 5, 9] = data[3, 4, 9] = np.nan  # chunks (0, 0) and (1, 1) of (2, 3)
     write_cube(tmp_path / "nan.zarr", data, time_bin_ps=TB, chunks=(2, 3))
