@@ -92,10 +92,11 @@ class DecompositionResult:
 
 @dataclass(frozen=True)
 class Stage:
-    """One named step of :func:`decompose`: ``run(call)`` reads and updates the :class:`_Call`."""
+    """One named step of a declared stage list (:data:`STAGES` of :func:`decompose`, and
+    :data:`decomposition.image.api.IMAGE_STAGES`): ``run(call)`` reads and updates the call's state."""
 
     name: str
-    run: Callable[["_Call"], None]
+    run: Callable[[object], None]
     purpose: str
 
 

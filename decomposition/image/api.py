@@ -6,12 +6,11 @@ solver (:func:`decomposition.api.decompose`) is one of its stages.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..api import DecompositionResult
+from ..api import DecompositionResult, Stage
 from ..noise import resolve_noise_model
 from ..options import OptionError
 from . import spatial as sp
@@ -69,15 +68,6 @@ class ImageOptions:
         options = sp.spatial_options(given)
         object.__setattr__(self, "spatial", options is not None)
         object.__setattr__(self, "spatial_options", options)
-
-
-@dataclass(frozen=True)
-class ImageStage:
-    """One named step of :func:`decompose_image`."""
-
-    name: str
-    run: Callable[["_ImageCall"], None]
-    purpose: str
 
 
 @dataclass
@@ -174,15 +164,15 @@ def halo_pixels(spatial) -> int:
 
 #: The stages of :func:`decompose_image`, in order.
 IMAGE_STAGES = (
-    ImageStage("check", _check, "the image's shape, the regions"),
-    ImageStage("shared", _shared, "estimate the shared parameters once from all pixels (image.shared)"),
-    ImageStage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
-    ImageStage("spatial_spikes", _spatial_spikes,
+    Stage("check", _check, "the image's shape, the regions"),
+    Stage("shared", _shared, "estimate the shared parameters once from all pixels (image.shared)"),
+    Stage("per_pixel", _per_pixel, "decompose every pixel, the shared parameters held fixed"),
+    Stage("spatial_spikes", _spatial_spikes,
                "count data: single-sample spikes above the pixel's own neighbours in time and its spatial "
                "neighbours' aligned samples, replaced by the neighbours' value and the pixel refitted (SPIKE)"),
-    ImageStage("neighbour_starts", _neighbour_starts, "refit the pixels in doubt from their neighbours' answers"),
-    ImageStage("joint_refinement", _joint_refinement, "sweeps with an edge-preserving prior on the direct delays"),
-    ImageStage("pooled_echoes", _pooled_echoes,
+    Stage("neighbour_starts", _neighbour_starts, "refit the pixels in doubt from their neighbours' answers"),
+    Stage("joint_refinement", _joint_refinement, "sweeps with an edge-preserving prior on the direct delays"),
+    Stage("pooled_echoes", _pooled_echoes,
                "weak echoes found in 5 x 5 sums of the residuals aligned on the direct, added to each pixel "
                "with its own amplitude"),
 )
