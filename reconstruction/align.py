@@ -10,6 +10,11 @@ weighted by its duration), :func:`fiducial_correction_ps` computes the correctio
 times plus its correction and interpolates them onto the cube's uniform time grid in the
 same single step an unmoved frame takes (:func:`reconstruction.calibrate.resample_uniform`),
 so an aligned cube's noise is no more correlated between bins than an unaligned one's.
+:func:`split_dark` divides the mean dark image into its structure, which belongs to the sensor's
+rows and is subtracted from every frame before it moves, and its read noise, subtracted once
+after the frames are moved: moved with each frame, the dark's noise would enter the line's mean
+once per distinct shift, a copy of the same noise at the lag between the frames' shifts, which
+is noise correlated at the scale of a pulse.
 
 A frame whose band holds no pulse (peak below ``min_snr`` times the band's noise, or a
 centroid at the band's edge) is an error naming the line and frame; a frame is never
@@ -25,7 +30,13 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
-           "fiducial_correction_ps", "resample_aligned"]
+           "fiducial_correction_ps", "resample_aligned", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA"]
+
+#: rows of the running median that gives the dark image's structure along the time axis
+DARK_SMOOTH_ROWS = 31
+#: a dark sample this many noise sigmas off that running median is structure (a hot or cold
+#: sample of the sensor), moved with the frames, not noise
+DARK_OUTLIER_SIGMA = 5.0
 
 
 class AlignmentError(StreaklabError, ValueError):
@@ -225,3 +236,44 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
         lo, hi = f[i, k][:, j], f[i, k][:, j + 1]
         out[i, k] = np.where(covered, lo + np.clip(w, 0.0, 1.0) * (hi - lo), 0.0)
     return out
+
+
+def split_dark(dark: np.ndarray, *, smooth_rows: int = DARK_SMOOTH_ROWS,
+               outlier_sigma: float = DARK_OUTLIER_SIGMA) -> tuple[np.ndarray, np.ndarray]:
+    """The mean dark image as its structure plus its noise: ``dark == structure + noise``.
+
+    Frames aligned on a fiducial are moved by different amounts.  The dark's structure (the
+    sensor's offsets, slow along the rows, and its hot or cold samples) belongs to the rows,
+    so it is subtracted from each frame before the frame moves.  The dark's noise (the read noise
+    of the few dark frames averaged) is the same in every frame of a line: subtracted before the
+    move, each frame would carry its own shifted copy, and the line's mean the same noise
+    repeated at the lag between the frames' shifts, a correlation at the scale of a pulse that a
+    per-pixel decomposition takes for one.  Subtracted once after the move (onto the cube's bins
+    unmoved) it stays white, as in an unaligned cube.
+
+    Parameters
+    ----------
+    dark : ndarray, shape (x, n_rows)
+        Mean dark image, counts.
+    smooth_rows : int
+        Rows of the running median (along the rows, each slit pixel apart) that is the structure.
+    outlier_sigma : float
+        A sample further than this many noise sigmas (each slit pixel's scaled median absolute
+        deviation of the dark about its running median) from the running median is structure too.
+
+    Returns
+    -------
+    (structure, noise) : two ndarrays, shape (x, n_rows), float64, counts.
+    """
+    from scipy.ndimage import median_filter
+
+    d = np.asarray(dark, dtype=np.float64)
+    if d.ndim != 2:
+        raise AlignmentError(f"the dark image must be 2-D (x, row), got shape {d.shape}")
+    size = max(1, min(int(smooth_rows), d.shape[1]))
+    smooth = median_filter(d, size=(1, size), mode="nearest")
+    rest = d - smooth
+    sigma = 1.4826 * np.median(np.abs(rest), axis=1, keepdims=True)
+    outlier = np.abs(rest) > outlier_sigma * sigma
+    structure = np.where(outlier, d, smooth)
+    return structure, d - structure

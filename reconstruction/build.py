@@ -374,14 +374,20 @@ class LineCalibration:
         if self.fiducial is None:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:
-            from .align import fiducial_correction_ps, resample_aligned
-            frames = raw - self.dark                                           # (b, frame, x, rows) float64
+            from .align import fiducial_correction_ps, resample_aligned, split_dark
+            # the dark's structure moves with each frame, its noise is subtracted once after the
+            # move (reconstruction.align.split_dark): moved, it would repeat at the frames' lags
+            structure, dark_noise = split_dark(self.dark)
+            frames = raw - structure                                           # (b, frame, x, rows) float64
             if self.flat is not None:
                 frames /= self.flat
-            corr = fiducial_correction_ps(frames, self.row_times_ps, self.fiducial,
+                dark_noise = dark_noise / self.flat
+            corr = fiducial_correction_ps(frames - dark_noise, self.row_times_ps, self.fiducial,
                                           min_snr=self.fiducial_min_snr, line_ids=line_ids)
             rows = resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
                                     t0_ps=self.t0_ps, n_bins=self.n_bins).mean(axis=1)
+            rows -= resample_uniform(dark_noise, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
+                                     n_bins=self.n_bins)
             return rows.astype(np.float32), corr
         rows = resample_uniform(corrected, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
                                 n_bins=self.n_bins).astype(np.float32)

@@ -5,7 +5,8 @@ from scipy.special import erf
 
 from acquisition.config import parse_config
 from acquisition.runstore import create_run
-from reconstruction.align import AlignmentError, Fiducial, fiducial_correction_ps, parse_fiducial, resample_aligned, row_edges_ps
+from reconstruction.align import (AlignmentError, Fiducial, fiducial_correction_ps, parse_fiducial, resample_aligned,
+                                  row_edges_ps, split_dark)
 from reconstruction.build import ReconstructionError, reconstruct
 from streaklab.cli import main
 
@@ -161,3 +162,40 @@ def test_align_refused_without_fiducial_and_nothing_written(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "weak.zarr: line 0 frame 0: no usable fiducial pulse in rows 2..40" in err[0]
     assert not (tmp_path / "cube.zarr").exists()
+
+
+def test_split_dark_keeps_the_sensors_structure_and_separates_its_noise():
+    rng = np.random.default_rng(11)
+    ramp = 100.0 + 0.05 * np.arange(N_ROWS)                      # slow offset along the rows
+    noise = rng.normal(0.0, 2.0, (NX, N_ROWS))
+    dark = ramp + noise
+    dark[1, 70] += 400.0                                         # a hot sample of the sensor
+    structure, rest = split_dark(dark)
+    np.testing.assert_allclose(structure + rest, dark)
+    assert structure[1, 70] == dark[1, 70] and rest[1, 70] == 0.0   # structure: moves with the frames
+    off = structure - ramp
+    off[1, 70] = 0.0
+    assert np.abs(off[:, 20:-20]).max() < 2.0                    # the ramp, to the median's noise
+    assert np.corrcoef(rest.ravel(), noise.ravel())[0, 1] > 0.95
+    with pytest.raises(AlignmentError, match="2-D"):
+        split_dark(dark[0])
+
+
+def test_aligned_line_carries_the_dark_noise_once_and_white():
+    # two frames 6 ps (3 rows) apart; the frames noiseless, the dark image the only noise: an
+    # aligned line's noise is then the dark's, subtracted once on the bins, not one copy per shift
+    from reconstruction.build import LineCalibration
+
+    rng = np.random.default_rng(4)
+    shifts = np.array([[0.0, 6.0]])
+    frames = frames_with_jitter(shifts) + DARK
+    noise = rng.normal(0.0, 3.0, (NX, N_ROWS))
+    calib = LineCalibration(ROW_TIMES_PS, 2.0, 0.0, N_ROWS, DARK + noise, None, {}, Fiducial(**FID))
+    rows, corr = calib.correct(frames)
+    np.testing.assert_allclose(corr, -shifts, atol=0.05)
+    clean = _moved(frames_with_jitter(shifts), -shifts).mean(axis=1)
+    cube_noise = (rows - clean)[0, :, 6:-6].ravel()
+    assert np.corrcoef(cube_noise, -noise[:, 6:-6].ravel())[0, 1] > 0.97
+    n = (rows - clean)[0, :, 6:-6]
+    lag3 = (n[:, 3:] * n[:, :-3]).mean() / (n * n).mean()
+    assert abs(lag3) < 0.15                                      # a copy at the frames' lag: 0.5
