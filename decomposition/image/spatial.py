@@ -99,12 +99,14 @@ class SpatialOptions:
     #: The joint refinement's prior also on what a material shares between neighbours: the sss
     #: amplitude over the direct's and the sss decay rate (their logarithms), with the same
     #: edge-preserving estimate (a neighbour across a material edge has no weight).
-    material_prior: bool = True
+    material_prior: bool = False
     #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
     #: neighbours on one material: the ratio prior's own standard deviation.
     ratio_scale: float = 0.05
     #: The same for the natural logarithm of the sss decay rate.
     alpha_scale: float = 0.05
+    #: The same for the sss onset after the direct delay, ps.
+    onset_scale_ps: float = 1.5
 
     def __post_init__(self):
         object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
@@ -116,6 +118,7 @@ class SpatialOptions:
         object.__setattr__(self, "material_prior", _flag("material_prior", self.material_prior))
         object.__setattr__(self, "ratio_scale", _number("ratio_scale", self.ratio_scale, lo=0, lo_open=True))
         object.__setattr__(self, "alpha_scale", _number("alpha_scale", self.alpha_scale, lo=0, lo_open=True))
+        object.__setattr__(self, "onset_scale_ps", _number("onset_scale_ps", self.onset_scale_ps, lo=0, lo_open=True))
 
 
 def spatial_options(spatial) -> SpatialOptions | None:
@@ -426,7 +429,7 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
 
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                    scale: float | None = None):
+                    scale: float | None = None, piecewise_constant: bool = False):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -440,6 +443,11 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     scale : float, optional
         How far the parameter may differ between neighbours on one surface, its units (the
         prior's own standard deviation); default ``options.delay_scale_ps``.
+    piecewise_constant : bool
+        The parameter is one value per region (a material's), not a smooth surface: where the
+        neighbours that keep weight scatter more than their standard errors and ``scale``
+        explain (Cochran's Q over its degrees of freedom), the excess variance is added to the
+        prior's (a neighbourhood of different materials, each pixel its own, gives no pull).
 
     Returns
     -------
@@ -467,6 +475,16 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         wsum = w.sum(axis=0)
         m = np.where(wsum > 0, (w * np.nan_to_num(nd_ok[:, have])).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
+        if piecewise_constant:
+            # random-effects excess of the weighted neighbours (DerSimonian-Laird)
+            inl = w > 0
+            wi = np.where(inl, 1.0 / var, 0.0)
+            s1, s2 = wi.sum(axis=0), (wi * wi).sum(axis=0)
+            q = (wi * np.nan_to_num(nd_ok[:, have] - m) ** 2).sum(axis=0)
+            excess = np.maximum(0.0, (q - (inl.sum(axis=0) - 1)) / np.where(s1 > 0, s1 - s2 / np.where(s1 > 0, s1, 1.0), 1.0))
+            excess = np.where(np.isfinite(excess), excess, 0.0)
+            tau2 = tau2 + excess
+            var_m = var_m + excess / np.maximum(inl.sum(axis=0), 1)
         own = delay[have]
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
         b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
@@ -478,7 +496,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
 
 #: the parameters of the joint refinement's prior: name -> the keyword of
 #: :func:`decomposition.model.refine.refine` that carries it
-_PRIOR_KEYWORDS = {"delay": "delay_prior", "ratio": "ratio_prior", "alpha": "alpha_prior"}
+_PRIOR_KEYWORDS = {"delay": "delay_prior", "onset": "onset_prior", "ratio": "ratio_prior", "alpha": "alpha_prior"}
 
 
 def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
@@ -502,6 +520,10 @@ def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
         ok = live & (alpha > 0)
         log_alpha = np.where(ok, np.log(alpha), np.nan)
         alpha_se = np.where(ok, err["sss_alpha_per_ps_stderr"] / alpha, np.nan)
+    ok = live & np.isfinite(cs)
+    out["onset"] = (np.where(ok, params["sss_delay_ps"] - params["direct_delay_ps"], np.nan),
+                    np.where(ok, np.hypot(err["sss_delay_ps_stderr"], err["direct_delay_ps_stderr"]), np.nan),
+                    options.onset_scale_ps)
     out["ratio"] = (ratio, ratio_se, options.ratio_scale)
     out["alpha"] = (log_alpha, alpha_se, options.alpha_scale)
     return out
@@ -529,7 +551,8 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         for name, (value, _, scale) in current.items():
             if name == "delay":
                 value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
-            mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale)
+            mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
+                                              piecewise_constant=name != "delay")
             m, p = mean[rows], precision[rows]
             on = p > 0
             pull |= on

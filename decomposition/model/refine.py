@@ -215,7 +215,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
-           bin_integrated: bool = False, fit_background=False, delay_prior=None, alpha_prior=None, ratio_prior=None,
+           bin_integrated: bool = False, fit_background=False, delay_prior=None, onset_prior=None, alpha_prior=None,
+           ratio_prior=None,
            hold=None):
     """Refine the continuous parameters of each pixel's present components.
 
@@ -274,6 +275,10 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         units of ``profiles`` squared per ps^2, i.e. the RSS-units precision of the prior;
         0 or NaN: none).  A neighbourhood's estimate of the delay, weighed against the pixel's
         own samples (:mod:`decomposition.image.spatial`).
+    onset_prior : (mean, weight) of array_like, each of shape (...,), optional
+        The same for the sss onset after the direct: ``weight`` * (sss delay - direct delay -
+        ``mean``)^2 (``mean`` in ps, ``weight`` as ``delay_prior``'s).  Pixels without both
+        components have none.
     alpha_prior : (mean, weight) of array_like, each of shape (...,), optional
         The same for the sss decay rate's natural logarithm: ``weight`` * (ln alpha -
         ``mean``)^2 (``mean`` in ln(1/ps), ``weight`` in the units of ``profiles`` squared).
@@ -359,7 +364,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     scale = np.where(scale > 0, scale, 1.0)
     yw = y if sw is None else y * sw
     priors = {}        # name -> (mean, weight in normalised units), (n,) each
-    for name, given, per_scale2 in (("delay", delay_prior, True), ("alpha", alpha_prior, True),
+    for name, given, per_scale2 in (("delay", delay_prior, True), ("onset", onset_prior, True), ("alpha", alpha_prior, True),
                                     ("ratio", ratio_prior, False)):
         if given is not None:
             mean, weight = (np.broadcast_to(np.asarray(v, np.float64), lead).reshape(n) for v in given)

@@ -38,11 +38,12 @@ are those of the projected rows, and the offset follows from the residual
 (:func:`background_level`).  Pixels without the flag are untouched.
 
 Priors: ``slots`` may carry Gaussian pseudo-observations (weight 0: none for that pixel) of the
-direct delay (``delay_prior_mean`` / ``_weight``, ps), of the sss decay rate's logarithm
-(``alpha_prior_mean`` / ``_weight``) and of the sss-to-direct amplitude ratio
-(``ratio_prior_mean`` / ``_weight``), each (n,).  A parameter's residual sqrt(w) (theta_j - mean)
-is one more row of the least-squares problem, so the normal equations gain w on theta_j's
-diagonal and w (theta_j - mean) in the gradient (:func:`_with_prior`).  The ratio's residual
+direct delay (``delay_prior_mean`` / ``_weight``, ps), of the sss onset after the direct
+(``onset_prior_...``, ps), of the sss decay rate's logarithm (``alpha_prior_...``) and of the sss-to-direct amplitude ratio
+(``ratio_prior_mean`` / ``_weight``), each (n,).  A prior on v . theta (one parameter, or the
+difference of two) has the residual sqrt(w) (v . theta - mean), one more row of the
+least-squares problem, so the normal equations gain w v v^T and the gradient w (v . theta -
+mean) v (:func:`_with_prior`).  The ratio's residual
 sqrt(w) (c_sss - rho c_direct) is linear in the amplitudes: one more sample of the linear
 problem whose basis values are sqrt(w) (-rho, 1, 0, ...) and whose data value is 0
 (:func:`_amplitude_prior`), so the amplitudes are still solved exactly and Kaufman's Jacobian
@@ -328,18 +329,26 @@ def _keep_order(theta, present):
 
 def _theta_priors(slots, present, lay):
     """The Gaussian pseudo-observations of nonlinear parameters in ``slots``: a list of
-    (column of theta, mean (n,), weight (n,)), weight 0 where the pixel has none (the component
-    absent or a value not finite): the direct delay (``delay_prior_mean`` / ``_weight``, ps) and
-    the sss decay rate's logarithm (``alpha_prior_mean`` / ``_weight``, ln(1/ps))."""
+    (v (P,), mean (n,), weight (n,)), each a prior on v . theta, weight 0 where the pixel has
+    none (a component absent or a value not finite): the direct delay (``delay_prior_mean`` /
+    ``_weight``, ps), the sss onset after the direct (``onset_prior_...``, ps) and the sss decay
+    rate's logarithm (``alpha_prior_...``, ln(1/ps))."""
     out = []
-    for name, col, slot in (("delay", 0, 0), ("alpha", lay.p - 1, SSS_SLOT)):
+    for name, terms, slots_needed in (("delay", ((0, 1.0),), (0,)),
+                                      ("onset", ((SSS_SLOT, 1.0), (0, -1.0)), (0, SSS_SLOT)),
+                                      ("alpha", ((lay.p - 1, 1.0),), (SSS_SLOT,))):
         if f"{name}_prior_weight" not in slots:
             continue
         mean = np.asarray(slots[f"{name}_prior_mean"], np.float64)
         weight = np.asarray(slots[f"{name}_prior_weight"], np.float64)
-        ok = present[:, slot] & np.isfinite(mean) & np.isfinite(weight) & (weight > 0)
+        ok = np.isfinite(mean) & np.isfinite(weight) & (weight > 0)
+        for slot in slots_needed:
+            ok &= present[:, slot]
         if ok.any():
-            out.append((col, np.where(ok, mean, 0.0), np.where(ok, weight, 0.0)))
+            v = np.zeros(lay.p)
+            for col, coef in terms:
+                v[col] = coef
+            out.append((v, np.where(ok, mean, 0.0), np.where(ok, weight, 0.0)))
     return out
 
 
@@ -366,13 +375,13 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
     """Add the pseudo-observations ``priors`` (:func:`_theta_priors`; their pixels ``rows`` of
     them, default all) at ``theta`` to the RSS and, where given, to the normal equations ``a``
     (n, P, P) and the gradient ``g`` (n, P) (in place)."""
-    for col, mean, weight in priors:
+    for v, mean, weight in priors:
         if rows is not None:
             mean, weight = mean[rows], weight[rows]
-        dd = theta[:, col] - mean
+        dd = theta @ v - mean
         if a is not None:
-            a[:, col, col] += weight
-            g[:, col] += weight * dd
+            a += weight[:, None, None] * np.outer(v, v)[None]
+            g += (weight * dd)[:, None] * v[None]
         rss = rss + weight * dd * dd
     return rss
 
