@@ -351,3 +351,22 @@ def test_refinement_keeps_the_labels_in_order_of_delay():
     assert np.all(info["rss"] <= info["rss_input"])
     free, _ = refine(y, start, time_bin_ps=T, shared_sigma=True, keep_order=False)
     assert np.any(free["ir_delay_ps"][:, 0] < free["direct_delay_ps"])
+
+
+def test_the_ratio_and_onset_priors_of_refine_pull_an_undetermined_split_to_the_prior():
+    # a direct and an sss whose split the noisy samples hardly fix: a firm ratio prior puts the
+    # sss amplitude at rho x the direct's, a zero weight leaves the fit as it was
+    from core import model as _m
+    p = _m.empty_params((1,), 0)
+    p.update(direct_delay_ps=np.array([40.0]), direct_amplitude=np.array([1.0]), direct_sigma_ps=np.array([4.0]),
+             sss_delay_ps=np.array([42.0]), sss_amplitude=np.array([0.05]), sss_sigma_ps=np.array([4.0]),
+             sss_alpha_per_ps=np.array([0.05]))
+    y = _m.render_profile(p, 128, 2.0) + 0.02 * np.random.default_rng(5).standard_normal((1, 128))
+    free, _ = refine(y, p, time_bin_ps=2.0, shared_sigma=True, sss_after_direct=True, ratio_prior=(0.08, 0.0))
+    firm, _ = refine(y, p, time_bin_ps=2.0, shared_sigma=True, sss_after_direct=True, ratio_prior=(0.08, 1e6),
+                     onset_prior=(5.0, 1e6), alpha_prior=(np.log(0.04), 1e6))
+    ratio = firm["sss_amplitude"] / firm["direct_amplitude"]
+    assert abs(ratio[0] - 0.08) < 1e-3
+    assert abs(firm["sss_delay_ps"][0] - firm["direct_delay_ps"][0] - 5.0) < 1e-2
+    assert abs(firm["sss_alpha_per_ps"][0] - 0.04) < 1e-4
+    assert abs(free["sss_amplitude"][0] / free["direct_amplitude"][0] - 0.08) > 1e-3

@@ -96,6 +96,17 @@ class SpatialOptions:
     #: Tukey biweight cut-off, in standard deviations: a neighbour (or the pixel itself) farther
     #: from the neighbourhood's estimate has no weight (an edge).
     edge_sigma: float = 3.0
+    #: The joint refinement's prior also on what a material shares between neighbours: the sss
+    #: amplitude over the direct's and the sss decay rate (their logarithms), with the same
+    #: edge-preserving estimate (a neighbour across a material edge has no weight).
+    material_prior: bool = False
+    #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
+    #: neighbours on one material: the ratio prior's own standard deviation.
+    ratio_scale: float = 0.05
+    #: The same for the natural logarithm of the sss decay rate.
+    alpha_scale: float = 0.05
+    #: The same for the sss onset after the direct delay, ps.
+    onset_scale_ps: float = 1.5
 
     def __post_init__(self):
         object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
@@ -104,6 +115,10 @@ class SpatialOptions:
         object.__setattr__(self, "radius", _number("radius", self.radius, lo=1, integer=True))
         object.__setattr__(self, "delay_scale_ps", _number("delay_scale_ps", self.delay_scale_ps, lo=0, lo_open=True))
         object.__setattr__(self, "edge_sigma", _number("edge_sigma", self.edge_sigma, lo=0, lo_open=True))
+        object.__setattr__(self, "material_prior", _flag("material_prior", self.material_prior))
+        object.__setattr__(self, "ratio_scale", _number("ratio_scale", self.ratio_scale, lo=0, lo_open=True))
+        object.__setattr__(self, "alpha_scale", _number("alpha_scale", self.alpha_scale, lo=0, lo_open=True))
+        object.__setattr__(self, "onset_scale_ps", _number("onset_scale_ps", self.onset_scale_ps, lo=0, lo_open=True))
 
 
 def spatial_options(spatial) -> SpatialOptions | None:
@@ -251,15 +266,17 @@ def _objective(c: Coupling, rows: np.ndarray, params: dict, weights: np.ndarray)
     return penalised(data_term(r, _noise2(c)[rows]), k, log_samples(s.fit[rows].sum(axis=1)), c.opts.search_penalty)
 
 
-def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, prior=None) -> dict:
+def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, prior=None, priors=None) -> dict:
     """The refit of ``start`` (n-shaped) on the pixels ``rows``, as the per-pixel refit stage
-    runs it (bounds, physics, the background fitted where the pixel has one)."""
+    runs it (bounds, physics, the background fitted where the pixel has one); ``prior`` the
+    direct delay's (mean, weight), ``priors`` more of :func:`decomposition.model.refine.refine`'s
+    priors by keyword (``alpha_prior``, ``ratio_prior``)."""
     s = c.samples
     fit_bg = (np.isfinite(start[BACKGROUND_KEY]) & (start[BACKGROUND_KEY] != 0)) if BACKGROUND_KEY in start else False
     out, _ = refine(s.values[rows], start, time_bin_ps=s.axis.time_bin_ps, t0_ps=s.axis.t0_ps, weights=weights,
                     fit_background=fit_bg, sigma_bounds_ps=tuple(np.exp(c.bounds["lsig"])),
                     alpha_bounds_per_ps=tuple(np.exp(c.bounds["lalp"])), delay_prior=prior,
-                    hold={k: v[rows] for k, v in c.hold.items()} or None, **c.physics)
+                    hold={k: v[rows] for k, v in c.hold.items()} or None, **(priors or {}), **c.physics)
     return out
 
 
@@ -411,15 +428,26 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
     c.resolved = taken | (agree_set & agree_delay)
 
 
-def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions):
-    """The robust neighbourhood estimate of each pixel's direct delay and the prior's precision.
+def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
+                    scale: float | None = None, piecewise_constant: bool = False):
+    """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
+    neighbours share) and the prior's precision.
 
     Parameters
     ----------
     delay, stderr : ndarray (P,)
-        The pixels' direct delays and their standard errors, ps (NaN: none).
+        The pixels' direct delays and their standard errors, ps (NaN: none); or another
+        parameter's values and standard errors in its units.
     shape : (Y, X)
     options : SpatialOptions
+    scale : float, optional
+        How far the parameter may differ between neighbours on one surface, its units (the
+        prior's own standard deviation); default ``options.delay_scale_ps``.
+    piecewise_constant : bool
+        The parameter is one value per region (a material's), not a smooth surface: where the
+        neighbours that keep weight scatter more than their standard errors and ``scale``
+        explain (Cochran's Q over its degrees of freedom), the excess variance is added to the
+        prior's (a neighbourhood of different materials, each pixel its own, gives no pull).
 
     Returns
     -------
@@ -427,7 +455,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     precision : ndarray (P,)  the prior's precision on the pixel's delay, 1/ps^2 (0: no prior)
     """
     offs = _offsets(options.radius)
-    tau2 = options.delay_scale_ps ** 2
+    tau2 = (options.delay_scale_ps if scale is None else float(scale)) ** 2
     c_edge = options.edge_sigma
     nd = np.stack([_shifted(delay, shape, dy, dx, np.nan) for dy, dx in offs])    # (n_off, P)
     ns = np.stack([_shifted(stderr, shape, dy, dx, np.nan) for dy, dx in offs])
@@ -447,6 +475,16 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         wsum = w.sum(axis=0)
         m = np.where(wsum > 0, (w * np.nan_to_num(nd_ok[:, have])).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
+        if piecewise_constant:
+            # random-effects excess of the weighted neighbours (DerSimonian-Laird)
+            inl = w > 0
+            wi = np.where(inl, 1.0 / var, 0.0)
+            s1, s2 = wi.sum(axis=0), (wi * wi).sum(axis=0)
+            q = (wi * np.nan_to_num(nd_ok[:, have] - m) ** 2).sum(axis=0)
+            excess = np.maximum(0.0, (q - (inl.sum(axis=0) - 1)) / np.where(s1 > 0, s1 - s2 / np.where(s1 > 0, s1, 1.0), 1.0))
+            excess = np.where(np.isfinite(excess), excess, 0.0)
+            tau2 = tau2 + excess
+            var_m = var_m + excess / np.maximum(inl.sum(axis=0), 1)
         own = delay[have]
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
         b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
@@ -456,36 +494,74 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     return mean, precision
 
 
-def _stderr(c: Coupling, params: dict) -> np.ndarray:
-    """(P,) the direct delay's standard error from the pixel's own data at ``params``, ps."""
+#: the parameters of the joint refinement's prior: name -> the keyword of
+#: :func:`decomposition.model.refine.refine` that carries it
+_PRIOR_KEYWORDS = {"delay": "delay_prior", "onset": "onset_prior", "ratio": "ratio_prior", "alpha": "alpha_prior"}
+
+
+def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
+    """{name: ((P,) values, (P,) standard errors from the pixel's own data at ``params``, the
+    prior's scale)} of the parameters neighbours share (NaN where a pixel has none): the direct
+    delay (ps) and, with ``options.material_prior``, ln(sss amplitude / direct amplitude) and
+    ln(sss decay rate) (the standard errors of the ratio's two amplitudes combined as if
+    independent; a held decay rate has none)."""
     errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
-    return np.asarray(errs["direct_delay_ps_stderr"], np.float64).reshape(-1)
+    err = {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()}
+    live = c.live
+    out = {"delay": (np.where(live, params["direct_delay_ps"], np.nan),
+                     np.where(live, err["direct_delay_ps_stderr"], np.nan), options.delay_scale_ps)}
+    if not options.material_prior:
+        return out
+    cd, cs, alpha = params["direct_amplitude"], params["sss_amplitude"], params["sss_alpha_per_ps"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = live & (cd > 0) & (cs > 0)
+        ratio = np.where(ok, np.log(cs / cd), np.nan)
+        ratio_se = np.where(ok, np.hypot(err["sss_amplitude_stderr"] / cs, err["direct_amplitude_stderr"] / cd), np.nan)
+        ok = live & (alpha > 0)
+        log_alpha = np.where(ok, np.log(alpha), np.nan)
+        alpha_se = np.where(ok, err["sss_alpha_per_ps_stderr"] / alpha, np.nan)
+    ok = live & np.isfinite(cs)
+    out["onset"] = (np.where(ok, params["sss_delay_ps"] - params["direct_delay_ps"], np.nan),
+                    np.where(ok, np.hypot(err["sss_delay_ps_stderr"], err["direct_delay_ps_stderr"]), np.nan),
+                    options.onset_scale_ps)
+    out["ratio"] = (ratio, ratio_se, options.ratio_scale)
+    out["alpha"] = (log_alpha, alpha_se, options.alpha_scale)
+    return out
 
 
 def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     """Step 2 (module docstring): ``sweeps`` Jacobi sweeps, every decomposed pixel with a direct
-    refitted with its neighbours' delay prior; ``c`` updated in place."""
+    refitted with its neighbours' prior on its direct delay and (``options.material_prior``) its
+    sss-to-direct amplitude ratio and sss decay rate; ``c`` updated in place."""
     rows = np.flatnonzero(c.live & np.isfinite(c.params["direct_delay_ps"]))
     c.info["spatial_pulled"] = 0
     if options.sweeps == 0 or rows.size == 0:
         return
-    stderr = np.where(c.live, _stderr(c, c.params), np.nan)
+    own = _prior_values(c, c.params, options)
+    stderr = {name: se for name, (_, se, _) in own.items()}
     base = _take(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
     noise2 = _noise2(c)[rows]
     pulled = np.zeros(rows.size, bool)
-    last = None             # the last sweep's prior (mean, precision) on rows; NaN: none
+    last = {}               # the last sweep's prior (mean, precision) on rows per name; NaN: none
     refits = 0
     for _ in range(options.sweeps):
-        delay = np.where(c.live, c.params["direct_delay_ps"], np.nan)
-        mean, precision = neighbour_prior(delay, stderr, c.shape, options)
-        m, p = mean[rows], precision[rows]
-        pull = p > 0
+        current = _prior_values(c, c.params, options) if len(own) > 1 else own
+        priors, pull, same = {}, np.zeros(rows.size, bool), np.ones(rows.size, bool)
+        for name, (value, _, scale) in current.items():
+            if name == "delay":
+                value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
+            mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
+                                              piecewise_constant=name != "delay")
+            m, p = mean[rows], precision[rows]
+            on = p > 0
+            pull |= on
+            # a pixel refitted last sweep with (almost) this prior is where that refit left it:
+            # only the pixels whose prior appeared, went or moved are refitted (or go back)
+            same &= np.zeros(rows.size, bool) if name not in last else _same_prior(m, p, *last[name])
+            last[name] = (np.where(on, m, np.nan), p)
+            priors[name] = (m, p)
         pulled |= pull
-        # a pixel refitted last sweep with (almost) this prior is where that refit left it: only
-        # the pixels whose prior appeared, went or moved are refitted (or go back to their own)
-        same = np.zeros(rows.size, bool) if last is None else _same_prior(m, p, *last)
-        last = (np.where(pull, m, np.nan), p)
         redo = ~same
         if not redo.any():
             break
@@ -497,7 +573,18 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         fit = redo & pull
         if fit.any():
             r = rows[fit]
-            fits = _refine(c, r, _take(c.params, r), weights[fit], (mean[r], precision[r] * noise2[fit]))
+            kw = {}
+            for name, (m, p) in priors.items():
+                m, w = m[fit], p[fit] * noise2[fit]
+                if name == "ratio":
+                    # ln(c_s / c_d) - mean ~ (c_s - rho c_d) / (rho c_d), rho = e^mean, at the
+                    # pixel's current direct amplitude
+                    rho = np.exp(m)
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        w = np.where(w > 0, w / (rho * c.params["direct_amplitude"][r]) ** 2, 0.0)
+                    m = rho
+                kw[_PRIOR_KEYWORDS[name]] = (m, np.nan_to_num(w, nan=0.0, posinf=0.0))
+            fits = _refine(c, r, _take(c.params, r), weights[fit], kw.pop("delay_prior"), kw)
             refits += int(fit.sum())
             for k in c.params:
                 c.params[k][r] = fits[k]

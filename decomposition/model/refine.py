@@ -215,7 +215,9 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            sigma_bounds_ps: tuple[float, float] | None = None,
            alpha_bounds_per_ps: tuple[float, float] = (1e-7, 1e3),
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
-           bin_integrated: bool = False, fit_background=False, delay_prior=None, hold=None):
+           bin_integrated: bool = False, fit_background=False, delay_prior=None, onset_prior=None, alpha_prior=None,
+           ratio_prior=None,
+           hold=None):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -273,6 +275,18 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         units of ``profiles`` squared per ps^2, i.e. the RSS-units precision of the prior;
         0 or NaN: none).  A neighbourhood's estimate of the delay, weighed against the pixel's
         own samples (:mod:`decomposition.image.spatial`).
+    onset_prior : (mean, weight) of array_like, each of shape (...,), optional
+        The same for the sss onset after the direct: ``weight`` * (sss delay - direct delay -
+        ``mean``)^2 (``mean`` in ps, ``weight`` as ``delay_prior``'s).  Pixels without both
+        components have none.
+    alpha_prior : (mean, weight) of array_like, each of shape (...,), optional
+        The same for the sss decay rate's natural logarithm: ``weight`` * (ln alpha -
+        ``mean``)^2 (``mean`` in ln(1/ps), ``weight`` in the units of ``profiles`` squared).
+    ratio_prior : (mean, weight) of array_like, each of shape (...,), optional
+        The same for the sss amplitude over the direct's: ``weight`` * (sss amplitude - ``mean``
+        * direct amplitude)^2 (``mean`` dimensionless, ``weight`` dimensionless: the term is in
+        the units of ``profiles`` squared), linear in the amplitudes.  Pixels without both
+        components have none.
     hold : dict, optional
         Parameters held at given values ({key of :data:`HOLD_KEYS`: scalar or array
         broadcastable to (...,)}, NaN: free for that pixel): put into the start and never moved
@@ -291,7 +305,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         ``iterations`` (int), ``converged`` (bool), ``refined`` (bool: refined
         values were kept), ``rss_input`` and ``rss`` (weighted residual sums
         of squares of the input and returned parameters, in the units of
-        ``profiles`` squared; with ``delay_prior`` its term included).
+        ``profiles`` squared; with the priors their terms included).
     """
     y = np.asarray(profiles)
     if y.ndim < 1 or y.shape[-1] < 2:
@@ -349,10 +363,12 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     scale = np.max(np.abs(y), axis=-1)
     scale = np.where(scale > 0, scale, 1.0)
     yw = y if sw is None else y * sw
-    prior = None
-    if delay_prior is not None:
-        mean, weight = (np.broadcast_to(np.asarray(v, np.float64), lead).reshape(n) for v in delay_prior)
-        prior = (mean, weight / (scale * scale))
+    priors = {}        # name -> (mean, weight in normalised units), (n,) each
+    for name, given, per_scale2 in (("delay", delay_prior, True), ("onset", onset_prior, True), ("alpha", alpha_prior, True),
+                                    ("ratio", ratio_prior, False)):
+        if given is not None:
+            mean, weight = (np.broadcast_to(np.asarray(v, np.float64), lead).reshape(n) for v in given)
+            priors[name] = (mean, weight / (scale * scale) if per_scale2 else weight)
 
     res = {name: slots[name].copy() for name in ("delay", "amplitude", "sigma", "alpha")}
     b_out = b_in.copy()
@@ -363,8 +379,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         sc = scale[sl]
         sub = {name: slots[name][sl] for name in ("delay", "sigma", "alpha", "present")}
         sub["amplitude"] = slots["amplitude"][sl] / sc[:, None]
-        if prior is not None:
-            sub["delay_prior_mean"], sub["delay_prior_weight"] = prior[0][sl], prior[1][sl]
+        for name, (mean, weight) in priors.items():
+            sub[f"{name}_prior_mean"], sub[f"{name}_prior_weight"] = mean[sl], weight[sl]
         if fit_bg[sl].any():
             sub["fit_background"] = fit_bg[sl]
             sub["background"] = b_in[sl] / sc

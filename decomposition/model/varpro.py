@@ -37,12 +37,18 @@ P_u Phi times P_u, so the amplitudes, the residual and Kaufman's Jacobian of the
 are those of the projected rows, and the offset follows from the residual
 (:func:`background_level`).  Pixels without the flag are untouched.
 
-Delay prior: ``slots`` may carry a Gaussian pseudo-observation of each pixel's direct delay,
-``delay_prior_mean`` and ``delay_prior_weight`` (n,) (weight 0: none).  Its residual
-sqrt(w) (delay_0 - mean) is one more row of the least-squares problem, so the objective the
-LM lowers (and the never-worse rule compares) is RSS + w (delay_0 - mean)^2, and the normal
-equations gain w on the direct delay's diagonal and w (delay_0 - mean) in the gradient
-(:func:`_with_prior`).
+Priors: ``slots`` may carry Gaussian pseudo-observations (weight 0: none for that pixel) of the
+direct delay (``delay_prior_mean`` / ``_weight``, ps), of the sss onset after the direct
+(``onset_prior_...``, ps), of the sss decay rate's logarithm (``alpha_prior_...``) and of the sss-to-direct amplitude ratio
+(``ratio_prior_mean`` / ``_weight``), each (n,).  A prior on v . theta (one parameter, or the
+difference of two) has the residual sqrt(w) (v . theta - mean), one more row of the
+least-squares problem, so the normal equations gain w v v^T and the gradient w (v . theta -
+mean) v (:func:`_with_prior`).  The ratio's residual
+sqrt(w) (c_sss - rho c_direct) is linear in the amplitudes: one more sample of the linear
+problem whose basis values are sqrt(w) (-rho, 1, 0, ...) and whose data value is 0
+(:func:`_amplitude_prior`), so the amplitudes are still solved exactly and Kaufman's Jacobian
+holds as it is.  The objective the LM lowers (and the never-worse rule compares) is the RSS plus
+every prior's term.
 
 See :mod:`decomposition.model.refine` for the public function and its options.
 """
@@ -223,8 +229,9 @@ class Layout:
 CHUNK_PIXELS = 48
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
-    """:func:`_evaluate_chunk` over cache-sized chunks of pixels.
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None):
+    """:func:`_evaluate_chunk` over cache-sized chunks of pixels (``amp`` (n, K): the
+    amplitude prior's rows, :func:`_amplitude_prior`).
 
     Pixels are taken in order of their last present slot, and each chunk is
     evaluated with the inter-reflection slots that none of its pixels uses cut
@@ -245,7 +252,8 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
         sub_lay, cols = lay.truncated(k_eff)
         c, rss, a, g = _evaluate_chunk(sub_lay, t, y[sel], theta[np.ix_(sel, cols)], present[sel, :k_eff],
                                        free[np.ix_(sel, cols)], tb, jac, None if sw is None else sw[sel],
-                                       None if bg is None else bg[sel])
+                                       None if bg is None else bg[sel],
+                                       None if amp is None else amp[sel, :k_eff])
         c_out[sel, :k_eff] = c
         rss_out[sel] = rss
         if jac:
@@ -254,7 +262,7 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
     return c_out, rss_out, a_out, g_out
 
 
-def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
+def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None):
     """Amplitudes, residual sum of squares and (if jac) the LM normal equations at theta.
 
     With V = W dPhi (rows; W carries the amplitudes c and the parameter
@@ -262,11 +270,18 @@ def _evaluate_chunk(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None):
     Jacobian J = Phi^T G^-1 B - V^T gives J^T J = V V^T - B^T G^-1 B and
     J^T r = -V r (because Phi r = 0), so one batched Gram product of the
     stacked rows [Phi; dPhi; y] is all the L-length work.  Pixels ``bg`` (n,) bool also
-    fit a constant offset (rows projected, :func:`_project_constant`).
+    fit a constant offset (rows projected, :func:`_project_constant`).  ``amp`` (n, K): the
+    amplitude prior's row (:func:`_amplitude_prior`), one more sample of the linear problem
+    whose basis values are ``amp``, whose data value is 0 and which no nonlinear parameter
+    moves (it is not projected with the offset).
     """
     k, q = lay.k, lay.q
     delay, sigma, alpha = lay.unpack(theta)
     m = _project_constant(design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw), bg, sw)
+    if amp is not None:
+        extra = np.zeros(m.shape[:2] + (1,))
+        extra[:, :k, 0] = amp
+        m = np.concatenate([m, extra], axis=-1)
     mm = m @ m.swapaxes(-1, -2)
     gram = _regularise(mm[:, :k, :k], present)
     c = np.linalg.solve(gram, mm[:, :k, -1][..., None])[..., 0]
@@ -312,30 +327,63 @@ def _keep_order(theta, present):
     return theta
 
 
-def _delay_prior(slots, present):
-    """(mean, weight) (n,) of the direct-delay pseudo-observation in ``slots``, or None (weight
-    0 where the direct is absent or either value is not finite)."""
-    if "delay_prior_weight" not in slots:
+def _theta_priors(slots, present, lay):
+    """The Gaussian pseudo-observations of nonlinear parameters in ``slots``: a list of
+    (v (P,), mean (n,), weight (n,)), each a prior on v . theta, weight 0 where the pixel has
+    none (a component absent or a value not finite): the direct delay (``delay_prior_mean`` /
+    ``_weight``, ps), the sss onset after the direct (``onset_prior_...``, ps) and the sss decay
+    rate's logarithm (``alpha_prior_...``, ln(1/ps))."""
+    out = []
+    for name, terms, slots_needed in (("delay", ((0, 1.0),), (0,)),
+                                      ("onset", ((SSS_SLOT, 1.0), (0, -1.0)), (0, SSS_SLOT)),
+                                      ("alpha", ((lay.p - 1, 1.0),), (SSS_SLOT,))):
+        if f"{name}_prior_weight" not in slots:
+            continue
+        mean = np.asarray(slots[f"{name}_prior_mean"], np.float64)
+        weight = np.asarray(slots[f"{name}_prior_weight"], np.float64)
+        ok = np.isfinite(mean) & np.isfinite(weight) & (weight > 0)
+        for slot in slots_needed:
+            ok &= present[:, slot]
+        if ok.any():
+            v = np.zeros(lay.p)
+            for col, coef in terms:
+                v[col] = coef
+            out.append((v, np.where(ok, mean, 0.0), np.where(ok, weight, 0.0)))
+    return out
+
+
+def _amplitude_prior(slots, present):
+    """(n, K) the row of the sss-to-direct amplitude ratio's pseudo-observation in ``slots``
+    (``ratio_prior_mean`` rho, ``ratio_prior_weight`` w): sqrt(w) (c_sss - rho c_direct) is one
+    more residual, linear in the amplitudes, so the row is sqrt(w) (-rho, 1, 0, ...); zero
+    where a pixel lacks the direct or the sss or a finite positive weight.  None: no prior."""
+    if "ratio_prior_weight" not in slots:
         return None
-    mean = np.asarray(slots["delay_prior_mean"], np.float64)
-    weight = np.asarray(slots["delay_prior_weight"], np.float64)
-    ok = present[:, 0] & np.isfinite(mean) & np.isfinite(weight) & (weight > 0)
+    rho = np.asarray(slots["ratio_prior_mean"], np.float64)
+    weight = np.asarray(slots["ratio_prior_weight"], np.float64)
+    ok = present[:, 0] & present[:, SSS_SLOT] & np.isfinite(rho) & np.isfinite(weight) & (weight > 0)
     if not ok.any():
         return None
-    return np.where(ok, mean, 0.0), np.where(ok, weight, 0.0)
+    row = np.zeros(present.shape)
+    root = np.sqrt(np.where(ok, weight, 0.0))
+    row[:, 0] = -root * np.where(ok, rho, 0.0)
+    row[:, SSS_SLOT] = root
+    return row
 
 
-def _with_prior(prior, theta, rss, a=None, g=None):
-    """Add the delay prior's row (:func:`_delay_prior`, rows of ``theta``) to the RSS and, where
-    given, to the normal equations ``a`` (n, P, P) and the gradient ``g`` (n, P) (in place)."""
-    if prior is None:
-        return rss
-    mean, weight = prior
-    dd = theta[:, 0] - mean
-    if a is not None:
-        a[:, 0, 0] += weight
-        g[:, 0] += weight * dd
-    return rss + weight * dd * dd
+def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
+    """Add the pseudo-observations ``priors`` (:func:`_theta_priors`; their pixels ``rows`` of
+    them, default all) at ``theta`` to the RSS and, where given, to the normal equations ``a``
+    (n, P, P) and the gradient ``g`` (n, P) (in place)."""
+    for v, mean, weight in priors:
+        if rows is not None:
+            mean, weight = mean[rows], weight[rows]
+        dd = theta @ v - mean
+        if a is not None:
+            a += weight[:, None, None] * np.outer(v, v)[None]
+            g += (weight * dd)[:, None] * v[None]
+        rss = rss + weight * dd * dd
+    return rss
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
@@ -344,14 +392,15 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
     never-worse reference uses them); the returned ``background`` is the fitted offset there
-    (the input where the refined values were not kept) and 0 elsewhere.  With a delay prior
-    (``delay_prior_mean``, ``delay_prior_weight``; module docstring) ``rss`` includes its term.
+    (the input where the refined values were not kept) and 0 elsewhere.  With priors (module
+    docstring) ``rss`` includes their terms.
     ``held`` (n, P) bool
     (P of ``lay``): parameters kept at their input value, outside the bounds too (no
     derivative column, no step); the amplitudes are still solved."""
     n = y.shape[0]
     present = slots["present"]
-    prior = _delay_prior(slots, present)
+    prior = _theta_priors(slots, present, lay)
+    amp = _amplitude_prior(slots, present)
     bg = slots.get("fit_background")
     if bg is not None:
         bg = np.asarray(bg, bool)
@@ -386,9 +435,12 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             u0 = np.ones_like(r0) if sw is None else sw[ch]
             r0 = r0 - np.where(bg[ch], np.nan_to_num(slots["background"][ch]), 0.0)[:, None] * u0
         rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
-    rss_input = _with_prior(prior, d0, rss_input)
+    if amp is not None:
+        rss_input += np.einsum("nk,nk->n", amp, amp_in) ** 2
+    theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
+    rss_input = _with_prior(prior, theta_in, rss_input)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp)
     rss = _with_prior(prior, theta, rss, a, g)
     viol = _amp_violations(c, present)
     lam = np.full(n, lam0)
@@ -419,8 +471,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
-                                         None if sw is None else sw[idx], None if bg is None else bg[idx])
-        rss_t = _with_prior(None if prior is None else (prior[0][idx], prior[1][idx]), trial, rss_t, a_t, g_t)
+                                         None if sw is None else sw[idx], None if bg is None else bg[idx],
+                                         None if amp is None else amp[idx])
+        rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
         viol_t = _amp_violations(c_t, present[idx])
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
         accept = ok & (rss_t < rss[idx])
