@@ -238,23 +238,32 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
     return out
 
 
-def split_dark(dark: np.ndarray, *, smooth_rows: int = DARK_SMOOTH_ROWS,
+def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOOTH_ROWS,
                outlier_sigma: float = DARK_OUTLIER_SIGMA) -> tuple[np.ndarray, np.ndarray]:
     """The mean dark image as its structure plus its noise: ``dark == structure + noise``.
 
     Frames aligned on a fiducial are moved by different amounts.  The dark's structure (the
-    sensor's offsets, slow along the rows, and its hot or cold samples) belongs to the rows,
-    so it is subtracted from each frame before the frame moves.  The dark's noise (the read noise
-    of the few dark frames averaged) is the same in every frame of a line: subtracted before the
-    move, each frame would carry its own shifted copy, and the line's mean the same noise
-    repeated at the lag between the frames' shifts, a correlation at the scale of a pulse that a
-    per-pixel decomposition takes for one.  Subtracted once after the move (onto the cube's bins
-    unmoved) it stays white, as in an unaligned cube.
+    sensor's offsets, slow along the rows, its hot or cold samples and its fine fixed pattern)
+    belongs to the rows, so it is subtracted from each frame before the frame moves.  The dark's
+    noise (the read noise of the few dark frames averaged) is the same in every frame of a line:
+    subtracted before the move, each frame would carry its own shifted copy, and the line's mean
+    the same noise repeated at the lag between the frames' shifts, a correlation at the scale of
+    a pulse that a per-pixel decomposition takes for one.  Subtracted once after the move (onto
+    the cube's bins unmoved) it stays white, as in an unaligned cube.
+
+    What is left about a running median along the rows is split between the two by its
+    variance: the mean dark's own noise variance ``noise_var`` (the dark frames' scatter over
+    their number) is noise, anything beyond it a fixed pattern of the sensor, kept with the
+    structure in proportion (the least-squares, Wiener, share of each sample).
 
     Parameters
     ----------
     dark : ndarray, shape (x, n_rows)
         Mean dark image, counts.
+    noise_var : float or ndarray (x,), optional
+        Variance of the mean dark's noise, counts^2, per slit pixel.  None (a single dark frame:
+        its noise cannot be told from a pattern): all that is left about the running median,
+        but for the outliers, is noise.
     smooth_rows : int
         Rows of the running median (along the rows, each slit pixel apart) that is the structure.
     outlier_sigma : float
@@ -275,5 +284,11 @@ def split_dark(dark: np.ndarray, *, smooth_rows: int = DARK_SMOOTH_ROWS,
     rest = d - smooth
     sigma = 1.4826 * np.median(np.abs(rest), axis=1, keepdims=True)
     outlier = np.abs(rest) > outlier_sigma * sigma
-    structure = np.where(outlier, d, smooth)
+    pattern = np.zeros_like(d)
+    if noise_var is not None:
+        var_rest = sigma[:, 0] ** 2
+        keep = np.clip(1.0 - np.broadcast_to(np.asarray(noise_var, np.float64), var_rest.shape)
+                       / np.where(var_rest > 0, var_rest, np.inf), 0.0, 1.0)
+        pattern = keep[:, None] * rest
+    structure = np.where(outlier, d, smooth + pattern)
     return structure, d - structure

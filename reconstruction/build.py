@@ -325,6 +325,9 @@ class LineCalibration:
     time_info : dict                   where the row times came from (the cube's provenance)
     fiducial : Fiducial or None        align every frame on the run's fiducial before the mean
     fiducial_min_snr : float           peak-to-noise ratio the fiducial must reach in every frame
+    dark_noise_var : ndarray (x,) or None  variance of the mean dark's noise per slit pixel, counts^2
+                                       (None: a single dark frame); what of the dark moves with
+                                       aligned frames (:func:`reconstruction.align.split_dark`)
     """
 
     row_times_ps: np.ndarray
@@ -336,6 +339,7 @@ class LineCalibration:
     time_info: dict
     fiducial: object = None
     fiducial_min_snr: float = 5.0
+    dark_noise_var: np.ndarray | None = None
 
     @property
     def noise_law(self) -> str | None:
@@ -377,7 +381,7 @@ class LineCalibration:
             from .align import fiducial_correction_ps, resample_aligned, split_dark
             # the dark's structure moves with each frame, its noise is subtracted once after the
             # move (reconstruction.align.split_dark): moved, it would repeat at the frames' lags
-            structure, dark_noise = split_dark(self.dark)
+            structure, dark_noise = split_dark(self.dark, noise_var=self.dark_noise_var)
             frames = raw - structure                                           # (b, frame, x, rows) float64
             if self.flat is not None:
                 frames /= self.flat
@@ -402,13 +406,24 @@ def line_calibration(run, *, flat=None, time_source: str | None = None, sweep_pa
     nx, n_rows = run.image_shape
     row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, _ = _time_grid(run, time_source, sweep_path)
     fiducial = _fiducial(run, run.attrs.get("fiducial") is not None if align is None else align, n_rows, nx)
-    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, run_dark(run), flat, time_info, fiducial,
-                           fiducial_min_snr)
+    dark, noise_var = run_dark(run, with_noise=True)
+    return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, dark, flat, time_info, fiducial,
+                           fiducial_min_snr, noise_var)
 
 
-def run_dark(run) -> np.ndarray:
-    """The run's mean dark image, (x, n_rows) float64 counts per frame."""
-    return dark_image(read_checked(run["dark"], slice(None), store=run.path), run.image_shape)
+def run_dark(run, *, with_noise: bool = False):
+    """The run's mean dark image, (x, n_rows) float64 counts per frame; ``with_noise``: and the
+    variance of its noise per slit pixel, (x,) counts^2 (the dark frames' scatter, median over
+    the rows, over their number; None from fewer than two frames)."""
+    frames = read_checked(run["dark"], slice(None), store=run.path)
+    mean = dark_image(frames, run.image_shape)
+    if not with_noise:
+        return mean
+    n = int(np.shape(frames)[0])
+    if n < 2:
+        return mean, None
+    scatter = np.var(np.asarray(frames, np.float64), axis=0, ddof=1)
+    return mean, np.median(scatter, axis=1) / n
 
 
 def mean_line_images(run, lines):

@@ -199,3 +199,28 @@ def test_aligned_line_carries_the_dark_noise_once_and_white():
     n = (rows - clean)[0, :, 6:-6]
     lag3 = (n[:, 3:] * n[:, :-3]).mean() / (n * n).mean()
     assert abs(lag3) < 0.15                                      # a copy at the frames' lag: 0.5
+
+
+def test_a_sensors_fine_fixed_pattern_moves_with_the_frames_and_cancels():
+    # a fixed pattern of 10 counts RMS from sample to sample (far above the mean dark's own noise,
+    # 0.5 counts RMS from 16 frames of read noise 2): it is in every frame at the same rows, so it
+    # must be subtracted before the frames move; subtracted after, it would be left moved
+    from reconstruction.build import LineCalibration
+
+    rng = np.random.default_rng(5)
+    shifts = np.array([[0.0, 6.0]])
+    pattern = rng.normal(0.0, 10.0, (NX, N_ROWS))
+    dark_noise = rng.normal(0.0, 0.5, (NX, N_ROWS))
+    frames = frames_with_jitter(shifts) + DARK + pattern
+    clean = _moved(frames_with_jitter(shifts), -shifts).mean(axis=1)
+
+    def error(noise_var):
+        calib = LineCalibration(ROW_TIMES_PS, 2.0, 0.0, N_ROWS, DARK + pattern + dark_noise, None, {},
+                                Fiducial(**FID), dark_noise_var=noise_var)
+        rows, _ = calib.correct(frames)
+        return float(np.std((rows - clean)[0, :, 6:-6]))
+
+    assert error(np.full(NX, 0.25)) < 1.0                       # the pattern cancels; the dark's noise is left
+    assert error(None) > 5.0                                    # taken for noise, it is left moved
+    structure, rest = split_dark(DARK + pattern + dark_noise, noise_var=0.25)
+    assert np.std(rest) < 0.1                                   # the pattern's share: (100 - 0.25) / 100
