@@ -104,3 +104,8 @@ def test_bad_spatial_settings_are_refused_before_any_work(spatial_store, tmp_pat
     with pytest.raises(PipelineError, match="--spatial: spatial: unknown option"):
         decompose_to_store(spatial_store / "cube.zarr", tmp_path / "x.zarr", progress=False, spatial={"nope": 1})
     assert not (tmp_path / "x.zarr").exists()
+    # a list of profiles has no neighbours to couple
+    np.save(tmp_path / "list.npy", smooth_scene(n=4, nsr=0.11, seed=1)[0].reshape(16, -1))
+    with pytest.raises(PipelineError, match="list of profiles .n, t. with no neighbours"):
+        decompose_to_store(tmp_path / "list.npy", tmp_path / "y.zarr", time_bin_ps=TB, progress=False, spatial=True)
+    assert not (tmp_path / "y.zarr").exists()

@@ -110,7 +110,8 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
             data = np.load(p, mmap_mode="r", allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise PipelineError(f"{path}: cannot read as a .npy array: {exc}") from None
-        if data.ndim == 2:
+        listed = data.ndim == 2          # a list of profiles: one row of an image, but no image
+        if listed:
             data = data[None]
         if data.ndim != 3:
             raise PipelineError(f"{path}: expected an array (y, x, t) or (n, t); got shape {data.shape}")
@@ -125,7 +126,8 @@ def _open_input(path, *, time_bin_ps, t0_ps, chunks):
         default_chunks = (min(data.shape[0], 16), min(data.shape[1], 64))
         ch = chunks or default_chunks
         arr = da.from_array(data, chunks=(ch[0], ch[1], -1))
-        source = {"path": str(p.resolve()), "kind": "npy", "shape": list(data.shape), "attrs": {}}
+        source = {"path": str(p.resolve()), "kind": "npy", "shape": list(data.shape), "attrs": {},
+                  **({"layout": "profiles (n, t)"} if listed else {})}
         return arr, source, tb, t0, default_chunks, "counts", None, "pixel"
     if time_bin_ps is not None or t0_ps is not None:
         raise PipelineError("--time-bin-ps/--t0-ps are for .npy input; a cube store carries its own time axis")
@@ -370,6 +372,9 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     if spatial_opts is not None:         # absent without it: older stores resume as before
         if response is not None:
             raise PipelineError("--spatial works with the Gaussian PSF; give --irf gaussian, or leave --spatial out")
+        if source.get("layout") == "profiles (n, t)":
+            raise PipelineError(f"--spatial couples neighbouring pixels of an image; {input_path} is a list of "
+                                f"profiles (n, t) with no neighbours: give an array (y, x, t) or a cube store")
         job["spatial"] = dataclasses.asdict(spatial_opts)
     if names:                            # absent without --shared: older stores resume as before
         job["shared"] = list(names)
