@@ -244,3 +244,44 @@ def test_pixels_of_an_inclined_surface_agree_with_their_neighbours():
     assert np.argwhere(doubt).tolist() == [[0, 2]]       # the flagged pixel alone
     neighbour_starts(c, SpatialOptions())
     assert c.resolved.reshape(n, n)[1:-1].all()
+
+
+def _directs(delays_ps, amplitude=1.0, sigma_ps=4.0, L=256, noise=0.01, seed=0):
+    """(Y, X, L) profiles of one direct each at ``delays_ps`` (Y, X), white noise ``noise``."""
+    d = np.asarray(delays_ps, float)
+    p = {"direct_delay_ps": d, "direct_amplitude": np.full(d.shape, amplitude),
+         "direct_sigma_ps": np.full(d.shape, sigma_ps)}
+    clean = model.render_profile(p, L, 2.0, 2.0)
+    return clean + noise * np.random.default_rng(seed).standard_normal(clean.shape)
+
+
+def test_the_screen_reads_j_with_the_amplitudes_solved_at_the_starts_shapes():
+    from decomposition.image.spatial import _objective, _screen, objective_weights, prepare_coupling
+    from decomposition import decompose
+    cube = _directs(np.full((1, 2), 200.0), noise=0.0) + np.array([0.0, 0.0])[None, :, None]
+    result = decompose(cube, 2.0, t0_ps=2.0)
+    c = prepare_coupling(cube, result, 2.0, "convscd", {"t0_ps": 2.0})
+    rows = np.arange(2)
+    start = {k: v.copy() for k, v in c.params.items()}
+    start["direct_amplitude"] = start["direct_amplitude"] * 7.0      # wrong amplitudes
+    w = objective_weights(c, c.params)[rows]
+    right = _objective(c, rows, c.params, w)
+    wrong = _objective(c, rows, start, w)
+    screened = _screen(c, rows, start, w)
+    # the screen re-solves the amplitudes: J as at the fitted ones, far below the wrong ones'
+    np.testing.assert_allclose(screened, right, rtol=1e-6, atol=1e-6)
+    assert np.all(wrong > 100 * right + 1)
+
+
+def test_a_neighbour_from_an_unrelated_scene_is_screened_out_and_the_answer_kept():
+    # the centre's direct lies 150 ps from its neighbours' (another scene, ~40 PSF widths)
+    delays = np.full((3, 3), 100.0)
+    delays[1, 1] = 250.0
+    cube = _directs(delays)
+    off = decompose_image(cube, 2.0, t0_ps=2.0, spatial={"neighbour_starts": False, "sweeps": 0})
+    on = decompose_image(cube, 2.0, t0_ps=2.0, spatial={"sweeps": 0})
+    assert on.info["spatial"]["spatial_doubt"] >= 1
+    assert on.info["spatial"]["spatial_starts_screened"] >= 1
+    assert on.info["spatial"]["spatial_starts_taken"] == 0
+    np.testing.assert_allclose(on.params["direct_delay_ps"][1, 1], off.params["direct_delay_ps"][1, 1], rtol=1e-9)
+    assert abs(on.params["direct_delay_ps"][1, 1] - 250.0) < 1.0

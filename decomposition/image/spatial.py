@@ -18,7 +18,11 @@ Python loops run over neighbour offsets and sweeps):
    than the evidence tolerance (``ambiguity_chi2``,
    :func:`decomposition.stages.selection.ambiguity_tolerance`), or lower by less and shared by
    as many neighbours as the own fit; among those, within the tolerance of the lowest J, the
-   fit most neighbours share is kept (the data do not choose there; the neighbours do).  The
+   fit most neighbours share is kept (the data do not choose there; the neighbours do).  A start
+   is refitted only where it could compete: its J with only the amplitudes re-solved at its
+   own shapes (:func:`_screen`, one render and a small linear solve) must lie within
+   :data:`_SCREEN_MARGIN` times the pixel's own J of that J; a neighbour on another surface or
+   of an unrelated scene is not refitted.  The
    search's AMBIGUOUS is resolved (cleared, unless the final fit's own quality test sets it
    again) where a neighbour's start was taken or where the pixel's answer agrees with its
    neighbours'.
@@ -56,10 +60,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from ..api import DecompositionResult, decompose
 from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
-from ..model.refine import refine
+from ..model.refine import hold_params, refine, slot_arrays
+from ..model.varpro import _regularise, design_rows
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
 from ..stages.candidates import detector_variance
@@ -280,6 +285,65 @@ def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, pri
     return out
 
 
+#: A neighbour's start is refitted only where its J at its own shapes, the amplitudes re-solved
+#: (:func:`_screen`), exceeds the pixel's own J by less than this many times the own J's
+#: magnitude: a refit moves the shapes from there, but a start whose shapes leave a misfit many
+#: times the pixel's own is another scene's answer, not its neighbourhood's (on the spatial
+#: bench's scenes every start taken lay within 15 times)
+_SCREEN_MARGIN = 20.0
+
+#: pixels' candidate starts screened per block (bounds the (n, K + 2, L) design rows' memory)
+_SCREEN_BLOCK = 1024
+
+
+def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> np.ndarray:
+    """(n,) J (:func:`_objective`) of the starts ``start`` (n-shaped) on the pixels ``rows`` with
+    only their amplitudes (and the offset, where :func:`_refine` fits it) re-solved by weighted
+    linear least squares at the starts' shapes (delays, widths, decay rates; the held values put
+    in), without a sign constraint: one render and a small linear solve per start, in blocks.
+    A refit from the start (:func:`_refine`) moves the shapes too and keeps the amplitudes
+    positive; the screen's J is its J before the shapes move."""
+    s = c.samples
+    n = rows.size
+    out = np.empty(n)
+    if n == 0:
+        return out
+    hold = {k: v[rows] for k, v in c.hold.items()}
+    start = hold_params(start, hold, (n,)) if hold else start
+    slots = slot_arrays(start, (n,))
+    present = slots["present"]
+    if BACKGROUND_KEY in start:
+        b = np.asarray(start[BACKGROUND_KEY], np.float64)
+        fit_bg = np.isfinite(b) & (b != 0)
+        held_bg = np.where(fit_bg | ~np.isfinite(b), 0.0, b)
+    else:
+        fit_bg, held_bg = np.zeros(n, bool), np.zeros(n)
+    t = time_axis_ps(s.n_bins, s.axis.time_bin_ps, s.axis.t0_ps)
+    k_free = free_parameters(families(start), c.widths)
+    noise2 = _noise2(c)[rows]
+    log_n = log_samples(s.fit[rows].sum(axis=1))
+    K = present.shape[1]
+    for lo in range(0, n, _SCREEN_BLOCK):
+        sl = slice(lo, min(n, lo + _SCREEN_BLOCK))
+        r = rows[sl]
+        w = np.maximum(weights[sl], 0.0)
+        sw = np.sqrt(w)
+        y = np.nan_to_num(s.values[r] - held_bg[sl, None]) * sw
+        m = design_rows(t, y, slots["delay"][sl], slots["sigma"][sl], slots["alpha"][sl], present[sl], None,
+                        False, sw)
+        # the offset as one more linear row where it is fitted
+        m = np.concatenate([m[:, :K], np.where(fit_bg[sl, None, None], sw[:, None, :], 0.0), m[:, K:]], axis=1)
+        pres = np.concatenate([present[sl], fit_bg[sl, None]], axis=1)
+        basis = m[:, :-1]
+        gram = _regularise(np.einsum("nkl,njl->nkj", basis, basis), pres)
+        rhs = np.einsum("nkl,nl->nk", basis, m[:, -1])
+        amp = np.linalg.solve(gram, rhs[..., None])[..., 0]
+        amp = np.where(pres, amp, 0.0)
+        resid = m[:, -1] - np.einsum("nk,nkl->nl", amp, basis)
+        out[sl] = penalised(data_term(resid, noise2[sl]), k_free[sl], log_n[sl], c.opts.search_penalty)
+    return out
+
+
 # --------------------------------------------------------------------------- neighbourhoods
 
 def _shifted(a: np.ndarray, shape: tuple, dy: int, dx: int, fill) -> np.ndarray:
@@ -362,6 +426,7 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
     lower J, the neighbours deciding within the evidence tolerance); ``c`` updated in place."""
     doubt = in_doubt(c, options)
     c.info["spatial_doubt"] = int(doubt.sum())
+    c.info["spatial_starts_screened"] = 0
     taken = np.zeros(c.live.size, bool)
     rows = np.flatnonzero(doubt)
     if rows.size and options.neighbour_starts:
@@ -394,13 +459,19 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
             start = _take(c.params, src)
             if BACKGROUND_KEY in start:         # the pixel's own offset, fitted again
                 start[BACKGROUND_KEY] = c.params[BACKGROUND_KEY][pix]
-            fits = _refine(c, pix, start, weights[pix])
-            j = _objective(c, pix, fits, weights[pix])
+            # a start whose misfit at its own shapes (the amplitudes re-solved) is many times the
+            # pixel's own J is not refitted (module docstring)
+            j_own = j_best[np.searchsorted(rows, pix)]
+            near = _screen(c, pix, start, weights[pix]) - j_own < _SCREEN_MARGIN * np.abs(j_own)
+            c.info["spatial_starts_screened"] = int(pix.size - near.sum())
+            pix, src, start = pix[near], src[near], _take(start, near)
+            fits = _refine(c, pix, start, weights[pix]) if pix.size else start
+            j = _objective(c, pix, fits, weights[pix]) if pix.size else np.zeros(0)
             # the candidates: each pixel's own fit (index -1) and its refits from the starts
             cand_pos = np.concatenate([np.arange(rows.size), np.searchsorted(rows, pix)])
             cand_j = np.concatenate([j_best, j])
             cand_fit = np.concatenate([np.full(rows.size, -1), np.arange(pix.size)])
-            cand_sig = np.concatenate([_signature(own), _signature(fits)])
+            cand_sig = np.concatenate([_signature(own), _signature(fits) if pix.size else np.zeros(0, np.int64)])
             cand_d = np.concatenate([own["direct_delay_ps"], fits["direct_delay_ps"]])
             *_, agree = _neighbour_counts(c, c.params, rows[cand_pos], cand_sig, cand_d, options.doubt_delay_ps)
             # a start replaces the pixel's own fit where its J is lower: by more than the
