@@ -112,14 +112,16 @@ def aligned_neighbours(fields, direct_delay_ps: np.ndarray, time_bin_ps: float, 
             valid = has & np.isfinite(dn)
             shift = np.where(valid, np.rint((np.where(valid, dn, 0.0) - np.where(valid, d, 0.0)) / time_bin_ps),
                              0).astype(np.int64)
-            out = []
+            out, gather = [], None
             for f in fields:
                 moved = _shift_image(np.asarray(f), dy, dx, 0)
                 if moved.ndim == 3:
-                    L = moved.shape[-1]
-                    idx = np.arange(L)[None, None, :] + shift[..., None]
-                    inside = (idx >= 0) & (idx < L) & valid[..., None]
-                    moved = np.where(inside, np.take_along_axis(moved, np.clip(idx, 0, L - 1), axis=-1), 0)
+                    if gather is None:        # the same time shift for every per-sample field
+                        L = moved.shape[-1]
+                        idx = np.arange(L)[None, None, :] + shift[..., None]
+                        gather = ((idx >= 0) & (idx < L) & valid[..., None], np.clip(idx, 0, L - 1))
+                    inside, at = gather
+                    moved = np.where(inside, np.take_along_axis(moved, at, axis=-1), 0)
                 else:
                     moved = np.where(valid, moved, 0)
                 out.append(moved)
