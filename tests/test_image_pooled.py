@@ -143,3 +143,26 @@ def test_spike_stage_refits_and_flags_the_pixel():
     clean_x, _, _ = _count_image(np.random.default_rng(5), 6, 6, narrow=False)
     out, spikes, _ = refit_spikes(clean_x, call.result, T, "convscd", {"noise": "poisson"})
     assert not spikes.any() and out.info["spatial_spikes"] == 0
+
+
+def test_the_compiled_aligned_sums_are_the_offset_by_offset_sums_bit_for_bit():
+    from decomposition.kernels.pool import aligned_sums
+
+    rng = np.random.default_rng(8)
+    Y, X, L = 5, 6, 40
+    resid, model = rng.normal(size=(Y, X, L)), rng.uniform(0, 5, (Y, X, L))
+    near, amp = rng.random((Y, X, L)) < 0.1, rng.uniform(0, 1, (Y, X))
+    delay = rng.uniform(20, 60, (Y, X))
+    delay[1, 2] = np.nan                                     # no direct: neither neighbour nor centre
+    got = aligned_sums(resid, model, near, amp, delay, 2.0, 5)
+    want = [np.zeros((Y, X, L)), np.zeros((Y, X, L)), np.zeros((Y, X, L), bool), np.zeros((Y, X)),
+            np.zeros((Y, X), np.int64)]
+    for _, valid, (r, m, n, a) in aligned_neighbours((resid, model, near, amp), delay, 2.0, 5):
+        want[0] += r
+        want[1] += m
+        want[2] |= n.astype(bool)
+        want[3] += a
+        want[4] += valid
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w)
+    assert got[4][1, 2] == 0 and got[4][0, 0] == 8           # a corner pixel: 9 offsets less the NaN one

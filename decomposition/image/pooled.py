@@ -53,6 +53,7 @@ from ..constants import POISSON_VARIANCE_FLOOR
 from ..flags import SPIKE, mark
 from ..noise import anscombe, noise_sigma
 from ..stages.prepare import _count_threshold
+from ..kernels.pool import aligned_sums
 from ..stages.selection import data_term, log_samples, penalised
 
 __all__ = ["pooled_echoes", "spatial_spikes", "spike_free_landmarks", "refit_spikes", "replace_pixels", "aligned_neighbours", "ECHO_Z", "ECHO_WINDOW", "SPIKE_WINDOW", "ECHO_GUARD_SIGMA"]
@@ -217,20 +218,10 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     sigma = _pool_median(sig, window)
     sigma = np.where(np.isfinite(sigma), np.round(sigma / SIGMA_STEP_PS) * SIGMA_STEP_PS, np.nan)
 
-    pooled = np.zeros((Y, X, L))
-    pooled_var = np.zeros((Y, X, L))
-    amp_sum = np.zeros((Y, X))
-    n_pool = np.zeros((Y, X), np.int64)
     # the search keeps away from every pool member's fitted components, aligned: the misfit
     # a neighbour leaves about its own echo must not pass for an echo the pool shares
-    near = np.zeros((Y, X, L), bool)
-    for _, valid, (r_o, m_o, a_o, c_o) in aligned_neighbours(
-            (resid, np.maximum(model, 0.0), a_d, _near_components(params, t, sigma[..., None])), d, T, window):
-        pooled += r_o
-        pooled_var += m_o
-        amp_sum += a_o
-        n_pool += valid
-        near |= c_o.astype(bool)
+    pooled, pooled_var, near, amp_sum, n_pool = aligned_sums(
+        resid, np.maximum(model, 0.0), _near_components(params, t, sigma[..., None]), a_d, d, T, int(window))
     if counts:
         var = np.maximum(pooled_var, POISSON_VARIANCE_FLOOR)
     else:
