@@ -285,3 +285,33 @@ def test_a_neighbour_from_an_unrelated_scene_is_screened_out_and_the_answer_kept
     assert on.info["spatial"]["spatial_starts_taken"] == 0
     np.testing.assert_allclose(on.params["direct_delay_ps"][1, 1], off.params["direct_delay_ps"][1, 1], rtol=1e-9)
     assert abs(on.params["direct_delay_ps"][1, 1] - 250.0) < 1.0
+
+
+def test_the_compiled_screen_is_the_least_squares_misfit_at_the_starts_shapes():
+    # the kernel against a direct NumPy least-squares fit of the same atoms (a direct, an sss
+    # and an echo, an offset fitted on one pixel and held on the other)
+    from decomposition.kernels.screen import screened_rss
+    from decomposition.model.varpro import design_rows
+
+    rng = np.random.default_rng(2)
+    L, K = 200, 4
+    t = 2.0 + 2.0 * np.arange(L)
+    values = rng.normal(size=(3, L)) + 5.0
+    weights = rng.uniform(0.5, 2.0, (3, L))
+    rows = np.array([2, 0])
+    delay = np.array([[60.0, 62.0, 150.0, np.nan], [100.0, np.nan, np.nan, np.nan]])
+    sigma = np.array([[4.0, 4.0, 4.0, np.nan], [3.0, np.nan, np.nan, np.nan]])
+    alpha = np.array([0.03, np.nan])
+    present = np.isfinite(delay)
+    fit_bg, held_bg = np.array([True, False]), np.array([0.0, 5.0])
+    got = screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present, fit_bg)
+    for p in range(2):
+        sw = np.sqrt(weights[rows[p]])
+        y = (values[rows[p]] - held_bg[p]) * sw
+        m = design_rows(t, y[None], np.nan_to_num(delay[p:p + 1]), np.nan_to_num(sigma[p:p + 1], nan=1.0),
+                        np.nan_to_num(alpha[p:p + 1]), present[p:p + 1], None, False, sw[None])[0]
+        basis = m[:K][present[p]]
+        if fit_bg[p]:
+            basis = np.vstack([basis, sw])
+        amp, *_ = np.linalg.lstsq(basis.T, y, rcond=None)
+        np.testing.assert_allclose(got[p], np.sum((y - amp @ basis) ** 2), rtol=1e-9)

@@ -64,7 +64,7 @@ from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_pr
 from ..api import DecompositionResult, decompose
 from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
 from ..model.refine import hold_params, refine, slot_arrays
-from ..model.varpro import _regularise, design_rows
+from ..kernels.screen import screened_rss
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
 from ..stages.candidates import detector_variance
@@ -292,15 +292,14 @@ def _refine(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, pri
 #: bench's scenes every start taken lay within 15 times)
 _SCREEN_MARGIN = 20.0
 
-#: pixels' candidate starts screened per block (bounds the (n, K + 2, L) design rows' memory)
-_SCREEN_BLOCK = 1024
-
 
 def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> np.ndarray:
-    """(n,) J (:func:`_objective`) of the starts ``start`` (n-shaped) on the pixels ``rows`` with
+    """(n,) J (:func:`_objective`) of the starts ``start`` (n-shaped) on the pixels ``rows``
+    (``weights`` (P, L) every pixel's sample weights) with
     only their amplitudes (and the offset, where :func:`_refine` fits it) re-solved by weighted
     linear least squares at the starts' shapes (delays, widths, decay rates; the held values put
-    in), without a sign constraint: one render and a small linear solve per start, in blocks.
+    in), without a sign constraint: one render and a small linear solve per start, compiled
+    (:func:`decomposition.kernels.screen.screened_rss`).
     A refit from the start (:func:`_refine`) moves the shapes too and keeps the amplitudes
     positive; the screen's J is its J before the shapes move."""
     s = c.samples
@@ -321,26 +320,10 @@ def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> 
     t = time_axis_ps(s.n_bins, s.axis.time_bin_ps, s.axis.t0_ps)
     k_free = free_parameters(families(start), c.widths)
     noise2 = _noise2(c)[rows]
-    log_n = log_samples(s.fit[rows].sum(axis=1))
-    K = present.shape[1]
-    for lo in range(0, n, _SCREEN_BLOCK):
-        sl = slice(lo, min(n, lo + _SCREEN_BLOCK))
-        r = rows[sl]
-        w = np.maximum(weights[sl], 0.0)
-        sw = np.sqrt(w)
-        y = np.nan_to_num(s.values[r] - held_bg[sl, None]) * sw
-        m = design_rows(t, y, slots["delay"][sl], slots["sigma"][sl], slots["alpha"][sl], present[sl], None,
-                        False, sw)
-        # the offset as one more linear row where it is fitted
-        m = np.concatenate([m[:, :K], np.where(fit_bg[sl, None, None], sw[:, None, :], 0.0), m[:, K:]], axis=1)
-        pres = np.concatenate([present[sl], fit_bg[sl, None]], axis=1)
-        basis = m[:, :-1]
-        gram = _regularise(np.einsum("nkl,njl->nkj", basis, basis), pres)
-        rhs = np.einsum("nkl,nl->nk", basis, m[:, -1])
-        amp = np.linalg.solve(gram, rhs[..., None])[..., 0]
-        amp = np.where(pres, amp, 0.0)
-        resid = m[:, -1] - np.einsum("nk,nkl->nl", amp, basis)
-        out[sl] = penalised(data_term(resid, noise2[sl]), k_free[sl], log_n[sl], c.opts.search_penalty)
+    log_n = log_samples(s.fit.sum(axis=1))[rows]
+    rss = screened_rss(s.values, np.asarray(weights, np.float64), rows, held_bg, t, slots["delay"], slots["sigma"],
+                       slots["alpha"], present, fit_bg)
+    out[:] = penalised(rss / noise2, k_free, log_n, c.opts.search_penalty)
     return out
 
 
@@ -462,7 +445,7 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
             # a start whose misfit at its own shapes (the amplitudes re-solved) is many times the
             # pixel's own J is not refitted (module docstring)
             j_own = j_best[np.searchsorted(rows, pix)]
-            near = _screen(c, pix, start, weights[pix]) - j_own < _SCREEN_MARGIN * np.abs(j_own)
+            near = _screen(c, pix, start, weights) - j_own < _SCREEN_MARGIN * np.abs(j_own)
             c.info["spatial_starts_screened"] = int(pix.size - near.sum())
             pix, src, start = pix[near], src[near], _take(start, near)
             fits = _refine(c, pix, start, weights[pix]) if pix.size else start
