@@ -119,6 +119,7 @@ def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_
     ({"sweeps": -1}, "option sweeps: must be >= 0"),
     ({"radius": 0.5}, "option radius: must be an integer"),
     ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
+    ({"homogeneity_p": 1.0}, "option homogeneity_p: must be < 1"),
     ({"bogus": 1}, "spatial: unknown option(s) bogus"),
     ("yes", "spatial: must be true, false"),
 ])

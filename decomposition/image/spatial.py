@@ -38,7 +38,16 @@ Python loops run over neighbour offsets and sweeps):
    its delay many sigma from its neighbours' (its side of an edge, or a clean signal amid noisy
    ones) is not pulled, and one whose data hardly fix it is pulled most.  Against the pixel's
    own precision 1 / stderr^2 the prior moves a well-determined delay by a fraction
-   stderr^2 / (stderr^2 + 1 / precision) of the gap.  After the first sweep only the pixels
+   stderr^2 / (stderr^2 + 1 / precision) of the gap.  With ``material_prior`` (the default) the
+   sweeps also carry priors on what a material shares: ln(sss amplitude / direct amplitude),
+   ln(sss decay rate) and the sss onset after the direct (each with its own scale), estimated
+   the same way with the neighbours' excess scatter (DerSimonian-Laird) added to the prior's
+   variance.  Such a parameter is one value per material, not a smooth surface, so its prior
+   needs a neighbourhood of one material: where the neighbours' own answers scatter beyond
+   their errors and scale (:func:`mixed_neighbourhood`: Cochran's Q of all of them against its
+   chi^2 at ``homogeneity_p``) there is none: among pixels each of its own material, next to a
+   material edge, or next to a pixel of another material.  (The biweight alone would keep the
+   few neighbours that happen to agree and pull toward them.)  After the first sweep only the pixels
    whose prior appeared, went, or moved (its mean by 1 % of its standard deviation, its
    precision by 1 %) are refitted, and the sweeps stop early where none did
    (``info["spatial_refits"]`` counts the refits).
@@ -102,8 +111,9 @@ class SpatialOptions:
     #: from the neighbourhood's estimate has no weight (an edge).
     edge_sigma: float = 3.0
     #: The joint refinement's prior also on what a material shares between neighbours: the sss
-    #: amplitude over the direct's and the sss decay rate (their logarithms), with the same
-    #: edge-preserving estimate (a neighbour across a material edge has no weight).
+    #: amplitude over the direct's and the sss decay rate (their logarithms) and the sss onset
+    #: after the direct, with the same edge-preserving estimate, where the neighbourhood is one
+    #: material (``homogeneity_p``; a neighbour across a material edge has no weight).
     material_prior: bool = True
     #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
     #: neighbours on one material: the ratio prior's own standard deviation.
