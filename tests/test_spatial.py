@@ -119,6 +119,7 @@ def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_
     ({"sweeps": -1}, "option sweeps: must be >= 0"),
     ({"radius": 0.5}, "option radius: must be an integer"),
     ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
+    ({"homogeneity_p": 1.0}, "option homogeneity_p: must be < 1"),
     ({"bogus": 1}, "spatial: unknown option(s) bogus"),
     ("yes", "spatial: must be true, false"),
 ])
@@ -315,3 +316,33 @@ def test_the_compiled_screen_is_the_least_squares_misfit_at_the_starts_shapes():
             basis = np.vstack([basis, sw])
         amp, *_ = np.linalg.lstsq(basis.T, y, rcond=None)
         np.testing.assert_allclose(got[p], np.sum((y - amp @ basis) ** 2), rtol=1e-9)
+
+
+def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
+    # ln(sss / direct) of a 6 x 8 image: two patches (columns 0-3 at -1.0, 4-7 at -0.3), each
+    # pixel's answer off by its standard error 0.05; pixel (2, 1) of its own material (+0.8);
+    # the bottom-right 2 x 3 corner (rows 4-5, columns 5-7) each pixel its own material
+    rng = np.random.default_rng(7)
+    truth = np.where(np.arange(8) < 4, -1.0, -0.3)[None, :] + np.zeros((6, 1))
+    truth[2, 1] = 0.8
+    truth[4:, 5:] = rng.uniform(-1.5, 0.5, (2, 3))
+    se = np.full(truth.shape, 0.05)
+    values = (truth + se * rng.standard_normal(truth.shape)).reshape(-1)
+    opts = SpatialOptions()
+    mean, precision = neighbour_prior(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale,
+                                      piecewise_constant=True)
+    mean, precision = mean.reshape(6, 8), precision.reshape(6, 8)
+    # inside a patch, away from its edges and the odd pixel: pulled toward the patch's value
+    for y, x, value in [(1, 5, -0.3), (2, 5, -0.3), (4, 2, -1.0), (4, 1, -1.0)]:
+        assert precision[y, x] > 0 and mean[y, x] == pytest.approx(value, abs=0.1)
+    # no pull on the pixel of its own material, nor where it is a neighbour (a neighbourhood of
+    # two materials), nor next to the patches' edge (columns 3 and 4), nor among independently
+    # drawn materials
+    mixed = np.zeros((6, 8), bool)
+    mixed[1:4, 0:3] = mixed[:, 3:5] = mixed[3:, 4:] = True
+    assert np.all(precision[mixed] == 0)
+    # (the odd pixel's own neighbours are one material: its own value, far from theirs, stops it)
+    from decomposition.image.spatial import mixed_neighbourhood
+    found = mixed_neighbourhood(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale).reshape(6, 8)
+    mixed[2, 1] = False
+    assert found[mixed].all() and not found[2, 1] and not found[1, 5]

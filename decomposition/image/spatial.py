@@ -38,7 +38,16 @@ Python loops run over neighbour offsets and sweeps):
    its delay many sigma from its neighbours' (its side of an edge, or a clean signal amid noisy
    ones) is not pulled, and one whose data hardly fix it is pulled most.  Against the pixel's
    own precision 1 / stderr^2 the prior moves a well-determined delay by a fraction
-   stderr^2 / (stderr^2 + 1 / precision) of the gap.  After the first sweep only the pixels
+   stderr^2 / (stderr^2 + 1 / precision) of the gap.  With ``material_prior`` (the default) the
+   sweeps also carry priors on what a material shares: ln(sss amplitude / direct amplitude),
+   ln(sss decay rate) and the sss onset after the direct (each with its own scale), estimated
+   the same way with the neighbours' excess scatter (DerSimonian-Laird) added to the prior's
+   variance.  Such a parameter is one value per material, not a smooth surface, so its prior
+   needs a neighbourhood of one material: where the neighbours' own answers scatter beyond
+   their errors and scale (:func:`mixed_neighbourhood`: Cochran's Q of all of them against its
+   chi^2 at ``homogeneity_p``) there is none: among pixels each of its own material, next to a
+   material edge, or next to a pixel of another material.  (The biweight alone would keep the
+   few neighbours that happen to agree and pull toward them.)  After the first sweep only the pixels
    whose prior appeared, went, or moved (its mean by 1 % of its standard deviation, its
    precision by 1 %) are refitted, and the sweeps stop early where none did
    (``info["spatial_refits"]`` counts the refits).
@@ -74,7 +83,7 @@ from ..stages.refit import component_errors, sample_weights
 from ..stages.selection import ambiguity_tolerance, data_term, families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling",
-           "neighbour_starts", "neighbour_prior", "joint_refinement", "coupled_result", "in_doubt",
+           "neighbour_starts", "neighbour_prior", "mixed_neighbourhood", "joint_refinement", "coupled_result", "in_doubt",
            "objective_weights"]
 
 #: the 8 neighbours' offsets (dy, dx)
@@ -102,9 +111,10 @@ class SpatialOptions:
     #: from the neighbourhood's estimate has no weight (an edge).
     edge_sigma: float = 3.0
     #: The joint refinement's prior also on what a material shares between neighbours: the sss
-    #: amplitude over the direct's and the sss decay rate (their logarithms), with the same
-    #: edge-preserving estimate (a neighbour across a material edge has no weight).
-    material_prior: bool = False
+    #: amplitude over the direct's and the sss decay rate (their logarithms) and the sss onset
+    #: after the direct, with the same edge-preserving estimate, where the neighbourhood is one
+    #: material (``homogeneity_p``; a neighbour across a material edge has no weight).
+    material_prior: bool = True
     #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
     #: neighbours on one material: the ratio prior's own standard deviation.
     ratio_scale: float = 0.05
@@ -112,6 +122,10 @@ class SpatialOptions:
     alpha_scale: float = 0.05
     #: The same for the sss onset after the direct delay, ps.
     onset_scale_ps: float = 1.5
+    #: The material prior's homogeneity test: a neighbourhood whose values scatter beyond their
+    #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
+    #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
+    homogeneity_p: float = 0.05
 
     def __post_init__(self):
         object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
@@ -124,6 +138,9 @@ class SpatialOptions:
         object.__setattr__(self, "ratio_scale", _number("ratio_scale", self.ratio_scale, lo=0, lo_open=True))
         object.__setattr__(self, "alpha_scale", _number("alpha_scale", self.alpha_scale, lo=0, lo_open=True))
         object.__setattr__(self, "onset_scale_ps", _number("onset_scale_ps", self.onset_scale_ps, lo=0, lo_open=True))
+        object.__setattr__(self, "homogeneity_p", _number("homogeneity_p", self.homogeneity_p, lo=0, lo_open=True))
+        if not self.homogeneity_p < 1:
+            raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
 
 def spatial_options(spatial) -> SpatialOptions | None:
@@ -483,7 +500,8 @@ def neighbour_starts(c: Coupling, options: SpatialOptions) -> None:
 
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                    scale: float | None = None, piecewise_constant: bool = False):
+                    scale: float | None = None, piecewise_constant: bool = False,
+                    mixed: np.ndarray | None = None):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -501,19 +519,21 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         The parameter is one value per region (a material's), not a smooth surface: where the
         neighbours that keep weight scatter more than their standard errors and ``scale``
         explain (Cochran's Q over its degrees of freedom), the excess variance is added to the
-        prior's (a neighbourhood of different materials, each pixel its own, gives no pull).
+        prior's; and where the neighbourhood is not one material (:func:`mixed_neighbourhood`
+        of these values, or ``mixed``) there is no prior.
+    mixed : ndarray (P,) bool, optional
+        With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
+        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull);
+        default: found on ``delay``.
 
     Returns
     -------
     mean : ndarray (P,)       the estimate, ps (NaN where no neighbour has weight)
     precision : ndarray (P,)  the prior's precision on the pixel's delay, 1/ps^2 (0: no prior)
     """
-    offs = _offsets(options.radius)
     tau2 = (options.delay_scale_ps if scale is None else float(scale)) ** 2
     c_edge = options.edge_sigma
-    nd = np.stack([_shifted(delay, shape, dy, dx, np.nan) for dy, dx in offs])    # (n_off, P)
-    ns = np.stack([_shifted(stderr, shape, dy, dx, np.nan) for dy, dx in offs])
-    ok = np.isfinite(nd) & np.isfinite(ns)
+    nd, ns, ok = _neighbourhood(delay, stderr, shape, options.radius)
     nd_ok = np.where(ok, nd, np.nan)
     P = delay.size
     mean = np.full(P, np.nan)
@@ -522,12 +542,8 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     if not have.any():
         return mean, precision
     with np.errstate(invalid="ignore", divide="ignore"):
-        median = np.nanmedian(nd_ok[:, have], axis=0)
-        var = np.where(ok[:, have], ns[:, have] ** 2 + tau2, np.inf)
-        u = (nd_ok[:, have] - median) / np.sqrt(var)
-        w = np.where(ok[:, have] & (np.abs(u) < c_edge), (1 - (u / c_edge) ** 2) ** 2 / var, 0.0)
+        m, w, var = _biweight_mean(nd_ok[:, have], ns[:, have], ok[:, have], tau2, c_edge)
         wsum = w.sum(axis=0)
-        m = np.where(wsum > 0, (w * np.nan_to_num(nd_ok[:, have])).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
         if piecewise_constant:
             # random-effects excess of the weighted neighbours (DerSimonian-Laird)
@@ -543,9 +559,64 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
         b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
+    if piecewise_constant:
+        if mixed is None:
+            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale)
+        prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
     return mean, precision
+
+
+def _neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, radius: int):
+    """(n_off, P) the values and standard errors of each pixel's neighbours within ``radius``,
+    and where both are finite."""
+    offs = _offsets(radius)
+    nd = np.stack([_shifted(values, shape, dy, dx, np.nan) for dy, dx in offs])
+    ns = np.stack([_shifted(stderr, shape, dy, dx, np.nan) for dy, dx in offs])
+    return nd, ns, np.isfinite(nd) & np.isfinite(ns)
+
+
+def _biweight_mean(nd, ns, ok, tau2, c_edge):
+    """Tukey biweight mean of neighbours ``nd`` (n_off, n) around their median, each weighed by
+    1 / (its stderr ``ns``^2 + ``tau2``) -> (mean (n,), weights (n_off, n), variances (n_off, n))."""
+    median = np.nanmedian(nd, axis=0)
+    var = np.where(ok, ns ** 2 + tau2, np.inf)
+    u = (nd - median) / np.sqrt(var)
+    w = np.where(ok & (np.abs(u) < c_edge), (1 - (u / c_edge) ** 2) ** 2 / var, 0.0)
+    wsum = w.sum(axis=0)
+    m = np.where(wsum > 0, (w * np.nan_to_num(nd)).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
+    return m, w, var
+
+
+def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
+                        scale: float) -> np.ndarray:
+    """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
+    parameter (a material's): the homogeneity test of the material prior.
+
+    Cochran's Q of ALL the neighbours within ``options.radius`` about their biweight mean, each
+    in its standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies
+    beyond the chi^2 quantile of df = n - 1 degrees of freedom at significance
+    ``options.homogeneity_p``.  Neighbours of one material scatter as their errors say and pass;
+    neighbours each of its own material (their values spread over many standard errors, which
+    the biweight alone would read as a few agreeing neighbours and an edge) fail, and so does a
+    pixel next to a material edge.  A pixel with fewer than two neighbours is mixed (nothing to
+    test).  NaN values (no such parameter) are left out.
+    """
+    from scipy.stats import chi2
+
+    nd, ns, ok = _neighbourhood(values, stderr, shape, options.radius)
+    n = ok.sum(axis=0)
+    mixed = np.ones(values.size, bool)
+    test = n >= 2
+    if not test.any():
+        return mixed
+    nd, ns, ok = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
+        q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
+    mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n[test] - 1))
+    return mixed
 
 
 #: the parameters of the joint refinement's prior: name -> the keyword of
@@ -593,6 +664,10 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         return
     own = _prior_values(c, c.params, options)
     stderr = {name: se for name, (_, se, _) in own.items()}
+    # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
+    # agree more than their data do) and gets no material prior in any sweep
+    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale)
+             for name, (v, se, scale) in own.items() if name != "delay"}
     base = _take(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
     noise2 = _noise2(c)[rows]
@@ -606,7 +681,7 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
             if name == "delay":
                 value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
             mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
-                                              piecewise_constant=name != "delay")
+                                              piecewise_constant=name != "delay", mixed=mixed.get(name))
             m, p = mean[rows], precision[rows]
             on = p > 0
             pull |= on
