@@ -624,34 +624,42 @@ def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, op
 _PRIOR_KEYWORDS = {"delay": "delay_prior", "onset": "onset_prior", "ratio": "ratio_prior", "alpha": "alpha_prior"}
 
 
-def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
-    """{name: ((P,) values, (P,) standard errors from the pixel's own data at ``params``, the
-    prior's scale)} of the parameters neighbours share (NaN where a pixel has none): the direct
-    delay (ps) and, with ``options.material_prior``, ln(sss amplitude / direct amplitude) and
-    ln(sss decay rate) (the standard errors of the ratio's two amplitudes combined as if
+def _shared_values(params: dict, live: np.ndarray, options: SpatialOptions, err: dict | None = None) -> dict:
+    """{name: ((P,) values, (P,) standard errors or None, the prior's scale)} of the parameters
+    neighbours share (NaN where a pixel has none): the direct delay (ps) and, with
+    ``options.material_prior``, the sss onset after the direct (ps), ln(sss amplitude / direct
+    amplitude) and ln(sss decay rate).  ``err``: the ``<key>_stderr`` arrays (P,) from the
+    pixel's own data, for the values' standard errors (the ratio's two amplitudes combined as if
     independent; a held decay rate has none)."""
-    errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
-    err = {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()}
-    live = c.live
+    def se(f):
+        return None if err is None else f()
+
     out = {"delay": (np.where(live, params["direct_delay_ps"], np.nan),
-                     np.where(live, err["direct_delay_ps_stderr"], np.nan), options.delay_scale_ps)}
+                     se(lambda: np.where(live, err["direct_delay_ps_stderr"], np.nan)), options.delay_scale_ps)}
     if not options.material_prior:
         return out
     cd, cs, alpha = params["direct_amplitude"], params["sss_amplitude"], params["sss_alpha_per_ps"]
     with np.errstate(invalid="ignore", divide="ignore"):
-        ok = live & (cd > 0) & (cs > 0)
-        ratio = np.where(ok, np.log(cs / cd), np.nan)
-        ratio_se = np.where(ok, np.hypot(err["sss_amplitude_stderr"] / cs, err["direct_amplitude_stderr"] / cd), np.nan)
-        ok = live & (alpha > 0)
-        log_alpha = np.where(ok, np.log(alpha), np.nan)
-        alpha_se = np.where(ok, err["sss_alpha_per_ps_stderr"] / alpha, np.nan)
-    ok = live & np.isfinite(cs)
-    out["onset"] = (np.where(ok, params["sss_delay_ps"] - params["direct_delay_ps"], np.nan),
-                    np.where(ok, np.hypot(err["sss_delay_ps_stderr"], err["direct_delay_ps_stderr"]), np.nan),
-                    options.onset_scale_ps)
+        ok_r = live & (cd > 0) & (cs > 0)
+        ratio = np.where(ok_r, np.log(cs / cd), np.nan)
+        ratio_se = se(lambda: np.where(ok_r, np.hypot(err["sss_amplitude_stderr"] / cs,
+                                                      err["direct_amplitude_stderr"] / cd), np.nan))
+        ok_a = live & (alpha > 0)
+        log_alpha = np.where(ok_a, np.log(alpha), np.nan)
+        alpha_se = se(lambda: np.where(ok_a, err["sss_alpha_per_ps_stderr"] / alpha, np.nan))
+    ok_o = live & np.isfinite(cs)
+    out["onset"] = (np.where(ok_o, params["sss_delay_ps"] - params["direct_delay_ps"], np.nan),
+                    se(lambda: np.where(ok_o, np.hypot(err["sss_delay_ps_stderr"], err["direct_delay_ps_stderr"]),
+                                        np.nan)), options.onset_scale_ps)
     out["ratio"] = (ratio, ratio_se, options.ratio_scale)
     out["alpha"] = (log_alpha, alpha_se, options.alpha_scale)
     return out
+
+
+def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
+    """:func:`_shared_values` at ``params`` with their standard errors from the pixel's own data."""
+    errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
+    return _shared_values(params, c.live, options, {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()})
 
 
 def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
@@ -675,7 +683,8 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     last = {}               # the last sweep's prior (mean, precision) on rows per name; NaN: none
     refits = 0
     for _ in range(options.sweeps):
-        current = _prior_values(c, c.params, options) if len(own) > 1 else own
+        # the values where the last sweep left them; the errors stay the pixels' own
+        current = _shared_values(c.params, c.live, options) if len(own) > 1 else own
         priors, pull, same = {}, np.zeros(rows.size, bool), np.ones(rows.size, bool)
         for name, (value, _, scale) in current.items():
             if name == "delay":
