@@ -52,9 +52,10 @@ def test_a_wrong_held_onset_is_held_and_the_rest_moves(tailed):
     held = decompose(y, T, irf=tailed, hold={"direct_delay_ps": 203.0}).params
     assert np.all(held["direct_delay_ps"] == 203.0)
     assert np.all(np.abs(free["direct_delay_ps"] - 200.0) < 0.5)
-    # the sss onset (rendered at 200) kept at or after the held direct; the echo still at the truth
+    # the sss onset (rendered at 200) kept at or after the held direct; the echo still found at
+    # the truth (the wrong onset's misfit may take an atom of its own)
     assert np.all(held["sss_delay_ps"] >= 203.0)
-    assert np.max(np.abs(held["ir_delay_ps"][:, 0] - e)) < 1.0
+    assert np.all(np.nanmin(np.abs(held["ir_delay_ps"] - e[:, None]), axis=1) < 1.0)
     # the misfit of the wrong onset is the fit's: its residual is larger than the free fit's
     assert np.all(held["direct_amplitude"] != free["direct_amplitude"])
 

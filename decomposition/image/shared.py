@@ -299,6 +299,8 @@ def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple,
 
 #: iteratively reweighted refits of count data per evaluation of the pooled likelihood
 _COUNT_REFITS = 3
+#: refinement iterations per pixel and evaluation of the pooled likelihood with a measured response
+_RESPONSE_MISFIT_ITER = 50
 
 
 def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, shared_sigma):
@@ -329,6 +331,43 @@ def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, 
         best = np.where(better, new_misfit, best)
         model = np.where(better[:, None], new_model, model)
     return float(best.sum())
+
+
+def _pooled_misfit_response(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, irf, **_):
+    """:func:`_pooled_misfit` with a measured response ``irf`` (resolved on ``time_bin_ps``): each
+    pixel's slots (:func:`decomposition.response.label.param_slots`) refitted over the
+    response's atoms with the held onsets / decay rate (:func:`decomposition.response.refine.fit_slots`,
+    the same start at every evaluation; count data by Fisher scoring on their deviance)."""
+    from ..response.label import param_slots
+    from ..response.refine import CountData, fit_slots, held_slot_masks
+
+    n, n_bins = profiles.shape
+    t = t0_ps + time_bin_ps * np.arange(n_bins)
+    n_ir = np.shape(params["ir_delay_ps"])[-1] if "ir_delay_ps" in params else 0
+    fam, delay, lalp = param_slots(params, n_ir)
+    delay, lalp, h_d, h_l = held_slot_masks(hold, fam, delay, lalp)
+    scale = np.maximum(np.abs(profiles).max(axis=1), 1e-300)
+    y = profiles / scale[:, None]
+    fit = np.ones(profiles.shape, bool)
+    bg = np.ones(n, bool) if "background" in params else None
+    span = n_bins * time_bin_ps
+    kw = dict(n_iter=_RESPONSE_MISFIT_ITER, lm_tol=1e-6, delay_bounds_ps=(t[0] - span, t[-1] + span),
+              lalp_bounds=(math.log(1e-5), math.log(10.0)), sss_after_direct=True, first_is_direct=True,
+              fit_background=bg, held_delay=h_d, held_lalp=h_l)
+    if counts:
+        cd = CountData(profiles, scale, np.zeros(n), fit, None)
+        start = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, n_iter=0, **{
+            k: v for k, v in kw.items() if k != "n_iter"})
+        sw = cd.weights(np.maximum(np.einsum("pk,pkl->pl", start.amp, _atoms(irf, t, fam, delay, lalp)), 0.0)
+                        * scale[:, None])
+        return float(fit_slots(irf, t, y, sw, fam, delay, lalp, counts=cd, **kw).cost.sum())
+    f = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, **kw)
+    return float((f.cost * scale ** 2 / np.asarray(noise, np.float64) ** 2).sum())
+
+
+def _atoms(irf, t, fam, delay, lalp):
+    from ..response.atoms import slot_atoms
+    return slot_atoms(irf, t, fam, delay, lalp)
 
 
 def _minimise_1d(f, lo, hi, step):
@@ -370,9 +409,15 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     base = {k: np.broadcast_to(np.asarray(v, np.float64), keep.shape)[keep] for k, v in (fixed or {}).items()}
     shared_sigma = bool(keywords.get("shared_sigma", True))
     kw = dict(counts=counts, noise=noise[keep], time_bin_ps=time_bin_ps, t0_ps=t0, shared_sigma=shared_sigma)
+    pooled_misfit = _pooled_misfit
+    if keywords.get("irf") is not None:
+        from ..response.resolve import resolve_response
+        kw["irf"] = resolve_response(keywords["irf"], time_bin_ps, prof.shape[-1])
+        pooled_misfit = _pooled_misfit_response
     held = {}
+
     def misfit(hold):       # the fixed values always held
-        return _pooled_misfit(prof, params, dict(base, **hold), **kw)
+        return pooled_misfit(prof, params, dict(base, **hold), **kw)
 
     if "psf" in names:
         held["sigma_ps"] = est["psf_sigma_ps"]
@@ -469,6 +514,9 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
     fams = parse_components(keywords.get("components", ("d", "r", "s")))
     if "alpha" in names and "s" not in fams:
         raise OptionError("shared='alpha': the components have no sss (add 's')")
+    if "psf" in names and keywords.get("irf") is not None:
+        raise OptionError("shared='psf' estimates the Gaussian PSF's width; a measured response (irf=) has none "
+                          "(share delay and alpha with it)")
     kw = dict(keywords, stderr=True)
     pixels = {"selected": int(profiles.shape[0])}
     est = {"names": tuple(names), "shape": tuple(int(s) for s in shape)}

@@ -1,0 +1,67 @@
+"""Shared onset and sss decay rate with a measured instrument response (decompose_image(irf=...)).
+
+Known answers: cubes rendered through core.irf_models.tailed_response (20 % of the area in a
+20 ps tail) with one onset and one decay rate per region; the estimate must lie within a few
+standard errors of the truth and every pixel must hold it.  The Gaussian PSF's width has no
+meaning with a response: shared='psf' is refused in one line.
+"""
+import numpy as np
+import pytest
+
+from core.irf_models import tailed_response
+from decomposition.evaluation.synthetic import SceneRanges, make_cube
+from decomposition.image import decompose_image
+from decomposition.options import OptionError
+
+TB, NT = 2.0, 160
+IRF = tailed_response(3.0, 0.2, 20.0, time_step_ps=TB)
+
+
+def _cube(seed, alpha, ny=6, nx=6, nsr=0.05, **kw):
+    ranges = SceneRanges(sigma_ps=(3.0, 3.0), alpha_per_ps=(alpha, alpha), direct_position=(0.2, 0.2))
+    return make_cube(ny, nx, NT, nsr=nsr, noise="white", seed=seed, kinds="d+s", time_bin_ps=TB, ranges=ranges,
+                     response=IRF, **kw)
+
+
+def _present(result, key):
+    v = result.params[key]
+    return v[np.isfinite(v)]
+
+
+def test_shared_delay_with_a_response_known_answer_and_held_everywhere():
+    d = _cube(21, 0.03)
+    truth = float(d.params["direct_delay_ps"][0, 0])
+    assert np.ptp(d.params["direct_delay_ps"]) == 0
+    res = decompose_image(d.noisy, TB, components="d,s", stderr=True, shared="delay", irf=IRF)
+    rec = res.info["shared"]
+    assert rec["delay_key"] == "direct_delay_ps"
+    assert abs(rec["delay_ps"] - truth) < 4 * rec["delay_ps_stderr"] and rec["delay_ps_stderr"] < 0.3, rec
+    assert _present(res, "direct_delay_ps").size == 36
+    np.testing.assert_array_equal(_present(res, "direct_delay_ps"), rec["delay_ps"])
+    np.testing.assert_array_equal(_present(res, "direct_delay_ps_stderr"), rec["delay_ps_stderr"])
+
+
+def test_shared_delay_and_alpha_per_region_with_a_response():
+    a, b = _cube(22, 0.02), _cube(23, 0.045)
+    truth = float(a.params["direct_delay_ps"][0, 0])
+    assert truth == float(b.params["direct_delay_ps"][0, 0])
+    cube = np.concatenate([a.noisy[:, :3], b.noisy[:, 3:]], axis=1)
+    regions = np.zeros((6, 6), np.int32)
+    regions[:, 3:] = 5
+    res = decompose_image(cube, TB, components="d,s", stderr=True, shared="delay,alpha", regions=regions, irf=IRF)
+    rec = res.info["shared"]
+    assert abs(rec["delay_ps"] - truth) < 4 * rec["delay_ps_stderr"], rec
+    alpha = res.params["sss_alpha_per_ps"]
+    for label, true_alpha in (("0", 0.02), ("5", 0.045)):
+        v, se = rec["sss_alpha_per_ps"][label], rec["sss_alpha_per_ps_stderr"][label]
+        assert abs(v - true_alpha) < 4 * se and se < 0.15 * true_alpha, (label, v, se)
+        inside = (regions == int(label)) & np.isfinite(alpha)
+        assert inside.sum() >= 15
+        np.testing.assert_array_equal(alpha[inside], v)
+    np.testing.assert_array_equal(_present(res, "direct_delay_ps"), rec["delay_ps"])
+
+
+def test_shared_psf_with_a_response_is_refused_in_one_line():
+    d = _cube(24, 0.03, ny=3, nx=3)
+    with pytest.raises(OptionError, match=r"shared='psf'.*measured response"):
+        decompose_image(d.noisy, TB, components="d,s", shared="psf,delay", irf=IRF)
