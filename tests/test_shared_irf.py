@@ -17,9 +17,9 @@ TB, NT = 2.0, 160
 IRF = tailed_response(3.0, 0.2, 20.0, time_step_ps=TB)
 
 
-def _cube(seed, alpha, ny=6, nx=6, nsr=0.05, **kw):
+def _cube(seed, alpha, ny=6, nx=6, nsr=0.05, noise="white", **kw):
     ranges = SceneRanges(sigma_ps=(3.0, 3.0), alpha_per_ps=(alpha, alpha), direct_position=(0.2, 0.2))
-    return make_cube(ny, nx, NT, nsr=nsr, noise="white", seed=seed, kinds="d+s", time_bin_ps=TB, ranges=ranges,
+    return make_cube(ny, nx, NT, nsr=nsr, noise=noise, seed=seed, kinds="d+s", time_bin_ps=TB, ranges=ranges,
                      response=IRF, **kw)
 
 
@@ -65,3 +65,16 @@ def test_shared_psf_with_a_response_is_refused_in_one_line():
     d = _cube(24, 0.03, ny=3, nx=3)
     with pytest.raises(OptionError, match=r"shared='psf'.*measured response"):
         decompose_image(d.noisy, TB, components="d,s", shared="psf,delay", irf=IRF)
+
+
+def test_shared_delay_of_a_count_image_with_a_response():
+    d = _cube(25, 0.03, nsr=0.0, noise="none", photons_per_pixel=400)
+    truth = float(d.params["direct_delay_ps"][0, 0])
+    res = decompose_image(d.noisy, TB, components="d,s", stderr=True, shared="delay,alpha", irf=IRF,
+                          noise="poisson")
+    rec = res.info["shared"]
+    assert rec["pixels"]["likelihood"] >= 10
+    assert abs(rec["delay_ps"] - truth) < 4 * rec["delay_ps_stderr"] and rec["delay_ps_stderr"] < 0.5, rec
+    v, se = rec["sss_alpha_per_ps"]["0"], rec["sss_alpha_per_ps_stderr"]["0"]
+    assert abs(v - 0.03) < 4 * se and se < 0.2 * 0.03, rec
+    np.testing.assert_array_equal(_present(res, "direct_delay_ps"), rec["delay_ps"])

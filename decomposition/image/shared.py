@@ -45,6 +45,10 @@ from ..model.refine import hold_params, refine
 from ..model.slots import select_rows
 from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
+from ..response.atoms import slot_atoms
+from ..response.label import param_slots
+from ..response.refine import CountData, fit_slots, held_slot_masks
+from ..response.resolve import resolve_response
 
 __all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_stderr", "image_estimate", "lit_score", "select_pixels", "pooled", "pooled_positive", "fit_surface",
            "SURFACE_TERMS", "N_SHARED_PIXELS", "N_LIKELIHOOD_PIXELS"]
@@ -338,9 +342,6 @@ def _pooled_misfit_response(profiles, params, hold, *, counts: bool, noise, time
     pixel's slots (:func:`decomposition.response.label.param_slots`) refitted over the
     response's atoms with the held onsets / decay rate (:func:`decomposition.response.refine.fit_slots`,
     the same start at every evaluation; count data by Fisher scoring on their deviance)."""
-    from ..response.label import param_slots
-    from ..response.refine import CountData, fit_slots, held_slot_masks
-
     n, n_bins = profiles.shape
     t = t0_ps + time_bin_ps * np.arange(n_bins)
     n_ir = np.shape(params["ir_delay_ps"])[-1] if "ir_delay_ps" in params else 0
@@ -358,16 +359,12 @@ def _pooled_misfit_response(profiles, params, hold, *, counts: bool, noise, time
         cd = CountData(profiles, scale, np.zeros(n), fit, None)
         start = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, n_iter=0, **{
             k: v for k, v in kw.items() if k != "n_iter"})
-        sw = cd.weights(np.maximum(np.einsum("pk,pkl->pl", start.amp, _atoms(irf, t, fam, delay, lalp)), 0.0)
-                        * scale[:, None])
+        # the first weights: those of the start's model (amplitudes solved at the held values)
+        model = np.einsum("pk,pkl->pl", start.amp, slot_atoms(irf, t, fam, delay, lalp)) + start.background[:, None]
+        sw = cd.weights(np.maximum(model, 0.0) * scale[:, None])
         return float(fit_slots(irf, t, y, sw, fam, delay, lalp, counts=cd, **kw).cost.sum())
     f = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, **kw)
     return float((f.cost * scale ** 2 / np.asarray(noise, np.float64) ** 2).sum())
-
-
-def _atoms(irf, t, fam, delay, lalp):
-    from ..response.atoms import slot_atoms
-    return slot_atoms(irf, t, fam, delay, lalp)
 
 
 def _minimise_1d(f, lo, hi, step):
@@ -411,7 +408,6 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     kw = dict(counts=counts, noise=noise[keep], time_bin_ps=time_bin_ps, t0_ps=t0, shared_sigma=shared_sigma)
     pooled_misfit = _pooled_misfit
     if keywords.get("irf") is not None:
-        from ..response.resolve import resolve_response
         kw["irf"] = resolve_response(keywords["irf"], time_bin_ps, prof.shape[-1])
         pooled_misfit = _pooled_misfit_response
     held = {}
