@@ -27,7 +27,8 @@ def _scene(irf, n, seed, *, d0=200.0, alpha=0.025, noise=0.01, counts=False):
     rng = np.random.default_rng(seed)
     d = np.full(n, d0)
     e = d + rng.uniform(80, 150, n)
-    y = render_shifted(irf, T_PS, d) + 0.4 * render_shifted(irf, T_PS, e) + 0.05 * render_sss(irf, T_PS, d, np.full(n, alpha))
+    y = (render_shifted(irf, T_PS, d) + 0.4 * render_shifted(irf, T_PS, e)
+         + 0.05 * render_sss(irf, T_PS, d, np.full(n, alpha)))
     if counts:
         return rng.poisson(np.clip(y, 0, None) * 400.0).astype(np.float64), e
     return y + noise * rng.standard_normal(y.shape), e

@@ -1,7 +1,8 @@
 """``streaklab decompose --shared delay,alpha --irf X``: with a measured response the onset and
 decay rates are estimated once, before the chunks, written to the store and held in every
 chunk; a chunked run equals one whole-cube call, and a resumed run holds the identical values.
-``--shared psf`` with a response is refused in one line before any work."""
+``--shared psf`` is the response's time scale there; ``--psf-map`` with a response is refused in
+one line before any work."""
 import json
 
 import numpy as np
@@ -35,21 +36,27 @@ def inputs(tmp_path_factory):
     return d, regions, cube, labels, irf
 
 
-def _args(cube, out, labels, irf, *extra):
+def _args(cube, out, labels, irf, *extra, shared="delay,alpha"):
     return ["decompose", str(cube), "--out", str(out), "--time-bin-ps", str(TB), "--chunks", "3", "3",
-            "--components", "d,s", "--max-interreflections", "0", "--shared", "delay,alpha",
+            "--components", "d,s", "--max-interreflections", "0", "--shared", shared,
             "--regions", str(labels), "--irf", str(irf), "--option", "stderr=true", "--quiet", *extra]
 
 
-def test_chunked_cli_run_with_a_response_equals_one_whole_cube_call(inputs, tmp_path):
+@pytest.mark.parametrize("shared", ["delay,alpha", "psf,delay,alpha"])
+def test_chunked_cli_run_with_a_response_equals_one_whole_cube_call(inputs, tmp_path, shared):
     d, regions, cube_path, labels, irf = inputs
     whole = decompose_image(d.noisy, TB, components=("d", "s"), max_reflections=0, t0_ps=TB, stderr=True,
-                            shared="delay,alpha", regions=regions, irf=IRF)
-    assert main(_args(cube_path, tmp_path / "res.zarr", labels, irf)) == 0
+                            shared=shared, regions=regions, irf=IRF)
+    assert main(_args(cube_path, tmp_path / "res.zarr", labels, irf, shared=shared)) == 0
     store = open_result_store(tmp_path / "res.zarr")
     rec = store.attrs["shared"]
     assert rec == json.loads(json.dumps(whole.info["shared"]))
-    assert store.attrs["irf"]["kind"] == "response" and store.attrs["job"]["shared"] == ["delay", "alpha"]
+    assert store.attrs["irf"]["kind"] == "response" and store.attrs["job"]["shared"] == shared.split(",")
+    if "psf" in shared:     # rendered through the response as given: its time scale is 1
+        assert abs(rec["response_stretch"] - 1.0) < 4 * rec["response_stretch_stderr"], rec
+        from streaklab.report import summary_text
+
+        assert f"response time scale {rec['response_stretch']:.4g} +- " in summary_text(store)
     truth = float(d.params["direct_delay_ps"][0, 0])
     assert abs(rec["delay_ps"] - truth) < 4 * rec["delay_ps_stderr"], rec
     assert abs(rec["sss_alpha_per_ps"]["0"] - 0.03) < 4 * rec["sss_alpha_per_ps_stderr"]["0"], rec
@@ -87,11 +94,11 @@ def test_resume_with_a_response_holds_the_same_values(inputs, tmp_path, monkeypa
         np.testing.assert_array_equal(part.group[key][...], full.group[key][...], err_msg=key)
 
 
-def test_shared_psf_with_a_response_is_refused_before_any_work(inputs, tmp_path, capsys):
+def test_a_response_psf_map_is_refused_before_any_work(inputs, tmp_path, capsys):
     _, _, cube_path, _, irf = inputs
     args = ["decompose", str(cube_path), "--out", str(tmp_path / "res.zarr"), "--time-bin-ps", str(TB), "--quiet",
-            "--shared", "psf,delay", "--irf", str(irf)]
+            "--shared", "psf,delay", "--psf-map", "--irf", str(irf)]
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "--shared psf" in err and "measured response" in err and len(err.strip().splitlines()) == 1, err
+    assert "psf_map" in err and "measured response" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "res.zarr").exists()

@@ -103,9 +103,6 @@ def _check(c: _ImageCall) -> None:
 def _shared(c: _ImageCall) -> None:
     if not c.options.shared:
         return
-    if "psf" in c.options.shared and c.keywords.get("irf") is not None:
-        raise OptionError("shared='psf' estimates the Gaussian PSF's width; a measured response (irf=) has none "
-                          "(share delay and alpha with it)")
     if c.estimate is None:
         c.estimate = image_estimate(c.cube, c.regions, c.time_bin_ps, c.method, c.options.shared,
                                     psf_map=c.options.psf_map, keywords=c.keywords)
