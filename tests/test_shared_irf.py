@@ -104,3 +104,11 @@ def test_shared_delay_of_a_count_image_with_a_response():
     v, se = rec["sss_alpha_per_ps"]["0"], rec["sss_alpha_per_ps_stderr"]["0"]
     assert abs(v - 0.03) < 4 * se and se < 0.2 * 0.03, rec
     np.testing.assert_array_equal(_present(res, "direct_delay_ps"), rec["delay_ps"])
+
+
+@pytest.mark.parametrize("factor", [0.0, -1.0, float("nan")])
+def test_a_bad_stretch_is_refused_in_one_line(factor):
+    from core.irf import ResponseError
+
+    with pytest.raises(ResponseError, match="stretch must be a finite number > 0"):
+        stretched_response(resolve_response(IRF, TB, NT), factor)
