@@ -376,7 +376,7 @@ def _prepare_response(c: _Call) -> None:
 
 
 def _respond(c: _Call) -> None:
-    out = decompose_with_response(c.samples, c.response, c.grid, c.opts, c.fams)
+    out = decompose_with_response(c.samples, c.response, c.grid, c.opts, c.fams, hold=c.hold)
     c.flags |= out.flags
     c.info.update(out.info)
     c.params = out.params
@@ -446,7 +446,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         the sss onset, the sss decay rate.  The component set is found as without it; the refit
         then puts the held values in and fits the rest around them (their standard errors NaN).
         The whole-cube estimates of :func:`decomposition.image.decompose_image` come this way.
-        Not with ``irf``.
+        With ``irf`` the onsets and the decay rate (a response has no width to hold): held in
+        the refinement over the response's atoms, its forward steps' refits and its errors.
     **options
         The fields of :class:`decomposition.options.GridSpec` and
         :class:`decomposition.options.SolverOptions`, each documented there; for
@@ -465,8 +466,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         raise ValueError(f"method must be 'convscd' or 'gradbm', got {method!r}")
     nan_policy = parse_nan_policy(nan_policy)
     fams = parse_components(components)
-    if hold and irf is not None:
-        raise ValueError("hold= holds Gaussian-path parameters; it does not work with a measured response (irf=)")
+    if hold and irf is not None and "sigma_ps" in hold:
+        raise ValueError("hold['sigma_ps'] holds the Gaussian PSF's width; a measured response (irf=) has none "
+                         "(hold onsets and sss decay rates only)")
     hold = check_hold(hold, np.shape(profiles)[:-1]) or None
     grid, opts, method_options = options_from_mapping(options, strict=False)
     if method == "convscd" and method_options:

@@ -649,6 +649,9 @@ def shared_line(record: dict) -> str:
     if record.get("psf_sigma_ps") is not None:
         parts.append(f"PSF sigma {record['psf_sigma_ps']:.4g} +- {record['psf_sigma_ps_stderr']:.2g} ps"
                      + (" (map centre)" if record.get("psf_map") else ""))
+    if record.get("response_stretch") is not None:
+        parts.append(f"response time scale {record['response_stretch']:.4g} +- "
+                     f"{record['response_stretch_stderr']:.2g}")
     if record.get("delay_ps") is not None:
         parts.append(f"{record['delay_key'].split('_')[0]} onset {record['delay_ps']:.6g} +- "
                      f"{record['delay_ps_stderr']:.2g} ps")

@@ -180,7 +180,7 @@ def test_the_record_gives_back_the_same_held_values():
     (dict(shared="alpha", regions=np.zeros((4, 4))), "label image of shape"),
     (dict(shared="psf", regions=np.zeros((4, 4), int)), "give shared='alpha' too"),
     (dict(shared="delay", psf_map=True), "give shared='psf' too"),
-    (dict(shared="psf", irf=(np.exp(-0.5 * np.arange(-8, 9) ** 2 / 4), TB)), "irf"),
+    (dict(shared="psf", psf_map=True, irf=(np.exp(-0.5 * np.arange(-8, 9) ** 2 / 4), TB)), "measured response"),
 ])
 def test_bad_options_are_refused_in_one_line(kwargs, message):
     cube = _cube(seed=16, ny=4, nx=4).noisy

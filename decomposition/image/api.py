@@ -103,9 +103,6 @@ def _check(c: _ImageCall) -> None:
 def _shared(c: _ImageCall) -> None:
     if not c.options.shared:
         return
-    if c.keywords.get("irf") is not None:
-        raise OptionError("shared= holds the Gaussian PSF's parameters; with a measured response (irf=) it is "
-                          "not available")
     if c.estimate is None:
         c.estimate = image_estimate(c.cube, c.regions, c.time_bin_ps, c.method, c.options.shared,
                                     psf_map=c.options.psf_map, keywords=c.keywords)

@@ -45,6 +45,10 @@ from ..model.refine import hold_params, refine
 from ..model.slots import select_rows
 from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
+from ..response.atoms import slot_atoms
+from ..response.label import param_slots
+from ..response.refine import CountData, fit_slots, held_slot_masks
+from ..response.resolve import resolve_response, stretched_response
 
 __all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_stderr", "image_estimate", "lit_score", "select_pixels", "pooled", "pooled_positive", "fit_surface",
            "SURFACE_TERMS", "N_SHARED_PIXELS", "N_LIKELIHOOD_PIXELS"]
@@ -53,6 +57,9 @@ __all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_st
 N_SHARED_PIXELS = 256
 #: at most this many of them (thinned evenly) in the pooled likelihood of the scalar width and onset
 N_LIKELIHOOD_PIXELS = 128
+#: the key of a measured response's shared time scale in :meth:`SharedEstimate.hold`'s values
+#: (not a parameter of a pixel: :func:`decompose_held` decomposes with the stretched response)
+STRETCH_KEY = "response_stretch"
 #: a per-pixel estimate this many scaled MADs from the median is an outlier
 _OUTLIER_MADS = 5.0
 #: the terms of the PSF map, in normalised coordinates u = (y - cy) / sy, v = (x - cx) / sx
@@ -194,6 +201,9 @@ class SharedEstimate:
     "scale_yx"} (:func:`fit_surface`); ``delay_key``: the onset held ("direct_delay_ps"
     with the direct family, else "sss_delay_ps"), ``delay_ps`` its value;
     ``sss_alpha_per_ps``: {region label: decay rate, 1/ps} (label 0 without regions).
+    With a measured response (``irf=``) "psf" is the response's time scale instead:
+    ``response_stretch`` s, the response r(t / s) / s held in every pixel
+    (:func:`decomposition.response.resolve.stretched_response`), no ``psf_sigma_ps``.
     Each value has its ``*_stderr``; ``pixels`` how many pixels each pooled.
     """
 
@@ -209,11 +219,15 @@ class SharedEstimate:
     sss_alpha_per_ps_stderr: dict = field(default_factory=dict)
     regions: bool = False
     pixels: dict = field(default_factory=dict)
+    response_stretch: float | None = None
+    response_stretch_stderr: float | None = None
 
     def record(self) -> dict:
         """A JSON-able dict (units in the names; region labels as strings) for ``info`` and a store."""
         rec = {"names": list(self.names), "shape": [int(s) for s in self.shape], "pixels": dict(self.pixels)}
-        if "psf" in self.names:
+        if "psf" in self.names and self.response_stretch is not None:
+            rec.update(response_stretch=self.response_stretch, response_stretch_stderr=self.response_stretch_stderr)
+        elif "psf" in self.names:
             rec.update(psf_sigma_ps=self.psf_sigma_ps, psf_sigma_ps_stderr=self.psf_sigma_ps_stderr,
                        psf_map=self.psf_map)
         if "delay" in self.names:
@@ -234,7 +248,8 @@ class SharedEstimate:
                    delay_key=rec.get("delay_key"), delay_ps=rec.get("delay_ps"),
                    delay_ps_stderr=rec.get("delay_ps_stderr"), sss_alpha_per_ps=alpha,
                    sss_alpha_per_ps_stderr=alpha_se, regions=bool(rec.get("regions", False)),
-                   pixels=dict(rec.get("pixels", {})))
+                   pixels=dict(rec.get("pixels", {})), response_stretch=rec.get("response_stretch"),
+                   response_stretch_stderr=rec.get("response_stretch_stderr"))
 
     def _psf_at(self, yy, xx):
         m = self.psf_map
@@ -244,7 +259,8 @@ class SharedEstimate:
 
     def hold(self, regions=None, window=None) -> tuple[dict, dict]:
         """Every pixel's held values and their standard errors -> (hold, stderr), each
-        {key of :data:`decomposition.model.refine.HOLD_KEYS`: (y, x) array}.
+        {key of :data:`decomposition.model.refine.HOLD_KEYS`: (y, x) array}; a response's
+        stretch under :data:`STRETCH_KEY` (one value, for :func:`decompose_held`).
 
         ``window`` ((y0, y1), (x0, x1)): only that part of the image (a chunk), default all of
         it; ``regions`` the labels of those pixels (the window's shape), or None.  Pixels whose label has no decay rate
@@ -255,7 +271,10 @@ class SharedEstimate:
         yy, xx = np.meshgrid(np.arange(y0, y1), np.arange(x0, x1), indexing="ij")
         shape = yy.shape
         hold, err = {}, {}
-        if "psf" in self.names:
+        if "psf" in self.names and self.response_stretch is not None:
+            hold[STRETCH_KEY] = np.full(shape, self.response_stretch)
+            err[STRETCH_KEY] = np.full(shape, self.response_stretch_stderr)
+        elif "psf" in self.names:
             if self.psf_map is not None:
                 hold["sigma_ps"], err["sigma_ps"] = self._psf_at(yy, xx)
             else:
@@ -299,6 +318,8 @@ def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple,
 
 #: iteratively reweighted refits of count data per evaluation of the pooled likelihood
 _COUNT_REFITS = 3
+#: refinement iterations per pixel and evaluation of the pooled likelihood with a measured response
+_RESPONSE_MISFIT_ITER = 50
 
 
 def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, shared_sigma):
@@ -331,6 +352,39 @@ def _pooled_misfit(profiles, params, hold, *, counts: bool, noise, time_bin_ps, 
     return float(best.sum())
 
 
+def _pooled_misfit_response(profiles, params, hold, *, counts: bool, noise, time_bin_ps, t0_ps, irf, **_):
+    """:func:`_pooled_misfit` with a measured response ``irf`` (resolved on ``time_bin_ps``): each
+    pixel's slots (:func:`decomposition.response.label.param_slots`) refitted over the
+    response's atoms with the held onsets / decay rate (:func:`decomposition.response.refine.fit_slots`,
+    the same start at every evaluation; count data by Fisher scoring on their deviance)."""
+    hold = dict(hold)
+    if STRETCH_KEY in hold:
+        irf = stretched_response(irf, hold.pop(STRETCH_KEY))
+    n, n_bins = profiles.shape
+    t = t0_ps + time_bin_ps * np.arange(n_bins)
+    n_ir = np.shape(params["ir_delay_ps"])[-1] if "ir_delay_ps" in params else 0
+    fam, delay, lalp = param_slots(params, n_ir)
+    delay, lalp, h_d, h_l = held_slot_masks(hold, fam, delay, lalp)
+    scale = np.maximum(np.abs(profiles).max(axis=1), 1e-300)
+    y = profiles / scale[:, None]
+    fit = np.ones(profiles.shape, bool)
+    bg = np.ones(n, bool) if "background" in params else None
+    span = n_bins * time_bin_ps
+    kw = dict(n_iter=_RESPONSE_MISFIT_ITER, lm_tol=1e-6, delay_bounds_ps=(t[0] - span, t[-1] + span),
+              lalp_bounds=(math.log(1e-5), math.log(10.0)), sss_after_direct=True, first_is_direct=True,
+              fit_background=bg, held_delay=h_d, held_lalp=h_l)
+    if counts:
+        cd = CountData(profiles, scale, np.zeros(n), fit, None)
+        start = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, n_iter=0, **{
+            k: v for k, v in kw.items() if k != "n_iter"})
+        # the first weights: those of the start's model (amplitudes solved at the held values)
+        model = np.einsum("pk,pkl->pl", start.amp, slot_atoms(irf, t, fam, delay, lalp)) + start.background[:, None]
+        sw = cd.weights(np.maximum(model, 0.0) * scale[:, None])
+        return float(fit_slots(irf, t, y, sw, fam, delay, lalp, counts=cd, **kw).cost.sum())
+    f = fit_slots(irf, t, y, fit.astype(np.float64), fam, delay, lalp, **kw)
+    return float((f.cost * scale ** 2 / np.asarray(noise, np.float64) ** 2).sum())
+
+
 def _minimise_1d(f, lo, hi, step):
     """Minimum of ``f`` over [lo, hi] (bounded Brent, to a quarter of ``step``) -> (argmin,
     curvature f'' there from the points ``step`` either side; nan where it does not open upwards)."""
@@ -338,6 +392,16 @@ def _minimise_1d(f, lo, hi, step):
     x, f0 = float(found.x), float(found.fun)
     curv = (f(x + step) - 2.0 * f0 + f(x - step)) / step ** 2
     return x, (float(curv) if curv > 0 else math.nan)
+
+
+#: passes of decomposition at the response's estimated time scale, each followed by the pooled
+#: likelihood again
+_STRETCH_ROUNDS = 2
+
+#: the estimate's name of each scalar held in the pooled likelihood (the onset's: "delay_ps")
+_EST_NAME = {"sigma_ps": "psf_sigma_ps", STRETCH_KEY: STRETCH_KEY}
+#: the scalars searched in their logarithm
+_LOG_SCALE = ("sigma_ps", STRETCH_KEY)
 
 
 def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps, fixed=None):
@@ -370,22 +434,35 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
     base = {k: np.broadcast_to(np.asarray(v, np.float64), keep.shape)[keep] for k, v in (fixed or {}).items()}
     shared_sigma = bool(keywords.get("shared_sigma", True))
     kw = dict(counts=counts, noise=noise[keep], time_bin_ps=time_bin_ps, t0_ps=t0, shared_sigma=shared_sigma)
+    pooled_misfit = _pooled_misfit
+    if keywords.get("irf") is not None:
+        kw["irf"] = resolve_response(keywords["irf"], time_bin_ps, prof.shape[-1])
+        pooled_misfit = _pooled_misfit_response
     held = {}
+
     def misfit(hold):       # the fixed values always held
-        return _pooled_misfit(prof, params, dict(base, **hold), **kw)
+        return pooled_misfit(prof, params, dict(base, **hold), **kw)
 
     if "psf" in names:
-        held["sigma_ps"] = est["psf_sigma_ps"]
+        scale_key = STRETCH_KEY if "irf" in kw else "sigma_ps"
+        held[scale_key] = est[_EST_NAME[scale_key]]
     if "delay" in names:
         held[est["delay_key"]] = est["delay_ps"]
     dof = max(prof.size - sum(np.isfinite(v).sum() for k, v in params.items() if np.ndim(v) == 1), 1)
     for _ in range(2 if len(held) > 1 else 1):    # coordinate-wise: the width, then the onset, twice
         for key in list(held):
             v0 = held[key]
-            if key == "sigma_ps":
+            if key in _LOG_SCALE:
                 # within a factor 1.6 of the pooled start, to 1 % (its error is a fraction of that)
-                x, curv = _minimise_1d(lambda x: misfit(dict(held, sigma_ps=math.exp(x))),
-                                       math.log(v0) - 0.5, math.log(v0) + 0.5, step=0.01)
+                hi = math.log(v0) + 0.5
+                if key == STRETCH_KEY:
+                    # no longer than the window holds (the response path's own limit), less a step
+                    hi = min(hi, math.log(prof.shape[-1] / kw["irf"].n_samples) - 0.02)
+                x, curv = _minimise_1d(lambda x: misfit(dict(held, **{key: math.exp(x)})),
+                                       math.log(v0) - 0.5, hi, step=0.01)
+                if key == STRETCH_KEY and x > hi - 0.01 and hi < math.log(v0) + 0.5:
+                    raise ValueError(f"shared='psf': the response's time scale reached {math.exp(hi):.3g}, the "
+                                     f"most the profiles' window of {prof.shape[-1]} bins holds; use longer profiles")
                 held[key] = math.exp(x)
                 se = held[key] * math.sqrt(2.0 / curv) if curv > 0 else math.nan
             else:
@@ -396,18 +473,19 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
                                        v0 - half, v0 + half, step=0.05 * float(time_bin_ps))
                 held[key] = x
                 se = math.sqrt(2.0 / curv) if curv > 0 else math.nan
-            name = "psf_sigma_ps" if key == "sigma_ps" else "delay_ps"
+            name = _EST_NAME.get(key, "delay_ps")
             est[name], est[name + "_stderr"] = held[key], se
     inflate = max(1.0, math.sqrt(misfit(held) / dof))
-    if len(held) == 2 and all(math.isfinite(est[n + "_stderr"]) for n in ("psf_sigma_ps", "delay_ps")):
+    names_held = [_EST_NAME.get(k, "delay_ps") for k in held]
+    if len(held) == 2 and all(math.isfinite(est[n + "_stderr"]) for n in names_held):
         # the two are correlated: the marginal errors from the joint curvature (log width, onset)
         keys = list(held)
-        x0 = np.array([math.log(held[k]) if k == "sigma_ps" else held[k] for k in keys])
-        h = np.array([est["psf_sigma_ps_stderr"] / est["psf_sigma_ps"] if k == "sigma_ps" else est["delay_ps_stderr"]
-                      for k in keys])
+        x0 = np.array([math.log(held[k]) if k in _LOG_SCALE else held[k] for k in keys])
+        h = np.array([est[_EST_NAME[k] + "_stderr"] / est[_EST_NAME[k]] if k in _LOG_SCALE
+                      else est["delay_ps_stderr"] for k in keys])
 
         def f(x):
-            return misfit({k: (math.exp(v) if k == "sigma_ps" else v) for k, v in zip(keys, x)})
+            return misfit({k: (math.exp(v) if k in _LOG_SCALE else v) for k, v in zip(keys, x)})
 
         f0 = f(x0)
         e = np.eye(2) * h
@@ -419,13 +497,12 @@ def _profile_refine(profiles, first, info, names, est, *, keywords, time_bin_ps,
         if np.all(np.linalg.eigvalsh(hess) > 0):
             var = np.diag(np.linalg.inv(hess / 2.0))
             for k, v in zip(keys, var):
-                if k == "sigma_ps":
-                    est["psf_sigma_ps_stderr"] = est["psf_sigma_ps"] * math.sqrt(v)
+                if k in _LOG_SCALE:
+                    est[_EST_NAME[k] + "_stderr"] = est[_EST_NAME[k]] * math.sqrt(v)
                 else:
                     est["delay_ps_stderr"] = math.sqrt(v)
-    for name in ("psf_sigma_ps", "delay_ps"):
-        if name + "_stderr" in est and name in est and ("sigma_ps" if name == "psf_sigma_ps" else
-                                                         est.get("delay_key")) in held:
+    for name, key in (("psf_sigma_ps", "sigma_ps"), (STRETCH_KEY, STRETCH_KEY), ("delay_ps", est.get("delay_key"))):
+        if name + "_stderr" in est and name in est and key in held:
             est[name + "_stderr"] *= inflate
     return est, int(keep.sum())
 
@@ -469,12 +546,19 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
     fams = parse_components(keywords.get("components", ("d", "r", "s")))
     if "alpha" in names and "s" not in fams:
         raise OptionError("shared='alpha': the components have no sss (add 's')")
+    response = keywords.get("irf") is not None
+    if "psf" in names and response and psf_map:
+        raise OptionError("psf_map: a measured response (irf=) is shared as one time scale over the image, "
+                          "not as a map")
     kw = dict(keywords, stderr=True)
     pixels = {"selected": int(profiles.shape[0])}
     est = {"names": tuple(names), "shape": tuple(int(s) for s in shape)}
     hold = None
     first = decompose(profiles, time_bin_ps, method, **kw).params
-    if "psf" in names:
+    if "psf" in names and response:
+        # the response's time scale: from 1 (the response as given), by the pooled likelihood
+        est["response_stretch"], est["response_stretch_stderr"] = 1.0, math.nan
+    elif "psf" in names:
         width, width_se = _width(first)
         if psf_map:
             coef, cov, center, scale, n = fit_surface(yx[:, 0], yx[:, 1], width, width_se, shape)
@@ -509,11 +593,29 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
         again = decompose(profiles, time_bin_ps, method, hold=start, **kw)
         est, pixels["likelihood"] = _profile_refine(profiles, again.params, again.info, scalar, est, keywords=keywords,
                               time_bin_ps=time_bin_ps, fixed=hold if psf_map else None)
-        if "psf" in scalar:
+        if "psf" in scalar and response:
+            base_irf = resolve_response(kw["irf"], time_bin_ps, profiles.shape[-1])
+            for _ in range(_STRETCH_ROUNDS):
+                if pixels["likelihood"] < 2:
+                    raise ValueError(f"shared='psf': fewer than 2 of the {profiles.shape[0]} lit pixels have a "
+                                     f"component to estimate the response's time scale from")
+                # the pixels decomposed again with the response at the estimate (their component
+                # sets found with the response as given may hold atoms its other scale needs not)
+                kw["irf"] = stretched_response(base_irf, est["response_stretch"])
+                start = {k: v for k, v in start.items() if k != est.get("delay_key")}
+                if "delay" in names:
+                    start[est["delay_key"]] = est["delay_ps"]
+                again = decompose(profiles, time_bin_ps, method, hold=start, **kw)
+                est, pixels["likelihood"] = _profile_refine(profiles, again.params, again.info, scalar, est,
+                                                            keywords=keywords, time_bin_ps=time_bin_ps)
+            kw["irf"] = stretched_response(base_irf, est["response_stretch"])
+            pixels["psf"] = pixels["likelihood"]
+        elif "psf" in scalar:
             hold = {"sigma_ps": est["psf_sigma_ps"]}
     if "alpha" in names and "delay" in names:
         hold = dict(hold or {}, **{est["delay_key"]: est["delay_ps"]})
-    second = first if hold is None or "alpha" not in names else \
+    stretched = "psf" in names and response
+    second = first if (hold is None and not stretched) or "alpha" not in names else \
         decompose(profiles, time_bin_ps, method, hold=hold, **kw).params
     if "alpha" in names:
         alpha, alpha_se = {}, {}
@@ -539,7 +641,17 @@ _HELD_PARAMS = {"sigma_ps": ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"),
 def decompose_held(profiles, time_bin_ps: float, method: str, *, hold: dict, hold_stderr: dict, **keywords):
     """:func:`decomposition.decompose` with ``hold`` (each key's values in the profiles' leading
     shape); a held parameter's ``<key>_stderr`` (where the call gives errors) is the shared
-    estimate's, ``hold_stderr`` (:func:`apply_held_stderr`)."""
+    estimate's, ``hold_stderr`` (:func:`apply_held_stderr`).  A response's shared time scale
+    (``hold[STRETCH_KEY]``, one value) decomposes with the response ``irf`` stretched by it."""
+    if STRETCH_KEY in hold:
+        hold, hold_stderr = dict(hold), dict(hold_stderr)
+        stretch = np.asarray(hold.pop(STRETCH_KEY), np.float64)
+        hold_stderr.pop(STRETCH_KEY, None)
+        if keywords.get("irf") is None:
+            raise OptionError("a shared response time scale needs the response (irf=)")
+        if stretch.size:
+            keywords["irf"] = stretched_response(
+                resolve_response(keywords["irf"], time_bin_ps, np.shape(profiles)[-1]), float(stretch.flat[0]))
     return apply_held_stderr(decompose(profiles, time_bin_ps, method, hold=hold, **keywords), hold, hold_stderr)
 
 

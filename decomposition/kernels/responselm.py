@@ -41,7 +41,8 @@ LAMBDA_MAX = 1e10
 
 
 def response_lm(table: ResponseTable, t_ps, y, sw, fam, delay, lalp, fit_bg, *, n_iter: int, lm_tol: float,
-                delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool, first_is_direct: bool):
+                delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool, first_is_direct: bool,
+                held_delay=None, held_lalp=None):
     """Fit P pixels' slots by variable projection (see the module docstring).
 
     Parameters
@@ -55,6 +56,9 @@ def response_lm(table: ResponseTable, t_ps, y, sw, fam, delay, lalp, fit_bg, *, 
         Pixels with a constant column (the offset, amplitude column K); None: no such column.
     n_iter, lm_tol, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct
         As :func:`decomposition.response.refine.fit_slots`.
+    held_delay, held_lalp : ndarray (P, K) bool, optional
+        Slots whose delay / log alpha is held at the value given: not a parameter of the fit,
+        and left where it is by the constraints' projection.
 
     Returns
     -------
@@ -80,10 +84,12 @@ def response_lm(table: ResponseTable, t_ps, y, sw, fam, delay, lalp, fit_bg, *, 
     resid = np.zeros((P, t.size))
     iters = np.zeros(P, np.int64)
     conv = np.zeros(P, np.bool_)
+    h_d = np.zeros((P, K), np.bool_) if held_delay is None else np.ascontiguousarray(held_delay, np.bool_)
+    h_l = np.zeros((P, K), np.bool_) if held_lalp is None else np.ascontiguousarray(held_lalp, np.bool_)
     _lm_pixels(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, 1.0 / table.peak_per_ps,
                t, y, sw, fam, delay, lalp, bg, has_bg, int(n_iter), float(lm_tol),
                float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
-               bool(sss_after_direct), bool(first_is_direct), amp, cost, resid, iters, conv)
+               bool(sss_after_direct), bool(first_is_direct), h_d, h_l, amp, cost, resid, iters, conv)
     return delay, lalp, amp, cost, resid, iters, conv
 
 
@@ -287,7 +293,8 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
 
 @njit
 def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
-               d_lo, d_hi, l_lo, l_hi, sss_after, first_direct, amp_out, cost_out, resid_out, iters_out, conv_out):
+               d_lo, d_hi, l_lo, l_hi, sss_after, first_direct, h_d, h_l, amp_out, cost_out, resid_out, iters_out,
+               conv_out):
     P, K = fam.shape
     L = t.size
     nc_max = K + 1
@@ -345,11 +352,13 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                 ns += 1
         npar = 0
         for i in range(ns):
+            if h_d[p, cols[i]]:
+                continue
             par_row[npar] = i
             par_lalp[npar] = False
             npar += 1
         for i in range(ns):
-            if f[cols[i]] == FAM_SSS:
+            if f[cols[i]] == FAM_SSS and not h_l[p, cols[i]]:
                 par_row[npar] = i
                 par_lalp[npar] = True
                 npar += 1
@@ -416,6 +425,11 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                     else:
                         nd[k] += step[j]
             _project(f, nd, nl, K, d_lo, d_hi, l_lo, l_hi, sss_after, first_direct)
+            for k in range(K):
+                if h_d[p, k]:
+                    nd[k] = delay[p, k]
+                if h_l[p, k]:
+                    nl[k] = lalp[p, k]
             _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, t_phi, t_dd, t_dl, da, s, r, E)
             t_cost = _amplitudes(t_phi, ns, bg_col, yw, swp, t_pw, m, t_minv, work, rhs, t_amp, t_res)
             ok = finite and math.isfinite(t_cost) and t_cost < cost

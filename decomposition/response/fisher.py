@@ -28,7 +28,7 @@ __all__ = ["slot_standard_errors"]
 
 
 def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma=None, tie_onset=None,
-                         background=None):
+                         background=None, held=None):
     """Per-slot standard errors in the refinement layout (normalised units).
 
     Parameters
@@ -40,6 +40,9 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
     background : ndarray (n,), optional
         Fitted constant offset (normalised units, ``y`` holds it) where finite: a column of
         ones in the information; NaN or None: no offset fitted.  Its own error is not returned.
+    held : (held_delay, held_lalp) of (n, K) bool, optional
+        Delays / log alphas held at given values (not parameters: no column in the
+        information, their errors NaN).  A held onset is not tied to the direct.
 
     Returns
     -------
@@ -54,11 +57,17 @@ def slot_standard_errors(irf, t_ps, y, sw, fam, delay, lalp, amp, *, noise_sigma
     cols = np.concatenate([phi, amp[:, :, None] * dd, amp[:, :, None] * dl, np.ones((n, 1, L))],
                           axis=1) * sw[:, None, :]
     free = np.concatenate([act, act, fam == FAM_SSS, bg[:, None]], axis=1)
+    h_d, h_l = held if held is not None else (np.zeros((n, K), bool), np.zeros((n, K), bool))
+    if tie_onset is not None:
+        # a held onset (either) is no parameter to share
+        tie_onset = tie_onset & ~h_d[:, 0] & ~h_d[:, SSS_SLOT]
     if tie_onset is not None and tie_onset.any():
         i_d, i_s = K + 0, K + SSS_SLOT
         tie = tie_onset & act[:, 0] & act[:, SSS_SLOT]
         cols[tie, i_d] += cols[tie, i_s]
         free[tie, i_s] = False
+    free[:, K:2 * K] &= ~h_d
+    free[:, 2 * K:3 * K] &= ~h_l
     cols = np.where(free[:, :, None], cols, 0.0)
     info = np.einsum("pjl,pml->pjm", cols, cols) + np.eye(3 * K + 1)[None] * (~free)[:, :, None]
     model = np.einsum("pk,pkl->pl", amp, phi)

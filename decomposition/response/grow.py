@@ -90,7 +90,7 @@ from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguou
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from .atoms import params_components, params_profile, slot_atoms
 from ..kernels.response import response_table, shifted_atoms, sss_atoms
-from .refine import Slots, refit_slots
+from .refine import Slots, refine_rows, refit_slots
 from ..model.slots import select_rows
 from ..model.fidelity import fidelity
 
@@ -132,8 +132,7 @@ class GrowContext:
     def refit(self, rows, fam, delay, lalp, params, background) -> Slots:
         """:func:`refit_slots` of the pixels ``rows`` from the slots given (``params`` and
         ``background`` the model of the first weights)."""
-        kw = {k: (v[rows] if k in ("fit_mask", "scale", "disp") and v is not None else v)
-              for k, v in self.refine_kw.items()}
+        kw = refine_rows(self.refine_kw, rows)
         p0 = dict(params)
         p0[BACKGROUND_KEY] = background
         y = self.samples.profiles[self.samples.live[rows]]

@@ -46,7 +46,7 @@ from .detect import RESPONSE_PHASES, detect_response, response_dictionary
 from .fisher import slot_standard_errors
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
-from .refine import refit_slots
+from .refine import held_slot_masks, refine_rows, refit_slots
 
 __all__ = ["ResponseOutcome", "decompose_with_response"]
 
@@ -61,9 +61,13 @@ class ResponseOutcome:
     info: dict
 
 
-def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components) -> ResponseOutcome:
+def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components,
+                            hold=None) -> ResponseOutcome:
     """Detect, label and refine the components of every live pixel with the response ``irf``
-    (on the samples' time step, see :func:`decomposition.response.resolve.resolve_response`)."""
+    (on the samples' time step, see :func:`decomposition.response.resolve.resolve_response`).
+    ``hold`` ({key of :data:`decomposition.model.refine.HOLD_KEYS` but ``sigma_ps``: (P,) values,
+    NaN free}, checked): onsets and decay rates held at given values in the refinement, the
+    forward steps' refits and the standard errors (their errors NaN: not fitted here)."""
     P, L, R = samples.values.shape[0], samples.n_bins, opts.max_reflections
     ax = samples.axis
     t = ax.t0_ps + ax.time_bin_ps * np.arange(L)
@@ -87,6 +91,8 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     counts = samples.noise_model == "poisson"
     refine_kw = dict(irf=irf, t=t, ax=ax, fit_mask=fit_mask, scale=scale, opts=opts, bounds=bounds,
                      disp=samples.dispersion[live] if counts else None, sigma_eq=sigma_eq, R=R)
+    if hold:
+        refine_kw["hold"] = {k: np.asarray(v, np.float64)[live] for k, v in hold.items()}
     with_bg = samples.background is not None
     b_est = samples.background[live] if with_bg else np.zeros(live.size)
     # the profiles are the samples less the first estimate of the offset (0 without the family)
@@ -111,8 +117,7 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
             y0 = np.where(fit_mask[drop], samples.values[live[drop]], 0.0) / scale[drop, None]
             p0 = {k: v[drop] for k, v in params.items()}
             p0[BACKGROUND_KEY] = np.zeros(drop.size)
-            sub = {k: (v[drop] if k in ("fit_mask", "scale", "disp") and v is not None else v)
-                   for k, v in refine_kw.items()}
+            sub = refine_rows(refine_kw, drop)
             d_slots = refit_slots(y0, fam[drop], delay[drop], lalp[drop], np.zeros(drop.size), False, p0, **sub)
             fam, delay, lalp, amp = fam.copy(), delay.copy(), lalp.copy(), amp.copy()
             fam[drop], delay[drop], lalp[drop], amp[drop] = d_slots[:4]
@@ -150,7 +155,8 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
     for k, v in params.items():
         out[k][live] = v
     if opts.stderr:
-        out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct, sigma_eq))
+        out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct, sigma_eq,
+                           refine_kw.get("hold")))
         if with_bg:
             out[BACKGROUND_KEY + "_stderr"] = bg_info["background_stderr"]
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
@@ -170,7 +176,8 @@ def _scatter(P, live, v, fill):
     return out
 
 
-def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_after_direct, sigma_eq_ps) -> dict:
+def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_after_direct, sigma_eq_ps,
+            hold=None) -> dict:
     live, ax = samples.live, samples.axis
     P = samples.values.shape[0]
     scale = samples.scale[live]
@@ -195,8 +202,11 @@ def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_afte
         # an onset on the direct, or so near it that the two atoms and the onset's derivative
         # are degenerate (ONSET_TIE_SIGMA)
         tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= ONSET_TIE_SIGMA * sigma_eq_ps
+    held = None
+    if hold:
+        held = held_slot_masks(hold, fam, delay, lalp)[2:]
     se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
-                              background=offset)
+                              background=offset, held=held)
     se_amp = se["amp"] * scale[:, None]
     out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
     d = fam[:, 0] != FAM_NONE

@@ -27,14 +27,14 @@ import numpy as np
 
 from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY
-from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLOT
 from ..kernels.response import response_table
 from ..kernels.responselm import LAMBDA0, LAMBDA_MAX, RIDGE, response_lm
 from ..noise import count_deviance, poisson_weights
 from .atoms import params_profile, slot_atoms
 from .label import slots_to_params
 
-__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots"]
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]
 
 @dataclass(frozen=True)
 class SlotFit:
@@ -148,7 +148,8 @@ class CountData(NamedTuple):
 def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.ndarray, fam: np.ndarray,
               delay: np.ndarray, lalp: np.ndarray, *, n_iter: int, lm_tol: float,
               delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool = True,
-              first_is_direct: bool = False, fit_background=None, counts: CountData | None = None) -> SlotFit:
+              first_is_direct: bool = False, fit_background=None, counts: CountData | None = None,
+              held_delay=None, held_lalp=None) -> SlotFit:
     """Refine the delays (and sss log alpha) of every active slot of a block of pixels.
 
     Parameters
@@ -172,6 +173,9 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
         Count data: the objective is the Poisson deviance (``cost`` is it, chi2 units), fitted
         by Fisher scoring over delays, log alpha and amplitudes together (:func:`_fit_counts`);
         ``sw`` gives only the first weights, those of the starting amplitudes.
+    held_delay, held_lalp : ndarray (P, K) bool, optional
+        Slots whose delay / log alpha is held at the value given in ``delay`` / ``lalp`` (a
+        shared onset or decay rate): not fitted, and not moved by the constraints.
 
     Returns
     -------
@@ -180,17 +184,24 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     t = np.asarray(t_ps, np.float64)
     fam = np.asarray(fam)
     P, K = fam.shape
-    delay, lalp = _project(fam, np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0),
-                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+    d_in, l_in = np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0)
+    delay, lalp = _project(fam, d_in, l_in, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+    held = None
+    if held_delay is not None or held_lalp is not None:
+        h_d = np.zeros((P, K), bool) if held_delay is None else np.asarray(held_delay, bool) & (fam != FAM_NONE)
+        h_l = np.zeros((P, K), bool) if held_lalp is None else np.asarray(held_lalp, bool) & (fam == FAM_SSS)
+        delay, lalp = np.where(h_d, d_in, delay), np.where(h_l, l_in, lalp)
+        held = (h_d, h_l)
     fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), (P,))
     if counts is not None:
         cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
         return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
-                           bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct))
+                           bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct), held=held)
     delay, lalp, amp, cost, resid, iters, conv = response_lm(
         response_table(irf), t, y, sw, fam, delay, lalp, fit_bg, n_iter=n_iter, lm_tol=lm_tol,
         delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds, sss_after_direct=sss_after_direct,
-        first_is_direct=first_is_direct)
+        first_is_direct=first_is_direct, held_delay=None if held is None else held[0],
+        held_lalp=None if held is None else held[1])
     return SlotFit(delay=np.where(fam != FAM_NONE, delay, np.nan),
                    lalp=np.where(fam == FAM_SSS, lalp, np.nan),
                    amp=np.where(fam != FAM_NONE, amp[:, :K], 0.0),
@@ -199,7 +210,7 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
-                bounds) -> SlotFit:
+                bounds, held=None) -> SlotFit:
     """:func:`fit_slots` for count data: Levenberg-Marquardt on the Poisson deviance by Fisher
     scoring over every parameter at once -- the delays, the sss log alpha and the amplitudes
     (and the offset's correction) -- from the amplitudes of the first weights' solve ``cur``.
@@ -222,7 +233,8 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
     active = fam != FAM_NONE
     amp_free = np.concatenate([active, np.broadcast_to(fit_bg[:, None], (P, Kc - K))], axis=1) \
         if Kc > K else active
-    free = np.concatenate([active, fam == FAM_SSS, amp_free], axis=1)             # (P, 2K + Kc)
+    h_d, h_l = held if held is not None else (np.zeros((P, K), bool), np.zeros((P, K), bool))
+    free = np.concatenate([active & ~h_d, (fam == FAM_SSS) & ~h_l, amp_free], axis=1)   # (P, 2K + Kc)
     n_par = free.shape[1]
 
     def jacobian(phi, dd, dl, amp, scale):
@@ -271,6 +283,9 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         f = fam[idx]
         nd, nl = _project(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+        if held is not None:
+            nd = np.where(h_d[idx], state["delay"][idx], nd)
+            nl = np.where(h_l[idx], state["lalp"][idx], nl)
         na = np.where(amp_free[idx], a_cur + step[:, 2 * K:], 0.0)
         if Kc > K:
             na[:, K] = np.maximum(na[:, K], -c.held / c.scale)
@@ -318,14 +333,46 @@ class Slots(NamedTuple):
     iterations: np.ndarray
 
 
+def refine_rows(refine_kw: dict, rows) -> dict:
+    """The keywords of :func:`refit_slots` (``refine_kw``, for n pixels) for the pixels ``rows``:
+    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``hold``'s values) taken at them."""
+    out = {k: (v[rows] if k in ("fit_mask", "scale", "disp") and v is not None else v) for k, v in refine_kw.items()}
+    if refine_kw.get("hold"):
+        out["hold"] = {k: v[rows] for k, v in refine_kw["hold"].items()}
+    return out
+
+
+def held_slot_masks(hold, fam, delay, lalp):
+    """The slots a checked ``hold`` ({key of :data:`decomposition.model.refine.HOLD_KEYS`: (n,)
+    values, NaN free}, no ``sigma_ps``) holds in the refinement layout of ``fam`` (n, K) ->
+    (delay, lalp, held_delay, held_lalp): the slots' delays (ps) and log alphas with the held
+    values put in where the component is present, and the (n, K) bool masks of those slots."""
+    n, K = fam.shape
+    h_d, h_l = np.zeros((n, K), bool), np.zeros((n, K), bool)
+    delay, lalp = np.array(delay, np.float64), np.array(lalp, np.float64)
+    for key, slot, fams in (("direct_delay_ps", 0, (FAM_GAUSS,)), ("sss_delay_ps", SSS_SLOT, (FAM_SSS,))):
+        if key in hold:
+            v = np.asarray(hold[key], np.float64)
+            h_d[:, slot] = np.isfinite(v) & np.isin(fam[:, slot], fams)
+            delay[:, slot] = np.where(h_d[:, slot], v, delay[:, slot])
+    if "sss_alpha_per_ps" in hold:
+        v = np.asarray(hold["sss_alpha_per_ps"], np.float64)
+        h_l[:, SSS_SLOT] = np.isfinite(v) & (fam[:, SSS_SLOT] == FAM_SSS)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lalp[:, SSS_SLOT] = np.where(h_l[:, SSS_SLOT], np.log(v), lalp[:, SSS_SLOT])
+    return delay, lalp, h_d, h_l
+
+
 def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
-                sigma_eq, R) -> Slots:
+                sigma_eq, R, hold=None) -> Slots:
     """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
     (n,) counts / units already subtracted), with a jointly fitted constant offset where
     ``fit_bg``.  Count data (``disp`` given) are fitted to their Poisson deviance
     (:func:`fit_slots` with :class:`CountData`), the first weights those of the starting model
     ``params`` (n-shaped, units, the ``background`` key read); every step lowers the deviance,
     so the answer is never worse than the start with its amplitudes solved at its own delays.
+    ``hold`` ({key: (n,) values}, :func:`held_slot_masks`): onsets and decay rates held at
+    given values where the component is present.
 
     Returns :class:`Slots`: fam, delay, lalp, amp (n, K), params (n-shaped, units, no
     ``background`` key), background (n,) units (``held`` plus the fitted correction),
@@ -348,6 +395,10 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
         cd = CountData(y * scale[:, None] + held[:, None], scale, held, fit_mask, disp)
         sw = cd.weights(params_profile(irf, t, params))
 
+    if hold:
+        delay, lalp, h_d, h_l = held_slot_masks(hold, np.asarray(fam), delay, lalp)
+        fit_kw.update(held_delay=h_d, held_lalp=h_l)
+
     def solve(fam, delay, lalp, sw, n_iter):
         f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=n_iter, fit_background=bg_cols, counts=cd, **fit_kw)
         delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
@@ -356,9 +407,10 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
             fam = fam.copy()
             fam[bad] = FAM_NONE
             r = np.flatnonzero(bad.any(axis=1))
+            kw = {k: (v[r] if k.startswith("held_") else v) for k, v in fit_kw.items()}
             g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
                           fit_background=None if bg_cols is None else bg_cols[r],
-                          counts=None if cd is None else cd.rows(r), **fit_kw)
+                          counts=None if cd is None else cd.rows(r), **kw)
             amp[r], b_fit = g.amp, b_fit.copy()
             b_fit[r] = g.background
         background = held + b_fit * scale

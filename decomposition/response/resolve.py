@@ -27,7 +27,8 @@ import numpy as np
 from core.irf import InstrumentResponse, ResponseError
 from core.irfstore import load_response
 
-__all__ = ["resolve_response", "response_record", "spike_neighbour_ratio", "STEP_RTOL", "TRIM_REL",
+__all__ = ["resolve_response", "stretched_response", "response_record", "spike_neighbour_ratio", "STEP_RTOL",
+           "TRIM_REL",
            "SPIKE_PHASES"]
 
 #: sub-bin positions of the peak at which :func:`spike_neighbour_ratio` samples the response
@@ -57,6 +58,23 @@ def _coerce(irf) -> InstrumentResponse:
                                   {"source": "samples passed to decompose"})
     raise ResponseError(f"irf must be an InstrumentResponse, a (samples, time_step_ps) tuple or a path "
                         f"to a stored response; got {type(irf).__name__}")
+
+
+def stretched_response(irf: InstrumentResponse, factor: float) -> InstrumentResponse:
+    """The response ``irf`` (peak at t = 0) stretched in time by ``factor`` s: r(t / s) / s (same
+    area, every width times s, the peak still at t = 0), sampled on its own step from its
+    band-limited interpolant.  ``provenance["stretch"]`` records s; the model's closed form is
+    dropped (the samples are the response).  A shared instrument's time scale
+    (:func:`decomposition.image.shared.estimate_shared`) is held this way."""
+    s = float(factor)
+    if not (math.isfinite(s) and s > 0):
+        raise ResponseError(f"response stretch must be a finite number > 0, got {factor!r}")
+    T = irf.time_step_ps
+    lo = math.floor(irf.t0_ps * s / T)
+    hi = math.ceil((irf.t0_ps + (irf.n_samples - 1) * T) * s / T)
+    t = T * np.arange(lo, hi + 1)
+    prov = dict(irf.provenance, stretch=s)
+    return InstrumentResponse(np.maximum(irf.evaluate(t / s), 0.0) / s + 0.0, T, float(t[0]), prov, None).centred()
 
 
 def resolve_response(irf, time_bin_ps: float, n_bins: int) -> InstrumentResponse:

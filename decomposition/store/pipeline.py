@@ -339,9 +339,6 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise PipelineError(f"--regions: the labels have shape {regions.shape}, the cube's image is {(ny, nx)}")
     law_source = _apply_noise_law(method, options, source["attrs"])
     response, irf_source = resolve_pipeline_response(irf, input_path, source["kind"], tb, nt)
-    if names and response is not None:
-        raise PipelineError("--shared holds the Gaussian PSF's parameters; it does not work with a measured "
-                            "response (use --irf gaussian, or leave --shared out)")
     irf_attrs = {"kind": "gaussian"}
     if response is not None:
         from decomposition.response.resolve import response_record

@@ -81,7 +81,8 @@ def add_arguments(parser) -> None:
                         help="parameters every pixel shares, estimated once from the whole cube (with standard "
                              "errors, in the store's 'shared' attribute) and held in each pixel's fit: 'psf' the "
                              "PSF width (one instrument), 'delay' the onset (a microscope), 'alpha' the sss decay "
-                             "rate; any comma-separated combination (Gaussian PSF only, not with --irf)")
+                             "rate; any comma-separated combination (with a measured response (--irf) 'psf' is "
+                             "its time scale, a stretch; no --psf-map)")
     parser.add_argument("--regions", default=None, metavar="LABELS.npy",
                         help="with --shared alpha: a (y, x) integer label image, one decay rate per label >= 0 "
                              "(negative labels keep their own)")
