@@ -11,7 +11,8 @@ import pytest
 from decomposition import decompose
 from decomposition.evaluation.synthetic import SceneRanges, make_cube
 from decomposition.image import decompose_image
-from decomposition.image.shared import SharedEstimate, pooled, select_pixels, lit_score
+from decomposition.image.pooling import lit_score, pooled, select_pixels
+from decomposition.image.shared import SharedEstimate
 from decomposition.model.fisher import standard_errors
 from decomposition.model.refine import refine
 from decomposition.options import OptionError

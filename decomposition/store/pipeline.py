@@ -546,7 +546,8 @@ def _shared_settings(shared, regions, psf_map):
 def _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components, solver_options, out_path):
     """The shared parameters: read back from a resumed store's ``shared`` attribute, else
     estimated once from the whole cube (lit scores chunk by chunk, then the selected pixels)."""
-    from decomposition.image.shared import SharedEstimate, image_estimate, lit_score
+    from decomposition.image.pooling import lit_score
+    from decomposition.image.shared import SharedEstimate, image_estimate
 
     if existing is not None:
         record = existing.attrs.get("shared")
