@@ -57,9 +57,40 @@ from __future__ import annotations
 import numpy as np
 
 from ..constants import SSS_SLOT
-from ..kernels.derivatives import kernel_derivatives
+from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
 
 __all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
+
+
+def _support(t, delay, sigma, tb, tail):
+    """Sample indices (A, W) covering each of A kernels' support on the time axis ``t`` (L,).
+
+    Outside ``|t - delay| <= Z sigma + tb / 2`` (Z = ``_Z_NEGLIGIBLE`` of
+    :mod:`decomposition.kernels.derivatives`, where exp(-z^2/2) reaches the exp floor,
+    exp(-700) ~ 1e-304) a Gaussian and all its derivatives are below 1e-300 of their
+    peaks, and so is the sss kernel's rising edge before its onset (the kernel itself is
+    exactly zero there); ``tail`` keeps every sample after the onset (the decay).  All
+    windows have the common width W (the widest, at most L), shifted to stay inside the
+    axis.  The whole axis is kept where a kernel's delay or width is not finite, where a
+    kernel lies wholly off the axis (every value at the floor: it keeps them, as they are
+    all its amplitude has to go on) or where the axis is not increasing.
+    """
+    L = t.size
+    a = delay.size
+    full = np.broadcast_to(np.arange(L), (a, L))
+    if a == 0 or L < 2 or not np.all(t[1:] > t[:-1]):
+        return full
+    half = _Z_NEGLIGIBLE * sigma + (0.5 * tb if tb is not None else 0.0)
+    ok = np.isfinite(delay) & np.isfinite(half)
+    if not ok.all():
+        return full
+    j0 = np.searchsorted(t, delay - half, side="left")
+    j1 = np.full(a, L) if tail else np.searchsorted(t, delay + half, side="right")
+    w = int(np.max(j1 - j0))
+    if w >= L or np.any(j1 <= j0):
+        return full
+    j0 = np.minimum(j0, L - w)
+    return j0[:, None] + np.arange(w)
 
 
 def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
@@ -69,7 +100,10 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     [2K, 3K) d phi_k / d log sigma_k, 3K the sss d h / d log alpha; the last
     row is the data y.  Absent slots are zero rows.  With ``sw`` (n, L), the
     square roots of the sample weights, the model rows are weighted (``y``
-    must already be).
+    must already be).  Each kernel is evaluated on its support only
+    (:func:`_support`) and is exactly zero outside it, as in the forward model's
+    exp floor (:func:`core.model.sss_kernel`); inside it the values are those of
+    :func:`decomposition.kernels.derivatives.kernel_derivatives` on the whole axis.
     """
     n, k = delay.shape
     L = t.size
@@ -78,25 +112,32 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     m[:, -1] = y
     gmask = present.copy()
     gmask[:, SSS_SLOT] = False
-    rows = np.arange(k)
     if gmask.any():
         pix, slot = np.nonzero(gmask)
-        s = sigma[pix, slot][:, None]
-        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb, derivatives=jac)
-        m[pix, rows[slot]] = vals[0]
+        d = delay[pix, slot]
+        s = sigma[pix, slot]
+        idx = _support(t, d, s, tb, tail=False)
+        s = s[:, None]
+        vals = kernel_derivatives(t[idx] - d[:, None], s, time_bin_ps=tb, derivatives=jac)
+        pw, sw_ = pix[:, None], slot[:, None]
+        m[pw, sw_, idx] = vals[0]
         if jac:
-            m[pix, k + rows[slot]] = vals[1]
-            m[pix, 2 * k + rows[slot]] = vals[2] * s
+            m[pw, k + sw_, idx] = vals[1]
+            m[pw, 2 * k + sw_, idx] = vals[2] * s
     pix = np.flatnonzero(present[:, SSS_SLOT])
     if pix.size:
-        s = sigma[pix, SSS_SLOT][:, None]
+        d = delay[pix, SSS_SLOT]
+        s = sigma[pix, SSS_SLOT]
+        idx = _support(t, d, s, tb, tail=True)
+        s = s[:, None]
         a = alpha[pix][:, None]
-        vals = kernel_derivatives(t - delay[pix, SSS_SLOT][:, None], s, a, time_bin_ps=tb, derivatives=jac)
-        m[pix, SSS_SLOT] = vals[0]
+        vals = kernel_derivatives(t[idx] - d[:, None], s, a, time_bin_ps=tb, derivatives=jac)
+        pw = pix[:, None]
+        m[pw, SSS_SLOT, idx] = vals[0]
         if jac:
-            m[pix, k + SSS_SLOT] = vals[1]
-            m[pix, 2 * k + SSS_SLOT] = vals[2] * s
-            m[pix, 3 * k] = vals[3] * a
+            m[pw, k + SSS_SLOT, idx] = vals[1]
+            m[pw, 2 * k + SSS_SLOT, idx] = vals[2] * s
+            m[pw, 3 * k, idx] = vals[3] * a
     if sw is not None:
         m[:, :-1] *= sw[:, None, :]
     return m
