@@ -110,6 +110,18 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     q = (3 * k + 2) if jac else (k + 1)
     m = np.zeros((n, q, L))
     m[:, -1] = y
+    flat = m.reshape(-1)
+    # Weights multiply the kernels' windows only (zero stays zero where they are finite);
+    # unit weights change nothing.
+    if sw is not None and bool(np.all(sw == 1.0)):
+        sw = None
+    windowed_sw = sw is not None and bool(np.all(np.isfinite(sw)))
+
+    def put(pix, row, idx, v):
+        if windowed_sw:
+            v = v * sw[pix[:, None], idx]
+        flat[((pix * q + row) * L)[:, None] + idx] = v
+
     gmask = present.copy()
     gmask[:, SSS_SLOT] = False
     if gmask.any():
@@ -119,11 +131,10 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
         idx = _support(t, d, s, tb, tail=False)
         s = s[:, None]
         vals = kernel_derivatives(t[idx] - d[:, None], s, time_bin_ps=tb, derivatives=jac)
-        pw, sw_ = pix[:, None], slot[:, None]
-        m[pw, sw_, idx] = vals[0]
+        put(pix, slot, idx, vals[0])
         if jac:
-            m[pw, k + sw_, idx] = vals[1]
-            m[pw, 2 * k + sw_, idx] = vals[2] * s
+            put(pix, k + slot, idx, vals[1])
+            put(pix, 2 * k + slot, idx, vals[2] * s)
     pix = np.flatnonzero(present[:, SSS_SLOT])
     if pix.size:
         d = delay[pix, SSS_SLOT]
@@ -132,13 +143,12 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
         s = s[:, None]
         a = alpha[pix][:, None]
         vals = kernel_derivatives(t[idx] - d[:, None], s, a, time_bin_ps=tb, derivatives=jac)
-        pw = pix[:, None]
-        m[pw, SSS_SLOT, idx] = vals[0]
+        put(pix, SSS_SLOT, idx, vals[0])
         if jac:
-            m[pw, k + SSS_SLOT, idx] = vals[1]
-            m[pw, 2 * k + SSS_SLOT, idx] = vals[2] * s
-            m[pw, 3 * k, idx] = vals[3] * a
-    if sw is not None:
+            put(pix, k + SSS_SLOT, idx, vals[1])
+            put(pix, 2 * k + SSS_SLOT, idx, vals[2] * s)
+            put(pix, 3 * k, idx, vals[3] * a)
+    if sw is not None and not windowed_sw:
         m[:, :-1] *= sw[:, None, :]
     return m
 
