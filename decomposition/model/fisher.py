@@ -32,9 +32,8 @@ import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from ..constants import SSS_SLOT
-from ..kernels.derivatives import kernel_derivatives
 from .refine import apply_weights, check_hold, held_slots, slot_arrays
-from .varpro import CHUNK_PIXELS, design_rows
+from .varpro import CHUNK_PIXELS, design_rows, kernel_windows
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -65,27 +64,17 @@ def _jacobian(t, slots, amp_scale, tb):
     n, k = present.shape
     rows = np.zeros((n, 3 * k + 1, t.size))
     amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
-    base = 3 * np.arange(k)
-    gmask = present.copy()
-    gmask[:, SSS_SLOT] = False
-    if gmask.any():
-        pix, slot = np.nonzero(gmask)
+    q, L = 3 * k + 1, t.size
+    flat = rows.reshape(-1)
+    # Each kernel on its support only (zero outside, as in the design rows of the fit).
+    for pix, slot, idx, vals in kernel_windows(t, slots["delay"], slots["sigma"], slots["alpha"], present, tb, True):
         a = amp[pix, slot][:, None]
-        val, d_del, d_sig = kernel_derivatives(t - slots["delay"][pix, slot][:, None],
-                                               slots["sigma"][pix, slot][:, None], time_bin_ps=tb)
-        rows[pix, base[slot]] = a * d_del
-        rows[pix, base[slot] + 1] = val
-        rows[pix, base[slot] + 2] = a * d_sig
-    pix = np.flatnonzero(present[:, SSS_SLOT])
-    if pix.size:
-        a = amp[pix, SSS_SLOT][:, None]
-        val, d_del, d_sig, d_alp = kernel_derivatives(
-            t - slots["delay"][pix, SSS_SLOT][:, None], slots["sigma"][pix, SSS_SLOT][:, None],
-            slots["alpha"][pix][:, None], time_bin_ps=tb)
-        rows[pix, 3 * SSS_SLOT] = a * d_del
-        rows[pix, 3 * SSS_SLOT + 1] = val
-        rows[pix, 3 * SSS_SLOT + 2] = a * d_sig
-        rows[pix, 3 * k] = a * d_alp
+        base = ((pix * q + 3 * slot) * L)[:, None] + idx
+        flat[base] = a * vals[1]
+        flat[base + L] = vals[0]
+        flat[base + 2 * L] = a * vals[2]
+        if len(vals) == 4:
+            flat[((pix * q + 3 * k) * L)[:, None] + idx] = a * vals[3]
     free = np.concatenate([np.repeat(present, 3, axis=1), present[:, SSS_SLOT:SSS_SLOT + 1]], axis=1)
     return rows, free
 

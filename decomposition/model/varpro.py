@@ -57,9 +57,67 @@ from __future__ import annotations
 import numpy as np
 
 from ..constants import SSS_SLOT
-from ..kernels.derivatives import kernel_derivatives
+from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
 
-__all__ = ["Layout", "design_rows", "refine_block", "background_level", "CHUNK_PIXELS"]
+__all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "CHUNK_PIXELS"]
+
+
+def _support(t, delay, sigma, tb, tail):
+    """Where each of A kernels is not negligible on the time axis ``t`` (L,, increasing).
+
+    Outside ``|t - delay| <= Z sigma + tb / 2`` (Z = ``_Z_NEGLIGIBLE`` of
+    :mod:`decomposition.kernels.derivatives`, where exp(-z^2/2) reaches the exp floor,
+    exp(-700) ~ 1e-304) a Gaussian and all its derivatives are below 1e-300 of their
+    peaks, and so is the sss kernel's rising edge before its onset (the kernel itself is
+    exactly zero there); ``tail`` keeps every sample after the onset (the decay).
+    Returns the first and one-past-last sample (A,) each and ``whole`` (A,) bool: the kernels
+    that keep the whole axis, those whose delay or width is not finite and those wholly off
+    the axis (every value at the floor: they keep them, as all their amplitude has to go on).
+    """
+    L = t.size
+    half = _Z_NEGLIGIBLE * sigma + (0.5 * tb if tb is not None else 0.0)
+    ok = np.isfinite(delay) & np.isfinite(half)
+    d, h = np.where(ok, delay, 0.0), np.where(ok, half, 0.0)
+    j0 = np.searchsorted(t, d - h, side="left")
+    j1 = np.full(delay.size, L) if tail else np.searchsorted(t, d + h, side="right")
+    return j0, j1, ~ok | (j1 <= j0)
+
+
+def kernel_windows(t, delay, sigma, alpha, present, tb, derivatives):
+    """The present kernels on their supports (:func:`_support`): the Gaussians, then the sss.
+
+    ``delay``, ``sigma`` (n, K), ``alpha`` (n,) and ``present`` (n, K) bool as in
+    :func:`design_rows`.  Yields groups ``(pix, slot, idx, vals)``: the A kernels' pixels and
+    slots (A,), their sample indices (A, W) and
+    :func:`decomposition.kernels.derivatives.kernel_derivatives` there (each (A, W)).  The
+    windows of a group have one width W, the widest (shifted to stay on the axis); kernels
+    that keep the whole axis (and every kernel where the axis is not increasing) come in a
+    group of their own with W = L.
+    """
+    L = t.size
+    increasing = L >= 2 and bool(np.all(t[1:] > t[:-1]))
+    gmask = present.copy()
+    gmask[:, SSS_SLOT] = False
+    gpix, gslot = np.nonzero(gmask)
+    spix = np.flatnonzero(present[:, SSS_SLOT])
+    for pix, slot, tail in ((gpix, gslot, False), (spix, np.full(spix.size, SSS_SLOT), True)):
+        if not pix.size:
+            continue
+        d, s = delay[pix, slot], sigma[pix, slot]
+        a = None if not tail else alpha[pix][:, None]
+        if increasing:
+            j0, j1, whole = _support(t, d, s, tb, tail)
+        else:
+            j0, j1, whole = None, None, np.ones(pix.size, bool)
+        for part in (~whole, whole):
+            if not part.any():
+                continue
+            w = L if part is whole else int(np.max(j1[part] - j0[part]))
+            start = np.zeros(int(part.sum()), np.int64) if w >= L else np.minimum(j0[part], L - w)
+            idx = start[:, None] + np.arange(min(w, L))
+            vals = kernel_derivatives(t[idx] - d[part][:, None], s[part][:, None],
+                                      None if a is None else a[part], time_bin_ps=tb, derivatives=derivatives)
+            yield pix[part], slot[part], idx, vals
 
 
 def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
@@ -69,35 +127,37 @@ def design_rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
     [2K, 3K) d phi_k / d log sigma_k, 3K the sss d h / d log alpha; the last
     row is the data y.  Absent slots are zero rows.  With ``sw`` (n, L), the
     square roots of the sample weights, the model rows are weighted (``y``
-    must already be).
+    must already be).  Each kernel is evaluated on its support only
+    (:func:`_support`) and is exactly zero outside it, as in the forward model's
+    exp floor (:func:`core.model.sss_kernel`); inside it the values are those of
+    :func:`decomposition.kernels.derivatives.kernel_derivatives` on the whole axis.
     """
     n, k = delay.shape
     L = t.size
     q = (3 * k + 2) if jac else (k + 1)
     m = np.zeros((n, q, L))
     m[:, -1] = y
-    gmask = present.copy()
-    gmask[:, SSS_SLOT] = False
-    rows = np.arange(k)
-    if gmask.any():
-        pix, slot = np.nonzero(gmask)
-        s = sigma[pix, slot][:, None]
-        vals = kernel_derivatives(t - delay[pix, slot][:, None], s, time_bin_ps=tb, derivatives=jac)
-        m[pix, rows[slot]] = vals[0]
+    flat = m.reshape(-1)
+    # Weights multiply the kernels' windows only (zero stays zero where they are finite);
+    # unit weights change nothing.
+    if sw is not None and bool(np.all(sw == 1.0)):
+        sw = None
+    windowed_sw = sw is not None and bool(np.all(np.isfinite(sw)))
+
+    def put(pix, row, idx, v):
+        if windowed_sw:
+            v = v * sw[pix[:, None], idx]
+        flat[((pix * q + row) * L)[:, None] + idx] = v
+
+    for pix, slot, idx, vals in kernel_windows(t, delay, sigma, alpha, present, tb, jac):
+        put(pix, slot, idx, vals[0])
         if jac:
-            m[pix, k + rows[slot]] = vals[1]
-            m[pix, 2 * k + rows[slot]] = vals[2] * s
-    pix = np.flatnonzero(present[:, SSS_SLOT])
-    if pix.size:
-        s = sigma[pix, SSS_SLOT][:, None]
-        a = alpha[pix][:, None]
-        vals = kernel_derivatives(t - delay[pix, SSS_SLOT][:, None], s, a, time_bin_ps=tb, derivatives=jac)
-        m[pix, SSS_SLOT] = vals[0]
-        if jac:
-            m[pix, k + SSS_SLOT] = vals[1]
-            m[pix, 2 * k + SSS_SLOT] = vals[2] * s
-            m[pix, 3 * k] = vals[3] * a
-    if sw is not None:
+            s = sigma[pix, slot][:, None]
+            put(pix, k + slot, idx, vals[1])
+            put(pix, 2 * k + slot, idx, vals[2] * s)
+            if len(vals) == 4:
+                put(pix, np.full_like(slot, 3 * k), idx, vals[3] * alpha[pix][:, None])
+    if sw is not None and not windowed_sw:
         m[:, :-1] *= sw[:, None, :]
     return m
 
