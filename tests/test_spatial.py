@@ -7,8 +7,8 @@ from core import model
 from _cubes import smooth_scene as _scene
 from decomposition.image import decompose_image
 from decomposition.image import halo_pixels
-from decomposition.image.spatial import (SpatialOptions, coupling_reach, neighbour_prior, neighbour_starts,
-                                         prepare_coupling)
+from decomposition.image.neighbours import neighbour_starts
+from decomposition.image.spatial import SpatialOptions, coupling_reach, neighbour_prior, prepare_coupling
 from decomposition.model.fidelity import fidelity
 from decomposition.model.refine import refine
 from decomposition.options import OptionError
@@ -230,7 +230,7 @@ def test_pixels_of_an_inclined_surface_agree_with_their_neighbours():
 
     from decomposition import decompose
     from decomposition.flags import AMBIGUOUS
-    from decomposition.image.spatial import in_doubt
+    from decomposition.image.neighbours import in_doubt
 
     n, nt = 6, 160
     delay = 60.0 + 5.0 * np.arange(n)[:, None] + np.zeros((1, n)) + np.where(np.arange(n)[:, None] > 2, 60.0, 0.0)
@@ -257,7 +257,8 @@ def _directs(delays_ps, amplitude=1.0, sigma_ps=4.0, L=256, noise=0.01, seed=0):
 
 
 def test_the_screen_reads_j_with_the_amplitudes_solved_at_the_starts_shapes():
-    from decomposition.image.spatial import _objective, _screen, objective_weights, prepare_coupling
+    from decomposition.image.neighbours import _screen
+    from decomposition.image.spatial import objective, objective_weights, prepare_coupling
     from decomposition import decompose
     cube = _directs(np.full((1, 2), 200.0), noise=0.0) + np.array([0.0, 0.0])[None, :, None]
     result = decompose(cube, 2.0, t0_ps=2.0)
@@ -266,8 +267,8 @@ def test_the_screen_reads_j_with_the_amplitudes_solved_at_the_starts_shapes():
     start = {k: v.copy() for k, v in c.params.items()}
     start["direct_amplitude"] = start["direct_amplitude"] * 7.0      # wrong amplitudes
     w = objective_weights(c, c.params)[rows]
-    right = _objective(c, rows, c.params, w)
-    wrong = _objective(c, rows, start, w)
+    right = objective(c, rows, c.params, w)
+    wrong = objective(c, rows, start, w)
     screened = _screen(c, rows, start, w)
     # the screen re-solves the amplitudes: J as at the fitted ones, far below the wrong ones'
     np.testing.assert_allclose(screened, right, rtol=1e-6, atol=1e-6)

@@ -13,6 +13,7 @@ import numpy as np
 from ..api import DecompositionResult, Stage
 from ..noise import resolve_noise_model
 from ..options import OptionError
+from . import neighbours as nb
 from . import spatial as sp
 from .pooled import ECHO_WINDOW, SPIKE_WINDOW, pooled_echoes, refit_spikes
 from .shared import SharedEstimate, apply_held_stderr, decompose_held, image_estimate
@@ -129,7 +130,7 @@ def _neighbour_starts(c: _ImageCall) -> None:
     if not c.options.spatial:
         return
     c.coupling = sp.prepare_coupling(c.cube, c.result, c.time_bin_ps, c.method, c.keywords, hold=c.hold)
-    sp.neighbour_starts(c.coupling, c.options.spatial_options)
+    nb.neighbour_starts(c.coupling, c.options.spatial_options)
 
 
 def _joint_refinement(c: _ImageCall) -> None:
