@@ -20,7 +20,8 @@ spread of the ratios, the median drain; then the targets (:func:`streaklab.bench
 
 * the median ratio at most :data:`TARGET_RATIO` (``--live`` costs the capture at most 5 %);
 * each live result equals ``streaklab reconstruct`` then ``streaklab decompose --chunks 1 NX``
-  of its own run byte for byte in every array (:func:`streaklab.live_decompose.differing_arrays`).
+  of its own run byte for byte in every array (:func:`streaklab.live_decompose.differing_arrays`),
+  checked after every capture is timed, so that each capture but the first follows another.
 
 Outputs in ``--out`` (default ``bench-output/live``): ``live.csv`` (one row per capture),
 ``summary.json`` (options, captures, ratios, verdicts) and the run, cube and result stores.
@@ -190,6 +191,8 @@ def run(args) -> int:
         print(f"  {i:4d}  {'with' if order[0] == 'live' else 'w/o':5s}  {got['plain']['load_1min']:5.2f} "
               f"{got['plain']['capture_s']:9.3f}  {got['live']['load_1min']:5.2f} {got['live']['capture_s']:8.3f} "
               f"{got['live']['drain_s']:8.3f}  x{ratio:.3f}", flush=True)
+    # checked once every capture is timed: no capture follows a reconstruction and decomposition here
+    for i, d in enumerate(names, start=1):
         differences[i] = _offline_differences(out / d["live"], out / d["cube"], out / d["offline"], out / d["result"])
 
     median = float(statistics.median(ratios))
