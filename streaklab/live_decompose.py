@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LiveDecomposition", "live_source"]
+__all__ = ["LiveDecomposition", "differing_arrays", "live_source"]
 
 _STOP = None
 
@@ -51,6 +51,45 @@ def live_source(run, calib, shape) -> dict:
             "shape": [int(v) for v in shape],
             "attrs": {"noise_law": calib.noise_law,
                       "time_calibration_source": calib.time_info["time_calibration_source"]}}
+
+
+def differing_arrays(a, b) -> list[str]:
+    """The arrays of two Zarr stores that are not the same byte for byte, every group included.
+
+    The promise of ``--live``: its result store holds the same bytes in every array as
+    ``streaklab decompose`` of the reconstructed cube with ``--chunks 1 NX`` (only attributes
+    differ).  Used by the tests and by ``streaklab bench live``.
+
+    Parameters
+    ----------
+    a, b : paths of the two stores.
+
+    Returns
+    -------
+    list of str: the paths (``"irf/samples"``) of the arrays in one store only, or whose dtype,
+    shape or bytes differ, and of the groups in one store only, each with why; empty when
+    every array is the same.
+    """
+    import zarr
+
+    out = []
+
+    def walk(ga, gb, prefix):
+        ka, kb = set(ga.array_keys()), set(gb.array_keys())
+        out.extend(f"{prefix}{k} (only in {a if k in ka else b})" for k in sorted(ka ^ kb))
+        for k in sorted(ka & kb):
+            x, y = np.asarray(ga[k][...]), np.asarray(gb[k][...])
+            if x.dtype != y.dtype or x.shape != y.shape:
+                out.append(f"{prefix}{k} ({x.dtype} {x.shape} against {y.dtype} {y.shape})")
+            elif x.tobytes() != y.tobytes():
+                out.append(f"{prefix}{k} (bytes differ)")
+        sa, sb = set(ga.group_keys()), set(gb.group_keys())
+        out.extend(f"{prefix}{k}/ (only in {a if k in sa else b})" for k in sorted(sa ^ sb))
+        for k in sorted(sa & sb):
+            walk(ga[k], gb[k], f"{prefix}{k}/")
+
+    walk(zarr.open_group(str(a), mode="r"), zarr.open_group(str(b), mode="r"), "")
+    return out
 
 
 class LiveDecomposition:

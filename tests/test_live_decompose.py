@@ -10,13 +10,9 @@ N_LINES, N_X = 4, 16
 
 def _assert_same_arrays(a, b):
     """Every array of two result stores (the ``irf`` group too), byte for byte."""
-    ga, gb = zarr.open_group(str(a), mode="r"), zarr.open_group(str(b), mode="r")
-    assert sorted(ga.array_keys()) == sorted(gb.array_keys())
-    for k in ga.array_keys():
-        x, y = np.asarray(ga[k][...]), np.asarray(gb[k][...])
-        assert x.dtype == y.dtype and x.shape == y.shape, k
-        assert x.tobytes() == y.tobytes(), f"{k} differs"
-    assert sorted(ga.group_keys()) == sorted(gb.group_keys())
+    from streaklab.live_decompose import differing_arrays
+
+    assert differing_arrays(a, b) == []
 
 
 def _offline(tmp_path, run, name="offline.zarr"):
@@ -103,3 +99,20 @@ def test_live_refuses_an_occupied_store_before_any_device_is_opened(tmp_path, ca
     assert not (tmp_path / "run.zarr").exists() and (tmp_path / "live.zarr" / "notes.txt").exists()
     assert main(["capture", "--config", str(tmp_path / "scan.toml"), "--out", str(tmp_path / "run.zarr"),
                  "--simulate", "--live-png", str(tmp_path / "m.png")]) == 2
+
+
+def test_differing_arrays_names_each_array_not_the_same_byte_for_byte(tmp_path):
+    import shutil
+
+    from streaklab.live_decompose import differing_arrays
+
+    g = zarr.open_group(str(tmp_path / "a.zarr"), mode="w")
+    g.create_array("delay_ps", data=np.array([1.0, np.nan, 3.0], np.float32))
+    g.create_group("irf").create_array("samples", data=np.arange(4.0))
+    shutil.copytree(tmp_path / "a.zarr", tmp_path / "b.zarr")
+    assert differing_arrays(tmp_path / "a.zarr", tmp_path / "b.zarr") == []      # NaN where NaN is the same
+    b = zarr.open_group(str(tmp_path / "b.zarr"), mode="r+")
+    b["irf"]["samples"][2] = 2.0 + 1e-12                     # one value off in a nested group
+    b.create_array("extra", data=np.zeros(2))
+    assert differing_arrays(tmp_path / "a.zarr", tmp_path / "b.zarr") == [
+        f"extra (only in {tmp_path / 'b.zarr'})", "irf/samples (bytes differ)"]

@@ -27,6 +27,8 @@ BENCHMARKS = {
                "neighbours, speed, the demo's scene",
     "adaptive": "capture --target-delay-error-ps against the fixed accumulation whose worst line reaches the "
                 "same direct-delay error: frames taken, lines reaching the target",
+    "live": "capture of the simulated lab's default scan with and without --live, alternated: time to the last "
+            "line on disk, the live drain apart; the live result against reconstruct + decompose byte for byte",
 }
 
 
