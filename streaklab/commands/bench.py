@@ -27,8 +27,9 @@ BENCHMARKS = {
                "neighbours, speed, the demo's scene",
     "adaptive": "capture --target-delay-error-ps against the fixed accumulation whose worst line reaches the "
                 "same direct-delay error: frames taken, lines reaching the target",
-    "live": "capture of the simulated lab's default scan with and without --live, alternated: time to the last "
-            "line on disk, the live drain apart; the live result against reconstruct + decompose byte for byte",
+    "live": "the cost to a capture of decomposing while it runs: the simulated lab's default scan captured with and "
+            "without the in-capture decomposition, alternated, timed to the last line on disk; its result against "
+            "reconstruct + decompose byte for byte",
 }
 
 
