@@ -6,7 +6,8 @@ least squares, without a sign constraint, returning the weighted residual sum of
 screen of :func:`decomposition.image.spatial.neighbour_starts` that decides which starts are
 worth a refit.  The atoms are the point-sampled unit-peak Gaussian and the sss kernel of
 :func:`decomposition.kernels.jit.sss_value` (those of :func:`decomposition.model.varpro.design_rows`,
-to rounding); a tiny ridge keeps collinear atoms solvable, as the refinement's does.
+to rounding); a tiny ridge keeps collinear atoms solvable, as the refinement's does, and the
+normal equations are solved by a Cholesky factor.
 """
 from __future__ import annotations
 
@@ -21,6 +22,35 @@ __all__ = ["screened_rss"]
 
 #: widths from its centre (or the sss onset) beyond which an atom is taken as zero: exp(-72)
 _SUPPORT_WIDTHS = 12.0
+
+
+@njit
+def _cholesky_solve(a, b, n):
+    """x with a x = b for a symmetric positive definite (n, n) ``a`` (overwritten by its Cholesky
+    factor): a few atoms at most, so a plain loop, and no LAPACK to compile."""
+    for j in range(n):
+        d = a[j, j]
+        for k in range(j):
+            d -= a[j, k] * a[j, k]
+        d = math.sqrt(d) if d > 0.0 else 1e-150
+        a[j, j] = d
+        for i in range(j + 1, n):
+            v = a[i, j]
+            for k in range(j):
+                v -= a[i, k] * a[j, k]
+            a[i, j] = v / d
+    x = b.copy()
+    for i in range(n):                      # L y = b
+        v = x[i]
+        for k in range(i):
+            v -= a[i, k] * x[k]
+        x[i] = v / a[i, i]
+    for i in range(n - 1, -1, -1):          # L^T x = y
+        v = x[i]
+        for k in range(i + 1, n):
+            v -= a[k, i] * x[k]
+        x[i] = v / a[i, i]
+    return x
 
 
 @njit
@@ -107,7 +137,7 @@ def screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present
             top = max(top, gram[a, a])
         for a in range(c):
             gram[a, a] += 1e-13 * top + 1e-300
-        amp = np.linalg.solve(gram, rhs)
+        amp = _cholesky_solve(gram, rhs, c)
         for i in range(L):
             r[i] = y[i]
         for a in range(c):
