@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..api import DecompositionResult, Stage
-from ..noise import resolve_noise_model
 from ..options import OptionError
 from . import neighbours as nb
 from . import spatial as sp
@@ -120,9 +119,14 @@ def _per_pixel(c: _ImageCall) -> None:
     c.result.info.update(c.info)
 
 
+def _counts(c: _ImageCall) -> bool:
+    """The per-pixel pass read the image as photon counts (its noise model, in its info)."""
+    return c.result.info.get("noise_model") == "poisson"
+
+
 def _spatial_spikes(c: _ImageCall) -> None:
     # before the coupling: the stages after it read the image with the spikes replaced
-    if c.options.spatial and resolve_noise_model(c.keywords.get("noise", "auto"), c.cube) == "poisson":
+    if c.options.spatial and _counts(c):
         c.result, _, c.cube = refit_spikes(c.cube, c.result, c.time_bin_ps, c.method, c.keywords, hold=c.hold)
 
 
@@ -144,8 +148,7 @@ def _joint_refinement(c: _ImageCall) -> None:
 
 def _pooled_echoes(c: _ImageCall) -> None:
     if c.options.spatial:
-        counts = resolve_noise_model(c.keywords.get("noise", "auto"), c.cube) == "poisson"
-        c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=counts)
+        c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=_counts(c))
 
 
 def halo_pixels(spatial) -> int:
