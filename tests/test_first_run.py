@@ -205,8 +205,6 @@ def test_compile_notice_speaks_only_when_numba_compiles():
     assert rest.startswith("\rtest: kernels compiled and cached in ")  # drawn over the seconds count
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(420)
 def _seed_cache_without_one_kernel(cache_dir, *, left_out: str) -> int:
     """Copy this process's numba cache of ``decomposition`` into ``cache_dir`` (where a run with
     ``NUMBA_CACHE_DIR=cache_dir`` looks), all but the files of kernel ``left_out``; -> files copied.
@@ -241,6 +239,8 @@ def _seed_cache_without_one_kernel(cache_dir, *, left_out: str) -> int:
     return n
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(420)
 def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_path):
     """A numba cache that lacks a kernel (a new install lacks them all): the notice, then
     progress; the next run is silent about it."""
