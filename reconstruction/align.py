@@ -325,5 +325,5 @@ def reference_correction_ps(trigger_interval_ps: np.ndarray, nominal_ps: float, 
         li, fi = np.argwhere(bad)[0]
         line = int(li) if line_ids is None else int(np.asarray(line_ids)[li])
         raise AlignmentError(f"line {line} frame {int(fi)}: no usable trigger interval from the laser sync "
-                             f"({measured[li, fi]!r}; {int(bad.sum())} such frames in all)")
+                             f"({float(measured[li, fi])!r}; {int(bad.sum())} such frames in all)")
     return measured - float(nominal_ps)
