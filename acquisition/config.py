@@ -32,6 +32,10 @@ A configuration has these sections (every key is listed with its default; see
     trigger_delay_ps = 0.0
     repetition_rate_hz = 80e6
     channel = 1
+    reference = false              # optional: record, for every frame, the sync unit's measured
+                                   # interval of the camera trigger after its laser pulse (the run
+                                   # store's ``trigger_interval_ps``), a time base that
+                                   # ``streaklab reconstruct`` aligns the frames on
 
     [dark]
     frames = 4                     # dark frames taken with the sync output off (0 = none)
@@ -74,6 +78,8 @@ A configuration has these sections (every key is listed with its default; see
     fiducial = false               # optional: a fiducial pulse in every frame (drivers.sim.timebase);
                                    # a capture records its nominal position in the run store's
                                    # ``fiducial`` attribute
+    reference_noise_ps = 0.5       # optional: RMS noise of the simulated sync unit's trigger-interval
+                                   # measurement, ps (read when sync.reference = true)
 
 Sizes and waits are bounded by the documented limits of :mod:`core.limits` (at most
 100 000 scan lines, every ``*_timeout_s`` and ``exposure_s`` at most 86 400 s, the retry
@@ -295,6 +301,8 @@ _SPEC = {
         "trigger_delay_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e12, what="a delay in ps in [0, 1e12]"), 0.0),
         "repetition_rate_hz": (_positive("a positive rate in Hz"), 80e6),
         "channel": (lambda k, v: _int(k, v, lo=1, hi=16, what="a channel number in 1..16"), 1),
+        # Optional and without a filled-in default, so the hash of configs that do not name it is unchanged.
+        "reference": (_bool, _MISSING),
     },
     "dark": {
         "frames": (lambda k, v: _int(k, v, lo=0, hi=10000, what="an integer in 0..10000"), 4),
@@ -335,6 +343,8 @@ _SPEC = {
                                           what="a positive clock speed (simulated s per wall s), at most 1e6"),
                         _MISSING),
         "fiducial": (_bool, _MISSING),
+        "reference_noise_ps": (lambda k, v: _num(k, v, lo=0.0, hi=1e6, what="a noise RMS in ps in [0, 1e6]"),
+                               _MISSING),
     },
 }
 

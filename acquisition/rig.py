@@ -75,9 +75,10 @@ def start_simulated_lab(config: ScanConfig, *, wall_clock=None):
     scene = simulated_scene(config)
     tr = config["camera"]["time_range"]
     # A time such as "1 ns" is a single-sweep unit's time range; a number a synchroscan unit's.
+    sync_options = {k: config["simulation"][k] for k in ("reference_noise_ps",) if k in config["simulation"]}
     lab = SimulatedLab(seed=config["simulation"]["seed"], scene=scene, mirror=True, sync=True,
                        camera_options={"single_sweep": isinstance(tr, str)}, timebase=simulated_timebase(config),
-                       wall_clock=wall_clock)
+                       wall_clock=wall_clock, sync_options=sync_options)
     lab.start()
     # The simulated sweep is what the scene says; warn if the config's calibration describes another.
     from drivers.sim.scene import TIME_RANGE_SCALE, time_range_scale

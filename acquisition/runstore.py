@@ -13,6 +13,9 @@ One Zarr v3 directory store per run (see ``docs/layout.md`` for the full table):
     camera_row_times_ps (row,)               float64  the camera's own sweep calibration (its scaling
                                                       table, ps after the trigger); only where the
                                                       camera offers one
+    trigger_interval_ps (line, frame)        float64  the laser sync's measured interval of each frame's
+                                                      camera trigger after its laser pulse, ps; only
+                                                      where the config sets ``sync.reference``
 
 Every array is checksummed (:mod:`core.integrity`); :func:`verify_run` reads every chunk
 and reports damage by line.
@@ -22,9 +25,9 @@ stay the camera's own uint16 counts, a reconstruction can reject a bad frame (a
 cosmic-ray hit, a missed trigger) after the fact, and the average is one ``mean``
 away.
 
-Durability.  ``streaks``, ``done``, ``angle_deg`` and ``timestamp`` are chunked one
-line per chunk, so writing a line never rewrites another line's bytes.  A line is
-written data first (``streaks``, ``angle_deg``, ``timestamp``), fsync'd, and only
+Durability.  ``streaks``, ``done``, ``angle_deg``, ``timestamp`` (and ``trigger_interval_ps``)
+are chunked one line per chunk, so writing a line never rewrites another line's bytes.  A line is
+written data first (``streaks``, ``angle_deg``, ``timestamp``, ``trigger_interval_ps``), fsync'd, and only
 then marked in ``done`` (fsync'd too).  zarr-python 3.1's LocalStore writes each
 chunk to a temporary file and renames it into place, so a chunk file is either the
 old or the new version, never a torn one; an interrupted write leaves at most a
@@ -49,10 +52,12 @@ from core.staging import OutputPathError, check_no_links, staged_output
 
 from .config import ConfigError, ScanConfig, calibration_times_ps, parse_config
 
-__all__ = ["RUN_KIND", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
+__all__ = ["RUN_KIND", "TRIGGER_INTERVALS", "RunStoreError", "RunStore", "create_run", "open_run", "config_differences"]
 
 RUN_KIND = "run"
 LINE_ARRAYS = ("streaks", "angle_deg", "timestamp", "done")
+#: the laser sync's measured trigger interval of every frame (a run with ``sync.reference``)
+TRIGGER_INTERVALS = "trigger_interval_ps"
 
 
 class RunStoreError(StreaklabError, ValueError):
@@ -133,6 +138,27 @@ class RunStore:
         return np.asarray(read_checked(self["camera_row_times_ps"], slice(None), store=self.path),
                           dtype=np.float64)
 
+    @property
+    def has_sync_reference(self) -> bool:
+        """The run records the laser sync's trigger interval of every frame (``sync.reference``)."""
+        return TRIGGER_INTERVALS in self.group
+
+    def trigger_intervals_ps(self, lines) -> np.ndarray:
+        """The recorded trigger intervals of ``lines`` (a sequence of line indices), shape
+        (len(lines), frame), float64 ps (NaN for the frames a line did not take).
+
+        Raises
+        ------
+        RunStoreError
+            The run records none (captured without ``sync.reference``).
+        """
+        if not self.has_sync_reference:
+            raise RunStoreError(f"{self.path}: the run records no trigger intervals (captured without "
+                                f"sync.reference)")
+        arr = self[TRIGGER_INTERVALS]
+        return np.stack([np.asarray(read_checked(arr, int(i), store=self.path), dtype=np.float64)
+                         for i in lines]).reshape(len(lines), self.frames_per_line)
+
     # -- integrity -------------------------------------------------------------------------
     def absent_chunks(self) -> list[ChunkDamage]:
         """Chunks the store says were written (lines marked done, the dark frames) whose files are gone.
@@ -142,7 +168,8 @@ class RunStore:
         done = [int(i) for i in np.flatnonzero(self.done_mask())]
         out = []
         # (target_reached is not judged: a False flag may be stored as no chunk, the fill value)
-        names = ("streaks", "angle_deg", "timestamp") + (("frames_taken",) if "frames_taken" in self.group else ())
+        names = ("streaks", "angle_deg", "timestamp") + tuple(
+            name for name in ("frames_taken", TRIGGER_INTERVALS) if name in self.group)
         for name in names:
             arr = self[name]
             for coords in missing_chunks(self.path, arr, [(i,) + (0,) * (arr.ndim - 1) for i in done]):
@@ -209,7 +236,8 @@ class RunStore:
         sync_chunks(self.path, [("frames_taken", (i,)) for i in np.flatnonzero(done)])
 
     def write_line(self, line: int, frames: np.ndarray, *, angle_deg: float, timestamp: float,
-                   frames_taken: int | None = None, target_reached: bool | None = None) -> None:
+                   frames_taken: int | None = None, target_reached: bool | None = None,
+                   trigger_interval_ps=None) -> None:
         """Store one scan line durably, then mark it done.
 
         Parameters
@@ -226,16 +254,35 @@ class RunStore:
             Adaptive accumulation: the frames the line took (the first ``frames_taken`` of
             ``frames``) and whether it met its target.  Where the store records them and these
             are not given, the line took every frame and the flag is False.
+        trigger_interval_ps : sequence of float, optional
+            The laser sync's measured trigger interval of each frame taken, ps, in order (one
+            per frame taken); required where the store records them, refused where it does not.
         """
         frames = np.asarray(frames)
         expect = self["streaks"].shape[1:]
         if frames.shape != expect or frames.dtype != np.uint16:
             raise RunStoreError(f"line {line}: expected uint16 frames of shape {expect}, got "
                                 f"{frames.dtype} {frames.shape}")
+        n_taken = frames.shape[0] if frames_taken is None else int(frames_taken)
+        intervals = None
+        if self.has_sync_reference:
+            if trigger_interval_ps is None:
+                raise RunStoreError(f"line {line}: the store records trigger intervals, none given")
+            measured = np.asarray(trigger_interval_ps, dtype=np.float64).reshape(-1)
+            if measured.size != n_taken:
+                raise RunStoreError(f"line {line}: {measured.size} trigger intervals for {n_taken} frames")
+            intervals = np.full(frames.shape[0], np.nan)
+            intervals[:n_taken] = measured
+        elif trigger_interval_ps is not None:
+            raise RunStoreError(f"line {line}: trigger intervals given, but the store has no "
+                                f"{TRIGGER_INTERVALS} array")
         self["streaks"][line] = frames
         self["angle_deg"][line] = float(angle_deg)
         self["timestamp"][line] = float(timestamp)
         written = [("streaks", (line, 0, 0, 0)), ("angle_deg", (line,)), ("timestamp", (line,))]
+        if intervals is not None:
+            self[TRIGGER_INTERVALS][line] = intervals
+            written.append((TRIGGER_INTERVALS, (line, 0)))
         if frames_taken is not None and not 1 <= int(frames_taken) <= frames.shape[0]:
             raise RunStoreError(f"line {line}: frames_taken {frames_taken} outside 1..{frames.shape[0]}")
         if "frames_taken" in self.group:
@@ -330,7 +377,7 @@ def verify_run(run: RunStore) -> RunCheck:
         else:
             done[line] = bool(done_arr[line])
     ok_lines = [(int(i),) for i in np.flatnonzero(done)]
-    for name in ("streaks", "angle_deg", "timestamp"):
+    for name in ("streaks", "angle_deg", "timestamp") + ((TRIGGER_INTERVALS,) if run.has_sync_reference else ()):
         arr = run[name]
         for d in scan_array(path, arr, [c + (0,) * (arr.ndim - 1) for c in ok_lines]):
             lines.setdefault(d.coords[0], []).append(d)
@@ -343,7 +390,7 @@ def verify_run(run: RunStore) -> RunCheck:
             dark_pending = run["dark"].shape[0] > 0
     other = []
     for name in sorted(run.group.array_keys()):
-        if name not in LINE_ARRAYS + ("dark", "dark_done"):
+        if name not in LINE_ARRAYS + ("dark", "dark_done", TRIGGER_INTERVALS):
             other.extend(scan_array(path, run[name]))
     return RunCheck(checksums=has_checksums(run["streaks"]), lines=dict(sorted(lines.items())), dark=dark,
                     other=other, lines_done=int(done.sum()), n_lines=n, dark_pending=dark_pending)
@@ -424,6 +471,11 @@ def _write_skeleton(p: Path, config: ScanConfig, *, n_lines, n_frames, n_dark, n
     target = create_array(g, "target_angle_deg", shape=(n_lines,), dtype="float64", dimension_names=["line"],
                           attributes={"units": "deg", "long_name": "mirror angle requested by the config"})
     target[:] = config.angles_deg
+    if config["sync"].get("reference"):
+        create_array(g, TRIGGER_INTERVALS, shape=(n_lines, n_frames), chunks=(1, n_frames), dtype="float64",
+                     fill_value=np.nan, dimension_names=["line", "frame"],
+                     attributes={"units": "ps", "long_name": "camera trigger's interval after its laser pulse, "
+                                 "as the laser sync measured it (NaN: frame not taken)"})
     create_array(g, "dark", shape=(n_dark, nx, nt), chunks=(max(n_dark, 1), nx, nt), dtype="uint16", fill_value=0,
                  dimension_names=["dark_frame", "x", "row"],
                  attributes={"units": "counts", "long_name": "dark frames (sync output off)",

@@ -10,7 +10,9 @@ protocols, so the same code runs on the real rig and on ``drivers.sim``::
              where the camera offers one
     lines    sync output on; for every line not yet done: move the mirror, wait until it
              settles, take ``frames_per_line`` frames, check the sync's error queue, write
-             the frames durably, mark the line done
+             the frames durably, mark the line done; with ``sync.reference`` the sync unit's
+             trigger-interval buffer is emptied before the frames and read after them: one
+             measured interval per frame, written with the frames
     finally  sync output off and the camera's MCP gain 0 (the drivers' context managers do the rest)
 
 The gain interlock: the camera's MCP gain is set to 0 when the session ends (complete,
@@ -54,7 +56,8 @@ from .config import ConfigError, ScanConfig, check_calibration, check_row_times
 from .runstore import (RunStore, RunStoreError, config_differences, create_run, describe_absent,
                        is_uninitialised_run, open_run, remove_uninitialised_run)
 
-__all__ = ["CaptureError", "CaptureFailed", "SettingRejected", "SessionResult", "CaptureSession", "RETRYABLE"]
+__all__ = ["CaptureError", "CaptureFailed", "SettingRejected", "TriggerCountMismatch", "check_trigger_count",
+           "SessionResult", "CaptureSession", "RETRYABLE"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +79,29 @@ class CaptureFailed(CaptureError):
         self.lines_done = lines_done
         self.n_lines = n_lines
         self.store_created = store_created  # False: it failed before the run store existed
+
+
+class TriggerCountMismatch(ProtocolError):
+    """The laser sync measured another number of trigger intervals than the line took frames
+    (a missed or extra trigger): the line is taken again, as after any device fault."""
+
+    def __init__(self, message: str):
+        self.raw = b""
+        DriverError.__init__(self, message)
+
+
+def check_trigger_count(line: int, measured, n_frames: int) -> list[float]:
+    """``measured`` (the trigger intervals read after line ``line``'s frames) when it holds one per
+    frame, else :class:`TriggerCountMismatch` naming the line and the first frame without its own."""
+    measured = list(measured)
+    m = len(measured)
+    if m < n_frames:
+        raise TriggerCountMismatch(f"line {line} frame {m}: no trigger interval measured (the laser sync "
+                                   f"measured {m} for the line's {n_frames} frames)")
+    if m > n_frames:
+        raise TriggerCountMismatch(f"line {line} frame {n_frames - 1}: the laser sync measured {m} trigger "
+                                   f"intervals for the line's {n_frames} frames (more triggers than frames)")
+    return measured
 
 
 class SettingRejected(CaptureError):
@@ -451,13 +477,19 @@ class CaptureSession:
         settle_s = self.config["scan"]["settle_timeout_s"]
         n = self.config["camera"]["frames_per_line"]
 
+        reference = bool(self.config["sync"].get("reference"))
+
         def acquire():
             self.mirror.move_to(angle)
             reached = float(self.mirror.wait_settled(timeout_s=settle_s))
+            if reference:
+                self.sync.fetch_trigger_intervals()      # forget triggers before this line's frames
             if self.line_good_enough is None:
                 frames, taken, good = self._acquire_frames(n, f"line {line}", "camera.frames_per_line"), None, None
             else:
                 frames, taken, good = self._accumulate(line, n)
+            intervals = check_trigger_count(line, self.sync.fetch_trigger_intervals(),
+                                            n if taken is None else taken) if reference else None
             if frames.shape[1:] != self.store.image_shape:
                 raise CaptureError(f"line {line}: the camera delivers {frames.shape[1:]} images, the run store "
                                    f"holds {self.store.image_shape}")
@@ -465,12 +497,12 @@ class CaptureSession:
             errors = self.sync.read_errors()
             if errors:
                 raise DeviceError(errors[0][0], errors[0][1], command=f"line {line}", device="laser sync")
-            return reached, frames, taken, good
+            return reached, frames, taken, good, intervals
 
-        reached, frames, taken, good = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
+        reached, frames, taken, good, intervals = self._attempt(f"line {line} (mirror {angle:g} deg)", acquire)
         try:
             self.store.write_line(line, frames, angle_deg=reached, timestamp=time.time(),
-                                  frames_taken=taken, target_reached=good)
+                                  frames_taken=taken, target_reached=good, trigger_interval_ps=intervals)
         except OSError as exc:  # a full or read-only disk: the lines before this one are safe
             full = exc.errno == errno.ENOSPC
             raise CaptureFailed(f"line {line}: cannot write it to {self.out}: "
@@ -549,6 +581,10 @@ class CaptureSession:
         The steps before the first line, shared by :meth:`run` and by other drivers of the
         line loop (``streaklab.bluesky``); returns the device identities.
         """
+        if self.config["sync"].get("reference") and not callable(getattr(self.sync, "fetch_trigger_intervals",
+                                                                         None)):
+            raise CaptureError("sync.reference = true, but this laser-sync driver measures no trigger intervals "
+                               "(fetch_trigger_intervals); set sync.reference = false")
         ids = self.check_devices()
         self.open_store()
         if self.line_good_enough is not None:

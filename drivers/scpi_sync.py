@@ -10,6 +10,16 @@ the system timer ``T0``)::
     :PULS0:PER <s>              repetition period (the rate is its inverse)
     :PULS0:STAT ON|OFF          output of all channels on/off
     :PULS<n>:DEL <s>            delay of channel n after T0
+    :TINT:FETC?                 the camera triggers' measured intervals after their laser
+                                pulses since the last read (the read empties the unit's buffer)
+
+The trigger-interval measurement is the unit's time-interval counter: for every camera
+trigger it measures the trigger's time after the laser pulse it was derived from.  On the
+wire (``<count>`` an NR1 integer, each interval an NR2 number of picoseconds, oldest first)::
+
+    > :TINT:FETC?\n
+    < 3,1234.512,1233.907,1235.020\n          three triggers since the last read
+    < 0\n                                     none
 
 The driver is a command table (:data:`COMMANDS`: header, whether it can be
 set and queried, the value type on the wire) over a message transport: by
@@ -63,6 +73,7 @@ COMMANDS = {
     "period": ScpiCommand(":PULS0:PER", value="seconds", queryable=True),
     "output": ScpiCommand(":PULS0:STAT", value="bool", queryable=True),
     "delay": ScpiCommand(":PULS{channel}:DEL", value="seconds", queryable=True),
+    "trigger_intervals": ScpiCommand(":TINT:FETC", value="text", settable=False, queryable=True),
 }
 
 
@@ -237,6 +248,39 @@ class ScpiLaserSync:
         if text not in ("0", "1"):
             raise ProtocolError("malformed :PULS0:STAT? response", text.encode())
         return text == "1"
+
+    def fetch_trigger_intervals(self) -> list[float]:
+        """The camera triggers' measured intervals after their laser pulses since the last read, ps.
+
+        ``:TINT:FETC?`` (see the module docstring); the unit forgets what it returns, so a read
+        before a line's frames clears what came before them and a read after gives one interval
+        per frame, oldest first.
+
+        Raises
+        ------
+        ProtocolError
+            A reply whose count is not a non-negative integer, whose intervals are not finite
+            numbers, or whose count differs from the intervals it carries.
+        """
+        command = program_message("trigger_intervals", query=True)
+        text = self.query(command).strip()
+        fields = text.split(",")
+        count = fields[0].strip()
+        if not count.isdigit():
+            raise ProtocolError(f"{command}: the count {count!r} is not a non-negative integer", text.encode()[:80])
+        if int(count) != len(fields) - 1:
+            raise ProtocolError(f"{command}: the count says {count} intervals, the reply carries "
+                                f"{len(fields) - 1}", text.encode()[:80])
+        out = []
+        for i, field in enumerate(fields[1:]):
+            try:
+                value = float(field)
+            except ValueError:
+                value = float("nan")
+            if not math.isfinite(value):
+                raise ProtocolError(f"{command}: interval {i} is not a finite number: {field!r}", text.encode()[:80])
+            out.append(value)
+        return out
 
     # ------------------------------------------------------------ lifetime
     def close(self) -> None:

@@ -30,7 +30,8 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
-           "fiducial_correction_ps", "resample_aligned", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA"]
+           "fiducial_correction_ps", "resample_aligned", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA",
+           "reference_correction_ps"]
 
 #: rows of the running median that gives the dark image's structure along the time axis
 DARK_SMOOTH_ROWS = 31
@@ -292,3 +293,37 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
         pattern = keep[:, None] * rest
     structure = np.where(outlier, d, smooth + pattern)
     return structure, d - structure
+
+
+def reference_correction_ps(trigger_interval_ps: np.ndarray, nominal_ps: float, *, line_ids=None) -> np.ndarray:
+    """(n_lines, n_frames) the time each frame must move by, ps, from the laser sync's reference:
+    each frame's measured trigger interval after its laser pulse minus the nominal one.
+
+    A trigger that fires ``d`` ps late shows the light ``d`` ps early in the window, so the frame
+    is read at its row times plus ``d`` (:func:`resample_aligned`): the opposite of a fiducial
+    pulse, whose measured time is late when the light is (:func:`fiducial_correction_ps`).
+
+    Parameters
+    ----------
+    trigger_interval_ps : ndarray, shape (n_lines, n_frames)
+        The run store's ``trigger_interval_ps`` of the frames to align, ps.
+    nominal_ps : float
+        The trigger interval the frames' row times assume (the run's ``sync.trigger_delay_ps``), ps.
+    line_ids : sequence of int, optional
+        Run line of each row of ``trigger_interval_ps`` (for the error message; default 0, 1, ...).
+
+    Raises
+    ------
+    AlignmentError
+        A frame without a finite interval, naming its line and frame.
+    """
+    measured = np.asarray(trigger_interval_ps, dtype=np.float64)
+    if measured.ndim != 2:
+        raise AlignmentError(f"trigger intervals must be 2-D (line, frame), got shape {measured.shape}")
+    bad = ~np.isfinite(measured)
+    if bad.any():
+        li, fi = np.argwhere(bad)[0]
+        line = int(li) if line_ids is None else int(np.asarray(line_ids)[li])
+        raise AlignmentError(f"line {line} frame {int(fi)}: no usable trigger interval from the laser sync "
+                             f"({float(measured[li, fi])!r}; {int(bad.sum())} such frames in all)")
+    return measured - float(nominal_ps)

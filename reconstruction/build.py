@@ -36,7 +36,7 @@ from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, 
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
 __all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS", "LineCalibration",
-           "line_calibration", "run_dark", "mean_line_images", "scan_order"]
+           "ALIGN_REFERENCES", "line_calibration", "run_dark", "mean_line_images", "scan_order"]
 
 
 class ReconstructionError(StreaklabError, ValueError):
@@ -101,7 +101,7 @@ def row_times(run, n_rows: int, time_source: str | None = None) -> tuple[np.ndar
 def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, flat_path=None,
                 allow_partial: bool = False, overwrite: bool = False, progress=None,
                 time_source: str | None = None, align: bool | None = None, sweep_path=None,
-                fiducial_min_snr: float = 5.0):
+                fiducial_min_snr: float = 5.0, align_on: str | None = None):
     """Reconstruct the calibrated cube of a run store.
 
     Parameters
@@ -122,9 +122,14 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         ``calibration.time_source``, else ``auto``.  The cube's provenance records which
         was used (``time_calibration_source``) and how far the two differ.
     align : bool, optional
-        Align every frame on the run's fiducial pulse before the frames are averaged
-        (:mod:`reconstruction.align`); default: when the run store's ``fiducial`` attribute
-        exists.  The corrections go into the cube's ``fiducial_correction_ps`` (y, frame), ps.
+        Align every frame on the run's time reference before the frames are averaged
+        (:mod:`reconstruction.align`); default: when the run records one (its ``fiducial``
+        attribute, or its ``trigger_interval_ps``).  The corrections go into the cube's
+        ``fiducial_correction_ps`` (y, frame), ps.
+    align_on : {"pulse", "sync"}, optional
+        The reference: the fiducial pulse in the frames (``pulse``) or the laser sync's measured
+        trigger intervals (``sync``, :func:`reconstruction.align.reference_correction_ps`); default
+        the one the run records, the pulse where it records both.
     sweep_path : path of a sweep calibration (``streaklab calibrate-sweep``), optional
         Its row times replace the camera table and the polynomial; it must have been made for
         the run's time range and row count.  The cube keeps a copy in its ``sweep`` group.
@@ -156,9 +161,9 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     n_lines = run.n_lines
     row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, sweep_cal = _time_grid(run, time_source, sweep_path)
     fid_attr = run.attrs.get("fiducial")
-    if align is None:
-        align = fid_attr is not None
-    fiducial = _fiducial(run, align, n_rows, nx)
+    align_on = _align_on(run, align, align_on)
+    align = align_on is not None
+    fiducial = _fiducial(run, align_on == "pulse", n_rows, nx)
 
     by = min(n_lines, 16) if chunks is None else min(int(chunks[0]), n_lines)
     try:
@@ -188,7 +193,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
     if flat_path is not None:
         flat, flat_sha = load_flat(flat_path, (nx, n_rows))
     calib = line_calibration(run, flat=flat, time_source=time_source, sweep_path=sweep_path, align=align,
-                             fiducial_min_snr=fiducial_min_snr)
+                             fiducial_min_snr=fiducial_min_snr, align_on=align_on)
 
     reached = np.asarray(read_checked(run["angle_deg"], slice(None), store=run.path), dtype=np.float64)
     order, target = scan_order(run)
@@ -216,7 +221,9 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "exposure_s": float(cfg["camera"]["exposure_s"]),
         "resampling": "linear interpolation from calibrated row times",
         "aligned_on_fiducial": bool(align),
+        "alignment_reference": ALIGN_REFERENCES.get(align_on),
         "fiducial": None if fiducial is None else dict(fid_attr),
+        "sync_reference_nominal_ps": calib.sync_nominal_ps,
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
     }
 
@@ -236,10 +243,12 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                                  "flag_meanings": "unfinished acquired"})[:] = done[order]
         corr_arr = None
         if align:
+            what = ("its fiducial at the reference" if align_on == "pulse" else
+                    "its trigger at the nominal interval after its laser pulse (the laser sync's measurement)")
             corr_arr = create_array(g, "fiducial_correction_ps", shape=(n_lines, run.frames_per_line),
                                     dtype="float64", fill_value=np.nan, dimension_names=["y", "frame"],
-                                    attributes={"units": "ps", "long_name": "time each frame was moved by to put "
-                                                "its fiducial at the reference (NaN: unfinished line)"})
+                                    attributes={"units": "ps", "long_name": f"time each frame was moved by to put "
+                                                f"{what} (NaN: unfinished line)"})
         if sweep_cal is not None:
             from .sweep import SWEEP_GROUP, write_sweep_group
             write_sweep_group(g.create_group(SWEEP_GROUP), sweep_cal)
@@ -256,8 +265,9 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                 raw = np.stack([read_checked(streaks, int(i), store=run.path)
                                 for i in ys[ok]])                             # (b, frame, x, rows) uint16
                 try:
+                    intervals = run.trigger_intervals_ps(ys[ok]) if calib.sync_nominal_ps is not None else None
                     rows, corr = calib.correct(raw, line_ids=ys[ok], frames_taken=None if taken is None
-                                               else taken[ys[ok]])
+                                               else taken[ys[ok]], trigger_interval_ps=intervals)
                 except StreaklabError as exc:                     # the fiducial not found in a frame
                     raise ReconstructionError(f"{run.path}: {exc}") from None
                 block[ok] = rows
@@ -298,6 +308,32 @@ def _time_grid(run, time_source=None, sweep_path=None):
     return row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, sweep_cal
 
 
+#: the time references a reconstruction aligns frames on (``align_on``), as the provenance names them
+ALIGN_REFERENCES = {"pulse": "fiducial pulse", "sync": "laser sync trigger intervals"}
+
+
+def _align_on(run, align, align_on):
+    """The reference the frames are aligned on ("pulse", "sync") or None (not aligned), from
+    ``align`` (None: when the run records a reference) and ``align_on`` (None: the run's, the
+    pulse where it records both); a reference the run lacks is an error."""
+    if align_on is not None and align_on not in ALIGN_REFERENCES:
+        raise ReconstructionError(f"align_on must be one of {', '.join(ALIGN_REFERENCES)}, got {align_on!r}")
+    has = {"pulse": run.attrs.get("fiducial") is not None, "sync": run.has_sync_reference}
+    if align is False:
+        if align_on is not None:
+            raise ReconstructionError(f"{run.path}: --no-align with --align-on {align_on}; give one of them")
+        return None
+    if align_on is None:
+        align_on = "pulse" if has["pulse"] or not has["sync"] else "sync"
+        if align is None and not has[align_on]:
+            return None
+    if align_on == "sync" and not has["sync"]:
+        raise ReconstructionError(f"{run.path}: --align-on sync, but the run records no trigger intervals "
+                                  f"(captured without sync.reference); align on the pulse or reconstruct with "
+                                  f"--no-align")
+    return align_on
+
+
 def _fiducial(run, align, n_rows: int, nx: int):
     """The run's fiducial (:class:`reconstruction.align.Fiducial`) where frames are to be aligned
     on it (``align``), else None; ``align`` without a recorded fiducial is an error."""
@@ -328,6 +364,9 @@ class LineCalibration:
     dark_noise_var : ndarray (x,) or None  variance of the mean dark's noise per slit pixel, counts^2
                                        (None: a single dark frame); what of the dark moves with
                                        aligned frames (:func:`reconstruction.align.split_dark`)
+    sync_nominal_ps : float or None    align every frame on the laser sync's measured trigger
+                                       interval instead, this being the nominal one (ps,
+                                       :func:`reconstruction.align.reference_correction_ps`)
     """
 
     row_times_ps: np.ndarray
@@ -340,24 +379,34 @@ class LineCalibration:
     fiducial: object = None
     fiducial_min_snr: float = 5.0
     dark_noise_var: np.ndarray | None = None
+    sync_nominal_ps: float | None = None
+
+    @property
+    def aligned(self) -> bool:
+        """Frames are moved onto a time reference (the fiducial pulse or the sync's) before the mean."""
+        return self.fiducial is not None or self.sync_nominal_ps is not None
 
     @property
     def noise_law(self) -> str | None:
         """The cube's ``noise_law``: "detector" (one camera's read-out) unless a flat field rescaled pixels."""
         return "detector" if self.flat is None else None
 
-    def rows(self, raw, line_ids=None, frames_taken=None) -> np.ndarray:
+    def rows(self, raw, line_ids=None, frames_taken=None, trigger_interval_ps=None) -> np.ndarray:
         """Raw frames of lines, (b, frame, x, n_rows) uint16 -> their cube rows, (b, x, n_bins) float32
         (mean counts per frame, dark subtracted, flat corrected, aligned on the fiducial where the
         run has one, on the uniform time axis); ``line_ids`` (b,) name the lines in errors;
         ``frames_taken`` (b,) int, optional: only the first ``frames_taken[i]`` frames of line i
-        are used (adaptive accumulation; the run store's ``frames_taken``)."""
-        return self.correct(raw, line_ids, frames_taken)[0]
+        are used (adaptive accumulation; the run store's ``frames_taken``); ``trigger_interval_ps``
+        (b, frame) ps: the lines' recorded trigger intervals, needed where the frames are aligned on
+        the sync reference (the run store's ``trigger_interval_ps``)."""
+        return self.correct(raw, line_ids, frames_taken, trigger_interval_ps)[0]
 
-    def correct(self, raw, line_ids=None, frames_taken=None):
+    def correct(self, raw, line_ids=None, frames_taken=None, trigger_interval_ps=None):
         """-> (rows (b, x, n_bins) float32 as :meth:`rows`, corrections (b, frame) ps or None): each
-        frame's shift onto the fiducial's reference time, where frames are aligned (NaN for the
-        frames not taken)."""
+        frame's shift onto the reference time, where frames are aligned (NaN for the frames not
+        taken)."""
+        if self.sync_nominal_ps is not None and trigger_interval_ps is None:
+            raise ReconstructionError("frames aligned on the sync reference need their trigger intervals")
         if frames_taken is not None:
             raw = np.asarray(raw)
             taken = np.asarray(frames_taken, dtype=np.int64).reshape(-1)
@@ -366,19 +415,21 @@ class LineCalibration:
                                           f"{raw.shape[1]} frames")
             if (taken < raw.shape[1]).any():      # lines of unequal length: one at a time
                 ids = [None] * taken.size if line_ids is None else list(np.asarray(line_ids).reshape(-1))
-                parts = [self.correct(raw[i:i + 1, :k], None if ids[i] is None else [ids[i]])
+                intervals = None if trigger_interval_ps is None else np.asarray(trigger_interval_ps, np.float64)
+                parts = [self.correct(raw[i:i + 1, :k], None if ids[i] is None else [ids[i]], None,
+                                      None if intervals is None else intervals[i:i + 1, :k])
                          for i, k in enumerate(taken)]
                 rows = np.concatenate([r for r, _ in parts])
-                if self.fiducial is None:
+                if not self.aligned:
                     return rows, None
                 corr = np.full(raw.shape[:2], np.nan)
                 for i, (_, c) in enumerate(parts):
                     corr[i, :taken[i]] = c[0]
                 return rows, corr
-        if self.fiducial is None:
+        if not self.aligned:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:
-            from .align import fiducial_correction_ps, resample_aligned, split_dark
+            from .align import fiducial_correction_ps, reference_correction_ps, resample_aligned, split_dark
             # the dark's structure moves with each frame, its noise is subtracted once after the
             # move (reconstruction.align.split_dark): moved, it would repeat at the frames' lags
             structure, dark_noise = split_dark(self.dark, noise_var=self.dark_noise_var)
@@ -386,8 +437,12 @@ class LineCalibration:
             if self.flat is not None:
                 frames /= self.flat
                 dark_noise = dark_noise / self.flat
-            corr = fiducial_correction_ps(frames - dark_noise, self.row_times_ps, self.fiducial,
-                                          min_snr=self.fiducial_min_snr, line_ids=line_ids)
+            if self.sync_nominal_ps is not None:
+                corr = reference_correction_ps(np.asarray(trigger_interval_ps, np.float64).reshape(frames.shape[:2]),
+                                               self.sync_nominal_ps, line_ids=line_ids)
+            else:
+                corr = fiducial_correction_ps(frames - dark_noise, self.row_times_ps, self.fiducial,
+                                              min_snr=self.fiducial_min_snr, line_ids=line_ids)
             rows = resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
                                     t0_ps=self.t0_ps, n_bins=self.n_bins).mean(axis=1)
             rows -= resample_uniform(dark_noise, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
@@ -399,16 +454,18 @@ class LineCalibration:
 
 
 def line_calibration(run, *, flat=None, time_source: str | None = None, sweep_path=None, align: bool | None = None,
-                     fiducial_min_snr: float = 5.0) -> LineCalibration:
+                     fiducial_min_snr: float = 5.0, align_on: str | None = None) -> LineCalibration:
     """The :class:`LineCalibration` :func:`reconstruct` applies to ``run`` (an opened run store whose
     dark frames are recorded); ``flat`` an already loaded flat field (x, n_rows) or None;
-    ``sweep_path``, ``align`` and ``fiducial_min_snr`` as :func:`reconstruct` takes them."""
+    ``sweep_path``, ``align``, ``fiducial_min_snr`` and ``align_on`` as :func:`reconstruct` takes them."""
     nx, n_rows = run.image_shape
     row_times_ps, time_bin_ps, t0_ps, n_bins, time_info, _ = _time_grid(run, time_source, sweep_path)
-    fiducial = _fiducial(run, run.attrs.get("fiducial") is not None if align is None else align, n_rows, nx)
+    align_on = _align_on(run, align, align_on)
+    fiducial = _fiducial(run, align_on == "pulse", n_rows, nx)
+    sync_nominal_ps = float(run.config["sync"]["trigger_delay_ps"]) if align_on == "sync" else None
     dark, noise_var = run_dark(run, with_noise=True)
     return LineCalibration(row_times_ps, time_bin_ps, t0_ps, n_bins, dark, flat, time_info, fiducial,
-                           fiducial_min_snr, noise_var)
+                           fiducial_min_snr, noise_var, sync_nominal_ps)
 
 
 def run_dark(run, *, with_noise: bool = False):

@@ -271,7 +271,9 @@ class _Worker:
                 continue
             raw = np.asarray(read_checked(streaks, line, store=run.path))[None]   # (1, frame, x, rows)
             taken = run.frames_taken()                  # adaptive accumulation: the frames the line took
-            live.solve(y, 0, calib.rows(raw, frames_taken=None if taken is None else taken[[line]]))
+            intervals = run.trigger_intervals_ps([line]) if calib.sync_nominal_ps is not None else None
+            live.solve(y, 0, calib.rows(raw, frames_taken=None if taken is None else taken[[line]],
+                                        trigger_interval_ps=intervals))
             pending.discard(y)
             done += 1
             self.outbox.put(("lines", done, run.n_lines))

@@ -61,3 +61,23 @@ def test_bad_options_are_named(tmp_path, capsys):
     assert "--time-range must be a synchroscan setting 1..4" in capsys.readouterr().err
     assert main(["bench", "timebase", "--minutes", "0", "--out", str(tmp_path / "tb")]) == 2
     assert "--minutes must be positive" in capsys.readouterr().err
+    assert main(["bench", "timebase", "--reference-noise-ps", "-1", "--out", str(tmp_path / "tb")]) == 2
+    assert "--reference-noise-ps must be a finite number >= 0, got -1.0" in capsys.readouterr().err
+
+
+def test_the_sync_reference_undoes_the_drift_as_the_pulse_does(tmp_path, capsys):
+    from acquisition.runstore import open_run
+    from reconstruction.cubestore import open_cube
+
+    out = tmp_path / "tb"
+    assert main(["bench", "timebase", *TINY, "--minutes", "5", "--reference", "sync", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    rows, summary = _read(out)
+    assert "aligned on the laser sync's trigger intervals (0.5 ps RMS measurement noise)" in text
+    assert summary["options"]["reference"] == "sync" and summary["options"]["reference_noise_ps"] == 0.5
+    assert open_run(out / "moving.run.zarr").has_sync_reference
+    prov = open_cube(out / "aligned.cube.zarr").attrs["provenance"]
+    assert prov["alignment_reference"] == "laser sync trigger intervals"
+    med = {c: float(r["median_abs_ratio_to_steady"]) for c, r in rows.items()}
+    assert med["aligned"] < 3 and med["unaligned"] > 50 and not any(r["failure"] for r in rows.values())
+    assert "without alignment x" in text

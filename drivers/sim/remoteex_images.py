@@ -128,10 +128,12 @@ class RemoteExImages:
             self._view_index += 1
         else:
             self._view_key, self._view_index = key, 0
-        rng = np.random.default_rng(frame_seed(self.seed, angle, delay_ps, light, self._view_index))
+        seed_seq = frame_seed(self.seed, angle, delay_ps, light, self._view_index)
+        rng = np.random.default_rng(seed_seq)
         line = self.scene.line_index(angle)
         total = None
         effects = self.timebase.active and not focus          # no sweep in focus mode: no time-base effects
+        first_shift = len(self.frame_shifts)
         for _ in range(n):
             mean = self._timebase_mean(line, delay_ps, exposure_s, tr) if effects and light else None
             frame = self.scene.render_frame(line, rng, delay_ps=delay_ps, exposure_s=exposure_s, gain=self.gain,
@@ -139,6 +141,13 @@ class RemoteExImages:
                                             signal_mean=mean)
             total = frame.astype(np.float64) if total is None else total + frame
         self.frames_rendered += 1
+        if light:
+            # the sync unit sees the trigger of this frame: the channel's delay less the frame's shift
+            # (the mean over its exposures); its measurement noise is seeded like the frame's noise
+            shifts = [f["shift_ps"] for f in self.frame_shifts[first_shift:]]
+            shift = float(np.mean(shifts)) if shifts else 0.0
+            with self.state.lock:
+                self.state.triggers.append((sync_delay_ps - shift, tuple(int(e) for e in seed_seq.entropy)))
         frame = np.clip(total, 0, np.iinfo(np.uint16).max).astype(np.uint16)
         meta = {"line": line, "angle_deg": angle, "delay_ps": delay_ps, "light": light, "index": self._view_index,
                 "mode": mode, "exposures": n, "focus": focus, "time_range": tr,

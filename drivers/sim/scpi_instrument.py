@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from .state import LabState
 
 __all__ = ["SCPI_ERRORS", "COMMANDS_DOC", "SyncInstrument"]
@@ -46,6 +48,10 @@ SYSTem:ERRor[:NEXT]?     -> <code>,"<text>"  (0,"No error" when the queue is emp
 :PULSe<n>:DELay <s> / ?  channel n = 1..4 delay after T0, 0 .. 1 ms, 0.1 ps resolution
 :PULSe<n>:WIDTh <s> / ?  channel n pulse width, 1 ns .. 1 ms
 :PULSe<n>:STATe ON|OFF / ? channel n enable
+:TINTerval:FETCh?        -> <count>[,<interval_ps>...]: the camera triggers' measured intervals
+                         after their laser pulses since the last read, oldest first, ps with
+                         3 decimals (count 0 and nothing else when there are none); the read
+                         empties the buffer (65536 measurements; the oldest are lost beyond)
 """
 
 _PERIOD_RANGE_S = (5e-9, 1000.0)
@@ -53,6 +59,8 @@ _DELAY_RANGE_S = (0.0, 1e-3)
 _WIDTH_RANGE_S = (1e-9, 1e-3)
 _N_CHANNELS = 4
 _ERROR_QUEUE_LEN = 20
+#: stream of the trigger-interval measurement noise, apart from the frames' noise streams
+_REFERENCE_STREAM = 0x7111E5
 
 
 class _ScpiError(Exception):
@@ -79,12 +87,19 @@ class SyncInstrument:
     camera_channel : int
         Channel that triggers the streak camera: its delay is ``LabState.sync_delay_ps``
         and the camera sees light only while it and the system output are on.
+    reference_noise_ps : float
+        RMS of the Gaussian noise of each trigger-interval measurement (``:TINT:FETC?``), ps;
+        each draw is seeded by its trigger's ``noise_key`` (:attr:`LabState.triggers`).
     """
 
     def __init__(self, lab_state: LabState, serial_number: str, firmware: str = "1.0",
-                 camera_channel: int = 1):
+                 camera_channel: int = 1, reference_noise_ps: float = 0.5):
         if not 1 <= int(camera_channel) <= _N_CHANNELS:
             raise ValueError(f"camera_channel must be 1..{_N_CHANNELS}, got {camera_channel!r}")
+        reference_noise_ps = float(reference_noise_ps)
+        if not (math.isfinite(reference_noise_ps) and reference_noise_ps >= 0):
+            raise ValueError(f"reference_noise_ps must be finite and >= 0, got {reference_noise_ps!r}")
+        self.reference_noise_ps = reference_noise_ps
         self.camera_channel = int(camera_channel)
         self.lab_state = lab_state
         self.serial_number = serial_number
@@ -178,7 +193,25 @@ class SyncInstrument:
             return f'{code},"{SCPI_ERRORS.get(code, "Device-specific error")}"'
         if len(nodes) == 2 and nodes[0].upper().startswith("PULS"):
             return self._pulse(nodes[0], nodes[1], query, arg)
+        if len(nodes) == 2 and _keyword(nodes[0], "TINTerval") and _keyword(nodes[1], "FETCh"):
+            if not query:
+                raise _ScpiError(-113)
+            return self._fetch_intervals()
         raise _ScpiError(-113)
+
+    def _fetch_intervals(self) -> str:
+        """``<count>[,<interval_ps>...]``: every buffered trigger measured, the buffer emptied."""
+        with self.lab_state.lock:
+            triggers = list(self.lab_state.triggers)
+            self.lab_state.triggers.clear()
+        values = []
+        for interval_ps, key in triggers:
+            noise = 0.0
+            if self.reference_noise_ps:
+                rng = np.random.default_rng([*key, _REFERENCE_STREAM])
+                noise = float(rng.normal(0.0, self.reference_noise_ps))
+            values.append(f"{interval_ps + noise:.3f}")
+        return ",".join([str(len(values))] + values)
 
     def _common(self, head: str, query: bool, arg, message_available: bool):
         if arg is not None:

@@ -95,6 +95,8 @@ class UsbtmcBackend(UsbDescriptors, usb.backend.IBackend):
         How many transfers :attr:`log` keeps.
     camera_channel : int
         Delay channel wired to the streak camera's trigger (see :class:`SyncInstrument`).
+    reference_noise_ps : float
+        RMS noise of the unit's trigger-interval measurements, ps (see :class:`SyncInstrument`).
 
     Attributes
     ----------
@@ -109,13 +111,14 @@ class UsbtmcBackend(UsbDescriptors, usb.backend.IBackend):
     def __init__(self, lab_state: LabState | None = None, *, vendor_id: int = 0x1209,
                  product_id: int = 0x5A17, serial_number: str = "SLS0001",
                  manufacturer: str = "Streaklab", product: str = "Laser sync SLS-575 (simulated)",
-                 log_length: int = 10000, camera_channel: int = 1):
+                 log_length: int = 10000, camera_channel: int = 1, reference_noise_ps: float = 0.5):
         super().__init__()
         self.lab_state = lab_state if lab_state is not None else LabState()
         self.vendor_id, self.product_id = int(vendor_id), int(product_id)
         self.serial_number = serial_number
         self.strings = {1: manufacturer, 2: product, 3: serial_number}
-        self.instrument = SyncInstrument(self.lab_state, serial_number, camera_channel=camera_channel)
+        self.instrument = SyncInstrument(self.lab_state, serial_number, camera_channel=camera_channel,
+                                         reference_noise_ps=reference_noise_ps)
         self.faults = FaultInjector(COMMON_KINDS | {"unplug"})
         self.log: collections.deque = collections.deque(maxlen=int(log_length))
         self._cv = threading.Condition(threading.RLock())

@@ -1,12 +1,14 @@
-"""``streaklab bench timebase``: direct delays of a scan under trigger jitter and drift, aligned on the fiducial.
+"""``streaklab bench timebase``: direct delays of a scan under trigger jitter and drift, aligned on a reference.
 
 The same simulated scan (the example scene) is captured and decomposed three ways:
 
 * ``steady``: a steady time base (the fiducial pulse present, no jitter, no drift),
   reconstructed without alignment: the reference;
 * ``aligned``: trigger jitter (``--jitter-ps`` RMS) and drift (``--drift-ps-per-min``) over
-  ``--minutes`` simulated minutes, reconstructed with every frame aligned on the fiducial
-  (the default of ``streaklab reconstruct``);
+  ``--minutes`` simulated minutes, reconstructed with every frame aligned on the reference
+  ``--reference``: the fiducial pulse (``pulse``, the default), or the laser sync's measured
+  trigger intervals (``sync``: the capture sets ``sync.reference``, the simulated unit measures
+  each trigger with ``--reference-noise-ps`` RMS noise);
 * ``unaligned``: the same capture reconstructed with ``--no-align``.
 
 The simulator's clock is driven by the count of exposures rendered, so the scan spans exactly
@@ -64,6 +66,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--time-range", type=int, default=TIME_RANGE,
                         help=f"synchroscan time range setting 1..4 (default {TIME_RANGE}, the example scene's ~560 ps window)")
     parser.add_argument("--seed", type=int, default=3, help="seed of the scene, noise and jitter (default 3)")
+    parser.add_argument("--reference", choices=("pulse", "sync"), default="pulse",
+                        help="align on the fiducial pulse or on the laser sync's trigger intervals (default pulse)")
+    parser.add_argument("--reference-noise-ps", type=float, default=0.5,
+                        help="RMS noise of the simulated sync unit's trigger-interval measurement, ps "
+                             "(--reference sync; default 0.5)")
 
 
 def _check(args) -> None:
@@ -77,13 +84,15 @@ def _check(args) -> None:
         v = getattr(args, name)
         if not math.isfinite(v):
             raise CommandError(f"--{name.replace('_', '-')} must be a finite number, got {v}")
+    if not (math.isfinite(args.reference_noise_ps) and args.reference_noise_ps >= 0):
+        raise CommandError(f"--reference-noise-ps must be a finite number >= 0, got {args.reference_noise_ps}")
     if args.jitter_ps < 0:
         raise CommandError(f"--jitter-ps must be >= 0, got {args.jitter_ps}")
     if not args.minutes > 0:
         raise CommandError(f"--minutes must be positive, got {args.minutes}")
 
 
-def _config(args, **simulation):
+def _config(args, sync=None, **simulation):
     """The scan's configuration (the simulated lab's, its calibration the simulated sweep)."""
     from acquisition.config import parse_config
     from acquisition.rig import simulated_scene
@@ -94,7 +103,7 @@ def _config(args, **simulation):
            "session": {"retries": 2, "retry_backoff_s": 0.0},
            "simulation": {"seed": int(args.seed), "n_x": int(args.x), "n_t": int(args.t), "fiducial": True,
                           "clock_speed": 1.0, **simulation},
-           "calibration": {"time_poly_ps": [0.0, 1.0]}}
+           "calibration": {"time_poly_ps": [0.0, 1.0]}, **({"sync": sync} if sync else {})}
     from drivers.sim.scene import TIME_RANGE_SCALE, time_range_scale
 
     scene = simulated_scene(parse_config(raw))
@@ -188,8 +197,11 @@ def run(args) -> int:
         if (out / name).exists():
             raise CommandError(f"{out / name} exists: give another --out or remove the earlier run's stores")
     t_start = time.perf_counter()
+    on = "the fiducial pulse" if args.reference == "pulse" else \
+        f"the laser sync's trigger intervals ({args.reference_noise_ps:g} ps RMS measurement noise)"
     print(f"timebase: {args.lines} lines x {args.x} pixels x {args.t} rows, {args.frames} frames per line; "
-          f"jitter {args.jitter_ps:g} ps RMS, drift {args.drift_ps_per_min:g} ps/min over {args.minutes:g} simulated min")
+          f"jitter {args.jitter_ps:g} ps RMS, drift {args.drift_ps_per_min:g} ps/min over {args.minutes:g} simulated "
+          f"min; aligned on {on}")
 
     # (a) the steady scan; it counts the lit exposures that set the clock's step for (b)
     params, steady_shifts, _ = _capture(_config(args), out / "steady.run.zarr", 0.0)
@@ -198,7 +210,9 @@ def run(args) -> int:
         raise CommandError(f"the steady capture rendered {n_exposures} lit exposures; need at least 2")
     step_s = float(args.minutes) * 60.0 / (n_exposures - 1)
     # (b) the same scan with jitter and drift over the given simulated minutes
-    moving_cfg = _config(args, jitter_ps=float(args.jitter_ps), drift_ps_per_min=float(args.drift_ps_per_min))
+    reference = {} if args.reference == "pulse" else {"reference_noise_ps": float(args.reference_noise_ps)}
+    moving_cfg = _config(args, sync={"reference": True} if reference else None, jitter_ps=float(args.jitter_ps),
+                         drift_ps_per_min=float(args.drift_ps_per_min), **reference)
     _, shifts, times = _capture(moving_cfg, out / "moving.run.zarr", step_s)
     span_min = float(times[-1] - times[0]) / 60.0 if times.size else 0.0
     seconds_capture = time.perf_counter() - t_start
@@ -209,7 +223,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     for case, (run_name, align) in sources.items():
         try:
-            reconstruct(out / run_name, out / f"{case}.cube.zarr", align=align)
+            reconstruct(out / run_name, out / f"{case}.cube.zarr", align=align,
+                        align_on=args.reference if align is None else None)
         except ReconstructionError as exc:
             if align is False:
                 raise
@@ -247,7 +262,8 @@ def run(args) -> int:
     summary = {"options": {"jitter_ps": float(args.jitter_ps), "drift_ps_per_min": float(args.drift_ps_per_min),
                            "minutes": float(args.minutes), "lines": int(args.lines), "x": int(args.x),
                            "t": int(args.t), "frames": int(args.frames), "seed": int(args.seed),
-                           "time_range": int(args.time_range)},
+                           "time_range": int(args.time_range), "reference": args.reference,
+                           "reference_noise_ps": float(args.reference_noise_ps) if args.reference == "sync" else None},
                "lit_exposures": n_exposures, "simulated_span_min": span_min,
                "shift_rms_ps": float(np.sqrt(np.mean((shifts - shifts.mean()) ** 2))) if shifts.size else 0.0,
                "shift_range_ps": float(np.ptp(shifts)) if shifts.size else 0.0,

@@ -23,8 +23,13 @@ def add_arguments(parser) -> None:
                              "polynomial, or auto (the table when the run has one); default: the run's "
                              "calibration.time_source")
     parser.add_argument("--align", action=argparse.BooleanOptionalAction, default=None,
-                        help="align every frame on the run's fiducial pulse before averaging "
-                             "(default: on when the run records a fiducial)")
+                        help="align every frame on the run's time reference before averaging "
+                             "(default: on when the run records a fiducial pulse or the laser sync's "
+                             "trigger intervals)")
+    parser.add_argument("--align-on", choices=("pulse", "sync"),
+                        help="the reference: the fiducial pulse in the frames, or the laser sync's measured "
+                             "trigger intervals (sync.reference); default: the one the run records, the "
+                             "pulse where it records both")
     parser.add_argument("--sweep", metavar="SWEEP", help="sweep calibration from 'streaklab calibrate-sweep' "
                         "(a .npz, a sweep store, or a cube holding one): its row times replace the camera's")
     parser.add_argument("--fiducial-min-snr", type=float, default=5.0, metavar="RATIO",
@@ -32,7 +37,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from reconstruction.build import reconstruct
+    from reconstruction.build import ALIGN_REFERENCES, reconstruct
 
     if args.chunks is not None and min(args.chunks) <= 0:
         raise CommandError(f"--chunks must be positive, got {args.chunks[0]} {args.chunks[1]}")
@@ -41,7 +46,7 @@ def run(args) -> int:
     cube = reconstruct(args.run, args.out, chunks=args.chunks, flat_path=args.flat,
                        allow_partial=args.allow_partial, overwrite=args.overwrite,
                        time_source=args.time_source, align=args.align, sweep_path=args.sweep,
-                       fiducial_min_snr=args.fiducial_min_snr)
+                       fiducial_min_snr=args.fiducial_min_snr, align_on=args.align_on)
     ny, nx, nt = cube.shape
     missing = cube.attrs["provenance"].get("lines_missing", [])
     note = f", {len(missing)} unfinished lines left NaN" if missing else ""
@@ -52,7 +57,9 @@ def run(args) -> int:
         from core.integrity import read_checked
         corr = np.asarray(read_checked(cube.group["fiducial_correction_ps"], ..., store=cube.path))
         corr = corr[np.isfinite(corr)]
-        print(f"aligned {corr.size} frames on the fiducial: corrections {corr.min():+.3g} to {corr.max():+.3g} ps, "
+        on = "the laser sync's trigger intervals" if prov.get("alignment_reference") == ALIGN_REFERENCES["sync"] \
+            else "the fiducial"
+        print(f"aligned {corr.size} frames on {on}: corrections {corr.min():+.3g} to {corr.max():+.3g} ps, "
               f"RMS {np.sqrt(np.mean(corr ** 2)):.3g} ps (fiducial_correction_ps)", file=sys.stderr)
     if prov.get("camera_and_config_agree") is False:
         print(f"streaklab reconstruct: warning: the camera's scaling table and calibration.time_poly_ps differ by "
