@@ -214,7 +214,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "trigger_delay_ps": float(cfg["sync"]["trigger_delay_ps"]),
         "time_range": cfg["camera"]["time_range"],
         "exposure_s": float(cfg["camera"]["exposure_s"]),
-        "resampling": "linear interpolation from calibrated row times",
+        "resampling": ("each frame moved onto the fiducial by Lanczos interpolation from calibrated row times"
+                       if align else "linear interpolation from calibrated row times"),
         "aligned_on_fiducial": bool(align),
         "fiducial": None if fiducial is None else dict(fid_attr),
         "signal": "mean counts per frame, dark subtracted" + (", flat-field corrected" if flat is not None else ""),
