@@ -219,7 +219,8 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "trigger_delay_ps": float(cfg["sync"]["trigger_delay_ps"]),
         "time_range": cfg["camera"]["time_range"],
         "exposure_s": float(cfg["camera"]["exposure_s"]),
-        "resampling": "linear interpolation from calibrated row times",
+        "resampling": ("each frame moved onto the fiducial by Lanczos interpolation from calibrated row times"
+                       if align else "linear interpolation from calibrated row times"),
         "aligned_on_fiducial": bool(align),
         "alignment_reference": ALIGN_REFERENCES.get(align_on),
         "fiducial": None if fiducial is None else dict(fid_attr),
