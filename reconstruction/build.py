@@ -32,7 +32,7 @@ from core.errors import StreaklabError
 from core.integrity import create_array, read_checked
 from core.staging import check_output_path, staged_output
 
-from .calibrate import correct_frames, dark_image, load_flat, resample_uniform, uniform_grid
+from .calibrate import correct_frames, dark_image, dark_noise_variance, load_flat, resample_uniform, uniform_grid
 from .cubestore import CUBE_KIND, create_cube, open_cube
 
 __all__ = ["ReconstructionError", "reconstruct", "row_times", "TIME_AGREEMENT_PS", "LineCalibration",
@@ -471,17 +471,13 @@ def line_calibration(run, *, flat=None, time_source: str | None = None, sweep_pa
 
 def run_dark(run, *, with_noise: bool = False):
     """The run's mean dark image, (x, n_rows) float64 counts per frame; ``with_noise``: and the
-    variance of its noise per slit pixel, (x,) counts^2 (the dark frames' scatter, median over
-    the rows, over their number; None from fewer than two frames)."""
+    variance of its noise per slit pixel, (x,) counts^2 (:func:`.calibrate.dark_noise_variance`;
+    None from fewer than two frames)."""
     frames = read_checked(run["dark"], slice(None), store=run.path)
     mean = dark_image(frames, run.image_shape)
     if not with_noise:
         return mean
-    n = int(np.shape(frames)[0])
-    if n < 2:
-        return mean, None
-    scatter = np.var(np.asarray(frames, np.float64), axis=0, ddof=1)
-    return mean, np.median(scatter, axis=1) / n
+    return mean, dark_noise_variance(frames)
 
 
 def mean_line_images(run, lines):

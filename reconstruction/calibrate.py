@@ -17,7 +17,7 @@ import numpy as np
 from core import limits as L
 from core.errors import StreaklabError
 
-__all__ = ["CalibrationError", "dark_image", "load_flat", "uniform_grid", "resample_uniform", "correct_frames"]
+__all__ = ["CalibrationError", "dark_image", "dark_noise_variance", "load_flat", "uniform_grid", "resample_uniform", "correct_frames"]
 
 
 class CalibrationError(StreaklabError, ValueError):
@@ -44,6 +44,38 @@ def dark_image(dark_frames: np.ndarray, image_shape: tuple[int, int]) -> np.ndar
     if dark_frames.shape[0] == 0:
         return np.zeros(image_shape, dtype=np.float64)
     return dark_frames.mean(axis=0, dtype=np.float64)
+
+
+#: rows pooled into one group by :func:`dark_noise_variance` before the median over the groups
+DARK_NOISE_GROUP_ROWS = 16
+
+
+def dark_noise_variance(dark_frames: np.ndarray) -> np.ndarray | None:
+    """Variance of the mean dark image's noise per slit pixel, (x,) counts^2; None from fewer
+    than two frames.
+
+    Each sample's scatter over the ``n`` dark frames (``ddof=1``) is averaged over groups of
+    :data:`DARK_NOISE_GROUP_ROWS` rows, and the median over the groups is divided by the median
+    of the scaled chi-square law of a group mean, ``(1 - 2 / (9 k))**3`` with ``k = rows * (n - 1)``
+    degrees of freedom (Wilson-Hilferty), then by ``n``.  A median of single samples' scatters
+    would sit far below their mean (with two frames, at 0.45 of it, the median of chi-square with
+    one degree of freedom); the group means are close to normal, and the median over them still
+    ignores a hot sample's group.
+
+    Parameters
+    ----------
+    dark_frames : ndarray, shape (n_dark, x, t)
+    """
+    frames = np.asarray(dark_frames, np.float64)
+    n, _, n_rows = frames.shape
+    if n < 2:
+        return None
+    scatter = np.var(frames, axis=0, ddof=1)                       # (x, t), unit: counts^2 per frame
+    group = min(DARK_NOISE_GROUP_ROWS, n_rows)
+    n_groups = n_rows // group
+    means = scatter[:, :n_groups * group].reshape(scatter.shape[0], n_groups, group).mean(axis=2)
+    k = group * (n - 1)
+    return np.median(means, axis=1) / (1.0 - 2.0 / (9.0 * k)) ** 3 / n
 
 
 def load_flat(path, image_shape: tuple[int, int]) -> tuple[np.ndarray, str]:

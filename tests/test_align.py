@@ -254,3 +254,21 @@ def test_a_pulse_moved_by_a_fraction_of_a_row_keeps_its_shape_and_lands_at_its_c
     assert abs(centroid - (centre + shift_ps)) < 0.01
     np.testing.assert_allclose(out.sum(), pulse.sum(), rtol=1e-6)
 
+
+
+@pytest.mark.parametrize("n_frames", [2, 5])
+def test_the_dark_noise_variance_is_the_mean_scatter_not_its_median_and_ignores_hot_samples(n_frames):
+    # whole-number dark frames of read noise 3 counts RMS (variance 9 + 1/12 with the rounding):
+    # the mean dark's noise variance is that over the frames' number.  A median over single
+    # samples' scatters reads 0.45 of it from two frames; a hot sample (scatter 10^4) changes nothing.
+    from reconstruction.calibrate import dark_noise_variance
+
+    rng = np.random.default_rng(11)
+    frames = np.round(100.0 + rng.normal(0.0, 3.0, (n_frames, 32, 256)))
+    frames[0, :, 40] += 200.0                                       # a hot row in one frame
+    truth = (9.0 + 1.0 / 12.0) / n_frames
+    est = dark_noise_variance(frames)
+    assert est.shape == (32,)
+    assert abs(np.median(est) / truth - 1.0) < 0.05
+    assert np.all(np.abs(est / truth - 1.0) < 0.35)
+    assert dark_noise_variance(frames[:1]) is None
