@@ -33,7 +33,7 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
-           "fiducial_correction_ps", "resample_aligned", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA",
+           "fiducial_correction_ps", "resample_aligned", "mean_of_covering", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA",
            "reference_correction_ps", "LANCZOS_LOBES"]
 
 #: rows of the running median that gives the dark image's structure along the time axis
@@ -211,7 +211,8 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
     times, moved, interpolated linearly) and its value is the Lanczos interpolation (kernel
     ``sinc(d) sinc(d / a)``, ``a =`` :data:`LANCZOS_LOBES`, over the ``2 a`` rows about it, its
     weights normalised to sum 1 and to a first moment of 0) of the frame's rows there.  Grid times the moved frame does not
-    cover get 0 (the window saw no light there); rows beyond the frame's ends repeat its end rows.
+    cover are NaN (that frame did not see them: a line's mean is taken over the frames that did,
+    :func:`mean_of_covering`); rows beyond the frame's ends repeat its end rows.
 
     Why not linear interpolation: it halves a sample's noise variance half way between two rows
     and keeps it at a row, so frames moved by different fractions of a row carry noise of
@@ -234,7 +235,7 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
 
     Returns
     -------
-    ndarray, shape (n_lines, n_frames, x, n_bins), float64.
+    ndarray, shape (n_lines, n_frames, x, n_bins), float64; NaN where a frame does not cover a bin.
     """
     f = np.asarray(frames, dtype=np.float64)
     t = np.asarray(row_times_ps, dtype=np.float64)
@@ -262,8 +263,22 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
         w -= (w * d).sum(axis=1, keepdims=True) * ramp / (ramp ** 2).sum(axis=1, keepdims=True)
         idx = np.clip(j[:, None].astype(np.int64) + taps, 0, t.size - 1)
         moved = np.einsum("xbk,bk->xb", f[i, k][:, idx], w)
-        out[i, k] = np.where(covered, moved, 0.0)
+        out[i, k] = np.where(covered, moved, np.nan)
     return out
+
+
+def mean_of_covering(moved: np.ndarray) -> np.ndarray:
+    """Mean over the frames (axis 1) of :func:`resample_aligned`'s output, each bin over the frames
+    that cover it; 0 where none does (no frame saw that time).
+
+    A plain mean would count a frame that did not see a bin as 0 there: near the window's ends,
+    where the frames' shifts leave some of them short, the line's light would fall by the share
+    of frames that missed it.
+    """
+    seen = np.isfinite(moved)
+    n = seen.sum(axis=1)
+    total = np.where(seen, moved, 0.0).sum(axis=1)
+    return np.where(n > 0, total / np.maximum(n, 1), 0.0)
 
 
 def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOOTH_ROWS,

@@ -430,7 +430,8 @@ class LineCalibration:
         if not self.aligned:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:
-            from .align import fiducial_correction_ps, reference_correction_ps, resample_aligned, split_dark
+            from .align import (fiducial_correction_ps, mean_of_covering, reference_correction_ps, resample_aligned,
+                                split_dark)
             # the dark's structure moves with each frame, its noise is subtracted once after the
             # move (reconstruction.align.split_dark): moved, it would repeat at the frames' lags
             structure, dark_noise = split_dark(self.dark, noise_var=self.dark_noise_var)
@@ -444,8 +445,8 @@ class LineCalibration:
             else:
                 corr = fiducial_correction_ps(frames - dark_noise, self.row_times_ps, self.fiducial,
                                               min_snr=self.fiducial_min_snr, line_ids=line_ids)
-            rows = resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
-                                    t0_ps=self.t0_ps, n_bins=self.n_bins).mean(axis=1)
+            rows = mean_of_covering(resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
+                                                     t0_ps=self.t0_ps, n_bins=self.n_bins))
             rows -= resample_uniform(dark_noise, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
                                      n_bins=self.n_bins)
             return rows.astype(np.float32), corr

@@ -5,8 +5,8 @@ from scipy.special import erf
 
 from acquisition.config import parse_config
 from acquisition.runstore import create_run
-from reconstruction.align import (AlignmentError, Fiducial, fiducial_correction_ps, parse_fiducial, resample_aligned,
-                                  row_edges_ps, split_dark)
+from reconstruction.align import (AlignmentError, Fiducial, fiducial_correction_ps, mean_of_covering, parse_fiducial,
+                                  resample_aligned, row_edges_ps, split_dark)
 from reconstruction.build import ReconstructionError, reconstruct
 from streaklab.cli import main
 
@@ -43,7 +43,7 @@ def test_known_shifts_are_recovered_and_undone():
     corr = fiducial_correction_ps(noisy, ROW_TIMES_PS, Fiducial(**FID))
     assert corr.shape == (3, 8)
     assert np.abs(corr + jitter).max() < 0.15                      # ps
-    aligned = _moved(noisy, corr)
+    aligned = np.nan_to_num(_moved(noisy, corr))                    # the bins a frame missed: 0
     truth = frames_with_jitter(np.zeros((1, 1)))[0, 0]
     mean_aligned = aligned.mean(axis=(0, 1))
     mean_raw = noisy.mean(axis=(0, 1))
@@ -80,10 +80,11 @@ def test_whole_row_shift_is_exact_and_uncovered_bins_are_empty():
     out = _moved(f, np.array([[6.0], [-4.0]]))                       # +3 rows, -2 rows
     np.testing.assert_allclose(out[0, 0, :, 53:93], f[0, 0, :, 50:90], atol=1e-9)
     np.testing.assert_allclose(out[1, 0, :, 48:88], f[1, 0, :, 50:90], atol=1e-9)
-    assert (out[0, 0, :, :3] == 0).all() and (out[1, 0, :, -2:] == 0).all()   # the window saw nothing there
+    assert np.isnan(out[0, 0, :, :3]).all() and np.isnan(out[1, 0, :, -2:]).all()   # the frame did not see there
+    assert np.isfinite(out[0, 0, :, 3:]).all() and np.isfinite(out[1, 0, :, :-2]).all()
     # a sub-row shift moves the centroid by the shift (the pulse alone, away from the ends)
     g = np.where(np.arange(N_ROWS) < 10, 0.0, f)
-    sub = _moved(g, np.array([[0.7], [-1.3]]))
+    sub = np.nan_to_num(_moved(g, np.array([[0.7], [-1.3]])))
     c = lambda a: (a * ROW_TIMES_PS).sum(-1) / a.sum(-1)
     np.testing.assert_allclose(c(sub) - c(g), np.array([[[0.7] * 3], [[-1.3] * 3]]), atol=0.05)
 
@@ -193,7 +194,7 @@ def test_aligned_line_carries_the_dark_noise_once_and_white():
     calib = LineCalibration(ROW_TIMES_PS, 2.0, 0.0, N_ROWS, DARK + noise, None, {}, Fiducial(**FID))
     rows, corr = calib.correct(frames)
     np.testing.assert_allclose(corr, -shifts, atol=0.05)
-    clean = _moved(frames_with_jitter(shifts), -shifts).mean(axis=1)
+    clean = mean_of_covering(_moved(frames_with_jitter(shifts), -shifts))
     cube_noise = (rows - clean)[0, :, 6:-6].ravel()
     assert np.corrcoef(cube_noise, -noise[:, 6:-6].ravel())[0, 1] > 0.97
     n = (rows - clean)[0, :, 6:-6]
@@ -212,7 +213,7 @@ def test_a_sensors_fine_fixed_pattern_moves_with_the_frames_and_cancels():
     pattern = rng.normal(0.0, 10.0, (NX, N_ROWS))
     dark_noise = rng.normal(0.0, 0.5, (NX, N_ROWS))
     frames = frames_with_jitter(shifts) + DARK + pattern
-    clean = _moved(frames_with_jitter(shifts), -shifts).mean(axis=1)
+    clean = mean_of_covering(_moved(frames_with_jitter(shifts), -shifts))
 
     def error(noise_var):
         calib = LineCalibration(ROW_TIMES_PS, 2.0, 0.0, N_ROWS, DARK + pattern + dark_noise, None, {},
@@ -247,7 +248,7 @@ def test_a_pulse_moved_by_a_fraction_of_a_row_keeps_its_shape_and_lands_at_its_c
     # moved centre to 0.01 ps, and its counts kept
     centre = 150.0
     pulse = 1000.0 * np.exp(-0.5 * ((ROW_TIMES_PS - centre) / 4.0) ** 2)
-    out = _moved(pulse[None, None, None, :], np.array([[shift_ps]]))[0, 0, 0]
+    out = np.nan_to_num(_moved(pulse[None, None, None, :], np.array([[shift_ps]]))[0, 0, 0])
     truth = 1000.0 * np.exp(-0.5 * ((ROW_TIMES_PS - centre - shift_ps) / 4.0) ** 2)
     assert np.abs(out - truth).max() < 0.005 * 1000.0
     centroid = (out * ROW_TIMES_PS).sum() / out.sum()
@@ -272,3 +273,16 @@ def test_the_dark_noise_variance_is_the_mean_scatter_not_its_median_and_ignores_
     assert abs(np.median(est) / truth - 1.0) < 0.05
     assert np.all(np.abs(est / truth - 1.0) < 0.35)
     assert dark_noise_variance(frames[:1]) is None
+
+
+def test_a_lines_mean_near_the_windows_ends_is_over_the_frames_that_saw_there():
+    # light of 40 counts per frame all over the window, two frames moved by +6 and -6 ps (3 rows):
+    # the first 3 bins are seen by one frame only, as are the last 3; their mean is still 40
+    # (a plain mean over both frames, one of them missing there, read 20)
+    f = np.full((1, 2, 3, N_ROWS), 40.0)
+    moved = _moved(f, np.array([[6.0, -6.0]]))
+    line = mean_of_covering(moved)
+    np.testing.assert_allclose(line, 40.0, atol=1e-9)
+    both = np.full((1, 2, 1, 4), np.nan)
+    both[0, 0, 0, :2] = [1.0, 3.0]
+    np.testing.assert_array_equal(mean_of_covering(both)[0, 0], [1.0, 3.0, 0.0, 0.0])   # no frame: 0
