@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from pathlib import Path
 
 from streaklab.cli import CommandError
 
-__all__ = ["choices", "positive_floats", "output_folder"]
+__all__ = ["choices", "positive_floats", "seed_list", "output_folder"]
 
 
 def choices(text: str, allowed, what: str) -> list[str]:
@@ -29,6 +30,26 @@ def positive_floats(text: str, what: str) -> list[float]:
     if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
         raise CommandError(f"--{what} must be a comma-separated list of positive numbers, got {text!r}")
     return vals
+
+
+def seed_list(text: str, what: str = "seeds") -> list[int]:
+    """``"1-4,7"`` -> [1, 2, 3, 4, 7] in the given order: comma-separated non-negative integers and
+    inclusive ranges ``a-b`` (``a <= b``); CommandError naming ``--what`` for an empty list, an
+    item that is neither, a descending range or a seed given twice."""
+    seeds: list[int] = []
+    for item in (s.strip() for s in str(text).split(",")):
+        lo, dash, hi = item.partition("-")
+        if not (lo.strip().isdigit() and (not dash or hi.strip().isdigit())):
+            raise CommandError(f"--{what} must be comma-separated non-negative integers or ranges a-b "
+                               f"(e.g. 1-8 or 1,2,5), got {text!r}")
+        a, b = int(lo), int(hi) if dash else int(lo)
+        if b < a:
+            raise CommandError(f"--{what}: the range {item} runs backwards (give {b}-{a})")
+        seeds.extend(range(a, b + 1))
+    twice = sorted(s for s, n in Counter(seeds).items() if n > 1)
+    if twice:
+        raise CommandError(f"--{what}: seed {', '.join(map(str, twice))} given more than once in {text!r}")
+    return seeds
 
 
 def output_folder(path) -> Path:
