@@ -20,9 +20,14 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from .jit import erfcx, njit
-from .screen import _SUPPORT_WIDTHS
 
-__all__ = ["projected_normal_equations", "given_rss"]
+__all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
+           "uniform_step", "row_dot"]
+
+#: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
+#: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
+#: any sum of the refine or of the neighbour screen could carry to rounding
+SUPPORT_WIDTHS = 12.0
 
 _SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 _INV_SQRT_2 = 1.0 / math.sqrt(2.0)
@@ -62,7 +67,7 @@ def _first_above(t, v):
 
 
 @njit
-def _dot(m, a, b, i0, i1):
+def row_dot(m, a, b, i0, i1):
     """sum_i m[a, i] m[b, i] over [i0, i1), in four interleaved partial sums (four independent
     chains of additions instead of one)."""
     s0 = 0.0
@@ -120,9 +125,9 @@ def _lu_solve(a, b, n, m, piv):
 
 
 @njit
-def _uniform_step(t, increasing):
+def uniform_step(t, increasing):
     """The bin width of a uniform increasing axis ``t`` (to 1e-9 of it), else 0: a uniform axis
-    steps the sss tail's exponential (:func:`_rows_of_slot`)."""
+    steps the sss tail's exponential (:func:`kernel_rows`)."""
     L = t.size
     if not increasing or L < 2:
         return 0.0
@@ -134,13 +139,13 @@ def _uniform_step(t, increasing):
 
 
 @njit
-def _window(t, d, s, sss, increasing):
-    """[j0, j1) of a kernel at delay ``d``, width ``s``: within :data:`_SUPPORT_WIDTHS` widths
+def support_window(t, d, s, sss, increasing):
+    """[j0, j1) of a kernel at delay ``d``, width ``s``: within :data:`SUPPORT_WIDTHS` widths
     of the delay (of the onset and after it for the sss), where every value and derivative
     is below 1e-29 of its peak and adds nothing to any sum to rounding; the whole axis where
     that is empty, the parameters are not finite or ``t`` is not increasing."""
     L = t.size
-    half = _SUPPORT_WIDTHS * s
+    half = SUPPORT_WIDTHS * s
     if not (increasing and math.isfinite(d) and math.isfinite(half)):
         return 0, L
     j0 = _first_at_least(t, d - half)
@@ -151,7 +156,7 @@ def _window(t, d, s, sss, increasing):
 
 
 @njit
-def _rows_of_slot(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t):
+def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t):
     """Write slot ``slot``'s kernel (and with ``jac`` its derivative rows: K + slot the delay's,
     2K + slot the log width's, 3K the sss log decay rate's) on [j0, j1) into ``m``.
 
@@ -252,7 +257,7 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     vw = np.zeros((Q, P))
     bq = np.zeros((K, Q))
     dummy = np.empty(0)
-    step_t = _uniform_step(t, increasing)
+    step_t = uniform_step(t, increasing)
     for p in range(n):
         swp = sw[p] if has_sw else dummy
         for row in range(R):
@@ -269,8 +274,8 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
             d = theta[p, slot]
             s = math.exp(theta[p, K] if shared else theta[p, K + slot])
             sss = slot == SSS_SLOT
-            j0, j1 = _window(t, d, s, sss, increasing)
-            _rows_of_slot(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
+            j0, j1 = support_window(t, d, s, sss, increasing)
+            kernel_rows(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
             rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
             for row in rows_here:
                 lo[row] = j0
@@ -304,7 +309,7 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
         # the Gram product of the stacked rows over the overlaps of their supports
         for a in range(R):
             for b in range(a, R):
-                acc = _dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+                acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
                 if has_amp and a < K and b < K:
                     acc += amp[p, a] * amp[p, b]
                 mm[a, b] = acc
@@ -402,7 +407,7 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
     m = np.zeros((K, L))
     r = np.empty(L)
     dummy = np.empty(0)
-    step_t = _uniform_step(t, increasing)
+    step_t = uniform_step(t, increasing)
     for p in range(n):
         swp = sw[p] if has_sw else dummy
         for i in range(L):
@@ -413,8 +418,8 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
             d = delay[p, slot]
             s = sigma[p, slot]
             sss = slot == SSS_SLOT
-            j0, j1 = _window(t, d, s, sss, increasing)
-            _rows_of_slot(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
+            j0, j1 = support_window(t, d, s, sss, increasing)
+            kernel_rows(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
             c = amplitude[p, slot]
             for i in range(j0, j1):
                 r[i] -= c * m[slot, i]
