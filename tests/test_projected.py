@@ -92,3 +92,35 @@ def test_refine_with_priors_and_holds_matches_numpy(shared_sigma, monkeypatch):
         np.testing.assert_allclose(got[key], want[key], rtol=1e-9, atol=1e-9, err_msg=key)
     for key in ("rss", "rss_input"):
         np.testing.assert_allclose(got_info[key], want_info[key], rtol=1e-11, err_msg=key)
+
+
+@pytest.mark.parametrize("shared_sigma", [True, False])
+def test_standard_errors_match_numpy(shared_sigma, monkeypatch):
+    # the Fisher information's rows and Gram product compiled (kernels.projected.fisher_gram):
+    # weights, an offset on some pixels, onsets at the direct (sss_after_direct), holds; to 1e-6
+    # (a few of these pixels' Fisher matrices are ill-conditioned, their errors tens of ps: the
+    # rounding of the Gram product is amplified by their condition)
+    from decomposition.model.fisher import cramer_rao_bound, standard_errors
+
+    rng = np.random.default_rng(5)
+    n = 24
+    params = _pixels(rng, n)
+    params["sss_delay_ps"][:4] = params["direct_delay_ps"][:4]        # the onset constraint active
+    params["ir_delay_ps"][0, 0] = 2000.0                               # an echo after the axis ends
+    y = render_profile(params, L, TB, TB) + rng.normal(0.0, 0.02, (n, L))
+    every = np.arange(n)
+    kw = dict(time_bin_ps=TB, t0_ps=TB, weights=rng.uniform(0.5, 2.0, (n, L)), shared_sigma=shared_sigma,
+              sss_after_direct=True, offset=every % 2 == 0,
+              hold={"sigma_ps": np.where(every % 3 == 0, 4.0, np.nan),
+                    "sss_alpha_per_ps": np.where(every % 5 == 1, 0.05, np.nan)})
+    got = standard_errors(y, params, **kw)
+    got_crb = cramer_rao_bound(params, 0.02, n_bins=L, time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma)
+    monkeypatch.setattr(varpro, "COMPILED", False)
+    want = standard_errors(y, params, **kw)
+    want_crb = cramer_rao_bound(params, 0.02, n_bins=L, time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma)
+    for g, w in ((got, want), (got_crb, want_crb)):
+        assert g.keys() == w.keys()
+        assert np.isfinite(w["direct_delay_ps_stderr" if "direct_delay_ps_stderr" in w else "direct_delay_ps_crb"]).sum() > n // 2
+        for key in w:
+            np.testing.assert_array_equal(np.isnan(g[key]), np.isnan(w[key]), err_msg=key)
+            np.testing.assert_allclose(g[key], w[key], rtol=1e-6, err_msg=key)

@@ -22,7 +22,7 @@ from ..constants import SSS_SLOT
 from .jit import erfcx, njit
 
 __all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
-           "uniform_step", "row_dot"]
+           "uniform_step", "row_dot", "fisher_gram"]
 
 #: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
 #: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
@@ -156,14 +156,17 @@ def support_window(t, d, s, sss, increasing):
 
 
 @njit
-def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t):
+def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t, log_scale=True):
     """Write slot ``slot``'s kernel (and with ``jac`` its derivative rows: K + slot the delay's,
-    2K + slot the log width's, 3K the sss log decay rate's) on [j0, j1) into ``m``.
+    2K + slot the log width's, 3K the sss log decay rate's; without ``log_scale`` the width's
+    and the decay rate's own) on [j0, j1) into ``m``, each times ``sw`` where ``has_sw``.
 
     The sss kernel's tail factor e = exp(alpha^2 sigma^2 / 2 - alpha x) is evaluated afresh
     every :data:`_RESTART` samples and stepped by exp(-alpha ``step_t``) in between (``step_t``
     the axis' bin width; 0: always afresh): a few ulp, not an exponential per sample."""
     rho = math.exp(-a * step_t) if step_t > 0.0 else 0.0
+    fs = s if log_scale else 1.0
+    fa = a if log_scale else 1.0
     e = 0.0
     stepped = _RESTART           # samples since e was evaluated afresh (_RESTART: evaluate now)
     for i in range(j0, j1):
@@ -176,7 +179,7 @@ def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t):
             if jac:
                 gz = g * z
                 m[K + slot, i] = (gz / s) * w
-                m[2 * K + slot, i] = ((gz * z / s) * s) * w
+                m[2 * K + slot, i] = ((gz * z / s) * fs) * w
             continue
         q = a * s
         u = (q - z) * _INV_SQRT_2
@@ -207,8 +210,8 @@ def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t):
         m[slot, i] = h * w
         if jac:
             m[K + slot, i] = (a * h - g) * w
-            m[2 * K + slot, i] = ((h * ((1.0 + q * q) / s) - g * (q + z)) * s) * w
-            m[3 * K, i] = ((s * ((q - z) * h - s * g)) * a) * w
+            m[2 * K + slot, i] = ((h * ((1.0 + q * q) / s) - g * (q + z)) * fs) * w
+            m[3 * K, i] = ((s * ((q - z) * h - s * g)) * fa) * w
 
 
 @njit
@@ -427,3 +430,106 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
         for i in range(L):
             acc += r[i] * r[i]
         out[p] = acc
+
+
+@njit
+def fisher_gram(t, delay, sigma, alpha, amplitude, present, sw, offset, tied, onset, fixed, out):
+    """J^T W J of the Fisher information's Jacobian rows (:func:`decomposition.model.fisher._jacobian`,
+    point-sampled kernels on their supports), n pixels.
+
+    Rows per slot k: 3k the delay's (amplitude times the kernel's delay derivative), 3k + 1 the
+    amplitude's (the kernel), 3k + 2 the width's (amplitude times d/d sigma); 3K the sss decay
+    rate's; with ``offset`` (n,) given (else (0,)) row 3K + 1 the offset's (ones, where the
+    pixel has one).  Each row times ``sw`` (n, L) where given ((0, L): none).  Then, as the
+    NumPy path: ``tied`` (n,) >= 0 the slot whose width row carries the sum of every width row
+    (one width per pixel; -1: none), ``onset`` (n,) the pixels whose sss onset rides on the
+    direct's delay (the sss delay row added to the direct's and zeroed), ``fixed`` (n, p) the
+    rows zeroed (held parameters).  ``out`` (n, p, p), p = 3K + 1 (+ 1 with ``offset``).
+    """
+    n, K = present.shape
+    L = t.size
+    p = out.shape[1]
+    has_sw = sw.shape[0] == n
+    has_off = offset.shape[0] == n
+    increasing = L >= 2
+    for i in range(1, L):
+        if not t[i] > t[i - 1]:
+            increasing = False
+    step_t = uniform_step(t, increasing)
+    m = np.zeros((3 * K + 1, L))
+    J = np.zeros((p, L))
+    lo = np.zeros(p, np.int64)
+    hi = np.zeros(p, np.int64)
+    dummy = np.empty(0)
+    for q in range(n):
+        swq = sw[q] if has_sw else dummy
+        for row in range(p):
+            lo[row] = 0
+            hi[row] = 0
+        for k in range(K):
+            if not present[q, k]:
+                continue
+            sss = k == SSS_SLOT
+            j0, j1 = support_window(t, delay[q, k], sigma[q, k], sss, increasing)
+            kernel_rows(t, m, K, k, sss, delay[q, k], sigma[q, k], alpha[q], swq, has_sw, True, j0, j1, step_t,
+                        False)
+            c = amplitude[q, k]
+            for i in range(j0, j1):
+                J[3 * k, i] = c * m[K + k, i]
+                J[3 * k + 1, i] = m[k, i]
+                J[3 * k + 2, i] = c * m[2 * K + k, i]
+            for row in range(3 * k, 3 * k + 3):
+                lo[row] = j0
+                hi[row] = j1
+            if sss:
+                for i in range(j0, j1):
+                    J[3 * K, i] = c * m[3 * K, i]
+                lo[3 * K] = j0
+                hi[3 * K] = j1
+        if has_off and offset[q]:
+            for i in range(L):
+                J[3 * K + 1, i] = swq[i] if has_sw else 1.0
+            lo[3 * K + 1] = 0
+            hi[3 * K + 1] = L
+        if tied[q] >= 0:
+            # the sum of the width rows over the union of their supports, in the tied slot's row
+            dst = 3 * tied[q] + 2
+            a0, a1 = L, 0
+            for k in range(K):
+                if hi[3 * k + 2] > lo[3 * k + 2]:
+                    a0 = min(a0, lo[3 * k + 2])
+                    a1 = max(a1, hi[3 * k + 2])
+            if a1 > a0:
+                tot = np.zeros(L)
+                for k in range(K):
+                    row = 3 * k + 2
+                    for i in range(lo[row], hi[row]):
+                        tot[i] += J[row, i]
+                    lo[row] = 0
+                    hi[row] = 0
+                for i in range(a0, a1):
+                    J[dst, i] = tot[i]
+                lo[dst] = a0
+                hi[dst] = a1
+        if onset[q]:
+            src = 3 * SSS_SLOT
+            if hi[src] > lo[src]:
+                b0 = min(lo[0], lo[src]) if hi[0] > lo[0] else lo[src]
+                b1 = max(hi[0], hi[src]) if hi[0] > lo[0] else hi[src]
+                for i in range(b0, b1):
+                    v0 = J[0, i] if lo[0] <= i < hi[0] else 0.0
+                    vs = J[src, i] if lo[src] <= i < hi[src] else 0.0
+                    J[0, i] = v0 + vs
+                lo[0] = b0
+                hi[0] = b1
+            lo[src] = 0
+            hi[src] = 0
+        for row in range(p):
+            if fixed[q, row]:
+                lo[row] = 0
+                hi[row] = 0
+        for a in range(p):
+            for b in range(a, p):
+                v = row_dot(J, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+                out[q, a, b] = v
+                out[q, b, a] = v
