@@ -35,7 +35,7 @@ from ..constants import SSS_SLOT
 from .refine import apply_weights, check_hold, held_slots, slot_arrays
 from . import varpro
 from ..kernels.projected import fisher_gram
-from .varpro import CHUNK_PIXELS, design_rows, kernel_windows
+from .varpro import CHUNK_PIXELS, kernel_windows
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -447,14 +447,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         sig = np.where(present, slots["sigma"], 1.0)
         alp = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
     delay = np.where(present, slots["delay"], 0.0)
-    rss = np.empty(n)
-    for i in range(0, n, CHUNK_PIXELS):
-        ch = slice(i, i + CHUNK_PIXELS)
-        phi = design_rows(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
-        resid = y2[ch] - np.einsum("nk,nkl->nl", amp[ch], phi)
-        if sw is not None:
-            resid *= sw[ch]
-        rss[i:i + CHUNK_PIXELS] = np.einsum("nl,nl->n", resid, resid)
+    rss = varpro.rss_at(t, y2 if sw is None else y2 * sw, delay, sig, alp, present, amp, np.zeros(n), tb, sw)
     n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
     n_fitted = 3 * present.sum(axis=-1) + present[:, SSS_SLOT]
     if offset is not None:

@@ -60,7 +60,7 @@ from ..constants import SSS_SLOT
 from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
 from ..kernels.projected import given_rss, projected_normal_equations
 
-__all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "CHUNK_PIXELS"]
+__all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "rss_at", "CHUNK_PIXELS"]
 
 
 def _support(t, delay, sigma, tb, tail):
@@ -322,9 +322,11 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
     return (c, rss, a, g) if jac else (c, rss, None, None)
 
 
-def _given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None):
-    """(n,) weighted RSS of ``y`` at the given parameters and amplitudes (n, K), less a constant
-    ``offset`` (n,) (weighted as the rows): compiled for point-sampled kernels (:data:`COMPILED`)."""
+def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None):
+    """(n,) weighted RSS of the weighted data ``y`` (n, L) at the given parameters (``delay``,
+    ``sigma`` (n, K), ``alpha`` (n,), ``present`` (n, K)) and amplitudes (n, K), less a constant
+    ``offset`` (n,), the model and the offset weighted by ``sw`` (n, L; None: unweighted) as
+    :func:`design_rows` weighs its rows: compiled for point-sampled kernels (:data:`COMPILED`)."""
     n = y.shape[0]
     out = np.empty(n)
     if COMPILED and tb is None:
@@ -545,7 +547,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     d0 = np.where(present, slots["delay"], 0.0)
     amp_in = np.where(present, slots["amplitude"], 0.0)
     offset = np.zeros(n) if bg is None else np.where(bg, np.nan_to_num(slots["background"]), 0.0)
-    rss_input = _given_rss(t, y, d0, s0, a0, present, amp_in, offset, tb, sw)
+    rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw)
     if amp is not None:
         rss_input += np.einsum("nk,nk->n", amp, amp_in) ** 2
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
