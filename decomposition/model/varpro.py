@@ -22,10 +22,13 @@ Everything is batched over a block of pixels: slot arrays of shape
 (pixels, K) with K = 2 + R (direct, sss, inter-reflections r2..), absent slots
 masked (zero basis column, identity row in the normal equations).  Each LM
 iteration works on the block's still-active pixels at once; the L-length work
-(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y]) is
-done in cache-sized chunks of pixels, which is several times faster than
-whole-block temporaries.  The only Python loops are over LM iterations, blocks
-and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
+(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y], the
+amplitudes and the normal equations) is compiled for point-sampled kernels, one pixel
+at a time over the rows' supports (:mod:`decomposition.kernels.projected`, the same
+numbers to rounding); bin-integrated kernels (and :data:`COMPILED` off, the reference)
+take the NumPy path, in cache-sized chunks of pixels.  The only Python loops are over
+LM iterations, blocks and chunks of pixels, and the quadrature nodes of bin-integrated
+sampling.
 Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
 step lowers its RSS by less than ``ftol`` relative, or when no step helps.
 
