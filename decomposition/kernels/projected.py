@@ -331,14 +331,16 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
         _lu_solve(g2, rhs, K, 1, piv)
         for k in range(K):
             c_out[p, k] = rhs[k, 0] if present[p, k] else 0.0
+        for i in range(L):
+            r[i] = m[R - 1, i]
+        for k in range(K):
+            if present[p, k]:
+                ck = c_out[p, k]
+                for i in range(lo[k], hi[k]):
+                    r[i] -= ck * m[k, i]
         rss = 0.0
         for i in range(L):
-            v = m[R - 1, i]
-            for k in range(K):
-                if present[p, k] and lo[k] <= i < hi[k]:
-                    v -= c_out[p, k] * m[k, i]
-            r[i] = v
-            rss += v * v
+            rss += r[i] * r[i]
         if has_amp:
             v = 0.0
             for k in range(K):
