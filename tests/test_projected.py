@@ -68,13 +68,17 @@ def _pixels(rng, n):
 
 @pytest.mark.parametrize("shared_sigma", [True, False])
 def test_refine_with_priors_and_holds_matches_numpy(shared_sigma, monkeypatch):
+    # every prior, held widths and decay rates, an offset fitted on half the pixels and held on
+    # a quarter
     rng = np.random.default_rng(3)
     n = 24
     truth = _pixels(rng, n)
-    y = render_profile(truth, L, TB, TB) + rng.normal(0.0, 0.02, (n, L))
+    y = render_profile(truth, L, TB, TB) + rng.normal(0.0, 0.02, (n, L)) + 0.05
     start = {k: v + rng.normal(0.0, 0.5, np.shape(v)) if "delay" in k else v for k, v in truth.items()}
     every = np.arange(n)
+    start["background"] = np.where(every % 4 == 3, 0.05, 0.0)       # held on a quarter of the pixels
     kw = dict(time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma, sss_after_direct=True,
+              fit_background=every % 2 == 0,
               weights=rng.uniform(0.5, 2.0, (n, L)),
               delay_prior=(truth["direct_delay_ps"] + 0.3, np.full(n, 50.0)),
               onset_prior=(np.full(n, 2.0), np.full(n, 5.0)),
