@@ -72,8 +72,12 @@ def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> 
     k_free = free_parameters(families(start), c.widths)
     noise2 = noise_variance(c)[rows]
     log_n = log_samples(s.fit.sum(axis=1))[rows]
-    rss = screened_rss(s.values, np.asarray(weights, np.float64), rows, held_bg, t, slots["delay"], slots["sigma"],
-                       slots["alpha"], present, fit_bg)
+    # in order of pixel: the starts of one pixel share its weighted data in the kernel
+    order = np.argsort(rows, kind="stable")
+    rss = np.empty(n)
+    rss[order] = screened_rss(s.values, np.asarray(weights, np.float64), rows[order], held_bg[order], t,
+                              slots["delay"][order], slots["sigma"][order], slots["alpha"][order], present[order],
+                              fit_bg[order])
     out[:] = penalised(rss / noise2, k_free, log_n, c.opts.search_penalty)
     return out
 

@@ -299,23 +299,29 @@ def _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0) -> DecompositionResul
     """A copy of ``result`` with one more inter-reflection (delay ``tau``, amplitude ``amp``,
     width ``sigma``) in pixels (iy, ix), the inter-reflections re-ordered by delay."""
     params = {k: np.array(v, copy=True) for k, v in result.params.items()}
-    irs = np.array(result.interreflections, np.float64, copy=True)                     # (Y, X, R, L)
+    irs = np.asarray(result.interreflections, np.float64)                               # (Y, X, R, L)
     Y, X, R = irs.shape[:3]
     new = {k: np.full((Y, X, 1), np.nan) for k in ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps")}
     new["ir_delay_ps"][iy, ix, 0] = tau
     new["ir_amplitude"][iy, ix, 0] = amp
     new["ir_sigma_ps"][iy, ix, 0] = sigma
-    echo = render_components({**{k: np.full((Y, X), np.nan) for k in ("direct_delay_ps", "direct_amplitude",
-                                                                        "direct_sigma_ps", "sss_delay_ps",
-                                                                        "sss_amplitude", "sss_alpha_per_ps",
-                                                                        "sss_sigma_ps")}, **new},
-                             L, T, t0)["interreflections"]                                # (Y, X, 1, L)
+    # the echoes rendered in their own pixels (the others' are zero)
+    n = len(iy)
+    echo = np.zeros((Y, X, 1, L))
+    echo[iy, ix] = render_components({**{k: np.full(n, np.nan) for k in ("direct_delay_ps", "direct_amplitude",
+                                                                          "direct_sigma_ps", "sss_delay_ps",
+                                                                          "sss_amplitude", "sss_alpha_per_ps",
+                                                                          "sss_sigma_ps")},
+                                      **{k: v[iy, ix] for k, v in new.items()}}, L, T, t0)["interreflections"]
     delays = np.concatenate([params["ir_delay_ps"].reshape(Y, X, R), new["ir_delay_ps"]], axis=-1)
     order = np.argsort(np.where(np.isfinite(delays), delays, np.inf), axis=-1, kind="stable")
     for k in new:
         both = np.concatenate([params[k].reshape(Y, X, R), new[k]], axis=-1)
         params[k] = np.take_along_axis(both, order, axis=-1)
-    irs = np.take_along_axis(np.concatenate([irs, echo], axis=2), order[..., None], axis=2)
+    # the rendered inter-reflections re-ordered only in the pixels whose order changed
+    irs = np.concatenate([irs, echo], axis=2)
+    moved = np.any(order != np.arange(R + 1), axis=-1)
+    irs[moved] = np.take_along_axis(irs[moved], order[moved][..., None], axis=1)
     residual = np.asarray(result.residual, np.float64) - echo[:, :, 0]
     info = dict(result.info)
     info["pooled_echoes"] = int(len(iy))

@@ -52,17 +52,19 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile
+from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
+from ..constants import SSS_SLOT
 from ..api import DecompositionResult, decompose
 from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
-from ..model.refine import refine
+from ..model.refine import refine, slot_arrays
+from ..model.varpro import rss_at
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
 from ..stages.candidates import detector_variance
 from ..stages.prepare import prepare_samples, time_axis
 from ..stages.quality import assess_fit
 from ..stages.refit import component_errors, sample_weights
-from ..stages.selection import data_term, families, free_parameters, log_samples, penalised
+from ..stages.selection import families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling", "objective_weights",
            "noise_variance", "take_rows", "objective", "refit", "shifted", "NEIGHBOURS_8", "neighbour_prior",
@@ -263,11 +265,23 @@ def _model(c: Coupling, params: dict) -> np.ndarray:
 
 def objective(c: Coupling, rows: np.ndarray, params: dict, weights: np.ndarray) -> np.ndarray:
     """(n,) J of ``params`` (n-shaped) on the pixels ``rows``, the residual weighed by ``weights``
-    (n, L) in the pixels' noise (:mod:`decomposition.stages.selection`)."""
+    (n, L) in the pixels' noise (:mod:`decomposition.stages.selection`): its data term the
+    weighted RSS at the model (:func:`decomposition.model.varpro.rss_at`, the refine's own
+    kernels and offset) over the pixel's noise variance."""
     s = c.samples
-    r = (s.values[rows] - _model(c, params)) * np.sqrt(weights)
+    n = len(rows)
+    slots = slot_arrays(params, (n,))
+    present = slots["present"]
+    with np.errstate(invalid="ignore"):
+        sig = np.where(present, slots["sigma"], 1.0)
+        alp = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
+    offset = np.nan_to_num(np.asarray(params[BACKGROUND_KEY], np.float64)) if BACKGROUND_KEY in params else np.zeros(n)
+    sw = np.sqrt(weights)
+    rss = rss_at(time_axis_ps(s.n_bins, s.axis.time_bin_ps, s.axis.t0_ps), s.values[rows] * sw,
+                 np.where(present, slots["delay"], 0.0), sig, alp, present, np.where(present, slots["amplitude"], 0.0),
+                 offset, None, sw)
     k = free_parameters(families(params), c.widths)
-    return penalised(data_term(r, noise_variance(c)[rows]), k, log_samples(s.fit[rows].sum(axis=1)), c.opts.search_penalty)
+    return penalised(rss / noise_variance(c)[rows], k, log_samples(s.fit[rows].sum(axis=1)), c.opts.search_penalty)
 
 
 def refit(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, prior=None, priors=None) -> dict:

@@ -5,5 +5,7 @@ constants) and the sss kernel's erfcx; ``atomlm`` refines a pixel's atoms (Leven
 ``pick`` / ``pickcorr`` pick the next atom from correlations at the pixel's own PSF width,
 ``onsets`` links sss onsets to their directs, and ``derivatives`` evaluates the kernels and their
 parameter derivatives on blocks of pixels for the variable-projection refine and the Fisher
-information.  Nothing here imports the stages, the API or the evaluation code.
+information (NumPy); ``projected`` is that refine's evaluation compiled (amplitudes, RSS, normal
+equations, the Fisher information's Gram product) for point-sampled kernels, and ``screen`` the
+spatial neighbour starts' screen on the same kernels.  Nothing here imports the stages, the API or the evaluation code.
 """

@@ -4,9 +4,9 @@
 sss decay rate) and solves its amplitudes (and an offset where one is fitted) by weighted linear
 least squares, without a sign constraint, returning the weighted residual sum of squares: the
 screen of :func:`decomposition.image.spatial.neighbour_starts` that decides which starts are
-worth a refit.  The atoms are the point-sampled unit-peak Gaussian and the sss kernel of
-:func:`decomposition.kernels.jit.sss_value` (those of :func:`decomposition.model.varpro.design_rows`,
-to rounding); a tiny ridge keeps collinear atoms solvable, as the refinement's does, and the
+worth a refit.  The atoms are the point-sampled unit-peak Gaussian and the sss kernel on their
+supports, as the compiled refine evaluates them (:func:`decomposition.kernels.projected.kernel_rows`;
+those of :func:`decomposition.model.varpro.design_rows`, to rounding); a tiny ridge keeps collinear atoms solvable, as the refinement's does, and the
 normal equations are solved by a Cholesky factor.
 """
 from __future__ import annotations
@@ -16,12 +16,10 @@ import math
 import numpy as np
 
 from ..constants import SSS_SLOT
-from .jit import njit, sss_value
+from .jit import njit
+from .projected import kernel_rows, row_dot, support_window, uniform_step
 
 __all__ = ["screened_rss"]
-
-#: widths from its centre (or the sss onset) beyond which an atom is taken as zero: exp(-72)
-_SUPPORT_WIDTHS = 12.0
 
 
 @njit
@@ -67,82 +65,79 @@ def screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present
     alpha : float64 (n,)      the sss decay rate, 1/ps
     present : bool (n, K)     the slots the start has
     fit_bg : bool (n,)        an offset is fitted too
+
+    Starts of one pixel that follow one another share its weighted data (the caller may order
+    them by pixel).
     """
     n = rows.size
     L = values.shape[1]
     K = delay.shape[1]
     out = np.empty(n)
-    atoms = np.zeros((K + 1, L))
-    y = np.empty(L)
+    increasing = L >= 2
+    for i in range(1, L):
+        if not t[i] > t[i - 1]:
+            increasing = False
+    step_t = uniform_step(t, increasing)
+    # rows 0..K-1 the slots' atoms, K the offset, K + 1 the weighted data
+    m = np.zeros((K + 2, L))
     sw = np.empty(L)
-    lo = np.zeros(K + 1, np.int64)          # each atom's support [lo, hi): zero outside
-    hi = np.zeros(K + 1, np.int64)
+    lo = np.zeros(K + 2, np.int64)          # each row's support [lo, hi): zero outside
+    hi = np.zeros(K + 2, np.int64)
+    use = np.zeros(K + 1, np.int64)
     r = np.empty(L)
+    lo[K + 1], hi[K + 1] = 0, L
+    last_row = -1
+    last_bg = 0.0
     for p in range(n):
         row = rows[p]
-        for i in range(L):
-            sw[i] = math.sqrt(max(weights[row, i], 0.0))
-            v = values[row, i] - held_bg[p]
-            y[i] = v * sw[i] if math.isfinite(v) else 0.0
+        if row != last_row or held_bg[p] != last_bg:
+            for i in range(L):
+                sw[i] = math.sqrt(max(weights[row, i], 0.0))
+                v = values[row, i] - held_bg[p]
+                m[K + 1, i] = v * sw[i] if math.isfinite(v) else 0.0
+            last_row, last_bg = row, held_bg[p]
         c = 0
         for k in range(K):
             if not present[p, k]:
                 continue
-            d, s = delay[p, k], sigma[p, k]
-            # a Gaussian (or the sss's rising edge) is below 1e-31 of its peak 12 widths out
-            a = 0
-            while a < L and t[a] < d - _SUPPORT_WIDTHS * s:
-                a += 1
-            b = L
-            if k != SSS_SLOT:
-                while b > a and t[b - 1] > d + _SUPPORT_WIDTHS * s:
-                    b -= 1
-            for i in range(L):
-                atoms[c, i] = 0.0
-            for i in range(a, b):
-                x = t[i] - d
-                if k == SSS_SLOT:
-                    v = sss_value(x, s, alpha[p])[0]
-                else:
-                    v = math.exp(max(-0.5 * (x / s) * (x / s), -700.0))     # the floor of kernels.derivatives
-                atoms[c, i] = v * sw[i]
-            lo[c], hi[c] = a, b
+            sss = k == SSS_SLOT
+            j0, j1 = support_window(t, delay[p, k], sigma[p, k], sss, increasing)
+            kernel_rows(t, m, K, k, sss, delay[p, k], sigma[p, k], alpha[p], sw, True, False, j0, j1, step_t)
+            lo[k], hi[k] = j0, j1
+            use[c] = k
             c += 1
         if fit_bg[p]:
             for i in range(L):
-                atoms[c, i] = sw[i]
-            lo[c], hi[c] = 0, L
+                m[K, i] = sw[i]
+            lo[K], hi[K] = 0, L
+            use[c] = K
             c += 1
-        rss = 0.0
         if c == 0:
-            for i in range(L):
-                rss += y[i] * y[i]
-            out[p] = rss
+            out[p] = row_dot(m, K + 1, K + 1, 0, L)
             continue
         gram = np.zeros((c, c))
         rhs = np.zeros(c)
-        for a in range(c):
-            acc = 0.0
-            for i in range(lo[a], hi[a]):
-                acc += atoms[a, i] * y[i]
-            rhs[a] = acc
-            for b in range(a + 1):
-                acc = 0.0
-                for i in range(max(lo[a], lo[b]), min(hi[a], hi[b])):
-                    acc += atoms[a, i] * atoms[b, i]
-                gram[a, b] = acc
-                gram[b, a] = acc
+        for x in range(c):
+            a = use[x]
+            rhs[x] = row_dot(m, a, K + 1, lo[a], hi[a])
+            for z in range(x + 1):
+                b = use[z]
+                acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+                gram[x, z] = acc
+                gram[z, x] = acc
         top = 0.0
-        for a in range(c):
-            top = max(top, gram[a, a])
-        for a in range(c):
-            gram[a, a] += 1e-13 * top + 1e-300
+        for x in range(c):
+            top = max(top, gram[x, x])
+        for x in range(c):
+            gram[x, x] += 1e-13 * top + 1e-300
         amp = _cholesky_solve(gram, rhs, c)
         for i in range(L):
-            r[i] = y[i]
-        for a in range(c):
+            r[i] = m[K + 1, i]
+        for x in range(c):
+            a = use[x]
             for i in range(lo[a], hi[a]):
-                r[i] -= amp[a] * atoms[a, i]
+                r[i] -= amp[x] * m[a, i]
+        rss = 0.0
         for i in range(L):
             rss += r[i] * r[i]
         out[p] = rss

@@ -33,7 +33,9 @@ import numpy as np
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from ..constants import SSS_SLOT
 from .refine import apply_weights, check_hold, held_slots, slot_arrays
-from .varpro import CHUNK_PIXELS, design_rows, kernel_windows
+from . import varpro
+from ..kernels.projected import fisher_gram
+from .varpro import CHUNK_PIXELS, kernel_windows
 
 __all__ = ["fisher_information", "cramer_rao_bound", "standard_errors", "parameter_names"]
 
@@ -135,6 +137,10 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     tb = float(time_bin_ps) if bin_integrated else None
     n, k = slots["present"].shape
     p = 3 * k + 1 + (offset is not None)
+    if varpro.COMPILED and tb is None:
+        info, free, tied = _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offset, fixed)
+        slots["tied_slot"] = tied if shared_sigma else None
+        return lead, slots, info, free, amp_scale
     info = np.empty((n, p, p))
     free = np.empty((n, p), dtype=bool)
     tied = np.zeros(n, dtype=np.int64)
@@ -169,6 +175,45 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
         free[ch] = fr
     slots["tied_slot"] = tied if shared_sigma else None
     return lead, slots, info, free, amp_scale
+
+
+def _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offset, fixed):
+    """The point-sampled ``info``, ``free`` and tied slots of :func:`_unit_information`, the
+    rows and their Gram product compiled (:func:`decomposition.kernels.projected.fisher_gram`);
+    the free parameters as the NumPy path marks them."""
+    present = slots["present"]
+    n, k = present.shape
+    pix = np.arange(n)
+    free = np.concatenate([np.repeat(present, 3, axis=1), present[:, SSS_SLOT:SSS_SLOT + 1]], axis=1)
+    if offset is not None:
+        free = np.concatenate([free, np.asarray(offset, bool)[:, None]], axis=1)
+    p = free.shape[1]
+    tied = np.full(n, -1, np.int64)
+    if shared_sigma:
+        tied = np.argmax(present, axis=1).astype(np.int64)
+        free[:, _sigma_rows(k)] = False
+        free[pix, 3 * tied + 2] = present.any(axis=1)
+    onset = np.zeros(n, bool)
+    if tie_onset:
+        onset = _onset_at_direct(slots)
+        free[onset, 3 * SSS_SLOT] = False
+    fx = np.zeros((n, p), bool)
+    if fixed is not None:
+        fx[:, :fixed.shape[1]] = fixed
+        if shared_sigma:
+            fx[pix, 3 * tied + 2] |= fixed[:, _sigma_rows(k)].any(axis=1)
+        free &= ~fx
+    info = np.empty((n, p, p))
+    if n:
+        amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
+        fisher_gram(np.ascontiguousarray(t, np.float64), np.ascontiguousarray(slots["delay"], np.float64),
+                    np.ascontiguousarray(slots["sigma"], np.float64), np.ascontiguousarray(slots["alpha"], np.float64),
+                    np.ascontiguousarray(amp, np.float64), np.ascontiguousarray(present, np.bool_),
+                    np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
+                    np.zeros(0, np.bool_) if offset is None else np.ascontiguousarray(offset, np.bool_),
+                    tied if shared_sigma else np.full(n, -1, np.int64), np.ascontiguousarray(onset, np.bool_),
+                    np.ascontiguousarray(fx, np.bool_), info)
+    return info, free, np.where(tied >= 0, tied, 0)
 
 
 def _amplitude_rows(k):
@@ -402,14 +447,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         sig = np.where(present, slots["sigma"], 1.0)
         alp = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
     delay = np.where(present, slots["delay"], 0.0)
-    rss = np.empty(n)
-    for i in range(0, n, CHUNK_PIXELS):
-        ch = slice(i, i + CHUNK_PIXELS)
-        phi = design_rows(t, y2[ch], delay[ch], sig[ch], alp[ch], present[ch], tb, False)[:, :-1]
-        resid = y2[ch] - np.einsum("nk,nkl->nl", amp[ch], phi)
-        if sw is not None:
-            resid *= sw[ch]
-        rss[i:i + CHUNK_PIXELS] = np.einsum("nl,nl->n", resid, resid)
+    rss = varpro.rss_at(t, y2 if sw is None else y2 * sw, delay, sig, alp, present, amp, np.zeros(n), tb, sw)
     n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
     n_fitted = 3 * present.sum(axis=-1) + present[:, SSS_SLOT]
     if offset is not None:

@@ -22,10 +22,13 @@ Everything is batched over a block of pixels: slot arrays of shape
 (pixels, K) with K = 2 + R (direct, sss, inter-reflections r2..), absent slots
 masked (zero basis column, identity row in the normal equations).  Each LM
 iteration works on the block's still-active pixels at once; the L-length work
-(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y]) is
-done in cache-sized chunks of pixels, which is several times faster than
-whole-block temporaries.  The only Python loops are over LM iterations, blocks
-and chunks of pixels, and the quadrature nodes of bin-integrated sampling.
+(kernels, derivatives, one Gram product of the stacked rows [Phi; dPhi; y], the
+amplitudes and the normal equations) is compiled for point-sampled kernels, one pixel
+at a time over the rows' supports (:mod:`decomposition.kernels.projected`, the same
+numbers to rounding); bin-integrated kernels (and :data:`COMPILED` off, the reference)
+take the NumPy path, in cache-sized chunks of pixels.  The only Python loops are over
+LM iterations, blocks and chunks of pixels, and the quadrature nodes of bin-integrated
+sampling.
 Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
 step lowers its RSS by less than ``ftol`` relative, or when no step helps.
 
@@ -58,8 +61,9 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
+from ..kernels.projected import given_rss, projected_normal_equations
 
-__all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "CHUNK_PIXELS"]
+__all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "rss_at", "CHUNK_PIXELS"]
 
 
 def _support(t, delay, sigma, tb, tail):
@@ -289,7 +293,67 @@ class Layout:
 CHUNK_PIXELS = 48
 
 
+#: Point-sampled kernels (no ``tb``) take the compiled evaluation
+#: (:func:`decomposition.kernels.projected.projected_normal_equations`, the same numbers to
+#: rounding); False: always the NumPy path below (the reference the compiled one is tested against).
+COMPILED = True
+
+
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None):
+    """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
+    (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`), else
+    :func:`_evaluate_numpy`."""
+    if not (COMPILED and tb is None):
+        return _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw, bg, amp)
+    n = y.shape[0]
+    k, p = lay.k, lay.p
+    c = np.zeros((n, k))
+    rss = np.empty(n)
+    a = np.zeros((n, p, p) if jac else (0, p, p))
+    g = np.zeros((n, p) if jac else (0, p))
+    if n:
+        t = np.ascontiguousarray(t, np.float64)
+        increasing = t.size >= 2 and bool(np.all(t[1:] > t[:-1]))
+        projected_normal_equations(
+            t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(theta, np.float64),
+            np.ascontiguousarray(present, np.bool_), np.ascontiguousarray(free, np.bool_),
+            np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
+            np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
+            np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
+            np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64),
+            lay.shared, increasing, bool(jac), c, rss, a, g)
+    return (c, rss, a, g) if jac else (c, rss, None, None)
+
+
+def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None):
+    """(n,) weighted RSS of the weighted data ``y`` (n, L) at the given parameters (``delay``,
+    ``sigma`` (n, K), ``alpha`` (n,), ``present`` (n, K)) and amplitudes (n, K), less a constant
+    ``offset`` (n,), the model and the offset weighted by ``sw`` (n, L; None: unweighted) as
+    :func:`design_rows` weighs its rows: compiled for point-sampled kernels (:data:`COMPILED`)."""
+    n = y.shape[0]
+    out = np.empty(n)
+    if COMPILED and tb is None:
+        if n:
+            t = np.ascontiguousarray(t, np.float64)
+            given_rss(t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(delay, np.float64),
+                      np.ascontiguousarray(sigma, np.float64), np.ascontiguousarray(alpha, np.float64),
+                      np.ascontiguousarray(present, np.bool_), np.ascontiguousarray(amplitude, np.float64),
+                      np.ascontiguousarray(offset, np.float64),
+                      np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
+                      t.size >= 2 and bool(np.all(t[1:] > t[:-1])), out)
+        return out
+    for i in range(0, n, CHUNK_PIXELS):
+        ch = slice(i, i + CHUNK_PIXELS)
+        phi0 = design_rows(t, y[ch], delay[ch], sigma[ch], alpha[ch], present[ch], tb, False,
+                           None if sw is None else sw[ch])[:, :present.shape[1]]
+        r0 = y[ch] - np.einsum("nk,nkl->nl", amplitude[ch], phi0)
+        u0 = np.ones_like(r0) if sw is None else sw[ch]
+        r0 = r0 - offset[ch][:, None] * u0
+        out[ch] = np.einsum("nl,nl->n", r0, r0)
+    return out
+
+
+def _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None):
     """:func:`_evaluate_chunk` over cache-sized chunks of pixels (``amp`` (n, K): the
     amplitude prior's rows, :func:`_amplitude_prior`).
 
@@ -485,16 +549,8 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         a0 = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
     d0 = np.where(present, slots["delay"], 0.0)
     amp_in = np.where(present, slots["amplitude"], 0.0)
-    rss_input = np.empty(n)
-    for i in range(0, n, CHUNK_PIXELS):
-        ch = slice(i, i + CHUNK_PIXELS)
-        phi0 = design_rows(t, y[ch], d0[ch], s0[ch], a0[ch], present[ch], tb, False,
-                       None if sw is None else sw[ch])[:, :lay.k]
-        r0 = y[ch] - np.einsum("nk,nkl->nl", amp_in[ch], phi0)
-        if bg is not None:
-            u0 = np.ones_like(r0) if sw is None else sw[ch]
-            r0 = r0 - np.where(bg[ch], np.nan_to_num(slots["background"][ch]), 0.0)[:, None] * u0
-        rss_input[ch] = np.einsum("nl,nl->n", r0, r0)
+    offset = np.zeros(n) if bg is None else np.where(bg, np.nan_to_num(slots["background"]), 0.0)
+    rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw)
     if amp is not None:
         rss_input += np.einsum("nk,nk->n", amp, amp_in) ** 2
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)

@@ -1,0 +1,537 @@
+"""The variable-projection refine's L-length work, compiled: amplitudes, RSS and normal equations.
+
+:func:`projected_normal_equations` is :func:`decomposition.model.varpro._evaluate_chunk` for
+point-sampled kernels, one pixel at a time: the stacked rows [Phi; dPhi; y] of
+:func:`decomposition.model.varpro.design_rows` (each kernel on its support only, the values and
+derivatives of :func:`decomposition.kernels.derivatives.kernel_derivatives`, weighted), the rows
+projected onto the complement of the weighted constant where a pixel fits an offset, the
+amplitude prior's extra sample, one Gram product summed over the overlap of the rows' supports,
+the amplitudes from the ridge-regularised Gram matrix, the weighted residual and its sum of
+squares, and Kaufman's normal equations J^T J and gradient J^T r over the layout's nonlinear
+parameters.  The same arithmetic as the NumPy reference path to rounding (a different order of
+summation, and the erfcx of :func:`decomposition.kernels.jit.erfcx`); nothing of size
+(pixels, rows, time) is allocated.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..constants import SSS_SLOT
+from .jit import erfcx, njit
+
+__all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
+           "uniform_step", "row_dot", "fisher_gram"]
+
+#: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
+#: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
+#: any sum of the refine or of the neighbour screen could carry to rounding
+SUPPORT_WIDTHS = 12.0
+
+_SQRT_PI_2 = math.sqrt(math.pi / 2.0)
+_INV_SQRT_2 = 1.0 / math.sqrt(2.0)
+# as kernels.derivatives: the exp floor, where erfc(u) is exactly 2, where g is at the floor
+_EXP_FLOOR = -700.0
+_ERFC_IS_TWO = -6.0
+_Z_NEGLIGIBLE = 37.5
+_G_FLOOR = math.exp(_EXP_FLOOR)
+#: samples between fresh evaluations of the sss tail's stepped exponential
+_RESTART = 8
+
+
+@njit
+def _first_at_least(t, v):
+    """np.searchsorted(t, v, "left") for increasing ``t``."""
+    lo, hi = 0, t.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t[mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit
+def _first_above(t, v):
+    """np.searchsorted(t, v, "right") for increasing ``t``."""
+    lo, hi = 0, t.size
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t[mid] <= v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit
+def row_dot(m, a, b, i0, i1):
+    """sum_i m[a, i] m[b, i] over [i0, i1), in four interleaved partial sums (four independent
+    chains of additions instead of one)."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    i = i0
+    while i + 4 <= i1:
+        s0 += m[a, i] * m[b, i]
+        s1 += m[a, i + 1] * m[b, i + 1]
+        s2 += m[a, i + 2] * m[b, i + 2]
+        s3 += m[a, i + 3] * m[b, i + 3]
+        i += 4
+    while i < i1:
+        s0 += m[a, i] * m[b, i]
+        i += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit
+def _lu_solve(a, b, n, m, piv):
+    """Solve a x = b in place (``a`` (n, n) overwritten by its LU factors, ``b`` (n, m) by x):
+    Gaussian elimination with partial pivoting, as LAPACK's gesv (a few rows, a plain loop)."""
+    for j in range(n):
+        p = j
+        big = abs(a[j, j])
+        for i in range(j + 1, n):
+            if abs(a[i, j]) > big:
+                big = abs(a[i, j])
+                p = i
+        piv[j] = p
+        if p != j:
+            for k in range(n):
+                tmp = a[j, k]
+                a[j, k] = a[p, k]
+                a[p, k] = tmp
+            for k in range(m):
+                tmp = b[j, k]
+                b[j, k] = b[p, k]
+                b[p, k] = tmp
+        d = a[j, j]
+        for i in range(j + 1, n):
+            f = a[i, j] / d
+            a[i, j] = f
+            for k in range(j + 1, n):
+                a[i, k] -= f * a[j, k]
+            for k in range(m):
+                b[i, k] -= f * b[j, k]
+    for k in range(m):
+        for i in range(n - 1, -1, -1):
+            s = b[i, k]
+            for q in range(i + 1, n):
+                s -= a[i, q] * b[q, k]
+            b[i, k] = s / a[i, i]
+
+
+@njit
+def uniform_step(t, increasing):
+    """The bin width of a uniform increasing axis ``t`` (to 1e-9 of it), else 0: a uniform axis
+    steps the sss tail's exponential (:func:`kernel_rows`)."""
+    L = t.size
+    if not increasing or L < 2:
+        return 0.0
+    step = (t[L - 1] - t[0]) / (L - 1)
+    for i in range(1, L):
+        if abs((t[i] - t[i - 1]) - step) > 1e-9 * step:
+            return 0.0
+    return step
+
+
+@njit
+def support_window(t, d, s, sss, increasing):
+    """[j0, j1) of a kernel at delay ``d``, width ``s``: within :data:`SUPPORT_WIDTHS` widths
+    of the delay (of the onset and after it for the sss), where every value and derivative
+    is below 1e-29 of its peak and adds nothing to any sum to rounding; the whole axis where
+    that is empty, the parameters are not finite or ``t`` is not increasing."""
+    L = t.size
+    half = SUPPORT_WIDTHS * s
+    if not (increasing and math.isfinite(d) and math.isfinite(half)):
+        return 0, L
+    j0 = _first_at_least(t, d - half)
+    j1 = L if sss else _first_above(t, d + half)
+    if j1 <= j0:
+        return 0, L
+    return j0, j1
+
+
+@njit
+def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t, log_scale=True):
+    """Write slot ``slot``'s kernel (and with ``jac`` its derivative rows: K + slot the delay's,
+    2K + slot the log width's, 3K the sss log decay rate's; without ``log_scale`` the width's
+    and the decay rate's own) on [j0, j1) into ``m``, each times ``sw`` where ``has_sw``.
+
+    The sss kernel's tail factor e = exp(alpha^2 sigma^2 / 2 - alpha x) is evaluated afresh
+    every :data:`_RESTART` samples and stepped by exp(-alpha ``step_t``) in between (``step_t``
+    the axis' bin width; 0: always afresh): a few ulp, not an exponential per sample."""
+    rho = math.exp(-a * step_t) if step_t > 0.0 else 0.0
+    fs = s if log_scale else 1.0
+    fa = a if log_scale else 1.0
+    e = 0.0
+    stepped = _RESTART           # samples since e was evaluated afresh (_RESTART: evaluate now)
+    for i in range(j0, j1):
+        w = sw[i] if has_sw else 1.0
+        x = t[i] - d
+        z = x / s
+        if not sss:
+            g = math.exp(max(-0.5 * z * z, _EXP_FLOOR))
+            m[slot, i] = g * w
+            if jac:
+                gz = g * z
+                m[K + slot, i] = (gz / s) * w
+                m[2 * K + slot, i] = ((gz * z / s) * fs) * w
+            continue
+        q = a * s
+        u = (q - z) * _INV_SQRT_2
+        zz = -0.5 * z * z
+        g = math.exp(zz) if zz > _EXP_FLOOR else _G_FLOOR
+        ez = q * (0.5 * q - z)
+        if ez >= 0.0:
+            e = 1.0
+            stepped = _RESTART
+        elif ez <= _EXP_FLOOR:
+            e = _G_FLOOR
+            stepped = _RESTART
+        elif stepped < _RESTART - 1 and rho > 0.0:
+            e *= rho
+            stepped += 1
+        else:
+            e = math.exp(ez)
+            stepped = 0
+        h = 2.0 * e
+        if u > _ERFC_IS_TWO and z > -_Z_NEGLIGIBLE:
+            if u >= 0.0:
+                h = g * erfcx(u)
+            else:
+                h = e * math.erfc(u)
+        elif u >= 0.0:
+            h = 0.0
+        h *= _SQRT_PI_2 * s
+        m[slot, i] = h * w
+        if jac:
+            m[K + slot, i] = (a * h - g) * w
+            m[2 * K + slot, i] = ((h * ((1.0 + q * q) / s) - g * (q + z)) * fs) * w
+            m[3 * K, i] = ((s * ((q - z) * h - s * g)) * fa) * w
+
+
+@njit
+def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
+                               c_out, rss_out, a_out, g_out):
+    """Amplitudes, RSS and (``jac``) the LM normal equations of n pixels at ``theta``.
+
+    Parameters
+    ----------
+    t : float64 (L,)            sample times, ps
+    y : float64 (n, L)          the pixels' normalised, weighted data
+    theta : float64 (n, P)      the layout's nonlinear parameters (delays, log widths, log alpha)
+    present : bool (n, K)       the slots each pixel has
+    free : bool (n, P)          the parameters each pixel moves
+    sw : float64 (n, L)         square roots of the sample weights ((0, L): none)
+    bg : bool (n,)              the pixels that fit a constant offset too
+    amp : float64 (n, K)        the amplitude prior's row ((0, K): none)
+    assign : float64 (P, 2K+1)  the layout's map of parameters onto derivative rows
+    dslot : int (2K+1,)         the slot of each derivative row
+    shared : bool               one width per pixel (theta[:, K])
+    increasing : bool           ``t`` increasing (else every kernel on the whole axis)
+    jac : bool                  compute the normal equations too
+
+    Outputs (written): ``c_out`` (n, K) the amplitudes (0 where absent), ``rss_out`` (n,),
+    ``a_out`` (n, P, P) J^T J and ``g_out`` (n, P) J^T r (with ``jac``).
+    """
+    n, L = y.shape
+    K = present.shape[1]
+    P = theta.shape[1]
+    Q = 2 * K + 1
+    R = 3 * K + 2 if jac else K + 1
+    has_sw = sw.shape[0] == n
+    has_amp = amp.shape[0] == n
+    m = np.zeros((R, L))
+    lo = np.zeros(R, np.int64)
+    hi = np.zeros(R, np.int64)
+    mm = np.zeros((R, R))
+    gram = np.zeros((K, K))
+    rhs = np.zeros((K, 1 + P))
+    piv = np.zeros(K, np.int64)
+    u = np.empty(L)
+    r = np.empty(L)
+    w = np.zeros((P, Q))
+    dr = np.zeros(Q)
+    vv = np.zeros((Q, Q))
+    vw = np.zeros((Q, P))
+    bq = np.zeros((K, Q))
+    dummy = np.empty(0)
+    step_t = uniform_step(t, increasing)
+    for p in range(n):
+        swp = sw[p] if has_sw else dummy
+        for row in range(R):
+            lo[row] = 0
+            hi[row] = 0
+        lo[R - 1] = 0
+        hi[R - 1] = L
+        for i in range(L):
+            m[R - 1, i] = y[p, i]
+        a_p = math.exp(theta[p, P - 1])
+        for slot in range(K):
+            if not present[p, slot]:
+                continue
+            d = theta[p, slot]
+            s = math.exp(theta[p, K] if shared else theta[p, K + slot])
+            sss = slot == SSS_SLOT
+            j0, j1 = support_window(t, d, s, sss, increasing)
+            kernel_rows(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
+            rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
+            for row in rows_here:
+                lo[row] = j0
+                hi[row] = j1
+            if jac and sss:
+                lo[3 * K] = j0
+                hi[3 * K] = j1
+        if bg[p]:
+            uu = 0.0
+            for i in range(L):
+                u[i] = swp[i] if has_sw else 1.0
+                uu += u[i] * u[i]
+            norm = math.sqrt(uu if uu > 0.0 else 1.0)
+            for i in range(L):
+                u[i] = u[i] / norm
+            for row in range(R):
+                if hi[row] <= lo[row]:
+                    continue
+                acc = 0.0
+                for i in range(lo[row], hi[row]):
+                    acc += m[row, i] * u[i]
+                if row < R - 1:
+                    for i in range(0, lo[row]):
+                        m[row, i] = 0.0
+                    for i in range(hi[row], L):
+                        m[row, i] = 0.0
+                for i in range(L):
+                    m[row, i] -= acc * u[i]
+                lo[row] = 0
+                hi[row] = L
+        # the Gram product of the stacked rows over the overlaps of their supports
+        for a in range(R):
+            for b in range(a, R):
+                acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+                if has_amp and a < K and b < K:
+                    acc += amp[p, a] * amp[p, b]
+                mm[a, b] = acc
+                mm[b, a] = acc
+        # the amplitudes: the regularised Gram matrix (an identity row for an absent slot)
+        top = 0.0
+        for k in range(K):
+            if present[p, k]:
+                top = max(top, mm[k, k])
+        for k in range(K):
+            for j in range(K):
+                gram[k, j] = mm[k, j] if (present[p, k] and present[p, j]) or k != j else 0.0
+            gram[k, k] = (mm[k, k] + (1e-13 * top + 1e-300)) if present[p, k] else 1.0
+            rhs[k, 0] = mm[k, R - 1]
+        g2 = gram.copy()
+        _lu_solve(g2, rhs, K, 1, piv)
+        for k in range(K):
+            c_out[p, k] = rhs[k, 0] if present[p, k] else 0.0
+        for i in range(L):
+            r[i] = m[R - 1, i]
+        for k in range(K):
+            if present[p, k]:
+                ck = c_out[p, k]
+                for i in range(lo[k], hi[k]):
+                    r[i] -= ck * m[k, i]
+        rss = 0.0
+        for i in range(L):
+            rss += r[i] * r[i]
+        if has_amp:
+            v = 0.0
+            for k in range(K):
+                v -= c_out[p, k] * amp[p, k]
+            rss += v * v
+        rss_out[p] = rss
+        if not jac:
+            continue
+        for qq in range(Q):
+            sl = dslot[qq]
+            fr = present[p, sl] if qq < 2 * K else present[p, SSS_SLOT]
+            cq = c_out[p, sl] if fr else 0.0
+            for j in range(P):
+                w[j, qq] = assign[j, qq] * cq * (1.0 if free[p, j] else 0.0)
+        # dPhi r over the derivative rows (the residual's extra sample has no derivative)
+        for qq in range(Q):
+            row = K + qq
+            acc = 0.0
+            for i in range(lo[row], hi[row]):
+                acc += m[row, i] * r[i]
+            dr[qq] = acc
+        for k in range(K):
+            for qq in range(Q):
+                bq[k, qq] = mm[k, K + qq]
+        for k in range(K):
+            for j in range(P):
+                acc = 0.0
+                for qq in range(Q):
+                    acc += bq[k, qq] * w[j, qq]
+                rhs[k, 1 + j] = acc
+        for a in range(Q):
+            for b in range(Q):
+                vv[a, b] = mm[K + a, K + b]
+        g2 = gram.copy()
+        bx = rhs[:, 1:].copy()
+        _lu_solve(g2, bx, K, P, piv)
+        for a in range(Q):
+            for j in range(P):
+                acc = 0.0
+                for b in range(Q):
+                    acc += vv[a, b] * w[j, b]
+                vw[a, j] = acc
+        for i in range(P):
+            acc = 0.0
+            for qq in range(Q):
+                acc += w[i, qq] * dr[qq]
+            g_out[p, i] = -acc
+            for j in range(P):
+                s = 0.0
+                for a in range(Q):
+                    s += w[i, a] * vw[a, j]
+                for k in range(K):
+                    s -= rhs[k, 1 + i] * bx[k, j]
+                a_out[p, i, j] = s
+
+
+@njit
+def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increasing, out):
+    """(n,) weighted RSS of the pixels' data at given parameters and amplitudes (the refine's
+    never-worse reference): sum_i (y_i - sum_k amplitude_k phi_k(t_i) sw_i - offset sw_i)^2,
+    the kernels on the supports of :func:`projected_normal_equations`.
+
+    ``y`` (n, L) weighted data; ``delay``, ``sigma``, ``amplitude`` (n, K), ``alpha`` (n,),
+    ``present`` (n, K); ``offset`` (n,) a constant subtracted (0: none); ``sw`` (n, L) or
+    (0, L): the square roots of the sample weights."""
+    n, L = y.shape
+    K = present.shape[1]
+    has_sw = sw.shape[0] == n
+    m = np.zeros((K, L))
+    r = np.empty(L)
+    dummy = np.empty(0)
+    step_t = uniform_step(t, increasing)
+    for p in range(n):
+        swp = sw[p] if has_sw else dummy
+        for i in range(L):
+            r[i] = y[p, i] - offset[p] * (swp[i] if has_sw else 1.0)
+        for slot in range(K):
+            if not present[p, slot]:
+                continue
+            d = delay[p, slot]
+            s = sigma[p, slot]
+            sss = slot == SSS_SLOT
+            j0, j1 = support_window(t, d, s, sss, increasing)
+            kernel_rows(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
+            c = amplitude[p, slot]
+            for i in range(j0, j1):
+                r[i] -= c * m[slot, i]
+        acc = 0.0
+        for i in range(L):
+            acc += r[i] * r[i]
+        out[p] = acc
+
+
+@njit
+def fisher_gram(t, delay, sigma, alpha, amplitude, present, sw, offset, tied, onset, fixed, out):
+    """J^T W J of the Fisher information's Jacobian rows (:func:`decomposition.model.fisher._jacobian`,
+    point-sampled kernels on their supports), n pixels.
+
+    Rows per slot k: 3k the delay's (amplitude times the kernel's delay derivative), 3k + 1 the
+    amplitude's (the kernel), 3k + 2 the width's (amplitude times d/d sigma); 3K the sss decay
+    rate's; with ``offset`` (n,) given (else (0,)) row 3K + 1 the offset's (ones, where the
+    pixel has one).  Each row times ``sw`` (n, L) where given ((0, L): none).  Then, as the
+    NumPy path: ``tied`` (n,) >= 0 the slot whose width row carries the sum of every width row
+    (one width per pixel; -1: none), ``onset`` (n,) the pixels whose sss onset rides on the
+    direct's delay (the sss delay row added to the direct's and zeroed), ``fixed`` (n, p) the
+    rows zeroed (held parameters).  ``out`` (n, p, p), p = 3K + 1 (+ 1 with ``offset``).
+    """
+    n, K = present.shape
+    L = t.size
+    p = out.shape[1]
+    has_sw = sw.shape[0] == n
+    has_off = offset.shape[0] == n
+    increasing = L >= 2
+    for i in range(1, L):
+        if not t[i] > t[i - 1]:
+            increasing = False
+    step_t = uniform_step(t, increasing)
+    m = np.zeros((3 * K + 1, L))
+    J = np.zeros((p, L))
+    lo = np.zeros(p, np.int64)
+    hi = np.zeros(p, np.int64)
+    dummy = np.empty(0)
+    for q in range(n):
+        swq = sw[q] if has_sw else dummy
+        for row in range(p):
+            lo[row] = 0
+            hi[row] = 0
+        for k in range(K):
+            if not present[q, k]:
+                continue
+            sss = k == SSS_SLOT
+            j0, j1 = support_window(t, delay[q, k], sigma[q, k], sss, increasing)
+            kernel_rows(t, m, K, k, sss, delay[q, k], sigma[q, k], alpha[q], swq, has_sw, True, j0, j1, step_t,
+                        False)
+            c = amplitude[q, k]
+            for i in range(j0, j1):
+                J[3 * k, i] = c * m[K + k, i]
+                J[3 * k + 1, i] = m[k, i]
+                J[3 * k + 2, i] = c * m[2 * K + k, i]
+            for row in range(3 * k, 3 * k + 3):
+                lo[row] = j0
+                hi[row] = j1
+            if sss:
+                for i in range(j0, j1):
+                    J[3 * K, i] = c * m[3 * K, i]
+                lo[3 * K] = j0
+                hi[3 * K] = j1
+        if has_off and offset[q]:
+            for i in range(L):
+                J[3 * K + 1, i] = swq[i] if has_sw else 1.0
+            lo[3 * K + 1] = 0
+            hi[3 * K + 1] = L
+        if tied[q] >= 0:
+            # the sum of the width rows over the union of their supports, in the tied slot's row
+            dst = 3 * tied[q] + 2
+            a0, a1 = L, 0
+            for k in range(K):
+                if hi[3 * k + 2] > lo[3 * k + 2]:
+                    a0 = min(a0, lo[3 * k + 2])
+                    a1 = max(a1, hi[3 * k + 2])
+            if a1 > a0:
+                tot = np.zeros(L)
+                for k in range(K):
+                    row = 3 * k + 2
+                    for i in range(lo[row], hi[row]):
+                        tot[i] += J[row, i]
+                    lo[row] = 0
+                    hi[row] = 0
+                for i in range(a0, a1):
+                    J[dst, i] = tot[i]
+                lo[dst] = a0
+                hi[dst] = a1
+        if onset[q]:
+            src = 3 * SSS_SLOT
+            if hi[src] > lo[src]:
+                b0 = min(lo[0], lo[src]) if hi[0] > lo[0] else lo[src]
+                b1 = max(hi[0], hi[src]) if hi[0] > lo[0] else hi[src]
+                for i in range(b0, b1):
+                    v0 = J[0, i] if lo[0] <= i < hi[0] else 0.0
+                    vs = J[src, i] if lo[src] <= i < hi[src] else 0.0
+                    J[0, i] = v0 + vs
+                lo[0] = b0
+                hi[0] = b1
+            lo[src] = 0
+            hi[src] = 0
+        for row in range(p):
+            if fixed[q, row]:
+                lo[row] = 0
+                hi[row] = 0
+        for a in range(p):
+            for b in range(a, p):
+                v = row_dot(J, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+                out[q, a, b] = v
+                out[q, b, a] = v

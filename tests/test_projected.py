@@ -1,0 +1,130 @@
+"""The compiled evaluation of the variable-projection refine (kernels.projected) agrees with the
+NumPy reference path (model.varpro with COMPILED off): its amplitudes, RSS and normal equations to
+1e-12 of their size, and refine() with every prior and a hold to 1e-9 in every parameter."""
+import numpy as np
+import pytest
+
+from core.model import render_profile
+from decomposition.model import varpro
+from decomposition.model.refine import refine
+from decomposition.model.varpro import Layout
+
+L, TB = 256, 2.0
+T = TB * np.arange(1, L + 1)
+
+
+def _batch(rng, n, k, shared):
+    """n pixels of k slots (direct, sss, inter-reflections; some absent, one wholly after the
+    axis), their layout, theta and free mask (a tenth of the parameters held)."""
+    lay = Layout(k, shared)
+    present = rng.random((n, k)) < 0.7
+    present[:, 0] = True
+    delay = np.sort(rng.uniform(40.0, 420.0, (n, k)), axis=1)
+    delay[:, 1] = delay[:, 0] + rng.uniform(0.0, 12.0, n)
+    delay[0, k - 1], present[0, k - 1] = 2000.0, True
+    sigma = rng.uniform(2.0, 6.0, (n, k))
+    alpha = rng.uniform(0.02, 0.3, n)
+    theta = np.where(lay.free(present), lay.pack(delay, sigma, alpha, present), 0.0)
+    free = lay.free(present) & ~(rng.random((n, lay.p)) < 0.1)
+    return lay, theta, present, free
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("background", [False, True])
+@pytest.mark.parametrize("ratio_prior", [False, True])
+def test_normal_equations_match_numpy(shared, background, ratio_prior, monkeypatch):
+    rng = np.random.default_rng(7)
+    n, k = 24, 4
+    lay, theta, present, free = _batch(rng, n, k, shared)
+    sw = np.sqrt(rng.uniform(0.5, 2.0, (n, L)))
+    y = rng.normal(size=(n, L)) * sw
+    bg = (rng.random(n) < 0.5) if background else None
+    amp = None
+    if ratio_prior:
+        amp = np.zeros((n, k))
+        amp[present[:, 1], 0], amp[present[:, 1], 1] = -0.6 * 3.0, 3.0
+    for jac in (True, False):
+        got = varpro._evaluate(lay, T, y, theta, present, free, None, jac, sw, bg, amp)
+        monkeypatch.setattr(varpro, "COMPILED", False)
+        want = varpro._evaluate(lay, T, y, theta, present, free, None, jac, sw, bg, amp)
+        monkeypatch.setattr(varpro, "COMPILED", True)
+        for g, w in zip(got, want):
+            if w is None:
+                assert g is None
+                continue
+            np.testing.assert_allclose(g, w, rtol=0, atol=1e-12 * np.max(np.abs(w)))
+
+
+def _pixels(rng, n):
+    params = {"direct_delay_ps": rng.uniform(80.0, 150.0, n), "direct_amplitude": rng.uniform(0.5, 1.5, n),
+              "direct_sigma_ps": np.full(n, 4.0), "sss_amplitude": rng.uniform(0.1, 0.5, n),
+              "sss_sigma_ps": np.full(n, 4.0), "sss_alpha_per_ps": rng.uniform(0.03, 0.2, n),
+              "ir_delay_ps": rng.uniform(200.0, 400.0, (n, 1)), "ir_amplitude": rng.uniform(0.1, 0.4, (n, 1)),
+              "ir_sigma_ps": np.full((n, 1), 4.0)}
+    params["sss_delay_ps"] = params["direct_delay_ps"] + rng.uniform(0.0, 5.0, n)
+    params["sss_amplitude"][-3:] = np.nan      # three pixels without an sss
+    return params
+
+
+@pytest.mark.parametrize("shared_sigma", [True, False])
+def test_refine_with_priors_and_holds_matches_numpy(shared_sigma, monkeypatch):
+    # every prior, held widths and decay rates, an offset fitted on half the pixels and held on
+    # a quarter
+    rng = np.random.default_rng(3)
+    n = 24
+    truth = _pixels(rng, n)
+    y = render_profile(truth, L, TB, TB) + rng.normal(0.0, 0.02, (n, L)) + 0.05
+    start = {k: v + rng.normal(0.0, 0.5, np.shape(v)) if "delay" in k else v for k, v in truth.items()}
+    every = np.arange(n)
+    start["background"] = np.where(every % 4 == 3, 0.05, 0.0)       # held on a quarter of the pixels
+    kw = dict(time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma, sss_after_direct=True,
+              fit_background=every % 2 == 0,
+              weights=rng.uniform(0.5, 2.0, (n, L)),
+              delay_prior=(truth["direct_delay_ps"] + 0.3, np.full(n, 50.0)),
+              onset_prior=(np.full(n, 2.0), np.full(n, 5.0)),
+              alpha_prior=(np.log(np.nan_to_num(truth["sss_alpha_per_ps"], nan=0.1)), np.full(n, 20.0)),
+              ratio_prior=(np.full(n, 0.3), np.full(n, 1.0)),
+              hold={"sigma_ps": np.where(every % 3 == 0, 4.0, np.nan),
+                    "sss_alpha_per_ps": np.where(every % 4 == 1, 0.05, np.nan)})
+    got, got_info = refine(y, start, **kw)
+    monkeypatch.setattr(varpro, "COMPILED", False)
+    want, want_info = refine(y, start, **kw)
+    assert got_info["refined"].sum() > n // 2          # the fits moved: a comparison of refits
+    np.testing.assert_array_equal(got_info["refined"], want_info["refined"])
+    np.testing.assert_array_equal(got_info["iterations"], want_info["iterations"])
+    for key in want:
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-9, atol=1e-9, err_msg=key)
+    for key in ("rss", "rss_input"):
+        np.testing.assert_allclose(got_info[key], want_info[key], rtol=1e-11, err_msg=key)
+
+
+@pytest.mark.parametrize("shared_sigma", [True, False])
+def test_standard_errors_match_numpy(shared_sigma, monkeypatch):
+    # the Fisher information's rows and Gram product compiled (kernels.projected.fisher_gram):
+    # weights, an offset on some pixels, onsets at the direct (sss_after_direct), holds; to 1e-6
+    # (a few of these pixels' Fisher matrices are ill-conditioned, their errors tens of ps: the
+    # rounding of the Gram product is amplified by their condition)
+    from decomposition.model.fisher import cramer_rao_bound, standard_errors
+
+    rng = np.random.default_rng(5)
+    n = 24
+    params = _pixels(rng, n)
+    params["sss_delay_ps"][:4] = params["direct_delay_ps"][:4]        # the onset constraint active
+    params["ir_delay_ps"][0, 0] = 2000.0                               # an echo after the axis ends
+    y = render_profile(params, L, TB, TB) + rng.normal(0.0, 0.02, (n, L))
+    every = np.arange(n)
+    kw = dict(time_bin_ps=TB, t0_ps=TB, weights=rng.uniform(0.5, 2.0, (n, L)), shared_sigma=shared_sigma,
+              sss_after_direct=True, offset=every % 2 == 0,
+              hold={"sigma_ps": np.where(every % 3 == 0, 4.0, np.nan),
+                    "sss_alpha_per_ps": np.where(every % 5 == 1, 0.05, np.nan)})
+    got = standard_errors(y, params, **kw)
+    got_crb = cramer_rao_bound(params, 0.02, n_bins=L, time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma)
+    monkeypatch.setattr(varpro, "COMPILED", False)
+    want = standard_errors(y, params, **kw)
+    want_crb = cramer_rao_bound(params, 0.02, n_bins=L, time_bin_ps=TB, t0_ps=TB, shared_sigma=shared_sigma)
+    for g, w in ((got, want), (got_crb, want_crb)):
+        assert g.keys() == w.keys()
+        assert np.isfinite(w["direct_delay_ps_stderr" if "direct_delay_ps_stderr" in w else "direct_delay_ps_crb"]).sum() > n // 2
+        for key in w:
+            np.testing.assert_array_equal(np.isnan(g[key]), np.isnan(w[key]), err_msg=key)
+            np.testing.assert_allclose(g[key], w[key], rtol=1e-6, err_msg=key)
