@@ -66,7 +66,7 @@ from ..stages.selection import data_term, families, free_parameters, log_samples
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling", "objective_weights",
            "noise_variance", "take_rows", "objective", "refit", "shifted", "NEIGHBOURS_8", "neighbour_prior",
-           "mixed_neighbourhood", "joint_refinement", "coupled_result"]
+           "mixed_neighbourhood", "prior_values", "refine_priors", "joint_refinement", "coupled_result"]
 
 #: the 8 neighbours' offsets (dy, dx)
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
@@ -108,6 +108,16 @@ class SpatialOptions:
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
     #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
+    #: Neighbourhood radius of the material prior and the material starts, pixels (a material
+    #: is one value over a patch, so more neighbours estimate it than a smooth surface's delay).
+    material_radius: int = 2
+    #: Pixels fitted without an sss whose neighbourhood is one material with an sss are refitted
+    #: with it at the neighbourhood's values (:mod:`decomposition.image.material`), kept where
+    #: the data support it.
+    material_starts: bool = True
+    #: Rounds of material starts: each round reads the answers the last one left, so a material's
+    #: sss reaches pixels whose neighbours gained it in the round before (0: none).
+    material_rounds: int = 2
 
     def __post_init__(self):
         object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
@@ -121,6 +131,9 @@ class SpatialOptions:
         object.__setattr__(self, "alpha_scale", _number("alpha_scale", self.alpha_scale, lo=0, lo_open=True))
         object.__setattr__(self, "onset_scale_ps", _number("onset_scale_ps", self.onset_scale_ps, lo=0, lo_open=True))
         object.__setattr__(self, "homogeneity_p", _number("homogeneity_p", self.homogeneity_p, lo=0, lo_open=True))
+        object.__setattr__(self, "material_radius", _number("material_radius", self.material_radius, lo=1, integer=True))
+        object.__setattr__(self, "material_starts", _flag("material_starts", self.material_starts))
+        object.__setattr__(self, "material_rounds", _number("material_rounds", self.material_rounds, lo=0, integer=True))
         if not self.homogeneity_p < 1:
             raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
@@ -145,9 +158,13 @@ def spatial_options(spatial) -> SpatialOptions | None:
 
 def coupling_reach(options: SpatialOptions) -> int:
     """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
-    neighbour starts read the 8 neighbours (1), each sweep the ``radius`` neighbourhood (the
-    image path's whole reach, its halo, is :func:`decomposition.image.api.halo_pixels`)."""
-    return int(options.neighbour_starts) + options.sweeps * options.radius
+    neighbour starts read the 8 neighbours (1), each round of material starts the
+    ``material_radius`` neighbourhood, each sweep the ``radius`` neighbourhood or, with the material prior, the
+    larger of it and ``material_radius`` (the image path's whole reach, its halo, is
+    :func:`decomposition.image.api.halo_pixels`)."""
+    material = options.material_radius if options.material_prior else 0
+    starts = material * options.material_rounds if options.material_starts else 0
+    return int(options.neighbour_starts) + starts + options.sweeps * max(options.radius, material)
 
 
 # --------------------------------------------------------------------------- the call's setup
@@ -304,7 +321,7 @@ def _offsets(radius: int):
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
                     scale: float | None = None, piecewise_constant: bool = False,
-                    mixed: np.ndarray | None = None):
+                    mixed: np.ndarray | None = None, radius: int | None = None):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -328,6 +345,8 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
         :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull);
         default: found on ``delay``.
+    radius : int, optional
+        The neighbourhood's radius, pixels; default ``options.radius``.
 
     Returns
     -------
@@ -336,7 +355,8 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     """
     tau2 = (options.delay_scale_ps if scale is None else float(scale)) ** 2
     c_edge = options.edge_sigma
-    nd, ns, ok = _neighbourhood(delay, stderr, shape, options.radius)
+    radius = options.radius if radius is None else int(radius)
+    nd, ns, ok = _neighbourhood(delay, stderr, shape, radius)
     nd_ok = np.where(ok, nd, np.nan)
     P = delay.size
     mean = np.full(P, np.nan)
@@ -364,7 +384,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     if piecewise_constant:
         if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale)
+            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, radius)
         prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
@@ -393,32 +413,43 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 
 
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                        scale: float) -> np.ndarray:
+                        scale: float, radius: int | None = None) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
     parameter (a material's): the homogeneity test of the material prior.
 
-    Cochran's Q of ALL the neighbours within ``options.radius`` about their biweight mean, each
-    in its standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies
-    beyond the chi^2 quantile of df = n - 1 degrees of freedom at significance
-    ``options.homogeneity_p``.  Neighbours of one material scatter as their errors say and pass;
-    neighbours each of its own material (their values spread over many standard errors, which
-    the biweight alone would read as a few agreeing neighbours and an edge) fail, and so does a
-    pixel next to a material edge.  A pixel with fewer than two neighbours is mixed (nothing to
-    test).  NaN values (no such parameter) are left out.
+    The neighbours within ``radius`` (default ``options.radius``) that lie within
+    ``options.edge_sigma`` of their median, each in its standard error and ``scale``, are the
+    material's candidates; the neighbourhood is one material where they are more than half of
+    the neighbours with a value and their Cochran's Q about their weighted mean
+    (Q = sum (v - mean)^2 / (stderr^2 + scale^2)) lies within the chi^2 quantile of df = n - 1
+    degrees of freedom at significance ``options.homogeneity_p``.  Neighbours of one material
+    scatter as their errors say and pass, a stray answer among them (a noisy pixel's) left out;
+    neighbours each of its own material (a few that happen to agree, which the biweight alone
+    would read as a material and an edge) are not a majority and fail, and so does a pixel
+    next to a material edge whose candidates scatter beyond their errors.  A pixel with fewer
+    than two candidates is mixed (nothing to test).  NaN values (no such parameter) are left out.
     """
     from scipy.stats import chi2
 
-    nd, ns, ok = _neighbourhood(values, stderr, shape, options.radius)
+    radius = options.radius if radius is None else int(radius)
+    nd, ns, ok = _neighbourhood(values, stderr, shape, radius)
     n = ok.sum(axis=0)
     mixed = np.ones(values.size, bool)
     test = n >= 2
     if not test.any():
         return mixed
-    nd, ns, ok = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test]
+    nd, ns, ok, n = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test], n[test]
     with np.errstate(invalid="ignore", divide="ignore"):
-        m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
-        q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
-    mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n[test] - 1))
+        var = np.where(ok, ns ** 2 + float(scale) ** 2, np.inf)
+        u = (nd - np.nanmedian(nd, axis=0)) / np.sqrt(var)
+        inl = ok & (np.abs(u) < options.edge_sigma)
+        n_in = inl.sum(axis=0)
+        w = np.where(inl, 1.0 / var, 0.0)
+        wsum = w.sum(axis=0)
+        m = (w * np.nan_to_num(nd)).sum(axis=0) / np.where(wsum > 0, wsum, 1.0)
+        q = np.where(inl, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
+    one = (n_in >= 2) & (2 * n_in > n) & (q <= chi2.isf(options.homogeneity_p, np.maximum(n_in - 1, 1)))
+    mixed[test] = ~one
     return mixed
 
 
@@ -459,7 +490,26 @@ def _shared_values(params: dict, live: np.ndarray, options: SpatialOptions, err:
     return out
 
 
-def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
+def refine_priors(priors: dict, noise2: np.ndarray, direct_amplitude: np.ndarray) -> dict:
+    """{name of :func:`_shared_values`: ((n,) mean, (n,) precision)} -> the keywords of
+    :func:`decomposition.model.refine.refine` that carry them (``delay_prior``, ...), each
+    (mean, weight): the precision times the pixels' noise variance ``noise2`` (n,)
+    (:func:`noise_variance`), the ratio's in the amplitudes at ``direct_amplitude`` (n,)."""
+    kw = {}
+    for name, (m, p) in priors.items():
+        w = p * noise2
+        if name == "ratio":
+            # ln(c_s / c_d) - mean ~ (c_s - rho c_d) / (rho c_d), rho = e^mean, at the
+            # pixel's current direct amplitude
+            rho = np.exp(m)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = np.where(w > 0, w / (rho * direct_amplitude) ** 2, 0.0)
+            m = rho
+        kw[_PRIOR_KEYWORDS[name]] = (m, np.nan_to_num(w, nan=0.0, posinf=0.0))
+    return kw
+
+
+def prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
     """:func:`_shared_values` at ``params`` with their standard errors from the pixel's own data."""
     errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
     return _shared_values(params, c.live, options, {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()})
@@ -473,11 +523,11 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     c.info["spatial_pulled"] = 0
     if options.sweeps == 0 or rows.size == 0:
         return
-    own = _prior_values(c, c.params, options)
+    own = prior_values(c, c.params, options)
     stderr = {name: se for name, (_, se, _) in own.items()}
     # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
     # agree more than their data do) and gets no material prior in any sweep
-    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale)
+    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale, options.material_radius)
              for name, (v, se, scale) in own.items() if name != "delay"}
     base = take_rows(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
@@ -492,8 +542,10 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         for name, (value, _, scale) in current.items():
             if name == "delay":
                 value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
+            material = name != "delay"
             mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
-                                              piecewise_constant=name != "delay", mixed=mixed.get(name))
+                                              piecewise_constant=material, mixed=mixed.get(name),
+                                              radius=options.material_radius if material else None)
             m, p = mean[rows], precision[rows]
             on = p > 0
             pull |= on
@@ -514,17 +566,8 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         fit = redo & pull
         if fit.any():
             r = rows[fit]
-            kw = {}
-            for name, (m, p) in priors.items():
-                m, w = m[fit], p[fit] * noise2[fit]
-                if name == "ratio":
-                    # ln(c_s / c_d) - mean ~ (c_s - rho c_d) / (rho c_d), rho = e^mean, at the
-                    # pixel's current direct amplitude
-                    rho = np.exp(m)
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        w = np.where(w > 0, w / (rho * c.params["direct_amplitude"][r]) ** 2, 0.0)
-                    m = rho
-                kw[_PRIOR_KEYWORDS[name]] = (m, np.nan_to_num(w, nan=0.0, posinf=0.0))
+            kw = refine_priors({name: (m[fit], p[fit]) for name, (m, p) in priors.items()}, noise2[fit],
+                               c.params["direct_amplitude"][r])
             fits = refit(c, r, take_rows(c.params, r), weights[fit], kw.pop("delay_prior"), kw)
             refits += int(fit.sum())
             for k in c.params:
