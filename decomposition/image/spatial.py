@@ -108,8 +108,9 @@ class SpatialOptions:
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
     #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
-    #: Neighbourhood radius of the material prior and the material starts, pixels (a material
-    #: is one value over a patch, so more neighbours estimate it than a smooth surface's delay).
+    #: Neighbourhood radius of the material starts, pixels: the neighbours whose sss a pixel fitted
+    #: without one is offered (:mod:`decomposition.image.material`; a material is one value over a
+    #: patch, so more neighbours propose it than the prior's own ``radius`` weighs).
     material_radius: int = 2
     #: Pixels fitted without an sss whose neighbourhood is one material with an sss are refitted
     #: with it at the neighbourhood's values (:mod:`decomposition.image.material`), kept where
@@ -159,12 +160,11 @@ def spatial_options(spatial) -> SpatialOptions | None:
 def coupling_reach(options: SpatialOptions) -> int:
     """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
     neighbour starts read the 8 neighbours (1), each round of material starts the
-    ``material_radius`` neighbourhood, each sweep the ``radius`` neighbourhood or, with the material prior, the
-    larger of it and ``material_radius`` (the image path's whole reach, its halo, is
+    ``material_radius`` neighbourhood (with the material prior), each sweep the ``radius``
+    neighbourhood (the image path's whole reach, its halo, is
     :func:`decomposition.image.api.halo_pixels`)."""
-    material = options.material_radius if options.material_prior else 0
-    starts = material * options.material_rounds if options.material_starts else 0
-    return int(options.neighbour_starts) + starts + options.sweeps * max(options.radius, material)
+    starts = options.material_radius * options.material_rounds if options.material_prior and options.material_starts else 0
+    return int(options.neighbour_starts) + starts + options.sweeps * options.radius
 
 
 # --------------------------------------------------------------------------- the call's setup
@@ -321,7 +321,7 @@ def _offsets(radius: int):
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
                     scale: float | None = None, piecewise_constant: bool = False,
-                    mixed: np.ndarray | None = None, radius: int | None = None):
+                    mixed: np.ndarray | None = None):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -345,8 +345,6 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
         :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull);
         default: found on ``delay``.
-    radius : int, optional
-        The neighbourhood's radius, pixels; default ``options.radius``.
 
     Returns
     -------
@@ -355,8 +353,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     """
     tau2 = (options.delay_scale_ps if scale is None else float(scale)) ** 2
     c_edge = options.edge_sigma
-    radius = options.radius if radius is None else int(radius)
-    nd, ns, ok = _neighbourhood(delay, stderr, shape, radius)
+    nd, ns, ok = _neighbourhood(delay, stderr, shape, options.radius)
     nd_ok = np.where(ok, nd, np.nan)
     P = delay.size
     mean = np.full(P, np.nan)
@@ -384,7 +381,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     if piecewise_constant:
         if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, radius)
+            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale)
         prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
@@ -413,21 +410,27 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 
 
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                        scale: float, radius: int | None = None) -> np.ndarray:
+                        scale: float, radius: int | None = None, majority: bool = False) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
     parameter (a material's): the homogeneity test of the material prior.
 
-    The neighbours within ``radius`` (default ``options.radius``) that lie within
-    ``options.edge_sigma`` of their median, each in its standard error and ``scale``, are the
-    material's candidates; the neighbourhood is one material where they are more than half of
-    the neighbours with a value and their Cochran's Q about their weighted mean
-    (Q = sum (v - mean)^2 / (stderr^2 + scale^2)) lies within the chi^2 quantile of df = n - 1
-    degrees of freedom at significance ``options.homogeneity_p``.  Neighbours of one material
-    scatter as their errors say and pass, a stray answer among them (a noisy pixel's) left out;
-    neighbours each of its own material (a few that happen to agree, which the biweight alone
-    would read as a material and an edge) are not a majority and fail, and so does a pixel
-    next to a material edge whose candidates scatter beyond their errors.  A pixel with fewer
-    than two candidates is mixed (nothing to test).  NaN values (no such parameter) are left out.
+    Cochran's Q of ALL the neighbours within ``radius`` (default ``options.radius``) about their
+    biweight mean, each in its standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 +
+    scale^2)), lies beyond the chi^2 quantile of df = n - 1 degrees of freedom at significance
+    ``options.homogeneity_p``.  Neighbours of one material scatter as their errors say and pass;
+    neighbours each of its own material (their values spread over many standard errors, which
+    the biweight alone would read as a few agreeing neighbours and an edge) fail, and so does a
+    pixel next to a material edge.  A pixel with fewer than two neighbours is mixed (nothing to
+    test).  NaN values (no such parameter) are left out.
+
+    With ``majority`` the test is on the neighbours within ``options.edge_sigma`` of their median
+    (each in its standard error and ``scale``) alone: the neighbourhood is one material where they
+    are more than half of the neighbours with a value and their Q about their weighted mean passes
+    at df = (their number) - 1.  A stray answer among one material's neighbours (a noisy pixel's)
+    is left out of the test instead of failing it; a chance majority of neighbours that each are
+    of their own material can pass it, so this reading only proposes (the material starts of
+    :mod:`decomposition.image.material`, each kept only where the pixel's own data agree), while
+    the prior of the joint refinement keeps the test on all neighbours.
     """
     from scipy.stats import chi2
 
@@ -440,6 +443,11 @@ def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, op
         return mixed
     nd, ns, ok, n = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test], n[test]
     with np.errstate(invalid="ignore", divide="ignore"):
+        if not majority:
+            m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
+            q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
+            mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n - 1))
+            return mixed
         var = np.where(ok, ns ** 2 + float(scale) ** 2, np.inf)
         u = (nd - np.nanmedian(nd, axis=0)) / np.sqrt(var)
         inl = ok & (np.abs(u) < options.edge_sigma)
@@ -527,7 +535,7 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     stderr = {name: se for name, (_, se, _) in own.items()}
     # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
     # agree more than their data do) and gets no material prior in any sweep
-    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale, options.material_radius)
+    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale)
              for name, (v, se, scale) in own.items() if name != "delay"}
     base = take_rows(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
@@ -542,10 +550,8 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         for name, (value, _, scale) in current.items():
             if name == "delay":
                 value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
-            material = name != "delay"
             mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
-                                              piecewise_constant=material, mixed=mixed.get(name),
-                                              radius=options.material_radius if material else None)
+                                              piecewise_constant=name != "delay", mixed=mixed.get(name))
             m, p = mean[rows], precision[rows]
             on = p > 0
             pull |= on
