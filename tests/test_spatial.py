@@ -125,6 +125,7 @@ def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_
     ({"radius": 0.5}, "option radius: must be an integer"),
     ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
     ({"homogeneity_p": 1.0}, "option homogeneity_p: must be < 1"),
+    ({"stray_share": 1.5}, "option stray_share: must be <= 1"),
     ({"material_radius": 0}, "option material_radius: must be >= 1"),
     ({"material_rounds": -1}, "option material_rounds: must be >= 0"),
     ({"bogus": 1}, "spatial: unknown option(s) bogus"),
@@ -356,11 +357,13 @@ def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
     assert found[mixed].all() and not found[2, 1] and not found[1, 5]
 
 
-def test_the_majority_reading_of_the_homogeneity_test_leaves_a_stray_answer_out():
-    # the image of the test above: read by the majority of its neighbours (the material starts'
-    # reading), the neighbourhood of the odd pixel (2, 1) is one material, the stray answer left
-    # out, where the test on all neighbours reads it as two; the corner of independently drawn
-    # materials is not one material either way
+def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure():
+    # the image of the test above.  Read with the strays left out (stray_share), the odd pixel
+    # (2, 1), sure of its value, still makes its neighbours' neighbourhood two materials (1 of
+    # their 8 neighbours, 1/8 of their information); as unsure as a noisy fit (standard error
+    # 0.4, its value still 4.5 of them from the patch's) it is left out and the neighbourhood is
+    # one material.  Read by the count alone (stray_share 1, the material starts' proposal) the
+    # sure one is left out too.  The corner of independently drawn materials is never one.
     from decomposition.image.spatial import mixed_neighbourhood
 
     rng = np.random.default_rng(7)
@@ -369,13 +372,21 @@ def test_the_majority_reading_of_the_homogeneity_test_leaves_a_stray_answer_out(
     truth[4:, 5:] = rng.uniform(-1.5, 0.5, (2, 3))
     se = np.full(truth.shape, 0.05)
     values = (truth + se * rng.standard_normal(truth.shape)).reshape(-1)
+    unsure = se.copy()
+    unsure[2, 1] = 0.4
     opts = SpatialOptions()
-    every, majority = (mixed_neighbourhood(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale,
-                                           majority=m).reshape(6, 8) for m in (False, True))
+    assert opts.stray_share == 0.1
+
+    def found(err, share):
+        return mixed_neighbourhood(values, err.reshape(-1), (6, 8), opts, opts.ratio_scale,
+                                   stray_share=share).reshape(6, 8)
+
     around = np.zeros((6, 8), bool)
     around[1:4, 0:3] = True
     around[2, 1] = False
-    assert every[around].all() and not majority[around].any()
-    assert every[4:, 6:].all() and majority[4:, 6:].all()
-    # inside a patch away from the odd pixel both read one material
-    assert not every[1, 5] and not majority[1, 5] and not every[4, 1] and not majority[4, 1]
+    assert found(se, None)[around].all() and found(se, 0.1)[around].all()
+    assert not found(unsure, 0.1)[around].any() and found(unsure, None)[around].all()
+    assert not found(se, 1.0)[around].any()
+    for share in (None, 0.1, 1.0):
+        assert found(se, share)[4:, 6:].all()
+        assert not found(se, share)[1, 5] and not found(se, share)[4, 1]

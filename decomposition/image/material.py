@@ -10,10 +10,11 @@ pixel one parameter (its amplitude), and the pixel's data decide on that alone.
 
 :func:`material_round`, between the neighbour starts and the joint refinement: every decomposed
 pixel with a direct and no sss whose neighbourhood (``material_radius``) is one material for all
-three parameters (:func:`decomposition.image.spatial.mixed_neighbourhood` read by the majority of
-the neighbours' own answers: at a few hundred photons one material's answers hold strays, onsets
-at their bound, that the test on all neighbours reads as several materials; neighbours each of
-their own material may pass it by chance, which is why it only proposes) is refitted with an sss started at the neighbours' biweight means, under the material
+three parameters by the majority of the neighbours' own answers
+(:func:`decomposition.image.spatial.mixed_neighbourhood` with ``stray_share`` 1: the answers
+beyond ``edge_sigma`` of the median left out while they are fewer than half; neighbours each of
+their own material may pass it by chance, so it only proposes) is refitted with an sss started at
+the neighbours' biweight means, under the material
 prior at those means (:func:`decomposition.image.spatial.refine_priors`).  The refit is kept
 where its penalised objective J, the sss counted as one free parameter, lies below the pixel's
 own J (both with the same sample weights, :func:`decomposition.image.spatial.objective_weights`).
@@ -51,14 +52,14 @@ def material_estimate(values: dict, shape: tuple, options: sp.SpatialOptions) ->
         {name: ((P,) mean, (P,) precision)}: the Tukey biweight mean of the neighbours (the
         pixel itself left out) and the prior's precision 1 / (scale^2 + the mean's variance);
         precision 0 and mean NaN where the majority of the neighbourhood is not one material
-        (:func:`decomposition.image.spatial.mixed_neighbourhood` with ``majority``) or no
+        (:func:`decomposition.image.spatial.mixed_neighbourhood` with ``stray_share`` 1) or no
         neighbour has weight.
     """
     out = {}
     for name in MATERIAL_NAMES:
         v, se, scale = values[name]
         tau2 = float(scale) ** 2
-        mixed = sp.mixed_neighbourhood(v, se, shape, options, scale, options.material_radius, majority=True)
+        mixed = sp.mixed_neighbourhood(v, se, shape, options, scale, options.material_radius, stray_share=1.0)
         nd, ns, ok = sp._neighbourhood(v, se, shape, options.material_radius)
         mean, precision = np.full(v.size, np.nan), np.zeros(v.size)
         have = ~mixed & ok.any(axis=0)

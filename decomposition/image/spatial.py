@@ -108,6 +108,12 @@ class SpatialOptions:
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
     #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
+    #: The homogeneity test leaves out the neighbours beyond ``edge_sigma`` of the neighbourhood's
+    #: median (strays: a noisy pixel's answer, an onset at its bound) while they are fewer than
+    #: half of the neighbours and hold at most this share of the neighbours' information, the sum
+    #: of 1 / (stderr^2 + scale^2): an answer that disagrees and is sure of it is another material
+    #: (:func:`mixed_neighbourhood`; 0: every neighbour in the test).
+    stray_share: float = 0.1
     #: Neighbourhood radius of the material starts, pixels: the neighbours whose sss a pixel fitted
     #: without one is offered (:mod:`decomposition.image.material`; a material is one value over a
     #: patch, so more neighbours propose it than the prior's own ``radius`` weighs).
@@ -135,6 +141,9 @@ class SpatialOptions:
         object.__setattr__(self, "material_radius", _number("material_radius", self.material_radius, lo=1, integer=True))
         object.__setattr__(self, "material_starts", _flag("material_starts", self.material_starts))
         object.__setattr__(self, "material_rounds", _number("material_rounds", self.material_rounds, lo=0, integer=True))
+        object.__setattr__(self, "stray_share", _number("stray_share", self.stray_share, lo=0))
+        if not self.stray_share <= 1:
+            raise OptionError(f"option stray_share: must be <= 1, got {self.stray_share!r}")
         if not self.homogeneity_p < 1:
             raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
@@ -343,8 +352,8 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         of these values, or ``mixed``) there is no prior.
     mixed : ndarray (P,) bool, optional
         With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
-        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull);
-        default: found on ``delay``.
+        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull, with
+        ``options.stray_share``); default: found on ``delay``.
 
     Returns
     -------
@@ -381,7 +390,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     if piecewise_constant:
         if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale)
+            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, stray_share=options.stray_share)
         prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
@@ -410,27 +419,30 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 
 
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                        scale: float, radius: int | None = None, majority: bool = False) -> np.ndarray:
+                        scale: float, radius: int | None = None, stray_share: float | None = None) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
     parameter (a material's): the homogeneity test of the material prior.
 
-    Cochran's Q of ALL the neighbours within ``radius`` (default ``options.radius``) about their
-    biweight mean, each in its standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 +
-    scale^2)), lies beyond the chi^2 quantile of df = n - 1 degrees of freedom at significance
-    ``options.homogeneity_p``.  Neighbours of one material scatter as their errors say and pass;
-    neighbours each of its own material (their values spread over many standard errors, which
-    the biweight alone would read as a few agreeing neighbours and an edge) fail, and so does a
-    pixel next to a material edge.  A pixel with fewer than two neighbours is mixed (nothing to
-    test).  NaN values (no such parameter) are left out.
+    Cochran's Q of the neighbours within ``radius`` (default ``options.radius``), each in its
+    standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies beyond the
+    chi^2 quantile of df = n - 1 degrees of freedom at significance ``options.homogeneity_p``.
+    Neighbours of one material scatter as their errors say and pass; neighbours each of its own
+    material (their values spread over many standard errors, which the biweight alone would read
+    as a few agreeing neighbours and an edge) fail, and so does a pixel next to a material edge.
+    A pixel with fewer than two neighbours in the test is mixed.  NaN values (no such parameter)
+    are left out.
 
-    With ``majority`` the test is on the neighbours within ``options.edge_sigma`` of their median
-    (each in its standard error and ``scale``) alone: the neighbourhood is one material where they
-    are more than half of the neighbours with a value and their Q about their weighted mean passes
-    at df = (their number) - 1.  A stray answer among one material's neighbours (a noisy pixel's)
-    is left out of the test instead of failing it; a chance majority of neighbours that each are
-    of their own material can pass it, so this reading only proposes (the material starts of
-    :mod:`decomposition.image.material`, each kept only where the pixel's own data agree), while
-    the prior of the joint refinement keeps the test on all neighbours.
+    ``stray_share`` None: Q of ALL the neighbours about their biweight mean.  A number: the
+    neighbours beyond ``options.edge_sigma`` of the neighbourhood's median (each in its standard
+    error and ``scale``), strays, are left out and Q is that of the rest about their weighted
+    mean, where the strays are fewer than half of the neighbours and hold at most ``stray_share``
+    of their information (the sum of 1 / (stderr^2 + scale^2)); else the neighbourhood is mixed.
+    At a few hundred photons one material's answers hold strays (an onset at its bound, a noisy
+    fit) that would fail the test on all of them; answers of other materials that are sure of
+    their values still fail it.  With ``stray_share`` 1 only the count decides: a chance
+    majority of neighbours each of its own material can pass, a reading that may only propose
+    (the material starts, :mod:`decomposition.image.material`, each kept only where the pixel's
+    own data agree).
     """
     from scipy.stats import chi2
 
@@ -443,20 +455,20 @@ def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, op
         return mixed
     nd, ns, ok, n = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test], n[test]
     with np.errstate(invalid="ignore", divide="ignore"):
-        if not majority:
+        if stray_share is None:
             m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
             q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
             mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n - 1))
             return mixed
         var = np.where(ok, ns ** 2 + float(scale) ** 2, np.inf)
-        u = (nd - np.nanmedian(nd, axis=0)) / np.sqrt(var)
-        inl = ok & (np.abs(u) < options.edge_sigma)
+        inl = ok & (np.abs(nd - np.nanmedian(nd, axis=0)) < options.edge_sigma * np.sqrt(var))
         n_in = inl.sum(axis=0)
         w = np.where(inl, 1.0 / var, 0.0)
-        wsum = w.sum(axis=0)
+        wsum, w_all = w.sum(axis=0), np.where(ok, 1.0 / var, 0.0).sum(axis=0)
         m = (w * np.nan_to_num(nd)).sum(axis=0) / np.where(wsum > 0, wsum, 1.0)
         q = np.where(inl, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
-    one = (n_in >= 2) & (2 * n_in > n) & (q <= chi2.isf(options.homogeneity_p, np.maximum(n_in - 1, 1)))
+    one = ((n_in >= 2) & (2 * n_in > n) & (w_all - wsum <= float(stray_share) * w_all)
+           & (q <= chi2.isf(options.homogeneity_p, np.maximum(n_in - 1, 1))))
     mixed[test] = ~one
     return mixed
 
@@ -535,7 +547,7 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     stderr = {name: se for name, (_, se, _) in own.items()}
     # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
     # agree more than their data do) and gets no material prior in any sweep
-    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale)
+    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale, stray_share=options.stray_share)
              for name, (v, se, scale) in own.items() if name != "delay"}
     base = take_rows(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
