@@ -28,7 +28,7 @@ def test_spatial_beats_per_pixel_on_a_piecewise_smooth_scene_and_edges_are_no_wo
     assert np.nanmean(fid[1]) > np.nanmean(fid[0]) + 0.005
     assert np.nanmean(fid[1][edge]) >= np.nanmean(fid[0][edge])
     info = coupled.info["spatial"]
-    assert info["coupling_reach"] == 4 and info["halo_pixels"] == 7 and info["spatial_pulled"] > 0
+    assert info["coupling_reach"] == 8 and info["halo_pixels"] == 11 and info["spatial_pulled"] > 0
 
 
 def test_a_clean_pixel_is_not_pulled_by_a_noisy_neighbourhood():
@@ -107,11 +107,16 @@ def test_a_neighbours_answer_repairs_a_pixel_the_per_pixel_pass_got_wrong():
 
 
 def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_echoes():
-    assert coupling_reach(SpatialOptions()) == 4
-    assert coupling_reach(SpatialOptions(sweeps=2, radius=2)) == 5
-    assert coupling_reach(SpatialOptions(neighbour_starts=False, sweeps=0)) == 0
-    assert halo_pixels(SpatialOptions()) == 1 + 4 + 2          # spikes' 3 x 3, coupling, echoes' 5 x 5
-    assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0)) == 3
+    # the neighbour starts (1), two rounds of material starts (2 each: their 5 x 5) and three
+    # sweeps (1 each)
+    assert coupling_reach(SpatialOptions()) == 1 + 2 * 2 + 3 * 1
+    assert coupling_reach(SpatialOptions(material_prior=False)) == 4
+    assert coupling_reach(SpatialOptions(material_starts=False)) == 4
+    assert coupling_reach(SpatialOptions(sweeps=2, radius=2, material_rounds=0)) == 5
+    assert coupling_reach(SpatialOptions(sweeps=2, radius=3, material_radius=3, material_rounds=1)) == 1 + 3 + 2 * 3
+    assert coupling_reach(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 0
+    assert halo_pixels(SpatialOptions()) == 1 + 8 + 2          # spikes' 3 x 3, coupling, echoes' 5 x 5
+    assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 3
     assert halo_pixels(False) == 0
 
 
@@ -120,6 +125,9 @@ def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_
     ({"radius": 0.5}, "option radius: must be an integer"),
     ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
     ({"homogeneity_p": 1.0}, "option homogeneity_p: must be < 1"),
+    ({"stray_share": 1.5}, "option stray_share: must be <= 1"),
+    ({"material_radius": 0}, "option material_radius: must be >= 1"),
+    ({"material_rounds": -1}, "option material_rounds: must be >= 0"),
     ({"bogus": 1}, "spatial: unknown option(s) bogus"),
     ("yes", "spatial: must be true, false"),
 ])
@@ -347,3 +355,38 @@ def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
     found = mixed_neighbourhood(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale).reshape(6, 8)
     mixed[2, 1] = False
     assert found[mixed].all() and not found[2, 1] and not found[1, 5]
+
+
+def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure():
+    # the image of the test above.  Read with the strays left out (stray_share), the odd pixel
+    # (2, 1), sure of its value, still makes its neighbours' neighbourhood two materials (1 of
+    # their 8 neighbours, 1/8 of their information); as unsure as a noisy fit (standard error
+    # 0.4, its value still 4.5 of them from the patch's) it is left out and the neighbourhood is
+    # one material.  Read by the count alone (stray_share 1, the material starts' proposal) the
+    # sure one is left out too.  The corner of independently drawn materials is never one.
+    from decomposition.image.spatial import mixed_neighbourhood
+
+    rng = np.random.default_rng(7)
+    truth = np.where(np.arange(8) < 4, -1.0, -0.3)[None, :] + np.zeros((6, 1))
+    truth[2, 1] = 0.8
+    truth[4:, 5:] = rng.uniform(-1.5, 0.5, (2, 3))
+    se = np.full(truth.shape, 0.05)
+    values = (truth + se * rng.standard_normal(truth.shape)).reshape(-1)
+    unsure = se.copy()
+    unsure[2, 1] = 0.4
+    opts = SpatialOptions()
+    assert opts.stray_share == 0.1
+
+    def found(err, share):
+        return mixed_neighbourhood(values, err.reshape(-1), (6, 8), opts, opts.ratio_scale,
+                                   stray_share=share).reshape(6, 8)
+
+    around = np.zeros((6, 8), bool)
+    around[1:4, 0:3] = True
+    around[2, 1] = False
+    assert found(se, None)[around].all() and found(se, 0.1)[around].all()
+    assert not found(unsure, 0.1)[around].any() and found(unsure, None)[around].all()
+    assert not found(se, 1.0)[around].any()
+    for share in (None, 0.1, 1.0):
+        assert found(se, share)[4:, 6:].all()
+        assert not found(se, share)[1, 5] and not found(se, share)[4, 1]

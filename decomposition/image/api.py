@@ -12,6 +12,7 @@ import numpy as np
 
 from ..api import DecompositionResult, Stage
 from ..options import OptionError
+from . import material as mt
 from . import neighbours as nb
 from . import spatial as sp
 from .pooled import ECHO_WINDOW, SPIKE_WINDOW, pooled_echoes, refit_spikes
@@ -137,6 +138,11 @@ def _neighbour_starts(c: _ImageCall) -> None:
     nb.neighbour_starts(c.coupling, c.options.spatial_options)
 
 
+def _material_starts(c: _ImageCall) -> None:
+    if c.options.spatial:
+        mt.material_starts(c.coupling, c.options.spatial_options)
+
+
 def _joint_refinement(c: _ImageCall) -> None:
     if not c.options.spatial:
         return
@@ -172,6 +178,8 @@ IMAGE_STAGES = (
                "count data: single-sample spikes above the pixel's own neighbours in time and its spatial "
                "neighbours' aligned samples, replaced by the neighbours' value and the pixel refitted (SPIKE)"),
     Stage("neighbour_starts", _neighbour_starts, "refit the pixels in doubt from their neighbours' answers"),
+    Stage("material_starts", _material_starts,
+               "refit the pixels without an sss whose neighbours are one material with an sss, with its shape"),
     Stage("joint_refinement", _joint_refinement, "sweeps with an edge-preserving prior on the direct delays"),
     Stage("pooled_echoes", _pooled_echoes,
                "weak echoes found in 5 x 5 sums of the residuals aligned on the direct, added to each pixel "

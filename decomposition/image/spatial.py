@@ -68,7 +68,7 @@ from ..stages.selection import families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling", "objective_weights",
            "noise_variance", "take_rows", "objective", "refit", "shifted", "NEIGHBOURS_8", "neighbour_prior",
-           "mixed_neighbourhood", "joint_refinement", "coupled_result"]
+           "mixed_neighbourhood", "prior_values", "refine_priors", "joint_refinement", "coupled_result"]
 
 #: the 8 neighbours' offsets (dy, dx)
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
@@ -110,6 +110,23 @@ class SpatialOptions:
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
     #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
+    #: The homogeneity test leaves out the neighbours beyond ``edge_sigma`` of the neighbourhood's
+    #: median (strays: a noisy pixel's answer, an onset at its bound) while they are fewer than
+    #: half of the neighbours and hold at most this share of the neighbours' information, the sum
+    #: of 1 / (stderr^2 + scale^2): an answer that disagrees and is sure of it is another material
+    #: (:func:`mixed_neighbourhood`; 0: every neighbour in the test).
+    stray_share: float = 0.1
+    #: Neighbourhood radius of the material starts, pixels: the neighbours whose sss a pixel fitted
+    #: without one is offered (:mod:`decomposition.image.material`; a material is one value over a
+    #: patch, so more neighbours propose it than the prior's own ``radius`` weighs).
+    material_radius: int = 2
+    #: Pixels fitted without an sss whose neighbourhood is one material with an sss are refitted
+    #: with it at the neighbourhood's values (:mod:`decomposition.image.material`), kept where
+    #: the data support it.
+    material_starts: bool = True
+    #: Rounds of material starts: each round reads the answers the last one left, so a material's
+    #: sss reaches pixels whose neighbours gained it in the round before (0: none).
+    material_rounds: int = 2
 
     def __post_init__(self):
         object.__setattr__(self, "neighbour_starts", _flag("neighbour_starts", self.neighbour_starts))
@@ -123,6 +140,12 @@ class SpatialOptions:
         object.__setattr__(self, "alpha_scale", _number("alpha_scale", self.alpha_scale, lo=0, lo_open=True))
         object.__setattr__(self, "onset_scale_ps", _number("onset_scale_ps", self.onset_scale_ps, lo=0, lo_open=True))
         object.__setattr__(self, "homogeneity_p", _number("homogeneity_p", self.homogeneity_p, lo=0, lo_open=True))
+        object.__setattr__(self, "material_radius", _number("material_radius", self.material_radius, lo=1, integer=True))
+        object.__setattr__(self, "material_starts", _flag("material_starts", self.material_starts))
+        object.__setattr__(self, "material_rounds", _number("material_rounds", self.material_rounds, lo=0, integer=True))
+        object.__setattr__(self, "stray_share", _number("stray_share", self.stray_share, lo=0))
+        if not self.stray_share <= 1:
+            raise OptionError(f"option stray_share: must be <= 1, got {self.stray_share!r}")
         if not self.homogeneity_p < 1:
             raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
@@ -147,9 +170,12 @@ def spatial_options(spatial) -> SpatialOptions | None:
 
 def coupling_reach(options: SpatialOptions) -> int:
     """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
-    neighbour starts read the 8 neighbours (1), each sweep the ``radius`` neighbourhood (the
-    image path's whole reach, its halo, is :func:`decomposition.image.api.halo_pixels`)."""
-    return int(options.neighbour_starts) + options.sweeps * options.radius
+    neighbour starts read the 8 neighbours (1), each round of material starts the
+    ``material_radius`` neighbourhood (with the material prior), each sweep the ``radius``
+    neighbourhood (the image path's whole reach, its halo, is
+    :func:`decomposition.image.api.halo_pixels`)."""
+    starts = options.material_radius * options.material_rounds if options.material_prior and options.material_starts else 0
+    return int(options.neighbour_starts) + starts + options.sweeps * options.radius
 
 
 # --------------------------------------------------------------------------- the call's setup
@@ -340,8 +366,8 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         of these values, or ``mixed``) there is no prior.
     mixed : ndarray (P,) bool, optional
         With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
-        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull);
-        default: found on ``delay``.
+        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull, with
+        ``options.stray_share``); default: found on ``delay``.
 
     Returns
     -------
@@ -378,7 +404,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     if piecewise_constant:
         if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale)
+            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, stray_share=options.stray_share)
         prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
@@ -407,32 +433,57 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 
 
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                        scale: float) -> np.ndarray:
+                        scale: float, radius: int | None = None, stray_share: float | None = None) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
     parameter (a material's): the homogeneity test of the material prior.
 
-    Cochran's Q of ALL the neighbours within ``options.radius`` about their biweight mean, each
-    in its standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies
-    beyond the chi^2 quantile of df = n - 1 degrees of freedom at significance
-    ``options.homogeneity_p``.  Neighbours of one material scatter as their errors say and pass;
-    neighbours each of its own material (their values spread over many standard errors, which
-    the biweight alone would read as a few agreeing neighbours and an edge) fail, and so does a
-    pixel next to a material edge.  A pixel with fewer than two neighbours is mixed (nothing to
-    test).  NaN values (no such parameter) are left out.
+    Cochran's Q of the neighbours within ``radius`` (default ``options.radius``), each in its
+    standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies beyond the
+    chi^2 quantile of df = n - 1 degrees of freedom at significance ``options.homogeneity_p``.
+    Neighbours of one material scatter as their errors say and pass; neighbours each of its own
+    material (their values spread over many standard errors, which the biweight alone would read
+    as a few agreeing neighbours and an edge) fail, and so does a pixel next to a material edge.
+    A pixel with fewer than two neighbours in the test is mixed.  NaN values (no such parameter)
+    are left out.
+
+    ``stray_share`` None: Q of ALL the neighbours about their biweight mean.  A number: the
+    neighbours beyond ``options.edge_sigma`` of the neighbourhood's median (each in its standard
+    error and ``scale``), strays, are left out and Q is that of the rest about their weighted
+    mean, where the strays are fewer than half of the neighbours and hold at most ``stray_share``
+    of their information (the sum of 1 / (stderr^2 + scale^2)); else the neighbourhood is mixed.
+    At a few hundred photons one material's answers hold strays (an onset at its bound, a noisy
+    fit) that would fail the test on all of them; answers of other materials that are sure of
+    their values still fail it.  With ``stray_share`` 1 only the count decides: a chance
+    majority of neighbours each of its own material can pass, a reading that may only propose
+    (the material starts, :mod:`decomposition.image.material`, each kept only where the pixel's
+    own data agree).
     """
     from scipy.stats import chi2
 
-    nd, ns, ok = _neighbourhood(values, stderr, shape, options.radius)
+    radius = options.radius if radius is None else int(radius)
+    nd, ns, ok = _neighbourhood(values, stderr, shape, radius)
     n = ok.sum(axis=0)
     mixed = np.ones(values.size, bool)
     test = n >= 2
     if not test.any():
         return mixed
-    nd, ns, ok = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test]
+    nd, ns, ok, n = np.where(ok, nd, np.nan)[:, test], ns[:, test], ok[:, test], n[test]
     with np.errstate(invalid="ignore", divide="ignore"):
-        m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
-        q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
-    mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n[test] - 1))
+        if stray_share is None:
+            m, _, var = _biweight_mean(nd, ns, ok, float(scale) ** 2, options.edge_sigma)
+            q = np.where(ok, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
+            mixed[test] = ~np.isfinite(m) | (q > chi2.isf(options.homogeneity_p, n - 1))
+            return mixed
+        var = np.where(ok, ns ** 2 + float(scale) ** 2, np.inf)
+        inl = ok & (np.abs(nd - np.nanmedian(nd, axis=0)) < options.edge_sigma * np.sqrt(var))
+        n_in = inl.sum(axis=0)
+        w = np.where(inl, 1.0 / var, 0.0)
+        wsum, w_all = w.sum(axis=0), np.where(ok, 1.0 / var, 0.0).sum(axis=0)
+        m = (w * np.nan_to_num(nd)).sum(axis=0) / np.where(wsum > 0, wsum, 1.0)
+        q = np.where(inl, np.nan_to_num(nd - m) ** 2 / var, 0.0).sum(axis=0)
+    one = ((n_in >= 2) & (2 * n_in > n) & (w_all - wsum <= float(stray_share) * w_all)
+           & (q <= chi2.isf(options.homogeneity_p, np.maximum(n_in - 1, 1))))
+    mixed[test] = ~one
     return mixed
 
 
@@ -473,7 +524,26 @@ def _shared_values(params: dict, live: np.ndarray, options: SpatialOptions, err:
     return out
 
 
-def _prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
+def refine_priors(priors: dict, noise2: np.ndarray, direct_amplitude: np.ndarray) -> dict:
+    """{name of :func:`_shared_values`: ((n,) mean, (n,) precision)} -> the keywords of
+    :func:`decomposition.model.refine.refine` that carry them (``delay_prior``, ...), each
+    (mean, weight): the precision times the pixels' noise variance ``noise2`` (n,)
+    (:func:`noise_variance`), the ratio's in the amplitudes at ``direct_amplitude`` (n,)."""
+    kw = {}
+    for name, (m, p) in priors.items():
+        w = p * noise2
+        if name == "ratio":
+            # ln(c_s / c_d) - mean ~ (c_s - rho c_d) / (rho c_d), rho = e^mean, at the
+            # pixel's current direct amplitude
+            rho = np.exp(m)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                w = np.where(w > 0, w / (rho * direct_amplitude) ** 2, 0.0)
+            m = rho
+        kw[_PRIOR_KEYWORDS[name]] = (m, np.nan_to_num(w, nan=0.0, posinf=0.0))
+    return kw
+
+
+def prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
     """:func:`_shared_values` at ``params`` with their standard errors from the pixel's own data."""
     errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
     return _shared_values(params, c.live, options, {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()})
@@ -487,11 +557,11 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     c.info["spatial_pulled"] = 0
     if options.sweeps == 0 or rows.size == 0:
         return
-    own = _prior_values(c, c.params, options)
+    own = prior_values(c, c.params, options)
     stderr = {name: se for name, (_, se, _) in own.items()}
     # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
     # agree more than their data do) and gets no material prior in any sweep
-    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale)
+    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale, stray_share=options.stray_share)
              for name, (v, se, scale) in own.items() if name != "delay"}
     base = take_rows(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
@@ -528,17 +598,8 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         fit = redo & pull
         if fit.any():
             r = rows[fit]
-            kw = {}
-            for name, (m, p) in priors.items():
-                m, w = m[fit], p[fit] * noise2[fit]
-                if name == "ratio":
-                    # ln(c_s / c_d) - mean ~ (c_s - rho c_d) / (rho c_d), rho = e^mean, at the
-                    # pixel's current direct amplitude
-                    rho = np.exp(m)
-                    with np.errstate(invalid="ignore", divide="ignore"):
-                        w = np.where(w > 0, w / (rho * c.params["direct_amplitude"][r]) ** 2, 0.0)
-                    m = rho
-                kw[_PRIOR_KEYWORDS[name]] = (m, np.nan_to_num(w, nan=0.0, posinf=0.0))
+            kw = refine_priors({name: (m[fit], p[fit]) for name, (m, p) in priors.items()}, noise2[fit],
+                               c.params["direct_amplitude"][r])
             fits = refit(c, r, take_rows(c.params, r), weights[fit], kw.pop("delay_prior"), kw)
             refits += int(fit.sum())
             for k in c.params:
