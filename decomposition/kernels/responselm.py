@@ -29,7 +29,7 @@ import numpy as np
 
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from .jit import njit
-from .response import ResponseTable, shifted_row, sss_row
+from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
 
 __all__ = ["response_lm", "RIDGE", "LAMBDA0", "LAMBDA_MAX"]
 
@@ -86,8 +86,10 @@ def response_lm(table: ResponseTable, t_ps, y, sw, fam, delay, lalp, fit_bg, *, 
     conv = np.zeros(P, np.bool_)
     h_d = np.zeros((P, K), np.bool_) if held_delay is None else np.ascontiguousarray(held_delay, np.bool_)
     h_l = np.zeros((P, K), np.bool_) if held_lalp is None else np.ascontiguousarray(held_lalp, np.bool_)
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
     _lm_pixels(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, 1.0 / table.peak_per_ps,
-               t, y, sw, fam, delay, lalp, bg, has_bg, int(n_iter), float(lm_tol),
+               t, stride, vpp, spp, y, sw, fam, delay, lalp, bg, has_bg, int(n_iter), float(lm_tol),
                float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
                bool(sss_after_direct), bool(first_is_direct), h_d, h_l, amp, cost, resid, iters, conv)
     return delay, lalp, amp, cost, resid, iters, conv
@@ -121,18 +123,19 @@ def _project(fam, nd, nl, K, d_lo, d_hi, l_lo, l_hi, sss_after, first_direct):
 
 
 @njit
-def _render(value, slope, start, h, n_steps, scale, t, fam, cols, n_slots, nd, nl, phi, dd, dl, da, s, r, E):
+def _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, fam, cols, n_slots, nd, nl, phi, dd, dl, da, s, r, E):
     """Atoms and derivatives of the active slots ``cols[:n_slots]`` into rows 0 .. n_slots - 1."""
     L = t.size
     for i in range(n_slots):
         k = cols[i]
         if fam[k] == FAM_GAUSS:
-            shifted_row(value, slope, start, h, n_steps, t, nd[k], scale, True, phi[i], dd[i])
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, nd[k], scale, True, phi[i], dd[i])
             for l in range(L):
                 dl[i, l] = 0.0
         else:
             alpha = math.exp(nl[k])
-            sss_row(value, slope, start, h, n_steps, t, nd[k], alpha, scale, True, phi[i], dd[i], da, s, r, E)
+            sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, nd[k], alpha, scale, True, phi[i], dd[i],
+                    da, s, r, E)
             for l in range(L):
                 dl[i, l] = da[l] * alpha
 
@@ -292,7 +295,7 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
 
 
 @njit
-def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
+def _lm_pixels(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
                d_lo, d_hi, l_lo, l_hi, sss_after, first_direct, h_d, h_l, amp_out, cost_out, resid_out, iters_out,
                conv_out):
     P, K = fam.shape
@@ -367,7 +370,8 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
         for k in range(K):
             nd[k] = delay[p, k]
             nl[k] = lalp[p, k]
-        _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, phi, dd, dl, da, s, r, E)
+        _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, f, cols, ns, nd, nl, phi, dd, dl, da, s,
+                r, E)
         cost = _amplitudes(phi, ns, bg_col, yw, swp, pw, m, minv, work, rhs, amp, res)
         lam = LAMBDA0
         conv = npar == 0
@@ -430,7 +434,8 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                     nd[k] = delay[p, k]
                 if h_l[p, k]:
                     nl[k] = lalp[p, k]
-            _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, t_phi, t_dd, t_dl, da, s, r, E)
+            _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, f, cols, ns, nd, nl, t_phi, t_dd,
+                    t_dl, da, s, r, E)
             t_cost = _amplitudes(t_phi, ns, bg_col, yw, swp, t_pw, m, t_minv, work, rhs, t_amp, t_res)
             ok = finite and math.isfinite(t_cost) and t_cost < cost
             gain = cost - t_cost
