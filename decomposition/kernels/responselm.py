@@ -295,6 +295,45 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
 
 
 @njit
+def _normal_equations(pw, minv, amp, res, dd, dl, swp, nc, npar, par_row, par_lalp, L, g, gp, q, b, proj, jtj, rhs,
+                      jtr):
+    """The projected Jacobian's normal matrix ``jtj`` and right-hand side ``jtr`` of one pixel's
+    current slots (scratch ``g``, ``gp``, ``q``, ``b``, ``proj``, ``rhs``).  A refused step
+    leaves the slots as they were, and so these: the next trial re-solves them with the new
+    damping alone."""
+    # G: the columns a_k d phi_k / d theta_j, weighted
+    for j in range(npar):
+        i = par_row[j]
+        src = dl if par_lalp[j] else dd
+        a_i = amp[i]
+        for l in range(L):
+            g[j, l] = a_i * src[i, l] * swp[l]
+    # projected columns gp = g - pw^T minv (pw g^T)
+    _cross(pw, nc, g, npar, False, q)
+    for j in range(npar):
+        for k in range(nc):
+            acc = 0.0
+            for i in range(nc):
+                acc += q[i, j] * minv[i, k]
+            b[j, k] = acc
+    # (the sum over k per sample, in the order of k, over whole rows: vector loops)
+    for j in range(npar):
+        for l in range(L):
+            proj[l] = 0.0
+        for k in range(nc):
+            b_jk = b[j, k]
+            pw_k = pw[k]
+            for l in range(L):
+                proj[l] += b_jk * pw_k[l]
+        for l in range(L):
+            gp[j, l] = g[j, l] - proj[l]
+    _cross(gp, npar, gp, npar, True, jtj)
+    _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
+    for j in range(npar):
+        jtr[j] = rhs[j, 0]
+
+
+@njit
 def _lm_pixels(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
                d_lo, d_hi, l_lo, l_hi, sss_after, first_direct, h_d, h_l, amp_out, cost_out, resid_out, iters_out,
                conv_out):
@@ -376,39 +415,14 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, y, s
         lam = LAMBDA0
         conv = npar == 0
         it = 0
+        stale = True        # the Jacobian's products are those of the current slots once formed
         for _ in range(n_iter):
             if conv:
                 break
-            # G: the columns a_k d phi_k / d theta_j, weighted
-            for j in range(npar):
-                i = par_row[j]
-                src = dl if par_lalp[j] else dd
-                a_i = amp[i]
-                for l in range(L):
-                    g[j, l] = a_i * src[i, l] * swp[l]
-            # projected columns gp = g - pw^T minv (pw g^T)
-            _cross(pw, nc, g, npar, False, q)
-            for j in range(npar):
-                for k in range(nc):
-                    acc = 0.0
-                    for i in range(nc):
-                        acc += q[i, j] * minv[i, k]
-                    b[j, k] = acc
-            # (the sum over k per sample, in the order of k, over whole rows: vector loops)
-            for j in range(npar):
-                for l in range(L):
-                    proj[l] = 0.0
-                for k in range(nc):
-                    b_jk = b[j, k]
-                    pw_k = pw[k]
-                    for l in range(L):
-                        proj[l] += b_jk * pw_k[l]
-                for l in range(L):
-                    gp[j, l] = g[j, l] - proj[l]
-            _cross(gp, npar, gp, npar, True, jtj)
-            _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
-            for j in range(npar):
-                jtr[j] = rhs[j, 0]
+            if stale:
+                _normal_equations(pw, minv, amp, res, dd, dl, swp, nc, npar, par_row, par_lalp, L, g, gp, q, b,
+                                  proj, jtj, rhs, jtr)
+                stale = False
             for j in range(npar):
                 for i in range(npar):
                     lhs[j, i] = jtj[j, i]
@@ -452,6 +466,7 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, y, s
                 minv, t_minv = t_minv, minv
                 amp, t_amp = t_amp, amp
                 res, t_res = t_res, res
+                stale = True
                 lam /= 3.0
                 if gain < lm_tol * t_cost / n_used:
                     conv = True
