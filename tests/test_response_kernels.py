@@ -6,7 +6,7 @@ import pytest
 from core.irf import ResponseError, render_shifted, render_sss
 from core.irf_models import gaussian_response
 from decomposition.response.resolve import resolve_response
-from decomposition.kernels.response import response_table, shifted_atoms, sss_atoms, uniform_stride
+from decomposition.kernels.response import response_table, shifted_atoms, slot_rows, sss_atoms, uniform_stride
 from drivers.sim.scene import simulated_response
 
 T = 2.0
@@ -196,3 +196,38 @@ def test_uniform_axis_atoms_match_the_node_by_node_ones(name):
     for got, ref in zip(sss_atoms(tab, T_AXIS, d, a, derivatives=True), sss_atoms(tab, uneven, d, a, derivatives=True)):
         assert close(got, ref[..., :-1])
     assert close(sss_atoms(tab, T_AXIS, d, a), sss_atoms(tab, uneven, d, a)[..., :-1])
+
+
+@pytest.mark.parametrize("axis", ["even", "uneven"])
+def test_slot_rows_are_the_atoms_of_each_slot(axis):
+    """slot_rows renders (P, K) slot arrays in place: in each shifted slot the bits of
+    shifted_atoms, in each sss slot those of sss_atoms (derivatives too; the alpha derivative 0
+    in shifted slots), zeros in empty ones whatever their delay holds; a non-finite delay of an
+    active slot or a negative alpha of an sss slot is refused by name."""
+    from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+
+    tab = response_table(RESPONSES["tailed"])
+    t = T_AXIS if axis == "even" else np.append(T_AXIS, T_AXIS[-1] + 0.7 * T)
+    fam = np.array([[FAM_GAUSS, FAM_SSS, FAM_NONE], [FAM_NONE, FAM_SSS, FAM_GAUSS], [FAM_GAUSS, FAM_NONE, FAM_GAUSS]],
+                   np.int8)
+    delay = np.array([[101.25, 103.0, np.nan], [np.nan, -7.3, 431.0], [2.0, 5.0, 790.6]])
+    alpha = np.array([[0.0, 0.05, np.nan], [1.0, 1e-3, 0.0], [0.0, -1.0, 0.0]])
+    phi, dd, da = slot_rows(tab, t, fam, delay, alpha, derivatives=True)
+    assert np.array_equal(slot_rows(tab, t, fam, delay, alpha), phi)
+    for (p, k), f in np.ndenumerate(fam):
+        if f == FAM_GAUSS:
+            a, d = shifted_atoms(tab, t, delay[p, k], derivative=True)
+            assert np.array_equal(phi[p, k], a) and np.array_equal(dd[p, k], d) and np.all(da[p, k] == 0.0)
+        elif f == FAM_SSS:
+            want = sss_atoms(tab, t, delay[p, k], alpha[p, k], derivatives=True)
+            assert all(np.array_equal(x, y) for x, y in zip((phi[p, k], dd[p, k], da[p, k]), want))
+        else:
+            assert np.all(phi[p, k] == 0.0) and np.all(dd[p, k] == 0.0) and np.all(da[p, k] == 0.0)
+    bad = delay.copy()
+    bad[0, 1] = np.nan
+    with pytest.raises(ResponseError, match="delay_ps must be finite"):
+        slot_rows(tab, t, fam, bad, alpha)
+    bad = alpha.copy()
+    bad[1, 1] = -0.1
+    with pytest.raises(ResponseError, match="alpha_per_ps"):
+        slot_rows(tab, t, fam, delay, bad)

@@ -65,9 +65,10 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from core.irf import InstrumentResponse, ResponseError
+from ..constants import FAM_GAUSS, FAM_SSS
 from .jit import njit
 
-__all__ = ["ResponseTable", "response_table", "shifted_atoms", "sss_atoms", "TABLE_REL_ERROR"]
+__all__ = ["ResponseTable", "response_table", "shifted_atoms", "sss_atoms", "slot_rows", "TABLE_REL_ERROR"]
 
 #: the table's Hermite interpolation error bound, relative to the response's peak
 TABLE_REL_ERROR = 1e-7
@@ -204,6 +205,82 @@ def sss_atoms(table: ResponseTable, t_ps, delay_ps, alpha_per_ps, *, derivatives
     if derivatives:
         return out.reshape(shape), dd.reshape(shape), da.reshape(shape)
     return out.reshape(shape)
+
+
+def slot_rows(table: ResponseTable, t_ps, fam, delay_ps, alpha_per_ps, *, derivatives: bool = False):
+    """Unit-peak atoms of every slot of (P, K) slot arrays, rendered in place: a shifted atom
+    (:func:`shifted_atoms`) where ``fam`` is FAM_GAUSS, an sss atom (:func:`sss_atoms`) where it
+    is FAM_SSS, zeros elsewhere -- the same bits as those functions on the active slots, without
+    their (n, L) temporaries scattered into the block.
+
+    Parameters
+    ----------
+    table : ResponseTable
+    t_ps : array_like (L,)                 time axis, ps
+    fam : ndarray (P, K) int8              slot families
+    delay_ps : ndarray (P, K)              delays, ps (finite in active slots)
+    alpha_per_ps : ndarray (P, K)          attenuations, 1/ps (finite and >= 0 in sss slots)
+    derivatives : bool                     also d / d delay (per ps) and, in sss slots, d / d alpha (ps)
+
+    Returns
+    -------
+    phi : ndarray (P, K, L); d_delay, d_alpha : ndarray (P, K, L) with ``derivatives``
+    """
+    t = np.ascontiguousarray(t_ps, np.float64)
+    if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)):
+        raise ResponseError(f"t_ps must be a non-empty finite 1-D time axis, got shape {t.shape}")
+    fam = np.ascontiguousarray(fam, np.int8)
+    d = np.ascontiguousarray(delay_ps, np.float64)
+    a = np.ascontiguousarray(alpha_per_ps, np.float64)
+    sh, ss = fam == FAM_GAUSS, fam == FAM_SSS
+    if not np.all(np.isfinite(d[sh | ss])):
+        raise ResponseError("delay_ps must be finite")
+    if not np.all(np.isfinite(a[ss])) or np.any(a[ss] < 0):
+        raise ResponseError("alpha_per_ps must be non-negative and finite")
+    P, K = fam.shape
+    shape = (P, K, t.size)
+    phi = np.empty(shape)
+    dd = np.empty(shape if derivatives else (0, 0, 0))
+    da = np.empty(shape if derivatives else (0, 0, 0))
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
+    _slot_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, stride, vpp, spp, fam,
+                 d, a, 1.0 / table.peak_per_ps, derivatives, phi, dd, da)
+    if derivatives:
+        return phi, dd, da
+    return phi
+
+
+@njit
+def _slot_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, fam, delay, alpha, scale, want_d, phi, dd, da):
+    P, K = fam.shape
+    L = t.size
+    s = np.empty(n_steps + 1)
+    r = np.empty(n_steps + 1)
+    E = np.empty(5)
+    for p in range(P):
+        for k in range(K):
+            f = fam[p, k]
+            if f == FAM_GAUSS:
+                if want_d:
+                    shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], scale, True,
+                                phi[p, k], dd[p, k])
+                    da[p, k, :] = 0.0
+                else:
+                    shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], scale, False,
+                                phi[p, k], phi[p, k])
+            elif f == FAM_SSS:
+                if want_d:
+                    sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], alpha[p, k], scale,
+                            True, phi[p, k], dd[p, k], da[p, k], s, r, E)
+                else:
+                    sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], alpha[p, k], scale,
+                            False, phi[p, k], phi[p, k], phi[p, k], s, r, E)
+            else:
+                phi[p, k, :] = 0.0
+                if want_d:
+                    dd[p, k, :] = 0.0
+                    da[p, k, :] = 0.0
 
 
 @njit
