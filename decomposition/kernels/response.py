@@ -564,9 +564,38 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
                 Gv[k] = Gv[k] + (a * vr[k] + b * sr[k])
     eS = pw                                 # e^S
     deS = -S * h * eS
-    for k in range(nb - 1):
-        rB[k + 1] = eS * rB[k] + deS * sB[k] + dG[k]
-        sB[k + 1] = eS * sB[k] + G[k]
+    # two strides per step, s_{k+2} = e^2S s_k + (e^S G_k + G_{k+1}) (r likewise), and the terms
+    # that do not depend on r summed first: the chain of dependent multiply-adds the loop waits
+    # on is a quarter of the stride-by-stride one's
+    eS2 = eS * eS
+    sk = sB[0]
+    rk = rB[0]
+    k = 0
+    if want_d:
+        while k + 2 <= nb - 1:
+            g0 = G[k]
+            g1 = G[k + 1]
+            x0 = deS * sk + dG[k]
+            s1 = eS * sk + g0
+            sB[k + 1] = s1
+            rB[k + 1] = eS * rk + x0
+            rk = eS2 * rk + (eS * x0 + (deS * s1 + dG[k + 1]))
+            sk = eS2 * sk + (eS * g0 + g1)
+            sB[k + 2] = sk
+            rB[k + 2] = rk
+            k += 2
+        if k < nb - 1:
+            rB[k + 1] = eS * rk + (deS * sk + dG[k])
+            sB[k + 1] = eS * sk + G[k]
+    else:
+        while k + 2 <= nb - 1:
+            g0 = G[k]
+            sB[k + 1] = eS * sk + g0
+            sk = eS2 * sk + (eS * g0 + G[k + 1])
+            sB[k + 2] = sk
+            k += 2
+        if k < nb - 1:
+            sB[k + 1] = eS * sk + G[k]
     # the window's samples
     u2 = u * u
     u3 = u2 * u

@@ -208,47 +208,45 @@ def _solve(a, b, n, x, work):
 
 
 @njit
+def _dot(x, y, L):
+    """sum_l x[l] y[l] over l < L in eight interleaved partial sums (lane l mod 8, each in order
+    of l), combined pairwise at the end: the lanes fill vector registers, and the sum is the
+    same bits on every run."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    a3 = 0.0
+    a4 = 0.0
+    a5 = 0.0
+    a6 = 0.0
+    a7 = 0.0
+    n8 = L - L % 8
+    for l in range(0, n8, 8):
+        a0 += x[l] * y[l]
+        a1 += x[l + 1] * y[l + 1]
+        a2 += x[l + 2] * y[l + 2]
+        a3 += x[l + 3] * y[l + 3]
+        a4 += x[l + 4] * y[l + 4]
+        a5 += x[l + 5] * y[l + 5]
+        a6 += x[l + 6] * y[l + 6]
+        a7 += x[l + 7] * y[l + 7]
+    for l in range(n8, L):
+        a0 += x[l] * y[l]
+    return ((a0 + a4) + (a1 + a5)) + ((a2 + a6) + (a3 + a7))
+
+
+@njit
 def _cross(x, nx, y, ny, sym, out):
-    """out[i, j] = sum_l x[i, l] y[j, l] for i < nx, j < ny (with ``sym`` only j <= i, mirrored):
-    each sum from 0 in order of l, the same bits as one accumulator per pair, four pairs per
-    pass over l so that four independent sums overlap instead of each waiting on its last add."""
+    """out[i, j] = sum_l x[i, l] y[j, l] for i < nx, j < ny (with ``sym`` only j <= i, mirrored),
+    each by :func:`_dot`."""
     L = x.shape[1]
-    n_pairs = nx * (nx + 1) // 2 if sym else nx * ny
-    ii = np.empty(4, np.int64)
-    jj = np.empty(4, np.int64)
-    i = 0
-    j = 0
-    p = 0
-    while p < n_pairs:
-        m = 0
-        while m < 4 and p < n_pairs:
-            ii[m] = i
-            jj[m] = j
-            m += 1
-            p += 1
-            j += 1
-            if j > (i if sym else ny - 1):
-                i += 1
-                j = 0
-        for q in range(m, 4):            # the last group padded with its last pair
-            ii[q] = ii[m - 1]
-            jj[q] = jj[m - 1]
-        x0, x1, x2, x3 = x[ii[0]], x[ii[1]], x[ii[2]], x[ii[3]]
-        y0, y1, y2, y3 = y[jj[0]], y[jj[1]], y[jj[2]], y[jj[3]]
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        a3 = 0.0
-        for l in range(L):
-            a0 += x0[l] * y0[l]
-            a1 += x1[l] * y1[l]
-            a2 += x2[l] * y2[l]
-            a3 += x3[l] * y3[l]
-        acc = (a0, a1, a2, a3)
-        for q in range(m):
-            out[ii[q], jj[q]] = acc[q]
+    for i in range(nx):
+        xi = x[i]
+        for j in range(i + 1 if sym else ny):
+            v = _dot(xi, y[j], L)
+            out[i, j] = v
             if sym:
-                out[jj[q], ii[q]] = acc[q]
+                out[j, i] = v
 
 
 @njit
@@ -288,10 +286,7 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
         pw_i = pw[i]
         for l in range(L):
             resid[l] -= a_i * pw_i[l]
-    cost = 0.0
-    for l in range(L):
-        cost += resid[l] * resid[l]
-    return cost
+    return _dot(resid, resid, L)
 
 
 @njit
