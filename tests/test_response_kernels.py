@@ -188,7 +188,8 @@ def test_uniform_axis_atoms_match_the_node_by_node_ones(name):
         top = np.maximum(np.abs(b).max(axis=-1, keepdims=True), 1e-300)
         return np.all(np.abs(a - b) <= 1e-11 * top) and np.array_equal(a == 0.0, b == 0.0)
 
-    delays = np.concatenate([DELAYS, T_AXIS[0] - irf.window_start_ps + np.array([0.0, -1e-9, 1e-9, 0.5])])
+    delays = np.concatenate([DELAYS, T_AXIS[0] - irf.window_start_ps + np.array([0.0, -1e-9, 1e-9, 0.5]),
+                             [-1e6, 1e6, -1e300, 1e300]])
     for got, ref in zip(shifted_atoms(tab, T_AXIS, delays, derivative=True),
                         shifted_atoms(tab, uneven, delays, derivative=True)):
         assert close(got, ref[:, :-1])

@@ -421,7 +421,9 @@ def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, sca
     x0 = (t[0] - (start + delay)) * inv_h
     fl = math.floor(x0)
     u = x0 - fl
-    J = int(fl)
+    # (an onset after the axis or a whole window before it: no sample on the window; the node
+    # index clamped so that it stays an integer)
+    J = int(min(max(fl, -S * (L + 1.0)), N + 1.0))
     i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
     i_out = 0 if J >= N else min((N - J + S - 1) // S, L)
     i_out = max(i_out, i_in)
@@ -484,7 +486,9 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
     x0 = (t[0] - (start + delay)) * inv_h
     fl = math.floor(x0)
     u = x0 - fl
-    J = int(fl)
+    # the node index clamped so that it stays an integer: every sample before the onset, or every
+    # sample after the window (where only s(B), r(B) and the distance past it are read, in x0)
+    J = int(min(max(fl, -S * (L + 1.0)), N + S))
     # samples [0, i_in): before the onset; [i_in, i_tail): on the window; [i_tail, L): after it
     i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
     i_tail = 0 if J >= N else min((N - J + S - 1) // S, L)
@@ -575,11 +579,11 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
         while k + 2 <= nb - 1:
             g0 = G[k]
             g1 = G[k + 1]
-            x0 = deS * sk + dG[k]
+            z0 = deS * sk + dG[k]
             s1 = eS * sk + g0
             sB[k + 1] = s1
-            rB[k + 1] = eS * rk + x0
-            rk = eS2 * rk + (eS * x0 + (deS * s1 + dG[k + 1]))
+            rB[k + 1] = eS * rk + z0
+            rk = eS2 * rk + (eS * z0 + (deS * s1 + dG[k + 1]))
             sk = eS2 * sk + (eS * g0 + g1)
             sB[k + 2] = sk
             rB[k + 2] = rk
@@ -656,7 +660,7 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
         q = v0 * value[j] + v1 * slope[j] + v2 * value[j + 1] + v3 * slope[j + 1]
         rj = e * rj - he * sj + q
         sj = e * sj + g
-    past = ((J - N) + S * i_tail + u) * h
+    past = ((J - N) + S * i_tail + u) * h if J == fl else (x0 - N + S * i_tail) * h
     tail = math.exp(-al * past)
     fall = math.exp(-al * S * h)
     for i in range(i_tail, L):
