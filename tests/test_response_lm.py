@@ -196,19 +196,28 @@ def test_compiled_fit_keeps_the_constraints_and_amplitude_only_fits(irf):
     assert np.array_equal(h.resid, y * sw) and np.allclose(h.cost, ((y * sw) ** 2).sum(axis=1))
 
 
-def test_cross_products_are_the_sums_in_sample_order():
-    """The LM's dot products (four pairs per pass over the samples) are, bit for bit, each pair's
-    sum taken one sample at a time from 0 (as np.cumsum sums), for the symmetric and the full
-    form, on leading rows of larger buffers, the entries outside left alone."""
+def test_cross_products_are_the_sums_in_eight_lanes():
+    """The LM's dot products are, bit for bit, eight partial sums (sample l in lane l mod 8, the
+    samples past the last whole eight in lane 0), each taken one sample at a time from 0 (as
+    np.cumsum sums), combined as ((0 + 4) + (1 + 5)) + ((2 + 6) + (3 + 7)): the same bits on
+    every run, for the symmetric and the full form, on leading rows of larger buffers, the
+    entries outside left alone."""
     from decomposition.kernels.responselm import _cross
 
+    def lanes(p):
+        n8 = p.size - p.size % 8
+        a = [np.cumsum(np.concatenate([p[:n8:8], p[n8:]]))[-1]] + [np.cumsum(p[k:n8:8])[-1] if n8 else 0.0
+                                                                    for k in range(1, 8)]
+        return ((a[0] + a[4]) + (a[1] + a[5])) + ((a[2] + a[6]) + (a[3] + a[7]))
+
     rng = np.random.default_rng(7)
-    x = rng.normal(size=(6, 37)) * 10.0 ** rng.integers(-3, 4, size=(6, 1))
-    y = rng.normal(size=(5, 37))
-    for nx, ny, sym in ((5, 5, True), (1, 1, True), (3, 4, False), (5, 1, False), (2, 3, False)):
-        out = np.full((6, 6), np.nan)
-        _cross(x, nx, x if sym else y, ny, sym, out)
-        other = x if sym else y
-        want = np.array([[np.cumsum(x[i] * other[j])[-1] for j in range(ny)] for i in range(nx)])
-        assert np.array_equal(out[:nx, :ny], want)
-        assert np.isnan(out[nx:]).all() and np.isnan(out[:, ny:]).all()
+    for L in (37, 40, 5):
+        x = rng.normal(size=(6, L)) * 10.0 ** rng.integers(-3, 4, size=(6, 1))
+        y = rng.normal(size=(5, L))
+        for nx, ny, sym in ((5, 5, True), (1, 1, True), (3, 4, False), (5, 1, False), (2, 3, False)):
+            out = np.full((6, 6), np.nan)
+            _cross(x, nx, x if sym else y, ny, sym, out)
+            other = x if sym else y
+            want = np.array([[lanes(x[i] * other[j]) for j in range(ny)] for i in range(nx)])
+            assert np.array_equal(out[:nx, :ny], want)
+            assert np.isnan(out[nx:]).all() and np.isnan(out[:, ny:]).all()

@@ -33,6 +33,14 @@ sss atom
     an sss whose onset coincides with a shifted atom has its onset derivative in the span of
     the two atoms (the Levenberg-Marquardt projection then sees the degeneracy, not an O(h^3)
     remainder that Marquardt's column scaling would blow up into a step).
+uniform axis
+    Where the samples lie evenly a whole number S >= 2 of nodes apart (:func:`uniform_stride`;
+    the solver's axis, S = ``substeps``), every sample falls at the same fraction of its node
+    step, so the Hermite weights are computed once per atom, and the sss recursion runs S
+    nodes at a time (the S single steps composed into one, their sums along the
+    :func:`polyphase` rows of the table), read only at the nodes the samples use: the same
+    atoms to rounding (tests/test_response_kernels.py holds the two paths to 1e-11 of each
+    atom's largest value).
 
 Error against the exact interpolant (:func:`core.irf.render_shifted` / :func:`core.irf.render_sss`,
 unit-peak atoms): ``substeps`` is the smallest power of two (>= 4) for which the Hermite bound
@@ -57,9 +65,10 @@ import numpy as np
 from scipy import fft as sp_fft
 
 from core.irf import InstrumentResponse, ResponseError
+from ..constants import FAM_GAUSS, FAM_SSS
 from .jit import njit
 
-__all__ = ["ResponseTable", "response_table", "shifted_atoms", "sss_atoms", "TABLE_REL_ERROR"]
+__all__ = ["ResponseTable", "response_table", "shifted_atoms", "sss_atoms", "slot_rows", "TABLE_REL_ERROR"]
 
 #: the table's Hermite interpolation error bound, relative to the response's peak
 TABLE_REL_ERROR = 1e-7
@@ -153,8 +162,10 @@ def shifted_atoms(table: ResponseTable, t_ps, delay_ps, *, derivative: bool = Fa
     flat = np.ascontiguousarray(d.reshape(-1))
     out = np.empty((flat.size, t.size))
     dout = np.empty((flat.size, t.size) if derivative else (0, 0))
-    _shifted_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, flat,
-                    1.0 / table.peak_per_ps, derivative, out, dout)
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
+    _shifted_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, stride, vpp, spp,
+                    flat, 1.0 / table.peak_per_ps, derivative, out, dout)
     shape = d.shape + (t.size,)
     if derivative:
         return out.reshape(shape), dout.reshape(shape)
@@ -186,27 +197,110 @@ def sss_atoms(table: ResponseTable, t_ps, delay_ps, alpha_per_ps, *, derivatives
     out = np.empty((n, t.size))
     dd = np.empty((n, t.size) if derivatives else (0, 0))
     da = np.empty((n, t.size) if derivatives else (0, 0))
-    _sss_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, flat_d, flat_a,
-                1.0 / table.peak_per_ps, derivatives, out, dd, da)
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
+    _sss_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, stride, vpp, spp,
+                flat_d, flat_a, 1.0 / table.peak_per_ps, derivatives, out, dd, da)
     shape = d.shape + (t.size,)
     if derivatives:
         return out.reshape(shape), dd.reshape(shape), da.reshape(shape)
     return out.reshape(shape)
 
 
+def slot_rows(table: ResponseTable, t_ps, fam, delay_ps, alpha_per_ps, *, derivatives: bool = False):
+    """Unit-peak atoms of every slot of (P, K) slot arrays, rendered in place: a shifted atom
+    (:func:`shifted_atoms`) where ``fam`` is FAM_GAUSS, an sss atom (:func:`sss_atoms`) where it
+    is FAM_SSS, zeros elsewhere -- the same bits as those functions on the active slots, without
+    their (n, L) temporaries scattered into the block.
+
+    Parameters
+    ----------
+    table : ResponseTable
+    t_ps : array_like (L,)                 time axis, ps
+    fam : ndarray (P, K) int8              slot families
+    delay_ps : ndarray (P, K)              delays, ps (finite in active slots)
+    alpha_per_ps : ndarray (P, K)          attenuations, 1/ps (finite and >= 0 in sss slots)
+    derivatives : bool                     also d / d delay (per ps) and, in sss slots, d / d alpha (ps)
+
+    Returns
+    -------
+    phi : ndarray (P, K, L); d_delay, d_alpha : ndarray (P, K, L) with ``derivatives``
+    """
+    t = np.ascontiguousarray(t_ps, np.float64)
+    if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)):
+        raise ResponseError(f"t_ps must be a non-empty finite 1-D time axis, got shape {t.shape}")
+    fam = np.ascontiguousarray(fam, np.int8)
+    d = np.ascontiguousarray(delay_ps, np.float64)
+    a = np.ascontiguousarray(alpha_per_ps, np.float64)
+    sh, ss = fam == FAM_GAUSS, fam == FAM_SSS
+    if not np.all(np.isfinite(d[sh | ss])):
+        raise ResponseError("delay_ps must be finite")
+    if not np.all(np.isfinite(a[ss])) or np.any(a[ss] < 0):
+        raise ResponseError("alpha_per_ps must be non-negative and finite")
+    P, K = fam.shape
+    shape = (P, K, t.size)
+    phi = np.empty(shape)
+    dd = np.empty(shape if derivatives else (0, 0, 0))
+    da = np.empty(shape if derivatives else (0, 0, 0))
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
+    _slot_kernel(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, t, stride, vpp, spp, fam,
+                 d, a, 1.0 / table.peak_per_ps, derivatives, phi, dd, da)
+    if derivatives:
+        return phi, dd, da
+    return phi
+
+
 @njit
-def _shifted_kernel(value, slope, start, h, n_steps, t, delay, scale, want_d, out, dout):
+def _slot_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, fam, delay, alpha, scale, want_d, phi, dd, da):
+    P, K = fam.shape
+    L = t.size
+    s = np.empty(n_steps + 1)
+    r = np.empty(n_steps + 1)
+    E = np.empty(5)
+    for p in range(P):
+        for k in range(K):
+            f = fam[p, k]
+            if f == FAM_GAUSS:
+                if want_d:
+                    shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], scale, True,
+                                phi[p, k], dd[p, k])
+                    da[p, k, :] = 0.0
+                else:
+                    shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], scale, False,
+                                phi[p, k], phi[p, k])
+            elif f == FAM_SSS:
+                if want_d:
+                    sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], alpha[p, k], scale,
+                            True, phi[p, k], dd[p, k], da[p, k], s, r, E)
+                else:
+                    sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[p, k], alpha[p, k], scale,
+                            False, phi[p, k], phi[p, k], phi[p, k], s, r, E)
+            else:
+                phi[p, k, :] = 0.0
+                if want_d:
+                    dd[p, k, :] = 0.0
+                    da[p, k, :] = 0.0
+
+
+@njit
+def _shifted_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, scale, want_d, out, dout):
     for a in range(delay.size):
         if want_d:
-            shifted_row(value, slope, start, h, n_steps, t, delay[a], scale, True, out[a], dout[a])
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[a], scale, True, out[a], dout[a])
         else:
-            shifted_row(value, slope, start, h, n_steps, t, delay[a], scale, False, out[a], out[a])
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[a], scale, False, out[a], out[a])
 
 
 @njit
-def shifted_row(value, slope, start, h, n_steps, t, delay, scale, want_d, out, dout):
+def shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, scale, want_d, out, dout):
     """One shifted atom into ``out`` (L,) (and its delay derivative into ``dout`` (L,) with
-    ``want_d``): the body of :func:`shifted_atoms` for one delay, for compiled callers."""
+    ``want_d``): the body of :func:`shifted_atoms` for one delay, for compiled callers.
+    ``stride``: :func:`uniform_stride` of ``t`` (0: any axis), ``vpp``, ``spp`` the table's
+    :func:`polyphase` rows for it."""
+    if stride > 0:
+        _shifted_uniform(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, scale, want_d, out, dout)
+        return
     L = t.size
     inv_h = 1.0 / h
     base = start + delay
@@ -250,23 +344,359 @@ def _moments(beta, e, out):
 
 
 @njit
-def _sss_kernel(value, slope, start, h, n_steps, t, delay, alpha, scale, want_d, out, dd, da):
+def _step_weights(h, al, E):
+    """The one-pole step's factor e = exp(-alpha h), its weights w0..w3 of (c_j, slope_j,
+    c_{j+1}, slope_{j+1}) and their alpha derivatives v0..v3 (``E`` (5,) scratch)."""
+    beta = al * h
+    e = math.exp(-beta)
+    _moments(beta, e, E)
+    # exact integrals of exp(-beta (1 - tau)) against the Hermite basis (sigma = 1 - tau)
+    w0 = h * (3.0 * E[2] - 2.0 * E[3])
+    w1 = h * h * (E[2] - E[3])
+    w2 = h * (E[0] - 3.0 * E[2] + 2.0 * E[3])
+    w3 = h * h * (-E[1] + 2.0 * E[2] - E[3])
+    # their alpha derivatives (dE_n / dbeta = -E_{n+1}, dbeta / dalpha = h)
+    v0 = -h * h * (3.0 * E[3] - 2.0 * E[4])
+    v1 = -h * h * h * (E[3] - E[4])
+    v2 = -h * h * (E[1] - 3.0 * E[3] + 2.0 * E[4])
+    v3 = -h * h * h * (-E[2] + 2.0 * E[3] - E[4])
+    return e, w0, w1, w2, w3, v0, v1, v2, v3
+
+
+@njit
+def uniform_stride(t, h):
+    """The table nodes per sample of the time axis ``t`` (L,) when its samples lie a whole
+    number S >= 2 of table steps ``h`` apart, evenly (each within 1e-9 of a sample step of
+    t[0] + i S h); 0 otherwise (fewer than 2 samples, uneven or off the nodes' spacing)."""
+    L = t.size
+    if L < 2:
+        return 0
+    step = (t[L - 1] - t[0]) / (L - 1)
+    if not step > 0.0:
+        return 0
+    S = int(math.floor(step / h + 0.5))
+    if S < 2 or abs(step - S * h) > 1e-9 * step:
+        return 0
+    for i in range(L):
+        if abs(t[i] - (t[0] + i * step)) > 1e-9 * step:
+            return 0
+    return S
+
+
+_POLYPHASE: "weakref.WeakKeyDictionary[ResponseTable, dict]" = weakref.WeakKeyDictionary()
+_NO_ROWS = np.zeros((1, 1))
+
+
+def polyphase(table: ResponseTable, stride: int):
+    """The table's values and slopes in ``stride`` rows, row m holding the nodes m + stride k
+    (k = 0, 1, ..., zero past the last node): (values, slopes), each (stride, n_steps // stride
+    + 3), kept while the table lives.  Read by the sss atom on a :func:`uniform_stride` axis,
+    whose sums over a stride of nodes then run along contiguous rows.  A stride of 0 gives
+    (1, 1) placeholders."""
+    if stride <= 0:
+        return _NO_ROWS, _NO_ROWS
+    per = _POLYPHASE.setdefault(table, {})
+    rows = per.get(stride)
+    if rows is None:
+        cols = table.n_steps // stride + 3
+        out = []
+        for arr in (table.value, table.slope):
+            padded = np.zeros(cols * stride)
+            padded[:arr.size] = arr
+            rows_ = np.ascontiguousarray(padded.reshape(cols, stride).T)
+            rows_.setflags(write=False)
+            out.append(rows_)
+        rows = per[stride] = tuple(out)
+    return rows
+
+
+@njit
+def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, scale, want_d, out, dout):
+    """:func:`shifted_row` on a :func:`uniform_stride` axis: every sample at the same fraction
+    u of its table step (sample i at node J + S i), so the Hermite weights are computed once
+    and the nodes read along :func:`polyphase` rows (contiguous: vector loops)."""
+    L = t.size
+    N = n_steps
+    inv_h = 1.0 / h
+    x0 = (t[0] - (start + delay)) * inv_h
+    fl = math.floor(x0)
+    u = x0 - fl
+    # (an onset after the axis or a whole window before it: no sample on the window; the node
+    # index clamped so that it stays an integer)
+    J = int(min(max(fl, -S * (L + 1.0)), N + 1.0))
+    i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
+    i_out = 0 if J >= N else min((N - J + S - 1) // S, L)
+    i_out = max(i_out, i_in)
+    for i in range(i_in):
+        out[i] = 0.0
+        if want_d:
+            dout[i] = 0.0
+    for i in range(i_out, L):
+        out[i] = 0.0
+        if want_d:
+            dout[i] = 0.0
+    n_win = i_out - i_in
+    if n_win <= 0:
+        return
+    u2 = u * u
+    u3 = u2 * u
+    a0 = scale * (2.0 * u3 - 3.0 * u2 + 1.0)
+    a1 = scale * h * (u3 - 2.0 * u2 + u)
+    a2 = scale * (3.0 * u2 - 2.0 * u3)
+    a3 = scale * h * (u3 - u2)
+    p = J % S
+    if p < 0:
+        p += S
+    k0 = (J - p) // S + i_in
+    p1 = (p + 1) % S
+    q1s = (p + 1) // S
+    c0v = vpp[p, k0:k0 + n_win]
+    m0v = spp[p, k0:k0 + n_win]
+    c1v = vpp[p1, k0 + q1s:k0 + q1s + n_win]
+    m1v = spp[p1, k0 + q1s:k0 + q1s + n_win]
+    outv = out[i_in:i_out]
+    for i in range(n_win):
+        outv[i] = a0 * c0v[i] + a1 * m0v[i] + a2 * c1v[i] + a3 * m1v[i]
+    if want_d:
+        b0 = -scale * inv_h * (6.0 * u2 - 6.0 * u)
+        b1 = -scale * (3.0 * u2 - 4.0 * u + 1.0)
+        b2 = -scale * (3.0 * u2 - 2.0 * u)
+        doutv = dout[i_in:i_out]
+        for i in range(n_win):
+            doutv[i] = b0 * (c0v[i] - c1v[i]) + b1 * m0v[i] + b2 * m1v[i]
+
+
+@njit
+def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, scale, want_d, out, dd, da, s, r, E):
+    """:func:`sss_row` on a :func:`uniform_stride` axis (sample i at node J + S i, all at the
+    same fraction u of a step).  The samples read s (and r = ds/dalpha) only at the nodes
+    b_k = p + S k (p = J mod S) and the node after each, so the one-pole recursion runs a
+    stride at a time:
+
+        s_{b+S} = e^S s_b + sum_{m=0..S} (A_m c_{b+m} + B_m c'_{b+m}),
+        r_{b+S} = e^S r_b - S h e^S s_b + sum_{m=0..S} (A'_m c_{b+m} + B'_m c'_{b+m}),
+
+    the S single steps composed (A_m, B_m the step weights times powers of e, A'_m, B'_m their
+    alpha derivatives), the sums over m along the :func:`polyphase` rows; s and r at b_k + 1 by
+    one single step.  The same values as the node-by-node recursion, to rounding.  ``s`` and
+    ``r`` hold the stride sums (first half) and the values at b_k (second half)."""
+    L = t.size
+    N = n_steps
+    inv_h = 1.0 / h
+    x0 = (t[0] - (start + delay)) * inv_h
+    fl = math.floor(x0)
+    u = x0 - fl
+    # the node index clamped so that it stays an integer: every sample before the onset, or every
+    # sample after the window (where only s(B), r(B) and the distance past it are read, in x0)
+    J = int(min(max(fl, -S * (L + 1.0)), N + S))
+    # samples [0, i_in): before the onset; [i_in, i_tail): on the window; [i_tail, L): after it
+    i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
+    i_tail = 0 if J >= N else min((N - J + S - 1) // S, L)
+    i_tail = max(i_tail, i_in)
+    for i in range(i_in):
+        out[i] = 0.0
+        if want_d:
+            dd[i] = 0.0
+            da[i] = 0.0
+    if i_in >= L:
+        return
+    e, w0, w1, w2, w3, v0, v1, v2, v3 = _step_weights(h, al, E)
+    he = h * e
+    p = J % S
+    if p < 0:
+        p += S
+    k_off = (J - p) // S                  # sample i at block k_off + i
+    k_top = k_off + i_tail - 1 if i_tail > i_in else -1
+    kl = (N - p) // S                     # the last block start at or before node N
+    if i_tail < L and kl > k_top:
+        k_top = kl
+    nb = k_top + 1
+    G = s[:nb]
+    sB = s[nb:2 * nb]
+    dG = r[:nb]
+    rB = r[nb:2 * nb]
+    # s and r at node p (< S) by single steps from s_0 = r_0 = 0
+    sj = 0.0
+    rj = 0.0
+    for j in range(p):
+        g = w0 * value[j] + w1 * slope[j] + w2 * value[j + 1] + w3 * slope[j + 1]
+        q = v0 * value[j] + v1 * slope[j] + v2 * value[j + 1] + v3 * slope[j + 1]
+        rj = e * rj - he * sj + q
+        sj = e * sj + g
+    sB[0] = sj
+    rB[0] = rj
+    # the stride sums: taps m = S .. 0, pw = e^(S - m), pw_prev = e^(S - 1 - m)
+    for k in range(nb - 1):
+        G[k] = 0.0
+        dG[k] = 0.0
+    pw = 1.0
+    for m in range(S, -1, -1):
+        pw_prev = pw
+        if m < S:
+            pw = pw * e
+        # pw_prev = e^(S-1-m) (for m < S), pw = e^(S-m)
+        a = 0.0
+        b = 0.0
+        da_ = 0.0
+        db_ = 0.0
+        if m < S:
+            a += w0 * pw_prev
+            b += w1 * pw_prev
+            da_ += (v0 - (S - 1 - m) * h * w0) * pw_prev
+            db_ += (v1 - (S - 1 - m) * h * w1) * pw_prev
+        if m >= 1:
+            a += w2 * pw
+            b += w3 * pw
+            da_ += (v2 - (S - m) * h * w2) * pw
+            db_ += (v3 - (S - m) * h * w3) * pw
+        z = p + m
+        row = z % S
+        shift = z // S
+        # (contiguous views of exactly the span summed: loops the compiler runs on vector registers)
+        vr = vpp[row, shift:shift + nb - 1]
+        sr = spp[row, shift:shift + nb - 1]
+        Gv = G[:nb - 1]
+        if want_d:
+            dGv = dG[:nb - 1]
+            for k in range(nb - 1):
+                c = vr[k]
+                d = sr[k]
+                Gv[k] = Gv[k] + (a * c + b * d)
+                dGv[k] = dGv[k] + (da_ * c + db_ * d)
+        else:
+            for k in range(nb - 1):
+                Gv[k] = Gv[k] + (a * vr[k] + b * sr[k])
+    eS = pw                                 # e^S
+    deS = -S * h * eS
+    # two strides per step, s_{k+2} = e^2S s_k + (e^S G_k + G_{k+1}) (r likewise), and the terms
+    # that do not depend on r summed first: the chain of dependent multiply-adds the loop waits
+    # on is a quarter of the stride-by-stride one's
+    eS2 = eS * eS
+    sk = sB[0]
+    rk = rB[0]
+    k = 0
+    if want_d:
+        while k + 2 <= nb - 1:
+            g0 = G[k]
+            g1 = G[k + 1]
+            z0 = deS * sk + dG[k]
+            s1 = eS * sk + g0
+            sB[k + 1] = s1
+            rB[k + 1] = eS * rk + z0
+            rk = eS2 * rk + (eS * z0 + (deS * s1 + dG[k + 1]))
+            sk = eS2 * sk + (eS * g0 + g1)
+            sB[k + 2] = sk
+            rB[k + 2] = rk
+            k += 2
+        if k < nb - 1:
+            rB[k + 1] = eS * rk + (deS * sk + dG[k])
+            sB[k + 1] = eS * sk + G[k]
+    else:
+        while k + 2 <= nb - 1:
+            g0 = G[k]
+            sB[k + 1] = eS * sk + g0
+            sk = eS2 * sk + (eS * g0 + G[k + 1])
+            sB[k + 2] = sk
+            k += 2
+        if k < nb - 1:
+            sB[k + 1] = eS * sk + G[k]
+    # the window's samples
+    u2 = u * u
+    u3 = u2 * u
+    h00 = 2.0 * u3 - 3.0 * u2 + 1.0
+    h10 = u3 - 2.0 * u2 + u
+    h01 = 3.0 * u2 - 2.0 * u3
+    h11 = u3 - u2
+    # sample i reads the nodes b_k (polyphase row p) and b_k + 1 (row p1), k = k_off + i: as
+    # contiguous views, so that the loops run on vector registers
+    n_win = i_tail - i_in
+    k0 = k_off + i_in
+    p1 = (p + 1) % S
+    q1s = (p + 1) // S
+    c0v = vpp[p, k0:k0 + n_win]
+    m0v = spp[p, k0:k0 + n_win]
+    c1v = vpp[p1, k0 + q1s:k0 + q1s + n_win]
+    m1v = spp[p1, k0 + q1s:k0 + q1s + n_win]
+    s0v = sB[k0:k0 + n_win]
+    outv = out[i_in:i_tail]
+    if want_d:
+        r0v = rB[k0:k0 + n_win]
+        ddv = dd[i_in:i_tail]
+        dav = da[i_in:i_tail]
+        for i in range(n_win):
+            c0 = c0v[i]
+            c1 = c1v[i]
+            m0 = m0v[i]
+            m1 = m1v[i]
+            s0 = s0v[i]
+            s1 = e * s0 + (w0 * c0 + w1 * m0 + w2 * c1 + w3 * m1)
+            p0 = h * (c0 - al * s0)
+            p1_ = h * (c1 - al * s1)
+            o = scale * (h00 * s0 + h10 * p0 + h01 * s1 + h11 * p1_)
+            outv[i] = o
+            c = h00 * c0 + h10 * h * m0 + h01 * c1 + h11 * h * m1
+            ddv[i] = al * o - scale * c
+            r0 = r0v[i]
+            r1 = e * r0 - he * s0 + (v0 * c0 + v1 * m0 + v2 * c1 + v3 * m1)
+            q0 = h * (-s0 - al * r0)
+            q1 = h * (-s1 - al * r1)
+            dav[i] = scale * (h00 * r0 + h10 * q0 + h01 * r1 + h11 * q1)
+    else:
+        for i in range(n_win):
+            c0 = c0v[i]
+            c1 = c1v[i]
+            s0 = s0v[i]
+            s1 = e * s0 + (w0 * c0 + w1 * m0v[i] + w2 * c1 + w3 * m1v[i])
+            p0 = h * (c0 - al * s0)
+            p1_ = h * (c1 - al * s1)
+            outv[i] = scale * (h00 * s0 + h10 * p0 + h01 * s1 + h11 * p1_)
+    if i_tail >= L:
+        return
+    # s and r at node N: single steps from the last block start
+    sj = sB[kl]
+    rj = rB[kl]
+    for j in range(p + S * kl, N):
+        g = w0 * value[j] + w1 * slope[j] + w2 * value[j + 1] + w3 * slope[j + 1]
+        q = v0 * value[j] + v1 * slope[j] + v2 * value[j + 1] + v3 * slope[j + 1]
+        rj = e * rj - he * sj + q
+        sj = e * sj + g
+    past = ((J - N) + S * i_tail + u) * h if J == fl else (x0 - N + S * i_tail) * h
+    tail = math.exp(-al * past)
+    fall = math.exp(-al * S * h)
+    for i in range(i_tail, L):
+        out[i] = scale * sj * tail
+        if want_d:
+            dd[i] = scale * al * sj * tail
+            da[i] = scale * tail * (rj - past * sj)
+        tail *= fall
+        past += S * h
+
+
+@njit
+def _sss_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, alpha, scale, want_d, out, dd, da):
     s = np.empty(n_steps + 1)
     r = np.empty(n_steps + 1)
     E = np.empty(5)
     for a in range(delay.size):
         if want_d:
-            sss_row(value, slope, start, h, n_steps, t, delay[a], alpha[a], scale, True, out[a], dd[a], da[a], s, r, E)
+            sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[a], alpha[a], scale, True, out[a],
+                    dd[a], da[a], s, r, E)
         else:
-            sss_row(value, slope, start, h, n_steps, t, delay[a], alpha[a], scale, False, out[a], out[a], out[a],
-                    s, r, E)
+            sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay[a], alpha[a], scale, False, out[a],
+                    out[a], out[a], s, r, E)
 
 
 @njit
-def sss_row(value, slope, start, h, n_steps, t, delay, al, scale, want_d, out, dd, da, s, r, E):
+def sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, al, scale, want_d, out, dd, da, s, r, E):
     """One sss atom into ``out`` (L,) (and its delay and alpha derivatives into ``dd``, ``da``
     (L,) with ``want_d``): the body of :func:`sss_atoms` for one onset and alpha, for compiled
-    callers; ``s``, ``r`` (n_steps + 1,) and ``E`` (5,) are scratch."""
+    callers; ``s``, ``r`` (n_steps + 1,) and ``E`` (5,) are scratch.  ``stride``:
+    :func:`uniform_stride` of ``t`` (0: any axis), ``vpp``, ``spp`` the table's
+    :func:`polyphase` rows for it."""
+    if stride > 0 and 2 * (n_steps // stride + 2) <= n_steps + 1:
+        _sss_uniform(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, al, scale, want_d, out, dd, da,
+                     s, r, E)
+        return
     L = t.size
     inv_h = 1.0 / h
     base = start + delay
@@ -283,19 +713,7 @@ def sss_row(value, slope, start, h, n_steps, t, delay, al, scale, want_d, out, d
                 da[i] = 0.0
         return
     j_top = n_steps if x_max >= n_steps else int(x_max) + 1
-    beta = al * h
-    e = math.exp(-beta)
-    _moments(beta, e, E)
-    # exact integrals of exp(-beta (1 - tau)) against the Hermite basis (sigma = 1 - tau)
-    w0 = h * (3.0 * E[2] - 2.0 * E[3])
-    w1 = h * h * (E[2] - E[3])
-    w2 = h * (E[0] - 3.0 * E[2] + 2.0 * E[3])
-    w3 = h * h * (-E[1] + 2.0 * E[2] - E[3])
-    # their alpha derivatives (dE_n / dbeta = -E_{n+1}, dbeta / dalpha = h)
-    v0 = -h * h * (3.0 * E[3] - 2.0 * E[4])
-    v1 = -h * h * h * (E[3] - E[4])
-    v2 = -h * h * (E[1] - 3.0 * E[3] + 2.0 * E[4])
-    v3 = -h * h * h * (-E[2] + 2.0 * E[3] - E[4])
+    e, w0, w1, w2, w3, v0, v1, v2, v3 = _step_weights(h, al, E)
     s[0] = 0.0
     r[0] = 0.0
     he = h * e

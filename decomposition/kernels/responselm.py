@@ -29,7 +29,7 @@ import numpy as np
 
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from .jit import njit
-from .response import ResponseTable, shifted_row, sss_row
+from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
 
 __all__ = ["response_lm", "RIDGE", "LAMBDA0", "LAMBDA_MAX"]
 
@@ -86,8 +86,10 @@ def response_lm(table: ResponseTable, t_ps, y, sw, fam, delay, lalp, fit_bg, *, 
     conv = np.zeros(P, np.bool_)
     h_d = np.zeros((P, K), np.bool_) if held_delay is None else np.ascontiguousarray(held_delay, np.bool_)
     h_l = np.zeros((P, K), np.bool_) if held_lalp is None else np.ascontiguousarray(held_lalp, np.bool_)
+    stride = uniform_stride(t, table.step_ps)
+    vpp, spp = polyphase(table, stride)
     _lm_pixels(table.value, table.slope, table.start_ps, table.step_ps, table.n_steps, 1.0 / table.peak_per_ps,
-               t, y, sw, fam, delay, lalp, bg, has_bg, int(n_iter), float(lm_tol),
+               t, stride, vpp, spp, y, sw, fam, delay, lalp, bg, has_bg, int(n_iter), float(lm_tol),
                float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
                bool(sss_after_direct), bool(first_is_direct), h_d, h_l, amp, cost, resid, iters, conv)
     return delay, lalp, amp, cost, resid, iters, conv
@@ -121,18 +123,19 @@ def _project(fam, nd, nl, K, d_lo, d_hi, l_lo, l_hi, sss_after, first_direct):
 
 
 @njit
-def _render(value, slope, start, h, n_steps, scale, t, fam, cols, n_slots, nd, nl, phi, dd, dl, da, s, r, E):
+def _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, fam, cols, n_slots, nd, nl, phi, dd, dl, da, s, r, E):
     """Atoms and derivatives of the active slots ``cols[:n_slots]`` into rows 0 .. n_slots - 1."""
     L = t.size
     for i in range(n_slots):
         k = cols[i]
         if fam[k] == FAM_GAUSS:
-            shifted_row(value, slope, start, h, n_steps, t, nd[k], scale, True, phi[i], dd[i])
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, nd[k], scale, True, phi[i], dd[i])
             for l in range(L):
                 dl[i, l] = 0.0
         else:
             alpha = math.exp(nl[k])
-            sss_row(value, slope, start, h, n_steps, t, nd[k], alpha, scale, True, phi[i], dd[i], da, s, r, E)
+            sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, nd[k], alpha, scale, True, phi[i], dd[i],
+                    da, s, r, E)
             for l in range(L):
                 dl[i, l] = da[l] * alpha
 
@@ -205,47 +208,45 @@ def _solve(a, b, n, x, work):
 
 
 @njit
+def _dot(x, y, L):
+    """sum_l x[l] y[l] over l < L in eight interleaved partial sums (lane l mod 8, each in order
+    of l), combined pairwise at the end: the lanes fill vector registers, and the sum is the
+    same bits on every run."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    a3 = 0.0
+    a4 = 0.0
+    a5 = 0.0
+    a6 = 0.0
+    a7 = 0.0
+    n8 = L - L % 8
+    for l in range(0, n8, 8):
+        a0 += x[l] * y[l]
+        a1 += x[l + 1] * y[l + 1]
+        a2 += x[l + 2] * y[l + 2]
+        a3 += x[l + 3] * y[l + 3]
+        a4 += x[l + 4] * y[l + 4]
+        a5 += x[l + 5] * y[l + 5]
+        a6 += x[l + 6] * y[l + 6]
+        a7 += x[l + 7] * y[l + 7]
+    for l in range(n8, L):
+        a0 += x[l] * y[l]
+    return ((a0 + a4) + (a1 + a5)) + ((a2 + a6) + (a3 + a7))
+
+
+@njit
 def _cross(x, nx, y, ny, sym, out):
-    """out[i, j] = sum_l x[i, l] y[j, l] for i < nx, j < ny (with ``sym`` only j <= i, mirrored):
-    each sum from 0 in order of l, the same bits as one accumulator per pair, four pairs per
-    pass over l so that four independent sums overlap instead of each waiting on its last add."""
+    """out[i, j] = sum_l x[i, l] y[j, l] for i < nx, j < ny (with ``sym`` only j <= i, mirrored),
+    each by :func:`_dot`."""
     L = x.shape[1]
-    n_pairs = nx * (nx + 1) // 2 if sym else nx * ny
-    ii = np.empty(4, np.int64)
-    jj = np.empty(4, np.int64)
-    i = 0
-    j = 0
-    p = 0
-    while p < n_pairs:
-        m = 0
-        while m < 4 and p < n_pairs:
-            ii[m] = i
-            jj[m] = j
-            m += 1
-            p += 1
-            j += 1
-            if j > (i if sym else ny - 1):
-                i += 1
-                j = 0
-        for q in range(m, 4):            # the last group padded with its last pair
-            ii[q] = ii[m - 1]
-            jj[q] = jj[m - 1]
-        x0, x1, x2, x3 = x[ii[0]], x[ii[1]], x[ii[2]], x[ii[3]]
-        y0, y1, y2, y3 = y[jj[0]], y[jj[1]], y[jj[2]], y[jj[3]]
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        a3 = 0.0
-        for l in range(L):
-            a0 += x0[l] * y0[l]
-            a1 += x1[l] * y1[l]
-            a2 += x2[l] * y2[l]
-            a3 += x3[l] * y3[l]
-        acc = (a0, a1, a2, a3)
-        for q in range(m):
-            out[ii[q], jj[q]] = acc[q]
+    for i in range(nx):
+        xi = x[i]
+        for j in range(i + 1 if sym else ny):
+            v = _dot(xi, y[j], L)
+            out[i, j] = v
             if sym:
-                out[jj[q], ii[q]] = acc[q]
+                out[j, i] = v
 
 
 @njit
@@ -285,14 +286,50 @@ def _amplitudes(phi, n_cols, bg_col, yw, swp, pw, m, minv, work, rhs, amp, resid
         pw_i = pw[i]
         for l in range(L):
             resid[l] -= a_i * pw_i[l]
-    cost = 0.0
-    for l in range(L):
-        cost += resid[l] * resid[l]
-    return cost
+    return _dot(resid, resid, L)
 
 
 @njit
-def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
+def _normal_equations(pw, minv, amp, res, dd, dl, swp, nc, npar, par_row, par_lalp, L, g, gp, q, b, proj, jtj, rhs,
+                      jtr):
+    """The projected Jacobian's normal matrix ``jtj`` and right-hand side ``jtr`` of one pixel's
+    current slots (scratch ``g``, ``gp``, ``q``, ``b``, ``proj``, ``rhs``).  A refused step
+    leaves the slots as they were, and so these: the next trial re-solves them with the new
+    damping alone."""
+    # G: the columns a_k d phi_k / d theta_j, weighted
+    for j in range(npar):
+        i = par_row[j]
+        src = dl if par_lalp[j] else dd
+        a_i = amp[i]
+        for l in range(L):
+            g[j, l] = a_i * src[i, l] * swp[l]
+    # projected columns gp = g - pw^T minv (pw g^T)
+    _cross(pw, nc, g, npar, False, q)
+    for j in range(npar):
+        for k in range(nc):
+            acc = 0.0
+            for i in range(nc):
+                acc += q[i, j] * minv[i, k]
+            b[j, k] = acc
+    # (the sum over k per sample, in the order of k, over whole rows: vector loops)
+    for j in range(npar):
+        for l in range(L):
+            proj[l] = 0.0
+        for k in range(nc):
+            b_jk = b[j, k]
+            pw_k = pw[k]
+            for l in range(L):
+                proj[l] += b_jk * pw_k[l]
+        for l in range(L):
+            gp[j, l] = g[j, l] - proj[l]
+    _cross(gp, npar, gp, npar, True, jtj)
+    _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
+    for j in range(npar):
+        jtr[j] = rhs[j, 0]
+
+
+@njit
+def _lm_pixels(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, y, sw, fam, delay, lalp, fit_bg, has_bg, n_iter, lm_tol,
                d_lo, d_hi, l_lo, l_hi, sss_after, first_direct, h_d, h_l, amp_out, cost_out, resid_out, iters_out,
                conv_out):
     P, K = fam.shape
@@ -367,44 +404,20 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
         for k in range(K):
             nd[k] = delay[p, k]
             nl[k] = lalp[p, k]
-        _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, phi, dd, dl, da, s, r, E)
+        _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, f, cols, ns, nd, nl, phi, dd, dl, da, s,
+                r, E)
         cost = _amplitudes(phi, ns, bg_col, yw, swp, pw, m, minv, work, rhs, amp, res)
         lam = LAMBDA0
         conv = npar == 0
         it = 0
+        stale = True        # the Jacobian's products are those of the current slots once formed
         for _ in range(n_iter):
             if conv:
                 break
-            # G: the columns a_k d phi_k / d theta_j, weighted
-            for j in range(npar):
-                i = par_row[j]
-                src = dl if par_lalp[j] else dd
-                a_i = amp[i]
-                for l in range(L):
-                    g[j, l] = a_i * src[i, l] * swp[l]
-            # projected columns gp = g - pw^T minv (pw g^T)
-            _cross(pw, nc, g, npar, False, q)
-            for j in range(npar):
-                for k in range(nc):
-                    acc = 0.0
-                    for i in range(nc):
-                        acc += q[i, j] * minv[i, k]
-                    b[j, k] = acc
-            # (the sum over k per sample, in the order of k, over whole rows: vector loops)
-            for j in range(npar):
-                for l in range(L):
-                    proj[l] = 0.0
-                for k in range(nc):
-                    b_jk = b[j, k]
-                    pw_k = pw[k]
-                    for l in range(L):
-                        proj[l] += b_jk * pw_k[l]
-                for l in range(L):
-                    gp[j, l] = g[j, l] - proj[l]
-            _cross(gp, npar, gp, npar, True, jtj)
-            _cross(g, npar, res.reshape((1, L)), 1, False, rhs)
-            for j in range(npar):
-                jtr[j] = rhs[j, 0]
+            if stale:
+                _normal_equations(pw, minv, amp, res, dd, dl, swp, nc, npar, par_row, par_lalp, L, g, gp, q, b,
+                                  proj, jtj, rhs, jtr)
+                stale = False
             for j in range(npar):
                 for i in range(npar):
                     lhs[j, i] = jtj[j, i]
@@ -430,7 +443,8 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                     nd[k] = delay[p, k]
                 if h_l[p, k]:
                     nl[k] = lalp[p, k]
-            _render(value, slope, start, h, n_steps, scale, t, f, cols, ns, nd, nl, t_phi, t_dd, t_dl, da, s, r, E)
+            _render(value, slope, start, h, n_steps, scale, t, stride, vpp, spp, f, cols, ns, nd, nl, t_phi, t_dd,
+                    t_dl, da, s, r, E)
             t_cost = _amplitudes(t_phi, ns, bg_col, yw, swp, t_pw, m, t_minv, work, rhs, t_amp, t_res)
             ok = finite and math.isfinite(t_cost) and t_cost < cost
             gain = cost - t_cost
@@ -447,6 +461,7 @@ def _lm_pixels(value, slope, start, h, n_steps, scale, t, y, sw, fam, delay, lal
                 minv, t_minv = t_minv, minv
                 amp, t_amp = t_amp, amp
                 res, t_res = t_res, res
+                stale = True
                 lam /= 3.0
                 if gain < lm_tol * t_cost / n_used:
                     conv = True

@@ -4,10 +4,10 @@ The response path of :func:`decomposition.decompose` keeps each pixel's componen
 arrays of shape (P, K): ``fam`` (FAM_NONE, FAM_GAUSS for a shifted copy of the response --
 direct or inter-reflection --, FAM_SSS), ``delay`` (ps), ``lalp`` (log alpha, alpha in 1/ps;
 sss slots only).  :func:`slot_atoms` renders every active slot at once with the compiled
-:func:`decomposition.kernels.response.shifted_atoms` / :func:`~decomposition.kernels.response.sss_atoms`
-(unit peak; :func:`core.irf.render_shifted` / :func:`core.irf.render_sss` to within their
-stated table error), and optionally the
-derivatives with respect to the delay and to log alpha; :func:`slot_window_fraction` the
+:func:`decomposition.kernels.response.slot_rows` (the atoms of
+:func:`~decomposition.kernels.response.shifted_atoms` / :func:`~decomposition.kernels.response.sss_atoms`,
+unit peak; :func:`core.irf.render_shifted` / :func:`core.irf.render_sss` to within their
+stated table error), and optionally the derivatives with respect to the delay and to log alpha; :func:`slot_window_fraction` the
 fraction of each atom's area inside the window (the OFF_WINDOW rule's measure).
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from core.irf import InstrumentResponse
 from core.irf_components import render_components_response
 from core.model import BACKGROUND_KEY, params_shape
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
-from ..kernels.response import response_table, shifted_atoms, sss_atoms
+from ..kernels.response import response_table, shifted_atoms, slot_rows, sss_atoms
 
 __all__ = ["params_components", "params_profile", "slot_atoms", "slot_window_fraction"]
 
@@ -43,30 +43,15 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     phi : ndarray (P, K, L)
     d_delay, d_lalp : ndarray (P, K, L) (only with ``derivatives=True``)
     """
-    P, K = fam.shape
-    L = t_ps.size
-    phi = np.zeros((P, K, L))
-    dd = np.zeros((P, K, L)) if derivatives else None
-    dl = np.zeros((P, K, L)) if derivatives else None
-    tab = response_table(irf)
-    sh = fam == FAM_GAUSS
-    if sh.any():
-        if derivatives:
-            a, da = shifted_atoms(tab, t_ps, delay[sh], derivative=True)
-            phi[sh], dd[sh] = a, da
-        else:
-            phi[sh] = shifted_atoms(tab, t_ps, delay[sh])
     ss = fam == FAM_SSS
-    if ss.any():
-        alpha = np.exp(lalp[ss])
-        if derivatives:
-            a, da, dal = sss_atoms(tab, t_ps, delay[ss], alpha, derivatives=True)
-            phi[ss], dd[ss], dl[ss] = a, da, dal * alpha[:, None]
-        else:
-            phi[ss] = sss_atoms(tab, t_ps, delay[ss], alpha)
+    alpha = np.zeros(fam.shape)
+    alpha[ss] = np.exp(lalp[ss])
+    out = slot_rows(response_table(irf), t_ps, fam, delay, alpha, derivatives=derivatives)
     if derivatives:
-        return phi, dd, dl
-    return phi
+        phi, dd, da = out
+        da[ss] *= alpha[ss][:, None]            # d / d log alpha = alpha d / d alpha
+        return phi, dd, da
+    return out
 
 
 def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -> dict:

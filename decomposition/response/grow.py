@@ -154,20 +154,23 @@ def _model_deviance(ctx: GrowContext, rows, mu) -> np.ndarray:
     return np.einsum("pl,pl->p", r, r) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
 
 
-def _removal_deviance(ctx: GrowContext, rows, sub: Slots) -> np.ndarray:
-    """(m, K) how much the deviance of the pixels ``rows`` rises when each atom of ``sub`` alone
+def _removal_deviance(ctx: GrowContext, rows, sub: Slots, slots=slice(None)) -> np.ndarray:
+    """(m, K') how much the deviance of the pixels ``rows`` rises when each atom of ``sub`` alone
     is taken out, the others held (:func:`decomposition.noise.removal_deviance` for counts; the
-    atom's energy over s^2 for Gaussian data at the least-squares amplitudes); 0 for empty slots."""
+    atom's energy over s^2 for Gaussian data at the least-squares amplitudes); 0 for empty slots.
+    ``slots``: the slots asked about (a slice of the K; default all), each atom's answer the same
+    whichever others are asked."""
     mu = ctx.model(sub.params, sub.background)
     scale = ctx.samples.scale[ctx.samples.live[rows]]
-    atoms = slot_atoms(ctx.irf, ctx.t, sub.fam, sub.delay, sub.lalp) * (sub.amp * scale[:, None])[:, :, None]
+    fam, delay, lalp, amp = sub.fam[:, slots], sub.delay[:, slots], sub.lalp[:, slots], sub.amp[:, slots]
+    atoms = slot_atoms(ctx.irf, ctx.t, fam, delay, lalp) * (amp * scale[:, None])[:, :, None]
     if ctx.counts:
         return removal_deviance(ctx.values[rows], mu, atoms, ctx.fit[rows],
                                 ctx.samples.dispersion[ctx.samples.live[rows]])
     base = _model_deviance(ctx, rows, mu)
-    out = np.zeros(sub.fam.shape)
-    for k in range(sub.fam.shape[1]):
-        on = sub.fam[:, k] != FAM_NONE
+    out = np.zeros(fam.shape)
+    for k in range(fam.shape[1]):
+        on = fam[:, k] != FAM_NONE
         if on.any():
             out[on, k] = _model_deviance(ctx, rows[on], mu[on] - atoms[on, k]) - base[on]
     return out
@@ -409,7 +412,7 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     cand = np.flatnonzero(other & (fam[:, 0] != FAM_GAUSS))
     with_d = np.flatnonzero(other & (fam[:, 0] == FAM_GAUSS))
     if with_d.size:
-        weak = _removal_deviance(ctx, with_d, _sub(cur, with_d))[:, 0] < ctx.opts.significance_chi2
+        weak = _removal_deviance(ctx, with_d, _sub(cur, with_d), slice(0, 1))[:, 0] < ctx.opts.significance_chi2
         cand = np.union1d(cand, with_d[weak])
     if cand.size == 0:
         return cur, restored, ambiguous
@@ -447,7 +450,7 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     take = np.zeros(cand.size, bool)
     if tried.any():
         r = np.flatnonzero(tried)
-        take[r] = ((_removal_deviance(ctx, cand[r], _sub(best, r))[:, 0] >= opts.significance_chi2)
+        take[r] = ((_removal_deviance(ctx, cand[r], _sub(best, r), slice(0, 1))[:, 0] >= opts.significance_chi2)
                    & (d_best[r] - d_cur[r] <= tol[r]))
     out = _put(cur, cand, best, take)
     its = cur.iterations.copy()
