@@ -297,6 +297,8 @@ def test_speed_with_a_response_times_it_and_the_gaussian_on_the_same_cube(tmp_pa
     assert ratio["pixels_per_s_response"] == by["tailed"] and ratio["pixels_per_s_gaussian"] == by["gaussian"]
     assert ratio["response_over_gaussian"] == pytest.approx(by["tailed"] / by["gaussian"])
     assert "the response path at" in text and "[tailed]" in text and "[gaussian]" in text
+    verdict = "met" if ratio["response_over_gaussian"] >= 0.8 else "NOT met"
+    assert f"x the Gaussian's pixels per second [{verdict}: target >= 0.8x]" in text
     # the cube was rendered through the response, and each result records the response it used
     assert zarr.open_group(str(out / "cube.zarr"), mode="r").attrs["provenance"]["response"]["name"] == "tailed"
     kinds = {name: zarr.open_group(str(out / name), mode="r").attrs["irf"]["kind"]
