@@ -26,7 +26,7 @@ def test_aligned_direct_delays_beat_unaligned_ones(tmp_path, capsys):
     assert main(["bench", "timebase", *TINY, "--minutes", "5", "--seed", "3", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     rows, summary = _read(out)
-    assert set(rows) == {"steady", "aligned", "unaligned"}
+    assert set(rows) == {"steady", "aligned", "unaligned", "steady_aligned"}
     # one seed: its rows are the pooled ones
     assert _read(out, 3)[0] == {c: {**r, "seed": "3"} for c, r in rows.items()}
     rmse = {c: float(r["direct_delay_rmse_ps"]) for c, r in rows.items()}
@@ -40,6 +40,7 @@ def test_aligned_direct_delays_beat_unaligned_ones(tmp_path, capsys):
     # still lift the RMSE); unaligned: every pixel off by the drift
     med = {c: float(r["median_abs_ratio_to_steady"]) for c, r in rows.items()}
     assert med["aligned"] < 3 and med["unaligned"] > 50
+    assert med["steady_aligned"] < 3                             # the steady scan moved by ~0: as steady
     assert int(rows["unaligned"]["pixels_off_by_over_50ps"]) == 0
     assert summary["ratio_aligned"] == pytest.approx(rmse["aligned"] / rmse["steady"])
     assert summary["target"]["met"] == (summary["ratio_aligned"] <= 1.1)
