@@ -61,8 +61,6 @@ __all__ = ["CaptureError", "CaptureFailed", "SettingRejected", "TriggerCountMism
 
 log = logging.getLogger(__name__)
 
-RETRYABLE = (DeviceTimeout, ConnectionLost, DeviceError, ProtocolError)
-
 
 class CaptureError(StreaklabError, RuntimeError):
     """The session cannot start or continue (bad store, device check failed, config mismatch)."""
@@ -81,13 +79,14 @@ class CaptureFailed(CaptureError):
         self.store_created = store_created  # False: it failed before the run store existed
 
 
-class TriggerCountMismatch(ProtocolError):
+class TriggerCountMismatch(DriverError):
     """The laser sync measured another number of trigger intervals than the line took frames
-    (a missed or extra trigger): the line is taken again, as after any device fault."""
+    (a missed or extra trigger): the line is taken again, as after any device fault
+    (:data:`RETRYABLE`)."""
 
-    def __init__(self, message: str):
-        self.raw = b""
-        DriverError.__init__(self, message)
+
+#: the device faults after which a line is taken again
+RETRYABLE = (DeviceTimeout, ConnectionLost, DeviceError, ProtocolError, TriggerCountMismatch)
 
 
 def check_trigger_count(line: int, measured, n_frames: int) -> list[float]:
