@@ -304,6 +304,19 @@ class CaptureSession:
         self._setting("sync.trigger_delay_ps", sync["trigger_delay_ps"], "laser sync",
                       sync_setting(lambda: self.sync.set_trigger_delay(sync["trigger_delay_ps"],
                                                                        channel=sync["channel"])))
+        if sync.get("reference"):
+            def probe_reference():
+                # a unit without the time-interval counter leaves the query unanswered and says
+                # why in its error queue (-113, undefined header): refused here, not after a line
+                try:
+                    self.sync.fetch_trigger_intervals()           # also forgets triggers so far
+                except DeviceTimeout:
+                    errors = self.sync.read_errors()
+                    if errors:
+                        raise DeviceError(errors[0][0], errors[0][1], command=":TINT:FETC?",
+                                          device="laser sync") from None
+                    raise
+            self._setting("sync.reference", True, "laser sync", probe_reference)
         cam = cfg["camera"]
         for key in ("time_range", "exposure_s"):
             if cam.get(key) is not None:

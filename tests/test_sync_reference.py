@@ -8,7 +8,7 @@ import pytest
 
 from acquisition.rig import run_capture, start_simulated_lab
 from acquisition.runstore import open_run
-from acquisition.session import CaptureFailed, TriggerCountMismatch, check_trigger_count
+from acquisition.session import CaptureFailed, SettingRejected, TriggerCountMismatch, check_trigger_count
 from drivers.errors import ProtocolError
 from drivers.scpi_sync import ScpiLaserSync
 from drivers.sim.state import LabState
@@ -206,3 +206,20 @@ def test_bad_references_name_line_and_frame(tmp_path, captures):
     assert not open_run(tmp_path / "plain.zarr").has_sync_reference
     with pytest.raises(ReconstructionError, match="--align-on sync, but the run records no trigger intervals"):
         reconstruct(tmp_path / "plain.zarr", tmp_path / "s.cube.zarr", align_on="sync")
+
+
+def test_a_unit_without_the_interval_counter_is_refused_before_any_line(tmp_path):
+    # the unit leaves :TINT:FETC? unanswered and queues -113 (undefined header), as a unit without
+    # the option does: the capture stops at the setup with one line naming the setting
+    cfg = sim_config(n_lines=2, sync={"reference": True})
+    lab = start_simulated_lab(cfg)
+    try:
+        lab.sync.instrument.interval_counter = False
+        with pytest.raises(SettingRejected) as err:
+            run_capture(cfg, tmp_path / "run.zarr", lab=lab)
+    finally:
+        lab.close()
+    text = str(err.value)
+    assert "sync.reference = True: the laser sync rejects this setting" in text and "-113" in text
+    assert "\n" not in text
+    assert not (tmp_path / "run.zarr").exists() or not open_run(tmp_path / "run.zarr").done_mask().any()

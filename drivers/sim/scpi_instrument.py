@@ -90,6 +90,12 @@ class SyncInstrument:
     reference_noise_ps : float
         RMS of the Gaussian noise of each trigger-interval measurement (``:TINT:FETC?``), ps;
         each draw is seeded by its trigger's ``noise_key`` (:attr:`LabState.triggers`).
+
+    Attributes
+    ----------
+    interval_counter : bool
+        The unit has the time-interval counter (default True).  False: ``:TINT:FETC?`` is an
+        undefined header (-113) and gets no reply, as on a unit without that option.
     """
 
     def __init__(self, lab_state: LabState, serial_number: str, firmware: str = "1.0",
@@ -106,6 +112,7 @@ class SyncInstrument:
         self.firmware = firmware
         self.errors: list[int] = []
         self.esr = 0
+        self.interval_counter = True
         self.reset()
 
     def reset(self) -> None:
@@ -193,7 +200,8 @@ class SyncInstrument:
             return f'{code},"{SCPI_ERRORS.get(code, "Device-specific error")}"'
         if len(nodes) == 2 and nodes[0].upper().startswith("PULS"):
             return self._pulse(nodes[0], nodes[1], query, arg)
-        if len(nodes) == 2 and _keyword(nodes[0], "TINTerval") and _keyword(nodes[1], "FETCh"):
+        if len(nodes) == 2 and _keyword(nodes[0], "TINTerval") and _keyword(nodes[1], "FETCh") \
+                and self.interval_counter:
             if not query:
                 raise _ScpiError(-113)
             return self._fetch_intervals()
