@@ -299,7 +299,13 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
     What is left about a running median along the rows is split between the two by its
     variance: the mean dark's own noise variance ``noise_var`` (the dark frames' scatter over
     their number) is noise, anything beyond it a fixed pattern of the sensor, kept with the
-    structure in proportion (the least-squares, Wiener, share of each sample).
+    structure in proportion (the least-squares, Wiener, share of each sample).  The running
+    median itself (mirrored at the ends of the rows) is split the same way about each slit
+    pixel's level (its median over the rows, which moves onto itself): the median of the noise
+    (variance :data:`MEDIAN_NOISE_VARIANCE` over ``smooth_rows`` times the noise's) is noise,
+    its variation beyond that the sensor's.  Moved with the frames and subtracted again, negated,
+    on the bins unmoved, the noise it keeps would be noise at a pulse's scale at two places a
+    shift apart.
 
     Parameters
     ----------
@@ -310,7 +316,7 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
         its noise cannot be told from a pattern): all that is left about the running median,
         but for the outliers, is noise.
     smooth_rows : int
-        Rows of the running median (along the rows, each slit pixel apart) that is the structure.
+        Rows of the running median (along the rows, each slit pixel apart) that gives the structure.
     outlier_sigma : float
         A sample further than this many noise sigmas (each slit pixel's scaled median absolute
         deviation of the dark about its running median) from the running median is structure too.
