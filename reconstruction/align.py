@@ -41,6 +41,8 @@ DARK_SMOOTH_ROWS = 31
 #: a dark sample this many noise sigmas off that running median is structure (a hot or cold
 #: sample of the sensor), moved with the frames, not noise
 DARK_OUTLIER_SIGMA = 5.0
+#: variance of the median of n samples of Gaussian noise, times n over the noise's (large n)
+MEDIAN_NOISE_VARIANCE = math.pi / 2.0
 #: lobes of the Lanczos kernel that moves a frame (2 * LANCZOS_LOBES rows read per bin)
 LANCZOS_LOBES = 3
 
@@ -297,7 +299,13 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
     What is left about a running median along the rows is split between the two by its
     variance: the mean dark's own noise variance ``noise_var`` (the dark frames' scatter over
     their number) is noise, anything beyond it a fixed pattern of the sensor, kept with the
-    structure in proportion (the least-squares, Wiener, share of each sample).
+    structure in proportion (the least-squares, Wiener, share of each sample).  The running
+    median itself (mirrored at the ends of the rows) is split the same way about each slit
+    pixel's level (its median over the rows, which moves onto itself): the median of the noise
+    (variance :data:`MEDIAN_NOISE_VARIANCE` over ``smooth_rows`` times the noise's) is noise,
+    its variation beyond that the sensor's.  Moved with the frames and subtracted again, negated,
+    on the bins unmoved, the noise it keeps would be noise at a pulse's scale at two places a
+    shift apart.
 
     Parameters
     ----------
@@ -308,7 +316,7 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
         its noise cannot be told from a pattern): all that is left about the running median,
         but for the outliers, is noise.
     smooth_rows : int
-        Rows of the running median (along the rows, each slit pixel apart) that is the structure.
+        Rows of the running median (along the rows, each slit pixel apart) that gives the structure.
     outlier_sigma : float
         A sample further than this many noise sigmas (each slit pixel's scaled median absolute
         deviation of the dark about its running median) from the running median is structure too.
@@ -323,17 +331,29 @@ def split_dark(dark: np.ndarray, *, noise_var=None, smooth_rows: int = DARK_SMOO
     if d.ndim != 2:
         raise AlignmentError(f"the dark image must be 2-D (x, row), got shape {d.shape}")
     size = max(1, min(int(smooth_rows), d.shape[1]))
-    smooth = median_filter(d, size=(1, size), mode="nearest")
+    # mirrored at the ends: padded with the end sample, the median of the first and last rows is
+    # that one sample, its noise whole, where a moved frame subtracts it at other rows
+    smooth = median_filter(d, size=(1, size), mode="mirror")
     rest = d - smooth
     sigma = 1.4826 * np.median(np.abs(rest), axis=1, keepdims=True)
     outlier = np.abs(rest) > outlier_sigma * sigma
+    var_noise = sigma[:, 0] ** 2 if noise_var is None else \
+        np.broadcast_to(np.asarray(noise_var, np.float64), sigma.shape[:1])
     pattern = np.zeros_like(d)
     if noise_var is not None:
         var_rest = sigma[:, 0] ** 2
-        keep = np.clip(1.0 - np.broadcast_to(np.asarray(noise_var, np.float64), var_rest.shape)
-                       / np.where(var_rest > 0, var_rest, np.inf), 0.0, 1.0)
+        keep = np.clip(1.0 - var_noise / np.where(var_rest > 0, var_rest, np.inf), 0.0, 1.0)
         pattern = keep[:, None] * rest
-    structure = np.where(outlier, d, smooth + pattern)
+    # the running median about each slit pixel's level carries the noise's median too (variance
+    # pi / (2 size) of the noise's): kept, it is subtracted at a moved frame's rows and again,
+    # negated with the rest, at the bins unmoved, noise at a pulse's scale.  Its variation beyond
+    # that variance is the sensor's, kept in proportion (a level moves onto itself)
+    level = np.median(d, axis=1, keepdims=True)
+    slow = smooth - level
+    var_slow = np.mean(slow ** 2, axis=1)
+    keep_slow = np.clip(1.0 - MEDIAN_NOISE_VARIANCE * var_noise / size
+                        / np.where(var_slow > 0, var_slow, np.inf), 0.0, 1.0)
+    structure = np.where(outlier, d, level + keep_slow[:, None] * slow + pattern)
     return structure, d - structure
 
 

@@ -202,6 +202,47 @@ def test_aligned_line_carries_the_dark_noise_once_and_white():
     assert abs(lag3) < 0.15                                      # a copy at the frames' lag: 0.5
 
 
+def test_a_dark_of_noise_alone_moves_next_to_none_of_it_with_the_frames():
+    # a dark image of white noise about a level: its structure is the level alone.  What of the
+    # noise the running median keeps would be subtracted twice from moved frames (once moved,
+    # once unmoved), a bump at a pulse's scale; at the ends a median padded with the end sample
+    # is that sample's noise over several rows (0.7 of the noise variance at the first rows)
+    rng = np.random.default_rng(21)
+    noise = rng.normal(0.0, 2.0, (400, N_ROWS))
+    for noise_var in (np.full(400, 4.0), None):
+        structure, rest = split_dark(DARK + noise, noise_var=noise_var)
+        np.testing.assert_allclose(structure + rest, DARK + noise)
+        moved = structure - np.median(structure, axis=1, keepdims=True)
+        assert np.mean(moved[:, :8] ** 2) < 0.05 * 4.0           # the first rows: nearest padding 0.7 * 4
+        assert np.mean(moved[:, -8:] ** 2) < 0.05 * 4.0
+        assert np.mean(moved ** 2) < 0.02 * 4.0                  # a 31-row median alone: 0.05 * 4
+
+
+def test_frames_moved_far_carry_the_darks_noise_once_and_white_from_the_window_start():
+    # two noiseless frames late by 60 ps (30 rows; the dark image the only noise): the aligned line
+    # is the clean one less the dark's noise on the bins unmoved, from the first bin on.  A running
+    # median of the noise moved with the frames would add itself at two places 30 rows apart
+    from reconstruction.build import LineCalibration
+
+    nx, rng = 200, np.random.default_rng(22)
+    shifts = np.array([[60.0, 61.0]])
+    prof = pulse_counts(200.0 + shifts, 6.0, 20000.0) + pulse_counts(40.0 + shifts, 3.0, 8000.0)
+    frames = np.broadcast_to(prof[:, :, None, :], (1, 2, nx, N_ROWS)).copy()
+    noise = rng.normal(0.0, 2.0, (nx, N_ROWS))
+    fid = Fiducial(row_start=2, row_stop=70, nominal_ps=40.0)
+    calib = LineCalibration(ROW_TIMES_PS, 2.0, 0.0, N_ROWS, DARK + noise, None, {}, fid,
+                            dark_noise_var=np.full(nx, 4.0))
+    rows, corr = calib.correct(frames + DARK)
+    np.testing.assert_allclose(corr, -shifts, atol=0.05)
+    clean = mean_of_covering(resample_aligned(frames, ROW_TIMES_PS, corr, time_bin_ps=2.0, t0_ps=0.0,
+                                              n_bins=N_ROWS))
+    extra = (rows - clean + noise)[0, :, :N_ROWS - 32]          # the bins both frames cover
+    # at a pulse's scale (means of 8 bins), beside the dark noise's own 2 / sqrt(8) = 0.71 counts
+    scale = np.sqrt(np.mean(extra.reshape(nx, -1, 8).mean(axis=2) ** 2, axis=0))
+    assert scale[0] < 0.35                                       # median padded with the end sample: 1.4
+    assert np.sqrt(np.mean(scale ** 2)) < 0.3                    # a 31-row median twice: 0.73
+
+
 def test_a_sensors_fine_fixed_pattern_moves_with_the_frames_and_cancels():
     # a fixed pattern of 10 counts RMS from sample to sample (far above the mean dark's own noise,
     # 0.5 counts RMS from 16 frames of read noise 2): it is in every frame at the same rows, so it
