@@ -33,7 +33,7 @@ import numpy as np
 from core.errors import StreaklabError
 
 __all__ = ["AlignmentError", "Fiducial", "parse_fiducial", "row_edges_ps", "fiducial_times_ps",
-           "fiducial_correction_ps", "resample_aligned", "mean_of_covering", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA",
+           "fiducial_correction_ps", "resample_aligned", "mean_of_covering", "uncovered_bins", "split_dark", "DARK_SMOOTH_ROWS", "DARK_OUTLIER_SIGMA",
            "reference_correction_ps", "LANCZOS_LOBES"]
 
 #: rows of the running median that gives the dark image's structure along the time axis
@@ -267,6 +267,31 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
         moved = np.einsum("xbk,bk->xb", f[i, k][:, idx], w)
         out[i, k] = np.where(covered, moved, np.nan)
     return out
+
+
+def uncovered_bins(row_times_ps: np.ndarray, correction_ps: np.ndarray, *, time_bin_ps: float, t0_ps: float,
+                   n_bins: int) -> np.ndarray:
+    """(n_lines,) int: the grid's bins that no frame of a line covers once moved by its correction
+    (:func:`resample_aligned`; the line's value there is 0, the window having seen nothing).
+    Frames with a NaN correction (not taken) are left out; a line with none counts 0.
+
+    Parameters
+    ----------
+    row_times_ps : ndarray, shape (n_rows,), strictly monotonic, ps
+    correction_ps : ndarray, shape (n_lines, n_frames), ps
+    time_bin_ps, t0_ps : float    the grid, ps
+    n_bins : int
+    """
+    t = np.asarray(row_times_ps, dtype=np.float64)
+    c = np.asarray(correction_ps, dtype=np.float64)
+    lo, hi = float(min(t[0], t[-1])), float(max(t[0], t[-1]))
+    grid = float(t0_ps) + float(time_bin_ps) * np.arange(int(n_bins), dtype=np.float64)
+    covered = np.zeros((c.shape[0], grid.size), bool)
+    for (i, _), shift in np.ndenumerate(c):
+        if np.isfinite(shift):
+            covered[i] |= (grid >= lo + shift) & (grid <= hi + shift)
+    taken = np.isfinite(c).any(axis=1)
+    return np.where(taken, (~covered).sum(axis=1), 0)
 
 
 def mean_of_covering(moved: np.ndarray) -> np.ndarray:

@@ -250,6 +250,10 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                                     dtype="float64", fill_value=np.nan, dimension_names=["y", "frame"],
                                     attributes={"units": "ps", "long_name": f"time each frame was moved by to put "
                                                 f"{what} (NaN: unfinished line)"})
+            uncovered_arr = create_array(g, "uncovered_bins", shape=(n_lines,), dtype="int32", fill_value=0,
+                                         dimension_names=["y"],
+                                         attributes={"units": "1", "long_name": "time bins no frame of the line "
+                                                     "covered once moved (0 there: the window saw nothing)"})
         if sweep_cal is not None:
             from .sweep import SWEEP_GROUP, write_sweep_group
             write_sweep_group(g.create_group(SWEEP_GROUP), sweep_cal)
@@ -276,6 +280,9 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
                     corr_block = np.full((ys.size, run.frames_per_line), np.nan)
                     corr_block[ok] = corr
                     corr_arr[y0:y0 + ys.size] = corr_block
+                    from .align import uncovered_bins
+                    uncovered_arr[y0:y0 + ys.size] = uncovered_bins(calib.row_times_ps, corr_block,
+                                                                   time_bin_ps=time_bin_ps, t0_ps=t0_ps, n_bins=n_bins)
             cube.array[y0:y0 + ys.size] = block
             if progress is not None:
                 progress(min(y0 + by, n_lines), n_lines)

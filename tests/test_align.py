@@ -128,6 +128,7 @@ def make_run(path, jitter_ps, *, fiducial=True, record=True):
 
 def test_reconstruct_aligns_by_default_and_records_corrections(tmp_path, capsys):
     jitter = np.random.default_rng(2).normal(0.0, 6.0, (3, 5))
+    jitter[1] = np.abs(jitter[1]) + 4.0                    # every frame of run line 1 late: its window's end unseen
     make_run(tmp_path / "run.zarr", jitter)
     assert main(["reconstruct", str(tmp_path / "run.zarr"), "--out", str(tmp_path / "cube.zarr")]) == 0
     err = capsys.readouterr().err
@@ -138,6 +139,14 @@ def test_reconstruct_aligns_by_default_and_records_corrections(tmp_path, capsys)
     assert corr.attrs["units"] == "ps" and tuple(corr.metadata.dimension_names) == ("y", "frame")
     np.testing.assert_allclose(corr[...], -jitter[cube.group["line_index"][...]], atol=0.2)
     assert cube.attrs["provenance"]["aligned_on_fiducial"] is True
+    # the bins no moved frame reaches: counted per line, said in one line where there are any
+    from reconstruction.align import uncovered_bins
+    gap = cube.group["uncovered_bins"][...]
+    assert tuple(cube.group["uncovered_bins"].metadata.dimension_names) == ("y",)
+    expect = uncovered_bins(ROW_TIMES_PS, corr[...], time_bin_ps=cube.time_bin_ps, t0_ps=cube.t0_ps,
+                            n_bins=cube.shape[2])
+    assert gap.tolist() == expect.tolist() and gap.any()
+    assert f"lines were moved so far that up to {int(gap.max())} bins at the window's ends" in err
     t = cube.time_axis_ps()
     # 2 ps bins on the 2 ps rows: the same numbers as the rows
     truth = pulse_counts(200.0, 6.0, 20000.0, t) + pulse_counts(40.0, 3.0, 8000.0, t)
@@ -327,3 +336,18 @@ def test_a_lines_mean_near_the_windows_ends_is_over_the_frames_that_saw_there():
     both = np.full((1, 2, 1, 4), np.nan)
     both[0, 0, 0, :2] = [1.0, 3.0]
     np.testing.assert_array_equal(mean_of_covering(both)[0, 0], [1.0, 3.0, 0.0, 0.0])   # no frame: 0
+
+
+def test_uncovered_bins_count_what_no_moved_frame_of_a_line_reaches():
+    from reconstruction.align import uncovered_bins
+
+    # rows 0..198 ps every 2 ps onto the same grid: a frame moved by -6 ps leaves the last 3 bins,
+    # one moved by +4 ps the first 2; a line holding both covers everything, a line of the first
+    # alone lacks 3, an untaken frame (NaN) counts for nothing
+    rows_ps = np.arange(100) * 2.0
+    corr = np.array([[-6.0, 4.0], [-6.0, np.nan], [np.nan, np.nan], [-6.0, -6.0]])
+    got = uncovered_bins(rows_ps, corr, time_bin_ps=2.0, t0_ps=0.0, n_bins=100)
+    assert got.tolist() == [0, 3, 0, 3]
+    moved = resample_aligned(np.ones((4, 2, 1, 100)), rows_ps, np.nan_to_num(corr), time_bin_ps=2.0, t0_ps=0.0,
+                             n_bins=100)
+    assert int((mean_of_covering(moved[3:4]) == 0).sum()) == 3      # the same bins the line's mean sets to 0

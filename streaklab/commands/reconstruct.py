@@ -61,6 +61,12 @@ def run(args) -> int:
             else "the fiducial"
         print(f"aligned {corr.size} frames on {on}: corrections {corr.min():+.3g} to {corr.max():+.3g} ps, "
               f"RMS {np.sqrt(np.mean(corr ** 2)):.3g} ps (fiducial_correction_ps)", file=sys.stderr)
+        if "uncovered_bins" in cube.group:
+            gap = np.asarray(read_checked(cube.group["uncovered_bins"], ..., store=cube.path))
+            if gap.any():
+                print(f"streaklab reconstruct: note: {int((gap > 0).sum())} of {gap.size} lines were moved so far "
+                      f"that up to {int(gap.max())} bins at the window's ends lie outside every frame: 0 there "
+                      f"(uncovered_bins)", file=sys.stderr)
     if prov.get("camera_and_config_agree") is False:
         print(f"streaklab reconstruct: warning: the camera's scaling table and calibration.time_poly_ps differ by "
               f"up to {prov['camera_vs_config_max_diff_ps']:.3g} ps", file=sys.stderr)
