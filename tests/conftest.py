@@ -1,10 +1,14 @@
 """Fixtures shared by the tests."""
+import os
 import signal
+from pathlib import Path
 
 import pytest
 
 from decomposition.methods.dictionary import get_dictionary
 from decomposition.options import GridSpec
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session")
@@ -27,3 +31,25 @@ def _ctrl_c_as_at_a_terminal():
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
+
+
+@pytest.fixture
+def live_worker_at_normal_priority(tmp_path_factory, monkeypatch):
+    """The worker process of ``capture --live`` at the normal scheduling priority, for the tests of
+    what it computes (which never depends on its priority).
+
+    At its own priority (SCHED_IDLE) the worker runs only on cores nothing else wants: where the
+    test run keeps every core busy (``pytest -n 2`` on two cores) it waits for an idle moment,
+    and a test of a few seconds takes minutes.  The worker is a spawned interpreter, so the
+    priority is left alone in it through a sitecustomize on its PYTHONPATH (and in this process,
+    which lowers the worker's priority as it starts it).
+    ``tests/test_live_decompose.py::test_the_live_worker_runs_at_the_lowest_priority`` checks the
+    priority itself."""
+    import streaklab.live_decompose as live
+
+    site = tmp_path_factory.mktemp("live_site")
+    (site / "sitecustomize.py").write_text(
+        "import streaklab.live_decompose as _live\n_live._lowest_priority = lambda pid=0: None\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(
+        [str(site), str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    monkeypatch.setattr(live, "_lowest_priority", lambda pid=0: None)

@@ -128,7 +128,8 @@ def test_an_adaptive_run_resumes_and_a_fixed_run_can_resume_adaptive(tmp_path):
 
 
 @pytest.mark.timeout(120)
-def test_live_decomposition_of_an_adaptive_run_equals_the_offline_one(tmp_path, capsys):
+def test_live_decomposition_of_an_adaptive_run_equals_the_offline_one(tmp_path, capsys,
+                                                                      live_worker_at_normal_priority):
     from streaklab.cli import main
     from tests.test_live_decompose import _assert_same_arrays
 

@@ -11,7 +11,8 @@ from streaklab.cli import main
 pytestmark = pytest.mark.timeout(120)
 
 
-def test_bench_live_times_a_pair_and_checks_the_live_result_byte_for_byte(tmp_path, capsys):
+def test_bench_live_times_a_pair_and_checks_the_live_result_byte_for_byte(tmp_path, capsys,
+                                                                           live_worker_at_normal_priority):
     from acquisition.runstore import open_run
     from streaklab.bench.live import _offline_differences, last_line_on_disk
 

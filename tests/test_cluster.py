@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from _cubes import TB, small_cube
-from _runs import wait_for_done_chunks
+from _runs import SLOW_SOLVE_SITE, wait_for_done_chunks
 from decomposition.store.cluster import ClusterError, probe_scheduler, start_local_cluster
 from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import write_cube
@@ -116,12 +116,6 @@ def test_a_scheduler_address_that_is_not_dask_is_refused_in_one_line(cube, tmp_p
     assert f"--tls-ca-file {tmp_path / 'ca.pem'}: no such file" in capsys.readouterr().err
 
 
-# Every process of the run (the command and its worker processes) slows each chunk's solve down
-# through this sitecustomize, so that the run is reliably still going when Ctrl-C arrives.
-_SLOW_SITE = ("import time\nimport decomposition.store.chunked as _c\n_f = _c.solve_block\n"
-              "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
-
-
 def _cube_and_site(tmp_path, site: str):
     """A 4 x 6 cube of 1 x 3 chunks, and the environment of a command whose processes all run
     ``site`` first (as their sitecustomize)."""
@@ -133,7 +127,7 @@ def _cube_and_site(tmp_path, site: str):
 
 @pytest.mark.timeout(120)
 def test_ctrl_c_with_workers_stops_quietly_and_counts_the_chunks_on_disk(tmp_path):
-    cube, env = _cube_and_site(tmp_path, _SLOW_SITE)
+    cube, env = _cube_and_site(tmp_path, SLOW_SOLVE_SITE)
     out = tmp_path / "res.zarr"
     # a terminal's Ctrl-C signals the whole process group: the command and its workers
     proc = subprocess.Popen([sys.executable, "-m", "streaklab", "decompose", str(cube),

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from _cubes import TB, small_cube, worker_dies_at
-from _runs import wait_for_done_chunks
+from _runs import SLOW_SOLVE_SITE, wait_for_done_chunks
 from core.integrity import create_array
 from decomposition.store.resultstore import open_result_store
 from reconstruction.cubestore import create_cube, open_cube, verify_cube, write_cube
@@ -188,10 +188,8 @@ def test_ctrl_c_under_scheduler_counts_the_chunks_after_the_cluster_settles(cube
 
     from distributed import LocalCluster
 
-    (tmp_path / "site").mkdir()                           # the workers solve each chunk slowly
-    (tmp_path / "site" / "sitecustomize.py").write_text(
-        "import time\nimport decomposition.store.chunked as _c\n_f = _c.solve_block\n"
-        "_c.solve_block = lambda *a, **k: (time.sleep(1.5), _f(*a, **k))[1]\n")
+    (tmp_path / "site").mkdir()                           # the workers solve each chunk but their first slowly
+    (tmp_path / "site" / "sitecustomize.py").write_text(SLOW_SOLVE_SITE)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path / "site"), str(ROOT)]))
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                            dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL + 1)

@@ -33,7 +33,8 @@ def _capture(tmp_path, *extra):
 
 
 @pytest.mark.timeout(120)
-def test_live_result_equals_the_offline_decomposition_shows_progress_and_resumes(tmp_path, capsys):
+def test_live_result_equals_the_offline_decomposition_shows_progress_and_resumes(tmp_path, capsys,
+                                                                                 live_worker_at_normal_priority):
     from decomposition.store.resultstore import open_result_store
 
     write_config(tmp_path / "scan.toml", n_lines=N_LINES)
@@ -60,7 +61,8 @@ def test_live_result_equals_the_offline_decomposition_shows_progress_and_resumes
 
 
 @pytest.mark.timeout(120)
-def test_an_interrupted_live_capture_resumes_to_the_same_result(tmp_path, monkeypatch, capsys):
+def test_an_interrupted_live_capture_resumes_to_the_same_result(tmp_path, monkeypatch, capsys,
+                                                                live_worker_at_normal_priority):
     import acquisition.rig as rig
     from decomposition.store.resultstore import open_result_store
 
@@ -85,6 +87,25 @@ def test_an_interrupted_live_capture_resumes_to_the_same_result(tmp_path, monkey
     assert _capture(tmp_path, "--resume", "--live", str(live), "--quiet") == 0
     assert f"decomposed {N_LINES}/{N_LINES} lines" in capsys.readouterr().err
     _assert_same_arrays(live, _offline(tmp_path, tmp_path / "run.zarr"))
+
+
+@pytest.mark.timeout(60)
+def test_the_live_worker_runs_at_the_lowest_priority(tmp_path):
+    import os
+
+    from streaklab.live_decompose import LiveDecomposition
+
+    live = LiveDecomposition(tmp_path / "live.zarr")
+    live.launch()
+    try:
+        if hasattr(os, "SCHED_IDLE"):      # only on cores the capture (and everything else) leaves idle
+            assert os.sched_getscheduler(live._proc.pid) == os.SCHED_IDLE
+        else:
+            assert os.getpriority(os.PRIO_PROCESS, live._proc.pid) == 19
+    finally:
+        live._proc.kill()                  # not close(): at that priority a busy machine may keep it from its end
+        live._proc.join(10)
+    assert not live.alive()
 
 
 def test_live_refuses_an_occupied_store_before_any_device_is_opened(tmp_path, capsys):
