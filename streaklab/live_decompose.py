@@ -203,16 +203,20 @@ def _worker_main(out, resume, png, png_every, inbox, outbox, abandon, parent_pid
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
 
 
+#: nice level of the live worker: the lowest, so the capture (at 0) keeps its cores
+LIVE_NICE = 19
+
+
 def _lowest_priority(pid: int = 0) -> None:
-    """Let process ``pid`` (0: this one) run only on cores the capture (and everything else) leaves
-    idle: Linux's SCHED_IDLE where it exists, else the lowest nice level."""
+    """Give process ``pid`` (0: this one) the lowest nice level, :data:`LIVE_NICE`.
+
+    Against the capture at nice 0 it gets about 1.5 % of a core they share (the kernel's weights,
+    15 against 1024), so the capture keeps its rate.  Not Linux's SCHED_IDLE, which would give it
+    only cores nothing else wants: on a machine whose every core is busy with other work the
+    worker would never run, and the drain after the capture would wait without end; an
+    unprivileged process cannot take SCHED_IDLE back when the capture is over."""
     try:
-        os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
-        return
-    except (AttributeError, OSError):
-        pass
-    try:
-        os.setpriority(os.PRIO_PROCESS, pid, 19)
+        os.setpriority(os.PRIO_PROCESS, pid, LIVE_NICE)
     except (AttributeError, OSError):
         pass
 

@@ -38,9 +38,9 @@ def live_worker_at_normal_priority(tmp_path_factory, monkeypatch):
     """The worker process of ``capture --live`` at the normal scheduling priority, for the tests of
     what it computes (which never depends on its priority).
 
-    At its own priority (SCHED_IDLE) the worker runs only on cores nothing else wants: where the
-    test run keeps every core busy (``pytest -n 2`` on two cores) it waits for an idle moment,
-    and a test of a few seconds takes minutes.  The worker is a spawned interpreter, so the
+    At its own priority (nice 19) the worker gets about 1.5 % of a core that other work wants:
+    where the test run keeps every core busy (``pytest -n 2`` on two cores), a test of a few
+    seconds takes minutes.  The worker is a spawned interpreter, so the
     priority is left alone in it through a sitecustomize on its PYTHONPATH (and in this process,
     which lowers the worker's priority as it starts it).
     ``tests/test_live_decompose.py::test_the_live_worker_runs_at_the_lowest_priority`` checks the

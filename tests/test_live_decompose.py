@@ -98,12 +98,12 @@ def test_the_live_worker_runs_at_the_lowest_priority(tmp_path):
     live = LiveDecomposition(tmp_path / "live.zarr")
     live.launch()
     try:
-        if hasattr(os, "SCHED_IDLE"):      # only on cores the capture (and everything else) leaves idle
-            assert os.sched_getscheduler(live._proc.pid) == os.SCHED_IDLE
-        else:
-            assert os.getpriority(os.PRIO_PROCESS, live._proc.pid) == 19
+        # the lowest nice level, not SCHED_IDLE: that would never run on a machine whose every core is busy
+        assert os.getpriority(os.PRIO_PROCESS, live._proc.pid) == 19
+        if hasattr(os, "sched_getscheduler"):
+            assert os.sched_getscheduler(live._proc.pid) == os.SCHED_OTHER
     finally:
-        live._proc.kill()                  # not close(): at that priority a busy machine may keep it from its end
+        live._proc.kill()                  # not close(): at that priority a busy machine slows its end
         live._proc.join(10)
     assert not live.alive()
 
