@@ -254,7 +254,6 @@ def slot_rows(table: ResponseTable, t_ps, fam, delay_ps, alpha_per_ps, *, deriva
 @njit
 def _slot_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, fam, delay, alpha, scale, want_d, phi, dd, da):
     P, K = fam.shape
-    L = t.size
     s = np.empty(n_steps + 1)
     r = np.empty(n_steps + 1)
     E = np.empty(5)
@@ -411,6 +410,22 @@ def polyphase(table: ResponseTable, stride: int):
 
 
 @njit
+def _uniform_span(t0, start, delay, inv_h, S, N, L, j_top):
+    """Where a :func:`uniform_stride` axis (sample i at node J + S i) lies on a table of N steps:
+    -> (x0, fl, u, J, i_in, i_end): x0 the first sample's position in steps, fl its floor, u its
+    fraction of a step, J its node (clamped to [-S (L + 1), ``j_top``] so that it stays an integer: an onset after
+    the axis or a whole window before it puts no sample on the window), samples [0, i_in) before
+    the table's start, [i_in, i_end) on it, [i_end, L) after its end."""
+    x0 = (t0 - (start + delay)) * inv_h
+    fl = math.floor(x0)
+    u = x0 - fl
+    J = int(min(max(fl, -S * (L + 1.0)), j_top))
+    i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
+    i_end = 0 if J >= N else min((N - J + S - 1) // S, L)
+    return x0, fl, u, J, i_in, max(i_end, i_in)
+
+
+@njit
 def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, scale, want_d, out, dout):
     """:func:`shifted_row` on a :func:`uniform_stride` axis: every sample at the same fraction
     u of its table step (sample i at node J + S i), so the Hermite weights are computed once
@@ -418,15 +433,7 @@ def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, sca
     L = t.size
     N = n_steps
     inv_h = 1.0 / h
-    x0 = (t[0] - (start + delay)) * inv_h
-    fl = math.floor(x0)
-    u = x0 - fl
-    # (an onset after the axis or a whole window before it: no sample on the window; the node
-    # index clamped so that it stays an integer)
-    J = int(min(max(fl, -S * (L + 1.0)), N + 1.0))
-    i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
-    i_out = 0 if J >= N else min((N - J + S - 1) // S, L)
-    i_out = max(i_out, i_in)
+    _, _, u, J, i_in, i_out = _uniform_span(t[0], start, delay, inv_h, S, N, L, N + 1.0)
     for i in range(i_in):
         out[i] = 0.0
         if want_d:
@@ -483,16 +490,9 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
     L = t.size
     N = n_steps
     inv_h = 1.0 / h
-    x0 = (t[0] - (start + delay)) * inv_h
-    fl = math.floor(x0)
-    u = x0 - fl
-    # the node index clamped so that it stays an integer: every sample before the onset, or every
-    # sample after the window (where only s(B), r(B) and the distance past it are read, in x0)
-    J = int(min(max(fl, -S * (L + 1.0)), N + S))
-    # samples [0, i_in): before the onset; [i_in, i_tail): on the window; [i_tail, L): after it
-    i_in = 0 if J >= 0 else min((-J + S - 1) // S, L)
-    i_tail = 0 if J >= N else min((N - J + S - 1) // S, L)
-    i_tail = max(i_tail, i_in)
+    # J clamped up to N + S: every sample after the window reads only s(B), r(B) and the distance
+    # past it (in x0); samples [0, i_in): before the onset; [i_in, i_tail): on the window
+    x0, fl, u, J, i_in, i_tail = _uniform_span(t[0], start, delay, inv_h, S, N, L, N + S)
     for i in range(i_in):
         out[i] = 0.0
         if want_d:
