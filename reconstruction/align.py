@@ -204,6 +204,12 @@ def fiducial_correction_ps(frames: np.ndarray, row_times_ps: np.ndarray, fiducia
     return ref - measured
 
 
+def _covered(grid: np.ndarray, row_times_ps: np.ndarray, shift_ps: float) -> np.ndarray:
+    """(n_bins,) bool: the grid times a frame's rows reach once moved by ``shift_ps``."""
+    lo, hi = min(row_times_ps[0], row_times_ps[-1]), max(row_times_ps[0], row_times_ps[-1])
+    return (grid >= lo + shift_ps) & (grid <= hi + shift_ps)
+
+
 def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps: np.ndarray, *,
                      time_bin_ps: float, t0_ps: float, n_bins: int) -> np.ndarray:
     """Each frame moved by its correction and sampled onto the uniform time grid in one step.
@@ -252,7 +258,7 @@ def resample_aligned(frames: np.ndarray, row_times_ps: np.ndarray, correction_ps
     out = np.zeros(f.shape[:3] + (grid.size,))
     for (i, k), shift in np.ndenumerate(c):          # one set of indices per frame: its pixels share them
         tt = t + shift
-        covered = (grid >= tt[0]) & (grid <= tt[-1])
+        covered = _covered(grid, t, shift)
         pos = np.interp(grid, tt, rows)                                        # fractional row of each bin
         j = np.floor(pos)
         d = pos[:, None] - (j[:, None] + taps)                                 # (n_bins, 2a) distance in rows
@@ -284,12 +290,11 @@ def uncovered_bins(row_times_ps: np.ndarray, correction_ps: np.ndarray, *, time_
     """
     t = np.asarray(row_times_ps, dtype=np.float64)
     c = np.asarray(correction_ps, dtype=np.float64)
-    lo, hi = float(min(t[0], t[-1])), float(max(t[0], t[-1]))
     grid = float(t0_ps) + float(time_bin_ps) * np.arange(int(n_bins), dtype=np.float64)
     covered = np.zeros((c.shape[0], grid.size), bool)
     for (i, _), shift in np.ndenumerate(c):
         if np.isfinite(shift):
-            covered[i] |= (grid >= lo + shift) & (grid <= hi + shift)
+            covered[i] |= _covered(grid, t, shift)
     taken = np.isfinite(c).any(axis=1)
     return np.where(taken, (~covered).sum(axis=1), 0)
 
