@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import datetime as _dt
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -219,7 +220,7 @@ def reconstruct(run_path, out_path, *, chunks: tuple[int, int] | None = None, fl
         "trigger_delay_ps": float(cfg["sync"]["trigger_delay_ps"]),
         "time_range": cfg["camera"]["time_range"],
         "exposure_s": float(cfg["camera"]["exposure_s"]),
-        "resampling": ("each frame moved onto the fiducial by Lanczos interpolation from calibrated row times"
+        "resampling": ("each frame moved onto its time reference by Lanczos interpolation from calibrated row times"
                        if align else "linear interpolation from calibrated row times"),
         "aligned_on_fiducial": bool(align),
         "alignment_reference": ALIGN_REFERENCES.get(align_on),
@@ -389,6 +390,20 @@ class LineCalibration:
     dark_noise_var: np.ndarray | None = None
     sync_nominal_ps: float | None = None
 
+    @cached_property
+    def _dark_split(self):
+        """The dark for aligned frames, split once per calibration (:func:`reconstruction.align.split_dark`):
+        its structure (x, n_rows), subtracted from each frame before it moves; its noise (x, n_rows),
+        flat corrected; and that noise on the cube's bins (x, n_bins), subtracted once after the
+        move (moved, it would repeat at the frames' lags)."""
+        from .align import split_dark
+        structure, noise = split_dark(self.dark, noise_var=self.dark_noise_var)
+        if self.flat is not None:
+            noise = noise / self.flat
+        bins = resample_uniform(noise, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
+                                n_bins=self.n_bins)
+        return structure, noise, bins
+
     @property
     def aligned(self) -> bool:
         """Frames are moved onto a time reference (the fiducial pulse or the sync's) before the mean."""
@@ -437,15 +452,11 @@ class LineCalibration:
         if not self.aligned:
             corrected, corr = correct_frames(raw, self.dark, self.flat), None     # (b, x, rows)
         else:
-            from .align import (fiducial_correction_ps, mean_of_covering, reference_correction_ps, resample_aligned,
-                                split_dark)
-            # the dark's structure moves with each frame, its noise is subtracted once after the
-            # move (reconstruction.align.split_dark): moved, it would repeat at the frames' lags
-            structure, dark_noise = split_dark(self.dark, noise_var=self.dark_noise_var)
+            from .align import fiducial_correction_ps, mean_of_covering, reference_correction_ps, resample_aligned
+            structure, dark_noise, dark_noise_bins = self._dark_split
             frames = raw - structure                                           # (b, frame, x, rows) float64
             if self.flat is not None:
                 frames /= self.flat
-                dark_noise = dark_noise / self.flat
             if self.sync_nominal_ps is not None:
                 corr = reference_correction_ps(np.asarray(trigger_interval_ps, np.float64).reshape(frames.shape[:2]),
                                                self.sync_nominal_ps, line_ids=line_ids)
@@ -454,8 +465,7 @@ class LineCalibration:
                                               min_snr=self.fiducial_min_snr, line_ids=line_ids)
             rows = mean_of_covering(resample_aligned(frames, self.row_times_ps, corr, time_bin_ps=self.time_bin_ps,
                                                      t0_ps=self.t0_ps, n_bins=self.n_bins))
-            rows -= resample_uniform(dark_noise, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
-                                     n_bins=self.n_bins)
+            rows -= dark_noise_bins
             return rows.astype(np.float32), corr
         rows = resample_uniform(corrected, self.row_times_ps, time_bin_ps=self.time_bin_ps, t0_ps=self.t0_ps,
                                 n_bins=self.n_bins).astype(np.float32)
