@@ -327,16 +327,22 @@ def test_the_compiled_screen_is_the_least_squares_misfit_at_the_starts_shapes():
         np.testing.assert_allclose(got[p], np.sum((y - amp @ basis) ** 2), rtol=1e-9)
 
 
-def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
-    # ln(sss / direct) of a 6 x 8 image: two patches (columns 0-3 at -1.0, 4-7 at -0.3), each
-    # pixel's answer off by its standard error 0.05; pixel (2, 1) of its own material (+0.8);
-    # the bottom-right 2 x 3 corner (rows 4-5, columns 5-7) each pixel its own material
+def _two_materials_image():
+    """ln(sss / direct) of a 6 x 8 image: two patches (columns 0-3 at -1.0, 4-7 at -0.3), each
+    pixel's answer off by its standard error 0.05; pixel (2, 1) of its own material (+0.8); the
+    bottom-right 2 x 3 corner (rows 4-5, columns 5-7) each pixel its own material
+    -> (values (48,), standard errors (6, 8))."""
     rng = np.random.default_rng(7)
     truth = np.where(np.arange(8) < 4, -1.0, -0.3)[None, :] + np.zeros((6, 1))
     truth[2, 1] = 0.8
     truth[4:, 5:] = rng.uniform(-1.5, 0.5, (2, 3))
     se = np.full(truth.shape, 0.05)
     values = (truth + se * rng.standard_normal(truth.shape)).reshape(-1)
+    return values, se
+
+
+def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
+    values, se = _two_materials_image()
     opts = SpatialOptions()
     mean, precision = neighbour_prior(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale,
                                       piecewise_constant=True)
@@ -358,7 +364,7 @@ def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
 
 
 def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure():
-    # the image of the test above.  Read with the strays left out (stray_share), the odd pixel
+    # _two_materials_image.  Read with the strays left out (stray_share), the odd pixel
     # (2, 1), sure of its value, still makes its neighbours' neighbourhood two materials (1 of
     # their 8 neighbours, 1/8 of their information); as unsure as a noisy fit (standard error
     # 0.4, its value still 4.5 of them from the patch's) it is left out and the neighbourhood is
@@ -366,12 +372,7 @@ def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure(
     # sure one is left out too.  The corner of independently drawn materials is never one.
     from decomposition.image.spatial import mixed_neighbourhood
 
-    rng = np.random.default_rng(7)
-    truth = np.where(np.arange(8) < 4, -1.0, -0.3)[None, :] + np.zeros((6, 1))
-    truth[2, 1] = 0.8
-    truth[4:, 5:] = rng.uniform(-1.5, 0.5, (2, 3))
-    se = np.full(truth.shape, 0.05)
-    values = (truth + se * rng.standard_normal(truth.shape)).reshape(-1)
+    values, se = _two_materials_image()
     unsure = se.copy()
     unsure[2, 1] = 0.4
     opts = SpatialOptions()
