@@ -426,6 +426,17 @@ def _uniform_span(t0, start, delay, inv_h, S, N, L, j_top):
 
 
 @njit
+def _node_views(vpp, spp, S, p, k0, n_win):
+    """The table's values and slopes at the nodes before and after ``n_win`` samples of a
+    :func:`uniform_stride` axis (sample i between nodes p + S (k0 + i) and the one after), as
+    contiguous views of the :func:`polyphase` rows -> (c0, m0, c1, m1)."""
+    p1 = (p + 1) % S
+    q1s = (p + 1) // S
+    return (vpp[p, k0:k0 + n_win], spp[p, k0:k0 + n_win],
+            vpp[p1, k0 + q1s:k0 + q1s + n_win], spp[p1, k0 + q1s:k0 + q1s + n_win])
+
+
+@njit
 def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, scale, want_d, out, dout):
     """:func:`shifted_row` on a :func:`uniform_stride` axis: every sample at the same fraction
     u of its table step (sample i at node J + S i), so the Hermite weights are computed once
@@ -455,12 +466,7 @@ def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, sca
     if p < 0:
         p += S
     k0 = (J - p) // S + i_in
-    p1 = (p + 1) % S
-    q1s = (p + 1) // S
-    c0v = vpp[p, k0:k0 + n_win]
-    m0v = spp[p, k0:k0 + n_win]
-    c1v = vpp[p1, k0 + q1s:k0 + q1s + n_win]
-    m1v = spp[p1, k0 + q1s:k0 + q1s + n_win]
+    c0v, m0v, c1v, m1v = _node_views(vpp, spp, S, p, k0, n_win)
     outv = out[i_in:i_out]
     for i in range(n_win):
         outv[i] = a0 * c0v[i] + a1 * m0v[i] + a2 * c1v[i] + a3 * m1v[i]
@@ -607,16 +613,11 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
     h10 = u3 - 2.0 * u2 + u
     h01 = 3.0 * u2 - 2.0 * u3
     h11 = u3 - u2
-    # sample i reads the nodes b_k (polyphase row p) and b_k + 1 (row p1), k = k_off + i: as
+    # sample i reads the nodes b_k (polyphase row p) and b_k + 1 (the next row), k = k_off + i: as
     # contiguous views, so that the loops run on vector registers
     n_win = i_tail - i_in
     k0 = k_off + i_in
-    p1 = (p + 1) % S
-    q1s = (p + 1) // S
-    c0v = vpp[p, k0:k0 + n_win]
-    m0v = spp[p, k0:k0 + n_win]
-    c1v = vpp[p1, k0 + q1s:k0 + q1s + n_win]
-    m1v = spp[p1, k0 + q1s:k0 + q1s + n_win]
+    c0v, m0v, c1v, m1v = _node_views(vpp, spp, S, p, k0, n_win)
     s0v = sB[k0:k0 + n_win]
     outv = out[i_in:i_tail]
     if want_d:
