@@ -391,7 +391,12 @@ def _quality_response(c: _Call) -> None:
 
 def _finish_response(c: _Call) -> None:
     lead = c.samples.lead
-    _assemble(c, {k: v.reshape(lead + np.shape(v)[1:]) for k, v in c.params.items()})
+    params = {k: v.reshape(lead + np.shape(v)[1:]) for k, v in c.params.items()}
+    if c.opts.stderr:
+        core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if c.background else ())
+        params.update(component_errors(c.samples, {k: params[k] for k in core_keys}, shared_sigma=False,
+                                       sss_after_direct=c.opts.sss_after_direct, hold=c.hold, irf=c.response))
+    _assemble(c, params)
 
 
 #: The stages of :func:`decompose` with a measured instrument response (``irf=``), in order.
@@ -402,7 +407,7 @@ RESPONSE_STAGES = (
     Stage("prepare", _prepare_response, "resolve the response; prepare the samples, spikes judged by its shape"),
     Stage("respond", _respond, "detect, label, refine and grow over the response's atoms (response.path)"),
     Stage("quality", _quality_response, "render the fit with the response and flag its quality"),
-    Stage("finish", _finish_response, "shape the outputs"),
+    Stage("finish", _finish_response, "shape the outputs; standard errors with the response's atoms (stderr=True)"),
 )
 
 

@@ -12,7 +12,7 @@ from decomposition import decompose
 from decomposition.model.components import window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.flags import OFF_WINDOW, SPIKE
-from decomposition.response.atoms import slot_window_fraction
+from decomposition.model.atoms import slot_window_fraction
 from decomposition.response.resolve import resolve_response, spike_neighbour_ratio
 
 T = 2.0

@@ -112,7 +112,7 @@ def test_params_profile_matches_the_exact_rendering():
     """The response path's trial models (table atoms) are core.model's exact rendering with the
     response to within the table's error: every family, NaN (absent) entries, a background."""
     from core.model import BACKGROUND_KEY, empty_params, render_components, render_profile
-    from decomposition.response.atoms import params_components, params_profile
+    from decomposition.model.atoms import params_components, params_profile
 
     irf = RESPONSES["tailed"]
     p = empty_params((4,), n_ir=2)

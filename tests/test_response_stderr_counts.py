@@ -6,9 +6,8 @@ from core.irf import render_shifted, render_sss
 from core.irf_models import gaussian_response
 from core.model import empty_params
 from decomposition import decompose
-from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.evaluation.poisson_reference import poisson_reference_bound
-from decomposition.response.fisher import slot_standard_errors
+from decomposition.model.fisher import standard_errors
 
 T_PS, L = 2.0, 256
 DIRECT_PS, ONSET_PS, ALPHA = 80.0, 86.0, 0.02
@@ -49,35 +48,65 @@ def test_offset_uncertainty_enters_the_components_errors():
     assert known["sss_alpha_per_ps_stderr"][0] < 0.85 * np.nanmedian(p["sss_alpha_per_ps_stderr"])
 
 
+def _slots_params(delay, amp, sigma_ps=4.0):
+    """(n, 2) direct / sss delays and amplitudes -> a parameter dict (sss alpha ALPHA)."""
+    n = delay.shape[0]
+    p = empty_params((n,), n_ir=1)
+    p["direct_delay_ps"][:], p["direct_amplitude"][:], p["direct_sigma_ps"][:] = delay[:, 0], amp[:, 0], sigma_ps
+    s = amp[:, 1] != 0
+    p["sss_delay_ps"][s], p["sss_amplitude"][s], p["sss_sigma_ps"][s] = delay[s, 1], amp[s, 1], sigma_ps
+    p["sss_alpha_per_ps"][s] = ALPHA
+    return p
+
+
 def test_no_offset_column_where_none_is_fitted():
-    """``slot_standard_errors``: rows whose offset is NaN (none fitted, or dropped by its test)
-    get the errors of the call without the offset; a row with one gets larger ones, and its
-    amplitude error is that of the linear model [atom, 1] (delay held) when the delay's
-    column is orthogonal to both."""
+    """``standard_errors`` with a response: rows without an offset get the errors of the call
+    without one; a row with one gets larger ones, and its amplitude error is that of the linear
+    model [atom, 1] (delay held) when the delay's column is orthogonal to both.  The response
+    has no width: its errors are NaN."""
     irf = gaussian_response(4.0, time_step_ps=T_PS)
     t = T_PS + T_PS * np.arange(L)
-    fam = np.array([[FAM_GAUSS, FAM_SSS]] * 3, np.int8)
     delay = np.array([[80.0, 86.0], [90.0, 95.0], [100.0, 104.0]])
-    lalp = np.log(np.full((3, 2), ALPHA))
     amp = np.array([[1.0, 0.25], [0.8, 0.3], [1.2, 0.2]])
-    sw = np.full((3, L), 30.0)
+    params = _slots_params(delay, amp)
+    kw = dict(time_bin_ps=T_PS, t0_ps=T_PS, weights=np.full((3, L), 900.0), noise_sigma=np.ones(3), irf=irf)
     y = np.zeros((3, L))
-    kw = dict(noise_sigma=np.ones(3))
-    base = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, **kw)
-    off = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, background=np.array([np.nan, 0.1, np.nan]),
-                               **kw)
-    for k in ("amp", "delay", "alpha"):
+    base = standard_errors(y, params, **kw)
+    off = standard_errors(y, params, offset=np.array([False, True, False]), **kw)
+    for k in base:
         np.testing.assert_array_equal(off[k][[0, 2]], base[k][[0, 2]])
-    assert np.all(off["amp"][1] > base["amp"][1]) and off["alpha"][1, 1] > base["alpha"][1, 1]
+    assert np.all(np.isnan(base["direct_sigma_ps_stderr"])) and np.all(np.isnan(base["sss_sigma_ps_stderr"]))
+    assert off["direct_amplitude_stderr"][1] > base["direct_amplitude_stderr"][1]
+    assert off["sss_amplitude_stderr"][1] > base["sss_amplitude_stderr"][1]
+    assert off["sss_alpha_per_ps_stderr"][1] > base["sss_alpha_per_ps_stderr"][1]
     # a direct alone at the window's centre: its delay column is odd about the peak, the atom
     # and the offset even, so the amplitude's error is that of the two-column linear model
-    one = np.array([[FAM_GAUSS, FAM_NONE]], np.int8)
     centre = np.array([[t[L // 2], 0.0]])
-    se = slot_standard_errors(irf, t, y[:1], sw[:1], one, centre, lalp[:1], np.array([[1.0, 0.0]]),
-                              background=np.array([0.1]), noise_sigma=np.ones(1))
+    se = standard_errors(y[:1], _slots_params(centre, np.array([[1.0, 0.0]])), offset=np.array([True]),
+                         **dict(kw, weights=np.full((1, L), 900.0), noise_sigma=np.ones(1)))
     x = np.stack([render_shifted(irf, t, centre[:, 0])[0], np.ones(L)], axis=1) * 30.0
     expected = np.sqrt(np.linalg.inv(x.T @ x)[0, 0])
-    assert se["amp"][0, 0] == pytest.approx(expected, rel=1e-6)
+    assert se["direct_amplitude_stderr"][0] == pytest.approx(expected, rel=1e-6)
+
+
+def test_a_response_of_a_gaussian_has_the_gaussian_psfs_errors():
+    """One Fisher information for any instrument: a measured response that is a Gaussian of 4 ps
+    gives the delay, amplitude and decay-rate errors of the Gaussian PSF of 4 ps with its width
+    held (to the response table's interpolation error), and an onset within ``onset_tie_ps`` of
+    the direct shares its delay's error."""
+    irf = gaussian_response(4.0, time_step_ps=T_PS)
+    delay = np.array([[80.0, 86.0], [100.0, 100.1]])
+    amp = np.array([[1.0, 0.25], [0.8, 0.3]])
+    params = _slots_params(delay, amp)
+    kw = dict(time_bin_ps=T_PS, t0_ps=T_PS, noise_sigma=0.01)
+    y = np.zeros((2, L))
+    got = standard_errors(y, params, irf=irf, **kw)
+    want = standard_errors(y, params, hold={"sigma_ps": np.full(2, 4.0)}, **kw)
+    for k in ("direct_delay_ps", "direct_amplitude", "sss_delay_ps", "sss_amplitude", "sss_alpha_per_ps"):
+        np.testing.assert_allclose(got[k + "_stderr"], want[k + "_stderr"], rtol=1e-4, err_msg=k)
+    tied = standard_errors(y, params, irf=irf, sss_after_direct=True, onset_tie_ps=0.2, **kw)
+    assert tied["sss_delay_ps_stderr"][1] == tied["direct_delay_ps_stderr"][1]
+    np.testing.assert_array_equal(tied["sss_delay_ps_stderr"][0], got["sss_delay_ps_stderr"][0])
 
 
 def test_count_errors_of_a_direct_before_the_window_describe_its_scatter():

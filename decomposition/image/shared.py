@@ -45,7 +45,7 @@ from ..model.refine import hold_params, refine
 from ..model.slots import select_rows
 from ..noise import count_deviance, poisson_weights
 from ..options import OptionError, parse_components
-from ..response.atoms import slot_atoms
+from ..model.atoms import slot_atoms
 from ..response.label import param_slots
 from ..response.refine import CountData, fit_slots, held_slot_masks
 from ..response.resolve import resolve_response, stretched_response

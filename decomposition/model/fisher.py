@@ -31,7 +31,8 @@ from __future__ import annotations
 import numpy as np
 
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
-from ..constants import SSS_SLOT
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+from .atoms import params_profile, slot_atoms
 from .refine import apply_weights, check_hold, held_slots, slot_arrays
 from . import varpro
 from ..kernels.projected import fisher_gram
@@ -118,25 +119,51 @@ def _tie_sigma(rows, free, present):
     return first
 
 
-def _onset_at_direct(slots):
-    """Pixels whose sss onset sits at the lower bound sss_delay >= direct_delay (the constraint is active)."""
+def _onset_at_direct(slots, tie_ps=0.0):
+    """Pixels whose sss onset sits at the lower bound sss_delay >= direct_delay (the constraint is
+    active), or within ``tie_ps`` of it (a fit that approaches the bound without being projected
+    onto it, where the two delays' columns are degenerate)."""
     pres = slots["present"]
     d, s = slots["delay"][:, 0], slots["delay"][:, SSS_SLOT]
     with np.errstate(invalid="ignore"):
-        return pres[:, 0] & pres[:, SSS_SLOT] & (s - d <= 1e-9 * np.maximum(1.0, np.abs(d)))
+        return pres[:, 0] & pres[:, SSS_SLOT] & (s - d <= np.maximum(tie_ps, 1e-9 * np.maximum(1.0, np.abs(d))))
+
+
+def _tied_onsets(slots, sss_after_direct, tie_ps, fixed):
+    """(n,) bool: the pixels whose direct delay and sss onset are one parameter of the information
+    (``sss_after_direct`` and :func:`_onset_at_direct`); a held onset (either) is no parameter to
+    share.  None without ``sss_after_direct``."""
+    if not sss_after_direct:
+        return None
+    tie = _onset_at_direct(slots, tie_ps)
+    if fixed is not None:
+        tie &= ~fixed[:, 0] & ~fixed[:, 3 * SSS_SLOT]
+    return tie
 
 
 def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
-                      tie_onset=False, offset=None, fixed=None):
+                      tie_onset=None, offset=None, fixed=None, irf=None):
     """J^T W J for unit noise with amplitudes divided by a per-pixel scale; see fisher_information.
 
-    ``offset`` (n,) bool: pixels with a fitted constant offset, one more row and column (last,
-    of ones: the offset divided by the same scale); without it the matrices are P x P.
-    ``fixed`` (n, 3K+1) bool: parameters held at known values (no column, not free)."""
+    ``tie_onset`` (n,) bool: pixels whose sss onset shares the direct's delay (one column, the
+    sum of the two).  ``offset`` (n,) bool: pixels with a fitted constant offset, one more row
+    and column (last, of ones: the offset divided by the same scale); without it the matrices
+    are P x P.  ``fixed`` (n, 3K+1) bool: parameters held at known values (no column, not
+    free).  ``irf``: the columns of a measured response's atoms (:func:`_response_information`)
+    instead of the Gaussian PSF's."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
     n, k = slots["present"].shape
     p = 3 * k + 1 + (offset is not None)
+    tie_onset = np.zeros(n, bool) if tie_onset is None else np.asarray(tie_onset, bool)
+    slots["tied_onset"] = tie_onset
+    if irf is not None:
+        if shared_sigma or tb is not None:
+            raise ValueError("a measured response (irf) has no width to share and is point-sampled: "
+                             "shared_sigma and bin_integrated do not apply")
+        info, free = _response_information(t, slots, amp_scale, sw, irf, tie_onset, offset, fixed)
+        slots["tied_slot"] = None
+        return lead, slots, info, free, amp_scale
     if varpro.COMPILED and tb is None:
         info, free, tied = _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offset, fixed)
         slots["tied_slot"] = tied if shared_sigma else None
@@ -158,9 +185,9 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
             rows *= sw[ch, None, :]
         if shared_sigma:
             tied[ch] = _tie_sigma(rows, fr, sub["present"])
-        if tie_onset:
+        if tie_onset.any():
             # An active onset constraint leaves one delay for both components.
-            on = np.flatnonzero(_onset_at_direct(sub))
+            on = np.flatnonzero(tie_onset[ch])
             rows[on, 0] += rows[on, 3 * SSS_SLOT]
             rows[on, 3 * SSS_SLOT] = 0.0
             fr[on, 3 * SSS_SLOT] = False
@@ -193,10 +220,8 @@ def _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offs
         tied = np.argmax(present, axis=1).astype(np.int64)
         free[:, _sigma_rows(k)] = False
         free[pix, 3 * tied + 2] = present.any(axis=1)
-    onset = np.zeros(n, bool)
-    if tie_onset:
-        onset = _onset_at_direct(slots)
-        free[onset, 3 * SSS_SLOT] = False
+    onset = tie_onset
+    free[onset, 3 * SSS_SLOT] = False
     fx = np.zeros((n, p), bool)
     if fixed is not None:
         fx[:, :fixed.shape[1]] = fixed
@@ -214,6 +239,53 @@ def _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offs
                     tied if shared_sigma else np.full(n, -1, np.int64), np.ascontiguousarray(onset, np.bool_),
                     np.ascontiguousarray(fx, np.bool_), info)
     return info, free, np.where(tied >= 0, tied, 0)
+
+
+def _response_information(t, slots, amp_scale, sw, irf, tie_onset, offset, fixed):
+    """``info`` and ``free`` of :func:`_unit_information` for a measured response's atoms.
+
+    The columns of the Gaussian layout (per slot delay, amplitude, width; the sss decay rate
+    last; the offset's after it): a_k d phi_k / d delay_k, phi_k, and a_s d phi_s / d alpha
+    (:func:`decomposition.model.atoms.slot_atoms`, the response's table atoms); the response has
+    no width, so the width columns are zero and not free."""
+    present = slots["present"]
+    n, k = present.shape
+    L = t.size
+    p = 3 * k + 1 + (offset is not None)
+    free = np.zeros((n, p), bool)
+    free[:, 0:3 * k:3] = present
+    free[:, 1:3 * k:3] = present
+    free[:, 3 * k] = present[:, SSS_SLOT]
+    if offset is not None:
+        free[:, -1] = np.asarray(offset, bool)
+    free[tie_onset, 3 * SSS_SLOT] = False
+    if fixed is not None:
+        free[:, :fixed.shape[1]] &= ~fixed
+    fam = np.where(present, FAM_GAUSS, FAM_NONE).astype(np.int8)
+    fam[:, SSS_SLOT] = np.where(present[:, SSS_SLOT], FAM_SSS, FAM_NONE)
+    delay = np.where(present, slots["delay"], 0.0)
+    alpha = np.where(present[:, SSS_SLOT], np.maximum(slots["alpha"], np.finfo(np.float64).tiny), 1.0)
+    lalp = np.zeros((n, k))
+    lalp[:, SSS_SLOT] = np.log(alpha)
+    amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
+    info = np.empty((n, p, p))
+    # cache-sized chunks of pixels, as the Gaussian rows
+    for i in range(0, n, CHUNK_PIXELS):
+        ch = slice(i, i + CHUNK_PIXELS)
+        phi, dd, dl = slot_atoms(irf, t, fam[ch], delay[ch], lalp[ch], derivatives=True)
+        rows = np.zeros((phi.shape[0], p, L))
+        rows[:, 0:3 * k:3] = amp[ch, :, None] * dd
+        rows[:, 1:3 * k:3] = phi
+        rows[:, 3 * k] = amp[ch, SSS_SLOT, None] * dl[:, SSS_SLOT] / alpha[ch, None]   # d / d alpha
+        if offset is not None:
+            rows[:, -1] = 1.0
+        if sw is not None:
+            rows *= sw[ch, None, :]
+        on = np.flatnonzero(tie_onset[ch])
+        rows[on, 0] += rows[on, 3 * SSS_SLOT]
+        rows = np.where(free[ch, :, None], rows, 0.0)
+        info[ch] = rows @ rows.swapaxes(-1, -2)
+    return info, free
 
 
 def _amplitude_rows(k):
@@ -312,15 +384,14 @@ def _to_dict(std, slots, lead, suffix):
 
 
 def _bound(params, noise, n_bins, time_bin_ps, t0_ps, bin_integrated, suffix, sw=None, shared_sigma=False,
-           tie_onset=False, offset=None, fixed=None):
+           tie_onset=None, offset=None, fixed=None, irf=None):
     lead, slots, info, free, amp_scale = _unit_information(params, n_bins, time_bin_ps, t0_ps,
                                                             bin_integrated, sw, shared_sigma, tie_onset, offset,
-                                                            fixed)
+                                                            fixed, irf)
     std_unit = _covariance_diag(info, free)  # for unit noise, normalised amplitudes
     std_unit = std_unit[:, :3 * slots["present"].shape[1] + 1]   # the offset's own is not reported
-    if tie_onset:
-        on = _onset_at_direct(slots)
-        std_unit[on, 3 * SSS_SLOT] = std_unit[on, 0]
+    on = slots["tied_onset"]
+    std_unit[on, 3 * SSS_SLOT] = std_unit[on, 0]
     if shared_sigma:
         n, k = slots["present"].shape
         tied = std_unit[np.arange(n), 3 * slots["tied_slot"] + 2]
@@ -374,7 +445,7 @@ def cramer_rao_bound(params, noise_sigma, *, n_bins: int, time_bin_ps: float = 2
 def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = None,
                     weights=None, shared_sigma: bool = False, sss_after_direct: bool = False,
                     bin_integrated: bool = False, noise_sigma=None, offset=None,
-                    hold=None) -> dict[str, np.ndarray]:
+                    hold=None, irf=None, onset_tie_ps: float = 0.0) -> dict[str, np.ndarray]:
     """Per-pixel standard errors of fitted parameters from the Fisher information at the solution.
 
     Unless ``noise_sigma`` gives it, the noise level of each pixel is estimated from its
@@ -419,6 +490,15 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         Parameters the fit held at given values (``hold=`` of
         :func:`decomposition.model.refine.refine`; only which pixels hold which matters):
         they are no parameters of the information, and their own errors are NaN.
+    irf : InstrumentResponse, optional
+        The fit's components are atoms of this measured response
+        (:func:`decomposition.model.atoms.slot_atoms`) instead of Gaussians: the information
+        has no width parameters (``*_sigma_ps_stderr`` NaN); ``shared_sigma`` and
+        ``bin_integrated`` do not apply.
+    onset_tie_ps : float
+        With ``sss_after_direct``: an onset within this many ps after the direct delay counts
+        as on it (a fit that approaches the bound, like the Poisson fit of a measured
+        response, rather than one projected onto it; 0: only onsets on the bound).
 
     Returns
     -------
@@ -447,16 +527,20 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         sig = np.where(present, slots["sigma"], 1.0)
         alp = np.where(present[:, SSS_SLOT], slots["alpha"], 1.0)
     delay = np.where(present, slots["delay"], 0.0)
-    rss = varpro.rss_at(t, y2 if sw is None else y2 * sw, delay, sig, alp, present, amp, np.zeros(n), tb, sw)
+    if irf is None:
+        rss = varpro.rss_at(t, y2 if sw is None else y2 * sw, delay, sig, alp, present, amp, np.zeros(n), tb, sw)
+    else:
+        r = y2 - np.nan_to_num(params_profile(irf, t, params).reshape(n, n_bins))
+        r = r if sw is None else r * sw
+        rss = np.einsum("pl,pl->p", r, r)
     n_used = n_bins if sw is None else np.sum(sw > 0, axis=-1)
-    n_fitted = 3 * present.sum(axis=-1) + present[:, SSS_SLOT]
+    # the response has no width parameter
+    n_fitted = (3 if irf is None else 2) * present.sum(axis=-1) + present[:, SSS_SLOT]
     if offset is not None:
         offset = np.broadcast_to(np.asarray(offset, bool), lead).reshape(n)
         n_fitted = n_fitted + offset
     if shared_sigma:
         n_fitted = n_fitted - np.maximum(slots["present"].sum(axis=-1) - 1, 0)
-    if sss_after_direct:
-        n_fitted = n_fitted - _onset_at_direct(slots)
     fixed = None
     hold = check_hold(hold, lead)
     if hold:
@@ -469,13 +553,16 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         n_sigma = 1 if shared_sigma else present.sum(axis=-1)
         n_fitted = n_fitted - fixed[:, 3 * np.arange(k)].sum(axis=1) - fixed[:, 3 * k] \
             - np.where(s_held & present.any(axis=1), n_sigma, 0)
+    tie = _tied_onsets(slots, sss_after_direct, onset_tie_ps, fixed)
+    if tie is not None:
+        n_fitted = n_fitted - tie
     dof = n_used - n_fitted
     with np.errstate(invalid="ignore", divide="ignore"):
         noise = np.where(dof > 0, np.sqrt(rss / np.maximum(dof, 1)), np.nan)
     if noise_sigma is not None:
         noise = np.where(dof > 0, _noise(noise_sigma, lead), np.nan)
     out = _bound(params, np.where(np.isfinite(noise), noise, 0.0), n_bins, time_bin_ps, t0_ps,
-                 bin_integrated, "_stderr", sw, shared_sigma, sss_after_direct, offset, fixed)
+                 bin_integrated, "_stderr", sw, shared_sigma, tie, offset, fixed, irf)
     if np.any(~np.isfinite(noise)):
         bad = ~np.isfinite(noise)
         for key, v in out.items():

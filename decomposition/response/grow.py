@@ -88,7 +88,7 @@ from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
-from .atoms import params_components, params_profile, slot_atoms
+from ..model.atoms import params_components, params_profile, slot_atoms
 from ..kernels.response import response_table, shifted_atoms, sss_atoms
 from .refine import Slots, refine_rows, refit_slots
 from ..model.slots import select_rows
@@ -124,7 +124,7 @@ class GrowContext:
 
     def model(self, params, background) -> np.ndarray:
         """(m, L) the model of m pixels' ``params`` plus ``background`` (m,), units of the samples
-        (the response's table atoms, :func:`decomposition.response.atoms.params_profile`)."""
+        (the response's table atoms, :func:`decomposition.model.atoms.params_profile`)."""
         p = dict(params)
         p[BACKGROUND_KEY] = background
         return params_profile(self.irf, self.t, p)

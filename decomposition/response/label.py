@@ -20,7 +20,7 @@ import numpy as np
 from ..model import components as comp
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from core.model import empty_params
-from .atoms import slot_atoms
+from ..model.atoms import slot_atoms
 
 __all__ = ["label_response", "param_slots", "slots_to_params"]
 

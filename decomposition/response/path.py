@@ -16,9 +16,8 @@ Same sequence as the Gaussian path -- prepare (shared), detect, label, refine, q
   without one, an echo where the residual in noise sigmas holds one, an sss far after the
   direct turned into the echo it is -- each kept where the deviance drops by
   ``significance_chi2``;
-* standard errors (``stderr``): the Fisher information of the response's atoms and a kept
-  offset, for count data with the Poisson weights of the fitted model
-  (:mod:`decomposition.response.fisher`).
+* the offset's standard error (``stderr``; the components' errors are the finish stage's,
+  :func:`decomposition.stages.refit.component_errors` with the response's atoms).
 
 The refinement always runs here (``n_polish`` iterations): the detection's relocation is short
 (``n_lm`` iterations per added atom) and there is no grid to snap to.
@@ -31,22 +30,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.irf_components import gaussian_equivalent_sigma_ps
-from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
+from core.model import BACKGROUND_KEY, empty_params
 from ..stages.background import background_significant, background_threshold
 from ..model.components import runs_off_window
-from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, SSS_SLOT
+from ..model.refine import hold_params
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from ..stages.label import at_bound
-from ..noise import fit_dispersion, poisson_weights
 from ..options import GridSpec, SolverOptions
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
-from .atoms import slot_window_fraction
+from ..model.atoms import slot_window_fraction
 from .detect import RESPONSE_PHASES, detect_response, response_dictionary
-from .fisher import slot_standard_errors
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
-from .refine import held_slot_masks, refine_rows, refit_slots
+from .refine import refine_rows, refit_slots
 
 __all__ = ["ResponseOutcome", "decompose_with_response"]
 
@@ -154,11 +152,12 @@ def decompose_with_response(samples: Samples, irf, grid: GridSpec, opts: SolverO
         out[BACKGROUND_KEY] = np.full(P, np.nan)          # NaN where not decomposed
     for k, v in params.items():
         out[k][live] = v
-    if opts.stderr:
-        out.update(_errors(samples, irf, t, params, fam, delay, lalp, amp, R, opts.sss_after_direct, sigma_eq,
-                           refine_kw.get("hold")))
-        if with_bg:
-            out[BACKGROUND_KEY + "_stderr"] = bg_info["background_stderr"]
+    if hold:
+        # the held values themselves (the refinement holds log alpha: exp(log(alpha)) may differ
+        # from alpha in its last bit)
+        out = hold_params(out, hold, (P,))
+    if opts.stderr and with_bg:
+        out[BACKGROUND_KEY + "_stderr"] = bg_info["background_stderr"]
     info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(dic.n_atoms),
             "response_alphas_per_ps": [float(a) for a in np.geomspace(a_lo, a_hi, grid.coarse_alpha)]
             if "s" in components else [],
@@ -175,52 +174,3 @@ def _scatter(P, live, v, fill):
     out[live] = v
     return out
 
-
-def _errors(samples: Samples, irf, t, params, fam, delay, lalp, amp, R, sss_after_direct, sigma_eq_ps,
-            hold=None) -> dict:
-    live, ax = samples.live, samples.axis
-    P = samples.values.shape[0]
-    scale = samples.scale[live]
-    fit_mask = samples.fit[live]
-    y = samples.profiles[live]
-    offset = None
-    if BACKGROUND_KEY in params:
-        # the data themselves, the offset a fitted column where kept (not where it is exactly 0
-        # after its test dropped it)
-        y = np.where(fit_mask, samples.values[live], 0.0) / scale[:, None]
-        b = np.asarray(params[BACKGROUND_KEY], np.float64)
-        offset = np.where(b != 0.0, b / scale, np.nan)
-    noise = None
-    if samples.noise_model == "poisson":
-        model = np.nan_to_num(render_profile(params, samples.n_bins, ax.time_bin_ps, ax.t0_ps, irf=irf))
-        sw = np.sqrt(poisson_weights(model, fit_mask, floor_counts=POISSON_FIT_FLOOR)) * scale[:, None]
-        noise = fit_dispersion(samples.values[live], model, fit_mask)
-    else:
-        sw = fit_mask.astype(np.float64)
-    tie = None
-    if sss_after_direct:
-        # an onset on the direct, or so near it that the two atoms and the onset's derivative
-        # are degenerate (ONSET_TIE_SIGMA)
-        tie = np.abs(delay[:, SSS_SLOT] - delay[:, 0]) <= ONSET_TIE_SIGMA * sigma_eq_ps
-    held = None
-    if hold:
-        held = held_slot_masks(hold, fam, delay, lalp)[2:]
-    se = slot_standard_errors(irf, t, y, sw, fam, delay, lalp, amp, noise_sigma=noise, tie_onset=tie,
-                              background=offset, held=held)
-    se_amp = se["amp"] * scale[:, None]
-    out = {f"{k}_stderr": np.full((P,) + np.shape(params[k])[1:], np.nan) for k in DIRECT_KEYS + SSS_KEYS + IR_KEYS}
-    d = fam[:, 0] != FAM_NONE
-    out["direct_delay_ps_stderr"][live[d]] = se["delay"][d, 0]
-    out["direct_amplitude_stderr"][live[d]] = se_amp[d, 0]
-    s = fam[:, SSS_SLOT] == FAM_SSS
-    out["sss_delay_ps_stderr"][live[s]] = se["delay"][s, SSS_SLOT]
-    out["sss_amplitude_stderr"][live[s]] = se_amp[s, SSS_SLOT]
-    out["sss_alpha_per_ps_stderr"][live[s]] = se["alpha"][s, SSS_SLOT]
-    if R:
-        pres = fam[:, 2:] != FAM_NONE
-        order = np.argsort(np.where(pres, delay[:, 2:], np.inf), axis=1, kind="stable")
-        rows = np.arange(fam.shape[0])[:, None]
-        po = pres[rows, order]
-        out["ir_delay_ps_stderr"][live] = np.where(po, se["delay"][:, 2:][rows, order], np.nan)
-        out["ir_amplitude_stderr"][live] = np.where(po, se_amp[:, 2:][rows, order], np.nan)
-    return out

@@ -1,6 +1,6 @@
 """Continuous refinement of response atoms: variable projection on blocks of pixels.
 
-For a pixel with K slots (:mod:`decomposition.response.atoms`) the model is
+For a pixel with K slots (:mod:`decomposition.model.atoms`) the model is
 m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
 amplitudes enter linearly and are never iterated: for any theta they are the weighted
 least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
@@ -31,7 +31,7 @@ from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLO
 from ..kernels.response import response_table
 from ..kernels.responselm import LAMBDA0, LAMBDA_MAX, RIDGE, response_lm
 from ..noise import count_deviance, poisson_weights
-from .atoms import params_profile, slot_atoms
+from ..model.atoms import params_profile, slot_atoms
 from .label import slots_to_params
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, render_profile
-from ..constants import POISSON_REFITS
+from ..constants import ONSET_TIE_SIGMA, POISSON_FIT_FLOOR, POISSON_REFITS, POISSON_VARIANCE_FLOOR
 from ..noise import count_deviance, fit_dispersion, poisson_weights
 from .prepare import Samples
 from ..model.slots import select_rows
@@ -179,10 +180,16 @@ def background_stats(samples: Samples, params: dict, irf=None):
 
 
 def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
-                     hold: dict | None = None) -> dict:
+                     hold: dict | None = None, irf=None) -> dict:
     """``<key>_stderr`` arrays for ``params`` (in the input's leading shape); ``hold`` (P,)-shaped
     values of the parameters the fit held (:func:`refine_components`): not parameters of the
-    information, their errors NaN."""
+    information, their errors NaN.
+
+    ``irf``: the components are atoms of this measured response (the information of its atoms,
+    no width parameters).  Its count data were fitted to their Poisson deviance with the
+    variance floored at POISSON_FIT_FLOOR (:mod:`decomposition.response.refine`), so the errors
+    take those weights; and that fit approaches the onset's bound without being projected onto
+    it, so an onset within ONSET_TIE_SIGMA response widths of the direct shares its delay."""
     axis = samples.axis
     shape = samples.lead + (samples.n_bins,)
     n_pix = samples.values.shape[0]
@@ -200,12 +207,15 @@ def component_errors(samples: Samples, params: dict, *, shared_sigma: bool, sss_
     noise = None
     if samples.noise_model == "poisson":
         # weights 1 / Poisson variance, the noise scale measured on the fit (1 for pure counts)
-        model = _model(samples, flat)
-        weights = poisson_weights(model, samples.fit)
+        model = _model(samples, flat, irf)
+        weights = poisson_weights(model, samples.fit,
+                                  floor_counts=POISSON_VARIANCE_FLOOR if irf is None else POISSON_FIT_FLOOR)
         noise = fit_dispersion(samples.values, model, samples.fit).reshape(samples.lead)
     else:
         weights = samples.weights
+    tie_ps = 0.0 if irf is None else ONSET_TIE_SIGMA * gaussian_equivalent_sigma_ps(irf)
     return standard_errors(values.reshape(shape), comp_params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
                            weights=weights.reshape(shape), shared_sigma=shared_sigma,
                            sss_after_direct=sss_after_direct, noise_sigma=noise, offset=offset,
-                           hold=None if not hold else {k: np.reshape(v, samples.lead) for k, v in hold.items()})
+                           hold=None if not hold else {k: np.reshape(v, samples.lead) for k, v in hold.items()},
+                           irf=irf, onset_tie_ps=tie_ps)
