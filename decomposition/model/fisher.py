@@ -129,16 +129,15 @@ def _onset_at_direct(slots, tie_ps=0.0):
         return pres[:, 0] & pres[:, SSS_SLOT] & (s - d <= np.maximum(tie_ps, 1e-9 * np.maximum(1.0, np.abs(d))))
 
 
-def _tied_onsets(slots, sss_after_direct, tie_ps, fixed):
+def _tied_onsets(slots, sss_after_direct, tie_ps):
     """(n,) bool: the pixels whose direct delay and sss onset are one parameter of the information
-    (``sss_after_direct`` and :func:`_onset_at_direct`); a held onset (either) is no parameter to
-    share.  None without ``sss_after_direct``."""
+    (``sss_after_direct`` and :func:`_onset_at_direct`), None without ``sss_after_direct``.  The
+    tie holds with a held direct too: on the direct, the onset's column is a combination of the
+    two atoms (d/d onset of the sss atom = alpha (sss atom) - the shifted atom), so it is no
+    parameter of its own, and with the direct it is held."""
     if not sss_after_direct:
         return None
-    tie = _onset_at_direct(slots, tie_ps)
-    if fixed is not None:
-        tie &= ~fixed[:, 0] & ~fixed[:, 3 * SSS_SLOT]
-    return tie
+    return _onset_at_direct(slots, tie_ps)
 
 
 def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=None, shared_sigma=False,
@@ -553,7 +552,7 @@ def standard_errors(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float 
         n_sigma = 1 if shared_sigma else present.sum(axis=-1)
         n_fitted = n_fitted - fixed[:, 3 * np.arange(k)].sum(axis=1) - fixed[:, 3 * k] \
             - np.where(s_held & present.any(axis=1), n_sigma, 0)
-    tie = _tied_onsets(slots, sss_after_direct, onset_tie_ps, fixed)
+    tie = _tied_onsets(slots, sss_after_direct, onset_tie_ps)
     if tie is not None:
         n_fitted = n_fitted - tie
     dof = n_used - n_fitted
