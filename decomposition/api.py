@@ -1,12 +1,12 @@
 """Public entry point: ``decompose(profiles, time_bin_ps, method=...)``.
 
 :func:`decompose` checks its options once, into the frozen dataclasses of
-:mod:`decomposition.options`, then runs a declared list of named stages in order:
-:data:`STAGES` with the Gaussian PSF, :data:`RESPONSE_STAGES` with a measured instrument
-response (``irf=``).  Each stage is a small function here that calls one stage module of
-:mod:`decomposition.stages` (or :mod:`decomposition.response`) and records what it did; the
-list is the one place the order is written, and docs/decomposition.md lists the same names in
-the same order (tests/test_docs.py checks it).
+:mod:`decomposition.options`, then runs one declared list of named stages in order,
+:data:`STAGES`, for the Gaussian PSF and a measured instrument response (``irf=``) alike.  Each
+stage is a small function here that calls one stage module of :mod:`decomposition.stages` (with
+a measured response, of :mod:`decomposition.response`) and records what it did; the list is the
+one place the order is written, and docs/decomposition.md lists the same names in the same order
+(tests/test_docs.py checks it).
 """
 from __future__ import annotations
 
@@ -37,14 +37,13 @@ from .constants import RESCUE_MISFIT_Z
 from .stages.rescue import RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows, take_rescued
 from .stages.selection import misfit_beyond_noise
 from .response.resolve import resolve_response, response_record, spike_neighbour_ratio
-from .response.path import decompose_with_response
+from .response import path as rp
 
 __all__ = [
     "decompose",
     "DecompositionResult",
     "Stage",
     "STAGES",
-    "RESPONSE_STAGES",
     "parse_components",
     "EMPTY",
     "SATURATED",
@@ -129,30 +128,53 @@ class _Call:
     bg_stderr: np.ndarray | None = None
     fit: Fit | None = None
     response: object = None     # the resolved instrument response (irf=)
+    rfit: object = None         # response.path.ResponseFit: the response's stages' state
     hold: dict | None = None    # parameters held at given values, {HOLD_KEYS: (P,)} (hold=)
     result: "DecompositionResult | None" = None
 
     @property
     def convscd(self) -> bool:
-        return self.method == "convscd"
+        """The stages of ConvSCD over the Gaussian dictionary apply (method "convscd", no
+        measured response)."""
+        return self.method == "convscd" and self.irf is None
 
 
 # --------------------------------------------------------------------------- the Gaussian path
 
 def _prepare(c: _Call) -> None:
-    c.samples = prepare_samples(c.profiles, c.axis, c.grid, nan_policy=c.nan_policy,
-                                saturation_level=c.saturation_level, spike_sigma=c.opts.spike_sigma,
-                                noise_floor=c.opts.noise_floor, rel_threshold=c.opts.rel_threshold,
-                                noise=c.opts.noise, background=c.background)
-    c.info = {"method": c.method, "time_bin_ps": c.axis.time_bin_ps, "t0_ps": c.axis.t0_ps,
+    opts, axis = c.opts, c.axis
+    ratio = None
+    if c.irf is not None:
+        if c.method != "convscd":
+            raise ValueError(f"irf= works with method='convscd' only, got method={c.method!r}")
+        if not opts.off_grid:
+            raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured "
+                             "response (irf=)")
+        n_bins = np.shape(c.profiles)[-1] if np.ndim(c.profiles) else 0
+        c.response = resolve_response(c.irf, axis.time_bin_ps, n_bins)
+        # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
+        ratio = spike_neighbour_ratio(c.response, axis.time_bin_ps, opts.rel_threshold)
+    c.samples = prepare_samples(c.profiles, axis, c.grid, nan_policy=c.nan_policy,
+                                saturation_level=c.saturation_level,
+                                spike_sigma=opts.spike_sigma if ratio is None or ratio > 0 else 0.0,
+                                noise_floor=opts.noise_floor, rel_threshold=opts.rel_threshold, noise=opts.noise,
+                                background=c.background,
+                                spike_neighbour_ratio=ratio if ratio is not None and ratio > 0 else None)
+    c.info = {"method": c.method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
               "components": "".join(sorted(c.fams)), "nan_policy": c.nan_policy,
               "saturation_level": c.samples.saturation_level}
+    if c.response is not None:
+        c.info.update(irf=response_record(c.response), spike_neighbour_ratio=ratio)
+        c.info.update(asdict(c.grid), **asdict(opts))
     c.flags = c.samples.flags.copy()
     c.noise_eff = c.samples.noise_eff
 
 
 def _detect(c: _Call) -> None:
     samples, opts = c.samples, c.opts
+    if c.response is not None:
+        c.rfit = rp.detect(samples, c.response, c.grid, opts, c.fams, hold=c.hold)
+        return
     if not c.convscd:
         c.info.update(c.method_options)
         c.params = detect_gradbm(samples, opts.max_reflections, c.fams, c.method_options)
@@ -245,6 +267,9 @@ def _count_grow(c: _Call) -> None:
 
 
 def _label(c: _Call) -> None:
+    if c.response is not None:
+        rp.label(c.rfit, c.samples, c.opts)
+        return
     if not c.convscd:
         return
     samples, det = c.samples, c.det
@@ -257,10 +282,14 @@ def _label(c: _Call) -> None:
 
 
 def _physics(c: _Call) -> dict:
-    return {"shared_sigma": c.opts.shared_sigma and c.convscd, "sss_after_direct": c.opts.sss_after_direct and c.convscd}
+    return {"shared_sigma": c.opts.shared_sigma and c.convscd,
+            "sss_after_direct": c.opts.sss_after_direct and c.method == "convscd"}
 
 
 def _refit(c: _Call) -> None:
+    if c.response is not None:
+        rp.refit(c.rfit, c.samples)
+        return
     samples, opts, params, flags = c.samples, c.opts, c.params, c.flags
     if c.background:
         # the first estimate, refitted jointly with the amplitudes below (NaN: not decomposed)
@@ -290,8 +319,29 @@ def _refit(c: _Call) -> None:
     c.params = params
 
 
+def _forward_steps(c: _Call) -> None:
+    if c.response is not None:
+        rp.forward_steps(c.rfit, c.samples, c.opts, c.fams)
+
+
+def _offset_test(c: _Call) -> None:
+    if c.response is not None:
+        rp.offset_test(c.rfit, c.samples, c.opts)
+
+
+def _final_atoms(c: _Call) -> None:
+    if c.response is None:
+        return
+    out = rp.final_atoms(c.rfit, c.samples, c.opts, c.fams, hold=c.hold)
+    c.flags |= out.flags
+    c.info.update(out.info)
+    c.params = out.params
+    if out.background_stderr is not None:
+        c.bg_stderr = out.background_stderr.reshape(c.samples.lead)
+
+
 def _quality(c: _Call) -> None:
-    c.fit = assess_fit(c.samples, c.params, c.noise_eff, c.opts.poor_fit, flat_noise=c.flat_noise)
+    c.fit = assess_fit(c.samples, c.params, c.noise_eff, c.opts.poor_fit, irf=c.response, flat_noise=c.flat_noise)
     c.flags |= c.fit.flags
 
 
@@ -320,17 +370,20 @@ def _finish(c: _Call) -> None:
     params = _reshape_params(c.params, lead, opts.max_reflections)
     c.info.update(refine=opts.refine, stderr=opts.stderr)
     if opts.stderr:
-        params.update(component_errors(samples, params, **_physics(c), hold=c.hold))
+        params.update(component_errors(samples, params, **_physics(c), hold=c.hold, irf=c.response))
         if c.background:
             params[BACKGROUND_KEY + "_stderr"] = (c.bg_stderr if c.bg_stderr is not None
                                                   else np.full(lead, np.nan))
     _assemble(c, params)
 
 
-#: The stages of :func:`decompose` with the Gaussian PSF, run in this order (docs/decomposition.md
+#: The stages of :func:`decompose`, run in this order for every instrument (docs/decomposition.md
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
-#: call (its option off, another method or noise model) returns at once; the GradBM baseline
-#: (``method="gradbm"``) runs prepare, detect, refit, quality and finish.
+#: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
+#: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
+#: response (``irf=``) runs prepare, detect, label, refit, forward_steps, offset_test, final_atoms,
+#: quality and finish, its detect, label and refit over the response's atoms
+#: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
     Stage("detect", _detect, "the method's first answer: sparse coding over the coarse dictionary"),
@@ -344,70 +397,14 @@ STAGES = (
     Stage("count_grow", _count_grow, "count data: an echo after the threshold, kept by its deviance (grow=True)"),
     Stage("label", _label, "snap (on-grid), threshold, merge and name the atoms; their flags"),
     Stage("refit", _refit, "off-grid refinement with the background; clear unlit pixels; AT_BOUND"),
+    Stage("forward_steps", _forward_steps, "response: a direct, an sss, an echo added after the refinement where "
+                                           "the deviance pays"),
+    Stage("offset_test", _offset_test, "response: the fitted offset kept where significant, refitted without it "
+                                       "elsewhere"),
+    Stage("final_atoms", _final_atoms, "response: the final atoms' flags and every pixel's parameters"),
     Stage("quality", _quality, "render the fit and flag its quality"),
     Stage("rescue", _rescue_stage, "decompose the misfit pixels once more, differently started (rescue=True)"),
     Stage("finish", _finish, "shape the outputs; standard errors (stderr=True)"),
-)
-
-
-# --------------------------------------------------------------------------- the measured-response path
-
-def _prepare_response(c: _Call) -> None:
-    if c.method != "convscd":
-        raise ValueError(f"irf= works with method='convscd' only, got method={c.method!r}")
-    if not c.opts.off_grid:
-        raise ValueError("off_grid=False snaps to the Gaussian grid; it has no meaning with a measured response (irf=)")
-    opts, axis = c.opts, c.axis
-    n_bins = np.shape(c.profiles)[-1] if np.ndim(c.profiles) else 0
-    c.response = resolve_response(c.irf, axis.time_bin_ps, n_bins)
-    # the spike test's narrowest kernel is the response itself (0: no sample is narrower than it)
-    ratio = spike_neighbour_ratio(c.response, axis.time_bin_ps, opts.rel_threshold)
-    c.samples = prepare_samples(c.profiles, axis, c.grid, nan_policy=c.nan_policy,
-                                saturation_level=c.saturation_level,
-                                spike_sigma=opts.spike_sigma if ratio > 0 else 0.0, noise_floor=opts.noise_floor,
-                                rel_threshold=opts.rel_threshold, noise=opts.noise, background=c.background,
-                                spike_neighbour_ratio=ratio if ratio > 0 else None)
-    c.info = {"method": c.method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
-              "components": "".join(sorted(c.fams)), "nan_policy": c.nan_policy,
-              "saturation_level": c.samples.saturation_level, "irf": response_record(c.response),
-              "spike_neighbour_ratio": ratio}
-    c.info.update(asdict(c.grid), **asdict(opts))
-    c.flags = c.samples.flags.copy()
-
-
-def _respond(c: _Call) -> None:
-    out = decompose_with_response(c.samples, c.response, c.grid, c.opts, c.fams, hold=c.hold)
-    c.flags |= out.flags
-    c.info.update(out.info)
-    c.params = out.params
-
-
-def _quality_response(c: _Call) -> None:
-    core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if c.background else ())
-    c.fit = assess_fit(c.samples, {k: c.params[k] for k in core_keys}, c.samples.noise_eff, c.opts.poor_fit,
-                       irf=c.response)
-    c.flags |= c.fit.flags
-
-
-def _finish_response(c: _Call) -> None:
-    lead = c.samples.lead
-    params = {k: v.reshape(lead + np.shape(v)[1:]) for k, v in c.params.items()}
-    if c.opts.stderr:
-        core_keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if c.background else ())
-        params.update(component_errors(c.samples, {k: params[k] for k in core_keys}, shared_sigma=False,
-                                       sss_after_direct=c.opts.sss_after_direct, hold=c.hold, irf=c.response))
-    _assemble(c, params)
-
-
-#: The stages of :func:`decompose` with a measured instrument response (``irf=``), in order.
-#: Detection, labels, refinement, forward steps and errors run inside ``respond``
-#: (:func:`decomposition.response.path.decompose_with_response`, its own sequence over the
-#: response's atoms); prepare and quality are the Gaussian path's with the response's shape.
-RESPONSE_STAGES = (
-    Stage("prepare", _prepare_response, "resolve the response; prepare the samples, spikes judged by its shape"),
-    Stage("respond", _respond, "detect, label, refine and grow over the response's atoms (response.path)"),
-    Stage("quality", _quality_response, "render the fit with the response and flag its quality"),
-    Stage("finish", _finish_response, "shape the outputs; standard errors with the response's atoms (stderr=True)"),
 )
 
 
@@ -416,8 +413,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
               irf=None, hold=None, **options) -> DecompositionResult:
     """Decompose time profiles into direct, inter-reflection and sss components.
 
-    Runs the stages of :data:`STAGES` in order (:data:`RESPONSE_STAGES` with ``irf``); the
-    method, each stage and the flags are described in docs/decomposition.md.
+    Runs the stages of :data:`STAGES` in order; the method, each stage and the flags are
+    described in docs/decomposition.md.
 
     Parameters
     ----------
@@ -487,7 +484,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     call = _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
                  saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams),
                  method_options=method_options, irf=irf, keywords=keywords, background=background, hold=hold)
-    for stage in (STAGES if irf is None else RESPONSE_STAGES):
+    for stage in STAGES:
         stage.run(call)
     return call.result
 
