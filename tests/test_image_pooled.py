@@ -166,3 +166,28 @@ def test_the_compiled_aligned_sums_are_the_offset_by_offset_sums_bit_for_bit():
     for g, w in zip(got, want):
         assert np.array_equal(g, w)
     assert got[4][1, 2] == 0 and got[4][0, 0] == 8           # a corner pixel: 9 offsets less the NaN one
+
+
+def test_the_pooled_significance_is_read_in_the_members_own_noise():
+    """The pool's matched filter is scaled by the sum of its members' noise variances (each pixel's
+    own noise estimate), not by a noise estimate of the pooled residual's few hundred samples,
+    whose scatter puts pure-noise neighbourhoods over the threshold far more often than the
+    threshold says: 25 members, each with the same residual A g(t - 200 ps) and a noise sigma s,
+    give a peak of exactly sqrt(25) A |g| / s at 200 ps, found in the centre."""
+    ny = nx = 9
+    nan = np.full((ny, nx), np.nan)
+    p = {"direct_delay_ps": np.full((ny, nx), 50.0), "direct_amplitude": np.ones((ny, nx)),
+         "direct_sigma_ps": np.full((ny, nx), SIGMA), "sss_delay_ps": nan, "sss_amplitude": nan,
+         "sss_alpha_per_ps": nan, "sss_sigma_ps": nan, "ir_delay_ps": np.full((ny, nx, 1), np.nan),
+         "ir_amplitude": np.full((ny, nx, 1), np.nan), "ir_sigma_ps": np.full((ny, nx, 1), np.nan)}
+    comps = render_components(p, L, T)
+    t = T + T * np.arange(L)
+    a, s = 0.006, 0.01
+    g = np.exp(-0.5 * ((t - 200.0) / SIGMA) ** 2)
+    profiles = comps["direct"] + a * g
+    res = _direct_only_fit(profiles, p, comps)
+    res.info["noise_sigma"] = np.full((ny, nx), s)
+    out, found, snr = pooled_echoes(profiles, res, T)
+    taps = np.exp(-0.5 * (np.arange(-8, 9) * T / SIGMA) ** 2)
+    np.testing.assert_allclose(snr[4, 4], 5.0 * a * np.sqrt(np.sum(taps ** 2)) / s, rtol=1e-9)
+    assert found[4, 4] and abs(out.params["ir_delay_ps"][4, 4, 0] - 200.0) < 1e-9

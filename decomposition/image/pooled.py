@@ -11,8 +11,11 @@ Pooled echoes (:func:`pooled_echoes`)
     summed, aligned.  A 1 % echo at one standard deviation of one pixel's noise stands at
     about five in the sum of 25.  A matched filter (the PSF-shaped Gaussian, width the fitted
     direct's median: one instrument) scans the pooled residual after the direct, in the pooled
-    noise: for white noise :func:`decomposition.noise.noise_sigma` of the pooled residual, for
-    counts the pooled model (Poisson variance, at least ``POISSON_VARIANCE_FLOOR``).  Its peak,
+    noise: the sum of the members' variances, for white noise each pixel's own noise estimate
+    (``info["noise_sigma"]``, else :func:`decomposition.noise.noise_sigma` of its residual; a
+    noise estimate of the pooled residual itself scatters by ~8 % over its few hundred samples,
+    which several times inflates how often pure noise crosses the threshold), for counts the
+    pooled model (Poisson variance, at least ``POISSON_VARIANCE_FLOOR``).  Its peak,
     at ``z`` sigma or more (:data:`ECHO_Z`, 4: an echo at 5 sigma crosses a 5-sigma threshold
     only half the time), is kept where the pool's penalised objective
     (:func:`decomposition.stages.selection.penalised` of the pool's data term,
@@ -220,13 +223,16 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
 
     # the search keeps away from every pool member's fitted components, aligned: the misfit
     # a neighbour leaves about its own echo must not pass for an echo the pool shares
-    pooled, pooled_var, near, amp_sum, n_pool = aligned_sums(
-        resid, np.maximum(model, 0.0), _near_components(params, t, sigma[..., None]), a_d, d, T, int(window))
     if counts:
-        var = np.maximum(pooled_var, POISSON_VARIANCE_FLOOR)
+        variance = np.maximum(model, 0.0)
     else:
-        s = noise_sigma(pooled.reshape(-1, L)).reshape(Y, X)
-        var = np.broadcast_to(np.maximum(s, np.finfo(float).tiny)[..., None] ** 2, pooled.shape)
+        s_c = result.info.get("noise_sigma")
+        s_c = noise_sigma(resid.reshape(-1, L)).reshape(Y, X) if s_c is None else np.asarray(s_c, np.float64)
+        s_c = np.nan_to_num(s_c)
+        variance = np.broadcast_to((s_c ** 2)[..., None], resid.shape)
+    pooled, pooled_var, near, amp_sum, n_pool = aligned_sums(
+        resid, np.ascontiguousarray(variance), _near_components(params, t, sigma[..., None]), a_d, d, T, int(window))
+    var = np.maximum(pooled_var, POISSON_VARIANCE_FLOOR if counts else np.finfo(float).tiny)
     num, den = np.zeros((Y, X, L)), np.ones((Y, X, L))
     for width in np.unique(sigma[np.isfinite(sigma)]):
         at = sigma == width
@@ -258,7 +264,7 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     tau = t[b] + T * np.clip(frac, -0.5, 0.5)
     sigma = sigma[iy, ix]
     atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma[:, None]) ** 2)          # (n, L)
-    v = var[iy, ix] if counts else var[iy, ix]
+    v = var[iy, ix]
     amp_pool = (num[iy, ix, b] / den[iy, ix, b])
     r_pool = pooled[iy, ix]
     log_n = log_samples(n_pool[iy, ix] * L)
@@ -270,8 +276,6 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     if counts:
         v_c = np.maximum(model[iy, ix], POISSON_VARIANCE_FLOOR)
     else:
-        s_c = result.info.get("noise_sigma")
-        s_c = noise_sigma(resid.reshape(-1, L)).reshape(Y, X) if s_c is None else np.asarray(s_c, np.float64)
         v_c = np.broadcast_to(np.maximum(s_c[iy, ix], np.finfo(float).tiny)[:, None] ** 2, atom.shape)
     prec = np.einsum("nl,nl->n", atom, atom / v_c)
     a_ml = np.einsum("nl,nl->n", resid[iy, ix], atom / v_c) / prec
