@@ -89,3 +89,38 @@ def test_spike_on_a_tail_is_excluded_with_the_responses_own_ratio(tailed):
     other_grid = decompose(spiky, T, irf=tailed, sigma_range_ps=(8.0, 80.0))
     np.testing.assert_array_equal(other_grid.flags, res.flags)
     np.testing.assert_array_equal(other_grid.params["direct_delay_ps"], res.params["direct_delay_ps"])
+
+
+def test_the_labels_rule_reads_a_responses_atoms_as_the_gaussian_paths():
+    """One rule of the atoms a pixel keeps (``stages.label.final_atoms``): with a Gaussian
+    response of sigma 2 bins, the window's heights and energies of its atoms are the Gaussian
+    path's measures of that sigma (to the table's error); two shifted copies closer than the
+    merge tolerance leave the larger one where it was (a response has no width to merge into),
+    where the Gaussian rule merges them into one wider atom; an atom below the relative
+    threshold goes on both."""
+    from decomposition.model.components import merge_gaussians, window_measures
+    from decomposition.options import SolverOptions
+    from decomposition.stages.label import final_atoms
+
+    sigma = 2.0 * T
+    irf = gaussian_response(sigma, time_step_ps=T)
+    fam = np.array([[FAM_GAUSS, FAM_SSS, FAM_GAUSS, FAM_GAUSS], [FAM_GAUSS, FAM_NONE, FAM_GAUSS, FAM_NONE]], np.int8)
+    st = {"fam": fam, "delay": np.array([[80.0, 86.0, 80.8, 160.0], [T_PS[0] - 3.0, 0.0, 200.0, 0.0]]),
+          "lsig": np.full(fam.shape, math.log(sigma)), "lalp": np.where(fam == FAM_SSS, math.log(0.02), 0.0),
+          "amp": np.array([[1.0, 0.3, 0.6, 0.02], [0.5, 0.0, 0.4, 0.0]])}
+    h_r, e_r = window_measures(st, T_PS, irf=irf)
+    h_g, e_g = window_measures(st, T_PS)
+    np.testing.assert_allclose(h_r, h_g, atol=1e-7)
+    np.testing.assert_allclose(e_r, e_g, rtol=1e-6, atol=1e-12)
+    merged = merge_gaussians({k: v.copy() for k, v in st.items()}, T, 1.0, widths=False)
+    np.testing.assert_array_equal(merged["fam"][0], [FAM_GAUSS, FAM_SSS, FAM_NONE, FAM_GAUSS])
+    assert merged["delay"][0, 0] == 80.0 and merged["amp"][0, 0] == 1.0 and merged["lsig"][0, 0] == st["lsig"][0, 0]
+    widened = merge_gaussians({k: v.copy() for k, v in st.items()}, T, 1.0)
+    assert 80.0 < widened["delay"][0, 0] < 80.8 and widened["lsig"][0, 0] > st["lsig"][0, 0]
+    opts = SolverOptions()
+    kept_r = final_atoms({k: v.copy() for k, v in st.items()}, T_PS, T, opts, irf=irf)
+    kept_g = final_atoms({k: v.copy() for k, v in st.items()}, T_PS, T, opts)
+    assert kept_r["fam"][0, 3] == FAM_NONE and kept_g["fam"][0, 3] == FAM_NONE     # 2 % of the peak
+    np.testing.assert_array_equal(kept_r["fam"][1], kept_g["fam"][1])
+    with pytest.raises(ValueError, match="weights"):
+        window_measures(st, T_PS, weights=np.ones((2, L)), irf=irf)

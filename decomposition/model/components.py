@@ -37,6 +37,7 @@ import numpy as np
 from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
                          SIGNIFICANCE_WEIGHT_CAP)
 from ..kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
+from .atoms import slot_atoms
 from .slots import axis_of
 from core.model import BACKGROUND_KEY, empty_params, render_components
 
@@ -61,14 +62,25 @@ def peak_heights(st: dict, t_ps: np.ndarray, w: np.ndarray | None = None) -> np.
     return window_measures(st, t_ps)[0]
 
 
-def window_measures(st: dict, t_ps: np.ndarray, weights=None):
+def window_measures(st: dict, t_ps: np.ndarray, weights=None, irf=None):
     """What the window sees of every active atom: its peak height max_i |c_i| and its energy
     sum_i c_i^2 over the window's samples, both (P, K), units of the profile and its square;
     0 for empty slots.  ``weights`` (P, L): the energy is sum_i w_i c_i^2 instead (relative
     weights of the samples, :attr:`Detection.weights`), each weight at most
-    SIGNIFICANCE_WEIGHT_CAP."""
+    SIGNIFICANCE_WEIGHT_CAP.  ``irf``: the atoms are a measured response's
+    (:func:`decomposition.model.atoms.slot_atoms`, their largest sample the height; no
+    ``weights``)."""
     act = st["fam"] != FAM_NONE
     h, e = np.zeros(act.shape), np.zeros(act.shape)
+    if irf is not None:
+        if weights is not None:
+            raise ValueError("window_measures: sample weights are not read with a measured response's atoms")
+        if act.any():
+            phi = slot_atoms(irf, t_ps, st["fam"], np.nan_to_num(st["delay"]), np.nan_to_num(st["lalp"]))
+            a = np.abs(st["amp"])
+            h = a * phi.max(axis=2)
+            e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
+        return h, e
     if act.any():
         pi, ki, sums = _in_window(st, t_ps)
         a = np.abs(st["amp"][pi, ki])
@@ -167,7 +179,7 @@ def _drop(st, mask):
 
 def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=None,
               significance_chi2: float = 0.0, weights=None,
-              sss_factor: float | None = SSS_RESOLVED_CHI2_FACTOR) -> dict:
+              sss_factor: float | None = SSS_RESOLVED_CHI2_FACTOR, irf=None) -> dict:
     """Drop the atoms that are neither large nor significant inside the window (in place).
 
     An atom is kept when its in-window peak is at least ``rel_threshold`` x the pixel's
@@ -181,9 +193,9 @@ def threshold(st: dict, t_ps: np.ndarray, rel_threshold: float = 0.05, noise=Non
     ``significance_chi2 = 0`` the relative rule alone.  Atoms with no sample in the window are
     always dropped.  ``weights`` (P, L): the energy weighs each sample so (where the noise
     follows the signal, s^2 / weight is the noise variance there).  ``sss_factor``: see
-    :func:`keep_atoms`.
+    :func:`keep_atoms`.  ``irf``: the atoms are a measured response's (:func:`window_measures`).
     """
-    h, e = window_measures(st, t_ps, weights)
+    h, e = window_measures(st, t_ps, weights, irf)
     keep = keep_atoms(st, h, e, rel_threshold, noise, significance_chi2, sss_factor)
     _drop(st, (st["fam"] != FAM_NONE) & ~keep)
     # atoms entirely outside the window render as zero everywhere inside it
@@ -214,10 +226,24 @@ def keep_atoms(st: dict, h: np.ndarray, e: np.ndarray, rel_threshold: float, noi
     return keep
 
 
-def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0) -> dict:
-    """Merge Gaussian atoms of one pixel closer than ``merge_tol_bins`` bins (in place)."""
+def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0, widths: bool = True) -> dict:
+    """Merge Gaussian atoms of one pixel closer than ``merge_tol_bins`` bins (in place): into
+    the Gaussian of their summed area, mean delay and variance; without ``widths`` (the shifted
+    copies of a measured response, which has no width to merge into) the larger atom is kept
+    as it is and the smaller dropped."""
     K = st["fam"].shape[1]
     tol = merge_tol_bins * time_bin_ps
+    if not widths:
+        # one pass is the fixed point: a kept atom does not move
+        fam = st["fam"]
+        for i in range(K):
+            for j in range(i + 1, K):
+                m = (fam[:, i] == FAM_GAUSS) & (fam[:, j] == FAM_GAUSS) & (np.abs(st["delay"][:, i] - st["delay"][:, j]) < tol)
+                small_i = m & (st["amp"][:, i] < st["amp"][:, j])
+                for slot, rows in ((i, small_i), (j, m & ~small_i)):
+                    fam[rows, slot] = FAM_NONE
+                    st["amp"][rows, slot] = 0.0
+        return st
     changed = True
     while changed:
         changed = False

@@ -1,11 +1,11 @@
 """Labels and the parameter layout of the response path.
 
-:func:`label_response` turns detected slots into named components: the relative threshold
-(peak height inside the window, from the response's own atoms), shifted atoms closer than
-``merge_tol_bins`` reduced to the larger one, the sss onset moved to the direct's delay when it
-lies before it (``sss_after_direct``), then :func:`decomposition.model.components.classify`: the
-earliest shifted atom is the direct reflection, later ones r2, r3, ... in delay order, the
-sss atom s.  Every present component's ``*_sigma_ps`` is the response's Gaussian-equivalent
+:func:`label_response` turns detected slots into named components by the Gaussian path's rule
+(:func:`decomposition.stages.label.final_atoms` on the response's atoms: the threshold on peak
+heights inside the window, shifted atoms closer than ``merge_tol_bins`` reduced to the larger
+one, the sss onset moved to the direct's delay when it lies before it with
+``sss_after_direct``), then :func:`decomposition.model.components.classify`: the earliest
+shifted atom is the direct reflection, later ones r2, r3, ... in delay order, the sss atom s.  Every present component's ``*_sigma_ps`` is the response's Gaussian-equivalent
 sigma (:func:`core.irf_components.gaussian_equivalent_sigma_ps`).
 
 :func:`param_slots` / :func:`slots_to_params` convert between a parameter dict and the fixed
@@ -20,41 +20,27 @@ import numpy as np
 from ..model import components as comp
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from core.model import empty_params
-from ..model.atoms import slot_atoms
+from ..options import SolverOptions
+from ..stages.label import final_atoms
 
 __all__ = ["label_response", "param_slots", "slots_to_params"]
 
 
-def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, *, rel_threshold: float,
-                   merge_tol_ps: float, sss_after_direct: bool, noise=None, significance_chi2: float = 0.0):
+def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, opts: SolverOptions, *,
+                   time_bin_ps: float, noise=None):
     """Slots (n, K) -> (params (n-shaped, amplitudes times ``scale``), truncated (n,) bool).
 
-    The threshold is the Gaussian path's rule (:func:`decomposition.model.components.keep_atoms`: the
-    relative rule on in-window peaks, or significant against ``noise`` (n,), normalised units),
-    on the response's own atoms."""
+    The Gaussian path's rule of the atoms a pixel keeps
+    (:func:`decomposition.stages.label.final_atoms` with ``irf``: the threshold on the
+    response's own atoms, relative on in-window peaks or significant against ``noise`` (n,),
+    normalised units; close shifted copies reduced to the larger; no sss onset before the
+    direct with ``sss_after_direct``), then :func:`decomposition.model.components.classify`."""
     st = {k: v.copy() for k, v in st.items()}
+    st["lsig"] = np.full(st["fam"].shape, math.log(sigma_eq_ps))     # what the rule resolves by, and the output's
+    final_atoms(st, t_ps, time_bin_ps, opts, noise, irf=irf)
     fam = st["fam"]
-    st["lsig"] = np.full(fam.shape, math.log(sigma_eq_ps))     # what the rule resolves by, and the output's
-    if (fam != FAM_NONE).any():
-        phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(st["delay"]), np.nan_to_num(st["lalp"]))
-        a = np.abs(st["amp"])
-        h = a * phi.max(axis=2)
-        e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
-        keep = comp.keep_atoms(st, h, e, rel_threshold, noise, significance_chi2)
-        drop = (fam != FAM_NONE) & ~(keep & (h > 0))
-        fam[drop] = FAM_NONE
-        K = fam.shape[1]
-        for i in range(K):
-            for j in range(i + 1, K):
-                m = ((fam[:, i] == FAM_GAUSS) & (fam[:, j] == FAM_GAUSS)
-                     & (np.abs(st["delay"][:, i] - st["delay"][:, j]) < merge_tol_ps))
-                small_i = m & (st["amp"][:, i] < st["amp"][:, j])
-                fam[small_i, i] = FAM_NONE
-                fam[m & ~small_i, j] = FAM_NONE
     st["amp"] = np.where(fam != FAM_NONE, st["amp"], 0.0)
     st["delay"] = np.where(fam != FAM_NONE, st["delay"], 0.0)
-    if sss_after_direct:
-        comp.clip_sss_onset(st)
     st["lalp"] = np.where(fam == FAM_SSS, st["lalp"], 0.0)
     return comp.classify(st, np.asarray(scale, np.float64), n_ir)
 

@@ -123,11 +123,8 @@ def label(rf: ResponseFit, samples: Samples, opts: SolverOptions) -> None:
     """Threshold, merge and name the detected atoms (:func:`decomposition.response.label.label_response`)."""
     live = samples.live
     rf.params, rf.trunc = label_response(rf.det.state, rf.irf, rf.t, samples.scale[live], rf.sigma_eq_ps,
-                                         opts.max_reflections, rel_threshold=opts.rel_threshold,
-                                         merge_tol_ps=opts.merge_tol_bins * samples.axis.time_bin_ps,
-                                         sss_after_direct=opts.sss_after_direct,
-                                         noise=samples.significance_sigma(live, samples.noise_eff[live]),
-                                         significance_chi2=opts.significance_chi2)
+                                         opts.max_reflections, opts, time_bin_ps=samples.axis.time_bin_ps,
+                                         noise=samples.significance_sigma(live, samples.noise_eff[live]))
 
 
 def refit(rf: ResponseFit, samples: Samples) -> None:

@@ -65,16 +65,17 @@ def params_at_bound(params: dict, bounds: dict) -> np.ndarray:
 
 
 def final_atoms(st: dict, t_ps: np.ndarray, time_bin_ps: float, opts: SolverOptions, noise=None,
-                weights=None) -> dict:
+                weights=None, irf=None) -> dict:
     """The atoms a pixel keeps, as every output reports them (in place): the in-window threshold
     (relative, or significant against the pixel's ``noise`` (n,), normalised units;
     :func:`decomposition.model.components.threshold`), Gaussians merged (refinement can bring two
     together), one width per pixel with ``shared_sigma`` (a merge leaves the merged atom wider),
     no sss onset before the direct with ``sss_after_direct``.  The search stage scores its
-    starts through the same rule."""
-    comp.threshold(st, t_ps, opts.rel_threshold, noise, opts.significance_chi2, weights)
-    comp.merge_gaussians(st, time_bin_ps, opts.merge_tol_bins)
-    if opts.shared_sigma:
+    starts through the same rule, and a measured response's labels (``irf``: its atoms' heights
+    and energies, the larger of two close shifted copies kept, no width to share)."""
+    comp.threshold(st, t_ps, opts.rel_threshold, noise, opts.significance_chi2, weights, irf=irf)
+    comp.merge_gaussians(st, time_bin_ps, opts.merge_tol_bins, widths=irf is None)
+    if opts.shared_sigma and irf is None:
         tie_widths(st)
     if opts.sss_after_direct:
         comp.clip_sss_onset(st)
