@@ -12,7 +12,6 @@ from decomposition import decompose
 from decomposition.model.components import window_fraction
 from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.flags import OFF_WINDOW, SPIKE
-from decomposition.model.atoms import slot_window_fraction
 from decomposition.response.resolve import resolve_response, spike_neighbour_ratio
 
 T = 2.0
@@ -28,7 +27,9 @@ def test_window_fraction_of_response_atoms_is_the_gaussian_paths_measure():
     delay = np.array([[T_PS[0] - 3.0, 100.0, T_PS[0]], [T_PS[-1], 60.0, T_PS[-1] - 30.0]])
     fam = np.array([[FAM_GAUSS, FAM_SSS, FAM_GAUSS], [FAM_GAUSS, FAM_SSS, FAM_NONE]], np.int8)
     lalp = np.where(fam == FAM_SSS, math.log(0.02), 0.0)
-    got = slot_window_fraction(irf, T_PS, fam, delay, lalp)
+    st = {"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(sigma)), "lalp": lalp,
+          "amp": np.ones(fam.shape)}
+    got = window_fraction(st, T_PS, irf=irf)
     want = window_fraction({"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(sigma)),
                             "lalp": lalp, "amp": np.ones(fam.shape)}, T_PS)
     np.testing.assert_allclose(got, want, atol=1e-7)

@@ -7,8 +7,7 @@ sss slots only).  :func:`slot_atoms` renders every active slot at once with the 
 :func:`decomposition.kernels.response.slot_rows` (the atoms of
 :func:`~decomposition.kernels.response.shifted_atoms` / :func:`~decomposition.kernels.response.sss_atoms`,
 unit peak; :func:`core.irf.render_shifted` / :func:`core.irf.render_sss` to within their
-stated table error), and optionally the derivatives with respect to the delay and to log alpha; :func:`slot_window_fraction` the
-fraction of each atom's area inside the window (the OFF_WINDOW rule's measure).
+stated table error), and optionally the derivatives with respect to the delay and to log alpha.
 """
 from __future__ import annotations
 
@@ -17,10 +16,10 @@ import numpy as np
 from core.irf import InstrumentResponse
 from core.irf_components import render_components_response
 from core.model import BACKGROUND_KEY, params_shape
-from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..constants import FAM_SSS
 from ..kernels.response import response_table, shifted_atoms, slot_rows, sss_atoms
 
-__all__ = ["params_components", "params_profile", "slot_atoms", "slot_window_fraction"]
+__all__ = ["params_components", "params_profile", "slot_atoms"]
 
 
 def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
@@ -94,32 +93,3 @@ def params_profile(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -> n
     if "background" in c:
         total += c["background"]
     return total
-
-
-def slot_window_fraction(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
-                         lalp: np.ndarray) -> np.ndarray:
-    """Fraction of every active slot's area inside the window, (P, K) in [0, 1] (1 for empty slots).
-
-    T sum_i phi(t_i) of the unit-peak atom over its whole area: 1 / peak for a shifted copy
-    (the response has unit area), 1 / (alpha peak) for the sss atom (the response convolved with
-    exp(-alpha u), whose area is 1 / alpha), ``peak`` = ``irf.peak_per_ps``; the measure of
-    :func:`decomposition.model.components.window_fraction` for the response's atoms.
-
-    Parameters
-    ----------
-    irf : InstrumentResponse
-    t_ps : ndarray (L,)          the window's (uniform) sample times, ps
-    fam, delay, lalp : ndarray (P, K)
-        Slot arrays (see :func:`slot_atoms`).
-    """
-    out = np.ones(fam.shape)
-    act = fam != FAM_NONE
-    if not act.any() or t_ps.size < 2:
-        return out
-    T = float(t_ps[1] - t_ps[0])
-    phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(delay), np.nan_to_num(lalp))
-    area = np.full(fam.shape, 1.0 / irf.peak_per_ps)
-    sss = fam == FAM_SSS
-    area[sss] /= np.exp(lalp[sss])
-    out[act] = np.clip(T * phi[act].sum(axis=-1) / area[act], 0.0, 1.0)
-    return out

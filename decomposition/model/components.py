@@ -94,12 +94,25 @@ def window_measures(st: dict, t_ps: np.ndarray, weights=None, irf=None):
     return h, e
 
 
-def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
+def window_fraction(st: dict, t_ps: np.ndarray, irf=None) -> np.ndarray:
     """Fraction of every active atom's area inside the window, (P, K) in [0, 1] (1 for empty
     slots): T sum_i phi(t_i) over the kernel's area (sigma sqrt(2 pi) for a Gaussian,
-    sigma sqrt(2 pi) / alpha for the sss kernel, :mod:`core.model`)."""
+    sigma sqrt(2 pi) / alpha for the sss kernel, :mod:`core.model`).  ``irf``: the atoms are a
+    measured response's unit-peak atoms (:func:`decomposition.model.atoms.slot_atoms`), whose
+    areas are 1 / peak for a shifted copy (the response has unit area) and 1 / (alpha peak) for
+    the sss atom, ``peak`` = ``irf.peak_per_ps``."""
     act = st["fam"] != FAM_NONE
     out = np.ones(act.shape)
+    if irf is not None:
+        if act.any() and t_ps.size > 1:
+            T = float(t_ps[1] - t_ps[0])
+            fam, lalp = st["fam"], st["lalp"]
+            phi = slot_atoms(irf, t_ps, fam, np.nan_to_num(st["delay"]), np.nan_to_num(lalp))
+            area = np.full(fam.shape, 1.0 / irf.peak_per_ps)
+            sss = fam == FAM_SSS
+            area[sss] /= np.exp(lalp[sss])
+            out[act] = np.clip(T * phi[act].sum(axis=-1) / area[act], 0.0, 1.0)
+        return out
     if act.any() and t_ps.size > 1:
         T = float(t_ps[1] - t_ps[0])
         pi, ki, sums = _in_window(st, t_ps)
@@ -110,14 +123,15 @@ def window_fraction(st: dict, t_ps: np.ndarray) -> np.ndarray:
     return out
 
 
-def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS) -> np.ndarray:
-    """(P, K) bool: active atoms that run off either edge of the window -- a Gaussian centred
-    within OFF_WINDOW_EDGE_SIGMA of its widths of the window's edge (half a bin outside the first
-    or the last sample) or beyond it, or any atom with more than ``mass_out`` of its area outside
-    the window (:func:`window_fraction`); the rule of :func:`runs_off_window` on the Gaussian
-    atoms."""
+def off_window(st: dict, t_ps: np.ndarray, mass_out: float = OFF_WINDOW_MASS, irf=None) -> np.ndarray:
+    """(P, K) bool: active atoms that run off either edge of the window -- a Gaussian (a shifted
+    copy of a measured response ``irf``) centred within OFF_WINDOW_EDGE_SIGMA of its widths
+    (``st["lsig"]``; a response's Gaussian-equivalent width) of the window's edge (half a bin
+    outside the first or the last sample) or beyond it, or any atom with more than ``mass_out``
+    of its area outside the window (:func:`window_fraction`); the rule of
+    :func:`runs_off_window`."""
     return runs_off_window(st["fam"] != FAM_NONE, st["fam"] == FAM_GAUSS, st["delay"],
-                           window_fraction(st, t_ps), t_ps, mass_out, width_ps=np.exp(st["lsig"]))
+                           window_fraction(st, t_ps, irf), t_ps, mass_out, width_ps=np.exp(st["lsig"]))
 
 
 def runs_off_window(active: np.ndarray, peaked: np.ndarray, delay_ps: np.ndarray, fraction_in: np.ndarray,

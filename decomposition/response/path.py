@@ -37,15 +37,14 @@ import numpy as np
 from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, empty_params
 from ..stages.background import background_significant, background_threshold
-from ..model.components import runs_off_window
+from ..model.components import off_window
 from ..model.refine import hold_params
-from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+from ..constants import FAM_GAUSS, FAM_SSS, SSS_SLOT
 from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
-from ..model.atoms import slot_window_fraction
 from .detect import RESPONSE_PHASES, detect_response, response_dictionary
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
@@ -188,11 +187,9 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
     mark(flags, live[rf.trunc], TRUNCATED)
     # the Gaussian path's rules on the final atoms: alpha at its bound (the response has no width
     # to hit one), a component running off the window's edge
-    state = {"fam": fam, "lsig": np.zeros(fam.shape), "lalp": lalp}
+    state = {"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(rf.sigma_eq_ps)), "lalp": lalp}
     mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": rf.bounds["lalp"]})], AT_BOUND)
-    inside = slot_window_fraction(rf.irf, t, fam, delay, lalp)
-    mark(flags, live[runs_off_window(fam != FAM_NONE, fam == FAM_GAUSS, delay, inside, t,
-                                     width_ps=rf.sigma_eq_ps).any(axis=1)], OFF_WINDOW)
+    mark(flags, live[off_window(state, t, irf=rf.irf).any(axis=1)], OFF_WINDOW)
     # the split the data do not determine: a restored direct within the noise of the fit
     # without it, or (the search stage's rule) an sss left with no direct where the paper's
     # model gives every pixel one
