@@ -289,6 +289,29 @@ def test_the_decomposition_table_is_acyclic():
     assert find_cycle(DECOMPOSITION) is None
 
 
+#: the longest module without a comment that says why it is one module
+MODULE_LINES = 600
+#: the most modules one folder of decomposition holds (its __init__ not counted)
+FOLDER_MODULES = 15
+LONG_MODULE_NOTE = "# One module over 600 lines on purpose:"
+
+
+def test_decomposition_folders_stay_small_and_long_modules_say_why():
+    """A newcomer finds a thing by the folder names: no folder of ``decomposition`` holds more than
+    FOLDER_MODULES modules, and a module over MODULE_LINES lines carries a comment that says why
+    it is one module."""
+    folders, long_modules = {}, []
+    for path in sorted((ROOT / "decomposition").rglob("*.py")):
+        if path.name != "__init__.py":
+            folders.setdefault(path.parent.relative_to(ROOT), []).append(path.name)
+        text = path.read_text(encoding="utf-8")
+        if text.count("\n") > MODULE_LINES and LONG_MODULE_NOTE not in text:
+            long_modules.append(str(path.relative_to(ROOT)))
+    crowded = {str(k): len(v) for k, v in folders.items() if len(v) > FOLDER_MODULES}
+    assert not crowded, f"folders over {FOLDER_MODULES} modules: {crowded}"
+    assert not long_modules, f"modules over {MODULE_LINES} lines without {LONG_MODULE_NOTE!r}: {long_modules}"
+
+
 def test_no_decomposition_import_outside_its_table():
     bad = []
     for module, found in module_imports(ROOT, "decomposition").items():

@@ -45,6 +45,9 @@ mask and the pixel's noise, or Poisson weights at the pixel's model for count da
 whitened by a correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
+
+# One module over 600 lines on purpose: the spatial options, the homogeneity test, the priors it
+# builds and the joint refinement that reads them are one mechanism over one neighbourhood layout.
 from __future__ import annotations
 
 import inspect

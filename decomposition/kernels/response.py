@@ -55,6 +55,9 @@ lower -- within 1.7e-6 of their largest (the test: 5e-6).  The shifted atom's de
 and the alpha derivative equal finite differences of the rendered atoms to the differences' own
 error; the sss delay derivative equals them within 5e-6 of its largest value.
 """
+
+# One module over 600 lines on purpose: the response's table, the compiled atoms read from it and
+# their derivatives share one set of private node and window helpers (_uniform_span, _node_views).
 from __future__ import annotations
 
 import math

@@ -55,6 +55,10 @@ every prior's term.
 
 See :mod:`decomposition.model.refine` for the public function and its options.
 """
+
+# One module over 600 lines on purpose: the layout of the parameters, the evaluation of the projected
+# model (NumPy, the reference of the compiled one) and the damped loop over it are one algorithm;
+# split, each part would read the others' private layout.
 from __future__ import annotations
 
 import numpy as np
