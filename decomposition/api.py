@@ -139,7 +139,7 @@ class _Call:
         return self.method == "convscd" and self.irf is None
 
 
-# --------------------------------------------------------------------------- the Gaussian path
+# --------------------------------------------------------------------------- the stages
 
 def _prepare(c: _Call) -> None:
     opts, axis = c.opts, c.axis
