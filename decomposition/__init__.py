@@ -9,13 +9,14 @@ The package, bottom up (``tests/test_layers.py`` holds the table of who may impo
 ``noise``
     noise estimates and deviances
 ``model/``
-    the parametric model the stages share: slot states, components, refines, fidelity
+    the parametric model the stages share: slot states, atoms of any response, components,
+    refines, Fisher errors, fidelity
 ``methods/``
     ConvSCD and the GradBM baseline
 ``stages/``
     the stages :func:`decompose` runs
 ``response/``
-    the measured-response path (``decompose(irf=...)``)
+    the stages' implementations for a measured instrument response (``decompose(irf=...)``)
 ``api``
     :func:`decompose` and :class:`DecompositionResult`; ``warmup`` loads the kernels before timing
 ``image/``

@@ -1,7 +1,10 @@
-"""The measured-response path: decomposition with an instrument response (``decompose(irf=...)``).
+"""What a measured instrument response (``decompose(irf=...)``) does differently in the stages.
 
-``resolve`` checks and resamples the ``irf=`` argument, ``dictionary`` renders the response's
-atoms, ``detect`` / ``grow`` / ``refine`` fit slot atoms under the Poisson or Gaussian
-deviance, ``label`` / ``fisher`` label them and give their errors, ``atoms`` renders a slot's
-atoms, and ``path`` runs the whole path for :func:`decomposition.decompose`.
+The stage list (:data:`decomposition.api.STAGES`), the labels' rule, the flags' rules and the
+standard errors are the Gaussian path's, given the response's atoms
+(:mod:`decomposition.model.atoms`).  Here: ``resolve`` checks and resamples the ``irf=``
+argument, ``dictionary`` renders the response's coarse atoms, ``detect`` / ``refine`` / ``grow``
+fit slot atoms under the Poisson or Gaussian deviance, ``label`` names them, and ``path`` holds
+the response's implementations of the ``detect``, ``label``, ``refit``, ``forward_steps``,
+``offset_test`` and ``final_atoms`` stages.
 """
