@@ -7,7 +7,7 @@ from pathlib import Path
 
 from streaklab.cli import CommandError
 
-__all__ = ["choices", "positive_floats", "seed_list", "output_folder"]
+__all__ = ["choices", "positive_floats", "seed_list", "chosen_seeds", "output_folder"]
 
 
 def choices(text: str, allowed, what: str) -> list[str]:
@@ -50,6 +50,20 @@ def seed_list(text: str, what: str = "seeds") -> list[int]:
     if twice:
         raise CommandError(f"--{what}: seed {', '.join(map(str, twice))} given more than once in {text!r}")
     return seeds
+
+
+def chosen_seeds(seed, seeds, default: str) -> list[int]:
+    """The seeds a benchmark runs: ``--seed N`` (one, an int or None), ``--seeds`` (a
+    :func:`seed_list` text or None) or ``default`` (a :func:`seed_list` text) when neither is
+    given; CommandError if both are given or ``--seed`` is negative."""
+    if seed is not None and seeds is not None:
+        raise CommandError(f"give --seed or --seeds, not both (--seed {seed} is --seeds {seed}), "
+                           f"got --seed {seed} --seeds {seeds}")
+    if seed is not None:
+        if seed < 0:
+            raise CommandError(f"--seed must be a non-negative integer, got {seed}")
+        return [int(seed)]
+    return seed_list(default if seeds is None else seeds)
 
 
 def output_folder(path) -> Path:

@@ -32,8 +32,16 @@ as not measured.  Printed, each with its target and whether it is met:
    below 0.5 fidelity, and split directs (a pixel whose truth is a direct alone given an
    inter-reflection within 3 PSF widths of it; target none).
 
-``--out DIR`` writes ``spatial.csv`` (one row per condition and column).  The command exits 0:
-it is a report.
+The scenes, their noise, the echo and spike scenes and the demo's capture are drawn from
+``--seed`` (default 0).  ``--seeds`` (comma-separated, ranges a-b: ``0-4``; not with ``--seed``)
+runs the whole bench on each seed's draw, prints each seed's table and target lines, then a table
+of every target over the seeds: each seed's graded figure (spatial minus the other column's
+fidelity, the speed ratio, a rate or a count) with ``met`` or ``NOT``, and on how many seeds it
+is met.  One seed's figures are the same whether it runs alone or in a list.
+
+``--out DIR`` writes ``spatial.csv`` (one row per seed, condition and column) and
+``summary.json`` (the options, each target's verdict and figure per seed with the count of seeds
+it is met on, and the rows).  The command exits 0: it is a report.
 """
 from __future__ import annotations
 
@@ -44,9 +52,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .arguments import choices, output_folder
+from .arguments import chosen_seeds, choices, output_folder
 from .scoring import target_line
-from .tables import write_csv
+from .tables import write_csv, write_json
 
 METHODS = ("per_pixel", "spatial", "oracle")
 TIME_BIN_PS = 2.0
@@ -55,6 +63,8 @@ CONDITIONS = (("white NSR 0.11", {"nsr": 0.11}), ("white NSR 0.22", {"nsr": 0.22
               ("100 photons", {"photons_per_pixel": 100.0}), ("1000 photons", {"photons_per_pixel": 1000.0}))
 #: the pooled-echo scene's smallest side: its echo rectangle must hold whole 5 x 5 pools
 ECHO_SCENE_MIN = 24
+#: the seeds run unless ``--seeds`` or ``--seed`` says otherwise
+DEFAULT_SEEDS = "0"
 TARGETS = {"beyond_oracle": {"white NSR 0.11": 0.02, "white NSR 0.22": 0.05}, "echo_recall": 0.90,
            "echo_false": 0.01, "echo_sigma": 5.0, "spike_recall": 0.90, "speed": 0.5, "ambiguous": 0.05}
 
@@ -70,8 +80,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--demo-lines", type=int, default=16,
                         help="scan lines of the demo's scene (default 16, the demo's; 0: skip it)")
     parser.add_argument("--quick", action="store_true", help="16 x 16 scenes and 4 demo lines")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scenes and their noise (default 0)")
-    parser.add_argument("--out", help="folder for spatial.csv (default: none written)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help=f"seed of the scenes and their noise (default {DEFAULT_SEEDS})")
+    parser.add_argument("--seeds", default=None,
+                        help="several seeds, each its own draw of every scene, graded apart, then a table of every "
+                             "target over them (comma-separated, ranges a-b, e.g. 0-4); not with --seed")
+    parser.add_argument("--out", help="folder for spatial.csv and summary.json (default: none written)")
 
 
 # --------------------------------------------------------------------------- the columns
@@ -287,12 +301,17 @@ def _fmt(v, spec=".3f"):
     return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, spec)
 
 
-def _rec(text, met, detail):
-    return {"text": text, "met": met, "detail": detail}
+def _rec(text, met, detail, value):
+    """A target record: ``text``, ``met`` (bool, None: not measured), ``detail`` (the printed
+    figures) and ``value`` (the one figure graded, short, for the table over seeds)."""
+    return {"text": text, "met": met, "detail": detail, "value": value}
+
+
+def _diff(a, b):
+    return "n/a" if a is None or b is None else f"{a - b:+.3f}"
 
 
 def run(args) -> int:
-    from decomposition.evaluation.spatial_scenes import make_spatial_scene
     from streaklab.cli import CommandError
 
     methods = choices(args.methods, METHODS, "methods")
@@ -302,15 +321,79 @@ def run(args) -> int:
         raise CommandError("--size must be at least 12, --bins at least 200, --demo-lines at least 0")
     if not (0 < args.echo_nsr < 1):
         raise CommandError(f"--echo-nsr must lie in (0, 1), got {args.echo_nsr!r}")
+    seeds = chosen_seeds(args.seed, args.seeds, DEFAULT_SEEDS)
     out = output_folder(args.out) if args.out else None
-    rows, results, skipped, records = [], {}, {}, []
 
     print(f"spatial scenes {size} x {size} x {args.bins} bins of {TIME_BIN_PS:g} ps, one PSF (sigma 4 ps); "
-          f"columns: {', '.join(methods)}")
-    print(f"{'condition':<16}" + "".join(f"{m:>30}" for m in methods))
+          f"columns: {', '.join(methods)}" + (f"; seeds {', '.join(map(str, seeds))}" if len(seeds) > 1 else ""))
     _warm_up(args.bins, spatial="spatial" in methods)
+    rows, records = [], {}
+    for seed in seeds:
+        if len(seeds) > 1:
+            print(f"seed {seed}:")
+        seed_rows, records[seed] = run_seed(args, seed, methods, size, demo_lines)
+        rows += [{"seed": seed, **r} for r in seed_rows]
+    targets = seed_summary(records)
+    if len(seeds) > 1:
+        print(f"targets over {len(seeds)} seeds (the figure graded: spatial minus the other column's fidelity, "
+              "spatial / per-pixel px/s, a rate or a count):")
+        for line in format_seed_summary(targets, seeds):
+            print(line)
+    if out is not None:
+        write_csv(out / "spatial.csv", rows)
+        write_json(out / "summary.json", {
+            "options": {"size": size, "bins": int(args.bins), "methods": methods, "echo_nsr": float(args.echo_nsr),
+                        "demo_lines": demo_lines, "seeds": seeds},
+            "targets": targets, "rows": rows})
+    return 0
+
+
+def seed_summary(records: dict) -> list[dict]:
+    """One entry per target over the seeds: ``text``, ``seeds`` (per seed ``seed``, ``met``,
+    ``value``, ``detail``), ``met_on`` (the seeds where it is met) and ``measured_on`` (those where
+    it is measured).
+
+    Parameters
+    ----------
+    records : dict seed -> list of target records (:func:`run_seed`'s, the same targets in the
+        same order for every seed)
+    """
+    seeds = list(records)
+    out = []
+    for i, first in enumerate(records[seeds[0]]):
+        per = [{"seed": s, **{k: records[s][i][k] for k in ("met", "value", "detail")}} for s in seeds]
+        out.append({"text": first["text"], "seeds": per, "met_on": sum(p["met"] is True for p in per),
+                    "measured_on": sum(p["met"] is not None for p in per)})
+    return out
+
+
+def format_seed_summary(targets: list[dict], seeds) -> list[str]:
+    """The table over seeds: a row per target, a column per seed (its figure and ``met`` or
+    ``NOT``; ``n/m`` where not measured), then "k of n seeds" it is met on (n: the seeds run)."""
+    def cell(p):
+        return "n/m" if p["met"] is None else f"{p['value']} {'met' if p['met'] else 'NOT'}"
+
+    w_text = max(len("target"), *(len(t["text"]) for t in targets))
+    w_cell = max(len(f"seed {max(seeds)}"), *(len(cell(p)) for t in targets for p in t["seeds"]))
+    lines = [f"  {'target':<{w_text}}" + "".join(f"  {f'seed {s}':>{w_cell}}" for s in seeds) + "  met on"]
+    for t in targets:
+        k = "not measured" if not t["measured_on"] else f"{t['met_on']} of {len(seeds)} seeds"
+        lines.append(f"  {t['text']:<{w_text}}" + "".join(f"  {cell(p):>{w_cell}}" for p in t["seeds"]) + f"  {k}")
+    return lines
+
+
+def run_seed(args, seed: int, methods, size: int, demo_lines: int) -> tuple[list[dict], list[dict]]:
+    """The whole bench on the draws of one ``seed``, its table and target lines printed.
+
+    Returns (rows of spatial.csv without the seed, target records :func:`_rec`), the same targets
+    in the same order for every seed.
+    """
+    from decomposition.evaluation.spatial_scenes import make_spatial_scene
+
+    rows, results, skipped, records = [], {}, {}, []
+    print(f"{'condition':<16}" + "".join(f"{m:>30}" for m in methods))
     for label, opts in CONDITIONS:
-        scene = make_spatial_scene(size, size, args.bins, time_bin_ps=TIME_BIN_PS, seed=args.seed, **opts)
+        scene = make_spatial_scene(size, size, args.bins, time_bin_ps=TIME_BIN_PS, seed=seed, **opts)
         cells = []
         for m in methods:
             answer, seconds, why = run_column(m, scene)
@@ -334,18 +417,18 @@ def run(args) -> int:
     for label, margin in TARGETS["beyond_oracle"].items():
         s, o = get(label, "spatial"), get(label, "oracle")
         records.append(_rec(f"{label}: spatial >= oracle + {margin:g}", None if s is None or o is None else s >= o + margin,
-                            f"spatial {_fmt(s)}, oracle {_fmt(o)}"))
+                            f"spatial {_fmt(s)}, oracle {_fmt(o)}", _diff(s, o)))
     s100, p1000 = get("100 photons", "spatial"), get("1000 photons", "per_pixel")
     records.append(_rec("spatial at 100 photons >= per-pixel at 1000", None if s100 is None or p1000 is None else s100 >= p1000,
-                        f"{_fmt(s100)} vs {_fmt(p1000)}"))
+                        f"{_fmt(s100)} vs {_fmt(p1000)}", _diff(s100, p1000)))
     for label, _ in CONDITIONS:
         s, p = get(label, "spatial", "edges"), get(label, "per_pixel", "edges")
         records.append(_rec(f"{label}: near edges, spatial >= per-pixel", None if s is None or p is None else s >= p - 1e-12,
-                            f"{_fmt(s)} vs {_fmt(p)}"))
+                            f"{_fmt(s)} vs {_fmt(p)}", _diff(s, p)))
     ps, pp = get("white NSR 0.11", "spatial", "px_per_s"), get("white NSR 0.11", "per_pixel", "px_per_s")
     print(f"speed at white NSR 0.11: per-pixel {_fmt(pp, '.0f')} px/s, spatial {_fmt(ps, '.0f')} px/s, "
           f"oracle {_fmt(get('white NSR 0.11', 'oracle', 'px_per_s'), '.0f')} px/s")
-    speed = speed_on_bench_speed_cube(args.seed) if "spatial" in methods and "per_pixel" in methods else None
+    speed = speed_on_bench_speed_cube(seed) if "spatial" in methods and "per_pixel" in methods else None
     if speed is not None:
         print(f"speed on bench speed's cube ({' x '.join(map(str, SPEED_SHAPE))}, white NSR 0.05, a PSF per pixel, so "
               f"spatial=True without shared): per-pixel {speed['per_pixel']:.0f} px/s, spatial {speed['spatial']:.0f} "
@@ -354,12 +437,13 @@ def run(args) -> int:
         rows.append({"condition": "bench speed's cube", "method": "spatial", "px_per_s": speed["spatial"]})
     records.append(_rec(f"speed on bench speed's cube: spatial >= {TARGETS['speed']:g} x per-pixel px/s",
                         None if speed is None else speed["spatial"] >= TARGETS["speed"] * speed["per_pixel"],
-                        "n/a" if speed is None else f"{speed['spatial']:.0f} vs {speed['per_pixel']:.0f} px/s"))
+                        "n/a" if speed is None else f"{speed['spatial']:.0f} vs {speed['per_pixel']:.0f} px/s",
+                        "n/a" if speed is None else f"x{speed['spatial'] / speed['per_pixel']:.2f}"))
 
     # pooled echoes, on the per-pixel answer
     echo_size = max(size, ECHO_SCENE_MIN)
     scene = make_spatial_scene(echo_size, echo_size, args.bins, time_bin_ps=TIME_BIN_PS, nsr=args.echo_nsr,
-                               echo_ratio=0.01, seed=args.seed + 1)
+                               echo_ratio=0.01, seed=seed + 1)
     per, _, _ = run_column("per_pixel", scene)
     e = echo_scores(scene, per)
     print(f"pooled echoes (1 % echo, white NSR {args.echo_nsr:g}): {e['pixels']} pixels where it is >= 5 sigma over "
@@ -368,23 +452,23 @@ def run(args) -> int:
           f"{e['without']} pixels without it ({e['false_outside_reach']:.2%} outside the pool's reach of it)")
     records.append(_rec(f"pooled echo found in >= {TARGETS['echo_recall']:.0%}",
                         None if not np.isfinite(e["recall"]) else e["recall"] >= TARGETS["echo_recall"],
-                        _fmt(e["recall"], ".1%")))
+                        _fmt(e["recall"], ".1%"), _fmt(e["recall"], ".1%")))
     records.append(_rec(f"false pooled echoes < {TARGETS['echo_false']:.0%}", e["false"] < TARGETS["echo_false"],
-                        f"{e['false']:.2%}"))
+                        f"{e['false']:.2%}", f"{e['false']:.2%}"))
     rows.append({"condition": "pooled echoes", "method": "per_pixel+pooled", **e})
 
-    sp = spike_scores(size, args.bins, args.seed + 2)
+    sp = spike_scores(size, args.bins, seed + 2)
     print(f"spikes (10 x, {sp['spiked']} pixels, ~1000 counts at the peak): flagged per pixel "
           f"{sp['per_pixel_recall']:.1%}, spatial {sp['spatial_recall']:.1%}; false SPIKE on pure Poisson draws: "
           f"per pixel {sp['per_pixel_false_pure']:.2%}, spatial {sp['spatial_false_pure']:.2%}")
     records.append(_rec(f"spikes flagged in >= {TARGETS['spike_recall']:.0%}", sp["spatial_recall"] >= TARGETS["spike_recall"],
-                        f"{sp['spatial_recall']:.1%}"))
+                        f"{sp['spatial_recall']:.1%}", f"{sp['spatial_recall']:.1%}"))
     records.append(_rec("no false SPIKE on pure Poisson draws", sp["spatial_false_pure"] == 0.0,
-                        f"{sp['spatial_false_pure']:.2%}"))
+                        f"{sp['spatial_false_pure']:.2%}", f"{sp['spatial_false_pure']:.2%}"))
     rows.append({"condition": "spikes", "method": "per_pixel+spatial_spikes", **sp})
 
     if demo_lines:
-        x, tb, t0, truth = demo_scene(demo_lines, args.seed)
+        x, tb, t0, truth = demo_scene(demo_lines, seed)
         from types import SimpleNamespace
 
         demo = SimpleNamespace(profiles=x, time_bin_ps=tb, t0_ps=t0, noise="white")
@@ -402,12 +486,10 @@ def run(args) -> int:
         d = results.get(("demo", "spatial"))
         records.append(_rec(f"demo --spatial: AMBIGUOUS < {TARGETS['ambiguous']:.0%}",
                             None if d is None else d["ambiguous"] < TARGETS["ambiguous"],
-                            "n/a" if d is None else f"{d['ambiguous']:.1%}"))
+                            "n/a" if d is None else f"{d['ambiguous']:.1%}", "n/a" if d is None else f"{d['ambiguous']:.1%}"))
         records.append(_rec("demo --spatial: no split direct", None if d is None else d["split_directs"] == 0,
-                            "n/a" if d is None else str(d["split_directs"])))
+                            "n/a" if d is None else str(d["split_directs"]), "n/a" if d is None else str(d["split_directs"])))
     print("targets:")
     for r in records:
         print(target_line(r))
-    if out is not None:
-        write_csv(out / "spatial.csv", rows)
-    return 0
+    return rows, records

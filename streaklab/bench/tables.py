@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import csv
+import json
+import math
 from pathlib import Path
 
-__all__ = ["write_csv"]
+__all__ = ["write_csv", "finite_or_none", "write_json"]
 
 
 def _fmt(v):
@@ -22,3 +24,20 @@ def write_csv(path: Path | str, rows, fields=None) -> None:
         w.writeheader()
         for r in rows:
             w.writerow({k: _fmt(r.get(k, "")) for k in fields})
+
+
+def finite_or_none(value):
+    """``value`` (dicts, lists, tuples, scalars) with every non-finite float replaced by None
+    (JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_none(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: Path | str, value) -> None:
+    """Write ``value`` to ``path`` as indented JSON, every non-finite float as null."""
+    Path(path).write_text(json.dumps(finite_or_none(value), indent=2, allow_nan=False) + "\n")

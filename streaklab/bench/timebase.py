@@ -44,7 +44,6 @@ the pooled rows, ratios, verdict) and in ``seed-N/`` the seed's run, cube and re
 from __future__ import annotations
 
 import csv
-import json
 import math
 import time
 
@@ -52,7 +51,8 @@ import numpy as np
 
 from streaklab.cli import CommandError
 
-from .arguments import output_folder, seed_list
+from .arguments import chosen_seeds, output_folder
+from .tables import write_json
 
 __all__ = ["TARGET_RATIO", "DEFAULT_SEEDS", "add_arguments", "run", "delay_errors", "error_stats",
            "direct_delay_errors", "pooled_stats"]
@@ -228,31 +228,13 @@ def pooled_stats(errors_by_seed) -> dict:
     return out
 
 
-def _finite_or_none(value):
-    """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_none(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def _ratio(a: float, b: float) -> float:
     return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else float("nan")
 
 
 def _seeds(args) -> list[int]:
-    """The seeds to run: ``--seed N`` (one), ``--seeds`` or :data:`DEFAULT_SEEDS`; both given is an error."""
-    if args.seed is not None and args.seeds is not None:
-        raise CommandError(f"give --seed or --seeds, not both (--seed {args.seed} is --seeds {args.seed}), "
-                           f"got --seed {args.seed} --seeds {args.seeds}")
-    if args.seed is not None:
-        if args.seed < 0:
-            raise CommandError(f"--seed must be a non-negative integer, got {args.seed}")
-        return [int(args.seed)]
-    return seed_list(DEFAULT_SEEDS if args.seeds is None else args.seeds)
+    """The seeds to run: ``--seed N`` (one), ``--seeds`` or :data:`DEFAULT_SEEDS`."""
+    return chosen_seeds(args.seed, args.seeds, DEFAULT_SEEDS)
 
 
 def _store_names() -> tuple[str, ...]:
@@ -400,7 +382,7 @@ def run(args) -> int:
                "target": {"ratio_aligned_at_most": TARGET_RATIO, "pooled_over_seeds": len(seeds), "met": met,
                           "failure": pooled_failures.get("aligned", "")},
                "seconds_capture": seconds_capture, "seconds_reconstruct_decompose": seconds_decompose}
-    (out / "summary.json").write_text(json.dumps(_finite_or_none(summary), indent=2, allow_nan=False) + "\n")
+    write_json(out / "summary.json", summary)
 
     print(f"pooled over {len(seeds)} seed{'s' if len(seeds) > 1 else ''}: direct delay against the scenes' truth over "
           f"{n_counted} lit pixels (fiducial pixels excluded, direct found in every case):")
