@@ -224,18 +224,20 @@ def _seed_cache_without_one_kernel(cache_dir, *, left_out: str) -> int:
 
     warmup.warm_up(quiet=True)                    # this process's cache is complete (usually it already is)
     pkg = Path(noise.__file__).resolve().parent
-    try:
-        sub = caching._CacheLocator.get_suitable_cache_subpath(str(pkg / "noise.py"))
-    except AttributeError:
-        return 0
-    source = Path(numba.config.CACHE_DIR) / sub if numba.config.CACHE_DIR else pkg / "__pycache__"
-    target = Path(cache_dir) / sub
-    target.mkdir(parents=True)
     n = 0
-    for f in source.glob("*.nb[ic]"):
-        if not f.name.startswith(left_out + "-"):
-            shutil.copy2(f, target / f.name)
-            n += 1
+    # every folder of the package that holds kernels (the package itself, kernels/, ...)
+    for folder in sorted({p.parent for p in pkg.rglob("*.py")}):
+        try:
+            sub = caching._CacheLocator.get_suitable_cache_subpath(str(folder / "x.py"))
+        except AttributeError:
+            return n
+        source = Path(numba.config.CACHE_DIR) / sub if numba.config.CACHE_DIR else folder / "__pycache__"
+        target = Path(cache_dir) / sub
+        for f in source.glob("*.nb[ic]"):
+            if not f.name.startswith(left_out + "-"):
+                target.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(f, target / f.name)
+                n += 1
     return n
 
 
