@@ -295,6 +295,24 @@ def _shifted_kernel(value, slope, start, h, n_steps, t, stride, vpp, spp, delay,
 
 
 @njit
+def _hermite(u):
+    """The cubic Hermite basis at the fraction ``u`` of a table step: (h00, h10, h01, h11), the
+    weights of the left node's value and step-scaled slope and the right node's."""
+    u2 = u * u
+    u3 = u2 * u
+    return 2.0 * u3 - 3.0 * u2 + 1.0, u3 - 2.0 * u2 + u, 3.0 * u2 - 2.0 * u3, u3 - u2
+
+
+@njit
+def _hermite_slopes(u):
+    """d/du of :func:`_hermite`'s basis, as the derivatives read it: (6u^2 - 6u, the left node's
+    weight, its negative the right's), 3u^2 - 4u + 1 (the left slope's) and 3u^2 - 2u (the right
+    slope's)."""
+    u2 = u * u
+    return 6.0 * u2 - 6.0 * u, 3.0 * u2 - 4.0 * u + 1.0, 3.0 * u2 - 2.0 * u
+
+
+@njit
 def shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, scale, want_d, out, dout):
     """One shifted atom into ``out`` (L,) (and its delay derivative into ``dout`` (L,) with
     ``want_d``): the body of :func:`shifted_atoms` for one delay, for compiled callers.
@@ -315,13 +333,11 @@ def shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, sca
             c1 = value[j + 1]
             m0 = h * slope[j]
             m1 = h * slope[j + 1]
-            u2 = u * u
-            u3 = u2 * u
-            out[i] = scale * ((2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0
-                              + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1)
+            h00, h10, h01, h11 = _hermite(u)
+            out[i] = scale * (h00 * c0 + h10 * m0 + h01 * c1 + h11 * m1)
             if want_d:
-                dout[i] = -scale * inv_h * ((6.0 * u2 - 6.0 * u) * (c0 - c1) + (3.0 * u2 - 4.0 * u + 1.0) * m0
-                                            + (3.0 * u2 - 2.0 * u) * m1)
+                g0, g1, g2 = _hermite_slopes(u)
+                dout[i] = -scale * inv_h * (g0 * (c0 - c1) + g1 * m0 + g2 * m1)
         else:
             out[i] = 0.0
             if want_d:
@@ -459,12 +475,11 @@ def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, sca
     n_win = i_out - i_in
     if n_win <= 0:
         return
-    u2 = u * u
-    u3 = u2 * u
-    a0 = scale * (2.0 * u3 - 3.0 * u2 + 1.0)
-    a1 = scale * h * (u3 - 2.0 * u2 + u)
-    a2 = scale * (3.0 * u2 - 2.0 * u3)
-    a3 = scale * h * (u3 - u2)
+    h00, h10, h01, h11 = _hermite(u)
+    a0 = scale * h00
+    a1 = scale * h * h10
+    a2 = scale * h01
+    a3 = scale * h * h11
     p = J % S
     if p < 0:
         p += S
@@ -474,9 +489,10 @@ def _shifted_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, sca
     for i in range(n_win):
         outv[i] = a0 * c0v[i] + a1 * m0v[i] + a2 * c1v[i] + a3 * m1v[i]
     if want_d:
-        b0 = -scale * inv_h * (6.0 * u2 - 6.0 * u)
-        b1 = -scale * (3.0 * u2 - 4.0 * u + 1.0)
-        b2 = -scale * (3.0 * u2 - 2.0 * u)
+        g0, g1, g2 = _hermite_slopes(u)
+        b0 = -scale * inv_h * g0
+        b1 = -scale * g1
+        b2 = -scale * g2
         doutv = dout[i_in:i_out]
         for i in range(n_win):
             doutv[i] = b0 * (c0v[i] - c1v[i]) + b1 * m0v[i] + b2 * m1v[i]
@@ -610,12 +626,7 @@ def _sss_uniform(value, slope, start, h, n_steps, t, S, vpp, spp, delay, al, sca
         if k < nb - 1:
             sB[k + 1] = eS * sk + G[k]
     # the window's samples
-    u2 = u * u
-    u3 = u2 * u
-    h00 = 2.0 * u3 - 3.0 * u2 + 1.0
-    h10 = u3 - 2.0 * u2 + u
-    h01 = 3.0 * u2 - 2.0 * u3
-    h11 = u3 - u2
+    h00, h10, h01, h11 = _hermite(u)
     # sample i reads the nodes b_k (polyphase row p) and b_k + 1 (the next row), k = k_off + i: as
     # contiguous views, so that the loops run on vector registers
     n_win = i_tail - i_in
@@ -792,12 +803,7 @@ def sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, al, sca
         else:
             j = int(x)
             u = x - j
-            u2 = u * u
-            u3 = u2 * u
-            h00 = 2.0 * u3 - 3.0 * u2 + 1.0
-            h10 = u3 - 2.0 * u2 + u
-            h01 = 3.0 * u2 - 2.0 * u3
-            h11 = u3 - u2
+            h00, h10, h01, h11 = _hermite(u)
             s0 = s[j]
             s1 = s[j + 1]
             p0 = h * (value[j] - al * s0)          # h s'(node): the exact slope s' = c - alpha s
@@ -811,8 +817,7 @@ def sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, delay, al, sca
                 c1 = value[j + 1]
                 m0 = h * slope[j]
                 m1 = h * slope[j + 1]
-                c = (2.0 * u3 - 3.0 * u2 + 1.0) * c0 + (u3 - 2.0 * u2 + u) * m0 \
-                    + (3.0 * u2 - 2.0 * u3) * c1 + (u3 - u2) * m1
+                c = h00 * c0 + h10 * m0 + h01 * c1 + h11 * m1
                 dd[i] = al * out[i] - scale * c
                 r0 = r[j]
                 r1 = r[j + 1]
