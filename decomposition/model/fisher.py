@@ -68,8 +68,11 @@ def parameter_names(n_ir: int) -> list[str]:
     return names
 
 
-def _jacobian(t, slots, amp_scale, tb):
-    """Model Jacobian rows (n, 3K+1, L) in natural units, amplitudes divided by amp_scale (n,)."""
+def _jacobian(t, slots, amp_scale, tb, irf=None):
+    """Model Jacobian rows (n, 3K+1, L) in natural units, amplitudes divided by amp_scale (n,),
+    and which rows are free; ``irf``: a measured response's atoms (:func:`_response_jacobian`)."""
+    if irf is not None:
+        return _response_jacobian(t, slots, amp_scale, irf)
     present = slots["present"]
     n, k = present.shape
     rows = np.zeros((n, 3 * k + 1, t.size))
@@ -86,6 +89,32 @@ def _jacobian(t, slots, amp_scale, tb):
         if len(vals) == 4:
             flat[((pix * q + 3 * k) * L)[:, None] + idx] = a * vals[3]
     free = np.concatenate([np.repeat(present, 3, axis=1), present[:, SSS_SLOT:SSS_SLOT + 1]], axis=1)
+    return rows, free
+
+
+def _response_jacobian(t, slots, amp_scale, irf):
+    """:func:`_jacobian`'s rows for a measured response's atoms, in the Gaussian layout (per slot
+    delay, amplitude, width; the sss decay rate last): a_k d phi_k / d delay_k, phi_k, and
+    a_s d phi_s / d alpha (:func:`decomposition.model.atoms.slot_atoms`, the response's table
+    atoms).  The response has no width: those rows are zero and not free."""
+    present = slots["present"]
+    n, k = present.shape
+    fam = np.where(present, FAM_GAUSS, FAM_NONE).astype(np.int8)
+    fam[:, SSS_SLOT] = np.where(present[:, SSS_SLOT], FAM_SSS, FAM_NONE)
+    delay = np.where(present, slots["delay"], 0.0)
+    alpha = np.where(present[:, SSS_SLOT], np.maximum(slots["alpha"], np.finfo(np.float64).tiny), 1.0)
+    lalp = np.zeros((n, k))
+    lalp[:, SSS_SLOT] = np.log(alpha)
+    amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
+    phi, dd, dl = slot_atoms(irf, t, fam, delay, lalp, derivatives=True)
+    rows = np.zeros((n, 3 * k + 1, t.size))
+    rows[:, 0:3 * k:3] = amp[:, :, None] * dd
+    rows[:, 1:3 * k:3] = phi
+    rows[:, 3 * k] = amp[:, SSS_SLOT, None] * dl[:, SSS_SLOT] / alpha[:, None]   # d / d alpha
+    free = np.zeros((n, 3 * k + 1), bool)
+    free[:, 0:3 * k:3] = present
+    free[:, 1:3 * k:3] = present
+    free[:, 3 * k] = present[:, SSS_SLOT]
     return rows, free
 
 
@@ -155,7 +184,7 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     sum of the two).  ``offset`` (n,) bool: pixels with a fitted constant offset, one more row
     and column (last, of ones: the offset divided by the same scale); without it the matrices
     are P x P.  ``fixed`` (n, 3K+1) bool: parameters held at known values (no column, not
-    free).  ``irf``: the columns of a measured response's atoms (:func:`_response_information`)
+    free).  ``irf``: the columns of a measured response's atoms (:func:`_response_jacobian`)
     instead of the Gaussian PSF's."""
     lead, slots, t, amp_scale = _prepare(params, n_bins, time_bin_ps, t0_ps)
     tb = float(time_bin_ps) if bin_integrated else None
@@ -163,14 +192,10 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     p = 3 * k + 1 + (offset is not None)
     tie_onset = np.zeros(n, bool) if tie_onset is None else np.asarray(tie_onset, bool)
     slots["tied_onset"] = tie_onset
-    if irf is not None:
-        if shared_sigma or tb is not None:
-            raise ValueError("a measured response (irf) has no width to share and is point-sampled: "
-                             "shared_sigma and bin_integrated do not apply")
-        info, free = _response_information(t, slots, amp_scale, sw, irf, tie_onset, offset, fixed)
-        slots["tied_slot"] = None
-        return lead, slots, info, free, amp_scale
-    if varpro.COMPILED and tb is None:
+    if irf is not None and (shared_sigma or tb is not None):
+        raise ValueError("a measured response (irf) has no width to share and is point-sampled: "
+                         "shared_sigma and bin_integrated do not apply")
+    if varpro.COMPILED and tb is None and irf is None:
         info, free, tied = _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offset, fixed)
         slots["tied_slot"] = tied if shared_sigma else None
         return lead, slots, info, free, amp_scale
@@ -181,7 +206,7 @@ def _unit_information(params, n_bins, time_bin_ps, t0_ps, bin_integrated, sw=Non
     for i in range(0, n, CHUNK_PIXELS):
         ch = slice(i, i + CHUNK_PIXELS)
         sub = {name: slots[name][ch] for name in ("delay", "amplitude", "sigma", "alpha", "present")}
-        rows, fr = _jacobian(t, sub, amp_scale[ch], tb)
+        rows, fr = _jacobian(t, sub, amp_scale[ch], tb, irf)
         if offset is not None:
             on = np.asarray(offset, bool)[ch]
             rows = np.concatenate([rows, np.broadcast_to(on[:, None, None], (on.size, 1, t.size)).astype(float)],
@@ -245,53 +270,6 @@ def _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offs
                     tied if shared_sigma else np.full(n, -1, np.int64), np.ascontiguousarray(onset, np.bool_),
                     np.ascontiguousarray(fx, np.bool_), info)
     return info, free, np.where(tied >= 0, tied, 0)
-
-
-def _response_information(t, slots, amp_scale, sw, irf, tie_onset, offset, fixed):
-    """``info`` and ``free`` of :func:`_unit_information` for a measured response's atoms.
-
-    The columns of the Gaussian layout (per slot delay, amplitude, width; the sss decay rate
-    last; the offset's after it): a_k d phi_k / d delay_k, phi_k, and a_s d phi_s / d alpha
-    (:func:`decomposition.model.atoms.slot_atoms`, the response's table atoms); the response has
-    no width, so the width columns are zero and not free."""
-    present = slots["present"]
-    n, k = present.shape
-    L = t.size
-    p = 3 * k + 1 + (offset is not None)
-    free = np.zeros((n, p), bool)
-    free[:, 0:3 * k:3] = present
-    free[:, 1:3 * k:3] = present
-    free[:, 3 * k] = present[:, SSS_SLOT]
-    if offset is not None:
-        free[:, -1] = np.asarray(offset, bool)
-    free[tie_onset, 3 * SSS_SLOT] = False
-    if fixed is not None:
-        free[:, :fixed.shape[1]] &= ~fixed
-    fam = np.where(present, FAM_GAUSS, FAM_NONE).astype(np.int8)
-    fam[:, SSS_SLOT] = np.where(present[:, SSS_SLOT], FAM_SSS, FAM_NONE)
-    delay = np.where(present, slots["delay"], 0.0)
-    alpha = np.where(present[:, SSS_SLOT], np.maximum(slots["alpha"], np.finfo(np.float64).tiny), 1.0)
-    lalp = np.zeros((n, k))
-    lalp[:, SSS_SLOT] = np.log(alpha)
-    amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
-    info = np.empty((n, p, p))
-    # cache-sized chunks of pixels, as the Gaussian rows
-    for i in range(0, n, CHUNK_PIXELS):
-        ch = slice(i, i + CHUNK_PIXELS)
-        phi, dd, dl = slot_atoms(irf, t, fam[ch], delay[ch], lalp[ch], derivatives=True)
-        rows = np.zeros((phi.shape[0], p, L))
-        rows[:, 0:3 * k:3] = amp[ch, :, None] * dd
-        rows[:, 1:3 * k:3] = phi
-        rows[:, 3 * k] = amp[ch, SSS_SLOT, None] * dl[:, SSS_SLOT] / alpha[ch, None]   # d / d alpha
-        if offset is not None:
-            rows[:, -1] = 1.0
-        if sw is not None:
-            rows *= sw[ch, None, :]
-        on = np.flatnonzero(tie_onset[ch])
-        rows[on, 0] += rows[on, 3 * SSS_SLOT]
-        rows = np.where(free[ch, :, None], rows, 0.0)
-        info[ch] = rows @ rows.swapaxes(-1, -2)
-    return info, free
 
 
 def _amplitude_rows(k):
