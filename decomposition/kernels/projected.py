@@ -12,6 +12,10 @@ parameters.  The same arithmetic as the NumPy reference path to rounding (a diff
 summation, and the erfcx of :func:`decomposition.kernels.jit.erfcx`); nothing of size
 (pixels, rows, time) is allocated.
 """
+
+# One module over 600 lines on purpose: the refine's evaluation, its never-worse reference and the
+# Fisher information's Gram product render the same rows on the same supports, for either
+# instrument's atoms (the Gaussian PSF's analytic kernels, a response's table).
 from __future__ import annotations
 
 import math
@@ -20,9 +24,10 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from .jit import erfcx, njit
+from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
 
 __all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
-           "uniform_step", "row_dot", "fisher_gram"]
+           "uniform_step", "row_dot", "fisher_gram", "instrument", "GAUSSIAN_PSF"]
 
 #: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
 #: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
@@ -38,6 +43,33 @@ _Z_NEGLIGIBLE = 37.5
 _G_FLOOR = math.exp(_EXP_FLOOR)
 #: samples between fresh evaluations of the sss tail's stepped exponential
 _RESTART = 8
+
+
+def _readonly(a):
+    v = np.ascontiguousarray(a, np.float64).view()
+    v.setflags(write=False)
+    return v
+
+
+def instrument(table: ResponseTable | None, t) -> tuple:
+    """The instrument argument of :func:`projected_normal_equations` and :func:`given_rss`: the
+    atoms they render.  ``table`` None: the Gaussian PSF's analytic kernels (:data:`GAUSSIAN_PSF`);
+    a :class:`decomposition.kernels.response.ResponseTable`: the response's table atoms
+    (:func:`~decomposition.kernels.response.shifted_row` / :func:`~decomposition.kernels.response.sss_row`,
+    unit peak) on the time axis ``t`` (L,) -- (value, slope, polyphase values, polyphase slopes,
+    start ps, node step ps, window ps, 1 / peak, nodes, the axis' stride in nodes)."""
+    if table is None:
+        return GAUSSIAN_PSF
+    stride = int(uniform_stride(np.ascontiguousarray(t, np.float64), table.step_ps))
+    vpp, spp = polyphase(table, stride)
+    return (_readonly(table.value), _readonly(table.slope), _readonly(vpp), _readonly(spp), float(table.start_ps),
+            float(table.step_ps), float(table.n_steps * table.step_ps), 1.0 / float(table.peak_per_ps),
+            int(table.n_steps), stride)
+
+
+#: the instrument argument of the Gaussian PSF: no table (the analytic kernels of :func:`kernel_rows`)
+GAUSSIAN_PSF = (_readonly(np.zeros(0)), _readonly(np.zeros(0)), _readonly(np.zeros((1, 1))),
+                _readonly(np.zeros((1, 1))), 0.0, 0.0, 0.0, 0.0, 0, 0)
 
 
 @njit
@@ -215,8 +247,59 @@ def kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t, lo
 
 
 @njit
+def table_window(t, d, sss, inst, increasing):
+    """[j0, j1) of a table atom at delay ``d`` (:func:`instrument`): the response's padded window
+    shifted by ``d`` (from its start to the end of the axis for the sss); the whole axis where
+    ``t`` is not increasing or ``d`` not finite."""
+    L = t.size
+    start = inst[4]
+    span = inst[6]
+    if not (increasing and math.isfinite(d)):
+        return 0, L
+    j0 = _first_at_least(t, d + start)
+    j1 = L if sss else _first_at_least(t, d + start + span)
+    if j1 <= j0:
+        return 0, 0
+    return j0, j1
+
+
+@njit
+def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r_buf, E):
+    """:func:`kernel_rows` for a response's table atoms (:func:`instrument`): slot ``slot``'s atom
+    into row ``slot`` and, with ``jac``, its delay derivative into K + slot, zeros in the width's
+    row 2K + slot (a response has no width), the sss log decay rate's derivative into 3K; each
+    times ``sw`` on [j0, j1) where ``has_sw``.  ``s_buf``, ``r_buf`` (nodes + 1,) and ``E`` (5,)
+    are the sss recursion's scratch."""
+    value, slope, vpp, spp, start, h, _, scale, n_steps, stride = inst
+    if not sss:
+        if jac:
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, d, scale, True, m[slot], m[K + slot])
+        else:
+            shifted_row(value, slope, start, h, n_steps, t, stride, vpp, spp, d, scale, False, m[slot], m[slot])
+    elif jac:
+        sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, d, a, scale, True, m[slot], m[K + slot],
+                m[3 * K], s_buf, r_buf, E)
+        for i in range(j0, j1):
+            m[3 * K, i] *= a
+    else:
+        sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, d, a, scale, False, m[slot], m[slot], m[slot],
+                s_buf, r_buf, E)
+    if jac:
+        for i in range(j0, j1):
+            m[2 * K + slot, i] = 0.0
+    if has_sw:
+        for i in range(j0, j1):
+            w = sw[i]
+            m[slot, i] *= w
+            if jac:
+                m[K + slot, i] *= w
+                if sss:
+                    m[3 * K, i] *= w
+
+
+@njit
 def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
-                               c_out, rss_out, a_out, g_out):
+                               c_out, rss_out, a_out, g_out, inst):
     """Amplitudes, RSS and (``jac``) the LM normal equations of n pixels at ``theta``.
 
     Parameters
@@ -234,6 +317,8 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     shared : bool               one width per pixel (theta[:, K])
     increasing : bool           ``t`` increasing (else every kernel on the whole axis)
     jac : bool                  compute the normal equations too
+    inst : tuple                the atoms (:func:`instrument`): the Gaussian PSF's (the widths
+                                ``theta``'s) or a response's table atoms (the widths unused)
 
     Outputs (written): ``c_out`` (n, K) the amplitudes (0 where absent), ``rss_out`` (n,),
     ``a_out`` (n, P, P) J^T J and ``g_out`` (n, P) J^T r (with ``jac``).
@@ -261,6 +346,10 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     bq = np.zeros((K, Q))
     dummy = np.empty(0)
     step_t = uniform_step(t, increasing)
+    table = inst[0].size > 0
+    s_buf = np.empty(inst[8] + 1)
+    r_buf = np.empty(inst[8] + 1)
+    E = np.empty(5)
     for p in range(n):
         swp = sw[p] if has_sw else dummy
         for row in range(R):
@@ -275,10 +364,14 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
             if not present[p, slot]:
                 continue
             d = theta[p, slot]
-            s = math.exp(theta[p, K] if shared else theta[p, K + slot])
             sss = slot == SSS_SLOT
-            j0, j1 = support_window(t, d, s, sss, increasing)
-            kernel_rows(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
+            if table:
+                j0, j1 = table_window(t, d, sss, inst, increasing)
+                table_rows(t, m, K, slot, sss, d, a_p, inst, swp, has_sw, jac, j0, j1, s_buf, r_buf, E)
+            else:
+                s = math.exp(theta[p, K] if shared else theta[p, K + slot])
+                j0, j1 = support_window(t, d, s, sss, increasing)
+                kernel_rows(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
             rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
             for row in rows_here:
                 lo[row] = j0
@@ -398,21 +491,25 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
 
 
 @njit
-def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increasing, out):
+def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increasing, out, inst):
     """(n,) weighted RSS of the pixels' data at given parameters and amplitudes (the refine's
     never-worse reference): sum_i (y_i - sum_k amplitude_k phi_k(t_i) sw_i - offset sw_i)^2,
     the kernels on the supports of :func:`projected_normal_equations`.
 
     ``y`` (n, L) weighted data; ``delay``, ``sigma``, ``amplitude`` (n, K), ``alpha`` (n,),
     ``present`` (n, K); ``offset`` (n,) a constant subtracted (0: none); ``sw`` (n, L) or
-    (0, L): the square roots of the sample weights."""
+    (0, L): the square roots of the sample weights; ``inst`` the atoms (:func:`instrument`)."""
     n, L = y.shape
     K = present.shape[1]
     has_sw = sw.shape[0] == n
-    m = np.zeros((K, L))
+    m = np.zeros((3 * K + 2, L))
     r = np.empty(L)
     dummy = np.empty(0)
     step_t = uniform_step(t, increasing)
+    table = inst[0].size > 0
+    s_buf = np.empty(inst[8] + 1)
+    r_buf = np.empty(inst[8] + 1)
+    E = np.empty(5)
     for p in range(n):
         swp = sw[p] if has_sw else dummy
         for i in range(L):
@@ -421,10 +518,14 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
             if not present[p, slot]:
                 continue
             d = delay[p, slot]
-            s = sigma[p, slot]
             sss = slot == SSS_SLOT
-            j0, j1 = support_window(t, d, s, sss, increasing)
-            kernel_rows(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
+            if table:
+                j0, j1 = table_window(t, d, sss, inst, increasing)
+                table_rows(t, m, K, slot, sss, d, alpha[p], inst, swp, has_sw, False, j0, j1, s_buf, r_buf, E)
+            else:
+                s = sigma[p, slot]
+                j0, j1 = support_window(t, d, s, sss, increasing)
+                kernel_rows(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
             c = amplitude[p, slot]
             for i in range(j0, j1):
                 r[i] -= c * m[slot, i]

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from ..kernels.derivatives import kernel_derivatives  # noqa: F401  (public here since the first release)
+from ..kernels.response import response_table
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis_ps
 from .varpro import Layout, refine_block
 
@@ -195,6 +196,18 @@ def hold_params(params: dict, hold, lead_shape: tuple) -> dict:
     return out
 
 
+def _unit_widths(params: dict) -> dict:
+    """``params`` with every component's width 1 where its delay is given: a response's atoms
+    have no width, and :func:`slot_arrays` reads a component as present by a finite positive
+    one."""
+    out = dict(params)
+    for d_key, s_key in (("direct_delay_ps", "direct_sigma_ps"), ("sss_delay_ps", "sss_sigma_ps"),
+                         ("ir_delay_ps", "ir_sigma_ps")):
+        if d_key in out:
+            out[s_key] = np.where(np.isfinite(np.asarray(out[d_key], np.float64)), 1.0, np.nan)
+    return out
+
+
 def apply_weights(y, weights):
     """Validate per-sample weights against profiles ``y`` (..., L).
 
@@ -217,7 +230,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
            shared_sigma: bool = False, sss_after_direct: bool = False, keep_order: bool = True, weights=None,
            bin_integrated: bool = False, fit_background=False, delay_prior=None, onset_prior=None, alpha_prior=None,
            ratio_prior=None,
-           hold=None):
+           hold=None, irf=None):
     """Refine the continuous parameters of each pixel's present components.
 
     Parameters
@@ -293,6 +306,14 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         (the amplitudes and the other parameters are fitted around them), even outside the
         bounds.  Used for parameters every pixel shares (one instrument, one onset, one decay
         rate; :mod:`decomposition.image.shared`).
+    irf : InstrumentResponse, optional
+        A measured instrument response (resolved on ``time_bin_ps``,
+        :func:`decomposition.response.resolve.resolve_response`) whose atoms replace the
+        Gaussian PSF's: the shifted response for the direct and the inter-reflections, the
+        response convolved with the sss exponential, unit peak
+        (:mod:`decomposition.kernels.response`).  The same fit over the same parameters less
+        the widths, which a response does not have (the ``*_sigma_ps`` keys are ignored and
+        returned NaN).  Point samples only (not with ``bin_integrated``).
 
     Returns
     -------
@@ -335,6 +356,14 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         raise ValueError(f"alpha_bounds_per_ps must satisfy 0 < low < high < inf, got {alpha_bounds_per_ps}")
 
     hold = check_hold(hold, lead)
+    table = None
+    if irf is not None:
+        if bin_integrated:
+            raise ValueError("bin_integrated applies to the Gaussian PSF; a response (irf=) is sampled on its bins")
+        if hold and "sigma_ps" in hold:
+            raise ValueError("hold['sigma_ps'] holds the Gaussian PSF's width; a measured response (irf=) has none")
+        table = response_table(irf)
+        params = _unit_widths(params)
     params = hold_params(params, hold, lead)
     slots = slot_arrays(params, lead)
     y = y.reshape(-1, n_bins)
@@ -388,7 +417,7 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
             out, inf = refine_block(t, yw[sl] / sc[:, None], sub, lay, (lo, hi), tb,
                                      int(max_iter), float(ftol), 1e-3, None if sw is None else sw[sl],
                                      bool(sss_after_direct), bool(keep_order),
-                                     None if held is None else held[sl])
+                                     None if held is None else held[sl], table)
         for name in ("delay", "sigma", "alpha"):
             res[name][sl] = out[name]
         res["amplitude"][sl] = np.where(inf["refined"][:, None], out["amplitude"] * sc[:, None],
@@ -402,6 +431,9 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     res["n_ir"] = slots["n_ir"]
     # held values exactly as given (the log-space round trip would move them by an ulp)
     out_params = hold_params(params_from_slots(res, lead), hold, lead)
+    if irf is not None:
+        for key in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"):
+            out_params[key] = np.full(np.shape(out_params[key]), np.nan)
     if has_bg:
         b_nan = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(n) if BACKGROUND_KEY in params else np.full(n, np.nan)
         # an absent (NaN) offset stays absent unless it was fitted

@@ -63,9 +63,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constants import SSS_SLOT
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+from ..kernels.response import slot_rows
 from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
-from ..kernels.projected import given_rss, projected_normal_equations
+from ..kernels.projected import GAUSSIAN_PSF, given_rss, instrument, projected_normal_equations
 
 __all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "rss_at", "CHUNK_PIXELS"]
 
@@ -185,13 +186,23 @@ def _project_constant(m, bg, sw):
     return m
 
 
-def background_level(t, y, delay, sigma, alpha, present, c, tb, sw=None):
+def background_level(t, y, delay, sigma, alpha, present, c, tb, sw=None, table=None):
     """Least-squares offset (n,) given the amplitudes ``c`` (n, K) at the nonlinear parameters:
     b = u . (y - Phi c) / (u . u) with u = sqrt(w) (``y`` weighted like the rows, as in
-    :func:`design_rows`); 0 for a pixel without weighted samples."""
-    m = design_rows(t, y, delay, sigma, alpha, present, tb, False, sw)
+    :func:`design_rows`; ``table``: a response's atoms, as :func:`refine_block`); 0 for a pixel
+    without weighted samples."""
     k = present.shape[1]
-    r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])
+    if table is None:
+        m = design_rows(t, y, delay, sigma, alpha, present, tb, False, sw)
+        r = m[:, -1] - np.einsum("nk,nkl->nl", c, m[:, :k])
+    else:
+        fam = np.where(present, FAM_GAUSS, FAM_NONE).astype(np.int8)
+        fam[:, SSS_SLOT] = np.where(present[:, SSS_SLOT], FAM_SSS, FAM_NONE)
+        phi = slot_rows(table, t, fam, np.where(present, delay, 0.0),
+                        np.where(fam == FAM_SSS, alpha[:, None], 0.0))
+        if sw is not None:
+            phi = phi * sw[:, None, :]
+        r = y - np.einsum("nk,nkl->nl", c, phi)
     u = np.ones_like(r) if sw is None else sw
     uu = np.einsum("nl,nl->n", u, u)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -303,11 +314,13 @@ CHUNK_PIXELS = 48
 COMPILED = True
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None):
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF):
     """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
-    (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`), else
+    (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`) and for a
+    response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`), else
     :func:`_evaluate_numpy`."""
-    if not (COMPILED and tb is None):
+    table = inst is not GAUSSIAN_PSF
+    if not ((COMPILED or table) and tb is None):
         return _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw, bg, amp)
     n = y.shape[0]
     k, p = lay.k, lay.p
@@ -325,18 +338,19 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
             np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
             np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
             np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64),
-            lay.shared, increasing, bool(jac), c, rss, a, g)
+            lay.shared, increasing, bool(jac), c, rss, a, g, inst)
     return (c, rss, a, g) if jac else (c, rss, None, None)
 
 
-def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None):
+def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None, inst=GAUSSIAN_PSF):
     """(n,) weighted RSS of the weighted data ``y`` (n, L) at the given parameters (``delay``,
     ``sigma`` (n, K), ``alpha`` (n,), ``present`` (n, K)) and amplitudes (n, K), less a constant
     ``offset`` (n,), the model and the offset weighted by ``sw`` (n, L; None: unweighted) as
-    :func:`design_rows` weighs its rows: compiled for point-sampled kernels (:data:`COMPILED`)."""
+    :func:`design_rows` weighs its rows: compiled for point-sampled kernels (:data:`COMPILED`)
+    and for a response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`)."""
     n = y.shape[0]
     out = np.empty(n)
-    if COMPILED and tb is None:
+    if (COMPILED or inst is not GAUSSIAN_PSF) and tb is None:
         if n:
             t = np.ascontiguousarray(t, np.float64)
             given_rss(t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(delay, np.float64),
@@ -344,7 +358,7 @@ def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None):
                       np.ascontiguousarray(present, np.bool_), np.ascontiguousarray(amplitude, np.float64),
                       np.ascontiguousarray(offset, np.float64),
                       np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
-                      t.size >= 2 and bool(np.all(t[1:] > t[:-1])), out)
+                      t.size >= 2 and bool(np.all(t[1:] > t[:-1])), out, inst)
         return out
     for i in range(0, n, CHUNK_PIXELS):
         ch = slice(i, i + CHUNK_PIXELS)
@@ -515,7 +529,7 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
-                  keep_order=True, held=None):
+                  keep_order=True, held=None, table=None):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
@@ -524,8 +538,15 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     docstring) ``rss`` includes their terms.
     ``held`` (n, P) bool
     (P of ``lay``): parameters kept at their input value, outside the bounds too (no
-    derivative column, no step); the amplitudes are still solved."""
+    derivative column, no step); the amplitudes are still solved.  ``table``: a response's
+    table (:class:`decomposition.kernels.response.ResponseTable`) whose atoms replace the
+    Gaussian PSF's (point-sampled only: ``tb`` None); the widths are then not parameters
+    (held, whatever ``held`` says)."""
     n = y.shape[0]
+    if table is not None and tb is not None:
+        raise ValueError("a response's table atoms are point samples of the response resolved on the time "
+                         "axis; bin integration (bin_integrated=True) applies to the Gaussian PSF only")
+    inst = instrument(table, t)
     present = slots["present"]
     prior = _theta_priors(slots, present, lay)
     amp = _amplitude_prior(slots, present)
@@ -536,6 +557,8 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
             bg = None
     used = lay.free(present)
     free = used if held is None else used & ~np.asarray(held, bool)
+    if table is not None:
+        free = free & ~lay.held(np.zeros(present.shape, bool), np.ones(n, bool), np.zeros(n, bool))
     lo, hi = bounds
     theta = lay.pack(slots["delay"], slots["sigma"], slots["alpha"], present)
     theta = np.where(used, theta, 0.0)
@@ -554,13 +577,13 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     d0 = np.where(present, slots["delay"], 0.0)
     amp_in = np.where(present, slots["amplitude"], 0.0)
     offset = np.zeros(n) if bg is None else np.where(bg, np.nan_to_num(slots["background"]), 0.0)
-    rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw)
+    rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw, inst)
     if amp is not None:
         rss_input += np.einsum("nk,nk->n", amp, amp_in) ** 2
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
     rss_input = _with_prior(prior, theta_in, rss_input)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst)
     rss = _with_prior(prior, theta, rss, a, g)
     viol = _amp_violations(c, present)
     lam = np.full(n, lam0)
@@ -592,7 +615,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx], None if bg is None else bg[idx],
-                                         None if amp is None else amp[idx])
+                                         None if amp is None else amp[idx], inst)
         rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
         viol_t = _amp_violations(c_t, present[idx])
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
@@ -632,7 +655,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         "background": np.zeros(n),
     }
     if bg is not None:
-        b_fit = background_level(t, y, delay, sigma, alpha, present, c, tb, sw)
+        b_fit = background_level(t, y, delay, sigma, alpha, present, c, tb, sw, table)
         b_in = np.nan_to_num(slots["background"])
         out["background"] = np.where(bg, np.where(kept, b_fit, b_in), 0.0)
     info = {
