@@ -14,7 +14,7 @@ from decomposition.model.atoms import params_profile
 from decomposition.model.refine import refine
 
 T = 2.0
-L = 200
+L = 256
 T_PS = T + T * np.arange(L)
 
 
@@ -93,3 +93,90 @@ def test_bad_combinations_are_refused(irf):
         refine(y, start, time_bin_ps=T, irf=irf, bin_integrated=True)
     with pytest.raises(ValueError, match="sigma_ps"):
         refine(y, start, time_bin_ps=T, irf=irf, hold={"sigma_ps": 3.0})
+
+
+def _response_state(irf, y, params, components="d,r,s"):
+    """The response path's state for profiles ``y`` refitted from ``params`` (its refinement,
+    the detection skipped): (ResponseFit, samples, opts, slots)."""
+    from decomposition.options import GridSpec, SolverOptions, parse_components
+    from decomposition.response import path as rp
+    from decomposition.response.label import param_slots
+    from decomposition.response.refine import refit_slots
+    from decomposition.stages.prepare import prepare_samples, time_axis
+    fams = parse_components(components)
+    opts = SolverOptions().resolved(fams)
+    samples = prepare_samples(y, time_axis(T, T), GridSpec(), noise_floor=opts.noise_floor,
+                              rel_threshold=opts.rel_threshold, noise=opts.noise)
+    rf = rp.detect(samples, irf, GridSpec(), opts, fams)
+    fam, delay, lalp = param_slots(params, rf.refine_kw["R"])
+    slots = refit_slots(samples.profiles[samples.live], fam, delay, lalp, rf.b_est, rf.with_bg, params,
+                        **rf.refine_kw)
+    return rf, samples, opts, slots
+
+
+def _with_slot(rf, s, rows, slot, delay_ps, amp):
+    """Slots ``s`` with a shifted atom put in ``slot`` of the pixels ``rows`` (normalised amplitude
+    ``amp``), their parameters rebuilt."""
+    from decomposition.constants import FAM_GAUSS
+    from decomposition.response.label import slots_to_params
+    from decomposition.response.refine import Slots
+    fam, delay, amps = s.fam.copy(), s.delay.copy(), s.amp.copy()
+    fam[rows, slot], delay[rows, slot], amps[rows, slot] = FAM_GAUSS, delay_ps, amp
+    params = slots_to_params(fam, delay, s.lalp, amps, rf.refine_kw["scale"], rf.sigma_eq_ps, rf.refine_kw["R"])
+    params.pop("background", None)
+    return Slots(fam, delay, s.lalp, amps, params, s.background, s.iterations)
+
+
+def _padded(params, n_ir=3):
+    out = dict(params)
+    for key in ("ir_delay_ps", "ir_amplitude", "ir_sigma_ps"):
+        v = np.full((np.shape(params["direct_delay_ps"])[0], n_ir), np.nan)
+        v[:, :1] = params[key]
+        out[key] = v
+    return out
+
+
+def test_the_backward_step_drops_an_atom_on_the_sss_onset_and_keeps_a_resolved_echo(irf):
+    """Pixels of a direct and an sss (onset 6 ps after it) in white noise, given a second shifted
+    atom on the sss onset: that atom does not pay for its parameters and the backward step drops
+    it; the same pixels with a true echo 14 ps after the direct (30 % of it) keep theirs."""
+    from decomposition.constants import FAM_GAUSS, FAM_NONE
+    from decomposition.response.grow import GrowContext, _prune_close
+    truth, _ = _scene(8, 5, onset_ps=(6.0, 6.0))
+    truth["ir_amplitude"][:] = np.nan
+    truth["ir_delay_ps"][:] = np.nan
+    echo = {k: v.copy() for k, v in truth.items()}
+    echo["ir_delay_ps"] = (truth["direct_delay_ps"] + 14.0)[:, None]
+    echo["ir_amplitude"] = (0.3 * truth["direct_amplitude"])[:, None]
+    both = {k: np.concatenate([truth[k], echo[k]]) for k in truth}
+    rng = np.random.default_rng(6)
+    y = params_profile(irf, T_PS, both)
+    y = y + 0.01 * rng.standard_normal(y.shape)
+    rf, samples, opts, slots = _response_state(irf, y, _padded(both))
+    assert (slots.fam[:8, 2:] == FAM_NONE).all() and (slots.fam[8:, 2] == FAM_GAUSS).all()
+    rows = np.arange(8)
+    before = slots.delay[rows, 0].copy()
+    slots = _with_slot(rf, slots, rows, 3, slots.delay[rows, 1] + 0.3, 0.05)
+    ctx = GrowContext(samples, irf, rf.b_est, rf.with_bg, rf.refine_kw, rf.sigma_eq_ps, opts)
+    out, pruned = _prune_close(ctx, slots)
+    assert pruned == 8
+    assert (out.fam[:8, 2:] == FAM_NONE).all()
+    assert np.array_equal(out.fam[8:], slots.fam[8:])           # the echoes stay
+    # the pixels' own fit without the extra atom, to the refit's convergence
+    np.testing.assert_allclose(out.delay[:8, 0], before, atol=1e-3)
+
+
+def test_two_shifted_copies_the_refit_puts_on_one_delay_are_one_atom(irf):
+    """A direct given twice (the second copy 0.2 ps after it): the refit's merge rule keeps one
+    shifted atom, in the direct's slot, with the light of both."""
+    from decomposition.constants import FAM_GAUSS
+    from decomposition.response.refine import refit_slots
+    truth, _ = _scene(6, 7)
+    y = params_profile(irf, T_PS, truth)
+    rf, samples, opts, slots = _response_state(irf, y, _padded(truth))
+    s = _with_slot(rf, slots, np.arange(6), 3, slots.delay[:, 0] + 0.2, 0.2)
+    out = refit_slots(samples.profiles[samples.live], s.fam, s.delay, s.lalp, rf.b_est, rf.with_bg, s.params,
+                      **rf.refine_kw)
+    assert ((out.fam == FAM_GAUSS).sum(axis=1) == 2).all()       # the direct and the true echo
+    np.testing.assert_allclose(out.params["direct_amplitude"], truth["direct_amplitude"], rtol=1e-4)
+    np.testing.assert_allclose(out.params["direct_delay_ps"], truth["direct_delay_ps"], atol=1e-3)

@@ -266,8 +266,9 @@ def table_window(t, d, sss, inst, increasing):
 @njit
 def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r_buf, E):
     """:func:`kernel_rows` for a response's table atoms (:func:`instrument`): slot ``slot``'s atom
-    into row ``slot`` and, with ``jac``, its delay derivative into K + slot, zeros in the width's
-    row 2K + slot (a response has no width), the sss log decay rate's derivative into 3K; each
+    into row ``slot`` and, with ``jac``, its delay derivative into K + slot (the width's row 2K +
+    slot is left alone: a response has no width, and the caller gives it no support), the sss
+    log decay rate's derivative into 3K; each
     times ``sw`` on [j0, j1) where ``has_sw``.  ``s_buf``, ``r_buf`` (nodes + 1,) and ``E`` (5,)
     are the sss recursion's scratch."""
     value, slope, vpp, spp, start, h, _, scale, n_steps, stride = inst
@@ -284,9 +285,6 @@ def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r
     else:
         sss_row(value, slope, start, h, n_steps, t, stride, vpp, spp, d, a, scale, False, m[slot], m[slot], m[slot],
                 s_buf, r_buf, E)
-    if jac:
-        for i in range(j0, j1):
-            m[2 * K + slot, i] = 0.0
     if has_sw:
         for i in range(j0, j1):
             w = sw[i]
@@ -376,6 +374,10 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
             for row in rows_here:
                 lo[row] = j0
                 hi[row] = j1
+            if jac and table:
+                # a response has no width: its row is empty (no sum reads it)
+                lo[2 * K + slot] = 0
+                hi[2 * K + slot] = 0
             if jac and sss:
                 lo[3 * K] = j0
                 hi[3 * K] = j1

@@ -244,7 +244,8 @@ def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0, w
     """Merge Gaussian atoms of one pixel closer than ``merge_tol_bins`` bins (in place): into
     the Gaussian of their summed area, mean delay and variance; without ``widths`` (the shifted
     copies of a measured response, which has no width to merge into) the larger atom is kept
-    as it is and the smaller dropped."""
+    as it is, in the earlier of the two slots (a pixel's direct stays in its slot), and the
+    later slot emptied."""
     K = st["fam"].shape[1]
     tol = merge_tol_bins * time_bin_ps
     if not widths:
@@ -253,10 +254,11 @@ def merge_gaussians(st: dict, time_bin_ps: float, merge_tol_bins: float = 1.0, w
         for i in range(K):
             for j in range(i + 1, K):
                 m = (fam[:, i] == FAM_GAUSS) & (fam[:, j] == FAM_GAUSS) & (np.abs(st["delay"][:, i] - st["delay"][:, j]) < tol)
-                small_i = m & (st["amp"][:, i] < st["amp"][:, j])
-                for slot, rows in ((i, small_i), (j, m & ~small_i)):
-                    fam[rows, slot] = FAM_NONE
-                    st["amp"][rows, slot] = 0.0
+                take = m & (st["amp"][:, i] < st["amp"][:, j])
+                for key in ("delay", "amp"):
+                    st[key][take, i] = st[key][take, j]
+                fam[m, j] = FAM_NONE
+                st["amp"][m, j] = 0.0
         return st
     changed = True
     while changed:

@@ -446,10 +446,19 @@ def _amp_violations(c, present):
     return np.sum(present & ~(c > 0), axis=-1)
 
 
-def _onset_after_direct(theta, present):
-    """Project sss onsets onto delay >= direct delay where a pixel has both (theta[:, 0] / [:, 1])."""
-    both = present[:, 0] & present[:, SSS_SLOT]
-    theta[:, SSS_SLOT] = np.where(both, np.maximum(theta[:, SSS_SLOT], theta[:, 0]), theta[:, SSS_SLOT])
+def _onset_after_direct(theta, present, earliest=False):
+    """Project sss onsets onto delay >= direct delay where a pixel has both (theta[:, 0] / [:, 1]);
+    ``earliest``: onto delay >= the earliest present shifted component's (slot 0 or any other)."""
+    if not earliest:
+        both = present[:, 0] & present[:, SSS_SLOT]
+        theta[:, SSS_SLOT] = np.where(both, np.maximum(theta[:, SSS_SLOT], theta[:, 0]), theta[:, SSS_SLOT])
+        return theta
+    shifted = present.copy()
+    shifted[:, SSS_SLOT] = False
+    k = present.shape[1]
+    first = np.where(shifted, theta[:, :k], np.inf).min(axis=1)
+    ok = present[:, SSS_SLOT] & np.isfinite(first)
+    theta[:, SSS_SLOT] = np.where(ok, np.maximum(theta[:, SSS_SLOT], first), theta[:, SSS_SLOT])
     return theta
 
 
@@ -529,7 +538,7 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
-                  keep_order=True, held=None, table=None):
+                  keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
@@ -541,7 +550,10 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     derivative column, no step); the amplitudes are still solved.  ``table``: a response's
     table (:class:`decomposition.kernels.response.ResponseTable`) whose atoms replace the
     Gaussian PSF's (point-sampled only: ``tb`` None); the widths are then not parameters
-    (held, whatever ``held`` says)."""
+    (held, whatever ``held`` says).  ``ftol`` a scalar or (n,) per pixel.  ``positive``: a step
+    may not turn a positive amplitude non-positive and a fit with one is not kept (False: plain
+    least squares, the amplitudes of any sign).  ``onset_after_earliest``: ``sss_after_direct``
+    keeps the onset at or after the earliest shifted component, whichever slot holds it."""
     n = y.shape[0]
     if table is not None and tb is not None:
         raise ValueError("a response's table atoms are point samples of the response resolved on the time "
@@ -565,10 +577,11 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     given = theta
     theta = np.where(free, np.clip(theta, lo, hi), theta)
     if sss_after_direct:
-        theta = _onset_after_direct(theta, present)
+        theta = _onset_after_direct(theta, present, onset_after_earliest)
     if keep_order:
         theta = _keep_order(theta, present)
     theta = np.where(free, theta, given)
+    ftol = np.broadcast_to(np.asarray(ftol, np.float64), (n,))
 
     # RSS of the input exactly as given (input amplitudes), the never-worse reference.
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -577,7 +590,11 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     d0 = np.where(present, slots["delay"], 0.0)
     amp_in = np.where(present, slots["amplitude"], 0.0)
     offset = np.zeros(n) if bg is None else np.where(bg, np.nan_to_num(slots["background"]), 0.0)
-    rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw, inst)
+    if table is None or amp_in.any():
+        rss_input = rss_at(t, y, d0, s0, a0, present, amp_in, offset, tb, sw, inst)
+    else:       # no model given (the response path's fits from delays alone): the data's own sum of squares
+        r_in = y - offset[:, None] * (1.0 if sw is None else sw)
+        rss_input = np.einsum("nl,nl->n", r_in, r_in)
     if amp is not None:
         rss_input += np.einsum("nk,nk->n", amp, amp_in) ** 2
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
@@ -585,7 +602,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
 
     c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst)
     rss = _with_prior(prior, theta, rss, a, g)
-    viol = _amp_violations(c, present)
+    viol = _amp_violations(c, present) if positive else np.zeros(n, np.int64)
     lam = np.full(n, lam0)
     nu = np.full(n, 2.0)
     iters = np.zeros(n, dtype=np.int64)
@@ -609,7 +626,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
         trial = np.clip(theta[idx] + step, lo, hi)
         if sss_after_direct:
-            trial = _onset_after_direct(trial, present[idx])
+            trial = _onset_after_direct(trial, present[idx], onset_after_earliest)
         if keep_order:
             trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
@@ -617,7 +634,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
                                          None if sw is None else sw[idx], None if bg is None else bg[idx],
                                          None if amp is None else amp[idx], inst)
         rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
-        viol_t = _amp_violations(c_t, present[idx])
+        viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
         accept = ok & (rss_t < rss[idx])
         iters[idx] += 1
@@ -639,7 +656,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         # Converged: an accepted step that no longer lowers the RSS noticeably,
         # a fit that is exact to rounding, or damping so large that no step helps.
         done = np.zeros(idx.size, bool)
-        done |= accept & (gain < ftol)
+        done |= accept & (gain < ftol[idx])
         done |= rss[idx] <= 1e-26 * ynorm2[idx]
         stalled = ~accept & (lam[idx] > 1e12)
         converged[idx[done | stalled]] = True

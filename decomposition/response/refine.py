@@ -1,22 +1,18 @@
-"""Continuous refinement of response atoms: variable projection on blocks of pixels.
+"""Continuous refinement of response atoms on blocks of pixels.
 
 For a pixel with K slots (:mod:`decomposition.model.atoms`) the model is
-m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  The
-amplitudes enter linearly and are never iterated: for any theta they are the weighted
-least-squares solution ``a(theta)`` of :func:`solve_amplitudes` (the normal equations of the
-columns phi_k, a K x K solve per pixel; with ``fit_background`` a constant column -- the
-background family's offset -- is one more column of that solve, fitted jointly with the
-amplitudes and projected out of the delays' Jacobian like them).  theta is moved by Levenberg-Marquardt on the
-projected residual (variable projection with Kaufman's Jacobian J = -P_perp G, where G holds
-the columns a_k d phi_k / d theta_j and P_perp projects out the span of the atoms), one
-pixel at a time in a compiled loop (:func:`decomposition.kernels.responselm.response_lm`: its
-atoms, projected Jacobian and small solves without block-sized temporaries); a step is kept
-per pixel only when it lowers the weighted residual sum of squares.  Count data (:class:`CountData`) are fitted instead to their Poisson deviance
-by Fisher scoring over the delays, log alphas and amplitudes together (:func:`_fit_counts`),
-no step turning a positive amplitude non-positive.  Constraints by projection after each
-step: delays within ``delay_bounds_ps``, log alpha within ``lalp_bounds``, the sss onset not
-before the pixel's earliest shifted atom (``sss_after_direct``), and (``first_is_direct``) no
-shifted atom before slot 0.
+m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  Gaussian
+data are fitted by the refinement the Gaussian PSF's atoms take
+(:func:`decomposition.model.varpro.refine_block`, its compiled evaluation rendering the
+response's table atoms): variable projection, the amplitudes -- and with ``fit_background``
+a constant offset -- solved exactly for every theta, theta moved by Levenberg-Marquardt on
+the projected residual.  The slots are laid out as that engine's for the fit and back
+(:func:`_fit_least_squares`).  Count data (:class:`CountData`) are fitted instead to their
+Poisson deviance by Fisher scoring over the delays, log alphas and amplitudes together
+(:func:`_fit_counts`), no step turning a positive amplitude non-positive.  Constraints by
+projection after each step: delays within ``delay_bounds_ps``, log alpha within
+``lalp_bounds``, the sss onset not before the pixel's earliest shifted atom
+(``sss_after_direct``), and (``first_is_direct``) no shifted atom before slot 0.
 """
 from __future__ import annotations
 
@@ -29,10 +25,17 @@ from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLOT
 from ..kernels.response import response_table
-from ..kernels.responselm import LAMBDA0, LAMBDA_MAX, RIDGE, response_lm
+from ..model.varpro import Layout, refine_block
 from ..noise import count_deviance, poisson_weights
 from ..model.atoms import params_profile, slot_atoms
+from ..model.components import merge_gaussians
 from .label import slots_to_params
+
+#: ridge of the amplitudes' normal matrix (:func:`solve_amplitudes`), relative to its largest diagonal
+RIDGE = 1e-12
+#: Marquardt's starting damping, and the damping beyond which a pixel's count fit stops
+LAMBDA0 = 1e-3
+LAMBDA_MAX = 1e10
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]
 
@@ -197,16 +200,62 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
         cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
         return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
                            bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct), held=held)
-    delay, lalp, amp, cost, resid, iters, conv = response_lm(
-        response_table(irf), t, y, sw, fam, delay, lalp, fit_bg, n_iter=n_iter, lm_tol=lm_tol,
-        delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds, sss_after_direct=sss_after_direct,
-        first_is_direct=first_is_direct, held_delay=None if held is None else held[0],
-        held_lalp=None if held is None else held[1])
-    return SlotFit(delay=np.where(fam != FAM_NONE, delay, np.nan),
-                   lalp=np.where(fam == FAM_SSS, lalp, np.nan),
-                   amp=np.where(fam != FAM_NONE, amp[:, :K], 0.0),
-                   background=amp[:, K] if fit_bg is not None else np.zeros(P),
-                   cost=cost, resid=resid, iterations=iters, converged=conv)
+    return _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, n_iter=n_iter, lm_tol=lm_tol,
+                              delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds,
+                              sss_after_direct=sss_after_direct, first_is_direct=first_is_direct)
+
+
+def _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter, lm_tol, delay_bounds_ps,
+                       lalp_bounds, sss_after_direct, first_is_direct) -> SlotFit:
+    """:func:`fit_slots` for Gaussian data: the refinement's variable projection
+    (:func:`decomposition.model.varpro.refine_block` over the response's table atoms), its slots
+    laid out as that engine's (slot 0 the pixel's first shifted atom, 1 its sss, 2.. the other
+    shifted atoms in their order) and back; plain least squares (amplitudes of any sign), the
+    inter-reflections kept after the first shifted atom (``first_is_direct``), the onset at or
+    after the earliest shifted atom (``sss_after_direct``); a pixel stops when a kept step gains
+    less than ``lm_tol`` x its residual sum of squares per fitted sample."""
+    P, K = fam.shape
+    sh, ss = fam == FAM_GAUSS, fam == FAM_SSS
+    if (ss.sum(axis=1) > 1).any():
+        raise ValueError("a pixel's slots hold at most one sss atom")
+    rank = np.cumsum(sh, axis=1) - 1
+    pos = np.where(sh, np.where(rank == 0, 0, rank + 1), np.where(ss, SSS_SLOT, -1))       # (P, K)
+    kv = max(2, 1 + int(sh.sum(axis=1).max(initial=0)))
+    pix, slot = np.nonzero(pos >= 0)
+    vslot = pos[pix, slot]
+    present = np.zeros((P, kv), bool)
+    present[pix, vslot] = True
+    v_delay = np.zeros((P, kv))
+    v_delay[pix, vslot] = delay[pix, slot]
+    sss_lalp = np.where(ss, lalp, 0.0).sum(axis=1)
+    slots = {"delay": v_delay, "sigma": np.ones((P, kv)), "amplitude": np.zeros((P, kv)), "present": present,
+             "alpha": np.where(ss.any(axis=1), np.exp(sss_lalp), np.nan)}
+    if fit_bg is not None and fit_bg.any():
+        slots["fit_background"], slots["background"] = fit_bg, np.zeros(P)
+    lay = Layout(kv)
+    lo, hi = lay.bounds(delay_bounds_ps, (0.0, 0.0), lalp_bounds)
+    v_held = None
+    if held is not None:
+        d_held = np.zeros((P, kv), bool)
+        d_held[pix, vslot] = held[0][pix, slot]
+        v_held = lay.held(d_held, np.ones(P, bool), (held[1] & ss).any(axis=1))
+    n_used = np.maximum((sw > 0).sum(axis=1), 1)
+    with np.errstate(under="ignore"):
+        out, info = refine_block(t, y * sw, slots, lay, (lo, hi), None, int(n_iter), lm_tol / n_used, LAMBDA0, sw=sw,
+                                 sss_after_direct=sss_after_direct, keep_order=first_is_direct, held=v_held,
+                                 table=response_table(irf), positive=False, onset_after_earliest=True)
+    active = fam != FAM_NONE
+    f_delay = np.full((P, K), np.nan)
+    f_delay[pix, slot] = out["delay"][pix, vslot]
+    f_amp = np.zeros((P, K))
+    f_amp[pix, slot] = out["amplitude"][pix, vslot]
+    f_lalp = np.where(ss, np.log(out["alpha"])[:, None], np.nan)
+    background = out["background"]
+    phi = slot_atoms(irf, t, fam, np.where(active, f_delay, 0.0), np.where(ss, f_lalp, 0.0))
+    resid = sw * (y - np.einsum("pk,pkl->pl", f_amp, phi) - background[:, None])
+    return SlotFit(delay=f_delay, lalp=f_lalp, amp=f_amp, background=background,
+                   cost=np.einsum("pl,pl->p", resid, resid), resid=resid, iterations=info["iterations"],
+                   converged=info["converged"])
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
@@ -402,9 +451,12 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     def solve(fam, delay, lalp, sw, n_iter):
         f = fit_slots(irf, t, y, sw, fam, delay, lalp, n_iter=n_iter, fit_background=bg_cols, counts=cd, **fit_kw)
         delay, lalp, amp, b_fit = np.nan_to_num(f.delay), np.nan_to_num(f.lalp), f.amp, f.background
-        bad = (fam != FAM_NONE) & ~(amp > 0)
+        # two shifted copies the fit put on one delay are one component (the labels' merge rule)
+        merged = merge_gaussians({"fam": np.array(fam), "delay": delay, "amp": amp.copy()}, ax.time_bin_ps,
+                                 opts.merge_tol_bins, widths=False)
+        bad = ((fam != FAM_NONE) & ~(amp > 0)) | (merged["fam"] != fam)
         if bad.any():
-            fam = fam.copy()
+            fam = merged["fam"]
             fam[bad] = FAM_NONE
             r = np.flatnonzero(bad.any(axis=1))
             kw = {k: (v[r] if k.startswith("held_") else v) for k, v in fit_kw.items()}
