@@ -34,6 +34,12 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    direct before the window is left to step 0b: there the onset started at it let the direct
    slide out, its amplitude grown tenfold or more, for small deviance gains.  Gaussian data are
    not refitted: no pixel took the refit there (docs/history.md).
+0d. **The backward step** (``prune``, "s" asked): a pixel with an sss and a second shifted
+   atom less than PRUNE_GAP_SIGMA response widths after its direct (the Gaussian path's
+   candidates, :func:`decomposition.stages.prune.close_gaussian`) is refitted without that atom
+   and takes the refit where its penalised deviance (in the solver's noise) is not higher and
+   its direct stays in sight (:func:`_prune_close`): a converged fit can leave an atom on the
+   direct's flank or on the sss onset that the data do not ask for.
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
