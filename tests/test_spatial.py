@@ -8,7 +8,8 @@ from _cubes import smooth_scene as _scene
 from decomposition.image import decompose_image
 from decomposition.image import halo_pixels
 from decomposition.image.neighbours import neighbour_starts
-from decomposition.image.spatial import SpatialOptions, coupling_reach, neighbour_prior, prepare_coupling
+from decomposition.image.spatial import (SpatialOptions, censored_location, coupling_reach, neighbour_prior, onset_prior,
+                                        prepare_coupling)
 from decomposition.model.fidelity import fidelity
 from decomposition.model.refine import refine
 from decomposition.options import OptionError
@@ -28,7 +29,7 @@ def test_spatial_beats_per_pixel_on_a_piecewise_smooth_scene_and_edges_are_no_wo
     assert np.nanmean(fid[1]) > np.nanmean(fid[0]) + 0.005
     assert np.nanmean(fid[1][edge]) >= np.nanmean(fid[0][edge])
     info = coupled.info["spatial"]
-    assert info["coupling_reach"] == 8 and info["halo_pixels"] == 11 and info["spatial_pulled"] > 0
+    assert info["coupling_reach"] == 11 and info["halo_pixels"] == 14 and info["spatial_pulled"] > 0
 
 
 def test_a_clean_pixel_is_not_pulled_by_a_noisy_neighbourhood():
@@ -109,13 +110,14 @@ def test_a_neighbours_answer_repairs_a_pixel_the_per_pixel_pass_got_wrong():
 def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_echoes():
     # the neighbour starts (1), two rounds of material starts (2 each: their 5 x 5) and three
     # sweeps (1 each)
-    assert coupling_reach(SpatialOptions()) == 1 + 2 * 2 + 3 * 1
+    # the material prior reads material_radius (2) in each sweep
+    assert coupling_reach(SpatialOptions()) == 1 + 2 * 2 + 3 * 2
     assert coupling_reach(SpatialOptions(material_prior=False)) == 4
-    assert coupling_reach(SpatialOptions(material_starts=False)) == 4
+    assert coupling_reach(SpatialOptions(material_starts=False)) == 1 + 3 * 2
     assert coupling_reach(SpatialOptions(sweeps=2, radius=2, material_rounds=0)) == 5
     assert coupling_reach(SpatialOptions(sweeps=2, radius=3, material_radius=3, material_rounds=1)) == 1 + 3 + 2 * 3
     assert coupling_reach(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 0
-    assert halo_pixels(SpatialOptions()) == 1 + 8 + 2          # spikes' 3 x 3, coupling, echoes' 5 x 5
+    assert halo_pixels(SpatialOptions()) == 1 + 11 + 2         # spikes' 3 x 3, coupling, echoes' 5 x 5
     assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 3
     assert halo_pixels(False) == 0
 
@@ -391,3 +393,40 @@ def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure(
     for share in (None, 0.1, 1.0):
         assert found(se, share)[4:, 6:].all()
         assert not found(se, share)[1, 5] and not found(se, share)[4, 1]
+
+
+def _censored_onsets(n, location_ps, spread_ps, seed):
+    # onsets N(location, spread^2); those before the direct held at the bound 0, where the
+    # standard error is the tied parameter's (small, not the onset's)
+    x = location_ps + spread_ps * np.random.default_rng(seed).standard_normal(n)
+    at_bound = x <= 0
+    return np.where(at_bound, 0.0, x), np.where(at_bound, 0.25, spread_ps), at_bound
+
+
+def test_the_censored_location_reads_an_onset_at_its_bound_as_at_most_the_bound():
+    onset, se, at_bound = _censored_onsets(2000, 2.0, 4.0, seed=2)
+    assert 0.25 < at_bound.mean() < 0.4
+    loc, var = censored_location(onset[:, None], se[:, None], at_bound[:, None], 0.0, 0.0, 3.0)
+    assert abs(loc[0] - 2.0) < 0.3 and 0 < var[0] < 0.3 ** 2
+    # the bound's answers read as sure values at 0 pull a weighted mean far below
+    weighted = np.sum(onset / se ** 2) / np.sum(1 / se ** 2)
+    assert weighted < 1.0
+    # all at the bound: the bound; no sample: none
+    values = np.array([[0.0, np.nan]] * 5)
+    loc, var = censored_location(values, np.ones((5, 2)), np.array([[True, False]] * 5), 1.0, 0.0, 3.0)
+    assert loc[0] == 0.0 and np.isnan(loc[1]) and np.isinf(var[1])
+
+
+def test_the_onset_prior_of_one_material_with_a_third_of_its_onsets_at_the_bound():
+    n = 12
+    onset, se, at_bound = _censored_onsets(n * n, 2.0, 4.0, seed=2)
+    opts = SpatialOptions()
+    mean, precision = onset_prior(onset, se, (n, n), opts)
+    inner = np.zeros((n, n), bool)
+    inner[2:-2, 2:-2] = True
+    inner = inner.ravel()
+    assert np.all(precision[inner] > 0)
+    assert abs(mean[inner].mean() - 2.0) < 0.4
+    # the edge-preserving estimate of the values as given sits a ps low
+    old, on = neighbour_prior(onset, se, (n, n), SpatialOptions(radius=2), opts.onset_scale_ps, piecewise_constant=True)
+    assert np.nanmean(np.where(on > 0, old, np.nan)[inner]) < 1.4
