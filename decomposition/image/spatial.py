@@ -36,8 +36,9 @@ Python loops run over neighbour offsets and sweeps):
    (``info["spatial_refits"]`` counts the refits).
 
 The answer at a pixel depends only on the data within :func:`coupling_reach` pixels of it (one
-pixel for the first step, ``radius`` or with the material prior ``material_radius`` per sweep), so a chunked run reads each chunk with that
-halo and keeps the interior (:mod:`decomposition.store.chunked`).
+pixel for the first step, ``material_radius`` per round of material starts, ``radius`` or with
+the material prior the larger of it and ``material_radius`` per sweep), so a chunked run reads
+each chunk with that halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
 Scope: the Gaussian PSF path (not ``irf=``).  The neighbour starts' data term is weighed by
 :func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
@@ -46,8 +47,8 @@ whitened by a correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
 
-# One module over 600 lines on purpose: the spatial options, the homogeneity test, the priors it
-# builds and the joint refinement that reads them are one mechanism over one neighbourhood layout.
+# One module over 600 lines on purpose: the spatial options, the material tests, the priors they
+# build and the joint refinement that reads them are one mechanism over one neighbourhood layout.
 from __future__ import annotations
 
 import inspect
@@ -100,8 +101,9 @@ class SpatialOptions:
     edge_sigma: float = 3.0
     #: The joint refinement's prior also on what a material shares between neighbours: the sss
     #: amplitude over the direct's and the sss decay rate (their logarithms) and the sss onset
-    #: after the direct, with the same edge-preserving estimate, where the neighbourhood is one
-    #: material (``homogeneity_p``; a neighbour across a material edge has no weight).
+    #: after the direct, read from the members of the pixel's material within
+    #: ``material_radius`` (``material_agreement_sigma``; a pixel without enough members has
+    #: none); the material starts (``material_starts``) run only with it.
     material_prior: bool = True
     #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
     #: neighbours on one material: the ratio prior's own standard deviation.
@@ -110,9 +112,9 @@ class SpatialOptions:
     alpha_scale: float = 0.05
     #: The same for the sss onset after the direct delay, ps.
     onset_scale_ps: float = 1.5
-    #: The material prior's homogeneity test: a neighbourhood whose values scatter beyond their
+    #: The material starts' homogeneity test: a neighbourhood whose values scatter beyond their
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
-    #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
+    #: not one material, and proposes no material start (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
     #: The homogeneity test leaves out the neighbours beyond ``edge_sigma`` of the neighbourhood's
     #: median (strays: a noisy pixel's answer, an onset at its bound) while they are fewer than
