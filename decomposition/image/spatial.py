@@ -116,12 +116,6 @@ class SpatialOptions:
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
     #: not one material, and proposes no material start (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
-    #: The homogeneity test leaves out the neighbours beyond ``edge_sigma`` of the neighbourhood's
-    #: median (strays: a noisy pixel's answer, an onset at its bound) while they are fewer than
-    #: half of the neighbours and hold at most this share of the neighbours' information, the sum
-    #: of 1 / (stderr^2 + scale^2): an answer that disagrees and is sure of it is another material
-    #: (:func:`mixed_neighbourhood`; 0: every neighbour in the test).
-    stray_share: float = 0.1
     #: Neighbourhood radius of the material starts and of the material prior, pixels: the
     #: neighbours whose sss a pixel fitted without one is offered (:mod:`decomposition.image.material`)
     #: and those whose material the prior reads (:func:`material_members`, :func:`onset_prior`; a
@@ -157,9 +151,6 @@ class SpatialOptions:
         object.__setattr__(self, "material_rounds", _number("material_rounds", self.material_rounds, lo=0, integer=True))
         object.__setattr__(self, "material_agreement_sigma",
                            _number("material_agreement_sigma", self.material_agreement_sigma, lo=0, lo_open=True))
-        object.__setattr__(self, "stray_share", _number("stray_share", self.stray_share, lo=0))
-        if not self.stray_share <= 1:
-            raise OptionError(f"option stray_share: must be <= 1, got {self.stray_share!r}")
         if not self.homogeneity_p < 1:
             raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
@@ -359,8 +350,7 @@ def _offsets(radius: int):
 
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                    scale: float | None = None, piecewise_constant: bool = False,
-                    mixed: np.ndarray | None = None):
+                    scale: float | None = None):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -374,16 +364,6 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     scale : float, optional
         How far the parameter may differ between neighbours on one surface, its units (the
         prior's own standard deviation); default ``options.delay_scale_ps``.
-    piecewise_constant : bool
-        The parameter is one value per region (a material's), not a smooth surface: where the
-        neighbours that keep weight scatter more than their standard errors and ``scale``
-        explain (Cochran's Q over its degrees of freedom), the excess variance is added to the
-        prior's; and where the neighbourhood is not one material (:func:`mixed_neighbourhood`
-        of these values, or ``mixed``) there is no prior.
-    mixed : ndarray (P,) bool, optional
-        With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
-        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull, with
-        ``options.stray_share``); default: found on ``delay``.
 
     Returns
     -------
@@ -401,27 +381,13 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     if not have.any():
         return mean, precision
     with np.errstate(invalid="ignore", divide="ignore"):
-        m, w, var = _biweight_mean(nd_ok[:, have], ns[:, have], ok[:, have], tau2, c_edge)
+        m, w, _ = _biweight_mean(nd_ok[:, have], ns[:, have], ok[:, have], tau2, c_edge)
         wsum = w.sum(axis=0)
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
-        if piecewise_constant:
-            # random-effects excess of the weighted neighbours (DerSimonian-Laird)
-            inl = w > 0
-            wi = np.where(inl, 1.0 / var, 0.0)
-            s1, s2 = wi.sum(axis=0), (wi * wi).sum(axis=0)
-            q = (wi * np.nan_to_num(nd_ok[:, have] - m) ** 2).sum(axis=0)
-            excess = np.maximum(0.0, (q - (inl.sum(axis=0) - 1)) / np.where(s1 > 0, s1 - s2 / np.where(s1 > 0, s1, 1.0), 1.0))
-            excess = np.where(np.isfinite(excess), excess, 0.0)
-            tau2 = tau2 + excess
-            var_m = var_m + excess / np.maximum(inl.sum(axis=0), 1)
         own = delay[have]
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
         b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
-    if piecewise_constant:
-        if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, stray_share=options.stray_share)
-        prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
     return mean, precision
@@ -451,7 +417,8 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
                         scale: float, radius: int | None = None, stray_share: float | None = None) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
-    parameter (a material's): the homogeneity test of the material prior.
+    parameter (a material's): the homogeneity test of the material starts
+    (:mod:`decomposition.image.material`).
 
     Cochran's Q of the neighbours within ``radius`` (default ``options.radius``), each in its
     standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies beyond the
