@@ -684,10 +684,13 @@ def summary_text(store) -> str:
     spatial = (a.get("job") or {}).get("spatial")
     if spatial:
         from decomposition.image import halo_pixels
+        from decomposition.image.spatial import SpatialOptions
 
+        # a store written by an older version may record options this one no longer has
+        known = {k: v for k, v in spatial.items() if k in SpatialOptions.__dataclass_fields__}
         lines.append(f"spatial coupling: neighbours' answers as starts, {spatial['sweeps']} sweeps with an "
                      f"edge-preserving prior on the direct delays, pooled echoes and spikes (each chunk read with "
-                     f"a halo of {halo_pixels(spatial)} pixels)")
+                     f"a halo of {halo_pixels(known)} pixels)")
     if not done.all():
         lines.append("INCOMPLETE: rerun 'streaklab decompose ... --resume' to finish")
     nv = max(int(valid.sum()), 1)

@@ -359,3 +359,23 @@ def test_a_synthetic_cubes_truth_is_shown_beside_the_estimate(tmp_path):
     titles = [a.get_title() for a in maps_figure(store).axes if a.get_title()]
     assert len(titles) == 4 and not any("true" in t for t in titles)
     assert not any(ln.get_label().startswith("true") for ln in profiles_figure(store, [(1, 2)]).axes[0].get_lines())
+
+
+def test_the_summary_of_a_store_whose_spatial_options_hold_one_no_longer_known(result, tmp_path):
+    """A store written by an older version records its spatial options as they were then; its
+    summary still says the coupling and the halo (the options it names that this version has)."""
+    import dataclasses
+
+    import zarr
+
+    from decomposition.image import halo_pixels
+    from decomposition.image.spatial import SpatialOptions
+    from streaklab.report import summary_text
+
+    shutil.copytree(result / "res.zarr", tmp_path / "res.zarr")
+    group = zarr.open_group(str(tmp_path / "res.zarr"), mode="r+")
+    job = dict(group.attrs["job"])
+    job["spatial"] = dataclasses.asdict(SpatialOptions(sweeps=2)) | {"stray_share": 0.1}
+    group.attrs["job"] = job
+    text = summary_text(open_result_store(tmp_path / "res.zarr"))
+    assert "2 sweeps" in text and f"a halo of {halo_pixels(SpatialOptions(sweeps=2))} pixels" in text

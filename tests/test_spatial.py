@@ -8,7 +8,8 @@ from _cubes import smooth_scene as _scene
 from decomposition.image import decompose_image
 from decomposition.image import halo_pixels
 from decomposition.image.neighbours import neighbour_starts
-from decomposition.image.spatial import SpatialOptions, coupling_reach, neighbour_prior, prepare_coupling
+from decomposition.image.spatial import (SpatialOptions, censored_location, coupling_reach, material_members,
+                                        material_prior, neighbour_prior, onset_prior, prepare_coupling)
 from decomposition.model.fidelity import fidelity
 from decomposition.model.refine import refine
 from decomposition.options import OptionError
@@ -28,7 +29,7 @@ def test_spatial_beats_per_pixel_on_a_piecewise_smooth_scene_and_edges_are_no_wo
     assert np.nanmean(fid[1]) > np.nanmean(fid[0]) + 0.005
     assert np.nanmean(fid[1][edge]) >= np.nanmean(fid[0][edge])
     info = coupled.info["spatial"]
-    assert info["coupling_reach"] == 8 and info["halo_pixels"] == 11 and info["spatial_pulled"] > 0
+    assert info["coupling_reach"] == 11 and info["halo_pixels"] == 14 and info["spatial_pulled"] > 0
 
 
 def test_a_clean_pixel_is_not_pulled_by_a_noisy_neighbourhood():
@@ -109,13 +110,14 @@ def test_a_neighbours_answer_repairs_a_pixel_the_per_pixel_pass_got_wrong():
 def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_echoes():
     # the neighbour starts (1), two rounds of material starts (2 each: their 5 x 5) and three
     # sweeps (1 each)
-    assert coupling_reach(SpatialOptions()) == 1 + 2 * 2 + 3 * 1
+    # the material prior reads material_radius (2) in each sweep
+    assert coupling_reach(SpatialOptions()) == 1 + 2 * 2 + 3 * 2
     assert coupling_reach(SpatialOptions(material_prior=False)) == 4
-    assert coupling_reach(SpatialOptions(material_starts=False)) == 4
+    assert coupling_reach(SpatialOptions(material_starts=False)) == 1 + 3 * 2
     assert coupling_reach(SpatialOptions(sweeps=2, radius=2, material_rounds=0)) == 5
     assert coupling_reach(SpatialOptions(sweeps=2, radius=3, material_radius=3, material_rounds=1)) == 1 + 3 + 2 * 3
     assert coupling_reach(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 0
-    assert halo_pixels(SpatialOptions()) == 1 + 8 + 2          # spikes' 3 x 3, coupling, echoes' 5 x 5
+    assert halo_pixels(SpatialOptions()) == 1 + 11 + 2         # spikes' 3 x 3, coupling, echoes' 5 x 5
     assert halo_pixels(SpatialOptions(neighbour_starts=False, sweeps=0, material_starts=False)) == 3
     assert halo_pixels(False) == 0
 
@@ -125,7 +127,8 @@ def test_halo_pixels_is_the_reach_of_the_spike_test_the_coupling_and_the_pooled_
     ({"radius": 0.5}, "option radius: must be an integer"),
     ({"delay_scale_ps": 0}, "option delay_scale_ps: must be > 0"),
     ({"homogeneity_p": 1.0}, "option homogeneity_p: must be < 1"),
-    ({"stray_share": 1.5}, "option stray_share: must be <= 1"),
+    ({"material_agreement_sigma": 0}, "option material_agreement_sigma: must be > 0"),
+    ({"stray_share": 0.1}, "spatial: unknown option(s) stray_share"),
     ({"material_radius": 0}, "option material_radius: must be >= 1"),
     ({"material_rounds": -1}, "option material_rounds: must be >= 0"),
     ({"bogus": 1}, "spatial: unknown option(s) bogus"),
@@ -341,26 +344,26 @@ def _two_materials_image():
     return values, se
 
 
-def test_the_material_prior_pulls_within_a_material_and_not_across_materials():
+def test_the_material_prior_pulls_toward_the_pixels_own_material_and_not_across_materials():
     values, se = _two_materials_image()
     opts = SpatialOptions()
-    mean, precision = neighbour_prior(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale,
-                                      piecewise_constant=True)
+    own = {"ratio": (values, se.reshape(-1), opts.ratio_scale)}
+    members = material_members(own, (6, 8), opts, ("ratio",))
+    mean, precision = material_prior(values, (6, 8), opts, opts.ratio_scale, members)
     mean, precision = mean.reshape(6, 8), precision.reshape(6, 8)
-    # inside a patch, away from its edges and the odd pixel: pulled toward the patch's value
-    for y, x, value in [(1, 5, -0.3), (2, 5, -0.3), (4, 2, -1.0), (4, 1, -1.0)]:
-        assert precision[y, x] > 0 and mean[y, x] == pytest.approx(value, abs=0.1)
-    # no pull on the pixel of its own material, nor where it is a neighbour (a neighbourhood of
-    # two materials), nor next to the patches' edge (columns 3 and 4), nor among independently
-    # drawn materials
-    mixed = np.zeros((6, 8), bool)
-    mixed[1:4, 0:3] = mixed[:, 3:5] = mixed[3:, 4:] = True
-    assert np.all(precision[mixed] == 0)
-    # (the odd pixel's own neighbours are one material: its own value, far from theirs, stops it)
-    from decomposition.image.spatial import mixed_neighbourhood
-    found = mixed_neighbourhood(values, se.reshape(-1), (6, 8), opts, opts.ratio_scale).reshape(6, 8)
-    mixed[2, 1] = False
-    assert found[mixed].all() and not found[2, 1] and not found[1, 5]
+    # inside a patch, and at the patches' edge (columns 3 and 4) each toward its own side's value:
+    # its members are the majority of its 5 x 5 that agree with it, the far side left out
+    for y, x, value in [(1, 5, -0.3), (2, 5, -0.3), (4, 2, -1.0), (4, 1, -1.0), (1, 3, -1.0), (1, 4, -0.3),
+                        (3, 3, -1.0), (2, 4, -0.3)]:
+        assert precision[y, x] == 1 / opts.ratio_scale ** 2 and mean[y, x] == pytest.approx(value, abs=0.05)
+    # the pixel of its own material agrees with none: no prior; its neighbours' priors stay at
+    # their material's value
+    assert precision[2, 1] == 0 and np.isnan(mean[2, 1])
+    for y, x in [(1, 1), (2, 2), (3, 1)]:
+        assert mean[y, x] == pytest.approx(-1.0, abs=0.05)
+    # among independently drawn materials (the corner, and the patch pixel beside it whose
+    # agreeing neighbours are fewer than half) there is no prior
+    assert np.all(precision[5, 5:] == 0) and np.all(precision[4, 6:] == 0) and precision[4, 4] == 0
 
 
 def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure():
@@ -376,7 +379,6 @@ def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure(
     unsure = se.copy()
     unsure[2, 1] = 0.4
     opts = SpatialOptions()
-    assert opts.stray_share == 0.1
 
     def found(err, share):
         return mixed_neighbourhood(values, err.reshape(-1), (6, 8), opts, opts.ratio_scale,
@@ -391,3 +393,40 @@ def test_the_homogeneity_test_leaves_out_a_stray_answer_only_while_it_is_unsure(
     for share in (None, 0.1, 1.0):
         assert found(se, share)[4:, 6:].all()
         assert not found(se, share)[1, 5] and not found(se, share)[4, 1]
+
+
+def _censored_onsets(n, location_ps, spread_ps, seed):
+    # onsets N(location, spread^2); those before the direct held at the bound 0, where the
+    # standard error is the tied parameter's (small, not the onset's)
+    x = location_ps + spread_ps * np.random.default_rng(seed).standard_normal(n)
+    at_bound = x <= 0
+    return np.where(at_bound, 0.0, x), np.where(at_bound, 0.25, spread_ps), at_bound
+
+
+def test_the_censored_location_reads_an_onset_at_its_bound_as_at_most_the_bound():
+    onset, se, at_bound = _censored_onsets(2000, 2.0, 4.0, seed=2)
+    assert 0.25 < at_bound.mean() < 0.4
+    loc, var = censored_location(onset[:, None], se[:, None], at_bound[:, None], 0.0, 0.0, 3.0)
+    assert abs(loc[0] - 2.0) < 0.3 and 0 < var[0] < 0.3 ** 2
+    # the bound's answers read as sure values at 0 pull a weighted mean far below
+    weighted = np.sum(onset / se ** 2) / np.sum(1 / se ** 2)
+    assert weighted < 1.0
+    # all at the bound: the bound; no sample: none
+    values = np.array([[0.0, np.nan]] * 5)
+    loc, var = censored_location(values, np.ones((5, 2)), np.array([[True, False]] * 5), 1.0, 0.0, 3.0)
+    assert loc[0] == 0.0 and np.isnan(loc[1]) and np.isinf(var[1])
+
+
+def test_the_onset_prior_of_one_material_with_a_third_of_its_onsets_at_the_bound():
+    n = 12
+    onset, se, at_bound = _censored_onsets(n * n, 2.0, 4.0, seed=2)
+    opts = SpatialOptions()
+    mean, precision = onset_prior(onset, se, (n, n), opts)
+    inner = np.zeros((n, n), bool)
+    inner[2:-2, 2:-2] = True
+    inner = inner.ravel()
+    assert np.all(precision[inner] > 0)
+    assert abs(mean[inner].mean() - 2.0) < 0.4
+    # the edge-preserving estimate of the values as given sits a ps low
+    old, on = neighbour_prior(onset, se, (n, n), SpatialOptions(radius=2), opts.onset_scale_ps)
+    assert np.nanmean(np.where(on > 0, old, np.nan)[inner]) < 1.4

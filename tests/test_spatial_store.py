@@ -96,7 +96,7 @@ def test_an_interrupted_spatial_run_resumes_to_the_same_store(spatial_store, tmp
     # the report says the store is coupled, and how far each chunk read around itself
     from streaklab.report import summary_text
 
-    assert "spatial coupling:" in summary_text(open_result_store(tmp_path / "part.zarr")) and "halo of 11 pixels" in \
+    assert "spatial coupling:" in summary_text(open_result_store(tmp_path / "part.zarr")) and "halo of 14 pixels" in \
         summary_text(open_result_store(tmp_path / "part.zarr"))
 
 

@@ -24,20 +24,21 @@ Python loops run over neighbour offsets and sweeps):
    stderr^2 / (stderr^2 + 1 / precision) of the gap.  With ``material_prior`` (the default) the
    sweeps also carry priors on what a material shares: ln(sss amplitude / direct amplitude),
    ln(sss decay rate) and the sss onset after the direct (each with its own scale), estimated
-   the same way with the neighbours' excess scatter (DerSimonian-Laird) added to the prior's
-   variance.  Such a parameter is one value per material, not a smooth surface, so its prior
-   needs a neighbourhood of one material: where the neighbours' own answers scatter beyond
-   their errors and scale (:func:`mixed_neighbourhood`: Cochran's Q of all of them against its
-   chi^2 at ``homogeneity_p``) there is none: among pixels each of its own material, next to a
-   material edge, or next to a pixel of another material.  (The biweight alone would keep the
-   few neighbours that happen to agree and pull toward them.)  After the first sweep only the pixels
+   over the pixel's material.  Such a parameter is one value per material, not a smooth
+   surface: the ratio's and decay rate's prior is the median of the members of the pixel's
+   material within ``material_radius`` (:func:`material_members`: the neighbours whose ratio and
+   decay rate both agree with the pixel's own, where they are at least half; none among pixels
+   each of its own material), and the onset's is the censored location of the neighbours'
+   onsets (:func:`onset_prior`, :func:`censored_location`: an onset at its bound 0 is "at most
+   0", not 0) where the pixel has such members.  After the first sweep only the pixels
    whose prior appeared, went, or moved (its mean by 1 % of its standard deviation, its
    precision by 1 %) are refitted, and the sweeps stop early where none did
    (``info["spatial_refits"]`` counts the refits).
 
 The answer at a pixel depends only on the data within :func:`coupling_reach` pixels of it (one
-pixel for the first step, ``radius`` per sweep), so a chunked run reads each chunk with that
-halo and keeps the interior (:mod:`decomposition.store.chunked`).
+pixel for the first step, ``material_radius`` per round of material starts, ``radius`` or with
+the material prior the larger of it and ``material_radius`` per sweep), so a chunked run reads
+each chunk with that halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
 Scope: the Gaussian PSF path (not ``irf=``).  The neighbour starts' data term is weighed by
 :func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
@@ -46,8 +47,8 @@ whitened by a correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
 
-# One module over 600 lines on purpose: the spatial options, the homogeneity test, the priors it
-# builds and the joint refinement that reads them are one mechanism over one neighbourhood layout.
+# One module over 600 lines on purpose: the spatial options, the material tests, the priors they
+# build and the joint refinement that reads them are one mechanism over one neighbourhood layout.
 from __future__ import annotations
 
 import inspect
@@ -71,7 +72,8 @@ from ..stages.selection import families, free_parameters, log_samples, penalised
 
 __all__ = ["SpatialOptions", "spatial_options", "coupling_reach", "Coupling", "prepare_coupling", "objective_weights",
            "noise_variance", "take_rows", "objective", "refit", "shifted", "NEIGHBOURS_8", "neighbour_prior",
-           "mixed_neighbourhood", "prior_values", "refine_priors", "joint_refinement", "coupled_result"]
+           "mixed_neighbourhood", "censored_location", "onset_prior", "material_members",
+           "material_prior", "prior_values", "refine_priors", "joint_refinement", "coupled_result"]
 
 #: the 8 neighbours' offsets (dy, dx)
 NEIGHBOURS_8 = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
@@ -99,8 +101,9 @@ class SpatialOptions:
     edge_sigma: float = 3.0
     #: The joint refinement's prior also on what a material shares between neighbours: the sss
     #: amplitude over the direct's and the sss decay rate (their logarithms) and the sss onset
-    #: after the direct, with the same edge-preserving estimate, where the neighbourhood is one
-    #: material (``homogeneity_p``; a neighbour across a material edge has no weight).
+    #: after the direct, read from the members of the pixel's material within
+    #: ``material_radius`` (``material_agreement_sigma``; a pixel without enough members has
+    #: none); the material starts (``material_starts``) run only with it.
     material_prior: bool = True
     #: How far the natural logarithm of the sss-to-direct amplitude ratio may differ between
     #: neighbours on one material: the ratio prior's own standard deviation.
@@ -109,20 +112,20 @@ class SpatialOptions:
     alpha_scale: float = 0.05
     #: The same for the sss onset after the direct delay, ps.
     onset_scale_ps: float = 1.5
-    #: The material prior's homogeneity test: a neighbourhood whose values scatter beyond their
+    #: The material starts' homogeneity test: a neighbourhood whose values scatter beyond their
     #: standard errors and scale at this significance level (Cochran's Q against its chi^2) is
-    #: not one material, and gives no material prior (:func:`mixed_neighbourhood`).
+    #: not one material, and proposes no material start (:func:`mixed_neighbourhood`).
     homogeneity_p: float = 0.05
-    #: The homogeneity test leaves out the neighbours beyond ``edge_sigma`` of the neighbourhood's
-    #: median (strays: a noisy pixel's answer, an onset at its bound) while they are fewer than
-    #: half of the neighbours and hold at most this share of the neighbours' information, the sum
-    #: of 1 / (stderr^2 + scale^2): an answer that disagrees and is sure of it is another material
-    #: (:func:`mixed_neighbourhood`; 0: every neighbour in the test).
-    stray_share: float = 0.1
-    #: Neighbourhood radius of the material starts, pixels: the neighbours whose sss a pixel fitted
-    #: without one is offered (:mod:`decomposition.image.material`; a material is one value over a
-    #: patch, so more neighbours propose it than the prior's own ``radius`` weighs).
+    #: Neighbourhood radius of the material starts and of the material prior, pixels: the
+    #: neighbours whose sss a pixel fitted without one is offered (:mod:`decomposition.image.material`)
+    #: and those whose material the prior reads (:func:`material_members`, :func:`onset_prior`; a
+    #: material is one value over a patch, so more neighbours share it than the delay prior's own
+    #: ``radius`` weighs).
     material_radius: int = 2
+    #: The material prior's members: the neighbours within ``material_radius`` whose own ln(sss /
+    #: direct amplitude) and ln(sss decay rate) both agree with the pixel's own within this many
+    #: standard deviations (their standard errors and scales in quadrature; :func:`material_members`).
+    material_agreement_sigma: float = 2.0
     #: Pixels fitted without an sss whose neighbourhood is one material with an sss are refitted
     #: with it at the neighbourhood's values (:mod:`decomposition.image.material`), kept where
     #: the data support it.
@@ -146,9 +149,8 @@ class SpatialOptions:
         object.__setattr__(self, "material_radius", _number("material_radius", self.material_radius, lo=1, integer=True))
         object.__setattr__(self, "material_starts", _flag("material_starts", self.material_starts))
         object.__setattr__(self, "material_rounds", _number("material_rounds", self.material_rounds, lo=0, integer=True))
-        object.__setattr__(self, "stray_share", _number("stray_share", self.stray_share, lo=0))
-        if not self.stray_share <= 1:
-            raise OptionError(f"option stray_share: must be <= 1, got {self.stray_share!r}")
+        object.__setattr__(self, "material_agreement_sigma",
+                           _number("material_agreement_sigma", self.material_agreement_sigma, lo=0, lo_open=True))
         if not self.homogeneity_p < 1:
             raise OptionError(f"option homogeneity_p: must be < 1, got {self.homogeneity_p!r}")
 
@@ -175,10 +177,12 @@ def coupling_reach(options: SpatialOptions) -> int:
     """How far (pixels, along y and x) the coupled answer at a pixel reaches into the image: the
     neighbour starts read the 8 neighbours (1), each round of material starts the
     ``material_radius`` neighbourhood (with the material prior), each sweep the ``radius``
-    neighbourhood (the image path's whole reach, its halo, is
+    neighbourhood (the delay prior) or, with the material prior, the larger of it and the
+    ``material_radius`` one (the image path's whole reach, its halo, is
     :func:`decomposition.image.api.halo_pixels`)."""
     starts = options.material_radius * options.material_rounds if options.material_prior and options.material_starts else 0
-    return int(options.neighbour_starts) + starts + options.sweeps * options.radius
+    sweep = max(options.radius, options.material_radius) if options.material_prior else options.radius
+    return int(options.neighbour_starts) + starts + options.sweeps * sweep
 
 
 # --------------------------------------------------------------------------- the call's setup
@@ -346,8 +350,7 @@ def _offsets(radius: int):
 
 
 def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
-                    scale: float | None = None, piecewise_constant: bool = False,
-                    mixed: np.ndarray | None = None):
+                    scale: float | None = None):
     """The robust neighbourhood estimate of each pixel's direct delay (or of another parameter
     neighbours share) and the prior's precision.
 
@@ -361,16 +364,6 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     scale : float, optional
         How far the parameter may differ between neighbours on one surface, its units (the
         prior's own standard deviation); default ``options.delay_scale_ps``.
-    piecewise_constant : bool
-        The parameter is one value per region (a material's), not a smooth surface: where the
-        neighbours that keep weight scatter more than their standard errors and ``scale``
-        explain (Cochran's Q over its degrees of freedom), the excess variance is added to the
-        prior's; and where the neighbourhood is not one material (:func:`mixed_neighbourhood`
-        of these values, or ``mixed``) there is no prior.
-    mixed : ndarray (P,) bool, optional
-        With ``piecewise_constant``: the pixels whose neighbourhood is not one material, as
-        :func:`mixed_neighbourhood` found it (on the pixels' own answers, before any pull, with
-        ``options.stray_share``); default: found on ``delay``.
 
     Returns
     -------
@@ -388,27 +381,13 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
     if not have.any():
         return mean, precision
     with np.errstate(invalid="ignore", divide="ignore"):
-        m, w, var = _biweight_mean(nd_ok[:, have], ns[:, have], ok[:, have], tau2, c_edge)
+        m, w, _ = _biweight_mean(nd_ok[:, have], ns[:, have], ok[:, have], tau2, c_edge)
         wsum = w.sum(axis=0)
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
-        if piecewise_constant:
-            # random-effects excess of the weighted neighbours (DerSimonian-Laird)
-            inl = w > 0
-            wi = np.where(inl, 1.0 / var, 0.0)
-            s1, s2 = wi.sum(axis=0), (wi * wi).sum(axis=0)
-            q = (wi * np.nan_to_num(nd_ok[:, have] - m) ** 2).sum(axis=0)
-            excess = np.maximum(0.0, (q - (inl.sum(axis=0) - 1)) / np.where(s1 > 0, s1 - s2 / np.where(s1 > 0, s1, 1.0), 1.0))
-            excess = np.where(np.isfinite(excess), excess, 0.0)
-            tau2 = tau2 + excess
-            var_m = var_m + excess / np.maximum(inl.sum(axis=0), 1)
         own = delay[have]
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
         b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
-    if piecewise_constant:
-        if mixed is None:
-            mixed = mixed_neighbourhood(delay, stderr, shape, options, scale, stray_share=options.stray_share)
-        prec = np.where(mixed[have], 0.0, prec)
     mean[have] = m
     precision[have] = prec
     return mean, precision
@@ -438,7 +417,8 @@ def _biweight_mean(nd, ns, ok, tau2, c_edge):
 def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
                         scale: float, radius: int | None = None, stray_share: float | None = None) -> np.ndarray:
     """(P,) bool: the pixels whose neighbourhood does not share one value of a piecewise-constant
-    parameter (a material's): the homogeneity test of the material prior.
+    parameter (a material's): the homogeneity test of the material starts
+    (:mod:`decomposition.image.material`).
 
     Cochran's Q of the neighbours within ``radius`` (default ``options.radius``), each in its
     standard error and ``scale`` (Q = sum (v - mean)^2 / (stderr^2 + scale^2)), lies beyond the
@@ -488,6 +468,201 @@ def mixed_neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, op
            & (q <= chi2.isf(options.homogeneity_p, np.maximum(n_in - 1, 1))))
     mixed[test] = ~one
     return mixed
+
+
+def censored_location(values: np.ndarray, stderr: np.ndarray, censored: np.ndarray, tau2: float,
+                      bound: float, edge_sigma: float, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """The maximum-likelihood location of samples left-censored at ``bound`` (a Tobit location),
+    column by column: ((n,) location, (n,) its variance).
+
+    Each sample is the location plus a normal error of variance stderr^2 + ``tau2``.  A sample
+    at its bound (``censored``) is an answer the bound stopped, "at most ``bound``", not the value
+    ``bound``: its likelihood is the normal CDF at the bound, Phi((bound - location) / s), its
+    own standard error (that of a parameter held at its bound) replaced by the median standard
+    error of the column's free samples (a stopped answer would have scattered as they do), or 0
+    where none is free.  Where half the samples sit at the bound their median is the bound; this
+    location lies where the free ones and the share of stopped ones say.  The log-likelihood is
+    concave in the location, so its score is solved by bisection, on blocks of columns at once;
+    the location is kept at or above ``bound`` (all stopped: ``bound``).  Robust in two passes:
+    free samples beyond ``edge_sigma`` of the first pass's location (each in its own s) are left
+    out of the second.
+
+    Parameters
+    ----------
+    values, stderr : ndarray (m, n)
+        The samples of n columns and their standard errors (NaN: no sample).
+    censored : ndarray (m, n) bool
+        The samples at the bound (their values are not read).
+    tau2 : float
+        The samples' spread beyond their standard errors (the prior's scale squared).
+    bound : float
+        The lower bound the samples' parameter was held at.
+    edge_sigma : float
+        The robust cut-off of the second pass, in standard deviations.
+    iterations : int
+        Bisection steps (the bracket shrinks by 2 each).
+
+    Returns
+    -------
+    location : ndarray (n,)   NaN where a column has no sample
+    variance : ndarray (n,)   the location's variance, 1 / its Fisher information (inf: none)
+    """
+    from scipy.special import log_ndtr
+
+    free = ~censored & np.isfinite(values) & np.isfinite(stderr)
+    cens = np.asarray(censored, bool)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        se_free = _free_median(stderr, free)
+        var_f = np.where(free, stderr ** 2 + tau2, np.inf)
+        var_c = np.nan_to_num(se_free, nan=0.0) ** 2 + tau2
+        s_c = np.sqrt(var_c)
+        v = np.where(free, values, 0.0)
+
+        def score(mu, use):
+            z = np.where(use, (v - mu) / var_f, 0.0).sum(axis=0)
+            c = (bound - mu) / s_c
+            mills = np.exp(-0.5 * c * c - 0.5 * np.log(2 * np.pi) - log_ndtr(c))
+            return z - cens.sum(axis=0) * mills / s_c
+
+        def solve(use):
+            lo = np.full(values.shape[1], float(bound))
+            hi = np.maximum(np.where(use, v, bound).max(axis=0), bound) + 1e-9
+            at_bound = score(lo, use) <= 0
+            for _ in range(iterations):
+                mid = 0.5 * (lo + hi)
+                up = score(mid, use) > 0
+                lo, hi = np.where(up, mid, lo), np.where(up, hi, mid)
+            return np.where(at_bound, float(bound), 0.5 * (lo + hi))
+
+        mu = solve(free)
+        use = free & (np.abs(v - mu) <= edge_sigma * np.sqrt(var_f))
+        mu = solve(use)
+        # Fisher information: the free samples' 1 / var plus each stopped one's
+        c = (bound - mu) / s_c
+        mills = np.exp(-0.5 * c * c - 0.5 * np.log(2 * np.pi) - log_ndtr(c))
+        info = np.where(use, 1.0 / var_f, 0.0).sum(axis=0) + cens.sum(axis=0) * mills * (mills + c) / var_c
+        var = np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
+    none = ~(use | cens).any(axis=0)
+    return np.where(none, np.nan, mu), np.where(none, np.inf, var)
+
+
+#: an sss onset (ps after the direct) at most this is at its bound 0 (the refinement projects an
+#: onset before the direct onto it)
+ONSET_BOUND_PS = 1e-6
+
+def _free_median(stderr: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(n,) the median of ``stderr`` (m, n) over the ``free`` rows of each column (NaN: none)."""
+    out = np.full(stderr.shape[1], np.nan)
+    cols = free.any(axis=0)
+    if cols.any():
+        out[cols] = np.nanmedian(np.where(free, stderr, np.nan)[:, cols], axis=0)
+    return out
+
+
+def onset_prior(onset: np.ndarray, stderr: np.ndarray, shape: tuple, options: SpatialOptions,
+                material: np.ndarray | None = None):
+    """The material prior of the sss onset after the direct: (mean (P,), precision (P,)).
+
+    The mean is the censored location (:func:`censored_location`) of the neighbours' onsets within
+    ``options.material_radius`` (the pixel itself left out), an onset at its bound 0
+    (:data:`ONSET_BOUND_PS`) read as "at most 0" rather than as 0: at a few hundred photons, or
+    where the sss is weak against the noise, half of one material's onsets sit at the bound and
+    the rest scatter late, so a median sits at 0 and a homogeneity test of the values finds
+    every such neighbourhood mixed.  The prior is given where ``material`` (P,) bool (the pixel
+    has a material by its ratio and decay rate, :func:`material_members`; None: everywhere); the
+    estimate's second pass leaves out free onsets beyond ``options.edge_sigma``, and the pixel's own onset weighs the
+    prior by its Tukey biweight against the mean in its standard error, the mean's and
+    ``onset_scale_ps`` (a pixel sure of another onset is not pulled).  A pixel whose own onset is
+    at the bound has no standard error of its own (the onset is held there, tied to the direct):
+    it is read as the bound stopping a free onset that scatters like the neighbours' free ones
+    (their median standard error), and weighs the prior by how far the mean lies above the bound
+    in that error.  Precision b / (``onset_scale_ps``^2 + the mean's variance), b that biweight;
+    0 and mean NaN where no neighbour has an onset.
+    """
+    tau2 = options.onset_scale_ps ** 2
+    nd, ns, ok = _neighbourhood(onset, stderr, shape, options.material_radius)
+    nd = np.where(ok, nd, np.nan)
+    cen = ok & (nd <= ONSET_BOUND_PS)
+    P = onset.size
+    mean, precision = np.full(P, np.nan), np.zeros(P)
+    have = ok.any(axis=0) & np.isfinite(onset)
+    if material is not None:
+        have &= material
+    if not have.any():
+        return mean, precision
+    nd, ns, ok, cen = nd[:, have], ns[:, have], ok[:, have], cen[:, have]
+    m, var_m = censored_location(nd, ns, cen, tau2, 0.0, options.edge_sigma)
+    free = ok & ~cen
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se_free = np.nan_to_num(_free_median(ns, free), nan=0.0)
+        own, own_se = onset[have], stderr[have]
+        z = np.where(own <= ONSET_BOUND_PS, np.maximum(m, 0.0) / np.sqrt(se_free ** 2 + var_m + tau2),
+                     (own - m) / np.sqrt(own_se ** 2 + var_m + tau2))
+        b = np.where(np.isfinite(z) & (np.abs(z) < options.edge_sigma), (1 - (z / options.edge_sigma) ** 2) ** 2, 0.0)
+        mean[have] = m
+        precision[have] = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
+    return mean, precision
+
+
+def material_members(values: dict, shape: tuple, options: SpatialOptions,
+                     names: tuple = ("ratio", "alpha")) -> np.ndarray:
+    """(n_off, P) bool: which neighbours within ``options.material_radius`` (in the order of
+    :func:`_neighbourhood`) are of the pixel's own material, by its own answers.
+
+    A material is told by its sss-to-direct amplitude ratio and its sss decay rate (their
+    logarithms, the better determined of what a material shares): a neighbour is a member where
+    both of its values differ from the pixel's by at most ``options.material_agreement_sigma``
+    standard deviations of the difference, sqrt(stderr_pixel^2 + stderr_neighbour^2 + 2 scale^2),
+    and the members are at least half of the neighbours with both values (a minority that agrees
+    is chance, among pixels each of its own material, or the far side of an edge).  A pixel or
+    neighbour without an sss (NaN) has no members.
+
+    Parameters
+    ----------
+    values : dict
+        {name: ((P,) values, (P,) standard errors, the prior's scale)} holding ``names`` as
+        :func:`prior_values` gives them.
+    shape : (Y, X)
+    options : SpatialOptions
+    names : tuple
+        The parameters read (a decay rate held by ``shared=`` tells no material: leave it out).
+    """
+    k = options.material_agreement_sigma
+    members = have = None
+    for name in names:
+        v, se, scale = values[name]
+        nd, ns, ok = _neighbourhood(v, se, shape, options.material_radius)
+        with np.errstate(invalid="ignore"):
+            agree = ok & (np.abs(nd - v) <= k * np.sqrt(ns ** 2 + se ** 2 + 2.0 * float(scale) ** 2))
+        members = agree if members is None else members & agree
+        have = ok if have is None else have & ok
+    return members & (2 * members.sum(axis=0) >= have.sum(axis=0))
+
+
+#: the fewest members (:func:`material_members`) that give a pixel a material prior
+MATERIAL_MEMBERS_MIN = 2
+
+
+def material_prior(values: np.ndarray, shape: tuple, options: SpatialOptions, scale: float,
+                   members: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The material prior of the sss amplitude ratio or decay rate: (mean (P,), precision (P,)).
+
+    The mean is the median of the pixel's own value and those of its ``members`` (n_off, P)
+    (:func:`material_members`, within ``options.material_radius``); the precision
+    1 / ``scale``^2 where the pixel has at least :data:`MATERIAL_MEMBERS_MIN` members with a
+    value, else 0 (no prior).  The median, not a weighted mean: at a few hundred photons one
+    material's answers are heavy-tailed, and their standard errors do not say which are off.
+    """
+    nd, _, ok = _neighbourhood(values, np.zeros_like(values), shape, options.material_radius)
+    nd = np.where(members & ok, nd, np.nan)
+    n = np.isfinite(nd).sum(axis=0)
+    with np.errstate(invalid="ignore"):
+        allv = np.concatenate([nd, values[None]], axis=0)
+        have = np.isfinite(allv).any(axis=0)
+        mean = np.full(values.size, np.nan)
+        mean[have] = np.nanmedian(allv[:, have], axis=0)
+    on = (n >= MATERIAL_MEMBERS_MIN) & np.isfinite(mean)
+    return np.where(on, mean, np.nan), np.where(on, 1.0 / float(scale) ** 2, 0.0)
 
 
 #: the parameters of the joint refinement's prior: name -> the keyword of
@@ -562,10 +737,10 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         return
     own = prior_values(c, c.params, options)
     stderr = {name: se for name, (_, se, _) in own.items()}
-    # a neighbourhood of several materials is found on the pixels' own answers (pulled ones
-    # agree more than their data do) and gets no material prior in any sweep
-    mixed = {name: mixed_neighbourhood(v, se, c.shape, options, scale, stray_share=options.stray_share)
-             for name, (v, se, scale) in own.items() if name != "delay"}
+    # a material's members are found on the pixels' own answers (pulled ones agree more than
+    # their data do) and stay the same in every sweep
+    told_by = ("ratio",) if "sss_alpha_per_ps" in c.hold else ("ratio", "alpha")
+    members = material_members(own, c.shape, options, told_by) if options.material_prior else None
     base = take_rows(c.params, rows)           # each pixel's own answer
     weights = sample_weights(c.samples, c.params)[rows]
     noise2 = noise_variance(c)[rows]
@@ -579,8 +754,13 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
         for name, (value, _, scale) in current.items():
             if name == "delay":
                 value = np.where(c.live, c.params["direct_delay_ps"], np.nan)
-            mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale,
-                                              piecewise_constant=name != "delay", mixed=mixed.get(name))
+            if name == "delay":
+                mean, precision = neighbour_prior(value, stderr[name], c.shape, options, scale)
+            elif name == "onset":
+                mean, precision = onset_prior(value, stderr[name], c.shape, options,
+                                              material=members.sum(axis=0) >= MATERIAL_MEMBERS_MIN)
+            else:
+                mean, precision = material_prior(value, c.shape, options, scale, members)
             m, p = mean[rows], precision[rows]
             on = p > 0
             pull |= on
