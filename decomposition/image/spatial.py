@@ -55,6 +55,7 @@ import inspect
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.special import log_ndtr
 
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_profile, time_axis_ps
 from ..constants import SSS_SLOT
@@ -507,8 +508,6 @@ def censored_location(values: np.ndarray, stderr: np.ndarray, censored: np.ndarr
     location : ndarray (n,)   NaN where a column has no sample
     variance : ndarray (n,)   the location's variance, 1 / its Fisher information (inf: none)
     """
-    from scipy.special import log_ndtr
-
     free = ~censored & np.isfinite(values) & np.isfinite(stderr)
     cens = np.asarray(censored, bool)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
