@@ -36,7 +36,7 @@ from .model.refine import check_hold
 from .constants import RESCUE_MISFIT_Z
 from .stages.rescue import RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows, take_rescued
 from .stages.selection import misfit_beyond_noise
-from .response.resolve import resolve_response, response_record, spike_neighbour_ratio
+from .response.resolve import resolve_response, response_record, spike_neighbour_ratio, spike_settings
 from .response import path as rp
 
 __all__ = [
@@ -156,10 +156,10 @@ def _prepare(c: _Call) -> None:
         ratio = spike_neighbour_ratio(c.response, axis.time_bin_ps, opts.rel_threshold)
     c.samples = prepare_samples(c.profiles, axis, c.grid, nan_policy=c.nan_policy,
                                 saturation_level=c.saturation_level,
-                                spike_sigma=opts.spike_sigma if ratio is None or ratio > 0 else 0.0,
                                 noise_floor=opts.noise_floor, rel_threshold=opts.rel_threshold, noise=opts.noise,
                                 background=c.background,
-                                spike_neighbour_ratio=ratio if ratio is not None and ratio > 0 else None)
+                                **spike_settings(c.response, axis.time_bin_ps, opts.spike_sigma, opts.rel_threshold,
+                                                 ratio))
     c.info = {"method": c.method, "time_bin_ps": axis.time_bin_ps, "t0_ps": axis.t0_ps,
               "components": "".join(sorted(c.fams)), "nan_policy": c.nan_policy,
               "saturation_level": c.samples.saturation_level}

@@ -123,3 +123,19 @@ def test_warm_up_with_a_response_decomposes_its_profiles_as_floats_and_counts(ir
     calls.clear()
     warmup.warm_up(time_bin_ps=T, n_bins=L, options={"irf": irf, "noise": "poisson"}, quiet=True)
     assert [is_count_data(y) for y, _ in calls] == [True]
+
+
+def test_spatial_coupling_with_the_cube_response(cubes, irf, tmp_path):
+    """``--spatial`` with the response stored in the cube: the store holds decompose_image's coupled
+    answer over the response's atoms (chunks of 1 x 3 read with the coupling's halo)."""
+    from decomposition.image import decompose_image
+
+    tmp, data, d = cubes
+    out = tmp_path / "spatial.zarr"
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out), "--quiet", "--spatial"]) == 0
+    store = open_result_store(str(out))
+    assert store.attrs["irf"]["kind"] == "response" and "spatial" in store.attrs["job"]
+    ref = decompose_image(data.astype(np.float64), T, irf=irf, spatial=True, max_reflections=store.params()[
+        "ir_delay_ps"].shape[-1])
+    np.testing.assert_allclose(store.params()["direct_delay_ps"], ref.params["direct_delay_ps"], rtol=1e-6)
+    assert np.abs(store.params()["direct_delay_ps"] - d).max() < 0.5

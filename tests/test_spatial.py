@@ -303,6 +303,7 @@ def test_a_neighbour_from_an_unrelated_scene_is_screened_out_and_the_answer_kept
 def test_the_compiled_screen_is_the_least_squares_misfit_at_the_starts_shapes():
     # the kernel against a direct NumPy least-squares fit of the same atoms (a direct, an sss
     # and an echo, an offset fitted on one pixel and held on the other)
+    from decomposition.kernels.projected import GAUSSIAN_PSF
     from decomposition.kernels.screen import screened_rss
     from decomposition.model.varpro import design_rows
 
@@ -317,7 +318,7 @@ def test_the_compiled_screen_is_the_least_squares_misfit_at_the_starts_shapes():
     alpha = np.array([0.03, np.nan])
     present = np.isfinite(delay)
     fit_bg, held_bg = np.array([True, False]), np.array([0.0, 5.0])
-    got = screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present, fit_bg)
+    got = screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present, fit_bg, GAUSSIAN_PSF)
     for p in range(2):
         sw = np.sqrt(weights[rows[p]])
         y = (values[rows[p]] - held_bg[p]) * sw

@@ -154,7 +154,8 @@ def _joint_refinement(c: _ImageCall) -> None:
 
 def _pooled_echoes(c: _ImageCall) -> None:
     if c.options.spatial:
-        c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=_counts(c))
+        c.result, _, _ = pooled_echoes(c.cube, c.result, c.time_bin_ps, c.keywords.get("t0_ps"), counts=_counts(c),
+                                       irf=c.coupling.irf)
 
 
 def halo_pixels(spatial) -> int:

@@ -28,7 +28,7 @@ import numpy as np
 from core.model import BACKGROUND_KEY, time_axis_ps
 from ..flags import AMBIGUOUS, POOR_FIT
 from ..kernels.screen import screened_rss
-from ..model.refine import hold_params, slot_arrays
+from ..model.refine import hold_params, slot_arrays, unit_widths
 from ..stages.selection import ambiguity_tolerance, families, free_parameters, log_samples, penalised
 from .spatial import (NEIGHBOURS_8, Coupling, SpatialOptions, noise_variance, objective, objective_weights, refit,
                       shifted, take_rows)
@@ -60,7 +60,7 @@ def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> 
         return out
     hold = {k: v[rows] for k, v in c.hold.items()}
     start = hold_params(start, hold, (n,)) if hold else start
-    slots = slot_arrays(start, (n,))
+    slots = slot_arrays(start if c.irf is None else unit_widths(start), (n,))
     present = slots["present"]
     if BACKGROUND_KEY in start:
         b = np.asarray(start[BACKGROUND_KEY], np.float64)
@@ -77,7 +77,7 @@ def _screen(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray) -> 
     rss = np.empty(n)
     rss[order] = screened_rss(s.values, np.asarray(weights, np.float64), rows[order], held_bg[order], t,
                               slots["delay"][order], slots["sigma"][order], slots["alpha"][order], present[order],
-                              fit_bg[order])
+                              fit_bg[order], c.inst)
     out[:] = penalised(rss / noise2, k_free, log_n, c.opts.search_penalty)
     return out
 

@@ -49,6 +49,7 @@ import warnings
 import numpy as np
 from scipy.ndimage import correlate1d
 
+from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import render_components
 
 from ..api import DecompositionResult, decompose
@@ -57,7 +58,9 @@ from ..flags import SPIKE, mark
 from ..noise import anscombe, noise_sigma
 from ..stages.prepare import _count_threshold
 from ..kernels.pool import aligned_sums
+from ..kernels.response import response_table, shifted_atoms
 from ..stages.selection import data_term, log_samples, penalised
+from .shared import held_response
 
 __all__ = ["pooled_echoes", "spatial_spikes", "spike_free_landmarks", "refit_spikes", "replace_pixels", "aligned_neighbours", "ECHO_Z", "ECHO_WINDOW", "SPIKE_WINDOW", "ECHO_GUARD_SIGMA"]
 
@@ -148,6 +151,15 @@ def _gaussian_taps(sigma_ps: float, time_bin_ps: float) -> np.ndarray:
     return np.exp(-0.5 * (k / sigma_ps) ** 2)
 
 
+def _response_taps(irf, time_bin_ps: float) -> np.ndarray:
+    """The matched filter of an echo shaped like ``irf``: its unit-peak shifted atom at the bin
+    offsets -h .. h (h bins cover the response's window either side of its reference), so that
+    the correlation at bin i reads an echo at delay t_i."""
+    h = max(1, int(math.ceil(max(abs(irf.window_start_ps), abs(irf.window_start_ps + irf.window_ps)) / time_bin_ps)))
+    k = np.arange(-h, h + 1) * float(time_bin_ps)
+    return shifted_atoms(response_table(irf), k, np.zeros(1))[0]
+
+
 def _window_guard(params: dict, t: np.ndarray, sigma_ps: float) -> np.ndarray:
     """(Y, X, L) bool: samples far enough after the direct and from the window's edges for an
     echo to be searched there."""
@@ -169,7 +181,7 @@ def _near_components(params: dict, t: np.ndarray, sigma_ps: float) -> np.ndarray
 
 
 def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_ps: float | None = None, *,
-                  window: int = ECHO_WINDOW, z: float = ECHO_Z, counts: bool = False):
+                  window: int = ECHO_WINDOW, z: float = ECHO_Z, counts: bool = False, irf=None):
     """Find the weak echoes a neighbourhood shares and add them to its pixels' fits.
 
     Parameters
@@ -187,6 +199,10 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     counts : bool
         The profiles are photon counts: Poisson variance (the pooled model), else white noise
         at the pooled residual's :func:`decomposition.noise.noise_sigma`.
+    irf : InstrumentResponse, optional
+        The measured response (resolved on ``time_bin_ps``) the components are atoms of: the
+        matched filter and the echo are the shifted response, and the guards are its
+        Gaussian-equivalent width; default the Gaussian PSF of the pool's fitted widths.
 
     Returns
     -------
@@ -214,6 +230,9 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     sig = np.asarray(params["direct_sigma_ps"], np.float64)
     found = np.zeros((Y, X), bool)
     snr = np.full((Y, X), np.nan)
+    if irf is not None:
+        # the response's own width, where the pool has a direct
+        sig = np.where(np.isfinite(d), gaussian_equivalent_sigma_ps(irf), np.nan)
     if not np.isfinite(sig).any():
         return result, found, snr
     # one instrument: the PSF width is the pool's median fitted width (read in the pool alone,
@@ -236,7 +255,7 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
     num, den = np.zeros((Y, X, L)), np.ones((Y, X, L))
     for width in np.unique(sigma[np.isfinite(sigma)]):
         at = sigma == width
-        g = _gaussian_taps(float(width), T)
+        g = _gaussian_taps(float(width), T) if irf is None else _response_taps(irf, T)
         num[at] = correlate1d(pooled[at] / var[at], g, axis=-1, mode="constant")
         den[at] = correlate1d(1.0 / var[at], g * g, axis=-1, mode="constant")
     with np.errstate(invalid="ignore"):
@@ -263,7 +282,10 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
                         0.5 * (lo - hi) / np.where(curv < 0, curv, -1.0), 0.0)
     tau = t[b] + T * np.clip(frac, -0.5, 0.5)
     sigma = sigma[iy, ix]
-    atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma[:, None]) ** 2)          # (n, L)
+    if irf is None:
+        atom = np.exp(-0.5 * ((t[None, :] - tau[:, None]) / sigma[:, None]) ** 2)          # (n, L)
+    else:
+        atom = shifted_atoms(response_table(irf), t, tau)
     v = var[iy, ix]
     amp_pool = (num[iy, ix, b] / den[iy, ix, b])
     r_pool = pooled[iy, ix]
@@ -289,7 +311,9 @@ def pooled_echoes(profiles, result: DecompositionResult, time_bin_ps: float, t0_
         return _with_info(result, 0), found, snr
     iy, ix, tau, amp, sigma = iy[keep], ix[keep], tau[keep], amp[keep], sigma[keep]
     found[iy, ix] = True
-    return _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0), found, snr
+    # (a response's echo reports the response's Gaussian-equivalent width, as the per-pixel path does)
+    width = sigma if irf is None else np.full(tau.size, gaussian_equivalent_sigma_ps(irf))
+    return _add_echoes(result, iy, ix, tau, amp, width, L, T, t0, irf), found, snr
 
 
 def _with_info(result: DecompositionResult, n: int) -> DecompositionResult:
@@ -299,9 +323,10 @@ def _with_info(result: DecompositionResult, n: int) -> DecompositionResult:
                                params=result.params, residual=result.residual, flags=result.flags, info=info)
 
 
-def _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0) -> DecompositionResult:
+def _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0, irf=None) -> DecompositionResult:
     """A copy of ``result`` with one more inter-reflection (delay ``tau``, amplitude ``amp``,
-    width ``sigma``) in pixels (iy, ix), the inter-reflections re-ordered by delay."""
+    width ``sigma``; a shifted copy of ``irf`` where given) in pixels (iy, ix), the
+    inter-reflections re-ordered by delay."""
     params = {k: np.array(v, copy=True) for k, v in result.params.items()}
     irs = np.asarray(result.interreflections, np.float64)                               # (Y, X, R, L)
     Y, X, R = irs.shape[:3]
@@ -316,7 +341,7 @@ def _add_echoes(result, iy, ix, tau, amp, sigma, L, T, t0) -> DecompositionResul
                                                                           "direct_sigma_ps", "sss_delay_ps",
                                                                           "sss_amplitude", "sss_alpha_per_ps",
                                                                           "sss_sigma_ps")},
-                                      **{k: v[iy, ix] for k, v in new.items()}}, L, T, t0)["interreflections"]
+                                      **{k: v[iy, ix] for k, v in new.items()}}, L, T, t0, irf=irf)["interreflections"]
     delays = np.concatenate([params["ir_delay_ps"].reshape(Y, X, R), new["ir_delay_ps"]], axis=-1)
     order = np.argsort(np.where(np.isfinite(delays), delays, np.inf), axis=-1, kind="stable")
     for k in new:
@@ -473,6 +498,7 @@ def refit_spikes(cube, result: DecompositionResult, time_bin_ps: float, method: 
     cleaned[spikes] = np.rint(predicted[spikes]).astype(cleaned.dtype) if np.issubdtype(cleaned.dtype, np.integer) \
         else np.rint(predicted[spikes])
     held = {k: np.broadcast_to(np.asarray(v, np.float64), rows.shape)[rows] for k, v in (hold or {}).items()}
+    held, keywords = held_response(np.shape(cleaned)[-1], time_bin_ps, held, keywords)
     again = decompose(cleaned[rows], time_bin_ps, method, **keywords, **({"hold": held} if held else {}))
     out = replace_pixels(result, rows, again)
     mark(out.flags, rows, SPIKE)

@@ -51,7 +51,7 @@ from ..response.refine import CountData, fit_slots, held_slot_masks
 from ..response.resolve import resolve_response, stretched_response
 from .pooling import SURFACE_TERMS, fit_surface, lit_score, pooled, pooled_positive, select_pixels, surface_design
 
-__all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "apply_held_stderr", "image_estimate",
+__all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "held_response", "apply_held_stderr", "image_estimate",
            "N_LIKELIHOOD_PIXELS"]
 
 #: at most this many of them (thinned evenly) in the pooled likelihood of the scalar width and onset
@@ -505,21 +505,33 @@ _HELD_PARAMS = {"sigma_ps": ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"),
                 "sss_alpha_per_ps": ("sss_alpha_per_ps",)}
 
 
+def held_response(n_bins: int, time_bin_ps: float, hold: dict, keywords: dict) -> tuple[dict, dict]:
+    """``hold`` without a response's shared time scale, and ``keywords`` with the response
+    ``irf`` stretched by it (``hold[STRETCH_KEY]``, one value): what a call of
+    :func:`decomposition.decompose` (or a refit of the image path) on profiles of ``n_bins``
+    bins takes for them.  Both returned as given where there is no such scale."""
+    if STRETCH_KEY not in hold:
+        return hold, keywords
+    hold, keywords = dict(hold), dict(keywords)
+    stretch = np.asarray(hold.pop(STRETCH_KEY), np.float64)
+    if keywords.get("irf") is None:
+        raise OptionError("a shared response time scale needs the response (irf=)")
+    if stretch.size:
+        keywords["irf"] = stretched_response(resolve_response(keywords["irf"], time_bin_ps, n_bins),
+                                             float(stretch.flat[0]))
+    return hold, keywords
+
+
 def decompose_held(profiles, time_bin_ps: float, method: str, *, hold: dict, hold_stderr: dict, **keywords):
     """:func:`decomposition.decompose` with ``hold`` (each key's values in the profiles' leading
     shape); a held parameter's ``<key>_stderr`` (where the call gives errors) is the shared
     estimate's, ``hold_stderr`` (:func:`apply_held_stderr`).  A response's shared time scale
-    (``hold[STRETCH_KEY]``, one value) decomposes with the response ``irf`` stretched by it."""
-    if STRETCH_KEY in hold:
-        hold, hold_stderr = dict(hold), dict(hold_stderr)
-        stretch = np.asarray(hold.pop(STRETCH_KEY), np.float64)
-        hold_stderr.pop(STRETCH_KEY, None)
-        if keywords.get("irf") is None:
-            raise OptionError("a shared response time scale needs the response (irf=)")
-        if stretch.size:
-            keywords["irf"] = stretched_response(
-                resolve_response(keywords["irf"], time_bin_ps, np.shape(profiles)[-1]), float(stretch.flat[0]))
-    return apply_held_stderr(decompose(profiles, time_bin_ps, method, hold=hold, **keywords), hold, hold_stderr)
+    (``hold[STRETCH_KEY]``, one value) decomposes with the response ``irf`` stretched by it
+    (:func:`held_response`)."""
+    hold, keywords = held_response(np.shape(profiles)[-1], time_bin_ps, hold, keywords)
+    hold_stderr = {k: v for k, v in hold_stderr.items() if k != STRETCH_KEY}
+    return apply_held_stderr(decompose(profiles, time_bin_ps, method, hold=hold, **keywords), hold,
+                             hold_stderr)
 
 
 def apply_held_stderr(result, hold: dict, hold_stderr: dict):

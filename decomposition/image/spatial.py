@@ -40,7 +40,10 @@ pixel for the first step, ``material_radius`` per round of material starts, ``ra
 the material prior the larger of it and ``material_radius`` per sweep), so a chunked run reads
 each chunk with that halo and keeps the interior (:mod:`decomposition.store.chunked`).
 
-Scope: the Gaussian PSF path (not ``irf=``).  The neighbour starts' data term is weighed by
+Either instrument: with a measured response (``irf=``) every refit, objective, screen and error
+reads the response's atoms (:func:`decomposition.model.refine.refine`'s ``irf``, the compiled
+kernels' instrument argument), and a shared response time scale stretches the response.  The
+neighbour starts' data term is weighed by
 :func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
 mask and the pixel's noise, or Poisson weights at the pixel's model for count data); neither is
 whitened by a correlated-noise spectrum.  The standard
@@ -61,8 +64,13 @@ from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_pr
 from ..constants import SSS_SLOT
 from ..api import DecompositionResult, decompose
 from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
-from ..model.refine import refine, slot_arrays
+from ..kernels.projected import GAUSSIAN_PSF, instrument
+from ..kernels.response import response_table
+from ..model.atoms import params_profile
+from ..model.refine import refine, slot_arrays, unit_widths
 from ..model.varpro import rss_at
+from ..response.resolve import resolve_response, spike_settings
+from .shared import held_response
 from ..model.slots import shape_bounds
 from ..options import OptionError, _documented, _flag, _number, options_from_mapping, parse_components
 from ..stages.candidates import detector_variance
@@ -207,6 +215,8 @@ class Coupling:
     info: dict
     hold: dict = field(default_factory=dict)   # {HOLD_KEYS: (P,)}: parameters every fit keeps (shared=)
     noise_law: dict | None = None   # {"floor", "gain"}: the detector's photon-noise law the search weighed by
+    irf: object = None      # the measured response the components are atoms of (resolved), or None: the Gaussian PSF
+    inst: tuple = GAUSSIAN_PSF      # its atoms for the compiled kernels (kernels.projected.instrument)
 
 
 def _decompose_default(name):
@@ -217,34 +227,44 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
                      keywords: dict, *, hold: dict | None = None) -> Coupling:
     """The samples of ``cube`` (Y, X, L) prepared as :func:`decompose` prepared them for
     ``result`` (its keywords), and ``result``'s parameters flattened to P = Y X pixels;
-    ``hold`` ({HOLD_KEYS: (Y, X)}) the parameters every refit keeps (the shared ones)."""
-    kw = dict(keywords)
-    if kw.pop("irf", None) is not None:
-        raise OptionError("spatial: works with the Gaussian PSF, not with a measured response (irf=)")
+    ``hold`` ({HOLD_KEYS: (Y, X)}) the parameters every refit keeps (the shared ones; a
+    response's shared time scale stretches the response, :func:`decomposition.image.shared.held_response`).
+    With a measured response (``keywords["irf"]``) every fit, objective and error of the coupling
+    reads the response's atoms."""
+    Y, X, L = cube.shape
+    hold, kw = held_response(L, time_bin_ps, dict(hold or {}), dict(keywords))
+    irf = kw.pop("irf", None)
+    if irf is not None:
+        if method != "convscd":
+            raise OptionError(f"spatial: a measured response (irf=) works with method 'convscd', not {method!r}")
+        irf = resolve_response(irf, time_bin_ps, L)
     t0 = kw.pop("t0_ps", _decompose_default("t0_ps"))
     fams = parse_components(kw.pop("components", _decompose_default("components")))
     nan_policy = kw.pop("nan_policy", _decompose_default("nan_policy"))
     saturation = kw.pop("saturation_level", _decompose_default("saturation_level"))
     grid, opts, _ = options_from_mapping(kw, strict=False)
     opts = opts.resolved(fams)
-    Y, X, L = cube.shape
     axis = time_axis(time_bin_ps, t0)
     samples = prepare_samples(cube.reshape(Y * X, L), axis, grid, nan_policy=nan_policy, saturation_level=saturation,
-                              spike_sigma=opts.spike_sigma, noise_floor=opts.noise_floor,
-                              rel_threshold=opts.rel_threshold, noise=opts.noise, background="b" in fams)
+                              noise_floor=opts.noise_floor, rel_threshold=opts.rel_threshold, noise=opts.noise,
+                              background="b" in fams,
+                              **spike_settings(irf, time_bin_ps, opts.spike_sigma, opts.rel_threshold))
     convscd = method == "convscd"
-    physics = {"shared_sigma": opts.shared_sigma and convscd, "sss_after_direct": opts.sss_after_direct and convscd}
+    physics = {"shared_sigma": opts.shared_sigma and convscd and irf is None,
+               "sss_after_direct": opts.sss_after_direct and convscd}
     keys = DIRECT_KEYS + SSS_KEYS + IR_KEYS + ((BACKGROUND_KEY,) if BACKGROUND_KEY in result.params else ())
     P = Y * X
     params = {k: np.array(result.params[k], np.float64).reshape((P,) + np.shape(result.params[k])[2:]) for k in keys}
     live = np.zeros(P, bool)
     live[samples.live] = True
     bounds = shape_bounds(grid, opts.bound_factor)
+    widths = "fixed" if irf is not None else "shared" if physics["shared_sigma"] else "per_atom"
     return Coupling(shape=(Y, X), samples=samples, opts=opts, grid=grid, physics=physics,
-                    widths="shared" if physics["shared_sigma"] else "per_atom", bounds=bounds, params=params,
+                    widths=widths, bounds=bounds, params=params,
                     flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={},
                     hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()},
-                    noise_law=_searched_law(result.info, samples.noise_model))
+                    noise_law=_searched_law(result.info, samples.noise_model), irf=irf,
+                    inst=instrument(None if irf is None else response_table(irf), time_axis_ps(L, time_bin_ps, t0)))
 
 
 def _searched_law(info: dict, noise_model: str) -> dict | None:
@@ -293,7 +313,10 @@ def take_rows(params: dict, rows) -> dict:
 def _model(c: Coupling, params: dict) -> np.ndarray:
     axis = c.samples.axis
     with np.errstate(invalid="ignore"):
-        m = render_profile(params, c.samples.n_bins, axis.time_bin_ps, axis.t0_ps)
+        if c.irf is None:
+            m = render_profile(params, c.samples.n_bins, axis.time_bin_ps, axis.t0_ps)
+        else:
+            m = params_profile(c.irf, time_axis_ps(c.samples.n_bins, axis.time_bin_ps, axis.t0_ps), params)
     return np.where(np.isfinite(m), m, 0.0)
 
 
@@ -301,10 +324,10 @@ def objective(c: Coupling, rows: np.ndarray, params: dict, weights: np.ndarray) 
     """(n,) J of ``params`` (n-shaped) on the pixels ``rows``, the residual weighed by ``weights``
     (n, L) in the pixels' noise (:mod:`decomposition.stages.selection`): its data term the
     weighted RSS at the model (:func:`decomposition.model.varpro.rss_at`, the refine's own
-    kernels and offset) over the pixel's noise variance."""
+    kernels -- a response's atoms with one -- and offset) over the pixel's noise variance."""
     s = c.samples
     n = len(rows)
-    slots = slot_arrays(params, (n,))
+    slots = slot_arrays(params if c.irf is None else unit_widths(params), (n,))
     present = slots["present"]
     with np.errstate(invalid="ignore"):
         sig = np.where(present, slots["sigma"], 1.0)
@@ -313,7 +336,7 @@ def objective(c: Coupling, rows: np.ndarray, params: dict, weights: np.ndarray) 
     sw = np.sqrt(weights)
     rss = rss_at(time_axis_ps(s.n_bins, s.axis.time_bin_ps, s.axis.t0_ps), s.values[rows] * sw,
                  np.where(present, slots["delay"], 0.0), sig, alp, present, np.where(present, slots["amplitude"], 0.0),
-                 offset, None, sw)
+                 offset, None, sw, c.inst)
     k = free_parameters(families(params), c.widths)
     return penalised(rss / noise_variance(c)[rows], k, log_samples(s.fit[rows].sum(axis=1)), c.opts.search_penalty)
 
@@ -328,7 +351,8 @@ def refit(c: Coupling, rows: np.ndarray, start: dict, weights: np.ndarray, prior
     out, _ = refine(s.values[rows], start, time_bin_ps=s.axis.time_bin_ps, t0_ps=s.axis.t0_ps, weights=weights,
                     fit_background=fit_bg, sigma_bounds_ps=tuple(np.exp(c.bounds["lsig"])),
                     alpha_bounds_per_ps=tuple(np.exp(c.bounds["lalp"])), delay_prior=prior,
-                    hold={k: v[rows] for k, v in c.hold.items()} or None, **(priors or {}), **c.physics)
+                    hold={k: v[rows] for k, v in c.hold.items()} or None, **(priors or {}), **c.physics,
+                    irf=c.irf)
     return out
 
 
@@ -722,7 +746,7 @@ def refine_priors(priors: dict, noise2: np.ndarray, direct_amplitude: np.ndarray
 
 def prior_values(c: Coupling, params: dict, options: SpatialOptions) -> dict:
     """:func:`_shared_values` at ``params`` with their standard errors from the pixel's own data."""
-    errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None)
+    errs = component_errors(c.samples, params, **c.physics, hold=c.hold or None, irf=c.irf)
     return _shared_values(params, c.live, options, {k: np.asarray(v, np.float64).reshape(-1) for k, v in errs.items()})
 
 
@@ -812,7 +836,7 @@ def coupled_result(c: Coupling, result: DecompositionResult, options: SpatialOpt
     s = c.samples
     Y, X = c.shape
     P, L = Y * X, s.n_bins
-    fit = assess_fit(s, c.params, s.noise_eff, c.opts.poor_fit)
+    fit = assess_fit(s, c.params, s.noise_eff, c.opts.poor_fit, irf=c.irf)
     quality = POOR_FIT | EMPTY | AMBIGUOUS
     kept_ambiguous = c.flags & AMBIGUOUS & np.where(c.resolved, 0, AMBIGUOUS).astype(c.flags.dtype)
     flags = np.where(c.live, (c.flags & ~quality) | fit.flags | kept_ambiguous, c.flags).astype(c.flags.dtype)
@@ -820,7 +844,7 @@ def coupled_result(c: Coupling, result: DecompositionResult, options: SpatialOpt
     for k, v in c.params.items():
         params[k] = v.reshape((Y, X) + v.shape[1:])
     if "direct_delay_ps_stderr" in params:
-        errs = component_errors(s, c.params, **c.physics, hold=c.hold or None)
+        errs = component_errors(s, c.params, **c.physics, hold=c.hold or None, irf=c.irf)
         for k, v in errs.items():
             params[k] = np.asarray(v).reshape((Y, X) + np.shape(v)[1:])
     R = fit.interreflections.shape[1]

@@ -36,7 +36,7 @@ from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, time_axis
 from .varpro import Layout, refine_block
 
 __all__ = ["refine", "kernel_derivatives", "slot_arrays", "params_from_slots", "apply_weights", "HOLD_KEYS",
-           "check_hold", "hold_params", "held_slots"]
+           "check_hold", "hold_params", "held_slots", "unit_widths"]
 
 #: The parameters a fit can hold at given values (``hold=`` of :func:`refine`, of
 #: :func:`decomposition.model.fisher.standard_errors` and of :func:`decomposition.decompose`):
@@ -196,7 +196,7 @@ def hold_params(params: dict, hold, lead_shape: tuple) -> dict:
     return out
 
 
-def _unit_widths(params: dict) -> dict:
+def unit_widths(params: dict) -> dict:
     """``params`` with every component's width 1 where its delay is given: a response's atoms
     have no width, and :func:`slot_arrays` reads a component as present by a finite positive
     one."""
@@ -312,8 +312,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         Gaussian PSF's: the shifted response for the direct and the inter-reflections, the
         response convolved with the sss exponential, unit peak
         (:mod:`decomposition.kernels.response`).  The same fit over the same parameters less
-        the widths, which a response does not have (the ``*_sigma_ps`` keys are ignored and
-        returned NaN).  Point samples only (not with ``bin_integrated``).
+        the widths, which a response does not have (the ``*_sigma_ps`` keys are not read, and
+        returned as given).  Point samples only (not with ``bin_integrated``).
 
     Returns
     -------
@@ -363,7 +363,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
         if hold and "sigma_ps" in hold:
             raise ValueError("hold['sigma_ps'] holds the Gaussian PSF's width; a measured response (irf=) has none")
         table = response_table(irf)
-        params = _unit_widths(params)
+        given_widths = {k: params[k] for k in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps") if k in params}
+        params = unit_widths(params)
     params = hold_params(params, hold, lead)
     slots = slot_arrays(params, lead)
     y = y.reshape(-1, n_bins)
@@ -432,8 +433,12 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     # held values exactly as given (the log-space round trip would move them by an ulp)
     out_params = hold_params(params_from_slots(res, lead), hold, lead)
     if irf is not None:
+        # a response has no width: each component's width key as given (the response path
+        # reports its Gaussian-equivalent width there), NaN where none was
         for key in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"):
-            out_params[key] = np.full(np.shape(out_params[key]), np.nan)
+            given = np.asarray(given_widths[key], np.float64) if key in given_widths else None
+            out_params[key] = (np.full(np.shape(out_params[key]), np.nan) if given is None or
+                               given.shape != np.shape(out_params[key]) else given.copy())
     if has_bg:
         b_nan = np.asarray(params[BACKGROUND_KEY], np.float64).reshape(n) if BACKGROUND_KEY in params else np.full(n, np.nan)
         # an absent (NaN) offset stays absent unless it was fitted

@@ -27,7 +27,8 @@ import numpy as np
 from core.irf import InstrumentResponse, ResponseError
 from core.irfstore import load_response
 
-__all__ = ["resolve_response", "stretched_response", "response_record", "spike_neighbour_ratio", "STEP_RTOL",
+__all__ = ["resolve_response", "stretched_response", "response_record", "spike_neighbour_ratio", "spike_settings",
+           "STEP_RTOL",
            "TRIM_REL",
            "SPIKE_PHASES"]
 
@@ -159,3 +160,17 @@ def spike_neighbour_ratio(irf: InstrumentResponse, time_bin_ps: float, min_rel: 
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(cand, np.maximum(nb, 0.0) / mid, np.inf)
     return float(np.clip(ratio.min(), 0.0, 1.0))
+
+
+def spike_settings(irf: InstrumentResponse | None, time_bin_ps: float, spike_sigma: float, rel_threshold: float,
+                   ratio: float | None = None) -> dict:
+    """The keywords of :func:`decomposition.stages.prepare.prepare_samples`'s spike test for
+    components shaped like ``irf`` (None: the Gaussian PSF's, ``spike_sigma`` as given):
+    ``spike_sigma`` (0 where no sample can be told from the response: its ratio is 0) and
+    ``spike_neighbour_ratio`` (:func:`spike_neighbour_ratio`, or ``ratio`` where the caller has
+    it; None for the Gaussian PSF)."""
+    if irf is None:
+        return {"spike_sigma": spike_sigma, "spike_neighbour_ratio": None}
+    if ratio is None:
+        ratio = spike_neighbour_ratio(irf, time_bin_ps, rel_threshold)
+    return {"spike_sigma": spike_sigma if ratio > 0 else 0.0, "spike_neighbour_ratio": ratio if ratio > 0 else None}

@@ -367,8 +367,6 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         job["irf_sha256"] = irf_attrs["samples_sha256"]
     spatial_opts = _spatial_options(spatial)
     if spatial_opts is not None:         # absent without it: older stores resume as before
-        if response is not None:
-            raise PipelineError("--spatial works with the Gaussian PSF; give --irf gaussian, or leave --spatial out")
         if source.get("layout") == "profiles (n, t)":
             raise PipelineError(f"--spatial couples neighbouring pixels of an image; {input_path} is a list of "
                                 f"profiles (n, t) with no neighbours: give an array (y, x, t) or a cube store")
