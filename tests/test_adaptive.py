@@ -140,7 +140,7 @@ def test_live_decomposition_of_an_adaptive_run_equals_the_offline_one(tmp_path, 
     assert (open_run(run).frames_taken() < MAX_FRAMES).any()
     assert main(["reconstruct", str(run), "--out", str(tmp_path / "cube.zarr")]) == 0
     assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / "offline.zarr"),
-                 "--chunks", "1", "16", "--quiet"]) == 0
+                 "--chunks", "1", "16", "--quiet", "--per-pixel"]) == 0
     _assert_same_arrays(live, tmp_path / "offline.zarr")
 
 

@@ -95,7 +95,7 @@ def test_a_cube_of_one_detector_is_decomposed_with_one_noise_law(tmp_path, capsy
 
 def test_store_equals_the_in_memory_api_and_describes_itself(cube_path, tmp_path, capsys):
     out = tmp_path / "res.zarr"
-    assert main(["decompose", str(cube_path), "--out", str(out), "--max-interreflections", "3"]) == 0
+    assert main(["decompose", str(cube_path), "--out", str(out), "--max-interreflections", "3", "--per-pixel"]) == 0
     captured = capsys.readouterr()
     assert "35 pixels" in captured.out and str(out) in captured.out
     assert "9/9 chunks" in captured.err  # progress on stderr
@@ -168,7 +168,7 @@ _SLOW = ("import sys, time; import decomposition.store.chunked as c; f = c.solve
 
 def _start_slow(cube_path, out):
     return subprocess.Popen([sys.executable, "-c", _SLOW, "decompose", str(cube_path), "--out", str(out),
-                             "--threads", "1", "--chunks", "1", "3"], cwd=ROOT,
+                             "--threads", "1", "--chunks", "1", "3", "--per-pixel"], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -190,7 +190,7 @@ def test_killed_process_resumes_to_the_uninterrupted_store(cube_path, reference_
         assert proc.returncode == -signal.SIGKILL
     n_done = int(open_result_store(part).done_chunks().sum())
     assert 2 <= n_done < 15
-    assert main(["decompose", str(cube_path), "--out", str(part), "--chunks", "1", "3", "--resume"]) == 0
+    assert main(["decompose", str(cube_path), "--out", str(part), "--chunks", "1", "3", "--resume", "--per-pixel"]) == 0
     assert f"{n_done}/15 chunks already done" in capsys.readouterr().err
     _assert_same_store(full, part)
 
@@ -305,7 +305,7 @@ def test_the_background_family_is_stored_in_signal_units(tmp_path):
                       background=0.05)
     np.save(tmp_path / "c.npy", d.noisy.reshape(2, 6, 256).astype(np.float32))
     assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", str(TB), "--out", str(tmp_path / "r.zarr"),
-                 "--components", "d,s,b", "--no-components", "--quiet"]) == 0
+                 "--components", "d,s,b", "--no-components", "--quiet", "--per-pixel"]) == 0
     store = open_result_store(tmp_path / "r.zarr")
     b = store.group["background"]
     assert b.attrs["units"] == store.group.attrs["units"] and "offset" in b.attrs["long_name"]
@@ -320,7 +320,8 @@ def test_a_cube_of_mostly_poor_fits_gets_a_note_naming_the_usual_causes(tmp_path
     d = make_profiles(16, 256, nsr=0.01, noise="white", seed=7, kinds=["d+s"], time_bin_ps=TB, ranges="paper",
                       background=0.05, bin_integrated=True)
     np.save(tmp_path / "c.npy", d.noisy.reshape(2, 8, 256).astype(np.float32))
-    args = ["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", str(TB), "--no-components", "--quiet"]
+    args = ["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", str(TB), "--no-components", "--quiet",
+            "--per-pixel"]
     assert main(args + ["--out", str(tmp_path / "r1.zarr")]) == 0
     out = capsys.readouterr().out
     assert "16 of 16 pixels are flagged POOR_FIT" in out and "--components d,s,r,b" in out

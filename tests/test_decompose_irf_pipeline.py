@@ -38,7 +38,7 @@ def cubes(tmp_path_factory, irf):
 def test_cube_response_used_by_default_and_recorded(cubes, irf, capsys):
     tmp, data, d = cubes
     out = tmp / "res_default.zarr"
-    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out), "--quiet"]) == 0
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out), "--quiet", "--per-pixel"]) == 0
     said = capsys.readouterr().out
     assert "instrument response:" in said and "stored in the cube" in said
     store = open_result_store(str(out))
@@ -139,3 +139,7 @@ def test_spatial_coupling_with_the_cube_response(cubes, irf, tmp_path):
         "ir_delay_ps"].shape[-1])
     np.testing.assert_allclose(store.params()["direct_delay_ps"], ref.params["direct_delay_ps"], rtol=1e-6)
     assert np.abs(store.params()["direct_delay_ps"] - d).max() < 0.5
+    # the default couples the image too, with nothing shared: the measured response is the instrument
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(tmp_path / "auto.zarr"), "--quiet"]) == 0
+    job = open_result_store(str(tmp_path / "auto.zarr")).attrs["job"]
+    assert "spatial" in job and "shared" not in job

@@ -21,7 +21,7 @@ def _offline(tmp_path, run, name="offline.zarr"):
 
     assert main(["reconstruct", str(run), "--out", str(tmp_path / "cube.zarr")]) == 0
     assert main(["decompose", str(tmp_path / "cube.zarr"), "--out", str(tmp_path / name),
-                 "--chunks", "1", str(N_X), "--quiet"]) == 0
+                 "--chunks", "1", str(N_X), "--quiet", "--per-pixel"]) == 0
     return tmp_path / name
 
 

@@ -227,3 +227,34 @@ def test_the_pooled_likelihood_refits_an_even_thinning_of_the_selected_pixels(mo
     assert rec["pixels"]["likelihood"] == 12 and seen and set(seen) == {12}
     est, se = rec["psf_sigma_ps"], rec["psf_sigma_ps_stderr"]
     assert abs(est - 3.0) < 4 * se and se < 0.2
+
+
+def test_the_excess_spread_of_widths_is_what_their_errors_do_not_explain():
+    from decomposition.image.pooling import excess_spread
+
+    rng = np.random.default_rng(3)
+    se = np.full(4000, 0.05)                        # 5 % errors
+    one = 4.0 * np.exp(0.05 * rng.standard_normal(4000))
+    assert excess_spread(one, se * one) < 0.03      # one width: its errors explain the scatter (to the MAD's noise)
+    many = 4.0 * np.exp(np.hypot(0.05, 0.3) * rng.standard_normal(4000))
+    assert abs(excess_spread(many, se * many) - 0.3) < 0.02
+    assert np.isnan(excess_spread([np.nan, -1.0], [0.1, 0.1]))
+
+
+def test_a_psf_shared_by_default_only_where_the_pixels_are_one_instrument():
+    """estimate_shared(one_instrument=True) refuses a PSF the pixels' own widths do not share (each
+    draws its own, 2-8 ps) and records how far they scatter; one PSF passes."""
+    from decomposition.evaluation.spatial_scenes import make_spatial_scene
+    from decomposition.evaluation.synthetic import make_profiles
+    from decomposition.image.shared import ONE_INSTRUMENT_SPREAD, NotOneInstrument, image_estimate
+
+    d = make_profiles(64, 128, nsr=0.02, seed=4, time_bin_ps=2.0)
+    cube = d.noisy.reshape(8, 8, -1)
+    with pytest.raises(NotOneInstrument, match="scatter by"):
+        image_estimate(cube, None, 2.0, "convscd", ("psf",), keywords={}, one_instrument=True)
+    est = image_estimate(cube, None, 2.0, "convscd", ("psf",), keywords={})        # asked for: shared
+    assert est.psf_spread > ONE_INSTRUMENT_SPREAD and est.record()["psf_spread"] == est.psf_spread
+    scene = make_spatial_scene(10, 10, 128, nsr=0.05, seed=1)
+    est = image_estimate(scene.profiles, None, scene.time_bin_ps, "convscd", ("psf",),
+                         keywords={"t0_ps": scene.t0_ps}, one_instrument=True)
+    assert est.psf_spread <= ONE_INSTRUMENT_SPREAD and abs(est.psf_sigma_ps - scene.sigma_ps) < 0.2

@@ -33,7 +33,7 @@ def inputs(tmp_path_factory):
 def _args(cube, out, labels, *extra):
     return ["decompose", str(cube), "--out", str(out), "--time-bin-ps", str(TB), "--chunks", "4", "4",
             "--components", "d,s", "--max-interreflections", "0", "--shared", "psf,delay,alpha",
-            "--regions", str(labels), "--option", "stderr=true", "--quiet", *extra]
+            "--regions", str(labels), "--option", "stderr=true", "--quiet", "--per-pixel", *extra]
 
 
 @pytest.fixture(scope="module")

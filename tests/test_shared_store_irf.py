@@ -39,7 +39,7 @@ def inputs(tmp_path_factory):
 def _args(cube, out, labels, irf, *extra, shared="delay,alpha"):
     return ["decompose", str(cube), "--out", str(out), "--time-bin-ps", str(TB), "--chunks", "3", "3",
             "--components", "d,s", "--max-interreflections", "0", "--shared", shared,
-            "--regions", str(labels), "--irf", str(irf), "--option", "stderr=true", "--quiet", *extra]
+            "--regions", str(labels), "--irf", str(irf), "--option", "stderr=true", "--quiet", "--per-pixel", *extra]
 
 
 @pytest.mark.parametrize("shared", ["delay,alpha", "psf,delay,alpha"])

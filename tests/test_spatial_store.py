@@ -109,3 +109,70 @@ def test_bad_spatial_settings_are_refused_before_any_work(spatial_store, tmp_pat
     with pytest.raises(PipelineError, match="list of profiles .n, t. with no neighbours"):
         decompose_to_store(tmp_path / "list.npy", tmp_path / "y.zarr", time_bin_ps=TB, progress=False, spatial=True)
     assert not (tmp_path / "y.zarr").exists()
+
+
+def test_the_command_couples_an_image_by_default(spatial_store, tmp_path, capsys):
+    """``streaklab decompose CUBE`` with neither --spatial nor --per-pixel: the coupled answer; its
+    pixels each draw their own PSF width (smooth_scene), so nothing is shared, and the command says
+    why; --per-pixel: not coupled; a list of profiles has no neighbours and is decomposed per pixel."""
+    cube_path = spatial_store / "cube.zarr"
+    assert main(["decompose", str(cube_path), "--out", str(tmp_path / "auto.zarr")]) == 0
+    assert "nothing shared: the lit pixels' own PSF widths scatter by" in capsys.readouterr().err
+    job = open_result_store(tmp_path / "auto.zarr").attrs["job"]
+    assert "spatial" in job and "shared" not in job
+    cube = zarr.open_group(str(cube_path), mode="r")["cube"][...]
+    ref = decompose_image(cube, TB, spatial=True, max_reflections=3)
+    got = zarr.open_group(str(tmp_path / "auto.zarr"), mode="r")["direct_delay_ps"][...]
+    np.testing.assert_allclose(got, ref.params["direct_delay_ps"], rtol=1e-6, atol=1e-9)
+
+    assert main(["decompose", str(cube_path), "--out", str(tmp_path / "per.zarr"), "--quiet", "--per-pixel"]) == 0
+    assert "spatial" not in open_result_store(tmp_path / "per.zarr").attrs["job"]
+
+    np.save(tmp_path / "list.npy", cube.reshape(36, -1))
+    assert main(["decompose", str(tmp_path / "list.npy"), "--time-bin-ps", str(TB), "--out",
+                 str(tmp_path / "list.zarr"), "--quiet"]) == 0
+    assert "spatial" not in open_result_store(tmp_path / "list.zarr").attrs["job"]
+
+
+def test_the_default_shares_one_instruments_psf(tmp_path):
+    """A cube of one PSF (bench spatial's scene, 4 ps): the default couples it and holds the shared
+    width, as decompose_image(spatial=True, shared="psf") does."""
+    from decomposition.evaluation.spatial_scenes import make_spatial_scene
+
+    scene = make_spatial_scene(10, 10, 128, nsr=0.11, seed=2)
+    write_cube(tmp_path / "one.zarr", scene.profiles.astype(np.float32), time_bin_ps=scene.time_bin_ps,
+               t0_ps=scene.t0_ps, chunks=(5, 5))
+    assert main(["decompose", str(tmp_path / "one.zarr"), "--out", str(tmp_path / "r.zarr"), "--quiet"]) == 0
+    store = open_result_store(tmp_path / "r.zarr")
+    assert store.attrs["job"]["shared"] == ["psf"] and "spatial" in store.attrs["job"]
+    assert store.attrs["shared"]["psf_spread"] <= 0.25
+    assert abs(store.attrs["shared"]["psf_sigma_ps"] - scene.sigma_ps) < 0.3
+
+
+def test_a_resumed_run_keeps_the_settings_its_store_was_started_with(spatial_store, tmp_path, monkeypatch):
+    """A store started per pixel (as every store before the coupled default was) resumes per pixel
+    under the default command, and a coupled one coupled."""
+    cube_path = spatial_store / "cube.zarr"
+    for extra, name in ((["--per-pixel"], "per"), ([], "auto")):
+        revive = worker_dies_at(monkeypatch, 2)
+        with pytest.raises(RuntimeError, match="worker died"):
+            main(["decompose", str(cube_path), "--out", str(tmp_path / f"{name}.zarr"), "--quiet", "--threads", "1",
+                  *extra])
+        revive()
+        assert main(["decompose", str(cube_path), "--out", str(tmp_path / f"{name}.zarr"), "--quiet",
+                     "--resume"]) == 0
+        assert main(["decompose", str(cube_path), "--out", str(tmp_path / f"{name}-full.zarr"), "--quiet",
+                     *extra]) == 0
+        ga = zarr.open_group(str(tmp_path / f"{name}.zarr"), mode="r")
+        gb = zarr.open_group(str(tmp_path / f"{name}-full.zarr"), mode="r")
+        for k in ("direct_delay_ps", "flags", "sss_alpha_per_ps"):
+            assert np.array_equal(ga[k][...], gb[k][...], equal_nan=ga[k].dtype.kind == "f"), (name, k)
+
+
+def test_the_default_decomposes_a_dark_cube(tmp_path):
+    """No lit pixel: the coupled default leaves every pixel empty and still writes the store."""
+    write_cube(tmp_path / "dark.zarr", np.zeros((4, 4, 128), np.float32), time_bin_ps=TB, chunks=(2, 2))
+    assert main(["decompose", str(tmp_path / "dark.zarr"), "--out", str(tmp_path / "r.zarr"), "--quiet"]) == 0
+    store = open_result_store(tmp_path / "r.zarr")
+    assert "spatial" in store.attrs["job"] and store.done_mask().all()
+    assert np.isnan(store.group["direct_delay_ps"][...]).all()

@@ -94,6 +94,22 @@ def pooled_positive(values, stderr):
     return math.exp(est) if n else math.nan, math.exp(est) * err if n else math.nan, n
 
 
+def excess_spread(values, stderr) -> float:
+    """How far per-pixel estimates of a positive quantity (a width) scatter beyond their own
+    errors, relative: sqrt(max(0, MAD^2 - median se^2)) of their logarithms (the tau of
+    :func:`pooled`), 0 where the errors explain the scatter; NaN where no pixel counts.  One
+    instrument's width, read in many pixels, scatters as its errors say."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    se = np.asarray(stderr, np.float64).reshape(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = (v > 0) & np.isfinite(v) & np.isfinite(se) & (se > 0)
+        lv, lse = np.log(v[ok]), se[ok] / v[ok]
+    if lv.size == 0:
+        return math.nan
+    mad = 1.4826 * float(np.median(np.abs(lv - np.median(lv))))
+    return math.sqrt(max(0.0, mad ** 2 - float(np.median(lse ** 2))))
+
+
 def surface_design(yy, xx, center, scale):
     u = (np.asarray(yy, np.float64) - center[0]) / scale[0]
     v = (np.asarray(xx, np.float64) - center[1]) / scale[1]

@@ -49,9 +49,10 @@ from ..model.atoms import slot_atoms
 from ..response.label import param_slots
 from ..response.refine import CountData, fit_slots, held_slot_masks
 from ..response.resolve import resolve_response, stretched_response
-from .pooling import SURFACE_TERMS, fit_surface, lit_score, pooled, pooled_positive, select_pixels, surface_design
+from .pooling import (SURFACE_TERMS, excess_spread, fit_surface, lit_score, pooled, pooled_positive, select_pixels,
+                      surface_design)
 
-__all__ = ["SharedEstimate", "estimate_shared", "decompose_held", "held_response", "apply_held_stderr", "image_estimate",
+__all__ = ["SharedEstimate", "NotOneInstrument", "ONE_INSTRUMENT_SPREAD", "estimate_shared", "decompose_held", "held_response", "apply_held_stderr", "image_estimate",
            "N_LIKELIHOOD_PIXELS"]
 
 #: at most this many of them (thinned evenly) in the pooled likelihood of the scalar width and onset
@@ -71,7 +72,8 @@ class SharedEstimate:
     With a measured response (``irf=``) "psf" is the response's time scale instead:
     ``response_stretch`` s, the response r(t / s) / s held in every pixel
     (:func:`decomposition.response.resolve.stretched_response`), no ``psf_sigma_ps``.
-    Each value has its ``*_stderr``; ``pixels`` how many pixels each pooled.
+    Each value has its ``*_stderr``; ``pixels`` how many pixels each pooled; ``psf_spread`` how far
+    the pixels' own widths scatter beyond their errors (relative, :func:`decomposition.image.pooling.excess_spread`).
     """
 
     names: tuple
@@ -88,6 +90,7 @@ class SharedEstimate:
     pixels: dict = field(default_factory=dict)
     response_stretch: float | None = None
     response_stretch_stderr: float | None = None
+    psf_spread: float | None = None
 
     def record(self) -> dict:
         """A JSON-able dict (units in the names; region labels as strings) for ``info`` and a store."""
@@ -97,6 +100,8 @@ class SharedEstimate:
         elif "psf" in self.names:
             rec.update(psf_sigma_ps=self.psf_sigma_ps, psf_sigma_ps_stderr=self.psf_sigma_ps_stderr,
                        psf_map=self.psf_map)
+            if self.psf_spread is not None:
+                rec["psf_spread"] = self.psf_spread
         if "delay" in self.names:
             rec.update(delay_key=self.delay_key, delay_ps=self.delay_ps, delay_ps_stderr=self.delay_ps_stderr)
         if "alpha" in self.names:
@@ -116,7 +121,7 @@ class SharedEstimate:
                    delay_ps_stderr=rec.get("delay_ps_stderr"), sss_alpha_per_ps=alpha,
                    sss_alpha_per_ps_stderr=alpha_se, regions=bool(rec.get("regions", False)),
                    pixels=dict(rec.get("pixels", {})), response_stretch=rec.get("response_stretch"),
-                   response_stretch_stderr=rec.get("response_stretch_stderr"))
+                   response_stretch_stderr=rec.get("response_stretch_stderr"), psf_spread=rec.get("psf_spread"))
 
     def _psf_at(self, yy, xx):
         m = self.psf_map
@@ -163,12 +168,13 @@ class SharedEstimate:
 
 
 def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple, *, psf_map: bool = False,
-                   keywords: dict, score=None, gather=None) -> SharedEstimate:
+                   keywords: dict, score=None, gather=None, one_instrument: bool = False) -> SharedEstimate:
     """The shared parameters of an image ``cube`` (Y, X, L): :func:`select_pixels` on
     :func:`lit_score`, then :func:`estimate_shared`.  ``regions`` (Y, X) int labels or None.
 
     ``score`` (Y, X), the lit scores where the caller computed them already (a chunked cube),
-    and ``gather(flat indices) -> (n, L)``, the selected profiles (default: read from ``cube``).
+    and ``gather(flat indices) -> (n, L)``, the selected profiles (default: read from ``cube``);
+    ``one_instrument``: :func:`estimate_shared`'s.
     """
     Y, X = (int(s) for s in cube.shape[:2])
     labels = np.zeros((Y, X), np.int64) if regions is None else np.asarray(regions).astype(np.int64)
@@ -180,7 +186,20 @@ def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple,
         profiles = np.asarray(gather(idx))
     yx = np.stack(np.unravel_index(idx, (Y, X)), axis=1)
     return estimate_shared(profiles, yx, labels.reshape(-1)[idx], (Y, X), time_bin_ps, method, names,
-                           psf_map=psf_map, regions=regions is not None, keywords=keywords)
+                           psf_map=psf_map, regions=regions is not None, keywords=keywords,
+                           one_instrument=one_instrument)
+
+
+#: one instrument: the lit pixels' own widths scatter beyond their errors by at most this much
+#: (relative; :func:`decomposition.image.pooling.excess_spread`).  Measured: 0.012 on the demo's
+#: captured cube (one streak camera), 0 at white NSR 0.11-0.22 and 0.16 at 100 photons on bench
+#: spatial's scenes (one PSF; errors at 100 photons fall short), 0.42 on the demo's simulated cube
+#: (each pixel draws its own width).
+ONE_INSTRUMENT_SPREAD = 0.25
+
+
+class NotOneInstrument(ValueError):
+    """The pixels' own widths are not one instrument's (:data:`ONE_INSTRUMENT_SPREAD`)."""
 
 
 #: iteratively reweighted refits of count data per evaluation of the pooled likelihood
@@ -384,7 +403,8 @@ def _width(params):
 
 
 def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str, names: tuple, *,
-                    psf_map: bool = False, regions: bool = False, keywords: dict) -> SharedEstimate:
+                    psf_map: bool = False, regions: bool = False, keywords: dict,
+                    one_instrument: bool = False) -> SharedEstimate:
     """The shared parameters from the selected pixels (:func:`select_pixels`).
 
     Parameters
@@ -403,6 +423,10 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
         The PSF width as a quadratic surface over the image instead of one number.
     regions : bool
         The labels are the caller's regions (recorded; else one region, label 0).
+    one_instrument : bool
+        Share the PSF only where the pixels' own widths are one instrument's: raise
+        :class:`NotOneInstrument` where they scatter beyond their errors by more than
+        :data:`ONE_INSTRUMENT_SPREAD` (the spread is recorded either way, ``psf_spread``).
 
     Raises ValueError (naming the parameter) where no selected pixel gives an estimate.
     """
@@ -427,6 +451,10 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
         est["response_stretch"], est["response_stretch_stderr"] = 1.0, math.nan
     elif "psf" in names:
         width, width_se = _width(first)
+        est["psf_spread"] = excess_spread(width, width_se)
+        if one_instrument and not est["psf_spread"] <= ONE_INSTRUMENT_SPREAD:
+            raise NotOneInstrument(f"the lit pixels' own PSF widths scatter by {est['psf_spread']:.0%} beyond their "
+                                   f"errors (one instrument: at most {ONE_INSTRUMENT_SPREAD:.0%})")
         if psf_map:
             coef, cov, center, scale, n = fit_surface(yx[:, 0], yx[:, 1], width, width_se, shape)
             est["psf_map"] = {"terms": list(SURFACE_TERMS), "coefficients_ps": coef.tolist(),

@@ -78,7 +78,7 @@ def _solve_image(full, interior, keep, *, time_bin_ps, method, spatial, shared_i
 
     def crop(a):
         a = np.asarray(a)[interior]
-        return a.reshape((-1,) + a.shape[2:])[keep]
+        return a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:])[keep]     # (no -1: R may be 0)
 
     return DecompositionResult(direct=crop(res.direct), sss=crop(res.sss),
                                interreflections=crop(res.interreflections),

@@ -265,7 +265,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     ``spatial`` (True, a :class:`decomposition.image.spatial.SpatialOptions` or a mapping of its
     fields) couples neighbouring pixels: each chunk is read with the coupling's halo and gives
     the answer of one call on the whole image (:mod:`decomposition.store.chunked`).  Its options
-    are part of the job a ``--resume`` must match.
+    are part of the job a ``--resume`` must match.  ``spatial="auto"`` and ``shared="auto"`` (the CLI's
+    defaults) couple an image (a list of profiles per pixel: :func:`_auto_spatial`) and share its
+    PSF where its pixels' own widths are one instrument's (:func:`_auto_shared`); a resumed run
+    keeps what its store was started with.
 
     ``shared`` ("psf,delay,alpha" or a subset), ``regions`` (a .npy path or a (y, x) integer
     array of labels: one sss decay rate per label) and ``psf_map``: the parameters every pixel
@@ -298,6 +301,7 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
     ``tls`` (a :class:`decomposition.store.cluster.TlsFiles`) holds the credentials of a ``tls://``
     scheduler.
     """
+    from decomposition.image.shared import NotOneInstrument
     from decomposition.store.chunked import chunk_tasks, count_nonfinite_pixels, run_tasks
     from decomposition.store.resultstore import (ChunkWriter, ResultStoreError, create_result_store, open_result_store,
                                                  prepare_output_path)
@@ -329,7 +333,8 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         raise PipelineError(f"--option max_reflections={options['max_reflections']} contradicts "
                            f"--max-interreflections {n_ir}; give only --max-interreflections")
     options["max_reflections"] = int(n_ir)  # the solver reports exactly the slots the store keeps
-    names, regions = _shared_settings(shared, regions, psf_map)
+    auto_shared = isinstance(shared, str) and shared == AUTO
+    names, regions = _shared_settings(() if auto_shared else shared, regions, psf_map and not auto_shared)
     out_path = str(Path(out_path).resolve())
 
     arr, source, tb, t0, default_chunks, units, y_coord, y_units = _open_input(
@@ -365,6 +370,11 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
                write_components=write_components, nan_policy=nan_policy, source=source, time_bin_ps=tb, t0_ps=t0)
     if response is not None:             # absent for the Gaussian: older stores resume as before
         job["irf_sha256"] = irf_attrs["samples_sha256"]
+    if isinstance(spatial, str) and spatial == AUTO:
+        spatial = _auto_spatial(source, method, existing, ny * nx)
+    if auto_shared:
+        names = _auto_shared(spatial, response, existing)
+        names, regions = _shared_settings(names, regions, psf_map)
     spatial_opts = _spatial_options(spatial)
     if spatial_opts is not None:         # absent without it: older stores resume as before
         if source.get("layout") == "profiles (n, t)":
@@ -415,8 +425,18 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
 
     estimate = None
     if names:
-        estimate = _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components,
-                                    solver_options, out_path)
+        try:
+            estimate = _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components,
+                                        solver_options, out_path, one_instrument=auto_shared)
+        except (NotOneInstrument, PipelineError) as exc:
+            # the default's PSF where the cube is not one instrument's, or has no lit pixel to tell
+            if not auto_shared or existing is not None:
+                raise
+            names = ()
+            for key in ("shared", "psf_map", "regions_sha256"):
+                job.pop(key, None)
+            if progress:
+                print(f"decompose: nothing shared: {exc}", file=stream)
     client = cluster = None
     try:
         if scheduler is not None or workers is not None:  # connect before anything is written
@@ -514,6 +534,31 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
             cluster.close()
 
 
+#: ``spatial`` of :func:`decompose_to_store` that lets the input decide (the CLI's default): :func:`_auto_spatial`
+AUTO = "auto"
+
+
+def _auto_shared(spatial, response, existing) -> tuple:
+    """What ``shared="auto"`` means: resuming, what the store was started with (its job);
+    otherwise the PSF width where the image is coupled with the Gaussian PSF (a measured
+    response is the instrument already), held only where the pixels' own widths are one
+    instrument's (:data:`decomposition.image.shared.ONE_INSTRUMENT_SPREAD`; else nothing)."""
+    if existing is not None:
+        return tuple(existing.attrs.get("job", {}).get("shared", ()))
+    return ("psf",) if spatial is not None and spatial is not False and response is None else ()
+
+
+def _auto_spatial(source: dict, method: str, existing, n_pixels: int):
+    """What ``spatial="auto"`` means for this input: resuming, the coupling the store was started
+    with (its job); otherwise an image of surfaces (a cube or a (y, x, t) array of more than one
+    pixel) decomposed with ConvSCD is coupled (True), and a list of profiles, or another method,
+    is decomposed per pixel (None)."""
+    if existing is not None:
+        return existing.attrs.get("job", {}).get("spatial")
+    image = source.get("layout") != "profiles (n, t)" and n_pixels > 1 and method == "convscd"
+    return True if image else None
+
+
 def _shared_settings(shared, regions, psf_map):
     """--shared, --regions, --psf-map checked -> (names, labels (y, x) int64 or None)."""
     from decomposition.image.api import parse_shared
@@ -541,11 +586,12 @@ def _shared_settings(shared, regions, psf_map):
     return names, labels.astype(np.int64)
 
 
-def _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components, solver_options, out_path):
+def _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, components, solver_options, out_path,
+                     one_instrument: bool = False):
     """The shared parameters: read back from a resumed store's ``shared`` attribute, else
     estimated once from the whole cube (lit scores chunk by chunk, then the selected pixels)."""
     from decomposition.image.pooling import lit_score
-    from decomposition.image.shared import SharedEstimate, image_estimate
+    from decomposition.image.shared import NotOneInstrument, SharedEstimate, image_estimate
 
     if existing is not None:
         record = existing.attrs.get("shared")
@@ -565,7 +611,9 @@ def _shared_estimate(existing, arr, regions, tb, t0, method, names, psf_map, com
     keywords = dict(solver_options, t0_ps=t0, components=tuple(components))
     try:
         return image_estimate(arr, regions, tb, method, names, psf_map=psf_map, keywords=keywords, score=score,
-                              gather=gather)
+                              gather=gather, one_instrument=one_instrument)
+    except NotOneInstrument:
+        raise
     except ValueError as exc:
         raise PipelineError(f"--shared: {_one_line(exc)}") from None
 

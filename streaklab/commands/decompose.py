@@ -71,9 +71,16 @@ def add_arguments(parser) -> None:
                         help="solver option (repeatable); VALUE is read as JSON if it parses, else as a string")
     parser.add_argument("--time-bin-ps", type=float, default=None, help="time bin of a .npy input (ps)")
     parser.add_argument("--t0-ps", type=float, default=None, help="time of bin 0 of a .npy input (ps; default one bin)")
-    parser.add_argument("--spatial", action="store_true",
-                        help="couple neighbouring pixels (neighbours' answers as starts, an edge-preserving "
-                             "prior on the direct delays); chunks are read with a halo")
+    coupling = parser.add_mutually_exclusive_group()
+    coupling.add_argument("--spatial", action="store_true",
+                          help="couple neighbouring pixels (neighbours' answers as starts, an edge-preserving "
+                               "prior on the direct delays, pooled echoes); chunks are read with a halo.  The "
+                               "default for an image (a cube, or a (y, x, t) array) decomposed with convscd, "
+                               "with the PSF width shared where the pixels' own widths are one instrument's "
+                               "(Gaussian PSF); a resumed run keeps its store's choice")
+    coupling.add_argument("--per-pixel", action="store_true",
+                          help="decompose every pixel on its own (no coupling, nothing shared unless --shared "
+                               "says so): the default for a list of profiles (n, t)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     parser.add_argument("--overwrite", action="store_true", help="replace whatever is at --out")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -190,6 +197,14 @@ def run(args) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+def _spatial_choice(args):
+    """--spatial: True; --per-pixel: None; neither: "auto" (an image is coupled, a list of
+    profiles is not; a resumed run keeps its store's choice)."""
+    if args.spatial:
+        return True
+    return None if args.per_pixel else "auto"
+
+
 def _run(args) -> int:
     tls = _tls_files(args)
     summary = decompose_to_store(
@@ -197,8 +212,9 @@ def _run(args) -> int:
         options=parse_solver_options(args.option, args.method), chunks=args.chunks, workers=args.workers, scheduler=args.scheduler,
         threads=args.threads, n_ir=args.max_interreflections, write_components=not args.no_components,
         nan_policy=args.nan_policy, resume=args.resume, overwrite=args.overwrite, time_bin_ps=args.time_bin_ps,
-        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf, spatial=True if args.spatial else None,
-        shared=args.shared, regions=args.regions, psf_map=args.psf_map)
+        t0_ps=args.t0_ps, progress=not args.quiet, tls=tls, irf=args.irf, spatial=_spatial_choice(args),
+        shared=args.shared if args.shared is not None else ("auto" if _spatial_choice(args) == "auto" else None),
+        regions=args.regions, psf_map=args.psf_map)
     ny, nx, nt = summary["shape"]
     if summary.get("shared"):
         from streaklab.report import shared_line

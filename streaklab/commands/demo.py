@@ -299,8 +299,9 @@ def _run_steps(out: Path, *, source, lines, nx, nt, method, workers, nsr, seed, 
          stream)
     # chunks of a few lines: several chunks even for a small scan, so workers share the work
     ny, nx_ = open_cube(cube_path).shape[:2]
+    # as `streaklab decompose` does by default: the image coupled, one instrument's PSF shared
     summary = decompose_to_store(cube_path, result_path, method=method, workers=workers, progress=progress,
-                                 chunks=(min(ny, 4), min(nx_, 64)), stream=sys.stderr)
+                                 chunks=(min(ny, 4), min(nx_, 64)), stream=sys.stderr, spatial="auto", shared="auto")
     _write_record(out)
     _say(f"      {counted(summary['pixels'], 'pixel')} in {time.perf_counter() - t0:.1f} s "
          f"({summary['pixels_per_s']:,.0f} px/s)", stream)
