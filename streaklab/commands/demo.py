@@ -303,8 +303,13 @@ def _run_steps(out: Path, *, source, lines, nx, nt, method, workers, nsr, seed, 
     summary = decompose_to_store(cube_path, result_path, method=method, workers=workers, progress=progress,
                                  chunks=(min(ny, 4), min(nx_, 64)), stream=sys.stderr, spatial="auto", shared="auto")
     _write_record(out)
+    coupled = "spatial" in open_result_store(result_path).attrs.get("job", {})
     _say(f"      {counted(summary['pixels'], 'pixel')} in {time.perf_counter() - t0:.1f} s "
-         f"({summary['pixels_per_s']:,.0f} px/s)", stream)
+         f"({summary['pixels_per_s']:,.0f} px/s){', neighbouring pixels coupled' if coupled else ''}", stream)
+    if summary.get("shared"):
+        from streaklab.report import shared_line
+
+        _say(f"      {shared_line(summary['shared'])}", stream)
     figs = out / "figs"
     _say(f"[4/5] report -> {figs}", stream)
     rep = make_report(result_path, figs)
