@@ -12,7 +12,7 @@ capture never waits for it: lines queue while the solver is busy and are caught 
 end of the capture the queue is drained.
 
 The result store is laid out as ``streaklab decompose`` lays out the result of the reconstructed
-cube with ``--chunks 1 NX`` (one chunk per cube row, NX the slit pixels) and the same settings: the
+cube with ``--per-pixel --chunks 1 NX`` (one chunk per cube row, NX the slit pixels) and the same settings: the
 cube's ``noise_law`` ("detector": one camera behind every pixel), its time axis, its y coordinate
 (target mirror angle, lines sorted by it). Its arrays then equal that offline result's byte for
 byte (attributes such as the source and the creation time differ).
@@ -57,7 +57,7 @@ def differing_arrays(a, b) -> list[str]:
     """The arrays of two Zarr stores that are not the same byte for byte, every group included.
 
     The promise of ``--live``: its result store holds the same bytes in every array as
-    ``streaklab decompose`` of the reconstructed cube with ``--chunks 1 NX`` (only attributes
+    ``streaklab decompose`` of the reconstructed cube with ``--per-pixel --chunks 1 NX`` (only attributes
     differ).  Used by the tests and by ``streaklab bench live``.
 
     Parameters

@@ -42,7 +42,7 @@ def test_bench_live_times_a_pair_and_checks_the_live_result_byte_for_byte(tmp_pa
     mark = "[met]" if summary["median_ratio"] <= 1.05 else "[NOT met]"
     assert f"  {mark} capture with --live at most 1.05 x the time without it" in text
     assert summary["targets"]["speed_met"] == (mark == "[met]")
-    assert ("  [met] the live result equals reconstruct + decompose --chunks 1 NX of its run, byte for byte "
+    assert ("  [met] the live result equals reconstruct + decompose --per-pixel --chunks 1 NX of its run, byte for byte "
             "in every array (each of the 1 live run(s)): every array the same") in text
     assert summary["differing_arrays"] == {"1": []}
 

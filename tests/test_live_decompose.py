@@ -16,7 +16,7 @@ def _assert_same_arrays(a, b):
 
 
 def _offline(tmp_path, run, name="offline.zarr"):
-    """``streaklab reconstruct`` then ``streaklab decompose --chunks 1 NX`` of the run."""
+    """``streaklab reconstruct`` then ``streaklab decompose --per-pixel --chunks 1 NX`` of the run."""
     from streaklab.cli import main
 
     assert main(["reconstruct", str(run), "--out", str(tmp_path / "cube.zarr")]) == 0

@@ -19,7 +19,7 @@ Printed: each pair's two times and their ratio (with / without), the median rati
 spread of the ratios, the median drain; then the targets (:func:`streaklab.bench.scoring.target_line`):
 
 * the median ratio at most :data:`TARGET_RATIO` (``--live`` costs the capture at most 5 %);
-* each live result equals ``streaklab reconstruct`` then ``streaklab decompose --chunks 1 NX``
+* each live result equals ``streaklab reconstruct`` then ``streaklab decompose --per-pixel --chunks 1 NX``
   of its own run byte for byte in every array (:func:`streaklab.live_decompose.differing_arrays`),
   checked after every capture is timed, so that each capture but the first follows another.
 
@@ -135,7 +135,7 @@ def _capture(config: str, run_path: Path, live_path, timeout_s: float) -> dict:
 
 
 def _offline_differences(run_path: Path, cube_path: Path, result_path: Path, live_path: Path) -> list[str]:
-    """``streaklab reconstruct`` and ``streaklab decompose --chunks 1 NX`` of the run, compared with
+    """``streaklab reconstruct`` and ``streaklab decompose --per-pixel --chunks 1 NX`` of the run, compared with
     the live result -> the arrays that differ."""
     from acquisition.runstore import open_run
     from streaklab.cli import main
@@ -143,7 +143,8 @@ def _offline_differences(run_path: Path, cube_path: Path, result_path: Path, liv
 
     nx = open_run(run_path, mode="r").image_shape[0]
     for argv in (["reconstruct", str(run_path), "--out", str(cube_path)],
-                 ["decompose", str(cube_path), "--out", str(result_path), "--chunks", "1", str(nx), "--quiet"]):
+                 ["decompose", str(cube_path), "--out", str(result_path), "--per-pixel", "--chunks", "1", str(nx),
+                  "--quiet"]):
         said = io.StringIO()          # the commands' reports, shown only when one fails
         with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
             status = main(argv)
@@ -222,7 +223,7 @@ def run(args) -> int:
                        "detail": f"x{median:.3f}"}))
     detail = ("every array the same" if equal_met else
               "; ".join(f"pair {i}: {', '.join(d)}" for i, d in unequal.items()))
-    print(target_line({"text": "the live result equals reconstruct + decompose --chunks 1 NX of its run, byte for "
+    print(target_line({"text": "the live result equals reconstruct + decompose --per-pixel --chunks 1 NX of its run, byte for "
                                f"byte in every array (each of the {len(differences)} live run(s))",
                        "met": equal_met, "detail": detail}))
     print(f"wrote {out / 'live.csv'} and {out / 'summary.json'}")

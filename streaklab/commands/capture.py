@@ -23,7 +23,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument("--live", metavar="RESULT.zarr",
                         help="decompose each line as it lands into this result store (resumable; equal to "
-                             "'streaklab decompose' of the reconstructed cube with --chunks 1 NX)")
+                             "'streaklab decompose' of the reconstructed cube with --per-pixel --chunks 1 NX)")
     parser.add_argument("--live-png", metavar="PATH",
                         help="with --live: maps of the direct delay and sss, refreshed as lines are decomposed")
     parser.add_argument("--live-png-every", type=int, default=4, metavar="N",
