@@ -314,13 +314,17 @@ CHUNK_PIXELS = 48
 COMPILED = True
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF):
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF, r_out=None,
+              r_row=None):
     """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
     (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`) and for a
     response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`), else
-    :func:`_evaluate_numpy`."""
+    :func:`_evaluate_numpy`.  Compiled path only: pixel i's weighted residual into row
+    ``r_row[i]`` of ``r_out`` (m, L) where given."""
     table = inst is not GAUSSIAN_PSF
     if not ((COMPILED or table) and tb is None):
+        if r_out is not None:
+            raise ValueError("the weighted residual comes from the compiled evaluation only (point samples)")
         return _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw, bg, amp)
     n = y.shape[0]
     k, p = lay.k, lay.p
@@ -338,7 +342,9 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
             np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
             np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
             np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64),
-            lay.shared, increasing, bool(jac), c, rss, a, g, inst)
+            lay.shared, increasing, bool(jac), c, rss, a, g,
+            np.zeros((0, t.size)) if r_out is None else r_out,
+            np.zeros(0, np.int64) if r_out is None else np.ascontiguousarray(r_row, np.int64), inst)
     return (c, rss, a, g) if jac else (c, rss, None, None)
 
 
@@ -538,7 +544,7 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
-                  keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False):
+                  keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False, residual=False):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
@@ -553,7 +559,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     (held, whatever ``held`` says).  ``ftol`` a scalar or (n,) per pixel.  ``positive``: a step
     may not turn a positive amplitude non-positive and a fit with one is not kept (False: plain
     least squares, the amplitudes of any sign).  ``onset_after_earliest``: ``sss_after_direct``
-    keeps the onset at or after the earliest shifted component, whichever slot holds it."""
+    keeps the onset at or after the earliest shifted component, whichever slot holds it.
+    ``residual`` (point samples only): ``info`` also carries ``residual`` (n, L), the weighted
+    residual ``y`` - Phi c of the refined fit (less its offset) where ``refined``, NaN elsewhere."""
     n = y.shape[0]
     if table is not None and tb is not None:
         raise ValueError("a response's table atoms are point samples of the response resolved on the time "
@@ -600,7 +608,11 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
     rss_input = _with_prior(prior, theta_in, rss_input)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst)
+    # the residuals in two rows per pixel, i and n + i: the current one in row i + n cur[i], a
+    # trial's into the other, so that an accepted step flips cur and copies nothing
+    resid = np.empty((2 * n, y.shape[1])) if residual else None
+    cur = np.zeros(n, np.int64)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst, resid, np.arange(n))
     rss = _with_prior(prior, theta, rss, a, g)
     viol = _amp_violations(c, present) if positive else np.zeros(n, np.int64)
     lam = np.full(n, lam0)
@@ -632,7 +644,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
         c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
                                          None if sw is None else sw[idx], None if bg is None else bg[idx],
-                                         None if amp is None else amp[idx], inst)
+                                         None if amp is None else amp[idx], inst, resid, idx + n * (1 - cur[idx]))
         rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
         viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
@@ -646,6 +658,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         acc = idx[accept]
         theta[acc], c[acc], rss[acc], a[acc], g[acc] = trial[accept], c_t[accept], rss_t[accept], a_t[accept], g_t[accept]
         viol[acc] = viol_t[accept]
+        cur[acc] = 1 - cur[acc]
         lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[accept], 0.0, 1.0) - 1.0) ** 3)
         lam[acc] = np.maximum(lam[acc], 1e-12)
         nu[acc] = 2.0
@@ -682,6 +695,8 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         "rss_input": rss_input,
         "rss": np.where(kept, rss, rss_input),
     }
+    if residual:
+        info["residual"] = np.where(kept[:, None], resid[np.arange(n) + n * cur], np.nan)
     return out, info
 
 
