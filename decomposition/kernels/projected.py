@@ -296,18 +296,19 @@ def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r
 
 
 @njit
-def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
+def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
                                c_out, rss_out, a_out, g_out, r_out, r_row, inst):
     """Amplitudes, RSS and (``jac``) the LM normal equations of n pixels at ``theta``.
 
     Parameters
     ----------
     t : float64 (L,)            sample times, ps
-    y : float64 (n, L)          the pixels' normalised, weighted data
+    y : float64 (m, L)          normalised, weighted data: pixel p's in row ``rows[p]``
+    rows : int (n,)             the pixels' rows of ``y`` and ``sw``
     theta : float64 (n, P)      the layout's nonlinear parameters (delays, log widths, log alpha)
     present : bool (n, K)       the slots each pixel has
     free : bool (n, P)          the parameters each pixel moves
-    sw : float64 (n, L)         square roots of the sample weights ((0, L): none)
+    sw : float64 (m, L)         square roots of the sample weights, rows as ``y`` ((0, L): none)
     bg : bool (n,)              the pixels that fit a constant offset too
     amp : float64 (n, K)        the amplitude prior's row ((0, K): none)
     assign : float64 (P, 2K+1)  the layout's map of parameters onto derivative rows
@@ -323,12 +324,13 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     weighted residual (projected where it fits an offset) into row ``r_row[p]`` of ``r_out``
     (m, L) (``r_row`` (0,): not written).
     """
-    n, L = y.shape
+    n = theta.shape[0]
+    L = y.shape[1]
     K = present.shape[1]
     P = theta.shape[1]
     Q = 2 * K + 1
     R = 3 * K + 2 if jac else K + 1
-    has_sw = sw.shape[0] == n
+    has_sw = sw.shape[0] > 0
     has_amp = amp.shape[0] == n
     has_r = r_row.shape[0] == n
     m = np.zeros((R, L))
@@ -339,7 +341,7 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     rhs = np.zeros((K, 1 + P))
     piv = np.zeros(K, np.int64)
     u = np.empty(L)
-    r = np.empty(L)
+    r_own = np.empty(L)
     w = np.zeros((P, Q))
     dr = np.zeros(Q)
     vw = np.zeros((Q, P))
@@ -354,14 +356,15 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     r_buf = np.empty(inst[8] + 1)
     E = np.empty(5)
     for p in range(n):
-        swp = sw[p] if has_sw else dummy
+        yp = rows[p]
+        swp = sw[yp] if has_sw else dummy
         for row in range(R):
             lo[row] = 0
             hi[row] = 0
         lo[R - 1] = 0
         hi[R - 1] = L
         for i in range(L):
-            m[R - 1, i] = y[p, i]
+            m[R - 1, i] = y[yp, i]
         a_p = math.exp(theta[p, P - 1])
         for slot in range(K):
             if not present[p, slot]:
@@ -437,6 +440,8 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
         _lu_solve(g2, rhs, K, 1, piv)
         for k in range(K):
             c_out[p, k] = rhs[k, 0] if present[p, k] else 0.0
+        # the residual, in its row of r_out where it is kept
+        r = r_out[r_row[p]] if has_r else r_own
         for i in range(L):
             r[i] = m[R - 1, i]
         for k in range(K):
@@ -453,9 +458,6 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
                 v -= c_out[p, k] * amp[p, k]
             rss += v * v
         rss_out[p] = rss
-        if has_r:
-            for i in range(L):
-                r_out[r_row[p], i] = r[i]
         if not jac:
             continue
         # the parameters the normal equations carry (jl, nj of them) and the derivative rows those

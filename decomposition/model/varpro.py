@@ -315,18 +315,21 @@ COMPILED = True
 
 
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF, r_out=None,
-              r_row=None):
+              r_row=None, rows=None):
     """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
     (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`) and for a
     response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`), else
-    :func:`_evaluate_numpy`.  Compiled path only: pixel i's weighted residual into row
-    ``r_row[i]`` of ``r_out`` (m, L) where given."""
+    :func:`_evaluate_numpy`.  Compiled path only: ``rows`` (n,) where given, pixel i's data and
+    weights are row ``rows[i]`` of ``y`` and ``sw`` (m, L) (not copied out of them); pixel i's
+    weighted residual into row ``r_row[i]`` of ``r_out`` (m, L) where given."""
     table = inst is not GAUSSIAN_PSF
     if not ((COMPILED or table) and tb is None):
         if r_out is not None:
             raise ValueError("the weighted residual comes from the compiled evaluation only (point samples)")
+        if rows is not None:
+            y, sw = y[rows], None if sw is None else sw[rows]
         return _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw, bg, amp)
-    n = y.shape[0]
+    n = theta.shape[0]
     k, p = lay.k, lay.p
     c = np.zeros((n, k))
     rss = np.empty(n)
@@ -336,7 +339,8 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
         t = np.ascontiguousarray(t, np.float64)
         increasing = t.size >= 2 and bool(np.all(t[1:] > t[:-1]))
         projected_normal_equations(
-            t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(theta, np.float64),
+            t, np.ascontiguousarray(y, np.float64),
+            np.arange(n) if rows is None else np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(theta, np.float64),
             np.ascontiguousarray(present, np.bool_), np.ascontiguousarray(free, np.bool_),
             np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
             np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
@@ -642,9 +646,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         if keep_order:
             trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
-        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
-                                         None if sw is None else sw[idx], None if bg is None else bg[idx],
-                                         None if amp is None else amp[idx], inst, resid, idx + n * (1 - cur[idx]))
+        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y, trial, present[idx], fr, tb, True, sw,
+                                         None if bg is None else bg[idx], None if amp is None else amp[idx], inst,
+                                         resid, idx + n * (1 - cur[idx]), idx)
         rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
         viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
