@@ -231,14 +231,26 @@ class Layout:
     Shared width (``shared_sigma``, one PSF per pixel as in eq. (2) of the paper):
     theta = [delay_0..K-1, log sigma, log alpha], P = K + 2, and the sigma
     parameter moves every present component's width together.
+    No widths (``widths`` False, a measured response's atoms, which have none):
+    theta = [delay_0..K-1, log alpha], P = K + 1; the width rows stay in the derivative rows,
+    no parameter maps onto them (``sigma`` is ignored by :meth:`pack` and :meth:`held`,
+    :meth:`unpack` gives ones).
     """
 
-    def __init__(self, k, shared_sigma=False):
+    def __init__(self, k, shared_sigma=False, widths=True):
         self.k = k
         self.q = 2 * k + 1
         self.shared = bool(shared_sigma)
+        self.widths = bool(widths)
+        if self.shared and not self.widths:
+            raise ValueError("a shared width (shared_sigma) needs the width parameters (widths=True)")
         self.dslot = np.concatenate([np.arange(k), np.arange(k), [SSS_SLOT]])
-        if self.shared:
+        if not self.widths:
+            self.p = k + 1
+            assign = np.zeros((self.p, self.q))
+            assign[np.arange(k), np.arange(k)] = 1.0
+            assign[k, 2 * k] = 1.0
+        elif self.shared:
             self.p = k + 2
             assign = np.zeros((self.p, self.q))
             assign[np.arange(k), np.arange(k)] = 1.0
@@ -260,6 +272,8 @@ class Layout:
         with np.errstate(divide="ignore", invalid="ignore"):
             logs = np.log(sigma)
             loga = np.log(alpha)[:, None]
+        if not self.widths:
+            return np.concatenate([delay, loga], axis=1)
         if not self.shared:
             return np.concatenate([delay, logs, loga], axis=1)
         # Start the shared width from the direct component's, else the mean over present ones.
@@ -270,7 +284,9 @@ class Layout:
 
     def unpack(self, theta):
         k = self.k
-        if self.shared:
+        if not self.widths:
+            sigma = np.ones((theta.shape[0], k))
+        elif self.shared:
             sigma = np.repeat(np.exp(theta[:, k:k + 1]), k, axis=1)
         else:
             sigma = np.exp(theta[:, k:2 * k])
@@ -279,7 +295,7 @@ class Layout:
     def held(self, delay, sigma, alpha):
         """(n, P) bool: the parameters held, from ``delay`` (n, K) bool (each slot's delay),
         ``sigma`` (n,) bool (every width of the pixel) and ``alpha`` (n,) bool."""
-        n_sig = 1 if self.shared else self.k
+        n_sig = self._n_sigma()
         sig = np.repeat(np.asarray(sigma, bool)[:, None], n_sig, axis=1)
         return np.concatenate([np.asarray(delay, bool), sig, np.asarray(alpha, bool)[:, None]], axis=1)
 
@@ -289,15 +305,20 @@ class Layout:
         cache = self._sub
         if key not in cache:
             k = self.k
-            if self.shared:
+            if not self.widths:
+                cols = np.concatenate([np.arange(k_eff), [k]])
+            elif self.shared:
                 cols = np.concatenate([np.arange(k_eff), [k, k + 1]])
             else:
                 cols = np.concatenate([np.arange(k_eff), k + np.arange(k_eff), [2 * k]])
-            cache[key] = (self if k_eff == k else Layout(k_eff, self.shared), cols)
+            cache[key] = (self if k_eff == k else Layout(k_eff, self.shared, self.widths), cols)
         return cache[key]
 
+    def _n_sigma(self):
+        return 0 if not self.widths else 1 if self.shared else self.k
+
     def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
-        n_sig = 1 if self.shared else self.k
+        n_sig = self._n_sigma()
         lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
         hi = np.concatenate([np.full(self.k, delay_lim[1]), np.full(n_sig, logsigma_lim[1]), [logalpha_lim[1]]])
         return lo, hi
@@ -570,6 +591,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     if table is not None and tb is not None:
         raise ValueError("a response's table atoms are point samples of the response resolved on the time "
                          "axis; bin integration (bin_integrated=True) applies to the Gaussian PSF only")
+    if table is None and not lay.widths:
+        raise ValueError("the Gaussian PSF's atoms have widths: a layout without them (widths=False) is for a "
+                         "response's table atoms")
     inst = instrument(table, t)
     present = slots["present"]
     prior = _theta_priors(slots, present, lay)

@@ -232,7 +232,7 @@ def _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter,
              "alpha": np.where(ss.any(axis=1), np.exp(sss_lalp), np.nan)}
     if fit_bg is not None and fit_bg.any():
         slots["fit_background"], slots["background"] = fit_bg, np.zeros(P)
-    lay = Layout(kv)
+    lay = Layout(kv, widths=False)
     lo, hi = lay.bounds(delay_bounds_ps, (0.0, 0.0), lalp_bounds)
     v_held = None
     if held is not None:
