@@ -128,3 +128,61 @@ def test_standard_errors_match_numpy(shared_sigma, monkeypatch):
         for key in w:
             np.testing.assert_array_equal(np.isnan(g[key]), np.isnan(w[key]), err_msg=key)
             np.testing.assert_allclose(g[key], w[key], rtol=1e-6, err_msg=key)
+
+
+def _table_design_rows(table):
+    """varpro.design_rows for a response's table atoms (kernels.response.slot_rows): the atoms, their
+    delay derivatives, zero width rows, the sss log decay rate's derivative, each weighted; the data."""
+    from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
+    from decomposition.kernels.response import slot_rows
+
+    def rows(t, y, delay, sigma, alpha, present, tb, jac, sw=None):
+        n, k = present.shape
+        fam = np.where(present, FAM_GAUSS, FAM_NONE).astype(np.int8)
+        fam[:, SSS_SLOT] = np.where(present[:, SSS_SLOT], FAM_SSS, FAM_NONE)
+        phi, dd, da = slot_rows(table, t, fam, np.where(present, delay, 0.0),
+                                np.where(fam == FAM_SSS, alpha[:, None], 0.0), derivatives=True)
+        m = np.zeros((n, 3 * k + 2 if jac else k + 1, t.size))
+        m[:, :k] = phi
+        if jac:
+            m[:, k:2 * k] = dd
+            m[:, 3 * k] = da[:, SSS_SLOT] * alpha[:, None]
+        m[:, :-1] *= sw[:, None, :]
+        m[:, -1] = y
+        return m
+    return rows
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_table_normal_equations_match_numpy(background, monkeypatch):
+    """A response's table atoms (the widths held, as refine_block holds them): the compiled
+    evaluation's amplitudes, RSS, J^T J and J^T r equal Kaufman's algebra of the NumPy path over
+    the same atoms; the rows and columns of the held parameters are zero."""
+    from core.irf_models import tailed_response
+    from decomposition.kernels.projected import instrument
+    from decomposition.kernels.response import response_table
+
+    table = response_table(tailed_response(4.0, 0.2, 30.0, time_step_ps=TB))
+    rng = np.random.default_rng(11)
+    n, k = 24, 4
+    lay, theta, present, free = _batch(rng, n, k, False)
+    free &= ~lay.held(np.zeros((n, k), bool), np.ones(n, bool), np.zeros(n, bool))
+    theta[:, k:2 * k] = 0.0
+    sw = np.sqrt(rng.uniform(0.5, 2.0, (n, L)))
+    y = rng.normal(size=(n, L)) * sw
+    bg = (rng.random(n) < 0.5) if background else None
+    for jac in (True, False):
+        got = varpro._evaluate(lay, T, y, theta, present, free, None, jac, sw, bg, None, instrument(table, T))
+        monkeypatch.setattr(varpro, "COMPILED", False)
+        monkeypatch.setattr(varpro, "design_rows", _table_design_rows(table))
+        want = varpro._evaluate(lay, T, y, theta, present, free, None, jac, sw, bg, None)
+        monkeypatch.undo()
+        for g, w in zip(got, want):
+            if w is None:
+                assert g is None
+                continue
+            np.testing.assert_allclose(g, w, rtol=0, atol=1e-12 * np.max(np.abs(w)))
+        if jac:
+            held = ~free
+            assert np.all(got[2][held[:, :, None] | held[:, None, :]] == 0.0)
+            assert np.all(got[3][held] == 0.0)

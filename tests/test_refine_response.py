@@ -180,3 +180,70 @@ def test_two_shifted_copies_the_refit_puts_on_one_delay_are_one_atom(irf):
     assert ((out.fam == FAM_GAUSS).sum(axis=1) == 2).all()       # the direct and the true echo
     np.testing.assert_allclose(out.params["direct_amplitude"], truth["direct_amplitude"], rtol=1e-4)
     np.testing.assert_allclose(out.params["direct_delay_ps"], truth["direct_delay_ps"], atol=1e-3)
+
+
+def test_the_engine_returns_the_weighted_residual_of_its_fit(irf):
+    """refine_block(residual=True) over the response's atoms, with an offset and zero-weight
+    samples: the residual it returns is sw (y - sum_k c_k phi_k - b) of the fit it returns (the
+    atoms rendered afresh), its sum of squares the fit's RSS; NaN for a pixel whose fit is not
+    kept (no data: nothing to lower)."""
+    from decomposition.constants import FAM_GAUSS, FAM_SSS
+    from decomposition.kernels.response import response_table, slot_rows
+    from decomposition.model.varpro import Layout, refine_block
+
+    n = 7
+    truth, start = _scene(n, 5)
+    rng = np.random.default_rng(5)
+    y = params_profile(irf, T_PS, truth) + 0.05 + 0.01 * rng.standard_normal((n, L))
+    y[-1] = 0.0
+    sw = np.ones((n, L))
+    sw[:, 150:160] = 0.0
+    delay = np.stack([start["direct_delay_ps"], start["sss_delay_ps"], start["ir_delay_ps"][:, 0]], axis=1)
+    slots = {"delay": delay, "sigma": np.ones((n, 3)), "amplitude": np.zeros((n, 3)), "present": np.ones((n, 3), bool),
+             "alpha": start["sss_alpha_per_ps"], "fit_background": np.ones(n, bool), "background": np.zeros(n)}
+    lay = Layout(3)
+    lo, hi = lay.bounds((0.0, 600.0), (0.0, 0.0), (-10.0, 2.0))
+    table = response_table(irf)
+    out, info = refine_block(T_PS, y * sw, slots, lay, (lo, hi), None, 40, 1e-12, 1e-3, sw=sw, table=table,
+                             positive=False, residual=True)
+    kept = info["refined"]
+    assert kept[:-1].all() and not kept[-1]
+    assert np.isnan(info["residual"][-1]).all()
+    fam = np.array([[FAM_GAUSS, FAM_SSS, FAM_GAUSS]] * n, np.int8)
+    alpha = np.where(fam == FAM_SSS, out["alpha"][:, None], 0.0)
+    phi = slot_rows(table, T_PS, fam, out["delay"], alpha)
+    want = sw * (y - np.einsum("nk,nkl->nl", out["amplitude"], phi) - out["background"][:, None])
+    np.testing.assert_allclose(info["residual"][kept], want[kept], rtol=0, atol=1e-12 * np.max(np.abs(y)))
+    np.testing.assert_allclose(np.sum(info["residual"][kept] ** 2, axis=1), info["rss"][kept], rtol=1e-10)
+
+
+def test_a_layout_without_widths_takes_the_same_fit(irf):
+    """Layout(widths=False): theta = [delays, log alpha] (a response's atoms have no width); over
+    the response's atoms refine_block takes the same fit as with the width parameters held, to
+    rounding on well-separated atoms; the Gaussian PSF's atoms refuse it."""
+    from decomposition.kernels.response import response_table
+    from decomposition.model.varpro import Layout, refine_block
+
+    n = 6
+    truth, start = _scene(n, 6)
+    y = params_profile(irf, T_PS, truth) + 0.002 * np.random.default_rng(6).standard_normal((n, L))
+    delay = np.stack([start["direct_delay_ps"], start["sss_delay_ps"], start["ir_delay_ps"][:, 0]], axis=1)
+    slots = {"delay": delay, "sigma": np.ones((n, 3)), "amplitude": np.zeros((n, 3)), "present": np.ones((n, 3), bool),
+             "alpha": start["sss_alpha_per_ps"]}
+    lean = Layout(3, widths=False)
+    assert lean.p == 4 and np.array_equal(lean.pack(delay, np.ones((n, 3)), slots["alpha"], slots["present"]),
+                                          np.column_stack([delay, np.log(slots["alpha"])]))
+    fits = []
+    for lay in (lean, Layout(3)):
+        bounds = lay.bounds((0.0, 600.0), (0.0, 0.0), (-10.0, 2.0))
+        fits.append(refine_block(T_PS, y, slots, lay, bounds, None, 40, 1e-12, 1e-3, table=response_table(irf),
+                                 positive=False))
+    (a, ia), (b, ib) = fits
+    assert ia["refined"].all() and ib["refined"].all()
+    for key in ("delay", "alpha", "amplitude"):
+        np.testing.assert_allclose(a[key], b[key], rtol=1e-9, err_msg=key)
+    with pytest.raises(ValueError, match="widths"):
+        refine_block(T_PS, y, slots, lean, lean.bounds((0.0, 600.0), (0.0, 0.0), (-10.0, 2.0)), None, 5, 1e-12,
+                     1e-3)
+    with pytest.raises(ValueError, match="shared"):
+        Layout(3, shared_sigma=True, widths=False)

@@ -296,18 +296,19 @@ def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r
 
 
 @njit
-def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
-                               c_out, rss_out, a_out, g_out, inst):
+def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
+                               c_out, rss_out, a_out, g_out, r_out, r_row, inst):
     """Amplitudes, RSS and (``jac``) the LM normal equations of n pixels at ``theta``.
 
     Parameters
     ----------
     t : float64 (L,)            sample times, ps
-    y : float64 (n, L)          the pixels' normalised, weighted data
+    y : float64 (m, L)          normalised, weighted data: pixel p's in row ``rows[p]``
+    rows : int (n,)             the pixels' rows of ``y`` and ``sw``
     theta : float64 (n, P)      the layout's nonlinear parameters (delays, log widths, log alpha)
     present : bool (n, K)       the slots each pixel has
     free : bool (n, P)          the parameters each pixel moves
-    sw : float64 (n, L)         square roots of the sample weights ((0, L): none)
+    sw : float64 (m, L)         square roots of the sample weights, rows as ``y`` ((0, L): none)
     bg : bool (n,)              the pixels that fit a constant offset too
     amp : float64 (n, K)        the amplitude prior's row ((0, K): none)
     assign : float64 (P, 2K+1)  the layout's map of parameters onto derivative rows
@@ -319,15 +320,19 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
                                 ``theta``'s) or a response's table atoms (the widths unused)
 
     Outputs (written): ``c_out`` (n, K) the amplitudes (0 where absent), ``rss_out`` (n,),
-    ``a_out`` (n, P, P) J^T J and ``g_out`` (n, P) J^T r (with ``jac``).
+    ``a_out`` (n, P, P) J^T J and ``g_out`` (n, P) J^T r (with ``jac``), and pixel p's
+    weighted residual (projected where it fits an offset) into row ``r_row[p]`` of ``r_out``
+    (m, L) (``r_row`` (0,): not written).
     """
-    n, L = y.shape
+    n = theta.shape[0]
+    L = y.shape[1]
     K = present.shape[1]
     P = theta.shape[1]
     Q = 2 * K + 1
     R = 3 * K + 2 if jac else K + 1
-    has_sw = sw.shape[0] == n
+    has_sw = sw.shape[0] > 0
     has_amp = amp.shape[0] == n
+    has_r = r_row.shape[0] == n
     m = np.zeros((R, L))
     lo = np.zeros(R, np.int64)
     hi = np.zeros(R, np.int64)
@@ -336,12 +341,14 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     rhs = np.zeros((K, 1 + P))
     piv = np.zeros(K, np.int64)
     u = np.empty(L)
-    r = np.empty(L)
+    r_own = np.empty(L)
     w = np.zeros((P, Q))
     dr = np.zeros(Q)
-    vv = np.zeros((Q, Q))
     vw = np.zeros((Q, P))
-    bq = np.zeros((K, Q))
+    g2 = np.zeros((K, K))
+    bx = np.zeros((K, P))
+    jl = np.zeros(P, np.int64)
+    ql = np.zeros(Q, np.int64)
     dummy = np.empty(0)
     step_t = uniform_step(t, increasing)
     table = inst[0].size > 0
@@ -349,14 +356,15 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
     r_buf = np.empty(inst[8] + 1)
     E = np.empty(5)
     for p in range(n):
-        swp = sw[p] if has_sw else dummy
+        yp = rows[p]
+        swp = sw[yp] if has_sw else dummy
         for row in range(R):
             lo[row] = 0
             hi[row] = 0
         lo[R - 1] = 0
         hi[R - 1] = L
         for i in range(L):
-            m[R - 1, i] = y[p, i]
+            m[R - 1, i] = y[yp, i]
         a_p = math.exp(theta[p, P - 1])
         for slot in range(K):
             if not present[p, slot]:
@@ -407,6 +415,10 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
         # the Gram product of the stacked rows over the overlaps of their supports
         for a in range(R):
             for b in range(a, R):
+                if b == R - 1 and a >= K:
+                    # the derivative rows' products with the data are never read (J^T r is
+                    # taken against the residual below)
+                    continue
                 acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
                 if has_amp and a < K and b < K:
                     acc += amp[p, a] * amp[p, b]
@@ -422,10 +434,14 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
                 gram[k, j] = mm[k, j] if (present[p, k] and present[p, j]) or k != j else 0.0
             gram[k, k] = (mm[k, k] + (1e-13 * top + 1e-300)) if present[p, k] else 1.0
             rhs[k, 0] = mm[k, R - 1]
-        g2 = gram.copy()
+        for k in range(K):
+            for j in range(K):
+                g2[k, j] = gram[k, j]
         _lu_solve(g2, rhs, K, 1, piv)
         for k in range(K):
             c_out[p, k] = rhs[k, 0] if present[p, k] else 0.0
+        # the residual, in its row of r_out where it is kept
+        r = r_out[r_row[p]] if has_r else r_own
         for i in range(L):
             r[i] = m[R - 1, i]
         for k in range(K):
@@ -444,51 +460,80 @@ def projected_normal_equations(t, y, theta, present, free, sw, bg, amp, assign, 
         rss_out[p] = rss
         if not jac:
             continue
+        # the parameters the normal equations carry (jl, nj of them) and the derivative rows those
+        # read (ql, nq): all of them for the Gaussian PSF's atoms; for a response's table atoms the
+        # free parameters only (its widths are always held), whose rows and columns are the only
+        # non-zero ones, and the rows that some free parameter maps onto
+        nj = 0
+        for j in range(P):
+            if free[p, j] or not table:
+                jl[nj] = j
+                nj += 1
+        nq = 0
         for qq in range(Q):
+            live = not table
+            for jj in range(nj):
+                if assign[jl[jj], qq] != 0.0:
+                    live = True
+            if live:
+                ql[nq] = qq
+                nq += 1
+        for a in range(nq):
+            qq = ql[a]
             sl = dslot[qq]
             fr = present[p, sl] if qq < 2 * K else present[p, SSS_SLOT]
             cq = c_out[p, sl] if fr else 0.0
-            for j in range(P):
+            for jj in range(nj):
+                j = jl[jj]
                 w[j, qq] = assign[j, qq] * cq * (1.0 if free[p, j] else 0.0)
         # dPhi r over the derivative rows (the residual's extra sample has no derivative)
-        for qq in range(Q):
-            row = K + qq
+        for a in range(nq):
+            row = K + ql[a]
             acc = 0.0
             for i in range(lo[row], hi[row]):
                 acc += m[row, i] * r[i]
-            dr[qq] = acc
+            dr[ql[a]] = acc
+        # B W^T (rhs[:, 1 + j]) and its solve against the Gram matrix (bx[:, jj])
         for k in range(K):
-            for qq in range(Q):
-                bq[k, qq] = mm[k, K + qq]
-        for k in range(K):
-            for j in range(P):
+            for jj in range(nj):
+                j = jl[jj]
                 acc = 0.0
-                for qq in range(Q):
-                    acc += bq[k, qq] * w[j, qq]
+                for b in range(nq):
+                    qq = ql[b]
+                    acc += mm[k, K + qq] * w[j, qq]
                 rhs[k, 1 + j] = acc
-        for a in range(Q):
-            for b in range(Q):
-                vv[a, b] = mm[K + a, K + b]
-        g2 = gram.copy()
-        bx = rhs[:, 1:].copy()
-        _lu_solve(g2, bx, K, P, piv)
-        for a in range(Q):
-            for j in range(P):
+                bx[k, jj] = acc
+        for k in range(K):
+            for j in range(K):
+                g2[k, j] = gram[k, j]
+        _lu_solve(g2, bx, K, nj, piv)
+        for a in range(nq):
+            qa = ql[a]
+            for jj in range(nj):
+                j = jl[jj]
                 acc = 0.0
-                for b in range(Q):
-                    acc += vv[a, b] * w[j, b]
-                vw[a, j] = acc
-        for i in range(P):
+                for b in range(nq):
+                    qb = ql[b]
+                    acc += mm[K + qa, K + qb] * w[j, qb]
+                vw[qa, j] = acc
+        if table:
+            for i in range(P):
+                g_out[p, i] = 0.0
+                for j in range(P):
+                    a_out[p, i, j] = 0.0
+        for ii in range(nj):
+            i = jl[ii]
             acc = 0.0
-            for qq in range(Q):
-                acc += w[i, qq] * dr[qq]
+            for a in range(nq):
+                acc += w[i, ql[a]] * dr[ql[a]]
             g_out[p, i] = -acc
-            for j in range(P):
+            for jj in range(nj):
+                j = jl[jj]
                 s = 0.0
-                for a in range(Q):
-                    s += w[i, a] * vw[a, j]
+                for a in range(nq):
+                    s += w[i, ql[a]] * vw[ql[a], j]
                 for k in range(K):
-                    s -= rhs[k, 1 + i] * bx[k, j]
+                    s -= rhs[k, 1 + i] * bx[k, jj]
                 a_out[p, i, j] = s
 
 

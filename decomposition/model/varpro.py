@@ -231,14 +231,26 @@ class Layout:
     Shared width (``shared_sigma``, one PSF per pixel as in eq. (2) of the paper):
     theta = [delay_0..K-1, log sigma, log alpha], P = K + 2, and the sigma
     parameter moves every present component's width together.
+    No widths (``widths`` False, a measured response's atoms, which have none):
+    theta = [delay_0..K-1, log alpha], P = K + 1; the width rows stay in the derivative rows,
+    no parameter maps onto them (``sigma`` is ignored by :meth:`pack` and :meth:`held`,
+    :meth:`unpack` gives ones).
     """
 
-    def __init__(self, k, shared_sigma=False):
+    def __init__(self, k, shared_sigma=False, widths=True):
         self.k = k
         self.q = 2 * k + 1
         self.shared = bool(shared_sigma)
+        self.widths = bool(widths)
+        if self.shared and not self.widths:
+            raise ValueError("a shared width (shared_sigma) needs the width parameters (widths=True)")
         self.dslot = np.concatenate([np.arange(k), np.arange(k), [SSS_SLOT]])
-        if self.shared:
+        if not self.widths:
+            self.p = k + 1
+            assign = np.zeros((self.p, self.q))
+            assign[np.arange(k), np.arange(k)] = 1.0
+            assign[k, 2 * k] = 1.0
+        elif self.shared:
             self.p = k + 2
             assign = np.zeros((self.p, self.q))
             assign[np.arange(k), np.arange(k)] = 1.0
@@ -260,6 +272,8 @@ class Layout:
         with np.errstate(divide="ignore", invalid="ignore"):
             logs = np.log(sigma)
             loga = np.log(alpha)[:, None]
+        if not self.widths:
+            return np.concatenate([delay, loga], axis=1)
         if not self.shared:
             return np.concatenate([delay, logs, loga], axis=1)
         # Start the shared width from the direct component's, else the mean over present ones.
@@ -270,7 +284,9 @@ class Layout:
 
     def unpack(self, theta):
         k = self.k
-        if self.shared:
+        if not self.widths:
+            sigma = np.ones((theta.shape[0], k))
+        elif self.shared:
             sigma = np.repeat(np.exp(theta[:, k:k + 1]), k, axis=1)
         else:
             sigma = np.exp(theta[:, k:2 * k])
@@ -279,7 +295,7 @@ class Layout:
     def held(self, delay, sigma, alpha):
         """(n, P) bool: the parameters held, from ``delay`` (n, K) bool (each slot's delay),
         ``sigma`` (n,) bool (every width of the pixel) and ``alpha`` (n,) bool."""
-        n_sig = 1 if self.shared else self.k
+        n_sig = self._n_sigma()
         sig = np.repeat(np.asarray(sigma, bool)[:, None], n_sig, axis=1)
         return np.concatenate([np.asarray(delay, bool), sig, np.asarray(alpha, bool)[:, None]], axis=1)
 
@@ -289,15 +305,20 @@ class Layout:
         cache = self._sub
         if key not in cache:
             k = self.k
-            if self.shared:
+            if not self.widths:
+                cols = np.concatenate([np.arange(k_eff), [k]])
+            elif self.shared:
                 cols = np.concatenate([np.arange(k_eff), [k, k + 1]])
             else:
                 cols = np.concatenate([np.arange(k_eff), k + np.arange(k_eff), [2 * k]])
-            cache[key] = (self if k_eff == k else Layout(k_eff, self.shared), cols)
+            cache[key] = (self if k_eff == k else Layout(k_eff, self.shared, self.widths), cols)
         return cache[key]
 
+    def _n_sigma(self):
+        return 0 if not self.widths else 1 if self.shared else self.k
+
     def bounds(self, delay_lim, logsigma_lim, logalpha_lim):
-        n_sig = 1 if self.shared else self.k
+        n_sig = self._n_sigma()
         lo = np.concatenate([np.full(self.k, delay_lim[0]), np.full(n_sig, logsigma_lim[0]), [logalpha_lim[0]]])
         hi = np.concatenate([np.full(self.k, delay_lim[1]), np.full(n_sig, logsigma_lim[1]), [logalpha_lim[1]]])
         return lo, hi
@@ -314,15 +335,22 @@ CHUNK_PIXELS = 48
 COMPILED = True
 
 
-def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF):
+def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF, r_out=None,
+              r_row=None, rows=None):
     """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
     (:func:`_evaluate_chunk`): compiled for point-sampled kernels (:data:`COMPILED`) and for a
     response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`), else
-    :func:`_evaluate_numpy`."""
+    :func:`_evaluate_numpy`.  Compiled path only: ``rows`` (n,) where given, pixel i's data and
+    weights are row ``rows[i]`` of ``y`` and ``sw`` (m, L) (not copied out of them); pixel i's
+    weighted residual into row ``r_row[i]`` of ``r_out`` (m, L) where given."""
     table = inst is not GAUSSIAN_PSF
     if not ((COMPILED or table) and tb is None):
+        if r_out is not None:
+            raise ValueError("the weighted residual comes from the compiled evaluation only (point samples)")
+        if rows is not None:
+            y, sw = y[rows], None if sw is None else sw[rows]
         return _evaluate_numpy(lay, t, y, theta, present, free, tb, jac, sw, bg, amp)
-    n = y.shape[0]
+    n = theta.shape[0]
     k, p = lay.k, lay.p
     c = np.zeros((n, k))
     rss = np.empty(n)
@@ -332,13 +360,16 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
         t = np.ascontiguousarray(t, np.float64)
         increasing = t.size >= 2 and bool(np.all(t[1:] > t[:-1]))
         projected_normal_equations(
-            t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(theta, np.float64),
+            t, np.ascontiguousarray(y, np.float64),
+            np.arange(n) if rows is None else np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(theta, np.float64),
             np.ascontiguousarray(present, np.bool_), np.ascontiguousarray(free, np.bool_),
             np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
             np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
             np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
             np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64),
-            lay.shared, increasing, bool(jac), c, rss, a, g, inst)
+            lay.shared, increasing, bool(jac), c, rss, a, g,
+            np.zeros((0, t.size)) if r_out is None else r_out,
+            np.zeros(0, np.int64) if r_out is None else np.ascontiguousarray(r_row, np.int64), inst)
     return (c, rss, a, g) if jac else (c, rss, None, None)
 
 
@@ -538,7 +569,7 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
 
 
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
-                  keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False):
+                  keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False, residual=False):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
     docstring.  ``slots`` may carry ``fit_background`` (n,) bool, the pixels that also fit a
     constant offset, and ``background`` (n,), their input offsets (normalised units; the
@@ -553,11 +584,16 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     (held, whatever ``held`` says).  ``ftol`` a scalar or (n,) per pixel.  ``positive``: a step
     may not turn a positive amplitude non-positive and a fit with one is not kept (False: plain
     least squares, the amplitudes of any sign).  ``onset_after_earliest``: ``sss_after_direct``
-    keeps the onset at or after the earliest shifted component, whichever slot holds it."""
+    keeps the onset at or after the earliest shifted component, whichever slot holds it.
+    ``residual`` (point samples only): ``info`` also carries ``residual`` (n, L), the weighted
+    residual ``y`` - Phi c of the refined fit (less its offset) where ``refined``, NaN elsewhere."""
     n = y.shape[0]
     if table is not None and tb is not None:
         raise ValueError("a response's table atoms are point samples of the response resolved on the time "
                          "axis; bin integration (bin_integrated=True) applies to the Gaussian PSF only")
+    if table is None and not lay.widths:
+        raise ValueError("the Gaussian PSF's atoms have widths: a layout without them (widths=False) is for a "
+                         "response's table atoms")
     inst = instrument(table, t)
     present = slots["present"]
     prior = _theta_priors(slots, present, lay)
@@ -600,7 +636,11 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
     rss_input = _with_prior(prior, theta_in, rss_input)
 
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst)
+    # the residuals in two rows per pixel, i and n + i: the current one in row i + n cur[i], a
+    # trial's into the other, so that an accepted step flips cur and copies nothing
+    resid = np.empty((2 * n, y.shape[1])) if residual else None
+    cur = np.zeros(n, np.int64)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst, resid, np.arange(n))
     rss = _with_prior(prior, theta, rss, a, g)
     viol = _amp_violations(c, present) if positive else np.zeros(n, np.int64)
     lam = np.full(n, lam0)
@@ -630,9 +670,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         if keep_order:
             trial = _keep_order(trial, present[idx])
         trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
-        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y[idx], trial, present[idx], fr, tb, True,
-                                         None if sw is None else sw[idx], None if bg is None else bg[idx],
-                                         None if amp is None else amp[idx], inst)
+        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y, trial, present[idx], fr, tb, True, sw,
+                                         None if bg is None else bg[idx], None if amp is None else amp[idx], inst,
+                                         resid, idx + n * (1 - cur[idx]), idx)
         rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
         viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
         ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
@@ -646,6 +686,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         acc = idx[accept]
         theta[acc], c[acc], rss[acc], a[acc], g[acc] = trial[accept], c_t[accept], rss_t[accept], a_t[accept], g_t[accept]
         viol[acc] = viol_t[accept]
+        cur[acc] = 1 - cur[acc]
         lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[accept], 0.0, 1.0) - 1.0) ** 3)
         lam[acc] = np.maximum(lam[acc], 1e-12)
         nu[acc] = 2.0
@@ -682,6 +723,8 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
         "rss_input": rss_input,
         "rss": np.where(kept, rss, rss_input),
     }
+    if residual:
+        info["residual"] = np.where(kept[:, None], resid[np.arange(n) + n * cur], np.nan)
     return out, info
 
 

@@ -232,7 +232,7 @@ def _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter,
              "alpha": np.where(ss.any(axis=1), np.exp(sss_lalp), np.nan)}
     if fit_bg is not None and fit_bg.any():
         slots["fit_background"], slots["background"] = fit_bg, np.zeros(P)
-    lay = Layout(kv)
+    lay = Layout(kv, widths=False)
     lo, hi = lay.bounds(delay_bounds_ps, (0.0, 0.0), lalp_bounds)
     v_held = None
     if held is not None:
@@ -240,19 +240,21 @@ def _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter,
         d_held[pix, vslot] = held[0][pix, slot]
         v_held = lay.held(d_held, np.ones(P, bool), (held[1] & ss).any(axis=1))
     n_used = np.maximum((sw > 0).sum(axis=1), 1)
+    yw = y * sw
     with np.errstate(under="ignore"):
-        out, info = refine_block(t, y * sw, slots, lay, (lo, hi), None, int(n_iter), lm_tol / n_used, LAMBDA0, sw=sw,
+        out, info = refine_block(t, yw, slots, lay, (lo, hi), None, int(n_iter), lm_tol / n_used, LAMBDA0, sw=sw,
                                  sss_after_direct=sss_after_direct, keep_order=first_is_direct, held=v_held,
-                                 table=response_table(irf), positive=False, onset_after_earliest=True)
-    active = fam != FAM_NONE
+                                 table=response_table(irf), positive=False, onset_after_earliest=True,
+                                 residual=True)
     f_delay = np.full((P, K), np.nan)
     f_delay[pix, slot] = out["delay"][pix, vslot]
     f_amp = np.zeros((P, K))
     f_amp[pix, slot] = out["amplitude"][pix, vslot]
     f_lalp = np.where(ss, np.log(out["alpha"])[:, None], np.nan)
     background = out["background"]
-    phi = slot_atoms(irf, t, fam, np.where(active, f_delay, 0.0), np.where(ss, f_lalp, 0.0))
-    resid = sw * (y - np.einsum("pk,pkl->pl", f_amp, phi) - background[:, None])
+    # the engine's weighted residual where it kept its fit; elsewhere the fit is its start, no
+    # atom's light and no offset (amplitudes and offset 0): the weighted data
+    resid = np.where(info["refined"][:, None], info["residual"], yw)
     return SlotFit(delay=f_delay, lalp=f_lalp, amp=f_amp, background=background,
                    cost=np.einsum("pl,pl->p", resid, resid), resid=resid, iterations=info["iterations"],
                    converged=info["converged"])
