@@ -27,7 +27,7 @@ from .jit import erfcx, njit
 from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
 
 __all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
-           "uniform_step", "row_dot", "fisher_gram", "instrument", "GAUSSIAN_PSF"]
+           "uniform_step", "row_dot", "fisher_gram", "instrument", "GAUSSIAN_PSF", "atom_rows", "atom_scratch"]
 
 #: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
 #: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
@@ -296,6 +296,29 @@ def table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, s_buf, r
 
 
 @njit
+def atom_scratch(inst):
+    """The scratch of :func:`atom_rows` for the instrument ``inst`` (:func:`instrument`): the table
+    sss recursion's two (nodes + 1,) buffers and its (5,) moments."""
+    return np.empty(inst[8] + 1), np.empty(inst[8] + 1), np.empty(5)
+
+
+@njit
+def atom_rows(t, m, K, slot, sss, d, s, a, inst, sw, has_sw, jac, increasing, step_t, scratch):
+    """Slot ``slot``'s atom, and with ``jac`` its derivative rows, into ``m`` on its support, for
+    either instrument (:func:`instrument`): the Gaussian PSF's kernel of width ``s``
+    (:func:`kernel_rows` on :func:`support_window`) or a response's table atom, whose ``s`` is not
+    read (:func:`table_rows` on :func:`table_window`); ``scratch`` of :func:`atom_scratch`.
+    -> the support [j0, j1)."""
+    if inst[0].size > 0:
+        j0, j1 = table_window(t, d, sss, inst, increasing)
+        table_rows(t, m, K, slot, sss, d, a, inst, sw, has_sw, jac, j0, j1, scratch[0], scratch[1], scratch[2])
+    else:
+        j0, j1 = support_window(t, d, s, sss, increasing)
+        kernel_rows(t, m, K, slot, sss, d, s, a, sw, has_sw, jac, j0, j1, step_t)
+    return j0, j1
+
+
+@njit
 def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, assign, dslot, shared, increasing, jac,
                                c_out, rss_out, a_out, g_out, r_out, r_row, inst):
     """Amplitudes, RSS and (``jac``) the LM normal equations of n pixels at ``theta``.
@@ -352,9 +375,7 @@ def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, as
     dummy = np.empty(0)
     step_t = uniform_step(t, increasing)
     table = inst[0].size > 0
-    s_buf = np.empty(inst[8] + 1)
-    r_buf = np.empty(inst[8] + 1)
-    E = np.empty(5)
+    scratch = atom_scratch(inst)
     for p in range(n):
         yp = rows[p]
         swp = sw[yp] if has_sw else dummy
@@ -371,13 +392,8 @@ def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, as
                 continue
             d = theta[p, slot]
             sss = slot == SSS_SLOT
-            if table:
-                j0, j1 = table_window(t, d, sss, inst, increasing)
-                table_rows(t, m, K, slot, sss, d, a_p, inst, swp, has_sw, jac, j0, j1, s_buf, r_buf, E)
-            else:
-                s = math.exp(theta[p, K] if shared else theta[p, K + slot])
-                j0, j1 = support_window(t, d, s, sss, increasing)
-                kernel_rows(t, m, K, slot, sss, d, s, a_p, swp, has_sw, jac, j0, j1, step_t)
+            s = 1.0 if table else math.exp(theta[p, K] if shared else theta[p, K + slot])
+            j0, j1 = atom_rows(t, m, K, slot, sss, d, s, a_p, inst, swp, has_sw, jac, increasing, step_t, scratch)
             rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
             for row in rows_here:
                 lo[row] = j0
@@ -549,14 +565,11 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
     n, L = y.shape
     K = present.shape[1]
     has_sw = sw.shape[0] == n
-    m = np.zeros((3 * K + 2, L))
+    m = np.zeros((K, L))
     r = np.empty(L)
     dummy = np.empty(0)
     step_t = uniform_step(t, increasing)
-    table = inst[0].size > 0
-    s_buf = np.empty(inst[8] + 1)
-    r_buf = np.empty(inst[8] + 1)
-    E = np.empty(5)
+    scratch = atom_scratch(inst)
     for p in range(n):
         swp = sw[p] if has_sw else dummy
         for i in range(L):
@@ -566,13 +579,8 @@ def given_rss(t, y, delay, sigma, alpha, present, amplitude, offset, sw, increas
                 continue
             d = delay[p, slot]
             sss = slot == SSS_SLOT
-            if table:
-                j0, j1 = table_window(t, d, sss, inst, increasing)
-                table_rows(t, m, K, slot, sss, d, alpha[p], inst, swp, has_sw, False, j0, j1, s_buf, r_buf, E)
-            else:
-                s = sigma[p, slot]
-                j0, j1 = support_window(t, d, s, sss, increasing)
-                kernel_rows(t, m, K, slot, sss, d, s, alpha[p], swp, has_sw, False, j0, j1, step_t)
+            j0, j1 = atom_rows(t, m, K, slot, sss, d, sigma[p, slot], alpha[p], inst, swp, has_sw, False, increasing,
+                               step_t, scratch)
             c = amplitude[p, slot]
             for i in range(j0, j1):
                 r[i] -= c * m[slot, i]

@@ -5,7 +5,7 @@ sss decay rate) and solves its amplitudes (and an offset where one is fitted) by
 least squares, without a sign constraint, returning the weighted residual sum of squares: the
 screen of :func:`decomposition.image.spatial.neighbour_starts` that decides which starts are
 worth a refit.  The atoms are the point-sampled unit-peak Gaussian and the sss kernel on their
-supports, or a measured response's table atoms, as the compiled refine evaluates them (:func:`decomposition.kernels.projected.kernel_rows`;
+supports, or a measured response's table atoms, as the compiled refine evaluates them (:func:`decomposition.kernels.projected.atom_rows`;
 those of :func:`decomposition.model.varpro.design_rows`, to rounding); a tiny ridge keeps collinear atoms solvable, as the refinement's does, and the
 normal equations are solved by a Cholesky factor.
 """
@@ -17,7 +17,7 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from .jit import njit
-from .projected import kernel_rows, row_dot, support_window, table_rows, table_window, uniform_step
+from .projected import atom_rows, atom_scratch, row_dot, uniform_step
 
 __all__ = ["screened_rss"]
 
@@ -90,10 +90,7 @@ def screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present
     lo[K + 1], hi[K + 1] = 0, L
     last_row = -1
     last_bg = 0.0
-    table = inst[0].size > 0
-    s_buf = np.empty(inst[8] + 1)
-    r_buf = np.empty(inst[8] + 1)
-    E = np.empty(5)
+    scratch = atom_scratch(inst)
     for p in range(n):
         row = rows[p]
         if row != last_row or held_bg[p] != last_bg:
@@ -107,12 +104,8 @@ def screened_rss(values, weights, rows, held_bg, t, delay, sigma, alpha, present
             if not present[p, k]:
                 continue
             sss = k == SSS_SLOT
-            if table:
-                j0, j1 = table_window(t, delay[p, k], sss, inst, increasing)
-                table_rows(t, m, K, k, sss, delay[p, k], alpha[p], inst, sw, True, False, j0, j1, s_buf, r_buf, E)
-            else:
-                j0, j1 = support_window(t, delay[p, k], sigma[p, k], sss, increasing)
-                kernel_rows(t, m, K, k, sss, delay[p, k], sigma[p, k], alpha[p], sw, True, False, j0, j1, step_t)
+            j0, j1 = atom_rows(t, m, K, k, sss, delay[p, k], sigma[p, k], alpha[p], inst, sw, True, False, increasing,
+                               step_t, scratch)
             lo[k], hi[k] = j0, j1
             use[c] = k
             c += 1
