@@ -381,7 +381,8 @@ def refine(profiles, params, *, time_bin_ps: float = 2.0, t0_ps: float | None = 
     held = np.where(fit_bg, 0.0, b_in)
     y = y - held[:, None] * (np.ones_like(y) if sw is None else (sw > 0))
     k = 2 + slots["n_ir"]
-    lay = Layout(k, shared_sigma)
+    # a response's atoms have no width: its layout carries none (shared_sigma has nothing to share)
+    lay = Layout(k, shared_sigma and irf is None, widths=irf is None)
     span = n_bins * float(time_bin_ps)
     lo, hi = lay.bounds((t[0] - span, t[-1] + span), (np.log(s_lo), np.log(s_hi)), (np.log(a_lo), np.log(a_hi)))
     held = None

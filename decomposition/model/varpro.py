@@ -580,8 +580,9 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     (P of ``lay``): parameters kept at their input value, outside the bounds too (no
     derivative column, no step); the amplitudes are still solved.  ``table``: a response's
     table (:class:`decomposition.kernels.response.ResponseTable`) whose atoms replace the
-    Gaussian PSF's (point-sampled only: ``tb`` None); the widths are then not parameters
-    (held, whatever ``held`` says).  ``ftol`` a scalar or (n,) per pixel.  ``positive``: a step
+    Gaussian PSF's (point-sampled only: ``tb`` None); the widths are then not parameters: a
+    layout without them (``Layout(widths=False)``, as the callers give it), or held whatever
+    ``held`` says.  ``ftol`` a scalar or (n,) per pixel.  ``positive``: a step
     may not turn a positive amplitude non-positive and a fit with one is not kept (False: plain
     least squares, the amplitudes of any sign).  ``onset_after_earliest``: ``sss_after_direct``
     keeps the onset at or after the earliest shifted component, whichever slot holds it.
