@@ -148,12 +148,13 @@ class GrowContext:
         return refit_slots(y, fam, delay, lalp, self.held[rows], self.fit_bg, p0, **kw)
 
 
-def deviance(ctx: GrowContext, rows, params, background) -> np.ndarray:
+def deviance(ctx: GrowContext, rows, params, background, sigma=None) -> np.ndarray:
     """(m,) the deviance of the pixels ``rows`` under ``params`` plus ``background``, in chi2
     units: the Poisson deviance over the dispersion squared for counts
     (:func:`decomposition.noise.count_deviance`), the residual sum of squares over the
-    significance noise squared otherwise; over the fitted samples."""
-    return _model_deviance(ctx, rows, ctx.model(params, background))
+    significance noise squared otherwise (``sigma`` (P,): another noise); over the fitted
+    samples."""
+    return _model_deviance(ctx, rows, ctx.model(params, background), sigma)
 
 
 def _model_deviance(ctx: GrowContext, rows, mu, sigma=None) -> np.ndarray:
@@ -535,10 +536,10 @@ def _prune_close(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     trial = ctx.refit(rows, f, sub.delay, sub.lalp, sub.params, sub.background)
     log_n, weight = log_samples(ctx.fit[rows].sum(axis=1)), ctx.opts.search_penalty
     # the data term in the solver's noise, as the Gaussian path's backward step reads it
-    d_cur = _model_deviance(ctx, rows, ctx.model(sub.params, sub.background), ctx.noise)
-    d_new = _model_deviance(ctx, rows, ctx.model(trial.params, trial.background), ctx.noise)
-    j_cur = penalised(d_cur, free_parameters(sub.fam, "fixed"), log_n, weight)
-    j_new = penalised(d_new, free_parameters(trial.fam, "fixed"), log_n, weight)
+    j_cur = penalised(deviance(ctx, rows, sub.params, sub.background, ctx.noise), free_parameters(sub.fam, "fixed"),
+                      log_n, weight)
+    j_new = penalised(deviance(ctx, rows, trial.params, trial.background, ctx.noise),
+                      free_parameters(trial.fam, "fixed"), log_n, weight)
     keep_rest = ((trial.fam != FAM_NONE) == (f != FAM_NONE)).all(axis=1)
     # not where the refit slid the direct out to where no sample sees it (:func:`_unseen_direct`)
     take = (j_new <= j_cur) & keep_rest & ~_unseen_direct(ctx, trial, np.arange(rows.size))
