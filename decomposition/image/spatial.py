@@ -411,7 +411,7 @@ def neighbour_prior(delay: np.ndarray, stderr: np.ndarray, shape: tuple, options
         var_m = np.where(wsum > 0, 1.0 / np.where(wsum > 0, wsum, 1.0), np.inf)
         own = delay[have]
         z = (own - m) / np.sqrt(stderr[have] ** 2 + var_m + tau2)
-        b = np.where(np.isfinite(z) & (np.abs(z) < c_edge), (1 - (z / c_edge) ** 2) ** 2, 0.0)
+        b = _tukey(z, c_edge)
         prec = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     mean[have] = m
     precision[have] = prec
@@ -427,13 +427,24 @@ def _neighbourhood(values: np.ndarray, stderr: np.ndarray, shape: tuple, radius:
     return nd, ns, np.isfinite(nd) & np.isfinite(ns)
 
 
+def _tukey(z, c):
+    """Tukey's biweight (1 - (z / c)^2)^2 of standardised deviations ``z``: 0 at and beyond ``c``
+    and where ``z`` is not finite."""
+    return np.where(np.isfinite(z) & (np.abs(z) < c), (1 - (z / c) ** 2) ** 2, 0.0)
+
+
+def _mills(c):
+    """The inverse Mills ratio phi(c) / Phi(c), in a form stable far into either tail."""
+    return np.exp(-0.5 * c * c - 0.5 * np.log(2 * np.pi) - log_ndtr(c))
+
+
 def _biweight_mean(nd, ns, ok, tau2, c_edge):
     """Tukey biweight mean of neighbours ``nd`` (n_off, n) around their median, each weighed by
     1 / (its stderr ``ns``^2 + ``tau2``) -> (mean (n,), weights (n_off, n), variances (n_off, n))."""
     median = np.nanmedian(nd, axis=0)
     var = np.where(ok, ns ** 2 + tau2, np.inf)
     u = (nd - median) / np.sqrt(var)
-    w = np.where(ok & (np.abs(u) < c_edge), (1 - (u / c_edge) ** 2) ** 2 / var, 0.0)
+    w = np.where(ok, _tukey(u, c_edge) / var, 0.0)
     wsum = w.sum(axis=0)
     m = np.where(wsum > 0, (w * np.nan_to_num(nd)).sum(axis=0) / np.where(wsum > 0, wsum, 1.0), np.nan)
     return m, w, var
@@ -544,7 +555,7 @@ def censored_location(values: np.ndarray, stderr: np.ndarray, censored: np.ndarr
         def score(mu, use):
             z = np.where(use, (v - mu) / var_f, 0.0).sum(axis=0)
             c = (bound - mu) / s_c
-            mills = np.exp(-0.5 * c * c - 0.5 * np.log(2 * np.pi) - log_ndtr(c))
+            mills = _mills(c)
             return z - cens.sum(axis=0) * mills / s_c
 
         def solve(use):
@@ -562,7 +573,7 @@ def censored_location(values: np.ndarray, stderr: np.ndarray, censored: np.ndarr
         mu = solve(use)
         # Fisher information: the free samples' 1 / var plus each stopped one's
         c = (bound - mu) / s_c
-        mills = np.exp(-0.5 * c * c - 0.5 * np.log(2 * np.pi) - log_ndtr(c))
+        mills = _mills(c)
         info = np.where(use, 1.0 / var_f, 0.0).sum(axis=0) + cens.sum(axis=0) * mills * (mills + c) / var_c
         var = np.where(info > 0, 1.0 / np.where(info > 0, info, 1.0), np.inf)
     none = ~(use | cens).any(axis=0)
@@ -621,7 +632,7 @@ def onset_prior(onset: np.ndarray, stderr: np.ndarray, shape: tuple, options: Sp
         own, own_se = onset[have], stderr[have]
         z = np.where(own <= ONSET_BOUND_PS, np.maximum(m, 0.0) / np.sqrt(se_free ** 2 + var_m + tau2),
                      (own - m) / np.sqrt(own_se ** 2 + var_m + tau2))
-        b = np.where(np.isfinite(z) & (np.abs(z) < options.edge_sigma), (1 - (z / options.edge_sigma) ** 2) ** 2, 0.0)
+        b = _tukey(z, options.edge_sigma)
         mean[have] = m
         precision[have] = np.where(np.isfinite(m), b / (tau2 + var_m), 0.0)
     return mean, precision
