@@ -234,9 +234,7 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
     Y, X, L = cube.shape
     hold, kw = held_response(L, time_bin_ps, dict(hold or {}), dict(keywords))
     irf = kw.pop("irf", None)
-    if irf is not None:
-        if method != "convscd":
-            raise OptionError(f"spatial: a measured response (irf=) works with method 'convscd', not {method!r}")
+    if irf is not None:         # (``result``'s call refused it with another method than convscd)
         irf = resolve_response(irf, time_bin_ps, L)
     t0 = kw.pop("t0_ps", _decompose_default("t0_ps"))
     fams = parse_components(kw.pop("components", _decompose_default("components")))
