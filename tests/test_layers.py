@@ -71,7 +71,7 @@ DECOMPOSITION = {
     "model": {"constants", "masks", "kernels"},
     "methods": _SHARED | {"kernels", "model"},
     "stages": _SHARED | {"kernels", "noise", "model", "methods"},
-    "response": _SHARED | {"kernels", "noise", "model", "stages"},
+    "response": _SHARED | {"kernels", "noise", "model", "methods", "stages"},
     "api": _SHARED | {"model", "methods", "stages", "response"},
     "__init__": {"flags", "api", "image"},
     "warmup": {"api", "kernels"},

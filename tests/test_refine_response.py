@@ -247,3 +247,18 @@ def test_a_layout_without_widths_takes_the_same_fit(irf):
                      1e-3)
     with pytest.raises(ValueError, match="shared"):
         Layout(3, shared_sigma=True, widths=False)
+
+
+def test_a_count_fit_step_singular_to_rounding_is_refused_not_raised():
+    """A damped system singular to rounding (a degenerate pair of columns under a damping
+    shrunk below their rounding) gives a NaN step, which the count fit refuses like any
+    non-finite step; the other systems of the batch are solved exactly."""
+    from decomposition.response.refine import _solve_rows
+
+    lhs = np.array([[[2.0, 0.0], [0.0, 4.0]], [[1.0, 1.0], [1.0, 1.0]], [[3.0, 1.0], [1.0, 2.0]]])
+    rhs = np.array([[2.0, 4.0], [1.0, 1.0], [5.0, 5.0]])
+    out = _solve_rows(lhs, rhs)
+    np.testing.assert_allclose(out[0], [1.0, 1.0])
+    assert np.all(np.isnan(out[1]))
+    np.testing.assert_allclose(out[2], [1.0, 2.0])
+    np.testing.assert_allclose(_solve_rows(lhs[[0, 2]], rhs[[0, 2]]), out[[0, 2]])

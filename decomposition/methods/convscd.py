@@ -228,7 +228,8 @@ def solve_block(p, mask: SampleMask, s_eff, dic: Dictionary, *, max_components=4
             min_s[~np.isfinite(min_s)] = -np.inf
         cand = {k: np.zeros(idx.size, v.dtype) for k, v in st.items()}
         dec = np.zeros(idx.size)
-        own = (n_act > 0) if tie_sigma else np.zeros(idx.size, bool)
+        # a measured response has one width: its coarse dictionary is every pixel's own
+        own = (n_act > 0) if tie_sigma and dic.response is None else np.zeros(idx.size, bool)
         for grp, scorer in ((~own, "coarse"), (own, "pixel")):
             gsel = np.nonzero(grp & (allow_g | allow_s))[0]
             if gsel.size == 0:
@@ -260,7 +261,7 @@ def solve_block(p, mask: SampleMask, s_eff, dic: Dictionary, *, max_components=4
         obj[gi] = obj[gi] - bdec[go]
         sub = take(st, gi)
         sub, o, nl, m_sub = refine_atoms(t, p[gi], mask[gi], sub, mu[gi], eps[gi], bounds, n_lm, obj[gi].copy(),
-                                         tie_sigma, sss_after_direct, lm_tol, return_model=True)
+                                         tie_sigma, sss_after_direct, lm_tol, return_model=True, response=dic.response)
         exact = o       # F evaluated exactly after refinement (not the FFT pick's estimate)
         drop_zero(sub)
         put(st, gi, sub)
@@ -372,7 +373,7 @@ def _backward_direct(p, mask, s_eff, dic, st, info, opts):
     bounds = parameter_bounds(dic, opts.get("bound_factor", 4.0))
     alt, o, nl, m = refine_atoms(t, p[cand], mask[cand], alt, mu, eps, bounds, 2 * opts.get("n_lm", 4), None,
                                  opts.get("tie_sigma", True), opts.get("sss_after_direct", True),
-                                 opts.get("lm_tol", 1e-2), return_model=True)
+                                 opts.get("lm_tol", 1e-2), return_model=True, response=dic.response)
     drop_zero(alt)
     hist = info["objective"]
     last = hist.shape[1] - 1 - np.argmax(np.isfinite(hist[cand])[:, ::-1], axis=1)

@@ -19,6 +19,7 @@ from ..kernels.atomlm import atom_profiles, lm_refine, state_models
 from ..constants import FAM_NONE, NEAR_SIGMA
 from ..masks import SampleMask
 from ..kernels.onsets import onset_links
+from .slotfit import refine_penalised
 
 __all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective",
            "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
@@ -75,7 +76,7 @@ def linked_onsets(st, near_sigma=None):
 
 
 def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_sigma=False, sss_after_direct=False,
-                 tol=None, return_model=False, weights=None):
+                 tol=None, return_model=False, weights=None, response=None):
     """Levenberg-Marquardt on all active slots of the pixels in ``st``; monotone in F.
 
     ``obj`` is F at the current state (P,), the level a step must beat (None: computed
@@ -87,8 +88,14 @@ def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_s
     data converge fully), or when its damping has grown past 1e8.  With ``tie_sigma`` pixels
     whose atoms already share one sigma keep sharing it; with ``sss_after_direct`` a near sss
     onset moves with the direct and its gap stays >= 0.  ``weights`` (P, L): least-squares
-    weights of the samples (relative inverse variances; default 1).
+    weights of the samples (relative inverse variances; default 1).  With a measured
+    ``response`` (an :class:`~core.irf.InstrumentResponse`) the atoms are its own and the loop is
+    :func:`decomposition.model.slotfit.refine_penalised` (no width to fit or tie).
     """
+    if response is not None:
+        out, o, it, model = refine_penalised(response, t, p, mask, st, mu, eps, bounds, n_iter, obj,
+                                             sss_after_direct, 0.0 if tol is None else tol, weights)
+        return (out, o, it, model) if return_model else (out, o, it)
     out, o, iters, model = lm_refine(*axis_of(t), p, mask, st, mu, eps, bounds, n_iter, obj, tie_sigma=tie_sigma,
                                      sss_after_direct=sss_after_direct, tol=0.0 if tol is None else tol,
                                      weights=weights)

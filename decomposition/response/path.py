@@ -8,7 +8,7 @@ response's own; the stages between ``detect`` and ``label`` (the search, grow, p
 steps of the Gaussian dictionary) and ``rescue`` do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
-* :func:`detect`: greedy sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
+* :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
 * :func:`label`: threshold, merge, physics labels (:mod:`decomposition.response.label`);
 * :func:`refit`: every pixel's delays and sss alpha by variable projection, amplitudes by linear
   least squares (:mod:`decomposition.response.refine`), with the order kept (no
@@ -45,7 +45,8 @@ from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
-from .detect import RESPONSE_PHASES, detect_response, response_dictionary
+from ..methods.dictionary import coarse_values
+from .detect import detect_response, response_dictionary
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
@@ -74,12 +75,12 @@ class ResponseFit:
     irf: object                 # the resolved InstrumentResponse, on the samples' step
     t: np.ndarray               # (L,) sample times, ps
     sigma_eq_ps: float          # the response's Gaussian-equivalent width
-    alphas_per_ps: np.ndarray   # the dictionary's sss decay rates
+    alphas_per_ps: np.ndarray   # the dictionary's sss decay rates (the grid's coarse alphas)
     bounds: dict                # {"delay_ps", "lalp"}: the refinement's bounds
     refine_kw: dict             # keywords of refit_slots for all n pixels
     b_est: np.ndarray           # (n,) the offset's first estimate (0 without the b family)
     with_bg: bool
-    dic: object = None          # response.detect.ResponseDictionary
+    dic: object = None          # methods.dictionary.Dictionary over the response
     det: object = None          # response.detect's detection
     params: dict | None = None  # the labels (n-shaped)
     trunc: np.ndarray | None = None
@@ -110,11 +111,11 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     if hold:
         refine_kw["hold"] = {k: np.asarray(v, np.float64)[live] for k, v in hold.items()}
     with_bg = samples.background is not None
-    rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, alphas_per_ps=np.geomspace(a_lo, a_hi, grid.coarse_alpha),
+    rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, alphas_per_ps=coarse_values(a_lo, a_hi, grid.coarse_alpha),
                      bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
                      b_est=samples.background[live] if with_bg else np.zeros(live.size))
-    rf.dic = response_dictionary(irf, samples, rf.alphas_per_ps, components)
-    rf.det = detect_response(samples, irf, rf.dic, opts, components, bounds)
+    rf.dic = response_dictionary(irf, samples, grid, components)
+    rf.det = detect_response(samples, rf.dic, opts, components)
     return rf
 
 
@@ -207,7 +208,8 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
         # the held values themselves (the refinement holds log alpha: exp(log(alpha)) may differ
         # from alpha in its last bit)
         out = hold_params(out, hold, (P,))
-    info = {"response_phases": RESPONSE_PHASES, "response_sss_start": det.sss_start, "n_atoms": int(rf.dic.n_atoms),
+    info = {"n_atoms": int(rf.dic.fam.size), "coordinates_searched": int(rf.dic.n_coordinates),
+            "restarted": det.restarted,
             "response_alphas_per_ps": [float(a) for a in rf.alphas_per_ps] if "s" in components else [],
             **rf.grow_info,
             "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),

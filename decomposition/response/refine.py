@@ -3,11 +3,8 @@
 For a pixel with K slots (:mod:`decomposition.model.atoms`) the model is
 m = sum_k a_k phi_k(theta), with theta the slots' delays and the sss slot's log alpha.  Gaussian
 data are fitted by the refinement the Gaussian PSF's atoms take
-(:func:`decomposition.model.varpro.refine_block`, its compiled evaluation rendering the
-response's table atoms): variable projection, the amplitudes -- and with ``fit_background``
-a constant offset -- solved exactly for every theta, theta moved by Levenberg-Marquardt on
-the projected residual.  The slots are laid out as that engine's for the fit and back
-(:func:`_fit_least_squares`).  Count data (:class:`CountData`) are fitted instead to their
+(:func:`decomposition.model.slotfit.least_squares`: variable projection over the response's
+table atoms).  Count data (:class:`CountData`) are fitted instead to their
 Poisson deviance by Fisher scoring over the delays, log alphas and amplitudes together
 (:func:`_fit_counts`), no step turning a positive amplitude non-positive.  Constraints by
 projection after each step: delays within ``delay_bounds_ps``, log alpha within
@@ -16,7 +13,6 @@ projection after each step: delays within ``delay_bounds_ps``, log alpha within
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -24,8 +20,7 @@ import numpy as np
 from core.irf import InstrumentResponse
 from core.model import BACKGROUND_KEY
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLOT
-from ..kernels.response import response_table
-from ..model.varpro import Layout, refine_block
+from ..model.slotfit import LAMBDA0, SlotFit, least_squares, project_slots, start_slots
 from ..noise import count_deviance, poisson_weights
 from ..model.atoms import params_profile, slot_atoms
 from ..model.components import merge_gaussians
@@ -33,28 +28,10 @@ from .label import slots_to_params
 
 #: ridge of the amplitudes' normal matrix (:func:`solve_amplitudes`), relative to its largest diagonal
 RIDGE = 1e-12
-#: Marquardt's starting damping, and the damping beyond which a pixel's count fit stops
-LAMBDA0 = 1e-3
+#: the damping beyond which a pixel's count fit stops
 LAMBDA_MAX = 1e10
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]
-
-@dataclass(frozen=True)
-class SlotFit:
-    """Result of :func:`fit_slots` for P pixels of K slots: ``delay``, ``lalp``, ``amp``
-    (P, K); ``background`` (P,) the fitted constant offset (units of ``y``; 0 where it is not
-    fitted); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
-    residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
-
-    delay: np.ndarray
-    lalp: np.ndarray
-    amp: np.ndarray
-    background: np.ndarray
-    cost: np.ndarray
-    resid: np.ndarray
-    iterations: np.ndarray
-    converged: np.ndarray
-
 
 def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.ndarray):
     """Weighted least-squares amplitudes of the columns ``phi``.
@@ -88,21 +65,6 @@ def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.
     amp = np.where(active & np.isfinite(amp), amp, 0.0)
     resid = yw - np.matmul(amp[:, None, :], pw)[:, 0]
     return amp, resid, np.einsum("pl,pl->p", resid, resid), pw, minv
-
-
-def _project(fam, delay, lalp, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct):
-    delay = np.clip(delay, *delay_bounds_ps)
-    lalp = np.clip(lalp, *lalp_bounds)
-    sh = fam == FAM_GAUSS
-    if first_is_direct:
-        d0 = np.where(sh[:, :1], delay[:, :1], -np.inf)
-        rest = sh.copy()
-        rest[:, 0] = False
-        delay = np.where(rest, np.maximum(delay, d0), delay)
-    if sss_after_direct:
-        first = np.where(sh, delay, np.inf).min(axis=1, keepdims=True)
-        delay = np.where((fam == FAM_SSS) & np.isfinite(first), np.maximum(delay, first), delay)
-    return delay, lalp
 
 
 def _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg=None):
@@ -184,80 +146,19 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     -------
     SlotFit
     """
+    if counts is None:
+        return least_squares(irf, t_ps, y, sw, fam, delay, lalp, n_iter=n_iter, lm_tol=lm_tol,
+                             delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds,
+                             sss_after_direct=sss_after_direct, first_is_direct=first_is_direct,
+                             fit_background=fit_background, held_delay=held_delay, held_lalp=held_lalp)
     t = np.asarray(t_ps, np.float64)
     fam = np.asarray(fam)
-    P, K = fam.shape
-    d_in, l_in = np.where(fam != FAM_NONE, delay, 0.0), np.where(fam == FAM_SSS, lalp, 0.0)
-    delay, lalp = _project(fam, d_in, l_in, delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
-    held = None
-    if held_delay is not None or held_lalp is not None:
-        h_d = np.zeros((P, K), bool) if held_delay is None else np.asarray(held_delay, bool) & (fam != FAM_NONE)
-        h_l = np.zeros((P, K), bool) if held_lalp is None else np.asarray(held_lalp, bool) & (fam == FAM_SSS)
-        delay, lalp = np.where(h_d, d_in, delay), np.where(h_l, l_in, lalp)
-        held = (h_d, h_l)
-    fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), (P,))
-    if counts is not None:
-        cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
-        return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
-                           bounds=(delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct), held=held)
-    return _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, n_iter=n_iter, lm_tol=lm_tol,
-                              delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds,
-                              sss_after_direct=sss_after_direct, first_is_direct=first_is_direct)
-
-
-def _fit_least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter, lm_tol, delay_bounds_ps,
-                       lalp_bounds, sss_after_direct, first_is_direct) -> SlotFit:
-    """:func:`fit_slots` for Gaussian data: the refinement's variable projection
-    (:func:`decomposition.model.varpro.refine_block` over the response's table atoms), its slots
-    laid out as that engine's (slot 0 the pixel's first shifted atom, 1 its sss, 2.. the other
-    shifted atoms in their order) and back; plain least squares (amplitudes of any sign), the
-    inter-reflections kept after the first shifted atom (``first_is_direct``), the onset at or
-    after the earliest shifted atom (``sss_after_direct``); a pixel stops when a kept step gains
-    less than ``lm_tol`` x its residual sum of squares per fitted sample."""
-    P, K = fam.shape
-    sh, ss = fam == FAM_GAUSS, fam == FAM_SSS
-    if (ss.sum(axis=1) > 1).any():
-        raise ValueError("a pixel's slots hold at most one sss atom")
-    rank = np.cumsum(sh, axis=1) - 1
-    pos = np.where(sh, np.where(rank == 0, 0, rank + 1), np.where(ss, SSS_SLOT, -1))       # (P, K)
-    kv = max(2, 1 + int(sh.sum(axis=1).max(initial=0)))
-    pix, slot = np.nonzero(pos >= 0)
-    vslot = pos[pix, slot]
-    present = np.zeros((P, kv), bool)
-    present[pix, vslot] = True
-    v_delay = np.zeros((P, kv))
-    v_delay[pix, vslot] = delay[pix, slot]
-    sss_lalp = np.where(ss, lalp, 0.0).sum(axis=1)
-    slots = {"delay": v_delay, "sigma": np.ones((P, kv)), "amplitude": np.zeros((P, kv)), "present": present,
-             "alpha": np.where(ss.any(axis=1), np.exp(sss_lalp), np.nan)}
-    if fit_bg is not None and fit_bg.any():
-        slots["fit_background"], slots["background"] = fit_bg, np.zeros(P)
-    lay = Layout(kv, widths=False)
-    lo, hi = lay.bounds(delay_bounds_ps, (0.0, 0.0), lalp_bounds)
-    v_held = None
-    if held is not None:
-        d_held = np.zeros((P, kv), bool)
-        d_held[pix, vslot] = held[0][pix, slot]
-        v_held = lay.held(d_held, np.ones(P, bool), (held[1] & ss).any(axis=1))
-    n_used = np.maximum((sw > 0).sum(axis=1), 1)
-    yw = y * sw
-    with np.errstate(under="ignore"):
-        out, info = refine_block(t, yw, slots, lay, (lo, hi), None, int(n_iter), lm_tol / n_used, LAMBDA0, sw=sw,
-                                 sss_after_direct=sss_after_direct, keep_order=first_is_direct, held=v_held,
-                                 table=response_table(irf), positive=False, onset_after_earliest=True,
-                                 residual=True)
-    f_delay = np.full((P, K), np.nan)
-    f_delay[pix, slot] = out["delay"][pix, vslot]
-    f_amp = np.zeros((P, K))
-    f_amp[pix, slot] = out["amplitude"][pix, vslot]
-    f_lalp = np.where(ss, np.log(out["alpha"])[:, None], np.nan)
-    background = out["background"]
-    # the engine's weighted residual where it kept its fit; elsewhere the fit is its start, no
-    # atom's light and no offset (amplitudes and offset 0): the weighted data
-    resid = np.where(info["refined"][:, None], info["residual"], yw)
-    return SlotFit(delay=f_delay, lalp=f_lalp, amp=f_amp, background=background,
-                   cost=np.einsum("pl,pl->p", resid, resid), resid=resid, iterations=info["iterations"],
-                   converged=info["converged"])
+    bounds = (delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+    delay, lalp, held = start_slots(fam, delay, lalp, *bounds, held_delay, held_lalp)
+    fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), fam.shape[:1])
+    cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
+    return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol, bounds=bounds,
+                       held=held)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
@@ -326,13 +227,13 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         dg = np.maximum(dg, 1e-12 * dg.max(axis=1, keepdims=True)) + 1e-300
         lhs = jtj + (lam[idx][:, None] * np.where(fr, dg, 1.0))[:, :, None] * np.eye(n_par)[None]
         lhs += np.eye(n_par)[None] * (~fr)[:, :, None]
-        step = np.where(fr, np.linalg.solve(lhs, np.where(fr, jtr, 0.0)[..., None])[..., 0], 0.0)
+        step = np.where(fr, _solve_rows(lhs, np.where(fr, jtr, 0.0)), 0.0)
         # a step that is not finite (an atom whose column vanished and whose amplitude grew
         # without bound) is refused like one that raises the deviance
         finite = np.isfinite(step).all(axis=1)
         step = np.where(finite[:, None], step, 0.0)
         f = fam[idx]
-        nd, nl = _project(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
+        nd, nl = project_slots(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
                           delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
         if held is not None:
             nd = np.where(h_d[idx], state["delay"][idx], nd)
@@ -367,6 +268,22 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
                    amp=np.where(active, state["amp"][:, :K], 0.0),
                    background=state["amp"][:, K] if Kc > K else np.zeros(P),
                    cost=state["cost"], resid=resid, iterations=iters, converged=conv)
+
+
+def _solve_rows(lhs: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """(P, n) the solutions of the P damped systems; NaN for a system singular to rounding
+    (its damping shrunk below the rounding of a degenerate pair of columns), which the caller
+    refuses as a step, raising that pixel's damping."""
+    try:
+        return np.linalg.solve(lhs, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        out = np.full(rhs.shape, np.nan)
+        for i in range(lhs.shape[0]):      # rare: only the batch that held a singular system
+            try:
+                out[i] = np.linalg.solve(lhs[i], rhs[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
 
 
 class Slots(NamedTuple):

@@ -30,7 +30,7 @@ from .prepare import Samples
 from ..model.slots import new_state, put
 from ..methods.gradbm import gradbm
 
-__all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs"]
+__all__ = ["Detection", "detect_components", "detect_gradbm", "solver_inputs", "solver_options"]
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,8 @@ def solver_inputs(samples: Samples, rows: np.ndarray):
     return p, samples.mask[rows]
 
 
-def _solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -> dict:
+def solver_options(opts: SolverOptions, components, workspace: PickWorkspace) -> dict:
+    """The keywords of :func:`decomposition.methods.convscd.solve_block` for these options and families."""
     max_gauss = (opts.max_components if "r" in components else 1) if "d" in components else 0
     return dict(workspace=workspace, max_components=opts.max_components, max_gauss=max_gauss,
                 allow_sss="s" in components, sparsity=opts.sparsity, eps_rel=opts.eps_rel,
@@ -123,7 +124,7 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     P = samples.values.shape[0]
     live = samples.live
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
-    solve_opts = _solver_options(opts, components, PickWorkspace())   # one scratch space for all blocks
+    solve_opts = solver_options(opts, components, PickWorkspace())   # one scratch space for all blocks
     noise_eff = samples.noise_eff.copy()
     hist = np.full((P, opts.max_iter + 1), np.nan)
     n_iter = np.zeros(P, np.int64)
