@@ -115,33 +115,19 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
               delay_bounds_ps: tuple, lalp_bounds: tuple, sss_after_direct: bool = True,
               first_is_direct: bool = False, fit_background=None, counts: CountData | None = None,
               held_delay=None, held_lalp=None) -> SlotFit:
-    """Refine the delays (and sss log alpha) of every active slot of a block of pixels.
+    """Refine the delays (and sss log alpha) of every active slot of a block of pixels: Gaussian
+    data by :func:`decomposition.model.slotfit.least_squares` (its parameters are these), count
+    data by their Poisson deviance.
 
     Parameters
     ----------
-    irf : InstrumentResponse          on the axis' step
-    t_ps : ndarray (L,)               time axis, ps
-    y : ndarray (P, L)                profiles (any scale; 0 where the weight is 0)
-    sw : ndarray (P, L)               square-root sample weights
-    fam, delay, lalp : ndarray (P, K) starting slots (delays ps, log alpha of 1/ps)
-    n_iter : int                      Levenberg-Marquardt iterations at most (0: amplitudes only)
-    lm_tol : float
-        A pixel stops when an accepted step gains less than ``lm_tol`` x its residual sum of
-        squares per fitted sample.
-    delay_bounds_ps, lalp_bounds : (float, float)
-    sss_after_direct, first_is_direct : bool
-        Constraints (see the module docstring).
-    fit_background : ndarray (P,) bool, optional
-        Pixels that also fit a constant offset (a column of ones in the amplitudes' solve);
-        elsewhere the model has none.
+    irf, t_ps, y, sw, fam, delay, lalp, n_iter, lm_tol, delay_bounds_ps, lalp_bounds,
+    sss_after_direct, first_is_direct, fit_background, held_delay, held_lalp
+        As :func:`~decomposition.model.slotfit.least_squares`.
     counts : CountData, optional
         Count data: the objective is the Poisson deviance (``cost`` is it, chi2 units), fitted
         by Fisher scoring over delays, log alpha and amplitudes together (:func:`_fit_counts`);
         ``sw`` gives only the first weights, those of the starting amplitudes.
-    held_delay, held_lalp : ndarray (P, K) bool, optional
-        Slots whose delay / log alpha is held at the value given in ``delay`` / ``lalp`` (a
-        shared onset or decay rate): not fitted, and not moved by the constraints.
-
     Returns
     -------
     SlotFit
