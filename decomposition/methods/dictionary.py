@@ -4,8 +4,9 @@ With the Gaussian PSF, k1: unit-peak Gaussians g(t; sigma) over the coarse sigma
 kernels h(t; sigma, alpha) = g * exp(-alpha t) u(t) over the coarse (sigma, alpha) grid, scaled
 to unit peak so that every coefficient is a peak height and one penalty treats both families
 alike.  With a measured response (``response=``), k1 is the response itself and k2 the response
-convolved with exp(-alpha t) u(t) at the coarse alphas: the instrument's one width.  Each atom is used at every integer-bin shift from ``pre`` bins before the window
-start to the window end; column norms are the norms of the atoms truncated to the window.
+convolved with exp(-alpha t) u(t) at the coarse alphas: the instrument's one width.  Each atom
+is used at every integer-bin shift from ``pre`` bins before the window start to the window end;
+column norms are the norms of the atoms truncated to the window.
 Correlations with every atom at every shift are one FFT pass (:meth:`Dictionary.correlate`).
 """
 from __future__ import annotations
@@ -134,6 +135,7 @@ class Dictionary:
         return kernels, spans
 
     def _families(self, fam, sig, alp):
+        """Set ``fam``, ``sigma_ps``, ``alpha_per_ps`` from the atoms' lists (none: an error)."""
         if not fam:
             raise ValueError("no component family selected")
         self.fam = np.array(fam, np.int8)
