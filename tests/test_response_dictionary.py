@@ -70,8 +70,8 @@ def test_convscd_over_the_response_finds_a_direct_and_its_sss(dic):
     y = render_shifted(IRF, AXIS, d_ps) + 0.3 * render_sss(IRF, AXIS, d_ps, np.full(3, 0.03))     # onset at the direct
     noise = 0.005
     y = y / y.max(axis=1, keepdims=True) + noise * rng.standard_normal(y.shape)
-    st, info = cs.solve_multistart(y, SampleMask(np.ones(y.shape, bool), np.zeros(y.shape, bool)), np.full(3, noise), dic, max_components=4,
-                                   max_gauss=1, max_iter=6, n_lm=10)
+    mask = SampleMask(np.ones(y.shape, bool), np.zeros(y.shape, bool))
+    st, info = cs.solve_multistart(y, mask, np.full(3, noise), dic, max_components=4, max_gauss=1, max_iter=6, n_lm=10)
     assert np.all(info["converged"])
     assert np.all((st["fam"] == FAM_GAUSS).sum(axis=1) == 1) and np.all((st["fam"] == FAM_SSS).sum(axis=1) == 1)
     direct = np.where(st["fam"] == FAM_GAUSS, st["delay"], 0.0).sum(axis=1)
