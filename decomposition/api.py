@@ -346,9 +346,13 @@ def _quality(c: _Call) -> None:
 
 
 def _rescue_stage(c: _Call) -> None:
-    if c.convscd:
-        c.fit, c.params, c.flags = _rescue(c.profiles, c.samples, c.fit, c.params, c.flags, c.noise_eff,
-                                           c.flat_noise, c.det.noise_spectrum, c.opts, c.info, c.keywords, c.hold)
+    if c.method != "convscd":
+        return
+    # the second pass runs the whole path again, with the resolved response where there is one
+    keywords = c.keywords if c.response is None else dict(c.keywords, irf=c.response)
+    spectrum = None if c.det is None else c.det.noise_spectrum
+    c.fit, c.params, c.flags = _rescue(c.profiles, c.samples, c.fit, c.params, c.flags, c.noise_eff, c.flat_noise,
+                                       spectrum, c.opts, c.info, keywords, c.hold)
 
 
 def _assemble(c: _Call, params: dict) -> None:
@@ -382,7 +386,7 @@ def _finish(c: _Call) -> None:
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
 #: response (``irf=``) runs prepare, detect, label, refit, forward_steps, offset_test, final_atoms,
-#: quality and finish, its detect, label and refit over the response's atoms
+#: quality, rescue and finish, its detect, label and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),

@@ -2,10 +2,11 @@
 
 :data:`decomposition.api.STAGES` is one list for every instrument.  With a measured response
 (``irf=``) its ``prepare``, ``quality`` and ``finish`` (standard errors included) are the
-Gaussian path's, given the response; ``detect``, ``label`` and ``refit`` run the functions here
-on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms`` are the
-response's own; the stages between ``detect`` and ``label`` (the search, grow, prune and count
-steps of the Gaussian dictionary) and ``rescue`` do not apply.  Each function here reads and
+Gaussian path's, given the response, and so is ``rescue`` (the whole path again, differently
+started); ``detect`` (ConvSCD over the response's dictionary), ``label`` and ``refit`` run the
+functions here on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms``
+are the response's own; the stages between ``detect`` and ``label`` (the search, grow, prune
+and count steps of the Gaussian dictionary) do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);

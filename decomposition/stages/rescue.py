@@ -1,6 +1,6 @@
 """A second, differently started pass for the pixels whose fit still misfits (``rescue``).
 
-A pixel flagged POOR_FIT at the end of the Gaussian path misfits its data by more than
+A pixel flagged POOR_FIT at the end of the path (either instrument) misfits its data by more than
 ``poor_fit`` times its noise: a better split exists, and the path that led here did not find
 it.  So does a pixel whose data term (:func:`data_term`, in the noise the first pass weighed it
 with) lies more than RESCUE_MISFIT_Z standard deviations of a chi-square above its expectation
