@@ -232,13 +232,12 @@ def refine_penalised(irf, t_ps, p, mask: SampleMask, st: dict, mu, eps, bounds: 
     new = dict(st, fam=new_fam, delay=np.where(on, delay, st["delay"]),
                lalp=np.where(on & (new_fam == FAM_SSS), lalp, st["lalp"]), amp=np.where(on, amp, 0.0))
     f_new = 0.5 * cost + _penalty(new, mu, eps)
-    model_in = _render(irf, t_ps, st)
     if obj is None:
-        r_in = sw * (p - model_in)
+        r_in = sw * (p - _render(irf, t_ps, st))
         obj = 0.5 * np.einsum("pl,pl->p", r_in, r_in) + _penalty(st, mu, eps)
     keep = np.isfinite(f_new) & ((f_new < obj) | _onset_first(st, sss_after_direct))
     out = {k: np.where(keep.reshape((-1,) + (1,) * (v.ndim - 1)), new[k], v) for k, v in st.items()}
-    model = np.where(keep[:, None], _render(irf, t_ps, new), model_in)
+    model = _render(irf, t_ps, out)     # one render of the state returned
     return out, np.where(keep, f_new, obj), int(f.iterations.max(initial=0)), model
 
 
