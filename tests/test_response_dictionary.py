@@ -82,3 +82,13 @@ def test_convscd_over_the_response_finds_a_direct_and_its_sss(dic):
     diffs = np.diff(hist, axis=1)
     assert np.all(diffs[np.isfinite(diffs)] <= 1e-12)     # monotone
     assert np.all(st["fam"][st["amp"] <= 0] == FAM_NONE)
+
+
+def test_families_left_out_are_not_built():
+    grid = GridSpec(coarse_alpha=3)
+    only_s = Dictionary(L, T, T0, grid, False, True, response=IRF)
+    assert only_s.fam.tolist() == [FAM_SSS] * 3 and only_s.norm2.shape == (3, only_s.shifts.size)
+    only_d = Dictionary(L, T, T0, grid, True, False, response=IRF)
+    assert only_d.fam.tolist() == [FAM_GAUSS] and np.all(np.isnan(only_d.alpha_per_ps))
+    with pytest.raises(ValueError, match="no component family selected"):
+        Dictionary(L, T, T0, grid, False, False, response=IRF)
