@@ -1,6 +1,6 @@
-"""Forward steps of the response path: the components its pursuit's single noise level misses.
+"""Forward steps of the response path: the components its detection's single noise level misses.
 
-The pursuit (:mod:`decomposition.response.detect`) weighs every sample with one noise; for
+The detection (:mod:`decomposition.response.detect`) weighs every sample with one noise; for
 count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A component
 where the counts are few never pays its penalty there: at ~100 photons per pixel an sss tail,
 and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own Poisson
@@ -10,7 +10,7 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while
    other atoms hold light, is refitted with a direct started at its sss onset and at the peak
    of its data smoothed over the response's width (there also with the sss restarted at the
-   direct with each coarse alpha): at few counts the pursuit's first atom can be a fast sss
+   direct with each coarse alpha): at few counts the detection's first atom can be a fast sss
    whose onset lies before the direct and which takes the direct's light.  The best trial
    that keeps a direct is taken where that direct is significant in it; where the fit without
    it lies within ``ambiguity_sigma`` sqrt(2 n) with a split more than ``ambiguity_split``
@@ -42,7 +42,7 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    direct's flank or on the sss onset that the data do not ask for.
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
-   reflected; one far after it, alpha at its bound, is an echo the pursuit took for an sss --
+   reflected; one far after it, alpha at its bound, is an echo the detection took for an sss --
    about half of the pixels of a 5-sigma echo in white noise) is replaced by a shifted copy at
    its peak where that lowers the penalised deviance, deviance + ``search_penalty`` x ln(n)
    per free parameter (the search stage's objective; the copy has one parameter fewer).
@@ -436,7 +436,7 @@ def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots,
     spent = np.zeros(cand.size, np.int64)
     starts = _direct_starts(ctx, sub, cand)
     # the sss that took the direct's light is fast; from the peak it is also restarted at the
-    # direct with each coarse alpha, as the pursuit's own sss atoms start
+    # direct with each coarse alpha, as the dictionary's own sss atoms are
     trials = [(x, None) for x in starts] + [(starts[-1], a) for a in alphas_per_ps]
     for start, alpha in trials:
         i = np.flatnonzero(np.isfinite(start))
