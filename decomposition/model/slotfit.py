@@ -29,10 +29,11 @@ LAMBDA0 = 1e-3
 
 @dataclass(frozen=True)
 class SlotFit:
-    """Result of :func:`fit_slots` for P pixels of K slots: ``delay``, ``lalp``, ``amp``
-    (P, K); ``background`` (P,) the fitted constant offset (units of ``y``; 0 where it is not
-    fitted); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the weighted
-    residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
+    """Result of :func:`least_squares` (and of the count fit of
+    :func:`decomposition.response.refine.fit_slots`) for P pixels of K slots: ``delay``,
+    ``lalp``, ``amp`` (P, K); ``background`` (P,) the fitted constant offset (units of ``y``; 0
+    where it is not fitted); ``cost`` (P,) weighted residual sum of squares; ``resid`` (P, L) the
+    weighted residual sw * (y - model); ``iterations`` (P,) int; ``converged`` (P,) bool."""
 
     delay: np.ndarray
     lalp: np.ndarray
