@@ -176,8 +176,6 @@ def _least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter, lm_
                    converged=info["converged"])
 
 
-
-
 def refine_penalised(irf, t_ps, p, mask: SampleMask, st: dict, mu, eps, bounds: dict, n_iter: int, obj=None,
                      sss_after_direct: bool = False, tol: float = 0.0, weights=None):
     """ConvSCD's refinement of a slot state (:func:`decomposition.model.slots.refine_atoms`) over
