@@ -92,3 +92,21 @@ def test_families_left_out_are_not_built():
     assert only_d.fam.tolist() == [FAM_GAUSS] and np.all(np.isnan(only_d.alpha_per_ps))
     with pytest.raises(ValueError, match="no component family selected"):
         Dictionary(L, T, T0, grid, False, False, response=IRF)
+
+
+def test_a_state_with_the_onset_before_its_direct_takes_the_fit():
+    """A detected state whose sss onset lies before a shifted atom picked after it breaks
+    ``sss_after_direct``: the refinement's answer, the onset moved to the direct, is taken even
+    where its objective is above the given one; without the rule the state is kept."""
+    y = 2.0 * render_shifted(IRF, AXIS, np.array([61.0]))[0] + 0.7 * render_sss(IRF, AXIS, np.array([61.0]),
+                                                                               np.array([0.03]))[0]
+    st = {"fam": np.array([[FAM_GAUSS, FAM_SSS]], np.int8), "delay": np.array([[61.0, 40.0]]),
+          "lalp": np.log(np.array([[1.0, 0.03]])), "amp": np.array([[2.0, 0.7]]), "lsig": np.zeros((1, 2)),
+          "pen": np.ones((1, 2))}
+    mask = SampleMask(np.ones((1, L), bool), np.zeros((1, L), bool))
+    args = (IRF, AXIS, y[None], mask, st, np.full(1, 1e-6), np.full(1, 1e-3),
+            {"delay": (-30.0, 400.0), "lalp": (np.log(1e-3), 0.0)}, 10, np.array([-1.0]))
+    out, f, _, _ = refine_penalised(*args, sss_after_direct=True)
+    assert out["delay"][0, 1] >= out["delay"][0, 0] and f[0] > -1.0
+    kept, f_kept, _, _ = refine_penalised(*args, sss_after_direct=False)
+    assert kept["delay"][0, 1] == 40.0 and f_kept[0] == -1.0
