@@ -1,5 +1,5 @@
 """ConvSCD's dictionary and detection over a measured response (methods/dictionary.py with
-``response=``, model/slotfit.refine_penalised, response/detect.py)."""
+``response=``, model/slots.refine_penalised, response/detect.py)."""
 import numpy as np
 import pytest
 
@@ -10,7 +10,7 @@ from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from decomposition.masks import SampleMask
 from decomposition.methods import convscd as cs
 from decomposition.methods.dictionary import Dictionary
-from decomposition.model.slotfit import refine_penalised
+from decomposition.model.slots import refine_penalised
 from decomposition.options import GridSpec
 
 T, L, T0 = 2.0, 160, 2.0

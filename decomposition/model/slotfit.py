@@ -5,9 +5,8 @@ A pixel's components are slot arrays (P, K) (:mod:`decomposition.model.atoms`): 
 rates by the refinement engine the Gaussian PSF's atoms take
 (:func:`decomposition.model.varpro.refine_block`, rendering the response's table atoms): the
 amplitudes -- and with ``fit_background`` a constant offset -- solved exactly for every set of
-delays, those moved by Levenberg-Marquardt on the projected residual.  :func:`refine_penalised`
-is the same fit inside ConvSCD's detection (:mod:`decomposition.methods.convscd`): its answer
-kept per pixel where the sparse-coding objective F is lower than before, so that F never rises.
+delays, those moved by Levenberg-Marquardt on the projected residual.  ConvSCD's detection runs
+the same fit after each pick (:func:`decomposition.model.slots.refine_penalised`).
 """
 from __future__ import annotations
 
@@ -17,11 +16,9 @@ import numpy as np
 
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from ..kernels.response import response_table
-from ..masks import SampleMask
-from .atoms import slot_atoms
 from .varpro import Layout, refine_block
 
-__all__ = ["SlotFit", "LAMBDA0", "project_slots", "start_slots", "least_squares", "refine_penalised"]
+__all__ = ["SlotFit", "LAMBDA0", "project_slots", "start_slots", "least_squares"]
 
 #: Marquardt's starting damping
 LAMBDA0 = 1e-3
@@ -174,86 +171,3 @@ def _least_squares(irf, t, y, sw, fam, delay, lalp, fit_bg, held, *, n_iter, lm_
     return SlotFit(delay=f_delay, lalp=f_lalp, amp=f_amp, background=background,
                    cost=np.einsum("pl,pl->p", resid, resid), resid=resid, iterations=info["iterations"],
                    converged=info["converged"])
-
-
-def refine_penalised(irf, t_ps, p, mask: SampleMask, st: dict, mu, eps, bounds: dict, n_iter: int, obj=None,
-                     sss_after_direct: bool = False, tol: float = 0.0, weights=None):
-    """ConvSCD's refinement of a slot state (:func:`decomposition.model.slots.refine_atoms`) over
-    a measured response's atoms: :func:`least_squares` on the fitted samples (censored ones left
-    out: the response's fit has no one-sided term), atoms whose amplitude ends non-positive
-    emptied and the rest re-solved, and the answer kept per pixel only where the objective
-
-        F = 1/2 sum w residual^2 + mu sum_k log(1 + pen_k amp_k / eps)
-
-    is lower than ``obj`` (F of ``st``; None: computed here), so F never rises -- or, with
-    ``sss_after_direct``, where ``st`` itself breaks that order (an sss onset before a shifted
-    atom picked after it): the fit moved the onset to that atom, and F of a state the model
-    does not allow is no bar.
-
-    Parameters
-    ----------
-    irf : InstrumentResponse
-    t_ps : ndarray (L,)
-    p : ndarray (P, L)                normalised profiles
-    mask : SampleMask
-    st : dict of (P, K) slot arrays   (``lsig`` is carried, never read: the response has no width)
-    mu, eps : ndarray (P,)            the penalty's weight and scale
-    bounds : dict                     ``delay`` (ps) and ``lalp`` (low, high)
-    n_iter : int                      Levenberg-Marquardt iterations at most
-    obj : ndarray (P,), optional
-    sss_after_direct : bool
-    tol : float                       stop when a step gains less than ``tol`` x the RSS per sample
-    weights : ndarray (P, L), optional   relative least-squares weights of the samples
-
-    Returns
-    -------
-    (state, F (P,), iterations of the slowest pixel, model (P, L))
-    """
-    fam = st["fam"]
-    sw = mask.fit.astype(np.float64)
-    if weights is not None:
-        sw = sw * np.sqrt(weights)
-    kw = dict(lm_tol=tol, delay_bounds_ps=bounds["delay"], lalp_bounds=bounds["lalp"],
-              sss_after_direct=sss_after_direct)
-    f = least_squares(irf, t_ps, p, sw, fam, st["delay"], st["lalp"], n_iter=n_iter, **kw)
-    new_fam, amp, cost = fam.copy(), f.amp, f.cost
-    delay, lalp = np.nan_to_num(f.delay), np.nan_to_num(f.lalp)
-    for _ in range(fam.shape[1]):          # each round empties at least one slot of the pixels it re-solves
-        bad = (new_fam != FAM_NONE) & ~(amp > 0)
-        if not bad.any():
-            break
-        new_fam[bad] = FAM_NONE
-        r = np.flatnonzero(bad.any(axis=1))
-        g = least_squares(irf, t_ps, p[r], sw[r], new_fam[r], delay[r], lalp[r], n_iter=0, **kw)
-        amp, cost = amp.copy(), cost.copy()
-        amp[r], cost[r] = g.amp, g.cost
-    on = new_fam != FAM_NONE
-    new = dict(st, fam=new_fam, delay=np.where(on, delay, st["delay"]),
-               lalp=np.where(on & (new_fam == FAM_SSS), lalp, st["lalp"]), amp=np.where(on, amp, 0.0))
-    f_new = 0.5 * cost + _penalty(new, mu, eps)
-    if obj is None:
-        r_in = sw * (p - _render(irf, t_ps, st))
-        obj = 0.5 * np.einsum("pl,pl->p", r_in, r_in) + _penalty(st, mu, eps)
-    keep = np.isfinite(f_new) & ((f_new < obj) | _onset_first(st, sss_after_direct))
-    out = {k: np.where(keep.reshape((-1,) + (1,) * (v.ndim - 1)), new[k], v) for k, v in st.items()}
-    model = _render(irf, t_ps, out)     # one render of the state returned
-    return out, np.where(keep, f_new, obj), int(f.iterations.max(initial=0)), model
-
-
-def _onset_first(st, sss_after_direct):
-    """(P,) bool: with ``sss_after_direct``, the sss onset lies before the earliest shifted atom."""
-    if not sss_after_direct:
-        return np.zeros(st["fam"].shape[0], bool)
-    first = np.where(st["fam"] == FAM_GAUSS, st["delay"], np.inf).min(axis=1)
-    onset = np.where(st["fam"] == FAM_SSS, st["delay"], np.inf).min(axis=1)
-    return np.isfinite(onset) & (onset < first)
-
-
-def _penalty(st, mu, eps):
-    on = st["fam"] != FAM_NONE
-    return mu * np.where(on, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0).sum(axis=1)
-
-
-def _render(irf, t_ps, st):
-    phi = slot_atoms(irf, t_ps, st["fam"], st["delay"], st["lalp"])
-    return np.einsum("pk,pkl->pl", np.where(st["fam"] != FAM_NONE, st["amp"], 0.0), phi)

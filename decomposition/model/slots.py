@@ -5,7 +5,8 @@ A block's atoms live in "slot" arrays of shape (P, K): ``fam`` (int8, :mod:`deco
 (log sigma_ps), ``lalp`` (log alpha_per_ps) and ``pen`` (the penalty's amplitude scale).
 Here: creating, slicing and merging states, rendering them, the objective, the parameter
 bounds, the sss-onset link and the compiled Levenberg-Marquardt refinement
-(:func:`decomposition.kernels.atomlm.lm_refine`) behind :func:`refine_atoms`.
+(:func:`decomposition.kernels.atomlm.lm_refine`) behind :func:`refine_atoms`, or with a measured
+response's atoms its least squares (:func:`refine_penalised`).
 
 Which samples count: a :class:`~decomposition.masks.SampleMask` (fitted, censored).
 """
@@ -16,13 +17,15 @@ import math
 import numpy as np
 
 from ..kernels.atomlm import atom_profiles, lm_refine, state_models
-from ..constants import FAM_NONE, NEAR_SIGMA
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, NEAR_SIGMA
 from ..masks import SampleMask
 from ..kernels.onsets import onset_links
-from .slotfit import refine_penalised
+from .atoms import slot_atoms
+from .slotfit import least_squares
 
-__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective",
-           "linked_onsets", "refine_atoms", "parameter_bounds", "shape_bounds", "axis_of", "tie_widths"]
+__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective", "penalty",
+           "linked_onsets", "refine_atoms", "refine_penalised", "parameter_bounds", "shape_bounds", "axis_of",
+           "tie_widths"]
 
 
 def axis_of(t):
@@ -41,10 +44,15 @@ def render(t, st):
 
 
 def objective(p, mask: SampleMask, model, st, mu, eps):
-    """F per pixel (P,): 1/2 ||residual||^2 (:meth:`SampleMask.residual`) + mu sum log(1 + pen_scale*amp/eps)."""
+    """F per pixel (P,): 1/2 ||residual||^2 (:meth:`SampleMask.residual`) + :func:`penalty`."""
     r = mask.residual(p, model)
+    return 0.5 * np.einsum("pl,pl->p", r, r) + penalty(st, mu, eps)
+
+
+def penalty(st, mu, eps):
+    """The log-sum penalty per pixel (P,): mu sum over the active slots of log(1 + pen_scale*amp/eps)."""
     pen = np.where(st["fam"] != FAM_NONE, np.log1p(st["pen"] * np.abs(st["amp"]) / eps[:, None]), 0.0)
-    return 0.5 * np.einsum("pl,pl->p", r, r) + mu * pen.sum(axis=1)
+    return mu * pen.sum(axis=1)
 
 
 def take(st, idx):
@@ -90,7 +98,7 @@ def refine_atoms(t, p, mask: SampleMask, st, mu, eps, bounds, n_iter, obj, tie_s
     onset moves with the direct and its gap stays >= 0.  ``weights`` (P, L): least-squares
     weights of the samples (relative inverse variances; default 1).  With a measured
     ``response`` (an :class:`~core.irf.InstrumentResponse`) the atoms are its own and the loop is
-    :func:`decomposition.model.slotfit.refine_penalised` (no width to fit or tie).
+    :func:`refine_penalised` (no width to fit or tie).
     """
     if response is not None:
         out, o, it, model = refine_penalised(response, t, p, mask, st, mu, eps, bounds, n_iter, obj,
@@ -159,3 +167,81 @@ def tie_widths(st):
                         np.where(act, st["lsig"], 0.0).sum(axis=1) / np.maximum(n_act, 1))
     st["lsig"] = np.where(act, mean[:, None], st["lsig"])
     return st
+
+
+def refine_penalised(irf, t_ps, p, mask: SampleMask, st: dict, mu, eps, bounds: dict, n_iter: int, obj=None,
+                     sss_after_direct: bool = False, tol: float = 0.0, weights=None):
+    """ConvSCD's refinement of a slot state (:func:`refine_atoms`) over
+    a measured response's atoms: :func:`least_squares` on the fitted samples (censored ones left
+    out: the response's fit has no one-sided term), atoms whose amplitude ends non-positive
+    emptied and the rest re-solved, and the answer kept per pixel only where the objective
+
+        F = 1/2 sum w residual^2 + mu sum_k log(1 + pen_k amp_k / eps)
+
+    is lower than ``obj`` (F of ``st``; None: computed here), so F never rises -- or, with
+    ``sss_after_direct``, where ``st`` itself breaks that order (an sss onset before a shifted
+    atom picked after it): the fit moved the onset to that atom, and F of a state the model
+    does not allow is no bar.
+
+    Parameters
+    ----------
+    irf : InstrumentResponse
+    t_ps : ndarray (L,)
+    p : ndarray (P, L)                normalised profiles
+    mask : SampleMask
+    st : dict of (P, K) slot arrays   (``lsig`` is carried, never read: the response has no width)
+    mu, eps : ndarray (P,)            the penalty's weight and scale
+    bounds : dict                     ``delay`` (ps) and ``lalp`` (low, high)
+    n_iter : int                      Levenberg-Marquardt iterations at most
+    obj : ndarray (P,), optional
+    sss_after_direct : bool
+    tol : float                       stop when a step gains less than ``tol`` x the RSS per sample
+    weights : ndarray (P, L), optional   relative least-squares weights of the samples
+
+    Returns
+    -------
+    (state, F (P,), iterations of the slowest pixel, model (P, L))
+    """
+    fam = st["fam"]
+    sw = mask.fit.astype(np.float64)
+    if weights is not None:
+        sw = sw * np.sqrt(weights)
+    kw = dict(lm_tol=tol, delay_bounds_ps=bounds["delay"], lalp_bounds=bounds["lalp"],
+              sss_after_direct=sss_after_direct)
+    f = least_squares(irf, t_ps, p, sw, fam, st["delay"], st["lalp"], n_iter=n_iter, **kw)
+    new_fam, amp, cost = fam.copy(), f.amp, f.cost
+    delay, lalp = np.nan_to_num(f.delay), np.nan_to_num(f.lalp)
+    for _ in range(fam.shape[1]):          # each round empties at least one slot of the pixels it re-solves
+        bad = (new_fam != FAM_NONE) & ~(amp > 0)
+        if not bad.any():
+            break
+        new_fam[bad] = FAM_NONE
+        r = np.flatnonzero(bad.any(axis=1))
+        g = least_squares(irf, t_ps, p[r], sw[r], new_fam[r], delay[r], lalp[r], n_iter=0, **kw)
+        amp, cost = amp.copy(), cost.copy()
+        amp[r], cost[r] = g.amp, g.cost
+    on = new_fam != FAM_NONE
+    new = dict(st, fam=new_fam, delay=np.where(on, delay, st["delay"]),
+               lalp=np.where(on & (new_fam == FAM_SSS), lalp, st["lalp"]), amp=np.where(on, amp, 0.0))
+    f_new = 0.5 * cost + penalty(new, mu, eps)
+    if obj is None:
+        r_in = sw * (p - _render(irf, t_ps, st))
+        obj = 0.5 * np.einsum("pl,pl->p", r_in, r_in) + penalty(st, mu, eps)
+    keep = np.isfinite(f_new) & ((f_new < obj) | _onset_first(st, sss_after_direct))
+    out = {k: np.where(keep.reshape((-1,) + (1,) * (v.ndim - 1)), new[k], v) for k, v in st.items()}
+    model = _render(irf, t_ps, out)     # one render of the state returned
+    return out, np.where(keep, f_new, obj), int(f.iterations.max(initial=0)), model
+
+
+def _onset_first(st, sss_after_direct):
+    """(P,) bool: with ``sss_after_direct``, the sss onset lies before the earliest shifted atom."""
+    if not sss_after_direct:
+        return np.zeros(st["fam"].shape[0], bool)
+    first = np.where(st["fam"] == FAM_GAUSS, st["delay"], np.inf).min(axis=1)
+    onset = np.where(st["fam"] == FAM_SSS, st["delay"], np.inf).min(axis=1)
+    return np.isfinite(onset) & (onset < first)
+
+
+def _render(irf, t_ps, st):
+    phi = slot_atoms(irf, t_ps, st["fam"], st["delay"], st["lalp"])
+    return np.einsum("pk,pkl->pl", np.where(st["fam"] != FAM_NONE, st["amp"], 0.0), phi)

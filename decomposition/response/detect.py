@@ -8,7 +8,7 @@ atoms, and the unrestricted start where the first leaves the data term above its
 the dictionary's kernels are the response and the response convolved with the sss exponential
 at the coarse alphas (:class:`decomposition.methods.dictionary.Dictionary` with ``response=``),
 and the refinement fits the response's table atoms
-(:func:`decomposition.model.slotfit.refine_penalised`).  What follows -- the labels, the
+(:func:`decomposition.model.slots.refine_penalised`).  What follows -- the labels, the
 refinement with the offset, the forward steps -- is the response path's
 (:mod:`decomposition.response.path`).
 """

@@ -46,7 +46,6 @@ from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
-from ..methods.dictionary import coarse_values
 from .detect import detect_response, response_dictionary
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
@@ -76,7 +75,6 @@ class ResponseFit:
     irf: object                 # the resolved InstrumentResponse, on the samples' step
     t: np.ndarray               # (L,) sample times, ps
     sigma_eq_ps: float          # the response's Gaussian-equivalent width
-    alphas_per_ps: np.ndarray   # the dictionary's sss decay rates (the grid's coarse alphas)
     bounds: dict                # {"delay_ps", "lalp"}: the refinement's bounds
     refine_kw: dict             # keywords of refit_slots for all n pixels
     b_est: np.ndarray           # (n,) the offset's first estimate (0 without the b family)
@@ -90,6 +88,11 @@ class ResponseFit:
     grow_info: dict = field(default_factory=dict)
     background_chi2: np.ndarray | None = None     # (P,)
     background_stderr: np.ndarray | None = None   # (P,)
+
+    @property
+    def alphas_per_ps(self) -> np.ndarray:
+        """The dictionary's sss decay rates (the grid's coarse alphas; none without the sss family)."""
+        return self.dic.alpha_per_ps[self.dic.fam == FAM_SSS]
 
 
 def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components, hold=None) -> ResponseFit:
@@ -112,8 +115,7 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     if hold:
         refine_kw["hold"] = {k: np.asarray(v, np.float64)[live] for k, v in hold.items()}
     with_bg = samples.background is not None
-    rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, alphas_per_ps=coarse_values(a_lo, a_hi, grid.coarse_alpha),
-                     bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
+    rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
                      b_est=samples.background[live] if with_bg else np.zeros(live.size))
     rf.dic = response_dictionary(irf, samples, grid, components)
     rf.det = detect_response(samples, rf.dic, opts, components)
@@ -211,7 +213,7 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
         out = hold_params(out, hold, (P,))
     info = {"n_atoms": int(rf.dic.fam.size), "coordinates_searched": int(rf.dic.n_coordinates),
             "restarted": det.restarted,
-            "response_alphas_per_ps": [float(a) for a in rf.alphas_per_ps] if "s" in components else [],
+            "response_alphas_per_ps": [float(a) for a in rf.alphas_per_ps],
             **rf.grow_info,
             "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),
             "refine_iterations": _scatter(P, live, iterations, 0).reshape(samples.lead)}
