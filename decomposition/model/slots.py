@@ -23,7 +23,8 @@ from ..kernels.onsets import onset_links
 from .atoms import slot_atoms
 from .slotfit import least_squares
 
-__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "objective", "penalty",
+__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "response_amplitudes",
+           "objective", "penalty",
            "linked_onsets", "refine_atoms", "refine_penalised", "parameter_bounds", "shape_bounds", "axis_of",
            "tie_widths"]
 
@@ -33,14 +34,44 @@ def axis_of(t):
     return float(t[0]), float(t[1] - t[0]) if t.size > 1 else 1.0
 
 
-def eval_atoms(t, fam, delay, lsig, lalp):
-    """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,)."""
+def eval_atoms(t, fam, delay, lsig, lalp, response=None):
+    """Unit-amplitude atoms (n, L) with flat parameter arrays (n,) on the uniform time axis t (L,);
+    with a measured ``response`` its own atoms (:func:`decomposition.model.atoms.slot_atoms`;
+    ``lsig`` is not read)."""
+    if response is not None:
+        return slot_atoms(response, t, np.asarray(fam)[:, None], np.asarray(delay, np.float64)[:, None],
+                          np.asarray(lalp, np.float64)[:, None])[:, 0]
     return atom_profiles(*axis_of(t), t.size, fam, delay, lsig, lalp)
 
 
-def render(t, st):
-    """Model (P, L) of the slot state ``st`` (compiled: :func:`decomposition.kernels.atomlm.state_models`)."""
+def render(t, st, response=None):
+    """Model (P, L) of the slot state ``st`` (compiled: :func:`decomposition.kernels.atomlm.state_models`;
+    with a measured ``response``, the sum of its atoms, :func:`decomposition.model.atoms.slot_atoms`)."""
+    if response is not None:
+        return _render(response, t, st)
     return state_models(*axis_of(t), t.size, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"])
+
+
+def response_amplitudes(response, t, p, fit, st, sweeps: int = 20):
+    """Non-negative least-squares amplitudes (P, K) of a measured response's fixed atoms: the
+    Gaussian path's rule (:func:`decomposition.kernels.atomlm.nnls_amplitudes`: ``sweeps``
+    sweeps of exact coordinate descent over the slots on the fitted samples ``fit`` (P, L),
+    from the current amplitudes), every pixel of the block at once."""
+    fam = st["fam"]
+    on = fam != FAM_NONE
+    w = np.asarray(fit, np.float64)
+    phi = slot_atoms(response, t, fam, st["delay"], st["lalp"]) * w[:, None, :]
+    gram = np.einsum("pkl,pjl->pkj", phi, phi)
+    b = np.einsum("pkl,pl->pk", phi, p * w)
+    a = np.where(on, st["amp"], 0.0).astype(np.float64)
+    rows = np.arange(fam.shape[0])
+    for _ in range(sweeps):
+        for k in range(fam.shape[1]):
+            gkk = gram[rows, k, k]
+            r = b[:, k] - np.einsum("pj,pj->p", gram[:, k, :], a) + gkk * a[:, k]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a[:, k] = np.where(on[:, k] & (gkk > 0), np.maximum(r / gkk, 0.0), 0.0)
+    return a
 
 
 def objective(p, mask: SampleMask, model, st, mu, eps):

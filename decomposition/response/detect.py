@@ -53,8 +53,8 @@ def detect_response(samples: Samples, dic: Dictionary, opts: SolverOptions, comp
     """ConvSCD's detection for every live pixel, ``opts.block_size`` at a time."""
     live = samples.live
     n, K = live.size, opts.max_components
-    st = {"fam": np.zeros((n, K), np.int8), "delay": np.full((n, K), np.nan),
-          "lalp": np.full((n, K), np.nan), "amp": np.zeros((n, K))}
+    st = {"fam": np.zeros((n, K), np.int8), "delay": np.full((n, K), np.nan), "lsig": np.zeros((n, K)),
+          "lalp": np.full((n, K), np.nan), "amp": np.zeros((n, K)), "pen": np.ones((n, K))}
     n_iter = np.zeros(n, np.int64)
     conv = np.zeros(n, bool)
     solve_opts = solver_options(opts, components, PickWorkspace())
@@ -70,6 +70,8 @@ def detect_response(samples: Samples, dic: Dictionary, opts: SolverOptions, comp
         st["delay"][sl] = np.where(fam != FAM_NONE, got["delay"], np.nan)
         st["lalp"][sl] = np.where(fam == FAM_SSS, got["lalp"], np.nan)
         st["amp"][sl] = np.where(fam != FAM_NONE, got["amp"], 0.0)
+        st["lsig"][sl] = got["lsig"]
+        st["pen"][sl] = got["pen"]
         n_iter[sl] = info["n_iter"]
         conv[sl] = info["converged"]
         restarted += int(info["restarted"])

@@ -37,9 +37,9 @@ def polish_candidate(t_ps, p, mask, st, noise, dic, opts, significance_sigma, we
     refit_amplitudes(p, mask, st, dic)
     st, _, _ = refine_atoms(t_ps, p, mask, st, np.zeros(p.shape[0]), opts.eps_rel * np.asarray(noise),
                             parameter_bounds(dic, opts.bound_factor), opts.n_polish, None, opts.shared_sigma,
-                            opts.sss_after_direct, opts.lm_tol, weights=weights)
+                            opts.sss_after_direct, opts.lm_tol, weights=weights, response=dic.response)
     drop_zero(st)
-    return final_atoms(st, t_ps, dic.time_bin_ps, opts, significance_sigma, weights)
+    return final_atoms(st, t_ps, dic.time_bin_ps, opts, significance_sigma, weights, irf=dic.response)
 
 
 def each_block(samples, det, opts, step, pixels: bool = False, weights: bool = False):
@@ -103,7 +103,7 @@ def residual_significance_noise(samples, det, dic, opts) -> np.ndarray:
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         px = live[rows]
         p, mask = solver_inputs(samples, px)
-        lagged = lagged_noise_sigma(mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()})),
+        lagged = lagged_noise_sigma(mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)),
                                     mask.fit, lag)
         white = lagged <= WHITE_LAG_RATIO * det.noise_eff[px]
         out[px] = np.where(white, lagged, out[px])
@@ -142,7 +142,7 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
-        resid = mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()})) / noise[rows, None]
+        resid = mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)) / noise[rows, None]
         power[rows] = periodogram(resid)
     return residual_spectrum(power=power)
 
@@ -208,7 +208,7 @@ def signal_weights(samples, det, dic, opts, info=None):
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
-        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
+        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}, dic.response), 0.0)
         noise2 = det.noise_eff[live[rows]][:, None] ** 2
         if counts:
             out[rows] = noise2 / _count_law(samples, live[rows], p, mask, model)
@@ -262,7 +262,7 @@ def _detector_weights(samples, det, dic, opts, floors, gains, read, info, out=No
     out = np.empty((live.size, L)) if out is None else out
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
-        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}), 0.0)
+        model = np.maximum(render(t, {k: v[rows] for k, v in det.state.items()}, dic.response), 0.0)
         out[rows] = det.noise_eff[live[rows]][:, None] ** 2 / detector_variance(floor, gain, model,
                                                                                 samples.scale[live[rows]])
     return out

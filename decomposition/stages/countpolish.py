@@ -59,7 +59,8 @@ def count_weights(model, used, scale, noise, dispersion=None, background=None) -
     return w * np.square(scale * noise)[:, None]
 
 
-def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bounds, opts: SolverOptions) -> dict:
+def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bounds, opts: SolverOptions,
+                       response=None) -> dict:
     """One block's slot state ``st`` (n, K) polished with Poisson weights, POISSON_REFITS times
     from its own model (see the module docstring); atoms whose amplitude ends non-positive
     are dropped.
@@ -72,6 +73,8 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
     scale, noise : ndarray (n,)   counts per normalised unit; the solver's noise
     dispersion, background : ndarray (n,) or None
     bounds : dict                 :func:`decomposition.model.slots.parameter_bounds`
+    response : InstrumentResponse or None
+                                  the atoms are a measured response's (None: the Gaussian PSF's)
     """
     best = {k: v.copy() for k, v in st.items()}
     mu = np.zeros(p.shape[0])
@@ -86,7 +89,7 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
                               None if dispersion is None else dispersion[rows])
 
     todo = np.arange(p.shape[0])
-    model = render(t, best)
+    model = render(t, best, response)
     dev_best = deviance(model, todo)
     for _ in range(POISSON_REFITS):
         if todo.size == 0:
@@ -99,7 +102,7 @@ def polish_count_state(t, p, mask, st, scale, noise, dispersion, background, bou
         start = take(best, todo)
         st, _, _, new = refine_atoms(t, p[todo], sub, start, mu[todo], eps[todo], bounds, opts.n_polish, None,
                                      opts.shared_sigma, opts.sss_after_direct, opts.lm_tol, return_model=True,
-                                     weights=w)
+                                     weights=w, response=response)
         # the Poisson deviance, the fit's own objective, decides: the weights of a model that
         # lacks a component (1 / the floor where a missed tail holds counts) can pull an atom
         # far from the light it fits
@@ -131,6 +134,6 @@ def polish_counts(samples: Samples, det: Detection, dic, opts: SolverOptions) ->
         dispersion = None if samples.dispersion is None else samples.dispersion[px]
         background = None if samples.background is None else samples.background[px]
         st = polish_count_state(t, p, mask, take(state, rows), samples.scale[px], det.noise_eff[px], dispersion,
-                                background, bounds, opts)
+                                background, bounds, opts, dic.response)
         put(state, rows, st)
     return state

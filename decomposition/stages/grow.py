@@ -174,7 +174,8 @@ def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, wei
     alt = polish_candidate(t, pb, mb, alt, np.maximum(s_eff[idx], 1e-300), dic, opts, s_sig[idx], wb)
     s2 = objective_variance(np.maximum(s_eff[idx], 1e-300), s_sig[idx], wb, spectrum)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(cur))
-    better = penalised_objective(t, pb, mb, alt, s2, log_n, opts) < penalised_objective(t, pb, mb, cur, s2, log_n, opts)
+    better = (penalised_objective(t, pb, mb, alt, s2, log_n, opts, dic.response)
+              < penalised_objective(t, pb, mb, cur, s2, log_n, opts, dic.response))
     w = np.flatnonzero(resolved & better)
     if w.size:
         put(out, idx[w], take(alt, w))
@@ -213,7 +214,7 @@ def grow_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, bump_test
     sigma_ps = np.exp(np.where(gc, cur["lsig"], -np.inf).max(axis=1))
     # the largest smoothed residual away from the Gaussians the pixel has, and its matched-filter z
     sig_f = np.maximum(s_sig[free], 1e-300)
-    resid = mask[free].residual(p[free], render(t, cur))
+    resid = mask[free].residual(p[free], render(t, cur, dic.response))
     if weights is not None and bump_test:       # in the noise sigmas of each sample
         resid = resid * np.sqrt(weights[free])
     at_ps, z, spread = residual_peak(t, resid / sig_f[:, None], mask[free].used,
@@ -243,16 +244,18 @@ def grow_components(samples, det, dic, opts):
                       weights=True)
 
 
-def late_fast_sss(t_ps, st, d0_ps, sigma_ps):
+def late_fast_sss(t_ps, st, d0_ps, sigma_ps, response=None):
     """The sss swap's rule on slot states ``st`` (n, K) whose direct lies at ``d0_ps`` (n,), of
     width ``sigma_ps`` (n,): -> (the sss's slot (n,), its hump's mode in ps (n,), passes (n,)
     bool): the hump peaks more than ``SWAP_MODE_GAP_SIGMA`` widths after the direct and decays
     fast enough against the PSF to pass for a Gaussian (alpha sigma >= ``SWAP_MIN_ALPHA_SIGMA``).
-    A pixel without an sss reads its first slot: the caller leaves such pixels out."""
+    A pixel without an sss reads its first slot: the caller leaves such pixels out.  ``response``:
+    the atoms are a measured response's."""
     n = st["fam"].shape[0]
     r = np.arange(n)
     ss = np.argmax(st["fam"] == FAM_SSS, axis=1)
-    hump = eval_atoms(t_ps, np.full(n, FAM_SSS, np.int8), st["delay"][r, ss], st["lsig"][r, ss], st["lalp"][r, ss])
+    hump = eval_atoms(t_ps, np.full(n, FAM_SSS, np.int8), st["delay"][r, ss], st["lsig"][r, ss], st["lalp"][r, ss],
+                      response)
     mode_ps = t_ps[np.argmax(hump, axis=1)]
     # an sss decaying slowly against the PSF (small alpha sigma) has a hump far broader than a
     # Gaussian's: it takes in none
@@ -286,7 +289,7 @@ def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=N
     gc = cur["fam"] == FAM_GAUSS
     d0_ps = np.where(gc, cur["delay"], np.inf).min(axis=1)
     sigma_ps = np.exp(np.where(gc, cur["lsig"], -np.inf).max(axis=1))
-    ss, mode_ps, passes = late_fast_sss(t, cur, d0_ps, sigma_ps)
+    ss, mode_ps, passes = late_fast_sss(t, cur, d0_ps, sigma_ps, dic.response)
     late = np.flatnonzero(passes)
     if late.size == 0:
         return out, swapped
@@ -343,14 +346,15 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
     gc = cur["fam"] == FAM_GAUSS
     lsig = np.where(gc, cur["lsig"], -np.inf).max(axis=1)
     sigma_ps = np.exp(lsig)
-    mu = render(t, cur) * scale[cand, None] + bg[cand, None]
+    mu = render(t, cur, dic.response) * scale[cand, None] + bg[cand, None]
     y, f = counts[cand], fit[cand]
     # an echo comes after the direct (the earliest Gaussian)
     d0 = np.where(gc, cur["delay"], np.inf).min(axis=1)
     after = f & (t[None, :] > d0[:, None])
     z = anscombe_residual(y, mu, f, disp[cand])
     at_ps, score = residual_peak(t, z, after, np.where(gc, cur["delay"], np.nan), sigma_ps)
-    phi = eval_atoms(t, np.full(cand.size, FAM_GAUSS, np.int8), at_ps, lsig, np.zeros(cand.size))
+    phi = eval_atoms(t, np.full(cand.size, FAM_GAUSS, np.int8), at_ps, lsig, np.zeros(cand.size), dic.response)
+    # (the broad excess is a Gaussian GROW_BROAD_FACTOR widths wide for either instrument)
     gain, a_counts = atom_gain(y, mu, phi, f, disp[cand])
     wide = eval_atoms(t, np.full(cand.size, FAM_GAUSS, np.int8), at_ps, lsig + np.log(GROW_BROAD_FACTOR),
                       np.zeros(cand.size))
@@ -368,11 +372,11 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
     fam_trial = alt["fam"].copy()
     alt = polish_count_state(t, p[idx], mask[idx], alt, scale[idx], noise[idx], None if dispersion is None
                              else disp[idx], None if background is None else bg[idx],
-                             parameter_bounds(dic, opts.bound_factor), opts)
+                             parameter_bounds(dic, opts.bound_factor), opts, dic.response)
     kept = np.all(alt["fam"] == fam_trial, axis=1)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(base))
     dev_cur = count_deviance(y[tried], mu[tried], f[tried], disp[idx])
-    dev_alt = count_deviance(y[tried], render(t, alt) * scale[idx, None] + bg[idx, None], f[tried], disp[idx])
+    dev_alt = count_deviance(y[tried], render(t, alt, dic.response) * scale[idx, None] + bg[idx, None], f[tried], disp[idx])
     w = np.flatnonzero(kept & resolved & (dev_cur - dev_alt >= opts.significance_chi2))
     if w.size:
         put(out, idx[w], take(alt, w))

@@ -93,7 +93,7 @@ def final_state(samples: Samples, det: Detection, dic: cs.Dictionary, opts: Solv
         cs.refit_amplitudes(p, mask, st, dic)
     t = dic.t0_ps + dic.time_bin_ps * np.arange(samples.n_bins)
     return final_atoms(st, t, dic.time_bin_ps, opts, samples.significance_sigma(live, det.noise_eff[live]),
-                       det.weights)
+                       det.weights, irf=dic.response)
 
 
 def label_components(samples: Samples, det: Detection, dic: cs.Dictionary, opts: SolverOptions,

@@ -79,7 +79,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     sigma_ps = np.exp(np.where(g, moved["lsig"], -np.inf).max(axis=1))
     moved["delay"] = np.where(moved["fam"] == FAM_SSS, (d0 + PRUNE_ONSET_SIGMA * sigma_ps)[:, None], moved["delay"])
     best = cur
-    j_best = penalised_objective(t, pb, mb, cur, objective_variance(noise, s_sig[idx], wb, spectrum), log_n, opts)
+    j_best = penalised_objective(t, pb, mb, cur, objective_variance(noise, s_sig[idx], wb, spectrum), log_n, opts, dic.response)
     won = np.zeros(idx.size, bool)
 
     def polished(state, rows):
@@ -92,7 +92,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
 
     def keep_better(alt, rows):
         s2 = objective_variance(noise[rows], s_sig[idx][rows], None if wb is None else wb[rows], spectrum)
-        j = penalised_objective(t, pb[rows], mb[rows], alt, s2, log_n[rows], opts)
+        j = penalised_objective(t, pb[rows], mb[rows], alt, s2, log_n[rows], opts, dic.response)
         w = np.nonzero(j < j_best[rows])[0]
         if w.size:
             put(best, rows[w], take(alt, w))
@@ -118,7 +118,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
             put(third, rows, polished(cleared, rows))
         keep_better(grown(third, every), every)
         # a fourth: the sss hump as an echo (:func:`hump_as_echo`), then the forward step
-        rows, trial = hump_as_echo(t, cur, moved, d0, sigma_ps)
+        rows, trial = hump_as_echo(t, cur, moved, d0, sigma_ps, dic.response)
         if rows.size:
             keep_better(grown(polished(trial, rows), rows), rows)
     w = np.nonzero(won)[0]
@@ -128,7 +128,7 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     return out, pruned
 
 
-def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
+def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps, response=None):
     """The fourth trial of :func:`prune_block`: where the sss of ``cur`` (n, K) peaks more than
     ``SWAP_MODE_GAP_SIGMA`` widths after the direct (``d0_ps`` (n,), the pixel's width
     ``sigma_ps`` (n,)) and decays fast enough to pass for a Gaussian (the rule of
@@ -140,9 +140,9 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps):
     The sss swap of :func:`decomposition.stages.grow.swap_block` needs a free slot and keeps the
     Gaussians the detection put in the hump; a fast sss that took an echo 6 widths after the
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
-    neither it nor the trials above.
+    neither it nor the trials above.  ``response``: the atoms are a measured response's.
     """
-    _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps)
+    _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps, response)
     rows = np.nonzero((cur["fam"] == FAM_SSS).any(axis=1) & passes)[0]
     trial = take(moved, rows)
     g = trial["fam"] == FAM_GAUSS

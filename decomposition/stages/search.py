@@ -335,9 +335,9 @@ def _near_direct_chi2(t, residual, mask, st, s2):
     return data_term(r, s2) / np.maximum(near.sum(axis=1), 1)
 
 
-def _split(t, st):
+def _split(t, st, response=None):
     """Rendered split of a slot state: earliest Gaussian (direct), sss, later Gaussians
-    (summed), each (n, L)."""
+    (summed), each (n, L) (``response``: the atoms are a measured response's)."""
     g = st["fam"] == FAM_GAUSS
     d0 = np.argmin(np.where(g, st["delay"], np.inf), axis=1)
     first = np.zeros_like(g)
@@ -346,21 +346,22 @@ def _split(t, st):
     for keep in (first, st["fam"] == FAM_SSS, g & ~first):
         sub = dict(st)
         sub["fam"] = np.where(keep, st["fam"], FAM_NONE).astype(st["fam"].dtype)
-        parts.append(render(t, sub))
+        parts.append(render(t, sub, response))
     return parts
 
 
-def weak_leading_gaussian(t_ps, st) -> np.ndarray:
+def weak_leading_gaussian(t_ps, st, response=None) -> np.ndarray:
     """(n,) bool: slot states whose earliest Gaussian is weak and just before a much larger
     onset -- the geometry :func:`decomposition.stages.quality.weak_direct` flags AMBIGUOUS in the
     output, read on a slot state labelled and rendered as the output is (``t_ps`` (L,) the
     sample times).  Such a Gaussian is often not the direct but a patch on its leading edge
     (4 ps bins, PSFs narrower than a bin: a Gaussian one bin before the true direct, at 10-15 %
-    of its height, the direct labelled an inter-reflection)."""
+    of its height, the direct labelled an inter-reflection).  ``response``: the atoms are a
+    measured response's."""
     n, K = st["fam"].shape
     params, _ = classify(st, np.ones(n), max(K - 1, 0))      # every later Gaussian an inter-reflection
     T = float(t_ps[1] - t_ps[0]) if t_ps.size > 1 else 1.0
-    return weak_direct(params, render_params(params, t_ps.size, T, float(t_ps[0])), t_ps)
+    return weak_direct(params, render_params(params, t_ps.size, T, float(t_ps[0]), irf=response), t_ps)
 
 
 def _split_distance(a, b):
@@ -473,8 +474,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
 
     base = {k: v.copy() for k, v in st.items()}
     s_sig = s_eff if significance_sigma is None else significance_sigma
-    comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2, weights)
-    r0 = mask.residual(p, render(t, base))
+    comp.threshold(base, t, opts.rel_threshold, s_sig, opts.significance_chi2, weights, irf=dic.response)
+    r0 = mask.residual(p, render(t, base, dic.response))
     # read in the call's correlated noise where it has one, as the objectives below (pink: in
     # sample variances nearly every pixel's data term is above its expectation, and in doubt)
     chi0 = data_term(r0, s2 if noise_spectrum is None
@@ -516,7 +517,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # rule; measured: docs/history.md)
     rest = np.nonzero(~doubt)[0]
     if rest.size:
-        doubt[rest] |= weak_leading_gaussian(t, take(base, rest))
+        doubt[rest] |= weak_leading_gaussian(t, take(base, rest), dic.response)
     if weighted_doubt and weights is not None:
         doubt |= (weights != 1).any(axis=1)
     idx = np.nonzero(doubt)[0]
@@ -601,7 +602,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     js = []
     sj2 = objective_variance(noise_b, None if objective_sigma is None else objective_sigma[idx], wb, noise_spectrum)
     for c in cand:
-        js.append(penalised_objective(t, pb, mb, c, sj2, log_l[idx], opts))
+        js.append(penalised_objective(t, pb, mb, c, sj2, log_l[idx], opts, dic.response))
     js = np.stack(js)                                   # (starts, m)
     if allow_later and opts.grow:
         # where even the best start still misfits (its data term above search_doubt_chi2 times
@@ -627,7 +628,8 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
             put(cand[i], rows, grown)
             s2_rows = objective_variance(noise_b[rows], None if objective_sigma is None else objective_sigma[idx][rows],
                                          None if wb is None else wb[rows], noise_spectrum)
-            js[i, rows] = penalised_objective(t, pb[rows], mb[rows], grown, s2_rows, log_l[idx][rows], opts)
+            js[i, rows] = penalised_objective(t, pb[rows], mb[rows], grown, s2_rows, log_l[idx][rows], opts,
+                                              dic.response)
     if not opts.sss_alone:
         # the paper's model gives every pixel a direct: a start that lost it competes only
         # where every start did
@@ -653,12 +655,13 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     # for one over the other, read on Kass and Raftery's scale (J. Am. Stat. Assoc. 90, 773
     # (1995): a difference in BIC above 10 is "very strong").
     j_best = js[best, np.arange(idx.size)]
-    split_best = _split(t, chosen)
+    split_best = _split(t, chosen, dic.response)
     amb = np.zeros(idx.size, bool)
     tol = ambiguity_tolerance("evidence", opts)
     for k, c in enumerate(cand):
         amb |= is_ambiguous(js[k] - j_best, tol,
-                            lambda r, c=c: _split_distance(_split(t, take(c, r)), [x[r] for x in split_best]),
+                            lambda r, c=c: _split_distance(_split(t, take(c, r), dic.response),
+                                                                   [x[r] for x in split_best]),
                             opts.ambiguity_split, where=best != k)
     if not opts.sss_alone:
         amb |= ~(chosen["fam"] == FAM_GAUSS).any(axis=1) & (chosen["fam"] == FAM_SSS).any(axis=1)

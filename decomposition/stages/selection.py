@@ -102,13 +102,13 @@ def penalised(chi2, k, log_n, weight: float = 1.0) -> np.ndarray:
     return chi2 + penalty(k, log_n, weight)
 
 
-def penalised_objective(t, p, mask, st, variance, log_n, opts) -> np.ndarray:
+def penalised_objective(t, p, mask, st, variance, log_n, opts, response=None) -> np.ndarray:
     """(n,) J of a slot state ``st`` on the data ``p`` (n, L) and its sample mask ``mask`` (a
     :class:`decomposition.model.slots`-style mask with ``residual``): the data term of the
     rendered residual in ``variance`` (:func:`data_term`), plus ``opts.search_penalty`` k ln n,
     ``log_n`` (n,) and k counting one width per pixel with ``opts.shared_sigma``, else one per
-    atom."""
-    chi2 = data_term(mask.residual(p, render(t, st)), variance)
+    atom; ``response``: the atoms are a measured response's (:func:`decomposition.model.slots.render`)."""
+    chi2 = data_term(mask.residual(p, render(t, st, response)), variance)
     return penalised(chi2, free_parameters(st["fam"], "shared" if opts.shared_sigma else "per_atom"), log_n,
                      opts.search_penalty)
 
