@@ -174,6 +174,7 @@ def _detect(c: _Call) -> None:
     samples, opts = c.samples, c.opts
     if c.response is not None:
         c.rfit = rp.detect(samples, c.response, c.grid, opts, c.fams, hold=c.hold)
+        c.dic, c.det = c.rfit.dic, rp.slot_detection(c.rfit, samples)
         return
     if not c.convscd:
         c.info.update(c.method_options)
@@ -212,7 +213,7 @@ def _correlated_noise(c: _Call) -> None:
 
 
 def _search(c: _Call) -> None:
-    if not (c.convscd and c.opts.search):
+    if not (c.method == "convscd" and c.opts.search):
         return
     found = search_components(c.samples, c.det, c.dic, c.opts, c.fams, c.osig)
     c.det = dataclasses.replace(c.det, state=found.state)
@@ -268,7 +269,7 @@ def _count_grow(c: _Call) -> None:
 
 def _label(c: _Call) -> None:
     if c.response is not None:
-        rp.label(c.rfit, c.samples, c.opts)
+        rp.label(c.rfit, c.samples, c.opts, c.det.state)
         return
     if not c.convscd:
         return
@@ -385,8 +386,9 @@ def _finish(c: _Call) -> None:
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
-#: response (``irf=``) runs prepare, detect, label, refit, forward_steps, offset_test, final_atoms,
-#: quality, rescue and finish, its detect, label and refit over the response's atoms
+#: response (``irf=``) runs prepare, detect, search (where ``search=True``), label, refit,
+#: forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect, search, label
+#: and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
@@ -486,7 +488,7 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
     keywords = dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps, components=components,
                     nan_policy=nan_policy, saturation_level=saturation_level, **options)
     call = _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
-                 saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams),
+                 saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams, response=irf is not None),
                  method_options=method_options, irf=irf, keywords=keywords, background=background, hold=hold)
     for stage in STAGES:
         stage.run(call)

@@ -270,8 +270,11 @@ class SolverOptions:
     noise: str = "auto"
     #: Structured alternative starts for the pixels whose first answer is in doubt, each
     #: polished, the lowest penalised objective kept (:mod:`decomposition.stages.search`);
-    #: ``info["search_wins"]`` counts which start each searched pixel kept.
-    search: bool = True
+    #: ``info["search_wins"]`` counts which start each searched pixel kept.  None: on for the
+    #: Gaussian PSF, off with a measured response (``irf=``), where it runs over the response's
+    #: atoms at about 1.5 times the call's time for a few hundredths of fidelity
+    #: (docs/instrument-response.md).
+    search: bool | None = None
     #: Forward step after the search: a Gaussian at a significant resolved residual bump, and
     #: at the peak of an sss that peaks late, kept where the penalised objective is lower
     #: (:mod:`decomposition.stages.grow`; ``info["grown"]``, ``info["swapped"]``); count data
@@ -319,10 +322,11 @@ class SolverOptions:
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "search", "grow", "prune", "rescue",
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "grow", "prune", "rescue",
                      "signal_noise", "whiten"):
             _set(self, name, _flag(name, getattr(self, name)))
-        _set(self, "stderr", _flag("stderr", self.stderr, allow_none=True))
+        for name in ("stderr", "search"):
+            _set(self, name, _flag(name, getattr(self, name), allow_none=True))
         for name in ("max_components", "block_size"):
             _set(self, name, _number(name, getattr(self, name), lo=1, integer=True))
         _set(self, "max_reflections", _number("max_reflections", self.max_reflections, lo=0, integer=True))
@@ -342,12 +346,14 @@ class SolverOptions:
             raise OptionError(f"option signal_noise_law: must be one of {', '.join(SIGNAL_NOISE_LAWS)}, "
                               f"got {self.signal_noise_law!r}")
 
-    def resolved(self, components) -> "SolverOptions":
-        """Defaults that depend on other settings filled in: ``max_iter``, ``stderr``, and
-        ``max_reflections`` = 0 without the inter-reflection family."""
+    def resolved(self, components, response: bool = False) -> "SolverOptions":
+        """Defaults that depend on other settings filled in: ``max_iter``, ``stderr``, ``search``
+        (off with a measured ``response``), and ``max_reflections`` = 0 without the
+        inter-reflection family."""
         return dataclasses.replace(
             self, max_iter=self.max_components + 2 if self.max_iter is None else self.max_iter,
             stderr=self.refine if self.stderr is None else self.stderr,
+            search=not response if self.search is None else self.search,
             max_reflections=self.max_reflections if "r" in components else 0)
 
 

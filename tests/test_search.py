@@ -148,7 +148,7 @@ def test_search_options_are_validated_in_the_solver_options():
         SolverOptions(search_penalty=-1.0)
     with pytest.raises((ValueError, OptionError), match="search"):
         SolverOptions(search="yes please")
-    assert SolverOptions().search is True
+    assert SolverOptions().search is None and SolverOptions().resolved("drs").search is True
 
 
 def test_ambiguous_flag_on_an_undetermined_split_and_not_on_a_clear_one():

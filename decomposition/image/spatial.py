@@ -241,7 +241,7 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
     nan_policy = kw.pop("nan_policy", _decompose_default("nan_policy"))
     saturation = kw.pop("saturation_level", _decompose_default("saturation_level"))
     grid, opts, _ = options_from_mapping(kw, strict=False)
-    opts = opts.resolved(fams)
+    opts = opts.resolved(fams, response=irf is not None)
     axis = time_axis(time_bin_ps, t0)
     samples = prepare_samples(cube.reshape(Y * X, L), axis, grid, nan_policy=nan_policy, saturation_level=saturation,
                               noise_floor=opts.noise_floor, rel_threshold=opts.rel_threshold, noise=opts.noise,

@@ -5,8 +5,10 @@
 Gaussian path's, given the response, and so is ``rescue`` (the whole path again, differently
 started); ``detect`` (ConvSCD over the response's dictionary), ``label`` and ``refit`` run the
 functions here on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms``
-are the response's own; the stages between ``detect`` and ``label`` (the search, grow, prune
-and count steps of the Gaussian dictionary) do not apply.  Each function here reads and
+are the response's own; of the stages between ``detect`` and ``label`` the search runs where it
+is asked for (``search=True``: the Gaussian path's code, over the response's atoms, on the
+detection as :func:`slot_detection` hands it on), the grow, prune and count steps of the
+Gaussian dictionary do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
@@ -44,6 +46,7 @@ from ..constants import FAM_GAUSS, FAM_SSS, SSS_SLOT
 from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
+from ..stages.detect import Detection
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
 from .detect import detect_response, response_dictionary
@@ -51,7 +54,7 @@ from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
 
-__all__ = ["ResponseFit", "ResponseOutcome", "detect", "label", "refit", "forward_steps", "offset_test",
+__all__ = ["ResponseFit", "ResponseOutcome", "detect", "slot_detection", "label", "refit", "forward_steps", "offset_test",
            "final_atoms"]
 
 
@@ -122,10 +125,21 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     return rf
 
 
-def label(rf: ResponseFit, samples: Samples, opts: SolverOptions) -> None:
-    """Threshold, merge and name the detected atoms (:func:`decomposition.response.label.label_response`)."""
+def slot_detection(rf: ResponseFit, samples: Samples) -> Detection:
+    """The detection as the stages over ConvSCD's slot state read it (the search,
+    :mod:`decomposition.stages.search`, with ``search=True``): every live pixel's atoms, the
+    call's noise."""
+    P = samples.values.shape[0]
+    return Detection(state=rf.det.state, converged=rf.det.converged, objective=np.full((P, 1), np.nan),
+                     n_iter=_scatter(P, samples.live, rf.det.n_iter, 0), noise_eff=samples.noise_eff,
+                     lm_iterations=0, restarted=rf.det.restarted)
+
+
+def label(rf: ResponseFit, samples: Samples, opts: SolverOptions, state: dict) -> None:
+    """Threshold, merge and name the atoms of ``state`` (the detection's slot state, searched
+    where the search ran; :func:`decomposition.response.label.label_response`)."""
     live = samples.live
-    rf.params, rf.trunc = label_response(rf.det.state, rf.irf, rf.t, samples.scale[live], rf.sigma_eq_ps,
+    rf.params, rf.trunc = label_response(state, rf.irf, rf.t, samples.scale[live], rf.sigma_eq_ps,
                                          opts.max_reflections, opts, time_bin_ps=samples.axis.time_bin_ps,
                                          noise=samples.significance_sigma(live, samples.noise_eff[live]))
 
