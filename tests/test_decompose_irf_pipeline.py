@@ -143,3 +143,18 @@ def test_spatial_coupling_with_the_cube_response(cubes, irf, tmp_path):
     assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(tmp_path / "auto.zarr"), "--quiet"]) == 0
     job = open_result_store(str(tmp_path / "auto.zarr")).attrs["job"]
     assert "spatial" in job and "shared" not in job
+
+
+def test_the_search_runs_with_the_cube_response_where_asked(cubes, irf):
+    """``--option search=true`` reaches the response path: the store records it, and its
+    parameters are those of ``decompose(..., irf=R, search=True)``."""
+    tmp, data, d = cubes
+    out = tmp / "res_search.zarr"
+    assert main(["decompose", str(tmp / "with_irf.zarr"), "--out", str(out), "--quiet", "--per-pixel",
+                 "--option", "search=true"]) == 0
+    store = open_result_store(str(out))
+    assert store.attrs["options"]["search"] is True
+    ref = decompose(data.astype(np.float64), T, irf=irf, search=True)
+    assert ref.info["search"] is True and "search_wins" in ref.info
+    np.testing.assert_allclose(store.params()["direct_delay_ps"], ref.params["direct_delay_ps"], atol=1e-4)
+    assert np.abs(store.params()["direct_delay_ps"] - d).max() < 0.5
