@@ -322,8 +322,8 @@ class SolverOptions:
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "grow", "prune", "rescue",
-                     "signal_noise", "whiten"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "grow", "prune",
+                     "rescue", "signal_noise", "whiten"):
             _set(self, name, _flag(name, getattr(self, name)))
         for name in ("stderr", "search"):
             _set(self, name, _flag(name, getattr(self, name), allow_none=True))

@@ -54,8 +54,8 @@ from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
 
-__all__ = ["ResponseFit", "ResponseOutcome", "detect", "slot_detection", "label", "refit", "forward_steps", "offset_test",
-           "final_atoms"]
+__all__ = ["ResponseFit", "ResponseOutcome", "detect", "slot_detection", "label", "refit", "forward_steps",
+           "offset_test", "final_atoms"]
 
 
 @dataclass(frozen=True)

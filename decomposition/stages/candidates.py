@@ -103,8 +103,8 @@ def residual_significance_noise(samples, det, dic, opts) -> np.ndarray:
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         px = live[rows]
         p, mask = solver_inputs(samples, px)
-        lagged = lagged_noise_sigma(mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)),
-                                    mask.fit, lag)
+        model = render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)
+        lagged = lagged_noise_sigma(mask.residual(p, model), mask.fit, lag)
         white = lagged <= WHITE_LAG_RATIO * det.noise_eff[px]
         out[px] = np.where(white, lagged, out[px])
     return out
@@ -142,7 +142,8 @@ def correlated_noise_spectrum(samples, det, dic, opts, lagged) -> np.ndarray | N
     for b0 in range(0, live.size, opts.block_size):
         rows = np.arange(b0, min(b0 + opts.block_size, live.size))
         p, mask = solver_inputs(samples, live[rows])
-        resid = mask.residual(p, render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)) / noise[rows, None]
+        model = render(t, {k: v[rows] for k, v in det.state.items()}, dic.response)
+        resid = mask.residual(p, model) / noise[rows, None]
         power[rows] = periodogram(resid)
     return residual_spectrum(power=power)
 

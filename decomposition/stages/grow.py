@@ -376,7 +376,8 @@ def grow_count_block(counts, fit, p, mask, st, scale, noise, dispersion, backgro
     kept = np.all(alt["fam"] == fam_trial, axis=1)
     resolved = min_gaussian_gap_sigma(alt) >= np.minimum(RESOLVED_SIGMA, min_gaussian_gap_sigma(base))
     dev_cur = count_deviance(y[tried], mu[tried], f[tried], disp[idx])
-    dev_alt = count_deviance(y[tried], render(t, alt, dic.response) * scale[idx, None] + bg[idx, None], f[tried], disp[idx])
+    dev_alt = count_deviance(y[tried], render(t, alt, dic.response) * scale[idx, None] + bg[idx, None], f[tried],
+                             disp[idx])
     w = np.flatnonzero(kept & resolved & (dev_cur - dev_alt >= opts.significance_chi2))
     if w.size:
         put(out, idx[w], take(alt, w))

@@ -79,7 +79,8 @@ def prune_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=
     sigma_ps = np.exp(np.where(g, moved["lsig"], -np.inf).max(axis=1))
     moved["delay"] = np.where(moved["fam"] == FAM_SSS, (d0 + PRUNE_ONSET_SIGMA * sigma_ps)[:, None], moved["delay"])
     best = cur
-    j_best = penalised_objective(t, pb, mb, cur, objective_variance(noise, s_sig[idx], wb, spectrum), log_n, opts, dic.response)
+    j_best = penalised_objective(t, pb, mb, cur, objective_variance(noise, s_sig[idx], wb, spectrum), log_n, opts,
+                                 dic.response)
     won = np.zeros(idx.size, bool)
 
     def polished(state, rows):
