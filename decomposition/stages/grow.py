@@ -249,18 +249,23 @@ def late_fast_sss(t_ps, st, d0_ps, sigma_ps, response=None):
     width ``sigma_ps`` (n,): -> (the sss's slot (n,), its hump's mode in ps (n,), passes (n,)
     bool): the hump peaks more than ``SWAP_MODE_GAP_SIGMA`` widths after the direct and decays
     fast enough against the PSF to pass for a Gaussian (alpha sigma >= ``SWAP_MIN_ALPHA_SIGMA``).
-    A pixel without an sss reads its first slot: the caller leaves such pixels out.  ``response``:
-    the atoms are a measured response's."""
+    A pixel without an sss does not pass (its mode NaN, its slot the first).  ``response``: the
+    atoms are a measured response's."""
     n = st["fam"].shape[0]
     r = np.arange(n)
     ss = np.argmax(st["fam"] == FAM_SSS, axis=1)
-    hump = eval_atoms(t_ps, np.full(n, FAM_SSS, np.int8), st["delay"][r, ss], st["lsig"][r, ss], st["lalp"][r, ss],
-                      response)
-    mode_ps = t_ps[np.argmax(hump, axis=1)]
+    has = (st["fam"] == FAM_SSS).any(axis=1)
+    h, sh = np.flatnonzero(has), ss[has]
+    mode_ps = np.full(n, np.nan)
+    if h.size:
+        hump = eval_atoms(t_ps, np.full(h.size, FAM_SSS, np.int8), st["delay"][h, sh], st["lsig"][h, sh],
+                          st["lalp"][h, sh], response)
+        mode_ps[h] = t_ps[np.argmax(hump, axis=1)]
     # an sss decaying slowly against the PSF (small alpha sigma) has a hump far broader than a
     # Gaussian's: it takes in none
-    steep = np.exp(st["lalp"][r, ss]) * sigma_ps >= SWAP_MIN_ALPHA_SIGMA
-    return ss, mode_ps, steep & (mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps)
+    with np.errstate(invalid="ignore"):
+        steep = np.exp(st["lalp"][r, ss]) * sigma_ps >= SWAP_MIN_ALPHA_SIGMA
+        return ss, mode_ps, has & steep & (mode_ps - d0_ps > SWAP_MODE_GAP_SIGMA * sigma_ps)
 
 
 def swap_block(p, mask, st, s_eff, dic, opts, significance_sigma=None, weights=None, spectrum=None):
