@@ -174,7 +174,7 @@ def _detect(c: _Call) -> None:
     samples, opts = c.samples, c.opts
     if c.response is not None:
         c.rfit = rp.detect(samples, c.response, c.grid, opts, c.fams, hold=c.hold)
-        c.dic, c.det = c.rfit.dic, rp.slot_detection(c.rfit, samples)
+        c.dic, c.det = c.rfit.dic, c.rfit.det
         return
     if not c.convscd:
         c.info.update(c.method_options)

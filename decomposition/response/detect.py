@@ -14,8 +14,6 @@ refinement with the offset, the forward steps -- is the response path's
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from ..constants import FAM_NONE, FAM_SSS
@@ -23,23 +21,10 @@ from ..kernels.pickcorr import PickWorkspace
 from ..methods import convscd as cs
 from ..methods.dictionary import Dictionary, get_dictionary
 from ..options import GridSpec, SolverOptions
-from ..stages.detect import solver_inputs, solver_options
+from ..stages.detect import Detection, solver_inputs, solver_options
 from ..stages.prepare import Samples
 
-__all__ = ["ResponseDetection", "detect_response", "response_dictionary"]
-
-
-@dataclass(frozen=True)
-class ResponseDetection:
-    """Atoms of the live pixels: ``state`` (n, K) slot arrays ``fam``, ``delay``, ``lalp``,
-    ``amp`` (rows follow ``samples.live``; NaN delays and log alphas where a slot is empty),
-    ``n_iter`` (n,) outer iterations, ``converged`` (n,) the solve stopped before ``max_iter``,
-    ``restarted`` pixels that ran the second (unrestricted) start."""
-
-    state: dict
-    n_iter: np.ndarray
-    converged: np.ndarray
-    restarted: int = 0
+__all__ = ["detect_response", "response_dictionary"]
 
 
 def response_dictionary(irf, samples: Samples, grid: GridSpec, components) -> Dictionary:
@@ -49,14 +34,19 @@ def response_dictionary(irf, samples: Samples, grid: GridSpec, components) -> Di
                           response=irf)
 
 
-def detect_response(samples: Samples, dic: Dictionary, opts: SolverOptions, components) -> ResponseDetection:
-    """ConvSCD's detection for every live pixel, ``opts.block_size`` at a time."""
+def detect_response(samples: Samples, dic: Dictionary, opts: SolverOptions, components) -> Detection:
+    """ConvSCD's detection for every live pixel, ``opts.block_size`` at a time: the
+    :class:`~decomposition.stages.detect.Detection` the stages over the slot state read (the
+    search), its slots' delays and log alphas NaN where a slot is empty or not an sss."""
     live = samples.live
     n, K = live.size, opts.max_components
     st = {"fam": np.zeros((n, K), np.int8), "delay": np.full((n, K), np.nan), "lsig": np.zeros((n, K)),
           "lalp": np.full((n, K), np.nan), "amp": np.zeros((n, K)), "pen": np.ones((n, K))}
-    n_iter = np.zeros(n, np.int64)
+    P = samples.values.shape[0]
+    hist = np.full((P, opts.max_iter + 1), np.nan)
+    n_iter = np.zeros(P, np.int64)
     conv = np.zeros(n, bool)
+    lm_total = 0
     solve_opts = solver_options(opts, components, PickWorkspace())
     restarted = 0
     for lo in range(0, n, opts.block_size):
@@ -72,7 +62,10 @@ def detect_response(samples: Samples, dic: Dictionary, opts: SolverOptions, comp
         st["amp"][sl] = np.where(fam != FAM_NONE, got["amp"], 0.0)
         st["lsig"][sl] = got["lsig"]
         st["pen"][sl] = got["pen"]
-        n_iter[sl] = info["n_iter"]
+        hist[rows] = info["objective"]
+        n_iter[rows] = info["n_iter"]
         conv[sl] = info["converged"]
+        lm_total += info["lm_iterations"]
         restarted += int(info["restarted"])
-    return ResponseDetection(state=st, n_iter=n_iter, converged=conv, restarted=restarted)
+    return Detection(state=st, converged=conv, objective=hist, n_iter=n_iter, noise_eff=samples.noise_eff,
+                     lm_iterations=lm_total, restarted=restarted)

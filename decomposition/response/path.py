@@ -6,9 +6,8 @@ Gaussian path's, given the response, and so is ``rescue`` (the whole path again,
 started); ``detect`` (ConvSCD over the response's dictionary), ``label`` and ``refit`` run the
 functions here on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms``
 are the response's own; of the stages between ``detect`` and ``label`` the search runs where it
-is asked for (``search=True``: the Gaussian path's code, over the response's atoms, on the
-detection as :func:`slot_detection` hands it on), the grow, prune and count steps of the
-Gaussian dictionary do not apply.  Each function here reads and
+is asked for (``search=True``: the Gaussian path's code, over the response's atoms, on its
+detection), the grow, prune and count steps of the Gaussian dictionary do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
@@ -46,7 +45,6 @@ from ..constants import FAM_GAUSS, FAM_SSS, SSS_SLOT
 from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
 from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
-from ..stages.detect import Detection
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
 from .detect import detect_response, response_dictionary
@@ -54,7 +52,7 @@ from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
 
-__all__ = ["ResponseFit", "ResponseOutcome", "detect", "slot_detection", "label", "refit", "forward_steps",
+__all__ = ["ResponseFit", "ResponseOutcome", "detect", "label", "refit", "forward_steps",
            "offset_test", "final_atoms"]
 
 
@@ -83,7 +81,7 @@ class ResponseFit:
     b_est: np.ndarray           # (n,) the offset's first estimate (0 without the b family)
     with_bg: bool
     dic: object = None          # methods.dictionary.Dictionary over the response
-    det: object = None          # response.detect's detection
+    det: object = None          # the detection (stages.detect.Detection)
     params: dict | None = None  # the labels (n-shaped)
     trunc: np.ndarray | None = None
     slots: Slots | None = None
@@ -123,16 +121,6 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     rf.dic = response_dictionary(irf, samples, grid, components)
     rf.det = detect_response(samples, rf.dic, opts, components)
     return rf
-
-
-def slot_detection(rf: ResponseFit, samples: Samples) -> Detection:
-    """The detection as the stages over ConvSCD's slot state read it (the search,
-    :mod:`decomposition.stages.search`, with ``search=True``): every live pixel's atoms, the
-    call's noise."""
-    P = samples.values.shape[0]
-    return Detection(state=rf.det.state, converged=rf.det.converged, objective=np.full((P, 1), np.nan),
-                     n_iter=_scatter(P, samples.live, rf.det.n_iter, 0), noise_eff=samples.noise_eff,
-                     lm_iterations=0, restarted=rf.det.restarted)
 
 
 def label(rf: ResponseFit, samples: Samples, opts: SolverOptions, state: dict) -> None:
@@ -229,7 +217,7 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
             "restarted": det.restarted,
             "response_alphas_per_ps": [float(a) for a in rf.alphas_per_ps],
             **rf.grow_info,
-            "n_iter": _scatter(P, live, det.n_iter, 0).reshape(samples.lead),
+            "n_iter": det.n_iter.reshape(samples.lead),
             "refine_iterations": _scatter(P, live, iterations, 0).reshape(samples.lead)}
     if rf.with_bg:
         info["background_chi2"] = rf.background_chi2.reshape(samples.lead)
