@@ -88,9 +88,8 @@ def refit_amplitudes(p, mask: SampleMask, st, dic: Dictionary):
     if dic.response is not None:
         t = dic.t0_ps + dic.time_bin_ps * np.arange(p.shape[1])
         st["amp"] = response_amplitudes(dic.response, t, p, mask.fit, st)
-        drop_zero(st)
-        return st
-    st["amp"] = nnls_amplitudes(dic.t0_ps, dic.time_bin_ps, p, mask.fit, st["fam"], st["amp"], st["delay"],
-                                st["lsig"], st["lalp"], sweeps=20)
+    else:
+        st["amp"] = nnls_amplitudes(dic.t0_ps, dic.time_bin_ps, p, mask.fit, st["fam"], st["amp"], st["delay"],
+                                    st["lsig"], st["lalp"], sweeps=20)
     drop_zero(st)
     return st

@@ -220,7 +220,7 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         step = np.where(finite[:, None], step, 0.0)
         f = fam[idx]
         nd, nl = project_slots(f, state["delay"][idx] + step[:, :K], state["lalp"][idx] + step[:, K:2 * K],
-                          delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
+                               delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
         if held is not None:
             nd = np.where(h_d[idx], state["delay"][idx], nd)
             nl = np.where(h_l[idx], state["lalp"][idx], nl)
