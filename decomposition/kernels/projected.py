@@ -350,207 +350,223 @@ def projected_normal_equations(t, y, rows, theta, present, free, sw, bg, amp, as
     n = theta.shape[0]
     L = y.shape[1]
     K = present.shape[1]
+    has_amp = amp.shape[0] == n
+    has_r = r_row.shape[0] == n
     P = theta.shape[1]
+    work = equation_scratch(L, K, P, jac, inst)
+    r_own = np.empty(L)
+    no_amp = np.zeros(K)
+    no_a = np.zeros((P, P))
+    no_g = np.zeros(P)
+    step_t = uniform_step(t, increasing)
+    for p in range(n):
+        rss_out[p] = pixel_equations(t, y, rows[p], theta[p], present[p], free[p], sw, bg[p],
+                                     amp[p] if has_amp else no_amp, has_amp, assign, dslot, shared, increasing, jac,
+                                     c_out[p], a_out[p] if jac else no_a, g_out[p] if jac else no_g,
+                                     r_out[r_row[p]] if has_r else r_own, inst, step_t, work)
+
+
+@njit
+def equation_scratch(L, K, P, jac, inst):
+    """The scratch of :func:`pixel_equations` for profiles of ``L`` samples, ``K`` slots and ``P``
+    nonlinear parameters (``jac``: with the derivative rows), atoms ``inst`` (:func:`instrument`)."""
+    Q = 2 * K + 1
+    R = 3 * K + 2 if jac else K + 1
+    return (np.zeros((R, L)), np.zeros(R, np.int64), np.zeros(R, np.int64), np.zeros((R, R)), np.zeros((K, K)),
+            np.zeros((K, 1 + P)), np.zeros(K, np.int64), np.empty(L), np.zeros((P, Q)), np.zeros(Q), np.zeros((Q, P)),
+            np.zeros((K, K)), np.zeros((K, P)), np.zeros(P, np.int64), np.zeros(Q, np.int64), atom_scratch(inst))
+
+
+@njit
+def pixel_equations(t, y, yp, theta_p, present_p, free_p, sw, bg_p, amp_p, has_amp, assign, dslot, shared, increasing,
+                    jac, c_p, a_p, g_p, r, inst, step_t, work):
+    """One pixel of :func:`projected_normal_equations`: its data row ``yp`` of ``y`` (and ``sw``),
+    its parameters ``theta_p`` (P,), slots ``present_p`` (K,), free parameters ``free_p`` (P,),
+    offset flag ``bg_p`` and amplitude prior row ``amp_p`` (K,, read where ``has_amp``).  Writes
+    its amplitudes into ``c_p`` (K,), with ``jac`` J^T J into ``a_p`` (P, P) and J^T r into ``g_p``
+    (P,), its weighted residual into ``r`` (L,); ``step_t`` of :func:`uniform_step`, ``work`` of
+    :func:`equation_scratch`.  -> the RSS."""
+    m, lo, hi, mm, gram, rhs, piv, u, w, dr, vw, g2, bx, jl, ql, scratch = work
+    L = y.shape[1]
+    K = present_p.shape[0]
+    P = theta_p.shape[0]
     Q = 2 * K + 1
     R = 3 * K + 2 if jac else K + 1
     has_sw = sw.shape[0] > 0
-    has_amp = amp.shape[0] == n
-    has_r = r_row.shape[0] == n
-    m = np.zeros((R, L))
-    lo = np.zeros(R, np.int64)
-    hi = np.zeros(R, np.int64)
-    mm = np.zeros((R, R))
-    gram = np.zeros((K, K))
-    rhs = np.zeros((K, 1 + P))
-    piv = np.zeros(K, np.int64)
-    u = np.empty(L)
-    r_own = np.empty(L)
-    w = np.zeros((P, Q))
-    dr = np.zeros(Q)
-    vw = np.zeros((Q, P))
-    g2 = np.zeros((K, K))
-    bx = np.zeros((K, P))
-    jl = np.zeros(P, np.int64)
-    ql = np.zeros(Q, np.int64)
-    dummy = np.empty(0)
-    step_t = uniform_step(t, increasing)
     table = inst[0].size > 0
-    scratch = atom_scratch(inst)
-    for p in range(n):
-        yp = rows[p]
-        swp = sw[yp] if has_sw else dummy
-        for row in range(R):
-            lo[row] = 0
-            hi[row] = 0
-        lo[R - 1] = 0
-        hi[R - 1] = L
-        for i in range(L):
-            m[R - 1, i] = y[yp, i]
-        a_p = math.exp(theta[p, P - 1])
-        for slot in range(K):
-            if not present[p, slot]:
-                continue
-            d = theta[p, slot]
-            sss = slot == SSS_SLOT
-            s = 1.0 if table else math.exp(theta[p, K] if shared else theta[p, K + slot])
-            j0, j1 = atom_rows(t, m, K, slot, sss, d, s, a_p, inst, swp, has_sw, jac, increasing, step_t, scratch)
-            rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
-            for row in rows_here:
-                lo[row] = j0
-                hi[row] = j1
-            if jac and table:
-                # a response has no width: its row is empty (no sum reads it)
-                lo[2 * K + slot] = 0
-                hi[2 * K + slot] = 0
-            if jac and sss:
-                lo[3 * K] = j0
-                hi[3 * K] = j1
-        if bg[p]:
-            uu = 0.0
-            for i in range(L):
-                u[i] = swp[i] if has_sw else 1.0
-                uu += u[i] * u[i]
-            norm = math.sqrt(uu if uu > 0.0 else 1.0)
-            for i in range(L):
-                u[i] = u[i] / norm
-            for row in range(R):
-                if hi[row] <= lo[row]:
-                    continue
-                acc = 0.0
-                for i in range(lo[row], hi[row]):
-                    acc += m[row, i] * u[i]
-                if row < R - 1:
-                    for i in range(0, lo[row]):
-                        m[row, i] = 0.0
-                    for i in range(hi[row], L):
-                        m[row, i] = 0.0
-                for i in range(L):
-                    m[row, i] -= acc * u[i]
-                lo[row] = 0
-                hi[row] = L
-        # the Gram product of the stacked rows over the overlaps of their supports
-        for a in range(R):
-            for b in range(a, R):
-                if b == R - 1 and a >= K:
-                    # the derivative rows' products with the data are never read (J^T r is
-                    # taken against the residual below)
-                    continue
-                acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
-                if has_amp and a < K and b < K:
-                    acc += amp[p, a] * amp[p, b]
-                mm[a, b] = acc
-                mm[b, a] = acc
-        # the amplitudes: the regularised Gram matrix (an identity row for an absent slot)
-        top = 0.0
-        for k in range(K):
-            if present[p, k]:
-                top = max(top, mm[k, k])
-        for k in range(K):
-            for j in range(K):
-                gram[k, j] = mm[k, j] if (present[p, k] and present[p, j]) or k != j else 0.0
-            gram[k, k] = (mm[k, k] + (1e-13 * top + 1e-300)) if present[p, k] else 1.0
-            rhs[k, 0] = mm[k, R - 1]
-        for k in range(K):
-            for j in range(K):
-                g2[k, j] = gram[k, j]
-        _lu_solve(g2, rhs, K, 1, piv)
-        for k in range(K):
-            c_out[p, k] = rhs[k, 0] if present[p, k] else 0.0
-        # the residual, in its row of r_out where it is kept
-        r = r_out[r_row[p]] if has_r else r_own
-        for i in range(L):
-            r[i] = m[R - 1, i]
-        for k in range(K):
-            if present[p, k]:
-                ck = c_out[p, k]
-                for i in range(lo[k], hi[k]):
-                    r[i] -= ck * m[k, i]
-        rss = 0.0
-        for i in range(L):
-            rss += r[i] * r[i]
-        if has_amp:
-            v = 0.0
-            for k in range(K):
-                v -= c_out[p, k] * amp[p, k]
-            rss += v * v
-        rss_out[p] = rss
-        if not jac:
+    dummy = np.empty(0)
+    swp = sw[yp] if has_sw else dummy
+    for row in range(R):
+        lo[row] = 0
+        hi[row] = 0
+    lo[R - 1] = 0
+    hi[R - 1] = L
+    for i in range(L):
+        m[R - 1, i] = y[yp, i]
+    alpha_p = math.exp(theta_p[P - 1])
+    for slot in range(K):
+        if not present_p[slot]:
             continue
-        # the parameters the normal equations carry (jl, nj of them) and the derivative rows those
-        # read (ql, nq): all of them for the Gaussian PSF's atoms; for a response's table atoms the
-        # free parameters only (its widths are always held), whose rows and columns are the only
-        # non-zero ones, and the rows that some free parameter maps onto
-        nj = 0
-        for j in range(P):
-            if free[p, j] or not table:
-                jl[nj] = j
-                nj += 1
-        nq = 0
-        for qq in range(Q):
-            live = not table
-            for jj in range(nj):
-                if assign[jl[jj], qq] != 0.0:
-                    live = True
-            if live:
-                ql[nq] = qq
-                nq += 1
-        for a in range(nq):
-            qq = ql[a]
-            sl = dslot[qq]
-            fr = present[p, sl] if qq < 2 * K else present[p, SSS_SLOT]
-            cq = c_out[p, sl] if fr else 0.0
-            for jj in range(nj):
-                j = jl[jj]
-                w[j, qq] = assign[j, qq] * cq * (1.0 if free[p, j] else 0.0)
-        # dPhi r over the derivative rows (the residual's extra sample has no derivative)
-        for a in range(nq):
-            row = K + ql[a]
+        d = theta_p[slot]
+        sss = slot == SSS_SLOT
+        s = 1.0 if table else math.exp(theta_p[K] if shared else theta_p[K + slot])
+        j0, j1 = atom_rows(t, m, K, slot, sss, d, s, alpha_p, inst, swp, has_sw, jac, increasing, step_t, scratch)
+        rows_here = (slot, K + slot, 2 * K + slot) if jac else (slot, slot, slot)
+        for row in rows_here:
+            lo[row] = j0
+            hi[row] = j1
+        if jac and table:
+            # a response has no width: its row is empty (no sum reads it)
+            lo[2 * K + slot] = 0
+            hi[2 * K + slot] = 0
+        if jac and sss:
+            lo[3 * K] = j0
+            hi[3 * K] = j1
+    if bg_p:
+        uu = 0.0
+        for i in range(L):
+            u[i] = swp[i] if has_sw else 1.0
+            uu += u[i] * u[i]
+        norm = math.sqrt(uu if uu > 0.0 else 1.0)
+        for i in range(L):
+            u[i] = u[i] / norm
+        for row in range(R):
+            if hi[row] <= lo[row]:
+                continue
             acc = 0.0
             for i in range(lo[row], hi[row]):
-                acc += m[row, i] * r[i]
-            dr[ql[a]] = acc
-        # B W^T (rhs[:, 1 + j]) and its solve against the Gram matrix (bx[:, jj])
+                acc += m[row, i] * u[i]
+            if row < R - 1:
+                for i in range(0, lo[row]):
+                    m[row, i] = 0.0
+                for i in range(hi[row], L):
+                    m[row, i] = 0.0
+            for i in range(L):
+                m[row, i] -= acc * u[i]
+            lo[row] = 0
+            hi[row] = L
+    # the Gram product of the stacked rows over the overlaps of their supports
+    for a in range(R):
+        for b in range(a, R):
+            if b == R - 1 and a >= K:
+                # the derivative rows' products with the data are never read (J^T r is
+                # taken against the residual below)
+                continue
+            acc = row_dot(m, a, b, max(lo[a], lo[b]), min(hi[a], hi[b]))
+            if has_amp and a < K and b < K:
+                acc += amp_p[a] * amp_p[b]
+            mm[a, b] = acc
+            mm[b, a] = acc
+    # the amplitudes: the regularised Gram matrix (an identity row for an absent slot)
+    top = 0.0
+    for k in range(K):
+        if present_p[k]:
+            top = max(top, mm[k, k])
+    for k in range(K):
+        for j in range(K):
+            gram[k, j] = mm[k, j] if (present_p[k] and present_p[j]) or k != j else 0.0
+        gram[k, k] = (mm[k, k] + (1e-13 * top + 1e-300)) if present_p[k] else 1.0
+        rhs[k, 0] = mm[k, R - 1]
+    for k in range(K):
+        for j in range(K):
+            g2[k, j] = gram[k, j]
+    _lu_solve(g2, rhs, K, 1, piv)
+    for k in range(K):
+        c_p[k] = rhs[k, 0] if present_p[k] else 0.0
+    # the residual, in its row of r_out where it is kept
+    for i in range(L):
+        r[i] = m[R - 1, i]
+    for k in range(K):
+        if present_p[k]:
+            ck = c_p[k]
+            for i in range(lo[k], hi[k]):
+                r[i] -= ck * m[k, i]
+    rss = 0.0
+    for i in range(L):
+        rss += r[i] * r[i]
+    if has_amp:
+        v = 0.0
         for k in range(K):
-            for jj in range(nj):
-                j = jl[jj]
-                acc = 0.0
-                for b in range(nq):
-                    qq = ql[b]
-                    acc += mm[k, K + qq] * w[j, qq]
-                rhs[k, 1 + j] = acc
-                bx[k, jj] = acc
-        for k in range(K):
-            for j in range(K):
-                g2[k, j] = gram[k, j]
-        _lu_solve(g2, bx, K, nj, piv)
-        for a in range(nq):
-            qa = ql[a]
-            for jj in range(nj):
-                j = jl[jj]
-                acc = 0.0
-                for b in range(nq):
-                    qb = ql[b]
-                    acc += mm[K + qa, K + qb] * w[j, qb]
-                vw[qa, j] = acc
-        if table:
-            for i in range(P):
-                g_out[p, i] = 0.0
-                for j in range(P):
-                    a_out[p, i, j] = 0.0
-        for ii in range(nj):
-            i = jl[ii]
+            v -= c_p[k] * amp_p[k]
+        rss += v * v
+    if not jac:
+        return rss
+    # the parameters the normal equations carry (jl, nj of them) and the derivative rows those
+    # read (ql, nq): all of them for the Gaussian PSF's atoms; for a response's table atoms the
+    # free parameters only (its widths are always held), whose rows and columns are the only
+    # non-zero ones, and the rows that some free parameter maps onto
+    nj = 0
+    for j in range(P):
+        if free_p[j] or not table:
+            jl[nj] = j
+            nj += 1
+    nq = 0
+    for qq in range(Q):
+        live = not table
+        for jj in range(nj):
+            if assign[jl[jj], qq] != 0.0:
+                live = True
+        if live:
+            ql[nq] = qq
+            nq += 1
+    for a in range(nq):
+        qq = ql[a]
+        sl = dslot[qq]
+        fr = present_p[sl] if qq < 2 * K else present_p[SSS_SLOT]
+        cq = c_p[sl] if fr else 0.0
+        for jj in range(nj):
+            j = jl[jj]
+            w[j, qq] = assign[j, qq] * cq * (1.0 if free_p[j] else 0.0)
+    # dPhi r over the derivative rows (the residual's extra sample has no derivative)
+    for a in range(nq):
+        row = K + ql[a]
+        acc = 0.0
+        for i in range(lo[row], hi[row]):
+            acc += m[row, i] * r[i]
+        dr[ql[a]] = acc
+    # B W^T (rhs[:, 1 + j]) and its solve against the Gram matrix (bx[:, jj])
+    for k in range(K):
+        for jj in range(nj):
+            j = jl[jj]
             acc = 0.0
+            for b in range(nq):
+                qq = ql[b]
+                acc += mm[k, K + qq] * w[j, qq]
+            rhs[k, 1 + j] = acc
+            bx[k, jj] = acc
+    for k in range(K):
+        for j in range(K):
+            g2[k, j] = gram[k, j]
+    _lu_solve(g2, bx, K, nj, piv)
+    for a in range(nq):
+        qa = ql[a]
+        for jj in range(nj):
+            j = jl[jj]
+            acc = 0.0
+            for b in range(nq):
+                qb = ql[b]
+                acc += mm[K + qa, K + qb] * w[j, qb]
+            vw[qa, j] = acc
+    if table:
+        for i in range(P):
+            g_p[i] = 0.0
+            for j in range(P):
+                a_p[i, j] = 0.0
+    for ii in range(nj):
+        i = jl[ii]
+        acc = 0.0
+        for a in range(nq):
+            acc += w[i, ql[a]] * dr[ql[a]]
+        g_p[i] = -acc
+        for jj in range(nj):
+            j = jl[jj]
+            s = 0.0
             for a in range(nq):
-                acc += w[i, ql[a]] * dr[ql[a]]
-            g_out[p, i] = -acc
-            for jj in range(nj):
-                j = jl[jj]
-                s = 0.0
-                for a in range(nq):
-                    s += w[i, ql[a]] * vw[ql[a], j]
-                for k in range(K):
-                    s -= rhs[k, 1 + i] * bx[k, jj]
-                a_out[p, i, j] = s
+                s += w[i, ql[a]] * vw[ql[a], j]
+            for k in range(K):
+                s -= rhs[k, 1 + i] * bx[k, jj]
+            a_p[i, j] = s
+    return rss
 
 
 @njit
