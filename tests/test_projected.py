@@ -186,3 +186,74 @@ def test_table_normal_equations_match_numpy(background, monkeypatch):
             held = ~free
             assert np.all(got[2][held[:, :, None] | held[:, None, :]] == 0.0)
             assert np.all(got[3][held] == 0.0)
+
+
+@pytest.mark.parametrize("residual", [False, True])
+def test_compiled_steps_match_numpy_over_table_atoms(residual, monkeypatch):
+    """The damped loop compiled one pixel at a time (kernels.projlm) takes the NumPy loop's steps
+    over a response's table atoms: noisy profiles from perturbed starts, weights, an offset on half
+    the pixels, every prior and a held decay rate; the same iterations, the same kept fits and the
+    parameters to 1e-9 (a pixel's sss well above the noise, so that no step is ill-conditioned)."""
+    from core.irf_models import tailed_response
+    from decomposition.constants import FAM_GAUSS, FAM_SSS
+    from decomposition.kernels.response import response_table, slot_rows
+
+    table = response_table(tailed_response(4.0, 0.2, 30.0, time_step_ps=TB))
+    rng = np.random.default_rng(5)
+    n, k = 32, 3
+    lay = Layout(k, widths=False)
+    present = np.ones((n, k), bool)
+    delay = rng.uniform(60.0, 120.0, n)
+    onset = delay + rng.uniform(0.5, 3.0, n)
+    echo = delay + rng.uniform(40.0, 80.0, n)
+    alpha = rng.uniform(0.03, 0.1, n)
+    theta = lay.pack(np.stack([delay, onset, echo], 1), np.ones((n, k)), alpha, present)
+    fam = np.broadcast_to(np.array([FAM_GAUSS, FAM_SSS, FAM_GAUSS]), (n, k))
+    rows = slot_rows(table, T, fam, np.stack([delay, onset, echo], 1), np.broadcast_to(alpha[:, None], (n, k)))
+    amps = np.stack([rng.uniform(0.5, 1.0, n), rng.uniform(0.3, 0.6, n), rng.uniform(0.2, 0.4, n)], 1)
+    sw = np.sqrt(rng.uniform(0.5, 2.0, (n, L)))
+    bg = rng.random(n) < 0.5
+    y = (np.einsum("nk,nkl->nl", amps, rows) + 0.1 * bg[:, None] + rng.normal(0.0, 0.01, (n, L))) * sw
+    start = theta + np.concatenate([rng.normal(0.0, 2.0, (n, k)), rng.normal(0.0, 0.3, (n, 1))], 1)
+    start[:, 1] = np.maximum(start[:, 1], start[:, 0])
+    slots = {"present": present, "delay": start[:, :k], "sigma": np.ones((n, k)), "alpha": np.exp(start[:, k]),
+             "amplitude": np.zeros((n, k)), "fit_background": bg, "background": np.zeros(n),
+             "delay_prior_mean": delay + 0.2, "delay_prior_weight": np.full(n, 5.0),
+             "onset_prior_mean": onset - delay, "onset_prior_weight": np.full(n, 1.0),
+             "alpha_prior_mean": np.log(alpha), "alpha_prior_weight": np.full(n, 2.0),
+             "ratio_prior_mean": amps[:, 1] / amps[:, 0], "ratio_prior_weight": np.full(n, 0.5)}
+    held = np.zeros((n, lay.p), bool)
+    held[::4, k] = True
+    bounds = lay.bounds((0.0, 600.0), (0.0, 0.0), (np.log(1e-3), np.log(1.0)))
+    kw = dict(sw=sw, sss_after_direct=True, held=held, table=table, residual=residual)
+    got, got_info = varpro.refine_block(T, y, slots, lay, bounds, None, 30, 1e-8, 1e-6, **kw)
+    monkeypatch.setattr(varpro, "_steps_compiled", varpro._steps_numpy)
+    want, want_info = varpro.refine_block(T, y, slots, lay, bounds, None, 30, 1e-8, 1e-6, **kw)
+    assert want_info["refined"].all() and np.all(want_info["iterations"] > 2)     # the fits moved
+    for key in ("refined", "converged", "iterations"):
+        np.testing.assert_array_equal(got_info[key], want_info[key], err_msg=key)
+    for key in ("delay", "alpha", "amplitude", "background"):
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-9, atol=1e-9, err_msg=key)
+    np.testing.assert_allclose(got_info["rss"], want_info["rss"], rtol=1e-10)
+    if residual:
+        np.testing.assert_allclose(got_info["residual"], want_info["residual"], rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("earliest", [False, True])
+def test_compiled_constraints_match_numpy(earliest):
+    """The compiled loop's projections onto the ordering constraints (the sss onset at or after the
+    direct or the earliest shifted atom; inter-reflections in order) equal varpro's, NaN included."""
+    from decomposition.kernels import projlm
+
+    rng = np.random.default_rng(2)
+    n, k = 400, 4
+    theta = rng.uniform(50.0, 60.0, (n, k + 1))
+    theta[rng.random((n, k + 1)) < 0.03] = np.nan
+    present = rng.random((n, k)) < 0.7
+    want = varpro._keep_order(varpro._onset_after_direct(theta.copy(), present, earliest), present)
+    got = theta.copy()
+    for p in range(n):
+        projlm._onset_after_direct(got[p], present[p], earliest)
+        projlm._keep_order(got[p], present[p])
+    assert not np.array_equal(want, theta, equal_nan=True)      # the projections moved some
+    np.testing.assert_array_equal(got, want)

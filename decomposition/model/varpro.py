@@ -67,6 +67,7 @@ from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from ..kernels.response import slot_rows
 from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
 from ..kernels.projected import GAUSSIAN_PSF, given_rss, instrument, projected_normal_equations
+from ..kernels.projlm import projected_lm
 
 __all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "rss_at", "CHUNK_PIXELS"]
 
@@ -568,6 +569,117 @@ def _with_prior(priors, theta, rss, a=None, g=None, rows=None):
     return rss
 
 
+def _steps_numpy(lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prior, bounds, ftol, lam0, max_iter,
+                 positive, sss_after_direct, onset_after_earliest, keep_order, residual):
+    """The damped loop of :func:`refine_block` over a block's active pixels at once (NumPy; the
+    reference of :func:`_steps_compiled`).  -> theta, amplitudes, objective, amplitude violations,
+    iterations, converged, and the residual rows with the current row of each pixel (``residual``)."""
+    n = y.shape[0]
+    lo, hi = bounds
+    # the residuals in two rows per pixel, i and n + i: the current one in row i + n cur[i], a
+    # trial's into the other, so that an accepted step flips cur and copies nothing
+    resid = np.empty((2 * n, y.shape[1])) if residual else None
+    cur = np.zeros(n, np.int64)
+    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst, resid, np.arange(n))
+    rss = _with_prior(prior, theta, rss, a, g)
+    viol = _amp_violations(c, present) if positive else np.zeros(n, np.int64)
+    lam = np.full(n, lam0)
+    nu = np.full(n, 2.0)
+    iters = np.zeros(n, dtype=np.int64)
+    converged = np.zeros(n, dtype=bool)
+    active = free.any(axis=1) & np.isfinite(rss)
+    converged[~active] = True
+    ynorm2 = np.einsum("nl,nl->n", y, y)
+
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        fr = free[idx]
+        ai, gi = a[idx], g[idx]
+        diag = np.einsum("npp->np", ai)
+        dscale = np.maximum(diag, 1e-12 * np.max(diag, axis=-1, keepdims=True) + 1e-300)
+        lhs = ai * fr[:, :, None] * fr[:, None, :]
+        pidx = np.arange(lay.p)
+        lhs[:, pidx, pidx] = np.where(fr, diag + lam[idx, None] * dscale, 1.0)
+        rhs = np.where(fr, -gi, 0.0)
+        step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
+        trial = np.clip(theta[idx] + step, lo, hi)
+        if sss_after_direct:
+            trial = _onset_after_direct(trial, present[idx], onset_after_earliest)
+        if keep_order:
+            trial = _keep_order(trial, present[idx])
+        trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
+        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y, trial, present[idx], fr, tb, True, sw,
+                                         None if bg is None else bg[idx], None if amp is None else amp[idx], inst,
+                                         resid, idx + n * (1 - cur[idx]), idx)
+        rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
+        viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
+        ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
+        accept = ok & (rss_t < rss[idx])
+        iters[idx] += 1
+        gain = (rss[idx] - rss_t) / np.maximum(rss[idx], 1e-300)
+        # Gain ratio against the damped Gauss-Newton model drives the damping (Nielsen 1999).
+        pred = -np.einsum("np,np->n", step, gi) + lam[idx] * np.einsum("np,np,np->n", step, dscale, step)
+        rho = (rss[idx] - rss_t) / np.maximum(pred, 1e-300)
+
+        acc = idx[accept]
+        theta[acc], c[acc], rss[acc], a[acc], g[acc] = trial[accept], c_t[accept], rss_t[accept], a_t[accept], g_t[accept]
+        viol[acc] = viol_t[accept]
+        cur[acc] = 1 - cur[acc]
+        lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[accept], 0.0, 1.0) - 1.0) ** 3)
+        lam[acc] = np.maximum(lam[acc], 1e-12)
+        nu[acc] = 2.0
+        rej = idx[~accept]
+        lam[rej] *= nu[rej]
+        nu[rej] *= 2.0
+
+        # Converged: an accepted step that no longer lowers the RSS noticeably,
+        # a fit that is exact to rounding, or damping so large that no step helps.
+        done = np.zeros(idx.size, bool)
+        done |= accept & (gain < ftol[idx])
+        done |= rss[idx] <= 1e-26 * ynorm2[idx]
+        stalled = ~accept & (lam[idx] > 1e12)
+        converged[idx[done | stalled]] = True
+        active[idx[done | stalled]] = False
+
+    return theta, c, rss, viol, iters, converged, resid, cur
+
+
+def _steps_compiled(lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prior, bounds, ftol, lam0, max_iter,
+                    positive, sss_after_direct, onset_after_earliest, keep_order, residual):
+    """:func:`_steps_numpy` compiled, one pixel at a time (:func:`decomposition.kernels.projlm.projected_lm`;
+    point-sampled atoms of either instrument), the same numbers to rounding."""
+    n, L = y.shape
+    k, p = lay.k, lay.p
+    theta = np.array(theta, np.float64, order="C")
+    c = np.zeros((n, k))
+    rss = np.empty(n)
+    viol = np.zeros(n, np.int64)
+    iters = np.zeros(n, np.int64)
+    converged = np.zeros(n, bool)
+    cur = np.zeros(n, np.int64)
+    resid = np.empty((2 * n, L)) if residual else np.zeros((0, L))
+    pv = np.array([v for v, _, _ in prior], np.float64).reshape(len(prior), p)
+    pm = np.array([m for _, m, _ in prior], np.float64).reshape(len(prior), n)
+    pw = np.array([w for _, _, w in prior], np.float64).reshape(len(prior), n)
+    if n:
+        t = np.ascontiguousarray(t, np.float64)
+        lo, hi = bounds
+        projected_lm(
+            t, np.ascontiguousarray(y, np.float64), theta, np.ascontiguousarray(present, np.bool_),
+            np.ascontiguousarray(free, np.bool_),
+            np.zeros((0, L)) if sw is None else np.ascontiguousarray(sw, np.float64),
+            np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
+            np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
+            np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64), lay.shared,
+            L >= 2 and bool(np.all(t[1:] > t[:-1])), np.ascontiguousarray(lo, np.float64),
+            np.ascontiguousarray(hi, np.float64), np.ascontiguousarray(ftol, np.float64), float(lam0), int(max_iter),
+            bool(positive), bool(sss_after_direct), bool(onset_after_earliest), bool(keep_order), pv, pm, pw,
+            c, rss, viol, iters, converged, cur, resid, inst)
+    return theta, c, rss, viol, iters, converged, resid if residual else None, cur
+
+
 def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, sss_after_direct=False,
                   keep_order=True, held=None, table=None, positive=True, onset_after_earliest=False, residual=False):
     """LM over theta for one block (normalised, weighted profiles ``y`` (n, L)); see the module
@@ -637,72 +749,10 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
     rss_input = _with_prior(prior, theta_in, rss_input)
 
-    # the residuals in two rows per pixel, i and n + i: the current one in row i + n cur[i], a
-    # trial's into the other, so that an accepted step flips cur and copies nothing
-    resid = np.empty((2 * n, y.shape[1])) if residual else None
-    cur = np.zeros(n, np.int64)
-    c, rss, a, g = _evaluate(lay, t, y, theta, present, free, tb, True, sw, bg, amp, inst, resid, np.arange(n))
-    rss = _with_prior(prior, theta, rss, a, g)
-    viol = _amp_violations(c, present) if positive else np.zeros(n, np.int64)
-    lam = np.full(n, lam0)
-    nu = np.full(n, 2.0)
-    iters = np.zeros(n, dtype=np.int64)
-    converged = np.zeros(n, dtype=bool)
-    active = free.any(axis=1) & np.isfinite(rss)
-    converged[~active] = True
-    ynorm2 = np.einsum("nl,nl->n", y, y)
-
-    for _ in range(max_iter):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        fr = free[idx]
-        ai, gi = a[idx], g[idx]
-        diag = np.einsum("npp->np", ai)
-        dscale = np.maximum(diag, 1e-12 * np.max(diag, axis=-1, keepdims=True) + 1e-300)
-        lhs = ai * fr[:, :, None] * fr[:, None, :]
-        pidx = np.arange(lay.p)
-        lhs[:, pidx, pidx] = np.where(fr, diag + lam[idx, None] * dscale, 1.0)
-        rhs = np.where(fr, -gi, 0.0)
-        step = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-        trial = np.clip(theta[idx] + step, lo, hi)
-        if sss_after_direct:
-            trial = _onset_after_direct(trial, present[idx], onset_after_earliest)
-        if keep_order:
-            trial = _keep_order(trial, present[idx])
-        trial = np.where(fr, trial, theta[idx])     # absent: 0, held: the held value
-        c_t, rss_t, a_t, g_t = _evaluate(lay, t, y, trial, present[idx], fr, tb, True, sw,
-                                         None if bg is None else bg[idx], None if amp is None else amp[idx], inst,
-                                         resid, idx + n * (1 - cur[idx]), idx)
-        rss_t = _with_prior(prior, trial, rss_t, a_t, g_t, idx)
-        viol_t = _amp_violations(c_t, present[idx]) if positive else np.zeros(idx.size, np.int64)
-        ok = np.isfinite(rss_t) & np.all(np.isfinite(a_t), axis=(1, 2)) & (viol_t <= viol[idx])
-        accept = ok & (rss_t < rss[idx])
-        iters[idx] += 1
-        gain = (rss[idx] - rss_t) / np.maximum(rss[idx], 1e-300)
-        # Gain ratio against the damped Gauss-Newton model drives the damping (Nielsen 1999).
-        pred = -np.einsum("np,np->n", step, gi) + lam[idx] * np.einsum("np,np,np->n", step, dscale, step)
-        rho = (rss[idx] - rss_t) / np.maximum(pred, 1e-300)
-
-        acc = idx[accept]
-        theta[acc], c[acc], rss[acc], a[acc], g[acc] = trial[accept], c_t[accept], rss_t[accept], a_t[accept], g_t[accept]
-        viol[acc] = viol_t[accept]
-        cur[acc] = 1 - cur[acc]
-        lam[acc] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[accept], 0.0, 1.0) - 1.0) ** 3)
-        lam[acc] = np.maximum(lam[acc], 1e-12)
-        nu[acc] = 2.0
-        rej = idx[~accept]
-        lam[rej] *= nu[rej]
-        nu[rej] *= 2.0
-
-        # Converged: an accepted step that no longer lowers the RSS noticeably,
-        # a fit that is exact to rounding, or damping so large that no step helps.
-        done = np.zeros(idx.size, bool)
-        done |= accept & (gain < ftol[idx])
-        done |= rss[idx] <= 1e-26 * ynorm2[idx]
-        stalled = ~accept & (lam[idx] > 1e12)
-        converged[idx[done | stalled]] = True
-        active[idx[done | stalled]] = False
+    steps = _steps_compiled if (COMPILED or table is not None) and tb is None else _steps_numpy
+    theta, c, rss, viol, iters, converged, resid, cur = steps(
+        lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prior, (lo, hi), ftol, lam0, max_iter, positive,
+        sss_after_direct, onset_after_earliest, keep_order, residual)
 
     delay, sigma, alpha = lay.unpack(theta)
     kept = (rss < rss_input) & (viol == 0) & np.isfinite(rss)
