@@ -73,8 +73,8 @@ def test_no_offset_column_where_none_is_fitted():
     y = np.zeros((3, L))
     base = standard_errors(y, params, **kw)
     off = standard_errors(y, params, offset=np.array([False, True, False]), **kw)
-    for k in base:
-        np.testing.assert_array_equal(off[k][[0, 2]], base[k][[0, 2]])
+    for k in base:      # to rounding: the batch's Gram products carry one more column with the offset
+        np.testing.assert_allclose(off[k][[0, 2]], base[k][[0, 2]], rtol=1e-12, atol=0)
     assert np.all(np.isnan(base["direct_sigma_ps_stderr"])) and np.all(np.isnan(base["sss_sigma_ps_stderr"]))
     assert off["direct_amplitude_stderr"][1] > base["direct_amplitude_stderr"][1]
     assert off["sss_amplitude_stderr"][1] > base["sss_amplitude_stderr"][1]
