@@ -245,7 +245,7 @@ def _grow(c: _Call) -> None:
 
 
 def _prune(c: _Call) -> None:
-    if not (c.convscd and c.opts.prune):
+    if not (c.method == "convscd" and c.opts.prune):
         return
     state, pruned = prune_components(c.samples, c.det, c.dic, c.opts)
     c.det = dataclasses.replace(c.det, state=state)
@@ -386,9 +386,9 @@ def _finish(c: _Call) -> None:
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
-#: response (``irf=``) runs prepare, detect, search (where ``search=True``), label, refit,
-#: forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect, search, label
-#: and refit over the response's atoms
+#: response (``irf=``) runs prepare, detect, search (where ``search=True``), prune, label, refit,
+#: forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect, search, prune,
+#: label and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),

@@ -136,36 +136,6 @@ def _padded(params, n_ir=3):
     return out
 
 
-def test_the_backward_step_drops_an_atom_on_the_sss_onset_and_keeps_a_resolved_echo(irf):
-    """Pixels of a direct and an sss (onset 6 ps after it) in white noise, given a second shifted
-    atom on the sss onset: that atom does not pay for its parameters and the backward step drops
-    it; the same pixels with a true echo 14 ps after the direct (30 % of it) keep theirs."""
-    from decomposition.constants import FAM_GAUSS, FAM_NONE
-    from decomposition.response.grow import GrowContext, _prune_close
-    truth, _ = _scene(8, 5, onset_ps=(6.0, 6.0))
-    truth["ir_amplitude"][:] = np.nan
-    truth["ir_delay_ps"][:] = np.nan
-    echo = {k: v.copy() for k, v in truth.items()}
-    echo["ir_delay_ps"] = (truth["direct_delay_ps"] + 14.0)[:, None]
-    echo["ir_amplitude"] = (0.3 * truth["direct_amplitude"])[:, None]
-    both = {k: np.concatenate([truth[k], echo[k]]) for k in truth}
-    rng = np.random.default_rng(6)
-    y = params_profile(irf, T_PS, both)
-    y = y + 0.01 * rng.standard_normal(y.shape)
-    rf, samples, opts, slots = _response_state(irf, y, _padded(both))
-    assert (slots.fam[:8, 2:] == FAM_NONE).all() and (slots.fam[8:, 2] == FAM_GAUSS).all()
-    rows = np.arange(8)
-    before = slots.delay[rows, 0].copy()
-    slots = _with_slot(rf, slots, rows, 3, slots.delay[rows, 1] + 0.3, 0.05)
-    ctx = GrowContext(samples, irf, rf.b_est, rf.with_bg, rf.refine_kw, rf.sigma_eq_ps, opts)
-    out, pruned = _prune_close(ctx, slots)
-    assert pruned == 8
-    assert (out.fam[:8, 2:] == FAM_NONE).all()
-    assert np.array_equal(out.fam[8:], slots.fam[8:])           # the echoes stay
-    # the pixels' own fit without the extra atom, to the refit's convergence
-    np.testing.assert_allclose(out.delay[:8, 0], before, atol=1e-3)
-
-
 def test_two_shifted_copies_the_refit_puts_on_one_delay_are_one_atom(irf):
     """A direct given twice (the second copy 0.2 ps after it): the refit's merge rule keeps one
     shifted atom, in the direct's slot, with the light of both."""

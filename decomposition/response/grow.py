@@ -34,12 +34,6 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    direct before the window is left to step 0b: there the onset started at it let the direct
    slide out, its amplitude grown tenfold or more, for small deviance gains.  Gaussian data are
    not refitted: no pixel took the refit there (docs/history.md).
-0d. **The backward step** (``prune``, "s" asked): a pixel with an sss and a second shifted
-   atom less than PRUNE_GAP_SIGMA response widths after its direct (the Gaussian path's
-   candidates, :func:`decomposition.stages.prune.close_gaussian`) is refitted without that atom
-   and takes the refit where its penalised deviance (in the solver's noise) is not higher and
-   its direct stays in sight (:func:`_prune_close`): a converged fit can leave an atom on the
-   direct's flank or on the sss onset that the data do not ask for.
 1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the detection took for an sss --
@@ -92,7 +86,6 @@ from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM
                          GROW_BROAD_FACTOR, GROW_TRIAL_FRACTION, NEAR_SIGMA, ONSET_RESTART_SIGMA, PRE_DIRECT_LEVEL,
                          RESOLVED_SIGMA, SSS_SLOT, UNSEEN_DIRECT_LEAD_SIGMA)
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
-from ..stages.prune import close_gaussian
 from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from ..model.atoms import params_components, params_profile, slot_atoms
@@ -126,10 +119,8 @@ class GrowContext:
         self.values = np.asarray(samples.values[live], np.float64)
         self.fit = samples.fit[live]
         self.t = refine_kw["t"]
-        # Gaussian data: the noise (units of the samples) of the in-window significance test, and
-        # the solver's own, which the penalised objective of the backward step reads
+        # Gaussian data: the noise (units of the samples) of the in-window significance test
         self.sigma = samples.significance_sigma(live, samples.noise_eff[live]) * samples.scale[live]
-        self.noise = samples.noise_eff[live] * samples.scale[live]
 
     def model(self, params, background) -> np.ndarray:
         """(m, L) the model of m pixels' ``params`` plus ``background`` (m,), units of the samples
@@ -148,23 +139,20 @@ class GrowContext:
         return refit_slots(y, fam, delay, lalp, self.held[rows], self.fit_bg, p0, **kw)
 
 
-def deviance(ctx: GrowContext, rows, params, background, sigma=None) -> np.ndarray:
+def deviance(ctx: GrowContext, rows, params, background) -> np.ndarray:
     """(m,) the deviance of the pixels ``rows`` under ``params`` plus ``background``, in chi2
     units: the Poisson deviance over the dispersion squared for counts
     (:func:`decomposition.noise.count_deviance`), the residual sum of squares over the
-    significance noise squared otherwise (``sigma`` (P,): another noise); over the fitted
-    samples."""
-    return _model_deviance(ctx, rows, ctx.model(params, background), sigma)
+    significance noise squared otherwise; over the fitted samples."""
+    return _model_deviance(ctx, rows, ctx.model(params, background))
 
 
-def _model_deviance(ctx: GrowContext, rows, mu, sigma=None) -> np.ndarray:
-    """:func:`deviance` of a model ``mu`` (m, L); ``sigma`` (P,) the noise of Gaussian data
-    (default the significance test's, ``ctx.sigma``)."""
+def _model_deviance(ctx: GrowContext, rows, mu) -> np.ndarray:
+    """:func:`deviance` of a model ``mu`` (m, L)."""
     if ctx.counts:
         return count_deviance(ctx.values[rows], mu, ctx.fit[rows], ctx.samples.dispersion[ctx.samples.live[rows]])
     r = np.where(ctx.fit[rows], ctx.values[rows] - mu, 0.0)
-    s = ctx.sigma if sigma is None else sigma
-    return np.einsum("pl,pl->p", r, r) / np.square(np.maximum(s[rows], 1e-300))
+    return np.einsum("pl,pl->p", r, r) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
 
 
 def _removal_deviance(ctx: GrowContext, rows, sub: Slots, slots=slice(None)) -> np.ndarray:
@@ -517,38 +505,6 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     return out._replace(iterations=its), int(take.sum())
 
 
-def _prune_close(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
-    """The backward step (the Gaussian path's candidates, :func:`decomposition.stages.prune.close_gaussian`):
-    a pixel with an sss and a second shifted atom less than PRUNE_GAP_SIGMA response widths
-    after its direct is refitted without that atom, and takes the refit where its penalised
-    deviance is not higher (the atom does not pay for its two parameters): an atom the refit slid
-    onto the direct or onto the sss onset is then one the data do not ask for -> (slots, pixels
-    pruned).  A refit whose direct slid out of the samples' sight is not taken."""
-    state = {"fam": cur.fam, "delay": cur.delay, "lsig": np.full(cur.fam.shape, math.log(ctx.sigma_eq_ps))}
-    cand, second = close_gaussian(state)
-    cand &= (cur.fam[:, 0] == FAM_GAUSS) & (second >= 2)
-    rows = np.flatnonzero(cand)
-    if rows.size == 0:
-        return cur, 0
-    sub = _sub(cur, rows)
-    f = sub.fam.copy()
-    f[np.arange(rows.size), second[rows]] = FAM_NONE
-    trial = ctx.refit(rows, f, sub.delay, sub.lalp, sub.params, sub.background)
-    log_n, weight = log_samples(ctx.fit[rows].sum(axis=1)), ctx.opts.search_penalty
-    # the data term in the solver's noise, as the Gaussian path's backward step reads it
-    j_cur = penalised(deviance(ctx, rows, sub.params, sub.background, ctx.noise), free_parameters(sub.fam, "fixed"),
-                      log_n, weight)
-    j_new = penalised(deviance(ctx, rows, trial.params, trial.background, ctx.noise),
-                      free_parameters(trial.fam, "fixed"), log_n, weight)
-    keep_rest = ((trial.fam != FAM_NONE) == (f != FAM_NONE)).all(axis=1)
-    # not where the refit slid the direct out to where no sample sees it (:func:`_unseen_direct`)
-    take = (j_new <= j_cur) & keep_rest & ~_unseen_direct(ctx, trial, np.arange(rows.size))
-    out = _put(cur, rows, trial, take)
-    its = cur.iterations.copy()
-    its[rows] += trial.iterations
-    return out._replace(iterations=its), int(take.sum())
-
-
 def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     """A direct before the window (its delay before the first sample) refitted from the
     window's edge and from EARLY_DIRECT_STARTS_SIGMA response widths before it, the rest as
@@ -624,8 +580,7 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
     restored direct the data do not determine (AMBIGUOUS).
     """
     info = {"response_sss_added": 0, "response_echo_added": 0, "response_sss_swapped": 0,
-            "response_direct_restored": 0, "response_early_direct_moved": 0, "response_onset_restarted": 0,
-            "pruned": 0}
+            "response_direct_restored": 0, "response_early_direct_moved": 0, "response_onset_restarted": 0}
     opts = ctx.opts
     # the echo is found by its significance alone: no trial without the rule (or with grow=False)
     with_r = "r" in components and slots.fam.shape[1] > 2 and opts.grow and opts.significance_chi2 > 0
@@ -640,8 +595,6 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
         slots, info["response_sss_swapped"] = _swap_far_sss(ctx, slots)
     if "d" in components and "s" in components and ctx.counts:
         slots, info["response_onset_restarted"] = _restart_onset_at_direct(ctx, slots)
-    if opts.prune and "s" in components:
-        slots, info["pruned"] = _prune_close(ctx, slots)
     if not (with_r or with_s):
         return slots, info, ambiguous
     active = np.flatnonzero(slots.fam[:, 0] == FAM_GAUSS)

@@ -5,9 +5,10 @@
 Gaussian path's, given the response, and so is ``rescue`` (the whole path again, differently
 started); ``detect`` (ConvSCD over the response's dictionary), ``label`` and ``refit`` run the
 functions here on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms``
-are the response's own; of the stages between ``detect`` and ``label`` the search runs where it
-is asked for (``search=True``: the Gaussian path's code, over the response's atoms, on its
-detection), the grow, prune and count steps of the Gaussian dictionary do not apply.  Each function here reads and
+are the response's own; of the stages between ``detect`` and ``label`` the prune stage (the
+backward step) runs, and the search where it is asked for (``search=True``), both the Gaussian
+path's code over the response's atoms on its detection; the grow and count steps of the
+Gaussian dictionary do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
