@@ -6,6 +6,8 @@ constants) and the sss kernel's erfcx; ``atomlm`` refines a pixel's atoms (Leven
 ``onsets`` links sss onsets to their directs, and ``derivatives`` evaluates the kernels and their
 parameter derivatives on blocks of pixels for the variable-projection refine and the Fisher
 information (NumPy); ``projected`` is that refine's evaluation compiled (amplitudes, RSS, normal
-equations, the Fisher information's Gram product) for point-sampled kernels, and ``screen`` the
+equations, the Fisher information's Gram product) for point-sampled kernels of either
+instrument (``response`` renders a measured response's table atoms), ``projlm`` that refine's
+damped loop over them, one pixel at a time, and ``screen`` the
 spatial neighbour starts' screen on the same kernels.  Nothing here imports the stages, the API or the evaluation code.
 """
