@@ -26,9 +26,10 @@ iteration works on the block's still-active pixels at once; the L-length work
 amplitudes and the normal equations) is compiled for point-sampled kernels, one pixel
 at a time over the rows' supports (:mod:`decomposition.kernels.projected`, the same
 numbers to rounding); bin-integrated kernels (and :data:`COMPILED` off, the reference)
-take the NumPy path, in cache-sized chunks of pixels.  The only Python loops are over
-LM iterations, blocks and chunks of pixels, and the quadrature nodes of bin-integrated
-sampling.
+take the NumPy path, in cache-sized chunks of pixels.  Where the evaluation is compiled the
+damped loop is too, one pixel at a time (:mod:`decomposition.kernels.projlm`); elsewhere the only
+Python loops are over LM iterations, blocks and chunks of pixels, and the quadrature nodes of
+bin-integrated sampling.
 Damping follows the gain ratio (Nielsen 1999); a pixel stops when an accepted
 step lowers its RSS by less than ``ftol`` relative, or when no step helps.
 
@@ -665,7 +666,7 @@ def _steps_compiled(lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prio
     pw = np.array([w for _, _, w in prior], np.float64).reshape(len(prior), n)
     if n:
         t = np.ascontiguousarray(t, np.float64)
-        lo, hi = bounds
+        lo, hi = (np.ascontiguousarray(np.broadcast_to(b, (p,)), np.float64) for b in bounds)
         projected_lm(
             t, np.ascontiguousarray(y, np.float64), theta, np.ascontiguousarray(present, np.bool_),
             np.ascontiguousarray(free, np.bool_),
@@ -673,8 +674,8 @@ def _steps_compiled(lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prio
             np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
             np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
             np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64), lay.shared,
-            L >= 2 and bool(np.all(t[1:] > t[:-1])), np.ascontiguousarray(lo, np.float64),
-            np.ascontiguousarray(hi, np.float64), np.ascontiguousarray(ftol, np.float64), float(lam0), int(max_iter),
+            L >= 2 and bool(np.all(t[1:] > t[:-1])), lo, hi, np.ascontiguousarray(ftol, np.float64), float(lam0),
+            int(max_iter),
             bool(positive), bool(sss_after_direct), bool(onset_after_earliest), bool(keep_order), pv, pm, pw,
             c, rss, viol, iters, converged, cur, resid, inst)
     return theta, c, rss, viol, iters, converged, resid if residual else None, cur
