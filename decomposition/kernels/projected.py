@@ -26,8 +26,9 @@ from ..constants import SSS_SLOT
 from .jit import erfcx, njit
 from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
 
-__all__ = ["projected_normal_equations", "given_rss", "SUPPORT_WIDTHS", "support_window", "kernel_rows",
-           "uniform_step", "row_dot", "fisher_gram", "instrument", "GAUSSIAN_PSF", "atom_rows", "atom_scratch"]
+__all__ = ["projected_normal_equations", "pixel_equations", "equation_scratch", "lu_solve", "given_rss",
+           "SUPPORT_WIDTHS", "support_window", "kernel_rows", "uniform_step", "row_dot", "fisher_gram", "instrument",
+           "GAUSSIAN_PSF", "atom_rows", "atom_scratch"]
 
 #: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
 #: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
@@ -120,7 +121,7 @@ def row_dot(m, a, b, i0, i1):
 
 
 @njit
-def _lu_solve(a, b, n, m, piv):
+def lu_solve(a, b, n, m, piv):
     """Solve a x = b in place (``a`` (n, n) overwritten by its LU factors, ``b`` (n, m) by x):
     Gaussian elimination with partial pivoting, as LAPACK's gesv (a few rows, a plain loop)."""
     for j in range(n):
@@ -470,7 +471,7 @@ def pixel_equations(t, y, yp, theta_p, present_p, free_p, sw, bg_p, amp_p, has_a
     for k in range(K):
         for j in range(K):
             g2[k, j] = gram[k, j]
-    _lu_solve(g2, rhs, K, 1, piv)
+    lu_solve(g2, rhs, K, 1, piv)
     for k in range(K):
         c_p[k] = rhs[k, 0] if present_p[k] else 0.0
     # the residual, in its row of r_out where it is kept
@@ -537,7 +538,7 @@ def pixel_equations(t, y, yp, theta_p, present_p, free_p, sw, bg_p, amp_p, has_a
     for k in range(K):
         for j in range(K):
             g2[k, j] = gram[k, j]
-    _lu_solve(g2, bx, K, nj, piv)
+    lu_solve(g2, bx, K, nj, piv)
     for a in range(nq):
         qa = ql[a]
         for jj in range(nj):

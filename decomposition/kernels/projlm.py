@@ -8,7 +8,7 @@ rule and stopping rules, with :func:`decomposition.kernels.projected.pixel_equat
 each trial.  The NumPy loop there steps every active pixel of a block at once and is the
 reference; here a pixel runs to convergence before the next starts, so no interpreted work is
 done per iteration and the loop releases the interpreter lock for its whole length.  The two
-agree to rounding: the step's small linear solve is :func:`~decomposition.kernels.projected._lu_solve`
+agree to rounding: the step's small linear solve is :func:`~decomposition.kernels.projected.lu_solve`
 here, LAPACK's there.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from .jit import njit
-from .projected import _lu_solve, equation_scratch, pixel_equations, uniform_step
+from .projected import lu_solve, equation_scratch, pixel_equations, uniform_step
 
 __all__ = ["projected_lm"]
 
@@ -184,7 +184,7 @@ def projected_lm(t, y, theta, present, free, sw, bg, amp, assign, dslot, shared,
                     lhs[i, j] = a[i, j] if (fr[i] and fr[j]) else 0.0
                 lhs[i, i] = (a[i, i] + lam * dscale[i]) if fr[i] else 1.0
                 rhs[i, 0] = -g[i] if fr[i] else 0.0
-            _lu_solve(lhs, rhs, P, 1, piv)
+            lu_solve(lhs, rhs, P, 1, piv)
             for j in range(P):
                 step[j] = rhs[j, 0]
                 v = th[j] + step[j]
