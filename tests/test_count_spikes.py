@@ -145,14 +145,19 @@ def test_white_noise_data_unchanged_by_auto():
         assert np.array_equal(getattr(a, name), getattr(g, name))
 
 
-def test_bench_speed_writes_a_count_cube(tmp_path):
-    """``bench speed --photons N``: whole-number Poisson counts of N photons per pixel on
-    average, which ``noise="auto"`` takes as counts."""
+@pytest.mark.parametrize("response", [None, "tailed"])
+def test_bench_speed_writes_a_count_cube(tmp_path, response):
+    """``bench speed --photons N`` (``--irf tailed`` too, whose sampled response rings below zero
+    far from its peak): whole-number Poisson counts of N photons per pixel on average, which
+    ``noise="auto"`` takes as counts."""
+    from drivers.sim.scene import simulated_response
     from reconstruction.cubestore import open_cube
     from streaklab.bench.speed import write_synthetic_cube
 
     path = tmp_path / "cube.zarr"
-    write_synthetic_cube(path, (4, 50, 256), nsr=0.05, seed=1, chunks=(4, 50), photons=100.0)
+    irf = None if response is None else simulated_response(response)
+    write_synthetic_cube(path, (4, 50, 256), nsr=0.05, seed=1, chunks=(4, 50), photons=100.0, scenes="paper",
+                         response=irf)
     x = np.asarray(open_cube(path).array[:])
     assert is_count_data(x)
     totals = x.reshape(-1, 256).sum(axis=1)

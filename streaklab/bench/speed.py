@@ -151,6 +151,7 @@ def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, sc
     pixel (``nsr`` is then unused).  ``response`` (an :class:`core.irf.InstrumentResponse`):
     every component rendered through it instead of the Gaussian PSF."""
     from decomposition.evaluation.synthetic import make_cube
+    from decomposition.evaluation.synthetic_effects import count_photons
     from reconstruction.cubestore import create_cube
 
     ny, nx, nt = shape
@@ -168,10 +169,10 @@ def write_synthetic_cube(path, shape, *, nsr, seed, chunks, rows_per_block=8, sc
         if photons is None:
             cube.array[y0:y0 + rows] = data.noisy.astype(np.float32)
         else:
-            clean = data.clean
-            total = np.maximum(clean.sum(axis=-1, keepdims=True), 1e-300)
-            rng = np.random.default_rng(seed * 100003 + i)
-            cube.array[y0:y0 + rows] = rng.poisson(clean * (photons / total)).astype(np.float32)
+            # the synthetic data's Poisson rule: a response's ringing far from its peak (below zero
+            # at 1e-9 of it) is clipped before the draw
+            counts, _ = count_photons(data.clean, 0.0, photons, np.random.default_rng(seed * 100003 + i))
+            cube.array[y0:y0 + rows] = counts.astype(np.float32)
     return time.perf_counter() - t0
 
 
