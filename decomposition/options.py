@@ -272,7 +272,7 @@ class SolverOptions:
     #: polished, the lowest penalised objective kept (:mod:`decomposition.stages.search`);
     #: ``info["search_wins"]`` counts which start each searched pixel kept.  None: on for the
     #: Gaussian PSF, off with a measured response (``irf=``), where it runs over the response's
-    #: atoms at about 1.5 times the call's time for a few hundredths of fidelity
+    #: atoms at about 1.4 times the call's time for next to no fidelity beside the prune stage
     #: (docs/instrument-response.md).
     search: bool | None = None
     #: Forward step after the search: a Gaussian at a significant resolved residual bump, and

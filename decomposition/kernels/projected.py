@@ -375,7 +375,8 @@ def equation_scratch(L, K, P, jac, inst):
     R = 3 * K + 2 if jac else K + 1
     return (np.zeros((R, L)), np.zeros(R, np.int64), np.zeros(R, np.int64), np.zeros((R, R)), np.zeros((K, K)),
             np.zeros((K, 1 + P)), np.zeros(K, np.int64), np.empty(L), np.zeros((P, Q)), np.zeros(Q), np.zeros((Q, P)),
-            np.zeros((K, K)), np.zeros((K, P)), np.zeros(P, np.int64), np.zeros(Q, np.int64), atom_scratch(inst))
+            np.zeros((K, K)), np.zeros((K, P)), np.zeros(P, np.int64), np.zeros(Q, np.int64), atom_scratch(inst),
+            np.empty(0))
 
 
 @njit
@@ -387,7 +388,7 @@ def pixel_equations(t, y, yp, theta_p, present_p, free_p, sw, bg_p, amp_p, has_a
     its amplitudes into ``c_p`` (K,), with ``jac`` J^T J into ``a_p`` (P, P) and J^T r into ``g_p``
     (P,), its weighted residual into ``r`` (L,); ``step_t`` of :func:`uniform_step`, ``work`` of
     :func:`equation_scratch`.  -> the RSS."""
-    m, lo, hi, mm, gram, rhs, piv, u, w, dr, vw, g2, bx, jl, ql, scratch = work
+    m, lo, hi, mm, gram, rhs, piv, u, w, dr, vw, g2, bx, jl, ql, scratch, dummy = work
     L = y.shape[1]
     K = present_p.shape[0]
     P = theta_p.shape[0]
@@ -395,7 +396,6 @@ def pixel_equations(t, y, yp, theta_p, present_p, free_p, sw, bg_p, amp_p, has_a
     R = 3 * K + 2 if jac else K + 1
     has_sw = sw.shape[0] > 0
     table = inst[0].size > 0
-    dummy = np.empty(0)
     swp = sw[yp] if has_sw else dummy
     for row in range(R):
         lo[row] = 0

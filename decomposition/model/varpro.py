@@ -337,6 +337,13 @@ CHUNK_PIXELS = 48
 COMPILED = True
 
 
+def _compiled(inst, tb) -> bool:
+    """Whether the compiled evaluation (and damped loop) applies: point samples (``tb`` None) of
+    the Gaussian PSF with :data:`COMPILED` on, or of a response's table atoms (``inst`` not
+    :data:`~decomposition.kernels.projected.GAUSSIAN_PSF`), which have no NumPy path."""
+    return (COMPILED or inst is not GAUSSIAN_PSF) and tb is None
+
+
 def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=None, inst=GAUSSIAN_PSF, r_out=None,
               r_row=None, rows=None):
     """Amplitudes, RSS and (``jac``) the normal equations of the pixels at ``theta``
@@ -345,8 +352,7 @@ def _evaluate(lay, t, y, theta, present, free, tb, jac, sw=None, bg=None, amp=No
     :func:`_evaluate_numpy`.  Compiled path only: ``rows`` (n,) where given, pixel i's data and
     weights are row ``rows[i]`` of ``y`` and ``sw`` (m, L) (not copied out of them); pixel i's
     weighted residual into row ``r_row[i]`` of ``r_out`` (m, L) where given."""
-    table = inst is not GAUSSIAN_PSF
-    if not ((COMPILED or table) and tb is None):
+    if not _compiled(inst, tb):
         if r_out is not None:
             raise ValueError("the weighted residual comes from the compiled evaluation only (point samples)")
         if rows is not None:
@@ -383,7 +389,7 @@ def rss_at(t, y, delay, sigma, alpha, present, amplitude, offset, tb, sw=None, i
     and for a response's table atoms (``inst``, :func:`decomposition.kernels.projected.instrument`)."""
     n = y.shape[0]
     out = np.empty(n)
-    if (COMPILED or inst is not GAUSSIAN_PSF) and tb is None:
+    if _compiled(inst, tb):
         if n:
             t = np.ascontiguousarray(t, np.float64)
             given_rss(t, np.ascontiguousarray(y, np.float64), np.ascontiguousarray(delay, np.float64),
@@ -750,7 +756,7 @@ def refine_block(t, y, slots, lay, bounds, tb, max_iter, ftol, lam0, sw=None, ss
     theta_in = lay.pack(np.where(present, slots["delay"], 0.0), s0, a0, present)
     rss_input = _with_prior(prior, theta_in, rss_input)
 
-    steps = _steps_compiled if (COMPILED or table is not None) and tb is None else _steps_numpy
+    steps = _steps_compiled if _compiled(inst, tb) else _steps_numpy
     theta, c, rss, viol, iters, converged, resid, cur = steps(
         lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prior, (lo, hi), ftol, lam0, max_iter, positive,
         sss_after_direct, onset_after_earliest, keep_order, residual)

@@ -143,8 +143,8 @@ def hump_as_echo(t_ps, cur, moved, d0_ps, sigma_ps, response=None):
     direct, with two Gaussians filling the true sss's hump and every slot taken, reached
     neither it nor the trials above.  ``response``: the atoms are a measured response's.
     """
-    _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps, response)
-    rows = np.nonzero((cur["fam"] == FAM_SSS).any(axis=1) & passes)[0]
+    _, mode_ps, passes = late_fast_sss(t_ps, cur, d0_ps, sigma_ps, response)     # (only pixels with an sss)
+    rows = np.nonzero(passes)[0]
     trial = take(moved, rows)
     g = trial["fam"] == FAM_GAUSS
     between = g & (trial["delay"] > d0_ps[rows, None]) & (trial["delay"] < mode_ps[rows, None])

@@ -661,7 +661,7 @@ def search_block(p, mask, st, s_eff, dic, opts, components, significance_sigma=N
     for k, c in enumerate(cand):
         amb |= is_ambiguous(js[k] - j_best, tol,
                             lambda r, c=c: _split_distance(_split(t, take(c, r), dic.response),
-                                                                   [x[r] for x in split_best]),
+                                                           [x[r] for x in split_best]),
                             opts.ambiguity_split, where=best != k)
     if not opts.sss_alone:
         amb |= ~(chosen["fam"] == FAM_GAUSS).any(axis=1) & (chosen["fam"] == FAM_SSS).any(axis=1)
