@@ -44,6 +44,7 @@ import numpy as np
 
 from .constants import (MAD_TO_SIGMA, MIN_NOISE_SAMPLES, PEARSON_MIN_COUNTS, POISSON_VARIANCE_FLOOR,
                         SIGNAL_REGION_FRACTION)
+from .kernels.countlm import deviance_row
 from .kernels.jit import njit
 from .options import parse_noise_model
 
@@ -457,30 +458,10 @@ def poisson_deviance(counts, expected) -> np.ndarray:
 
 @njit
 def _masked_deviance_rows(y, mu, fit, floor, out):
-    """out[p] = sum over the fitted samples of row p of 2 [y log(y / m) - (y - m)] (0 log 0 = 0),
-    m = max(mu, floor) with a NaN mu read as 0 and an infinite one as the largest finite value
-    of its sign (``np.nan_to_num``): :func:`_deviance_terms`, summed in one pass per row."""
-    P, L = y.shape
-    big = np.finfo(np.float64).max
-    for p in range(P):
-        s = 0.0
-        for i in range(L):
-            if not fit[p, i]:
-                continue
-            m = mu[p, i]
-            if m != m:
-                m = 0.0
-            elif m > big:
-                m = big
-            elif m < -big:
-                m = -big
-            m = max(m, floor)
-            v = y[p, i]
-            if v > 0.0:
-                s += 2.0 * (v * math.log(v / m) - (v - m))
-            else:
-                s += 2.0 * (0.0 - (v - m))
-        out[p] = s
+    """out[p] = the Poisson deviance of row p over its fitted samples
+    (:func:`decomposition.kernels.countlm.deviance_row`, the terms of :func:`_deviance_terms`)."""
+    for p in range(y.shape[0]):
+        out[p] = deviance_row(y[p], mu[p], fit[p], floor)
 
 
 def _masked_deviance(counts, model_counts, fit, dispersion, floor_counts=POISSON_VARIANCE_FLOOR):

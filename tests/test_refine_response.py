@@ -232,3 +232,63 @@ def test_a_count_fit_step_singular_to_rounding_is_refused_not_raised():
     assert np.all(np.isnan(out[1]))
     np.testing.assert_allclose(out[2], [1.0, 2.0])
     np.testing.assert_allclose(_solve_rows(lhs[[0, 2]], rhs[[0, 2]]), out[[0, 2]])
+
+
+@pytest.mark.parametrize("dispersion", [False, True])
+def test_the_compiled_count_fit_is_the_numpy_loop(irf, monkeypatch, dispersion):
+    """The count fit's compiled loop (decomposition.kernels.countlm) against its NumPy reference
+    (``COMPILED`` off) on Poisson counts from perturbed starts: an offset fitted on half the
+    pixels, a held onset, a gap in the fitted samples, pixels without an echo, and the counts'
+    dispersion: the same iterations and stopping, the same fit to rounding, and the truth found."""
+    from decomposition.constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+    from decomposition.response import refine as rr
+
+    n = 24
+    truth, _ = _scene(n, 5)
+    truth["ir_amplitude"][::3] = 0.0
+    rng = np.random.default_rng(5)
+    fam = np.tile(np.array([FAM_GAUSS, FAM_SSS, FAM_GAUSS], np.int8), (n, 1))
+    fam[::3, 2] = FAM_NONE
+    delay = np.stack([truth["direct_delay_ps"], truth["sss_delay_ps"], truth["ir_delay_ps"][:, 0]], axis=1)
+    lalp = np.zeros((n, 3))
+    lalp[:, 1] = np.log(truth["sss_alpha_per_ps"])
+    scale = rng.uniform(400.0, 1200.0, n)
+    held = np.full(n, 2.0)
+    mu_true = params_profile(irf, T_PS, truth) * scale[:, None] + held[:, None] + 1.5
+    counts = rng.poisson(mu_true).astype(np.float64)
+    fit = np.ones((n, L), bool)
+    fit[:, 150:160] = False
+    disp = rng.uniform(1.0, 1.3, n) if dispersion else None
+    cd = rr.CountData(counts, scale, held, fit, disp)
+    y = (counts - held[:, None]) / scale[:, None]
+    sw = cd.weights(mu_true - 1.5)
+    d0 = delay + rng.normal(0.0, 1.0, delay.shape)
+    held_delay = np.zeros((n, 3), bool)
+    held_delay[1::5, 0] = True
+    d0[1::5, 0] = delay[1::5, 0]
+    kw = dict(n_iter=60, lm_tol=1e-8, delay_bounds_ps=(0.0, 500.0), lalp_bounds=(-8.0, 1.0), sss_after_direct=True,
+              first_is_direct=True, fit_background=np.arange(n) % 2 == 0, counts=cd, held_delay=held_delay)
+    fits = {}
+    for compiled in (False, True):
+        monkeypatch.setattr(rr, "COMPILED", compiled)
+        fits[compiled] = rr.fit_slots(irf, T_PS, y, sw, fam, d0, lalp + 0.2 * (fam == FAM_SSS), **kw)
+    ref, got = fits[False], fits[True]
+    assert np.array_equal(got.iterations, ref.iterations)
+    assert np.array_equal(got.converged, ref.converged) and ref.converged.all()
+    np.testing.assert_allclose(got.delay, ref.delay, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(got.lalp, ref.lalp, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(got.amp, ref.amp, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got.background, ref.background, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.cost, ref.cost, rtol=1e-11)
+    np.testing.assert_allclose(got.resid, ref.resid, rtol=0, atol=1e-8)
+    # a known answer: the onsets found within a fraction of a sample, the held one kept, the
+    # fitted offset's correction the 1.5 counts added and the deviance there about one per
+    # fitted sample (the pixels that fit none carry the 1.5 counts as misfit)
+    assert np.all(got.delay[1::5, 0] == delay[1::5, 0])
+    present = fam != FAM_NONE
+    assert np.abs(got.delay - delay)[present].max() < 1.0
+    np.testing.assert_allclose((got.background * scale)[::2], 1.5, atol=1.0)
+    assert np.all(got.background[1::2] == 0.0)
+    dev = got.cost * (1.0 if disp is None else disp ** 2)
+    assert np.all(dev[::2] < 1.5 * fit.sum(axis=1)[::2])
+    assert dev[1::2].mean() > 1.2 * dev[::2].mean()

@@ -22,6 +22,9 @@ from core.model import BACKGROUND_KEY
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLOT
 from ..model.slotfit import LAMBDA0, SlotFit, least_squares, project_slots, start_slots
 from ..noise import count_deviance, poisson_weights
+from ..kernels.countlm import count_lm
+from ..kernels.projected import instrument
+from ..kernels.response import response_table
 from ..model.atoms import params_profile, slot_atoms
 from ..model.components import merge_gaussians
 from .label import slots_to_params
@@ -30,6 +33,9 @@ from .label import slots_to_params
 RIDGE = 1e-12
 #: the damping beyond which a pixel's count fit stops
 LAMBDA_MAX = 1e10
+#: count data take the compiled loop (:func:`_fit_counts_compiled`, the same fit to rounding);
+#: False: always the NumPy loop of :func:`_fit_counts` (the reference the compiled one is tested against)
+COMPILED = True
 
 __all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]
 
@@ -142,9 +148,50 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     bounds = (delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
     delay, lalp, held = start_slots(fam, delay, lalp, *bounds, held_delay, held_lalp)
     fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), fam.shape[:1])
+    if COMPILED:
+        return _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
+                                    bounds=bounds, held=held)
     cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
     return _fit_counts(irf, t, y, fam, delay, lalp, cur, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol, bounds=bounds,
                        held=held)
+
+
+def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountData, *, n_iter, lm_tol, bounds,
+                         held=None) -> SlotFit:
+    """:func:`_fit_counts` by its compiled loop (:func:`decomposition.kernels.countlm.count_lm`),
+    the starting amplitudes' solve (:func:`solve_amplitudes`) included: the same fit to rounding."""
+    delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct = bounds
+    P, K = fam.shape
+    Kc = K + (fit_bg is not None)
+    h_d, h_l = held if held is not None else (np.zeros((P, K), bool), np.zeros((P, K), bool))
+    f64 = lambda a: np.ascontiguousarray(a, np.float64)     # noqa: E731
+    delay, lalp = f64(delay).copy(), f64(lalp).copy()
+    amp = np.zeros((P, Kc))
+    cost = np.empty(P)
+    mu = np.empty(y.shape)
+    iters = np.zeros(P, np.int64)
+    conv = np.zeros(P, bool)
+    disp2 = np.ones(P) if counts.disp is None else np.square(f64(counts.disp))
+    bg = np.zeros(P, bool) if fit_bg is None else np.ascontiguousarray(fit_bg, bool)
+    count_lm(t, f64(counts.counts), f64(y), f64(np.broadcast_to(sw, y.shape)), f64(counts.scale), f64(counts.held),
+             np.ascontiguousarray(counts.fit, bool), disp2, float(POISSON_FIT_FLOOR), np.ascontiguousarray(fam, np.int8),
+             delay, lalp, amp, bg, np.ascontiguousarray(h_d, bool), np.ascontiguousarray(h_l, bool),
+             float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
+             bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
+             float(LAMBDA_MAX), instrument(response_table(irf), t), cost, mu, iters, conv)
+    return _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts, K)
+
+
+def _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts: CountData, K) -> SlotFit:
+    """The :class:`SlotFit` of a count fit: its slots, offset, deviance and the weighted residual
+    of the normalised profiles under the final model's weights."""
+    active = fam != FAM_NONE
+    sw = counts.weights(mu)
+    y_model = (mu - counts.held[:, None]) / counts.scale[:, None]
+    resid = sw * np.where(counts.fit, y - y_model, 0.0)
+    return SlotFit(delay=np.where(active, delay, np.nan), lalp=np.where(fam == FAM_SSS, lalp, np.nan),
+                   amp=np.where(active, amp[:, :K], 0.0), background=amp[:, K] if amp.shape[1] > K else np.zeros(len(fam)),
+                   cost=cost, resid=resid, iterations=iters, converged=conv)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
@@ -246,14 +293,8 @@ def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountDat
         lam[idx[~ok]] *= 4.0
         conv[idx[ok & (gain < lm_tol * t_dev / n_used[idx])]] = True
         conv[idx[~ok & (lam[idx] > LAMBDA_MAX)]] = True
-    sw = counts.weights(cache["mu"])
-    y_model = (cache["mu"] - counts.held[:, None]) / counts.scale[:, None]
-    resid = sw * np.where(counts.fit, y - y_model, 0.0)
-    return SlotFit(delay=np.where(active, state["delay"], np.nan),
-                   lalp=np.where(fam == FAM_SSS, state["lalp"], np.nan),
-                   amp=np.where(active, state["amp"][:, :K], 0.0),
-                   background=state["amp"][:, K] if Kc > K else np.zeros(P),
-                   cost=state["cost"], resid=resid, iterations=iters, converged=conv)
+    return _counts_answer(y, fam, state["delay"], state["lalp"], state["amp"], state["cost"], cache["mu"], iters, conv,
+                          counts, K)
 
 
 def _solve_rows(lhs: np.ndarray, rhs: np.ndarray) -> np.ndarray:
