@@ -227,6 +227,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
     rhs = np.zeros((npar, 1))
     free = np.zeros(npar, np.bool_)
     order = np.zeros(npar, np.int64)
+    jlo = np.zeros(npar, np.int64)
+    jhi = np.zeros(npar, np.int64)
     step = np.zeros(npar)
     for p in range(n):
         f = fam[p]
@@ -275,21 +277,22 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
                 else:
                     w[i] = 0.0
                     wr[i] = 0.0
-            # the free parameters' Jacobian rows of the expected counts, each on its atom's support
+            # the free parameters' Jacobian rows of the expected counts, each on its atom's
+            # support [jlo, jhi) (the offset's on the whole axis); the products summed over
+            # the overlap of two rows' supports
             for q in range(nf):
                 j = order[q]
-                for i in range(L):
-                    jac[q, i] = 0.0
+                k = j % K if j < 3 * K else K
+                jlo[q] = lo[k] if k < K else 0
+                jhi[q] = hi[k] if k < K else L
                 if j < K:
-                    for i in range(lo[j], hi[j]):
-                        jac[q, i] = a_cur[j] * m[K + j, i] * sc
+                    for i in range(jlo[q], jhi[q]):
+                        jac[q, i] = a_cur[k] * m[K + k, i] * sc
                 elif j < 2 * K:
-                    k = j - K
-                    for i in range(lo[k], hi[k]):
+                    for i in range(jlo[q], jhi[q]):
                         jac[q, i] = a_cur[k] * m[3 * K, i] * sc
                 elif j < 3 * K:
-                    k = j - 2 * K
-                    for i in range(lo[k], hi[k]):
+                    for i in range(jlo[q], jhi[q]):
                         jac[q, i] = m[k, i] * sc
                 else:
                     for i in range(L):
@@ -297,12 +300,12 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
             top = 0.0
             for a in range(nf):
                 s = 0.0
-                for i in range(L):
+                for i in range(jlo[a], jhi[a]):
                     s += jac[a, i] * wr[i]
                 rhs[a, 0] = s
                 for b in range(a, nf):
                     s = 0.0
-                    for i in range(L):
+                    for i in range(max(jlo[a], jlo[b]), min(jhi[a], jhi[b])):
                         s += jac[a, i] * w[i] * jac[b, i]
                     lhs[a, b] = s
                     lhs[b, a] = s
