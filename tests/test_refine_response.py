@@ -292,3 +292,52 @@ def test_the_compiled_count_fit_is_the_numpy_loop(irf, monkeypatch, dispersion):
     dev = got.cost * (1.0 if disp is None else disp ** 2)
     assert np.all(dev[::2] < 1.5 * fit.sum(axis=1)[::2])
     assert dev[1::2].mean() > 1.2 * dev[::2].mean()
+
+
+def test_the_count_fit_at_the_extremes(irf, monkeypatch):
+    """The count fit (compiled, and its NumPy reference) on extreme pixels: 1e9 counts per unit,
+    1e-3 counts per unit (next to no counts), no counts at all, no fitted sample, and NaN on the
+    samples that are not fitted.  Every fit ends, within its iterations, with finite outputs;
+    the compiled fit reads no sample that is not fitted (NaN there gives the answer of zeros
+    there), and equals the reference's."""
+    from decomposition.constants import FAM_GAUSS, FAM_SSS
+    from decomposition.response import refine as rr
+
+    n = 5
+    truth, _ = _scene(n, 7)
+    fam = np.tile(np.array([FAM_GAUSS, FAM_SSS, FAM_GAUSS], np.int8), (n, 1))
+    delay = np.stack([truth["direct_delay_ps"], truth["sss_delay_ps"], truth["ir_delay_ps"][:, 0]], axis=1)
+    lalp = np.zeros((n, 3))
+    lalp[:, 1] = np.log(truth["sss_alpha_per_ps"])
+    scale = np.array([1e9, 1e-3, 50.0, 50.0, 50.0])
+    held = np.array([0.0, 0.0, 0.0, 5.0, 0.0])
+    counts = np.random.default_rng(7).poisson(params_profile(irf, T_PS, truth) * scale[:, None]
+                                              + held[:, None]).astype(np.float64)
+    counts[2] = 0.0
+    fit = np.ones((n, L), bool)
+    fit[3] = False
+    fit[4, 20:40] = False
+    kw = dict(n_iter=40, lm_tol=1e-8, delay_bounds_ps=(0.0, 500.0), lalp_bounds=(-8.0, 1.0), first_is_direct=True,
+              fit_background=True)
+
+    def fitted(compiled, c):
+        monkeypatch.setattr(rr, "COMPILED", compiled)
+        y = (c - held[:, None]) / scale[:, None]
+        return rr.fit_slots(irf, T_PS, y, fit.astype(np.float64), fam, delay + 1.0, lalp,
+                            counts=rr.CountData(c, scale, held, fit, None), **kw)
+
+    got, ref = fitted(True, counts), fitted(False, counts)
+    with_nan = counts.copy()
+    with_nan[~fit] = np.nan
+    unread = fitted(True, with_nan)
+    for f in (got, ref, unread):
+        assert np.all(f.iterations <= 40)
+        for name in ("amp", "background", "cost", "resid"):
+            assert np.all(np.isfinite(getattr(f, name))), name
+    for name in ("delay", "lalp", "amp", "background", "cost", "resid", "iterations"):
+        assert np.array_equal(getattr(unread, name), getattr(got, name), equal_nan=True), name
+    np.testing.assert_allclose(got.cost, ref.cost, rtol=1e-7)       # 1e9 counts: rounding at 2e-8
+    np.testing.assert_allclose(got.delay, ref.delay, rtol=0, atol=1e-6)
+    assert np.all(got.amp[2] == 0.0) and got.cost[2] < 1.0         # no counts: no light
+    assert got.cost[3] == 0.0 and got.iterations[3] >= 1             # nothing fitted: nothing to lower
+    np.testing.assert_allclose(got.delay[0], delay[0], atol=1e-3)     # 1e9 counts: the truth
