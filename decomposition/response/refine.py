@@ -6,7 +6,8 @@ data are fitted by the refinement the Gaussian PSF's atoms take
 (:func:`decomposition.model.slotfit.least_squares`: variable projection over the response's
 table atoms).  Count data (:class:`CountData`) are fitted instead to their
 Poisson deviance by Fisher scoring over the delays, log alphas and amplitudes together
-(:func:`_fit_counts`), no step turning a positive amplitude non-positive.  Constraints by
+(:func:`_fit_counts`, compiled in :mod:`decomposition.kernels.countlm`), no step turning a
+positive amplitude non-positive.  Constraints by
 projection after each step: delays within ``delay_bounds_ps``, log alpha within
 ``lalp_bounds``, the sss onset not before the pixel's earliest shifted atom
 (``sss_after_direct``), and (``first_is_direct``) no shifted atom before slot 0.
@@ -164,18 +165,18 @@ def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountD
     P, K = fam.shape
     Kc = K + (fit_bg is not None)
     h_d, h_l = held if held is not None else (np.zeros((P, K), bool), np.zeros((P, K), bool))
-    f64 = lambda a: np.ascontiguousarray(a, np.float64)     # noqa: E731
-    delay, lalp = f64(delay).copy(), f64(lalp).copy()
+    delay, lalp = _f64(delay).copy(), _f64(lalp).copy()
     amp = np.zeros((P, Kc))
     cost = np.empty(P)
     mu = np.empty(y.shape)
     iters = np.zeros(P, np.int64)
     conv = np.zeros(P, bool)
-    disp2 = np.ones(P) if counts.disp is None else np.square(f64(counts.disp))
+    disp2 = np.ones(P) if counts.disp is None else np.square(_f64(counts.disp))
     bg = np.zeros(P, bool) if fit_bg is None else np.ascontiguousarray(fit_bg, bool)
-    count_lm(t, f64(counts.counts), f64(y), f64(np.broadcast_to(sw, y.shape)), f64(counts.scale), f64(counts.held),
-             np.ascontiguousarray(counts.fit, bool), disp2, float(POISSON_FIT_FLOOR), np.ascontiguousarray(fam, np.int8),
-             delay, lalp, amp, bg, np.ascontiguousarray(h_d, bool), np.ascontiguousarray(h_l, bool),
+    count_lm(t, _f64(counts.counts), _f64(y), _f64(np.broadcast_to(sw, y.shape)), _f64(counts.scale),
+             _f64(counts.held), np.ascontiguousarray(counts.fit, bool), disp2, float(POISSON_FIT_FLOOR),
+             np.ascontiguousarray(fam, np.int8), delay, lalp, amp, bg, np.ascontiguousarray(h_d, bool),
+             np.ascontiguousarray(h_l, bool),
              float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
              bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
              float(LAMBDA_MAX), instrument(response_table(irf), t), cost, mu, iters, conv)
@@ -190,8 +191,13 @@ def _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts: Coun
     y_model = (mu - counts.held[:, None]) / counts.scale[:, None]
     resid = sw * np.where(counts.fit, y - y_model, 0.0)
     return SlotFit(delay=np.where(active, delay, np.nan), lalp=np.where(fam == FAM_SSS, lalp, np.nan),
-                   amp=np.where(active, amp[:, :K], 0.0), background=amp[:, K] if amp.shape[1] > K else np.zeros(len(fam)),
+                   amp=np.where(active, amp[:, :K], 0.0),
+                   background=amp[:, K] if amp.shape[1] > K else np.zeros(len(fam)),
                    cost=cost, resid=resid, iterations=iters, converged=conv)
+
+
+def _f64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float64)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
