@@ -14,7 +14,9 @@ from decomposition.masks import SampleMask
 from decomposition.methods.dictionary import Dictionary
 from decomposition.methods.polish import refit_amplitudes
 from decomposition.model.fidelity import fidelity
-from decomposition.model.slots import eval_atoms, render, response_amplitudes
+from decomposition.kernels.atomlm import nnls_amplitudes
+from decomposition.kernels.projected import response_instrument
+from decomposition.model.slots import eval_atoms, render
 from decomposition.options import GridSpec, SolverOptions
 
 T, L, T0 = 2.0, 160, 2.0
@@ -43,8 +45,9 @@ def test_the_slot_renderers_draw_the_response_atoms():
     assert np.abs(render(AXIS, st)[0] - render(AXIS, st, IRF)[0]).max() > 0.1
 
 
-def test_response_amplitudes_solve_the_nonnegative_least_squares():
-    """Against scipy's NNLS on the same atoms over the fitted samples: an atom the data want
+def test_the_amplitudes_of_a_responses_atoms_solve_the_nonnegative_least_squares():
+    """The Gaussian path's compiled NNLS (``nnls_amplitudes``) over a response's table atoms,
+    against scipy's NNLS on the same atoms over the fitted samples: an atom the data want
     negative ends at 0, and ``refit_amplitudes`` over a response's dictionary drops it."""
     rng = np.random.default_rng(4)
     st = _state([[FAM_GAUSS, FAM_GAUSS, FAM_SSS]] * 3, [[40.0, 95.0, 40.0]] * 3, [[1.0, 1.0, 0.02]] * 3,
@@ -54,7 +57,8 @@ def test_response_amplitudes_solve_the_nonnegative_least_squares():
     p = np.einsum("pk,pkl->pl", true, np.array(atoms)) + 0.01 * rng.standard_normal((3, L))
     fit = np.ones((3, L), bool)
     fit[0, 70:90] = False                       # a gap in the fitted samples
-    got = response_amplitudes(IRF, AXIS, p, fit, st, sweeps=200)
+    got = nnls_amplitudes(T0, T, p, fit, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"], sweeps=200,
+                          inst=response_instrument(IRF, AXIS))
     for i in range(3):
         ref, _ = nnls((atoms[i] * fit[i]).T, p[i] * fit[i])
         np.testing.assert_allclose(got[i], ref, atol=1e-6)

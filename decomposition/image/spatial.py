@@ -64,8 +64,7 @@ from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS, render_pr
 from ..constants import SSS_SLOT
 from ..api import DecompositionResult, decompose
 from ..flags import AMBIGUOUS, EMPTY, POOR_FIT
-from ..kernels.projected import GAUSSIAN_PSF, instrument
-from ..kernels.response import response_table
+from ..kernels.projected import GAUSSIAN_PSF, response_instrument
 from ..model.atoms import params_profile
 from ..model.refine import refine, slot_arrays, unit_widths
 from ..model.varpro import rss_at
@@ -262,7 +261,7 @@ def prepare_coupling(cube: np.ndarray, result: DecompositionResult, time_bin_ps:
                     flags=np.asarray(result.flags).reshape(P).copy(), live=live, resolved=np.zeros(P, bool), info={},
                     hold={k: np.broadcast_to(np.asarray(v, np.float64), (Y, X)).reshape(P) for k, v in (hold or {}).items()},
                     noise_law=_searched_law(result.info, samples.noise_model), irf=irf,
-                    inst=instrument(None if irf is None else response_table(irf), time_axis_ps(L, time_bin_ps, t0)))
+                    inst=response_instrument(irf, time_axis_ps(L, time_bin_ps, t0)))
 
 
 def _searched_law(info: dict, noise_model: str) -> dict | None:

@@ -36,6 +36,7 @@ from ..constants import AMP_MAX, FAM_GAUSS, FAM_NONE, FAM_SSS, GAUSS_SUPPORT_SIG
 from .jit import SQRT_PI_2, njit, sss_erfc_part
 from ..masks import SampleMask, check_mask
 from .onsets import onset_link
+from .projected import GAUSSIAN_PSF, atom_scratch, table_rows, table_window
 
 __all__ = ["lm_refine", "atom_profiles", "atom_window_sums", "atom_weighted_squares", "state_models", "nnls_amplitudes"]
 
@@ -395,7 +396,7 @@ def state_models(t0_ps, time_bin_ps, n_bins, fam, amp, delay_ps, lsig, lalp):
 
 
 @njit
-def _nnls_pixels(t0, T, p, fit, fam, amp, delay, lsig, lalp, sweeps):
+def _nnls_pixels(t0, T, t, p, fit, fam, amp, delay, lsig, lalp, sweeps, inst):
     P, L = p.shape
     K = fam.shape[1]
     J = np.zeros((K + 3, L))
@@ -406,11 +407,19 @@ def _nnls_pixels(t0, T, p, fit, fam, amp, delay, lsig, lalp, sweeps):
     a = np.zeros(K)
     w = np.zeros(L)
     none = np.empty(0)
+    table = inst[0].size > 0
+    scratch = atom_scratch(inst)
     for pi in range(P):
         for i in range(L):
             w[i] = 1.0 if fit[pi, i] else 0.0
         for k in range(K):
-            if fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
+            if (fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS) and table:
+                # a response's table atom (unit peak) on its window
+                sss = fam[pi, k] == FAM_SSS
+                lo[k], hi[k] = table_window(t, delay[pi, k], sss, inst, True)
+                table_rows(t, J, K, k, sss, delay[pi, k], math.exp(lalp[pi, k]) if sss else 0.0, inst, t, False,
+                           False, lo[k], hi[k], scratch[0], scratch[1], scratch[2])
+            elif fam[pi, k] == FAM_GAUSS or fam[pi, k] == FAM_SSS:
                 lo[k], hi[k] = _eval_slot(t0, T, L, fam[pi, k], 1.0, delay[pi, k], lsig[pi, k], lalp[pi, k], J, k, 0,
                                           none)
             else:
@@ -442,12 +451,12 @@ def _nnls_pixels(t0, T, p, fit, fam, amp, delay, lsig, lalp, sweeps):
             amp[pi, k] = a[k]
 
 
-def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, sweeps=20):
+def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, sweeps=20, inst=GAUSSIAN_PSF):
     """Non-negative least-squares amplitudes of fixed atoms, every pixel of a block.
 
     Exact coordinate descent on the convex problem min_a ||w (p - sum_k a_k phi_k)||^2, a >= 0
     (``sweeps`` sweeps over the slots, starting from ``amp``), with the unit atoms phi_k of
-    :func:`atom_profiles` and w the fitted samples.
+    :func:`atom_profiles` -- or of a response's table (``inst``) -- and w the fitted samples.
 
     Parameters
     ----------
@@ -458,10 +467,14 @@ def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, 
     fit : ndarray (P, L) bool
         Samples that count.
     fam, delay_ps, lsig, lalp : arrays (P, K)
-        The atoms (FAM_NONE slots get amplitude 0).
+        The atoms (FAM_NONE slots get amplitude 0; ``lsig`` is not read with a response).
     amp : ndarray (P, K)
         Starting amplitudes.
     sweeps : int
+    inst : tuple
+        The atoms' instrument (:func:`decomposition.kernels.projected.instrument`): the Gaussian
+        PSF's (:data:`~decomposition.kernels.projected.GAUSSIAN_PSF`, the default) or a response's
+        table atoms on the axis t0_ps + i * time_bin_ps.
 
     Returns
     -------
@@ -470,10 +483,10 @@ def nnls_amplitudes(t0_ps, time_bin_ps, p, fit, fam, amp, delay_ps, lsig, lalp, 
     P, L = np.shape(p)
     out = np.array(amp, np.float64, order="C", copy=True)
     if P:
-        _nnls_pixels(float(t0_ps), float(time_bin_ps), np.ascontiguousarray(p, np.float64),
-                     np.ascontiguousarray(fit, np.bool_), np.ascontiguousarray(fam, np.int8), out,
-                     np.ascontiguousarray(delay_ps, np.float64), np.ascontiguousarray(lsig, np.float64),
-                     np.ascontiguousarray(lalp, np.float64), int(sweeps))
+        _nnls_pixels(float(t0_ps), float(time_bin_ps), float(t0_ps) + float(time_bin_ps) * np.arange(L),
+                     np.ascontiguousarray(p, np.float64), np.ascontiguousarray(fit, np.bool_),
+                     np.ascontiguousarray(fam, np.int8), out, np.ascontiguousarray(delay_ps, np.float64),
+                     np.ascontiguousarray(lsig, np.float64), np.ascontiguousarray(lalp, np.float64), int(sweeps), inst)
     return out
 
 

@@ -24,11 +24,11 @@ import numpy as np
 
 from ..constants import SSS_SLOT
 from .jit import erfcx, njit
-from .response import ResponseTable, polyphase, shifted_row, sss_row, uniform_stride
+from .response import ResponseTable, polyphase, response_table, shifted_row, sss_row, uniform_stride
 
 __all__ = ["projected_normal_equations", "pixel_equations", "equation_scratch", "lu_solve", "given_rss",
            "SUPPORT_WIDTHS", "support_window", "kernel_rows", "uniform_step", "row_dot", "fisher_gram", "instrument",
-           "GAUSSIAN_PSF", "atom_rows", "atom_scratch"]
+           "response_instrument", "GAUSSIAN_PSF", "atom_rows", "atom_scratch"]
 
 #: widths from its centre (or before the sss onset) beyond which a kernel is taken as zero: every
 #: value and derivative there is below 1e-29 of its peak (exp(-72) times a power of 12), nothing
@@ -66,6 +66,13 @@ def instrument(table: ResponseTable | None, t) -> tuple:
     return (_readonly(table.value), _readonly(table.slope), _readonly(vpp), _readonly(spp), float(table.start_ps),
             float(table.step_ps), float(table.n_steps * table.step_ps), 1.0 / float(table.peak_per_ps),
             int(table.n_steps), stride)
+
+
+def response_instrument(irf, t) -> tuple:
+    """:func:`instrument` of a measured response ``irf`` (a :class:`core.irf.InstrumentResponse`;
+    its :func:`~decomposition.kernels.response.response_table`) on the time axis ``t`` (L,); None:
+    the Gaussian PSF's (:data:`GAUSSIAN_PSF`)."""
+    return instrument(None if irf is None else response_table(irf), t)
 
 
 #: the instrument argument of the Gaussian PSF: no table (the analytic kernels of :func:`kernel_rows`)

@@ -9,10 +9,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..kernels.atomlm import nnls_amplitudes
+from ..kernels.projected import response_instrument
 from ..constants import FAM_NONE, FAM_SSS
 from .dictionary import Dictionary
 from ..masks import SampleMask, check_mask
-from ..model.slots import (drop_zero, linked_onsets, parameter_bounds, put, refine_atoms, response_amplitudes, take,
+from ..model.slots import (drop_zero, linked_onsets, parameter_bounds, put, refine_atoms, take,
                            tie_widths)
 
 __all__ = ["polish_block", "snap_to_grid", "refit_amplitudes"]
@@ -83,13 +84,10 @@ def refit_amplitudes(p, mask: SampleMask, st, dic: Dictionary):
     :func:`decomposition.kernels.atomlm.nnls_amplitudes`, 20 sweeps of exact coordinate descent on the
     convex problem over the fitted samples, from the current amplitudes); atoms left at zero
     are dropped.  A dictionary over a measured response solves its own atoms' amplitudes by the
-    same rule (:func:`decomposition.model.slots.response_amplitudes`)."""
+    same code, over the response's table atoms."""
     check_mask(mask, p.shape)
-    if dic.response is not None:
-        t = dic.t0_ps + dic.time_bin_ps * np.arange(p.shape[1])
-        st["amp"] = response_amplitudes(dic.response, t, p, mask.fit, st)
-    else:
-        st["amp"] = nnls_amplitudes(dic.t0_ps, dic.time_bin_ps, p, mask.fit, st["fam"], st["amp"], st["delay"],
-                                    st["lsig"], st["lalp"], sweeps=20)
+    t = dic.t0_ps + dic.time_bin_ps * np.arange(p.shape[1])
+    st["amp"] = nnls_amplitudes(dic.t0_ps, dic.time_bin_ps, p, mask.fit, st["fam"], st["amp"], st["delay"],
+                                st["lsig"], st["lalp"], sweeps=20, inst=response_instrument(dic.response, t))
     drop_zero(st)
     return st

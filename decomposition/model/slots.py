@@ -23,7 +23,7 @@ from ..kernels.onsets import onset_links
 from .atoms import slot_atoms
 from .slotfit import least_squares
 
-__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render", "response_amplitudes",
+__all__ = ["new_state", "take", "put", "select_rows", "drop_zero", "eval_atoms", "render",
            "objective", "penalty",
            "linked_onsets", "refine_atoms", "refine_penalised", "parameter_bounds", "shape_bounds", "axis_of",
            "tie_widths"]
@@ -50,28 +50,6 @@ def render(t, st, response=None):
     if response is not None:
         return _render(response, t, st)
     return state_models(*axis_of(t), t.size, st["fam"], st["amp"], st["delay"], st["lsig"], st["lalp"])
-
-
-def response_amplitudes(response, t, p, fit, st, sweeps: int = 20):
-    """Non-negative least-squares amplitudes (P, K) of a measured response's fixed atoms: the
-    Gaussian path's rule (:func:`decomposition.kernels.atomlm.nnls_amplitudes`: ``sweeps``
-    sweeps of exact coordinate descent over the slots on the fitted samples ``fit`` (P, L),
-    from the current amplitudes), every pixel of the block at once."""
-    fam = st["fam"]
-    on = fam != FAM_NONE
-    w = np.asarray(fit, np.float64)
-    phi = slot_atoms(response, t, fam, st["delay"], st["lalp"]) * w[:, None, :]
-    gram = np.einsum("pkl,pjl->pkj", phi, phi)
-    b = np.einsum("pkl,pl->pk", phi, p * w)
-    a = np.where(on, st["amp"], 0.0).astype(np.float64)
-    rows = np.arange(fam.shape[0])
-    for _ in range(sweeps):
-        for k in range(fam.shape[1]):
-            gkk = gram[rows, k, k]
-            r = b[:, k] - np.einsum("pj,pj->p", gram[:, k, :], a) + gkk * a[:, k]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                a[:, k] = np.where(on[:, k] & (gkk > 0), np.maximum(r / gkk, 0.0), 0.0)
-    return a
 
 
 def objective(p, mask: SampleMask, model, st, mu, eps):

@@ -24,8 +24,7 @@ from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLO
 from ..model.slotfit import LAMBDA0, SlotFit, least_squares, project_slots, start_slots
 from ..noise import count_deviance, poisson_weights
 from ..kernels.countlm import count_lm
-from ..kernels.projected import instrument
-from ..kernels.response import response_table
+from ..kernels.projected import response_instrument
 from ..model.atoms import params_profile, slot_atoms
 from ..model.components import merge_gaussians
 from .label import slots_to_params
@@ -179,7 +178,7 @@ def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountD
              np.ascontiguousarray(h_l, bool),
              float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
              bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
-             float(LAMBDA_MAX), instrument(response_table(irf), t), cost, mu, iters, conv)
+             float(LAMBDA_MAX), response_instrument(irf, t), cost, mu, iters, conv)
     return _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts, K)
 
 
