@@ -7,8 +7,11 @@ takes paths, and argument layouts, that the others do not, so the kernels numba 
 them are those a real run loads.  With an instrument response (``options["irf"]``) the profiles
 are rendered with that response and also decomposed as photon counts (with ``noise="poisson"``
 only as counts, with ``"gaussian"`` only as floats): the response path's table atoms, least
-squares and Poisson fits are compiled kernels of their own.  The profiles only need to take those paths; their values
-do not matter, and no benchmark scene is needed to build them.
+squares and Poisson fits are compiled kernels of their own.  A run that decomposes whole images
+(``image``: the shared parameters and the spatial coupling of :func:`decomposition.image.decompose_image`)
+has kernels of its own too: the profiles are then also decomposed as one small image with those
+settings.  The profiles only need to take those paths; their values do not matter, and no
+benchmark scene is needed to build them.
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import numpy as np
 from core.irf import InstrumentResponse
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params, render_profile
 from .api import decompose
+from .image import decompose_image
 from .kernels.jit import compile_notice, quiet_notice
 
 __all__ = ["warm_up"]
@@ -54,7 +58,8 @@ def _profiles(kinds, n_pixels: int, n_bins: int, time_bin_ps: float, rng, irf=No
 
 
 def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convscd", components=("d", "r", "s"),
-            options: dict | None = None, stream=None, label: str = "decompose", quiet: bool = False):
+            options: dict | None = None, image: dict | None = None, stream=None, label: str = "decompose",
+            quiet: bool = False):
     """Load (or compile, with :func:`~decomposition.kernels.derivatives.jit.compile_notice`, and cache) every
     kernel a decomposition with these settings uses, by decomposing a few small profiles of
     every kind of scene they ask for.
@@ -66,7 +71,9 @@ def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convs
     and as counts, see the module docstring;
     ``noise``: "poisson" decomposes counts only, "gaussian" floats only).  With a response the
     profiles lie on the given axis itself (the window the response needs); without one on a
-    window of 64 to 512 bins.
+    window of 64 to 512 bins.  ``image``: the keywords of :func:`decomposition.image.decompose_image`
+    a run uses beyond ``options`` (``shared``, ``psf_map``, ``spatial``; None or empty: per-pixel
+    runs only).
     Returns the number of seconds spent compiling (0.0 when everything came from the cache).
     """
     opts = dict(options or {})
@@ -99,4 +106,8 @@ def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convs
     with (quiet_notice() if quiet else compile_notice(stream, label=label)) as watch:
         for data in batches:
             decompose(data, time_bin_ps=time_bin_ps, method=method, components=tuple(components), **opts)
+            if image:
+                rows = data.shape[0] // 2
+                decompose_image(data[:2 * rows].reshape(2, rows, n_bins), time_bin_ps=time_bin_ps, method=method,
+                                components=tuple(components), **image, **opts)
     return 0.0 if watch.started is None else time.monotonic() - watch.started

@@ -252,6 +252,7 @@ def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_pat
     from pathlib import Path
 
     from decomposition.evaluation.synthetic import make_cube
+    from decomposition.kernels import jit
 
     root = Path(__file__).resolve().parents[1]
     np.save(tmp_path / "c.npy", make_cube(1, 8, 96, nsr=0.05, seed=1).noisy)
@@ -263,7 +264,7 @@ def test_the_first_decompose_says_it_compiles_once_and_later_runs_do_not(tmp_pat
     first = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=400)
     assert first.returncode == 0, first.stderr
     lines = first.stderr.splitlines()
-    notice = [i for i, ln in enumerate(lines) if "compiling the solver's kernels once (about 10-15 s" in ln]
+    notice = [i for i, ln in enumerate(lines) if jit.COMPILE_NOTICE in ln]
     done = [i for i, ln in enumerate(lines) if "kernels compiled and cached in" in ln]
     progress = [i for i, ln in enumerate(lines) if "1/1 chunks (100%)" in ln]
     assert len(notice) == 1 and len(done) == 1 and progress, first.stderr
@@ -375,3 +376,42 @@ def test_capturing_the_example_config_without_simulate_says_to_add_it(tmp_path, 
     monkeypatch.setattr(drivers.smc100, "SMC100Mirror", absent)
     assert "add --simulate" in capture("sim")
     assert "add --simulate" not in capture("scan.toml")       # a copy's /dev/ttyUSB0 may well be the rig's
+
+
+
+def test_an_image_run_warms_up_the_image_stages_before_its_notice_ends(tmp_path, monkeypatch):
+    """The command's default run on an image shares the PSF and couples the pixels: its warm-up (before any chunk,
+    inside the compile notice) decomposes the warm-up's profiles as one small image with those
+    settings too, so the kernels of the image-level stages compile there and not, unannounced,
+    in the first chunk (on a fresh install that was about 20 s after "kernels compiled and
+    cached in ..." had been printed).  The warm-up is watched, not replaced: the real
+    decompositions run."""
+    from decomposition import warmup
+    from decomposition.evaluation.synthetic import make_cube
+
+    seen = {"warm_up": [], "decompose_image": []}
+    real_warm_up, real_image = warmup.warm_up, warmup.decompose_image
+
+    def watched_warm_up(**kw):
+        seen["warm_up"].append(kw.get("image"))
+        return real_warm_up(**kw)
+
+    def watched_image(cube, *a, **kw):
+        seen["decompose_image"].append((np.shape(cube), kw.get("shared"), kw.get("spatial")))
+        return real_image(cube, *a, **kw)
+
+    monkeypatch.setattr(warmup, "warm_up", watched_warm_up)
+    monkeypatch.setattr(warmup, "decompose_image", watched_image)
+    np.save(tmp_path / "c.npy", make_cube(2, 8, 96, nsr=0.05, seed=1).noisy)
+    assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--out", str(tmp_path / "r.zarr"),
+                 "--quiet"]) == 0
+    (image,) = seen["warm_up"]                      # an image's default: the PSF shared, pixels coupled
+    assert image["shared"] == ("psf",) and image["psf_map"] is False and image["spatial"]
+    assert seen["decompose_image"] and all(len(shape) == 3 and shape[0] == 2 and shared == ("psf",) and spatial
+                                          for shape, shared, spatial in seen["decompose_image"])
+    # every pixel on its own: no image in the warm-up
+    seen["warm_up"].clear()
+    seen["decompose_image"].clear()
+    assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--out", str(tmp_path / "p.zarr"),
+                 "--per-pixel", "--quiet"]) == 0
+    assert seen["warm_up"] == [None] and not seen["decompose_image"]

@@ -27,7 +27,8 @@ its subpackages and top-level modules the same way, bottom up::
     methods      ConvSCD and the GradBM baseline
     stages       the stages decompose() runs
     response     the measured-response path (reuses the stages' rules)
-    api          decompose() itself; __init__ re-exports it, warmup runs it once before timing
+    api          decompose() itself; __init__ re-exports it, warmup runs it (and decompose_image) once
+                 before timing
     image        decompose_image(): what the pixels of one image share (shared, spatial)
     store        the chunked store pipeline above the solver: the only unit that reads cube
                  stores (reconstruction)
@@ -74,7 +75,7 @@ DECOMPOSITION = {
     "response": _SHARED | {"kernels", "noise", "model", "methods", "stages"},
     "api": _SHARED | {"model", "methods", "stages", "response"},
     "__init__": {"flags", "api", "image"},
-    "warmup": {"api", "kernels"},
+    "warmup": {"api", "image", "kernels"},
     "image": _SHARED | {"api", "stages", "model", "noise", "kernels", "methods", "response"},
     "store": _SHARED | {"__init__", "api", "image", "methods", "noise", "response", "warmup"},
     "evaluation": {"constants", "noise", "model"},

@@ -43,7 +43,7 @@ from numba.core import event as _numba_event
 
 __all__ = ["njit", "erfcx", "sss_erfc_part", "sss_value", "compile_notice", "quiet_notice", "kernel_digest"]
 
-COMPILE_NOTICE = "compiling the solver's kernels once (about 10-15 s on first use; later runs load them from the cache)"
+COMPILE_NOTICE = "compiling the solver's kernels once (about a minute on first use; later runs load them from the cache)"
 
 SQRT_PI_2 = math.sqrt(math.pi / 2.0)
 _INV_SQRT_PI = 1.0 / math.sqrt(math.pi)

@@ -411,8 +411,10 @@ def decompose_to_store(input_path, out_path, *, method: str = "convscd", compone
         first = np.asarray(arr[0, :min(nx, 64)].compute())
         warm_options = dict(solver_options, noise=resolve_noise_model(solver_options.get("noise", "auto"), first))
     try:
+        image = ({"shared": tuple(names), "psf_map": bool(psf_map), "spatial": spatial_opts or False}
+                 if names or spatial_opts is not None else None)     # the kernels of the image-level stages too
         seconds_compile = warm_up(time_bin_ps=tb, n_bins=nt, method=method, components=components,
-                                  options=warm_options, stream=stream, quiet=not progress)
+                                  options=warm_options, image=image, stream=stream, quiet=not progress)
     except (TypeError, ValueError):  # settings its synthetic scenes do not suit: the workers compile instead
         seconds_compile = 0.0
     _probe_params(nt=nt, time_bin_ps=tb, t0_ps=t0, method=method, components=components, options=solver_options,
