@@ -258,3 +258,16 @@ def test_a_psf_shared_by_default_only_where_the_pixels_are_one_instrument():
     est = image_estimate(scene.profiles, None, scene.time_bin_ps, "convscd", ("psf",),
                          keywords={"t0_ps": scene.t0_ps}, one_instrument=True)
     assert est.psf_spread <= ONE_INSTRUMENT_SPREAD and abs(est.psf_sigma_ps - scene.sigma_ps) < 0.2
+
+
+def test_a_psf_map_that_is_not_a_width_everywhere_is_refused():
+    """A 2 x 16 image of noisy widths (most pixels misfit by the Gaussian model): the quadratic
+    surface fitted to them falls below zero at the image's corner, where every pixel's fit would
+    have refused the held width with a traceback from inside its chunk.  The estimate refuses
+    it, naming the pixel and the way out; one shared width is estimated as before."""
+    cube = make_cube(2, 16, 256, nsr=0.05, seed=1).noisy
+    with pytest.raises(ValueError, match=r"psf_map: the PSF width surface .* falls to -[0-9.]+ ps at pixel "
+                                         r"\(y=1, x=15\) of the 2 x 16 image.*psf without psf_map"):
+        decompose_image(cube, TB, shared="psf", psf_map=True)
+    res = decompose_image(cube, TB, shared="psf")
+    assert res.info["shared"]["psf_sigma_ps"] > 0

@@ -167,6 +167,19 @@ class SharedEstimate:
         return hold, err
 
 
+def _check_width_surface(coef, center, scale, shape) -> None:
+    """Refuse a PSF width surface that is not a width everywhere on the image: one that falls to
+    zero or below at some pixel (noisy widths on a small image, where the quadratic terms
+    swing) would be held there and refused by every pixel's fit."""
+    yy, xx = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    surface = surface_design(yy, xx, center, scale) @ np.asarray(coef, np.float64)
+    if not np.all(np.isfinite(surface) & (surface > 0)):
+        at = np.unravel_index(int(np.argmin(np.where(np.isfinite(surface), surface, -np.inf))), surface.shape)
+        raise ValueError(f"psf_map: the PSF width surface fitted to the pixels' widths falls to "
+                         f"{float(surface[at]):.3g} ps at pixel (y={at[0]}, x={at[1]}) of the {shape[0]} x {shape[1]} "
+                         f"image: their widths do not determine a map; share one width (psf without psf_map)")
+
+
 def image_estimate(cube, regions, time_bin_ps: float, method: str, names: tuple, *, psf_map: bool = False,
                    keywords: dict, score=None, gather=None, one_instrument: bool = False) -> SharedEstimate:
     """The shared parameters of an image ``cube`` (Y, X, L): :func:`select_pixels` on
@@ -460,6 +473,7 @@ def estimate_shared(profiles, yx, labels, shape, time_bin_ps: float, method: str
             est["psf_map"] = {"terms": list(SURFACE_TERMS), "coefficients_ps": coef.tolist(),
                               "covariance_ps2": cov.tolist(), "center_yx": list(center), "scale_yx": list(scale)}
             est["psf_sigma_ps"], est["psf_sigma_ps_stderr"] = float(coef[0]), float(math.sqrt(cov[0, 0]))
+            _check_width_surface(coef, center, scale, shape)
             a = surface_design(yx[:, 0], yx[:, 1], center, scale)
             hold = {"sigma_ps": a @ coef}
         else:
