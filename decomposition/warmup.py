@@ -107,7 +107,9 @@ def warm_up(*, time_bin_ps: float = 2.0, n_bins: int = 256, method: str = "convs
         for data in batches:
             decompose(data, time_bin_ps=time_bin_ps, method=method, components=tuple(components), **opts)
             if image:
+                # (the PSF map is a NumPy surface over the image, held per pixel through the same
+                # kernels as one shared width; the warm-up's few pixels cannot determine one)
                 rows = data.shape[0] // 2
                 decompose_image(data[:2 * rows].reshape(2, rows, n_bins), time_bin_ps=time_bin_ps, method=method,
-                                components=tuple(components), **image, **opts)
+                                components=tuple(components), **dict(image, psf_map=False), **opts)
     return 0.0 if watch.started is None else time.monotonic() - watch.started

@@ -415,3 +415,5 @@ def test_an_image_run_warms_up_the_image_stages_before_its_notice_ends(tmp_path,
     assert main(["decompose", str(tmp_path / "c.npy"), "--time-bin-ps", "2", "--out", str(tmp_path / "p.zarr"),
                  "--per-pixel", "--quiet"]) == 0
     assert seen["warm_up"] == [None] and not seen["decompose_image"]
+    # a PSF map: the warm-up's few pixels cannot determine one, and it needs no kernels of its own
+    assert real_warm_up(image={"shared": ("psf",), "psf_map": True, "spatial": False}, quiet=True) >= 0.0
