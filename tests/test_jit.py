@@ -147,3 +147,36 @@ def test_without_a_stamped_cache_kernels_are_compiled_not_cached(tmp_path, monke
     assert mod.level() == 3.0
     assert type(mod.level._cache).__name__ == "NullCache"
     assert not list(tmp_path.rglob("*.nbi"))
+
+
+def test_no_call_site_hands_a_kernel_a_read_only_array():
+    """numba types a read-only array (a broadcast view) as a type of its own: a kernel handed one
+    where other calls hand a writable array compiled, and cached, a second time (the refine's
+    loop was compiled in four signatures over the suite, the Fisher Gram product in two, the
+    count fit in two).  ``kernel_array`` hands them writable C arrays; after decompositions that
+    take every path of those kernels (Gaussian PSF with an offset, held widths' refits and
+    standard errors; a response on floats and on counts; an image with a shared PSF), no
+    signature of theirs holds a read-only array outside the instrument's frozen table."""
+    from core.irf_models import tailed_response
+    from decomposition import decompose
+    from decomposition.evaluation.synthetic import make_cube, make_profiles
+    from decomposition.image import decompose_image
+    from decomposition.kernels import countlm, jit, projected, projlm
+
+    a = np.broadcast_to(np.arange(4.0), (4,))
+    assert not a.flags.writeable and jit.kernel_array(a, np.float64).flags.writeable
+    b = np.arange(4.0)
+    assert jit.kernel_array(b, np.float64) is b                     # nothing copied that need not be
+    irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=2.0)
+    d = make_profiles(12, 256, nsr=0.05, seed=3)
+    decompose(d.noisy, 2.0, components="d,r,s,b", refine=True, stderr=True)
+    r = make_profiles(12, 512, nsr=0.05, seed=3, response=irf, ranges="paper")
+    decompose(r.noisy, 2.0, irf=irf, stderr=True)
+    c = make_profiles(12, 512, seed=3, response=irf, ranges="paper", photons_per_pixel=300.0)
+    decompose(c.noisy, 2.0, irf=irf, components="d,r,s,b")
+    decompose_image(make_cube(3, 6, 256, nsr=0.05, seed=1).noisy, 2.0, shared="psf")
+    for kernel in (projlm.projected_lm, projected.fisher_gram, countlm.count_lm):
+        assert kernel.signatures, kernel
+        for sig in kernel.signatures:
+            plain = [str(t) for t in sig if not str(t).startswith("Tuple(")]   # the instrument is frozen
+            assert not any("readonly" in t for t in plain), (kernel, plain)

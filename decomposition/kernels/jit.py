@@ -41,7 +41,8 @@ import numba
 import numpy as np
 from numba.core import event as _numba_event
 
-__all__ = ["njit", "erfcx", "sss_erfc_part", "sss_value", "compile_notice", "quiet_notice", "kernel_digest"]
+__all__ = ["njit", "erfcx", "sss_erfc_part", "sss_value", "compile_notice", "quiet_notice", "kernel_digest",
+           "kernel_array"]
 
 COMPILE_NOTICE = "compiling the solver's kernels once (about a minute on first use; later runs load them from the cache)"
 
@@ -101,6 +102,14 @@ def _package_root(folder) -> Path:
     while (root.parent / "__init__.py").is_file():
         root = root.parent
     return root
+
+
+def kernel_array(a, dtype) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype`` for a compiled kernel: numba types a
+    read-only array (a broadcast view, a frozen table) as a type of its own, so a kernel handed
+    one where other calls hand a writable array compiles, and caches, a second time.  Copies only
+    what is not already so."""
+    return np.require(a, dtype, ["C", "W"])
 
 
 @functools.lru_cache(maxsize=None)

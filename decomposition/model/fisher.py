@@ -35,6 +35,7 @@ from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, SSS_SLOT
 from .atoms import params_profile, slot_atoms
 from .refine import apply_weights, check_hold, held_slots, slot_arrays
 from . import varpro
+from ..kernels.jit import kernel_array
 from ..kernels.projected import fisher_gram
 from ..kernels.response import TABLE_REL_ERROR
 from .varpro import CHUNK_PIXELS, kernel_windows
@@ -262,13 +263,13 @@ def _compiled_information(t, slots, amp_scale, sw, shared_sigma, tie_onset, offs
     info = np.empty((n, p, p))
     if n:
         amp = np.where(present, slots["amplitude"], 0.0) / amp_scale[:, None]
-        fisher_gram(np.ascontiguousarray(t, np.float64), np.ascontiguousarray(slots["delay"], np.float64),
-                    np.ascontiguousarray(slots["sigma"], np.float64), np.ascontiguousarray(slots["alpha"], np.float64),
-                    np.ascontiguousarray(amp, np.float64), np.ascontiguousarray(present, np.bool_),
-                    np.zeros((0, t.size)) if sw is None else np.ascontiguousarray(sw, np.float64),
-                    np.zeros(0, np.bool_) if offset is None else np.ascontiguousarray(offset, np.bool_),
-                    tied if shared_sigma else np.full(n, -1, np.int64), np.ascontiguousarray(onset, np.bool_),
-                    np.ascontiguousarray(fx, np.bool_), info)
+        fisher_gram(kernel_array(t, np.float64), kernel_array(slots["delay"], np.float64),
+                    kernel_array(slots["sigma"], np.float64), kernel_array(slots["alpha"], np.float64),
+                    kernel_array(amp, np.float64), kernel_array(present, np.bool_),
+                    np.zeros((0, t.size)) if sw is None else kernel_array(sw, np.float64),
+                    np.zeros(0, np.bool_) if offset is None else kernel_array(offset, np.bool_),
+                    kernel_array(tied, np.int64) if shared_sigma else np.full(n, -1, np.int64),
+                    kernel_array(onset, np.bool_), kernel_array(fx, np.bool_), info)
     return info, free, np.where(tied >= 0, tied, 0)
 
 

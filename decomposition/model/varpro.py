@@ -69,6 +69,7 @@ from ..kernels.response import slot_rows
 from ..kernels.derivatives import _Z_NEGLIGIBLE, kernel_derivatives
 from ..kernels.projected import GAUSSIAN_PSF, given_rss, instrument, projected_normal_equations
 from ..kernels.projlm import projected_lm
+from ..kernels.jit import kernel_array
 
 __all__ = ["Layout", "design_rows", "kernel_windows", "refine_block", "background_level", "rss_at", "CHUNK_PIXELS"]
 
@@ -671,16 +672,15 @@ def _steps_compiled(lay, t, y, theta, present, free, tb, sw, bg, amp, inst, prio
     pm = np.array([m for _, m, _ in prior], np.float64).reshape(len(prior), n)
     pw = np.array([w for _, _, w in prior], np.float64).reshape(len(prior), n)
     if n:
-        t = np.ascontiguousarray(t, np.float64)
-        lo, hi = (np.ascontiguousarray(np.broadcast_to(b, (p,)), np.float64) for b in bounds)
+        t = kernel_array(t, np.float64)
+        lo, hi = (kernel_array(np.broadcast_to(b, (p,)), np.float64) for b in bounds)
         projected_lm(
-            t, np.ascontiguousarray(y, np.float64), theta, np.ascontiguousarray(present, np.bool_),
-            np.ascontiguousarray(free, np.bool_),
-            np.zeros((0, L)) if sw is None else np.ascontiguousarray(sw, np.float64),
-            np.zeros(n, np.bool_) if bg is None else np.ascontiguousarray(bg, np.bool_),
-            np.zeros((0, k)) if amp is None else np.ascontiguousarray(amp, np.float64),
-            np.ascontiguousarray(lay.assign, np.float64), np.ascontiguousarray(lay.dslot, np.int64), lay.shared,
-            L >= 2 and bool(np.all(t[1:] > t[:-1])), lo, hi, np.ascontiguousarray(ftol, np.float64), float(lam0),
+            t, kernel_array(y, np.float64), theta, kernel_array(present, np.bool_), kernel_array(free, np.bool_),
+            np.zeros((0, L)) if sw is None else kernel_array(sw, np.float64),
+            np.zeros(n, np.bool_) if bg is None else kernel_array(bg, np.bool_),
+            np.zeros((0, k)) if amp is None else kernel_array(amp, np.float64),
+            kernel_array(lay.assign, np.float64), kernel_array(lay.dslot, np.int64), lay.shared,
+            L >= 2 and bool(np.all(t[1:] > t[:-1])), lo, hi, kernel_array(ftol, np.float64), float(lam0),
             int(max_iter),
             bool(positive), bool(sss_after_direct), bool(onset_after_earliest), bool(keep_order), pv, pm, pw,
             c, rss, viol, iters, converged, cur, resid, inst)

@@ -24,6 +24,7 @@ from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS, POISSON_FIT_FLOOR, SSS_SLO
 from ..model.slotfit import LAMBDA0, SlotFit, least_squares, project_slots, start_slots
 from ..noise import count_deviance, poisson_weights
 from ..kernels.countlm import count_lm
+from ..kernels.jit import kernel_array
 from ..kernels.projected import response_instrument
 from ..model.atoms import params_profile, slot_atoms
 from ..model.components import merge_gaussians
@@ -171,11 +172,10 @@ def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountD
     iters = np.zeros(P, np.int64)
     conv = np.zeros(P, bool)
     disp2 = np.ones(P) if counts.disp is None else np.square(_f64(counts.disp))
-    bg = np.zeros(P, bool) if fit_bg is None else np.ascontiguousarray(fit_bg, bool)
+    bg = np.zeros(P, bool) if fit_bg is None else kernel_array(fit_bg, np.bool_)
     count_lm(t, _f64(counts.counts), _f64(y), _f64(np.broadcast_to(sw, y.shape)), _f64(counts.scale),
-             _f64(counts.held), np.ascontiguousarray(counts.fit, bool), disp2, float(POISSON_FIT_FLOOR),
-             np.ascontiguousarray(fam, np.int8), delay, lalp, amp, bg, np.ascontiguousarray(h_d, bool),
-             np.ascontiguousarray(h_l, bool),
+             _f64(counts.held), kernel_array(counts.fit, np.bool_), disp2, float(POISSON_FIT_FLOOR),
+             kernel_array(fam, np.int8), delay, lalp, amp, bg, kernel_array(h_d, np.bool_), kernel_array(h_l, np.bool_),
              float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
              bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
              float(LAMBDA_MAX), response_instrument(irf, t), cost, mu, iters, conv)
@@ -196,7 +196,7 @@ def _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts: Coun
 
 
 def _f64(a) -> np.ndarray:
-    return np.ascontiguousarray(a, np.float64)
+    return kernel_array(a, np.float64)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
