@@ -88,12 +88,27 @@ def _model(m, lo, hi, amp, has_bg, scale, held, mu):
 
 
 @njit
+def _column_on(fam, has_bg, c):
+    """Amplitude column ``c`` is fitted: an active slot's atom, or (c == K) the offset where ``has_bg``."""
+    return (fam[c] != FAM_NONE) if c < fam.shape[0] else has_bg
+
+
+@njit
+def _column(m, lo, hi, has_bg, c, i):
+    """Sample ``i`` of amplitude column ``c``: the rendered atom on its support (0 off it), or
+    (c == K) the offset's column of ones where ``has_bg``."""
+    K = lo.shape[0]
+    if c < K:
+        return m[c, i] if lo[c] <= i < hi[c] else 0.0
+    return 1.0 if has_bg else 0.0
+
+
+@njit
 def _start_amplitudes(m, lo, hi, fam, has_bg, y, sw, amp, mat, rhs, piv):
     """:func:`decomposition.response.refine.solve_amplitudes` for one pixel: the weighted
     least-squares amplitudes of its atoms (and the offset column where ``has_bg``) under the
     square-root weights ``sw``, ridge 1e-12 of the largest diagonal on the active columns, 0 in
     empty slots and where the solve is not finite.  Into ``amp`` (Kc,)."""
-    K = fam.shape[0]
     Kc = amp.shape[0]
     L = y.shape[0]
     for a in range(Kc):
@@ -102,12 +117,12 @@ def _start_amplitudes(m, lo, hi, fam, has_bg, y, sw, amp, mat, rhs, piv):
             mat[a, b] = 0.0
     for a in range(Kc):
         for i in range(L):
-            wa = (m[a, i] if (a < K and lo[a] <= i < hi[a]) else (1.0 if (a == K and has_bg) else 0.0)) * sw[i]
+            wa = _column(m, lo, hi, has_bg, a, i) * sw[i]
             if wa == 0.0:
                 continue
             rhs[a, 0] += wa * (y[i] * sw[i])
             for b in range(a, Kc):
-                wb = (m[b, i] if (b < K and lo[b] <= i < hi[b]) else (1.0 if (b == K and has_bg) else 0.0)) * sw[i]
+                wb = _column(m, lo, hi, has_bg, b, i) * sw[i]
                 mat[a, b] += wa * wb
     for a in range(Kc):
         for b in range(a):
@@ -117,13 +132,11 @@ def _start_amplitudes(m, lo, hi, fam, has_bg, y, sw, amp, mat, rhs, piv):
         top = max(top, mat[a, a])
     ridge = 1e-12 * max(top, 1e-300)
     for a in range(Kc):
-        active = (fam[a] != FAM_NONE) if a < K else has_bg
-        mat[a, a] += ridge if active else 1.0
+        mat[a, a] += ridge if _column_on(fam, has_bg, a) else 1.0
     lu_solve(mat, rhs, Kc, 1, piv)
     for a in range(Kc):
-        active = (fam[a] != FAM_NONE) if a < K else has_bg
         v = rhs[a, 0]
-        amp[a] = v if (active and math.isfinite(v)) else 0.0
+        amp[a] = v if (_column_on(fam, has_bg, a) and math.isfinite(v)) else 0.0
 
 
 @njit
@@ -248,9 +261,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
         for k in range(K):
             free[k] = f[k] != FAM_NONE and not held_d[p, k]
             free[K + k] = f[k] == FAM_SSS and not held_l[p, k]
-            free[2 * K + k] = f[k] != FAM_NONE
-        if Kc > K:
-            free[2 * K + K] = has_bg
+        for c in range(Kc):
+            free[2 * K + c] = _column_on(f, has_bg, c)
         for j in range(npar):
             if free[j]:
                 order[nf] = j
@@ -336,8 +348,7 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
                 if held_l[p, k]:
                     th_l[nxt, k] = th_l[now, k]
             for c in range(Kc):
-                is_free = (f[c] != FAM_NONE) if c < K else has_bg
-                amp_s[nxt, c] = a_cur[c] + step[2 * K + c] if is_free else 0.0
+                amp_s[nxt, c] = a_cur[c] + step[2 * K + c] if free[2 * K + c] else 0.0
             if Kc > K:
                 amp_s[nxt, K] = max(amp_s[nxt, K], -held[p] / sc)
             _render(t, m_s[nxt], lo_s[nxt], hi_s[nxt], f, th_d[nxt], th_l[nxt], inst, increasing, scratch)

@@ -165,16 +165,18 @@ def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountD
     P, K = fam.shape
     Kc = K + (fit_bg is not None)
     h_d, h_l = held if held is not None else (np.zeros((P, K), bool), np.zeros((P, K), bool))
-    delay, lalp = _f64(delay).copy(), _f64(lalp).copy()
+    delay, lalp = kernel_array(delay, np.float64).copy(), kernel_array(lalp, np.float64).copy()
     amp = np.zeros((P, Kc))
     cost = np.empty(P)
     mu = np.empty(y.shape)
     iters = np.zeros(P, np.int64)
     conv = np.zeros(P, bool)
-    disp2 = np.ones(P) if counts.disp is None else np.square(_f64(counts.disp))
+    disp2 = np.ones(P) if counts.disp is None else np.square(kernel_array(counts.disp, np.float64))
     bg = np.zeros(P, bool) if fit_bg is None else kernel_array(fit_bg, np.bool_)
-    count_lm(t, _f64(counts.counts), _f64(y), _f64(np.broadcast_to(sw, y.shape)), _f64(counts.scale),
-             _f64(counts.held), kernel_array(counts.fit, np.bool_), disp2, float(POISSON_FIT_FLOOR),
+    f64 = np.float64
+    count_lm(kernel_array(t, f64), kernel_array(counts.counts, f64), kernel_array(y, f64),
+             kernel_array(np.broadcast_to(sw, y.shape), f64), kernel_array(counts.scale, f64),
+             kernel_array(counts.held, f64), kernel_array(counts.fit, np.bool_), disp2, float(POISSON_FIT_FLOOR),
              kernel_array(fam, np.int8), delay, lalp, amp, bg, kernel_array(h_d, np.bool_), kernel_array(h_l, np.bool_),
              float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
              bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
@@ -193,10 +195,6 @@ def _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts: Coun
                    amp=np.where(active, amp[:, :K], 0.0),
                    background=amp[:, K] if amp.shape[1] > K else np.zeros(len(fam)),
                    cost=cost, resid=resid, iterations=iters, converged=conv)
-
-
-def _f64(a) -> np.ndarray:
-    return kernel_array(a, np.float64)
 
 
 def _fit_counts(irf, t, y, fam, delay, lalp, cur: dict, fit_bg, counts: CountData, *, n_iter, lm_tol,
