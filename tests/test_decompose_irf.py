@@ -624,23 +624,3 @@ def test_the_second_pass_runs_with_a_measured_response():
     assert r.info["rescue_tried"] == 3 and r.info["rescued"] == 3
     assert np.all(np.abs(err) < 0.05) and np.all(r.flags == 0)
     assert np.all(np.linalg.norm(r.residual, axis=1) < 0.6 * np.linalg.norm(first.residual, axis=1))
-
-
-def test_a_far_sss_on_an_echo_is_swapped_for_the_echo_on_count_data():
-    """The forward steps' far-sss swap (response/grow.py): a paper scene at 1,000 photons through
-    the tailed response (pixel 145 of seed 0's 400) whose fit put an sss on the first echo, 60 ps
-    after the direct, its decay rate at its bound.  The swap turns that sss into the echo it is,
-    and the sss round then finds the real sss at its onset (without the swap: one echo, the sss
-    at 108.6 ps with alpha 0.2 / ps, fidelity 0.15 against 0.90).  The swap fired on 1 of 3,400
-    pixels of paper scenes in white and pink noise and at 100-10,000 photons."""
-    from decomposition.evaluation.synthetic import make_profiles
-    from decomposition.model.fidelity import fidelity
-
-    irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=0.5)
-    d = make_profiles(400, 256, seed=0, ranges="paper", response=irf, bin_integrated=True, photons_per_pixel=1000.0)
-    r = decompose(d.noisy[145:146], 2.0, t0_ps=d.t0_ps, irf=irf)
-    assert r.info["noise_model"] == "poisson" and r.info["response_sss_swapped"] == 1
-    truth = {k: v[145:146] for k, v in d.params.items()}
-    np.testing.assert_allclose(r.params["ir_delay_ps"][0, :2], truth["ir_delay_ps"][0], atol=1.0)
-    assert abs(r.params["sss_delay_ps"][0] - truth["sss_delay_ps"][0]) < 2.0
-    assert fidelity({k: v[145:146] for k, v in d.components.items()}, r)[0] > 0.85

@@ -136,6 +136,41 @@ def _padded(params, n_ir=3):
     return out
 
 
+def test_a_far_sss_on_an_echo_is_swapped_for_the_echo_on_count_data(irf):
+    """The forward steps' far-sss swap (decomposition.response.grow): 8 pixels of a direct and one
+    echo 60 ps after it, no sss, at 1,000 photons, whose fit put a fast sss (alpha at its bound,
+    0.2 / ps) on the echo.  The swap turns each into the shifted copy it is, within 1 ps of the
+    echo; without the swap the echo rounds keep the sss there (it fits the echo's peak, and no
+    echo fits beside it)."""
+    from decomposition.constants import FAM_GAUSS, FAM_NONE, SSS_SLOT
+    from decomposition.options import parse_components
+    from decomposition.response import path as rp
+    n = 8
+    d = np.random.default_rng(3).uniform(60, 100, n)
+    nan = np.full(n, np.nan)
+    no_ir = np.full((n, 3), np.nan)
+    truth = {"direct_delay_ps": d, "direct_amplitude": np.ones(n), "direct_sigma_ps": nan,
+             "sss_delay_ps": nan, "sss_amplitude": nan, "sss_alpha_per_ps": nan, "sss_sigma_ps": nan,
+             "ir_delay_ps": np.where(np.arange(3) == 0, d[:, None] + 60.0, np.nan),
+             "ir_amplitude": np.where(np.arange(3) == 0, 0.3, no_ir), "ir_sigma_ps": no_ir}
+    mu = params_profile(irf, T_PS, truth)
+    scale = 1000.0 / mu.sum(axis=1)
+    y = np.random.default_rng(7).poisson(mu * scale[:, None]).astype(np.float64)
+    start = {**truth, "direct_amplitude": scale, "sss_delay_ps": d + 60.0, "sss_amplitude": 0.3 * scale,
+             "sss_alpha_per_ps": np.full(n, 0.2), "ir_delay_ps": no_ir, "ir_amplitude": no_ir}
+    rf, samples, opts, slots = _response_state(irf, y, start)
+    assert samples.noise_model == "poisson"
+    assert np.all(np.abs(slots.delay[:, SSS_SLOT] - (d + 60.0)) < 20.0)     # the fit kept the sss on the echo
+    rf.slots = slots
+    rp.forward_steps(rf, samples, opts, parse_components("d,r,s"))
+    assert rf.grow_info["response_sss_swapped"] == n
+    fam = rf.slots.fam
+    assert np.all(fam[:, SSS_SLOT] == FAM_NONE) and np.all((fam[:, 2:] == FAM_GAUSS).sum(axis=1) == 1)
+    echo_ps = np.where(fam[:, 2:] == FAM_GAUSS, rf.slots.delay[:, 2:], 0.0).sum(axis=1)
+    np.testing.assert_allclose(echo_ps, d + 60.0, atol=1.0)
+    np.testing.assert_allclose(rf.slots.delay[:, 0], d, atol=0.5)
+
+
 def test_two_shifted_copies_the_refit_puts_on_one_delay_are_one_atom(irf):
     """A direct given twice (the second copy 0.2 ps after it): the refit's merge rule keeps one
     shifted atom, in the direct's slot, with the light of both."""
