@@ -233,8 +233,12 @@ def _residual_noise(c: _Call) -> None:
 
 def _grow(c: _Call) -> None:
     # (the forward step and the swap add inter-reflections: not where none are asked,
-    # where an added Gaussian was dropped again by the labels, flagged TRUNCATED)
-    if not (c.convscd and c.opts.grow and "r" in c.fams):
+    # where an added Gaussian was dropped again by the labels, flagged TRUNCATED); over a
+    # measured response's atoms on float data -- its count data take the response's own echo
+    # steps, weighed by their deviance where the counts are few (forward_steps)
+    if not (c.method == "convscd" and c.opts.grow and "r" in c.fams):
+        return
+    if c.response is not None and c.samples.noise_model == "poisson":
         return
     state, grown = grow_components(c.samples, c.det, c.dic, c.opts)
     c.det = dataclasses.replace(c.det, state=state)
@@ -386,9 +390,9 @@ def _finish(c: _Call) -> None:
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
-#: response (``irf=``) runs prepare, detect, search (where ``search=True``), prune, label, refit,
-#: forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect, search, prune,
-#: label and refit over the response's atoms
+#: response (``irf=``) runs prepare, detect, search (where ``search=True``), grow (float data), prune,
+#: label, refit, forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect,
+#: search, grow, prune, label and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
@@ -403,8 +407,8 @@ STAGES = (
     Stage("count_grow", _count_grow, "count data: an echo after the threshold, kept by its deviance (grow=True)"),
     Stage("label", _label, "snap (on-grid), threshold, merge and name the atoms; their flags"),
     Stage("refit", _refit, "off-grid refinement with the background; clear unlit pixels; AT_BOUND"),
-    Stage("forward_steps", _forward_steps, "response: a direct, an sss, an echo added after the refinement where "
-                                           "the deviance pays"),
+    Stage("forward_steps", _forward_steps, "response: a direct (and for counts an sss, an echo) added after the "
+                                           "refinement where the deviance pays"),
     Stage("offset_test", _offset_test, "response: the fitted offset kept where significant, refitted without it "
                                        "elsewhere"),
     Stage("final_atoms", _final_atoms, "response: the final atoms' flags and every pixel's parameters"),

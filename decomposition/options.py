@@ -279,7 +279,8 @@ class SolverOptions:
     #: at the peak of an sss that peaks late, kept where the penalised objective is lower
     #: (:mod:`decomposition.stages.grow`; ``info["grown"]``, ``info["swapped"]``); count data
     #: also get an echo after the threshold kept by its Poisson deviance
-    #: (``info["grown_counts"]``); with ``irf=`` the response path's forward steps.
+    #: (``info["grown_counts"]``).  With ``irf=`` it runs over the response's atoms on float data;
+    #: count data take the response path's own echo steps instead (:mod:`decomposition.response.grow`).
     grow: bool = True
     #: Backward step after the search: a Gaussian just after the direct on a pixel with an sss
     #: dropped where the penalised objective is lower (:mod:`decomposition.stages.prune`;

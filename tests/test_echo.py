@@ -104,8 +104,9 @@ def _white_scene(n, rng, echo):
 
 def test_white_noise_echo_is_not_taken_for_an_sss():
     """White noise, the response path with the sss family: the pursuit took the echo for a
-    sharp sss far after the direct in about half of the pixels (43 % found); the swap of a far
-    sss for the echo it is finds it as on the Gaussian path."""
+    sharp sss far after the direct in about half of the pixels (43 % found) before the swap of a
+    far sss for the echo it is (now the grow stage's, over the response's atoms, as on the
+    Gaussian path)."""
     rng = np.random.default_rng(8)
     irf = gaussian_response(3.0, time_step_ps=T)
     p, y = _white_scene(100, rng, echo=True)

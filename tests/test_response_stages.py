@@ -1,7 +1,7 @@
 """The stages over ConvSCD's slot state with a measured response: the slot renderers and the
 amplitude solve read the instrument from the dictionary (model/slots.py, methods/polish.py),
-the search stage runs over the response's atoms where it is asked for (``search=True``) and the
-prune stage by default."""
+the search stage runs over the response's atoms where it is asked for (``search=True``), the grow
+stage by default on float data and the prune stage by default."""
 import numpy as np
 from scipy.optimize import nnls
 
@@ -95,17 +95,40 @@ def test_the_search_over_the_response_mends_wrong_splits():
 
 def test_the_prune_stage_runs_over_the_response_by_default():
     """Paper scenes through a tailed response, white noise: the prune stage (the Gaussian path's
-    backward step) runs over the response's atoms by default; the mean fidelity rises over
-    ``prune=False`` (measured 0.920 -> 0.934 on these 120 pixels), and at least twice as many
-    pixels gain more than 0.05 of it as lose that much (measured 6 and 3)."""
+    backward step) runs over the response's atoms by default, after the grow stage (the forward
+    step, over the same atoms); the mean fidelity rises over ``prune=False`` (measured 0.9327 ->
+    0.9378 on these 120 pixels; 0.920 -> 0.934 before the grow stage ran over a response: it now
+    does part of what the prune stage did)."""
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=2.0)
     d = make_profiles(120, 256, nsr=0.05, seed=2, ranges="paper", response=irf, bin_integrated=True)
     plain = decompose(d.noisy, 2.0, irf=irf, prune=False)
     pruned = decompose(d.noisy, 2.0, irf=irf)
     assert "pruned" not in plain.info and pruned.info["pruned"] > 0
     f0, f1 = fidelity(d.components, plain), fidelity(d.components, pruned)
-    assert np.nanmean(f1) >= np.nanmean(f0) + 0.01
-    assert np.sum(f1 > f0 + 0.05) >= 2 * np.sum(f1 < f0 - 0.05)
+    assert np.nanmean(f1) >= np.nanmean(f0) + 0.003
+
+
+def test_the_grow_stage_runs_over_the_response_on_float_data_and_not_on_counts():
+    """Paper scenes through a tailed response: on white noise (NSR 0.05, seed 2) the grow stage
+    (the Gaussian path's forward step: a Gaussian at a resolved residual bump, and at the peak
+    of a late sss) runs over the response's atoms, and the response path's own echo steps do
+    not; the mean fidelity rises over ``grow=False`` (measured 0.9383 -> 0.9414 on these 200
+    pixels: 35 late sss peaks swapped, 4 pixels gain more than 0.05 and none loses that much).
+    The same scenes as photon counts take the response's own echo steps, weighed by their
+    deviance, and not the grow stage."""
+    irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=2.0)
+    d = make_profiles(200, 256, nsr=0.05, seed=2, ranges="paper", response=irf, bin_integrated=True)
+    grown = decompose(d.noisy, 2.0, irf=irf)
+    plain = decompose(d.noisy, 2.0, irf=irf, grow=False)
+    assert "swapped" not in plain.info and grown.info["swapped"] > 0
+    assert grown.info["response_echo_added"] == 0 and grown.info["response_sss_swapped"] == 0
+    f0, f1 = fidelity(d.components, plain), fidelity(d.components, grown)
+    assert np.nanmean(f1) >= np.nanmean(f0) + 0.002
+    assert np.sum(f1 > f0 + 0.05) >= 2 * max(np.sum(f1 < f0 - 0.05), 1)
+    counts = make_profiles(40, 256, seed=2, ranges="paper", response=irf, photons_per_pixel=1000.0)
+    r = decompose(counts.noisy, 2.0, irf=irf)
+    assert r.info["noise_model"] == "poisson"
+    assert "swapped" not in r.info and "grown" not in r.info and "response_echo_added" in r.info
 
 
 def test_the_backward_step_over_the_response_drops_an_atom_on_the_sss_onset_and_keeps_an_echo():

@@ -1,5 +1,9 @@
 """Forward steps of the response path: the components its detection's single noise level misses.
 
+On float data the grow stage (:mod:`decomposition.stages.grow`) has already added echoes and
+swapped late sss peaks over the response's atoms, before the labels, as for the Gaussian PSF;
+here only the direct's steps (0, 0b) run for them.  Count data take every step below.
+
 The detection (:mod:`decomposition.response.detect`) weighs every sample with one noise; for
 count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A component
 where the counts are few never pays its penalty there: at ~100 photons per pixel an sss tail,
@@ -34,7 +38,7 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    direct before the window is left to step 0b: there the onset started at it let the direct
    slide out, its amplitude grown tenfold or more, for small deviance gains.  Gaussian data are
    not refitted: no pixel took the refit there (docs/history.md).
-1. **Far sss** ("r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
+1. **Far sss** (count data, "r" and "s" asked, a free inter-reflection slot): an sss whose onset lies more
    than NEAR_SIGMA widths after the direct (sss is light entering where the direct is
    reflected; one far after it, alpha at its bound, is an echo the detection took for an sss --
    about half of the pixels of a 5-sigma echo in white noise) is replaced by a shifted copy at
@@ -44,11 +48,10 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
 
    * an sss (count data, "s" asked, none yet): started at the direct delay, once per coarse
      alpha, the best alpha's refit kept where its sss survives (as the trial always was);
-   * an echo, a shifted copy of the response ("r" asked, a free slot): at the largest residual
-     in noise sigmas after the direct -- for counts on the variance-stabilised scale,
+   * an echo, a shifted copy of the response (count data, "r" asked, a free slot): at the largest
+     residual in noise sigmas after the direct -- on the variance-stabilised scale,
      :func:`decomposition.noise.anscombe_residual` (bounded where the model is ~0, where the
-     Pearson residual makes one stray count a 7-sigma event), for Gaussian data
-     the residual over the significance noise -- smoothed over the response's width and more
+     Pearson residual makes one stray count a 7-sigma event) -- smoothed over the response's width and more
      than GROW_EXCLUDE_SIGMA widths from the pixel's shifted atoms
      (:func:`decomposition.stages.grow.residual_peak`, the Gaussian path's rule); refitted only where
      :func:`decomposition.stages.grow.worth_refitting` says so, and kept only where the refit lost no
@@ -65,8 +68,8 @@ noise is 1 sigma of the noise at the direct's peak).  After the refinement (:fun
    is dropped and its pixel refitted without it (an echo can let the refit move the direct onto
    light it had missed, and then explain next to nothing itself).
 
-The echo steps need ``grow=True`` and ``significance_chi2 > 0`` (they find what only the
-significance rule keeps).  ``info``: ``response_direct_restored``, ``response_early_direct_moved``,
+The echo steps need count data, ``grow=True`` and ``significance_chi2 > 0`` (they find what only
+the significance rule keeps).  ``info``: ``response_direct_restored``, ``response_early_direct_moved``,
 ``response_onset_restarted``, ``response_sss_added``,
 ``response_echo_added``, ``response_sss_swapped``.
 """
@@ -204,11 +207,9 @@ def _drop_weak_echoes(ctx: GrowContext, slots: Slots, grown: np.ndarray) -> tupl
 
 
 def _residual_sigmas(ctx: GrowContext, rows, mu) -> np.ndarray:
-    """(m, L) residual of the pixels ``rows`` from their model ``mu`` (m, L) in noise sigmas
-    (Anscombe's for counts)."""
-    if ctx.counts:
-        return anscombe_residual(ctx.values[rows], mu, ctx.fit[rows], ctx.samples.dispersion[ctx.samples.live[rows]])
-    return np.where(ctx.fit[rows], ctx.values[rows] - mu, 0.0) / np.maximum(ctx.sigma[rows], 1e-300)[:, None]
+    """(m, L) residual of the counts of the pixels ``rows`` from their model ``mu`` (m, L) in
+    noise sigmas (Anscombe's)."""
+    return anscombe_residual(ctx.values[rows], mu, ctx.fit[rows], ctx.samples.dispersion[ctx.samples.live[rows]])
 
 
 def _sub(slots: Slots, rows) -> Slots:
@@ -318,19 +319,12 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, mu, alphas_per_ps):
 
 
 def _held_gain(ctx: GrowContext, rows, mu, phi):
-    """The deviance one more atom of shape ``phi`` (m, L) would remove from the model ``mu``
-    (m, L) of the pixels ``rows``, its amplitude at its best (>= 0), the rest held: for counts
-    :func:`decomposition.noise.atom_gain`, for Gaussian data (sum r phi)^2 / (s^2 sum phi^2)
-    where positive -> (gain (m,), amplitude (m,) units of the samples per unit of ``phi``)."""
+    """The Poisson deviance one more atom of shape ``phi`` (m, L) would remove from the model
+    ``mu`` (m, L) of the counts of the pixels ``rows``, its amplitude at its best (>= 0), the
+    rest held (:func:`decomposition.noise.atom_gain`) -> (gain (m,), amplitude (m,) counts per
+    unit of ``phi``)."""
     fit = ctx.fit[rows]
-    phi = np.where(fit, phi, 0.0)
-    y = ctx.values[rows]
-    if ctx.counts:
-        return atom_gain(y, mu, phi, fit, ctx.samples.dispersion[ctx.samples.live[rows]])
-    c = np.einsum("pl,pl->p", np.where(fit, y - mu, 0.0), phi)
-    n2 = np.maximum(np.einsum("pl,pl->p", phi, phi), 1e-300)
-    gain = np.where(c > 0, c * c / n2, 0.0) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
-    return gain, np.maximum(c, 0.0) / n2
+    return atom_gain(ctx.values[rows], mu, np.where(fit, phi, 0.0), fit, ctx.samples.dispersion[ctx.samples.live[rows]])
 
 
 def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
@@ -582,8 +576,9 @@ def grow_response(ctx: GrowContext, slots: Slots, *, alphas_per_ps,
     info = {"response_sss_added": 0, "response_echo_added": 0, "response_sss_swapped": 0,
             "response_direct_restored": 0, "response_early_direct_moved": 0, "response_onset_restarted": 0}
     opts = ctx.opts
-    # the echo is found by its significance alone: no trial without the rule (or with grow=False)
-    with_r = "r" in components and slots.fam.shape[1] > 2 and opts.grow and opts.significance_chi2 > 0
+    # the echo is found by its significance alone: no trial without the rule (or with grow=False);
+    # float data had theirs from the grow stage
+    with_r = ctx.counts and "r" in components and slots.fam.shape[1] > 2 and opts.grow and opts.significance_chi2 > 0
     with_s = "s" in components and ctx.counts
     ambiguous = np.zeros(slots.fam.shape[0], bool)
     if "d" in components:
