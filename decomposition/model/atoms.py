@@ -60,7 +60,7 @@ def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -
     key) to within the table's error, at most :data:`~decomposition.kernels.response.TABLE_REL_ERROR`
     of each atom's peak times its amplitude.  The response path's trial models at every forward
     step, and the components it reports (:func:`decomposition.model.components.render_params`):
-    the model it fitted, and 20x faster than the exact interpolant's FFT rendering.
+    the model it fitted, and far cheaper than the exact interpolant's FFT rendering.
 
     Parameters
     ----------
