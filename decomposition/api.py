@@ -202,8 +202,9 @@ def _correlated_noise(c: _Call) -> None:
     # the noise at the components' scale, from the detected fit's residual: the search's
     # objective reads its data term in it where the noise is correlated (pink); where most
     # pixels' is, the data terms of every stage after this are whitened by the call's spectrum
+    # (over a measured response's atoms as over the Gaussian PSF's)
     opts = c.opts
-    if not c.convscd or c.samples.noise_model == "poisson" or not (opts.search or opts.grow or opts.prune):
+    if c.method != "convscd" or c.samples.noise_model == "poisson" or not (opts.search or opts.grow or opts.prune):
         return
     c.osig = residual_significance_noise(c.samples, c.det, c.dic, opts)
     if opts.whiten:
@@ -390,9 +391,9 @@ def _finish(c: _Call) -> None:
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
-#: response (``irf=``) runs prepare, detect, search (where ``search=True``), grow (float data), prune,
-#: label, refit, forward_steps, offset_test, final_atoms, quality, rescue and finish, its detect,
-#: search, grow, prune, label and refit over the response's atoms
+#: response (``irf=``) runs prepare, detect, correlated_noise and grow (float data), search (where
+#: ``search=True``), prune, label, refit, forward_steps, offset_test, final_atoms, quality, rescue
+#: and finish, its detect, search, grow, prune, label and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),

@@ -131,6 +131,29 @@ def test_the_grow_stage_runs_over_the_response_on_float_data_and_not_on_counts()
     assert "swapped" not in r.info and "grown" not in r.info and "response_echo_added" in r.info
 
 
+def test_pink_noise_through_a_response_is_whitened_as_on_the_gaussian_path():
+    """The correlated-noise stage runs over a response's atoms on float data: in pink noise
+    (NSR 0.11, 300 paper scenes of 512 bins through the simulated camera's tailed response,
+    seed 2) it finds the noise correlated and the grow and prune stages whiten their objectives
+    by its spectrum; the mean fidelity rises over ``whiten=False`` (measured 0.8583 -> 0.8640).
+    In white noise it finds none, and the answer is that of ``whiten=False`` to the bit; count
+    data do not take it."""
+    from drivers.sim.scene import simulated_response
+    irf = simulated_response("tailed")
+    d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=2, ranges="paper", response=irf, bin_integrated=True)
+    whitened = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
+    plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, whiten=False)
+    assert whitened.info["correlated_noise"] is True and "correlated_noise" not in plain.info
+    f0, f1 = fidelity(d.components, plain), fidelity(d.components, whitened)
+    assert np.nanmean(f1) >= np.nanmean(f0) + 0.003
+    w = make_profiles(60, 512, nsr=0.11, noise="white", seed=2, ranges="paper", response=irf, bin_integrated=True)
+    white = decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf)
+    assert white.info["correlated_noise"] is False
+    np.testing.assert_array_equal(white.residual, decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf, whiten=False).residual)
+    counts = make_profiles(20, 512, seed=2, ranges="paper", response=irf, photons_per_pixel=1000.0)
+    assert "correlated_noise" not in decompose(counts.noisy, 2.0, t0_ps=counts.t0_ps, irf=irf).info
+
+
 def test_the_backward_step_over_the_response_drops_an_atom_on_the_sss_onset_and_keeps_an_echo():
     """The prune stage's step (:func:`decomposition.stages.prune.prune_block`) over a response's
     atoms: pixels of a direct and an sss whose onset lies 6 ps after it, in white noise, given a
