@@ -11,6 +11,27 @@ from decomposition.options import GridSpec
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def pytest_sessionstart(session):
+    """Load, or on a new install compile, the solver's kernels before the first test starts.
+
+    A fresh clone has no numba cache: the first test of each process that decomposes would
+    otherwise spend the one-time compile (about a minute on a 2-core machine) inside its own
+    time limit, and a test bounded at 60 s for what it waits on failed on that alone.  Every
+    process that runs tests warms up once here, outside any test's timer (the xdist controller
+    runs none); once the cache is filled this costs about 2 s.  The tests of the first run's
+    compile notice work on caches of their own (tests/test_first_run.py)."""
+    config = session.config
+    controller = not hasattr(config, "workerinput") and (config.getoption("numprocesses", None) or 0) != 0
+    if controller or config.getoption("collectonly", False):
+        return
+    from decomposition.warmup import warm_up
+    from drivers.sim.scene import simulated_response
+
+    warm_up(quiet=True)
+    warm_up(quiet=True, image={"shared": ("psf",), "spatial": True})
+    warm_up(quiet=True, n_bins=512, options={"irf": simulated_response("tailed")})
+
+
 @pytest.fixture(scope="session")
 def default_dictionary():
     """``build(n_bins, time_bin_ps=2.0, t0_ps=None)``: the solver's dictionary at the default grid,
