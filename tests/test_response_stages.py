@@ -94,35 +94,46 @@ def test_the_search_over_the_response_mends_wrong_splits():
 
 
 def test_the_prune_stage_runs_over_the_response_by_default():
-    """Paper scenes through a tailed response, white noise: the prune stage (the Gaussian path's
-    backward step) runs over the response's atoms by default, after the grow stage (the forward
-    step, over the same atoms); the mean fidelity rises over ``prune=False`` (measured 0.9327 ->
-    0.9378 on these 120 pixels; 0.920 -> 0.934 before the grow stage ran over a response: it now
-    does part of what the prune stage did)."""
+    """Paper scenes through a tailed response, white noise, 120 of each of seeds 2-5: the prune
+    stage (the Gaussian path's backward step) runs over the response's atoms by default, after
+    the grow stage (the forward step, over the same atoms); the mean fidelity over the 480 rises
+    over ``prune=False`` (measured +0.0051, +0.0084, +0.0154, +0.0099; seed 2 alone gained
+    0.014 before the grow stage ran over a response, which now does part of the prune's work),
+    and at least twice as many pixels gain more than 0.05 of it as lose that much (15 and 5)."""
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=2.0)
-    d = make_profiles(120, 256, nsr=0.05, seed=2, ranges="paper", response=irf, bin_integrated=True)
-    plain = decompose(d.noisy, 2.0, irf=irf, prune=False)
-    pruned = decompose(d.noisy, 2.0, irf=irf)
-    assert "pruned" not in plain.info and pruned.info["pruned"] > 0
-    f0, f1 = fidelity(d.components, plain), fidelity(d.components, pruned)
-    assert np.nanmean(f1) >= np.nanmean(f0) + 0.003
+    f0, f1 = [], []
+    for seed in (2, 3, 4, 5):
+        d = make_profiles(120, 256, nsr=0.05, seed=seed, ranges="paper", response=irf, bin_integrated=True)
+        plain = decompose(d.noisy, 2.0, irf=irf, prune=False)
+        pruned = decompose(d.noisy, 2.0, irf=irf)
+        assert "pruned" not in plain.info and pruned.info["pruned"] > 0
+        f0.append(fidelity(d.components, plain))
+        f1.append(fidelity(d.components, pruned))
+    f0, f1 = np.concatenate(f0), np.concatenate(f1)
+    assert np.nanmean(f1) >= np.nanmean(f0) + 0.005
+    assert np.sum(f1 > f0 + 0.05) >= 2 * np.sum(f1 < f0 - 0.05)
 
 
 def test_the_grow_stage_runs_over_the_response_on_float_data_and_not_on_counts():
-    """Paper scenes through a tailed response: on white noise (NSR 0.05, seed 2) the grow stage
-    (the Gaussian path's forward step: a Gaussian at a resolved residual bump, and at the peak
-    of a late sss) runs over the response's atoms, and the response path's own echo steps do
-    not; the mean fidelity rises over ``grow=False`` (measured 0.9383 -> 0.9414 on these 200
-    pixels: 35 late sss peaks swapped, 4 pixels gain more than 0.05 and none loses that much).
-    The same scenes as photon counts take the response's own echo steps, weighed by their
-    deviance, and not the grow stage."""
+    """Paper scenes through a tailed response, 200 in white noise at each of (seed 2, NSR 0.05),
+    (0, 0.03), (1, 0.08): the grow stage (the Gaussian path's forward step: a Gaussian at a
+    resolved residual bump, and at the peak of a late sss) runs over the response's atoms, and
+    the response path's own echo steps do not; the mean fidelity over the 600 rises over
+    ``grow=False`` (measured +0.0031, +0.0050, +0.0059: 23-35 late sss peaks swapped per
+    setting; 13 pixels gain more than 0.05 of it, one loses that much).  The same scenes as
+    photon counts take the response's own echo steps, weighed by their deviance, and not the
+    grow stage."""
     irf = tailed_response(4.0, 0.2, 30.0, time_step_ps=2.0)
-    d = make_profiles(200, 256, nsr=0.05, seed=2, ranges="paper", response=irf, bin_integrated=True)
-    grown = decompose(d.noisy, 2.0, irf=irf)
-    plain = decompose(d.noisy, 2.0, irf=irf, grow=False)
-    assert "swapped" not in plain.info and grown.info["swapped"] > 0
-    assert grown.info["response_echo_added"] == 0 and grown.info["response_sss_swapped"] == 0
-    f0, f1 = fidelity(d.components, plain), fidelity(d.components, grown)
+    f0, f1 = [], []
+    for seed, nsr in ((2, 0.05), (0, 0.03), (1, 0.08)):
+        d = make_profiles(200, 256, nsr=nsr, seed=seed, ranges="paper", response=irf, bin_integrated=True)
+        grown = decompose(d.noisy, 2.0, irf=irf)
+        plain = decompose(d.noisy, 2.0, irf=irf, grow=False)
+        assert "swapped" not in plain.info and grown.info["swapped"] > 0
+        assert grown.info["response_echo_added"] == 0 and grown.info["response_sss_swapped"] == 0
+        f0.append(fidelity(d.components, plain))
+        f1.append(fidelity(d.components, grown))
+    f0, f1 = np.concatenate(f0), np.concatenate(f1)
     assert np.nanmean(f1) >= np.nanmean(f0) + 0.002
     assert np.sum(f1 > f0 + 0.05) >= 2 * max(np.sum(f1 < f0 - 0.05), 1)
     counts = make_profiles(40, 256, seed=2, ranges="paper", response=irf, photons_per_pixel=1000.0)
@@ -134,17 +145,22 @@ def test_the_grow_stage_runs_over_the_response_on_float_data_and_not_on_counts()
 def test_pink_noise_through_a_response_is_whitened_as_on_the_gaussian_path():
     """The correlated-noise stage runs over a response's atoms on float data: in pink noise
     (NSR 0.11, 300 paper scenes of 512 bins through the simulated camera's tailed response,
-    seed 2) it finds the noise correlated and the grow and prune stages whiten their objectives
-    by its spectrum; the mean fidelity rises over ``whiten=False`` (measured 0.8583 -> 0.8640).
-    In white noise it finds none, and the answer is that of ``whiten=False`` to the bit; count
-    data do not take it."""
+    seeds 2 and 3) it finds the noise correlated and the grow and prune stages whiten their
+    objectives by its spectrum; the mean fidelity over the 600 rises over ``whiten=False``
+    (measured 0.8583 -> 0.8640 and 0.8519 -> 0.8618).  In white noise it finds none, and the
+    answer is that of ``whiten=False`` to the bit; count data do not take it."""
     from drivers.sim.scene import simulated_response
     irf = simulated_response("tailed")
-    d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=2, ranges="paper", response=irf, bin_integrated=True)
-    whitened = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
-    plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, whiten=False)
-    assert whitened.info["correlated_noise"] is True and "correlated_noise" not in plain.info
-    f0, f1 = fidelity(d.components, plain), fidelity(d.components, whitened)
+    f0, f1 = [], []
+    for seed in (2, 3):
+        d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=seed, ranges="paper", response=irf,
+                          bin_integrated=True)
+        whitened = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
+        plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, whiten=False)
+        assert whitened.info["correlated_noise"] is True and "correlated_noise" not in plain.info
+        f0.append(fidelity(d.components, plain))
+        f1.append(fidelity(d.components, whitened))
+    f0, f1 = np.concatenate(f0), np.concatenate(f1)
     assert np.nanmean(f1) >= np.nanmean(f0) + 0.003
     w = make_profiles(60, 512, nsr=0.11, noise="white", seed=2, ranges="paper", response=irf, bin_integrated=True)
     white = decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf)
