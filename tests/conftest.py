@@ -27,8 +27,7 @@ def pytest_sessionstart(session):
     from decomposition.warmup import warm_up
     from drivers.sim.scene import simulated_response
 
-    warm_up(quiet=True)
-    warm_up(quiet=True, image={"shared": ("psf",), "spatial": True})
+    warm_up(quiet=True, image={"shared": ("psf",), "spatial": True})   # the per-pixel path, then the image's
     warm_up(quiet=True, n_bins=512, options={"irf": simulated_response("tailed")})
 
 
