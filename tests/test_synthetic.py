@@ -107,6 +107,17 @@ def test_camera_noise_has_one_photon_scale_for_every_pixel():
 def test_photon_noise_refuses_negative_signal():
     with pytest.raises(ValueError, match="non-negative"):
         add_noise(-np.ones((2, 8)), 0.1, "photon", rng=0)
+    with pytest.raises(ValueError, match="non-negative"):
+        add_noise(np.array([[1.0, 0.5, -1e-6, 0.0]]), 0.1, "photon", rng=0)
+
+
+def test_photon_noise_reads_rounding_level_negatives_as_no_light():
+    # a profile rendered through a response by FFT convolution holds -4e-16 where it is 0
+    clean = np.array([[0.0, 1.0, 0.5, 0.2, 0.0, 0.0]] * 3)
+    rounded = clean.copy()
+    rounded[:, [0, 4, 5]] = -4e-16
+    np.testing.assert_array_equal(noise_realisation(rounded, 0.1, "photon", rng=5),
+                                  noise_realisation(clean, 0.1, "photon", rng=5))
 
 
 def test_noise_aliases_and_bad_input():
