@@ -188,7 +188,9 @@ def _detect(c: _Call) -> None:
 
 
 def _signal_noise(c: _Call) -> None:
-    if not (c.convscd and c.opts.signal_noise):
+    # over a measured response's atoms as over the Gaussian PSF's: the grow, prune and search
+    # stages and the labels' threshold weigh their samples by the variance law found
+    if not (c.method == "convscd" and c.opts.signal_noise):
         return
     c.det = dataclasses.replace(c.det, weights=signal_weights(c.samples, c.det, c.dic, c.opts, c.info))
     weighted = (np.zeros(c.samples.live.size, bool) if c.det.weights is None
@@ -274,7 +276,7 @@ def _count_grow(c: _Call) -> None:
 
 def _label(c: _Call) -> None:
     if c.response is not None:
-        rp.label(c.rfit, c.samples, c.opts, c.det.state)
+        rp.label(c.rfit, c.samples, c.opts, c.det.state, c.det.weights)
         return
     if not c.convscd:
         return
@@ -391,8 +393,8 @@ def _finish(c: _Call) -> None:
 #: lists them in the same order; tests/test_docs.py checks it).  A stage that does not apply to the
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
-#: response (``irf=``) runs prepare, detect, correlated_noise and grow (float data), search (where
-#: ``search=True``), prune, label, refit, forward_steps, offset_test, final_atoms, quality, rescue
+#: response (``irf=``) runs prepare, detect, signal_noise, correlated_noise and grow (these two on
+#: float data), search (where ``search=True``), prune, label, refit, forward_steps, offset_test, final_atoms, quality, rescue
 #: and finish, its detect, search, grow, prune, label and refit over the response's atoms
 #: (:mod:`decomposition.response.path`).
 STAGES = (

@@ -98,7 +98,9 @@ def test_the_labels_rule_reads_a_responses_atoms_as_the_gaussian_paths():
     path's measures of that sigma (to the table's error); two shifted copies closer than the
     merge tolerance leave the larger one where it was (a response has no width to merge into),
     where the Gaussian rule merges them into one wider atom; an atom below the relative
-    threshold goes on both."""
+    threshold goes on both.  Weighted energies (the samples' relative weights where the noise
+    follows the signal, capped) agree too."""
+    from decomposition.constants import SIGNIFICANCE_WEIGHT_CAP
     from decomposition.model.components import merge_gaussians, window_measures
     from decomposition.options import SolverOptions
     from decomposition.stages.label import final_atoms
@@ -113,6 +115,14 @@ def test_the_labels_rule_reads_a_responses_atoms_as_the_gaussian_paths():
     h_g, e_g = window_measures(st, T_PS)
     np.testing.assert_allclose(h_r, h_g, atol=1e-7)
     np.testing.assert_allclose(e_r, e_g, rtol=1e-6, atol=1e-12)
+    # the samples' relative weights (where the noise follows the signal), some above the cap:
+    # the same weighted energies on both
+    w = np.random.default_rng(1).uniform(0.0, 3.0 * SIGNIFICANCE_WEIGHT_CAP, (2, T_PS.size))
+    hw_r, ew_r = window_measures(st, T_PS, w, irf=irf)
+    hw_g, ew_g = window_measures(st, T_PS, w)
+    np.testing.assert_array_equal(hw_r, h_r)
+    np.testing.assert_allclose(ew_r, ew_g, rtol=1e-6, atol=1e-12)
+    assert not np.allclose(ew_r, e_r)
     merged = merge_gaussians({k: v.copy() for k, v in st.items()}, T, 1.0, widths=False)
     np.testing.assert_array_equal(merged["fam"][0], [FAM_GAUSS, FAM_SSS, FAM_NONE, FAM_GAUSS])
     assert merged["delay"][0, 0] == 80.0 and merged["amp"][0, 0] == 1.0 and merged["lsig"][0, 0] == st["lsig"][0, 0]
@@ -123,5 +133,3 @@ def test_the_labels_rule_reads_a_responses_atoms_as_the_gaussian_paths():
     kept_g = final_atoms({k: v.copy() for k, v in st.items()}, T_PS, T, opts)
     assert kept_r["fam"][0, 3] == FAM_NONE and kept_g["fam"][0, 3] == FAM_NONE     # 2 % of the peak
     np.testing.assert_array_equal(kept_r["fam"][1], kept_g["fam"][1])
-    with pytest.raises(ValueError, match="weights"):
-        window_measures(st, T_PS, weights=np.ones((2, L)), irf=irf)

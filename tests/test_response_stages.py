@@ -170,6 +170,38 @@ def test_pink_noise_through_a_response_is_whitened_as_on_the_gaussian_path():
     assert "correlated_noise" not in decompose(counts.noisy, 2.0, t0_ps=counts.t0_ps, irf=irf).info
 
 
+def test_photon_noise_through_a_response_is_weighted_by_its_variance_law_as_on_the_gaussian_path():
+    """The signal-noise stage runs over a response's atoms on float data: under photon noise
+    (NSR 0.11, 200 paper scenes of 512 bins through the simulated camera's tailed response, seeds
+    2 and 3) it finds the noise following the signal in every pixel, and the grow, prune and
+    search stages and the labels' threshold weigh the samples by the detector's variance law.
+    The mean fidelity over the 400 rises over ``signal_noise=False`` by at least 0.1 (measured
+    0.6536 -> 0.8307 and 0.6327 -> 0.8456), and at least five times as many pixels gain more than
+    0.05 of it as lose that much (242 and 21).  White noise follows no signal: no pixel is
+    weighted, and the answer is that of ``signal_noise=False`` to the bit."""
+    from drivers.sim.scene import simulated_response
+    irf = simulated_response("tailed")
+    f0, f1 = [], []
+    for seed in (2, 3):
+        d = make_profiles(200, 512, nsr=0.11, noise="photon", seed=seed, ranges="paper", response=irf,
+                          bin_integrated=True)
+        weighted = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
+        plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, signal_noise=False)
+        assert weighted.info["signal_weighted"] == 200 and "signal_weighted" not in plain.info
+        assert weighted.info["signal_noise_law_fit"]["gain"] > 0
+        f0.append(fidelity(d.components, plain))
+        f1.append(fidelity(d.components, weighted))
+    f0, f1 = np.concatenate(f0), np.concatenate(f1)
+    assert np.nanmean(f1) >= np.nanmean(f0) + 0.1
+    assert np.sum(f1 > f0 + 0.05) >= 5 * np.sum(f1 < f0 - 0.05)
+    w = make_profiles(100, 512, nsr=0.055, noise="white", seed=2, ranges="paper", response=irf, bin_integrated=True)
+    white = decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf)
+    plain = decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf, signal_noise=False)
+    assert white.info["signal_weighted"] == 0
+    np.testing.assert_array_equal(white.residual, plain.residual)
+    np.testing.assert_array_equal(white.flags, plain.flags)
+
+
 def test_the_backward_step_over_the_response_drops_an_atom_on_the_sss_onset_and_keeps_an_echo():
     """The prune stage's step (:func:`decomposition.stages.prune.prune_block`) over a response's
     atoms: pixels of a direct and an sss whose onset lies 6 ps after it, in white noise, given a

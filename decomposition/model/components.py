@@ -68,18 +68,19 @@ def window_measures(st: dict, t_ps: np.ndarray, weights=None, irf=None):
     0 for empty slots.  ``weights`` (P, L): the energy is sum_i w_i c_i^2 instead (relative
     weights of the samples, :attr:`Detection.weights`), each weight at most
     SIGNIFICANCE_WEIGHT_CAP.  ``irf``: the atoms are a measured response's
-    (:func:`decomposition.model.atoms.slot_atoms`, their largest sample the height; no
-    ``weights``)."""
+    (:func:`decomposition.model.atoms.slot_atoms`, their largest sample the height)."""
     act = st["fam"] != FAM_NONE
     h, e = np.zeros(act.shape), np.zeros(act.shape)
     if irf is not None:
-        if weights is not None:
-            raise ValueError("window_measures: sample weights are not read with a measured response's atoms")
         if act.any():
             phi = slot_atoms(irf, t_ps, st["fam"], np.nan_to_num(st["delay"]), np.nan_to_num(st["lalp"]))
             a = np.abs(st["amp"])
             h = a * phi.max(axis=2)
-            e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
+            if weights is None:
+                e = a * a * np.einsum("pkl,pkl->pk", phi, phi)
+            else:
+                w = np.minimum(np.asarray(weights, np.float64), SIGNIFICANCE_WEIGHT_CAP)
+                e = a * a * np.einsum("pkl,pkl,pl->pk", phi, phi, w)
         return h, e
     if act.any():
         pi, ki, sums = _in_window(st, t_ps)

@@ -27,17 +27,19 @@ __all__ = ["label_response", "param_slots", "slots_to_params"]
 
 
 def label_response(st: dict, irf, t_ps, scale, sigma_eq_ps: float, n_ir: int, opts: SolverOptions, *,
-                   time_bin_ps: float, noise=None):
+                   time_bin_ps: float, noise=None, weights=None):
     """Slots (n, K) -> (params (n-shaped, amplitudes times ``scale``), truncated (n,) bool).
 
     The Gaussian path's rule of the atoms a pixel keeps
     (:func:`decomposition.stages.label.final_atoms` with ``irf``: the threshold on the
     response's own atoms, relative on in-window peaks or significant against ``noise`` (n,),
-    normalised units; close shifted copies reduced to the larger; no sss onset before the
-    direct with ``sss_after_direct``), then :func:`decomposition.model.components.classify`."""
+    normalised units, ``weights`` (n, L) the samples' relative least-squares weights where the
+    noise follows the signal, :attr:`decomposition.stages.detect.Detection.weights`; close
+    shifted copies reduced to the larger; no sss onset before the direct with
+    ``sss_after_direct``), then :func:`decomposition.model.components.classify`."""
     st = {k: v.copy() for k, v in st.items()}
     st["lsig"] = np.full(st["fam"].shape, math.log(sigma_eq_ps))     # what the rule resolves by, and the output's
-    final_atoms(st, t_ps, time_bin_ps, opts, noise, irf=irf)
+    final_atoms(st, t_ps, time_bin_ps, opts, noise, weights, irf=irf)
     fam = st["fam"]
     st["amp"] = np.where(fam != FAM_NONE, st["amp"], 0.0)
     st["delay"] = np.where(fam != FAM_NONE, st["delay"], 0.0)

@@ -5,10 +5,11 @@
 Gaussian path's, given the response, and so is ``rescue`` (the whole path again, differently
 started); ``detect`` (ConvSCD over the response's dictionary), ``label`` and ``refit`` run the
 functions here on the response's atoms; ``forward_steps``, ``offset_test`` and ``final_atoms``
-are the response's own; of the stages between ``detect`` and ``label`` the prune stage (the
-backward step) runs, and the search where it is asked for (``search=True``), both the Gaussian
-path's code over the response's atoms on its detection; the grow and count steps of the
-Gaussian dictionary do not apply.  Each function here reads and
+are the response's own; of the stages between ``detect`` and ``label`` the signal-noise
+stage (the samples' weights where the noise follows the signal), the correlated-noise and grow
+stages (float data), the prune stage (the backward step) and the search where it is asked for
+(``search=True``) run, each the Gaussian path's code over the response's atoms on its
+detection; the count polish and count grow steps of the Gaussian dictionary do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
@@ -124,13 +125,16 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     return rf
 
 
-def label(rf: ResponseFit, samples: Samples, opts: SolverOptions, state: dict) -> None:
+def label(rf: ResponseFit, samples: Samples, opts: SolverOptions, state: dict, weights=None) -> None:
     """Threshold, merge and name the atoms of ``state`` (the detection's slot state, searched
-    where the search ran; :func:`decomposition.response.label.label_response`)."""
+    where the search ran; :func:`decomposition.response.label.label_response`); ``weights``
+    (n, L): the samples' relative least-squares weights where the noise follows the signal
+    (:attr:`decomposition.stages.detect.Detection.weights`), None: all alike."""
     live = samples.live
     rf.params, rf.trunc = label_response(state, rf.irf, rf.t, samples.scale[live], rf.sigma_eq_ps,
                                          opts.max_reflections, opts, time_bin_ps=samples.axis.time_bin_ps,
-                                         noise=samples.significance_sigma(live, samples.noise_eff[live]))
+                                         noise=samples.significance_sigma(live, samples.noise_eff[live]),
+                                         weights=weights)
 
 
 def refit(rf: ResponseFit, samples: Samples) -> None:
