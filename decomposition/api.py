@@ -296,7 +296,7 @@ def _physics(c: _Call) -> dict:
 
 def _refit(c: _Call) -> None:
     if c.response is not None:
-        rp.refit(c.rfit, c.samples)
+        rp.refit(c.rfit, c.samples, _signal_weights(c))
         return
     samples, opts, params, flags = c.samples, c.opts, c.params, c.flags
     if c.background:
@@ -311,7 +311,7 @@ def _refit(c: _Call) -> None:
     # to a width of 0.2 ps and 10^5 times the counts, unflagged
     bounds = shape_bounds(c.grid, opts.bound_factor)
     params, rinfo = refine_components(samples, params, **_physics(c), background_chi2=opts.background_chi2,
-                                      bounds=bounds, hold=c.hold)
+                                      bounds=bounds, hold=c.hold, signal_weights=_signal_weights(c))
     c.bg_stderr = rinfo.pop("background_stderr", None)
     if c.background:
         # nothing above the offset: the components are noise fitted on a pure background
@@ -325,6 +325,16 @@ def _refit(c: _Call) -> None:
     mark(flags, samples.live[params_at_bound({k: v[samples.live] for k, v in params.items()}, bounds)], AT_BOUND)
     c.info.update(rinfo)
     c.params = params
+
+
+def _signal_weights(c: _Call):
+    """(P, L) the signal-noise stage's sample weights of the live pixels (1 elsewhere) on float
+    data whose noise follows the signal, for the refinement; None where there are none."""
+    if c.det is None or c.det.weights is None or c.samples.noise_model == "poisson":
+        return None
+    w = np.ones(c.samples.values.shape)
+    w[c.samples.live] = c.det.weights
+    return w
 
 
 def _forward_steps(c: _Call) -> None:

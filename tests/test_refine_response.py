@@ -376,3 +376,32 @@ def test_the_count_fit_at_the_extremes(irf, monkeypatch):
     assert np.all(got.amp[2] == 0.0) and got.cost[2] < 1.0         # no counts: no light
     assert got.cost[3] == 0.0 and got.iterations[3] >= 1             # nothing fitted: nothing to lower
     np.testing.assert_allclose(got.delay[0], delay[0], atol=1e-3)     # 1e9 counts: the truth
+
+
+def test_the_refit_weighs_its_samples_by_the_signal_noise_weights(irf):
+    """The response path's refit (response.refine.refit_slots) with the signal-noise stage's
+    sample weights: a blob of light where those weights are 0 does not move the fit -- it is the
+    fit of the profiles without the blob, to rounding, at the truth -- while the unweighted refit
+    is pulled off by it."""
+    from decomposition.response.label import param_slots
+    from decomposition.response.refine import refit_slots
+    n = 6
+    truth, start = _scene(n, 5)
+    start = _padded(start)
+    clean = params_profile(irf, T_PS, truth)
+    blob = clean.copy()
+    blob[:, 70:86] += 0.3 * clean.max(axis=1, keepdims=True)
+    w = np.ones_like(clean)
+    w[:, 70:86] = 0.0
+
+    def fitted(y, weights):
+        rf, samples, opts, _ = _response_state(irf, y, start)
+        fam, delay, lalp = param_slots(start, rf.refine_kw["R"])
+        kw = dict(rf.refine_kw, weights=weights)
+        return refit_slots(samples.profiles[samples.live], fam, delay, lalp, rf.b_est, rf.with_bg, start, **kw)
+
+    on_blob, on_clean, unweighted = fitted(blob, w), fitted(clean, w), fitted(blob, None)
+    np.testing.assert_allclose(on_blob.delay, on_clean.delay, atol=1e-6)
+    np.testing.assert_allclose(on_blob.params["sss_alpha_per_ps"], on_clean.params["sss_alpha_per_ps"], rtol=1e-6)
+    np.testing.assert_allclose(on_blob.delay[:, 0], truth["direct_delay_ps"], atol=1e-3)
+    assert np.all(np.abs(unweighted.delay - on_clean.delay).max(axis=1) > 0.2)     # 0.38-14.6 ps

@@ -85,7 +85,9 @@ def test_spike_on_a_tail_is_excluded_with_the_responses_own_ratio(tailed):
     assert not np.isfinite(res.params["ir_delay_ps"]).any()
     assert np.abs(res.params["direct_delay_ps"] - delay).max() < 0.1
     kept = decompose(spiky, T, irf=tailed, spike_sigma=0.0)
-    assert np.all(np.abs(kept.params["ir_delay_ps"][:, 0] - T_PS[j]) < 1.0)
+    # (kept, the spike's residual also reads as noise that follows the signal in every pixel, and
+    # the weighted refit puts the echo 0.0-1.2 ps before the spike's sample; unweighted, 0.0-0.4)
+    assert np.all(np.abs(kept.params["ir_delay_ps"][:, 0] - T_PS[j]) < 1.5)
     assert not np.any(decompose(clean, T, irf=tailed).flags)
     other_grid = decompose(spiky, T, irf=tailed, sigma_range_ps=(8.0, 80.0))
     np.testing.assert_array_equal(other_grid.flags, res.flags)

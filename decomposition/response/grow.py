@@ -146,7 +146,8 @@ def deviance(ctx: GrowContext, rows, params, background) -> np.ndarray:
     """(m,) the deviance of the pixels ``rows`` under ``params`` plus ``background``, in chi2
     units: the Poisson deviance over the dispersion squared for counts
     (:func:`decomposition.noise.count_deviance`), the residual sum of squares over the
-    significance noise squared otherwise; over the fitted samples."""
+    significance noise squared otherwise (each sample weighed by the signal-noise stage's
+    weights where the noise follows the signal); over the fitted samples."""
     return _model_deviance(ctx, rows, ctx.model(params, background))
 
 
@@ -155,7 +156,9 @@ def _model_deviance(ctx: GrowContext, rows, mu) -> np.ndarray:
     if ctx.counts:
         return count_deviance(ctx.values[rows], mu, ctx.fit[rows], ctx.samples.dispersion[ctx.samples.live[rows]])
     r = np.where(ctx.fit[rows], ctx.values[rows] - mu, 0.0)
-    return np.einsum("pl,pl->p", r, r) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
+    w = ctx.refine_kw.get("weights")
+    rw = r if w is None else r * w[rows]
+    return np.einsum("pl,pl->p", rw, r) / np.square(np.maximum(ctx.sigma[rows], 1e-300))
 
 
 def _removal_deviance(ctx: GrowContext, rows, sub: Slots, slots=slice(None)) -> np.ndarray:

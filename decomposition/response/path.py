@@ -137,9 +137,12 @@ def label(rf: ResponseFit, samples: Samples, opts: SolverOptions, state: dict, w
                                          weights=weights)
 
 
-def refit(rf: ResponseFit, samples: Samples) -> None:
+def refit(rf: ResponseFit, samples: Samples, signal_weights=None) -> None:
     """Refine the labelled components of every live pixel; the profiles are the samples less
-    the offset's first estimate (0 without the ``b`` family)."""
+    the offset's first estimate (0 without the ``b`` family).  ``signal_weights`` (P, L): float
+    data's relative sample weights where the noise follows the signal, read by this refit and
+    every refit and deviance after it (the forward steps, the offset test)."""
+    rf.refine_kw["weights"] = None if signal_weights is None else signal_weights[samples.live]
     fam, delay, lalp = param_slots(rf.params, rf.refine_kw["R"])
     rf.slots = refit_slots(samples.profiles[samples.live], fam, delay, lalp, rf.b_est, rf.with_bg, rf.params,
                            **rf.refine_kw)

@@ -333,8 +333,9 @@ class Slots(NamedTuple):
 
 def refine_rows(refine_kw: dict, rows) -> dict:
     """The keywords of :func:`refit_slots` (``refine_kw``, for n pixels) for the pixels ``rows``:
-    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``hold``'s values) taken at them."""
-    out = {k: (v[rows] if k in ("fit_mask", "scale", "disp") and v is not None else v) for k, v in refine_kw.items()}
+    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``weights``, ``hold``'s values) taken at them."""
+    out = {k: (v[rows] if k in ("fit_mask", "scale", "disp", "weights") and v is not None else v)
+           for k, v in refine_kw.items()}
     if refine_kw.get("hold"):
         out["hold"] = {k: v[rows] for k, v in refine_kw["hold"].items()}
     return out
@@ -362,7 +363,7 @@ def held_slot_masks(hold, fam, delay, lalp):
 
 
 def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_mask, scale, opts, bounds, disp,
-                sigma_eq, R, hold=None) -> Slots:
+                sigma_eq, R, hold=None, weights=None) -> Slots:
     """Refine the slots of n live pixels (normalised profiles ``y`` (n, L), the offset ``held``
     (n,) counts / units already subtracted), with a jointly fitted constant offset where
     ``fit_bg``.  Count data (``disp`` given) are fitted to their Poisson deviance
@@ -370,7 +371,9 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     ``params`` (n-shaped, units, the ``background`` key read); every step lowers the deviance,
     so the answer is never worse than the start with its amplitudes solved at its own delays.
     ``hold`` ({key: (n,) values}, :func:`held_slot_masks`): onsets and decay rates held at
-    given values where the component is present.
+    given values where the component is present.  ``weights`` (n, L): Gaussian data's relative
+    sample weights where the noise follows the signal (the signal-noise stage's), by which the
+    residual is weighed (count data take their Poisson weights instead).
 
     Returns :class:`Slots`: fam, delay, lalp, amp (n, K), params (n-shaped, units, no
     ``background`` key), background (n,) units (``held`` plus the fitted correction),
@@ -382,6 +385,8 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
     amp = np.zeros(fam.shape)
     background = held.astype(np.float64).copy()
     sw = fit_mask.astype(np.float64)
+    if weights is not None and not counts:
+        sw = sw * np.sqrt(weights)
     bg_cols = np.ones(n, bool) if fit_bg else None
     fit_kw = dict(lm_tol=opts.lm_tol, delay_bounds_ps=bounds["delay_ps"], lalp_bounds=bounds["lalp"],
                   sss_after_direct=opts.sss_after_direct, first_is_direct=True)

@@ -33,11 +33,13 @@ from ..model.refine import hold_params, refine
 __all__ = ["refine_components", "component_errors", "sample_weights", "background_stats", "clear_unlit"]
 
 
-def sample_weights(samples: Samples, params: dict) -> np.ndarray:
-    """(P, L) least-squares weights: the fit mask, or for count data 1 / Poisson variance of
-    the model of ``params`` (P-shaped) on the fitted samples."""
+def sample_weights(samples: Samples, params: dict, signal_weights=None) -> np.ndarray:
+    """(P, L) least-squares weights: the fit mask, times ``signal_weights`` (P, L) where given
+    (float data whose noise follows the signal: :attr:`decomposition.stages.detect.Detection.weights`
+    of the live pixels, 1 elsewhere), or for count data 1 / Poisson variance of the model of
+    ``params`` (P-shaped) on the fitted samples."""
     if samples.noise_model != "poisson":
-        return samples.weights
+        return samples.weights if signal_weights is None else samples.weights * signal_weights
     return poisson_weights(_model(samples, params), samples.fit, samples.dispersion)
 
 
@@ -51,7 +53,8 @@ def _model(samples: Samples, params: dict, irf=None) -> np.ndarray:
 
 
 def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss_after_direct: bool,
-                      background_chi2: float | None = None, bounds: dict | None = None, hold: dict | None = None):
+                      background_chi2: float | None = None, bounds: dict | None = None, hold: dict | None = None,
+                      signal_weights=None):
     """-> (refined params (P-shaped), {"refine_iterations", "refined"} in the input's leading shape).
 
     ``bounds`` ({"lsig", "lalp"}: log sigma_ps and log alpha_per_ps, as the solver's
@@ -70,6 +73,11 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
     ``hold`` ({key of :data:`decomposition.model.refine.HOLD_KEYS`: (P,) values, NaN free}):
     parameters put in at the start and held there (:func:`decomposition.model.refine.refine`);
     the never-worse rule of the count data's refits compares with that held start.
+
+    ``signal_weights`` (P, L): float data's relative sample weights where the noise follows the
+    signal (:func:`sample_weights`); the refinement weighs its residual by them, as the stages
+    before it did (unweighted, it took the noise at the peak for structure again;
+    docs/history.md).
     """
     axis = samples.axis
     if hold:
@@ -97,7 +105,7 @@ def refine_components(samples: Samples, params: dict, *, shared_sigma: bool, sss
         dev_best = deviance(params) if counts else None
         for _ in range(n_fits):
             new, rinfo = refine(samples.values, params, time_bin_ps=axis.time_bin_ps, t0_ps=axis.t0_ps,
-                                weights=sample_weights(samples, params), shared_sigma=shared_sigma,
+                                weights=sample_weights(samples, params, signal_weights), shared_sigma=shared_sigma,
                                 sss_after_direct=sss_after_direct, fit_background=fit_bg, hold=hold, **limits)
             nonlocal iterations, refined
             iterations += rinfo["iterations"].reshape(-1)
