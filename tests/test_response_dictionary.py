@@ -1,5 +1,5 @@
 """ConvSCD's dictionary and detection over a measured response (methods/dictionary.py with
-``response=``, model/slots.refine_penalised, response/detect.py)."""
+``response=``, model/slots.refine_penalised, stages/detect.detect_components(polish=False))."""
 import numpy as np
 import pytest
 

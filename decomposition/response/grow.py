@@ -4,11 +4,11 @@ On float data the grow stage (:mod:`decomposition.stages.grow`) has already adde
 swapped late sss peaks over the response's atoms, before the labels, as for the Gaussian PSF;
 here only the direct's steps (0, 0b) run for them.  Count data take every step below.
 
-The detection (:mod:`decomposition.response.detect`) weighs every sample with one noise; for
-count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A component
-where the counts are few never pays its penalty there: at ~100 photons per pixel an sss tail,
-and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own Poisson
-noise is 1 sigma of the noise at the direct's peak).  After the refinement (:func:`grow_response`):
+The detection (:func:`decomposition.stages.detect.detect_components`) weighs every sample with
+one noise; for count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A
+component where the counts are few never pays its penalty there: at ~100 photons per pixel an
+sss tail, and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own
+Poisson noise is 1 sigma of the noise at the direct's peak).  After the refinement (:func:`grow_response`):
 
 0. **A direct** ("d" asked): a pixel whose fit has no direct, or one that explains next to
    nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while

@@ -12,7 +12,9 @@ stages (float data), the prune stage (the backward step) and the search where it
 detection; the count polish and count grow steps of the Gaussian dictionary do not apply.  Each function here reads and
 updates one :class:`ResponseFit`, the state of the call's live pixels:
 
-* :func:`detect`: ConvSCD's sparse coding over the response's dictionary (:mod:`decomposition.response.detect`);
+* :func:`detect`: ConvSCD's sparse coding over the response's dictionary (the Gaussian path's
+  :func:`decomposition.stages.detect.detect_components`, its atoms as the sparse coding leaves them:
+  no threshold, polish or second noise pass -- the refit below relocates every atom);
 * :func:`label`: threshold, merge, physics labels (:mod:`decomposition.response.label`);
 * :func:`refit`: every pixel's delays and sss alpha by variable projection, amplitudes by linear
   least squares (:mod:`decomposition.response.refine`), with the order kept (no
@@ -49,7 +51,8 @@ from ..stages.label import at_bound
 from ..options import GridSpec, SolverOptions
 from ..stages.prepare import Samples
 from ..stages.refit import background_stats
-from .detect import detect_response, response_dictionary
+from ..methods.dictionary import get_dictionary
+from ..stages.detect import detect_components
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
@@ -120,8 +123,9 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     with_bg = samples.background is not None
     rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
                      b_est=samples.background[live] if with_bg else np.zeros(live.size))
-    rf.dic = response_dictionary(irf, samples, grid, components)
-    rf.det = detect_response(samples, rf.dic, opts, components)
+    rf.dic = get_dictionary(L, ax.time_bin_ps, ax.t0_ps, grid, "d" in components, "s" in components,
+                            response=irf)
+    rf.det = detect_components(samples, rf.dic, opts, components, polish=False)
     return rf
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..model import components as comp
 from ..methods import convscd as cs
-from ..constants import RESTART_FACTOR, RESTART_POOL_FRACTION
+from ..constants import FAM_NONE, FAM_SSS, RESTART_FACTOR, RESTART_POOL_FRACTION
 from ..masks import SampleMask
 from core.model import DIRECT_KEYS, IR_KEYS, SSS_KEYS, empty_params
 from ..noise import signal_noise_sigma
@@ -112,7 +112,8 @@ def _solve(p, mask: SampleMask, noise, dic, t, opts: SolverOptions, solve_opts: 
     return st, si, model, nl
 
 
-def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions, components) -> Detection:
+def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions, components, *,
+                      polish: bool = True) -> Detection:
     """Sparse coding of every live pixel, block by block (``opts.block_size`` pixels).
 
     ``opts`` must be resolved (:meth:`SolverOptions.resolved`).  Each block is solved as one
@@ -120,6 +121,12 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     The second noise pass (the module docstring) runs where the noise at the signal exceeds
     RESTART_FACTOR x the pixel's noise, on float data only where that holds for at least
     RESTART_POOL_FRACTION of the call's live pixels (see there).
+
+    ``polish=False``: the sparse coding's atoms as they are, without the threshold, merge and
+    polish and without the second noise pass -- a measured response's detection, whose refit
+    relocates every atom after the labels; there each of those steps cost fidelity
+    (docs/history.md).  Empty slots then carry NaN delays, and slots other than an sss NaN
+    log alphas.
     """
     P = samples.values.shape[0]
     live = samples.live
@@ -133,13 +140,19 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
     for b0 in range(0, live.size, opts.block_size):
         bi = live[b0:b0 + opts.block_size]
         pb, mb = solver_inputs(samples, bi)
+        if not polish:
+            st, sinfo = cs.solve_multistart(pb, mb.uncensored(), noise_eff[bi], dic, sss_alone=opts.sss_alone,
+                                            restart=opts.multistart, **solve_opts)
+            lm_total += sinfo["lm_iterations"]
+            blocks.append((bi, _unused_nan(st), sinfo, np.zeros(0, np.int64), None))
+            continue
         st, sinfo, model_b, nl = _solve(pb, mb, noise_eff[bi], dic, t, opts, solve_opts,
                                         samples.significance_sigma(bi, noise_eff[bi]))
         lm_total += sinfo["lm_iterations"] + nl
         s_sig = signal_noise_sigma(pb - model_b, model_b, mb.fit)
         blocks.append((bi, st, sinfo, np.nonzero(s_sig > RESTART_FACTOR * noise_eff[bi])[0], s_sig))
     raised = sum(b[3].size for b in blocks)
-    second = samples.noise_model == "poisson" or raised >= RESTART_POOL_FRACTION * live.size
+    second = polish and (samples.noise_model == "poisson" or raised >= RESTART_POOL_FRACTION * live.size)
     states, converged = [], []
     for bi, st, sinfo, again, s_sig in blocks:
         if second and again.size:
@@ -165,6 +178,16 @@ def detect_components(samples: Samples, dic: cs.Dictionary, opts: SolverOptions,
         conv = np.zeros(0, bool)
     return Detection(state=state, converged=conv, objective=hist, n_iter=n_iter, noise_eff=noise_eff,
                      lm_iterations=lm_total, restarted=restarted)
+
+
+def _unused_nan(st: dict) -> dict:
+    """Slot state ``st`` with NaN delays in empty slots, NaN log alphas outside sss slots and 0
+    amplitudes in empty slots (in place)."""
+    fam = st["fam"]
+    st["delay"] = np.where(fam != FAM_NONE, st["delay"], np.nan)
+    st["lalp"] = np.where(fam == FAM_SSS, st["lalp"], np.nan)
+    st["amp"] = np.where(fam != FAM_NONE, st["amp"], 0.0)
+    return st
 
 
 def detect_gradbm(samples: Samples, n_ir: int, components, options: dict) -> dict:
