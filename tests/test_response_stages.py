@@ -142,6 +142,21 @@ def test_the_grow_stage_runs_over_the_response_on_float_data_and_not_on_counts()
     assert "swapped" not in r.info and "grown" not in r.info and "response_echo_added" in r.info
 
 
+def _with_and_without(irf, noise, option, n, check):
+    """Mean-fidelity inputs of a stage's test: ``n`` paper scenes of 512 bins through ``irf`` in
+    ``noise`` at NSR 0.11, seeds 2 and 3, decomposed by default and with ``option`` False;
+    ``check(default, without)`` asserts on each pair -> (fidelities without, with) over both."""
+    f0, f1 = [], []
+    for seed in (2, 3):
+        d = make_profiles(n, 512, nsr=0.11, noise=noise, seed=seed, ranges="paper", response=irf, bin_integrated=True)
+        on = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
+        off = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, **{option: False})
+        check(on, off)
+        f0.append(fidelity(d.components, off))
+        f1.append(fidelity(d.components, on))
+    return np.concatenate(f0), np.concatenate(f1)
+
+
 def test_pink_noise_through_a_response_is_whitened_as_on_the_gaussian_path():
     """The correlated-noise stage runs over a response's atoms on float data: in pink noise
     (NSR 0.11, 300 paper scenes of 512 bins through the simulated camera's tailed response,
@@ -151,16 +166,11 @@ def test_pink_noise_through_a_response_is_whitened_as_on_the_gaussian_path():
     answer is that of ``whiten=False`` to the bit; count data do not take it."""
     from drivers.sim.scene import simulated_response
     irf = simulated_response("tailed")
-    f0, f1 = [], []
-    for seed in (2, 3):
-        d = make_profiles(300, 512, nsr=0.11, noise="pink", seed=seed, ranges="paper", response=irf,
-                          bin_integrated=True)
-        whitened = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
-        plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, whiten=False)
+
+    def found(whitened, plain):
         assert whitened.info["correlated_noise"] is True and "correlated_noise" not in plain.info
-        f0.append(fidelity(d.components, plain))
-        f1.append(fidelity(d.components, whitened))
-    f0, f1 = np.concatenate(f0), np.concatenate(f1)
+
+    f0, f1 = _with_and_without(irf, "pink", "whiten", 300, found)
     assert np.nanmean(f1) >= np.nanmean(f0) + 0.003
     w = make_profiles(60, 512, nsr=0.11, noise="white", seed=2, ranges="paper", response=irf, bin_integrated=True)
     white = decompose(w.noisy, 2.0, t0_ps=w.t0_ps, irf=irf)
@@ -182,17 +192,12 @@ def test_photon_noise_through_a_response_is_weighted_by_its_variance_law_as_on_t
     weighted, and the answer is that of ``signal_noise=False`` to the bit."""
     from drivers.sim.scene import simulated_response
     irf = simulated_response("tailed")
-    f0, f1 = [], []
-    for seed in (2, 3):
-        d = make_profiles(200, 512, nsr=0.11, noise="photon", seed=seed, ranges="paper", response=irf,
-                          bin_integrated=True)
-        weighted = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf)
-        plain = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, irf=irf, signal_noise=False)
+
+    def found(weighted, plain):
         assert weighted.info["signal_weighted"] == 200 and "signal_weighted" not in plain.info
         assert weighted.info["signal_noise_law_fit"]["gain"] > 0
-        f0.append(fidelity(d.components, plain))
-        f1.append(fidelity(d.components, weighted))
-    f0, f1 = np.concatenate(f0), np.concatenate(f1)
+
+    f0, f1 = _with_and_without(irf, "photon", "signal_noise", 200, found)
     assert np.nanmean(f1) >= np.nanmean(f0) + 0.1
     assert np.sum(f1 > f0 + 0.05) >= 5 * np.sum(f1 < f0 - 0.05)
     w = make_profiles(100, 512, nsr=0.055, noise="white", seed=2, ranges="paper", response=irf, bin_integrated=True)
