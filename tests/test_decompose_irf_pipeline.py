@@ -3,6 +3,7 @@ by default and recorded in the result store; --irf PATH and --irf gaussian choos
 bad responses stop the run before anything is written."""
 import numpy as np
 import pytest
+import zarr
 
 from _cubes import response_profiles
 from core.irf_models import tailed_response
@@ -158,3 +159,28 @@ def test_the_search_runs_with_the_cube_response_where_asked(cubes, irf):
     assert ref.info["search"] is True and "search_wins" in ref.info
     np.testing.assert_allclose(store.params()["direct_delay_ps"], ref.params["direct_delay_ps"], atol=1e-4)
     assert np.abs(store.params()["direct_delay_ps"] - d).max() < 0.5
+
+
+def test_a_cube_of_one_detector_through_a_response_is_weighted_by_its_noise_law(tmp_path, irf):
+    """A cube whose description says its noise is one detector's (``noise_law="detector"``),
+    shot noise plus read noise rendered through the response: the response path takes the
+    cube's law, as the Gaussian path does, and the store holds what the API gives with that law
+    (one chunk: bit for bit); each pixel's own law gives another answer."""
+    from decomposition.evaluation.synthetic import make_profiles
+    rng = np.random.default_rng(3)
+    d = make_profiles(16, L, seed=4, ranges="paper", noise="none", response=irf, time_bin_ps=T)
+    clean = np.clip(d.noisy, 0.0, None).reshape(2, 8, L)
+    data = rng.poisson(clean * 100.0) / 100.0 + rng.normal(0.0, 0.005, clean.shape)
+    write_cube(tmp_path / "one.zarr", data, time_bin_ps=T, t0_ps=d.t0_ps, chunks=(2, 8), noise_law="detector")
+    summary = decompose_to_store(tmp_path / "one.zarr", tmp_path / "res.zarr", progress=False, irf=irf)
+    assert (summary["noise_law"]["signal_noise_law"], summary["noise_law"]["source"]) == ("detector", "cube")
+    store = open_result_store(tmp_path / "res.zarr")
+    assert store.attrs["options"]["signal_noise_law"] == "detector" and store.attrs["irf"]["kind"] == "response"
+    flat = zarr.open_group(str(tmp_path / "one.zarr"), mode="r")["cube"][...].reshape(16, L)
+    one = decompose(flat, T, t0_ps=d.t0_ps, irf=irf, signal_noise_law="detector", max_reflections=3)
+    assert one.info["signal_weighted"] == 16 and one.info["signal_noise_law_fit"]["gain"] > 0
+    for k in ("direct_delay_ps", "sss_alpha_per_ps", "ir_delay_ps"):
+        v = np.asarray(one.params[k], np.float64)
+        np.testing.assert_array_equal(store.group[k][...].reshape(v.shape), v, err_msg=k)
+    own = decompose(flat, T, t0_ps=d.t0_ps, irf=irf, signal_noise_law="pixel", max_reflections=3)
+    assert not np.array_equal(own.params["direct_delay_ps"], one.params["direct_delay_ps"])
