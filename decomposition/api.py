@@ -189,7 +189,7 @@ def _detect(c: _Call) -> None:
 
 def _signal_noise(c: _Call) -> None:
     # over a measured response's atoms as over the Gaussian PSF's: the grow, prune and search
-    # stages and the labels' threshold weigh their samples by the variance law found
+    # stages, the labels' threshold and the refinement weigh their samples by the law found
     if not (c.method == "convscd" and c.opts.signal_noise):
         return
     c.det = dataclasses.replace(c.det, weights=signal_weights(c.samples, c.det, c.dic, c.opts, c.info))
@@ -404,9 +404,9 @@ def _finish(c: _Call) -> None:
 #: call (its option off, another method, noise model or instrument) returns at once.  The GradBM
 #: baseline (``method="gradbm"``) runs prepare, detect, refit, quality and finish; a measured
 #: response (``irf=``) runs prepare, detect, signal_noise, correlated_noise and grow (these two on
-#: float data), search (where ``search=True``), prune, label, refit, forward_steps, offset_test, final_atoms, quality, rescue
-#: and finish, its detect, search, grow, prune, label and refit over the response's atoms
-#: (:mod:`decomposition.response.path`).
+#: float data), search (where ``search=True``), prune, label, refit, forward_steps, offset_test,
+#: final_atoms, quality, rescue and finish, its detect, search, grow, prune, label and refit over
+#: the response's atoms (:mod:`decomposition.response.path`).
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
     Stage("detect", _detect, "the method's first answer: sparse coding over the coarse dictionary"),

@@ -8,7 +8,8 @@ The detection (:func:`decomposition.stages.detect.detect_components`) weighs eve
 one noise; for count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A
 component where the counts are few never pays its penalty there: at ~100 photons per pixel an
 sss tail, and at any level a faint echo far after the direct (a 1 % echo 5 sigma above its own
-Poisson noise is 1 sigma of the noise at the direct's peak).  After the refinement (:func:`grow_response`):
+Poisson noise is 1 sigma of the noise at the direct's peak).  After the refinement
+(:func:`grow_response`):
 
 0. **A direct** ("d" asked): a pixel whose fit has no direct, or one that explains next to
    nothing (taken out alone it raises the deviance by less than ``significance_chi2``), while

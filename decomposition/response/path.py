@@ -9,12 +9,12 @@ are the response's own; of the stages between ``detect`` and ``label`` the signa
 stage (the samples' weights where the noise follows the signal), the correlated-noise and grow
 stages (float data), the prune stage (the backward step) and the search where it is asked for
 (``search=True``) run, each the Gaussian path's code over the response's atoms on its
-detection; the count polish and count grow steps of the Gaussian dictionary do not apply.  Each function here reads and
-updates one :class:`ResponseFit`, the state of the call's live pixels:
+detection; the count polish and count grow steps of the Gaussian dictionary do not apply.  Each
+function here reads and updates one :class:`ResponseFit`, the state of the call's live pixels:
 
 * :func:`detect`: ConvSCD's sparse coding over the response's dictionary (the Gaussian path's
-  :func:`decomposition.stages.detect.detect_components`, its atoms as the sparse coding leaves them:
-  no threshold, polish or second noise pass -- the refit below relocates every atom);
+  :func:`decomposition.stages.detect.detect_components`, its atoms as the sparse coding leaves
+  them: no threshold, polish or second noise pass -- the refit below relocates every atom);
 * :func:`label`: threshold, merge, physics labels (:mod:`decomposition.response.label`);
 * :func:`refit`: every pixel's delays and sss alpha by variable projection, amplitudes by linear
   least squares (:mod:`decomposition.response.refine`), with the order kept (no

@@ -333,7 +333,8 @@ class Slots(NamedTuple):
 
 def refine_rows(refine_kw: dict, rows) -> dict:
     """The keywords of :func:`refit_slots` (``refine_kw``, for n pixels) for the pixels ``rows``:
-    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``weights``, ``hold``'s values) taken at them."""
+    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``weights``, ``hold``'s values) taken
+    at them."""
     out = {k: (v[rows] if k in ("fit_mask", "scale", "disp", "weights") and v is not None else v)
            for k, v in refine_kw.items()}
     if refine_kw.get("hold"):
