@@ -431,3 +431,16 @@ def test_the_onset_prior_of_one_material_with_a_third_of_its_onsets_at_the_bound
     # the edge-preserving estimate of the values as given sits a ps low
     old, on = neighbour_prior(onset, se, (n, n), SpatialOptions(radius=2), opts.onset_scale_ps)
     assert np.nanmean(np.where(on > 0, old, np.nan)[inner]) < 1.4
+
+
+def test_under_photon_noise_the_pooling_refit_weighs_the_samples_by_the_detector_law():
+    """The coupling's refits with the neighbours' priors weigh each sample by noise^2 / the
+    call's detector law, as its comparisons and the per-pixel refit do: on the 24 x 24 spatial
+    scene of 512 bins under photon noise (NSR 0.11, seed 0), ``spatial=True`` with the shared PSF
+    keeps a mean fidelity of at least 0.84 (measured 0.856, and 0.847 with the shared PSF alone);
+    with those refits unweighted it fell to 0.826."""
+    from decomposition.evaluation.spatial_scenes import make_spatial_scene
+    sc = make_spatial_scene(24, 24, 512, nsr=0.11, noise="photon", seed=0)
+    r = decompose_image(sc.profiles, TB, t0_ps=sc.t0_ps, shared="psf", spatial=True)
+    assert r.info["spatial"]["spatial_pulled"] > 0
+    assert np.nanmean(fidelity(sc.components, r)) >= 0.84

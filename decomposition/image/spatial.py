@@ -43,10 +43,11 @@ each chunk with that halo and keeps the interior (:mod:`decomposition.store.chun
 Either instrument: with a measured response (``irf=``) every refit, objective, screen and error
 reads the response's atoms (:func:`decomposition.model.refine.refine`'s ``irf``, the compiled
 kernels' instrument argument), and a shared response time scale stretches the response.  The
-neighbour starts' data term is weighed by
-:func:`objective_weights`, the joint refinement's as the per-pixel refit weighs it (the fit
-mask and the pixel's noise, or Poisson weights at the pixel's model for count data); neither is
-whitened by a correlated-noise spectrum.  The standard
+neighbour starts' data term and the joint refinement are both weighed by
+:func:`objective_weights`, as the per-pixel refit weighs its samples (the fit mask and the
+pixel's noise, times noise^2 / the call's detector law where the noise follows the signal, or
+Poisson weights at the pixel's model for count data); neither is whitened by a
+correlated-noise spectrum.  The standard
 errors reported are those of the pixel's own data at the final fit (the prior not included).
 """
 
@@ -773,7 +774,7 @@ def joint_refinement(c: Coupling, options: SpatialOptions) -> None:
     told_by = ("ratio",) if "sss_alpha_per_ps" in c.hold else ("ratio", "alpha")
     members = material_members(own, c.shape, options, told_by) if options.material_prior else None
     base = take_rows(c.params, rows)           # each pixel's own answer
-    weights = sample_weights(c.samples, c.params)[rows]
+    weights = objective_weights(c, c.params)[rows]
     noise2 = noise_variance(c)[rows]
     pulled = np.zeros(rows.size, bool)
     last = {}               # the last sweep's prior (mean, precision) on rows per name; NaN: none
