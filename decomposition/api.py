@@ -33,7 +33,7 @@ from .stages.prune import prune_components
 from .stages.search import STAGE_STARTS, search_components
 from .model.slots import shape_bounds
 from .model.refine import check_hold
-from .constants import RESCUE_MISFIT_Z
+from .constants import FAM_SSS, RESCUE_MISFIT_Z
 from .stages.rescue import RESCUE_OPTIONS, data_term, penalised_misfit, rescue_rows, take_rescued
 from .stages.selection import misfit_beyond_noise
 from .response.resolve import resolve_response, response_record, spike_neighbour_ratio, spike_settings
@@ -265,13 +265,15 @@ def _count_polish(c: _Call) -> None:
 
 
 def _count_grow(c: _Call) -> None:
-    # after the threshold: the echo is kept by its own deviance test, weighed with the
-    # counts where it lies, not by the threshold's noise at the direct's peak
-    if not (c.convscd and c.samples.noise_model == "poisson" and c.opts.grow and "r" in c.fams):
+    # after the threshold: an echo or an sss is kept by its own deviance test, weighed with
+    # the counts where it lies, not by the threshold's noise at the direct's peak
+    if not (c.convscd and c.samples.noise_model == "poisson" and c.opts.grow and ("r" in c.fams or "s" in c.fams)):
         return
     thresholded = dataclasses.replace(c.det, state=final_state(c.samples, c.det, c.dic, c.opts))
     c.final, grown = grow_counts(c.samples, thresholded, c.dic, c.opts)
+    has_sss = (thresholded.state["fam"] == FAM_SSS).any(axis=1)
     c.info["grown_counts"] = int(grown.sum())
+    c.info["count_sss_added"] = int(((c.final["fam"] == FAM_SSS).any(axis=1) & ~has_sss).sum())
 
 
 def _label(c: _Call) -> None:
@@ -417,7 +419,8 @@ STAGES = (
     Stage("grow", _grow, "add a Gaussian at a significant residual bump; swap a late sss's peak (grow=True)"),
     Stage("prune", _prune, "drop a Gaussian on the direct's sss onset where the data allow (prune=True)"),
     Stage("count_polish", _count_polish, "count data: the atoms polished with Poisson weights"),
-    Stage("count_grow", _count_grow, "count data: an echo after the threshold, kept by its deviance (grow=True)"),
+    Stage("count_grow", _count_grow, "count data: an echo or an sss after the threshold, kept by its deviance "
+                                     "(grow=True)"),
     Stage("label", _label, "snap (on-grid), threshold, merge and name the atoms; their flags"),
     Stage("refit", _refit, "off-grid refinement with the background; clear unlit pixels; AT_BOUND"),
     Stage("forward_steps", _forward_steps, "response: a direct (and for counts an sss, an echo) added after the "
