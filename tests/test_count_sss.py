@@ -47,3 +47,12 @@ def test_no_sss_is_put_where_the_scene_has_none(photons):
     r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps)
     assert np.isfinite(r.params["sss_delay_ps"]).mean() <= 0.02
     assert r.info["count_sss_added"] <= 0.02 * N_PX
+
+
+def test_the_sss_trial_runs_where_no_inter_reflection_is_asked():
+    # the count step ran only with "r" among the components; the sss trial needs only "s"
+    d = _scene("d+s", 300)
+    r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, components=("d", "s"))
+    assert r.info["count_sss_added"] >= 0.05 * N_PX
+    assert np.isfinite(r.params["sss_delay_ps"]).mean() >= 0.95
+    assert not np.isfinite(r.params["ir_delay_ps"]).any()
