@@ -20,7 +20,7 @@ def _scene(kinds, photons):
     return make_profiles(N_PX, L, seed=4, kinds=kinds, ranges="paper", photons_per_pixel=photons)
 
 
-@pytest.mark.parametrize("photons, least", [(100, 0.85), (300, 0.95)])
+@pytest.mark.parametrize("photons, least", [(100, 0.84), (300, 0.93)])
 def test_an_sss_the_detection_left_out_is_added_where_the_counts_hold_one(photons, least):
     d = _scene("d+s", photons)
     r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps)
@@ -28,12 +28,12 @@ def test_an_sss_the_detection_left_out_is_added_where_the_counts_hold_one(photon
     has = np.isfinite(r.params["sss_delay_ps"])
     had = np.isfinite(without.params["sss_delay_ps"])
     # every d+s pixel has an sss; without the forward steps (grow=False) 80 % (100 photons)
-    # and 84 % (300) of them report one, with them 90 % and 99.5 % (before the sss trial 78 %
+    # and 84 % (300) of them report one, with them 86 % and 95.5 % (before the sss trial 78 %
     # and 81 %)
     assert has.mean() >= least > had.mean()
     assert r.info["count_sss_added"] >= 0.05 * N_PX
     # what was added is the scene's sss: its amplitude and decay rate (measured: amplitude
-    # ratios 0.99 and 0.96 in the median, |log alpha ratio| 0.18 and 0.09)
+    # ratios 0.99 and 0.98 in the median, |log alpha ratio| 0.18 and 0.08)
     added = has & ~had
     amp = r.params["sss_amplitude"][added] / d.params["sss_amplitude"][added]
     assert 0.7 < np.median(amp) < 1.4
@@ -47,6 +47,15 @@ def test_no_sss_is_put_where_the_scene_has_none(photons):
     r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps)
     assert np.isfinite(r.params["sss_delay_ps"]).mean() <= 0.02
     assert r.info["count_sss_added"] <= 0.02 * N_PX
+
+
+def test_an_echo_is_not_taken_for_an_sss():
+    # a trial sss whose onset the polish moved onto an echo the fit lacks is refused: on these
+    # d+r2 scenes 12 % of the pixels reported an sss with it taken, 7 % as before the trial
+    d = _scene("d+r2", 300)
+    r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps)
+    assert r.info["count_sss_added"] <= 0.01 * N_PX
+    assert np.isfinite(r.params["sss_delay_ps"]).mean() <= 0.10
 
 
 def test_the_sss_trial_runs_where_no_inter_reflection_is_asked():
