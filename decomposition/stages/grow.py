@@ -50,7 +50,7 @@ from .objective import _smooth, objective_variance
 from .selection import log_samples, penalised_objective
 from ..model.slots import eval_atoms, parameter_bounds, put, render, take
 
-__all__ = ["min_gaussian_gap_sigma", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
+__all__ = ["min_gaussian_gap_sigma", "with_atom", "with_gaussian", "late_fast_sss", "near_centres", "masked_spread", "residual_peak", "worth_refitting",
            "grow_block", "grow_components", "swap_block", "swap_components", "grow_count_block", "grow_counts"]
 
 
@@ -146,20 +146,28 @@ def worth_refitting(gain, gain_wide, amplitude, direct_amplitude, significance_c
             & (amplitude < direct_amplitude))
 
 
-def with_gaussian(st, delay_ps, lsig, amp=1.0):
-    """A forward step's trial: a copy of the slot state ``st`` (n, K) with a Gaussian of log
-    width ``lsig`` (n,) at ``delay_ps`` (n,), amplitude ``amp`` (scalar or (n,)), penalty scale
-    1, in each row's first free slot (every row must have one) -> (state, slot (n,))."""
+def with_atom(st, fam, delay_ps, lsig, amp=1.0, lalp=None):
+    """A forward step's trial: a copy of the slot state ``st`` (n, K) with an atom of family
+    ``fam`` and log width ``lsig`` (n,) at ``delay_ps`` (n,), amplitude ``amp`` (scalar or
+    (n,)), log alpha ``lalp`` (scalar or (n,); None: the free slot's left as it is), penalty
+    scale 1, in each row's first free slot (every row must have one) -> (state, slot (n,))."""
     n = st["fam"].shape[0]
     alt = take(st, np.arange(n))
     r = np.arange(n)
     slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
-    alt["fam"][r, slot] = FAM_GAUSS
+    alt["fam"][r, slot] = fam
     alt["delay"][r, slot] = delay_ps
     alt["lsig"][r, slot] = lsig
     alt["amp"][r, slot] = amp
+    if lalp is not None:
+        alt["lalp"][r, slot] = lalp
     alt["pen"][r, slot] = 1.0
     return alt, slot
+
+
+def with_gaussian(st, delay_ps, lsig, amp=1.0):
+    """:func:`with_atom` with a Gaussian."""
+    return with_atom(st, FAM_GAUSS, delay_ps, lsig, amp)
 
 
 def _keep_if_better(t, p, mask, out, idx, cur, alt, s_eff, s_sig, dic, opts, weights=None, spectrum=None):
@@ -429,8 +437,7 @@ def _echo_trial_counts(blk, cand, cur, mu):
         return none
     idx = cand[tried]
     base = take(cur, tried)
-    alt, slot = with_gaussian(base, at_ps[tried], lsig[tried], a_counts[tried] / blk.scale[idx])
-    alt["lalp"][np.arange(tried.size), slot] = 0.0
+    alt, _ = with_atom(base, FAM_GAUSS, at_ps[tried], lsig[tried], a_counts[tried] / blk.scale[idx], lalp=0.0)
     fam_trial = alt["fam"].copy()
     alt = blk.polish(idx, alt)
     kept = np.all(alt["fam"] == fam_trial, axis=1)
@@ -465,15 +472,9 @@ def _sss_trial_counts(blk, cand, cur, mu):
     if tried.size == 0:
         return none
     r, idx, j = rows[tried], cand[rows[tried]], pick[tried]
-    alt = take(cur, r)
+    alt, slot = with_atom(take(cur, r), FAM_SSS, d0[tried], ls0[tried],
+                          np.maximum(amps[j, tried], 1e-12) / blk.scale[idx], lalp=np.log(alphas[j]))
     m = np.arange(tried.size)
-    slot = np.argmax(alt["fam"] == FAM_NONE, axis=1)
-    alt["fam"][m, slot] = FAM_SSS
-    alt["delay"][m, slot] = d0[tried]
-    alt["lsig"][m, slot] = ls0[tried]
-    alt["lalp"][m, slot] = np.log(alphas[j])
-    alt["amp"][m, slot] = np.maximum(amps[j, tried], 1e-12) / blk.scale[idx]
-    alt["pen"][m, slot] = 1.0
     alt = blk.polish(idx, alt)
     # kept where its sss survives at the direct: an onset the polish moved more than NEAR_SIGMA
     # widths after it is an echo taken for an sss (the response path's far sss), not this trial's
