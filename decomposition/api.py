@@ -19,7 +19,7 @@ import numpy as np
 from .methods import convscd as cs
 from .stages.countpolish import polish_counts
 from .stages.detect import detect_components, detect_gradbm
-from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT,  # noqa: F401
+from .flags import (AMBIGUOUS, AT_BOUND, DATA_FLAGS, EMPTY, FLAG_DTYPE, FLAG_NAMES, MAX_ITER, NONFINITE, POOR_FIT,  # noqa: F401
                     SATURATED, OFF_WINDOW, SPIKE, TRUNCATED, WIDE_PSF, flag_names, mark)
 from .stages.label import final_state, label_components, params_at_bound
 from core.model import BACKGROUND_KEY, DIRECT_KEYS, IR_KEYS, SSS_KEYS
@@ -289,6 +289,11 @@ def _label(c: _Call) -> None:
     c.info.update(objective=det.objective.reshape(samples.lead + (c.opts.max_iter + 1,)),
                   n_iter=det.n_iter.reshape(samples.lead), lm_iterations=det.lm_iterations,
                   restarted=det.restarted)
+    if c.opts.likelihood_counts and samples.noise_model == "poisson" and samples.live.size:
+        # the stages after the labels are the response path's, over the Gaussian PSF of each
+        # pixel's width: the count fit and the count forward steps of a measured response
+        c.rfit = rp.hand_over(samples, c.dic, det, c.grid, c.opts, c.params, c.hold)
+        c.info["counts_handed_over"] = int(samples.live.size)
 
 
 def _physics(c: _Call) -> dict:
@@ -297,7 +302,7 @@ def _physics(c: _Call) -> dict:
 
 
 def _refit(c: _Call) -> None:
-    if c.response is not None:
+    if c.rfit is not None:
         rp.refit(c.rfit, c.samples, _signal_weights(c))
         return
     samples, opts, params, flags = c.samples, c.opts, c.params, c.flags
@@ -340,19 +345,23 @@ def _signal_weights(c: _Call):
 
 
 def _forward_steps(c: _Call) -> None:
-    if c.response is not None:
+    if c.rfit is not None:
         rp.forward_steps(c.rfit, c.samples, c.opts, c.fams)
 
 
 def _offset_test(c: _Call) -> None:
-    if c.response is not None:
+    if c.rfit is not None:
         rp.offset_test(c.rfit, c.samples, c.opts)
 
 
 def _final_atoms(c: _Call) -> None:
-    if c.response is None:
+    if c.rfit is None:
         return
     out = rp.final_atoms(c.rfit, c.samples, c.opts, c.fams, hold=c.hold)
+    if c.response is None:
+        # the Gaussian path's labels handed over: their window and bound flags were the
+        # labelled atoms', the final atoms' replace them
+        c.flags &= FLAG_DTYPE(~(AT_BOUND | OFF_WINDOW) & 0xFFFF)
     c.flags |= out.flags
     c.info.update(out.info)
     c.params = out.params
@@ -408,7 +417,9 @@ def _finish(c: _Call) -> None:
 #: response (``irf=``) runs prepare, detect, signal_noise, correlated_noise and grow (these two on
 #: float data), search (where ``search=True``), prune, label, refit, forward_steps, offset_test,
 #: final_atoms, quality, rescue and finish, its detect, search, grow, prune, label and refit over
-#: the response's atoms (:mod:`decomposition.response.path`).
+#: the response's atoms (:mod:`decomposition.response.path`).  Count data on the Gaussian PSF with
+#: ``likelihood_counts`` run the response's refit, forward_steps, offset_test and final_atoms
+#: after their own label stage, over the Gaussian PSF of each pixel's width.
 STAGES = (
     Stage("prepare", _prepare, "validate, scale and mask the samples; noise, spikes, background estimate"),
     Stage("detect", _detect, "the method's first answer: sparse coding over the coarse dictionary"),

@@ -258,6 +258,16 @@ class SolverOptions:
     #: components are not significant together against its offset alone is reported EMPTY
     #: (:func:`decomposition.stages.refit.clear_unlit`).
     refine: bool = False
+    #: Count data (``noise="poisson"``) on the Gaussian PSF: after the labels, refit every pixel
+    #: by its Poisson likelihood and take the count forward steps there (a direct restored, an
+    #: sss, an echo, each kept by its deviance), the stages a measured response's counts take,
+    #: over the Gaussian PSF of each pixel's width -- held where ``hold`` gives it, else its
+    #: labelled one (:func:`decomposition.response.path.hand_over`; ``info["counts_handed_over"]``).
+    #: Where the width is known it gains most at a few hundred photons per pixel and fewer
+    #: (docs/history.md).  Off by default: with a width fitted per pixel it gains next to nothing,
+    #: and ``decompose_image(spatial=True)``'s coupling starts worse from such answers at 100
+    #: photons.  No effect on float data or with ``irf``.
+    likelihood_counts: bool = False
     #: Add per-pixel standard errors ``<key>_stderr`` (shapes and units of the parameters, NaN
     #: where absent or not identifiable) from the Fisher information at the solution
     #: (:func:`decomposition.model.fisher.standard_errors`; count data: the Poisson Fisher
@@ -323,8 +333,8 @@ class SolverOptions:
     ambiguity_split: float = 0.3
 
     def __post_init__(self):
-        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine", "grow", "prune",
-                     "rescue", "signal_noise", "whiten"):
+        for name in ("off_grid", "multistart", "shared_sigma", "sss_after_direct", "sss_alone", "refine",
+                     "likelihood_counts", "grow", "prune", "rescue", "signal_noise", "whiten"):
             _set(self, name, _flag(name, getattr(self, name)))
         for name in ("stderr", "search"):
             _set(self, name, _flag(name, getattr(self, name), allow_none=True))

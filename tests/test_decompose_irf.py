@@ -504,7 +504,7 @@ def test_a_direct_no_sample_sees_is_not_reported():
 
     irf = setup["recorded_response"]
     t = d.t0_ps + T * np.arange(256)
-    ctx = SimpleNamespace(t=t, irf=irf, sigma_eq_ps=gaussian_equivalent_sigma_ps(irf))
+    ctx = SimpleNamespace(t=t, irf=irf, width=np.full(3, gaussian_equivalent_sigma_ps(irf)))
     fam = np.array([[FAM_GAUSS, FAM_SSS]] * 3)
     delay = np.array([[t[0] - 195.0, 15.0], [t[0] - 3.0, 15.0], [t[0] - 195.0, t[0] - 190.0]])
     slots = Slots(fam, delay, np.zeros(fam.shape), np.ones(fam.shape), {}, np.zeros(3), np.zeros(3, np.int64))

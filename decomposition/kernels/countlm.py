@@ -1,4 +1,4 @@
-"""The count fit's damped loop, compiled: a response's atoms fitted to Poisson counts, one pixel at a time.
+"""The count fit's damped loop, compiled: an instrument's atoms fitted to Poisson counts, one pixel at a time.
 
 :func:`count_lm` is the loop of :func:`decomposition.response.refine.fit_slots` for count data:
 Levenberg-Marquardt on the Poisson deviance by Fisher scoring over every parameter at once (the
@@ -22,7 +22,7 @@ import numpy as np
 
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from .jit import njit
-from .projected import atom_rows, atom_scratch, lu_solve
+from .projected import atom_rows, atom_scratch, lu_solve, uniform_step
 
 __all__ = ["deviance_row", "count_lm"]
 
@@ -55,9 +55,10 @@ def deviance_row(y, mu, fit, floor):
 
 
 @njit
-def _render(t, m, lo, hi, fam, delay, lalp, inst, increasing, scratch):
+def _render(t, m, lo, hi, fam, delay, lalp, lsig, inst, increasing, step_t, scratch):
     """The pixel's atoms with their derivative rows into ``m`` (the layout of
-    :func:`~decomposition.kernels.projected.atom_rows`), each slot's support into ``lo``, ``hi``."""
+    :func:`~decomposition.kernels.projected.atom_rows`; ``lsig`` the slots' Gaussian log widths,
+    unread for a response's table), each slot's support into ``lo``, ``hi``."""
     K = fam.shape[0]
     for k in range(K):
         if fam[k] == FAM_NONE:
@@ -66,7 +67,8 @@ def _render(t, m, lo, hi, fam, delay, lalp, inst, increasing, scratch):
             continue
         sss = fam[k] == FAM_SSS
         a = math.exp(lalp[k]) if sss else 0.0
-        j0, j1 = atom_rows(t, m, K, k, sss, delay[k], 0.0, a, inst, t, False, True, increasing, 0.0, scratch)
+        j0, j1 = atom_rows(t, m, K, k, sss, delay[k], math.exp(lsig[k]), a, inst, t, False, True, increasing, step_t,
+                           scratch)
         lo[k] = j0
         hi[k] = j1
 
@@ -175,7 +177,7 @@ def _no_light_turned_negative(fam, a_cur, a_new):
 
 
 @njit
-def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp, amp, bg, held_d, held_l,
+def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp, lsig, amp, bg, held_d, held_l,
              d_lo, d_hi, l_lo, l_hi, sss_after_direct, first_is_direct, n_iter, lm_tol, lam0, lam_max,
              inst, cost_out, mu_out, iters, converged):
     """Fisher scoring of n pixels' slots on their Poisson deviance, each to its own convergence.
@@ -193,6 +195,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
     fam : int8 (n, K)                    slot families
     delay, lalp : float64 (n, K)         the start, projected (and held values put in);
                                          overwritten by the fit
+    lsig : float64 (n, K)                the slots' log widths (ln ps) for the Gaussian PSF's
+                                         atoms, held (unread for a response's table atoms)
     amp : float64 (n, Kc)                written: the amplitudes (Kc = K + 1: with the offset's
                                          correction in column K, fitted where ``bg``)
     bg : bool (n,)                       the pixels that fit an offset correction
@@ -222,6 +226,7 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
     for i in range(1, L):
         if not t[i] > t[i - 1]:
             increasing = False
+    step_t = uniform_step(t, increasing)
     scratch = atom_scratch(inst)
     m_s = np.zeros((2, 3 * K + 2, L))
     lo_s = np.zeros((2, K), np.int64)
@@ -250,7 +255,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
         for k in range(K):
             th_d[now, k] = delay[p, k]
             th_l[now, k] = lalp[p, k]
-        _render(t, m_s[now], lo_s[now], hi_s[now], f, th_d[now], th_l[now], inst, increasing, scratch)
+        _render(t, m_s[now], lo_s[now], hi_s[now], f, th_d[now], th_l[now], lsig[p], inst, increasing, step_t,
+                scratch)
         _start_amplitudes(m_s[now], lo_s[now], hi_s[now], f, has_bg, y[p], sw0[p], amp_s[now], mat, rhs1, piv)
         if Kc > K:
             # an offset of counts is light or dark counts: never below 0
@@ -351,7 +357,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
                 amp_s[nxt, c] = a_cur[c] + step[2 * K + c] if free[2 * K + c] else 0.0
             if Kc > K:
                 amp_s[nxt, K] = max(amp_s[nxt, K], -held[p] / sc)
-            _render(t, m_s[nxt], lo_s[nxt], hi_s[nxt], f, th_d[nxt], th_l[nxt], inst, increasing, scratch)
+            _render(t, m_s[nxt], lo_s[nxt], hi_s[nxt], f, th_d[nxt], th_l[nxt], lsig[p], inst, increasing, step_t,
+                    scratch)
             _model(m_s[nxt], lo_s[nxt], hi_s[nxt], amp_s[nxt], has_bg, sc, held[p], mu_s[nxt])
             t_dev = deviance_row(counts[p], mu_s[nxt], fit[p], floor) / disp2[p]
             ok = finite and math.isfinite(t_dev) and t_dev < dev and _no_light_turned_negative(f, a_cur, amp_s[nxt])

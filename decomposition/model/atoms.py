@@ -1,4 +1,4 @@
-"""Atoms of a measured response for blocks of slot arrays, with their derivatives.
+"""Atoms of an instrument for blocks of slot arrays: a measured response's, or the Gaussian PSF's.
 
 The response path of :func:`decomposition.decompose` keeps each pixel's components in slot
 arrays of shape (P, K): ``fam`` (FAM_NONE, FAM_GAUSS for a shifted copy of the response --
@@ -8,18 +8,96 @@ sss slots only).  :func:`slot_atoms` renders every active slot at once with the 
 :func:`~decomposition.kernels.response.shifted_atoms` / :func:`~decomposition.kernels.response.sss_atoms`,
 unit peak; :func:`core.irf.render_shifted` / :func:`core.irf.render_sss` to within their
 stated table error), and optionally the derivatives with respect to the delay and to log alpha.
+
+The response path's stages take either instrument: a measured response
+(:class:`core.irf.InstrumentResponse`, the same for every pixel) or :class:`GaussianPSF`, the
+Gaussian PSF of one known width per pixel (the Gaussian kernels of
+:func:`decomposition.kernels.atomlm.atom_profiles`, the Gaussian path's own).
+:func:`instrument_rows` takes an instrument's pixels, :func:`instrument_widths` their
+(Gaussian-equivalent) widths.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from core.irf import InstrumentResponse
-from core.irf_components import render_components_response
-from core.model import BACKGROUND_KEY, params_shape
-from ..constants import FAM_SSS
+from core.irf_components import gaussian_equivalent_sigma_ps, render_components_response
+from core.model import BACKGROUND_KEY, params_shape, render_components
+from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
+from ..kernels.atomlm import atom_profiles
 from ..kernels.response import response_table, shifted_atoms, slot_rows, sss_atoms
 
-__all__ = ["params_components", "params_profile", "slot_atoms"]
+__all__ = ["GaussianPSF", "instrument_rows", "instrument_widths", "params_components", "params_profile", "slot_atoms",
+           "shifted_slot_atoms", "sss_slot_atoms"]
+
+
+@dataclass(frozen=True)
+class GaussianPSF:
+    """The Gaussian PSF as an instrument of the response path's stages: ``sigma_ps`` (n,), each
+    pixel's width (ps, finite and positive), held.  Its atoms are the Gaussian path's kernels
+    (unit peak for a shifted atom; the sss the Gaussian convolved with the exponential, in the
+    amplitude convention of :func:`core.model.render_components`)."""
+
+    sigma_ps: np.ndarray
+
+    def __post_init__(self):
+        s = np.asarray(self.sigma_ps, np.float64)
+        if s.ndim != 1 or not np.all(np.isfinite(s) & (s > 0)):
+            raise ValueError("GaussianPSF needs one finite positive width per pixel, shape (n,)")
+        object.__setattr__(self, "sigma_ps", s)
+
+    def rows(self, idx) -> "GaussianPSF":
+        """The instrument of the pixels ``idx``."""
+        return GaussianPSF(self.sigma_ps[idx])
+
+
+def instrument_rows(inst, idx):
+    """The instrument of the pixels ``idx``: a measured response is every pixel's."""
+    return inst.rows(idx) if isinstance(inst, GaussianPSF) else inst
+
+
+def instrument_widths(inst, n: int) -> np.ndarray:
+    """(n,) each pixel's (Gaussian-equivalent) width, ps."""
+    if isinstance(inst, GaussianPSF):
+        if inst.sigma_ps.size != n:
+            raise ValueError(f"GaussianPSF holds {inst.sigma_ps.size} widths for {n} pixels")
+        return inst.sigma_ps
+    return np.full(n, gaussian_equivalent_sigma_ps(inst))
+
+
+def _gaussian_atoms(inst: GaussianPSF, t_ps, fam, delay, lalp) -> np.ndarray:
+    """(P, K, L) the Gaussian PSF's atoms of slot arrays (P, K), zeros in empty slots."""
+    t = np.asarray(t_ps, np.float64)
+    fam = np.asarray(fam)
+    P, K = fam.shape
+    lsig = np.broadcast_to(np.log(inst.sigma_ps)[:, None], (P, K))
+    on = fam != FAM_NONE
+    out = np.zeros((P, K, t.size))
+    if on.any():
+        step = t[1] - t[0] if t.size > 1 else 1.0
+        out[on] = atom_profiles(float(t[0]), float(step), t.size, fam[on], np.asarray(delay, np.float64)[on],
+                                lsig[on], np.where(fam == FAM_SSS, lalp, 0.0)[on])
+    return out
+
+
+def shifted_slot_atoms(inst, t_ps, delay) -> np.ndarray:
+    """(m, L) the instrument's shifted atoms (unit peak) of m pixels at ``delay`` (m,), ps."""
+    if isinstance(inst, GaussianPSF):
+        d = np.asarray(delay, np.float64)[:, None]
+        return _gaussian_atoms(inst, t_ps, np.full(d.shape, FAM_GAUSS, np.int8), d, np.zeros(d.shape))[:, 0]
+    return shifted_atoms(response_table(inst), t_ps, delay)
+
+
+def sss_slot_atoms(inst, t_ps, delay, alpha_per_ps) -> np.ndarray:
+    """(m, L) the instrument's sss atoms of m pixels with onsets ``delay`` and decay rates
+    ``alpha_per_ps`` (m,)."""
+    if isinstance(inst, GaussianPSF):
+        d = np.asarray(delay, np.float64)[:, None]
+        la = np.log(np.asarray(alpha_per_ps, np.float64))[:, None]
+        return _gaussian_atoms(inst, t_ps, np.full(d.shape, FAM_SSS, np.int8), d, la)[:, 0]
+    return sss_atoms(response_table(inst), t_ps, delay, alpha_per_ps)
 
 
 def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay: np.ndarray,
@@ -28,7 +106,7 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
 
     Parameters
     ----------
-    irf : InstrumentResponse
+    irf : InstrumentResponse or GaussianPSF (of the P pixels)
     t_ps : ndarray (L,)          time axis, ps
     fam : ndarray (P, K) int8    slot families
     delay : ndarray (P, K)       delays, ps (read where the slot is active)
@@ -42,6 +120,11 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     phi : ndarray (P, K, L)
     d_delay, d_lalp : ndarray (P, K, L) (only with ``derivatives=True``)
     """
+    if isinstance(irf, GaussianPSF):
+        if derivatives:
+            raise ValueError("the Gaussian PSF's slot atoms have no derivatives here: its count fit is the "
+                             "compiled one (decomposition.model.countfit)")
+        return _gaussian_atoms(irf, t_ps, fam, delay, lalp)
     ss = fam == FAM_SSS
     alpha = np.zeros(fam.shape)
     alpha[ss] = np.exp(lalp[ss])
@@ -64,7 +147,7 @@ def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -
 
     Parameters
     ----------
-    irf : InstrumentResponse
+    irf : InstrumentResponse or GaussianPSF (its widths are those of ``params``)
     t_ps : ndarray (L,)        time axis, ps
     params : dict of ndarray   keys of :mod:`core.model` (shapes (...,) and (..., R)); NaN
                                entries and missing families render as zeros
@@ -75,8 +158,12 @@ def params_components(irf: InstrumentResponse, t_ps: np.ndarray, params: dict) -
     ``background`` (..., L) (0 where NaN) where ``params`` has :data:`core.model.BACKGROUND_KEY`.
     """
     t = np.ascontiguousarray(t_ps, np.float64)
-    tab = response_table(irf)
     shape = params_shape(params)
+    if isinstance(irf, GaussianPSF):
+        # the parameters carry each pixel's width: the Gaussian path's own rendering
+        step = t[1] - t[0] if t.size > 1 else 1.0
+        return render_components(params, t.size, float(step), float(t[0]))
+    tab = response_table(irf)
     out = render_components_response(params, t, irf, shifted=lambda tt, d: shifted_atoms(tab, tt, d),
                                      sss=lambda tt, d, a: sss_atoms(tab, tt, d, a))
     if BACKGROUND_KEY in params:

@@ -2,7 +2,10 @@
 
 On float data the grow stage (:mod:`decomposition.stages.grow`) has already added echoes and
 swapped late sss peaks over the response's atoms, before the labels, as for the Gaussian PSF;
-here only the direct's steps (0, 0b) run for them.  Count data take every step below.
+here only the direct's steps (0, 0b) run for them.  Count data take every step below.  The
+instrument is a measured response or the Gaussian PSF of each pixel's width
+(:class:`decomposition.model.atoms.GaussianPSF`, ``likelihood_counts``); "widths" below are each
+pixel's (the response's Gaussian-equivalent one).
 
 The detection (:func:`decomposition.stages.detect.detect_components`) weighs every sample with
 one noise; for count data that is the Poisson noise at the signal, i.e. at the direct's peak.  A
@@ -92,8 +95,8 @@ from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
-from ..model.atoms import params_components, params_profile, slot_atoms
-from ..kernels.response import response_table, shifted_atoms, sss_atoms
+from ..model.atoms import (GaussianPSF, instrument_rows, instrument_widths, params_components, params_profile,
+                           shifted_slot_atoms, slot_atoms, sss_slot_atoms)
 from .refine import Slots, refine_rows, refit_slots
 from ..model.slots import select_rows
 from ..model.fidelity import fidelity
@@ -107,19 +110,27 @@ class GrowContext:
     Parameters
     ----------
     samples : decomposition.stages.prepare.Samples
-    irf : InstrumentResponse           on the samples' step
+    irf : InstrumentResponse or GaussianPSF
+                                       the instrument: a measured response on the samples'
+                                       step, or the Gaussian PSF of each pixel's held width
+                                       (:class:`decomposition.model.atoms.GaussianPSF`)
     held : ndarray (n,)                the offset already subtracted from the profiles, units
     fit_bg : bool                      the offset is fitted jointly (the ``b`` family)
     refine_kw : dict                   keywords of :func:`refit_slots` for all n pixels
-    sigma_eq_ps : float                the response's Gaussian-equivalent width, ps
     opts : SolverOptions
+
+    ``width`` (n,): each pixel's (Gaussian-equivalent) width, ps, the unit of every distance
+    rule here.
     """
 
-    def __init__(self, samples, irf, held, fit_bg, refine_kw, sigma_eq_ps, opts):
+    def __init__(self, samples, irf, held, fit_bg, refine_kw, opts):
         self.samples, self.irf, self.held, self.fit_bg = samples, irf, held, bool(fit_bg)
-        self.refine_kw, self.sigma_eq_ps, self.opts = refine_kw, float(sigma_eq_ps), opts
+        self.refine_kw, self.opts = refine_kw, opts
         self.counts = samples.noise_model == "poisson"
         live = samples.live
+        self.width = instrument_widths(irf, live.size)
+        self.log_width = (np.log(self.width) if isinstance(irf, GaussianPSF)
+                          else np.full(live.size, math.log(self.width[0]) if live.size else 0.0))
         self.values = np.asarray(samples.values[live], np.float64)
         self.fit = samples.fit[live]
         self.t = refine_kw["t"]
@@ -132,6 +143,11 @@ class GrowContext:
         p = dict(params)
         p[BACKGROUND_KEY] = background
         return params_profile(self.irf, self.t, p)
+
+    def atoms(self, rows, fam, delay, lalp) -> np.ndarray:
+        """(m, K, L) the atoms of the pixels ``rows``' slot arrays (m, K)
+        (:func:`decomposition.model.atoms.slot_atoms`)."""
+        return slot_atoms(instrument_rows(self.irf, rows), self.t, fam, delay, lalp)
 
     def refit(self, rows, fam, delay, lalp, params, background) -> Slots:
         """:func:`refit_slots` of the pixels ``rows`` from the slots given (``params`` and
@@ -171,7 +187,7 @@ def _removal_deviance(ctx: GrowContext, rows, sub: Slots, slots=slice(None)) -> 
     mu = ctx.model(sub.params, sub.background)
     scale = ctx.samples.scale[ctx.samples.live[rows]]
     fam, delay, lalp, amp = sub.fam[:, slots], sub.delay[:, slots], sub.lalp[:, slots], sub.amp[:, slots]
-    atoms = slot_atoms(ctx.irf, ctx.t, fam, delay, lalp) * (amp * scale[:, None])[:, :, None]
+    atoms = ctx.atoms(rows, fam, delay, lalp) * (amp * scale[:, None])[:, :, None]
     if ctx.counts:
         return removal_deviance(ctx.values[rows], mu, atoms, ctx.fit[rows],
                                 ctx.samples.dispersion[ctx.samples.live[rows]])
@@ -232,10 +248,15 @@ def _unseen_direct(ctx: GrowContext, slots: Slots, rows) -> np.ndarray:
         return np.zeros(0, bool)
     d = slots.delay[rows, 0]
     lag = ctx.t[0] - d
+    width = ctx.width[rows]
     with np.errstate(invalid="ignore"):
-        unseen = (lag > 0) & (ctx.irf.evaluate(np.maximum(lag, 0.0)) < PRE_DIRECT_LEVEL * ctx.irf.peak_per_ps)
+        if isinstance(ctx.irf, GaussianPSF):
+            faint = np.exp(-0.5 * np.square(np.maximum(lag, 0.0) / width)) < PRE_DIRECT_LEVEL
+        else:
+            faint = ctx.irf.evaluate(np.maximum(lag, 0.0)) < PRE_DIRECT_LEVEL * ctx.irf.peak_per_ps
+        unseen = (lag > 0) & faint
         led = np.where(slots.fam[rows, SSS_SLOT] == FAM_SSS, slots.delay[rows, SSS_SLOT], ctx.t[0])
-        return unseen & (led - d > UNSEEN_DIRECT_LEAD_SIGMA * ctx.sigma_eq_ps)
+        return unseen & (led - d > UNSEEN_DIRECT_LEAD_SIGMA * width)
 
 
 def _without_direct(slots: Slots, rows) -> Slots:
@@ -274,8 +295,10 @@ def _pick_rows(win, a: Slots, b: Slots) -> Slots:
     return Slots(*(select_rows(win, x, y) for x, y in zip(a, b)))
 
 
-def _gap_sigma(fam, delay, sigma_eq_ps) -> np.ndarray:
-    st = {"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(sigma_eq_ps))}
+def _gap_sigma(fam, delay, log_width) -> np.ndarray:
+    """(m,) the least gap between two shifted atoms of slot arrays (m, K), in the pixels' widths
+    (``log_width`` (m,), ln ps)."""
+    st = {"fam": fam, "delay": delay, "lsig": np.broadcast_to(log_width[:, None], fam.shape)}
     return min_gaussian_gap_sigma(st)
 
 
@@ -297,7 +320,7 @@ def _sss_trial(ctx: GrowContext, cur: Slots, rows, mu, alphas_per_ps):
     m = rows.size
     gain = np.zeros(m)
     for alpha in alphas_per_ps:
-        phi = sss_atoms(response_table(ctx.irf), ctx.t, sub.delay[:, 0], np.full(m, alpha))
+        phi = sss_slot_atoms(instrument_rows(ctx.irf, rows), ctx.t, sub.delay[:, 0], np.full(m, alpha))
         gain = np.maximum(gain, _held_gain(ctx, rows, mu, phi)[0])
     i = np.flatnonzero(gain >= _gate(ctx))
     dev = np.full(m, np.inf)
@@ -342,15 +365,17 @@ def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
     shifted = sub.fam == FAM_GAUSS
     # an echo comes after the direct (slot 0; the refit keeps every shifted atom after it)
     after = ctx.fit[rows] & (ctx.t[None, :] > sub.delay[:, :1])
-    at_ps, score = residual_peak(ctx.t, z, after, np.where(shifted, sub.delay, np.nan), np.full(m, ctx.sigma_eq_ps))
+    at_ps, score = residual_peak(ctx.t, z, after, np.where(shifted, sub.delay, np.nan), ctx.width[rows])
     free = sub.fam[:, 2:] == FAM_NONE
     tried = np.isfinite(score) & free.any(axis=1)
     dev = np.full(m, np.inf)
     if tried.any():
         i = np.flatnonzero(tried)
-        gain, amp = _held_gain(ctx, rows[i], mu[i], shifted_atoms(response_table(ctx.irf), ctx.t, at_ps[i]))
+        gain, amp = _held_gain(ctx, rows[i], mu[i], shifted_slot_atoms(instrument_rows(ctx.irf, rows[i]), ctx.t,
+                                                                      at_ps[i]))
         # the wider atom: a Gaussian GROW_BROAD_FACTOR response widths wide (unit peak)
-        wide = np.exp(-0.5 * np.square((ctx.t[None, :] - at_ps[i, None]) / (GROW_BROAD_FACTOR * ctx.sigma_eq_ps)))
+        wide = np.exp(-0.5 * np.square((ctx.t[None, :] - at_ps[i, None])
+                                       / (GROW_BROAD_FACTOR * ctx.width[rows[i], None])))
         gain_wide, _ = _held_gain(ctx, rows[i], mu[i], wide)
         tried[i] = worth_refitting(gain, gain_wide, amp, sub.params["direct_amplitude"][i], ctx.opts.significance_chi2)
     if not tried.any():
@@ -362,8 +387,8 @@ def _echo_trial(ctx: GrowContext, cur: Slots, rows, mu):
     d[np.arange(i.size), slot] = at_ps[i]
     t_i = ctx.refit(rows[i], f, d, la, {k: v[i] for k, v in sub.params.items()}, sub.background[i])
     kept = _all_kept(f, t_i.fam)
-    before = _gap_sigma(sub.fam[i], sub.delay[i], ctx.sigma_eq_ps)
-    resolved = _gap_sigma(t_i.fam, t_i.delay, ctx.sigma_eq_ps) >= np.minimum(RESOLVED_SIGMA, before)
+    before = _gap_sigma(sub.fam[i], sub.delay[i], ctx.log_width[rows[i]])
+    resolved = _gap_sigma(t_i.fam, t_i.delay, ctx.log_width[rows[i]]) >= np.minimum(RESOLVED_SIGMA, before)
     dev[i] = np.where(kept & resolved, deviance(ctx, rows[i], t_i.params, t_i.background), np.inf)
     spent = np.zeros(m, np.int64)
     spent[i] = t_i.iterations
@@ -379,13 +404,30 @@ def _direct_starts(ctx: GrowContext, sub: Slots, rows) -> list:
     has_sss = sub.fam[:, SSS_SLOT] == FAM_SSS
     if has_sss.any():
         starts.append(np.where(has_sss, sub.delay[:, SSS_SLOT], np.nan))
-    T = ctx.t[1] - ctx.t[0] if ctx.t.size > 1 else 1.0
-    half = max(int(math.ceil(3.0 * ctx.sigma_eq_ps / T)), 1)
-    kernel = np.exp(-0.5 * np.square(np.arange(-half, half + 1) * T / ctx.sigma_eq_ps))
     y = np.where(ctx.fit[rows], ctx.values[rows], 0.0) - ctx.held[rows, None] * ctx.fit[rows]
-    smooth = convolve1d(y, kernel, axis=1, mode="constant")
+    smooth = _smooth(ctx, rows, y)
     starts.append(ctx.t[np.argmax(np.where(ctx.fit[rows], smooth, -np.inf), axis=1)])
     return starts
+
+
+def _smooth(ctx: GrowContext, rows, y) -> np.ndarray:
+    """(m, L) the rows ``y`` of the pixels ``rows`` smoothed by a Gaussian of each one's width
+    (out to 3 widths, zero beyond the window's ends)."""
+    T = ctx.t[1] - ctx.t[0] if ctx.t.size > 1 else 1.0
+    width = ctx.width[rows]
+    if not isinstance(ctx.irf, GaussianPSF):
+        # one width for every pixel: one kernel
+        s = float(width[0]) if width.size else 1.0
+        half = max(int(math.ceil(3.0 * s / T)), 1)
+        kernel = np.exp(-0.5 * np.square(np.arange(-half, half + 1) * T / s))
+        return convolve1d(y, kernel, axis=1, mode="constant")
+    half = max(int(math.ceil(3.0 * float(width.max(initial=0.0)) / T)), 1)
+    lag = np.arange(-half, half + 1) * T
+    own = np.ceil(3.0 * width / T)[:, None] * T
+    kernels = np.where(np.abs(lag) <= np.maximum(own, T), np.exp(-0.5 * np.square(lag / width[:, None])), 0.0)
+    padded = np.pad(y, ((0, 0), (half, half)))
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1, axis=1)
+    return np.einsum("plk,pk->pl", windows, kernels[:, ::-1])
 
 
 def _restore_direct(ctx: GrowContext, cur: Slots, alphas_per_ps) -> tuple[Slots, np.ndarray, np.ndarray]:
@@ -475,14 +517,14 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     deviance is lower (see the module docstring) -> (slots, pixels swapped)."""
     fam, delay = cur.fam, cur.delay
     has = (fam[:, SSS_SLOT] == FAM_SSS) & (fam[:, 0] == FAM_GAUSS) & (fam[:, 2:] == FAM_NONE).any(axis=1)
-    far = has & (delay[:, SSS_SLOT] > delay[:, 0] + NEAR_SIGMA * ctx.sigma_eq_ps)
+    far = has & (delay[:, SSS_SLOT] > delay[:, 0] + NEAR_SIGMA * ctx.width)
     rows = np.flatnonzero(far)
     if rows.size == 0:
         return cur, 0
     sub = _sub(cur, rows)
     m = rows.size
-    phi = slot_atoms(ctx.irf, ctx.t, sub.fam[:, SSS_SLOT:SSS_SLOT + 1], sub.delay[:, SSS_SLOT:SSS_SLOT + 1],
-                     sub.lalp[:, SSS_SLOT:SSS_SLOT + 1])[:, 0]
+    phi = ctx.atoms(rows, sub.fam[:, SSS_SLOT:SSS_SLOT + 1], sub.delay[:, SSS_SLOT:SSS_SLOT + 1],
+                    sub.lalp[:, SSS_SLOT:SSS_SLOT + 1])[:, 0]
     peak_ps = ctx.t[np.argmax(phi, axis=1)]
     slot = 2 + np.argmax(sub.fam[:, 2:] == FAM_NONE, axis=1)
     f, d, la = sub.fam.copy(), sub.delay.copy(), sub.lalp.copy()
@@ -494,8 +536,8 @@ def _swap_far_sss(ctx: GrowContext, cur: Slots):
     j_cur = penalised(deviance(ctx, rows, sub.params, sub.background), free_parameters(sub.fam, "fixed"), log_n, weight)
     j_new = penalised(deviance(ctx, rows, trial.params, trial.background), free_parameters(trial.fam, "fixed"), log_n,
                       weight)
-    before = _gap_sigma(sub.fam, sub.delay, ctx.sigma_eq_ps)
-    resolved = _gap_sigma(trial.fam, trial.delay, ctx.sigma_eq_ps) >= np.minimum(RESOLVED_SIGMA, before)
+    before = _gap_sigma(sub.fam, sub.delay, ctx.log_width[rows])
+    resolved = _gap_sigma(trial.fam, trial.delay, ctx.log_width[rows]) >= np.minimum(RESOLVED_SIGMA, before)
     take = (j_new < j_cur) & resolved & (trial.fam[np.arange(m), slot] == FAM_GAUSS)
     out = _put(cur, rows, trial, take)
     its = cur.iterations.copy()
@@ -518,13 +560,14 @@ def _restart_early_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     d_best = deviance(ctx, rows, sub.params, sub.background)
     best = sub
     spent = np.zeros(rows.size, np.int64)
+    width = ctx.width[rows]
     for widths in EARLY_DIRECT_STARTS_SIGMA:
-        start = ctx.t[0] - widths * ctx.sigma_eq_ps
-        i = np.flatnonzero(np.abs(sub.delay[:, 0] - start) > EARLY_DIRECT_NEAR_SIGMA * ctx.sigma_eq_ps)
+        start = ctx.t[0] - widths * width
+        i = np.flatnonzero(np.abs(sub.delay[:, 0] - start) > EARLY_DIRECT_NEAR_SIGMA * width)
         if i.size == 0:
             continue
         d = sub.delay[i].copy()
-        d[:, 0] = start
+        d[:, 0] = start[i]
         trial = ctx.refit(rows[i], sub.fam[i], d, sub.lalp[i], {k: v[i] for k, v in sub.params.items()},
                           sub.background[i])
         spent[i] += trial.iterations
@@ -549,7 +592,7 @@ def _restart_onset_at_direct(ctx: GrowContext, cur: Slots) -> tuple[Slots, int]:
     moved)."""
     fam, delay = cur.fam, cur.delay
     both = (fam[:, 0] == FAM_GAUSS) & (fam[:, SSS_SLOT] == FAM_SSS) & (delay[:, 0] >= ctx.t[0])
-    rows = np.flatnonzero(both & (delay[:, SSS_SLOT] > delay[:, 0] + ONSET_RESTART_SIGMA * ctx.sigma_eq_ps))
+    rows = np.flatnonzero(both & (delay[:, SSS_SLOT] > delay[:, 0] + ONSET_RESTART_SIGMA * ctx.width))
     if rows.size == 0:
         return cur, 0
     sub = _sub(cur, rows)

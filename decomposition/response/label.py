@@ -69,21 +69,23 @@ def param_slots(params: dict, n_ir: int):
     return fam, delay, lalp
 
 
-def slots_to_params(fam, delay, lalp, amp, scale, sigma_eq_ps: float, n_ir: int) -> dict:
+def slots_to_params(fam, delay, lalp, amp, scale, sigma_eq_ps, n_ir: int) -> dict:
     """Inverse of :func:`param_slots` with amplitudes (normalised units, times ``scale``);
-    inter-reflections sorted by delay, empty slots NaN."""
+    inter-reflections sorted by delay, empty slots NaN; every component's width
+    ``sigma_eq_ps`` (ps; one for all pixels, or (n,) one per pixel)."""
     n = fam.shape[0]
     out = empty_params((n,), n_ir=n_ir)
     sc = np.asarray(scale, np.float64)
+    sig = np.broadcast_to(np.asarray(sigma_eq_ps, np.float64), (n,))
     d = fam[:, 0] == FAM_GAUSS
     out["direct_delay_ps"][d] = delay[d, 0]
     out["direct_amplitude"][d] = amp[d, 0] * sc[d]
-    out["direct_sigma_ps"][d] = sigma_eq_ps
+    out["direct_sigma_ps"][d] = sig[d]
     s = fam[:, SSS_SLOT] == FAM_SSS
     out["sss_delay_ps"][s] = delay[s, SSS_SLOT]
     out["sss_amplitude"][s] = amp[s, SSS_SLOT] * sc[s]
     out["sss_alpha_per_ps"][s] = np.exp(lalp[s, SSS_SLOT])
-    out["sss_sigma_ps"][s] = sigma_eq_ps
+    out["sss_sigma_ps"][s] = sig[s]
     if n_ir:
         pres = fam[:, 2:] == FAM_GAUSS
         key = np.where(pres, delay[:, 2:], np.inf)
@@ -92,5 +94,5 @@ def slots_to_params(fam, delay, lalp, amp, scale, sigma_eq_ps: float, n_ir: int)
         pres_o = pres[rows, order]
         out["ir_delay_ps"] = np.where(pres_o, delay[:, 2:][rows, order], np.nan)
         out["ir_amplitude"] = np.where(pres_o, amp[:, 2:][rows, order] * sc[:, None], np.nan)
-        out["ir_sigma_ps"] = np.where(pres_o, sigma_eq_ps, np.nan)
+        out["ir_sigma_ps"] = np.where(pres_o, sig[:, None], np.nan)
     return out

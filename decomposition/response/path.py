@@ -32,6 +32,10 @@ function here reads and updates one :class:`ResponseFit`, the state of the call'
 * :func:`offset_test`: the fitted offset (the ``b`` family) kept where significant, the pixel
   refitted without it elsewhere;
 * :func:`final_atoms`: the flags of the final atoms and the parameters of every pixel.
+
+Count data on the Gaussian PSF with ``likelihood_counts`` take the same refit, forward steps,
+offset test and final atoms after the Gaussian path's labels (:func:`hand_over`), the instrument
+then the Gaussian PSF of each pixel's width (:class:`decomposition.model.atoms.GaussianPSF`).
 """
 from __future__ import annotations
 
@@ -44,6 +48,7 @@ from core.irf_components import gaussian_equivalent_sigma_ps
 from core.model import BACKGROUND_KEY, empty_params
 from ..stages.background import background_significant, background_threshold
 from ..model.components import off_window
+from ..model.atoms import GaussianPSF
 from ..model.refine import hold_params
 from ..constants import FAM_GAUSS, FAM_SSS, SSS_SLOT
 from ..flags import AMBIGUOUS, AT_BOUND, FLAG_DTYPE, MAX_ITER, OFF_WINDOW, TRUNCATED, mark
@@ -57,7 +62,7 @@ from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
 from .refine import Slots, refine_rows, refit_slots
 
-__all__ = ["ResponseFit", "ResponseOutcome", "detect", "label", "refit", "forward_steps",
+__all__ = ["ResponseFit", "ResponseOutcome", "detect", "hand_over", "label", "refit", "forward_steps",
            "offset_test", "final_atoms"]
 
 
@@ -78,9 +83,10 @@ class ResponseFit:
     """What the response's stages carry for the n live pixels of one call (slot arrays in the
     refinement layout of :mod:`decomposition.response.refine`, normalised units)."""
 
-    irf: object                 # the resolved InstrumentResponse, on the samples' step
+    irf: object                 # the instrument: the resolved InstrumentResponse, on the samples'
+                                # step, or the Gaussian PSF of each pixel's held width (GaussianPSF)
     t: np.ndarray               # (L,) sample times, ps
-    sigma_eq_ps: float          # the response's Gaussian-equivalent width
+    sigma_eq_ps: object         # the (Gaussian-equivalent) width, ps: float, or (n,) one per pixel
     bounds: dict                # {"delay_ps", "lalp"}: the refinement's bounds
     refine_kw: dict             # keywords of refit_slots for all n pixels
     b_est: np.ndarray           # (n,) the offset's first estimate (0 without the b family)
@@ -96,9 +102,17 @@ class ResponseFit:
     background_stderr: np.ndarray | None = None   # (P,)
 
     @property
+    def response(self):
+        """The measured response, None for the Gaussian PSF (whose widths the parameters carry)."""
+        return None if isinstance(self.irf, GaussianPSF) else self.irf
+
+    @property
     def alphas_per_ps(self) -> np.ndarray:
-        """The dictionary's sss decay rates (the grid's coarse alphas; none without the sss family)."""
-        return self.dic.alpha_per_ps[self.dic.fam == FAM_SSS]
+        """The dictionary's sss decay rates (the grid's coarse alphas, each once; none without the
+        sss family)."""
+        a = self.dic.alpha_per_ps[self.dic.fam == FAM_SSS]
+        # the Gaussian dictionary repeats each alpha once per width
+        return np.unique(a) if isinstance(self.irf, GaussianPSF) else a
 
 
 def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components, hold=None) -> ResponseFit:
@@ -106,11 +120,21 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     ``hold`` ({key of :data:`decomposition.model.refine.HOLD_KEYS` but ``sigma_ps``: (P,) values,
     NaN free}, checked): onsets and decay rates held at given values in the refinement and the
     forward steps' refits."""
+    rf = _response_fit(samples, irf, gaussian_equivalent_sigma_ps(irf), grid, opts, hold)
+    ax = samples.axis
+    rf.dic = get_dictionary(samples.n_bins, ax.time_bin_ps, ax.t0_ps, grid, "d" in components, "s" in components,
+                            response=irf)
+    rf.det = detect_components(samples, rf.dic, opts, components, polish=False)
+    return rf
+
+
+def _response_fit(samples: Samples, irf, sigma_eq, grid: GridSpec, opts: SolverOptions, hold) -> ResponseFit:
+    """The :class:`ResponseFit` of the live pixels over the instrument ``irf`` of width
+    ``sigma_eq`` (ps; a float, or (n,) one per live pixel), before any stage has run."""
     L, R = samples.n_bins, opts.max_reflections
     ax = samples.axis
     t = ax.t0_ps + ax.time_bin_ps * np.arange(L)
     live = samples.live
-    sigma_eq = gaussian_equivalent_sigma_ps(irf)
     a_lo, a_hi = grid.alpha_range_per_ps
     span = L * ax.time_bin_ps
     bounds = {"delay_ps": (t[0] - span, t[-1] + span),
@@ -121,11 +145,41 @@ def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, component
     if hold:
         refine_kw["hold"] = {k: np.asarray(v, np.float64)[live] for k, v in hold.items()}
     with_bg = samples.background is not None
-    rf = ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
-                     b_est=samples.background[live] if with_bg else np.zeros(live.size))
-    rf.dic = get_dictionary(L, ax.time_bin_ps, ax.t0_ps, grid, "d" in components, "s" in components,
-                            response=irf)
-    rf.det = detect_components(samples, rf.dic, opts, components, polish=False)
+    return ResponseFit(irf=irf, t=t, sigma_eq_ps=sigma_eq, bounds=bounds, refine_kw=refine_kw, with_bg=with_bg,
+                       b_est=samples.background[live] if with_bg else np.zeros(live.size))
+
+
+def hand_over(samples: Samples, dic, det, grid: GridSpec, opts: SolverOptions, params: dict,
+              hold: dict | None) -> ResponseFit:
+    """The Gaussian path's labels of count data handed to the stages here (``likelihood_counts``):
+    the refit, forward steps, offset test and final atoms over
+    :class:`decomposition.model.atoms.GaussianPSF`, each live pixel's width held at
+    ``hold["sigma_ps"]`` where finite, else at its labelled width (the grid's narrowest for a
+    pixel with no component).
+
+    Where the width is known, what parts the two paths on counts is what follows the labels:
+    the Poisson likelihood's refit of every pixel and the count forward steps on the refitted
+    atoms (docs/history.md).  ``dic``, ``det``: the Gaussian path's dictionary and detection;
+    ``params`` (P,): its labels; ``hold``: the call's checked holds, or None (the onsets and
+    the decay rate are held here too)."""
+    live = samples.live
+    labelled = np.where(np.isfinite(params["direct_sigma_ps"]), params["direct_sigma_ps"], params["sss_sigma_ps"])
+    if np.ndim(params.get("ir_sigma_ps")) == 2:
+        ir = np.where(np.isfinite(params["ir_sigma_ps"]), params["ir_sigma_ps"], np.inf).min(axis=1, initial=np.inf)
+        labelled = np.where(np.isfinite(labelled), labelled, ir)
+    held = hold["sigma_ps"] if hold and "sigma_ps" in hold else np.full(samples.values.shape[0], np.nan)
+    sigma = np.where(np.isfinite(held), held, labelled)[live]
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, grid.sigma_range_ps[0])
+    rest = {k: v for k, v in (hold or {}).items() if k != "sigma_ps"}
+    rf = _response_fit(samples, GaussianPSF(sigma), sigma, grid, opts, rest)
+    rf.dic, rf.det = dic, det
+    rf.params = {k: np.asarray(v)[live].copy() for k, v in params.items()}
+    # every component at its pixel's width (the refit's first weights render these parameters)
+    for key in ("direct_sigma_ps", "sss_sigma_ps", "ir_sigma_ps"):
+        if key in rf.params:
+            v = rf.params[key]
+            rf.params[key] = np.where(np.isfinite(v), sigma.reshape((-1,) + (1,) * (v.ndim - 1)), v)
+    rf.trunc = np.zeros(live.size, bool)
     return rf
 
 
@@ -154,7 +208,7 @@ def refit(rf: ResponseFit, samples: Samples, signal_weights=None) -> None:
 
 def forward_steps(rf: ResponseFit, samples: Samples, opts: SolverOptions, components) -> None:
     """The forward steps after the refinement (:func:`decomposition.response.grow.grow_response`)."""
-    ctx = GrowContext(samples, rf.irf, rf.b_est, rf.with_bg, rf.refine_kw, rf.sigma_eq_ps, opts)
+    ctx = GrowContext(samples, rf.irf, rf.b_est, rf.with_bg, rf.refine_kw, opts)
     rf.slots, rf.grow_info, rf.ambiguous = grow_response(ctx, rf.slots, alphas_per_ps=rf.alphas_per_ps,
                                                          components=components)
 
@@ -172,7 +226,7 @@ def offset_test(rf: ResponseFit, samples: Samples, opts: SolverOptions) -> None:
         full[k][live] = v
     full[BACKGROUND_KEY] = np.zeros(P)
     full[BACKGROUND_KEY][live] = background
-    chi2, stderr = background_stats(samples, full, rf.irf)
+    chi2, stderr = background_stats(samples, full, rf.response)
     keep = background_significant(chi2[live], background_threshold(fit_mask, opts.background_chi2))
     drop = np.flatnonzero(~keep)
     if drop.size:
@@ -205,9 +259,13 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
     mark(flags, live[rf.trunc], TRUNCATED)
     # the Gaussian path's rules on the final atoms: alpha at its bound (the response has no width
     # to hit one), a component running off the window's edge
-    state = {"fam": fam, "delay": delay, "lsig": np.full(fam.shape, math.log(rf.sigma_eq_ps)), "lalp": lalp}
+    if rf.response is None:
+        lsig = np.broadcast_to(np.log(rf.sigma_eq_ps)[:, None], fam.shape)
+    else:
+        lsig = np.full(fam.shape, math.log(rf.sigma_eq_ps))
+    state = {"fam": fam, "delay": delay, "lsig": lsig, "lalp": lalp}
     mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": rf.bounds["lalp"]})], AT_BOUND)
-    mark(flags, live[off_window(state, t, irf=rf.irf).any(axis=1)], OFF_WINDOW)
+    mark(flags, live[off_window(state, t, irf=rf.response).any(axis=1)], OFF_WINDOW)
     # the split the data do not determine: a restored direct within the noise of the fit
     # without it, or (the search stage's rule) an sss left with no direct where the paper's
     # model gives every pixel one

@@ -25,8 +25,8 @@ from ..model.slotfit import LAMBDA0, SlotFit, least_squares, project_slots, star
 from ..noise import count_deviance, poisson_weights
 from ..kernels.countlm import count_lm
 from ..kernels.jit import kernel_array
-from ..kernels.projected import response_instrument
-from ..model.atoms import params_profile, slot_atoms
+from ..kernels.projected import GAUSSIAN_PSF, response_instrument
+from ..model.atoms import GaussianPSF, instrument_rows, params_profile, slot_atoms
 from ..model.components import merge_gaussians
 from .label import slots_to_params
 
@@ -140,6 +140,9 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     SlotFit
     """
     if counts is None:
+        if isinstance(irf, GaussianPSF):
+            raise ValueError("float data over the Gaussian PSF take the Gaussian path's refinement; fit_slots fits "
+                             "the Gaussian PSF's atoms to counts only")
         return least_squares(irf, t_ps, y, sw, fam, delay, lalp, n_iter=n_iter, lm_tol=lm_tol,
                              delay_bounds_ps=delay_bounds_ps, lalp_bounds=lalp_bounds,
                              sss_after_direct=sss_after_direct, first_is_direct=first_is_direct,
@@ -149,7 +152,7 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
     bounds = (delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct)
     delay, lalp, held = start_slots(fam, delay, lalp, *bounds, held_delay, held_lalp)
     fit_bg = None if fit_background is None else np.broadcast_to(np.asarray(fit_background, bool), fam.shape[:1])
-    if COMPILED:
+    if COMPILED or isinstance(irf, GaussianPSF):
         return _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts, n_iter=n_iter, lm_tol=lm_tol,
                                     bounds=bounds, held=held)
     cur = _evaluate(irf, t, y, sw, fam, delay, lalp, fit_bg)
@@ -160,7 +163,9 @@ def fit_slots(irf: InstrumentResponse, t_ps: np.ndarray, y: np.ndarray, sw: np.n
 def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountData, *, n_iter, lm_tol, bounds,
                          held=None) -> SlotFit:
     """:func:`_fit_counts` by its compiled loop (:func:`decomposition.kernels.countlm.count_lm`),
-    the starting amplitudes' solve (:func:`solve_amplitudes`) included: the same fit to rounding."""
+    the starting amplitudes' solve (:func:`solve_amplitudes`) included: the same fit to rounding.
+    The Gaussian PSF's atoms (:class:`~decomposition.model.atoms.GaussianPSF`) are fitted here
+    only, each pixel's width held."""
     delay_bounds_ps, lalp_bounds, sss_after_direct, first_is_direct = bounds
     P, K = fam.shape
     Kc = K + (fit_bg is not None)
@@ -174,13 +179,18 @@ def _fit_counts_compiled(irf, t, y, sw, fam, delay, lalp, fit_bg, counts: CountD
     disp2 = np.ones(P) if counts.disp is None else np.square(kernel_array(counts.disp, np.float64))
     bg = np.zeros(P, bool) if fit_bg is None else kernel_array(fit_bg, np.bool_)
     f64 = np.float64
+    if isinstance(irf, GaussianPSF):
+        inst, lsig = GAUSSIAN_PSF, np.broadcast_to(np.log(irf.sigma_ps)[:, None], (P, K))
+    else:
+        inst, lsig = response_instrument(irf, t), np.zeros((P, K))
     count_lm(kernel_array(t, f64), kernel_array(counts.counts, f64), kernel_array(y, f64),
              kernel_array(np.broadcast_to(sw, y.shape), f64), kernel_array(counts.scale, f64),
              kernel_array(counts.held, f64), kernel_array(counts.fit, np.bool_), disp2, float(POISSON_FIT_FLOOR),
-             kernel_array(fam, np.int8), delay, lalp, amp, bg, kernel_array(h_d, np.bool_), kernel_array(h_l, np.bool_),
+             kernel_array(fam, np.int8), delay, lalp, kernel_array(lsig, f64), amp, bg, kernel_array(h_d, np.bool_),
+             kernel_array(h_l, np.bool_),
              float(delay_bounds_ps[0]), float(delay_bounds_ps[1]), float(lalp_bounds[0]), float(lalp_bounds[1]),
              bool(sss_after_direct), bool(first_is_direct), int(n_iter), float(lm_tol), float(LAMBDA0),
-             float(LAMBDA_MAX), response_instrument(irf, t), cost, mu, iters, conv)
+             float(LAMBDA_MAX), inst, cost, mu, iters, conv)
     return _counts_answer(y, fam, delay, lalp, amp, cost, mu, iters, conv, counts, K)
 
 
@@ -333,10 +343,13 @@ class Slots(NamedTuple):
 
 def refine_rows(refine_kw: dict, rows) -> dict:
     """The keywords of :func:`refit_slots` (``refine_kw``, for n pixels) for the pixels ``rows``:
-    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``weights``, ``hold``'s values) taken
-    at them."""
+    the per-pixel ones (``fit_mask``, ``scale``, ``disp``, ``weights``, ``hold``'s values, and
+    the instrument and its widths where they are one per pixel) taken at them."""
     out = {k: (v[rows] if k in ("fit_mask", "scale", "disp", "weights") and v is not None else v)
            for k, v in refine_kw.items()}
+    out["irf"] = instrument_rows(refine_kw["irf"], rows)
+    if np.ndim(refine_kw["sigma_eq"]):
+        out["sigma_eq"] = refine_kw["sigma_eq"][rows]
     if refine_kw.get("hold"):
         out["hold"] = {k: v[rows] for k, v in refine_kw["hold"].items()}
     return out
@@ -415,7 +428,7 @@ def refit_slots(y, fam, delay, lalp, held, fit_bg, params, *, irf, t, ax, fit_ma
             fam[bad] = FAM_NONE
             r = np.flatnonzero(bad.any(axis=1))
             kw = {k: (v[r] if k.startswith("held_") else v) for k, v in fit_kw.items()}
-            g = fit_slots(irf, t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
+            g = fit_slots(instrument_rows(irf, r), t, y[r], sw[r], fam[r], delay[r], lalp[r], n_iter=0,
                           fit_background=None if bg_cols is None else bg_cols[r],
                           counts=None if cd is None else cd.rows(r), **kw)
             amp[r], b_fit = g.amp, b_fit.copy()
