@@ -149,3 +149,19 @@ def test_the_option_is_checked():
     d = make_profiles(4, 64, seed=0, photons_per_pixel=100)
     with pytest.raises(OptionError, match="likelihood_counts"):
         decompose(d.noisy, 2.0, likelihood_counts="yes")
+
+
+@pytest.mark.parametrize("width_ps", [0.3, 30.0])
+def test_extreme_widths_and_counts_stay_finite(width_ps):
+    # widths far under a bin and far over the components' spacing, a million photons per pixel
+    d = make_profiles(30, 256, seed=2, ranges="paper", photons_per_pixel=1e6)
+    r = decompose(d.noisy, 2.0, t0_ps=d.t0_ps, hold={"sigma_ps": width_ps}, likelihood_counts=True, stderr=True)
+    for key, v in r.params.items():
+        assert not np.isinf(v).any(), key
+    assert np.isfinite(r.residual).all()
+    # no light, one count, saturation: nothing to hand over is reported as nothing
+    x = np.zeros((3, 256), np.uint16)
+    x[1, 100] = 1
+    x[2, 50:60] = 65535
+    r = decompose(x, 2.0, hold={"sigma_ps": width_ps}, likelihood_counts=True)
+    assert [r.flag_names(i) for i in range(3)] == [["EMPTY"], ["EMPTY"], ["EMPTY", "SATURATED"]]
