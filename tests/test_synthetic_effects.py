@@ -7,7 +7,8 @@ from core.irf_models import afterpulse_response, gaussian_response, model_value,
 from core.model import render_components, time_axis_ps
 from decomposition.evaluation.scenes import draw_params
 from decomposition.evaluation.synthetic import make_cube, make_profiles, render_bin_integrated
-from decomposition.evaluation.synthetic_effects import SyntheticEffects, bin_averaged_response, response_sigma_ps
+from decomposition.evaluation.synthetic_effects import (SyntheticEffects, bin_averaged_response, count_photons,
+                                                       response_sigma_ps)
 from decomposition.evaluation.synthetic_noise import add_noise
 
 L, T = 256, 2.0
@@ -126,7 +127,14 @@ def test_effect_options_are_validated():
     with pytest.raises(ValueError, match="nsr"):
         make_profiles(4, L, nsr=0.1, photons_per_pixel=100.0)
     with pytest.raises(ValueError, match="no signal"):
-        make_profiles(4, L, kinds="d", photons_per_pixel=100.0, direct_before_window_ps=200.0)
+        # seeded: a draw of a wide enough PSF leaves a tail of the direct inside the window
+        make_profiles(4, L, kinds="d", photons_per_pixel=100.0, direct_before_window_ps=200.0, seed=0)
+    # a tail of 1e-320 inside the window is no signal: scaled to 100 photons it would overflow
+    clean = np.zeros((2, 8))
+    clean[0, 3] = 1.0
+    clean[1, 7] = 1e-320
+    with pytest.raises(ValueError, match="no signal"):
+        count_photons(clean, 0.0, 100.0, np.random.default_rng(0))
 
 
 def test_response_width_is_its_fwhm_in_sigmas():

@@ -281,9 +281,11 @@ def count_photons(clean, background: float, photons_per_pixel: float, rng: np.ra
     """
     clean = np.asarray(clean, np.float64)
     total = clean.sum(axis=-1)
-    if np.any(~(total > 0)):
+    with np.errstate(divide="ignore", over="ignore"):
+        lam = float(photons_per_pixel) / total
+    # a far tail of ~1e-308 inside the window is no signal either: its scale would overflow
+    if np.any(~(total > 0) | ~np.isfinite(lam)):
         raise ValueError("photons_per_pixel: a pixel has no signal inside the window "
                          "(e.g. a direct reflection placed too far before it)")
-    lam = float(photons_per_pixel) / total
     mean = lam[..., None] * (np.maximum(clean, 0.0) + float(background))
     return rng.poisson(mean).astype(np.int64), lam
