@@ -36,7 +36,7 @@ COMMANDS = {
     "decompose": ("streaklab.commands.decompose", "decompose every pixel of a cube"),
     "verify": ("streaklab.commands.verify", "read every chunk of a store; name damaged lines/chunks and how to redo them"),
     "report": ("streaklab.commands.report", "figures and a summary of a result store"),
-    "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability, realism, timebase, "
+    "bench": ("streaklab.commands.bench", "benchmarks: accuracy, speed, tradeoff, stability, realism, counts, timebase, "
                                           "adaptive, spatial, live"),
 }
 
