@@ -18,9 +18,9 @@ Gaussian PSF of one known width per pixel (the Gaussian kernels of
 """
 from __future__ import annotations
 
-import numpy as np
-
 from dataclasses import dataclass
+
+import numpy as np
 
 from core.irf import InstrumentResponse
 from core.irf_components import gaussian_equivalent_sigma_ps, render_components_response
@@ -68,7 +68,8 @@ def instrument_widths(inst, n: int) -> np.ndarray:
 
 
 def _gaussian_atoms(inst: GaussianPSF, t_ps, fam, delay, lalp) -> np.ndarray:
-    """(P, K, L) the Gaussian PSF's atoms of slot arrays (P, K), zeros in empty slots."""
+    """(P, K, L) the Gaussian PSF's atoms of slot arrays (P, K) on the uniform axis ``t_ps``,
+    zeros in empty slots."""
     t = np.asarray(t_ps, np.float64)
     fam = np.asarray(fam)
     P, K = fam.shape
@@ -123,7 +124,7 @@ def slot_atoms(irf: InstrumentResponse, t_ps: np.ndarray, fam: np.ndarray, delay
     if isinstance(irf, GaussianPSF):
         if derivatives:
             raise ValueError("the Gaussian PSF's slot atoms have no derivatives here: its count fit is the "
-                             "compiled one (decomposition.model.countfit)")
+                             "compiled one (decomposition.kernels.countlm)")
         return _gaussian_atoms(irf, t_ps, fam, delay, lalp)
     ss = fam == FAM_SSS
     alpha = np.zeros(fam.shape)
