@@ -23,6 +23,7 @@ def test_bench_counts_reports_the_decomposition_beside_its_oracle(tmp_path, caps
     assert fid[(10000.0, "held")][1] > 0.9
     summary = json.load(open(out / "summary.json"))
     assert summary["options"] == {} and len(summary["rows"]) == 4
+    assert (out / "counts.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "oracle" in capsys.readouterr().out
 
 
