@@ -17,6 +17,13 @@ expected count (floored at POISSON_VARIANCE_FLOOR: the Poisson law's Fisher weig
 refinement's weighted least squares (:func:`decomposition.model.refine.refine`) -- what a fit
 that knows which components are there reaches from the right start; the gap to it is printed.
 
+``--irf NAME|PATH`` (a simulated response's name, or a stored response, as ``bench speed``
+takes it) renders the scenes through that response instead, and decomposes them with it
+averaged over a bin (``irf=``, as the bins record it and a calibration capture measures it);
+the one column is then ``response`` (a response has no width to fit or hold), beside the
+Poisson reference (:func:`decomposition.evaluation.poisson_reference.poisson_reference_fit`:
+maximum likelihood with the true response and component set, started at the truth).
+
 Outputs in ``--out`` (default ``bench-output/counts``): ``counts.csv`` (one row per photon level
 and width), ``summary.json`` (the settings and the rows) and ``counts.png`` (mean fidelity against
 photons per pixel, each width's decomposition beside its oracle: :func:`figure`).
@@ -35,6 +42,8 @@ from .tables import write_csv, write_json
 
 PHOTONS = (100.0, 300.0, 1000.0, 10000.0)
 WIDTHS = ("free", "held")
+#: the column of scenes rendered through a measured response
+RESPONSE = "response"
 TIME_BIN_PS = 2.0
 
 
@@ -44,8 +53,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--bins", type=int, default=512, help="time bins of 2 ps per profile (default 512)")
     parser.add_argument("--photons", default=",".join(f"{p:g}" for p in PHOTONS),
                         help="expected signal photons per pixel, comma-separated (default 100,300,1000,10000)")
-    parser.add_argument("--widths", default=",".join(WIDTHS),
-                        help="free (fitted per pixel) and/or held (at the truth), comma-separated (default both)")
+    parser.add_argument("--widths", default=None,
+                        help="free (fitted per pixel) and/or held (at the truth), comma-separated (default both; "
+                             "not with --irf)")
+    parser.add_argument("--irf", default="gaussian", metavar="NAME|PATH",
+                        help="the instrument: gaussian (default, the Gaussian PSF, a width per pixel), a simulated "
+                             "response's name or a stored response")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes and their counts (default 0)")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="a solver option for every decomposition (repeatable; e.g. likelihood_counts=true)")
@@ -70,19 +83,30 @@ def poisson_oracle(data, hold=None) -> dict:
     return render_components(params, data.noisy.shape[-1], data.time_bin_ps, data.t0_ps, bin_integrated=True)
 
 
-def measure(photons: float, widths: str, *, pixels: int, bins: int, seed: int, options: dict) -> dict:
-    """One row: the decomposition's and the oracle's mean fidelity on one photon level's scenes."""
+def measure(photons: float, widths: str, *, pixels: int, bins: int, seed: int, options: dict,
+            response=None) -> dict:
+    """One row: the decomposition's and the oracle's mean fidelity on one photon level's scenes
+    (``widths`` "free", "held", or :data:`RESPONSE` with ``response`` the true instrument)."""
     from decomposition import decompose
+    from decomposition.evaluation.poisson_reference import poisson_reference_fit
     from decomposition.evaluation.synthetic import make_profiles
+    from decomposition.evaluation.synthetic_effects import bin_averaged_response
     from decomposition.model.fidelity import fidelity
 
-    data = make_profiles(pixels, bins, seed=seed, ranges="paper", time_bin_ps=TIME_BIN_PS, photons_per_pixel=photons)
+    data = make_profiles(pixels, bins, seed=seed, ranges="paper", time_bin_ps=TIME_BIN_PS, photons_per_pixel=photons,
+                         response=response)
     hold = {"sigma_ps": true_widths(data.params)} if widths == "held" else None
+    kw = {"irf": bin_averaged_response(response, TIME_BIN_PS)} if response is not None else {"hold": hold}
     t0 = time.perf_counter()
-    res = decompose(data.noisy, data.time_bin_ps, t0_ps=data.t0_ps, hold=hold, **options)
+    res = decompose(data.noisy, data.time_bin_ps, t0_ps=data.t0_ps, **kw, **options)
     seconds = time.perf_counter() - t0
     f_dec = float(np.mean(fidelity(data.components, res)))
-    f_oracle = float(np.mean(fidelity(data.components, poisson_oracle(data, hold))))
+    if response is None:
+        oracle = poisson_oracle(data, hold)
+    else:
+        oracle = poisson_reference_fit(data.noisy, data.params, response, time_bin_ps=data.time_bin_ps,
+                                       t0_ps=data.t0_ps)
+    f_oracle = float(np.mean(fidelity(data.components, oracle)))
     return {"photons": photons, "widths": widths, "pixels": pixels, "fidelity": f_dec, "oracle": f_oracle,
             "gap": f_oracle - f_dec, "ms_per_pixel": 1e3 * seconds / pixels}
 
@@ -96,13 +120,14 @@ def figure(rows: list[dict], options: dict | None = None):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for k, w in enumerate(WIDTHS):
+    for k, w in enumerate(WIDTHS + (RESPONSE,)):
         mine = [r for r in rows if r["widths"] == w]
         if not mine:
             continue
         x = [r["photons"] for r in mine]
-        ax.plot(x, [r["fidelity"] for r in mine], "o-", color=f"C{k}", label=f"width {w}")
-        ax.plot(x, [r["oracle"] for r in mine], "s--", color=f"C{k}", mfc="none", label=f"oracle, width {w}")
+        name, ceiling = (w, "Poisson reference") if w == RESPONSE else (f"width {w}", f"oracle, width {w}")
+        ax.plot(x, [r["fidelity"] for r in mine], "o-", color=f"C{k}", label=name)
+        ax.plot(x, [r["oracle"] for r in mine], "s--", color=f"C{k}", mfc="none", label=ceiling)
     ax.set_xscale("log")
     ax.set_xlabel("expected signal photons per pixel")
     ax.set_ylabel("mean fidelity")
@@ -117,8 +142,13 @@ def figure(rows: list[dict], options: dict | None = None):
 
 
 def run(args) -> int:
+    from .speed import bench_response
+
     photons = positive_floats(args.photons, "photons")
-    widths = choices(args.widths, WIDTHS, "widths")
+    response = bench_response(args.irf)
+    if response is not None and args.widths is not None:
+        raise CommandError(f"--widths: a measured response (--irf {args.irf}) has no width to fit or hold")
+    widths = [RESPONSE] if response is not None else choices(args.widths or ",".join(WIDTHS), WIDTHS, "widths")
     if args.pixels <= 0:
         raise CommandError(f"--pixels must be positive, got {args.pixels}")
     if args.bins < 64:
@@ -134,19 +164,24 @@ def run(args) -> int:
     from decomposition.warmup import warm_up
 
     # the kernels compiled or loaded before the first row is timed
-    warm_up(time_bin_ps=TIME_BIN_PS, n_bins=args.bins, options={**options, "noise": "poisson"}, label="bench counts")
+    warm = {**options, "noise": "poisson"}
+    if response is not None:
+        from decomposition.evaluation.synthetic_effects import bin_averaged_response
+
+        warm["irf"] = bin_averaged_response(response, TIME_BIN_PS)
+    warm_up(time_bin_ps=TIME_BIN_PS, n_bins=args.bins, options=warm, label="bench counts")
     print(f"counts: {args.pixels} paper scenes of {args.bins} bins of {TIME_BIN_PS:g} ps per photon level, seed "
-          f"{args.seed}" + (f", options {options}" if options else ""))
-    print(f"{'photons':>8}  {'width':6} {'fidelity':>9} {'oracle':>8} {'gap':>7} {'ms/pixel':>9}")
+          f"{args.seed}, instrument {args.irf}" + (f", options {options}" if options else ""))
+    print(f"{'photons':>8}  {'width':8} {'fidelity':>9} {'oracle':>8} {'gap':>7} {'ms/pixel':>9}")
     rows = []
     for n in photons:
         for w in widths:
-            r = measure(n, w, pixels=args.pixels, bins=args.bins, seed=args.seed, options=options)
+            r = measure(n, w, pixels=args.pixels, bins=args.bins, seed=args.seed, options=options, response=response)
             rows.append(r)
-            print(f"{n:8g}  {w:6} {r['fidelity']:9.4f} {r['oracle']:8.4f} {r['gap']:7.4f} {r['ms_per_pixel']:9.2f}")
+            print(f"{n:8g}  {w:8} {r['fidelity']:9.4f} {r['oracle']:8.4f} {r['gap']:7.4f} {r['ms_per_pixel']:9.2f}")
             sys.stdout.flush()
     write_csv(out / "counts.csv", rows)
-    write_json(out / "summary.json", {"pixels": args.pixels, "bins": args.bins, "seed": args.seed,
+    write_json(out / "summary.json", {"pixels": args.pixels, "bins": args.bins, "seed": args.seed, "irf": args.irf,
                                       "time_bin_ps": TIME_BIN_PS, "options": options, "rows": rows})
     import matplotlib.pyplot as plt
 
