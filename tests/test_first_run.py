@@ -81,7 +81,8 @@ def test_bench_descriptions_are_not_circular(capsys):
         main(["bench", "--help"])
     text = capsys.readouterr().out
     lines = {ln.split()[0]: ln.split(None, 1)[1] for ln in text.split("benchmarks:\n", 1)[1].splitlines() if ln.strip()}
-    assert set(lines) == {"accuracy", "speed", "tradeoff", "stability", "realism", "timebase", "adaptive", "spatial", "live"}
+    assert set(lines) == {"accuracy", "speed", "tradeoff", "stability", "realism", "counts", "timebase", "adaptive", "spatial",
+                          "live"}
     for name, desc in lines.items():
         assert name not in desc and "--help" not in desc, (name, desc)
 

@@ -20,8 +20,8 @@ BENCHMARKS = {
                  "saturation, spikes): outputs finite, iterations bounded, objective monotone, flags raised",
     "realism": "photon counts with a tailed response, afterpulse, background, weak echo or truncated direct: "
                "delay and lifetime bias and RMSE beside the Poisson reference, stderr calibration, echo found rate",
-    "counts": "mean fidelity of photon counts (the paper's scenes) at each photon level, the PSF width fitted or "
-              "held at the truth, beside the Poisson-weighted oracle",
+    "counts": "photon-counting data of the paper's scenes at each photon level: mean fidelity with the PSF width "
+              "fitted or held at the truth, or through a measured response, beside a ceiling fitted from the truth",
     "timebase": "direct-delay RMSE of a simulated scan under trigger jitter and drift, aligned on the fiducial "
                 "and not, beside the steady scan's",
     "spatial": "per-pixel, whole-image (neighbours coupled) and the per-pixel oracle side by side on images with "
