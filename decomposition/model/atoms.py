@@ -13,8 +13,7 @@ The response path's stages take either instrument: a measured response
 (:class:`core.irf.InstrumentResponse`, the same for every pixel) or :class:`GaussianPSF`, the
 Gaussian PSF of one known width per pixel (the Gaussian kernels of
 :func:`decomposition.kernels.atomlm.atom_profiles`, the Gaussian path's own).
-:func:`instrument_rows` takes an instrument's pixels, :func:`instrument_widths` their
-(Gaussian-equivalent) widths.
+:func:`instrument_rows` takes an instrument's pixels.
 """
 from __future__ import annotations
 
@@ -23,13 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.irf import InstrumentResponse
-from core.irf_components import gaussian_equivalent_sigma_ps, render_components_response
+from core.irf_components import render_components_response
 from core.model import BACKGROUND_KEY, params_shape, render_components
 from ..constants import FAM_GAUSS, FAM_NONE, FAM_SSS
 from ..kernels.atomlm import atom_profiles
 from ..kernels.response import response_table, shifted_atoms, slot_rows, sss_atoms
 
-__all__ = ["GaussianPSF", "instrument_rows", "instrument_widths", "params_components", "params_profile", "slot_atoms",
+__all__ = ["GaussianPSF", "instrument_rows", "params_components", "params_profile", "slot_atoms",
            "shifted_slot_atoms", "sss_slot_atoms"]
 
 
@@ -56,15 +55,6 @@ class GaussianPSF:
 def instrument_rows(inst, idx):
     """The instrument of the pixels ``idx``: a measured response is every pixel's."""
     return inst.rows(idx) if isinstance(inst, GaussianPSF) else inst
-
-
-def instrument_widths(inst, n: int) -> np.ndarray:
-    """(n,) each pixel's (Gaussian-equivalent) width, ps."""
-    if isinstance(inst, GaussianPSF):
-        if inst.sigma_ps.size != n:
-            raise ValueError(f"GaussianPSF holds {inst.sigma_ps.size} widths for {n} pixels")
-        return inst.sigma_ps
-    return np.full(n, gaussian_equivalent_sigma_ps(inst))
 
 
 def _gaussian_atoms(inst: GaussianPSF, t_ps, fam, delay, lalp) -> np.ndarray:

@@ -95,8 +95,8 @@ from ..constants import (EARLY_DIRECT_NEAR_SIGMA, EARLY_DIRECT_STARTS_SIGMA, FAM
 from ..stages.grow import min_gaussian_gap_sigma, residual_peak, worth_refitting
 from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguous, log_samples, penalised
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
-from ..model.atoms import (GaussianPSF, instrument_rows, instrument_widths, params_components, params_profile,
-                           shifted_slot_atoms, slot_atoms, sss_slot_atoms)
+from ..model.atoms import (GaussianPSF, instrument_rows, params_components, params_profile, shifted_slot_atoms,
+                           slot_atoms, sss_slot_atoms)
 from .refine import Slots, refine_rows, refit_slots
 from ..model.slots import select_rows
 from ..model.fidelity import fidelity
@@ -119,8 +119,8 @@ class GrowContext:
     refine_kw : dict                   keywords of :func:`refit_slots` for all n pixels
     opts : SolverOptions
 
-    ``width`` (n,): each pixel's (Gaussian-equivalent) width, ps, the unit of every distance
-    rule here.
+    ``width`` (n,): each pixel's (Gaussian-equivalent) width, ps (``refine_kw["sigma_eq"]``), the
+    unit of every distance rule here.
     """
 
     def __init__(self, samples, irf, held, fit_bg, refine_kw, opts):
@@ -128,9 +128,15 @@ class GrowContext:
         self.refine_kw, self.opts = refine_kw, opts
         self.counts = samples.noise_model == "poisson"
         live = samples.live
-        self.width = instrument_widths(irf, live.size)
-        self.log_width = (np.log(self.width) if isinstance(irf, GaussianPSF)
-                          else np.full(live.size, math.log(self.width[0]) if live.size else 0.0))
+        # the widths the refit writes into the parameters (one for a response, one per pixel for
+        # the Gaussian PSF)
+        sigma_eq = refine_kw["sigma_eq"]
+        if np.ndim(sigma_eq):
+            self.width = np.asarray(sigma_eq, np.float64)
+            self.log_width = np.log(self.width)
+        else:
+            self.width = np.full(live.size, float(sigma_eq))
+            self.log_width = np.full(live.size, math.log(sigma_eq))
         self.values = np.asarray(samples.values[live], np.float64)
         self.fit = samples.fit[live]
         self.t = refine_kw["t"]
