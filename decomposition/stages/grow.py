@@ -505,10 +505,9 @@ def grow_counts(samples, det, dic, opts):
       removes the most deviance, refitted where that is GROW_TRIAL_FRACTION x
       ``significance_chi2`` at least, kept where its sss survives with its onset within
       NEAR_SIGMA widths of that delay (one the polish moved further is an echo taken for an
-      sss, the response path's far sss: on d+r2 scenes at 300 photons 12 % of the pixels
-      reported an sss without this, 7 % with it as before the trial).  (The response path refits
-      every coarse alpha: its held gains picked worse there.  Here the pick gave the same
-      fidelity to +-0.005 with a third of the refits, docs/history.md.)
+      sss, the response path's far sss).  The response path refits every coarse alpha, where
+      the held gains pick worse; here the pick loses nothing and saves two thirds of the
+      refits (docs/history.md, "The count forward step tries an sss on the Gaussian path").
 
     Each trial is polished with the rest (Poisson weights,
     :func:`decomposition.stages.countpolish.polish_count_state`); a pixel takes the trial of lowest
