@@ -142,6 +142,12 @@ class Dictionary:
         self.sigma_ps = np.array(sig, np.float64)
         self.alpha_per_ps = np.array(alp, np.float64)
 
+    @property
+    def sss_alphas_per_ps(self) -> np.ndarray:
+        """The coarse sss decay rates, each once, increasing (1/ps; none without the sss family):
+        the alphas a forward step's sss trial starts from."""
+        return np.unique(self.alpha_per_ps[self.fam == FAM_SSS])
+
     def correlate(self, x: np.ndarray, squared: bool = False, atoms=None, workers: int = 1) -> np.ndarray:
         """Correlate rows of ``x`` (P, L) with every atom (or those of index array ``atoms``, A')
         at every shift -> (P, A, S) (or (P, A', S)); ``squared``: with the squared atoms.

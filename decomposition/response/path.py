@@ -110,9 +110,7 @@ class ResponseFit:
     def alphas_per_ps(self) -> np.ndarray:
         """The dictionary's sss decay rates (the grid's coarse alphas, each once; none without the
         sss family)."""
-        a = self.dic.alpha_per_ps[self.dic.fam == FAM_SSS]
-        # the Gaussian dictionary repeats each alpha once per width
-        return np.unique(a) if isinstance(self.irf, GaussianPSF) else a
+        return self.dic.sss_alphas_per_ps
 
 
 def detect(samples: Samples, irf, grid: GridSpec, opts: SolverOptions, components, hold=None) -> ResponseFit:

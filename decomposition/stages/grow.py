@@ -452,7 +452,7 @@ def _sss_trial_counts(blk, cand, cur, mu):
     with the rest held -> as :func:`_echo_trial_counts`."""
     t, dic, opts = blk.t, blk.dic, blk.opts
     none = (np.zeros(0, np.int64), take(cur, np.zeros(0, np.int64)), np.zeros(0))
-    alphas = np.unique(dic.alpha_per_ps[dic.fam == FAM_SSS])
+    alphas = dic.sss_alphas_per_ps
     gc = cur["fam"] == FAM_GAUSS
     rows = np.flatnonzero(~(cur["fam"] == FAM_SSS).any(axis=1))
     if alphas.size == 0 or rows.size == 0:
