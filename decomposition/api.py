@@ -11,6 +11,7 @@ one place the order is written, and docs/decomposition.md lists the same names i
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -39,25 +40,9 @@ from .stages.selection import misfit_beyond_noise
 from .response.resolve import resolve_response, response_record, spike_neighbour_ratio, spike_settings
 from .response import path as rp
 
-__all__ = [
-    "decompose",
-    "DecompositionResult",
-    "Stage",
-    "STAGES",
-    "parse_components",
-    "EMPTY",
-    "SATURATED",
-    "POOR_FIT",
-    "SPIKE",
-    "NONFINITE",
-    "MAX_ITER",
-    "AT_BOUND",
-    "TRUNCATED",
-    "AMBIGUOUS",
-    "WIDE_PSF",
-    "OFF_WINDOW",
-    "FLAG_NAMES",
-]
+__all__ = ["decompose", "stage_seconds", "DecompositionResult", "Stage", "STAGES", "parse_components", "EMPTY",
+           "SATURATED", "POOR_FIT", "SPIKE", "NONFINITE", "MAX_ITER", "AT_BOUND", "TRUNCATED", "AMBIGUOUS", "WIDE_PSF",
+           "OFF_WINDOW", "FLAG_NAMES"]
 
 
 @dataclass
@@ -500,6 +485,31 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
         inter-reflections, ``(...,)`` for the flags); ``info`` holds the method, every option
         and the stages' counts.
     """
+    call = _new_call(profiles, time_bin_ps, method, t0_ps=t0_ps, components=components, nan_policy=nan_policy,
+                     saturation_level=saturation_level, irf=irf, hold=hold, **options)
+    for stage in STAGES:
+        stage.run(call)
+    return call.result
+
+
+def stage_seconds(profiles, time_bin_ps: float = 2.0, method: str = "convscd", **kwargs):
+    """:func:`decompose` (the same arguments, the same result) with the wall-clock seconds each
+    stage of :data:`STAGES` took: -> (DecompositionResult, {stage name: seconds}), every stage in
+    order, 0-ish where it did not apply.  The second pass's whole call counts as ``rescue``.
+    For benchmarks (``streaklab bench speed``): where a call's time goes, per instrument."""
+    call = _new_call(profiles, time_bin_ps, method, **kwargs)
+    seconds = {}
+    for stage in STAGES:
+        start = time.perf_counter()
+        stage.run(call)
+        seconds[stage.name] = time.perf_counter() - start
+    return call.result, seconds
+
+
+def _new_call(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0_ps: float | None = None,
+              components=("d", "r", "s"), nan_policy: str = "raise", saturation_level: float | None = None,
+              irf=None, hold=None, **options) -> _Call:
+    """The checked arguments of :func:`decompose` as the state its stages share."""
     axis = time_axis(time_bin_ps, t0_ps)
     if method not in METHODS:
         raise ValueError(f"method must be 'convscd' or 'gradbm', got {method!r}")
@@ -518,12 +528,9 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
                          f"not {method!r}")
     keywords = dict(time_bin_ps=time_bin_ps, method=method, t0_ps=axis.t0_ps, components=components,
                     nan_policy=nan_policy, saturation_level=saturation_level, **options)
-    call = _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
+    return _Call(profiles=profiles, axis=axis, method=method, fams=fams, nan_policy=nan_policy,
                  saturation_level=saturation_level, grid=grid, opts=opts.resolved(fams, response=irf is not None),
                  method_options=method_options, irf=irf, keywords=keywords, background=background, hold=hold)
-    for stage in STAGES:
-        stage.run(call)
-    return call.result
 
 
 def _rescue(profiles, samples, fit, params, flags, noise_eff, flat_noise, spectrum, opts, info, call, hold=None):

@@ -282,3 +282,31 @@ def test_decompose_runs_the_declared_stages_in_order(monkeypatch):
     assert res.params["direct_delay_ps"].shape == (4,)
     assert len({s.name for s in api.STAGES}) == len(api.STAGES)
     assert all(s.purpose and "\n" not in s.purpose for s in api.STAGES)
+
+
+def test_stage_seconds_times_every_stage_of_the_same_call_as_decompose():
+    import time
+
+    import decomposition.api as api
+    from drivers.sim.scene import simulated_response
+
+    tailed = simulated_response("tailed")
+    for kw in ({}, {"irf": tailed}, {"method": "gradbm"}):
+        data = make_profiles(12, 512, nsr=0.02, seed=4, ranges="paper", response=kw.get("irf")).noisy
+        want = decompose(data, T, **kw)
+        start = time.perf_counter()
+        got, seconds = api.stage_seconds(data, T, **kw)
+        wall = time.perf_counter() - start
+        # the same answer, bit for bit: the same call, its stages timed
+        assert set(got.params) == set(want.params)
+        for key in want.params:
+            assert np.array_equal(got.params[key], want.params[key], equal_nan=True), key
+        assert np.array_equal(got.flags, want.flags) and np.array_equal(got.residual, want.residual)
+        assert list(seconds) == [s.name for s in api.STAGES]
+        assert all(v >= 0.0 for v in seconds.values()) and sum(seconds.values()) <= wall
+        # the stages that do the work take the time: detection always, a stage that does not apply ~nothing
+        assert seconds["detect"] > 0.05 * wall
+        skipped = "forward_steps" if "irf" not in kw else "search"
+        assert seconds[skipped] < 0.01 * wall
+    with pytest.raises(ValueError, match="method must be"):
+        api.stage_seconds(data, T, method="nosuch")

@@ -304,3 +304,14 @@ def test_speed_with_a_response_times_it_and_the_gaussian_on_the_same_cube(tmp_pa
     kinds = {name: zarr.open_group(str(out / name), mode="r").attrs["irf"]["kind"]
              for name in ("result-convscd-threads1-tailed.zarr", "result-convscd-threads1.zarr")}
     assert kinds == {"result-convscd-threads1-tailed.zarr": "response", "result-convscd-threads1.zarr": "gaussian"}
+    # where the time goes: each instrument's call on the cube's profiles, stage by stage, in the
+    # order of the stage list
+    from decomposition.api import STAGES
+
+    assert [(b["irf"], b["method"], b["pixels"]) for b in report["stages"]] == [("tailed", "convscd", 4),
+                                                                                ("gaussian", "convscd", 4)]
+    for b in report["stages"]:
+        assert list(b["stage_seconds"]) == [s.name for s in STAGES]
+        assert 0 < sum(b["stage_seconds"].values()) <= b["seconds"]
+    assert text.count("where the time goes, 4 profiles in this process") == 2
+    assert "per 1,000 profiles: " in text and "detect " in text

@@ -126,7 +126,9 @@ def test_bench_speed_runs_on_a_tiny_cube(tmp_path, capsys, monkeypatch):
     assert run["pixels_per_s"] > 0 and run["peak_rss_tree_mib"] > 10 and report["floor"]["pixels_per_s"] > 0
     assert "FFT floor" in printed and "paper-size 600x672x512" in printed
     assert not list(tmp_path.glob("work-*"))  # the synthetic cube and results are cleaned up
-    (line,) = [ln for ln in printed.splitlines() if ln.startswith("gradbm")]
+    (line,) = [ln for ln in printed.splitlines() if ln.startswith("gradbm") and "all stages" in ln]
+    (stages,) = report["stages"]
+    assert stages["method"] == "gradbm" and stages["pixels"] == 32 and stages["stage_seconds"]["detect"] > 0
     peak = float(re.search(r"peak memory ([\d,]+) MiB \(one process\)", line).group(1).replace(",", ""))
     assert peak == pytest.approx(run["peak_rss_mib"], abs=1) and peak >= run["peak_rss_one_process_mib"] - 1
 
@@ -145,11 +147,16 @@ def test_bench_speed_hands_solver_options_to_every_run_and_judges_no_target_then
         speed.run(parser.parse_args(common + ["--option", "rescue"]))
     with pytest.raises(CommandError, match="n_polish"):        # a bad value, before the cube is written
         speed.run(parser.parse_args(common + ["--option", "n_polish=-1"]))
+    with pytest.raises(CommandError, match="--stage-pixels must be 0"):
+        speed.run(parser.parse_args(common + ["--stage-pixels", "-1"]))
     assert not (tmp_path / "speed.json").exists() and not list(tmp_path.glob("work-*"))
     assert speed.run(parser.parse_args(common + ["--option", "rescue=false", "--option", "n_polish=10"])) == 0
     printed = capsys.readouterr().out
     report = json.loads((tmp_path / "speed.json").read_text())
     assert report["options"] == {"rescue": False, "n_polish": 10}
+    # the stage breakdown runs with the same options: no second pass
+    (stages,) = report["stages"]
+    assert stages["pixels"] == 32 and stages["stage_seconds"]["rescue"] < 0.01 * stages["seconds"]
     (run,) = report["runs"]
     assert run["pixels"] == 32 and run["chunks_done"] == 2
     assert "target, convscd" not in printed and "the target is judged on the defaults" in printed
@@ -181,7 +188,7 @@ def test_bench_speed_repeat_runs_each_configuration_in_rounds_and_judges_the_med
               "--chunks", "1", "16", "--scenes", "legacy", "--out", str(tmp_path)]
     with pytest.raises(CommandError, match="--repeat must be at least 1"):
         speed.run(parser.parse_args(common + ["--repeat", "0"]))
-    assert speed.run(parser.parse_args(common + ["--repeat", "2"])) == 0
+    assert speed.run(parser.parse_args(common + ["--repeat", "2", "--stage-pixels", "0"])) == 0
     printed = capsys.readouterr().out
     report = json.loads((tmp_path / "speed.json").read_text())
     runs = report["runs"]
@@ -193,3 +200,4 @@ def test_bench_speed_repeat_runs_each_configuration_in_rounds_and_judges_the_med
         assert m["runs"] == 2 and m["pixels_per_s_min"] == pps[0] and m["pixels_per_s_max"] == pps[1]
         assert m["pixels_per_s_median"] == pytest.approx(0.5 * (pps[0] + pps[1]))
     assert "round 2 of 2" in printed and printed.count("over 2 runs: median") == 2
+    assert report["stages"] == [] and "where the time goes" not in printed

@@ -22,6 +22,12 @@ relative to the floor, peak memory, and the time the paper-size 600 x 672 x 512 
 (the measured setup time plus its pixels at the measured rate over the chunks).  Writes
 ``speed.json``.
 
+Where the time goes (``--stage-pixels N``, default :data:`STAGE_PIXELS`; ``stages`` in
+``speed.json``): after the timed runs, the cube's first N profiles are decomposed once more in
+the bench's own process with the pipeline's solver settings, per method and response, and the
+seconds of each stage of :data:`decomposition.api.STAGES` are printed per 1,000 profiles with
+their share of the call -- the same stage names as docs/decomposition.md.
+
 ``--option KEY=VALUE`` (repeatable) hands a solver option to every run, as ``streaklab
 decompose --option`` takes it (``rescue=false`` times the first pass alone); the options are
 printed and kept in ``speed.json``, and the target is judged only on runs with the defaults.
@@ -64,6 +70,8 @@ TARGET_PAPER_S = 3.5 * 60
 #: a measured response's pixels per second over the Gaussian's on the same cube, at least
 TARGET_RESPONSE_RATIO = 0.8
 ROOT = Path(__file__).resolve().parents[2]
+#: profiles of the stage-by-stage breakdown (``--stage-pixels``)
+STAGE_PIXELS = 2048
 
 
 def add_arguments(parser) -> None:
@@ -95,6 +103,10 @@ def add_arguments(parser) -> None:
                              "configuration once, so a machine that slows down slows them alike); the "
                              "target is judged on the median (default 1)")
     parser.add_argument("--keep", action="store_true", help="keep the synthetic cube and result stores")
+    parser.add_argument("--stage-pixels", type=int, default=STAGE_PIXELS, metavar="N",
+                        help=f"after the timed runs, where the time goes: the cube's first N profiles "
+                             f"decomposed in this process, timed stage by stage, per method and response "
+                             f"(default {STAGE_PIXELS}; 0: not)")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="a solver option for every run, as streaklab decompose takes it (repeatable; "
                              "e.g. rescue=false); the target is judged on the defaults only")
@@ -271,6 +283,39 @@ def run_config(cube_path, out_path, *, method, kind, n, chunks, options=None, ir
     return s
 
 
+def stage_breakdown(cube_path, *, method: str, response=None, pixels: int = STAGE_PIXELS,
+                    options=None) -> dict:
+    """Where a call's time goes: the cube's first ``pixels`` profiles decomposed in this process
+    with the pipeline's solver settings (components d, s, r; 3 inter-reflection slots; NaN pixels
+    omitted; ``options``; the response ``response`` or the Gaussian PSF), timed stage by stage
+    (:func:`decomposition.api.stage_seconds`); -> {method, irf, pixels, seconds, stage_seconds}.
+    Run after a warm-up: the first call of a kernel compiles it."""
+    from decomposition.api import stage_seconds
+    from reconstruction.cubestore import open_cube
+
+    cube = open_cube(cube_path)
+    ny, nx, nt = cube.shape
+    rows = min(ny, -(-int(pixels) // nx))
+    profiles = np.asarray(cube.array[:rows], np.float64).reshape(-1, nt)[:int(pixels)]
+    start = time.perf_counter()
+    _, seconds = stage_seconds(profiles, cube.time_bin_ps, method, t0_ps=cube.t0_ps, components=("d", "s", "r"),
+                               nan_policy="omit", max_reflections=3, irf=response, **(options or {}))
+    total = time.perf_counter() - start
+    return {"method": method, "irf": "gaussian" if response is None else None, "pixels": int(profiles.shape[0]),
+            "seconds": total, "stage_seconds": seconds}
+
+
+def stage_text(b: dict) -> str:
+    """A :func:`stage_breakdown` as printed lines: the call, then each stage that took at least
+    1 % of it, with its seconds per 1,000 profiles and share."""
+    per_k = 1000.0 / max(b["pixels"], 1)
+    head = (f"{b['method']:8s} [{b['irf']}] where the time goes, {b['pixels']:,} profiles in this process: "
+            f"{b['seconds']:.2f} s ({b['pixels'] / b['seconds']:,.0f} px/s)")
+    parts = [f"{name} {sec * per_k:.3f} s ({100 * sec / b['seconds']:.0f} %)"
+             for name, sec in b["stage_seconds"].items() if sec >= 0.01 * b["seconds"]]
+    return head + "\n    per 1,000 profiles: " + ", ".join(parts)
+
+
 def _label(kind, n) -> str:
     return f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
 
@@ -368,6 +413,8 @@ def run(args) -> int:
             options = parse_solver_options(args.option, method, check_values=True)
     if args.repeat < 1:
         raise CommandError(f"--repeat must be at least 1, got {args.repeat}")
+    if args.stage_pixels < 0:
+        raise CommandError(f"--stage-pixels must be 0 (not) or a number of profiles, got {args.stage_pixels}")
     from decomposition.evaluation.synthetic import SCENE_PRESETS
 
     if args.photons is not None and not (np.isfinite(args.photons) and args.photons > 0):
@@ -419,6 +466,15 @@ def run(args) -> int:
                                        irf=irf, paired=response is not None)
                         s["round"] = rnd
                         rows.append(s)
+        stages = []
+        if args.stage_pixels:
+            for method in methods:
+                for irf in irfs:
+                    b = stage_breakdown(cube_path, method=method, response=None if irf is None else response,
+                                        pixels=args.stage_pixels, options=options)
+                    b["irf"] = "gaussian" if irf is None else irf[0]
+                    print(stage_text(b), flush=True)
+                    stages.append(b)
     if nt != PAPER_SHAPE[2]:
         print(f"note: the paper-size projection assumes {nt} bins per profile, as measured, not {PAPER_SHAPE[2]}")
     summaries = _summaries(rows)
@@ -450,7 +506,7 @@ def run(args) -> int:
               "cpu_count": os.cpu_count(), "cube_write_s": gen_s, "floor": floor, "runs": rows,
               "repeat": args.repeat, "summaries": summaries,
               "irf": args.irf if response is None else {"name": args.irf, "provenance": response.provenance},
-              "ratios": ratios,
+              "ratios": ratios, "stages": stages,
               "paper_shape": list(PAPER_SHAPE)}
     (out / "speed.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out / 'speed.json'}")
