@@ -248,6 +248,8 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
     jlo = np.zeros(npar, np.int64)
     jhi = np.zeros(npar, np.int64)
     step = np.zeros(npar)
+    lhs0 = np.zeros((npar, npar))
+    rhs0 = np.zeros(npar)
     for p in range(n):
         f = fam[p]
         has_bg = Kc > K and bg[p]
@@ -281,6 +283,7 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
         lam = lam0
         it = 0
         conv = nf == 0
+        fresh = False               # lhs0, rhs0 hold the normal equations at the current parameters
         while not conv and it < n_iter:
             m = m_s[now]
             lo = lo_s[now]
@@ -288,7 +291,14 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
             mu = mu_s[now]
             a_cur = amp_s[now]
             sc = scale[p]
-            for i in range(L):
+            if fresh:
+                # a rejected step leaves the parameters, and so the equations, as they were: only
+                # the damping changes
+                for a in range(nf):
+                    rhs[a, 0] = rhs0[a]
+                    for b in range(nf):
+                        lhs[a, b] = lhs0[a, b]
+            for i in range(L if not fresh else 0):
                 if fit[p, i]:
                     w[i] = 1.0 / (max(mu[i], floor) * disp2[p])
                     wr[i] = w[i] * (counts[p, i] - mu[i]) if mu[i] >= floor else 0.0
@@ -298,7 +308,7 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
             # the free parameters' Jacobian rows of the expected counts, each on its atom's
             # support [jlo, jhi) (the offset's on the whole axis); the products summed over
             # the overlap of two rows' supports
-            for q in range(nf):
+            for q in range(nf if not fresh else 0):
                 j = order[q]
                 k = j % K if j < 3 * K else K
                 jlo[q] = lo[k] if k < K else 0
@@ -315,18 +325,25 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
                 else:
                     for i in range(L):
                         jac[q, i] = sc
+            if not fresh:
+                for a in range(nf):
+                    s = 0.0
+                    for i in range(jlo[a], jhi[a]):
+                        s += jac[a, i] * wr[i]
+                    rhs[a, 0] = s
+                    for b in range(a, nf):
+                        s = 0.0
+                        for i in range(max(jlo[a], jlo[b]), min(jhi[a], jhi[b])):
+                            s += jac[a, i] * w[i] * jac[b, i]
+                        lhs[a, b] = s
+                        lhs[b, a] = s
+                for a in range(nf):
+                    rhs0[a] = rhs[a, 0]
+                    for b in range(nf):
+                        lhs0[a, b] = lhs[a, b]
+                fresh = True
             top = 0.0
             for a in range(nf):
-                s = 0.0
-                for i in range(jlo[a], jhi[a]):
-                    s += jac[a, i] * wr[i]
-                rhs[a, 0] = s
-                for b in range(a, nf):
-                    s = 0.0
-                    for i in range(max(jlo[a], jlo[b]), min(jhi[a], jhi[b])):
-                        s += jac[a, i] * w[i] * jac[b, i]
-                    lhs[a, b] = s
-                    lhs[b, a] = s
                 top = max(top, lhs[a, a])
             for a in range(nf):
                 # Marquardt's scaling, floored at 1e-12 of the largest (an atom that has left
@@ -366,6 +383,7 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
             it += 1
             if ok:
                 now = nxt
+                fresh = False
                 dev = t_dev
                 lam /= 3.0
                 if gain < lm_tol * t_dev / n_used:
