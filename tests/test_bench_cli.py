@@ -315,3 +315,4 @@ def test_speed_with_a_response_times_it_and_the_gaussian_on_the_same_cube(tmp_pa
         assert 0 < sum(b["stage_seconds"].values()) <= b["seconds"]
     assert text.count("where the time goes, 4 profiles in this process") == 2
     assert "per 1,000 profiles: " in text and "detect " in text
+    assert (out / "stages.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and "stages.png" in text

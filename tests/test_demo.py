@@ -201,3 +201,4 @@ def test_bench_speed_repeat_runs_each_configuration_in_rounds_and_judges_the_med
         assert m["pixels_per_s_median"] == pytest.approx(0.5 * (pps[0] + pps[1]))
     assert "round 2 of 2" in printed and printed.count("over 2 runs: median") == 2
     assert report["stages"] == [] and "where the time goes" not in printed
+    assert not (tmp_path / "stages.png").exists()

@@ -26,7 +26,8 @@ Where the time goes (``--stage-pixels N``, default :data:`STAGE_PIXELS`; ``stage
 ``speed.json``): after the timed runs, the cube's first N profiles are decomposed once more in
 the bench's own process with the pipeline's solver settings, per method and response, and the
 seconds of each stage of :data:`decomposition.api.STAGES` are printed per 1,000 profiles with
-their share of the call -- the same stage names as docs/decomposition.md.
+their share of the call -- the same stage names as docs/decomposition.md -- and drawn in
+``stages.png`` (one bar per method and response, the stages stacked in the order they run).
 
 ``--option KEY=VALUE`` (repeatable) hands a solver option to every run, as ``streaklab
 decompose --option`` takes it (``rescue=false`` times the first pass alone); the options are
@@ -316,6 +317,32 @@ def stage_text(b: dict) -> str:
     return head + "\n    per 1,000 profiles: " + ", ".join(parts)
 
 
+def stage_figure(breakdowns: list[dict]):
+    """``stages.png`` as a matplotlib Figure: one bar per :func:`stage_breakdown` (method and
+    response), its stages stacked in the order they run, seconds per 1,000 profiles; a stage
+    under 1 % of every call is left out, the same colour for a stage in every bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [name for name in breakdowns[0]["stage_seconds"]
+             if any(b["stage_seconds"][name] >= 0.01 * b["seconds"] for b in breakdowns)]
+    fig, ax = plt.subplots(figsize=(7.0, 1.2 + 0.55 * len(breakdowns)))
+    labels = [f"{b['method']} [{b['irf']}]" for b in breakdowns]
+    left = np.zeros(len(breakdowns))
+    for k, name in enumerate(names):
+        width = np.array([1000.0 * b["stage_seconds"][name] / b["pixels"] for b in breakdowns])
+        ax.barh(labels, width, left=left, color=f"C{k % 10}", hatch="//" if k >= 10 else None, label=name)
+        left += width
+    ax.invert_yaxis()
+    ax.set_xlabel("seconds per 1,000 profiles, one thread")
+    ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.35 - 0.1 / len(breakdowns)))
+    ax.set_title(f"where a call's time goes ({breakdowns[0]['pixels']:,} profiles per bar)", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def _label(kind, n) -> str:
     return f"{n} worker process{'es' if n > 1 else ''}" if kind == "processes" else f"{n} threads"
 
@@ -509,5 +536,13 @@ def run(args) -> int:
               "ratios": ratios, "stages": stages,
               "paper_shape": list(PAPER_SHAPE)}
     (out / "speed.json").write_text(json.dumps(report, indent=2))
-    print(f"wrote {out / 'speed.json'}")
+    written = [out / "speed.json"]
+    if stages:
+        import matplotlib.pyplot as plt
+
+        fig = stage_figure(stages)
+        fig.savefig(out / "stages.png", dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        written.append(out / "stages.png")
+    print(f"wrote {' and '.join(str(p) for p in written)}")
     return 0
