@@ -495,7 +495,8 @@ def decompose(profiles, time_bin_ps: float = 2.0, method: str = "convscd", *, t0
 def stage_seconds(profiles, time_bin_ps: float = 2.0, method: str = "convscd", **kwargs):
     """:func:`decompose` (the same arguments, the same result) with the wall-clock seconds each
     stage of :data:`STAGES` took: -> (DecompositionResult, {stage name: seconds}), every stage in
-    order, 0-ish where it did not apply.  The second pass's whole call counts as ``rescue``.
+    order (one that does not apply returns at once).  The second pass's whole call counts as
+    ``rescue``.
     For benchmarks (``streaklab bench speed``): where a call's time goes, per instrument."""
     call = _new_call(profiles, time_bin_ps, method, **kwargs)
     seconds = {}

@@ -284,25 +284,26 @@ def run_config(cube_path, out_path, *, method, kind, n, chunks, options=None, ir
     return s
 
 
-def stage_breakdown(cube_path, *, method: str, response=None, pixels: int = STAGE_PIXELS,
-                    options=None) -> dict:
-    """Where a call's time goes: the cube's first ``pixels`` profiles decomposed in this process
-    with the pipeline's solver settings (components d, s, r; 3 inter-reflection slots; NaN pixels
-    omitted; ``options``; the response ``response`` or the Gaussian PSF), timed stage by stage
-    (:func:`decomposition.api.stage_seconds`); -> {method, irf, pixels, seconds, stage_seconds}.
-    Run after a warm-up: the first call of a kernel compiles it."""
+def stage_breakdown(cube_path, *, method: str, response=None, irf_name: str = "gaussian",
+                    pixels: int = STAGE_PIXELS, options=None) -> dict:
+    """Where a call's time goes: the cube's first ``pixels`` profiles, as stored, decomposed in
+    this process with the pipeline's solver settings (components d, s, r; 3 inter-reflection
+    slots; NaN pixels omitted; ``options``; the response ``response``, named ``irf_name``, or the
+    Gaussian PSF), timed stage by stage (:func:`decomposition.api.stage_seconds`);
+    -> {method, irf, pixels, seconds, stage_seconds}.  Run after a warm-up: the first call of a
+    kernel compiles it."""
     from decomposition.api import stage_seconds
     from reconstruction.cubestore import open_cube
 
     cube = open_cube(cube_path)
     ny, nx, nt = cube.shape
     rows = min(ny, -(-int(pixels) // nx))
-    profiles = np.asarray(cube.array[:rows], np.float64).reshape(-1, nt)[:int(pixels)]
+    profiles = np.asarray(cube.array[:rows]).reshape(-1, nt)[:int(pixels)]
     start = time.perf_counter()
     _, seconds = stage_seconds(profiles, cube.time_bin_ps, method, t0_ps=cube.t0_ps, components=("d", "s", "r"),
                                nan_policy="omit", max_reflections=3, irf=response, **(options or {}))
     total = time.perf_counter() - start
-    return {"method": method, "irf": "gaussian" if response is None else None, "pixels": int(profiles.shape[0]),
+    return {"method": method, "irf": irf_name, "pixels": int(profiles.shape[0]),
             "seconds": total, "stage_seconds": seconds}
 
 
@@ -498,8 +499,8 @@ def run(args) -> int:
             for method in methods:
                 for irf in irfs:
                     b = stage_breakdown(cube_path, method=method, response=None if irf is None else response,
-                                        pixels=args.stage_pixels, options=options)
-                    b["irf"] = "gaussian" if irf is None else irf[0]
+                                        irf_name="gaussian" if irf is None else irf[0], pixels=args.stage_pixels,
+                                        options=options)
                     print(stage_text(b), flush=True)
                     stages.append(b)
     if nt != PAPER_SHAPE[2]:
