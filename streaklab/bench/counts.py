@@ -11,7 +11,11 @@ width
             ``decompose(..., hold={"sigma_ps": <each pixel's true width>})``.
 
 ``--option KEY=VALUE`` (repeatable, as ``streaklab decompose --option`` takes it) hands a solver
-option to every decomposition, e.g. ``likelihood_counts=true``.  Beside each, the oracle with the
+option to every decomposition, e.g. ``likelihood_counts=true``; ``--components`` the families it
+looks for (default ``d,r,s``; ``d,r,s,b`` fits an offset too).  ``--background B`` adds a constant
+offset of B to every bin of the scenes (signal units before the scaling to photons: the direct
+amplitudes are 0.5-1), as dark counts or ambient light would; the oracle knows it (the Poisson
+reference fits it, started at the truth).  Beside each, the oracle with the
 same width: the true component set fitted from the truth, each sample weighed by 1 / its true
 expected count (floored at POISSON_VARIANCE_FLOOR: the Poisson law's Fisher weights), by the
 refinement's weighted least squares (:func:`decomposition.model.refine.refine`) -- what a fit
@@ -47,6 +51,10 @@ RESPONSE = "response"
 TIME_BIN_PS = 2.0
 
 
+#: the families the decomposition looks for by default (``--components``)
+COMPONENTS = "d,r,s"
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("--out", default="bench-output/counts", help="output folder (default bench-output/counts)")
     parser.add_argument("--pixels", type=int, default=300, help="profiles per photon level (default 300)")
@@ -60,6 +68,11 @@ def add_arguments(parser) -> None:
                         help="the instrument: gaussian (default, the Gaussian PSF, a width per pixel), a simulated "
                              "response's name or a stored response")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes and their counts (default 0)")
+    parser.add_argument("--components", default=COMPONENTS,
+                        help=f"the families the decomposition looks for (default {COMPONENTS}; add b to fit an offset)")
+    parser.add_argument("--background", type=float, default=0.0, metavar="B",
+                        help="a constant offset in every bin of the scenes, signal units (direct amplitudes 0.5-1; "
+                             "default 0)")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="a solver option for every decomposition (repeatable; e.g. likelihood_counts=true)")
 
@@ -71,22 +84,25 @@ def true_widths(params: dict) -> np.ndarray:
 
 def poisson_oracle(data, hold=None) -> dict:
     """The components of the oracle fit of count scenes ``data`` (see the module docstring),
-    widths held at ``hold["sigma_ps"]`` where given."""
+    widths held at ``hold["sigma_ps"]`` where given, the scenes' offset (``data.background``)
+    known."""
     from core.model import render_components
     from decomposition.constants import POISSON_VARIANCE_FLOOR
     from decomposition.model.refine import refine
 
     weights = 1.0 / np.maximum(data.clean, POISSON_VARIANCE_FLOOR)
-    params, _ = refine(np.asarray(data.noisy, np.float64), data.params, time_bin_ps=data.time_bin_ps,
+    truth = dict(data.params, background=np.asarray(data.background, np.float64))
+    params, _ = refine(np.asarray(data.noisy, np.float64), truth, time_bin_ps=data.time_bin_ps,
                        t0_ps=data.t0_ps, weights=weights, shared_sigma=True, sss_after_direct=True, keep_order=True,
                        bin_integrated=True, hold=hold)
     return render_components(params, data.noisy.shape[-1], data.time_bin_ps, data.t0_ps, bin_integrated=True)
 
 
 def measure(photons: float, widths: str, *, pixels: int, bins: int, seed: int, options: dict,
-            response=None) -> dict:
+            response=None, components: str = COMPONENTS, background: float = 0.0) -> dict:
     """One row: the decomposition's and the oracle's mean fidelity on one photon level's scenes
-    (``widths`` "free", "held", or :data:`RESPONSE` with ``response`` the true instrument)."""
+    (``widths`` "free", "held", or :data:`RESPONSE` with ``response`` the true instrument), with
+    an offset ``background`` in the scenes and ``components`` decomposed."""
     from decomposition import decompose
     from decomposition.evaluation.poisson_reference import poisson_reference_fit
     from decomposition.evaluation.synthetic import make_profiles
@@ -94,18 +110,18 @@ def measure(photons: float, widths: str, *, pixels: int, bins: int, seed: int, o
     from decomposition.model.fidelity import fidelity
 
     data = make_profiles(pixels, bins, seed=seed, ranges="paper", time_bin_ps=TIME_BIN_PS, photons_per_pixel=photons,
-                         response=response)
+                         response=response, background=background)
     hold = {"sigma_ps": true_widths(data.params)} if widths == "held" else None
     kw = {"irf": bin_averaged_response(response, TIME_BIN_PS)} if response is not None else {"hold": hold}
     t0 = time.perf_counter()
-    res = decompose(data.noisy, data.time_bin_ps, t0_ps=data.t0_ps, **kw, **options)
+    res = decompose(data.noisy, data.time_bin_ps, t0_ps=data.t0_ps, components=components, **kw, **options)
     seconds = time.perf_counter() - t0
     f_dec = float(np.mean(fidelity(data.components, res)))
     if response is None:
         oracle = poisson_oracle(data, hold)
     else:
         oracle = poisson_reference_fit(data.noisy, data.params, response, time_bin_ps=data.time_bin_ps,
-                                       t0_ps=data.t0_ps)
+                                       t0_ps=data.t0_ps, background=data.background if background > 0 else None)
     f_oracle = float(np.mean(fidelity(data.components, oracle)))
     return {"photons": photons, "widths": widths, "pixels": pixels, "fidelity": f_dec, "oracle": f_oracle,
             "gap": f_oracle - f_dec, "ms_per_pixel": 1e3 * seconds / pixels}
@@ -155,6 +171,14 @@ def run(args) -> int:
         raise CommandError(f"--bins must be at least 64, got {args.bins}")
     if args.seed < 0:
         raise CommandError(f"--seed must be a non-negative integer, got {args.seed}")
+    if not (np.isfinite(args.background) and args.background >= 0):
+        raise CommandError(f"--background must be a finite offset >= 0, got {args.background:g}")
+    from decomposition.options import component_letters
+
+    try:
+        components = ",".join(component_letters(args.components))
+    except ValueError as exc:
+        raise CommandError(f"--components: {str(exc).removeprefix('components: ')}") from None
     options = {}
     if args.option:
         from streaklab.commands.decompose import parse_solver_options
@@ -171,21 +195,25 @@ def run(args) -> int:
         warm["irf"] = bin_averaged_response(response, TIME_BIN_PS)
     warm_up(time_bin_ps=TIME_BIN_PS, n_bins=args.bins, options=warm, label="bench counts")
     print(f"counts: {args.pixels} paper scenes of {args.bins} bins of {TIME_BIN_PS:g} ps per photon level, seed "
-          f"{args.seed}, instrument {args.irf}" + (f", options {options}" if options else ""))
+          f"{args.seed}, instrument {args.irf}, components {components}"
+          + (f", offset {args.background:g}" if args.background else "") + (f", options {options}" if options else ""))
     print(f"{'photons':>8}  {'width':8} {'fidelity':>9} {'oracle':>8} {'gap':>7} {'ms/pixel':>9}")
     rows = []
     for n in photons:
         for w in widths:
-            r = measure(n, w, pixels=args.pixels, bins=args.bins, seed=args.seed, options=options, response=response)
+            r = measure(n, w, pixels=args.pixels, bins=args.bins, seed=args.seed, options=options, response=response,
+                        components=components, background=args.background)
             rows.append(r)
             print(f"{n:8g}  {w:8} {r['fidelity']:9.4f} {r['oracle']:8.4f} {r['gap']:7.4f} {r['ms_per_pixel']:9.2f}")
             sys.stdout.flush()
     write_csv(out / "counts.csv", rows)
     write_json(out / "summary.json", {"pixels": args.pixels, "bins": args.bins, "seed": args.seed, "irf": args.irf,
-                                      "time_bin_ps": TIME_BIN_PS, "options": options, "rows": rows})
+                                      "time_bin_ps": TIME_BIN_PS, "options": options, "components": components,
+                                      "background": args.background, "rows": rows})
     import matplotlib.pyplot as plt
 
-    fig = figure(rows, options)
+    fig = figure(rows, dict(options, **({"components": components} if components != COMPONENTS else {}),
+                            **({"offset": args.background} if args.background else {})))
     fig.savefig(out / "counts.png", dpi=120)
     plt.close(fig)
     print(f"wrote {out / 'counts.csv'}, {out / 'summary.json'} and {out / 'counts.png'}")
