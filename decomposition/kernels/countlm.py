@@ -298,34 +298,34 @@ def count_lm(t, counts, y, sw0, scale, held, fit, disp2, floor, fam, delay, lalp
                     rhs[a, 0] = rhs0[a]
                     for b in range(nf):
                         lhs[a, b] = lhs0[a, b]
-            for i in range(L if not fresh else 0):
-                if fit[p, i]:
-                    w[i] = 1.0 / (max(mu[i], floor) * disp2[p])
-                    wr[i] = w[i] * (counts[p, i] - mu[i]) if mu[i] >= floor else 0.0
-                else:
-                    w[i] = 0.0
-                    wr[i] = 0.0
-            # the free parameters' Jacobian rows of the expected counts, each on its atom's
-            # support [jlo, jhi) (the offset's on the whole axis); the products summed over
-            # the overlap of two rows' supports
-            for q in range(nf if not fresh else 0):
-                j = order[q]
-                k = j % K if j < 3 * K else K
-                jlo[q] = lo[k] if k < K else 0
-                jhi[q] = hi[k] if k < K else L
-                if j < K:
-                    for i in range(jlo[q], jhi[q]):
-                        jac[q, i] = a_cur[k] * m[K + k, i] * sc
-                elif j < 2 * K:
-                    for i in range(jlo[q], jhi[q]):
-                        jac[q, i] = a_cur[k] * m[3 * K, i] * sc
-                elif j < 3 * K:
-                    for i in range(jlo[q], jhi[q]):
-                        jac[q, i] = m[k, i] * sc
-                else:
-                    for i in range(L):
-                        jac[q, i] = sc
-            if not fresh:
+            else:
+                for i in range(L):
+                    if fit[p, i]:
+                        w[i] = 1.0 / (max(mu[i], floor) * disp2[p])
+                        wr[i] = w[i] * (counts[p, i] - mu[i]) if mu[i] >= floor else 0.0
+                    else:
+                        w[i] = 0.0
+                        wr[i] = 0.0
+                # the free parameters' Jacobian rows of the expected counts, each on its atom's
+                # support [jlo, jhi) (the offset's on the whole axis); the products summed over
+                # the overlap of two rows' supports
+                for q in range(nf):
+                    j = order[q]
+                    k = j % K if j < 3 * K else K
+                    jlo[q] = lo[k] if k < K else 0
+                    jhi[q] = hi[k] if k < K else L
+                    if j < K:
+                        for i in range(jlo[q], jhi[q]):
+                            jac[q, i] = a_cur[k] * m[K + k, i] * sc
+                    elif j < 2 * K:
+                        for i in range(jlo[q], jhi[q]):
+                            jac[q, i] = a_cur[k] * m[3 * K, i] * sc
+                    elif j < 3 * K:
+                        for i in range(jlo[q], jhi[q]):
+                            jac[q, i] = m[k, i] * sc
+                    else:
+                        for i in range(L):
+                            jac[q, i] = sc
                 for a in range(nf):
                     s = 0.0
                     for i in range(jlo[a], jhi[a]):

@@ -97,7 +97,7 @@ from ..stages.selection import ambiguity_tolerance, free_parameters, is_ambiguou
 from ..noise import anscombe_residual, atom_gain, count_deviance, removal_deviance
 from ..model.atoms import (GaussianPSF, instrument_rows, params_components, params_profile, shifted_slot_atoms,
                            slot_atoms, sss_slot_atoms)
-from .refine import Slots, refine_rows, refit_slots
+from .refine import Slots, pixel_widths, refine_rows, refit_slots
 from ..model.slots import select_rows
 from ..model.fidelity import fidelity
 
@@ -130,13 +130,7 @@ class GrowContext:
         live = samples.live
         # the widths the refit writes into the parameters (one for a response, one per pixel for
         # the Gaussian PSF)
-        sigma_eq = refine_kw["sigma_eq"]
-        if np.ndim(sigma_eq):
-            self.width = np.asarray(sigma_eq, np.float64)
-            self.log_width = np.log(self.width)
-        else:
-            self.width = np.full(live.size, float(sigma_eq))
-            self.log_width = np.full(live.size, math.log(sigma_eq))
+        self.width, self.log_width = pixel_widths(refine_kw["sigma_eq"], live.size)
         self.values = np.asarray(samples.values[live], np.float64)
         self.fit = samples.fit[live]
         self.t = refine_kw["t"]

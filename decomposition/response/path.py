@@ -60,7 +60,7 @@ from ..methods.dictionary import get_dictionary
 from ..stages.detect import detect_components
 from .label import label_response, param_slots
 from .grow import GrowContext, grow_response
-from .refine import Slots, refine_rows, refit_slots
+from .refine import Slots, pixel_widths, refine_rows, refit_slots
 
 __all__ = ["ResponseFit", "ResponseOutcome", "detect", "hand_over", "label", "refit", "forward_steps",
            "offset_test", "final_atoms"]
@@ -257,10 +257,7 @@ def final_atoms(rf: ResponseFit, samples: Samples, opts: SolverOptions, componen
     mark(flags, live[rf.trunc], TRUNCATED)
     # the Gaussian path's rules on the final atoms: alpha at its bound (the response has no width
     # to hit one), a component running off the window's edge
-    if rf.response is None:
-        lsig = np.broadcast_to(np.log(rf.sigma_eq_ps)[:, None], fam.shape)
-    else:
-        lsig = np.full(fam.shape, math.log(rf.sigma_eq_ps))
+    lsig = np.broadcast_to(pixel_widths(rf.sigma_eq_ps, fam.shape[0])[1][:, None], fam.shape)
     state = {"fam": fam, "delay": delay, "lsig": lsig, "lalp": lalp}
     mark(flags, live[at_bound(state, {"lsig": (-np.inf, np.inf), "lalp": rf.bounds["lalp"]})], AT_BOUND)
     mark(flags, live[off_window(state, t, irf=rf.response).any(axis=1)], OFF_WINDOW)

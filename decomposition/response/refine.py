@@ -14,6 +14,7 @@ projection after each step: delays within ``delay_bounds_ps``, log alpha within
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -38,7 +39,8 @@ LAMBDA_MAX = 1e10
 #: False: always the NumPy loop of :func:`_fit_counts` (the reference the compiled one is tested against)
 COMPILED = True
 
-__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows"]
+__all__ = ["SlotFit", "Slots", "solve_amplitudes", "fit_slots", "refit_slots", "held_slot_masks", "refine_rows",
+           "pixel_widths"]
 
 def solve_amplitudes(phi: np.ndarray, y: np.ndarray, sw: np.ndarray, active: np.ndarray):
     """Weighted least-squares amplitudes of the columns ``phi``.
@@ -353,6 +355,16 @@ def refine_rows(refine_kw: dict, rows) -> dict:
     if refine_kw.get("hold"):
         out["hold"] = {k: v[rows] for k, v in refine_kw["hold"].items()}
     return out
+
+
+def pixel_widths(sigma_eq, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each of n pixels' (Gaussian-equivalent) width, ps, and its log, (n,) each, from the
+    refit's ``sigma_eq``: one width for every pixel (a measured response's) or (n,) one per pixel
+    (the Gaussian PSF's)."""
+    if np.ndim(sigma_eq):
+        width = np.asarray(sigma_eq, np.float64)
+        return width, np.log(width)
+    return np.full(n, float(sigma_eq)), np.full(n, math.log(sigma_eq))
 
 
 def held_slot_masks(hold, fam, delay, lalp):
